@@ -1,0 +1,80 @@
+"""The lifecycle every device shares, real driver or simulator alike.
+
+A device is built from its typed config, does no I/O until ``connect()``,
+and raises ``DeviceNotConnectedError`` when used outside that window. Nodes
+only ever talk to these interfaces, so swapping a scripted source for a
+serial driver against a pseudo-terminal simulator touches no node code.
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+import logging
+from collections.abc import Mapping
+from typing import Any, ClassVar, Self
+
+from common.config import from_dict
+from common.errors import ConfigError, DeviceNotConnectedError
+
+log = logging.getLogger(__name__)
+
+
+class Device(abc.ABC):
+    """Base class: ``connect``/``disconnect``/``is_connected`` and ``with`` support."""
+
+    #: Typed config dataclass for this kind of device (set by subclasses).
+    Config: ClassVar[type]
+    #: Human-readable family name used in error messages ("tactile sensor").
+    family: ClassVar[str] = "device"
+
+    @abc.abstractmethod
+    def connect(self) -> None: ...
+
+    @abc.abstractmethod
+    def disconnect(self) -> None: ...
+
+    @property
+    @abc.abstractmethod
+    def is_connected(self) -> bool: ...
+
+    def require_connected(self) -> None:
+        if not self.is_connected:
+            raise DeviceNotConnectedError(
+                f"{self.family} {type(self).__name__} is not connected: call connect() first"
+            )
+
+    def status(self) -> dict[str, Any]:
+        """A small JSON-able summary for `deepxpalm devices` and the live view."""
+        return {"kind": type(self).__name__, "connected": self.is_connected}
+
+    def __enter__(self) -> Self:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.disconnect()
+
+
+def load_object(target: str) -> Any:
+    """Import ``"package.module:Name"`` lazily, so unused kinds are never imported."""
+    module_name, _, attr = target.partition(":")
+    return getattr(importlib.import_module(module_name), attr)
+
+
+def build_device(registry: Mapping[str, str], section: Mapping[str, Any], where: str) -> Device:
+    """Build the device a config section names by its ``kind`` key.
+
+    ``registry`` maps kind names to ``"module:Class"``; the class's ``Config``
+    dataclass parses the rest of the section.
+    """
+    kind = section.get("kind")
+    if kind not in registry:
+        raise ConfigError(
+            f"{where}.kind = {kind!r} is not a known kind; choose one of {sorted(registry)}"
+        )
+    cls = load_object(registry[kind])
+    rest = {k: v for k, v in section.items() if k != "kind"}
+    config = from_dict(cls.Config, rest, where=where)
+    log.debug("building %s kind %s", where, kind)
+    return cls(config)

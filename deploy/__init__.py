@@ -1,0 +1,1 @@
+"""Running the nodes: the ``deepxpalm`` command, scenes, the demo, deployment files."""

@@ -1,0 +1,70 @@
+"""The ``deepxpalm`` command.
+
+Each subcommand lives in its own module with ``add_arguments(parser)`` and
+``run(args) -> int``; only the chosen one is imported, so ``deepxpalm
+operator`` never pays for (or depends on) what the robot needs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from common.errors import DeepXPalmError
+
+#: subcommand -> (module, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("deploy.demo", "run both nodes, simulated devices and the link simulator"),
+    "robot": ("robot_side.node_cli", "run the robot node (tactile pads, gripper, arm)"),
+    "operator": ("operator_side.node_cli", "run the operator node (LinkGlide)"),
+    "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
+    "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
+    "devices": ("deploy.devices_cli", "list, connect to and report a scene's devices"),
+    "calibrate": ("operator_side.servos.calibrate_cli", "set and store LinkGlide servo calibration"),
+    "sim": ("deploy.sim_cli", "run one device simulator on its real wire, standalone"),
+}
+
+
+def _build_parser(chosen: str | None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="deepxpalm",
+        description="DeepXPalm: feel on the palm what a remote robot's gripper feels.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == chosen:
+            importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    if chosen not in SUBCOMMANDS:
+        chosen = None
+    parser = _build_parser(chosen)
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    logging.basicConfig(
+        level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    module = importlib.import_module(SUBCOMMANDS[args.command][0])
+    try:
+        return int(module.run(args) or 0)
+    except DeepXPalmError as e:
+        logging.getLogger("deepxpalm").error("%s", e)
+        print(f"deepxpalm {args.command}: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The robot PC's node: tactile pads, gripper, arm, perception, rendering."""

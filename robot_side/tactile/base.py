@@ -1,0 +1,90 @@
+"""The tactile sensor interface every source implements.
+
+Frames follow the project's tactile convention (docs/tactile.md): float32
+newtons of shape (2, 10, 10); axis 0 the pad (0 = finger 1, 1 = finger 2,
+already mirrored into finger 1's view), axis 1 the row (0 at the fingertip
+end), axis 2 the column (0 at the left).
+"""
+
+from __future__ import annotations
+
+import abc
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.clock import now_ns
+from common.devices import Device
+from common.errors import StaleDataError
+
+FRAME_SHAPE = (2, 10, 10)
+
+
+@dataclass(frozen=True, slots=True)
+class GraspTruth:
+    """What a simulator knows it is showing; real sensors never have this."""
+
+    pattern: int | None  # 0..11, None when nothing is grasped
+    grip_level: int | None  # 1..31
+
+
+@dataclass(frozen=True, slots=True)
+class TactileSample:
+    frame: np.ndarray  # (2, 10, 10) float32 newtons, common view
+    seq: int  # increases by one per frame the source produced (gaps = drops)
+    t_capture_ns: int  # monotonic clock, when the frame was complete
+    truth: GraspTruth | None = None
+
+
+class TactileSensor(Device):
+    """A source of frames that keeps only the newest one (freshness first).
+
+    Subclasses call ``_publish(sample)`` from their reader thread; callers use
+    ``read_latest`` or ``wait_for_frame``.
+    """
+
+    family = "tactile sensor"
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._latest: TactileSample | None = None
+
+    def _publish(self, sample: TactileSample) -> None:
+        with self._cond:
+            self._latest = sample
+            self._cond.notify_all()
+
+    def latest(self) -> TactileSample | None:
+        with self._cond:
+            return self._latest
+
+    def read_latest(self, max_age_ms: float) -> TactileSample:
+        """The newest frame; ``StaleDataError`` when it is older than ``max_age_ms``."""
+        self.require_connected()
+        sample = self.latest()
+        if sample is None:
+            raise StaleDataError(f"{type(self).__name__}: no frame received yet")
+        age_ms = (now_ns() - sample.t_capture_ns) / 1e6
+        if age_ms > max_age_ms:
+            raise StaleDataError(
+                f"{type(self).__name__}: newest frame is {age_ms:.0f} ms old "
+                f"(limit {max_age_ms:.0f} ms); is the sensor still streaming?"
+            )
+        return sample
+
+    def wait_for_frame(self, after_seq: int, timeout_s: float) -> TactileSample | None:
+        """Block until a frame newer than ``after_seq`` exists; None on timeout."""
+        self.require_connected()
+        with self._cond:
+            self._cond.wait_for(
+                lambda: self._latest is not None and self._latest.seq > after_seq, timeout_s
+            )
+            sample = self._latest
+        if sample is None or sample.seq <= after_seq:
+            return None
+        return sample
+
+    @abc.abstractmethod
+    def stats(self) -> dict[str, int]:
+        """Counters: frames received, dropped, resynchronisations, ..."""
