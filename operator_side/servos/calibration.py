@@ -1,0 +1,99 @@
+"""Servo calibration: joint angle (radians) to goal counts, and the limits.
+
+counts = zero_counts + direction * angle * 4096 / (2 pi), then clipped to
+[min_counts, max_counts]. The clip is the last word: whatever the stimulus,
+the message or the kinematics say, no count outside the limits is produced.
+A real device is measured (``deepxpalm calibrate``) and stored in TOML.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from common.config import from_dict, load_toml, param, to_dict
+from common.errors import ConfigError
+
+COUNTS_PER_TURN = 4096
+COUNTS_PER_RAD = COUNTS_PER_TURN / (2 * math.pi)
+
+
+@dataclass
+class ServoCalibration:
+    id: int = param(1, "bus id")
+    zero_counts: int = param(2048, "counts at angle 0 (link along +X)")
+    direction: int = param(1, "+1 if counts grow counter-clockwise, else -1")
+    min_counts: int = param(1024, "lowest count ever commanded")
+    max_counts: int = param(3800, "highest count ever commanded")
+
+    def __post_init__(self) -> None:
+        if self.direction not in (1, -1):
+            raise ConfigError(f"servo {self.id}: direction must be 1 or -1, not {self.direction}")
+        if not 0 <= self.min_counts < self.max_counts <= COUNTS_PER_TURN - 1:
+            raise ConfigError(
+                f"servo {self.id}: limits must satisfy 0 <= min_counts < max_counts <= 4095, "
+                f"got [{self.min_counts}, {self.max_counts}]"
+            )
+
+
+def _default_servos() -> list[ServoCalibration]:
+    return [ServoCalibration(id=i) for i in range(1, 7)]
+
+
+@dataclass
+class LinkGlideCalibration:
+    """Six servos: linkage n uses ids 2n+1 (A side) and 2n+2 (E side)."""
+
+    servos: list[ServoCalibration] = param(_default_servos(), "one entry per servo, ids 1..6")
+
+    def __post_init__(self) -> None:
+        ids = [s.id for s in self.servos]
+        if sorted(ids) != list(range(1, 7)):
+            raise ConfigError(f"calibration must list servo ids 1..6 exactly once, got {ids}")
+        by_id = {s.id: s for s in self.servos}
+        ordered = [by_id[i] for i in range(1, 7)]
+        self.ids = np.array([s.id for s in ordered], dtype=np.int64)
+        self._zero = np.array([s.zero_counts for s in ordered], dtype=np.float64)
+        self._scale = np.array([s.direction * COUNTS_PER_RAD for s in ordered])
+        self.min_counts = np.array([s.min_counts for s in ordered], dtype=np.int64)
+        self.max_counts = np.array([s.max_counts for s in ordered], dtype=np.int64)
+
+    def angles_to_counts(self, angles: np.ndarray) -> np.ndarray:
+        """(3, 2) angles (tau_a, tau_e per linkage) -> (6,) int counts, ids 1..6, clipped.
+
+        Angles are wrapped to (-pi, pi] first; a non-finite angle raises,
+        because no safe count can be guessed for it.
+        """
+        flat = np.asarray(angles, dtype=np.float64).reshape(6)
+        if not np.all(np.isfinite(flat)):
+            raise ValueError(f"non-finite servo angle(s): {flat.tolist()}")
+        wrapped = np.pi - np.mod(np.pi - flat, 2 * np.pi)
+        counts = np.rint(self._zero + self._scale * wrapped)
+        return np.clip(counts, self.min_counts, self.max_counts).astype(np.int64)
+
+    def counts_to_angles(self, counts: np.ndarray) -> np.ndarray:
+        flat = np.asarray(counts, dtype=np.float64).reshape(6)
+        return ((flat - self._zero) / self._scale).reshape(3, 2)
+
+    def clip_counts(self, counts: np.ndarray) -> np.ndarray:
+        return np.clip(np.asarray(counts, dtype=np.int64), self.min_counts, self.max_counts)
+
+    def within_limits(self, counts: np.ndarray) -> bool:
+        c = np.asarray(counts)
+        return bool(np.all((c >= self.min_counts) & (c <= self.max_counts)))
+
+
+def load_calibration(path: str | Path) -> LinkGlideCalibration:
+    return from_dict(LinkGlideCalibration, load_toml(path), where="calibration")
+
+
+def save_calibration(calibration: LinkGlideCalibration, path: str | Path) -> None:
+    lines = ["# LinkGlide servo calibration (deepxpalm calibrate). counts = zero_counts +"]
+    lines.append("# direction * angle * 4096 / (2 pi), clipped to [min_counts, max_counts].")
+    for servo in to_dict(calibration)["servos"]:
+        lines.append("\n[[servos]]")
+        lines.extend(f"{k} = {v}" for k, v in servo.items())
+    Path(path).write_text("\n".join(lines) + "\n")
