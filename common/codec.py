@@ -1,0 +1,283 @@
+"""msgpack codec for ``common.messages``: validates everything on decode.
+
+A message that decodes is safe to act on: right version and type, every
+required field present with the right type, every number finite and in
+range, arrays of the right shape. Anything else raises a ``DecodeError``
+subclass that names the problem; the caller counts it and drops the message.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from common.errors import DeepXPalmError
+from common.messages import (
+    COMMAND_ACTIONS,
+    LINK_STATES,
+    MESSAGE_TYPES,
+    PROTOCOL_VERSION,
+    RENDER_MODES,
+    Command,
+    Heartbeat,
+    Message,
+    Stimulus,
+    TactileFrame,
+)
+
+TOPIC_LEN = 4
+MAX_MESSAGE_BYTES = 16 * 1024
+STIMULUS_MAX_N = 9.0  # the sensor saturates at 9 N; anything above is not a stimulus
+N_PATTERNS = 12
+GRIP_LEVELS = (1, 31)
+MAX_STATS = 64
+_U63 = 2**63 - 1
+
+
+class DecodeError(DeepXPalmError, ValueError):
+    """A message was rejected; it must be counted and dropped, never acted on."""
+
+
+class MalformedMessageError(DecodeError):
+    """Not a topic followed by a msgpack map."""
+
+
+class MessageTooLargeError(DecodeError):
+    """Longer than ``MAX_MESSAGE_BYTES``."""
+
+
+class UnsupportedVersionError(DecodeError):
+    """The protocol major version is not this build's."""
+
+
+class UnknownMessageTypeError(DecodeError):
+    """The topic or ``type`` names no known message."""
+
+
+class MissingFieldError(DecodeError):
+    """A required field is absent."""
+
+
+class FieldTypeError(DecodeError):
+    """A field has the wrong type or shape."""
+
+
+class NonFiniteValueError(DecodeError):
+    """A number is NaN or infinite."""
+
+
+class OutOfRangeError(DecodeError):
+    """A number is outside the range its field allows."""
+
+
+# ---------------------------------------------------------------- field checks
+Check = Callable[[str, Any], Any]
+
+
+def _uint(name: str, v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise FieldTypeError(f"{name} must be an unsigned integer, not {type(v).__name__}")
+    if not 0 <= v <= _U63:
+        raise OutOfRangeError(f"{name} = {v} is outside 0..2**63-1")
+    return v
+
+
+def _int_range(lo: int, hi: int) -> Check:
+    def check(name: str, v: Any) -> int:
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise FieldTypeError(f"{name} must be an integer, not {type(v).__name__}")
+        if not lo <= v <= hi:
+            raise OutOfRangeError(f"{name} = {v} is outside {lo}..{hi}")
+        return v
+
+    return check
+
+
+def _finite(name: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise FieldTypeError(f"{name} must be a number, not {type(v).__name__}")
+    v = float(v)
+    if not math.isfinite(v):
+        raise NonFiniteValueError(f"{name} is {v}")
+    return v
+
+
+def _float_range(lo: float, hi: float) -> Check:
+    def check(name: str, v: Any) -> float:
+        v = _finite(name, v)
+        if not lo <= v <= hi:
+            raise OutOfRangeError(f"{name} = {v} is outside {lo}..{hi}")
+        return v
+
+    return check
+
+
+def _bool(name: str, v: Any) -> bool:
+    if not isinstance(v, bool):
+        raise FieldTypeError(f"{name} must be true or false, not {type(v).__name__}")
+    return v
+
+
+def _enum(values: tuple[str, ...]) -> Check:
+    def check(name: str, v: Any) -> str:
+        if not isinstance(v, str):
+            raise FieldTypeError(f"{name} must be a string, not {type(v).__name__}")
+        if v not in values:
+            raise OutOfRangeError(f"{name} = {v!r} is not one of {list(values)}")
+        return v
+
+    return check
+
+
+def _f32_array(shape: tuple[int, ...], lo: float, hi: float) -> Check:
+    nbytes = 4 * math.prod(shape)
+
+    def check(name: str, v: Any) -> np.ndarray:
+        if not isinstance(v, bytes) or len(v) != nbytes:
+            raise FieldTypeError(f"{name} must be {nbytes} bytes of little-endian float32")
+        arr = np.frombuffer(v, dtype="<f4").reshape(shape)
+        if not np.isfinite(arr).all():
+            raise NonFiniteValueError(f"{name} holds a non-finite value")
+        if arr.min() < lo or arr.max() > hi:
+            raise OutOfRangeError(f"{name} holds values outside {lo}..{hi}")
+        return arr.astype(np.float32)  # native, writable copy
+
+    return check
+
+
+def _stimulus_array(name: str, v: Any) -> np.ndarray:
+    arr = _f32_array((3, 3), 0.0, STIMULUS_MAX_N)(name, v)
+    if ((arr > 0).sum(axis=1) > 1).any():
+        raise OutOfRangeError(f"{name} has more than one non-zero cell in a row")
+    return arr
+
+
+def _velocity(name: str, v: Any) -> tuple[float, ...]:
+    if not isinstance(v, (list, tuple)) or len(v) != 6:
+        raise FieldTypeError(f"{name} must be a list of 6 numbers")
+    return tuple(_finite(f"{name}[{i}]", x) for i, x in enumerate(v))
+
+
+def _stats(name: str, v: Any) -> dict[str, float]:
+    if not isinstance(v, dict) or len(v) > MAX_STATS:
+        raise FieldTypeError(f"{name} must be a map of at most {MAX_STATS} numbers")
+    out = {}
+    for k, x in v.items():
+        if not isinstance(k, str):
+            raise FieldTypeError(f"{name} keys must be strings")
+        out[k] = _finite(f"{name}.{k}", x)
+    return out
+
+
+# (field, check, required). Optional fields may be absent or nil.
+_COMMON = [("seq", _uint, True), ("t_send_ns", _uint, True)]
+SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
+    Stimulus: [
+        *_COMMON,
+        ("t_capture_ns", _uint, True),
+        ("frame_seq", _uint, True),
+        ("mode", _enum(RENDER_MODES), True),
+        ("contact", _bool, True),
+        ("stimulus", _stimulus_array, True),
+        ("pattern", _int_range(0, N_PATTERNS - 1), False),
+        ("confidence", _float_range(0.0, 1.0), False),
+        ("grip_level", _int_range(*GRIP_LEVELS), False),
+        ("keyframe", _bool, False),
+        ("sim_truth_pattern", _int_range(0, N_PATTERNS - 1), False),
+    ],
+    TactileFrame: [
+        *_COMMON,
+        ("t_capture_ns", _uint, True),
+        ("frame_seq", _uint, True),
+        ("frame", _f32_array((2, 10, 10), 0.0, STIMULUS_MAX_N), True),
+    ],
+    Heartbeat: [
+        *_COMMON,
+        ("node", _enum(("robot", "operator")), True),
+        ("state", _enum(LINK_STATES), True),
+        ("echo_t_send_ns", _uint, False),
+        ("echo_t_recv_ns", _uint, False),
+        ("stimulus_seq", _uint, False),
+        ("t_capture_ns", _uint, False),
+        ("stats", _stats, False),
+    ],
+    Command: [
+        *_COMMON,
+        ("action", _enum(COMMAND_ACTIONS), True),
+        ("grip_level", _int_range(*GRIP_LEVELS), False),
+        ("velocity", _velocity, False),
+    ],
+}
+_BY_TOPIC = {cls.TOPIC: cls for cls in MESSAGE_TYPES}
+
+
+# --------------------------------------------------------------------- encode
+def _wire_value(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return np.ascontiguousarray(v, dtype="<f4").tobytes()
+    if isinstance(v, tuple):
+        return list(v)
+    if isinstance(v, (np.integer, np.floating, np.bool_)):
+        return v.item()
+    return v
+
+
+def encode(msg: Message) -> bytes:
+    """Topic + msgpack map. Optional fields that are None are left out."""
+    cls = type(msg)
+    body: dict[str, Any] = {"v": PROTOCOL_VERSION, "type": cls.TYPE}
+    for name, _, required in SCHEMAS[cls]:
+        value = getattr(msg, name)
+        if value is None and not required:
+            continue
+        body[name] = _wire_value(value)
+    if cls is Heartbeat and not msg.stats:
+        body.pop("stats", None)
+    return cls.TOPIC + msgpack.packb(body, use_bin_type=True)
+
+
+# --------------------------------------------------------------------- decode
+def decode(data: bytes) -> Message:
+    """Validate and build a message; raises a ``DecodeError`` subclass."""
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise MessageTooLargeError(f"{len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")
+    if len(data) <= TOPIC_LEN:
+        raise MalformedMessageError(f"{len(data)} bytes is too short for a message")
+    topic = bytes(data[:TOPIC_LEN])
+    cls = _BY_TOPIC.get(topic)
+    if cls is None:
+        raise UnknownMessageTypeError(f"unknown topic {topic!r}")
+    try:
+        body = msgpack.unpackb(
+            data[TOPIC_LEN:], raw=False, strict_map_key=True
+        )
+    except Exception as e:  # msgpack raises several unrelated types
+        raise MalformedMessageError(f"{topic.decode()} payload is not msgpack: {e}") from None
+    if not isinstance(body, dict):
+        raise MalformedMessageError(f"{topic.decode()} payload is not a map")
+    version = body.get("v")
+    if version != PROTOCOL_VERSION:
+        raise UnsupportedVersionError(
+            f"protocol version {version!r}; this build speaks {PROTOCOL_VERSION}"
+        )
+    if body.get("type") != cls.TYPE:
+        raise UnknownMessageTypeError(
+            f"type {body.get('type')!r} does not match topic {topic!r} ({cls.TYPE!r})"
+        )
+    kwargs: dict[str, Any] = {}
+    for name, check, required in SCHEMAS[cls]:
+        value = body.get(name)
+        if value is None:
+            if required:
+                raise MissingFieldError(f"{cls.TYPE} is missing required field {name!r}")
+            continue
+        kwargs[name] = check(f"{cls.TYPE}.{name}", value)
+    return cls(**kwargs)
+
+
+def topic_of(data: bytes) -> bytes:
+    return bytes(data[:TOPIC_LEN])

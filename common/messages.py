@@ -1,0 +1,102 @@
+"""Every message on the wire between the nodes (docs/protocol.md is the spec).
+
+A ZeroMQ message is one frame: a 4-byte ASCII topic, then a msgpack map.
+All maps carry ``v`` (protocol major version), ``type``, ``seq`` (per sender
+and type) and ``t_send_ns`` (the sender's monotonic clock). Timestamps are
+monotonic nanoseconds of the sender's machine; the receiver maps them to its
+own clock with the offset estimated from heartbeats.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+PROTOCOL_VERSION = 1
+
+RenderMode = Literal["direct", "mask", "mask_ground_truth"]
+LinkState = Literal["ok", "stale", "down"]
+CommandAction = Literal["gripper_open", "gripper_close", "gripper_hold", "arm_jog", "arm_stop"]
+
+RENDER_MODES: tuple[str, ...] = ("direct", "mask", "mask_ground_truth")
+LINK_STATES: tuple[str, ...] = ("ok", "stale", "down")
+COMMAND_ACTIONS: tuple[str, ...] = (
+    "gripper_open",
+    "gripper_close",
+    "gripper_hold",
+    "arm_jog",
+    "arm_stop",
+)
+
+
+@dataclass(slots=True)
+class Stimulus:
+    """Robot -> operator: the 3x3 stimulus to render, with what produced it."""
+
+    seq: int
+    t_send_ns: int
+    t_capture_ns: int  # when the frame it was rendered from was complete
+    frame_seq: int
+    mode: str  # one of RENDER_MODES
+    contact: bool
+    stimulus: np.ndarray  # (3, 3) float32 newtons, >= 0, at most one non-zero per row
+    pattern: int | None = None  # 0..11; None in direct mode or without contact
+    confidence: float | None = None  # 0..1, probability of the recognised pattern
+    grip_level: int | None = None  # 1..31 when a gripper reports it
+    keyframe: bool = False  # resent unchanged so a lost change cannot persist
+    sim_truth_pattern: int | None = None  # simulation only: the pattern actually shown
+
+    TOPIC = b"STIM"
+    TYPE = "stimulus"
+
+
+@dataclass(slots=True)
+class TactileFrame:
+    """Robot -> operator, for display only (heatmaps), at a reduced rate."""
+
+    seq: int
+    t_send_ns: int
+    t_capture_ns: int
+    frame_seq: int
+    frame: np.ndarray  # (2, 10, 10) float32 newtons, common view
+
+    TOPIC = b"FRAM"
+    TYPE = "frame"
+
+
+@dataclass(slots=True)
+class Heartbeat:
+    """Both ways: liveness, clock-offset samples, link state and counters."""
+
+    seq: int
+    t_send_ns: int
+    node: str  # "robot" or "operator"
+    state: str  # one of LINK_STATES, as the sender sees the link
+    echo_t_send_ns: int | None = None  # t_send_ns of the peer's latest heartbeat
+    echo_t_recv_ns: int | None = None  # when that heartbeat arrived (sender's clock)
+    stimulus_seq: int | None = None  # robot: the stimulus that is still current
+    t_capture_ns: int | None = None  # robot: newest frame that confirmed it
+    stats: dict[str, float] = field(default_factory=dict)
+
+    TOPIC = b"HBRT"
+    TYPE = "heartbeat"
+
+
+@dataclass(slots=True)
+class Command:
+    """Operator -> robot: gripper and arm commands."""
+
+    seq: int
+    t_send_ns: int
+    action: str  # one of COMMAND_ACTIONS
+    grip_level: int | None = None  # gripper_close: 1..31
+    velocity: tuple[float, ...] | None = None  # arm_jog: vx vy vz (m/s) wx wy wz (rad/s)
+
+    TOPIC = b"CMND"
+    TYPE = "command"
+
+
+Message = Stimulus | TactileFrame | Heartbeat | Command
+MESSAGE_TYPES: tuple[type, ...] = (Stimulus, TactileFrame, Heartbeat, Command)

@@ -1,0 +1,126 @@
+"""ZeroMQ sockets for the link between the nodes.
+
+Freshness over completeness: a subscriber drains everything queued and the
+caller keeps the newest message of each kind, so a backlog never turns into
+lag. Every socket has LINGER 0 (closing never blocks), a maximum message size
+(oversized frames are dropped by ZeroMQ before they are read) and bounded
+queues. Decoding errors are counted by class and logged once per burst.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from typing import Any
+
+import zmq
+
+from common.clock import now_ns
+from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
+from common.errors import LinkError
+from common.logs import BurstLog
+from common.messages import Message
+
+log = logging.getLogger(__name__)
+
+
+def _open(ctx: zmq.Context, kind: int, endpoint: str, bind: bool, opts: dict[int, Any]) -> zmq.Socket:
+    sock = ctx.socket(kind)
+    sock.setsockopt(zmq.LINGER, 0)
+    for opt, value in opts.items():
+        sock.setsockopt(opt, value)
+    try:
+        if bind:
+            sock.bind(endpoint)
+        else:
+            sock.connect(endpoint)
+    except zmq.ZMQError as e:
+        sock.close(0)
+        verb = "bind to" if bind else "connect to"
+        hint = " (is another process using this port?)" if bind else ""
+        raise LinkError(f"cannot {verb} {endpoint}: {e}{hint}") from None
+    return sock
+
+
+def last_endpoint(sock: zmq.Socket) -> str:
+    return sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+
+
+class Publisher:
+    """Sends messages; a PUB never blocks, and drops for a subscriber that lags."""
+
+    def __init__(
+        self, ctx: zmq.Context, endpoint: str, *, bind: bool, sndhwm: int = 64,
+        sock_opts: dict[int, Any] | None = None,
+    ) -> None:
+        self.sock = _open(ctx, zmq.PUB, endpoint, bind, {zmq.SNDHWM: sndhwm, **(sock_opts or {})})
+        self.endpoint = last_endpoint(self.sock) if bind else endpoint
+        self.sent = 0
+        self.bytes_sent = 0
+
+    def send(self, msg: Message) -> bytes:
+        data = encode(msg)
+        self.send_raw(data)
+        return data
+
+    def send_raw(self, data: bytes) -> None:
+        try:
+            self.sock.send(data, zmq.NOBLOCK)
+        except zmq.Again:  # only for exotic socket options; a PUB drops instead
+            return
+        self.sent += 1
+        self.bytes_sent += len(data)
+
+    def close(self) -> None:
+        self.sock.close(0)
+
+
+class Subscriber:
+    """Receives and validates messages; bad ones are counted and dropped."""
+
+    def __init__(
+        self, ctx: zmq.Context, endpoint: str, *, bind: bool, rcvhwm: int = 256,
+        sock_opts: dict[int, Any] | None = None, name: str = "subscriber",
+    ) -> None:
+        opts = {zmq.RCVHWM: rcvhwm, zmq.MAXMSGSIZE: MAX_MESSAGE_BYTES, **(sock_opts or {})}
+        self.sock = _open(ctx, zmq.SUB, endpoint, bind, opts)
+        self.sock.setsockopt(zmq.SUBSCRIBE, b"")
+        self.endpoint = last_endpoint(self.sock) if bind else endpoint
+        self.poller = zmq.Poller()
+        self.poller.register(self.sock, zmq.POLLIN)
+        self.received = 0
+        self.rejected: Counter[str] = Counter()
+        self._bad = BurstLog(log, f"{name}: rejected message")
+
+    def poll(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for something to read."""
+        return bool(self.poller.poll(max(0, int(timeout_s * 1000))))
+
+    def drain(self, max_messages: int = 1024) -> list[tuple[Message, int]]:
+        """Every valid queued message with its local receive time, oldest first."""
+        out: list[tuple[Message, int]] = []
+        for _ in range(max_messages):
+            try:
+                data = self.sock.recv(zmq.NOBLOCK, copy=True)
+            except zmq.Again:
+                break
+            t_recv = now_ns()
+            self.received += 1
+            try:
+                out.append((decode(data), t_recv))
+            except DecodeError as e:
+                self.rejected[type(e).__name__] += 1
+                self._bad(str(e))
+        return out
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+    def close(self) -> None:
+        self.sock.close(0)
+
+
+def make_context() -> zmq.Context:
+    """A fresh context per node (never the global instance), so tests can run nodes side by side."""
+    return zmq.Context()
