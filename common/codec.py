@@ -252,9 +252,7 @@ def decode(data: bytes) -> Message:
     if cls is None:
         raise UnknownMessageTypeError(f"unknown topic {topic!r}")
     try:
-        body = msgpack.unpackb(
-            data[TOPIC_LEN:], raw=False, strict_map_key=True
-        )
+        body = msgpack.unpackb(data[TOPIC_LEN:], raw=False, strict_map_key=True)
     except Exception as e:  # msgpack raises several unrelated types
         raise MalformedMessageError(f"{topic.decode()} payload is not msgpack: {e}") from None
     if not isinstance(body, dict):

@@ -28,7 +28,10 @@ class BurstLog:
             if self._suppressed:
                 self.logger.warning(
                     "%s: %d more in the last %.0f s; latest: %s",
-                    self.what, self._suppressed, now - self._last_s, detail,
+                    self.what,
+                    self._suppressed,
+                    now - self._last_s,
+                    detail,
                 )
             else:
                 self.logger.warning("%s: %s", self.what, detail)

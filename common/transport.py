@@ -24,7 +24,9 @@ from common.messages import Message
 log = logging.getLogger(__name__)
 
 
-def _open(ctx: zmq.Context, kind: int, endpoint: str, bind: bool, opts: dict[int, Any]) -> zmq.Socket:
+def _open(
+    ctx: zmq.Context, kind: int, endpoint: str, bind: bool, opts: dict[int, Any]
+) -> zmq.Socket:
     sock = ctx.socket(kind)
     sock.setsockopt(zmq.LINGER, 0)
     for opt, value in opts.items():
@@ -50,7 +52,12 @@ class Publisher:
     """Sends messages; a PUB never blocks, and drops for a subscriber that lags."""
 
     def __init__(
-        self, ctx: zmq.Context, endpoint: str, *, bind: bool, sndhwm: int = 64,
+        self,
+        ctx: zmq.Context,
+        endpoint: str,
+        *,
+        bind: bool,
+        sndhwm: int = 64,
         sock_opts: dict[int, Any] | None = None,
     ) -> None:
         self.sock = _open(ctx, zmq.PUB, endpoint, bind, {zmq.SNDHWM: sndhwm, **(sock_opts or {})})
@@ -79,8 +86,14 @@ class Subscriber:
     """Receives and validates messages; bad ones are counted and dropped."""
 
     def __init__(
-        self, ctx: zmq.Context, endpoint: str, *, bind: bool, rcvhwm: int = 256,
-        sock_opts: dict[int, Any] | None = None, name: str = "subscriber",
+        self,
+        ctx: zmq.Context,
+        endpoint: str,
+        *,
+        bind: bool,
+        rcvhwm: int = 256,
+        sock_opts: dict[int, Any] | None = None,
+        name: str = "subscriber",
     ) -> None:
         opts = {zmq.RCVHWM: rcvhwm, zmq.MAXMSGSIZE: MAX_MESSAGE_BYTES, **(sock_opts or {})}
         self.sock = _open(ctx, zmq.SUB, endpoint, bind, opts)

@@ -22,7 +22,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
     "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
     "devices": ("deploy.devices_cli", "list, connect to and report a scene's devices"),
-    "calibrate": ("operator_side.servos.calibrate_cli", "set and store LinkGlide servo calibration"),
+    "calibrate": (
+        "operator_side.servos.calibrate_cli",
+        "set and store LinkGlide servo calibration",
+    ),
     "sim": ("deploy.sim_cli", "run one device simulator on its real wire, standalone"),
 }
 
@@ -32,7 +35,9 @@ def _build_parser(chosen: str | None) -> argparse.ArgumentParser:
         prog="deepxpalm",
         description="DeepXPalm: feel on the palm what a remote robot's gripper feels.",
     )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv debug)")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more logging (-vv debug)"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_text) in SUBCOMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
