@@ -1,0 +1,11 @@
+"""UR3e arm: the interface, the ur-rtde driver and a wire-level UR simulator.
+
+``KINDS`` maps a scene's ``kind`` to the class that implements it; a kind a
+scene does not name is never imported. "simulated" is the real ur-rtde
+driver talking to an in-process simulator on a loopback address.
+"""
+
+KINDS = {
+    "ur_rtde": "robot_side.arm.ur_rtde:URArm",
+    "simulated": "robot_side.arm.sim:SimulatedArm",
+}

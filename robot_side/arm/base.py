@@ -1,0 +1,265 @@
+"""The arm interface: read the TCP, jog it, move it, stop it, within limits.
+
+Poses are ``[x, y, z, rx, ry, rz]`` in the robot base frame: metres and a
+rotation vector in radians (UR's convention). Velocities are
+``[vx, vy, vz, wx, wy, wz]`` in m/s and rad/s.
+
+Safety lives here, not in the drivers: a jog is clipped to the speed limits
+and loses any component that would leave the workspace box; a ``move_to``
+outside the box is refused; a jog lasts only ``jog_timeout_s`` unless the
+operator sends another (the deadman), so a lost link stops the arm.
+"""
+
+from __future__ import annotations
+
+import abc
+import logging
+import math
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from common.clock import now_s
+from common.config import param
+from common.devices import Device
+from common.errors import ConfigError, DeviceError
+
+log = logging.getLogger(__name__)
+
+
+class WorkspaceLimitError(DeviceError):
+    """A move target lies outside the configured workspace box."""
+
+
+@dataclass
+class ArmLimits:
+    """Where the TCP may go and how fast: the lab's safety envelope."""
+
+    workspace_min: tuple[float, float, float] = param(
+        (-0.40, -0.40, 0.05),
+        "lowest x, y, z (m, base frame) the TCP may reach; z keeps the gripper off the table",
+    )
+    workspace_max: tuple[float, float, float] = param(
+        (0.40, 0.40, 0.50), "highest x, y, z (m); inside the UR3e's 0.5 m reach"
+    )
+    max_linear_speed_m_s: float = param(
+        0.10, "jog and move speed cap: slow enough to stop before a pipette rack"
+    )
+    max_angular_speed_rad_s: float = param(0.5, "jog rotation cap (about 30 deg/s)")
+    linear_acceleration_m_s2: float = param(0.5, "acceleration for jogs, moves and stops")
+    angular_acceleration_rad_s2: float = param(1.0, "rotational acceleration for jogs")
+    default_move_speed_m_s: float = param(0.05, "move_to speed when the caller gives none")
+    jog_timeout_s: float = param(
+        0.25, "a jog stops this long after the last jog command (deadman on a lost link)"
+    )
+
+    def __post_init__(self) -> None:
+        lo, hi = self.workspace_min, self.workspace_max
+        if any(a >= b for a, b in zip(lo, hi, strict=True)):
+            raise ConfigError(
+                f"arm workspace_min {lo} must be below workspace_max {hi} on every axis"
+            )
+        for name in (
+            "max_linear_speed_m_s",
+            "max_angular_speed_rad_s",
+            "linear_acceleration_m_s2",
+            "angular_acceleration_rad_s2",
+            "default_move_speed_m_s",
+            "jog_timeout_s",
+        ):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"arm {name} must be positive")
+        if self.default_move_speed_m_s > self.max_linear_speed_m_s:
+            raise ConfigError("arm default_move_speed_m_s must not exceed max_linear_speed_m_s")
+
+    def contains(self, xyz: Sequence[float]) -> bool:
+        bounds = zip(self.workspace_min, self.workspace_max, strict=True)
+        return all(lo <= v <= hi for v, (lo, hi) in zip(xyz, bounds, strict=True))
+
+
+def as_vector6(value: Sequence[float], what: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape != (6,):
+        raise ValueError(f"{what} must have 6 numbers, not {arr.shape[0]}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{what} must be finite, not {arr.tolist()}")
+    return arr
+
+
+class Arm(Device):
+    """A 6-DoF arm with a TCP: reads, clipped jogs with a deadman, checked moves, stop.
+
+    Drivers implement ``_read_tcp_pose``, ``_read_joints``, ``_send_jog``,
+    ``_send_move`` and ``_send_stop``; they call ``_start_deadman()`` at the
+    end of ``connect`` and ``_stop_deadman()`` at the start of ``disconnect``.
+    Calls into the driver are serialised by ``_lock`` so the deadman thread
+    and the caller never interleave on the wire.
+    """
+
+    family = "arm"
+
+    def __init__(self, limits: ArmLimits | None = None) -> None:
+        self.limits = limits or ArmLimits()
+        self._lock = threading.RLock()
+        self._jog_until: float | None = None  # monotonic s; None when not jogging
+        self._last_jog = np.zeros(6)
+        self._deadman_stops = 0
+        self._deadman_thread: threading.Thread | None = None
+        self._deadman_quit = threading.Event()
+
+    # -- what drivers implement -------------------------------------------
+
+    @abc.abstractmethod
+    def _read_tcp_pose(self) -> np.ndarray: ...
+
+    @abc.abstractmethod
+    def _read_joints(self) -> np.ndarray: ...
+
+    @abc.abstractmethod
+    def _send_jog(self, velocity: np.ndarray) -> None:
+        """Command a TCP velocity (already clipped)."""
+
+    @abc.abstractmethod
+    def _send_move(self, pose: np.ndarray, speed: float, wait: bool) -> None:
+        """Move linearly to ``pose`` (already checked)."""
+
+    @abc.abstractmethod
+    def _send_stop(self) -> None:
+        """Decelerate to standstill; must not raise when already stopped."""
+
+    # -- public API --------------------------------------------------------
+
+    def tcp_pose(self) -> np.ndarray:
+        self.require_connected()
+        return self._read_tcp_pose()
+
+    def joint_positions(self) -> np.ndarray:
+        self.require_connected()
+        return self._read_joints()
+
+    def clip_jog(
+        self, velocity: Sequence[float], pose: Sequence[float] | None = None
+    ) -> np.ndarray:
+        """The velocity a jog actually sends: speed-capped, and kept inside the box.
+
+        Linear and angular parts are scaled (direction kept) to their caps. A
+        linear component that points out of the box is zeroed when the TCP is
+        at or beyond that face, so the operator can always jog back in.
+        """
+        v = as_vector6(velocity, "jog velocity")
+        lin, ang = v[:3], v[3:]
+        n = float(np.linalg.norm(lin))
+        if n > self.limits.max_linear_speed_m_s:
+            lin = lin * (self.limits.max_linear_speed_m_s / n)
+        n = float(np.linalg.norm(ang))
+        if n > self.limits.max_angular_speed_rad_s:
+            ang = ang * (self.limits.max_angular_speed_rad_s / n)
+        lin = lin.copy()
+        if pose is not None:
+            xyz = as_vector6(pose, "pose")[:3]
+            for i in range(3):
+                if xyz[i] >= self.limits.workspace_max[i] and lin[i] > 0:
+                    lin[i] = 0.0
+                if xyz[i] <= self.limits.workspace_min[i] and lin[i] < 0:
+                    lin[i] = 0.0
+        return np.concatenate([lin, ang])
+
+    def jog(self, velocity: Sequence[float]) -> None:
+        """Move the TCP at ``velocity`` until the next jog, ``stop()`` or the deadman.
+
+        The deadman stops the arm ``limits.jog_timeout_s`` after the last jog:
+        an operator holding a jog key must keep sending it.
+        """
+        self.require_connected()
+        with self._lock:
+            v = self.clip_jog(velocity, self._read_tcp_pose())
+            if not np.any(v):
+                self._stop_locked()
+                return
+            self._send_jog(v)
+            self._last_jog = v
+            self._jog_until = now_s() + self.limits.jog_timeout_s
+
+    def move_to(self, pose: Sequence[float], speed: float | None = None, wait: bool = True) -> None:
+        """Move the TCP linearly to ``pose``; refuses targets outside the workspace box."""
+        self.require_connected()
+        target = as_vector6(pose, "target pose")
+        if not self.limits.contains(target[:3]):
+            raise WorkspaceLimitError(
+                f"target {np.round(target[:3], 4).tolist()} m is outside the workspace box "
+                f"{list(self.limits.workspace_min)}..{list(self.limits.workspace_max)}; "
+                "choose a target inside it or widen [arm.limits] if the cell allows"
+            )
+        if speed is None:
+            speed = self.limits.default_move_speed_m_s
+        if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed > 0):
+            raise ValueError(f"move speed must be a positive number, not {speed!r}")
+        if speed > self.limits.max_linear_speed_m_s:
+            log.warning(
+                "move speed %.3f m/s clipped to %.3f", speed, self.limits.max_linear_speed_m_s
+            )
+            speed = self.limits.max_linear_speed_m_s
+        with self._lock:
+            self._jog_until = None
+            self._send_move(target, float(speed), wait)
+
+    def stop(self) -> None:
+        """Stop any motion. Safe to call at any time, also when not connected."""
+        if not self.is_connected:
+            return
+        with self._lock:
+            self._stop_locked()
+
+    def _stop_locked(self) -> None:
+        self._jog_until = None
+        self._last_jog = np.zeros(6)
+        self._send_stop()
+
+    def status(self) -> dict[str, Any]:
+        out = super().status()
+        out.update(jogging=self._jog_until is not None, deadman_stops=self._deadman_stops)
+        if self.is_connected:
+            try:
+                out["tcp_pose"] = np.round(self.tcp_pose(), 5).tolist()
+                out["joints"] = np.round(self.joint_positions(), 5).tolist()
+            except DeviceError as e:
+                out["error"] = str(e)
+        return out
+
+    # -- deadman -----------------------------------------------------------
+
+    def _start_deadman(self) -> None:
+        self._deadman_quit.clear()
+        self._jog_until = None
+        t = threading.Thread(target=self._deadman_loop, name=f"{type(self).__name__}-deadman")
+        t.daemon = True
+        self._deadman_thread = t
+        t.start()
+
+    def _stop_deadman(self) -> None:
+        self._deadman_quit.set()
+        t, self._deadman_thread = self._deadman_thread, None
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout=2.0)
+
+    def _deadman_loop(self) -> None:
+        period = min(0.02, self.limits.jog_timeout_s / 5)
+        while not self._deadman_quit.wait(period):
+            until = self._jog_until
+            if until is None or now_s() < until:
+                continue
+            with self._lock:
+                if self._jog_until is None or now_s() < self._jog_until:
+                    continue  # a jog or stop arrived meanwhile
+                log.warning(
+                    "no jog for %.2f s: stopping the arm (deadman)", self.limits.jog_timeout_s
+                )
+                self._deadman_stops += 1
+                try:
+                    self._stop_locked()
+                except Exception:  # the thread must survive to try again
+                    log.exception("deadman stop failed")
+                    self._jog_until = now_s() + self.limits.jog_timeout_s
