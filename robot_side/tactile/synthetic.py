@@ -40,30 +40,36 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.config import param
+from common.patterns import (
+    ANGLES_DEG,
+    N_ANGLES,
+    N_PATTERNS,
+    N_POSITIONS,
+    classes_of,
+    pattern_of,
+)
+
+__all__ = [
+    "FRAME_SHAPE",
+    "N_ANGLES",
+    "N_GRIP_LEVELS",
+    "N_PATTERNS",
+    "N_POSITIONS",
+    "GeneratorParams",
+    "Grasp",
+    "SyntheticTactileModel",
+    "mirror_finger2",
+    "offset_direction",
+    "pattern_of",
+]
 
 N_ROWS = 10
 N_COLS = 10
 FRAME_SHAPE = (2, N_ROWS, N_COLS)
-N_ANGLES = 4
-N_POSITIONS = 3
-N_PATTERNS = N_ANGLES * N_POSITIONS
 N_GRIP_LEVELS = 31
-ANGLES_DEG = (0.0, 45.0, 90.0, 135.0)
-ANGLE_NAMES = ("0 deg", "45 deg", "90 deg", "135 deg")
-POSITION_NAMES = ("centre", "left/up", "right/down")
 
 #: subsamples per taxel side used to integrate pressure over a taxel's area
 _SUB = 4
-
-
-def pattern_of(angle_class: int, position_class: int) -> int:
-    """The pattern number the masks and the paper's confusion matrices use."""
-    return 3 * angle_class + position_class
-
-
-def split_pattern(pattern: int) -> tuple[int, int]:
-    """(angle class, position class) of a pattern number."""
-    return pattern // 3, pattern % 3
 
 
 def offset_direction(angle_class: int) -> tuple[float, float]:
@@ -215,6 +221,25 @@ class GeneratorParams:
             raise ValueError("edge_loading_max must be in 0..1")
 
 
+@dataclass(frozen=True)
+class Grasp:
+    """One grasp's geometry and unevenness; the grip level is applied on top."""
+
+    pattern: int
+    theta_deg: float  # actual axis angle, counter-clockwise from the rows, up = row 0
+    centre_mm: tuple[float, float]  # a point on the axis, from the pad centre (x right, y up)
+    width_scale: float  # this grasp's band width against the level's nominal width
+    load_scale: float  # this grasp's line load against the level's nominal load
+    taper: float  # relative width change per 12 mm along the axis
+    gradient: float  # relative load change per 12 mm along the axis
+    ripple: float  # amplitude of the load's variation along the axis
+    wavelength_mm: float
+    phase: float
+    bend: float  # -1..1, scaled by bend_max_mm and the squeeze
+    pad_share: tuple[float, float]  # load share of finger 1 and finger 2
+    tip: tuple[float, float] | None  # (direction, mm along the axis) where the pipette ends
+
+
 class SyntheticTactileModel:
     """One simulated sensor pair: its defects are fixed by ``seed``, its grasps vary.
 
@@ -270,66 +295,81 @@ class SyntheticTactileModel:
             "gain": self.gain.astype(np.float32),
         }
 
-    def contact_force(
-        self, pattern: int | None, grip_level: int, rng: np.random.Generator
-    ) -> np.ndarray:
-        """Force on each taxel (N, float64) before the sensor's electronics touch it."""
-        _check(pattern, grip_level)
-        p = self.params
-        if pattern is None:
-            return np.zeros(FRAME_SHAPE)
-        angle_class, position_class = split_pattern(pattern)
-        squeeze = (grip_level - 1) / (N_GRIP_LEVELS - 1)
+    def draw_grasp(self, pattern: int, rng: np.random.Generator) -> Grasp:
+        """Where and how one grasp holds the pipette, fixed while it is held.
 
-        theta = math.radians(ANGLES_DEG[angle_class] + rng.uniform(-1, 1) * p.angle_jitter_deg)
-        ux, uy = math.cos(theta), math.sin(theta)  # along the pipette
-        nx, ny = -uy, ux  # across it
+        A simulated sensor streaming one grasp draws this once and renders
+        every frame of the grasp from it, so the band does not jump between
+        frames; ``frame`` draws a fresh grasp each call.
+        """
+        _check(pattern, 1)
+        p = self.params
+        angle_class, position_class = classes_of(pattern)
+        theta_deg = ANGLES_DEG[angle_class] + rng.uniform(-1, 1) * p.angle_jitter_deg
+        theta = math.radians(theta_deg)
+        nx, ny = -math.sin(theta), math.cos(theta)  # across the actual axis
         ox, oy = offset_direction(angle_class)
-        nominal = {0: 0.0, 1: p.side_offset_mm, 2: -p.side_offset_mm}[position_class]
+        nominal = (0.0, p.side_offset_mm, -p.side_offset_mm)[position_class]
         # The nominal offset follows the class's direction; the error is across
         # the actual (jittered) axis, where it changes what the taxels see.
         err = rng.uniform(-1, 1) * p.offset_jitter_mm
-        cx = nominal * ox + err * nx
-        cy = nominal * oy + err * ny
-
         jitter = np.exp(rng.normal(0.0, p.grip_jitter, 2))
+        balance = rng.normal(0.0, p.pad_balance_jitter)
+        tip = None
+        if p.tip_on_pad_probability > 0 and rng.random() < p.tip_on_pad_probability:
+            tip = (float(rng.choice((-1.0, 1.0))), rng.uniform(-0.3, 0.6) * self._half_extent)
+        return Grasp(
+            pattern=pattern,
+            theta_deg=theta_deg,
+            centre_mm=(nominal * ox + err * nx, nominal * oy + err * ny),
+            width_scale=float(jitter[0]),
+            load_scale=float(jitter[1]),
+            taper=rng.uniform(-1, 1) * p.taper_per_12mm,
+            gradient=rng.uniform(-1, 1) * p.along_band_gradient,
+            ripple=rng.uniform(0, 1) * p.along_band_ripple,
+            wavelength_mm=rng.uniform(10.0, 30.0),
+            phase=rng.uniform(0, 2 * math.pi),
+            bend=rng.uniform(-1, 1),
+            pad_share=(max(0.3, 1.0 + balance), max(0.3, 1.0 - balance)),
+            tip=tip,
+        )
+
+    def contact_force(self, grasp: Grasp | None, grip_level: int) -> np.ndarray:
+        """Force on each taxel (N, float64) before the sensor's electronics touch it."""
+        _check(None if grasp is None else grasp.pattern, grip_level)
+        if grasp is None:
+            return np.zeros(FRAME_SHAPE)
+        p = self.params
+        squeeze = (grip_level - 1) / (N_GRIP_LEVELS - 1)
+        theta = math.radians(grasp.theta_deg)
+        ux, uy = math.cos(theta), math.sin(theta)  # along the pipette
+        nx, ny = -uy, ux  # across it
         width = p.pipette_diameter_mm * (
             p.width_min_fraction + (p.width_max_fraction - p.width_min_fraction) * squeeze
         )
-        half_width = 0.5 * width * jitter[0]
+        half_width = 0.5 * width * grasp.width_scale
         load = (
             p.line_load_min_n_per_mm
             + (p.line_load_max_n_per_mm - p.line_load_min_n_per_mm) * squeeze**p.load_exponent
-        ) * jitter[1]
+        ) * grasp.load_scale
         edge = p.edge_loading_max * squeeze
+        bend = grasp.bend * p.bend_max_mm * squeeze
 
-        taper = rng.uniform(-1, 1) * p.taper_per_12mm
-        gradient = rng.uniform(-1, 1) * p.along_band_gradient
-        ripple = rng.uniform(0, 1) * p.along_band_ripple
-        wavelength = rng.uniform(10.0, 30.0)
-        phase = rng.uniform(0, 2 * math.pi)
-        bend = rng.uniform(-1, 1) * p.bend_max_mm * squeeze
-        balance = rng.normal(0.0, p.pad_balance_jitter)
-        pad_share = np.array([1.0 + balance, 1.0 - balance]).clip(0.3, None)
-        tip = None
-        if p.tip_on_pad_probability > 0 and rng.random() < p.tip_on_pad_probability:
-            tip = (rng.choice((-1.0, 1.0)), rng.uniform(-0.3, 0.6) * self._half_extent)
-
-        dx = self._x - cx
-        dy = self._y - cy
+        dx = self._x - grasp.centre_mm[0]
+        dy = self._y - grasp.centre_mm[1]
         t = dx * ux + dy * uy  # along the axis, mm
         d = dx * nx + dy * ny  # across it, mm
         d = d - bend * ((t / self._half_extent) ** 2 - 1.0 / 3.0)
-        local_half = half_width * np.clip(1.0 + taper * t / 12.0, 0.5, 1.5)
+        local_half = half_width * np.clip(1.0 + grasp.taper * t / 12.0, 0.5, 1.5)
         # Line load per mm along the band, then spread across the band by the
         # cross-section's profile (unit integral), then blurred by the cover.
-        q = load * np.clip(1.0 + gradient * t / 12.0, 0.2, None)
-        q = q * (1.0 + ripple * np.sin(2 * math.pi * t / wavelength + phase))
-        if tip is not None:
-            sign, t_end = tip
+        q = load * np.clip(1.0 + grasp.gradient * t / 12.0, 0.2, None)
+        q = q * (1.0 + grasp.ripple * np.sin(2 * math.pi * t / grasp.wavelength_mm + grasp.phase))
+        if grasp.tip is not None:
+            sign, t_end = grasp.tip
             q = np.where(sign * t <= t_end, q, 0.0)
         pressure = q * _blurred_profile(d, half_width, local_half, edge, p.cover_blur_mm)
-        pressure *= pad_share[:, None, None]
+        pressure *= np.asarray(grasp.pad_share)[:, None, None]
         force = pressure.reshape(2, N_ROWS, _SUB, N_COLS, _SUB).sum(axis=(2, 4))
         return force * self._sample_area
 
@@ -337,10 +377,18 @@ class SyntheticTactileModel:
         """A (2, 10, 10) float32 frame in newtons, as the pad pair would report it.
 
         ``pattern`` None means nothing is grasped: only taxels stuck above the
-        floor read anything. ``grip_level`` runs 1 (lightest) to 31.
+        floor read anything. ``grip_level`` runs 1 (lightest) to 31. Each call
+        is a new grasp (a new small error in angle and offset).
         """
-        force = self.contact_force(pattern, grip_level, rng)
-        return self.sense(force, rng)
+        _check(pattern, grip_level)
+        grasp = None if pattern is None else self.draw_grasp(pattern, rng)
+        return self.grasp_frame(grasp, grip_level, rng)
+
+    def grasp_frame(
+        self, grasp: Grasp | None, grip_level: int, rng: np.random.Generator
+    ) -> np.ndarray:
+        """A frame of a grasp drawn by ``draw_grasp`` (None: nothing grasped)."""
+        return self.sense(self.contact_force(grasp, grip_level), rng)
 
     def sense(self, force: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """What the electronics make of a true force map: gains, noise, floor, defects."""
