@@ -1,0 +1,138 @@
+"""``deepxpalm netsim``: run the link simulator between the two nodes.
+
+Start the robot, then this, then point the operator at the simulator's bound
+endpoints (by default ports 5565/5566 instead of 5555/5556). Settings come
+from the defaults below, then ``--config FILE``, then the command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from common.config import defaults_toml, from_dict, load_toml, param
+from common.errors import ConfigError
+from common.netsim.impairments import DIRECTIONS, Scenario
+from common.netsim.proxy import Endpoints, LinkSimulator
+from common.netsim.scenario import builtin_scenarios, load_scenario
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class NetsimConfig:
+    """Everything ``deepxpalm netsim`` needs."""
+
+    scenario: str = param("lan", "built-in scenario name, or a path to a scenario .toml")
+    seed: int = param(0, "same seed and scenario give the same impairment sequence")
+    hwm: int = param(1000, "ZeroMQ high-water mark of each simulator socket, in messages")
+    report_interval_s: float = param(5.0, "how often counters are logged; 0 = never")
+    duration_s: float = param(0.0, "stop after this long; 0 = run until Ctrl-C")
+    endpoints: Endpoints = param(Endpoints(), "")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = (
+        f"built-in scenarios: {', '.join(builtin_scenarios())}\n\n"
+        "defaults (a --config file takes the same keys):\n\n" + defaults_toml(NetsimConfig)
+    )
+    parser.add_argument("--config", type=Path, help="TOML file with the keys shown below")
+    parser.add_argument("--scenario", help="built-in scenario name or path to a .toml file")
+    parser.add_argument("--seed", type=int, help="random seed of the impairments")
+    parser.add_argument(
+        "--delay-ms", type=float, help="fixed one-way delay in both directions (overrides scenario)"
+    )
+    for name in DIRECTIONS:
+        parser.add_argument(
+            f"--delay-{name.replace('_', '-')}-ms",
+            dest=f"delay_{name}_ms",
+            type=float,
+            help=f"fixed one-way delay {name.replace('_', ' ')} (overrides --delay-ms)",
+        )
+    for key in ("robot_telemetry", "robot_commands", "operator_telemetry", "operator_commands"):
+        parser.add_argument(f"--{key.replace('_', '-')}", dest=key, metavar="ENDPOINT")
+    parser.add_argument("--duration-s", type=float, help="stop after this many seconds")
+
+
+def config_from_args(args: argparse.Namespace) -> NetsimConfig:
+    """Defaults, then ``--config``, then explicit options."""
+    data: dict[str, Any] = {}
+    if getattr(args, "config", None) is not None:
+        data = load_toml(args.config)
+        data = data.get("netsim", data)
+    endpoints = dict(data.get("endpoints", {}) or {})
+    for key in ("robot_telemetry", "robot_commands", "operator_telemetry", "operator_commands"):
+        value = getattr(args, key, None)
+        if value is not None:
+            endpoints[key] = value
+    data = {**data, "endpoints": endpoints}
+    for key in ("scenario", "seed", "duration_s"):
+        value = getattr(args, key, None)
+        if value is not None:
+            data[key] = value
+    return from_dict(NetsimConfig, data, where="netsim")
+
+
+def scenario_from_args(config: NetsimConfig, args: argparse.Namespace) -> Scenario:
+    """The configured scenario with any ``--delay*`` overrides applied."""
+    scenario = load_scenario(config.scenario)
+    for name in DIRECTIONS:
+        delay = getattr(args, f"delay_{name}_ms", None)
+        if delay is None:
+            delay = getattr(args, "delay_ms", None)
+        if delay is not None:
+            if delay < 0:
+                raise ConfigError(f"delay must be >= 0 ms, not {delay}")
+            scenario = scenario.with_delay(name, delay)
+    return scenario
+
+
+def run(args: argparse.Namespace) -> int:
+    config = config_from_args(args)
+    scenario = scenario_from_args(config, args)
+    done = threading.Event()
+
+    def _on_signal(signum: int, frame: object) -> None:
+        done.set()
+
+    old = signal.signal(signal.SIGTERM, _on_signal)
+    sim = LinkSimulator(scenario, endpoints=config.endpoints, seed=config.seed, hwm=config.hwm)
+    try:
+        sim.start()
+        log.warning(
+            "netsim running scenario %r (seed %d): operator connects to %s (telemetry) "
+            "and %s (commands)",
+            scenario.name,
+            config.seed,
+            sim.operator_telemetry_endpoint,
+            sim.operator_commands_endpoint,
+        )
+        t_end = time.monotonic() + config.duration_s if config.duration_s > 0 else None
+        t_report = time.monotonic()
+        while not done.is_set():
+            now = time.monotonic()
+            if t_end is not None and now >= t_end:
+                break
+            if sim.error is not None:
+                log.error("netsim stopped: %r", sim.error)
+                return 1
+            if config.report_interval_s > 0 and now - t_report >= config.report_interval_s:
+                t_report = now
+                for name, c in sim.counters().items():
+                    log.info("%s: %s", name, c)
+            done.wait(0.1)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sim.stop()
+        signal.signal(signal.SIGTERM, old)
+    for name, c in sim.counters().items():
+        log.info("final %s: %s", name, c)
+    return 0

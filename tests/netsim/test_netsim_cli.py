@@ -1,0 +1,76 @@
+"""``deepxpalm netsim --help`` shows every default; options override them."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from common.errors import ConfigError
+from common.netsim import cli
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="deepxpalm netsim")
+    cli.add_arguments(p)
+    return p
+
+
+def test_help_prints_defaults(capsys) -> None:
+    with pytest.raises(SystemExit):
+        _parser().parse_args(["--help"])
+    out = capsys.readouterr().out
+    assert 'scenario = "lan"' in out
+    assert 'robot_telemetry = "tcp://127.0.0.1:5555"' in out
+    assert 'operator_commands = "tcp://127.0.0.1:5566"' in out
+    assert "seed = 0" in out
+
+
+def test_options_override_scenario_and_endpoints() -> None:
+    args = _parser().parse_args(
+        [
+            "--scenario",
+            "none",
+            "--seed",
+            "7",
+            "--delay-ms",
+            "12",
+            "--delay-to-robot-ms",
+            "3",
+            "--operator-telemetry",
+            "tcp://127.0.0.1:6000",
+        ]
+    )
+    config = cli.config_from_args(args)
+    assert config.seed == 7
+    assert config.endpoints.operator_telemetry == "tcp://127.0.0.1:6000"
+    assert config.endpoints.robot_telemetry == "tcp://127.0.0.1:5555"
+    scenario = cli.scenario_from_args(config, args)
+    assert scenario.to_operator.delay_ms == 12.0
+    assert scenario.to_robot.delay_ms == 3.0
+
+
+def test_unknown_scenario_is_a_config_error() -> None:
+    args = _parser().parse_args(["--scenario", "dialup"])
+    with pytest.raises(ConfigError, match="built-in scenarios"):
+        cli.scenario_from_args(cli.config_from_args(args), args)
+
+
+def test_run_for_a_short_duration_returns_zero() -> None:
+    args = _parser().parse_args(
+        [
+            "--scenario",
+            "none",
+            "--duration-s",
+            "0.2",
+            "--robot-telemetry",
+            "tcp://127.0.0.1:1",
+            "--robot-commands",
+            "tcp://127.0.0.1:2",
+            "--operator-telemetry",
+            "tcp://127.0.0.1:*",
+            "--operator-commands",
+            "tcp://127.0.0.1:*",
+        ]
+    )
+    assert cli.run(args) == 0
