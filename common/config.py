@@ -104,7 +104,7 @@ def _convert(tp: Any, value: Any, key: str) -> Any:
         elif origin is tuple and args:
             if len(value) != len(args):
                 raise ConfigError(f"{key} must have {len(args)} items, not {len(value)}")
-            items = [_convert(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value))]
+            items = [_convert(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True))]
         else:
             inner = args[0] if args else Any
             items = [_convert(inner, v, f"{key}[{i}]") for i, v in enumerate(value)]
@@ -154,8 +154,13 @@ def to_dict(obj: Any) -> Any:
 
 def defaults_toml(cls: type, section: str = "") -> str:
     """Every default of ``cls`` as commented TOML, nested tables included."""
+    return config_toml(cls(), section)
+
+
+def config_toml(obj: Any, section: str = "") -> str:
+    """A config instance as commented TOML (what --print-config shows)."""
     lines: list[str] = []
-    _emit(cls(), section, lines)
+    _emit(obj, section, lines)
     return "\n".join(lines).strip() + "\n"
 
 

@@ -112,6 +112,20 @@ def peak_per_row(x: np.ndarray) -> np.ndarray:
     return out
 
 
+def sanitize_frame(frame: np.ndarray) -> np.ndarray:
+    """A (2, 10, 10) float32 frame held to the sensor's range, whatever came in.
+
+    Non-finite taxels read 0 N and nothing exceeds saturation, so neither the
+    downsizing nor the classifier ever sees garbage.
+    """
+    frame = np.asarray(frame, dtype=np.float32)
+    if frame.shape != (2, 10, 10):
+        raise ValueError(f"a frame has shape (2, 10, 10), not {frame.shape}")
+    if not np.isfinite(frame).all():
+        frame = np.nan_to_num(frame, nan=0.0, posinf=0.0, neginf=0.0)
+    return np.clip(frame, 0.0, SENSOR_MAX_N)
+
+
 def is_contact(frame: np.ndarray, threshold_n: float = CONTACT_THRESHOLD_N) -> bool:
     """A frame whose largest taxel reaches the threshold holds a grasp."""
     return bool(frame.max() >= threshold_n)
@@ -128,13 +142,11 @@ def render_stimulus(
     """The 3x3 float32 stimulus for a (2, 10, 10) frame in newtons.
 
     ``pattern=None`` is direct rendering (no mask, the paper's baseline).
-    Non-finite taxels count as 0 N: a broken taxel must not poison a stimulus.
+    Readings are held to the sensor's range first: non-finite taxels count as
+    0 N (a broken taxel must not poison a stimulus), and nothing reads above
+    saturation, so no garbage can overflow the downsizing.
     """
-    frame = np.asarray(frame, dtype=np.float32)
-    if frame.shape != (2, 10, 10):
-        raise ValueError(f"a frame has shape (2, 10, 10), not {frame.shape}")
-    if not np.isfinite(frame).all():
-        frame = np.nan_to_num(frame, nan=0.0, posinf=0.0, neginf=0.0)
+    frame = sanitize_frame(frame)
     if not is_contact(frame, contact_threshold_n):
         return np.zeros((3, 3), dtype=np.float32)
     small = downsize(contact_map(frame), method)

@@ -1,0 +1,69 @@
+"""What every node's command line shares: a config file, overrides, defaults in --help."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import threading
+from pathlib import Path
+from typing import Any, TypeVar
+
+from common.config import config_toml, defaults_toml, from_dict, load_toml
+from common.overrides import apply_overrides
+
+T = TypeVar("T")
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, cls: type, section: str) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = (
+        f"Configuration: a TOML file with these keys, either at the top level or under "
+        f"[{section}] (so a whole scene file works). Defaults:\n\n"
+        + _indent(defaults_toml(cls, section))
+    )
+    parser.add_argument("--config", type=Path, help="TOML config or scene file")
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help=f"override one setting, e.g. --set {section}.render.mode=direct (repeatable)",
+    )
+    parser.add_argument("--print-config", action="store_true", help="print the effective config and exit")
+    parser.add_argument("--stats-file", type=Path, help="write final counters here as JSON on exit")
+
+
+def _indent(text: str) -> str:
+    return "\n".join("  " + line for line in text.splitlines())
+
+
+def load_node_config(args: argparse.Namespace, cls: type[T], section: str) -> T:
+    data: dict[str, Any] = load_toml(args.config) if args.config else {}
+    if section in data and isinstance(data[section], dict):
+        data = data[section]
+    elif any(k in data for k in ("robot", "operator", "network", "scene")):
+        data = {}
+    prefix = f"{section}."
+    local = [o[len(prefix):] if o.startswith(prefix) else o for o in args.overrides]
+    return from_dict(cls, apply_overrides(data, local), where=section)
+
+
+def print_config(config: Any, section: str) -> None:
+    print(config_toml(config, section), end="")
+
+
+def stop_on_signals() -> threading.Event:
+    """SIGINT and SIGTERM (systemd's stop) set the returned event for a clean shutdown."""
+    stop = threading.Event()
+
+    def handler(signum: int, _frame: Any) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def write_stats(path: Path | None, stats: dict[str, Any]) -> None:
+    if path is not None:
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        tmp.write_text(json.dumps(stats, indent=2, sort_keys=True))
+        tmp.replace(path)

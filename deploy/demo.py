@@ -1,0 +1,192 @@
+"""``deepxpalm demo``: both nodes, simulated devices and the link simulator, one command.
+
+The robot node and the link simulator run as child processes, as they would
+on their own machines; the operator node runs here, with the live view (or
+headless with ``--json``). Latency comes from the messages' timestamps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from common.cli_support import stop_on_signals
+from common.config import config_toml, from_dict
+from deploy import live_view
+from deploy.scene import Scene, load_scene_dict
+from operator_side.node import build_operator_node
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", default="demo", help="shipped scene name or TOML path (default: demo)")
+    parser.add_argument("--duration", type=float, help="stop after this many seconds (default: Ctrl-C)")
+    parser.add_argument("--json", action="store_true", help="no live view; print one JSON summary at the end")
+    parser.add_argument("--scenario", help="network scenario, overriding the scene's")
+    parser.add_argument("--no-netsim", action="store_true", help="connect the nodes directly")
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a scene setting, e.g. --set robot.render.mode=direct",
+    )
+
+
+def _free_ports(n: int) -> list[int]:
+    socks = []
+    for _ in range(n):
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        socks.append(s)
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
+    out = log_path.open("wb")
+    return subprocess.Popen(
+        [sys.executable, "-m", "deploy.cli", *args], stdout=out, stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+
+
+def _stop(proc: subprocess.Popen, name: str, errors: list[str], log_path: Path) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            errors.append(f"{name} did not stop within 10 s and was killed")
+    if proc.returncode not in (0, -signal.SIGINT, 130):
+        tail = log_path.read_text(errors="replace").strip().splitlines()[-5:]
+        errors.append(f"{name} exited with {proc.returncode}: " + " | ".join(tail))
+
+
+def run(args: argparse.Namespace) -> int:
+    data = load_scene_dict(args.scene, args.overrides)
+    scene: Scene = from_dict(Scene, data, where="")
+    if args.scenario:
+        scene.network.scenario = args.scenario
+    use_netsim = scene.network.enabled and not args.no_netsim
+    workdir = Path(tempfile.mkdtemp(prefix="deepxpalm-demo-"))
+    robot_tel, robot_cmd, op_tel, op_cmd = (f"tcp://127.0.0.1:{p}" for p in _free_ports(4))
+    scene.robot.link.telemetry_endpoint = robot_tel
+    scene.robot.link.command_endpoint = robot_cmd
+    scene.operator.link.telemetry_endpoint = op_tel if use_netsim else robot_tel
+    scene.operator.link.command_endpoint = op_cmd if use_netsim else robot_cmd
+    robot_cfg = workdir / "robot.toml"
+    robot_cfg.write_text(config_toml(scene.robot, "robot"))
+    errors: list[str] = []
+    stop = stop_on_signals()
+    procs: list[tuple[str, subprocess.Popen, Path]] = []
+    robot_stats_path = workdir / "robot-stats.json"
+    netsim_stats_path = workdir / "netsim-stats.json"
+    verbosity = ["-v"] if logging.getLogger().level <= logging.INFO else []
+    procs.append(("robot", _spawn([*verbosity, "robot", "--config", str(robot_cfg),
+                                   "--stats-file", str(robot_stats_path)], workdir / "robot.log"),
+                  workdir / "robot.log"))
+    if use_netsim:
+        procs.append(("netsim", _spawn([
+            *verbosity, "netsim", "--scenario", scene.network.scenario, "--seed", str(scene.network.seed),
+            "--robot-telemetry", robot_tel, "--robot-commands", robot_cmd,
+            "--operator-telemetry", op_tel, "--operator-commands", op_cmd,
+        ], workdir / "netsim.log"), workdir / "netsim.log"))
+    node = build_operator_node(scene.operator)
+    node_error: list[BaseException] = []
+
+    def operate() -> None:
+        try:
+            node.run(stop)
+        except BaseException as e:  # reported below, never swallowed
+            node_error.append(e)
+            stop.set()
+
+    thread = threading.Thread(target=operate, name="operator", daemon=True)
+    t0 = time.monotonic()
+    thread.start()
+    try:
+        while not stop.is_set():
+            elapsed = time.monotonic() - t0
+            if args.duration is not None and elapsed >= args.duration:
+                break
+            for name, proc, path in procs:
+                if proc.poll() is not None:
+                    errors.append(f"{name} stopped early with {proc.returncode}; see {path}")
+                    stop.set()
+            if not args.json:
+                sys.stdout.write(live_view.render(node.snapshot(), scene.scene.name, elapsed))
+                sys.stdout.flush()
+            stop.wait(0.1)
+    finally:
+        stop.set()
+        thread.join(timeout=10)
+        for name, proc, path in reversed(procs):
+            _stop(proc, name, errors, path)
+    if node_error:
+        errors.append(f"operator node failed: {node_error[0]!r}")
+    summary = _summary(scene, node, time.monotonic() - t0, robot_stats_path, netsim_stats_path, errors)
+    summary["logs"] = str(workdir)
+    print(json.dumps(summary, indent=2))
+    return 1 if errors else 0
+
+
+def _summary(scene: Scene, node: Any, elapsed: float, robot_path: Path, netsim_path: Path,
+             errors: list[str]) -> dict[str, Any]:
+    robot: dict[str, float] = {}
+    if robot_path.exists():
+        robot = json.loads(robot_path.read_text())
+    else:
+        errors.append("the robot node wrote no statistics")
+    op = node.stats()
+    with_truth = int(op.get("stimuli_with_truth", 0))
+    matching = int(op.get("stimuli_matching_truth", 0))
+    out: dict[str, Any] = {
+        "scene": scene.scene.name,
+        "render_mode": scene.robot.render.mode,
+        "network_scenario": scene.network.scenario if scene.network.enabled else None,
+        "duration_s": round(elapsed, 3),
+        "frames_captured": int(robot.get("frames_captured", 0)),
+        "frames_processed": int(robot.get("frames_processed", 0)),
+        "frames_skipped_no_contact": int(robot.get("frames_no_contact", 0)),
+        "frames_skipped_identical": int(robot.get("frames_identical", 0)),
+        "inferences": int(robot.get("inferences", 0)),
+        "stimuli_published": int(robot.get("stimuli_published", 0)),
+        "keyframes_published": int(robot.get("keyframes", 0)),
+        "stimuli_unchanged_not_sent": int(robot.get("stimuli_unchanged", 0)),
+        "stimuli_received": int(op.get("stimuli_received", 0)),
+        "servo_writes": int(op.get("servo_writes", 0)),
+        "lift_offs": int(op.get("lift_offs", 0)),
+        "latency_ms": {
+            "p50": op.get("latency_p50_ms"), "p99": op.get("latency_p99_ms"),
+            "max": op.get("latency_max_ms"), "samples": len(node.latencies_ms),
+            "what": "frame capture (robot clock, offset-corrected) to servo command",
+        },
+        "pattern_match": {
+            "share": (matching / with_truth) if with_truth else None,
+            "matching": matching,
+            "received_with_truth": with_truth,
+            "what": "received stimuli pressing exactly the true pattern's cells",
+        },
+        "rejected_messages": {
+            "operator": int(op.get("decode_errors", 0)), "robot": int(robot.get("decode_errors", 0)),
+        },
+        "errors": errors,
+    }
+    if netsim_path.exists():
+        out["netsim"] = json.loads(netsim_path.read_text())
+    return out
+
+

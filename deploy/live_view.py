@@ -1,0 +1,71 @@
+"""The demo's live terminal view: both pads, the pattern, the stimulus, the servos, the link."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from common.patterns import pattern_name
+from operator_side.node import Snapshot
+
+_SHADES = " .:-=+*#%@"
+_RESET = "\x1b[0m"
+
+
+def _heat(v: float, vmax: float = 9.0) -> str:
+    """Two characters on a 256-colour background ramp, from dark blue to yellow."""
+    t = min(max(v / vmax, 0.0), 1.0)
+    ramp = (17, 18, 19, 25, 31, 37, 71, 107, 143, 179, 215, 221, 227)
+    return f"\x1b[48;5;{ramp[round(t * (len(ramp) - 1))]}m  "
+
+
+def _pads(frame: np.ndarray | None) -> list[str]:
+    if frame is None:
+        return ["(no frame yet)"] + [""] * 10
+    lines = ["finger 1              finger 2"]
+    for r in range(10):
+        left = "".join(_heat(float(v)) for v in frame[0, r]) + _RESET
+        right = "".join(_heat(float(v)) for v in frame[1, r]) + _RESET
+        lines.append(f"{left}  {right}")
+    return lines
+
+
+def _stimulus(stim: np.ndarray | None) -> list[str]:
+    lines = ["stimulus (N)"]
+    for r in range(3):
+        if stim is None:
+            lines.append("  -     -     -")
+        else:
+            lines.append(" ".join(f"{v:5.2f}" if v > 0 else "  .  " for v in stim[r]))
+    return lines
+
+
+def render(snap: Snapshot, scene_name: str, elapsed_s: float) -> str:
+    s, r = snap.stats, snap.robot_stats
+    pattern = "none" if snap.pattern is None else f"{snap.pattern:2d} ({pattern_name(snap.pattern)})"
+    conf = "" if snap.confidence is None else f"  p={snap.confidence:.2f}"
+    state_colour = {"ok": 42, "stale": 43, "down": 41}.get(snap.link_state, 45)
+    lines = [
+        f"DeepXPalm demo - scene {scene_name} - {elapsed_s:5.1f} s   "
+        f"link \x1b[{state_colour}m {snap.link_state.upper()} {_RESET}"
+        + ("" if snap.age_ms is None else f"  age {snap.age_ms:5.1f} ms"),
+        "",
+        *_pads(snap.frame),
+        "",
+        f"pattern {pattern}{conf}   grip level {snap.grip_level or '-'}",
+        *_stimulus(snap.stimulus),
+        "",
+        "servo angles (deg) " + "  ".join(
+            f"L{n} {math.degrees(a):6.1f} {math.degrees(e):6.1f}"
+            for n, (a, e) in enumerate(snap.goal_angles)
+        ),
+        f"latency capture->servo p50 {s.get('latency_p50_ms', float('nan')):6.2f} ms  "
+        f"p99 {s.get('latency_p99_ms', float('nan')):6.2f} ms  max {s.get('latency_max_ms', float('nan')):6.2f} ms",
+        f"robot: frames {int(r.get('frames_captured', 0))}  no-contact {int(r.get('frames_no_contact', 0))}  "
+        f"inferences {int(r.get('inferences', 0))}  published {int(r.get('stimuli_published', 0))}",
+        f"operator: received {int(s.get('stimuli_received', 0))}  servo writes {int(s.get('servo_writes', 0))}  "
+        f"lift-offs {int(s.get('lift_offs', 0))}  rejected {int(s.get('decode_errors', 0))}",
+        "Ctrl-C to stop",
+    ]
+    return "\x1b[H\x1b[2J" + "\n".join(lines) + "\n"

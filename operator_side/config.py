@@ -1,0 +1,27 @@
+"""The operator node's configuration: every default in one place, printed by --help."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from common.config import param
+from operator_side.renderer import RendererConfig
+
+
+@dataclass
+class OperatorLinkConfig:
+    telemetry_endpoint: str = param("tcp://127.0.0.1:5555", "the robot's telemetry PUB (or the netsim's)")
+    command_endpoint: str = param("tcp://127.0.0.1:5556", "the robot's command SUB (or the netsim's)")
+    stale_after_ms: float = param(
+        150.0, "a stimulus older than this is not rendered; with none fresher, every linkage lifts off"
+    )
+    heartbeat_rate_hz: float = param(20.0, "heartbeats keep the robot's deadman satisfied")
+
+
+@dataclass
+class OperatorConfig:
+    link: OperatorLinkConfig = param(OperatorLinkConfig(), "sockets and link health")
+    renderer: RendererConfig = param(RendererConfig(), "stimulus to servo goals")
+    servos: dict[str, Any] = param({"kind": "recording"}, "LinkGlide servo bus: kind + settings")
+    latency_window: int = param(20000, "latency samples kept for percentiles")

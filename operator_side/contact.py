@@ -1,0 +1,57 @@
+"""From a 3x3 stimulus to three contact points, one per linkage (mm).
+
+Row n drives linkage n. A row with no non-zero cell retracts its contact
+point off the palm; a cell in column c with v newtons places the point at
+X = column_x_mm[c] and presses (v - floor) / (full - floor) of the maximum
+depth into the palm.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.config import param
+
+
+@dataclass(frozen=True)
+class ContactMapping:
+    retract_point_mm: tuple[float, float] = param((10.0, 40.0), "where a lifted contact rests, off the palm")
+    column_x_mm: tuple[float, float, float] = param(
+        (-8.0, 10.0, 28.0), "X of stimulus columns 0, 1, 2 across the palm"
+    )
+    palm_y_mm: float = param(55.0, "Y of the palm's surface")
+    max_depth_mm: float = param(6.0, "how far a full-scale force presses into the palm")
+    force_floor_n: float = param(1.0, "force that just touches the palm (the sensor's floor)")
+    force_full_n: float = param(9.0, "force that presses max_depth_mm (the sensor's saturation)")
+
+    def __post_init__(self) -> None:
+        if not self.force_full_n > self.force_floor_n:
+            raise ValueError("force_full_n must be larger than force_floor_n")
+        if self.max_depth_mm < 0:
+            raise ValueError("max_depth_mm must not be negative")
+
+
+def row_to_point(row: np.ndarray, m: ContactMapping) -> tuple[float, float]:
+    """One stimulus row -> contact point. Anything not a positive finite force lifts off."""
+    col = int(np.argmax(row))
+    v = float(row[col])
+    if not (math.isfinite(v) and v > 0):
+        return m.retract_point_mm
+    depth = min(max((v - m.force_floor_n) / (m.force_full_n - m.force_floor_n), 0.0), 1.0)
+    return (m.column_x_mm[col], m.palm_y_mm + m.max_depth_mm * depth)
+
+
+def stimulus_to_points(stimulus: np.ndarray, m: ContactMapping) -> list[tuple[float, float]]:
+    s = np.asarray(stimulus, dtype=np.float64).reshape(3, 3)
+    return [row_to_point(s[n], m) for n in range(3)]
+
+
+def reachable_set(m: ContactMapping, depth_steps: int = 25) -> np.ndarray:
+    """Every point the mapping can ask for: each column over its depth range, and the retract point."""
+    depths = np.linspace(0.0, m.max_depth_mm, depth_steps)
+    pts = [(x, m.palm_y_mm + d) for x in m.column_x_mm for d in depths]
+    pts.append(m.retract_point_mm)
+    return np.array(pts, dtype=np.float64)

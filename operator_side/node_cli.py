@@ -1,0 +1,35 @@
+"""``deepxpalm operator``: run the operator node on the operator's PC."""
+
+from __future__ import annotations
+
+import argparse
+
+from common.cli_support import (
+    add_config_arguments,
+    load_node_config,
+    print_config,
+    stop_on_signals,
+    write_stats,
+)
+from operator_side.config import OperatorConfig
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_config_arguments(parser, OperatorConfig, "operator")
+    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_node_config(args, OperatorConfig, "operator")
+    if args.print_config:
+        print_config(config, "operator")
+        return 0
+    from operator_side.node import build_operator_node
+
+    stop = stop_on_signals()
+    node = build_operator_node(config)
+    try:
+        node.run(stop, args.duration)
+    finally:
+        write_stats(args.stats_file, node.stats())
+    return 0

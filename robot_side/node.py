@@ -1,0 +1,334 @@
+"""The robot node: frames in, stimuli out; operator commands in, device actions out.
+
+Event-driven on frame arrival, so a stimulus leaves within microseconds of
+the frame it was rendered from; at most ``publish_rate_hz`` frames are
+rendered per second. Work is skipped whenever it cannot change the output:
+no inference without contact, nothing recomputed for an identical frame,
+nothing resent when the stimulus did not change (heartbeats confirm it, and
+a keyframe every ``keyframe_interval_ms`` bounds the damage of a lost change).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections import Counter
+from typing import Any, Protocol
+
+import numpy as np
+import zmq
+
+from common.clock import now_ns
+from common.codec import DecodeError
+from common.devices import Device, build_device
+from common.errors import DeviceError
+from common.messages import Command, Heartbeat, Stimulus, TactileFrame
+from common.patterns import pattern_of
+from common.transport import Publisher, Subscriber, make_context
+from robot_side.config import RobotConfig
+from robot_side.rendering import is_contact, render_stimulus, sanitize_frame
+from robot_side.tactile.base import TactileSample, TactileSensor
+
+log = logging.getLogger(__name__)
+
+
+class Classifier(Protocol):
+    def predict_proba(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class RobotNode:
+    """Devices and classifier are passed in, so tests and simulators can supply them."""
+
+    def __init__(
+        self,
+        config: RobotConfig,
+        tactile: TactileSensor,
+        *,
+        classifier: Classifier | None = None,
+        gripper: Any | None = None,
+        arm: Any | None = None,
+        ctx: zmq.Context | None = None,
+    ) -> None:
+        if config.render.mode == "mask" and classifier is None:
+            raise ValueError("mask mode needs a classifier")
+        self.config = config
+        self.tactile = tactile
+        self.classifier = classifier
+        self.gripper = gripper
+        self.arm = arm
+        self._own_ctx = ctx is None
+        self.ctx = ctx or make_context()
+        self.counters: Counter[str] = Counter()
+        self.link_state = "down"
+        self._stim_seq = 0
+        self._hb_seq = 0
+        self._frame_msg_seq = 0
+        self._last_frame: np.ndarray | None = None
+        self._last_stimulus: np.ndarray | None = None
+        self._last_pattern: int | None = None
+        self._last_stim_msg: Stimulus | None = None
+        self._last_publish_ns = 0
+        self._last_capture_ns: int | None = None
+        self._last_operator_ns: int | None = None
+        self._peer_hb: tuple[int, int] | None = None
+        self._grip_level: int | None = None
+        self._first_seq: int | None = None
+        self._last_seq = 0
+        self._arm_moving = False
+        self.pub: Publisher | None = None
+        self.sub: Subscriber | None = None
+
+    # ------------------------------------------------------------------ run
+    def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
+        """Connect, loop until ``stop`` is set (or ``duration_s``), and always stop the arm."""
+        link = self.config.link
+        with contextlib.ExitStack() as stack:
+            for device in (self.tactile, self.gripper, self.arm):
+                if device is not None and not device.is_connected:
+                    device.connect()
+                    stack.callback(device.disconnect)
+            if self.arm is not None:
+                stack.callback(self._safe_stop_arm, "node shutting down")
+            self.pub = Publisher(self.ctx, link.telemetry_endpoint, bind=True)
+            stack.callback(self.pub.close)
+            self.sub = Subscriber(self.ctx, link.command_endpoint, bind=True, name="robot commands")
+            stack.callback(self.sub.close)
+            if self.gripper is not None:
+                with contextlib.suppress(DeviceError):
+                    self.gripper.activate()
+            log.info("robot node up: telemetry %s, commands %s", self.pub.endpoint, self.sub.endpoint)
+            self._loop(stop, duration_s)
+        if self._own_ctx:
+            self.ctx.term()
+
+    def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
+        link = self.config.link
+        hb_period = round(1e9 / link.heartbeat_rate_hz)
+        frame_period = round(1e9 / link.frame_display_rate_hz) if link.frame_display_rate_hz > 0 else None
+        min_interval = round(0.9e9 / self.config.publish_rate_hz)
+        t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
+        next_hb = now_ns()
+        next_frame_msg = now_ns()
+        while not stop.is_set() and (t_end is None or now_ns() < t_end):
+            timeout = max(0.0, min((next_hb - now_ns()) / 1e9, 0.02))
+            sample = self.tactile.wait_for_frame(self._last_seq, timeout)
+            self._handle_commands()
+            now = now_ns()
+            self._check_deadman(now)
+            if sample is not None:
+                self._account(sample)
+                if now - self._last_publish_ns >= min_interval:
+                    self.process(sample)
+                else:
+                    self.counters["frames_skipped_rate"] += 1
+                if frame_period is not None and now >= next_frame_msg:
+                    self._send_frame(sample)
+                    next_frame_msg = now + frame_period
+            if now >= next_hb:
+                self._send_heartbeat()
+                next_hb = now + hb_period
+
+    # ------------------------------------------------------------- frames
+    def _account(self, sample: TactileSample) -> None:
+        if self._first_seq is None:
+            self._first_seq = sample.seq
+        self.counters["frames_superseded"] += max(0, sample.seq - self._last_seq - 1) if self._last_seq else 0
+        self._last_seq = sample.seq
+
+    def process(self, sample: TactileSample) -> Stimulus | None:
+        """Render one frame and publish the stimulus if it changed. Returns what was sent."""
+        now = now_ns()
+        age_ms = (now - sample.t_capture_ns) / 1e6
+        if age_ms > self.config.max_frame_age_ms:
+            self.counters["frames_stale"] += 1
+            return None
+        frame = sanitize_frame(sample.frame)
+        self.counters["frames_processed"] += 1
+        self._last_capture_ns = sample.t_capture_ns
+        if self._last_frame is not None and np.array_equal(frame, self._last_frame):
+            self.counters["frames_identical"] += 1
+            return self._maybe_keyframe(sample)
+        self._last_frame = frame
+        render = self.config.render
+        truth = sample.truth.pattern if sample.truth is not None else None
+        contact = is_contact(frame, render.contact_threshold_n)
+        pattern: int | None = None
+        confidence: float | None = None
+        if not contact:
+            self.counters["frames_no_contact"] += 1
+        elif render.mode == "mask":
+            pa, pp = self.classifier.predict_proba(frame[None])
+            a, p = int(pa[0].argmax()), int(pp[0].argmax())
+            pattern = pattern_of(a, p)
+            confidence = float(np.clip(pa[0, a] * pp[0, p], 0.0, 1.0))
+            self.counters["inferences"] += 1
+        elif render.mode == "mask_ground_truth":
+            pattern = truth
+            confidence = 1.0 if truth is not None else None
+        if contact and render.mode != "direct" and pattern is None:
+            stimulus = np.zeros((3, 3), np.float32)  # ground truth says nothing is held
+        else:
+            stimulus = render_stimulus(
+                frame, pattern, method=render.method, order=render.order,
+                contact_threshold_n=render.contact_threshold_n,
+            )
+        if not self._changed(stimulus, pattern):
+            self.counters["stimuli_unchanged"] += 1
+            return self._maybe_keyframe(sample)
+        return self._publish(sample, stimulus, contact, pattern, confidence, truth, keyframe=False)
+
+    def _changed(self, stimulus: np.ndarray, pattern: int | None) -> bool:
+        last = self._last_stimulus
+        if last is None or pattern != self._last_pattern:
+            return True
+        if not np.array_equal(stimulus > 0, last > 0):
+            return True
+        return bool(np.abs(stimulus - last).max() > self.config.render.deadband_n)
+
+    def _maybe_keyframe(self, sample: TactileSample) -> Stimulus | None:
+        interval = self.config.render.keyframe_interval_ms * 1e6
+        msg = self._last_stim_msg
+        if msg is None or now_ns() - self._last_publish_ns < interval:
+            return None
+        truth = sample.truth.pattern if sample.truth is not None else None
+        return self._publish(sample, msg.stimulus, msg.contact, msg.pattern, msg.confidence, truth, keyframe=True)
+
+    def _publish(
+        self, sample: TactileSample, stimulus: np.ndarray, contact: bool, pattern: int | None,
+        confidence: float | None, truth: int | None, *, keyframe: bool,
+    ) -> Stimulus:
+        self._stim_seq += 1
+        now = now_ns()
+        msg = Stimulus(
+            seq=self._stim_seq, t_send_ns=now, t_capture_ns=sample.t_capture_ns,
+            frame_seq=sample.seq, mode=self.config.render.mode, contact=contact,
+            stimulus=stimulus, pattern=pattern, confidence=confidence,
+            grip_level=self._grip_level, keyframe=keyframe, sim_truth_pattern=truth,
+        )
+        self.pub.send(msg)
+        self._last_stimulus = stimulus
+        self._last_pattern = pattern
+        self._last_stim_msg = msg
+        self._last_publish_ns = now
+        self.counters["keyframes" if keyframe else "stimuli_published"] += 1
+        return msg
+
+    def _send_frame(self, sample: TactileSample) -> None:
+        self._frame_msg_seq += 1
+        frame = sanitize_frame(sample.frame)
+        self.pub.send(TactileFrame(
+            seq=self._frame_msg_seq, t_send_ns=now_ns(), t_capture_ns=sample.t_capture_ns,
+            frame_seq=sample.seq, frame=frame,
+        ))
+
+    # ----------------------------------------------------------- commands
+    def _handle_commands(self) -> None:
+        for msg, t_recv in self.sub.drain():
+            self._last_operator_ns = t_recv
+            if isinstance(msg, Heartbeat):
+                self._peer_hb = (msg.t_send_ns, t_recv)
+            elif isinstance(msg, Command):
+                self.counters["commands_received"] += 1
+                self._apply(msg)
+            else:
+                self.counters["messages_unexpected"] += 1
+        self.counters["decode_errors"] = self.sub.rejected_total
+
+    def _apply(self, cmd: Command) -> None:
+        try:
+            if cmd.action.startswith("gripper"):
+                if self.gripper is None:
+                    raise DeviceError("this scene has no gripper")
+                if cmd.action == "gripper_open":
+                    self.gripper.open()
+                elif cmd.action == "gripper_close":
+                    self.gripper.close_to_level(cmd.grip_level or 16)
+                else:
+                    self.gripper.hold()
+            else:
+                if self.arm is None:
+                    raise DeviceError("this scene has no arm")
+                if cmd.action == "arm_jog" and cmd.velocity is not None:
+                    self.arm.jog(cmd.velocity)
+                    self._arm_moving = any(v != 0 for v in cmd.velocity)
+                else:
+                    self.arm.stop()
+                    self._arm_moving = False
+            self.counters["commands_applied"] += 1
+        except (DeviceError, ValueError, DecodeError) as e:
+            self.counters["commands_rejected"] += 1
+            log.warning("command %s rejected: %s", cmd.action, e)
+
+    def _check_deadman(self, now: int) -> None:
+        heard = self._last_operator_ns
+        fresh = heard is not None and (now - heard) / 1e6 <= self.config.link.deadman_ms
+        new_state = "ok" if fresh else "down"
+        if new_state != self.link_state:
+            log.info("operator link %s -> %s", self.link_state, new_state)
+            if new_state == "down" and heard is not None:
+                self.counters["deadman_trips"] += 1
+                self._safe_stop_arm("operator silent")
+                if self.gripper is not None:
+                    with contextlib.suppress(DeviceError):
+                        self.gripper.hold()
+            self.link_state = new_state
+
+    def _safe_stop_arm(self, why: str) -> None:
+        if self.arm is None:
+            return
+        try:
+            self.arm.stop()
+            self._arm_moving = False
+            log.info("arm stopped: %s", why)
+        except Exception:  # stopping must never raise out of a finally
+            log.exception("arm stop failed (%s)", why)
+
+    # ---------------------------------------------------------- heartbeat
+    def _send_heartbeat(self) -> None:
+        if self.gripper is not None:
+            try:
+                self._grip_level = self.gripper.grip_level()
+            except DeviceError as e:
+                self.counters["gripper_errors"] += 1
+                log.debug("gripper: %s", e)
+        self._hb_seq += 1
+        echo = self._peer_hb
+        msg = self._last_stim_msg
+        self.pub.send(Heartbeat(
+            seq=self._hb_seq, t_send_ns=now_ns(), node="robot", state=self.link_state,
+            echo_t_send_ns=echo[0] if echo else None, echo_t_recv_ns=echo[1] if echo else None,
+            stimulus_seq=msg.seq if msg else None,
+            t_capture_ns=self._last_capture_ns if msg else None,
+            stats=self.stats(),
+        ))
+
+    def stats(self) -> dict[str, float]:
+        out = {k: float(v) for k, v in self.counters.items()}
+        if self._first_seq is not None:
+            out["frames_captured"] = float(self._last_seq - self._first_seq + 1)
+        return out
+
+
+def build_robot_node(config: RobotConfig, ctx: zmq.Context | None = None) -> RobotNode:
+    """Build the devices and classifier a config names, and nothing else."""
+    from robot_side.arm import KINDS as ARM_KINDS
+    from robot_side.gripper import KINDS as GRIPPER_KINDS
+    from robot_side.tactile import KINDS as TACTILE_KINDS
+
+    tactile = build_device(TACTILE_KINDS, config.tactile, "robot.tactile")
+    gripper = _optional(GRIPPER_KINDS, config.gripper, "robot.gripper")
+    arm = _optional(ARM_KINDS, config.arm, "robot.arm")
+    classifier = None
+    if config.render.mode == "mask":
+        from robot_side.perception import load_classifier
+
+        classifier = load_classifier(config.classifier.path, backend=config.classifier.backend)
+    return RobotNode(config, tactile, classifier=classifier, gripper=gripper, arm=arm, ctx=ctx)
+
+
+def _optional(registry: dict[str, str], section: dict[str, Any], where: str) -> Device | None:
+    if section.get("kind", "none") == "none":
+        return None
+    return build_device(registry, section, where)
+

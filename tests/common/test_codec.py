@@ -1,0 +1,154 @@
+"""The codec is where untrusted bytes become actions: everything bad must be named and dropped."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from common import codec
+from common.codec import (
+    DecodeError,
+    FieldTypeError,
+    MalformedMessageError,
+    MessageTooLargeError,
+    MissingFieldError,
+    NonFiniteValueError,
+    OutOfRangeError,
+    UnknownMessageTypeError,
+    UnsupportedVersionError,
+    decode,
+    encode,
+)
+from common.messages import Command, Heartbeat, Stimulus, TactileFrame
+
+
+def stimulus(**kw) -> Stimulus:
+    base = dict(
+        seq=7, t_send_ns=1_000, t_capture_ns=900, frame_seq=3, mode="mask", contact=True,
+        stimulus=np.array([[0, 2.5, 0], [1.25, 0, 0], [0, 0, 0]], np.float32),
+        pattern=4, confidence=0.93, grip_level=12,
+    )
+    base.update(kw)
+    return Stimulus(**base)
+
+
+def body_of(data: bytes) -> dict:
+    return msgpack.unpackb(data[4:], raw=False)
+
+
+def rebuild(topic: bytes, body: dict) -> bytes:
+    return topic + msgpack.packb(body, use_bin_type=True)
+
+
+def test_every_message_round_trips():
+    msgs = [
+        stimulus(),
+        stimulus(pattern=None, confidence=None, grip_level=None, contact=False,
+                 stimulus=np.zeros((3, 3), np.float32), mode="direct"),
+        TactileFrame(seq=1, t_send_ns=5, t_capture_ns=4, frame_seq=9,
+                     frame=np.linspace(0, 9, 200, dtype=np.float32).reshape(2, 10, 10)),
+        Heartbeat(seq=2, t_send_ns=10, node="robot", state="ok", echo_t_send_ns=3, echo_t_recv_ns=4,
+                  stimulus_seq=7, t_capture_ns=9, stats={"frames": 12.0}),
+        Command(seq=3, t_send_ns=11, action="arm_jog", velocity=(0.01, 0, 0, 0, 0, 0.1)),
+        Command(seq=4, t_send_ns=12, action="gripper_close", grip_level=31),
+    ]
+    for msg in msgs:
+        out = decode(encode(msg))
+        assert type(out) is type(msg)
+        for name in msg.__slots__:
+            a, b = getattr(msg, name), getattr(out, name)
+            if isinstance(a, np.ndarray):
+                np.testing.assert_array_equal(a, b)
+            else:
+                assert a == b, name
+
+
+@pytest.mark.parametrize(
+    ("mutate", "error"),
+    [
+        (lambda b: b.update(v=2), UnsupportedVersionError),
+        (lambda b: b.pop("v"), UnsupportedVersionError),
+        (lambda b: b.update(type="command"), UnknownMessageTypeError),
+        (lambda b: b.pop("seq"), MissingFieldError),
+        (lambda b: b.pop("stimulus"), MissingFieldError),
+        (lambda b: b.update(seq="7"), FieldTypeError),
+        (lambda b: b.update(seq=-1), OutOfRangeError),
+        (lambda b: b.update(contact=1), FieldTypeError),
+        (lambda b: b.update(confidence=float("nan")), NonFiniteValueError),
+        (lambda b: b.update(confidence=float("inf")), NonFiniteValueError),
+        (lambda b: b.update(confidence=1.5), OutOfRangeError),
+        (lambda b: b.update(pattern=12), OutOfRangeError),
+        (lambda b: b.update(grip_level=0), OutOfRangeError),
+        (lambda b: b.update(mode="fancy"), OutOfRangeError),
+        (lambda b: b.update(stimulus=b"\x00" * 35), FieldTypeError),
+        (lambda b: b.update(stimulus=[0.0] * 9), FieldTypeError),
+        (lambda b: b.update(stimulus=np.full(9, np.nan, "<f4").tobytes()), NonFiniteValueError),
+        (lambda b: b.update(stimulus=np.full(9, -1, "<f4").tobytes()), OutOfRangeError),
+        (lambda b: b.update(stimulus=np.full(9, 50, "<f4").tobytes()), OutOfRangeError),
+        (lambda b: b.update(stimulus=np.array([1, 1, 0] + [0] * 6, "<f4").tobytes()), OutOfRangeError),
+    ],
+)
+def test_bad_stimulus_fields_are_named(mutate, error):
+    body = body_of(encode(stimulus()))
+    mutate(body)
+    with pytest.raises(error):
+        decode(rebuild(b"STIM", body))
+
+
+def test_unknown_fields_are_ignored_for_forward_compatibility():
+    body = body_of(encode(stimulus()))
+    body["added_in_v1_5"] = {"anything": [1, 2]}
+    assert decode(rebuild(b"STIM", body)).seq == 7
+
+
+@pytest.mark.parametrize(
+    ("data", "error"),
+    [
+        (b"", MalformedMessageError),
+        (b"STIM", MalformedMessageError),
+        (b"XXXX" + msgpack.packb({}), UnknownMessageTypeError),
+        (b"STIM" + b"\xc1\xc1", MalformedMessageError),
+        (b"STIM" + msgpack.packb([1, 2, 3]), MalformedMessageError),
+        (b"STIM" + b"\x00" * (codec.MAX_MESSAGE_BYTES + 1), MessageTooLargeError),
+    ],
+)
+def test_malformed_bytes(data, error):
+    with pytest.raises(error):
+        decode(data)
+
+
+def test_non_finite_command_velocity_rejected():
+    body = body_of(encode(Command(seq=1, t_send_ns=1, action="arm_jog", velocity=(0.0,) * 6)))
+    body["velocity"] = [0.0, math.inf, 0, 0, 0, 0]
+    with pytest.raises(NonFiniteValueError):
+        decode(rebuild(b"CMND", body))
+
+
+@given(st.binary(max_size=300))
+def test_random_bytes_never_escape_as_anything_but_decode_error(data):
+    for topic in (b"STIM", b"HBRT", b"CMND", b"FRAM", b""):
+        try:
+            msg = decode(topic + data)
+        except DecodeError:
+            continue
+        # Whatever decodes is valid by construction.
+        if isinstance(msg, Stimulus):
+            assert np.isfinite(msg.stimulus).all()
+
+
+@given(st.integers(0, len(encode(stimulus())) - 1), st.integers(1, 255))
+def test_any_single_byte_corruption_is_rejected_or_still_valid(index, flip):
+    data = bytearray(encode(stimulus()))
+    data[index] ^= flip
+    try:
+        msg = decode(bytes(data))
+    except DecodeError:
+        return
+    assert isinstance(msg, Stimulus)
+    assert np.isfinite(msg.stimulus).all() and msg.stimulus.min() >= 0
+    assert ((msg.stimulus > 0).sum(axis=1) <= 1).all()
