@@ -69,6 +69,7 @@ class RobotNode:
         self._last_pattern: int | None = None
         self._last_stim_msg: Stimulus | None = None
         self._last_publish_ns = 0
+        self._last_process_ns = 0
         self._last_capture_ns: int | None = None
         self._last_operator_ns: int | None = None
         self._peer_hb: tuple[int, int] | None = None
@@ -118,7 +119,7 @@ class RobotNode:
             self._check_deadman(now)
             if sample is not None:
                 self._account(sample)
-                if now - self._last_publish_ns >= min_interval:
+                if now - self._last_process_ns >= min_interval:
                     self.process(sample)
                 else:
                     self.counters["frames_skipped_rate"] += 1
@@ -139,40 +140,43 @@ class RobotNode:
     def process(self, sample: TactileSample) -> Stimulus | None:
         """Render one frame and publish the stimulus if it changed. Returns what was sent."""
         now = now_ns()
-        age_ms = (now - sample.t_capture_ns) / 1e6
-        if age_ms > self.config.max_frame_age_ms:
+        self._last_process_ns = now
+        if (now - sample.t_capture_ns) / 1e6 > self.config.max_frame_age_ms:
             self.counters["frames_stale"] += 1
             return None
-        frame = sanitize_frame(sample.frame)
         self.counters["frames_processed"] += 1
         self._last_capture_ns = sample.t_capture_ns
-        if self._last_frame is not None and np.array_equal(frame, self._last_frame):
-            self.counters["frames_identical"] += 1
-            return self._maybe_keyframe(sample)
-        self._last_frame = frame
         render = self.config.render
+        frame = sanitize_frame(sample.frame)
         truth = sample.truth.pattern if sample.truth is not None else None
         contact = is_contact(frame, render.contact_threshold_n)
         pattern: int | None = None
         confidence: float | None = None
         if not contact:
             self.counters["frames_no_contact"] += 1
-        elif render.mode == "mask":
-            pa, pp = self.classifier.predict_proba(frame[None])
-            a, p = int(pa[0].argmax()), int(pp[0].argmax())
-            pattern = pattern_of(a, p)
-            confidence = float(np.clip(pa[0, a] * pp[0, p], 0.0, 1.0))
-            self.counters["inferences"] += 1
-        elif render.mode == "mask_ground_truth":
-            pattern = truth
-            confidence = 1.0 if truth is not None else None
-        if contact and render.mode != "direct" and pattern is None:
-            stimulus = np.zeros((3, 3), np.float32)  # ground truth says nothing is held
+            self._last_frame = None
+            stimulus = np.zeros((3, 3), np.float32)
+        elif self._last_frame is not None and np.array_equal(frame, self._last_frame):
+            self.counters["frames_identical"] += 1
+            return self._maybe_keyframe(sample)
         else:
-            stimulus = render_stimulus(
-                frame, pattern, method=render.method, order=render.order,
-                contact_threshold_n=render.contact_threshold_n,
-            )
+            self._last_frame = frame
+            if render.mode == "mask":
+                pa, pp = self.classifier.predict_proba(frame[None])
+                a, p = int(pa[0].argmax()), int(pp[0].argmax())
+                pattern = pattern_of(a, p)
+                confidence = float(np.clip(pa[0, a] * pp[0, p], 0.0, 1.0))
+                self.counters["inferences"] += 1
+            elif render.mode == "mask_ground_truth":
+                pattern = truth
+                confidence = 1.0 if truth is not None else None
+            if render.mode != "direct" and pattern is None:
+                stimulus = np.zeros((3, 3), np.float32)  # ground truth: nothing is held
+            else:
+                stimulus = render_stimulus(
+                    frame, pattern, method=render.method, order=render.order,
+                    contact_threshold_n=render.contact_threshold_n,
+                )
         if not self._changed(stimulus, pattern):
             self.counters["stimuli_unchanged"] += 1
             return self._maybe_keyframe(sample)
