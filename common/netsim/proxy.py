@@ -20,7 +20,7 @@ import select
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Self
 
 import zmq
@@ -66,12 +66,9 @@ class DirectionCounters:
     bytes_in: int = 0
     bytes_out: int = 0
     late_ns_max: int = 0  # worst lateness of a send past its due time
-    extra: dict[str, int] = field(default_factory=dict)  # impairment-specific counts
 
     def as_dict(self) -> dict[str, Any]:
-        d = {k: v for k, v in self.__dict__.items() if k != "extra"}
-        d.update(self.extra)
-        return d
+        return dict(self.__dict__)
 
 
 def _set_timer_slack_ns(ns: int) -> None:
@@ -206,8 +203,11 @@ class LinkSimulator:
 
     # ------------------------------------------------------------ state
     def counters(self) -> dict[str, dict[str, Any]]:
-        """A snapshot per direction name (safe to call from any thread)."""
-        return {d.name: d.counters.as_dict() for d in self._dirs}
+        """A snapshot per direction name, with the impairments' counts by cause.
+
+        Safe to call from any thread: the values are plain ints.
+        """
+        return {d.name: {**d.counters.as_dict(), **d.engine.counts.as_dict()} for d in self._dirs}
 
     def own_latency_ns(self) -> list[int]:
         """Recent per-send costs of the simulator itself, ns (at zero delay: receive to sent)."""
