@@ -24,10 +24,16 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, section: st
     )
     parser.add_argument("--config", type=Path, help="TOML config or scene file")
     parser.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help=f"override one setting, e.g. --set {section}.render.mode=direct (repeatable)",
     )
-    parser.add_argument("--print-config", action="store_true", help="print the effective config and exit")
+    parser.add_argument(
+        "--print-config", action="store_true", help="print the effective config and exit"
+    )
     parser.add_argument("--stats-file", type=Path, help="write final counters here as JSON on exit")
 
 
@@ -42,7 +48,7 @@ def load_node_config(args: argparse.Namespace, cls: type[T], section: str) -> T:
     elif any(k in data for k in ("robot", "operator", "network", "scene")):
         data = {}
     prefix = f"{section}."
-    local = [o[len(prefix):] if o.startswith(prefix) else o for o in args.overrides]
+    local = [o[len(prefix) :] if o.startswith(prefix) else o for o in args.overrides]
     return from_dict(cls, apply_overrides(data, local), where=section)
 
 

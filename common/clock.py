@@ -46,6 +46,10 @@ class Rate:
             self.overruns += int(missed)
             self.next_deadline_ns += int(missed) * self.period_ns
 
+    def restart(self) -> None:
+        """The next deadline is one period from now (an event-driven cycle just ran)."""
+        self.next_deadline_ns = now_ns() + self.period_ns
+
     def sleep(self) -> None:
         """Sleep until the current deadline, then advance to the next one."""
         remaining = self.remaining_s()

@@ -104,7 +104,10 @@ def _convert(tp: Any, value: Any, key: str) -> Any:
         elif origin is tuple and args:
             if len(value) != len(args):
                 raise ConfigError(f"{key} must have {len(args)} items, not {len(value)}")
-            items = [_convert(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True))]
+            items = [
+                _convert(a, v, f"{key}[{i}]")
+                for i, (a, v) in enumerate(zip(args, value, strict=True))
+            ]
         else:
             inner = args[0] if args else Any
             items = [_convert(inner, v, f"{key}[{i}]") for i, v in enumerate(value)]

@@ -30,13 +30,23 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", default="demo", help="shipped scene name or TOML path (default: demo)")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds (default: Ctrl-C)")
-    parser.add_argument("--json", action="store_true", help="no live view; print one JSON summary at the end")
+    parser.add_argument(
+        "--scene", default="demo", help="shipped scene name or TOML path (default: demo)"
+    )
+    parser.add_argument(
+        "--duration", type=float, help="stop after this many seconds (default: Ctrl-C)"
+    )
+    parser.add_argument(
+        "--json", action="store_true", help="no live view; print one JSON summary at the end"
+    )
     parser.add_argument("--scenario", help="network scenario, overriding the scene's")
     parser.add_argument("--no-netsim", action="store_true", help="connect the nodes directly")
     parser.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help="override a scene setting, e.g. --set robot.render.mode=direct",
     )
 
@@ -56,7 +66,9 @@ def _free_ports(n: int) -> list[int]:
 def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
     out = log_path.open("wb")
     return subprocess.Popen(
-        [sys.executable, "-m", "deploy.cli", *args], stdout=out, stderr=subprocess.STDOUT,
+        [sys.executable, "-m", "deploy.cli", *args],
+        stdout=out,
+        stderr=subprocess.STDOUT,
         start_new_session=True,
     )
 
@@ -95,15 +107,49 @@ def run(args: argparse.Namespace) -> int:
     robot_stats_path = workdir / "robot-stats.json"
     netsim_stats_path = workdir / "netsim-stats.json"
     verbosity = ["-v"] if logging.getLogger().level <= logging.INFO else []
-    procs.append(("robot", _spawn([*verbosity, "robot", "--config", str(robot_cfg),
-                                   "--stats-file", str(robot_stats_path)], workdir / "robot.log"),
-                  workdir / "robot.log"))
+    procs.append(
+        (
+            "robot",
+            _spawn(
+                [
+                    *verbosity,
+                    "robot",
+                    "--config",
+                    str(robot_cfg),
+                    "--stats-file",
+                    str(robot_stats_path),
+                ],
+                workdir / "robot.log",
+            ),
+            workdir / "robot.log",
+        )
+    )
     if use_netsim:
-        procs.append(("netsim", _spawn([
-            *verbosity, "netsim", "--scenario", scene.network.scenario, "--seed", str(scene.network.seed),
-            "--robot-telemetry", robot_tel, "--robot-commands", robot_cmd,
-            "--operator-telemetry", op_tel, "--operator-commands", op_cmd,
-        ], workdir / "netsim.log"), workdir / "netsim.log"))
+        procs.append(
+            (
+                "netsim",
+                _spawn(
+                    [
+                        *verbosity,
+                        "netsim",
+                        "--scenario",
+                        scene.network.scenario,
+                        "--seed",
+                        str(scene.network.seed),
+                        "--robot-telemetry",
+                        robot_tel,
+                        "--robot-commands",
+                        robot_cmd,
+                        "--operator-telemetry",
+                        op_tel,
+                        "--operator-commands",
+                        op_cmd,
+                    ],
+                    workdir / "netsim.log",
+                ),
+                workdir / "netsim.log",
+            )
+        )
     node = build_operator_node(scene.operator)
     node_error: list[BaseException] = []
 
@@ -137,14 +183,17 @@ def run(args: argparse.Namespace) -> int:
             _stop(proc, name, errors, path)
     if node_error:
         errors.append(f"operator node failed: {node_error[0]!r}")
-    summary = _summary(scene, node, time.monotonic() - t0, robot_stats_path, netsim_stats_path, errors)
+    summary = _summary(
+        scene, node, time.monotonic() - t0, robot_stats_path, netsim_stats_path, errors
+    )
     summary["logs"] = str(workdir)
     print(json.dumps(summary, indent=2))
     return 1 if errors else 0
 
 
-def _summary(scene: Scene, node: Any, elapsed: float, robot_path: Path, netsim_path: Path,
-             errors: list[str]) -> dict[str, Any]:
+def _summary(
+    scene: Scene, node: Any, elapsed: float, robot_path: Path, netsim_path: Path, errors: list[str]
+) -> dict[str, Any]:
     robot: dict[str, float] = {}
     if robot_path.exists():
         robot = json.loads(robot_path.read_text())
@@ -170,8 +219,10 @@ def _summary(scene: Scene, node: Any, elapsed: float, robot_path: Path, netsim_p
         "servo_writes": int(op.get("servo_writes", 0)),
         "lift_offs": int(op.get("lift_offs", 0)),
         "latency_ms": {
-            "p50": op.get("latency_p50_ms"), "p99": op.get("latency_p99_ms"),
-            "max": op.get("latency_max_ms"), "samples": len(node.latencies_ms),
+            "p50": op.get("latency_p50_ms"),
+            "p99": op.get("latency_p99_ms"),
+            "max": op.get("latency_max_ms"),
+            "samples": len(node.latencies_ms),
             "what": "frame capture (robot clock, offset-corrected) to servo command",
         },
         "pattern_match": {
@@ -181,12 +232,11 @@ def _summary(scene: Scene, node: Any, elapsed: float, robot_path: Path, netsim_p
             "what": "received stimuli pressing exactly the true pattern's cells",
         },
         "rejected_messages": {
-            "operator": int(op.get("decode_errors", 0)), "robot": int(robot.get("decode_errors", 0)),
+            "operator": int(op.get("decode_errors", 0)),
+            "robot": int(robot.get("decode_errors", 0)),
         },
         "errors": errors,
     }
     if netsim_path.exists():
         out["netsim"] = json.loads(netsim_path.read_text())
     return out
-
-

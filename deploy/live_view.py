@@ -41,9 +41,15 @@ def _stimulus(stim: np.ndarray | None) -> list[str]:
     return lines
 
 
+def _ms(v: float | None) -> str:
+    return "  -  " if v is None else f"{v:6.2f}"
+
+
 def render(snap: Snapshot, scene_name: str, elapsed_s: float) -> str:
     s, r = snap.stats, snap.robot_stats
-    pattern = "none" if snap.pattern is None else f"{snap.pattern:2d} ({pattern_name(snap.pattern)})"
+    pattern = (
+        "none" if snap.pattern is None else f"{snap.pattern:2d} ({pattern_name(snap.pattern)})"
+    )
     conf = "" if snap.confidence is None else f"  p={snap.confidence:.2f}"
     state_colour = {"ok": 42, "stale": 43, "down": 41}.get(snap.link_state, 45)
     lines = [
@@ -56,16 +62,26 @@ def render(snap: Snapshot, scene_name: str, elapsed_s: float) -> str:
         f"pattern {pattern}{conf}   grip level {snap.grip_level or '-'}",
         *_stimulus(snap.stimulus),
         "",
-        "servo angles (deg) " + "  ".join(
+        "servo angles (deg) "
+        + "  ".join(
             f"L{n} {math.degrees(a):6.1f} {math.degrees(e):6.1f}"
             for n, (a, e) in enumerate(snap.goal_angles)
         ),
-        f"latency capture->servo p50 {s.get('latency_p50_ms', float('nan')):6.2f} ms  "
-        f"p99 {s.get('latency_p99_ms', float('nan')):6.2f} ms  max {s.get('latency_max_ms', float('nan')):6.2f} ms",
-        f"robot: frames {int(r.get('frames_captured', 0))}  no-contact {int(r.get('frames_no_contact', 0))}  "
-        f"inferences {int(r.get('inferences', 0))}  published {int(r.get('stimuli_published', 0))}",
-        f"operator: received {int(s.get('stimuli_received', 0))}  servo writes {int(s.get('servo_writes', 0))}  "
-        f"lift-offs {int(s.get('lift_offs', 0))}  rejected {int(s.get('decode_errors', 0))}",
+        "latency capture->servo  p50 {} ms  p99 {} ms  max {} ms".format(
+            *(_ms(s.get(k)) for k in ("latency_p50_ms", "latency_p99_ms", "latency_max_ms"))
+        ),
+        "robot: frames {}  no-contact {}  inferences {}  published {}".format(
+            *(
+                int(r.get(k, 0))
+                for k in ("frames_captured", "frames_no_contact", "inferences", "stimuli_published")
+            )
+        ),
+        "operator: received {}  servo writes {}  lift-offs {}  rejected {}".format(
+            *(
+                int(s.get(k, 0))
+                for k in ("stimuli_received", "servo_writes", "lift_offs", "decode_errors")
+            )
+        ),
         "Ctrl-C to stop",
     ]
     return "\x1b[H\x1b[2J" + "\n".join(lines) + "\n"

@@ -52,7 +52,9 @@ def scene_path(name_or_path: str) -> Path:
         return path
     shipped = resources.files(SCENES_DIR) / f"{name_or_path}.toml"
     if not shipped.is_file():
-        names = sorted(p.name[:-5] for p in resources.files(SCENES_DIR).iterdir() if p.name.endswith(".toml"))
+        names = sorted(
+            p.name[:-5] for p in resources.files(SCENES_DIR).iterdir() if p.name.endswith(".toml")
+        )
         raise ConfigError(f"no scene named {name_or_path!r}; shipped scenes: {names}")
     return Path(str(shipped))
 

@@ -11,10 +11,15 @@ from operator_side.renderer import RendererConfig
 
 @dataclass
 class OperatorLinkConfig:
-    telemetry_endpoint: str = param("tcp://127.0.0.1:5555", "the robot's telemetry PUB (or the netsim's)")
-    command_endpoint: str = param("tcp://127.0.0.1:5556", "the robot's command SUB (or the netsim's)")
+    telemetry_endpoint: str = param(
+        "tcp://127.0.0.1:5555", "the robot's telemetry PUB (or the netsim's)"
+    )
+    command_endpoint: str = param(
+        "tcp://127.0.0.1:5556", "the robot's command SUB (or the netsim's)"
+    )
     stale_after_ms: float = param(
-        150.0, "a stimulus older than this is not rendered; with none fresher, every linkage lifts off"
+        150.0,
+        "a stimulus older than this is not rendered; with none fresher, every linkage lifts off",
     )
     heartbeat_rate_hz: float = param(20.0, "heartbeats keep the robot's deadman satisfied")
 

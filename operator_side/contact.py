@@ -18,7 +18,9 @@ from common.config import param
 
 @dataclass(frozen=True)
 class ContactMapping:
-    retract_point_mm: tuple[float, float] = param((10.0, 40.0), "where a lifted contact rests, off the palm")
+    retract_point_mm: tuple[float, float] = param(
+        (10.0, 40.0), "where a lifted contact rests, off the palm"
+    )
     column_x_mm: tuple[float, float, float] = param(
         (-8.0, 10.0, 28.0), "X of stimulus columns 0, 1, 2 across the palm"
     )
@@ -50,7 +52,7 @@ def stimulus_to_points(stimulus: np.ndarray, m: ContactMapping) -> list[tuple[fl
 
 
 def reachable_set(m: ContactMapping, depth_steps: int = 25) -> np.ndarray:
-    """Every point the mapping can ask for: each column over its depth range, and the retract point."""
+    """Every point the mapping can produce: each column over its depth range, and the retract."""
     depths = np.linspace(0.0, m.max_depth_mm, depth_steps)
     pts = [(x, m.palm_y_mm + d) for x in m.column_x_mm for d in depths]
     pts.append(m.retract_point_mm)

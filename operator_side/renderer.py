@@ -46,11 +46,15 @@ class LinkGlideRenderer:
         self.geometry = config.geometry
         if not config.max_step_deg_per_cycle > 0:
             raise ConfigError("max_step_deg_per_cycle must be positive")
-        self.max_step_counts = max(1, round(math.radians(config.max_step_deg_per_cycle) * COUNTS_PER_RAD))
+        self.max_step_counts = max(
+            1, round(math.radians(config.max_step_deg_per_cycle) * COUNTS_PER_RAD)
+        )
         try:
             inverse_kinematics(reachable_set(config.contact), config.geometry)
         except UnreachableTargetError as e:
-            raise ConfigError(f"the contact mapping asks for a point LinkGlide cannot reach: {e}") from None
+            raise ConfigError(
+                f"the contact mapping asks for a point LinkGlide cannot reach: {e}"
+            ) from None
         rx, ry = config.contact.retract_point_mm
         self.retract_angles = np.array([inverse_kinematics_one(rx, ry, self.geometry)] * 3)
         self.retract_counts = calibration.angles_to_counts(self.retract_angles)

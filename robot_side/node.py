@@ -98,7 +98,9 @@ class RobotNode:
             if self.gripper is not None:
                 with contextlib.suppress(DeviceError):
                     self.gripper.activate()
-            log.info("robot node up: telemetry %s, commands %s", self.pub.endpoint, self.sub.endpoint)
+            log.info(
+                "robot node up: telemetry %s, commands %s", self.pub.endpoint, self.sub.endpoint
+            )
             self._loop(stop, duration_s)
         if self._own_ctx:
             self.ctx.term()
@@ -106,7 +108,9 @@ class RobotNode:
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
         link = self.config.link
         hb_period = round(1e9 / link.heartbeat_rate_hz)
-        frame_period = round(1e9 / link.frame_display_rate_hz) if link.frame_display_rate_hz > 0 else None
+        frame_period = (
+            round(1e9 / link.frame_display_rate_hz) if link.frame_display_rate_hz > 0 else None
+        )
         min_interval = round(0.9e9 / self.config.publish_rate_hz)
         t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
         next_hb = now_ns()
@@ -134,7 +138,9 @@ class RobotNode:
     def _account(self, sample: TactileSample) -> None:
         if self._first_seq is None:
             self._first_seq = sample.seq
-        self.counters["frames_superseded"] += max(0, sample.seq - self._last_seq - 1) if self._last_seq else 0
+        self.counters["frames_superseded"] += (
+            max(0, sample.seq - self._last_seq - 1) if self._last_seq else 0
+        )
         self._last_seq = sample.seq
 
     def process(self, sample: TactileSample) -> Stimulus | None:
@@ -174,7 +180,10 @@ class RobotNode:
                 stimulus = np.zeros((3, 3), np.float32)  # ground truth: nothing is held
             else:
                 stimulus = render_stimulus(
-                    frame, pattern, method=render.method, order=render.order,
+                    frame,
+                    pattern,
+                    method=render.method,
+                    order=render.order,
                     contact_threshold_n=render.contact_threshold_n,
                 )
         if not self._changed(stimulus, pattern):
@@ -196,19 +205,36 @@ class RobotNode:
         if msg is None or now_ns() - self._last_publish_ns < interval:
             return None
         truth = sample.truth.pattern if sample.truth is not None else None
-        return self._publish(sample, msg.stimulus, msg.contact, msg.pattern, msg.confidence, truth, keyframe=True)
+        return self._publish(
+            sample, msg.stimulus, msg.contact, msg.pattern, msg.confidence, truth, keyframe=True
+        )
 
     def _publish(
-        self, sample: TactileSample, stimulus: np.ndarray, contact: bool, pattern: int | None,
-        confidence: float | None, truth: int | None, *, keyframe: bool,
+        self,
+        sample: TactileSample,
+        stimulus: np.ndarray,
+        contact: bool,
+        pattern: int | None,
+        confidence: float | None,
+        truth: int | None,
+        *,
+        keyframe: bool,
     ) -> Stimulus:
         self._stim_seq += 1
         now = now_ns()
         msg = Stimulus(
-            seq=self._stim_seq, t_send_ns=now, t_capture_ns=sample.t_capture_ns,
-            frame_seq=sample.seq, mode=self.config.render.mode, contact=contact,
-            stimulus=stimulus, pattern=pattern, confidence=confidence,
-            grip_level=self._grip_level, keyframe=keyframe, sim_truth_pattern=truth,
+            seq=self._stim_seq,
+            t_send_ns=now,
+            t_capture_ns=sample.t_capture_ns,
+            frame_seq=sample.seq,
+            mode=self.config.render.mode,
+            contact=contact,
+            stimulus=stimulus,
+            pattern=pattern,
+            confidence=confidence,
+            grip_level=self._grip_level,
+            keyframe=keyframe,
+            sim_truth_pattern=truth,
         )
         self.pub.send(msg)
         self._last_stimulus = stimulus
@@ -221,10 +247,15 @@ class RobotNode:
     def _send_frame(self, sample: TactileSample) -> None:
         self._frame_msg_seq += 1
         frame = sanitize_frame(sample.frame)
-        self.pub.send(TactileFrame(
-            seq=self._frame_msg_seq, t_send_ns=now_ns(), t_capture_ns=sample.t_capture_ns,
-            frame_seq=sample.seq, frame=frame,
-        ))
+        self.pub.send(
+            TactileFrame(
+                seq=self._frame_msg_seq,
+                t_send_ns=now_ns(),
+                t_capture_ns=sample.t_capture_ns,
+                frame_seq=sample.seq,
+                frame=frame,
+            )
+        )
 
     # ----------------------------------------------------------- commands
     def _handle_commands(self) -> None:
@@ -299,13 +330,19 @@ class RobotNode:
         self._hb_seq += 1
         echo = self._peer_hb
         msg = self._last_stim_msg
-        self.pub.send(Heartbeat(
-            seq=self._hb_seq, t_send_ns=now_ns(), node="robot", state=self.link_state,
-            echo_t_send_ns=echo[0] if echo else None, echo_t_recv_ns=echo[1] if echo else None,
-            stimulus_seq=msg.seq if msg else None,
-            t_capture_ns=self._last_capture_ns if msg else None,
-            stats=self.stats(),
-        ))
+        self.pub.send(
+            Heartbeat(
+                seq=self._hb_seq,
+                t_send_ns=now_ns(),
+                node="robot",
+                state=self.link_state,
+                echo_t_send_ns=echo[0] if echo else None,
+                echo_t_recv_ns=echo[1] if echo else None,
+                stimulus_seq=msg.seq if msg else None,
+                t_capture_ns=self._last_capture_ns if msg else None,
+                stats=self.stats(),
+            )
+        )
 
     def stats(self) -> dict[str, float]:
         out = {k: float(v) for k, v in self.counters.items()}
@@ -335,4 +372,3 @@ def _optional(registry: dict[str, str], section: dict[str, Any], where: str) -> 
     if section.get("kind", "none") == "none":
         return None
     return build_device(registry, section, where)
-

@@ -136,7 +136,7 @@ def render_stimulus(
     pattern: int | None,
     *,
     method: Method = "antialiased",
-    order: Order = "peak_then_mask",
+    order: Order = "mask_then_peak",
     contact_threshold_n: float = CONTACT_THRESHOLD_N,
 ) -> np.ndarray:
     """The 3x3 float32 stimulus for a (2, 10, 10) frame in newtons.

@@ -30,6 +30,11 @@ class ScriptedTactileConfig:
     seed: int = param(0, "seeds the pad defects and the grasp-to-grasp variation")
     script: GraspScript = param(GraspScript(), "the grasps to show")
     generator: GeneratorParams = param(GeneratorParams(), "the synthetic pad model")
+    tare_frames: int = param(
+        24,
+        "frames with nothing grasped averaged at connect and subtracted, as the serial "
+        "driver's zeroing does (removes stuck taxels); 0 = no tare",
+    )
 
 
 class ScriptedTactileSensor(TactileSensor):
@@ -62,13 +67,20 @@ class ScriptedTactileSensor(TactileSensor):
 
     def _run(self) -> None:
         rng = np.random.default_rng(self.config.seed + 1)
+        floor = self.config.generator.floor_n
+        zero = np.zeros((2, 10, 10), np.float32)
+        if self.config.tare_frames > 0:
+            zero = np.mean(
+                [self._model.frame(None, 1, rng) for _ in range(self.config.tare_frames)], axis=0
+            ).astype(np.float32)
         script = self.config.script
         rate = Rate(self.config.rate_hz)
         t0 = now_ns()
         seq = 0
         while not self._stop.is_set():
             truth = script.truth_at((now_ns() - t0) / 1e9)
-            frame = self._model.frame(truth.pattern, truth.grip_level or 1, rng)
+            frame = self._model.frame(truth.pattern, truth.grip_level or 1, rng) - zero
+            frame[frame < floor] = 0.0  # the floor applies after zeroing, as on the board
             seq += 1
             self._publish(TactileSample(frame=frame, seq=seq, t_capture_ns=now_ns(), truth=truth))
             self._frames = seq

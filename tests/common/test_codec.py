@@ -29,9 +29,16 @@ from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 
 def stimulus(**kw) -> Stimulus:
     base = dict(
-        seq=7, t_send_ns=1_000, t_capture_ns=900, frame_seq=3, mode="mask", contact=True,
+        seq=7,
+        t_send_ns=1_000,
+        t_capture_ns=900,
+        frame_seq=3,
+        mode="mask",
+        contact=True,
         stimulus=np.array([[0, 2.5, 0], [1.25, 0, 0], [0, 0, 0]], np.float32),
-        pattern=4, confidence=0.93, grip_level=12,
+        pattern=4,
+        confidence=0.93,
+        grip_level=12,
     )
     base.update(kw)
     return Stimulus(**base)
@@ -48,12 +55,32 @@ def rebuild(topic: bytes, body: dict) -> bytes:
 def test_every_message_round_trips():
     msgs = [
         stimulus(),
-        stimulus(pattern=None, confidence=None, grip_level=None, contact=False,
-                 stimulus=np.zeros((3, 3), np.float32), mode="direct"),
-        TactileFrame(seq=1, t_send_ns=5, t_capture_ns=4, frame_seq=9,
-                     frame=np.linspace(0, 9, 200, dtype=np.float32).reshape(2, 10, 10)),
-        Heartbeat(seq=2, t_send_ns=10, node="robot", state="ok", echo_t_send_ns=3, echo_t_recv_ns=4,
-                  stimulus_seq=7, t_capture_ns=9, stats={"frames": 12.0}),
+        stimulus(
+            pattern=None,
+            confidence=None,
+            grip_level=None,
+            contact=False,
+            stimulus=np.zeros((3, 3), np.float32),
+            mode="direct",
+        ),
+        TactileFrame(
+            seq=1,
+            t_send_ns=5,
+            t_capture_ns=4,
+            frame_seq=9,
+            frame=np.linspace(0, 9, 200, dtype=np.float32).reshape(2, 10, 10),
+        ),
+        Heartbeat(
+            seq=2,
+            t_send_ns=10,
+            node="robot",
+            state="ok",
+            echo_t_send_ns=3,
+            echo_t_recv_ns=4,
+            stimulus_seq=7,
+            t_capture_ns=9,
+            stats={"frames": 12.0},
+        ),
         Command(seq=3, t_send_ns=11, action="arm_jog", velocity=(0.01, 0, 0, 0, 0, 0.1)),
         Command(seq=4, t_send_ns=12, action="gripper_close", grip_level=31),
     ]
@@ -90,7 +117,10 @@ def test_every_message_round_trips():
         (lambda b: b.update(stimulus=np.full(9, np.nan, "<f4").tobytes()), NonFiniteValueError),
         (lambda b: b.update(stimulus=np.full(9, -1, "<f4").tobytes()), OutOfRangeError),
         (lambda b: b.update(stimulus=np.full(9, 50, "<f4").tobytes()), OutOfRangeError),
-        (lambda b: b.update(stimulus=np.array([1, 1, 0] + [0] * 6, "<f4").tobytes()), OutOfRangeError),
+        (
+            lambda b: b.update(stimulus=np.array([1, 1, 0] + [0] * 6, "<f4").tobytes()),
+            OutOfRangeError,
+        ),
     ],
 )
 def test_bad_stimulus_fields_are_named(mutate, error):

@@ -65,18 +65,27 @@ def test_a_jump_becomes_a_rate_limited_motion():
     assert steps > 1
 
 
-stimuli = hnp.arrays(np.float64, (3, 3), elements=st.one_of(
-    st.floats(allow_nan=True, allow_infinity=True), st.floats(-10, 20)
-))
+stimuli = hnp.arrays(
+    np.float64,
+    (3, 3),
+    elements=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-10, 20)),
+)
 
 
 @given(stimuli, st.floats(-5, 5, allow_nan=False))
 def test_any_stimulus_gives_safe_counts(stim, fraction):
-    cal = LinkGlideCalibration(servos=[
-        ServoCalibration(id=i, zero_counts=2048, direction=-1 if i % 2 else 1,
-                         min_counts=1500, max_counts=2600)
-        for i in range(1, 7)
-    ])
+    cal = LinkGlideCalibration(
+        servos=[
+            ServoCalibration(
+                id=i,
+                zero_counts=2048,
+                direction=-1 if i % 2 else 1,
+                min_counts=1500,
+                max_counts=2600,
+            )
+            for i in range(1, 7)
+        ]
+    )
     r = LinkGlideRenderer(RendererConfig(), cal)
     target = r.target_counts(stim)
     assert target.dtype == np.int64

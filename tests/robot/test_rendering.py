@@ -10,8 +10,8 @@ from hypothesis.extra import numpy as hnp
 
 from common.patterns import MASKS, matches_pattern
 from robot_side.rendering import (
-    area_weights,
     antialiased_bicubic_weights,
+    area_weights,
     downsize,
     peak_per_row,
     plain_bicubic_weights,
@@ -27,7 +27,11 @@ def band_frame(cells: list[tuple[int, int]], force: float = 6.0) -> np.ndarray:
 
 
 def test_weights_are_normalised():
-    for w in (antialiased_bicubic_weights(10, 3), plain_bicubic_weights(10, 3), area_weights(10, 3)):
+    for w in (
+        antialiased_bicubic_weights(10, 3),
+        plain_bicubic_weights(10, 3),
+        area_weights(10, 3),
+    ):
         np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
 
 
@@ -49,7 +53,8 @@ def test_matches_torch_antialiased_bicubic():
         ref = torch.nn.functional.interpolate(t, size=(3, 3), mode="bicubic", antialias=True)
         np.testing.assert_allclose(
             antialiased_bicubic_weights(10, 3) @ x @ antialiased_bicubic_weights(10, 3).T,
-            ref[0, 0].numpy(), atol=1e-5,
+            ref[0, 0].numpy(),
+            atol=1e-5,
         )
         ref = torch.nn.functional.interpolate(t, size=(3, 3), mode="bicubic", align_corners=False)
         w = plain_bicubic_weights(10, 3)
@@ -92,14 +97,19 @@ def test_mask_then_peak_option_recovers_a_row_the_paper_order_loses():
 
 
 frames = hnp.arrays(
-    np.float32, (2, 10, 10),
+    np.float32,
+    (2, 10, 10),
     elements=st.one_of(
         st.floats(-20, 20, width=32), st.floats(width=32), st.sampled_from([0.0, 1.0, 9.0, 3e38])
     ),
 )
 
 
-@given(frames, st.one_of(st.none(), st.integers(0, 11)), st.sampled_from(["antialiased", "plain", "area"]))
+@given(
+    frames,
+    st.one_of(st.none(), st.integers(0, 11)),
+    st.sampled_from(["antialiased", "plain", "area"]),
+)
 def test_any_frame_gives_a_finite_non_negative_bounded_stimulus(frame, pattern, method):
     stim = render_stimulus(frame, pattern, method=method)
     assert stim.shape == (3, 3) and stim.dtype == np.float32

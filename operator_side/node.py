@@ -1,0 +1,321 @@
+"""The operator node: stimuli in, LinkGlide servo goals out; commands back to the robot.
+
+Event-driven on the socket, paced by a 60 Hz deadline: a new stimulus is
+rendered as soon as it arrives (at most one servo write per half cycle), and
+the rate limiter keeps stepping toward the target on every cycle in between.
+A stimulus is rendered only while fresh: one older than ``stale_after_ms``
+(capture time mapped through the estimated clock offset) lifts every
+linkage off the palm, and rendering resumes by itself when fresh data does.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import queue
+import threading
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+import zmq
+from common.clock_sync import ClockSync
+
+from common.clock import Rate, now_ns
+from common.devices import build_device
+from common.messages import Command, Heartbeat, Stimulus, TactileFrame
+from common.patterns import matches_pattern
+from common.transport import Publisher, Subscriber, make_context
+from operator_side.config import OperatorConfig
+from operator_side.renderer import LinkGlideRenderer
+from operator_side.servos.base import ServoBus
+from operator_side.servos.calibration import LinkGlideCalibration
+
+log = logging.getLogger(__name__)
+
+RESTART_SEQ_GAP = 1000  # a sequence number this far back means the robot restarted
+
+
+@dataclass
+class Snapshot:
+    """What the live views show; a copy, safe to read from another thread."""
+
+    link_state: str
+    stimulus: np.ndarray | None
+    pattern: int | None
+    confidence: float | None
+    grip_level: int | None
+    frame: np.ndarray | None
+    goal_counts: np.ndarray
+    goal_angles: np.ndarray
+    age_ms: float | None
+    stats: dict[str, float]
+    robot_stats: dict[str, float]
+
+
+class OperatorNode:
+    def __init__(
+        self,
+        config: OperatorConfig,
+        servos: ServoBus,
+        *,
+        calibration: LinkGlideCalibration | None = None,
+        ctx: zmq.Context | None = None,
+    ) -> None:
+        self.config = config
+        self.servos = servos
+        self._use_calibration(
+            calibration or getattr(servos, "calibration", None) or LinkGlideCalibration()
+        )
+        self._own_ctx = ctx is None
+        self.ctx = ctx or make_context()
+        self.clock = ClockSync()
+        self.counters: Counter[str] = Counter()
+        self.latencies_ms: collections.deque[float] = collections.deque(
+            maxlen=config.latency_window
+        )
+        self.link_state = "down"
+        self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._stim: Stimulus | None = None
+        self._stim_local_capture_ns: int | None = None  # newest confirmation, local clock
+        self._pending_latency_capture: int | None = None
+        self._frame: TactileFrame | None = None
+        self._robot_stats: dict[str, float] = {}
+        self._peer_hb: tuple[int, int] | None = None
+        self._hb_seq = 0
+        self._cmd_seq = 0
+        self._goal = self.renderer.retract_counts.copy()
+        self._written: np.ndarray | None = None
+        self._last_step_ns = 0
+        self.pub: Publisher | None = None
+        self.sub: Subscriber | None = None
+
+    def _use_calibration(self, calibration: LinkGlideCalibration) -> None:
+        self.calibration = calibration
+        self.renderer = LinkGlideRenderer(self.config.renderer, calibration)
+
+    # ---------------------------------------------------------- commands
+    def send_command(
+        self, action: str, grip_level: int | None = None, velocity: tuple[float, ...] | None = None
+    ) -> None:
+        """Queue a command for the robot; thread-safe (sockets stay on the loop thread)."""
+        self._commands.put(
+            Command(seq=0, t_send_ns=0, action=action, grip_level=grip_level, velocity=velocity)
+        )
+
+    # --------------------------------------------------------------- run
+    def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
+        link = self.config.link
+        if not self.servos.is_connected:
+            self.servos.connect()
+        bus_calibration = getattr(self.servos, "calibration", None)
+        if bus_calibration is not None and bus_calibration is not self.calibration:
+            self._use_calibration(bus_calibration)  # the bus's limits are the ones enforced
+        try:
+            self.sub = Subscriber(
+                self.ctx, link.telemetry_endpoint, bind=False, name="operator telemetry"
+            )
+            self.pub = Publisher(self.ctx, link.command_endpoint, bind=False)
+            self.servos.set_torque(True)
+            self._write(self.renderer.retract_counts)
+            log.info(
+                "operator node up: telemetry %s, commands %s",
+                link.telemetry_endpoint,
+                link.command_endpoint,
+            )
+            self._loop(stop, duration_s)
+        finally:
+            try:
+                if self.servos.is_connected:
+                    self._lift_off_now()
+            finally:
+                if self.sub is not None:
+                    self.sub.close()
+                if self.pub is not None:
+                    self.pub.close()
+                self.servos.disconnect()
+                if self._own_ctx:
+                    self.ctx.term()
+
+    def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
+        rate = Rate(self.config.renderer.control_rate_hz)
+        hb_period = round(1e9 / self.config.link.heartbeat_rate_hz)
+        next_hb = now_ns()
+        t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
+        while not stop.is_set() and (t_end is None or now_ns() < t_end):
+            new_stimulus = False
+            if self.sub.poll(rate.remaining_s()):
+                new_stimulus = self.receive()
+            now = now_ns()
+            if new_stimulus or rate.due():
+                # A new stimulus is rendered at once and the cycle re-phased to it,
+                # so latency stays low and writes stay at about one per cycle.
+                self.control_step(now, rate.period_ns)
+                rate.restart()
+            if now >= next_hb:
+                self._send_heartbeat()
+                next_hb = now + hb_period
+            self._flush_commands()
+
+    # ----------------------------------------------------------- receive
+    def receive(self) -> bool:
+        """Drain the socket; True when a new stimulus arrived."""
+        new = False
+        for msg, t_recv in self.sub.drain():
+            if isinstance(msg, Stimulus):
+                new |= self._on_stimulus(msg, t_recv)
+            elif isinstance(msg, Heartbeat):
+                self._on_heartbeat(msg, t_recv)
+            elif isinstance(msg, TactileFrame):
+                with self._lock:
+                    self._frame = msg
+            else:
+                self.counters["messages_unexpected"] += 1
+        self.counters["decode_errors"] = self.sub.rejected_total
+        return new
+
+    def _on_stimulus(self, msg: Stimulus, t_recv: int) -> bool:
+        last = self._stim
+        if last is not None and last.seq - RESTART_SEQ_GAP < msg.seq <= last.seq:
+            self.counters["stimuli_out_of_order"] += 1
+            return False
+        self.counters["stimuli_received"] += 1
+        local_capture = self._to_local(msg.t_capture_ns, t_recv)
+        with self._lock:
+            self._stim = msg
+            self._stim_local_capture_ns = local_capture
+        self._pending_latency_capture = local_capture
+        if msg.sim_truth_pattern is not None and msg.contact:
+            self.counters["stimuli_with_truth"] += 1
+            if matches_pattern(msg.stimulus, msg.sim_truth_pattern):
+                self.counters["stimuli_matching_truth"] += 1
+        return True
+
+    def _on_heartbeat(self, msg: Heartbeat, t_recv: int) -> None:
+        if msg.node != "robot":
+            return
+        self.counters["heartbeats_received"] += 1
+        self._peer_hb = (msg.t_send_ns, t_recv)
+        if msg.echo_t_send_ns is not None and msg.echo_t_recv_ns is not None:
+            # our send, robot's receive, robot's send, our receive
+            self.clock.add_sample(msg.echo_t_send_ns, msg.echo_t_recv_ns, msg.t_send_ns, t_recv)
+        self._robot_stats = msg.stats
+        stim = self._stim
+        if stim is not None and msg.stimulus_seq == stim.seq and msg.t_capture_ns is not None:
+            local = self._to_local(msg.t_capture_ns, t_recv)
+            with self._lock:
+                if self._stim_local_capture_ns is None or local > self._stim_local_capture_ns:
+                    self._stim_local_capture_ns = local
+
+    def _to_local(self, t_remote_ns: int, t_recv_ns: int) -> int:
+        """A robot timestamp on our clock; before the offset is known, the receive time."""
+        local = self.clock.to_local(t_remote_ns)
+        return t_recv_ns if local is None else min(local, t_recv_ns)
+
+    # ----------------------------------------------------------- control
+    def fresh_stimulus(self, now: int) -> tuple[np.ndarray | None, float | None]:
+        stim, captured = self._stim, self._stim_local_capture_ns
+        if stim is None or captured is None:
+            return None, None
+        age_ms = (now - captured) / 1e6
+        if age_ms > self.config.link.stale_after_ms:
+            return None, age_ms
+        return stim.stimulus, age_ms
+
+    def control_step(self, now: int, period_ns: int) -> None:
+        stimulus, age_ms = self.fresh_stimulus(now)
+        state = "ok" if stimulus is not None else ("stale" if self._stim is not None else "down")
+        if state != self.link_state:
+            log.info(
+                "link %s -> %s (age %s ms)",
+                self.link_state,
+                state,
+                "n/a" if age_ms is None else f"{age_ms:.0f}",
+            )
+            if state != "ok":
+                self.counters["lift_offs"] += 1
+            self.link_state = state
+        self._goal = self.renderer.target_counts(stimulus)
+        fraction = 1.0 if not self._last_step_ns else (now - self._last_step_ns) / period_ns
+        current = self._written if self._written is not None else self.renderer.retract_counts
+        nxt = self.renderer.step(current, self._goal, fraction)
+        self._last_step_ns = now
+        if self._written is None or not np.array_equal(nxt, self._written):
+            self._write(nxt)
+            if self._pending_latency_capture is not None and stimulus is not None:
+                self.latencies_ms.append((now_ns() - self._pending_latency_capture) / 1e6)
+        self._pending_latency_capture = None  # a stimulus that moved nothing has no latency
+
+    def _write(self, counts: np.ndarray) -> None:
+        goals = {int(i): int(c) for i, c in zip(self.calibration.ids, counts, strict=True)}
+        self.servos.write_goals(goals)
+        self._written = np.array(counts, dtype=np.int64)
+        self.counters["servo_writes"] += 1
+
+    def _lift_off_now(self) -> None:
+        """On shutdown: straight to the retract pose (a lift is always safe)."""
+        self._write(self.renderer.retract_counts)
+
+    # --------------------------------------------------------- heartbeat
+    def _send_heartbeat(self) -> None:
+        self._hb_seq += 1
+        echo = self._peer_hb
+        self.pub.send(
+            Heartbeat(
+                seq=self._hb_seq,
+                t_send_ns=now_ns(),
+                node="operator",
+                state=self.link_state,
+                echo_t_send_ns=echo[0] if echo else None,
+                echo_t_recv_ns=echo[1] if echo else None,
+            )
+        )
+
+    def _flush_commands(self) -> None:
+        while True:
+            try:
+                cmd = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            self._cmd_seq += 1
+            cmd.seq, cmd.t_send_ns = self._cmd_seq, now_ns()
+            self.pub.send(cmd)
+            self.counters["commands_sent"] += 1
+
+    # ------------------------------------------------------------ report
+    def stats(self) -> dict[str, float]:
+        out: dict[str, float] = {k: float(v) for k, v in self.counters.items()}
+        if self.latencies_ms:
+            lat = np.fromiter(self.latencies_ms, dtype=np.float64)
+            out["latency_p50_ms"] = float(np.percentile(lat, 50))
+            out["latency_p99_ms"] = float(np.percentile(lat, 99))
+            out["latency_max_ms"] = float(lat.max())
+        return out
+
+    def snapshot(self) -> Snapshot:
+        with self._lock:
+            stim, frame = self._stim, self._frame
+        now = now_ns()
+        _, age = self.fresh_stimulus(now)
+        written = self._written if self._written is not None else self.renderer.retract_counts
+        return Snapshot(
+            link_state=self.link_state,
+            stimulus=None if stim is None else stim.stimulus.copy(),
+            pattern=None if stim is None else stim.pattern,
+            confidence=None if stim is None else stim.confidence,
+            grip_level=None if stim is None else stim.grip_level,
+            frame=None if frame is None else frame.frame.copy(),
+            goal_counts=written.copy(),
+            goal_angles=self.calibration.counts_to_angles(written),
+            age_ms=age,
+            stats=self.stats(),
+            robot_stats=dict(self._robot_stats),
+        )
+
+
+def build_operator_node(config: OperatorConfig, ctx: zmq.Context | None = None) -> OperatorNode:
+    from operator_side.servos import KINDS
+
+    servos = build_device(KINDS, config.servos, "operator.servos")
+    return OperatorNode(config, servos, ctx=ctx)

@@ -1,0 +1,133 @@
+"""Both nodes over real ZeroMQ sockets on loopback: scripted patterns reach the servos."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from common.patterns import MASKS
+from operator_side.config import OperatorConfig
+from operator_side.linkglide import forward_kinematics
+from operator_side.node import OperatorNode
+from operator_side.servos.recording import RecordingServoBus
+from robot_side.config import RobotConfig
+from robot_side.node import RobotNode
+from robot_side.tactile.script import GraspScript, GraspStep
+from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
+
+HOLD_S = 1.2
+PATTERNS = [6, 7, 0, 9]
+
+
+def _script() -> GraspScript:
+    return GraspScript(
+        grasps=[
+            GraspStep(
+                pattern=p, grip_level=24, ramp_s=0.2, hold_s=HOLD_S, release_s=0.1, pause_s=0.3
+            )
+            for p in PATTERNS
+        ],
+        loop=False,
+        start_delay_s=0.3,
+    )
+
+
+def _hold_midpoints(script: GraspScript) -> list[float]:
+    t, out = script.start_delay_s, []
+    for g in script.grasps:
+        out.append(t + g.ramp_s + 0.7 * g.hold_s)
+        t += g.duration_s
+    return out
+
+
+class Loop:
+    """A robot and an operator node in threads, wired through random loopback ports."""
+
+    def __init__(self, mode: str, script: GraspScript, classifier=None) -> None:
+        rc = RobotConfig()
+        rc.render.mode = mode
+        rc.link.telemetry_endpoint = "tcp://127.0.0.1:*"
+        rc.link.command_endpoint = "tcp://127.0.0.1:*"
+        self.sensor = ScriptedTactileSensor(ScriptedTactileConfig(script=script, seed=3))
+        self.robot = RobotNode(rc, self.sensor, classifier=classifier)
+        self.bus = RecordingServoBus()
+        self.stop = threading.Event()
+        self.threads = [threading.Thread(target=self.robot.run, args=(self.stop,), daemon=True)]
+        self.operator: OperatorNode | None = None
+
+    def start(self) -> None:
+        self.threads[0].start()
+        deadline = time.monotonic() + 5
+        while self.robot.sub is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        oc = OperatorConfig()
+        oc.link.telemetry_endpoint = self.robot.pub.endpoint
+        oc.link.command_endpoint = self.robot.sub.endpoint
+        self.operator = OperatorNode(oc, self.bus)
+        t = threading.Thread(target=self.operator.run, args=(self.stop,), daemon=True)
+        self.threads.append(t)
+        t.start()
+
+    def close(self) -> None:
+        self.stop.set()
+        for t in self.threads:
+            t.join(timeout=5)
+            assert not t.is_alive(), "a node did not stop within 5 s"
+
+
+def contact_points(bus: RecordingServoBus, operator: OperatorNode) -> np.ndarray:
+    counts = np.array([bus.read_positions()[i] for i in range(1, 7)])
+    return forward_kinematics(operator.calibration.counts_to_angles(counts))
+
+
+@pytest.mark.parametrize("mode", ["mask_ground_truth"])
+def test_scripted_patterns_reach_the_servos_as_the_right_contact_points(mode):
+    script = _script()
+    loop = Loop(mode, script)
+    loop.start()
+    t0 = time.monotonic()
+    seen = []
+    try:
+        for pattern, t_mid in zip(PATTERNS, _hold_midpoints(script), strict=True):
+            time.sleep(max(0.0, t_mid - (time.monotonic() - t0)))
+            seen.append((pattern, contact_points(loop.bus, loop.operator)))
+    finally:
+        loop.close()
+    cols = loop.operator.config.renderer.contact.column_x_mm
+    for pattern, pts in seen:
+        pressed = pts[:, 1] > 54.0
+        assert pressed.any(), f"pattern {pattern}: nothing pressed, points {pts}"
+        for row in range(3):
+            if pressed[row]:
+                col = int(np.flatnonzero(MASKS[pattern][row])[0])
+                assert abs(pts[row, 0] - cols[col]) < 0.5, (
+                    f"pattern {pattern} row {row}: {pts[row]}"
+                )
+            else:
+                np.testing.assert_allclose(pts[row], (10.0, 40.0), atol=0.5)
+    # 90 deg centre is a full column: every linkage presses, at the centre column
+    assert (seen[0][1][:, 1] > 54).all()
+
+
+def test_no_contact_lifts_every_linkage_and_skips_inference():
+    script = GraspScript(
+        grasps=[GraspStep(pattern=6, hold_s=0.0, ramp_s=0.0, release_s=0.0, pause_s=3.0)],
+        loop=False,
+        start_delay_s=3.0,
+    )
+    loop = Loop("mask_ground_truth", script)
+    loop.start()
+    time.sleep(1.5)
+    try:
+        pts = contact_points(loop.bus, loop.operator)
+    finally:
+        loop.close()
+    np.testing.assert_allclose(pts, [(10.0, 40.0)] * 3, atol=0.5)
+    stats = loop.robot.stats()
+    assert stats["frames_no_contact"] > 50
+    assert stats.get("inferences", 0) == 0
+    # an unchanged (all-zero) stimulus is not resent every frame
+    assert stats.get("stimuli_published", 0) <= 2
