@@ -7,4 +7,5 @@ scene does not name is never imported.
 KINDS = {
     "scripted": "robot_side.tactile.scripted:ScriptedTactileSensor",
     "serial": "robot_side.tactile.serial_board:SerialTactileSensor",
+    "simulated_serial": "robot_side.tactile.board_sim:SimulatedSerialTactileSensor",
 }

@@ -1,0 +1,403 @@
+"""A tactile board on a pseudo-terminal: the real wire, scripted grasps behind it.
+
+The simulator is what a developer compares a real board with, byte for byte:
+it encodes with the same ``wire`` module, at 120 Hz on absolute deadlines,
+turns newtons into ADC counts through its own per-taxel zero and gain (so the
+driver's calibration has real work to do), and sends finger 2 in its own
+view, un-mirrored, as the hardware does. It can misbehave on request:
+garbage, bad CRCs, dropped bytes, lost scans, silence, and an unplug.
+
+``port`` is a symlink to the current pty slave, like a /dev/serial/by-id
+name: after ``disconnect()`` and ``reconnect()`` the pty is new but the name
+is the same, so the driver's reopen-by-name is exercised as on a USB replug.
+
+The simulator also remembers the ground truth of each scan it sent
+(``truth_for(seq)``), so a node in the same process can score what it
+inferred; ``SimulatedSerialTactileSensor`` (kind ``simulated_serial``) attaches
+it to each sample, and the node code does not change.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import os
+import tempfile
+import termios
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Self
+
+import numpy as np
+
+from common.clock import Rate, now_ns
+from common.config import param
+from robot_side.tactile.base import GraspTruth
+from robot_side.tactile.board_calibration import WIRE_SHAPE, BoardCalibration
+from robot_side.tactile.script import GraspScript
+from robot_side.tactile.serial_board import SerialTactileConfig, SerialTactileSensor
+from robot_side.tactile.synthetic import GeneratorParams, SyntheticTactileModel
+from robot_side.tactile.wire import DEFAULT_BAUD, PACKET_SIZE, SEQ_MODULO, encode
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TactileBoardSimConfig:
+    rate_hz: float = param(120.0, "scans per second, as the real board")
+    seed: int = param(0, "seeds the pad model, the ADC calibration and the grasp variation")
+    script: GraspScript = param(GraspScript(), "the grasps the pads feel")
+    generator: GeneratorParams = param(GeneratorParams(), "the synthetic pad model (newtons)")
+    baud: int = param(DEFAULT_BAUD, "the firmware's rate: a driver opening another sees garbage")
+    zero_counts_min: float = param(150.0, "ADC zero offsets are drawn per taxel in [min, max]")
+    zero_counts_max: float = param(450.0, "ADC zero offsets are drawn per taxel in [min, max]")
+    counts_at_9n: float = param(3000.0, "nominal counts above zero at 9 N (12-bit ADC headroom)")
+    gain_spread: float = param(0.05, "std dev of per-taxel ADC gain (log-normal)")
+    count_noise: float = param(1.0, "std dev of ADC noise, counts (well under the 1 N floor)")
+    first_seq: int = param(0, "sequence number of the first scan (uint32, wraps)")
+    history: int = param(1024, "scans whose truth and frame are kept for truth_for/frame_for")
+    link_dir: Path | None = param(None, "where the stable port symlink lives; unset = temp dir")
+
+    def __post_init__(self) -> None:
+        if not self.rate_hz > 0:
+            raise ValueError("rate_hz must be positive")
+        if not 0 <= self.zero_counts_min <= self.zero_counts_max:
+            raise ValueError("need 0 <= zero_counts_min <= zero_counts_max")
+        if not self.counts_at_9n > 0 or self.history < 1:
+            raise ValueError("counts_at_9n and history must be positive")
+
+
+class TactileBoardSimulator:
+    """The simulated board: start/stop (or ``with``), fault injection, ground truth."""
+
+    def __init__(self, config: TactileBoardSimConfig | None = None) -> None:
+        self.config = cfg = config or TactileBoardSimConfig()
+        self._model = SyntheticTactileModel(cfg.generator, seed=cfg.seed)
+        crng = np.random.default_rng([cfg.seed, 0x7AC])
+        zero = crng.uniform(cfg.zero_counts_min, cfg.zero_counts_max, WIRE_SHAPE)
+        gain = 9.0 / cfg.counts_at_9n * np.exp(crng.normal(0.0, cfg.gain_spread, WIRE_SHAPE))
+        #: the exact inverse of how this board makes counts: its "factory calibration"
+        self.calibration = BoardCalibration(zero, gain)
+        self._rng = np.random.default_rng([cfg.seed, 0x5CE])
+        self._fault_rng = np.random.default_rng([cfg.seed, 0xBAD])
+        self._lock = threading.Lock()
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._slave_path: str | None = None
+        self._own_dir: str | None = None
+        self._link: Path | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._paused = threading.Event()
+        self._seq = cfg.first_seq % SEQ_MODULO
+        self._history: OrderedDict[int, tuple[GraspTruth, np.ndarray]] = OrderedDict()
+        # Faults waiting to be applied to the next packets.
+        self._garbage = bytearray()
+        self._corrupt = 0
+        self._drop: list[int] = []
+        self._skip = 0
+        self.counters = {
+            "scans": 0,
+            "bytes_written": 0,
+            "overflow_bytes": 0,
+            "wrong_baud_scans": 0,
+            "corrupted_packets": 0,
+            "truncated_packets": 0,
+            "skipped_scans": 0,
+            "garbage_bytes": 0,
+            "rate_overruns": 0,
+        }
+
+    # -- lifecycle ----------------------------------------------------------------
+
+    @property
+    def port(self) -> str:
+        """The stable name to open (a symlink to the current pty slave)."""
+        if self._link is None:
+            raise RuntimeError("tactile board simulator is not started")
+        return str(self._link)
+
+    @property
+    def slave_path(self) -> str | None:
+        """The current pty slave itself (changes on every reconnect)."""
+        return self._slave_path
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def plugged_in(self) -> bool:
+        return self._master is not None
+
+    def start(self) -> Self:
+        if self._thread is not None:
+            raise RuntimeError("tactile board simulator already started")
+        cfg = self.config
+        if cfg.link_dir is None:
+            self._own_dir = tempfile.mkdtemp(prefix="deepxpalm-tactile-")
+            self._link = Path(self._own_dir) / "tactile-board"
+        else:
+            cfg.link_dir.mkdir(parents=True, exist_ok=True)
+            self._link = cfg.link_dir / "tactile-board"
+        self._plug()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="tactile-board-sim", daemon=True)
+        self._thread.start()
+        log.info("tactile board simulator on %s -> %s", self._link, self._slave_path)
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._thread = None
+        self._unplug()
+        if self._own_dir is not None:
+            with contextlib.suppress(OSError):
+                os.rmdir(self._own_dir)
+            self._own_dir = None
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # -- faults -------------------------------------------------------------------
+
+    def inject_garbage(self, n_bytes: int, with_sync: bool = True) -> None:
+        """Random bytes before the next packet; ``with_sync`` sprinkles false sync pairs."""
+        junk = bytearray(self._fault_rng.integers(0, 256, n_bytes, dtype=np.uint8).tobytes())
+        if with_sync and n_bytes >= 4:
+            for k in range(0, n_bytes - 1, 37):
+                junk[k : k + 2] = b"\xa5\x5a"
+        with self._lock:
+            self._garbage += junk
+
+    def corrupt_next(self, n_packets: int = 1) -> None:
+        """Flip one payload bit in each of the next packets: their CRC fails."""
+        with self._lock:
+            self._corrupt += n_packets
+
+    def drop_bytes_next(self, n_bytes: int = 17, n_packets: int = 1) -> None:
+        """Cut ``n_bytes`` out of the middle of the next packets (a UART overrun)."""
+        if not 0 < n_bytes < PACKET_SIZE:
+            raise ValueError(f"n_bytes must be in 1..{PACKET_SIZE - 1}")
+        with self._lock:
+            self._drop.extend([n_bytes] * n_packets)
+
+    def skip_scans(self, n_scans: int) -> None:
+        """Lose whole scans on the board (sequence numbers still advance)."""
+        with self._lock:
+            self._skip += n_scans
+
+    def pause(self) -> None:
+        """Stop streaming but stay plugged in: a hung firmware."""
+        self._paused.set()
+
+    def resume(self) -> None:
+        self._paused.clear()
+
+    def disconnect(self) -> None:
+        """Unplug: close the pty and remove the port name. Streaming stops."""
+        with self._lock:
+            self._unplug()
+        log.info("tactile board simulator unplugged")
+
+    def reconnect(self) -> None:
+        """Plug back in: a new pty behind the same port name. Sequence numbers continue."""
+        with self._lock:
+            if self._master is None:
+                self._plug()
+        log.info("tactile board simulator plugged in again -> %s", self._slave_path)
+
+    # -- ground truth ---------------------------------------------------------------
+
+    def truth_for(self, seq: int) -> GraspTruth | None:
+        """What scan ``seq`` (the wire sequence number) showed; None once forgotten."""
+        with self._lock:
+            entry = self._history.get(seq % SEQ_MODULO)
+        return None if entry is None else entry[0]
+
+    def frame_for(self, seq: int) -> np.ndarray | None:
+        """The newtons (common view, before ADC quantisation) sent as scan ``seq``."""
+        with self._lock:
+            entry = self._history.get(seq % SEQ_MODULO)
+        return None if entry is None else entry[1]
+
+    def stats(self) -> dict[str, int]:
+        return dict(self.counters)
+
+    # -- internals ------------------------------------------------------------------
+
+    def _plug(self) -> None:
+        master, slave = os.openpty()
+        os.set_blocking(master, False)  # a stalled reader must never stall the board
+        self._master, self._slave = master, slave
+        self._slave_path = os.ttyname(slave)
+        # The slave fd stays open here: without it, the master reads EIO whenever
+        # the driver closes its end, and the pty's settings reset.
+        attrs = termios.tcgetattr(slave)
+        attrs[0] = attrs[1] = attrs[3] = 0  # raw: no echo, no CR/LF translation
+        termios.tcsetattr(slave, termios.TCSANOW, attrs)
+        assert self._link is not None
+        tmp = self._link.with_name(self._link.name + ".new")
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        tmp.symlink_to(self._slave_path)
+        os.replace(tmp, self._link)
+
+    def _unplug(self) -> None:
+        if self._link is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self._link.unlink()
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._master = self._slave = None
+
+    def _baud_matches(self) -> bool:
+        """Does the reader's line speed match ours? (On a pty, the master sees it.)"""
+        want = getattr(termios, f"B{self.config.baud}", None)
+        master = self._master
+        if want is None or master is None:
+            return True
+        try:
+            return termios.tcgetattr(master)[5] == want
+        except termios.error:
+            return True
+
+    def _run(self) -> None:
+        cfg = self.config
+        rate = Rate(cfg.rate_hz)
+        t0 = now_ns()
+        while not self._stop.is_set():
+            if not self._paused.is_set():
+                self._scan((now_ns() - t0) / 1e9)
+            remaining = rate.remaining_s()
+            if remaining > 0:
+                self._stop.wait(remaining)
+            rate.advance()
+            self.counters["rate_overruns"] = rate.overruns
+
+    def _scan(self, t_s: float) -> None:
+        cfg = self.config
+        truth = cfg.script.truth_at(t_s)
+        frame = self._model.frame(truth.pattern, truth.grip_level or 1, self._rng)
+        wire_newtons = frame.astype(np.float64)
+        wire_newtons[1] = wire_newtons[1, :, ::-1].copy()  # finger 2 in its own view
+        counts = self.calibration.to_counts(wire_newtons)
+        if cfg.count_noise > 0:
+            counts += self._rng.normal(0.0, cfg.count_noise, WIRE_SHAPE)
+        counts = np.clip(np.rint(counts), 0, 0xFFFF).astype(np.uint16)
+        with self._lock:
+            seq = self._seq
+            self._seq = (seq + 1) % SEQ_MODULO
+            self._history[seq] = (truth, frame)
+            while len(self._history) > cfg.history:
+                self._history.popitem(last=False)
+            if self._skip > 0:
+                self._skip -= 1
+                self.counters["skipped_scans"] += 1
+                return
+            data = bytearray(self._garbage)
+            self.counters["garbage_bytes"] += len(self._garbage)
+            self._garbage.clear()
+            for pad in range(WIRE_SHAPE[0]):
+                data += self._faulty(encode(pad, seq, counts[pad]))
+            master = self._master
+        self.counters["scans"] += 1
+        if master is None:
+            return  # unplugged: the scan happens, nobody hears it
+        if not self._baud_matches():
+            self.counters["wrong_baud_scans"] += 1
+            data = bytearray(self._fault_rng.integers(0, 256, len(data), dtype=np.uint8).tobytes())
+        self._write(master, bytes(data))
+
+    def _faulty(self, packet: bytes) -> bytes:
+        """Apply the next pending fault to one packet (called with the lock held)."""
+        if self._corrupt > 0:
+            self._corrupt -= 1
+            self.counters["corrupted_packets"] += 1
+            b = bytearray(packet)
+            b[PACKET_SIZE // 2] ^= 0x10
+            return bytes(b)
+        if self._drop:
+            n = self._drop.pop(0)
+            self.counters["truncated_packets"] += 1
+            cut = PACKET_SIZE // 2
+            return packet[:cut] + packet[cut + n :]
+        return packet
+
+    def _write(self, master: int, data: bytes) -> None:
+        try:
+            written = os.write(master, data)
+        except BlockingIOError:
+            written = 0
+        except OSError as e:  # unplugged between the lock and the write
+            log.debug("tactile board simulator write failed: %s", e)
+            return
+        self.counters["bytes_written"] += written
+        if written < len(data):
+            # Nobody is reading fast enough: a real UART's bytes are simply lost.
+            self.counters["overflow_bytes"] += len(data) - written
+
+
+# -- the scene kind: the real driver against this simulator ---------------------------
+
+
+@dataclass
+class SimulatedSerialConfig:
+    board: TactileBoardSimConfig = param(
+        TactileBoardSimConfig(), "the simulated board (script, pad model, ADC, baud)"
+    )
+    driver: SerialTactileConfig = param(
+        SerialTactileConfig(), "the real driver's settings; its port is set to the simulator's"
+    )
+    use_factory_calibration: bool = param(
+        True, "give the driver the board's exact zero and gain, unless driver.calibration_file"
+    )
+
+
+class SimulatedSerialTactileSensor(SerialTactileSensor):
+    """The real ``SerialTactileSensor`` reading a simulated board on a pty.
+
+    Only the port and the calibration come from the simulator; every byte
+    goes through pyserial and the real parser. Samples carry the board's
+    ground truth, looked up by wire sequence number.
+    """
+
+    Config = SimulatedSerialConfig  # type: ignore[assignment]
+
+    def __init__(self, config: SimulatedSerialConfig | None = None) -> None:
+        self.sim_config = config or SimulatedSerialConfig()
+        super().__init__(self.sim_config.driver)
+        self.simulator = TactileBoardSimulator(self.sim_config.board)
+
+    def connect(self) -> None:
+        self.simulator.start()
+        try:
+            self.config = dataclasses.replace(self.config, port=self.simulator.port)
+            if self.sim_config.use_factory_calibration and self.config.calibration_file is None:
+                self.set_calibration(self.simulator.calibration)
+            super().connect()
+        except BaseException:
+            self.simulator.stop()
+            raise
+
+    def disconnect(self) -> None:
+        super().disconnect()
+        self.simulator.stop()
+
+    def _truth_for_wire_seq(self, wire_seq: int) -> GraspTruth | None:
+        return self.simulator.truth_for(wire_seq)
+
+    def status(self) -> dict[str, Any]:
+        s = super().status()
+        s["simulator"] = self.simulator.stats()
+        return s
