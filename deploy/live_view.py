@@ -17,7 +17,8 @@ def _heat(v: float, vmax: float = 9.0) -> str:
     """Two characters on a 256-colour background ramp, from dark blue to yellow."""
     t = min(max(v / vmax, 0.0), 1.0)
     ramp = (17, 18, 19, 25, 31, 37, 71, 107, 143, 179, 215, 221, 227)
-    return f"\x1b[48;5;{ramp[round(t * (len(ramp) - 1))]}m  "
+    shade = _SHADES[round(t * (len(_SHADES) - 1))]
+    return f"\x1b[48;5;{ramp[round(t * (len(ramp) - 1))]}m{shade}{shade}"
 
 
 def _pads(frame: np.ndarray | None) -> list[str]:

@@ -82,7 +82,6 @@ class OperatorNode:
         self._pending_latency_capture: int | None = None
         self._frame: TactileFrame | None = None
         self._robot_stats: dict[str, float] = {}
-        self._peer_hb: tuple[int, int] | None = None
         self._hb_seq = 0
         self._cmd_seq = 0
         self._goal = self.renderer.retract_counts.copy()
@@ -196,10 +195,7 @@ class OperatorNode:
         if msg.node != "robot":
             return
         self.counters["heartbeats_received"] += 1
-        self._peer_hb = (msg.t_send_ns, t_recv)
-        if msg.echo_t_send_ns is not None and msg.echo_t_recv_ns is not None:
-            # our send, robot's receive, robot's send, our receive
-            self.clock.add_sample(msg.echo_t_send_ns, msg.echo_t_recv_ns, msg.t_send_ns, t_recv)
+        self.clock.on_heartbeat(msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv)
         self._robot_stats = msg.stats
         stim = self._stim
         if stim is not None and msg.stimulus_seq == stim.seq and msg.t_capture_ns is not None:
@@ -210,8 +206,9 @@ class OperatorNode:
 
     def _to_local(self, t_remote_ns: int, t_recv_ns: int) -> int:
         """A robot timestamp on our clock; before the offset is known, the receive time."""
-        local = self.clock.to_local(t_remote_ns)
-        return t_recv_ns if local is None else min(local, t_recv_ns)
+        if not self.clock.is_synced:
+            return t_recv_ns
+        return min(self.clock.to_local(t_remote_ns), t_recv_ns)
 
     # ----------------------------------------------------------- control
     def fresh_stimulus(self, now: int) -> tuple[np.ndarray | None, float | None]:
@@ -260,15 +257,15 @@ class OperatorNode:
     # --------------------------------------------------------- heartbeat
     def _send_heartbeat(self) -> None:
         self._hb_seq += 1
-        echo = self._peer_hb
+        echo_send, echo_recv = self.clock.echo_fields()
         self.pub.send(
             Heartbeat(
                 seq=self._hb_seq,
                 t_send_ns=now_ns(),
                 node="operator",
                 state=self.link_state,
-                echo_t_send_ns=echo[0] if echo else None,
-                echo_t_recv_ns=echo[1] if echo else None,
+                echo_t_send_ns=echo_send,
+                echo_t_recv_ns=echo_recv,
             )
         )
 

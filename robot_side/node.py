@@ -20,6 +20,7 @@ import numpy as np
 import zmq
 
 from common.clock import now_ns
+from common.clock_sync import ClockSync
 from common.codec import DecodeError
 from common.devices import Device, build_device
 from common.errors import DeviceError
@@ -72,7 +73,7 @@ class RobotNode:
         self._last_process_ns = 0
         self._last_capture_ns: int | None = None
         self._last_operator_ns: int | None = None
-        self._peer_hb: tuple[int, int] | None = None
+        self.clock = ClockSync()
         self._grip_level: int | None = None
         self._first_seq: int | None = None
         self._last_seq = 0
@@ -262,7 +263,9 @@ class RobotNode:
         for msg, t_recv in self.sub.drain():
             self._last_operator_ns = t_recv
             if isinstance(msg, Heartbeat):
-                self._peer_hb = (msg.t_send_ns, t_recv)
+                self.clock.on_heartbeat(
+                    msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv
+                )
             elif isinstance(msg, Command):
                 self.counters["commands_received"] += 1
                 self._apply(msg)
@@ -328,7 +331,7 @@ class RobotNode:
                 self.counters["gripper_errors"] += 1
                 log.debug("gripper: %s", e)
         self._hb_seq += 1
-        echo = self._peer_hb
+        echo_send, echo_recv = self.clock.echo_fields()
         msg = self._last_stim_msg
         self.pub.send(
             Heartbeat(
@@ -336,8 +339,8 @@ class RobotNode:
                 t_send_ns=now_ns(),
                 node="robot",
                 state=self.link_state,
-                echo_t_send_ns=echo[0] if echo else None,
-                echo_t_recv_ns=echo[1] if echo else None,
+                echo_t_send_ns=echo_send,
+                echo_t_recv_ns=echo_recv,
                 stimulus_seq=msg.seq if msg else None,
                 t_capture_ns=self._last_capture_ns if msg else None,
                 stats=self.stats(),

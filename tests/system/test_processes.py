@@ -1,0 +1,128 @@
+"""The nodes as separate processes, the way they run on two machines."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+
+import msgpack
+import zmq
+
+ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "deploy.cli", *args]
+
+
+def test_operator_process_never_imports_torch(tmp_path):
+    """Run the operator node for a second, then look at what its process imported."""
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "import sys, threading\n"
+        "from operator_side.config import OperatorConfig\n"
+        "from operator_side.node import build_operator_node\n"
+        "import deploy.demo, deploy.live_view  # the demo's operator side too\n"
+        "cfg = OperatorConfig()\n"
+        "cfg.link.telemetry_endpoint = 'tcp://127.0.0.1:%d'\n"
+        "cfg.link.command_endpoint = 'tcp://127.0.0.1:%d'\n"
+        "node = build_operator_node(cfg)\n"
+        "node.run(threading.Event(), 1.0)\n"
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'onnxruntime'))\n"
+        "print('HEAVY', heavy)\n" % (_free_port(), _free_port())
+    )
+    out = subprocess.run([sys.executable, str(probe)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "HEAVY []" in out.stdout
+
+
+def test_live_stream_decodes_with_an_independent_decoder_from_the_protocol_doc(tmp_path):
+    """Only msgpack and struct, exactly as docs/protocol.md describes the stream."""
+    tel, cmd = _free_port(), _free_port()
+    robot = subprocess.Popen(
+        _cli(
+            "robot",
+            "--set",
+            "render.mode=mask_ground_truth",
+            "--set",
+            f'link.telemetry_endpoint="tcp://127.0.0.1:{tel}"',
+            "--set",
+            f'link.command_endpoint="tcp://127.0.0.1:{cmd}"',
+        ),
+        env=ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    ctx = zmq.Context()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.RCVTIMEO, 200)
+    sub.connect(f"tcp://127.0.0.1:{tel}")
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    seen: dict[bytes, int] = {}
+    try:
+        deadline = time.monotonic() + 8
+        while time.monotonic() < deadline and (len(seen) < 3 or min(seen.values()) < 3):
+            try:
+                data = sub.recv()
+            except zmq.Again:
+                continue
+            topic, body = data[:4], msgpack.unpackb(data[4:], raw=False)
+            assert body["v"] == 1 and isinstance(body["seq"], int) and body["t_send_ns"] > 0
+            assert {b"STIM": "stimulus", b"FRAM": "frame", b"HBRT": "heartbeat"}[topic] == body[
+                "type"
+            ]
+            if topic == b"STIM":
+                cells = struct.unpack("<9f", body["stimulus"])
+                rows = [cells[0:3], cells[3:6], cells[6:9]]
+                assert all(sum(v > 0 for v in row) <= 1 for row in rows)
+                assert all(0.0 <= v <= 9.0 for v in cells)
+                assert body["mode"] == "mask_ground_truth"
+                assert (
+                    isinstance(body["contact"], bool) and body["t_capture_ns"] <= body["t_send_ns"]
+                )
+            elif topic == b"FRAM":
+                assert len(struct.unpack("<200f", body["frame"])) == 200
+            else:
+                assert body["node"] == "robot" and body["state"] in ("ok", "stale", "down")
+            seen[topic] = seen.get(topic, 0) + 1
+    finally:
+        sub.close()
+        ctx.term()
+        robot.send_signal(signal.SIGINT)
+        robot.wait(timeout=10)
+    assert robot.returncode == 0, robot.stdout.read().decode()
+    assert set(seen) == {b"STIM", b"FRAM", b"HBRT"}
+
+
+def test_demo_json_reports_a_clean_run():
+    out = subprocess.run(
+        _cli("demo", "--duration", "6", "--json", "--set", "robot.render.mode=mask_ground_truth"),
+        capture_output=True,
+        text=True,
+        timeout=90,
+        env=ENV,
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    summary = json.loads(out.stdout)
+    assert summary["errors"] == []
+    assert summary["frames_captured"] > 500  # 120 Hz for about 6 s
+    assert summary["frames_skipped_no_contact"] > 0
+    assert summary["stimuli_received"] > 50
+    assert summary["servo_writes"] > 50
+    lat = summary["latency_ms"]
+    assert lat["samples"] > 20 and 0 < lat["p50"] <= lat["p99"] <= lat["max"] < 100
+    assert summary["pattern_match"]["share"] > 0.95
