@@ -19,12 +19,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import zmq
-from common.clock_sync import ClockSync
 
 from common.clock import Rate, now_ns
+from common.clock_sync import ClockSync
+from common.codec import encode
 from common.devices import build_device
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.patterns import matches_pattern
+from common.recording import NullRecorder, Recorder
 from common.transport import Publisher, Subscriber, make_context
 from operator_side.config import OperatorConfig
 from operator_side.renderer import LinkGlideRenderer
@@ -61,9 +63,12 @@ class OperatorNode:
         *,
         calibration: LinkGlideCalibration | None = None,
         ctx: zmq.Context | None = None,
+        recorder: Recorder | None = None,
     ) -> None:
         self.config = config
         self.servos = servos
+        self.recorder = recorder or NullRecorder()
+        self._recording = not isinstance(self.recorder, NullRecorder)
         self._use_calibration(
             calibration or getattr(servos, "calibration", None) or LinkGlideCalibration()
         )
@@ -180,6 +185,8 @@ class OperatorNode:
             self.counters["stimuli_out_of_order"] += 1
             return False
         self.counters["stimuli_received"] += 1
+        if self._recording:
+            self.recorder.write("operator/stimulus", t_recv, {"seq": msg.seq, "wire": encode(msg)})
         local_capture = self._to_local(msg.t_capture_ns, t_recv)
         with self._lock:
             self._stim = msg
@@ -248,6 +255,16 @@ class OperatorNode:
         goals = {int(i): int(c) for i, c in zip(self.calibration.ids, counts, strict=True)}
         self.servos.write_goals(goals)
         self._written = np.array(counts, dtype=np.int64)
+        if self._recording:
+            self.recorder.write(
+                "operator/servo_goals",
+                now_ns(),
+                {
+                    "ids": self.calibration.ids,
+                    "counts": self._written,
+                    "angles": self.calibration.counts_to_angles(self._written),
+                },
+            )
         self.counters["servo_writes"] += 1
 
     def _lift_off_now(self) -> None:
@@ -257,6 +274,18 @@ class OperatorNode:
     # --------------------------------------------------------- heartbeat
     def _send_heartbeat(self) -> None:
         self._hb_seq += 1
+        if self._recording:
+            est = self.clock.estimate()
+            self.recorder.write(
+                "operator/link",
+                now_ns(),
+                {
+                    "state": self.link_state,
+                    "clock_offset_ns": None if est is None else est.offset_ns,
+                    "clock_uncertainty_ns": None if est is None else est.uncertainty_ns,
+                    **self.stats(),
+                },
+            )
         echo_send, echo_recv = self.clock.echo_fields()
         self.pub.send(
             Heartbeat(
@@ -277,8 +306,12 @@ class OperatorNode:
                 return
             self._cmd_seq += 1
             cmd.seq, cmd.t_send_ns = self._cmd_seq, now_ns()
-            self.pub.send(cmd)
+            data = self.pub.send(cmd)
             self.counters["commands_sent"] += 1
+            if self._recording:
+                self.recorder.write(
+                    "operator/command", cmd.t_send_ns, {"seq": cmd.seq, "wire": data}
+                )
 
     # ------------------------------------------------------------ report
     def stats(self) -> dict[str, float]:
@@ -311,8 +344,10 @@ class OperatorNode:
         )
 
 
-def build_operator_node(config: OperatorConfig, ctx: zmq.Context | None = None) -> OperatorNode:
+def build_operator_node(
+    config: OperatorConfig, ctx: zmq.Context | None = None, recorder: Recorder | None = None
+) -> OperatorNode:
     from operator_side.servos import KINDS
 
     servos = build_device(KINDS, config.servos, "operator.servos")
-    return OperatorNode(config, servos, ctx=ctx)
+    return OperatorNode(config, servos, ctx=ctx, recorder=recorder)

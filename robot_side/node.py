@@ -26,6 +26,7 @@ from common.devices import Device, build_device
 from common.errors import DeviceError
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.patterns import pattern_of
+from common.recording import NullRecorder, Recorder
 from common.transport import Publisher, Subscriber, make_context
 from robot_side.config import RobotConfig
 from robot_side.rendering import is_contact, render_stimulus, sanitize_frame
@@ -50,6 +51,7 @@ class RobotNode:
         gripper: Any | None = None,
         arm: Any | None = None,
         ctx: zmq.Context | None = None,
+        recorder: Recorder | None = None,
     ) -> None:
         if config.render.mode == "mask" and classifier is None:
             raise ValueError("mask mode needs a classifier")
@@ -58,6 +60,8 @@ class RobotNode:
         self.classifier = classifier
         self.gripper = gripper
         self.arm = arm
+        self.recorder = recorder or NullRecorder()
+        self._recording = not isinstance(self.recorder, NullRecorder)
         self._own_ctx = ctx is None
         self.ctx = ctx or make_context()
         self.counters: Counter[str] = Counter()
@@ -155,6 +159,16 @@ class RobotNode:
         self._last_capture_ns = sample.t_capture_ns
         render = self.config.render
         frame = sanitize_frame(sample.frame)
+        if self._recording:
+            self.recorder.write(
+                "robot/frame",
+                now,
+                {
+                    "frame": frame,
+                    "frame_seq": sample.seq,
+                    "t_capture_ns": sample.t_capture_ns,
+                },
+            )
         truth = sample.truth.pattern if sample.truth is not None else None
         contact = is_contact(frame, render.contact_threshold_n)
         pattern: int | None = None
@@ -174,6 +188,18 @@ class RobotNode:
                 pattern = pattern_of(a, p)
                 confidence = float(np.clip(pa[0, a] * pp[0, p], 0.0, 1.0))
                 self.counters["inferences"] += 1
+                if self._recording:
+                    self.recorder.write(
+                        "robot/prediction",
+                        now_ns(),
+                        {
+                            "frame_seq": sample.seq,
+                            "angle_probs": pa[0],
+                            "position_probs": pp[0],
+                            "pattern": pattern,
+                            "confidence": confidence,
+                        },
+                    )
             elif render.mode == "mask_ground_truth":
                 pattern = truth
                 confidence = 1.0 if truth is not None else None
@@ -237,7 +263,9 @@ class RobotNode:
             keyframe=keyframe,
             sim_truth_pattern=truth,
         )
-        self.pub.send(msg)
+        data = self.pub.send(msg)
+        if self._recording:
+            self.recorder.write("robot/stimulus", now, {"seq": msg.seq, "wire": data})
         self._last_stimulus = stimulus
         self._last_pattern = pattern
         self._last_stim_msg = msg
@@ -294,9 +322,23 @@ class RobotNode:
                     self.arm.stop()
                     self._arm_moving = False
             self.counters["commands_applied"] += 1
+            outcome = "applied"
         except (DeviceError, ValueError, DecodeError) as e:
             self.counters["commands_rejected"] += 1
             log.warning("command %s rejected: %s", cmd.action, e)
+            outcome = f"rejected: {e}"
+        if self._recording:
+            self.recorder.write(
+                "robot/command",
+                now_ns(),
+                {
+                    "seq": cmd.seq,
+                    "action": cmd.action,
+                    "grip_level": cmd.grip_level,
+                    "velocity": list(cmd.velocity) if cmd.velocity else None,
+                    "outcome": outcome,
+                },
+            )
 
     def _check_deadman(self, now: int) -> None:
         heard = self._last_operator_ns
@@ -331,6 +373,8 @@ class RobotNode:
                 self.counters["gripper_errors"] += 1
                 log.debug("gripper: %s", e)
         self._hb_seq += 1
+        if self._recording:
+            self.recorder.write("robot/link", now_ns(), {"state": self.link_state, **self.stats()})
         echo_send, echo_recv = self.clock.echo_fields()
         msg = self._last_stim_msg
         self.pub.send(
@@ -354,7 +398,9 @@ class RobotNode:
         return out
 
 
-def build_robot_node(config: RobotConfig, ctx: zmq.Context | None = None) -> RobotNode:
+def build_robot_node(
+    config: RobotConfig, ctx: zmq.Context | None = None, recorder: Recorder | None = None
+) -> RobotNode:
     """Build the devices and classifier a config names, and nothing else."""
     from robot_side.arm import KINDS as ARM_KINDS
     from robot_side.gripper import KINDS as GRIPPER_KINDS
@@ -368,7 +414,9 @@ def build_robot_node(config: RobotConfig, ctx: zmq.Context | None = None) -> Rob
         from robot_side.perception import load_classifier
 
         classifier = load_classifier(config.classifier.path, backend=config.classifier.backend)
-    return RobotNode(config, tactile, classifier=classifier, gripper=gripper, arm=arm, ctx=ctx)
+    return RobotNode(
+        config, tactile, classifier=classifier, gripper=gripper, arm=arm, ctx=ctx, recorder=recorder
+    )
 
 
 def _optional(registry: dict[str, str], section: dict[str, Any], where: str) -> Device | None:
