@@ -149,7 +149,7 @@ class DirectionConfig:
     packet_overhead_bytes: int = param(0, "added to each message's size for the rate")
     queue_limit: int = param(1000, "messages waiting for the bottleneck; more are tail-dropped")
     retransmit_ms: float = param(
-        200.0, "stream: delay a lost message costs before it is resent (doubles each retry)"
+        200.0, "stream: delay a lost message costs until resent (doubles while the link is down)"
     )
     outages: list[tuple[float, float]] = param(
         [], "[[t1_s, t2_s], ...]: link down from t1 to t2 seconds after start"
@@ -478,10 +478,14 @@ class DirectionImpairment:
         rto = self._retransmit_ns
         for _ in range(MAX_RETRANSMISSIONS):
             t += rto
-            rto *= 2  # exponential backoff, as TCP
             if self._outages and self.in_outage(t):
+                rto *= 2  # no ACK comes back: TCP's timer backs off
                 continue
             if self._retx.random() < self._retx_loss:
+                # The connection is otherwise healthy, so ACKs for what
+                # follows reveal the loss again after about the same time
+                # (RACK), without backing off.
+                rto = self._retransmit_ns
                 continue
             return t
         return None

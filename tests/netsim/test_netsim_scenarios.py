@@ -38,9 +38,11 @@ def test_builtin_loads_and_cites_its_figures(name: str) -> None:
 
 def test_directions_override_both() -> None:
     s = load_scenario("intercontinental")
-    assert s.to_operator.delay_ms == s.to_robot.delay_ms == 37.5
-    assert s.to_operator.distribution == "paretonormal" and s.to_robot.distribution == "normal"
+    # Same propagation floor both ways, more queueing towards the operator.
+    floor = s.to_operator.delay_quantile_ms(0.0)
+    assert floor == pytest.approx(s.to_robot.delay_quantile_ms(0.0)) == pytest.approx(36.5)
     assert s.to_operator.jitter_ms > s.to_robot.jitter_ms
+    assert s.to_robot.loss_percent == 0.1  # from [both]
 
 
 def test_bad_day_has_an_outage_and_bursts() -> None:
