@@ -27,6 +27,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "set and store LinkGlide servo calibration",
     ),
     "sim": ("deploy.sim_cli", "run one device simulator on its real wire, standalone"),
+    "keys": ("deploy.keys_cli", "make CURVE key pairs and allow operators on the robot"),
 }
 
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from common.config import param
+from common.security import SecurityConfig
 from operator_side.renderer import RendererConfig
 
 
@@ -22,6 +23,9 @@ class OperatorLinkConfig:
         "a stimulus older than this is not rendered; with none fresher, every linkage lifts off",
     )
     heartbeat_rate_hz: float = param(20.0, "heartbeats keep the robot's deadman satisfied")
+    security: SecurityConfig = param(
+        SecurityConfig(), "CURVE keys: ours and the robot's public key"
+    )
 
 
 @dataclass

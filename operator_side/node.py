@@ -27,6 +27,7 @@ from common.devices import build_device
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.patterns import matches_pattern
 from common.recording import NullRecorder, Recorder
+from common.security import check_endpoint, client_options
 from common.transport import Publisher, Subscriber, make_context
 from operator_side.config import OperatorConfig
 from operator_side.renderer import LinkGlideRenderer
@@ -117,10 +118,17 @@ class OperatorNode:
         if bus_calibration is not None and bus_calibration is not self.calibration:
             self._use_calibration(bus_calibration)  # the bus's limits are the ones enforced
         try:
+            for endpoint in (link.telemetry_endpoint, link.command_endpoint):
+                check_endpoint(endpoint, link.security)
+            opts = client_options(link.security)
             self.sub = Subscriber(
-                self.ctx, link.telemetry_endpoint, bind=False, name="operator telemetry"
+                self.ctx,
+                link.telemetry_endpoint,
+                bind=False,
+                sock_opts=opts,
+                name="operator telemetry",
             )
-            self.pub = Publisher(self.ctx, link.command_endpoint, bind=False)
+            self.pub = Publisher(self.ctx, link.command_endpoint, bind=False, sock_opts=opts)
             self.servos.set_torque(True)
             self._write(self.renderer.retract_counts)
             log.info(

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from common.config import param
+from common.security import SecurityConfig
 
 
 @dataclass
@@ -53,6 +54,7 @@ class RobotLinkConfig:
     deadman_ms: float = param(
         250.0, "no word from the operator for this long: the arm stops and the gripper holds"
     )
+    security: SecurityConfig = param(SecurityConfig(), "CURVE keys and the operator allowlist")
 
 
 @dataclass

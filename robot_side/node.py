@@ -27,6 +27,7 @@ from common.errors import DeviceError
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.patterns import pattern_of
 from common.recording import NullRecorder, Recorder
+from common.security import Authenticator, check_endpoint, server_options
 from common.transport import Publisher, Subscriber, make_context
 from robot_side.config import RobotConfig
 from robot_side.rendering import is_contact, render_stimulus, sanitize_frame
@@ -96,9 +97,16 @@ class RobotNode:
                     stack.callback(device.disconnect)
             if self.arm is not None:
                 stack.callback(self._safe_stop_arm, "node shutting down")
-            self.pub = Publisher(self.ctx, link.telemetry_endpoint, bind=True)
+            for endpoint in (link.telemetry_endpoint, link.command_endpoint):
+                check_endpoint(endpoint, link.security)
+            auth = Authenticator(self.ctx, link.security)
+            stack.callback(auth.stop)
+            opts = server_options(link.security)
+            self.pub = Publisher(self.ctx, link.telemetry_endpoint, bind=True, sock_opts=opts)
             stack.callback(self.pub.close)
-            self.sub = Subscriber(self.ctx, link.command_endpoint, bind=True, name="robot commands")
+            self.sub = Subscriber(
+                self.ctx, link.command_endpoint, bind=True, sock_opts=opts, name="robot commands"
+            )
             stack.callback(self.sub.close)
             if self.gripper is not None:
                 with contextlib.suppress(DeviceError):
