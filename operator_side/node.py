@@ -81,6 +81,8 @@ class OperatorNode:
             maxlen=config.latency_window
         )
         self.link_state = "down"
+        #: (monotonic ns, new state) of the latest link state changes
+        self.link_changes: collections.deque[tuple[int, str]] = collections.deque(maxlen=256)
         self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._stim: Stimulus | None = None
@@ -248,6 +250,7 @@ class OperatorNode:
             if state != "ok":
                 self.counters["lift_offs"] += 1
             self.link_state = state
+            self.link_changes.append((now, state))
         self._goal = self.renderer.target_counts(stimulus)
         fraction = 1.0 if not self._last_step_ns else (now - self._last_step_ns) / period_ns
         current = self._written if self._written is not None else self.renderer.retract_counts

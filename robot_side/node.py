@@ -10,6 +10,7 @@ a keyframe every ``keyframe_interval_ms`` bounds the damage of a lost change).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import threading
@@ -67,6 +68,8 @@ class RobotNode:
         self.ctx = ctx or make_context()
         self.counters: Counter[str] = Counter()
         self.link_state = "down"
+        #: (monotonic ns, new state) of the latest link state changes
+        self.link_changes: collections.deque[tuple[int, str]] = collections.deque(maxlen=256)
         self._stim_seq = 0
         self._hb_seq = 0
         self._frame_msg_seq = 0
@@ -361,6 +364,7 @@ class RobotNode:
                     with contextlib.suppress(DeviceError):
                         self.gripper.hold()
             self.link_state = new_state
+            self.link_changes.append((now, new_state))
 
     def _safe_stop_arm(self, why: str) -> None:
         if self.arm is None:

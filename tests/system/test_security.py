@@ -8,6 +8,7 @@ import time
 
 import pytest
 import zmq
+from tests_support import RecordingArm
 
 from common.codec import encode
 from common.errors import LinkError
@@ -18,24 +19,6 @@ from deploy.keys_cli import allow, generate
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.tactile.scripted import ScriptedTactileSensor
-
-
-class RecordingArm:
-    """Stands in for the arm: remembers every jog it was asked to do."""
-
-    def __init__(self) -> None:
-        self.jogs: list[tuple[float, ...]] = []
-        self.stops = 0
-        self.is_connected = True
-
-    def connect(self) -> None: ...
-    def disconnect(self) -> None: ...
-
-    def jog(self, velocity) -> None:
-        self.jogs.append(tuple(velocity))
-
-    def stop(self) -> None:
-        self.stops += 1
 
 
 class Relay:

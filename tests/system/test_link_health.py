@@ -1,0 +1,113 @@
+"""Cut the link mid-stream: the palm is released and the arm stops in time; both recover."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+from tests_support import RecordingArm, free_ports
+
+from common.netsim.proxy import Endpoints, LinkSimulator
+from common.netsim.scenario import scenario_from_dict
+from operator_side.config import OperatorConfig
+from operator_side.node import OperatorNode
+from operator_side.servos.recording import RecordingServoBus
+from robot_side.config import RobotConfig
+from robot_side.node import RobotNode
+from robot_side.tactile.script import GraspScript, GraspStep
+from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
+
+OUTAGE = (2.0, 3.5)  # seconds after the simulator starts
+CYCLE_MS = 1000 / 60
+SLACK_MS = 10  # thread wake-up on a shared 2-core VM
+
+
+@pytest.fixture
+def loop():
+    tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_ports(2))
+    rc = RobotConfig()
+    rc.render.mode = "mask_ground_truth"
+    rc.link.telemetry_endpoint, rc.link.command_endpoint = tel, cmd
+    hold = GraspScript(
+        grasps=[GraspStep(pattern=6, grip_level=25, ramp_s=0.1, hold_s=30.0)],
+        loop=False,
+        start_delay_s=0.2,
+    )
+    arm = RecordingArm()
+    robot = RobotNode(rc, ScriptedTactileSensor(ScriptedTactileConfig(script=hold)), arm=arm)
+    scenario = scenario_from_dict(
+        {"name": "cut", "both": {"delivery": "datagram", "outages": [list(OUTAGE)]}}
+    )
+    stop = threading.Event()
+    threads = [threading.Thread(target=robot.run, args=(stop,), daemon=True)]
+    threads[0].start()
+    time.sleep(0.2)
+    sim = LinkSimulator(
+        scenario,
+        endpoints=Endpoints(
+            robot_telemetry=tel,
+            robot_commands=cmd,
+            operator_telemetry="tcp://127.0.0.1:*",
+            operator_commands="tcp://127.0.0.1:*",
+        ),
+    )
+    sim.start()
+    oc = OperatorConfig()
+    oc.link.telemetry_endpoint = sim.operator_telemetry_endpoint
+    oc.link.command_endpoint = sim.operator_commands_endpoint
+    bus = RecordingServoBus()
+    operator = OperatorNode(oc, bus)
+    threads.append(threading.Thread(target=operator.run, args=(stop,), daemon=True))
+    threads[1].start()
+    yield robot, operator, arm, bus, sim, stop
+    stop.set()
+    for t in threads:
+        t.join(timeout=5)
+    sim.stop()
+
+
+def _first_change(changes, state, after_ns):
+    return next((t for t, s in changes if s == state and t >= after_ns), None)
+
+
+def test_a_cut_link_lifts_the_palm_and_stops_the_arm_then_recovers(loop):
+    robot, operator, arm, bus, sim, stop = loop
+    t_start = sim.start_ns
+    cut, back = (t_start + round(s * 1e9) for s in OUTAGE)
+    # the operator keeps jogging the arm, as a person holding a jog key would
+    while time.monotonic_ns() < back + round(1.5e9):
+        operator.send_command("arm_jog", velocity=(0.01, 0.0, 0.0, 0.0, 0.0, 0.0))
+        time.sleep(0.05)
+    assert operator.link_state == "ok" and robot.link_state == "ok"
+
+    # before the cut: pressing, no false alarm
+    assert _first_change(operator.link_changes, "stale", t_start + round(0.5e9)) >= cut
+    # the operator lifts every linkage within stale_after_ms plus one cycle of the cut
+    stale = _first_change(operator.link_changes, "stale", cut)
+    assert stale is not None
+    limit_ms = operator.config.link.stale_after_ms + CYCLE_MS + SLACK_MS
+    assert (stale - cut) / 1e6 <= limit_ms, f"lift-off {(stale - cut) / 1e6:.1f} ms after the cut"
+    retract = operator.renderer.retract_counts
+    during = [r for r in bus.records if stale <= r.t_ns < back]
+    assert during, "no servo motion after the link went stale"
+    last = np.array([during[-1].goals[i] for i in range(1, 7)])
+    np.testing.assert_array_equal(last, retract)  # fully lifted during the outage
+    # the robot stops the arm within its deadman time plus one cycle of the cut
+    down = _first_change(robot.link_changes, "down", cut)
+    assert down is not None and arm.stop_times
+    stop_t = next(t for t in arm.stop_times if t >= cut)
+    deadman_limit = robot.config.link.deadman_ms + CYCLE_MS + SLACK_MS
+    assert (stop_t - cut) / 1e6 <= deadman_limit, (
+        f"arm stop {(stop_t - cut) / 1e6:.1f} ms after the cut"
+    )
+    jogs_during = [t for t in arm.jog_times if stop_t < t < back]
+    assert not jogs_during, "the arm was jogged while the operator was unreachable"
+    # and everything recovers by itself once the link returns
+    ok_again = _first_change(operator.link_changes, "ok", back)
+    assert ok_again is not None and (ok_again - back) / 1e9 < 1.0
+    assert _first_change(robot.link_changes, "ok", back) is not None
+    assert any(t > back for t in arm.jog_times), "jogging did not resume after the outage"
+    after = [r for r in bus.records if r.t_ns > ok_again]
+    assert after and np.any(np.array([after[-1].goals[i] for i in range(1, 7)]) != retract)
