@@ -16,6 +16,7 @@ import abc
 import logging
 import math
 import threading
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -25,7 +26,7 @@ import numpy as np
 from common.clock import now_s
 from common.config import param
 from common.devices import Device
-from common.errors import ConfigError, DeviceError
+from common.errors import ConfigError, DeviceError, DeviceTimeoutError
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +94,7 @@ class Arm(Device):
     """A 6-DoF arm with a TCP: reads, clipped jogs with a deadman, checked moves, stop.
 
     Drivers implement ``_read_tcp_pose``, ``_read_joints``, ``_send_jog``,
-    ``_send_move`` and ``_send_stop``; they call ``_start_deadman()`` at the
+    ``_send_move``, ``_move_finished`` and ``_send_stop``; they call ``_start_deadman()`` at the
     end of ``connect`` and ``_stop_deadman()`` at the start of ``disconnect``.
     Calls into the driver are serialised by ``_lock`` so the deadman thread
     and the caller never interleave on the wire.
@@ -123,8 +124,12 @@ class Arm(Device):
         """Command a TCP velocity (already clipped)."""
 
     @abc.abstractmethod
-    def _send_move(self, pose: np.ndarray, speed: float, wait: bool) -> None:
-        """Move linearly to ``pose`` (already checked)."""
+    def _send_move(self, pose: np.ndarray, speed: float) -> None:
+        """Start a linear move to ``pose`` (already checked); must not wait for it."""
+
+    @abc.abstractmethod
+    def _move_finished(self) -> bool:
+        """True once the last move has ended (reached, stopped or aborted)."""
 
     @abc.abstractmethod
     def _send_stop(self) -> None:
@@ -184,7 +189,11 @@ class Arm(Device):
             self._jog_until = now_s() + self.limits.jog_timeout_s
 
     def move_to(self, pose: Sequence[float], speed: float | None = None, wait: bool = True) -> None:
-        """Move the TCP linearly to ``pose``; refuses targets outside the workspace box."""
+        """Move the TCP linearly to ``pose``; refuses targets outside the workspace box.
+
+        With ``wait`` the call returns when the move has ended; ``stop()`` from
+        another thread ends it early. Speeds above the limit are clipped.
+        """
         self.require_connected()
         target = as_vector6(pose, "target pose")
         if not self.limits.contains(target[:3]):
@@ -204,7 +213,29 @@ class Arm(Device):
             speed = self.limits.max_linear_speed_m_s
         with self._lock:
             self._jog_until = None
-            self._send_move(target, float(speed), wait)
+            start = self._read_tcp_pose()
+            self._send_move(target, float(speed))
+        if wait:
+            distance = float(np.linalg.norm(target[:3] - start[:3]))
+            accel = self.limits.linear_acceleration_m_s2
+            # twice the trapezoid's duration, plus slack for the handshake and rotations
+            timeout = 2 * (distance / speed + speed / accel) + 5.0
+            self._wait_move(timeout)
+
+    def _wait_move(self, timeout_s: float) -> None:
+        """Poll for the end of a move without holding the lock, so ``stop()`` can cut in."""
+        deadline = now_s() + timeout_s
+        while True:
+            with self._lock:
+                if self._move_finished():
+                    return
+            if now_s() > deadline:
+                self.stop()
+                raise DeviceTimeoutError(
+                    f"{type(self).__name__}: move did not finish in {timeout_s:.1f} s; "
+                    "the arm was told to stop. Check the pendant for a protective stop."
+                )
+            time.sleep(0.01)
 
     def stop(self) -> None:
         """Stop any motion. Safe to call at any time, also when not connected."""
