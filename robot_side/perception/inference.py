@@ -1,0 +1,356 @@
+"""Classifying frames at 60 Hz: one interface, four backends of the same weights.
+
+- ``numpy``: a hand-written forward pass (batch norm folded into the
+  convolutions, convolutions as one gather and one matrix product, both
+  heads merged into block-diagonal matrices). No dependency beyond NumPy.
+- ``onnxruntime``: the ``.onnx`` exported beside the weights.
+- ``torch`` (eager) and ``torchscript``: the reference, and its traced,
+  frozen form. Only these two import torch, which costs about 2 s.
+
+Every backend returns the same classes and probabilities within 1e-5 of
+eager torch (tests/perception). The default is the fastest of them on batch
+1, measured by benchmarks/perception_bench.py (docs/perception.md).
+
+A classifier keeps preallocated buffers for batch 1, the robot node's case,
+so one instance must not be used from two threads at once without a lock;
+``predict`` takes an internal lock, which costs well under a microsecond.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import threading
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robot_side.perception.errors import ModelLoadError
+from robot_side.perception.weights import DEFAULT_MODEL, read_weights
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("numpy", "onnxruntime", "torchscript", "torch")
+#: preference order when no backend is named: fastest measured first
+DEFAULT_BACKEND_ORDER = ("onnxruntime", "numpy", "torchscript", "torch")
+_MODULE_OF = {
+    "numpy": "numpy",
+    "onnxruntime": "onnxruntime",
+    "torch": "torch",
+    "torchscript": "torch",
+}
+
+N_ANGLES = 4
+N_POSITIONS = 3
+SATURATION_N = 9.0
+PEAK_FLOOR_N = 1.0
+_BN_EPS = 1e-5
+
+Logits = tuple[np.ndarray, np.ndarray]
+
+
+class TiltClassifier:
+    """Angle and position classes of tactile frames.
+
+    ``frames`` are float32 newtons of shape (N, 2, 10, 10) in the common view
+    (a single (2, 10, 10) frame is taken as N = 1). Angle classes 0..3 are 0,
+    45, 90 and 135 deg; position classes 0..2 are centre, left (up for 0 deg)
+    and right (down for 0 deg).
+    """
+
+    def __init__(
+        self, logits_fn: Callable[[np.ndarray], Logits], backend: str, meta: dict, path: Path
+    ):
+        self._logits = logits_fn
+        self.backend = backend
+        self.meta = meta
+        self.path = path
+        self._lock = threading.Lock()
+
+    def __repr__(self) -> str:
+        return f"TiltClassifier(backend={self.backend!r}, path={str(self.path)!r})"
+
+    def logits(self, frames: np.ndarray) -> Logits:
+        """Raw scores (N, 4) and (N, 3), float32."""
+        x = _as_batch(frames)
+        with self._lock:
+            a, p = self._logits(x)
+            return a.copy(), p.copy()
+
+    def predict(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(angle class, position class), int64 arrays of shape (N,)."""
+        x = _as_batch(frames)
+        with self._lock:
+            a, p = self._logits(x)
+            return a.argmax(axis=1), p.argmax(axis=1)
+
+    def predict_proba(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Softmax probabilities (N, 4) and (N, 3), float32."""
+        x = _as_batch(frames)
+        with self._lock:
+            a, p = self._logits(x)
+            return _softmax(a), _softmax(p)
+
+
+def load_classifier(
+    path: str | Path | None = None, backend: str | None = None, *, num_threads: int = 1
+) -> TiltClassifier:
+    """A classifier for the weights at ``path`` (default: the shipped model).
+
+    ``backend`` is one of ``BACKENDS``; None picks the first installed one in
+    ``DEFAULT_BACKEND_ORDER``. ``num_threads`` bounds ONNX Runtime's and
+    torch's intra-op threads: one is fastest at batch 1 and leaves the other
+    core to the rest of the node.
+    """
+    path = Path(path) if path is not None else DEFAULT_MODEL
+    if backend is None:
+        backend = next(b for b in DEFAULT_BACKEND_ORDER if _installed(b))
+    if backend not in BACKENDS:
+        raise ModelLoadError(f"unknown backend {backend!r}; choose one of {list(BACKENDS)}")
+    if not _installed(backend):
+        raise ModelLoadError(
+            f"backend {backend!r} needs the Python package {_MODULE_OF[backend]!r}, which is "
+            "not installed: install the robot extra (pip install 'deepxpalm[robot]') "
+            "or choose backend='numpy'"
+        )
+    weights, meta = read_weights(path)
+    if backend == "numpy":
+        fn = NumpyForward(weights, meta)
+    elif backend == "onnxruntime":
+        fn = _onnx_logits(path.with_suffix(".onnx"), num_threads)
+    else:
+        fn = _torch_logits(
+            weights, meta, scripted=backend == "torchscript", num_threads=num_threads
+        )
+    log.info("loaded tilt classifier %s with backend %s", path, backend)
+    return TiltClassifier(fn, backend, meta, path)
+
+
+def _installed(backend: str) -> bool:
+    return importlib.util.find_spec(_MODULE_OF[backend]) is not None
+
+
+def _as_batch(frames: np.ndarray) -> np.ndarray:
+    x = np.ascontiguousarray(frames, dtype=np.float32)
+    if x.ndim == 3:
+        x = x[None]
+    if x.ndim != 4 or x.shape[1:] != (2, 10, 10):
+        raise ValueError(f"frames must have shape (N, 2, 10, 10), not {np.shape(frames)}")
+    return x
+
+
+def _softmax(z: np.ndarray) -> np.ndarray:
+    e = np.exp(z - z.max(axis=1, keepdims=True))
+    return (e / e.sum(axis=1, keepdims=True)).astype(np.float32, copy=False)
+
+
+# --- NumPy ---------------------------------------------------------------
+
+
+def _conv_gather_index(channels: int, channels_last: bool) -> np.ndarray:
+    """Indices into a zero-padded (12 x 12) input that lay out every 3x3 patch as a row.
+
+    Rows are output pixels (r * 10 + c); columns follow the weight layout the
+    matching matrix is built with: (channel, ky, kx) for channels-first input,
+    (ky, kx, channel) for channels-last.
+    """
+    r, c = np.divmod(np.arange(100), 10)
+    ky, kx = np.divmod(np.arange(9), 3)
+    pix = (r[:, None] + ky[None, :]) * 12 + (c[:, None] + kx[None, :])  # (100, 9)
+    ch = np.arange(channels)
+    if channels_last:
+        idx = pix[:, :, None] * channels + ch[None, None, :]  # (100, 9, C)
+    else:
+        idx = ch[None, :, None] * 144 + pix[:, None, :]  # (100, C, 9)
+    return np.ascontiguousarray(idx.reshape(100, -1)).astype(np.intp)
+
+
+def _fold_bn(w: np.ndarray, b: np.ndarray, weights: dict[str, np.ndarray], prefix: str):
+    gamma = weights[f"{prefix}.weight"].astype(np.float64)
+    beta = weights[f"{prefix}.bias"].astype(np.float64)
+    mean = weights[f"{prefix}.running_mean"].astype(np.float64)
+    var = weights[f"{prefix}.running_var"].astype(np.float64)
+    scale = gamma / np.sqrt(var + _BN_EPS)
+    return w.astype(np.float64) * scale[:, None, None, None], (b - mean) * scale + beta
+
+
+def _with_bias_row(w: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(K, M) weights and (M,) bias as one (K + 1, M) matrix for inputs ending in a 1."""
+    return np.ascontiguousarray(np.vstack([w, b[None, :]]), dtype=np.float32)
+
+
+def _block_diag(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    out = np.zeros((a.shape[0] + b.shape[0], a.shape[1] + b.shape[1]), dtype=np.float64)
+    out[: a.shape[0], : a.shape[1]] = a
+    out[a.shape[0] :, a.shape[1] :] = b
+    return out
+
+
+class NumpyForward:
+    """The TiltNet forward pass in NumPy, exact to float32 rounding.
+
+    Layout: pixels as rows, channels as columns, so both convolutions and all
+    linear layers are single matrix products. Batch norm (eval mode) is folded
+    into the convolutions in float64 before rounding to float32. Every input
+    buffer ends in a constant 1 and every matrix in a bias row, so a layer is
+    one product and one in-place ReLU: at batch 1 the cost is per call, not
+    per multiply.
+    """
+
+    def __init__(self, weights: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
+        try:
+            self._build(weights)
+        except KeyError as e:
+            raise ModelLoadError(f"model weights lack {e}: not a TiltNet file") from None
+        self._buffers: dict[int, dict[str, Any]] = {}
+
+    def _build(self, w: dict[str, np.ndarray]) -> None:
+        w1, b1 = _fold_bn(w["backbone.0.weight"], w["backbone.0.bias"], w, "backbone.1")
+        w2, b2 = _fold_bn(w["backbone.3.weight"], w["backbone.3.bias"], w, "backbone.4")
+        self.c1, self.c2 = c1, c2 = w1.shape[0], w2.shape[0]
+        # conv1 reads the input channels-first; its 4 feature channels are
+        # (pad 0, pad 1) / 9 N, then (pad 0, pad 1) / peak, as InputFeatures.
+        self.w1 = _with_bias_row(w1.reshape(c1, 4 * 9).T, b1)
+        self.w2 = _with_bias_row(w2.transpose(2, 3, 1, 0).reshape(9 * c1, c2), b2)
+        self.idx1 = _conv_gather_index(2, channels_last=False)
+        # the extra column points at the constant 1 after the padded input
+        idx2 = _conv_gather_index(c1, channels_last=True)
+        self.idx2 = np.hstack([idx2, np.full((100, 1), 144 * c1, dtype=np.intp)])
+        # Pixels by channel back to the (channel, row, column) order torch flattens.
+        heads_in = []
+        for head in ("angle_head", "position_head"):
+            first = w[f"{head}.0.weight"]
+            first = first.reshape(first.shape[0], c2, 10, 10).transpose(0, 2, 3, 1)
+            heads_in.append(first.reshape(first.shape[0], -1))
+        bias = np.concatenate([w["angle_head.0.bias"], w["position_head.0.bias"]])
+        self.fc = [_with_bias_row(np.concatenate(heads_in).T, bias)]
+        for i in (3, 6, 9):
+            a_w, p_w = w[f"angle_head.{i}.weight"], w[f"position_head.{i}.weight"]
+            bias = np.concatenate([w[f"angle_head.{i}.bias"], w[f"position_head.{i}.bias"]])
+            self.fc.append(_with_bias_row(_block_diag(a_w.T, p_w.T), bias))
+        self.n_angle = w["angle_head.9.weight"].shape[0]
+
+    def _buf(self, n: int) -> dict[str, Any]:
+        buf = self._buffers.get(n)
+        if buf is not None:
+            return buf
+        f32, c1, c2 = np.float32, self.c1, self.c2
+        cols1 = np.zeros((n, 100, 37), f32)
+        cols1[:, :, 36] = 1.0
+        pad2 = np.zeros((n, 144 * c1 + 1), f32)
+        pad2[:, -1] = 1.0
+        h2 = np.ones((n, 100 * c2 + 1), f32)
+        zs = []
+        for wt in self.fc[:-1]:
+            zs.append(np.ones((n, wt.shape[1] + 1), f32))
+        buf = {
+            "pad1": np.zeros((n, 2, 12, 12), f32),
+            "cols1": cols1,
+            "raw": cols1[:, :, :18],
+            "scaled": cols1[:, :, 18:36],
+            "h1": np.empty((n, 100, c1), f32),
+            "pad2": pad2,
+            "pad2_in": pad2[:, : 144 * c1].reshape(n, 12, 12, c1)[:, 1:11, 1:11, :],
+            "cols2": np.empty((n, 100, 9 * c1 + 1), f32),
+            "h2": h2,
+            "h2_out": h2[:, : 100 * c2].reshape(n, 100, c2),
+            "zs": zs,
+            "zs_out": [z[:, :-1] for z in zs],
+            "logits": np.empty((n, self.fc[-1].shape[1]), f32),
+        }
+        if n == 1:  # only the hot path keeps its buffers
+            self._buffers[n] = buf
+        return buf
+
+    def __call__(self, x: np.ndarray) -> Logits:
+        n = x.shape[0]
+        b = self._buf(n)
+        pad1, raw, scaled = b["pad1"], b["raw"], b["scaled"]
+        pad1[:, :, 1:11, 1:11] = x
+        np.take(pad1.reshape(n, -1), self.idx1, axis=1, out=raw)  # (n, 100, 18)
+        # the peak-normalised copy first, then the raw columns scaled in place
+        if n == 1:
+            np.divide(raw, max(float(x.max()), PEAK_FLOOR_N), out=scaled)
+        else:
+            peak = np.maximum(x.reshape(n, -1).max(axis=1), PEAK_FLOOR_N).reshape(n, 1, 1)
+            np.divide(raw, peak, out=scaled)
+        np.multiply(raw, np.float32(1.0 / SATURATION_N), out=raw)
+        h1 = b["h1"]
+        np.matmul(b["cols1"], self.w1, out=h1)
+        np.maximum(h1.reshape(n, 10, 10, self.c1), 0.0, out=b["pad2_in"])
+        cols2 = b["cols2"]
+        np.take(b["pad2"], self.idx2, axis=1, out=cols2)
+        h2_out = b["h2_out"]
+        np.matmul(cols2, self.w2, out=h2_out)
+        np.maximum(h2_out, 0.0, out=h2_out)
+        z = b["h2"]
+        for wt, zn, zo in zip(self.fc[:-1], b["zs"], b["zs_out"], strict=True):
+            np.matmul(z, wt, out=zo)
+            np.maximum(zo, 0.0, out=zo)
+            z = zn
+        logits = b["logits"]
+        np.matmul(z, self.fc[-1], out=logits)
+        return logits[:, : self.n_angle], logits[:, self.n_angle :]
+
+
+# --- ONNX Runtime -------------------------------------------------------
+
+
+def _onnx_logits(path: Path, num_threads: int) -> Callable[[np.ndarray], Logits]:
+    if not path.is_file():
+        raise ModelLoadError(
+            f"no ONNX graph at {path}: `deepxpalm train` writes it beside the weights; "
+            "or use backend='numpy', which needs only the .npz"
+        )
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = num_threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.log_severity_level = 3
+    try:
+        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own untyped errors
+        raise ModelLoadError(f"ONNX Runtime cannot load {path}: {e}") from None
+    run = session.run
+    outputs = ["angle_logits", "position_logits"]
+
+    def logits(x: np.ndarray) -> Logits:
+        a, p = run(outputs, {"frames": x})
+        return a, p
+
+    return logits
+
+
+# --- torch --------------------------------------------------------------
+
+
+def _torch_logits(
+    weights: dict[str, np.ndarray], meta: dict[str, Any], *, scripted: bool, num_threads: int
+) -> Callable[[np.ndarray], Logits]:
+    import torch
+
+    from robot_side.perception.model import build_from_weights
+
+    if num_threads > 0 and torch.get_num_threads() != num_threads:
+        torch.set_num_threads(num_threads)
+    model = build_from_weights(weights, meta)
+    if scripted:
+        # torch 2.9+ calls TorchScript deprecated in favour of torch.compile, which
+        # needs a compiler toolchain on the robot PC; it still works and is faster.
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            traced = torch.jit.trace(model, torch.zeros(1, 2, 10, 10))
+            model = torch.jit.freeze(traced)
+
+    def logits(x: np.ndarray) -> Logits:
+        with torch.inference_mode():
+            a, p = model(torch.from_numpy(x))
+        return a.numpy(), p.numpy()
+
+    return logits
