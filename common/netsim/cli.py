@@ -8,6 +8,7 @@ from the defaults below, then ``--config FILE``, then the command line.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import signal
 import threading
@@ -59,6 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for key in ("robot_telemetry", "robot_commands", "operator_telemetry", "operator_commands"):
         parser.add_argument(f"--{key.replace('_', '-')}", dest=key, metavar="ENDPOINT")
     parser.add_argument("--duration-s", type=float, help="stop after this many seconds")
+    parser.add_argument("--stats-file", type=Path, help="write final counters here as JSON on exit")
 
 
 def config_from_args(args: argparse.Namespace) -> NetsimConfig:
@@ -133,6 +135,27 @@ def run(args: argparse.Namespace) -> int:
     finally:
         sim.stop()
         signal.signal(signal.SIGTERM, old)
-    for name, c in sim.counters().items():
+    summary = final_stats(sim)
+    for name, c in summary["directions"].items():
         log.info("final %s: %s", name, c)
+    stats_file = getattr(args, "stats_file", None)
+    if stats_file is not None:
+        Path(stats_file).write_text(json.dumps(summary, indent=2) + "\n")
     return 0
+
+
+def final_stats(sim: LinkSimulator) -> dict[str, Any]:
+    """Counters per direction and the simulator's own per-send cost, JSON-able."""
+    own = sorted(sim.own_latency_ns())
+    out: dict[str, Any] = {
+        "scenario": sim.scenario.name,
+        "seed": sim.seed,
+        "directions": sim.counters(),
+    }
+    if own:
+        out["own_latency_us"] = {
+            "p50": own[len(own) // 2] / 1e3,
+            "p99": own[min(len(own) - 1, int(0.99 * len(own)))] / 1e3,
+            "n": len(own),
+        }
+    return out

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 
 import pytest
 
@@ -56,7 +57,7 @@ def test_unknown_scenario_is_a_config_error() -> None:
         cli.scenario_from_args(cli.config_from_args(args), args)
 
 
-def test_run_for_a_short_duration_returns_zero() -> None:
+def test_run_for_a_short_duration_returns_zero(tmp_path) -> None:
     args = _parser().parse_args(
         [
             "--scenario",
@@ -73,4 +74,8 @@ def test_run_for_a_short_duration_returns_zero() -> None:
             "tcp://127.0.0.1:*",
         ]
     )
+    args.stats_file = tmp_path / "netsim.json"
     assert cli.run(args) == 0
+    stats = json.loads(args.stats_file.read_text())
+    assert stats["scenario"] == "none"
+    assert stats["directions"]["to_operator"]["received"] == 0

