@@ -93,6 +93,7 @@ class OperatorNode:
         self._hb_seq = 0
         self._cmd_seq = 0
         self._goal = self.renderer.retract_counts.copy()
+        self._goal_key: int | None = None  # stimulus seq the goal was computed for
         self._written: np.ndarray | None = None
         self._last_step_ns = 0
         self.pub: Publisher | None = None
@@ -251,7 +252,11 @@ class OperatorNode:
                 self.counters["lift_offs"] += 1
             self.link_state = state
             self.link_changes.append((now, state))
-        self._goal = self.renderer.target_counts(stimulus)
+        key = self._stim.seq if stimulus is not None else None
+        if key != self._goal_key:  # IK only when what is rendered changed
+            self._goal = self.renderer.target_counts(stimulus)
+            self._goal_key = key
+            self.counters["targets_computed"] += 1
         fraction = 1.0 if not self._last_step_ns else (now - self._last_step_ns) / period_ns
         current = self._written if self._written is not None else self.renderer.retract_counts
         nxt = self.renderer.step(current, self._goal, fraction)
