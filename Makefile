@@ -24,6 +24,8 @@ demo: $(STAMP)
 	$(BIN)/deepxpalm demo $(ARGS)
 
 test: $(STAMP)
+	@# Debian's chromium for the dashboard's browser test: required in CI, optional elsewhere
+	bash scripts/install-test-browser.sh || [ -z "$$CI" ]
 	$(BIN)/python -m pytest $(ARGS)
 
 lint: $(STAMP)
