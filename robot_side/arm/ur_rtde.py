@@ -273,8 +273,18 @@ class URArm(Arm):
         except Exception:  # only used to word an error message
             return "unknown"
 
+    def _check_safety(self, what: str) -> None:
+        """Refuse motion in a safety stop up front: ur-rtde may report success into it."""
+        mode = int(self._recv.getSafetyMode())
+        if mode not in (1, 2):  # normal, reduced
+            raise ArmCommandRefusedError(
+                f"URArm: {what} refused: the robot is in {SAFETY_MODES.get(mode, mode)}; "
+                "clear it on the pendant, then disconnect() and connect() again"
+            )
+
     def _send_jog(self, velocity: np.ndarray) -> None:
         ctrl = self._ctrl
+        self._check_safety("jog")
         if self._moving:
             self._stop_move()
         ok = self._control(
@@ -289,6 +299,7 @@ class URArm(Arm):
 
     def _send_move(self, pose: np.ndarray, speed: float) -> None:
         ctrl = self._ctrl
+        self._check_safety("move")
         if self._speeding:
             self._stop_speed()
         self._moving = True

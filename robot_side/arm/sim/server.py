@@ -286,9 +286,12 @@ class URSimulator:
             self._frozen.clear()
 
     def protective_stop(self) -> None:
+        """Stop hard and halt the program, as a UR does; a client must restart its script."""
         with self._lock:
             self.safety_mode = SAFETY_MODE_PROTECTIVE_STOP
             self.arm.stop(10.0)
+            self.program_running = False
+            self.out_int[0] = 0
 
     def unlock_protective_stop(self) -> None:
         with self._lock:
