@@ -8,6 +8,7 @@ headless with ``--json``). Latency comes from the messages' timestamps.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import signal
@@ -163,19 +164,23 @@ def run(args: argparse.Namespace) -> int:
     thread = threading.Thread(target=operate, name="operator", daemon=True)
     t0 = time.monotonic()
     thread.start()
+    keyboard = live_view.Keyboard() if not args.json else contextlib.nullcontext()
     try:
-        while not stop.is_set():
-            elapsed = time.monotonic() - t0
-            if args.duration is not None and elapsed >= args.duration:
-                break
-            for name, proc, path in procs:
-                if proc.poll() is not None:
-                    errors.append(f"{name} stopped early with {proc.returncode}; see {path}")
-                    stop.set()
-            if not args.json:
-                sys.stdout.write(live_view.render(node.snapshot(), scene.scene.name, elapsed))
-                sys.stdout.flush()
-            stop.wait(0.1)
+        with keyboard:
+            while not stop.is_set():
+                elapsed = time.monotonic() - t0
+                if args.duration is not None and elapsed >= args.duration:
+                    break
+                for name, proc, path in procs:
+                    if proc.poll() is not None:
+                        errors.append(f"{name} stopped early with {proc.returncode}; see {path}")
+                        stop.set()
+                if not args.json:
+                    for action, kwargs in keyboard.commands():
+                        node.send_command(action, **kwargs)
+                    sys.stdout.write(live_view.render(node.snapshot(), scene.scene.name, elapsed))
+                    sys.stdout.flush()
+                stop.wait(0.1 if args.json else 0.05)
     finally:
         stop.set()
         thread.join(timeout=10)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import numpy as np
 
@@ -83,6 +84,67 @@ def render(snap: Snapshot, scene_name: str, elapsed_s: float) -> str:
                 for k in ("stimuli_received", "servo_writes", "lift_offs", "decode_errors")
             )
         ),
-        "Ctrl-C to stop",
+        "keys: o open  c close  1-9 grip level  w/a/s/d/r/f jog arm  space stop   Ctrl-C quit",
     ]
     return "\x1b[H\x1b[2J" + "\n".join(lines) + "\n"
+
+
+class Keyboard:
+    """Single keys from a terminal without Enter (cbreak), restored on exit.
+
+    o / c: open the gripper / close it to the current grip level; 1-9: grip
+    level 3..27; w a s d r f: jog the arm +X -Y -X +Y +Z -Z (held keys repeat,
+    which keeps the jog alive); space: stop the arm.
+    """
+
+    JOG_M_S = 0.02
+    _JOGS: ClassVar[dict[str, tuple[int, int, int]]] = {
+        "w": (1, 0, 0), "s": (-1, 0, 0), "a": (0, -1, 0), "d": (0, 1, 0),
+        "r": (0, 0, 1), "f": (0, 0, -1),
+    }  # fmt: skip
+
+    def __init__(self) -> None:
+        import sys
+
+        self._stdin = sys.stdin
+        self._saved = None
+        self.grip_level = 16
+
+    def __enter__(self) -> Keyboard:
+        import termios
+        import tty
+
+        if self._stdin.isatty():
+            self._saved = termios.tcgetattr(self._stdin)
+            tty.setcbreak(self._stdin)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        import termios
+
+        if self._saved is not None:
+            termios.tcsetattr(self._stdin, termios.TCSADRAIN, self._saved)
+
+    def commands(self) -> list[tuple[str, dict]]:
+        """Keys typed since the last call, as (action, arguments) for send_command."""
+        import os
+        import select
+
+        if self._saved is None:
+            return []
+        out: list[tuple[str, dict]] = []
+        while select.select([self._stdin], [], [], 0)[0]:
+            key = os.read(self._stdin.fileno(), 1).decode(errors="ignore").lower()
+            if key == "o":
+                out.append(("gripper_open", {}))
+            elif key == "c":
+                out.append(("gripper_close", {"grip_level": self.grip_level}))
+            elif key.isdigit() and key != "0":
+                self.grip_level = 3 * int(key)
+                out.append(("gripper_close", {"grip_level": self.grip_level}))
+            elif key in self._JOGS:
+                v = (*(self.JOG_M_S * c for c in self._JOGS[key]), 0.0, 0.0, 0.0)
+                out.append(("arm_jog", {"velocity": v}))
+            elif key == " ":
+                out.append(("arm_stop", {}))
+        return out
