@@ -43,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", help="network scenario, overriding the scene's")
     parser.add_argument("--no-netsim", action="store_true", help="connect the nodes directly")
     parser.add_argument(
+        "--record", type=Path, metavar="DIR", help="record robot.mcap and operator.mcap here"
+    )
+    parser.add_argument(
         "--set",
         dest="overrides",
         action="append",
@@ -119,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
                     str(robot_cfg),
                     "--stats-file",
                     str(robot_stats_path),
+                    *(["--record", str(args.record / "robot.mcap")] if args.record else []),
                 ],
                 workdir / "robot.log",
             ),
@@ -151,7 +155,12 @@ def run(args: argparse.Namespace) -> int:
                 workdir / "netsim.log",
             )
         )
-    node = build_operator_node(scene.operator)
+    recorder = None
+    if args.record:
+        from common.mcap_recorder import node_recorder
+
+        recorder = node_recorder(args.record / "operator.mcap", scene.operator, "operator")
+    node = build_operator_node(scene.operator, recorder=recorder)
     node_error: list[BaseException] = []
 
     def operate() -> None:
@@ -184,6 +193,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         stop.set()
         thread.join(timeout=10)
+        if recorder is not None:
+            recorder.close()
         for name, proc, path in reversed(procs):
             _stop(proc, name, errors, path)
     if node_error:

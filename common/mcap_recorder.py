@@ -1,0 +1,554 @@
+"""Recording to MCAP, the log format Foxglove opens, in a form that survives ``kill -9``.
+
+Format (docs/recording.md): one MCAP channel per ``common.recording.CHANNELS``
+name, messages JSON with an inferred JSON Schema, because Foxglove plots
+JSON channels without any plugin. NumPy arrays become nested lists and bytes
+become base64 strings; the schema marks them (``x-numpy-dtype``,
+``contentEncoding: base64``) so ``read_recording`` gives back the same
+arrays and bytes. A record holding the wire bytes of a message (``wire``)
+also gets its decoded fields (``decoded``), so a stimulus can be plotted.
+
+Durability: the nodes' threads only append to a bounded queue; one writer
+thread serialises, and every ``flush_interval_s`` closes the MCAP chunk in
+progress, writes it and fsyncs. A chunk is a length-prefixed, CRC-checked
+record, so a file cut anywhere (a killed process, a full disk) holds every
+chunk that was flushed before the cut, and ``read_recording`` reads them
+without the footer and summary that only a clean ``close()`` writes.
+
+Times: ``publish_time`` is the ``t_ns`` the node gave (its monotonic clock,
+the clock of every timestamp in the records); ``log_time`` is that plus the
+wall-clock offset measured once at open, so Foxglove shows real dates while
+the offset between the two never jumps inside a file.
+"""
+
+from __future__ import annotations
+
+import base64
+import collections
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import CompressionType, Writer
+
+from common.errors import DeepXPalmError
+from common.logs import BurstLog
+from common.recording import CHANNELS
+
+log = logging.getLogger(__name__)
+
+MESSAGE_ENCODING = "json"
+SCHEMA_ENCODING = "jsonschema"
+SCHEMA_PREFIX = "deepxpalm/"
+LIBRARY = "deepxpalm McapRecorder"
+ENC_KEY = "_enc"  # per-message encodings, only where the channel's schema does not say them
+NONFINITE_KEY = "_nonfinite"  # paths of NaN/inf values written as null (a bug to look at)
+_COMPRESSION = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
+
+
+class RecordingError(DeepXPalmError):
+    """A recording cannot be opened or read; the message names the file."""
+
+
+# ------------------------------------------------------------------ encoding
+def _to_json(value: Any, path: str, encs: dict[str, str], nonfinite: list[str]) -> Any:
+    """A JSON-ready copy of ``value``; ``encs`` collects where bytes and arrays were."""
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, (int, np.integer)) and not isinstance(value, np.bool_):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        if math.isfinite(v):
+            return v
+        nonfinite.append(path)
+        return None
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        encs[path] = "base64"
+        return base64.b64encode(bytes(value)).decode("ascii")
+    if isinstance(value, np.ndarray):
+        encs[path] = value.dtype.str
+        if value.dtype.kind == "f" and not np.isfinite(value).all():
+            nonfinite.append(path)
+            out = value.astype(object)
+            out[~np.isfinite(value)] = None
+            return out.tolist()
+        return value.tolist()
+    if isinstance(value, dict):
+        return {
+            str(k): _to_json(v, f"{path}.{k}" if path else str(k), encs, nonfinite)
+            for k, v in value.items()
+        }
+    if isinstance(value, (list, tuple)):
+        return [_to_json(v, f"{path}[]", {}, nonfinite) for v in value]
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return _to_json(dataclasses.asdict(value), path, encs, nonfinite)
+    return str(value)
+
+
+def _nan_for_none(value: Any) -> Any:
+    if isinstance(value, list):
+        return [_nan_for_none(v) for v in value]
+    return math.nan if value is None else value
+
+
+def _schema_of(value: Any, path: str, encs: dict[str, str]) -> dict[str, Any] | None:
+    """JSON Schema of one converted value; None where nothing can be said (a null)."""
+    enc = encs.get(path)
+    if value is None:
+        return None
+    if isinstance(value, bool):
+        return {"type": "boolean"}
+    if isinstance(value, int):
+        return {"type": "integer"}
+    if isinstance(value, float):
+        return {"type": "number"}
+    if isinstance(value, str):
+        if enc == "base64":
+            return {"type": "string", "contentEncoding": "base64"}
+        return {"type": "string"}
+    if isinstance(value, list):
+        out: dict[str, Any] = {"type": "array"}
+        item = next((v for v in value if v is not None), None)
+        item_schema = _schema_of(item, f"{path}[]", {}) if item is not None else None
+        if item_schema is not None:
+            out["items"] = item_schema
+        if enc is not None:
+            out["x-numpy-dtype"] = enc
+        return out
+    if isinstance(value, dict):
+        props = {}
+        for k, v in value.items():
+            s = _schema_of(v, f"{path}.{k}" if path else k, encs)
+            if s is not None:
+                props[k] = s
+        return {"type": "object", "properties": props}
+    return None
+
+
+def _encodings_in_schema(schema: dict[str, Any], path: str = "") -> dict[str, str]:
+    """Where a channel's schema says bytes (base64) and arrays (their dtype) are."""
+    out: dict[str, str] = {}
+    if schema.get("contentEncoding") == "base64":
+        out[path] = "base64"
+    if "x-numpy-dtype" in schema:
+        out[path] = schema["x-numpy-dtype"]
+    for k, sub in schema.get("properties", {}).items():
+        out.update(_encodings_in_schema(sub, f"{path}.{k}" if path else k))
+    return out
+
+
+def _restore(record: dict[str, Any], encs: dict[str, str]) -> None:
+    """Turn base64 strings and nested lists back into bytes and arrays, in place."""
+    for path, enc in encs.items():
+        *parents, leaf = path.split(".")
+        node: Any = record
+        for key in parents:
+            node = node.get(key) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or node.get(leaf) is None:
+            continue
+        value = node[leaf]
+        try:
+            if enc == "base64":
+                node[leaf] = base64.b64decode(value)
+            else:
+                dtype = np.dtype(enc)
+                if dtype.kind == "f":
+                    value = _nan_for_none(value)
+                node[leaf] = np.asarray(value, dtype=dtype)
+        except (ValueError, TypeError):
+            log.debug("cannot restore %s as %s; left as is", path, enc)
+
+
+def _decoded_fields(wire: bytes) -> dict[str, Any]:
+    """The fields of a wire message, for plotting; the codec's own validation applies."""
+    from common.codec import DecodeError, decode  # the codec is only needed for "wire" records
+
+    try:
+        msg = decode(wire)
+    except DecodeError as e:
+        return {"error": f"{type(e).__name__}: {e}"}
+    out: dict[str, Any] = {"type": type(msg).TYPE}
+    for f in dataclasses.fields(msg):
+        out[f.name] = getattr(msg, f.name)
+    return out
+
+
+# -------------------------------------------------------------------- writer
+@dataclasses.dataclass
+class _ChannelState:
+    id: int
+    encs: dict[str, str]
+    seq: int = 0
+
+
+class McapRecorder:
+    """A ``Recorder`` writing MCAP; ``write`` is safe from any thread and never blocks on disk.
+
+    Memory is bounded: at most ``max_queue`` records wait for the writer
+    thread (beyond that they are dropped and counted, so a stalled disk
+    cannot grow a node's memory) and at most one chunk (``flush_interval_s``
+    of data, capped by ``chunk_size`` bytes) is held before it is written.
+    The writer keeps one small index entry per chunk for the file's summary,
+    about 0.9 kB, i.e. about 3 MB per hour at one chunk per second.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        flush_interval_s: float = 1.0,
+        *,
+        max_queue: int = 20_000,
+        chunk_size: int = 1 << 20,
+        compression: str = "zstd",
+        fsync: bool = True,
+        decode_wire: bool = True,
+        metadata: dict[str, dict[str, str]] | None = None,
+    ) -> None:
+        if not flush_interval_s > 0:
+            raise ValueError(f"flush_interval_s must be positive, not {flush_interval_s!r}")
+        if compression not in _COMPRESSION:
+            raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}")
+        self.path = Path(path)
+        self.flush_interval_s = float(flush_interval_s)
+        self.max_queue = int(max_queue)
+        self._fsync = fsync
+        self._decode_wire = decode_wire
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 (closed by the writer thread)
+        except OSError as e:
+            raise RecordingError(f"cannot open {self.path} for recording: {e}") from None
+        self._writer = Writer(
+            self._file, chunk_size=chunk_size, compression=_COMPRESSION[compression]
+        )
+        self._writer.start(profile="", library=LIBRARY)
+        self.wall_offset_ns = time.time_ns() - time.monotonic_ns()
+        self._writer.add_metadata(
+            "deepxpalm.clock",
+            {
+                "wall_offset_ns": str(self.wall_offset_ns),
+                "what": "log_time = publish_time + wall_offset_ns; publish_time is the "
+                "recording node's monotonic clock (time.monotonic_ns)",
+            },
+        )
+        for name, data in (metadata or {}).items():
+            self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()})
+        self._writer.flush()
+        self._channels: dict[str, _ChannelState] = {}
+        self._queue: collections.deque[tuple[Any, ...]] = collections.deque()
+        self._cond = threading.Condition()
+        self._closing = False
+        self._closed = False
+        self._failed: str | None = None
+        self._drop_log = BurstLog(log, f"recorder {self.path.name}: record dropped")
+        # counters (read by stats(); written under _cond or by the writer thread only)
+        self.records_written = 0
+        self.records_dropped = 0
+        self.records_nonfinite = 0
+        self.chunks_flushed = 0
+        self.records_flushed = 0  # records on disk as of the latest chunk flush
+        self.last_flush_ns: int | None = None
+        self._thread = threading.Thread(
+            target=self._run, name=f"mcap-recorder:{self.path.name}", daemon=True
+        )
+        self._thread.start()
+
+    # ------------------------------------------------------------ Recorder
+    def write(self, channel: str, t_ns: int, record: dict[str, Any]) -> None:
+        """Queue one record; arrays are copied so the caller may reuse its buffers."""
+        item = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in record.items()}
+        with self._cond:
+            if self._closing or self._failed is not None:
+                self.records_dropped += 1
+                return
+            if len(self._queue) >= self.max_queue:
+                self.records_dropped += 1
+                self._drop_log(f"queue full ({self.max_queue} records); is the disk stalled?")
+                return
+            self._queue.append(("msg", channel, int(t_ns), item))
+            if len(self._queue) == self.max_queue // 2:
+                self._cond.notify()
+
+    def close(self) -> None:
+        """Write everything queued, the summary and the footer; idempotent."""
+        with self._cond:
+            if self._closed:
+                return
+            self._closing = True
+            self._cond.notify()
+        self._thread.join()
+        self._closed = True
+
+    # -------------------------------------------------------------- extras
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """A named string map stored in the file (the node's config, for replay)."""
+        with self._cond:
+            if not self._closing:
+                self._queue.append(("meta", name, {str(k): str(v) for k, v in data.items()}))
+
+    def flush(self, timeout_s: float = 10.0) -> bool:
+        """Write everything queued so far as a chunk, now; True once it is on disk."""
+        done = threading.Event()
+        with self._cond:
+            if self._closing:
+                return False
+            self._queue.append(("flush", done))
+            self._cond.notify()
+        return done.wait(timeout_s)
+
+    def stats(self) -> dict[str, Any]:
+        with self._cond:
+            queued = len(self._queue)
+        return {
+            "path": str(self.path),
+            "records_written": self.records_written,
+            "records_dropped": self.records_dropped,
+            "records_nonfinite": self.records_nonfinite,
+            "records_queued": queued,
+            "records_flushed": self.records_flushed,
+            "chunks_flushed": self.chunks_flushed,
+            "bytes": self._file.tell() if not self._file.closed else self.path.stat().st_size,
+            "failed": self._failed,
+        }
+
+    def __enter__(self) -> McapRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -------------------------------------------------------- writer thread
+    def _run(self) -> None:
+        next_flush = time.monotonic() + self.flush_interval_s
+        while True:
+            with self._cond:
+                while not self._queue and not self._closing:
+                    timeout = next_flush - time.monotonic()
+                    if timeout <= 0:
+                        break
+                    self._cond.wait(min(timeout, 0.2))
+                items = list(self._queue)
+                self._queue.clear()
+                closing = self._closing
+            flush_now = False
+            for item in items:
+                if self._failed is not None:
+                    break
+                try:
+                    if item[0] == "msg":
+                        self._add(item[1], item[2], item[3])
+                    elif item[0] == "meta":
+                        self._writer.add_metadata(item[1], item[2])
+                    else:
+                        flush_now = True
+                except Exception as e:  # a bad record must not stop the recording
+                    if isinstance(e, OSError):
+                        self._fail(e)
+                    else:
+                        log.exception("recorder: cannot write a %s record", item[1])
+            if self._failed is None and (flush_now or closing or time.monotonic() >= next_flush):
+                self._flush_chunk()
+                next_flush = time.monotonic() + self.flush_interval_s
+            for item in items:
+                if item[0] == "flush":
+                    item[1].set()
+            if closing:
+                with self._cond:
+                    if self._queue:
+                        continue
+                self._finish()
+                return
+
+    def _add(self, channel: str, t_ns: int, record: dict[str, Any]) -> None:
+        if self._decode_wire and isinstance(record.get("wire"), (bytes, bytearray)):
+            record["decoded"] = _decoded_fields(bytes(record["wire"]))
+        encs: dict[str, str] = {}
+        nonfinite: list[str] = []
+        body = _to_json(record, "", encs, nonfinite)
+        state = self._channels.get(channel)
+        if state is None:
+            state = self._register(channel, body, encs)
+        if encs != state.encs:
+            body[ENC_KEY] = encs
+        if nonfinite:
+            body[NONFINITE_KEY] = nonfinite
+            self.records_nonfinite += 1
+        data = json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
+        state.seq += 1
+        self._writer.add_message(
+            state.id,
+            log_time=max(0, t_ns + self.wall_offset_ns),
+            data=data,
+            publish_time=max(0, t_ns),
+            sequence=state.seq & 0xFFFFFFFF,
+        )
+        self.records_written += 1
+
+    def _register(self, channel: str, body: dict[str, Any], encs: dict[str, str]) -> _ChannelState:
+        schema = _schema_of(body, "", encs) or {"type": "object", "properties": {}}
+        schema["title"] = channel
+        if channel in CHANNELS:
+            schema["description"] = CHANNELS[channel]
+        schema_id = self._writer.register_schema(
+            SCHEMA_PREFIX + channel, SCHEMA_ENCODING, json.dumps(schema).encode()
+        )
+        cid = self._writer.register_channel(channel, MESSAGE_ENCODING, schema_id)
+        state = _ChannelState(cid, _encodings_in_schema(schema))
+        self._channels[channel] = state
+        return state
+
+    def _flush_chunk(self) -> None:
+        try:
+            self._writer.flush()
+            if self._fsync:
+                os.fsync(self._file.fileno())
+        except OSError as e:
+            self._fail(e)
+            return
+        self.chunks_flushed += 1
+        self.records_flushed = self.records_written
+        self.last_flush_ns = time.monotonic_ns()
+
+    def _finish(self) -> None:
+        try:
+            if self._failed is None:
+                self._writer.finish()
+                self._file.flush()
+                if self._fsync:
+                    os.fsync(self._file.fileno())
+        except OSError as e:
+            self._fail(e)
+        finally:
+            with contextlib.suppress(OSError):
+                self._file.close()
+        log.info(
+            "recording %s closed: %d records, %d dropped",
+            self.path,
+            self.records_written,
+            self.records_dropped,
+        )
+
+    def _fail(self, e: OSError) -> None:
+        self._failed = f"{type(e).__name__}: {e}"
+        log.error("recording %s stopped: %s; the nodes keep running", self.path, e)
+
+
+# -------------------------------------------------------------------- reader
+class RecordingReader:
+    """Reads a recording front to back, also one cut short by a crash.
+
+    Only the data section is read (chunks, in file order), never the summary,
+    so a file without a footer reads the same as a closed one. The first
+    record that is incomplete or fails its CRC ends the reading:
+    ``truncated`` then says so and ``bytes_unread`` how much was left.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise RecordingError(f"no recording at {self.path}")
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.truncated = False
+        self.complete = False  # the footer was reached: the file was closed cleanly
+        self.bytes_unread = 0
+        self.error: str | None = None
+
+    def __iter__(self) -> Iterator[tuple[str, int, dict[str, Any]]]:
+        schemas: dict[int, dict[str, Any]] = {}
+        channels: dict[int, tuple[str, dict[str, str]]] = {}
+        size = self.path.stat().st_size
+        with open(self.path, "rb") as f:
+            reader = StreamReader(f, emit_chunks=True, record_size_limit=256 << 20)
+            good_end = 0
+            try:
+                for rec in reader.records:
+                    if isinstance(rec, Chunk):
+                        inner = breakup_chunk(rec, validate_crc=True)
+                    else:
+                        inner = [rec]
+                    for r in inner:
+                        if isinstance(r, Schema):
+                            schemas[r.id] = _parse_schema(r)
+                        elif isinstance(r, Channel):
+                            encs = _encodings_in_schema(schemas.get(r.schema_id, {}))
+                            channels[r.id] = (r.topic, encs)
+                        elif isinstance(r, Message):
+                            out = self._message(r, channels)
+                            if out is not None:
+                                yield out
+                        elif isinstance(r, Metadata):
+                            self.metadata[r.name] = dict(r.metadata)
+                    good_end = f.tell()
+                    if isinstance(rec, Footer):
+                        self.complete = True
+            except Exception as e:  # damaged data raises many types (mcap, struct, zstd)
+                self.truncated = True
+                self.error = f"{type(e).__name__}: {e}"
+                self.bytes_unread = max(0, size - good_end)
+                log.info("%s ends early (%s); read up to byte %d", self.path, e, good_end)
+
+    def _message(
+        self, msg: Message, channels: dict[int, tuple[str, dict[str, str]]]
+    ) -> tuple[str, int, dict[str, Any]] | None:
+        topic, encs = channels.get(msg.channel_id, (None, {}))
+        if topic is None:
+            return None
+        try:
+            record = json.loads(msg.data)
+        except ValueError:
+            return None
+        if not isinstance(record, dict):
+            return None
+        own = record.pop(ENC_KEY, None)
+        _restore(record, own if isinstance(own, dict) else encs)
+        return topic, msg.publish_time, record
+
+
+def _parse_schema(schema: Schema) -> dict[str, Any]:
+    if schema.encoding != SCHEMA_ENCODING:
+        return {}
+    try:
+        out = json.loads(schema.data)
+    except ValueError:
+        return {}
+    return out if isinstance(out, dict) else {}
+
+
+def read_recording(path: str | os.PathLike[str]) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """(channel, t_ns, record) in file order; stops quietly where a crash cut the file."""
+    yield from RecordingReader(path)
+
+
+def read_metadata(path: str | os.PathLike[str]) -> dict[str, dict[str, str]]:
+    """The metadata records (clock offset, the node's config) of a recording."""
+    reader = RecordingReader(path)
+    for _ in reader:
+        pass
+    return reader.metadata
+
+
+def node_recorder(path: str | os.PathLike[str], config: Any, node: str) -> McapRecorder:
+    """A recorder for a node, with its effective config stored for ``deepxpalm replay``."""
+    from common.config import config_toml
+
+    return McapRecorder(
+        path, metadata={"deepxpalm.node": {"node": node, "config_toml": config_toml(config, node)}}
+    )
