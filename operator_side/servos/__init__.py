@@ -3,4 +3,5 @@
 KINDS = {
     "recording": "operator_side.servos.recording:RecordingServoBus",
     "feetech": "operator_side.servos.feetech:FeetechServoBus",
+    "simulated_feetech": "operator_side.servos.sts_sim:SimulatedFeetechServoBus",
 }

@@ -1,0 +1,453 @@
+"""LinkGlide's six Feetech STS servos, through feetech-servo-sdk used as it is.
+
+What the driver adds to the SDK, and why:
+
+- Safety first: goals outside the calibrated limits are refused before any
+  byte is built (``limits.check_goals``); torque goes off on ``disconnect``
+  and on every fatal error, so a failing bus leaves the palm free.
+- One lock per port: the SDK's ``is_using`` flag is not thread-safe, and the
+  node's control loop and a monitor may share the bus.
+- Results are always checked: a ``GroupSyncRead`` whose servo did not answer
+  returns 0 for it with no error unless ``txRxPacket``'s result is read.
+- A corrupt or missing status packet is retried (``retries``) after the line
+  is drained (the SDK's ``clearPort`` flushes output only, so stale replies
+  would otherwise be read as the next answer). A silent servo costs about
+  34 ms per attempt: the SDK's packet timeout is fixed.
+- Errors name what to check: which ids did not answer, the port, the baud.
+
+Counts, not angles: the operator node converts angles with the calibration
+(``LinkGlideCalibration.angles_to_counts``) and this bus checks them again.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import termios
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NoReturn
+
+import scservo_sdk as sdk
+import serial
+
+from common.config import param
+from common.devices import Device
+from common.errors import (
+    ConfigError,
+    DeviceAlreadyConnectedError,
+    DeviceError,
+    DeviceTimeoutError,
+    ProtocolError,
+)
+from operator_side.servos.base import ServoBus
+from operator_side.servos.calibration import LinkGlideCalibration, load_calibration
+from operator_side.servos.limits import check_goals
+from operator_side.servos.sts_registers import (
+    ACCELERATION,
+    GOAL_POSITION,
+    GOAL_SPEED,
+    MODEL_NUMBERS,
+    PRESENT_POSITION,
+    TORQUE_ENABLE,
+    describe_error,
+)
+
+log = logging.getLogger(__name__)
+
+#: the rates PortHandler.setBaudRate accepts; any other returns False
+SDK_BAUD_RATES = (4800, 9600, 14400, 19200, 38400, 57600, 115200, 128000, 250000, 500000, 1000000)
+_PORT_HINT = "list adapters with `ls -l /dev/serial/by-id` and set `port`"
+#: what pyserial raises when the adapter disappears mid-transaction
+_IO_ERRORS = (OSError, serial.SerialException, termios.error)
+
+
+@dataclass
+class FeetechConfig:
+    port: str = param("/dev/ttyUSB0", "the bus adapter; prefer its /dev/serial/by-id/... name")
+    baudrate: int = param(1_000_000, "STS servos ship at 1 Mbaud; must be one the SDK accepts")
+    ids: tuple[int, ...] = param((1, 2, 3, 4, 5, 6), "linkage n uses ids 2n+1 and 2n+2")
+    # param() is this project's dataclasses.field; it copies mutable defaults.
+    calibration: LinkGlideCalibration = param(
+        LinkGlideCalibration(), "zero, direction and limits, used when calibration_file is unset"
+    )
+    calibration_file: Path | None = param(
+        None, "TOML written by `deepxpalm calibrate`; overrides the inline calibration"
+    )
+    retries: int = param(2, "extra attempts after a corrupt or missing reply (~34 ms each if mute)")
+    protocol_end: int = param(0, "0 = STS (little-endian), 1 = SCS; one per process (SDK global)")
+    expected_model: int | None = param(
+        None, "refuse servos with another model number (777 = STS3215); unset = any"
+    )
+    torque_on_connect: bool = param(
+        True, "hold the present pose (clipped to the limits) with torque on after connect"
+    )
+    goal_speed: int | None = param(
+        None, "servo speed limit written at connect, counts/s (0 = max); unset = leave it"
+    )
+    acceleration: int | None = param(
+        None, "servo acceleration written at connect (x100 counts/s^2); unset = leave it"
+    )
+
+    def __post_init__(self) -> None:
+        if self.baudrate not in SDK_BAUD_RATES:
+            raise ValueError(
+                f"baudrate {self.baudrate} is not one feetech-servo-sdk accepts: {SDK_BAUD_RATES}"
+            )
+        if not self.ids or len(set(self.ids)) != len(self.ids):
+            raise ValueError(f"ids must be a non-empty list without repeats, not {self.ids}")
+        if any(not 0 <= i <= 0xFC for i in self.ids):
+            raise ValueError(f"servo ids must be in 0..252, not {self.ids}")
+        if self.retries < 0:
+            raise ValueError("retries must not be negative")
+        if self.protocol_end not in (0, 1):
+            raise ValueError("protocol_end must be 0 (STS) or 1 (SCS)")
+        for name in ("goal_speed", "acceleration"):
+            v = getattr(self, name)
+            if v is not None and not 0 <= v <= (0xFF if name == "acceleration" else 0xFFFF):
+                raise ValueError(f"{name} = {v} is out of the register's range")
+
+
+class FeetechServoBus(ServoBus):
+    """Goal positions in one sync write per call; present positions by sync read."""
+
+    Config = FeetechConfig
+
+    def __init__(self, config: FeetechConfig | None = None) -> None:
+        self.config = config or FeetechConfig()
+        self._lock = threading.RLock()  # the SDK port's own lock (is_using is not thread-safe)
+        self._port: sdk.PortHandler | None = None
+        self._ph: Any = None
+        self._calibration: LinkGlideCalibration | None = None
+        self._fault: str | None = None
+        self._torque = False
+        self._counters = {
+            "sync_writes": 0,
+            "sync_reads": 0,
+            "retries": 0,
+            "rx_corrupt": 0,
+            "rx_timeout": 0,
+            "faults": 0,
+        }
+        self.last_write_s = 0.0
+        self.last_read_s = 0.0
+
+    # -- lifecycle ----------------------------------------------------------------
+
+    @property
+    def is_connected(self) -> bool:
+        return self._port is not None
+
+    @property
+    def calibration(self) -> LinkGlideCalibration | None:
+        return self._calibration
+
+    @property
+    def fault(self) -> str | None:
+        """Why the bus stopped (torque is off), or None while it is healthy."""
+        return self._fault
+
+    def connect(self) -> None:
+        if self._port is not None:
+            raise DeviceAlreadyConnectedError(f"servo bus on {self.config.port} is connected")
+        cfg = self.config
+        self._calibration = (
+            load_calibration(cfg.calibration_file) if cfg.calibration_file else cfg.calibration
+        )
+        known = {s.id for s in self._calibration.servos}
+        if not set(cfg.ids) <= known:
+            raise ConfigError(f"servo ids {sorted(set(cfg.ids) - known)} have no calibration")
+        self._fault = None
+        self._open()
+        try:
+            self._ping_all()
+            present = self.read_positions()
+            if cfg.goal_speed is not None:
+                self._sync_write(GOAL_SPEED.address, 2, dict.fromkeys(cfg.ids, cfg.goal_speed))
+            if cfg.acceleration is not None:
+                self._sync_write(ACCELERATION.address, 1, dict.fromkeys(cfg.ids, cfg.acceleration))
+            if cfg.torque_on_connect:
+                self._hold(present)
+        except BaseException:
+            self._shutdown()
+            raise
+        log.info("servo bus on %s: ids %s answered", cfg.port, list(cfg.ids))
+
+    def disconnect(self) -> None:
+        """Torque off (best effort), then close. Safe to call in any state."""
+        self._shutdown()
+
+    def reconnect(self) -> None:
+        """After a fault or a replug: close, open, ping, hold."""
+        self._shutdown()
+        self.connect()
+
+    # -- ServoBus -------------------------------------------------------------------
+
+    def write_goals(self, goals: Mapping[int, int]) -> None:
+        """One sync write of every goal; out-of-limit goals raise and nothing is sent."""
+        self._require_healthy()
+        assert self._calibration is not None
+        checked = check_goals(self._calibration, goals)
+        unknown = set(checked) - set(self.config.ids)
+        if unknown:
+            raise ConfigError(f"servo ids {sorted(unknown)} are not on this bus {self.config.ids}")
+        t = time.perf_counter()
+        self._sync_write(GOAL_POSITION.address, 2, checked)
+        self.last_write_s = time.perf_counter() - t
+
+    def read_positions(self) -> dict[int, int]:
+        """Present positions of every servo, or an error naming the one that failed."""
+        self._require_healthy()
+        t = time.perf_counter()
+        values = self._sync_read(PRESENT_POSITION.address, 2)
+        self.last_read_s = time.perf_counter() - t
+        return values
+
+    def set_torque(self, enabled: bool) -> None:
+        """All servos at once; torque on is read back, because a limp palm is not 'on'."""
+        self._require_healthy()
+        value = 1 if enabled else 0
+        self._sync_write(TORQUE_ENABLE.address, 1, dict.fromkeys(self.config.ids, value))
+        if enabled:
+            state = self._sync_read(TORQUE_ENABLE.address, 1)
+            off = [sid for sid, v in state.items() if v != 1]
+            if off:
+                self._raise_fault(DeviceError, f"servos {off} did not enable torque")
+        self._torque = enabled
+
+    def read_register(self, address: int, size: int) -> dict[int, int]:
+        """Any register of every servo (monitoring: load, temperature, voltage)."""
+        self._require_healthy()
+        return self._sync_read(address, size)
+
+    # -- status ---------------------------------------------------------------------
+
+    def stats(self) -> dict[str, int]:
+        return dict(self._counters)
+
+    def status(self) -> dict[str, Any]:
+        s = Device.status(self)
+        s.update(
+            port=self.config.port,
+            baudrate=self.config.baudrate,
+            ids=list(self.config.ids),
+            torque=self._torque,
+            fault=self._fault,
+            last_write_us=round(self.last_write_s * 1e6),
+            last_read_us=round(self.last_read_s * 1e6),
+        )
+        s.update(self._counters)
+        return s
+
+    # -- internals ------------------------------------------------------------------
+
+    def _require_healthy(self) -> None:
+        self.require_connected()
+        if self._fault is not None:
+            raise DeviceError(
+                f"servo bus on {self.config.port} stopped after a fault ({self._fault}); "
+                "torque is off. Fix the cause, then call reconnect()"
+            )
+
+    def _open(self) -> None:
+        cfg = self.config
+        if not os.path.exists(cfg.port):
+            raise DeviceError(f"servo bus port {cfg.port} does not exist: {_PORT_HINT}")
+        port = sdk.PortHandler(cfg.port)
+        port.baudrate = cfg.baudrate
+        try:
+            ok = port.setBaudRate(cfg.baudrate)
+        except serial.SerialException as e:
+            if "Permission denied" in str(e):
+                raise DeviceError(
+                    f"no permission to open {cfg.port}: add yourself to the dialout group "
+                    "(`sudo usermod -aG dialout $USER`, then log in again)"
+                ) from e
+            raise DeviceError(f"cannot open servo bus port {cfg.port}: {e}; {_PORT_HINT}") from e
+        if not ok:
+            raise ConfigError(f"feetech-servo-sdk refused baudrate {cfg.baudrate}")
+        self._ph = sdk.PacketHandler(cfg.protocol_end)
+        self._port = port
+
+    def _shutdown(self) -> None:
+        port = self._port
+        if port is None:
+            return
+        with self._lock:
+            try:
+                self._torque_off_best_effort()
+            finally:
+                try:
+                    port.closePort()
+                except (OSError, serial.SerialException) as e:
+                    log.debug("closing %s: %s", self.config.port, e)
+                self._port = None
+                self._torque = False
+
+    def _torque_off_best_effort(self) -> None:
+        try:
+            self._sync_write(TORQUE_ENABLE.address, 1, dict.fromkeys(self.config.ids, 0))
+            self._torque = False
+        except DeviceError as e:
+            log.error("could not turn servo torque off on %s: %s", self.config.port, e)
+
+    def _raise_fault(self, kind: type[DeviceError], message: str) -> NoReturn:
+        """Torque off, remember why, and raise: the bus refuses work until reconnect()."""
+        full = f"servo bus on {self.config.port}: {message}"
+        self._counters["faults"] += 1
+        if self._fault is None:
+            self._fault = message
+            log.error("%s; turning torque off", full)
+            self._torque_off_best_effort()
+        raise kind(f"{full}; torque is off. Fix the cause, then call reconnect()")
+
+    def _ping_all(self) -> None:
+        cfg = self.config
+        missing: list[int] = []
+        wrong: list[str] = []
+        for sid in cfg.ids:
+            model, result, error = self._with_retries(
+                lambda sid=sid: self._ph.ping(self._port, sid)
+            )
+            if result != sdk.COMM_SUCCESS:
+                missing.append(sid)
+                continue
+            if error:
+                log.warning("servo %d reports: %s", sid, describe_error(error) or error)
+            if cfg.expected_model is not None and model != cfg.expected_model:
+                wrong.append(f"{sid} is model {model} ({MODEL_NUMBERS.get(model, 'unknown')})")
+        if missing:
+            answered = [i for i in cfg.ids if i not in missing]
+            if not answered:
+                raise DeviceTimeoutError(
+                    f"no servo answered on {cfg.port} at {cfg.baudrate} baud "
+                    f"(ids {list(cfg.ids)}): "
+                    "are the servos powered (their own 6-12 V supply; USB does not power them)? "
+                    "TX/RX wired to the adapter? The baud rate right (STS ship at 1000000)?"
+                )
+            raise DeviceTimeoutError(
+                f"servos {missing} did not answer on {cfg.port} (ids {answered} did): check "
+                "their cables and that their ids are set (one servo at a time on the bus)"
+            )
+        if wrong:
+            raise ProtocolError(
+                f"unexpected servo model on {cfg.port}: {'; '.join(wrong)}; "
+                f"expected_model is {cfg.expected_model}"
+            )
+
+    def _hold(self, present: Mapping[int, int]) -> None:
+        """Goal = present pose (clipped into the limits), then torque on: no jump."""
+        assert self._calibration is not None
+        by_id = {s.id: s for s in self._calibration.servos}
+        goals = {}
+        for sid, counts in present.items():
+            s = by_id[sid]
+            goals[sid] = min(max(counts, s.min_counts), s.max_counts)
+            if goals[sid] != counts:
+                log.warning(
+                    "servo %d is at %d, outside its limits [%d, %d]: it will move to %d",
+                    sid,
+                    counts,
+                    s.min_counts,
+                    s.max_counts,
+                    goals[sid],
+                )
+        self._sync_write(GOAL_POSITION.address, 2, check_goals(self._calibration, goals))
+        self.set_torque(True)
+
+    def _with_retries(self, call: Any) -> Any:
+        """Run an SDK transaction, again after a corrupt or missing reply."""
+        out = None
+        for attempt in range(self.config.retries + 1):
+            with self._lock:
+                if attempt:
+                    self._counters["retries"] += 1
+                    self._drain()
+                try:
+                    out = call()
+                except _IO_ERRORS as e:
+                    self._lost(e)
+            result = out[1] if isinstance(out, tuple) else out
+            if result == sdk.COMM_SUCCESS:
+                return out
+            if result == sdk.COMM_RX_CORRUPT:
+                self._counters["rx_corrupt"] += 1
+            elif result == sdk.COMM_RX_TIMEOUT:
+                self._counters["rx_timeout"] += 1
+            else:
+                return out  # busy/tx failure: retrying the same bytes will not help
+        return out
+
+    def _drain(self) -> None:
+        """Wait for the line to go quiet, then drop what arrived (late or stale replies)."""
+        port = self._port
+        assert port is not None
+        deadline = time.monotonic() + 0.02
+        quiet_since = time.monotonic()
+        while time.monotonic() < deadline:
+            if port.ser.in_waiting:
+                port.ser.reset_input_buffer()
+                quiet_since = time.monotonic()
+            elif time.monotonic() - quiet_since > 0.002:
+                break
+            time.sleep(0.0005)
+        port.ser.reset_input_buffer()
+
+    def _lost(self, error: BaseException) -> NoReturn:
+        self._raise_fault(
+            DeviceError,
+            f"the adapter vanished ({type(error).__name__}: {error}); "
+            f"replug it and check `ls -l /dev/serial/by-id`",
+        )
+
+    def _sync_write(self, address: int, size: int, values: Mapping[int, int]) -> None:
+        if self._port is None:
+            raise DeviceError(f"servo bus on {self.config.port} is not open")
+        with self._lock:
+            group = sdk.GroupSyncWrite(self._port, self._ph, address, size)
+            for sid, value in values.items():
+                data = [sdk.SCS_LOBYTE(value), sdk.SCS_HIBYTE(value)] if size == 2 else [value]
+                group.addParam(sid, data)
+            try:
+                result = group.txPacket()
+            except _IO_ERRORS as e:
+                self._lost(e)
+        if result != sdk.COMM_SUCCESS:
+            self._raise_fault(DeviceError, f"sync write failed: {self._ph.getTxRxResult(result)}")
+        if address == GOAL_POSITION.address:
+            self._counters["sync_writes"] += 1
+
+    def _sync_read(self, address: int, size: int) -> dict[int, int]:
+        ids = list(self.config.ids)
+        group: Any = None
+
+        def transaction() -> int:
+            nonlocal group
+            self._port.ser.reset_input_buffer()  # type: ignore[union-attr]
+            group = sdk.GroupSyncRead(self._port, self._ph, address, size)
+            for sid in ids:
+                group.addParam(sid)
+            return group.txRxPacket()
+
+        result = self._with_retries(transaction)
+        self._counters["sync_reads"] += 1
+        if result != sdk.COMM_SUCCESS:
+            # The SDK stops at the first servo that failed: its data stays empty.
+            failed = next((sid for sid in ids if not group.data_dict.get(sid)), None)
+            what = self._ph.getTxRxResult(result)
+            kind = DeviceTimeoutError if result == sdk.COMM_RX_TIMEOUT else ProtocolError
+            self._raise_fault(
+                kind,
+                f"servo {failed} did not answer a read of address {address} after "
+                f"{self.config.retries + 1} attempts ({what}): check its cable and power",
+            )
+        values = {}
+        for sid in ids:
+            if not group.isAvailable(sid, address, size):
+                self._raise_fault(ProtocolError, f"servo {sid} sent no data for address {address}")
+            values[sid] = group.getData(sid, address, size)
+        return values
