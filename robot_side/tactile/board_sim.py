@@ -310,14 +310,18 @@ class TactileBoardSimulator:
             self._garbage.clear()
             for pad in range(WIRE_SHAPE[0]):
                 data += self._faulty(encode(pad, seq, counts[pad]))
+            self.counters["scans"] += 1
             master = self._master
-        self.counters["scans"] += 1
-        if master is None:
-            return  # unplugged: the scan happens, nobody hears it
-        if not self._baud_matches():
-            self.counters["wrong_baud_scans"] += 1
-            data = bytearray(self._fault_rng.integers(0, 256, len(data), dtype=np.uint8).tobytes())
-        self._write(master, bytes(data))
+            if master is None:
+                return  # unplugged: the scan happens, nobody hears it
+            if not self._baud_matches():
+                self.counters["wrong_baud_scans"] += 1
+                data = bytearray(
+                    self._fault_rng.integers(0, 256, len(data), dtype=np.uint8).tobytes()
+                )
+            # Written with the lock held: an unplug cannot close the fd (and the
+            # number be reused by another open) between the check and the write.
+            self._write(master, bytes(data))
 
     def _faulty(self, packet: bytes) -> bytes:
         """Apply the next pending fault to one packet (called with the lock held)."""

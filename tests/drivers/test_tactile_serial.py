@@ -258,56 +258,67 @@ def test_calibration_file_round_trip_and_use(board, tmp_path) -> None:
         _assert_same_newtons(sample.frame, board.frame_for(sample.seq - 1))
 
 
+def _settle(board: TactileBoardSimulator, sensor: SerialTactileSensor) -> tuple[int, dict]:
+    """Pause the board and let the driver catch up: then seq and counters agree."""
+    board.pause()
+    time.sleep(0.04)
+    return sensor.latest().seq, sensor.stats()
+
+
+def _around_fault(board, sensor, fault) -> tuple[int, dict, dict]:
+    """(published seqs spanned, counters before, counters after) around one fault.
+
+    The board is paused while the fault is armed and while the counters are
+    read, so the test does not depend on keeping up with 120 Hz.
+    """
+    _frames(sensor, 2)
+    prev, before = _settle(board, sensor)
+    fault()
+    board.resume()
+    _frames(sensor, 4)
+    last, after = _settle(board, sensor)
+    board.resume()
+    return last - prev, before, after
+
+
+def _delta(before: dict, after: dict, key: str) -> int:
+    return after[key] - before[key]
+
+
 def test_garbage_on_the_line_costs_no_frame(board) -> None:
     with _driver(board.port) as sensor:
-        _frames(sensor, 3)
-        before = sensor.stats()
-        board.inject_garbage(700)
-        frames = _frames(sensor, 6)
-        after = sensor.stats()
-        assert after["dropped_bytes"] - before["dropped_bytes"] >= 700
-        assert after["resyncs"] > before["resyncs"]
-        assert after["seq_gaps"] == before["seq_gaps"]
-        assert after["incomplete_frames"] == before["incomplete_frames"]
-        seqs = [s.seq for s in frames]
-        assert seqs == list(range(seqs[0], seqs[0] + 6))
+        span, before, after = _around_fault(board, sensor, lambda: board.inject_garbage(700))
+        assert _delta(before, after, "dropped_bytes") >= 700
+        assert _delta(before, after, "resyncs") >= 1
+        assert _delta(before, after, "seq_gaps") == 0
+        assert _delta(before, after, "incomplete_frames") == 0
+        assert span == _delta(before, after, "frames")  # every scan arrived
 
 
 def test_bad_crc_loses_only_its_own_scan(board) -> None:
     with _driver(board.port) as sensor:
-        prev = _frames(sensor, 3)[-1].seq
-        before = sensor.stats()
-        board.corrupt_next(1)  # pad 0 of the next scan
-        frames = _frames(sensor, 4)
-        after = sensor.stats()
-        assert after["bad_crc"] - before["bad_crc"] == 1
-        assert after["seq_gaps"] - before["seq_gaps"] == 1
+        span, before, after = _around_fault(board, sensor, lambda: board.corrupt_next(1))
+        assert _delta(before, after, "bad_crc") == 1
+        assert _delta(before, after, "seq_gaps") == 1
         # Pad 1 of the damaged scan still parsed: that is what "incomplete" counts.
-        assert after["incomplete_frames"] - before["incomplete_frames"] == 1
-        # One scan missing in between; the one after it arrived.
-        assert frames[-1].seq - prev == 5
+        assert _delta(before, after, "incomplete_frames") == 1
+        assert span == _delta(before, after, "frames") + 1  # only the damaged scan is missing
 
 
 def test_dropped_bytes_lose_only_their_own_scan(board) -> None:
     with _driver(board.port) as sensor:
-        _frames(sensor, 3)
-        before = sensor.stats()
-        board.drop_bytes_next(17)
-        _frames(sensor, 4)
-        after = sensor.stats()
-        assert after["seq_gaps"] - before["seq_gaps"] == 1
-        assert after["incomplete_frames"] - before["incomplete_frames"] == 1
-        assert after["bad_crc"] - before["bad_crc"] >= 1
+        span, before, after = _around_fault(board, sensor, lambda: board.drop_bytes_next(17))
+        assert _delta(before, after, "bad_crc") >= 1
+        assert _delta(before, after, "seq_gaps") == 1
+        assert _delta(before, after, "incomplete_frames") == 1
+        assert span == _delta(before, after, "frames") + 1
 
 
 def test_lost_scans_show_as_sequence_gaps(board) -> None:
     with _driver(board.port) as sensor:
-        prev = _frames(sensor, 2)[-1].seq
-        before = sensor.stats()["seq_gaps"]
-        board.skip_scans(5)
-        frames = _frames(sensor, 3)
-        assert sensor.stats()["seq_gaps"] - before == 5
-        assert frames[-1].seq - prev == 3 + 5  # the published seq keeps the gap
+        span, before, after = _around_fault(board, sensor, lambda: board.skip_scans(5))
+        assert _delta(before, after, "seq_gaps") == 5
+        assert span == _delta(before, after, "frames") + 5  # the published seq keeps the gap
 
 
 def test_sequence_wraps_without_going_back() -> None:
@@ -316,9 +327,10 @@ def test_sequence_wraps_without_going_back() -> None:
         _driver(board.port) as sensor,
     ):
         seqs = [s.seq for s in _frames(sensor, 20)]
-        assert seqs == list(range(seqs[0], seqs[0] + 20))
+        assert seqs == sorted(set(seqs))
         assert seqs[-1] > 2**32  # unwrapped
         assert sensor.stats()["board_restarts"] == 0
+        assert sensor.stats()["seq_gaps"] == 0
 
 
 def test_a_board_that_stops_streaming_is_a_stale_data_error(board) -> None:
