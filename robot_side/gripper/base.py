@@ -167,6 +167,8 @@ class Gripper(Device):
     def __init__(self, levels: GripLevels | None = None, activation_timeout_s: float = 5.0):
         self.levels = levels or GripLevels()
         self.activation_timeout_s = activation_timeout_s
+        self._last_speed = self.levels.speed
+        self._last_force = self.levels.level31_force
 
     # -- what drivers implement -------------------------------------------
 
@@ -225,6 +227,7 @@ class Gripper(Device):
         speed = _clamp_byte("speed", speed)
         force = _clamp_byte("force", force)
         self._write_command(position, speed, force, go=True)
+        self._last_speed, self._last_force = speed, force
 
     def open(self, speed: int = 255, force: int = 150) -> None:
         self.move(POSITION_OPEN, speed, force)
@@ -238,11 +241,13 @@ class Gripper(Device):
         self.move(self.levels.position(level), self.levels.speed, self.levels.force(level))
 
     def hold(self) -> None:
-        """Stop the fingers where they are now (the requested position becomes the present one)."""
+        """Stop the fingers where they are now (the requested position becomes the present one).
+
+        Speed and force stay as last commanded, so a held pipette is squeezed no harder.
+        """
         self.require_connected()
         st = self._read_state()
-        force = self.levels.level31_force
-        self._write_command(st.position, self.levels.speed, force, go=True)
+        self._write_command(st.position, self._last_speed, self._last_force, go=True)
 
     def position(self) -> int:
         return self.state().position

@@ -1,0 +1,392 @@
+"""A Robotiq 2F that answers the URCap socket protocol on loopback.
+
+``GripperModel`` is the gripper: activation sequence, fingers moving at a
+finite speed toward the requested position, an object between the fingers
+that stops them (or, if soft, gives way in proportion to the force
+setting), faults. ``GripperSimServer`` serves it on TCP the way the URCap
+does on port 63352; ``robot_side.gripper.rtu_sim`` serves the same model as
+Modbus RTU on a pseudo-terminal. ``SimulatedGripper`` (kind "simulated") is
+the real ``RobotiqSocketGripper`` connected to a server it starts in-process,
+so node code is the same as on the robot.
+
+Object model: the object's faces meet the fingers at ``contact_position``
+counts. Closing past it, the fingers squeeze in by up to
+``compression_at_full_force * FOR / 255`` counts (0 = rigid). If the
+requested position lies deeper, the fingers stop there and report OBJ=2
+(stopped on an object while closing); otherwise they reach the request and
+report OBJ=3, as a real 2F does on a soft object. OBJ=1 (contact while
+opening, an internal grip) is not modelled.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import socket
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+from common.clock import Rate, now_s
+from common.config import param
+from common.errors import ConfigError, DeviceError
+from robot_side.gripper.base import ActivationStatus, ObjectStatus
+from robot_side.gripper.urcap_socket import RobotiqSocketConfig, RobotiqSocketGripper
+
+log = logging.getLogger(__name__)
+wire_log = logging.getLogger("robot_side.gripper.sim.wire")
+
+FAULT_NOT_ACTIVATED = 0x07
+
+
+@dataclass
+class GripperModelConfig:
+    activation_time_s: float = param(0.3, "STA 1 -> 3 (a real 2F-85 takes about 1.5 s)")
+    min_speed_counts_s: float = param(60.0, "finger speed at SPE 0 (2F-85: 20 mm/s)")
+    max_speed_counts_s: float = param(450.0, "finger speed at SPE 255 (2F-85: 150 mm/s)")
+    stroke_end_position: int = param(255, "where the fingers stop when closed on nothing")
+    object_present: bool = param(True, "an object (the pipette) sits between the fingers")
+    contact_position: int = param(196, "counts at which closing fingers touch the object")
+    compression_at_full_force: float = param(
+        60.0, "counts the object gives way at FOR 255 (0 = rigid); a pipette is soft"
+    )
+    tick_hz: float = param(200.0, "model update rate")
+
+    def __post_init__(self) -> None:
+        if not 0 < self.min_speed_counts_s <= self.max_speed_counts_s:
+            raise ConfigError("gripper sim: need 0 < min_speed_counts_s <= max_speed_counts_s")
+        if not 0 <= self.contact_position <= 255 or not 0 <= self.stroke_end_position <= 255:
+            raise ConfigError("gripper sim: positions must be in 0..255")
+        if self.compression_at_full_force < 0 or self.activation_time_s < 0:
+            raise ConfigError("gripper sim: compression and activation time must be >= 0")
+
+
+class GripperModel:
+    """The gripper's registers and fingers; thread-safe, advanced by ``step``."""
+
+    def __init__(self, config: GripperModelConfig | None = None) -> None:
+        self.config = config or GripperModelConfig()
+        self.lock = threading.RLock()
+        self.act = 0
+        self.gto = 0
+        self.atr = 0
+        self.pr = 0  # requested position (rPR)
+        self.spe = 255
+        self.force = 150
+        self.pos = 0.0  # finger position, counts
+        self.sta = ActivationStatus.RESET
+        self.obj = ObjectStatus.MOVING
+        self.flt = 0
+        self._activation_done_at: float | None = None
+        self._moving = False
+
+    # -- register writes ------------------------------------------------------
+
+    def write(self, **values: int) -> None:
+        """Apply robot-side registers (ACT, GTO, ATR, POS, SPE, FOR) as one write."""
+        with self.lock:
+            for k, v in values.items():
+                v = max(0, min(255, int(v)))
+                if k == "ACT":
+                    self._set_act(v)
+                elif k == "GTO":
+                    self.gto = 1 if v else 0
+                elif k == "ATR":
+                    self.atr = 1 if v else 0
+                elif k == "POS":
+                    self.pr = v
+                elif k == "SPE":
+                    self.spe = v
+                elif k == "FOR":
+                    self.force = v
+                else:
+                    raise KeyError(k)
+            if self.gto and self.act == 0:
+                self.flt = FAULT_NOT_ACTIVATED
+            elif self.gto and self.sta == ActivationStatus.ACTIVE:
+                if self.flt == FAULT_NOT_ACTIVATED:
+                    self.flt = 0
+                self._moving = True
+                self.obj = ObjectStatus.MOVING
+
+    def _set_act(self, v: int) -> None:
+        if v and not self.act:
+            self.sta = ActivationStatus.ACTIVATING
+            self._activation_done_at = now_s() + self.config.activation_time_s
+            self.flt = 0
+        elif not v:
+            self.sta = ActivationStatus.RESET
+            self._activation_done_at = None
+            self.gto = 0
+            self.obj = ObjectStatus.MOVING
+            self._moving = False
+        self.act = 1 if v else 0
+
+    def inject_fault(self, code: int) -> None:
+        """A fault as the gripper reports it; 0x0A and up also stop the fingers."""
+        with self.lock:
+            self.flt = code
+            if code >= 0x0A:
+                self._moving = False
+
+    def set_object(
+        self,
+        present: bool,
+        contact_position: int | None = None,
+        compression_at_full_force: float | None = None,
+    ) -> None:
+        with self.lock:
+            self.config.object_present = present
+            if contact_position is not None:
+                self.config.contact_position = contact_position
+            if compression_at_full_force is not None:
+                self.config.compression_at_full_force = compression_at_full_force
+
+    # -- register reads -------------------------------------------------------
+
+    def read(self) -> dict[str, int]:
+        with self.lock:
+            return {
+                "ACT": self.act,
+                "GTO": self.gto,
+                "ATR": self.atr,
+                "STA": int(self.sta),
+                "OBJ": int(self.obj),
+                "FLT": self.flt,
+                "PRE": self.pr,
+                "POS": round(self.pos),
+                "SPE": self.spe,
+                "FOR": self.force,
+                "CUR": self._current(),
+            }
+
+    def _current(self) -> int:
+        """gCU, in 10 mA steps: more while squeezing, a little while moving."""
+        if self.obj == ObjectStatus.CONTACT_CLOSING:
+            return 10 + self.force // 4
+        return 5 if self._moving else 0
+
+    # -- physics ----------------------------------------------------------------
+
+    def step(self, dt: float) -> None:
+        with self.lock:
+            if self.sta == ActivationStatus.ACTIVATING:
+                # activation opens the fingers fully
+                self.pos = max(0.0, self.pos - self.config.max_speed_counts_s * dt)
+                if self._activation_done_at is not None and now_s() >= self._activation_done_at:
+                    self.pos = 0.0
+                    self.sta = ActivationStatus.ACTIVE
+                    self.obj = ObjectStatus.AT_POSITION
+                    self._activation_done_at = None
+                return
+            if not self._moving or self.sta != ActivationStatus.ACTIVE or self.flt >= 0x0A:
+                return
+            c = self.config
+            speed = c.min_speed_counts_s + (c.max_speed_counts_s - c.min_speed_counts_s) * (
+                self.spe / 255
+            )
+            target = float(min(self.pr, c.stroke_end_position))
+            limit = None
+            closing = target > self.pos
+            if closing and c.object_present:
+                limit = c.contact_position + c.compression_at_full_force * self.force / 255
+            new = (
+                min(target, self.pos + speed * dt)
+                if closing
+                else max(target, self.pos - speed * dt)
+            )
+            if limit is not None and target > limit and new >= limit:
+                self.pos = max(self.pos, limit)
+                self._moving = False
+                self.obj = ObjectStatus.CONTACT_CLOSING
+                return
+            self.pos = new
+            if self.pos == target:
+                self._moving = False
+                self.obj = ObjectStatus.AT_POSITION
+
+
+@dataclass
+class GripperSimConfig:
+    host: str = param("127.0.0.1", "loopback address to serve on (tests use 127.0.0.x)")
+    port: int = param(0, "TCP port; 0 picks a free one (the real URCap uses 63352)")
+    model: GripperModelConfig = param(GripperModelConfig(), "the simulated gripper")
+
+
+class GripperSimServer:
+    """The URCap socket server in front of a ``GripperModel``."""
+
+    def __init__(self, config: GripperSimConfig | None = None) -> None:
+        self.config = config or GripperSimConfig()
+        self.model = GripperModel(self.config.model)
+        self.host = self.config.host
+        self.port = self.config.port
+        self._listener: socket.socket | None = None
+        self._conns: list[socket.socket] = []
+        self._threads: list[threading.Thread] = []
+        self._quit = threading.Event()
+        self._mute = threading.Event()
+        self._lock = threading.Lock()
+        self.requests = 0
+
+    def start(self) -> GripperSimServer:
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((self.config.host, self.config.port))
+        except OSError as e:
+            s.close()
+            raise DeviceError(
+                f"gripper simulator cannot bind {self.config.host}:{self.config.port} ({e}); "
+                "use port 0 for a free one"
+            ) from e
+        s.listen(4)
+        self._listener = s
+        self.host, self.port = s.getsockname()[:2]
+        self._quit.clear()
+        for name, target in (("tick", self._tick_loop), ("accept", self._accept_loop)):
+            t = threading.Thread(target=target, name=f"grippersim-{name}", daemon=True)
+            self._threads.append(t)
+            t.start()
+        log.info("gripper simulator serving on %s:%d", self.host, self.port)
+        return self
+
+    def stop(self) -> None:
+        """Close every socket: to a client, the gripper has vanished."""
+        self._quit.set()
+        if self._listener is not None:
+            with contextlib.suppress(OSError):
+                self._listener.shutdown(socket.SHUT_RDWR)
+            self._listener.close()
+            self._listener = None
+        self.drop_connections()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self._threads.clear()
+
+    def drop_connections(self) -> None:
+        """Close the clients' connections but keep listening (a URCap restart)."""
+        with self._lock:
+            conns, self._conns = self._conns, []
+        for c in conns:
+            with contextlib.suppress(OSError):
+                c.shutdown(socket.SHUT_RDWR)
+            c.close()
+
+    def mute(self, muted: bool = True) -> None:
+        """Read requests but answer none (a hung URCap)."""
+        if muted:
+            self._mute.set()
+        else:
+            self._mute.clear()
+
+    def __enter__(self) -> GripperSimServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _tick_loop(self) -> None:
+        rate = Rate(self.model.config.tick_hz)
+        dt = 1.0 / self.model.config.tick_hz
+        while not self._quit.is_set():
+            self.model.step(dt)
+            rate.sleep()
+
+    def _accept_loop(self) -> None:
+        assert self._listener is not None
+        listener = self._listener
+        while not self._quit.is_set():
+            try:
+                conn, peer = listener.accept()
+            except OSError:
+                return
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                self._conns.append(conn)
+            threading.Thread(
+                target=self._serve, args=(conn, peer), name="grippersim-conn", daemon=True
+            ).start()
+
+    def _serve(self, conn: socket.socket, peer: Any) -> None:
+        buf = b""
+        try:
+            while not self._quit.is_set():
+                chunk = conn.recv(4096)
+                if not chunk:
+                    return
+                buf += chunk
+                while b"\n" in buf:
+                    raw, _, buf = buf.partition(b"\n")
+                    line = raw.decode(errors="replace").strip()
+                    reply = self.handle(line)
+                    wire_log.debug("%s <- %r -> %r", peer, line, reply)
+                    if not self._mute.is_set():
+                        conn.sendall(reply.encode() + b"\n")
+        except OSError:
+            pass
+        finally:
+            with self._lock:
+                if conn in self._conns:
+                    self._conns.remove(conn)
+            conn.close()
+
+    def handle(self, line: str) -> str:
+        """One request line -> one reply line, as the URCap answers."""
+        self.requests += 1
+        parts = line.split()
+        if len(parts) == 2 and parts[0] == "GET":
+            values = self.model.read()
+            if parts[1] in values:
+                return f"{parts[1]} {values[parts[1]]}"
+            return "?"
+        if len(parts) >= 3 and parts[0] == "SET" and len(parts) % 2 == 1:
+            try:
+                pairs = {parts[i]: int(parts[i + 1]) for i in range(1, len(parts), 2)}
+                self.model.write(**pairs)
+            except (KeyError, ValueError):
+                return "?"
+            return "ack"
+        return "?"
+
+
+@dataclass
+class SimulatedGripperConfig(RobotiqSocketConfig):
+    host: str = param("127.0.0.1", "loopback address for the in-process simulator")
+    port: int = param(0, "0 picks a free port; the driver then connects to it")
+    sim: GripperModelConfig = param(GripperModelConfig(), "the simulated gripper and object")
+
+
+class SimulatedGripper(RobotiqSocketGripper):
+    """The real socket driver against a simulator it starts on connect, stops on disconnect."""
+
+    Config = SimulatedGripperConfig
+
+    def __init__(self, config: SimulatedGripperConfig | None = None) -> None:
+        super().__init__(config or SimulatedGripperConfig())
+        self.server: GripperSimServer | None = None
+        self._configured_port = self.config.port
+
+    def connect(self) -> None:
+        assert isinstance(self.config, SimulatedGripperConfig)
+        if self.server is None:
+            sim = GripperSimConfig(self.config.host, self.config.port, self.config.sim)
+            self.server = GripperSimServer(sim).start()
+        self.config.port = self.server.port
+        try:
+            super().connect()
+        except BaseException:
+            self._stop_server()
+            raise
+
+    def disconnect(self) -> None:
+        try:
+            super().disconnect()
+        finally:
+            self._stop_server()
+
+    def _stop_server(self) -> None:
+        server, self.server = self.server, None
+        if server is not None:
+            server.stop()
+            self.config.port = self._configured_port
