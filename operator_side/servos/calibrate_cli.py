@@ -128,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
         _show(_rebuild(servos), None)
 
     new = _rebuild(servos)  # runs every check before anything is written
-    if dataclasses.asdict(new) != original or not path.exists():
+    measured = bool(args.set or args.capture_limits or args.capture_zero)
+    if dataclasses.asdict(new) != original or (measured and not path.exists()):
         save_calibration(new, path)
         print(f"saved {path}")
     return 0

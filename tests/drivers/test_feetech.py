@@ -347,3 +347,4 @@ def test_cli_simulate_show(tmp_path, capsys) -> None:
     assert _cli("--file", str(tmp_path / "c.toml"), "--simulate", "--show") == 0
     out = capsys.readouterr().out
     assert "present" in out and "2048" in out
+    assert not (tmp_path / "c.toml").exists()  # showing writes nothing
