@@ -2,22 +2,22 @@
 
 Start the robot, then this, then point the operator at the simulator's bound
 endpoints (by default ports 5565/5566 instead of 5555/5556). Settings come
-from the defaults below, then ``--config FILE``, then the command line.
+from the defaults, then ``--config FILE`` (keys at the top level or under
+``[netsim]``), then ``--set netsim.key=value``, then the explicit options.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import signal
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-from common.config import defaults_toml, from_dict, load_toml, param
+from common.cli_support import add_config_arguments, load_node_config, print_config, write_stats
+from common.config import param
 from common.errors import ConfigError
 from common.netsim.impairments import DIRECTIONS, Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
@@ -39,47 +39,42 @@ class NetsimConfig:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.epilog = (
-        f"built-in scenarios: {', '.join(builtin_scenarios())}\n\n"
-        "defaults (a --config file takes the same keys):\n\n" + defaults_toml(NetsimConfig)
+    add_config_arguments(parser, NetsimConfig, "netsim")
+    parser.epilog = f"Built-in scenarios: {', '.join(builtin_scenarios())}\n\n" + (
+        parser.epilog or ""
     )
-    parser.add_argument("--config", type=Path, help="TOML file with the keys shown below")
     parser.add_argument("--scenario", help="built-in scenario name or path to a .toml file")
     parser.add_argument("--seed", type=int, help="random seed of the impairments")
     parser.add_argument(
-        "--delay-ms", type=float, help="fixed one-way delay in both directions (overrides scenario)"
+        "--delay-ms", type=float, help="base one-way delay in both directions (overrides scenario)"
     )
     for name in DIRECTIONS:
         parser.add_argument(
             f"--delay-{name.replace('_', '-')}-ms",
             dest=f"delay_{name}_ms",
             type=float,
-            help=f"fixed one-way delay {name.replace('_', ' ')} (overrides --delay-ms)",
+            help=f"base one-way delay {name.replace('_', ' ')} (overrides --delay-ms)",
         )
-    for key in ("robot_telemetry", "robot_commands", "operator_telemetry", "operator_commands"):
+    for key in _ENDPOINT_KEYS:
         parser.add_argument(f"--{key.replace('_', '-')}", dest=key, metavar="ENDPOINT")
     parser.add_argument("--duration-s", type=float, help="stop after this many seconds")
-    parser.add_argument("--stats-file", type=Path, help="write final counters here as JSON on exit")
+
+
+_ENDPOINT_KEYS = ("robot_telemetry", "robot_commands", "operator_telemetry", "operator_commands")
 
 
 def config_from_args(args: argparse.Namespace) -> NetsimConfig:
-    """Defaults, then ``--config``, then explicit options."""
-    data: dict[str, Any] = {}
-    if getattr(args, "config", None) is not None:
-        data = load_toml(args.config)
-        data = data.get("netsim", data)
-    endpoints = dict(data.get("endpoints", {}) or {})
-    for key in ("robot_telemetry", "robot_commands", "operator_telemetry", "operator_commands"):
+    """Defaults, then ``--config``, then ``--set``, then the explicit options."""
+    config = load_node_config(args, NetsimConfig, "netsim")
+    for key in _ENDPOINT_KEYS:
         value = getattr(args, key, None)
         if value is not None:
-            endpoints[key] = value
-    data = {**data, "endpoints": endpoints}
+            setattr(config.endpoints, key, value)
     for key in ("scenario", "seed", "duration_s"):
         value = getattr(args, key, None)
         if value is not None:
-            data[key] = value
-    return from_dict(NetsimConfig, data, where="netsim")
+            setattr(config, key, value)
+    return config
 
 
 def scenario_from_args(config: NetsimConfig, args: argparse.Namespace) -> Scenario:
@@ -98,6 +93,9 @@ def scenario_from_args(config: NetsimConfig, args: argparse.Namespace) -> Scenar
 
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
+    if getattr(args, "print_config", False):
+        print_config(config, "netsim")
+        return 0
     scenario = scenario_from_args(config, args)
     done = threading.Event()
 
@@ -138,9 +136,7 @@ def run(args: argparse.Namespace) -> int:
     summary = final_stats(sim)
     for name, c in summary["directions"].items():
         log.info("final %s: %s", name, c)
-    stats_file = getattr(args, "stats_file", None)
-    if stats_file is not None:
-        Path(stats_file).write_text(json.dumps(summary, indent=2) + "\n")
+    write_stats(getattr(args, "stats_file", None), summary)
     return 0
 
 

@@ -79,3 +79,26 @@ def test_run_for_a_short_duration_returns_zero(tmp_path) -> None:
     stats = json.loads(args.stats_file.read_text())
     assert stats["scenario"] == "none"
     assert stats["directions"]["to_operator"]["received"] == 0
+
+
+def test_config_file_then_set_then_options(tmp_path) -> None:
+    path = tmp_path / "scene.toml"
+    path.write_text(
+        '[netsim]\nscenario = "metro"\nseed = 3\n[netsim.endpoints]\n'
+        'robot_telemetry = "tcp://127.0.0.1:7000"\n'
+    )
+    args = _parser().parse_args(
+        [
+            "--config",
+            str(path),
+            "--set",
+            "netsim.seed=9",
+            "--robot-commands",
+            "tcp://127.0.0.1:7001",
+        ]
+    )
+    config = cli.config_from_args(args)
+    assert (config.scenario, config.seed) == ("metro", 9)
+    assert config.endpoints.robot_telemetry == "tcp://127.0.0.1:7000"
+    assert config.endpoints.robot_commands == "tcp://127.0.0.1:7001"
+    assert cli.scenario_from_args(config, args).name == "metro"
