@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     ),
     "sim": ("deploy.sim_cli", "run one device simulator on its real wire, standalone"),
     "keys": ("deploy.keys_cli", "make CURVE key pairs and allow operators on the robot"),
+    "replay": ("deploy.replay", "check a recording against the pipeline, or publish it again"),
 }
 
 
