@@ -265,18 +265,26 @@ class Scenario:
 
 # ---------------------------------------------------------------- random processes
 class CorrelatedBernoulli:
-    """Events at rate ``p`` whose lag-1 autocorrelation is ``rho``; one draw per step."""
+    """Events at rate ``p`` whose lag-1 autocorrelation is ``rho``; one draw per step.
 
-    __slots__ = ("_p_after_0", "_p_after_1", "_rng", "last")
+    At rate 0 nothing is drawn: the generator is this process's own, so
+    skipping it changes no other decision, and a disabled impairment costs
+    nothing per message.
+    """
+
+    __slots__ = ("_off", "_p_after_0", "_p_after_1", "_rng", "last")
 
     def __init__(self, percent: float, correlation: float, rng: random.Random) -> None:
         p = percent / 100.0
+        self._off = p <= 0.0
         self._p_after_1 = p + correlation * (1.0 - p)
         self._p_after_0 = p * (1.0 - correlation)
         self._rng = rng
         self.last = False
 
     def step(self) -> bool:
+        if self._off:
+            return False
         u = self._rng.random()
         self.last = u < (self._p_after_1 if self.last else self._p_after_0)
         return self.last
@@ -308,7 +316,7 @@ class GilbertElliott:
 class CorrelatedDelay:
     """Delays with the configured marginal distribution and AR(1) dependence."""
 
-    __slots__ = ("_a", "_b", "_base", "_dist", "_jitter", "_rng", "_table", "_z")
+    __slots__ = ("_a", "_b", "_base", "_dist", "_fixed", "_jitter", "_rng", "_table", "_z")
 
     def __init__(self, config: DirectionConfig, rng: random.Random) -> None:
         rho = config.delay_correlation
@@ -320,14 +328,22 @@ class CorrelatedDelay:
         self._table = sorted(config.delay_table_ms)
         self._rng = rng
         self._z = rng.gauss(0.0, 1.0)  # start in the stationary distribution
+        #: No spread: a constant needs no draws (see CorrelatedBernoulli).
+        self._fixed = (
+            config.delay_ms if config.distribution != "table" and not config.jitter_ms else None
+        )
 
     def step(self) -> float:
         """The next delay in ms (never negative)."""
+        if self._fixed is not None:
+            return self._fixed
         self._z = self._a * self._z + self._b * self._rng.gauss(0.0, 1.0)
         return self._at(self._z)
 
     def independent(self) -> float:
         """A delay drawn afresh, for duplicates, without moving the chain."""
+        if self._fixed is not None:
+            return self._fixed
         return self._at(self._rng.gauss(0.0, 1.0))
 
     def _at(self, z: float) -> float:
@@ -389,6 +405,8 @@ class DirectionImpairment:
         self._reorder = CorrelatedBernoulli(c.reorder_percent, c.reorder_correlation, rng("ro"))
         self._corrupt = CorrelatedBernoulli(c.corrupt_percent, c.corrupt_correlation, rng("cor"))
         self._corrupt_at = rng("corrupt-position")
+        self._corrupting = c.corrupt_percent > 0
+        self._duplicating = c.duplicate_percent > 0
         self._retx = rng("retransmission")
         self._retx_loss = c.loss_rate()
         self._stream = c.delivery == "stream"
@@ -415,14 +433,15 @@ class DirectionImpairment:
         earlier than ``now_ns``.
         """
         c, counts = self.config, self.counts
-        # Fixed draws per message, whatever its fate, to keep runs aligned.
+        # Fixed draws per message from each enabled process, whatever the
+        # message's fate, to keep runs aligned.
         lost = self._loss.step()
         dup = self._dup.step()
         reorder = self._reorder.step()
         corrupt = self._corrupt.step()
-        u_corrupt = self._corrupt_at.random()
+        u_corrupt = self._corrupt_at.random() if self._corrupting else 0.0
         delay_ms = self._delay.step()
-        dup_delay_ms = self._dup_delay.independent()
+        dup_delay_ms = self._dup_delay.independent() if self._duplicating else 0.0
 
         down = self.in_outage(now_ns) if self._outages else False
         if not self._stream and (lost or down):
