@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import heapq
 import logging
+import math
 import select
 import threading
 import time
@@ -33,6 +34,8 @@ log = logging.getLogger(__name__)
 
 #: Longest the thread sleeps before checking for ``stop()``.
 _MAX_WAIT_S = 0.02
+#: Reads per socket before due messages are released, so a flood cannot delay them.
+_MAX_BATCH = 256
 #: Frames above this are dropped by ZeroMQ before they reach the simulator.
 _MAX_MESSAGE_BYTES = 1 << 20
 
@@ -247,6 +250,12 @@ class LinkSimulator:
         _set_timer_slack_ns(1_000)
         dirs = self._dirs
         fds = [d.fd for d in dirs]
+        # select() has microsecond timeouts but only takes descriptors below
+        # FD_SETSIZE; poll() takes any, to the millisecond (rounded up).
+        use_select = max(fds) < 1024
+        poller = select.poll()
+        for fd in fds:
+            poller.register(fd, select.POLLIN)
         heap: list[tuple[int, int, int, bytes, int]] = []
         own = self._own_ns
         order = 0  # FIFO among equal due times
@@ -256,9 +265,12 @@ class LinkSimulator:
             while not stop.is_set():
                 # Read everything pending. The FDs are edge-triggered: a socket
                 # is only known to be empty after EVENTS says so.
+                pending = False  # a socket still holds messages: do not wait
                 for i, d in enumerate(dirs):
                     rx, engine, c = d.rx, d.engine, d.counters
-                    while rx.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                    for _ in range(_MAX_BATCH):  # then release what is due
+                        if not rx.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                            break
                         data = rx.recv(zmq.NOBLOCK, copy=True)
                         t = now_ns()
                         c.received += 1
@@ -271,6 +283,8 @@ class LinkSimulator:
                         for due, payload in out:
                             heapq.heappush(heap, (due, order, i, payload, t))
                             order += 1
+                    else:
+                        pending = True
                 # Release everything due, in due order.
                 t = now_ns()
                 while heap and heap[0][0] <= t:
@@ -288,8 +302,11 @@ class LinkSimulator:
                 wait_s = _MAX_WAIT_S
                 if heap:
                     wait_s = min(wait_s, (heap[0][0] - t) / 1e9)
-                if wait_s > 0:
-                    select.select(fds, [], [], wait_s)
+                if wait_s > 0 and not pending:
+                    if use_select:
+                        select.select(fds, [], [], wait_s)
+                    else:
+                        poller.poll(math.ceil(wait_s * 1000))
         except BaseException as e:  # report, never die silently
             self._error = e
             log.exception("netsim forwarding stopped")

@@ -126,3 +126,14 @@ def test_corrupted_messages_are_rejected_by_the_operator_decoder(make_link) -> N
     finally:
         sub.close()
         ctx.destroy(linger=0)
+
+
+def test_a_burst_larger_than_one_read_batch_all_arrives_in_order(make_link) -> None:
+    link = make_link()
+    n = 800  # more than the proxy reads per batch, within every high-water mark
+    for i in range(n):
+        link.robot_pub.send(b"STIM" + i.to_bytes(4, "little"))
+    got = []
+    while len(got) < n and (data := link.recv(link.operator_sub, 2.0)) is not None:
+        got.append(int.from_bytes(data[4:8], "little"))
+    assert got == list(range(n))
