@@ -100,7 +100,15 @@ def test_corrupted_messages_are_rejected_by_the_operator_decoder(make_link) -> N
     ctx = zmq.Context()
     sub = Subscriber(ctx, link.sim.operator_telemetry_endpoint, bind=False)
     try:
-        time.sleep(0.2)  # slow joiner
+        t_end = time.monotonic() + 5.0  # slow joiner: probe until the subscription is up
+        while sub.received == 0 and time.monotonic() < t_end:
+            link.robot_pub.send(b"PRBE\x80")
+            sub.poll(0.02)
+            sub.drain()
+        time.sleep(0.1)
+        sub.drain()
+        received0, rejected0 = sub.received, sub.rejected_total
+        corrupted0 = link.sim.counters()["to_operator"]["corrupted"]
         for seq in range(200):
             stim = Stimulus(
                 seq=seq,
@@ -114,14 +122,15 @@ def test_corrupted_messages_are_rejected_by_the_operator_decoder(make_link) -> N
             link.robot_pub.send(encode(stim))
             time.sleep(0.001)
         valid = []
-        t_end = time.monotonic() + 2.0
-        while sub.received < 200 and time.monotonic() < t_end:
+        t_end = time.monotonic() + 5.0
+        while sub.received - received0 < 200 and time.monotonic() < t_end:
             sub.poll(0.05)
             valid += sub.drain()
-        corrupted = link.sim.counters()["to_operator"]["corrupted"]
-        assert sub.received == 200
+        corrupted = link.sim.counters()["to_operator"]["corrupted"] - corrupted0
+        assert sub.received - received0 == 200
         assert 60 < corrupted < 140
-        assert sub.rejected_total == corrupted  # every damaged one, and only those
+        # Every damaged one is rejected, and only those.
+        assert sub.rejected_total - rejected0 == corrupted
         assert len(valid) == 200 - corrupted
     finally:
         sub.close()
