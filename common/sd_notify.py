@@ -1,0 +1,161 @@
+"""systemd's readiness and watchdog protocol, without libsystemd or any package.
+
+A unit with ``Type=notify`` counts its service as started only when the
+process says ``READY=1``; with ``WatchdogSec=`` it kills and restarts a
+service that stops saying ``WATCHDOG=1``. Both are one datagram each to the
+AF_UNIX socket systemd names in ``$NOTIFY_SOCKET`` (a leading ``@`` means
+the abstract namespace), so a few lines of ``socket`` do it; pulling in
+python-systemd for this would add a C dependency to both machines.
+
+The watchdog must prove the node's loop is alive, not merely that the
+process exists: a thread that pinged on a timer would keep a wedged node
+running forever. :func:`watch_node` therefore pings only while the node's
+publisher keeps sending (both nodes send a heartbeat at 20 Hz from inside
+their loops), so a loop stuck in a driver call stops the pings and systemd
+restarts the service. Outside systemd (no ``$NOTIFY_SOCKET``) everything
+here does nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+from collections.abc import Mapping
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+
+def _address(path: str) -> str | bytes:
+    # Linux abstract sockets start with a NUL byte; systemd writes it as '@'.
+    return "\0" + path[1:] if path.startswith("@") else path
+
+
+class Notifier:
+    """Sends state changes to systemd; a no-op when not started by a ``Type=notify`` unit."""
+
+    def __init__(self, environ: Mapping[str, str] | None = None) -> None:
+        env = os.environ if environ is None else environ
+        self.socket_path: str | None = env.get("NOTIFY_SOCKET") or None
+        if self.socket_path is not None and not self.socket_path.startswith(("/", "@")):
+            # vsock: and other transports newer systemd offers to VMs: not needed on a node PC.
+            log.warning("NOTIFY_SOCKET %r is not a unix socket; not notifying", self.socket_path)
+            self.socket_path = None
+        self.watchdog_interval_s: float | None = None
+        usec = env.get("WATCHDOG_USEC")
+        pid = env.get("WATCHDOG_PID")
+        # WATCHDOG_PID names the process the watchdog is for; a child must not ping for it.
+        if usec and (not pid or pid == str(os.getpid())):
+            try:
+                self.watchdog_interval_s = int(usec) / 1e6 or None
+            except ValueError:
+                log.warning("WATCHDOG_USEC %r is not an integer; watchdog off", usec)
+        self._sock: socket.socket | None = None
+        self._failed = False
+
+    @property
+    def enabled(self) -> bool:
+        return self.socket_path is not None
+
+    def send(self, *assignments: str) -> bool:
+        """Send ``KEY=VALUE`` lines in one datagram; False when not sent (never raises)."""
+        if self.socket_path is None:
+            return False
+        try:
+            if self._sock is None:
+                self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            self._sock.sendto("\n".join(assignments).encode(), _address(self.socket_path))
+        except OSError as e:
+            if not self._failed:  # once: a broken socket would otherwise log 20 times a second
+                log.warning("cannot notify systemd at %s: %s", self.socket_path, e)
+                self._failed = True
+            return False
+        return True
+
+    def ready(self, status: str | None = None) -> bool:
+        extra = (f"STATUS={status}",) if status else ()
+        return self.send("READY=1", *extra)
+
+    def watchdog(self) -> bool:
+        return self.send("WATCHDOG=1")
+
+    def status(self, text: str) -> bool:
+        return self.send(f"STATUS={text}")
+
+    def stopping(self) -> bool:
+        return self.send("STOPPING=1")
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+
+class NodeWatch:
+    """Tells systemd a node is ready once its loop publishes, and alive while it keeps doing so.
+
+    Watches ``node.pub.sent`` (the node's publisher counter) from a daemon
+    thread: the first message sent means the devices are connected, the
+    sockets are up and the loop runs (READY=1); each later increase within
+    a quarter of the watchdog interval earns one WATCHDOG=1. ``node`` is any
+    object with ``pub`` (None until the sockets are open) and optionally
+    ``link_state`` for the status line.
+    """
+
+    def __init__(self, node: Any, stop: threading.Event, notifier: Notifier) -> None:
+        self.node = node
+        self.stop_event = stop
+        self.notifier = notifier
+        self._done = threading.Event()
+        interval = notifier.watchdog_interval_s
+        self.poll_s = min(0.5, interval / 4) if interval else 0.5
+        self.ready_sent = False
+        self.pings = 0
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> NodeWatch:
+        if self.notifier.enabled:
+            self._thread = threading.Thread(target=self._run, name="sd-notify", daemon=True)
+            self._thread.start()
+        return self
+
+    def _sent(self) -> int | None:
+        pub = getattr(self.node, "pub", None)
+        return None if pub is None else int(getattr(pub, "sent", 0))
+
+    def _run(self) -> None:
+        last = 0
+        ticks = 0
+        while not self.stop_event.is_set() and not self._done.is_set():
+            sent = self._sent()
+            if sent is not None and sent > last:
+                if not self.ready_sent:
+                    self.ready_sent = self.notifier.ready(self._status_line(sent))
+                elif self.notifier.watchdog_interval_s:
+                    self.notifier.watchdog()
+                    self.pings += 1
+                last = sent
+                ticks += 1
+                if ticks % 20 == 0:
+                    self.notifier.status(self._status_line(sent))
+            self._done.wait(self.poll_s)
+        self.notifier.stopping()
+
+    def _status_line(self, sent: int) -> str:
+        state = getattr(self.node, "link_state", "?")
+        return f"link {state}, {sent} messages sent"
+
+    def stop(self) -> None:
+        """Say STOPPING=1 and end the thread (idempotent)."""
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+            self._thread = None
+        self.notifier.close()
+
+
+def watch_node(node: Any, stop: threading.Event, notifier: Notifier | None = None) -> NodeWatch:
+    """Start watching ``node`` for systemd (does nothing outside a ``Type=notify`` unit)."""
+    return NodeWatch(node, stop, notifier or Notifier()).start()
