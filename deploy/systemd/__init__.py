@@ -1,0 +1,1 @@
+"""systemd units for both nodes, shipped as package data (docs/deploy.md installs them)."""

@@ -1,0 +1,1 @@
+"""udev rules giving the serial devices stable names, shipped as package data."""
