@@ -1,0 +1,27 @@
+"""The dashboard's settings: a plain dataclass, so the node's config can hold it
+without importing the web server (the robot PC never installs ``websockets``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from common.config import param
+
+
+@dataclass
+class DashboardConfig:
+    enabled: bool = param(False, "serve the live dashboard; off unless asked for")
+    host: str = param(
+        "127.0.0.1", "address to bind: loopback keeps it private (reach it through an SSH tunnel)"
+    )
+    port: int = param(8765, "HTTP and WebSocket port (one port, so one tunnel suffices)")
+    max_rate_hz: float = param(
+        60.0, "snapshots sampled and pushed per second at most; the stimulus rate is 60 Hz"
+    )
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port must be 0..65535 (0: any free port), not {self.port}")
+        if not (math.isfinite(self.max_rate_hz) and 0 < self.max_rate_hz <= 240):
+            raise ValueError(f"max_rate_hz must be in (0, 240], not {self.max_rate_hz}")

@@ -1,0 +1,82 @@
+// Drawing shared by the dashboard and the perception study's answer page:
+// the colour scale of the tactile heatmaps and the picture of a pattern.
+"use strict";
+
+const DXP = (() => {
+  // viridis at six stops: perceptually even, readable in greyscale, colour-blind safe
+  const STOPS = [
+    [68, 1, 84], [65, 68, 135], [42, 120, 142], [34, 168, 132], [122, 209, 81], [253, 231, 37],
+  ];
+
+  function heatColor(v, vmax = 9) {
+    const t = Math.min(Math.max(v / vmax, 0), 1) * (STOPS.length - 1);
+    const i = Math.min(Math.floor(t), STOPS.length - 2);
+    const f = t - i;
+    const c = STOPS[i].map((a, k) => Math.round(a + (STOPS[i + 1][k] - a) * f));
+    return `rgb(${c[0]},${c[1]},${c[2]})`;
+  }
+
+  const ANGLES = [0, 45, 90, 135];
+
+  // A pattern's picture: the palm's 3x3 stimulus cells (row 0 at the top,
+  // nearest the fingers), the pressed cells filled, and the pipette's band
+  // through them at its tilt (counter-clockwise from the rows, as in
+  // docs/tactile.md).
+  function drawPattern(ctx, pattern, x, y, size, opts = {}) {
+    const cells = pattern.cells;
+    const angle = ANGLES[Math.floor(pattern.id / 3)];
+    const pitch = size / 3;
+    ctx.save();
+    ctx.translate(x, y);
+    ctx.fillStyle = opts.background || "#f4f1ea";
+    ctx.fillRect(0, 0, size, size);
+    ctx.strokeStyle = "#cfc8b8";
+    ctx.lineWidth = 1;
+    for (let k = 1; k < 3; k++) {
+      ctx.beginPath();
+      ctx.moveTo(k * pitch, 0);
+      ctx.lineTo(k * pitch, size);
+      ctx.moveTo(0, k * pitch);
+      ctx.lineTo(size, k * pitch);
+      ctx.stroke();
+    }
+    // the band: through the centroid of the pressed cells
+    let cx = 0;
+    let cy = 0;
+    for (const [r, c] of cells) {
+      cx += (c + 0.5) * pitch;
+      cy += (r + 0.5) * pitch;
+    }
+    cx /= cells.length;
+    cy /= cells.length;
+    const rad = (angle * Math.PI) / 180;
+    const dx = Math.cos(rad) * size;
+    const dy = -Math.sin(rad) * size; // canvas y grows downwards
+    ctx.save();
+    ctx.beginPath();
+    ctx.rect(0, 0, size, size);
+    ctx.clip();
+    ctx.strokeStyle = "rgba(90, 140, 200, 0.35)";
+    ctx.lineCap = "round";
+    ctx.lineWidth = pitch * 0.55;
+    ctx.beginPath();
+    ctx.moveTo(cx - dx, cy - dy);
+    ctx.lineTo(cx + dx, cy + dy);
+    ctx.stroke();
+    ctx.restore();
+    for (let r = 0; r < 3; r++) {
+      for (let c = 0; c < 3; c++) {
+        const on = cells.some(([rr, cc]) => rr === r && cc === c);
+        ctx.beginPath();
+        ctx.arc((c + 0.5) * pitch, (r + 0.5) * pitch, pitch * (on ? 0.3 : 0.12), 0, 2 * Math.PI);
+        ctx.fillStyle = on ? opts.on || "#c0392b" : "#b9b2a3";
+        ctx.fill();
+      }
+    }
+    ctx.strokeStyle = "#8a8373";
+    ctx.strokeRect(0.5, 0.5, size - 1, size - 1);
+    ctx.restore();
+  }
+
+  return { heatColor, drawPattern, ANGLES };
+})();

@@ -1,0 +1,230 @@
+"""A small local web server: static files over HTTP and one WebSocket, on one port.
+
+Both the dashboard and the perception study's answer page use it. One port
+serves everything, so a remote operator needs a single SSH tunnel. The
+asyncio loop runs on its own thread: the node's 60 Hz loop never waits for a
+browser, and a slow browser never holds up anything but its own updates.
+
+Pages come only from files in the package (no CDN, nothing external), and a
+Content-Security-Policy header tells the browser to load nothing from
+anywhere else either.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import http
+import logging
+import threading
+from collections.abc import Awaitable, Callable, Iterable, Mapping
+from dataclasses import dataclass
+from importlib import resources
+from typing import Any
+from urllib.parse import urlsplit
+
+from websockets.asyncio.server import ServerConnection, broadcast, serve
+from websockets.datastructures import Headers
+from websockets.http11 import Request, Response
+
+from common.errors import ConfigError
+
+log = logging.getLogger(__name__)
+# websockets logs every HTTP request at INFO; a page load is five of them.
+# Quiet by default; set this logger to INFO to see them.
+_wire_log = logging.getLogger(__name__ + ".wire")
+_wire_log.setLevel(logging.WARNING)
+
+CONTENT_TYPES = {
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript; charset=utf-8",
+    ".css": "text/css; charset=utf-8",
+    ".png": "image/png",
+    ".json": "application/json",
+}
+# Same-origin only: the page may talk to its own server and nothing else.
+CSP = (
+    "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
+    "connect-src 'self'; object-src 'none'; base-uri 'none'; frame-ancestors 'none'"
+)
+# A client whose unsent data passes this is skipped until it catches up:
+# the newest state matters, a backlog of old ones does not.
+MAX_BUFFERED_BYTES = 256 * 1024
+
+
+@dataclass(frozen=True)
+class StaticFile:
+    body: bytes
+    content_type: str
+
+
+def package_files(package: str, names: Iterable[str]) -> dict[str, StaticFile]:
+    """``/name`` -> file, read once from the installed package (wheel or editable)."""
+    root = resources.files(package)
+    out = {}
+    for name in names:
+        suffix = name[name.rfind(".") :]
+        out[f"/{name}"] = StaticFile(
+            (root / name).read_bytes(), CONTENT_TYPES.get(suffix, "application/octet-stream")
+        )
+    return out
+
+
+Handler = Callable[[ServerConnection], Awaitable[None]]
+
+
+class WebServer:
+    """Serves ``files`` at their paths (``/`` is ``/index.html``) and ``handler`` at ``/ws``.
+
+    ``background`` coroutines run on the server's loop for as long as it is
+    up (the dashboard's sampler). ``start`` returns once the port is bound,
+    or raises ``ConfigError`` naming the address when it cannot be.
+    """
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        files: Mapping[str, StaticFile],
+        handler: Handler,
+        *,
+        name: str = "web",
+        background: Iterable[Callable[[], Awaitable[None]]] = (),
+        ws_path: str = "/ws",
+    ) -> None:
+        self.host = host
+        self.port = port
+        self.files = dict(files)
+        if "/index.html" in self.files:
+            self.files.setdefault("/", self.files["/index.html"])
+        self.handler = handler
+        self.name = name
+        self.background = list(background)
+        self.ws_path = ws_path
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.connections: set[ServerConnection] = set()
+        self._thread: threading.Thread | None = None
+        self._started = threading.Event()
+        self._stop: asyncio.Event | None = None
+        self._error: BaseException | None = None
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}/"
+
+    def start(self, timeout_s: float = 5.0) -> None:
+        if self._thread is not None:
+            raise RuntimeError(f"{self.name} server already started")
+        self._thread = threading.Thread(target=self._run, name=f"{self.name}-server", daemon=True)
+        self._thread.start()
+        if not self._started.wait(timeout_s):
+            raise ConfigError(f"{self.name} server did not start within {timeout_s} s")
+        if self._error is not None:
+            self._thread.join(timeout_s)
+            self._thread = None
+            raise ConfigError(
+                f"{self.name}: cannot serve on {self.host}:{self.port}: {self._error} "
+                "(is another program using the port? choose another one)"
+            ) from None
+        log.info("%s server at %s", self.name, self.url)
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        if self.loop is not None and self._stop is not None:
+            self.loop.call_soon_threadsafe(self._stop.set)
+        thread.join(timeout_s)
+        if thread.is_alive():
+            log.warning("%s server did not stop within %s s", self.name, timeout_s)
+
+    def call(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Run ``fn(*args)`` on the server's loop, from any thread."""
+        if self.loop is not None:
+            self.loop.call_soon_threadsafe(fn, *args)
+
+    # ------------------------------------------------------------ internals
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as e:  # reported to start(), or logged
+            if not self._started.is_set():
+                self._error = e
+                self._started.set()
+            else:
+                log.exception("%s server stopped on an error", self.name)
+
+    async def _main(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        async with serve(
+            self._serve_ws,
+            self.host,
+            self.port,
+            process_request=self._process_request,
+            compression=None,  # small JSON at up to 60 Hz: deflate costs more CPU than it saves
+            max_size=64 * 1024,  # pages send only tiny commands
+            ping_interval=10,
+            ping_timeout=10,
+            logger=_wire_log,
+        ) as server:
+            self.port = server.sockets[0].getsockname()[1]
+            tasks = [asyncio.create_task(fn()) for fn in self.background]
+            self._started.set()
+            try:
+                await self._stop.wait()
+            finally:
+                for t in tasks:
+                    t.cancel()
+                await asyncio.gather(*tasks, return_exceptions=True)
+                for conn in list(self.connections):
+                    await conn.close(1001, "server stopping")
+
+    async def _serve_ws(self, conn: ServerConnection) -> None:
+        self.connections.add(conn)
+        try:
+            await self.handler(conn)
+        finally:
+            self.connections.discard(conn)
+
+    def _process_request(self, conn: ServerConnection, request: Request) -> Response | None:
+        path = urlsplit(request.path).path
+        if path == self.ws_path:
+            origin = request.headers.get("Origin")
+            host = request.headers.get("Host")
+            # A browser always sends Origin; one from another site is a page
+            # trying to drive the gripper through the operator's browser.
+            if origin is not None and urlsplit(origin).netloc != host:
+                log.warning("%s: refused a WebSocket from origin %s", self.name, origin)
+                return _response(http.HTTPStatus.FORBIDDEN, b"cross-origin\n", "text/plain")
+            return None
+        static = self.files.get(path)
+        if static is None:
+            return _response(http.HTTPStatus.NOT_FOUND, b"not found\n", "text/plain")
+        return _response(http.HTTPStatus.OK, static.body, static.content_type)
+
+    def send(self, conn: ServerConnection, message: str) -> bool:
+        """Queue ``message`` for one client unless it lags; False when skipped.
+
+        Never waits (call it on the server's loop): it only appends to the
+        connection's buffer, and a client already holding a backlog is skipped.
+        """
+        transport = getattr(conn, "transport", None)
+        if transport is not None and transport.get_write_buffer_size() > MAX_BUFFERED_BYTES:
+            return False
+        broadcast([conn], message)
+        return True
+
+
+def _response(status: http.HTTPStatus, body: bytes, content_type: str) -> Response:
+    headers = Headers(
+        [
+            ("Content-Type", content_type),
+            ("Content-Length", str(len(body))),
+            ("Cache-Control", "no-store"),
+            ("X-Content-Type-Options", "nosniff"),
+            ("Content-Security-Policy", CSP),
+            ("Connection", "close"),
+        ]
+    )
+    return Response(status.value, status.phrase, headers, body)
