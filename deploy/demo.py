@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--record", type=Path, metavar="DIR", help="record robot.mcap and operator.mcap here"
     )
     parser.add_argument(
+        "--dashboard", action="store_true", help="serve the live web dashboard (URL shown)"
+    )
+    parser.add_argument(
         "--set",
         dest="overrides",
         action="append",
@@ -174,7 +177,16 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     thread.start()
     keyboard = live_view.Keyboard() if not args.json else contextlib.nullcontext()
+    dashboard, dashboard_line = None, ""
     try:
+        if args.dashboard or scene.operator.dashboard.enabled:
+            from operator_side.dashboard import Dashboard
+
+            scene.operator.dashboard.enabled = True
+            dashboard = Dashboard(node, scene.operator.dashboard)
+            dashboard.start()
+            dashboard_line = f"dashboard {dashboard.url}\n"
+            print(dashboard_line, end="", file=sys.stderr, flush=True)
         with keyboard:
             while not stop.is_set():
                 elapsed = time.monotonic() - t0
@@ -187,10 +199,13 @@ def run(args: argparse.Namespace) -> int:
                 if not args.json:
                     for action, kwargs in keyboard.commands():
                         node.send_command(action, **kwargs)
-                    sys.stdout.write(live_view.render(node.snapshot(), scene.scene.name, elapsed))
+                    view = live_view.render(node.snapshot(), scene.scene.name, elapsed)
+                    sys.stdout.write(view + dashboard_line)
                     sys.stdout.flush()
                 stop.wait(0.1 if args.json else 0.05)
     finally:
+        if dashboard is not None:
+            dashboard.stop()
         stop.set()
         thread.join(timeout=10)
         if recorder is not None:

@@ -7,6 +7,7 @@ from typing import Any
 
 from common.config import param
 from common.security import SecurityConfig
+from operator_side.dashboard.config import DashboardConfig
 from operator_side.renderer import RendererConfig
 
 
@@ -34,3 +35,4 @@ class OperatorConfig:
     renderer: RendererConfig = param(RendererConfig(), "stimulus to servo goals")
     servos: dict[str, Any] = param({"kind": "recording"}, "LinkGlide servo bus: kind + settings")
     latency_window: int = param(20000, "latency samples kept for percentiles")
+    dashboard: DashboardConfig = param(DashboardConfig(), "live web page for the operator")

@@ -38,9 +38,18 @@ def run(args: argparse.Namespace) -> int:
     stop = stop_on_signals()
     try:
         node = build_operator_node(config, recorder=recorder)
+        dashboard = None
+        if config.dashboard.enabled:
+            from operator_side.dashboard import Dashboard  # websockets only when asked for
+
+            dashboard = Dashboard(node, config.dashboard)
+            dashboard.start()
+            print(f"dashboard: {dashboard.url}", flush=True)
         try:
             node.run(stop, args.duration)
         finally:
+            if dashboard is not None:
+                dashboard.stop()
             write_stats(args.stats_file, node.stats())
     finally:
         if recorder is not None:
