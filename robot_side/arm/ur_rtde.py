@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import queue
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -78,6 +80,37 @@ SAFETY_MODES = {
 _ABANDONED: list[Any] = []
 
 
+class _Worker:
+    """One daemon thread running control calls in order.
+
+    Not a ThreadPoolExecutor: its threads are joined at interpreter exit, so a
+    call stuck in ur-rtde's reconnect loop would hang the process at exit.
+    """
+
+    def __init__(self, name: str) -> None:
+        self._jobs: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> concurrent.futures.Future[Any]:
+        future: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        self._jobs.put((future, fn, args))
+        return future
+
+    def shutdown(self) -> None:
+        self._jobs.put(None)
+
+    def _run(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            future, fn, args = job
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(fn(*args))
+            except BaseException as e:  # handed to the caller through the future
+                future.set_exception(e)
+
+
 class ArmCommandRefusedError(DeviceError):
     """The controller refused a command (script not running, protective stop, ...)."""
 
@@ -103,7 +136,7 @@ class URArm(Arm):
         super().__init__(self.config.limits)
         self._recv: Any = None
         self._ctrl: Any = None
-        self._worker: concurrent.futures.ThreadPoolExecutor | None = None
+        self._worker: _Worker | None = None
         self._ctrl_broken: str | None = None
         self._speeding = False
         self._moving = False
@@ -144,7 +177,7 @@ class URArm(Arm):
         self._recv, self._ctrl = recv, ctrl
         self._ctrl_broken = None
         self._speeding = self._moving = False
-        self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="urarm-ctrl")
+        self._worker = _Worker(f"urarm-ctrl-{host}")
         self._last_ts = recv.getTimestamp()
         self._last_ts_change = now_s()
         self._start_deadman()
@@ -173,7 +206,7 @@ class URArm(Arm):
                 log.warning("URArm: control interface abandoned: %s", self._ctrl_broken)
                 _ABANDONED.append(ctrl)
             if self._worker is not None:
-                self._worker.shutdown(wait=False, cancel_futures=True)
+                self._worker.shutdown()
                 self._worker = None
             # ur-rtde's destructors disconnect (each sleeps 0.5 s with the GIL held);
             # an explicit disconnect() first would only add another 0.5 s.

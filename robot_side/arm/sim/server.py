@@ -69,6 +69,9 @@ CMD_STOP_SCRIPT = 255
 #: Commands the script executes every loop and acknowledges with "ready" at once.
 REALTIME_CMDS = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
 
+#: Longest step the kinematics take when the machine stalls the tick thread.
+MAX_TICK_S = 0.05
+
 STATUS_RECEIVED = 0
 STATUS_READY = 1
 STATUS_DONE = 2
@@ -452,11 +455,16 @@ class URSimulator:
 
     def _tick_loop(self) -> None:
         rate = Rate(self.config.tick_hz)
-        dt = 1.0 / self.config.tick_hz
+        last = now_s()
         while not self._quit.is_set():
+            # step by the time that really passed: on a loaded machine ticks are missed,
+            # and the arm must still move in real time, as the robot would
+            t = now_s()
+            dt, last = min(t - last, MAX_TICK_S), t
             with self._lock:
                 self._script_cycle()
-                self.arm.step(dt)
+                if dt > 0:
+                    self.arm.step(dt)
                 if self._pending_done and not self.arm.moving:
                     self._pending_done = False
                     self.out_int[0] = STATUS_DONE
