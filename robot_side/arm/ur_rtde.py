@@ -264,8 +264,20 @@ class URArm(Arm):
 
     # -- control side --------------------------------------------------------
 
-    def _control(self, what: str, fn: Callable[..., Any], *args: Any, extra_s: float = 0.0) -> Any:
-        """Run one ur-rtde control call with a deadline (see the module docstring)."""
+    def _control(
+        self,
+        what: str,
+        fn: Callable[..., Any],
+        *args: Any,
+        extra_s: float = 0.0,
+        realtime: bool = False,
+    ) -> Any:
+        """Run one ur-rtde control call with a deadline (see the module docstring).
+
+        ``realtime`` calls (speedL) only write registers and never wait, even
+        for a vanished controller (measured), so they skip the worker thread
+        and its hand-off, which costs milliseconds on a busy machine.
+        """
         ctrl = self._ctrl
         if ctrl is None or self._worker is None:
             self.require_connected()
@@ -279,6 +291,11 @@ class URArm(Arm):
                 f"URArm: lost the control connection to {self.config.host} before {what}; "
                 "the controller's own stop applies. disconnect() and connect() again"
             )
+        if realtime:
+            try:
+                return fn(*args)
+            except RuntimeError as e:
+                raise DeviceError(f"URArm: {what} failed: {e}") from e
         future = self._worker.submit(fn, *args)
         timeout = self.config.command_timeout_s + extra_s
         try:
@@ -326,6 +343,7 @@ class URArm(Arm):
             velocity.tolist(),
             self.limits.linear_acceleration_m_s2,
             0.0,
+            realtime=True,
         )
         self._check(ok, "speedL")
         self._speeding = True

@@ -150,6 +150,7 @@ class KinematicArm:
         self.servo_target: np.ndarray | None = None
         self.servo_time = 0.008
         self.move_j: tuple[np.ndarray, np.ndarray, float, float] | None = None
+        self._joints_settled = False
 
     # -- commands ------------------------------------------------------------
 
@@ -282,11 +283,15 @@ class KinematicArm:
 
     def _track_joints(self, dt: float) -> None:
         """One damped least-squares step of the joints toward the TCP pose."""
+        if self.mode == Mode.IDLE and self._joints_settled:
+            return  # nothing moved: skip the 60 us of kinematics
         t, jac = forward(self.q, self.tcp)
         err = np.concatenate([self.pos - t[:3, 3], rotation_error(self.rot, t[:3, :3])])
         if float(np.linalg.norm(err)) < 1e-10:
             self.qd = np.zeros(6)
+            self._joints_settled = True
             return
+        self._joints_settled = False
         lam = 1e-3
         dq = jac.T @ np.linalg.solve(jac @ jac.T + lam * np.eye(6), err)
         self.q = self.q + dq
