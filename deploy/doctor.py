@@ -352,15 +352,6 @@ def _check_secret_key(report: Report, role: str, path: Path | None, options: Doc
             "doctor ...`",
         )
         return None
-    if st.st_mode & 0o077:
-        report.add(
-            name,
-            FAIL,
-            f"{path} is readable by others ({_owner(st)}): anyone on this machine can "
-            "impersonate this node",
-            f"chmod 600 {path}",
-        )
-        return None
     try:
         public, secret = zmq.auth.load_certificate(path)
     except PermissionError:
@@ -386,6 +377,15 @@ def _check_secret_key(report: Report, role: str, path: Path | None, options: Doc
             FAIL,
             f"{path} holds only a public key",
             f"point {key} at the NAME.key_secret file, not NAME.key",
+        )
+        return None
+    if st.st_mode & 0o077:
+        report.add(
+            name,
+            FAIL,
+            f"{path} is open to other users ({_owner(st)}): whoever reads it can "
+            "impersonate this node",
+            f"chmod 600 {path}",
         )
         return None
     if zmq.curve_public(secret) != public:
