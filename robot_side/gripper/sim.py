@@ -302,6 +302,11 @@ class GripperSimServer:
         else:
             self._mute.clear()
 
+    def stats(self) -> dict[str, Any]:
+        with self._lock:
+            clients = len(self._conns)
+        return {"requests": self.requests, "clients": clients, **self.model.read()}
+
     def __enter__(self) -> GripperSimServer:
         return self.start()
 
