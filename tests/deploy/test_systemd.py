@@ -1,0 +1,178 @@
+"""The systemd units verify, run what the example configs expect, and the udev rules parse."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import ENV, EXAMPLES, REPO
+
+UNITS = REPO / "deploy" / "systemd"
+RULES = REPO / "deploy" / "udev" / "99-deepxpalm.rules"
+ROLES = ("robot", "operator")
+INSTALLED = "/opt/deepxpalm/.venv/bin/deepxpalm"
+
+
+def _unit(role: str) -> Path:
+    return UNITS / f"deepxpalm-{role}.service"
+
+
+def _parse(path: Path) -> dict[str, list[tuple[str, str]]]:
+    """Sections -> (key, value) in order; systemd allows a key more than once."""
+    sections: dict[str, list[tuple[str, str]]] = {}
+    current = None
+    for raw in path.read_text().splitlines():
+        line = raw.strip()
+        if not line or line.startswith(("#", ";")):
+            continue
+        if line.startswith("["):
+            current = sections.setdefault(line.strip("[]"), [])
+            continue
+        key, _, value = line.partition("=")
+        assert current is not None, f"{path.name}: {line!r} before any section"
+        current.append((key.strip(), value.strip()))
+    return sections
+
+
+def _get(unit: dict, section: str, key: str) -> list[str]:
+    return [v for k, v in unit[section] if k == key]
+
+
+def _deepxpalm_here() -> str:
+    """This environment's deepxpalm entry point, for ExecStart in a verified copy."""
+    candidate = Path(sys.executable).with_name("deepxpalm")
+    if candidate.exists():
+        return str(candidate)
+    found = shutil.which("deepxpalm")
+    if found is None:
+        pytest.skip("no deepxpalm entry point installed here")
+    return found
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="no systemd-analyze here")
+@pytest.mark.parametrize("role", ROLES)
+def test_unit_passes_systemd_analyze_verify(role, tmp_path):
+    # verify checks that ExecStart's binary exists: point it at this environment's.
+    text = _unit(role).read_text().replace(INSTALLED, _deepxpalm_here())
+    copy = tmp_path / _unit(role).name
+    copy.write_text(text)
+    out = subprocess.run(
+        ["systemd-analyze", "verify", "--man=no", str(copy)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    # Unknown or misspelt keys are only warnings ("Unknown key ..., ignoring"): refuse them too.
+    assert out.stderr.strip() == "", out.stderr
+
+
+@pytest.mark.parametrize("role", ROLES)
+def test_unit_is_a_watched_restarting_service_of_the_dedicated_user(role):
+    unit = _parse(_unit(role))
+    assert _get(unit, "Service", "Type") == ["notify"]
+    assert _get(unit, "Service", "NotifyAccess") == ["main"]
+    assert _get(unit, "Service", "WatchdogSec") == ["5s"]
+    assert _get(unit, "Service", "Restart") == ["on-failure"]
+    assert _get(unit, "Unit", "StartLimitIntervalSec") == ["0"]  # never give up
+    assert _get(unit, "Service", "User") == ["deepxpalm"]
+    assert _get(unit, "Service", "SupplementaryGroups") == ["dialout"]
+    assert _get(unit, "Service", "StandardError") == ["journal"]
+    assert _get(unit, "Service", "SyslogIdentifier") == [f"deepxpalm-{role}"]
+    assert _get(unit, "Service", "Nice") == ["-10"]
+    assert _get(unit, "Service", "RestrictRealtime") == []  # the real-time drop-in must work
+    assert "After" in dict(unit["Unit"]) and "network-online.target" in _get(unit, "Unit", "After")
+    assert _get(unit, "Install", "WantedBy") == ["multi-user.target"]
+
+
+@pytest.mark.parametrize("role", ROLES)
+def test_execstart_is_a_command_line_the_node_accepts(role, tmp_path):
+    unit = _parse(_unit(role))
+    (exec_start,) = _get(unit, "Service", "ExecStart")
+    argv = shlex.split(exec_start)
+    assert argv[0] == INSTALLED
+    assert f"/etc/deepxpalm/{role}.toml" in argv
+    # The same arguments, with the example config standing in for /etc, parse and load.
+    args = [
+        str(EXAMPLES / f"{role}.toml")
+        if a == f"/etc/deepxpalm/{role}.toml"
+        else str(tmp_path / Path(a).name)
+        if a.startswith("/var/lib/deepxpalm/")
+        else a
+        for a in argv[1:]
+    ]
+    out = subprocess.run(
+        [sys.executable, "-m", "deploy.cli", *args, "--print-config"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=ENV,
+    )
+    assert out.returncode == 0, out.stderr
+    assert f"[{role}]" in out.stdout
+
+
+def test_sysusers_makes_the_units_user_in_dialout():
+    lines = [
+        line.split()
+        for line in (UNITS / "deepxpalm.sysusers.conf").read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    ]
+    assert lines[0][:3] == ["u", "deepxpalm", "-"]
+    assert ["m", "deepxpalm", "dialout"] in lines
+
+
+RULE_TOKEN = re.compile(r'^\s*([A-Z_]+)(\{[^}]+\})?\s*(==|!=|\+=|-=|:=|=)\s*"([^"]*)"\s*$')
+
+
+def _rules() -> list[list[tuple[str, str, str]]]:
+    rules = []
+    for raw in RULES.read_text().splitlines():
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        parsed = []
+        for token in line.split(", "):
+            m = RULE_TOKEN.match(token)
+            assert m, f"cannot parse {token!r} in {line!r}"
+            key, attr, op, value = m.groups()
+            parsed.append((key + (attr or ""), op, value))
+        rules.append(parsed)
+    return rules
+
+
+def test_udev_rules_parse_and_give_each_device_its_name_and_group():
+    rules = _rules()
+    names = set()
+    for rule in rules:
+        keys = {k: (op, v) for k, op, v in rule}
+        if "SYMLINK" in keys:
+            op, name = keys["SYMLINK"]
+            assert op == "+="
+            names.add(name)
+            assert keys["SUBSYSTEM"] == ("==", "tty")
+            assert keys["ATTRS{idVendor}"][0] == keys["ATTRS{idProduct}"][0] == "=="
+            assert keys["GROUP"] == ("=", "dialout") and keys["MODE"] == ("=", "0660")
+            assert keys["ENV{ID_MM_DEVICE_IGNORE}"] == ("=", "1")
+    assert names == {"deepxpalm-tactile", "deepxpalm-gripper", "deepxpalm-servos"}
+    # The names the example configs and the full-hardware scene open.
+    from common.config import load_toml
+
+    assert (
+        load_toml(EXAMPLES / "robot.toml")["robot"]["tactile"]["port"] == "/dev/deepxpalm-tactile"
+    )
+    servos = load_toml(EXAMPLES / "operator.toml")["operator"]["servos"]["port"]
+    assert servos == "/dev/deepxpalm-servos"
+
+
+def test_udev_rules_cover_the_common_usb_serial_bridges():
+    text = RULES.read_text()
+    for vendor in ("0403", "1a86", "10c4"):  # FTDI, WCH CH340/CH343, Silicon Labs CP210x
+        assert f'ATTRS{{idVendor}}=="{vendor}"' in text
+    assert "udevadm info" in text
+    assert 'ATTR{latency_timer}="1"' in text
