@@ -861,6 +861,7 @@ def heartbeat_exchange(
     exactly as in the nodes. Raises ``zmq.ZMQError`` when a bind fails.
     """
     import zmq
+    import zmq.auth  # common.security needs it loaded
 
     from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
     from common.messages import Heartbeat, Stimulus

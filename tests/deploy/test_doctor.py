@@ -101,6 +101,7 @@ def test_demo_scene_passes_for_the_operator_with_the_robot_running(robot_in_thre
             [
                 f'operator.link.telemetry_endpoint="{loopback(tel)}"',
                 f'operator.link.command_endpoint="{loopback(cmd)}"',
+                "operator.servos.driver.retries=5",  # a loaded machine delays the fake bus
             ],
         ),
         "operator",

@@ -1,0 +1,158 @@
+"""Both nodes from the example configs, as separate processes, the way the systemd units run them.
+
+Only what cannot exist here is overridden on the command line: the devices
+become simulators, the endpoints random loopback ports, and the keys come
+from a temp dir made with `deepxpalm keys`. CURVE stays on. The tactile
+board, the gripper and the arm are wire-level simulators driven by the real
+serial, URCap and ur-rtde drivers. The servos are the in-process recording
+bus: the Feetech SDK's reply timeout is fixed and on the wall clock, so its
+pty fake bus misses replies on a loaded shared machine (the driver has its
+own tests against it in tests/drivers).
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import zmq
+from conftest import ENV, EXAMPLES, cli, loopback
+from tests_support import free_ports
+
+LINK_UP = "operator link down -> ok"
+
+
+def _wait_for_line(log: Path, text: str, procs: list[subprocess.Popen], timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if text in log.read_text(errors="replace"):
+            return
+        if any(p.poll() is not None for p in procs):
+            break  # a node died: its log says why (see _stop)
+        time.sleep(0.1)
+    raise AssertionError(f"no {text!r} in {log.name}:\n{log.read_text(errors='replace')[-3000:]}")
+
+
+def _stop(proc: subprocess.Popen, log: Path) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)  # what `systemctl stop` sends
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            raise AssertionError(f"{log.name}: did not stop on SIGTERM") from None
+    assert proc.returncode == 0, log.read_text(errors="replace")[-3000:]
+
+
+def _plain_subscriber_hears_nothing(endpoint: str, wait_s: float) -> bool:
+    """Without the robot's key, a subscriber cannot even complete the handshake."""
+    ctx = zmq.Context()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    sub.connect(endpoint)
+    try:
+        return not sub.poll(int(wait_s * 1000))
+    finally:
+        sub.close(0)
+        ctx.term()
+
+
+def _security_imports_zmq_auth() -> bool:
+    """common.security calls zmq.auth.load_certificate; a process must have imported zmq.auth."""
+    out = subprocess.run(
+        [sys.executable, "-c", "import sys, common.security; print('zmq.auth' in sys.modules)"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        env=ENV,
+    )
+    return out.stdout.strip() == "True"
+
+
+@pytest.mark.timeout(90)  # about 12 s on an idle 2-core machine, 20 s under heavy load
+@pytest.mark.xfail(
+    not _security_imports_zmq_auth(),
+    reason="common/security.py uses zmq.auth without importing it: an operator process "
+    "with CURVE dies with AttributeError (the robot's Authenticator imports it by chance)",
+    strict=True,
+)
+def test_example_configs_run_as_two_processes_over_curve(tmp_path, keys):
+    tel, cmd = free_ports(2)
+    link = [
+        "--set",
+        f'link.telemetry_endpoint="{loopback(tel)}"',
+        "--set",
+        f'link.command_endpoint="{loopback(cmd)}"',
+    ]
+    robot_log, operator_log = tmp_path / "robot.log", tmp_path / "operator.log"
+    robot_stats, operator_stats = tmp_path / "robot-stats.json", tmp_path / "operator-stats.json"
+    robot_argv = cli(
+        "-v",
+        "robot",
+        "--config",
+        str(EXAMPLES / "robot.toml"),
+        "--stats-file",
+        str(robot_stats),
+        "--set",
+        'tactile={kind="simulated_serial", driver={connect_timeout_s=5.0}}',
+        "--set",
+        'gripper={kind="simulated"}',
+        "--set",
+        'arm={kind="simulated"}',
+        "--set",
+        f'link.security.secret_key_file="{keys.robot_secret}"',
+        "--set",
+        f'link.security.authorized_keys_dir="{keys.authorized}"',
+        *link,
+    )
+    operator_argv = cli(
+        "-v",
+        "operator",
+        "--config",
+        str(EXAMPLES / "operator.toml"),
+        "--stats-file",
+        str(operator_stats),
+        "--set",
+        'servos={kind="recording"}',
+        "--set",
+        f'link.security.secret_key_file="{keys.operator_secret}"',
+        "--set",
+        f'link.security.server_public_key_file="{keys.robot_public}"',
+        *link,
+    )
+    with robot_log.open("wb") as rlog, operator_log.open("wb") as olog:
+        robot = subprocess.Popen(robot_argv, stdout=rlog, stderr=subprocess.STDOUT, env=ENV)
+        operator = subprocess.Popen(operator_argv, stdout=olog, stderr=subprocess.STDOUT, env=ENV)
+        try:
+            _wait_for_line(robot_log, LINK_UP, [robot, operator], timeout_s=20)
+            assert _plain_subscriber_hears_nothing(loopback(tel), wait_s=1.5)
+            time.sleep(1.0)  # stimuli flow meanwhile
+        finally:
+            _stop(operator, operator_log)
+            time.sleep(0.6)  # the robot's 250 ms deadman sees the operator go
+            _stop(robot, robot_log)
+
+    op = json.loads(operator_stats.read_text())
+    rb = json.loads(robot_stats.read_text())
+    # The operator heard the robot over CURVE and drove its servos from the stimuli.
+    assert op["stimuli_received"] > 0, op
+    assert op["heartbeats_received"] > 0, op
+    assert op["servo_writes"] > 0, op
+    # The robot rendered frames from the serial board and heard the operator: its
+    # deadman tripped exactly once, when the operator stopped (it counts only after contact).
+    assert rb["frames_processed"] > 0 and rb["stimuli_published"] > 0, rb
+    assert rb["deadman_trips"] == 1, rb
+    # Nothing was rejected or failed on either side.
+    for stats in (op, rb):
+        for key in ("decode_errors", "messages_unexpected", "commands_rejected", "gripper_errors"):
+            assert stats.get(key, 0) == 0, (key, stats)
+    for log in (robot_log, operator_log):
+        text = log.read_text(errors="replace")
+        assert "Traceback" not in text and " ERROR " not in text, text[-3000:]
