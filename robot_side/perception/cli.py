@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, help="torch threads (default 2)")
     parser.add_argument("--no-robustness", action="store_true", help="skip the robustness sets")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--defaults", action="store_true", help="print every setting with its reason, as TOML"
+    )
 
 
 def _config(args: argparse.Namespace):
@@ -82,6 +85,12 @@ def _config(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     from robot_side.perception import dataset as ds
 
+    if args.defaults:
+        from common.config import defaults_toml
+        from robot_side.perception.train import TrainConfig
+
+        print(defaults_toml(TrainConfig, "train"), end="")
+        return 0
     config = _config(args)
     out, name = (MODELS_DIR, DEFAULT_MODEL.stem) if args.ship else (args.out, args.name)
     progress = not args.no_progress and sys.stderr.isatty()

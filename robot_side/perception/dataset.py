@@ -104,7 +104,9 @@ class RandomizationRanges:
 
 @dataclass
 class DatasetConfig:
-    repeats: int = param(36, "frames per (pattern, grip level); 36 gives the paper's 13,392 pairs")
+    repeats: int = param(
+        108, "frames per (pattern, grip level): 40,176 pairs, 3x the paper's 13,392 (36)"
+    )
     frames_per_sensor: int = param(
         48, "frames from one simulated sensor before a new one (defects, settings) is drawn"
     )

@@ -9,7 +9,9 @@
 
 Every backend returns the same classes and probabilities within 1e-5 of
 eager torch (tests/perception). The default is the fastest of them on batch
-1, measured by benchmarks/perception_bench.py (docs/perception.md).
+1, measured by benchmarks/perception_bench.py (docs/perception.md): ONNX
+Runtime, with NumPy as the fallback when onnxruntime or the ``.onnx`` is
+missing.
 
 A classifier keeps preallocated buffers for batch 1, the robot node's case,
 so one instance must not be used from two threads at once without a lock;
@@ -100,14 +102,16 @@ def load_classifier(
 ) -> TiltClassifier:
     """A classifier for the weights at ``path`` (default: the shipped model).
 
-    ``backend`` is one of ``BACKENDS``; None picks the first installed one in
-    ``DEFAULT_BACKEND_ORDER``. ``num_threads`` bounds ONNX Runtime's and
-    torch's intra-op threads: one is fastest at batch 1 and leaves the other
-    core to the rest of the node.
+    ``backend`` is one of ``BACKENDS``; None picks the first usable one in
+    ``DEFAULT_BACKEND_ORDER`` (installed, and for ONNX Runtime with its
+    ``.onnx`` beside the weights). ``num_threads`` bounds ONNX Runtime's
+    intra-op threads, and for the torch backends sets torch's process-wide
+    thread count: one is fastest at batch 1 and leaves the other core to the
+    rest of the node.
     """
     path = Path(path) if path is not None else DEFAULT_MODEL
     if backend is None:
-        backend = next(b for b in DEFAULT_BACKEND_ORDER if _installed(b))
+        backend = next(b for b in DEFAULT_BACKEND_ORDER if _usable(b, path))
     if backend not in BACKENDS:
         raise ModelLoadError(f"unknown backend {backend!r}; choose one of {list(BACKENDS)}")
     if not _installed(backend):
@@ -131,6 +135,12 @@ def load_classifier(
 
 def _installed(backend: str) -> bool:
     return importlib.util.find_spec(_MODULE_OF[backend]) is not None
+
+
+def _usable(backend: str, path: Path) -> bool:
+    if backend == "onnxruntime" and not path.with_suffix(".onnx").is_file():
+        return False
+    return _installed(backend)
 
 
 def _as_batch(frames: np.ndarray) -> np.ndarray:

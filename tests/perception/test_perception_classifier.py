@@ -145,3 +145,4 @@ def test_unusable_models_raise_model_load_error(tmp_path: Path) -> None:
     weights_only.write_bytes(DEFAULT_MODEL.read_bytes())
     with pytest.raises(ModelLoadError, match="ONNX"):
         load_classifier(weights_only, backend="onnxruntime")
+    assert load_classifier(weights_only).backend == "numpy"  # the default falls back

@@ -88,3 +88,14 @@ def test_architecture_is_the_papers_at_width_1() -> None:
         ]
     a, p = model.eval()(torch.zeros(3, 2, 10, 10))
     assert a.shape == (3, 4) and p.shape == (3, 3)
+
+
+def test_train_defaults_round_trip_through_toml() -> None:
+    import tomllib
+
+    from common.config import defaults_toml, from_dict
+    from robot_side.perception.train import TrainConfig
+
+    text = defaults_toml(TrainConfig, "train")
+    assert "pipette_diameter_mm" in text and "[train.data.ranges]" in text
+    assert from_dict(TrainConfig, tomllib.loads(text)["train"]) == TrainConfig()
