@@ -28,9 +28,11 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     ),
     "sim": ("deploy.sim_cli", "run one device simulator on its real wire, standalone"),
     "keys": ("deploy.keys_cli", "make CURVE key pairs and allow operators on the robot"),
+    "bench": ("deploy.bench.cli", "latency budget, run time against error: docs/benchmarks.md"),
     "doctor": ("deploy.doctor", "check this machine before a session: config, devices, keys, peer"),
     "replay": ("deploy.replay", "check a recording against the pipeline, or publish it again"),
     "soak": ("deploy.soak", "run the demo for a long time on a bad link and report how it aged"),
+    "study": ("operator_side.study.cli", "run the palm perception study and analyse it"),
 }
 
 

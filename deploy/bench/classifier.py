@@ -1,0 +1,141 @@
+"""Classifier: backends and model widths, batch-1 latency against accuracy.
+
+No model is trained here (two cores are shared): the shipped model and any
+other model files found (``--models``, e.g. the perception engineer's width
+sweep in runs/width-sweep) are measured as they are. Accuracy is on seeded
+frames none of them were trained on: the default pad model over every
+pattern and grip level, and a domain-randomised set drawn like the training
+data but from another seed. The stimulus match share is the end result:
+the predicted pattern's mask, rendered with the node's defaults, against
+the true pattern.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.patterns import matches_pattern
+from deploy.bench.fixtures import FrameSet
+from deploy.bench.timing import summarize_ns, time_calls
+from robot_side.config import RobotConfig
+from robot_side.perception import BACKENDS, DEFAULT_MODEL, load_classifier
+from robot_side.perception.weights import read_weights
+from robot_side.rendering import render_stimulus
+
+log = logging.getLogger(__name__)
+
+#: the domain-randomised evaluation set's seed: not any training seed in the project
+RANDOMIZED_EVAL_SEED = 8_808
+
+
+def find_models(dirs: list[Path]) -> list[Path]:
+    """The shipped model first, then every other model file in ``dirs``."""
+    out = [DEFAULT_MODEL]
+    for d in dirs:
+        if d.is_file() and d.suffix == ".npz":
+            out.append(d)
+        elif d.is_dir():
+            out.extend(sorted(d.glob("*.npz")))
+    seen: set[Path] = set()
+    unique = []
+    for p in out:
+        r = p.resolve()
+        if r not in seen:
+            seen.add(r)
+            unique.append(p)
+    return unique
+
+
+def _describe(path: Path) -> dict[str, Any]:
+    _, meta = read_weights(path)
+    return {
+        "model": "shipped default" if path.resolve() == DEFAULT_MODEL.resolve() else path.name,
+        "path": str(path),
+        "width": meta.get("model", {}).get("width"),
+        "parameters": meta.get("parameters"),
+    }
+
+
+def randomized_eval_set(repeats: int) -> FrameSet:
+    """Frames drawn like the training data (randomised sensors), from an unused seed."""
+    from robot_side.perception import dataset as ds
+
+    data = ds.generate(ds.DatasetConfig(repeats=repeats, seed=RANDOMIZED_EVAL_SEED))
+    return FrameSet(data.frames, data.pattern, data.grip_level, RANDOMIZED_EVAL_SEED)
+
+
+def _accuracy(clf: Any, fs: FrameSet) -> tuple[float, np.ndarray]:
+    a, p = clf.predict(fs.frames)
+    pred = 3 * a + p
+    return float(np.mean(pred == fs.pattern)), pred
+
+
+def _match_share(fs: FrameSet, pred: np.ndarray) -> float:
+    render = RobotConfig().render
+    ok = 0
+    for k in range(len(fs)):
+        stim = render_stimulus(fs.frames[k], int(pred[k]), method=render.method, order=render.order)
+        ok += matches_pattern(stim, int(fs.pattern[k]))
+    return ok / max(1, len(fs))
+
+
+def classifier_tradeoff(
+    models: list[Path],
+    backends_for_default: list[str],
+    backends_for_others: list[str],
+    eval_default: FrameSet,
+    eval_randomized: FrameSet | None,
+    calls: int,
+) -> dict[str, Any]:
+    """One row per (model, backend): latency, accuracy, match share, agreement."""
+    rows = []
+    timing_frames = [np.ascontiguousarray(f[None]) for f in eval_default.frames[:512]]
+    for path in models:
+        info = _describe(path)
+        is_default = info["model"] == "shipped default"
+        backends = backends_for_default if is_default else backends_for_others
+        reference: np.ndarray | None = None
+        acc_default = acc_rand = match = None
+        for backend in backends:
+            try:
+                clf = load_classifier(path, backend, num_threads=1)
+            except Exception as e:  # a missing optional backend is a row, not a crash
+                rows.append({**info, "backend": backend, "error": str(e)})
+                continue
+            t = summarize_ns(
+                time_calls(
+                    lambda i, c=clf, f=timing_frames: c.predict_proba(f[i % len(f)]), calls, 200
+                )
+            )
+            acc, pred = _accuracy(clf, eval_default)
+            if reference is None:
+                reference = pred
+                acc_default = acc
+                match = _match_share(eval_default, pred)
+                if eval_randomized is not None:
+                    acc_rand = _accuracy(clf, eval_randomized)[0]
+            rows.append(
+                {
+                    **info,
+                    "backend": backend,
+                    "median_us": t.median_us,
+                    "p99_us": t.p99_us,
+                    "accuracy_default_generator": acc_default,
+                    "accuracy_randomized": acc_rand,
+                    "stimulus_match": match,
+                    "agrees_with_first_backend": float(np.mean(pred == reference)),
+                }
+            )
+            log.info("classifier %s %s: %.1f us", info["model"], backend, t.median_us)
+    return {
+        "eval_default_frames": len(eval_default),
+        "eval_default_seed": eval_default.seed,
+        "eval_randomized_frames": None if eval_randomized is None else len(eval_randomized),
+        "eval_randomized_seed": RANDOMIZED_EVAL_SEED,
+        "rows": rows,
+        "backends_known": list(BACKENDS),
+    }

@@ -1,0 +1,233 @@
+"""Downsizing and rendering order: run time against the share of stimuli that match.
+
+A stimulus matches when it presses exactly the true pattern's cells
+(``common.patterns.matches_pattern``): that is what the operator feels.
+Each downsizing method is crossed with both rendering orders and three
+sources of the mask: the true pattern (the renderer alone), the
+classifier's prediction (what the robot node does) and none (direct
+rendering, the paper's baseline).
+
+Faster variants built here, all exact rewrites of the antialiased default:
+
+- ``fused``: the pad mean and both weight matrices folded into one
+  (9, 200) matrix, so the whole downsizing is one matrix-vector product;
+- ``fused_masked``: only the rows of that matrix the mask keeps. Every
+  pattern's mask has at most one cell per row, so masking first and then
+  taking each row's peak is the masked cells themselves: 1 to 3 dot
+  products of length 200 instead of a 3x3 image.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from common.patterns import MASKS, MASKS_F32, matches_pattern
+from deploy.bench.fixtures import FrameSet
+from deploy.bench.timing import summarize_ns, time_calls
+from robot_side.rendering import (
+    _WEIGHTS,
+    METHODS,
+    ORDERS,
+    SENSOR_MAX_N,
+    contact_map,
+    downsize,
+    peak_per_row,
+    render_stimulus,
+    sanitize_frame,
+)
+
+log = logging.getLogger(__name__)
+
+#: variants devised for the benchmark (exact rewrites of the antialiased method)
+FUSED_VARIANTS = ("fused", "fused_masked")
+
+
+def fused_matrix(method: str = "antialiased") -> np.ndarray:
+    """(9, 200) float32: frame (2, 10, 10) flattened -> 3x3 flattened, pad mean included."""
+    w = _WEIGHTS[method]
+    k = np.kron(w, w)  # out[i*3+j] = sum_rc w[i, r] w[j, c] x[r, c]
+    return np.ascontiguousarray(0.5 * np.hstack([k, k]), dtype=np.float32)
+
+
+class FusedRenderer:
+    """The fused variants of downsizing + masking; agree with render_stimulus to float32."""
+
+    def __init__(self, method: str = "antialiased") -> None:
+        self.m = fused_matrix(method)
+        # per pattern: the flat indices of its cells and their rows of the fused matrix
+        self.cells = [np.flatnonzero(MASKS[p].ravel()) for p in range(len(MASKS))]
+        self.rows = [np.ascontiguousarray(self.m[c]) for c in self.cells]
+
+    def downsize(self, frame: np.ndarray) -> np.ndarray:
+        out = (self.m @ frame.reshape(200)).reshape(3, 3)
+        np.clip(out, 0.0, SENSOR_MAX_N, out=out)
+        return out
+
+    def masked(self, frame: np.ndarray, pattern: int) -> np.ndarray:
+        """mask_then_peak for a mask with at most one cell per row: just those cells."""
+        vals = self.rows[pattern] @ frame.reshape(200)
+        np.clip(vals, 0.0, SENSOR_MAX_N, out=vals)
+        out = np.zeros(9, np.float32)
+        out[self.cells[pattern]] = vals
+        return out.reshape(3, 3)
+
+    def render(
+        self, frame: np.ndarray, pattern: int | None, order: str, masked: bool
+    ) -> np.ndarray:
+        """A contact frame (already sanitized) -> stimulus."""
+        if pattern is None:
+            return peak_per_row(self.downsize(frame))
+        if masked and order == "mask_then_peak":
+            return self.masked(frame, pattern)
+        small = self.downsize(frame)
+        mask = MASKS_F32[pattern]
+        if order == "peak_then_mask":
+            return peak_per_row(small) * mask
+        return peak_per_row(small * mask)
+
+
+def _one_cell_per_row() -> bool:
+    return bool((MASKS.sum(axis=2) <= 1).all())
+
+
+def _render_fn(variant: str, fused: FusedRenderer) -> Callable[[np.ndarray, int | None, str], Any]:
+    if variant in METHODS:
+
+        def fn(frame: np.ndarray, pattern: int | None, order: str) -> np.ndarray:
+            return render_stimulus(frame, pattern, method=variant, order=order)
+
+        return fn
+    masked = variant == "fused_masked"
+
+    def fused_fn(frame: np.ndarray, pattern: int | None, order: str) -> np.ndarray:
+        f = sanitize_frame(frame)
+        if f.max() < 1.0:
+            return np.zeros((3, 3), np.float32)
+        return fused.render(f, pattern, order, masked)
+
+    return fused_fn
+
+
+def _timed_core(
+    variant: str, fused: FusedRenderer, frames: np.ndarray, patterns: np.ndarray, order: str
+) -> Callable[[int], Any]:
+    """Downsizing + mask only (the frame is already sanitized and in contact)."""
+    n = len(frames)
+    if variant in METHODS:
+        mask_first = order == "mask_then_peak"
+
+        def fn(i: int) -> Any:
+            f = frames[i % n]
+            small = downsize(contact_map(f), variant)
+            mask = MASKS_F32[patterns[i % n]]
+            return peak_per_row(small * mask) if mask_first else peak_per_row(small) * mask
+
+        return fn
+    masked = variant == "fused_masked"
+
+    def fused_fn(i: int) -> Any:
+        return fused.render(frames[i % n], int(patterns[i % n]), order, masked)
+
+    return fused_fn
+
+
+def downsizing_tradeoff(
+    fs: FrameSet, predicted: np.ndarray | None, time_calls_n: int
+) -> dict[str, Any]:
+    """Match share and time for every variant x order x mask source."""
+    if not _one_cell_per_row():
+        raise RuntimeError("a mask has two cells in one row: fused_masked would be wrong")
+    fused = FusedRenderer("antialiased")
+    variants = (*METHODS, *FUSED_VARIANTS)
+    sanitized = np.stack([sanitize_frame(f) for f in fs.frames])
+    contact = sanitized.reshape(len(fs), -1).max(axis=1) >= 1.0
+    sources: dict[str, np.ndarray | None] = {"true": fs.pattern, "none": None}
+    if predicted is not None:
+        sources["predicted"] = predicted
+    rows = []
+    for variant in variants:
+        render = _render_fn(variant, fused)
+        # masking only the kept cells is possible only when the mask comes first
+        for order in ("mask_then_peak",) if variant == "fused_masked" else ORDERS:
+            timing = summarize_ns(
+                time_calls(
+                    _timed_core(variant, fused, sanitized, fs.pattern, order),
+                    time_calls_n,
+                    warmup=200,
+                )
+            )
+            row: dict[str, Any] = {
+                "variant": variant,
+                "order": order,
+                "median_us": timing.median_us,
+                "p99_us": timing.p99_us,
+            }
+            for source, pats in sources.items():
+                if source == "none" and order != ORDERS[0] and rows[-1]["variant"] == variant:
+                    row["match_none"] = rows[-1]["match_none"]  # direct: no order
+                    continue
+                ok = 0
+                for k in range(len(fs)):
+                    pat = None if pats is None else int(pats[k])
+                    stim = render(fs.frames[k], pat, order)
+                    ok += matches_pattern(stim, int(fs.pattern[k]))
+                row[f"match_{source}"] = ok / len(fs)
+            rows.append(row)
+    agreement = _fused_agreement(fused, sanitized[contact], fs.pattern[contact])
+    by_pattern = _per_pattern(fs, "antialiased")
+    return {
+        "frames": len(fs),
+        "frames_in_contact": int(contact.sum()),
+        "seed": fs.seed,
+        "rows": rows,
+        "fused_agreement": agreement,
+        "per_pattern_antialiased_true": by_pattern,
+    }
+
+
+def _fused_agreement(
+    fused: FusedRenderer, frames: np.ndarray, patterns: np.ndarray
+) -> dict[str, Any]:
+    """How far the fused variants are from the two-matrix reference, in newtons."""
+    worst = 0.0
+    worst_masked = 0.0
+    same_support = 0
+    for k, f in enumerate(frames):
+        ref = downsize(contact_map(f), "antialiased")
+        worst = max(worst, float(np.abs(fused.downsize(f) - ref).max()))
+        p = int(patterns[k])
+        ref_st = peak_per_row(ref * MASKS_F32[p])
+        got = fused.masked(f, p)
+        worst_masked = max(worst_masked, float(np.abs(got - ref_st).max()))
+        same_support += bool(np.array_equal(got > 0, ref_st > 0))
+    return {
+        "max_abs_diff_fused_n": worst,
+        "max_abs_diff_fused_masked_n": worst_masked,
+        "same_cells_share": same_support / max(1, len(frames)),
+        "frames": len(frames),
+    }
+
+
+def _per_pattern(fs: FrameSet, method: str) -> dict[str, dict[str, float]]:
+    """Match share per pattern with the true mask: where the paper's order loses."""
+    out: dict[str, dict[str, float]] = {}
+    for p in range(len(MASKS)):
+        idx = np.flatnonzero(fs.pattern == p)
+        out[str(p)] = {
+            order: float(
+                np.mean(
+                    [
+                        matches_pattern(
+                            render_stimulus(fs.frames[k], p, method=method, order=order), p
+                        )
+                        for k in idx
+                    ]
+                )
+            )
+            for order in ORDERS
+        }
+    return out

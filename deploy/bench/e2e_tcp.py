@@ -1,0 +1,189 @@
+"""End to end across two processes over loopback TCP: frame bytes here, servo packet there.
+
+This process plays the robot PC (the serial driver's parser and frame code,
+then ``RobotNode.process`` publishing on TCP); a child process plays the
+operator PC (``OperatorNode.receive`` and ``control_step`` writing to a bus
+that builds the real sync-write packet). Both read the same
+``CLOCK_MONOTONIC``, so the child measures from the stimulus's
+``t_capture_ns`` (taken before the scan's bytes were parsed) to the moment
+the packet bytes exist: no clock-offset estimate is involved.
+
+Frames are paced at a sensor-like rate, so each one meets sleeping
+processes, as in the field. Every frame is forced to a packet, as in the
+inproc loop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import select
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.clock import Rate, now_ns
+from deploy.bench.timing import THREAD_ENV, summarize_ns
+
+log = logging.getLogger(__name__)
+
+#: wire sequence numbers of timed frames start here; warm-up frames stay below
+TIMED_SEQ_START = 1_000_000
+
+
+def _wait_line(proc: subprocess.Popen, want: str, timeout_s: float, tick: Any = None) -> None:
+    """Read the child's stdout until ``want``, calling ``tick()`` between polls."""
+    assert proc.stdout is not None
+    deadline = time.monotonic() + timeout_s
+    fd = proc.stdout.fileno()
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"bench peer exited with {proc.returncode} before {want!r}")
+        ready, _, _ = select.select([fd], [], [], 0.02)
+        if ready:
+            line = proc.stdout.readline().decode().strip()
+            if line == want:
+                return
+            log.debug("peer: %s", line)
+        elif tick is not None:
+            tick()
+    raise RuntimeError(f"bench peer did not say {want!r} within {timeout_s} s")
+
+
+def end_to_end_tcp(
+    n_frames: int, rate_hz: float, classifier: Any, cpu: int | None, seed: int = 3
+) -> dict[str, Any]:
+    """Median and p99 from scan bytes (this process) to servo packet (the child)."""
+    import zmq
+
+    from common.transport import Publisher
+    from deploy.bench.fixtures import frame_set, scan_bytes, serial_sensor
+    from robot_side.config import RobotConfig
+    from robot_side.node import RobotNode
+
+    fs = frame_set(max(1, -(-n_frames // (12 * 31))), seed=seed)
+    order = np.random.default_rng(seed).permutation(len(fs))
+    frames = fs.frames[order]
+    ctx = zmq.Context()
+    sensor = serial_sensor()
+    robot = RobotNode(RobotConfig(), sensor, classifier=classifier, ctx=ctx)
+    robot.pub = Publisher(ctx, "tcp://127.0.0.1:*", bind=True)
+    out_path = Path(f"/tmp/deepxpalm-bench-tcp-{os.getpid()}.json")
+    cmd = [
+        sys.executable,
+        "-m",
+        "deploy.bench.e2e_tcp",
+        "--endpoint",
+        robot.pub.endpoint,
+        "--count",
+        str(n_frames),
+        "--out",
+        str(out_path),
+    ]
+    if cpu is not None:
+        cmd += ["--cpu", str(cpu)]
+    env = {**os.environ, **THREAD_ENV}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, env=env)
+    seq = [0]
+
+    def feed(wire_seq: int, frame: np.ndarray) -> None:
+        robot._last_stimulus = None  # force a publish: every frame reaches the palm
+        robot._last_frame = None
+        t0 = now_ns()
+        for packet in sensor._parser.feed(scan_bytes(frame, wire_seq)):
+            sensor._on_packet(packet, t0)
+        robot.process(sensor.latest())
+
+    def warm() -> None:
+        seq[0] += 1
+        feed(seq[0], frames[seq[0] % len(frames)])
+        time.sleep(0.01)
+
+    try:
+        _wait_line(proc, "ready", 60.0)
+        _wait_line(proc, "joined", 20.0, tick=warm)
+        # Encoding the scan is the board's work, not the robot's: do it before the clock starts.
+        scans = [scan_bytes(frames[i % len(frames)], TIMED_SEQ_START + i) for i in range(n_frames)]
+        rate = Rate(rate_hz)
+        for scan in scans:
+            robot._last_stimulus = None
+            robot._last_frame = None
+            t0 = now_ns()
+            for packet in sensor._parser.feed(scan):
+                sensor._on_packet(packet, t0)
+            robot.process(sensor.latest())
+            rate.sleep()
+        proc.wait(timeout=30)
+        result = json.loads(out_path.read_text())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        out_path.unlink(missing_ok=True)
+        robot.pub.close()
+        ctx.term()
+    s = summarize_ns(result["latencies_ns"]).as_dict()
+    s["received"] = len(result["latencies_ns"])
+    s["sent"] = n_frames
+    s["rate_hz"] = rate_hz
+    s["transport"] = "tcp loopback, two processes"
+    s["pinned_core"] = cpu
+    return s
+
+
+def _peer(args: argparse.Namespace) -> int:
+    """The operator side: count ``--count`` timed stimuli, then write their latencies."""
+    if args.cpu is not None:
+        os.sched_setaffinity(0, {args.cpu})
+    from common.transport import Subscriber
+    from deploy.bench.fixtures import PacketServoBus
+    from operator_side.config import OperatorConfig
+    from operator_side.node import OperatorNode
+
+    bus = PacketServoBus()
+    bus.connect()
+    node = OperatorNode(OperatorConfig(), bus)
+    node.sub = Subscriber(node.ctx, args.endpoint, bind=False, name="bench peer")
+    period_ns = round(1e9 / node.config.renderer.control_rate_hz)
+    print("ready", flush=True)
+    latencies: list[int] = []
+    joined = False
+    last_msg = time.monotonic()
+    while len(latencies) < args.count and time.monotonic() - last_msg < 5.0:
+        if not node.sub.poll(0.2):
+            continue
+        node._written = None  # force the packet, as the robot side forces the stimulus
+        writes = bus.writes
+        if not node.receive():
+            continue
+        node.control_step(now_ns(), period_ns)
+        last_msg = time.monotonic()
+        stim = node._stim
+        if not joined:
+            joined = True
+            print("joined", flush=True)
+        if stim is not None and stim.frame_seq > TIMED_SEQ_START and bus.writes > writes:
+            latencies.append(bus.last_write_ns - stim.t_capture_ns)
+    Path(args.out).write_text(json.dumps({"latencies_ns": latencies}))
+    node.sub.close()
+    node.ctx.term()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="operator-side peer of deepxpalm bench (TCP)")
+    parser.add_argument("--endpoint", required=True)
+    parser.add_argument("--count", type=int, required=True)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--cpu", type=int)
+    return _peer(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,200 @@
+"""One PNG per trade-off curve (matplotlib, Agg: no display needed)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def downsizing(result: dict[str, Any], path: Path) -> Path:
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    markers = {"peak_then_mask": "o", "mask_then_peak": "s"}
+    for ax, source, title in (
+        (axes[0], "match_true", "true pattern's mask"),
+        (axes[1], "match_predicted", "classifier's predicted mask"),
+    ):
+        for row in result["rows"]:
+            if source not in row:
+                continue
+            ax.scatter(row["median_us"], 100 * row[source], marker=markers[row["order"]], s=50)
+            ax.annotate(
+                f"{row['variant']}\n{row['order'].replace('_', ' ')}",
+                (row["median_us"], 100 * row[source]),
+                fontsize=7,
+                xytext=(4, 4),
+                textcoords="offset points",
+            )
+        ax.set_title(f"downsizing + masking: {title}")
+        ax.set_xlabel("median time per frame (us, one core)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("stimuli matching the true pattern (%)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def classifier(result: dict[str, Any], path: Path) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    for row in result["rows"]:
+        if "median_us" not in row or row.get("accuracy_default_generator") is None:
+            continue
+        acc = 100 * (row.get("accuracy_randomized") or row["accuracy_default_generator"])
+        ax.errorbar(
+            row["median_us"],
+            acc,
+            xerr=[[0], [max(0.0, row["p99_us"] - row["median_us"])]],
+            fmt="o",
+            capsize=3,
+        )
+        ax.annotate(
+            f"{row['backend']} w={row['width']}",
+            (row["median_us"], acc),
+            fontsize=7,
+            xytext=(4, 4),
+            textcoords="offset points",
+        )
+    ax.set_xscale("log")
+    ax.set_xlabel("batch-1 latency, median (bar to p99), us, one core")
+    ax.set_ylabel("pattern accuracy (%), randomised held-out set")
+    ax.set_title("classifier: latency against accuracy")
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def ik(result: dict[str, Any], path: Path) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    for m in result["methods"]:
+        t = m["time_3"]["median_us"]
+        for key, marker, label in (
+            ("operational", "o", "contact points"),
+            ("grid", "s", "workspace grid"),
+            ("shell", "^", "edge shell"),
+            ("grid_and_shell_sample", "D", "grid + shell sample"),
+        ):
+            if key in m and m[key]["max_mm"] is not None:
+                ax.scatter(t, max(m[key]["max_mm"], 1e-16), marker=marker, s=45, label=label)
+        ax.annotate(
+            m["key"],
+            (t, max(m["operational"]["max_mm"] or 1e-16, 1e-16)),
+            fontsize=7,
+            xytext=(4, -10),
+            textcoords="offset points",
+        )
+    handles, labels = ax.get_legend_handles_labels()
+    uniq = dict(zip(labels, handles, strict=True))
+    ax.legend(uniq.values(), uniq.keys(), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("time for three linkages, median (us, one core)")
+    ax.set_ylabel("largest round-trip error |FK(IK(p)) - p| (mm)")
+    ax.set_title("IK: time against round-trip error")
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def skipping(result: dict[str, Any], path: Path) -> Path:
+    plt = _plt()
+    rows = [r for r in result["rows"] if r["kind"] != "published"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    names = [r["kind"].replace("_", " ") for r in rows]
+    axes[0].barh(names, [r["cpu_saved_us_per_s"] / 1e3 for r in rows])
+    axes[0].set_xlabel("CPU saved (ms per second of scene)")
+    axes[0].set_title(f"work saved in the {result['scene']} scene")
+    axes[1].barh(names, [r["max_servo_counts_diff"] for r in rows])
+    axes[1].set_xlabel("largest servo goal difference it causes (counts; 1 count = 0.088 deg)")
+    axes[1].set_title("error it costs")
+    for ax in axes:
+        ax.grid(alpha=0.3, axis="x")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def scale(result: dict[str, Any], path: Path) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    measured = result.get("measured", [])
+    modelled = result["modelled"]
+    for label, rows, style in (
+        (
+            "measured, 60 Hz render cap",
+            [
+                r
+                for r in measured
+                if r["publish_rate_hz"] < r["rate_hz"] and r["backend"] == "default"
+            ],
+            "o-",
+        ),
+        (
+            "measured, every frame rendered",
+            [r for r in measured if r["publish_rate_hz"] >= r["rate_hz"]],
+            "s-",
+        ),
+        ("model, 60 Hz render cap", [r for r in modelled if r["capped"]], "o--"),
+        ("model, every frame rendered", [r for r in modelled if not r["capped"]], "s--"),
+    ):
+        if not rows:
+            continue
+        seen: dict[float, float] = {}
+        for r in rows:
+            seen.setdefault(r["rate_hz"], r["cpu_percent"])
+        xs = sorted(seen)
+        ax.plot(xs, [seen[x] for x in xs], style, label=label)
+    ax.axhline(10, color="grey", lw=0.8, ls=":")
+    ax.annotate(
+        "10 % budget at 120 Hz", (120, 10), fontsize=8, xytext=(4, 4), textcoords="offset points"
+    )
+    ax.set_xlabel("frame rate (Hz)")
+    ax.set_ylabel("robot node CPU (% of one core)")
+    ax.set_title("robot node cost against frame rate")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def stages(result: dict[str, Any], path: Path) -> Path:
+    plt = _plt()
+    names = list(result["stages"])
+    med = [result["stages"][n]["median_us"] for n in names]
+    p99 = [result["stages"][n]["p99_us"] for n in names]
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    y = range(len(names))
+    ax.barh([i + 0.2 for i in y], p99, height=0.4, label="p99", color="#f2b48c")
+    ax.barh([i - 0.2 for i in y], med, height=0.4, label="median", color="#4c72b0")
+    ax.set_yticks(list(y), names)
+    ax.invert_yaxis()
+    ax.set_xscale("log")
+    ax.set_xlabel("microseconds (one core)")
+    ax.set_title("latency budget per stage")
+    ax.legend()
+    ax.grid(alpha=0.3, axis="x", which="both")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,259 @@
+"""Node CPU: the robot and operator nodes as processes, their CPU time per second of wall time.
+
+The nodes run exactly as deployed (``deepxpalm robot`` / ``deepxpalm
+operator`` with a config file, default backend, no pinning, no thread
+limits), connected directly over loopback TCP. The robot's tactile board is
+a pseudo-terminal written by this process with the demo scene's scans,
+pre-encoded, so the simulator's cost stays out of the robot's account and
+the robot runs its real serial driver. The servo bus is the recording bus:
+the operator's account is the node's own work, not a simulator's.
+
+CPU time is utime + stime from /proc/<pid>/stat (every thread), read after
+a warm-up (imports, model load, connection) and again at the end of the
+measured window.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import termios
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.clock import Rate
+from common.config import config_toml
+from deploy.bench.fixtures import scan_bytes
+from deploy.bench.timing import deployed_env, original_affinity, process_cpu_s
+
+log = logging.getLogger(__name__)
+
+
+class PtyFeeder:
+    """A tactile board on a pty that replays pre-encoded scans at a fixed rate.
+
+    Sequence numbers are rewritten per scan (the driver drops a repeated
+    one), so the same frames can be cycled for as long as needed.
+    """
+
+    def __init__(self, frames: list[np.ndarray], rate_hz: float) -> None:
+        self.rate_hz = rate_hz
+        self._frames = frames
+        master, slave = os.openpty()
+        attrs = termios.tcgetattr(slave)
+        attrs[0] = attrs[1] = attrs[3] = 0  # raw: no echo, no CR/LF translation
+        termios.tcsetattr(slave, termios.TCSANOW, attrs)
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self.port = os.ttyname(slave)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.scans = 0
+        self.overflow_bytes = 0
+
+    def start(self) -> PtyFeeder:
+        self._thread = threading.Thread(target=self._run, name="bench-pty-feeder", daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        rate = Rate(self.rate_hz)
+        n = len(self._frames)
+        while not self._stop.is_set():
+            data = scan_bytes(self._frames[self.scans % n], self.scans)
+            try:
+                written = os.write(self._master, data)
+            except BlockingIOError:
+                written = 0
+            except OSError:
+                return
+            self.overflow_bytes += len(data) - written
+            self.scans += 1
+            remaining = rate.remaining_s()
+            if remaining > 0:
+                self._stop.wait(remaining)
+            rate.advance()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        for fd in (self._master, self._slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def _free_ports(n: int) -> list[int]:
+    socks = []
+    for _ in range(n):
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        socks.append(s)
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
+    """A node as deployed: every core this bench could use, no thread limits it added."""
+    out = log_path.open("wb")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "deploy.cli", *args],
+        stdout=out,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        env=deployed_env(),
+    )
+    with contextlib.suppress(OSError):  # it may already have exited: reported later
+        os.sched_setaffinity(proc.pid, original_affinity())
+    return proc
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(2)  # SIGINT: the nodes stop cleanly and write their stats
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _wait_for_stimuli(endpoint: str, robot: subprocess.Popen, timeout_s: float) -> None:
+    """Block until the robot publishes a stimulus: imports and model load are behind it.
+
+    A fixed warm-up is not enough on a loaded machine, where starting the
+    node can take many seconds; measuring a node still importing would
+    report the import, not the loop.
+    """
+    import zmq
+
+    ctx = zmq.Context()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.SUBSCRIBE, b"STIM")
+    sub.connect(endpoint)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            if robot.poll() is not None:
+                raise RuntimeError(f"robot node exited with {robot.returncode} while starting")
+            if sub.poll(200):
+                return
+        raise RuntimeError(f"robot node published no stimulus within {timeout_s:.0f} s")
+    finally:
+        sub.close(0)
+        ctx.term()
+
+
+def run_nodes(
+    frames: list[np.ndarray],
+    rate_hz: float,
+    warmup_s: float,
+    measure_s: float,
+    *,
+    publish_rate_hz: float = 60.0,
+    backend: str | None = None,
+    with_operator: bool = True,
+) -> dict[str, Any]:
+    """CPU share of one core for each node, with the counters that show it ran properly."""
+    from operator_side.config import OperatorConfig
+    from robot_side.config import RobotConfig
+
+    workdir = Path(tempfile.mkdtemp(prefix="deepxpalm-bench-nodes-"))
+    tel, cmd = (f"tcp://127.0.0.1:{p}" for p in _free_ports(2))
+    feeder = PtyFeeder(frames, rate_hz).start()
+    robot_cfg = RobotConfig()
+    robot_cfg.publish_rate_hz = publish_rate_hz
+    robot_cfg.link.telemetry_endpoint = tel
+    robot_cfg.link.command_endpoint = cmd
+    robot_cfg.tactile = {"kind": "serial", "port": feeder.port}
+    if backend is not None:
+        robot_cfg.classifier.backend = backend
+    op_cfg = OperatorConfig()
+    op_cfg.link.telemetry_endpoint = tel
+    op_cfg.link.command_endpoint = cmd
+    op_cfg.servos = {"kind": "recording"}
+    (workdir / "robot.toml").write_text(config_toml(robot_cfg, "robot"))
+    (workdir / "operator.toml").write_text(config_toml(op_cfg, "operator"))
+    procs: dict[str, subprocess.Popen] = {}
+    result: dict[str, Any] = {
+        "rate_hz": rate_hz,
+        "publish_rate_hz": publish_rate_hz,
+        "backend": backend or "default",
+        "measure_s": measure_s,
+    }
+    try:
+        procs["robot"] = _spawn(
+            [
+                "robot",
+                "--config",
+                str(workdir / "robot.toml"),
+                "--stats-file",
+                str(workdir / "robot.json"),
+            ],
+            workdir / "robot.log",
+        )
+        if with_operator:
+            procs["operator"] = _spawn(
+                [
+                    "operator",
+                    "--config",
+                    str(workdir / "operator.toml"),
+                    "--stats-file",
+                    str(workdir / "operator.json"),
+                ],
+                workdir / "operator.log",
+            )
+        _wait_for_stimuli(tel, procs["robot"], timeout_s=120.0)
+        time.sleep(warmup_s)
+        for name, proc in procs.items():
+            if proc.poll() is not None:
+                tail = (workdir / f"{name}.log").read_text(errors="replace")[-800:]
+                raise RuntimeError(f"{name} node exited with {proc.returncode}: {tail}")
+        t0 = time.monotonic()
+        cpu0 = {name: process_cpu_s(p.pid) for name, p in procs.items()}
+        scans0 = feeder.scans
+        time.sleep(measure_s)
+        cpu1 = {name: process_cpu_s(p.pid) for name, p in procs.items()}
+        wall = time.monotonic() - t0
+        scans = feeder.scans - scans0
+        for name in procs:
+            result[f"{name}_cpu_percent"] = 100.0 * (cpu1[name] - cpu0[name]) / wall
+        result["scans_per_s"] = scans / wall
+        result["feeder_overflow_bytes"] = feeder.overflow_bytes
+    finally:
+        for proc in procs.values():
+            _stop(proc)
+        feeder.stop()
+    for name in procs:
+        path = workdir / f"{name}.json"
+        if path.exists():
+            stats = json.loads(path.read_text())
+            keep = (
+                "frames_captured",
+                "frames_processed",
+                "frames_skipped_rate",
+                "frames_no_contact",
+                "inferences",
+                "stimuli_published",
+                "stimuli_unchanged",
+                "stimuli_received",
+                "servo_writes",
+                "targets_computed",
+                "decode_errors",
+            )
+            result[f"{name}_stats"] = {k: stats[k] for k in keep if k in stats}
+    result["logs"] = str(workdir)
+    return result

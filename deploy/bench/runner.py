@@ -1,0 +1,265 @@
+"""Running the sections: one core, one classifier, every section isolated from the others.
+
+Kept apart from the command-line module, which sets the thread variables at
+import (they must precede numpy), so that tests can call ``run_bench``
+without changing their own process's environment.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import platform
+import subprocess
+import time
+import traceback
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from deploy.bench.sizes import Sizes
+
+log = logging.getLogger(__name__)
+
+
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5
+        )
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def _versions() -> dict[str, str | None]:
+    import importlib.metadata as md
+
+    out: dict[str, str | None] = {"python": platform.python_version()}
+    for pkg in ("numpy", "pyzmq", "msgpack", "onnxruntime", "torch", "scipy", "feetech-servo-sdk"):
+        try:
+            out[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def run_bench(
+    sizes: Sizes,
+    preset: str,
+    skip: set[str],
+    cpu: int | None,
+    models: list[Path],
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Every section not skipped; a section that fails is reported, not fatal."""
+    from deploy.bench import timing
+
+    load_before = timing.machine_load()
+    with timing.one_core(cpu) as core:
+        results = _measure(sizes, preset, skip, core, models, progress)
+    results["machine"]["load_before"] = load_before
+    results["machine"]["load_after"] = timing.machine_load()
+    return results
+
+
+def _measure(
+    sizes: Sizes,
+    preset: str,
+    skip: set[str],
+    core: int,
+    models: list[Path],
+    progress: bool,
+) -> dict[str, Any]:
+    from deploy.bench import timing
+    from robot_side.perception import DEFAULT_BACKEND_ORDER, load_classifier
+    from robot_side.perception.inference import _installed
+
+    classifier = load_classifier()  # the node's default: shipped model, first installed backend
+    timing.limit_torch_threads()
+    default_backend = next(b for b in DEFAULT_BACKEND_ORDER if _installed(b))
+    t_start = time.monotonic()
+    sections: dict[str, Any] = {}
+
+    def section(name: str, fn: Any) -> Any:
+        if name in skip:
+            sections[name] = {"skipped": True}
+            return None
+        t = time.monotonic()
+        if progress:
+            print(f"[bench] {name} ...", flush=True)
+        try:
+            out = fn()
+        except Exception as e:  # one broken section must not lose the others
+            log.exception("section %s failed", name)
+            sections[name] = {"error": f"{type(e).__name__}: {e}", "trace": traceback.format_exc()}
+            return None
+        out["seconds"] = round(time.monotonic() - t, 2)
+        sections[name] = out
+        if progress:
+            print(f"[bench] {name}: {out['seconds']} s", flush=True)
+        return out
+
+    from deploy.bench import stages
+
+    budget = section("stages", lambda: stages.stage_budget(sizes.stage_frames, classifier))
+    medians = {k: v["median_us"] for k, v in budget["stages"].items()} if budget else {}
+    section("e2e_inproc", lambda: stages.end_to_end_inproc(sizes.e2e_frames, classifier))
+
+    def tcp() -> dict[str, Any]:
+        from deploy.bench.e2e_tcp import end_to_end_tcp
+
+        return end_to_end_tcp(sizes.tcp_frames, sizes.tcp_rate_hz, classifier, core)
+
+    section("e2e_tcp", tcp)
+
+    def downsizing() -> dict[str, Any]:
+        from deploy.bench.downsizing import downsizing_tradeoff
+        from deploy.bench.fixtures import frame_set
+
+        fs = frame_set(sizes.ds_repeats, seed=0)
+        a, p = classifier.predict(fs.frames)
+        return downsizing_tradeoff(fs, 3 * a + p, sizes.ds_calls)
+
+    section("downsizing", downsizing)
+
+    def clf() -> dict[str, Any]:
+        from deploy.bench import classifier as cb
+        from deploy.bench.fixtures import frame_set
+
+        eval_default = frame_set(sizes.clf_eval_repeats, seed=11)
+        eval_rand = (
+            cb.randomized_eval_set(sizes.clf_randomized_repeats)
+            if sizes.clf_randomized_repeats > 0
+            else None
+        )
+        out = cb.classifier_tradeoff(
+            cb.find_models(models),
+            list(sizes.clf_backends_default),
+            list(sizes.clf_backends_others),
+            eval_default,
+            eval_rand,
+            sizes.clf_calls,
+        )
+        timing.limit_torch_threads()
+        return out
+
+    section("classifier", clf)
+
+    def ik() -> dict[str, Any]:
+        from deploy.bench.ik import ik_tradeoff
+
+        return ik_tradeoff(
+            sizes.ik_grid_mm,
+            sizes.ik_shell_points,
+            sizes.ik_numeric_points,
+            sizes.ik_calls,
+            least_squares=sizes.ik_least_squares,
+        )
+
+    section("ik", ik)
+
+    def skipping() -> dict[str, Any]:
+        from deploy.bench.skipping import skipping as run_skipping
+
+        return run_skipping(classifier, medians, sizes.skip_cycles)
+
+    section("skipping", skipping)
+
+    def stress() -> dict[str, Any]:
+        from deploy.bench.stress import stress as run_stress
+
+        return run_stress(
+            classifier,
+            sizes.stress_grid_mm,
+            sizes.stress_shell_points,
+            sizes.stress_stimuli,
+            sizes.stress_random_frames,
+        )
+
+    section("stress", stress)
+    demo_frames: list[Any] = []
+
+    def frames_for_nodes() -> list[Any]:
+        if not demo_frames:
+            from deploy.bench.skipping import demo_frames as make
+
+            demo_frames.extend(make("demo", 1.0 if preset == "full" else 0.3)[0])
+        return demo_frames
+
+    def node_cpu() -> dict[str, Any]:
+        from deploy.bench.nodecpu import run_nodes
+
+        # the nodes are processes of their own: unpin them (they inherit this affinity)
+        return run_nodes(frames_for_nodes(), 120.0, sizes.node_warmup_s, sizes.node_measure_s)
+
+    def scale() -> dict[str, Any]:
+        from deploy.bench import scale as sc
+        from robot_side.config import RobotConfig
+
+        cap = RobotConfig().publish_rate_hz
+        transit = (budget or {}).get("transit", {}).get("tcp_loopback", {}).get("median_us", 0.0)
+        # the sender's share of a one-process round trip: half, a rough split
+        out: dict[str, Any] = {
+            "cap_hz": cap,
+            "modelled": sc.modelled(medians, transit / 2, sizes.scale_rates, cap),
+        }
+        if sizes.scale_measured:
+            out["measured"] = sc.measured(
+                frames_for_nodes(),
+                sizes.scale_rates,
+                sizes.node_warmup_s,
+                sizes.node_measure_s / 2,
+                cap,
+                sizes.scale_backends,
+            )
+        return out
+
+    section("node_cpu", node_cpu)
+    section("scale", scale)
+    return {
+        "generated_by": f"deepxpalm bench{'' if preset == 'full' else ' --size ' + preset}",
+        "preset": preset,
+        "sizes": asdict(sizes),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "git_commit": _git_commit(),
+        "machine": {
+            "cpu": _cpu_model(),
+            "cores": os.cpu_count(),
+            "pinned_core": core,
+            "kernel": platform.release(),
+        },
+        "versions": _versions(),
+        "defaults": _defaults(default_backend),
+        "timer_overhead_ns": timing.timer_overhead_ns(),
+        "total_seconds": round(time.monotonic() - t_start, 1),
+        "sections": sections,
+    }
+
+
+def _defaults(backend: str) -> dict[str, Any]:
+    from robot_side.config import RobotConfig
+    from robot_side.perception.weights import DEFAULT_MODEL, read_weights
+
+    cfg = RobotConfig()
+    _, meta = read_weights(DEFAULT_MODEL)
+    return {
+        "method": cfg.render.method,
+        "order": cfg.render.order,
+        "mode": cfg.render.mode,
+        "backend": cfg.classifier.backend or backend,
+        "backend_configured": cfg.classifier.backend,
+        "model_width": meta.get("model", {}).get("width"),
+        "publish_rate_hz": cfg.publish_rate_hz,
+        "deadband_n": cfg.render.deadband_n,
+    }

@@ -1,0 +1,275 @@
+"""Skipping: work the nodes do not do in the demo's scene, and what it would have changed.
+
+The demo's scripted sensor is replayed frame by frame in virtual time (the
+same pad model, seed, tare and grasp script as ``ScriptedTactileSensor``),
+through ``RobotNode.process`` itself with the node's clock replaced by the
+virtual one, so the rate cap, the no-contact and identical-frame skips, the
+dead band and the keyframes behave as in the live node, and a 27 s scene
+costs a second or two.
+
+Beside the node runs a shadow that never skips: every frame classified and
+rendered. After each frame, what the operator is rendering (the last
+stimulus sent) is compared with what the shadow would have sent: in
+newtons, in which cells press, and in servo counts after IK. Zero
+difference is the goal for the skips; the rate cap's difference is the
+price of rendering 60 of the 120 frames per second.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+import robot_side.node as robot_node_module
+from common.devices import build_device
+from common.patterns import pattern_of
+from deploy.bench.fixtures import serial_sensor
+from deploy.scene import load_scene
+from operator_side.renderer import LinkGlideRenderer
+from operator_side.servos.calibration import LinkGlideCalibration
+from robot_side.node import RobotNode
+from robot_side.rendering import render_stimulus, sanitize_frame
+from robot_side.tactile import KINDS as TACTILE_KINDS
+
+log = logging.getLogger(__name__)
+
+
+class _VirtualClock:
+    def __init__(self) -> None:
+        self.t_ns = 1_000_000_000
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+
+class _CapturePublisher:
+    """Takes the node's messages instead of a socket."""
+
+    def __init__(self) -> None:
+        self.sent: list[Any] = []
+
+    def send(self, msg: Any) -> bytes:
+        self.sent.append(msg)
+        return b""
+
+
+@contextlib.contextmanager
+def _virtual_time(clock: _VirtualClock) -> Iterator[None]:
+    """The robot node reads its clock through its module's ``now_ns``; swap it for a replay."""
+    real = robot_node_module.now_ns
+    robot_node_module.now_ns = clock
+    try:
+        yield
+    finally:
+        robot_node_module.now_ns = real
+
+
+def demo_frames(scene_name: str, cycles: float) -> tuple[list[np.ndarray], list[Any], float]:
+    """The scene's scripted frames at the sensor rate, with their truth; and the rate.
+
+    For a ``simulated_serial`` sensor (the demo's) the board simulator makes
+    each scan exactly as it would on the pty, and the real driver parses and
+    calibrates the bytes; for ``scripted``, the in-process sensor's frames
+    are made as its thread makes them. Either way the frames are the scene's,
+    in virtual time, with no thread and no wall clock.
+    """
+    scene = load_scene(scene_name)
+    section = dict(scene.robot.tactile)
+    kind = section.get("kind")
+    device = build_device(TACTILE_KINDS, section, "robot.tactile")  # never connected
+    if kind == "simulated_serial":
+        return _board_frames(device, cycles)
+    if kind == "scripted":
+        return _scripted_frames(device, cycles)
+    raise ValueError(f"scene {scene_name}: tactile kind {kind!r} has no script to replay")
+
+
+def _board_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list[Any], float]:
+    sim = device.simulator
+    cfg = sim.config
+    captured: list[bytes] = []
+    # Stand-ins for the pty: the scan is made and encoded by the simulator's own
+    # code, and its bytes are taken here instead of written to a file descriptor.
+    sim._master = -1
+    sim._write = lambda _fd, data: captured.append(bytes(data))
+    sim._baud_matches = lambda: True
+    driver = serial_sensor()
+    if device.sim_config.use_factory_calibration:
+        driver.set_calibration(sim.calibration)
+    n = round(cfg.script.duration_s * cycles * cfg.rate_hz)
+    frames, truths = [], []
+    for i in range(n):
+        sim._scan(i / cfg.rate_hz)
+        data = captured.pop()
+        for packet in driver._parser.feed(data):
+            driver._on_packet(packet, i)
+        sample = driver.latest()
+        frames.append(sample.frame)
+        truths.append(sim.truth_for(i + cfg.first_seq))
+    sim._master = None
+    return frames, truths, cfg.rate_hz
+
+
+def _scripted_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list[Any], float]:
+    cfg = device.config
+    model = device._model
+    rng = np.random.default_rng(cfg.seed + 1)  # as ScriptedTactileSensor._run
+    zero = np.zeros((2, 10, 10), np.float32)
+    if cfg.tare_frames > 0:
+        zero = np.mean([model.frame(None, 1, rng) for _ in range(cfg.tare_frames)], axis=0).astype(
+            np.float32
+        )
+    n = round(cfg.script.duration_s * cycles * cfg.rate_hz)
+    frames, truths = [], []
+    for i in range(n):
+        truth = cfg.script.truth_at(i / cfg.rate_hz)
+        frame = model.frame(truth.pattern, truth.grip_level or 1, rng) - zero
+        frame[frame < cfg.generator.floor_n] = 0.0
+        frames.append(frame)
+        truths.append(truth)
+    return frames, truths, cfg.rate_hz
+
+
+def _shadow(frame: np.ndarray, truth: Any, classifier: Any, render: Any) -> np.ndarray:
+    """What the node would send for this frame if it never skipped anything."""
+    f = sanitize_frame(frame)
+    if render.mode == "mask":  # even without contact: the no-contact skip is what is checked
+        pa, pp = classifier.predict_proba(f[None])
+        pattern = pattern_of(int(pa[0].argmax()), int(pp[0].argmax()))
+    elif render.mode == "mask_ground_truth":
+        pattern = truth.pattern
+    else:
+        pattern = None
+    if render.mode != "direct" and pattern is None:
+        return np.zeros((3, 3), np.float32)
+    return render_stimulus(
+        f,
+        pattern,
+        method=render.method,
+        order=render.order,
+        contact_threshold_n=render.contact_threshold_n,
+    )
+
+
+def skipping(
+    classifier: Any, stage_medians_us: dict[str, float], cycles: float, scene_name: str = "demo"
+) -> dict[str, Any]:
+    """Counts, frames per second and CPU saved per skip, and the output difference each causes."""
+    from robot_side.tactile.base import TactileSample
+
+    scene = load_scene(scene_name)
+    config = scene.robot
+    frames, truths, rate_hz = demo_frames(scene_name, cycles)
+    renderer = LinkGlideRenderer(scene.operator.renderer, LinkGlideCalibration())
+    clock = _VirtualClock()
+    node = RobotNode(config, tactile=None, classifier=classifier)  # type: ignore[arg-type]
+    node.pub = _CapturePublisher()  # type: ignore[assignment]
+    render = config.render
+    min_interval = round(0.9e9 / config.publish_rate_hz)
+    period = round(1e9 / rate_hz)
+    kinds = ("rate_cap", "no_contact", "identical_frame", "unchanged_stimulus", "published")
+    diff = {k: {"frames": 0, "max_abs_n": 0.0, "cells_differ": 0, "max_counts": 0} for k in kinds}
+    last_process = -(10**18)
+    counts_cache: dict[bytes, np.ndarray] = {}
+
+    def counts_of(stim: np.ndarray) -> np.ndarray:
+        key = stim.tobytes()
+        if key not in counts_cache:
+            counts_cache[key] = renderer.target_counts(stim)
+        return counts_cache[key]
+
+    with _virtual_time(clock):
+        for i, (frame, truth) in enumerate(zip(frames, truths, strict=True)):
+            clock.t_ns += period
+            before = dict(node.counters)
+            sample = TactileSample(frame=frame, seq=i + 1, t_capture_ns=clock.t_ns, truth=truth)
+            kinds_here: list[str] = []
+            if clock.t_ns - last_process >= min_interval:
+                last_process = clock.t_ns
+                node.process(sample)
+                after = node.counters
+                for counter, kind in (
+                    ("frames_no_contact", "no_contact"),
+                    ("frames_identical", "identical_frame"),
+                    ("stimuli_unchanged", "unchanged_stimulus"),
+                    ("stimuli_published", "published"),
+                ):
+                    if after[counter] > before.get(counter, 0):
+                        kinds_here.append(kind)
+            else:
+                kinds_here.append("rate_cap")
+            full = _shadow(frame, truth, classifier, render)
+            msg = node._last_stim_msg
+            current = msg.stimulus if msg is not None else np.zeros((3, 3), np.float32)
+            for kind in kinds_here:
+                # the no-contact skip leaves out the classifier: compare what the node
+                # computed (all zeros) with what classifying would have rendered
+                got = np.zeros((3, 3), np.float32) if kind == "no_contact" else current
+                d = diff[kind]
+                d["frames"] += 1
+                d["max_abs_n"] = max(d["max_abs_n"], float(np.abs(got - full).max()))
+                d["cells_differ"] += int(not np.array_equal(got > 0, full > 0))
+                d["max_counts"] = max(
+                    d["max_counts"], int(np.abs(counts_of(got) - counts_of(full)).max())
+                )
+    duration_s = len(frames) / rate_hz
+    sent = node.pub.sent
+    keyframes = sum(1 for m in sent if m.keyframe)
+    m = stage_medians_us
+    render_us = m.get("downsizing", 0.0) + m.get("masking", 0.0)
+    link_us = sum(
+        m.get(k, 0.0)
+        for k in (
+            "encode",
+            "zmq_transit_tcp",
+            "decode",
+            "ik_3_linkages",
+            "counts_rate_limit",
+            "servo_packet",
+        )
+    )
+    saved_us = {
+        "rate_cap": m.get("sanitize_contact", 0.0) + m.get("classification", 0.0) + render_us,
+        "no_contact": m.get("classification", 0.0) + render_us,
+        "identical_frame": m.get("classification", 0.0) + render_us,
+        "unchanged_stimulus": link_us,
+        "published": 0.0,
+    }
+    rows = []
+    for kind in kinds:
+        d = diff[kind]
+        rows.append(
+            {
+                "kind": kind,
+                "frames": d["frames"],
+                "frames_per_s": d["frames"] / duration_s,
+                "cpu_saved_us_per_frame": saved_us[kind],
+                "cpu_saved_us_per_s": d["frames"] / duration_s * saved_us[kind],
+                "max_abs_diff_n": d["max_abs_n"],
+                "frames_with_other_cells": d["cells_differ"],
+                "max_servo_counts_diff": d["max_counts"],
+            }
+        )
+    control_cycles = duration_s * scene.operator.renderer.control_rate_hz
+    return {
+        "scene": scene_name,
+        "frames": len(frames),
+        "duration_s": duration_s,
+        "rate_hz": rate_hz,
+        "publish_rate_hz": config.publish_rate_hz,
+        "deadband_n": render.deadband_n,
+        "render_mode": render.mode,
+        "stimuli_sent": len(sent) - keyframes,
+        "keyframes_sent": keyframes,
+        "inferences": node.counters["inferences"],
+        "rows": rows,
+        "operator_ik_skipped_per_s": max(0.0, control_cycles - len(sent)) / duration_s,
+        "operator_ik_saved_us_per_s": max(0.0, control_cycles - len(sent))
+        / duration_s
+        * m.get("ik_3_linkages", 0.0),
+        "counters": {k: int(v) for k, v in node.counters.items()},
+    }

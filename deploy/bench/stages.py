@@ -1,0 +1,305 @@
+"""The latency budget: each stage of the loop, and the loop end to end in one process.
+
+Stages are timed inline, one frame at a time through the whole chain, so
+each stage runs with the caches the previous one left (as in the nodes),
+not in a hot loop of its own. Every stage calls the code the nodes call:
+the serial driver's parser and frame code, the classifier, the rendering
+functions, the codec, ZeroMQ, the LinkGlide renderer and scservo_sdk's
+sync-write builder.
+
+End to end runs the nodes' own methods (``RobotNode.process`` and
+``OperatorNode.receive`` / ``control_step``) over ZeroMQ's inproc transport,
+from the bytes of a scan to the bytes of the servo packet.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+import zmq
+
+from common.clock import now_ns
+from common.codec import decode, encode
+from common.messages import Stimulus
+from common.patterns import MASKS_F32, pattern_of
+from common.transport import Publisher, Subscriber
+from deploy.bench.fixtures import (
+    PacketBuilder,
+    PacketServoBus,
+    frame_set,
+    scan_bytes,
+    serial_sensor,
+)
+from deploy.bench.timing import summarize_ns
+from operator_side.config import OperatorConfig
+from operator_side.node import OperatorNode
+from operator_side.renderer import LinkGlideRenderer
+from operator_side.servos.calibration import LinkGlideCalibration
+from robot_side.config import RobotConfig
+from robot_side.node import RobotNode
+from robot_side.rendering import (
+    contact_map,
+    downsize,
+    is_contact,
+    peak_per_row,
+    sanitize_frame,
+)
+
+log = logging.getLogger(__name__)
+
+#: stage name -> what it covers, in loop order
+STAGES: dict[str, str] = {
+    "wire_decode": "serial bytes of one scan (2 packets, 424 B) -> 2 pad packets: "
+    "StreamParser.feed (sync search, header, CRC)",
+    "calibration": "pairing the pads, counts -> newtons, floor, saturation, mirror: "
+    "SerialTactileSensor._on_packet / _on_frame",
+    "sanitize_contact": "sanitize_frame + is_contact (the node's prelude)",
+    "classification": "predict_proba on one frame + argmax + pattern (shipped model, "
+    "default backend)",
+    "downsizing": "contact map (mean of pads) + 10x10 -> 3x3 (default method)",
+    "masking": "mask and peak per row (default order)",
+    "encode": "Stimulus -> topic + msgpack (common.codec.encode)",
+    "zmq_transit_tcp": "PUB.send -> SUB.recv over loopback TCP, one process",
+    "decode": "bytes -> validated Stimulus (common.codec.decode)",
+    "ik_3_linkages": "stimulus -> 3 contact points -> closed-form IK "
+    "(LinkGlideRenderer.target_angles)",
+    "counts_rate_limit": "angles -> servo counts (calibration, clip) + rate limit (step)",
+    "servo_packet": "limits check + scservo_sdk GroupSyncWrite of 6 goals -> packet bytes",
+}
+
+
+def _pair(ctx: zmq.Context, endpoint: str) -> tuple[zmq.Socket, zmq.Socket]:
+    """A PUB/SUB pair that has passed the slow-joiner window."""
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    pub.bind(endpoint)
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    sub.connect(pub.getsockopt(zmq.LAST_ENDPOINT).decode())
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline:
+        pub.send(b"ping")
+        if sub.poll(10):
+            sub.recv()
+            break
+    else:
+        raise RuntimeError(f"ZeroMQ pair on {endpoint} never connected")
+    while sub.poll(20):  # drop the extra pings
+        sub.recv()
+    return pub, sub
+
+
+def stage_budget(n_frames: int, classifier: Any, seed: int = 1) -> dict[str, Any]:
+    """Median and p99 of every stage over ``n_frames`` frames of every pattern and level."""
+    fs = frame_set(max(1, -(-n_frames // (12 * 31))), seed=seed)
+    n = min(n_frames, len(fs))
+    order = np.random.default_rng(seed).permutation(len(fs))[:n]
+    warm = min(200, n)
+    scans = [scan_bytes(fs.frames[k], seq) for seq, k in enumerate(np.r_[order[:warm], order])]
+    cfg = RobotConfig()
+    method, mask_first = cfg.render.method, cfg.render.order == "mask_then_peak"
+    sensor = serial_sensor()
+    parser = sensor._parser
+    calibration = LinkGlideCalibration()
+    renderer = LinkGlideRenderer(OperatorConfig().renderer, calibration)
+    builder = PacketBuilder(calibration)
+    ids = [int(i) for i in calibration.ids]
+    ctx = zmq.Context()
+    pub, sub = _pair(ctx, "tcp://127.0.0.1:*")
+    times = {name: np.empty(n, dtype=np.int64) for name in STAGES}
+    total = np.empty(n, dtype=np.int64)
+    current = renderer.retract_counts.copy()
+    clock = time.perf_counter_ns
+    try:
+        for j, data in enumerate(scans):
+            i = j - warm
+            t0 = clock()
+            packets = parser.feed(data)
+            t1 = clock()
+            t_cap = now_ns()
+            for packet in packets:
+                sensor._on_packet(packet, t_cap)
+            sample = sensor.latest()
+            t2 = clock()
+            frame = sanitize_frame(sample.frame)
+            contact = is_contact(frame)
+            t3 = clock()
+            pa, pp = classifier.predict_proba(frame[None])
+            a, p = int(pa[0].argmax()), int(pp[0].argmax())
+            pattern = pattern_of(a, p)
+            confidence = float(np.clip(pa[0, a] * pp[0, p], 0.0, 1.0))
+            t4 = clock()
+            small = downsize(contact_map(frame), method)
+            t5 = clock()
+            mask = MASKS_F32[pattern]
+            stim = peak_per_row(small * mask) if mask_first else peak_per_row(small) * mask
+            t6 = clock()
+            wire = encode(
+                Stimulus(
+                    seq=i + warm + 1,
+                    t_send_ns=now_ns(),
+                    t_capture_ns=sample.t_capture_ns,
+                    frame_seq=sample.seq,
+                    mode="mask",
+                    contact=contact,
+                    stimulus=stim,
+                    pattern=pattern,
+                    confidence=confidence,
+                )
+            )
+            t7 = clock()
+            pub.send(wire)
+            got = sub.recv()
+            t8 = clock()
+            msg = decode(got)
+            t9 = clock()
+            angles = renderer.target_angles(msg.stimulus)
+            t10 = clock()
+            goal = calibration.angles_to_counts(angles)
+            nxt = renderer.step(current, goal, 1.0)
+            t11 = clock()
+            builder.build({sid: int(c) for sid, c in zip(ids, nxt, strict=True)})
+            t12 = clock()
+            current = renderer.retract_counts if i % 2 else nxt  # keep the steps non-trivial
+            if i < 0:
+                continue
+            marks = (t0, t1, t2, t3, t4, t5, t6, t7, t8, t9, t10, t11, t12)
+            for k, name in enumerate(STAGES):
+                times[name][i] = marks[k + 1] - marks[k]
+            total[i] = t12 - t0
+    finally:
+        pub.close(0)
+        sub.close(0)
+        ctx.term()
+    stages = {name: summarize_ns(times[name]).as_dict() for name in STAGES}
+    for name, what in STAGES.items():
+        stages[name]["what"] = what
+    transit = transit_times(max(200, n // 4))
+    return {
+        "frames": n,
+        "classifier_backend": getattr(classifier, "backend", "?"),
+        "method": method,
+        "order": cfg.render.order,
+        "stages": stages,
+        "sum_of_stage_medians_us": float(sum(s["median_us"] for s in stages.values())),
+        "instrumented_total": summarize_ns(total).as_dict(),
+        "transit": transit,
+    }
+
+
+def transit_times(n: int) -> dict[str, Any]:
+    """One-way PUB -> SUB time of a stimulus-sized message per transport, one process."""
+    msg = b"STIM" + bytes(200)
+    out: dict[str, Any] = {}
+    for name, endpoint in (
+        ("inproc", "inproc://bench-transit"),
+        ("ipc", "ipc:///tmp/deepxpalm-bench-transit.sock"),
+        ("tcp_loopback", "tcp://127.0.0.1:*"),
+    ):
+        ctx = zmq.Context()
+        try:
+            pub, sub = _pair(ctx, endpoint)
+        except zmq.ZMQError as e:  # ipc may be unavailable in a sandbox
+            out[name] = {"error": str(e)}
+            ctx.term()
+            continue
+        clock = time.perf_counter_ns
+        samples = np.empty(n, dtype=np.int64)
+        try:
+            for i in range(-50, n):
+                t = clock()
+                pub.send(msg)
+                sub.recv()
+                if i >= 0:
+                    samples[i] = clock() - t
+        finally:
+            pub.close(0)
+            sub.close(0)
+            ctx.term()
+        out[name] = summarize_ns(samples).as_dict()
+    return out
+
+
+class InprocLoop:
+    """Both nodes in one process on ZeroMQ's inproc transport, driven frame by frame.
+
+    Each frame is forced all the way to a servo packet (the robot forgets
+    its last stimulus, the operator its last write), so every sample is the
+    path of a frame that changes what the palm feels; frames whose output
+    does not change stop earlier and cost less (see the skipping section).
+    """
+
+    def __init__(self, classifier: Any, endpoint: str = "inproc://bench-e2e") -> None:
+        self.ctx = zmq.Context()
+        self.sensor = serial_sensor()
+        self.robot = RobotNode(RobotConfig(), self.sensor, classifier=classifier, ctx=self.ctx)
+        self.robot.pub = Publisher(self.ctx, endpoint, bind=True)
+        self.bus = PacketServoBus()
+        self.bus.connect()
+        self.operator = OperatorNode(OperatorConfig(), self.bus, ctx=self.ctx)
+        self.operator.sub = Subscriber(self.ctx, endpoint, bind=False, name="bench operator")
+        self.period_ns = round(1e9 / OperatorConfig().renderer.control_rate_hz)
+        self._join()
+
+    def _join(self) -> None:
+        sock = self.operator.sub.sock
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            self.robot.pub.send_raw(b"HBRT")  # rejected by the codec: harmless, counted
+            if sock.poll(10):
+                break
+        while sock.poll(10):
+            sock.recv()
+
+    def step(self, scan: bytes) -> int:
+        """One scan through both nodes; returns nanoseconds from bytes to packet, or -1."""
+        robot, op = self.robot, self.operator
+        robot._last_stimulus = None
+        robot._last_frame = None
+        op._written = None
+        writes = self.bus.writes
+        t0 = now_ns()
+        for packet in self.sensor._parser.feed(scan):
+            self.sensor._on_packet(packet, t0)
+        robot.process(self.sensor.latest())
+        op.receive()
+        op.control_step(now_ns(), self.period_ns)
+        if self.bus.writes == writes:
+            return -1
+        return self.bus.last_write_ns - t0
+
+    def close(self) -> None:
+        self.robot.pub.close()
+        self.operator.sub.close()
+        self.ctx.term()
+
+
+def end_to_end_inproc(n_frames: int, classifier: Any, seed: int = 2) -> dict[str, Any]:
+    """Frame bytes to servo packet through both nodes' code in one process."""
+    fs = frame_set(max(1, -(-n_frames // (12 * 31))), seed=seed)
+    n = min(n_frames, len(fs))
+    order = np.random.default_rng(seed).permutation(len(fs))[:n]
+    warm = min(200, n)
+    scans = [scan_bytes(fs.frames[k], seq) for seq, k in enumerate(np.r_[order[:warm], order])]
+    loop = InprocLoop(classifier)
+    samples = []
+    missing = 0
+    try:
+        for i, scan in enumerate(scans):
+            dt = loop.step(scan)
+            if i < warm:
+                continue
+            if dt < 0:
+                missing += 1
+            else:
+                samples.append(dt)
+    finally:
+        loop.close()
+    s = summarize_ns(samples).as_dict()
+    s["frames_without_packet"] = missing
+    s["transport"] = "inproc"
+    return s

@@ -1,0 +1,261 @@
+"""Numerical stress: nothing non-finite, nothing out of range, no jump, whatever comes in.
+
+Three sweeps, each counting the outputs that are not finite (the goal is
+zero) and the worst case of what must stay bounded:
+
+- IK over a dense grid of the workspace and a thin shell inside its edge:
+  angles and servo counts, and the largest round-trip error;
+- random stimuli through the LinkGlideRenderer, with extreme, negative and
+  non-finite values mixed in (the codec refuses them on the wire, but the
+  renderer is the last line before the servos and must not need it): goal
+  counts inside the calibrated limits, and the largest step per cycle;
+- frames at the sensor floor, at saturation and beyond, and with
+  non-finite taxels, through every rendering method and order and through
+  the classifier: stimuli finite, within 0..9 N, at most one cell per row,
+  and accepted by the wire codec.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from common.codec import DecodeError, decode, encode
+from common.messages import Stimulus
+from deploy.bench.ik import edge_shell, reachable_mask, round_trip_mm, workspace_grid
+from operator_side.linkglide import DEFAULT_GEOMETRY, inverse_kinematics, inverse_kinematics_one
+from operator_side.renderer import LinkGlideRenderer, RendererConfig
+from operator_side.servos.calibration import COUNTS_PER_RAD, LinkGlideCalibration
+from robot_side.rendering import METHODS, ORDERS, render_stimulus
+
+log = logging.getLogger(__name__)
+
+EXTREMES = np.array(
+    [
+        0.0,
+        -0.0,
+        1e-45,
+        1e-38,
+        0.5,
+        0.999,
+        1.0,
+        1.0001,
+        8.999,
+        9.0,
+        9.0001,
+        1e6,
+        3.4e38,
+        -1.0,
+        -3.4e38,
+        np.nan,
+        np.inf,
+        -np.inf,
+    ],
+    dtype=np.float64,
+)
+
+
+def ik_stress(grid_step_mm: float, shell_points: int, seed: int = 6) -> dict[str, Any]:
+    """Closed-form IK (vector and scalar) and counts over the grid and the edge shell."""
+    g = DEFAULT_GEOMETRY
+    cal = LinkGlideCalibration()
+    grid = workspace_grid(grid_step_mm, g)
+    inside, _ = edge_shell(grid_step_mm, shell_points, seed, g)
+    shell = inside.reshape(-1, 2)
+    shell = shell[reachable_mask(shell, g)]
+    out: dict[str, Any] = {"grid_step_mm": grid_step_mm}
+    for name, pts in (("grid", grid), ("shell", shell)):
+        ang = inverse_kinematics(pts, g)
+        err = round_trip_mm(pts, ang)
+        blocks = ang[: (len(ang) // 3) * 3].reshape(-1, 3, 2)  # three linkages per call
+        nonfinite_counts = 0
+        for block in blocks[:: max(1, len(blocks) // 20000)]:
+            c = cal.angles_to_counts(block)
+            nonfinite_counts += int(not np.all(np.isfinite(c)))
+        sub = pts[:: max(1, len(pts) // 20000)]
+        scalar = np.array([inverse_kinematics_one(float(x), float(y), g) for x, y in sub])
+        out[name] = {
+            "points": len(pts),
+            "nonfinite_angles": int((~np.isfinite(ang)).any(axis=1).sum()),
+            "nonfinite_angles_scalar": int((~np.isfinite(scalar)).any(axis=1).sum()),
+            "scalar_points": len(sub),
+            "scalar_vs_vector_max_rad": float(
+                np.abs(
+                    np.pi - np.mod(np.pi - (scalar - inverse_kinematics(sub, g)), 2 * np.pi)
+                ).max()
+            ),
+            "nonfinite_counts": nonfinite_counts,
+            "fk_refused": int(np.isnan(err).sum()),
+            "max_round_trip_mm": float(np.nanmax(err)),
+        }
+    return out
+
+
+def _random_stimuli(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Half drawn from EXTREMES cell by cell, half plausible values with extremes sprinkled in."""
+    a = rng.choice(EXTREMES, size=(n // 2, 3, 3))
+    b = rng.uniform(-2.0, 12.0, size=(n - n // 2, 3, 3))
+    spots = rng.random(b.shape) < 0.1
+    b[spots] = rng.choice(EXTREMES, size=int(spots.sum()))
+    out = np.concatenate([a, b])
+    return out[rng.permutation(len(out))]
+
+
+def renderer_stress(n: int, seed: int = 7) -> dict[str, Any]:
+    """Random stimuli, one per control cycle, through target_counts and the rate limiter."""
+    cal = LinkGlideCalibration()
+    renderer = LinkGlideRenderer(RendererConfig(), cal)
+    rng = np.random.default_rng(seed)
+    stimuli = _random_stimuli(n, rng)
+    current = renderer.retract_counts.copy()
+    nonfinite = out_of_limits = raised = 0
+    largest_step = 0
+    largest_target_jump = 0
+    last_target = current
+    for stim in stimuli:
+        with np.errstate(invalid="ignore", over="ignore"):
+            try:
+                target = renderer.target_counts(stim)
+            except Exception as e:  # any exception here would stop the operator node
+                raised += 1
+                log.error("renderer raised on %s: %s", stim.tolist(), e)
+                continue
+        nxt = renderer.step(current, target, 1.0)
+        nonfinite += int(not np.all(np.isfinite(target)) or not np.all(np.isfinite(nxt)))
+        out_of_limits += int(not cal.within_limits(target) or not cal.within_limits(nxt))
+        largest_step = max(largest_step, int(np.abs(nxt - current).max()))
+        largest_target_jump = max(largest_target_jump, int(np.abs(target - last_target).max()))
+        current, last_target = nxt, target
+    return {
+        "stimuli": len(stimuli),
+        "nonfinite_outputs": nonfinite,
+        "out_of_limits": out_of_limits,
+        "exceptions": raised,
+        "largest_step_counts": largest_step,
+        "largest_step_deg": largest_step / COUNTS_PER_RAD * 180 / np.pi,
+        "max_step_counts_allowed": renderer.max_step_counts,
+        "largest_target_jump_counts": largest_target_jump,
+    }
+
+
+def _stress_frames(rng: np.random.Generator, n_random: int) -> dict[str, np.ndarray]:
+    shape = (2, 10, 10)
+    frames: dict[str, np.ndarray] = {
+        "zeros": np.zeros(shape),
+        "just_below_floor": np.full(shape, 0.999),
+        "at_floor": np.full(shape, 1.0),
+        "at_saturation": np.full(shape, 9.0),
+        "above_saturation": np.full(shape, 9.0001),
+        "huge": np.full(shape, 3.4e38),
+        "all_nan": np.full(shape, np.nan),
+        "all_inf": np.full(shape, np.inf),
+        "all_neg_inf": np.full(shape, -np.inf),
+        "negative": np.full(shape, -5.0),
+    }
+    band = np.zeros(shape)
+    band[:, 4:6, :] = 9.0
+    frames["saturated_row_band"] = band
+    col = np.zeros(shape)
+    col[:, :, 3] = 1.0
+    frames["floor_column_band"] = col
+    checker = np.where(np.indices(shape).sum(axis=0) % 2 == 0, 9.0, 0.0)
+    frames["checkerboard_saturated"] = checker
+    nan_band = band.copy()
+    nan_band[0, 5, 5] = np.nan
+    frames["saturated_band_with_nan"] = nan_band
+    for k in range(n_random):
+        f = rng.choice(EXTREMES, size=shape)
+        frames[f"random_extreme_{k}"] = f
+    return frames
+
+
+def rendering_stress(classifier: Any, n_random: int, seed: int = 8) -> dict[str, Any]:
+    """Extreme frames through every method, order and mask; and through the classifier."""
+    rng = np.random.default_rng(seed)
+    frames = _stress_frames(rng, n_random)
+    checked = nonfinite = out_of_range = two_in_row = codec_refused = raised = 0
+    clf_nonfinite = clf_raised = 0
+    for name, frame in frames.items():
+        f32 = frame.astype(np.float32)
+        for method in METHODS:
+            for order in ORDERS:
+                for pattern in (None, *range(12)):
+                    checked += 1
+                    try:
+                        with np.errstate(invalid="ignore", over="ignore"):
+                            s = render_stimulus(f32, pattern, method=method, order=order)
+                    except Exception as e:
+                        raised += 1
+                        log.error("render_stimulus raised on %s: %s", name, e)
+                        continue
+                    if not np.all(np.isfinite(s)):
+                        nonfinite += 1
+                        continue
+                    out_of_range += int(s.min() < 0 or s.max() > 9.0)
+                    two_in_row += int(((s > 0).sum(axis=1) > 1).any())
+                    msg = Stimulus(
+                        seq=1,
+                        t_send_ns=1,
+                        t_capture_ns=1,
+                        frame_seq=1,
+                        mode="mask",
+                        contact=bool(s.max() > 0),
+                        stimulus=s,
+                        pattern=pattern,
+                    )
+                    try:
+                        decode(encode(msg))
+                    except DecodeError:
+                        codec_refused += 1
+        if classifier is not None:
+            from robot_side.rendering import sanitize_frame
+
+            try:
+                pa, pp = classifier.predict_proba(sanitize_frame(f32)[None])
+                clf_nonfinite += int(not (np.all(np.isfinite(pa)) and np.all(np.isfinite(pp))))
+            except Exception as e:
+                clf_raised += 1
+                log.error("classifier raised on %s: %s", name, e)
+    return {
+        "frames": len(frames),
+        "renders_checked": checked,
+        "nonfinite_outputs": nonfinite,
+        "out_of_range": out_of_range,
+        "more_than_one_cell_in_a_row": two_in_row,
+        "refused_by_codec": codec_refused,
+        "exceptions": raised,
+        "classifier_nonfinite": clf_nonfinite,
+        "classifier_exceptions": clf_raised,
+        "named_frames": [k for k in frames if not k.startswith("random_extreme_")],
+    }
+
+
+def stress(
+    classifier: Any, grid_step_mm: float, shell_points: int, n_stimuli: int, n_frames: int
+) -> dict[str, Any]:
+    ik = ik_stress(grid_step_mm, shell_points)
+    rend = renderer_stress(n_stimuli)
+    frames = rendering_stress(classifier, n_frames)
+    total_nonfinite = (
+        ik["grid"]["nonfinite_angles"]
+        + ik["grid"]["nonfinite_angles_scalar"]
+        + ik["grid"]["nonfinite_counts"]
+        + ik["shell"]["nonfinite_angles"]
+        + ik["shell"]["nonfinite_angles_scalar"]
+        + ik["shell"]["nonfinite_counts"]
+        + rend["nonfinite_outputs"]
+        + frames["nonfinite_outputs"]
+        + frames["classifier_nonfinite"]
+    )
+    return {
+        "ik": ik,
+        "renderer": rend,
+        "rendering": frames,
+        "total_nonfinite_outputs": total_nonfinite,
+        "largest_round_trip_mm": max(
+            ik["grid"]["max_round_trip_mm"], ik["shell"]["max_round_trip_mm"]
+        ),
+        "largest_servo_step_counts": rend["largest_step_counts"],
+    }

@@ -1,0 +1,183 @@
+"""Pinning, timers and summaries shared by every benchmark section.
+
+Medians and 99th percentiles of many short repetitions, not means: the
+machine is shared, and a mean would be dominated by the few calls that were
+preempted. The timer is ``perf_counter_ns`` (monotonic, about 50-100 ns per
+read), which is why stages shorter than a microsecond are timed in batches.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: environment that keeps BLAS and OpenMP pools at one thread; must be set
+#: before numpy (or torch) is first imported to take effect
+THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+}
+
+
+#: thread variables this process set itself (not the user): child processes
+#: that must run as deployed get them removed again
+SET_BY_BENCH: list[str] = []
+_original_affinity: set[int] | None = None
+
+
+def limit_thread_pools() -> None:
+    """Set THREAD_ENV where the user has not; call before numpy is imported."""
+    for key, value in THREAD_ENV.items():
+        if key not in os.environ:
+            os.environ[key] = value
+            SET_BY_BENCH.append(key)
+
+
+def deployed_env() -> dict[str, str]:
+    """This process's environment without the thread limits the bench added."""
+    return {k: v for k, v in os.environ.items() if k not in SET_BY_BENCH}
+
+
+def pin_to_core(cpu: int | None) -> int:
+    """Pin this process to one core and return it; None picks the last allowed core.
+
+    The last core is chosen by default because interactive shells and most
+    daemons start on core 0; on a shared machine that is only a heuristic.
+    """
+    global _original_affinity
+    allowed = sorted(os.sched_getaffinity(0))
+    if _original_affinity is None:
+        _original_affinity = set(allowed)
+    core = allowed[-1] if cpu is None else cpu
+    os.sched_setaffinity(0, {core})
+    return core
+
+
+def original_affinity() -> set[int]:
+    """The cores this process could use before pin_to_core."""
+    return set(_original_affinity or os.sched_getaffinity(0))
+
+
+@contextlib.contextmanager
+def one_core(cpu: int | None) -> Iterator[int]:
+    """Pinned to one core for the block; affinity and torch's threads restored after.
+
+    Restoring matters when the bench runs inside another process (a test
+    session), whose later work must not inherit one core.
+    """
+    before = os.sched_getaffinity(0)
+    torch = sys.modules.get("torch")
+    torch_threads = torch.get_num_threads() if torch is not None else None
+    try:
+        yield pin_to_core(cpu)
+    finally:
+        os.sched_setaffinity(0, before)
+        if torch_threads is not None:
+            torch.set_num_threads(torch_threads)
+
+
+def limit_torch_threads() -> None:
+    """One intra-op thread in torch, if torch is already loaded (never import it here)."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Microseconds."""
+
+    n: int
+    median_us: float
+    p90_us: float
+    p99_us: float
+    max_us: float
+    mean_us: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "n": self.n,
+            "median_us": self.median_us,
+            "p90_us": self.p90_us,
+            "p99_us": self.p99_us,
+            "max_us": self.max_us,
+            "mean_us": self.mean_us,
+        }
+
+
+def summarize_ns(samples_ns: np.ndarray | list[int]) -> Summary:
+    """Median, p90, p99, max and mean of samples in nanoseconds, as microseconds."""
+    a = np.asarray(samples_ns, dtype=np.float64) / 1e3
+    if a.size == 0:
+        nan = float("nan")
+        return Summary(0, nan, nan, nan, nan, nan)
+    p50, p90, p99 = np.percentile(a, [50, 90, 99])
+    return Summary(int(a.size), float(p50), float(p90), float(p99), float(a.max()), float(a.mean()))
+
+
+def time_calls(fn: Callable[[int], Any], n: int, warmup: int = 100, batch: int = 1) -> np.ndarray:
+    """Nanoseconds per call of ``fn(i)`` for i in range(n), each sample a batch of calls.
+
+    ``batch`` > 1 divides one timer reading over several calls, for stages
+    so short that the timer itself would dominate; the p99 of batched
+    samples is then an underestimate of a single call's tail.
+    """
+    for i in range(warmup):
+        fn(i)
+    clock = time.perf_counter_ns
+    out = np.empty(n, dtype=np.int64)
+    if batch == 1:
+        for i in range(n):
+            t = clock()
+            fn(i)
+            out[i] = clock() - t
+        return out
+    for i in range(n):
+        t = clock()
+        for j in range(batch):
+            fn(i * batch + j)
+        out[i] = (clock() - t) // batch
+    return out
+
+
+def timer_overhead_ns(n: int = 10000) -> float:
+    """Median cost of one pair of timer reads, to state next to sub-microsecond stages."""
+    clock = time.perf_counter_ns
+    out = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        t = clock()
+        out[i] = clock() - t
+    return float(np.median(out))
+
+
+def process_cpu_s(pid: int) -> float:
+    """utime + stime of a process (all its threads) in seconds, from /proc."""
+    with open(f"/proc/{pid}/stat", "rb") as f:
+        raw = f.read().decode()
+    # the command name may hold spaces and parentheses: split after the last ')'
+    fields = raw[raw.rindex(")") + 2 :].split()
+    ticks = int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15)
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def machine_load() -> dict[str, Any]:
+    """Load averages and core count, to print beside every number taken on a shared machine."""
+    one, five, fifteen = os.getloadavg()
+    return {
+        "loadavg_1m": round(one, 2),
+        "loadavg_5m": round(five, 2),
+        "loadavg_15m": round(fifteen, 2),
+        "cpu_count": os.cpu_count(),
+    }
