@@ -494,6 +494,8 @@ def _check_keys(report: Report, role: str, security: Any, options: DoctorOptions
             )
             return
         try:
+            if not Path(path).exists():  # pyzmq says "Invalid certificate file" for this too
+                raise FileNotFoundError(path)
             public = _load_public(Path(path))
         except FileNotFoundError:
             report.add(

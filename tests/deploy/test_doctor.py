@@ -329,3 +329,14 @@ def test_a_scene_for_both_machines_needs_a_role(role):
     )
     assert out.returncode == 1
     assert "--role" in json.loads(out.stdout)["checks"][0]["detail"]
+
+
+def test_missing_robot_public_key_says_where_to_copy_it_from(keys, tmp_path):
+    tel, cmd = free_ports(2)
+    missing = tmp_path / "robot.key"
+    security = _curve_operator(keys, server_key=missing)
+    check = diagnose("operator", {"link": _link(tel, cmd, security)}, "t", NO_PEER).find(
+        "keys: robot public"
+    )
+    assert check.status == FAIL and check.detail == f"{missing} does not exist"
+    assert "robot PC" in check.fix
