@@ -57,9 +57,18 @@ def _wait_line(proc: subprocess.Popen, want: str, timeout_s: float, tick: Any = 
 
 
 def end_to_end_tcp(
-    n_frames: int, rate_hz: float, classifier: Any, cpu: int | None, seed: int = 3
+    n_frames: int,
+    rate_hz: float,
+    classifier: Any,
+    cpu: int | None,
+    seed: int = 3,
+    peer_cpu: int | None = None,
 ) -> dict[str, Any]:
-    """Median and p99 from scan bytes (this process) to servo packet (the child)."""
+    """Median and p99 from scan bytes (this process) to servo packet (the child).
+
+    The child is pinned to ``peer_cpu`` (default: ``cpu``, this process's core).
+    """
+    peer_cpu = cpu if peer_cpu is None else peer_cpu
     import zmq
 
     from common.transport import Publisher
@@ -86,8 +95,8 @@ def end_to_end_tcp(
         "--out",
         str(out_path),
     ]
-    if cpu is not None:
-        cmd += ["--cpu", str(cpu)]
+    if peer_cpu is not None:
+        cmd += ["--cpu", str(peer_cpu)]
     env = {**os.environ, **THREAD_ENV}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, env=env)
     seq = [0]
@@ -133,7 +142,8 @@ def end_to_end_tcp(
     s["sent"] = n_frames
     s["rate_hz"] = rate_hz
     s["transport"] = "tcp loopback, two processes"
-    s["pinned_core"] = cpu
+    s["robot_core"] = cpu
+    s["operator_core"] = peer_cpu
     return s
 
 

@@ -34,9 +34,21 @@ import numpy as np
 from common.clock import Rate
 from common.config import config_toml
 from deploy.bench.fixtures import scan_bytes
-from deploy.bench.timing import deployed_env, original_affinity, process_cpu_s
+from deploy.bench.timing import deployed_env, original_affinity, process_cpu_s, thread_cpu_s
 
 log = logging.getLogger(__name__)
+
+#: robot counters whose rate inside the measured window the report gives
+WINDOW_COUNTERS = (
+    "frames_captured",
+    "frames_superseded",
+    "frames_processed",
+    "frames_skipped_rate",
+    "frames_no_contact",
+    "inferences",
+    "stimuli_published",
+    "stimuli_unchanged",
+)
 
 
 class PtyFeeder:
@@ -130,31 +142,51 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait()
 
 
-def _wait_for_stimuli(endpoint: str, robot: subprocess.Popen, timeout_s: float) -> None:
-    """Block until the robot publishes a stimulus: imports and model load are behind it.
+class RobotWatch:
+    """Listens to the robot's telemetry: when it starts rendering, and its counters.
 
     A fixed warm-up is not enough on a loaded machine, where starting the
     node can take many seconds; measuring a node still importing would
-    report the import, not the loop.
+    report the import, not the loop. The robot's heartbeats carry its
+    counters, so the frames it handled inside the measured window are known.
     """
-    import zmq
 
-    ctx = zmq.Context()
-    sub = ctx.socket(zmq.SUB)
-    sub.setsockopt(zmq.LINGER, 0)
-    sub.setsockopt(zmq.SUBSCRIBE, b"STIM")
-    sub.connect(endpoint)
-    deadline = time.monotonic() + timeout_s
-    try:
+    def __init__(self, endpoint: str) -> None:
+        import zmq
+
+        self._zmq = zmq
+        self.ctx = zmq.Context()
+        self.sub = self.ctx.socket(zmq.SUB)
+        self.sub.setsockopt(zmq.LINGER, 0)
+        self.sub.setsockopt(zmq.SUBSCRIBE, b"STIM")
+        self.sub.setsockopt(zmq.SUBSCRIBE, b"HBRT")
+        self.sub.connect(endpoint)
+        self.stats: dict[str, float] = {}
+
+    def wait_ready(self, robot: subprocess.Popen, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if robot.poll() is not None:
                 raise RuntimeError(f"robot node exited with {robot.returncode} while starting")
-            if sub.poll(200):
+            if self.sub.poll(200) and self.sub.recv().startswith(b"STIM"):
                 return
         raise RuntimeError(f"robot node published no stimulus within {timeout_s:.0f} s")
-    finally:
-        sub.close(0)
-        ctx.term()
+
+    def latest_stats(self) -> dict[str, float]:
+        from common.codec import DecodeError, decode
+
+        while True:
+            try:
+                data = self.sub.recv(self._zmq.NOBLOCK)
+            except self._zmq.Again:
+                return dict(self.stats)
+            if data.startswith(b"HBRT"):
+                with contextlib.suppress(DecodeError):
+                    self.stats = dict(decode(data).stats or {})
+
+    def close(self) -> None:
+        self.sub.close(0)
+        self.ctx.term()
 
 
 def run_nodes(
@@ -188,6 +220,7 @@ def run_nodes(
     (workdir / "robot.toml").write_text(config_toml(robot_cfg, "robot"))
     (workdir / "operator.toml").write_text(config_toml(op_cfg, "operator"))
     procs: dict[str, subprocess.Popen] = {}
+    watch: RobotWatch | None = None
     result: dict[str, Any] = {
         "rate_hz": rate_hz,
         "publish_rate_hz": publish_rate_hz,
@@ -216,7 +249,8 @@ def run_nodes(
                 ],
                 workdir / "operator.log",
             )
-        _wait_for_stimuli(tel, procs["robot"], timeout_s=120.0)
+        watch = RobotWatch(tel)
+        watch.wait_ready(procs["robot"], timeout_s=120.0)
         time.sleep(warmup_s)
         for name, proc in procs.items():
             if proc.poll() is not None:
@@ -224,16 +258,31 @@ def run_nodes(
                 raise RuntimeError(f"{name} node exited with {proc.returncode}: {tail}")
         t0 = time.monotonic()
         cpu0 = {name: process_cpu_s(p.pid) for name, p in procs.items()}
+        threads0 = {name: thread_cpu_s(p.pid) for name, p in procs.items()}
         scans0 = feeder.scans
+        stats0 = watch.latest_stats()
         time.sleep(measure_s)
+        stats1 = watch.latest_stats()
         cpu1 = {name: process_cpu_s(p.pid) for name, p in procs.items()}
+        threads1 = {name: thread_cpu_s(p.pid) for name, p in procs.items()}
         wall = time.monotonic() - t0
         scans = feeder.scans - scans0
         for name in procs:
             result[f"{name}_cpu_percent"] = 100.0 * (cpu1[name] - cpu0[name]) / wall
+            per_thread = {
+                k: 100.0 * (v - threads0[name].get(k, 0.0)) / wall
+                for k, v in threads1[name].items()
+            }
+            busiest = sorted(per_thread.items(), key=lambda kv: -kv[1])
+            result[f"{name}_threads_percent"] = {k: round(v, 2) for k, v in busiest if v > 0}
         result["scans_per_s"] = scans / wall
+        result["robot_window_per_s"] = {
+            k: (v - stats0.get(k, 0.0)) / wall for k, v in stats1.items() if k in WINDOW_COUNTERS
+        }
         result["feeder_overflow_bytes"] = feeder.overflow_bytes
     finally:
+        if watch is not None:
+            watch.close()
         for proc in procs.values():
             _stop(proc)
         feeder.stop()
@@ -243,6 +292,7 @@ def run_nodes(
             stats = json.loads(path.read_text())
             keep = (
                 "frames_captured",
+                "frames_superseded",
                 "frames_processed",
                 "frames_skipped_rate",
                 "frames_no_contact",

@@ -119,7 +119,13 @@ def _measure(
     def tcp() -> dict[str, Any]:
         from deploy.bench.e2e_tcp import end_to_end_tcp
 
-        return end_to_end_tcp(sizes.tcp_frames, sizes.tcp_rate_hz, classifier, core)
+        out = end_to_end_tcp(sizes.tcp_frames, sizes.tcp_rate_hz, classifier, core)
+        others = sorted(timing.original_affinity() - {core})
+        if others:  # two machines in the field: the operator on a core of its own
+            out["operator_on_other_core"] = end_to_end_tcp(
+                sizes.tcp_frames, sizes.tcp_rate_hz, classifier, core, peer_cpu=others[0]
+            )
+        return out
 
     section("e2e_tcp", tcp)
 

@@ -88,6 +88,7 @@ def measured(
                         "cpu_percent": cpu,
                         "streams_per_core": int(100 // cpu) if cpu > 0 else None,
                         "scans_per_s": r["scans_per_s"],
+                        "window_per_s": r.get("robot_window_per_s", {}),
                         "stats": r.get("robot_stats", {}),
                     }
                 )

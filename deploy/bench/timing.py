@@ -172,6 +172,31 @@ def process_cpu_s(pid: int) -> float:
     return ticks / os.sysconf("SC_CLK_TCK")
 
 
+def thread_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds per thread of a process, keyed "main", or by the thread's OS name + id.
+
+    ZeroMQ names its I/O threads (ZMQbg/...); Python threads all carry the
+    interpreter's name, so they are told apart by id only.
+    """
+    out: dict[str, float] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat", "rb") as f:
+                raw = f.read().decode()
+        except OSError:
+            continue  # the thread ended
+        name = raw[raw.index("(") + 1 : raw.rindex(")")]
+        fields = raw[raw.rindex(")") + 2 :].split()
+        key = "main" if tid == str(pid) else f"{name}#{tid}"
+        out[key] = (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
 def machine_load() -> dict[str, Any]:
     """Load averages and core count, to print beside every number taken on a shared machine."""
     one, five, fifteen = os.getloadavg()
