@@ -32,6 +32,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "doctor": ("deploy.doctor", "check this machine before a session: config, devices, keys, peer"),
     "replay": ("deploy.replay", "check a recording against the pipeline, or publish it again"),
     "soak": ("deploy.soak", "run the demo for a long time on a bad link and report how it aged"),
+    "study": ("operator_side.study.cli", "run the palm perception study and analyse it"),
 }
 
 
