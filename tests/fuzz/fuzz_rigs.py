@@ -1,0 +1,472 @@
+"""Running nodes for the fuzz tests: each in a thread, on random loopback ports.
+
+A rig plays the node's peer over real ZeroMQ: a "good" socket keeps a
+valid stream going (what the node must keep serving) and an "evil" socket
+carries the fuzz. Sends are paced on the node's own receive counter, so no
+message is dropped at a high-water mark and every rejection can be
+accounted for exactly. The devices behind the robot node are the project's
+real safety layers (``Arm``, ``Gripper``) over in-memory drivers that keep
+what they were told.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import threading
+import time
+from typing import Any
+
+import msgpack
+import numpy as np
+import zmq
+from fuzz_mutate import produce
+
+from common.clock import now_ns
+from common.codec import decode, encode
+from common.messages import Command, Heartbeat, Stimulus
+from common.transport import last_endpoint
+from operator_side.config import OperatorConfig
+from operator_side.node import OperatorNode
+from operator_side.servos.recording import RecordingServoBus, RecordingServoBusConfig
+from robot_side.arm.base import Arm
+from robot_side.config import RobotConfig
+from robot_side.gripper.base import ActivationStatus, Gripper, GripperState, ObjectStatus
+from robot_side.node import RobotNode
+from robot_side.tactile.script import GraspScript, GraspStep
+from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
+
+BIG_HWM = 1_000_000
+
+
+def _pub(ctx: zmq.Context, endpoint: str, *, bind: bool) -> zmq.Socket:
+    s = ctx.socket(zmq.PUB)
+    s.setsockopt(zmq.LINGER, 0)
+    s.setsockopt(zmq.SNDHWM, BIG_HWM)
+    if bind:
+        s.bind(endpoint)
+    else:
+        s.connect(endpoint)
+    return s
+
+
+def _sub(ctx: zmq.Context, endpoint: str, *, bind: bool) -> zmq.Socket:
+    s = ctx.socket(zmq.SUB)
+    s.setsockopt(zmq.LINGER, 0)
+    s.setsockopt(zmq.SUBSCRIBE, b"")
+    if bind:
+        s.bind(endpoint)
+    else:
+        s.connect(endpoint)
+    return s
+
+
+def wait_for(cond, timeout_s: float, step_s: float = 0.002) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(step_s)
+    return bool(cond())
+
+
+# ------------------------------------------------------------ fake devices
+class FakeArm(Arm):
+    """The real ``Arm`` safety layer (clipping, deadman) over a driver that only records."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._connected = False
+        self.sent_jogs: list[np.ndarray] = []
+        self.stops = 0
+        self._lock_rec = threading.Lock()
+
+    def connect(self) -> None:
+        self._connected = True
+        self._start_deadman()
+
+    def disconnect(self) -> None:
+        self._stop_deadman()
+        self._connected = False
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def _read_tcp_pose(self) -> np.ndarray:
+        return np.array([0.0, 0.0, 0.3, 0.0, 3.14, 0.0])
+
+    def _read_joints(self) -> np.ndarray:
+        return np.zeros(6)
+
+    def _send_jog(self, velocity: np.ndarray) -> None:
+        with self._lock_rec:
+            self.sent_jogs.append(np.array(velocity, dtype=float))
+
+    def _send_move(self, pose: np.ndarray, speed: float) -> None:
+        raise AssertionError("nothing on the wire asks for a move")
+
+    def _move_finished(self) -> bool:
+        return True
+
+    def _send_stop(self) -> None:
+        self.stops += 1
+
+    def violations(self) -> list[str]:
+        """Every jog the driver was told must be finite and inside the speed caps."""
+        lim = self.limits
+        bad = []
+        with self._lock_rec:
+            jogs = list(self.sent_jogs)
+        for v in jogs:
+            if v.shape != (6,) or not np.isfinite(v).all():
+                bad.append(f"non-finite or misshapen jog {v!r}")
+            elif np.linalg.norm(v[:3]) > lim.max_linear_speed_m_s * (1 + 1e-9):
+                bad.append(f"jog over the linear cap: {v.tolist()}")
+            elif np.linalg.norm(v[3:]) > lim.max_angular_speed_rad_s * (1 + 1e-9):
+                bad.append(f"jog over the angular cap: {v.tolist()}")
+        return bad
+
+
+class FakeGripper(Gripper):
+    """The real ``Gripper`` checks over registers kept in memory; fingers arrive at once."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._connected = False
+        self._active = False
+        self._position = 0
+        self.commands: list[tuple[int, int, int, bool]] = []
+
+    def connect(self) -> None:
+        self._connected = True
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def _write_activate(self) -> None:
+        self._active = True
+
+    def _write_command(self, position: int, speed: int, force: int, go: bool) -> None:
+        self.commands.append((position, speed, force, go))
+        self._position = position
+
+    def _read_state(self) -> GripperState:
+        return GripperState(
+            activation=ActivationStatus.ACTIVE if self._active else 0,
+            goto=True,
+            object_status=ObjectStatus.AT_POSITION,
+            fault=0,
+            requested_position=self._position,
+            position=self._position,
+        )
+
+    def violations(self) -> list[str]:
+        bad = []
+        for cmd in list(self.commands):
+            for v in cmd[:3]:
+                if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 255:
+                    bad.append(f"gripper register value {v!r} in {cmd}")
+        return bad
+
+
+# ---------------------------------------------------------------- operator
+def stimulus_for(pattern: int, value: float = 4.0) -> np.ndarray:
+    from common.patterns import MASKS_F32
+
+    return (MASKS_F32[pattern] * np.float32(value)).astype(np.float32)
+
+
+class OperatorRig:
+    """An operator node whose "robot" is this test: good stimuli and heartbeats, plus fuzz."""
+
+    def __init__(self) -> None:
+        self.ctx = zmq.Context()
+        self.pub = _pub(self.ctx, "tcp://127.0.0.1:*", bind=True)  # the robot's telemetry PUB
+        self.cmd_sub = _sub(self.ctx, "tcp://127.0.0.1:*", bind=True)  # the robot's command SUB
+        oc = OperatorConfig()
+        oc.link.telemetry_endpoint = last_endpoint(self.pub)
+        oc.link.command_endpoint = last_endpoint(self.cmd_sub)
+        self.bus = RecordingServoBus(RecordingServoBusConfig(max_records=1_000_000))
+        self.node = OperatorNode(oc, self.bus)
+        self.stop = threading.Event()
+        self.error: list[BaseException] = []
+        self.thread = threading.Thread(target=self._run, name="fuzz-operator", daemon=True)
+        self.sent = 0
+        self.stim_seq = 0
+        self.hb_seq = 0
+        self.current: Stimulus | None = None
+        self._send_lock = threading.Lock()
+        self._beating = threading.Event()
+        self._beat_thread = threading.Thread(target=self._beat, name="fuzz-robot-hb", daemon=True)
+
+    def _run(self) -> None:
+        try:
+            self.node.run(self.stop)
+        except BaseException as e:  # reported by alive()
+            self.error.append(e)
+
+    def start(self) -> None:
+        self.thread.start()
+        assert wait_for(lambda: self.node.sub is not None, 5)
+        # the slow joiner: heartbeats until the node hears them
+        ok = wait_for(lambda: self._probe(), 5, step_s=0.02)
+        assert ok, "the operator node never received anything"
+        time.sleep(0.2)
+        self.sent = self.received()  # probes sent before the subscription arrived were lost
+        self._beat_thread.start()
+
+    def _beat(self) -> None:
+        """What a live robot does between changes: confirm the stimulus at 20 Hz."""
+        while not self._beating.wait(0.05):
+            self.heartbeat()
+
+    def _probe(self) -> bool:
+        self.heartbeat()
+        return self.received() > 0
+
+    def received(self) -> int:
+        sub = self.node.sub
+        return 0 if sub is None else sub.received
+
+    def rejected(self) -> int:
+        sub = self.node.sub
+        return 0 if sub is None else sub.rejected_total
+
+    def alive(self) -> bool:
+        return self.thread.is_alive() and not self.error
+
+    def send_raw(self, data: bytes) -> None:
+        with self._send_lock:  # the heartbeat thread shares the socket
+            self.pub.send(data)
+            self.sent += 1
+
+    def heartbeat(self) -> None:
+        self.hb_seq += 1
+        cur = self.current
+        now = now_ns()
+        self.send_raw(
+            encode(
+                Heartbeat(
+                    seq=self.hb_seq,
+                    t_send_ns=now,
+                    node="robot",
+                    state="ok",
+                    stimulus_seq=None if cur is None else cur.seq,
+                    t_capture_ns=None if cur is None else now,
+                )
+            )
+        )
+
+    def show(self, pattern: int | None) -> Stimulus:
+        """Send a new good stimulus: one pattern at 4 N, or nothing held."""
+        self.stim_seq += 1
+        now = now_ns()
+        stim = np.zeros((3, 3), np.float32) if pattern is None else stimulus_for(pattern)
+        msg = Stimulus(
+            seq=self.stim_seq,
+            t_send_ns=now,
+            t_capture_ns=now,
+            frame_seq=self.stim_seq,
+            mode="direct",
+            contact=pattern is not None,
+            stimulus=stim,
+        )
+        self.send_raw(encode(msg))
+        self.current = msg
+        return msg
+
+    def sync(self, timeout_s: float = 10.0) -> bool:
+        """Wait until the node has read everything sent so far."""
+        return wait_for(lambda: self.received() >= self.sent or not self.alive(), timeout_s)
+
+    def goal_reached(self, target: np.ndarray) -> bool:
+        last = self.node._written
+        return last is not None and np.array_equal(last, target)
+
+    def servo_violations(self) -> list[str]:
+        cal = self.bus.calibration
+        bad = []
+        if self.bus.status()["refused"]:
+            bad.append(f"the bus refused {self.bus.status()['refused']} writes")
+        lo = {s.id: s.min_counts for s in cal.servos}
+        hi = {s.id: s.max_counts for s in cal.servos}
+        for rec in self.bus.records:
+            for sid, c in rec.goals.items():
+                if isinstance(c, bool) or not isinstance(c, int) or not lo[sid] <= c <= hi[sid]:
+                    bad.append(f"servo {sid} goal {c!r}")
+        return bad
+
+    def close(self) -> None:
+        self._beating.set()
+        if self._beat_thread.is_alive():
+            self._beat_thread.join(timeout=2)
+        self.stop.set()
+        self.thread.join(timeout=10)
+        self.pub.close(0)
+        self.cmd_sub.close(0)
+        self.ctx.term()
+
+
+# ------------------------------------------------------------------ robot
+def _hold_script() -> GraspScript:
+    return GraspScript(
+        grasps=[
+            GraspStep(pattern=p, grip_level=20, ramp_s=0.2, hold_s=1.0, release_s=0.1, pause_s=0.2)
+            for p in (6, 3, 9, 0)
+        ],
+        loop=True,
+        start_delay_s=0.1,
+    )
+
+
+class RobotRig:
+    """A robot node with a scripted sensor and recording devices; this test is its operator."""
+
+    def __init__(self) -> None:
+        rc = RobotConfig()
+        rc.render.mode = "mask_ground_truth"
+        rc.link.telemetry_endpoint = "tcp://127.0.0.1:*"
+        rc.link.command_endpoint = "tcp://127.0.0.1:*"
+        self.arm = FakeArm()
+        self.gripper = FakeGripper()
+        sensor = ScriptedTactileSensor(ScriptedTactileConfig(script=_hold_script(), seed=11))
+        self.node = RobotNode(rc, sensor, gripper=self.gripper, arm=self.arm)
+        self.stop = threading.Event()
+        self.error: list[BaseException] = []
+        self.thread = threading.Thread(target=self._run, name="fuzz-robot", daemon=True)
+        self.ctx = zmq.Context()
+        self.sent = 0
+        self.hb_seq = 0
+        self.cmd_seq = 0
+        self.my_heartbeats: dict[int, int] = {}  # t_send_ns -> seq of the good heartbeats
+        self.echoed = 0
+        self.telemetry: dict[str, int] = {"stimulus": 0, "heartbeat": 0, "frame": 0}
+        self._lock = threading.Lock()  # my_heartbeats and hb_seq, shared with the beat thread
+        self._count_lock = threading.Lock()
+
+    def _run(self) -> None:
+        try:
+            self.node.run(self.stop)
+        except BaseException as e:  # reported by alive()
+            self.error.append(e)
+
+    def start(self) -> None:
+        self.thread.start()
+        assert wait_for(lambda: self.node.sub is not None, 5)
+        cmd_ep = self.node.sub.endpoint
+        self.good = _pub(self.ctx, cmd_ep, bind=False)
+        self.evil = _pub(self.ctx, cmd_ep, bind=False)
+        self.beat = _pub(self.ctx, cmd_ep, bind=False)
+        self.tel = _sub(self.ctx, self.node.pub.endpoint, bind=False)
+        # every publisher must be connected before counting: probe each until it is heard
+        for sock in (self.good, self.evil, self.beat):
+            before = self.received()
+
+            def probe(sock=sock, before=before) -> bool:
+                self._send(sock, self._heartbeat())
+                return self.received() > before
+
+            assert wait_for(probe, 5, step_s=0.02), "the robot node never heard a publisher"
+        time.sleep(0.2)
+        self.sent = self.received()  # probes sent before the connection was up were lost
+        # the operator's heartbeats at 20 Hz come from their own thread, as in the real node,
+        # so the deadman sees a live operator whatever the fuzzing thread is doing
+        self._beating = threading.Event()
+        self._beat_thread = threading.Thread(target=self._beat, name="fuzz-heartbeats", daemon=True)
+        self._beat_thread.start()
+
+    def _beat(self) -> None:
+        while not self._beating.wait(0.05):
+            self._send(self.beat, self._heartbeat())
+
+    def received(self) -> int:
+        sub = self.node.sub
+        return 0 if sub is None else sub.received
+
+    def rejected(self) -> int:
+        sub = self.node.sub
+        return 0 if sub is None else sub.rejected_total
+
+    def alive(self) -> bool:
+        return self.thread.is_alive() and not self.error
+
+    def _send(self, sock: zmq.Socket, data: bytes) -> None:
+        sock.send(data)
+        with self._count_lock:
+            self.sent += 1
+
+    def send_evil(self, data: bytes) -> None:
+        self._send(self.evil, data)
+
+    def _heartbeat(self) -> bytes:
+        with self._lock:
+            self.hb_seq += 1
+            t = now_ns()
+            self.my_heartbeats[t] = self.hb_seq
+            if len(self.my_heartbeats) > 10_000:
+                self.my_heartbeats.pop(next(iter(self.my_heartbeats)))
+            seq = self.hb_seq
+        return encode(Heartbeat(seq=seq, t_send_ns=t, node="operator", state="ok"))
+
+    def command(self, action: str, **kw: Any) -> None:
+        self.cmd_seq += 1
+        self._send(
+            self.good, encode(Command(seq=self.cmd_seq, t_send_ns=now_ns(), action=action, **kw))
+        )
+
+    def read_telemetry(self) -> None:
+        while self.tel.poll(0):
+            msg = decode(self.tel.recv())
+            kind = type(msg).TYPE
+            self.telemetry[kind] += 1
+            with self._lock:
+                mine = isinstance(msg, Heartbeat) and msg.echo_t_send_ns in self.my_heartbeats
+            self.echoed += mine
+
+    def sync(self, timeout_s: float = 10.0) -> bool:
+        return wait_for(lambda: self.received() >= self.sent or not self.alive(), timeout_s)
+
+    def close(self) -> None:
+        self._beating.set()
+        self._beat_thread.join(timeout=2)
+        self.stop.set()
+        self.thread.join(timeout=10)
+        for s in (self.good, self.evil, self.beat, self.tel):
+            s.close(0)
+        self.ctx.term()
+
+
+# ------------------------------------------------------- mutant producer
+class MutantStream:
+    """Mutants made in another process, so the other core does the generating."""
+
+    def __init__(self, seed: int, total: int, kinds: list[str] | None = None, batch: int = 500):
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(
+            target=produce, args=(child, seed, kinds, total, batch), daemon=True
+        )
+        self._proc.start()
+        child.close()
+
+    def __iter__(self):
+        while True:
+            data = self._conn.recv_bytes()
+            if not data:
+                return
+            yield msgpack.unpackb(data, raw=False)
+
+    def close(self) -> None:
+        if self._proc.is_alive():
+            self._proc.terminate()  # it may be blocked writing batches nobody will read
+        self._proc.join(timeout=5)
+        self._conn.close()
+
+
+def finite_all(values: Any) -> bool:
+    return all(math.isfinite(float(v)) for v in values)
