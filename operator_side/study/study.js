@@ -2,7 +2,8 @@
 // The server decides what is on screen; the page shows it and sends one reply.
 "use strict";
 
-const study = { hello: null, screen: null, sent: [], connected: false };
+// ``shown`` keeps what each feedback screen said, for whoever checks the page.
+const study = { hello: null, screen: null, sent: [], shown: [], connected: false };
 window.study = study;
 const $ = (id) => document.getElementById(id);
 let ws = null;
@@ -104,6 +105,7 @@ function show(msg) {
       ? "Right"
       : `It was ${t} · ${study.hello.patterns[t].name}`;
     $("feedback-text").className = "name " + (msg.correct ? "right" : "wrong");
+    study.shown.push($("feedback-text").textContent);
     picture($("feedback-picture"), t);
     only("feedback");
   } else {
