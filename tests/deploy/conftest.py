@@ -2,22 +2,12 @@
 
 from __future__ import annotations
 
-import os
-import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-
-REPO = Path(__file__).resolve().parents[2]
-EXAMPLES = REPO / "deploy" / "config"
-ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
-
-
-def cli(*args: str) -> list[str]:
-    """The command line a systemd unit runs, through this interpreter."""
-    return [sys.executable, "-m", "deploy.cli", *args]
+from deploy_support import loopback
 
 
 @dataclass
@@ -41,10 +31,6 @@ def keys(tmp_path: Path) -> Keys:
     authorized = directory / "operators"
     allow(operator_public, authorized)
     return Keys(directory, robot_secret, robot_public, operator_secret, operator_public, authorized)
-
-
-def loopback(port: int) -> str:
-    return f"tcp://127.0.0.1:{port}"
 
 
 @pytest.fixture

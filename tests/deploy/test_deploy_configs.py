@@ -9,7 +9,7 @@ from importlib import resources
 from typing import Any
 
 import pytest
-from conftest import ENV, EXAMPLES, cli
+from deploy_support import ENV, EXAMPLES, cli
 
 from common.config import load_toml
 from common.devices import build_device, load_object

@@ -11,7 +11,7 @@ import uuid
 from pathlib import Path
 
 import pytest
-from conftest import ENV, EXAMPLES, REPO, cli, loopback
+from deploy_support import ENV, EXAMPLES, REPO, cli, loopback
 from tests_support import free_ports
 
 from common.sd_notify import Notifier, watch_node

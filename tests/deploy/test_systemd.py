@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import ENV, EXAMPLES, REPO
+from deploy_support import ENV, EXAMPLES, REPO
 
 UNITS = REPO / "deploy" / "systemd"
 RULES = REPO / "deploy" / "udev" / "99-deepxpalm.rules"

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 import zmq
-from conftest import ENV, EXAMPLES, cli, loopback
+from deploy_support import ENV, EXAMPLES, cli, loopback
 from tests_support import free_ports
 
 LINK_UP = "operator link down -> ok"
