@@ -1397,8 +1397,17 @@ def run(args: argparse.Namespace) -> int:
         role, data, source = _resolve(args)
     except ConfigError as e:
         role = args.role or "?"
-        report = Report(role, str(args.config))
-        report.add("config", FAIL, str(e), "give a config file that exists and parses")
+        default = f"/etc/deepxpalm/{role}.toml"
+        report = Report(role, args.config or default)
+        report.add(
+            "config",
+            FAIL,
+            str(e),
+            f"copy deploy/config/{role}.toml to {default} and edit its LAB lines, or give "
+            "--config FILE / --scene NAME"
+            if args.config is None and args.role
+            else "give a config file or shipped scene name that exists and parses, and --role",
+        )
     else:
         report = diagnose(role, data, source, options)
     if args.json:
