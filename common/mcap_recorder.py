@@ -552,3 +552,54 @@ def node_recorder(path: str | os.PathLike[str], config: Any, node: str) -> McapR
     return McapRecorder(
         path, metadata={"deepxpalm.node": {"node": node, "config_toml": config_toml(config, node)}}
     )
+
+
+def recover_recording(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> int:
+    """Copy every whole chunk of ``src`` (a killed node's file) into ``dst``, with an index.
+
+    Foxglove opens a file without a summary only as "unindexed" (it reads it
+    all); the copy has the summary and footer a clean close writes. Records
+    are copied as they are, times and bytes unchanged. Returns the message count.
+    """
+    out = open(dst, "wb")  # noqa: SIM115 (the writer's finish() needs it open)
+    writer = Writer(out, compression=CompressionType.ZSTD)
+    writer.start(profile="", library=LIBRARY + " (recovered)")
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    count = 0
+    try:
+        with open(src, "rb") as f:
+            try:
+                for rec in StreamReader(f, emit_chunks=True, record_size_limit=256 << 20).records:
+                    inner = (
+                        breakup_chunk(rec, validate_crc=True) if isinstance(rec, Chunk) else [rec]
+                    )
+                    for r in inner:
+                        if isinstance(r, Schema) and r.id not in schema_ids:
+                            schema_ids[r.id] = writer.register_schema(r.name, r.encoding, r.data)
+                        elif isinstance(r, Channel) and r.id not in channel_ids:
+                            channel_ids[r.id] = writer.register_channel(
+                                r.topic,
+                                r.message_encoding,
+                                schema_ids.get(r.schema_id, 0),
+                                r.metadata,
+                            )
+                        elif isinstance(r, Message) and r.channel_id in channel_ids:
+                            writer.add_message(
+                                channel_ids[r.channel_id],
+                                r.log_time,
+                                r.data,
+                                r.publish_time,
+                                r.sequence,
+                            )
+                            count += 1
+                        elif isinstance(r, Metadata):
+                            writer.add_metadata(r.name, dict(r.metadata))
+                    if isinstance(rec, Footer):
+                        break
+            except Exception as e:  # the cut: everything before it is copied
+                log.info("%s ends early (%s); recovered %d messages", src, e, count)
+        writer.finish()
+    finally:
+        out.close()
+    return count

@@ -78,6 +78,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="operator: the servo calibration TOML, when the recorded one is not on this machine",
     )
+    parser.add_argument(
+        "--recover",
+        type=Path,
+        metavar="OUT",
+        help="only copy FILE (from a killed node) to OUT with the index Foxglove wants, and exit",
+    )
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
@@ -521,6 +527,13 @@ def publish(
 # -------------------------------------------------------------------- CLI
 def run(args: argparse.Namespace) -> int:
     from common.cli_support import stop_on_signals
+
+    if args.recover:
+        from common.mcap_recorder import recover_recording
+
+        n = recover_recording(args.file, args.recover)
+        print(f"{args.recover}: {n} messages recovered from {args.file}, with an index")
+        return 0
 
     summary = check(
         args.file,

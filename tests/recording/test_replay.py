@@ -113,6 +113,7 @@ def test_a_tampered_stimulus_is_reported_and_fails_check(session, tmp_path, caps
         no_classifier=True,
         calibration=None,
         publish=None,
+        recover=None,
         json=False,
     )
     assert replay.run(args) == 1
