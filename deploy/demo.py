@@ -70,13 +70,24 @@ def _free_ports(n: int) -> list[int]:
     return ports
 
 
+def _die_with_parent() -> None:
+    """In the child: SIGTERM when the demo dies, even by SIGKILL (Linux), so nothing lingers."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
     out = log_path.open("wb")
     return subprocess.Popen(
         [sys.executable, "-m", "deploy.cli", *args],
         stdout=out,
         stderr=subprocess.STDOUT,
-        start_new_session=True,
+        start_new_session=True,  # Ctrl-C reaches the demo only; it stops the children in order
+        preexec_fn=_die_with_parent,
     )
 
 
