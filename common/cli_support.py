@@ -6,11 +6,13 @@ import argparse
 import json
 import signal
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 from common.config import config_toml, defaults_toml, from_dict, load_toml
 from common.overrides import apply_overrides
+from common.sd_notify import watch_node
 
 T = TypeVar("T")
 
@@ -35,6 +37,10 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, section: st
         "--print-config", action="store_true", help="print the effective config and exit"
     )
     parser.add_argument("--stats-file", type=Path, help="write final counters here as JSON on exit")
+    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument(
+        "--record", type=Path, metavar="FILE", help="record the session to this MCAP file"
+    )
 
 
 def _indent(text: str) -> str:
@@ -73,3 +79,47 @@ def write_stats(path: Path | None, stats: dict[str, Any]) -> None:
         tmp = path.with_suffix(path.suffix + ".tmp")
         tmp.write_text(json.dumps(stats, indent=2, sort_keys=True))
         tmp.replace(path)
+
+
+class Attachment(Protocol):
+    def stop(self) -> None: ...
+
+
+def run_node(
+    args: argparse.Namespace,
+    cls: type[T],
+    section: str,
+    build: Callable[[T, Any], Any],
+    attach: Callable[[Any, T], Attachment | None] | None = None,
+) -> int:
+    """What both node commands do: config, optional recording, systemd, run, counters.
+
+    ``build(config, recorder)`` makes the node (imported lazily by the caller,
+    so ``--help`` loads nothing heavy); ``attach(node, config)`` may start
+    something beside it (the dashboard) and returns what to stop afterwards.
+    """
+    config = load_node_config(args, cls, section)
+    if args.print_config:
+        print_config(config, section)
+        return 0
+    recorder = None
+    if args.record:
+        from common.mcap_recorder import node_recorder  # mcap only when recording
+
+        recorder = node_recorder(args.record, config, section)
+    stop = stop_on_signals()
+    try:
+        node = build(config, recorder)
+        extra = attach(node, config) if attach is not None else None
+        watch = watch_node(node, stop)  # READY=1 once the loop runs, WATCHDOG=1 while it does
+        try:
+            node.run(stop, args.duration)
+        finally:
+            watch.stop()
+            if extra is not None:
+                extra.stop()
+            write_stats(args.stats_file, node.stats())
+    finally:
+        if recorder is not None:
+            recorder.close()
+    return 0

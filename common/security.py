@@ -21,6 +21,7 @@ from typing import Any, Literal
 from urllib.parse import urlsplit
 
 import zmq
+import zmq.auth
 
 from common.config import param
 from common.errors import ConfigError, LinkError

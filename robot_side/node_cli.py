@@ -3,46 +3,21 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
+from typing import Any
 
-from common.cli_support import (
-    add_config_arguments,
-    load_node_config,
-    print_config,
-    stop_on_signals,
-    write_stats,
-)
+from common.cli_support import add_config_arguments, run_node
 from robot_side.config import RobotConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, RobotConfig, "robot")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
-    parser.add_argument(
-        "--record", type=Path, metavar="FILE", help="record the session to this MCAP file"
-    )
+
+
+def _build(config: RobotConfig, recorder: Any) -> Any:
+    from robot_side.node import build_robot_node  # not for --help: it loads the devices
+
+    return build_robot_node(config, recorder=recorder)
 
 
 def run(args: argparse.Namespace) -> int:
-    config = load_node_config(args, RobotConfig, "robot")
-    if args.print_config:
-        print_config(config, "robot")
-        return 0
-    from robot_side.node import build_robot_node
-
-    recorder = None
-    if args.record:
-        from common.mcap_recorder import node_recorder  # mcap is imported only when recording
-
-        recorder = node_recorder(args.record, config, "robot")
-    stop = stop_on_signals()
-    try:
-        node = build_robot_node(config, recorder=recorder)
-        try:
-            node.run(stop, args.duration)
-        finally:
-            write_stats(args.stats_file, node.stats())
-    finally:
-        if recorder is not None:
-            recorder.close()
-    return 0
+    return run_node(args, RobotConfig, "robot", _build)

@@ -15,11 +15,9 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
-import pytest
 import zmq
 from deploy_support import ENV, EXAMPLES, cli, loopback
 from tests_support import free_ports
@@ -64,25 +62,6 @@ def _plain_subscriber_hears_nothing(endpoint: str, wait_s: float) -> bool:
         ctx.term()
 
 
-def _security_imports_zmq_auth() -> bool:
-    """common.security calls zmq.auth.load_certificate; a process must have imported zmq.auth."""
-    out = subprocess.run(
-        [sys.executable, "-c", "import sys, common.security; print('zmq.auth' in sys.modules)"],
-        capture_output=True,
-        text=True,
-        timeout=30,
-        env=ENV,
-    )
-    return out.stdout.strip() == "True"
-
-
-@pytest.mark.timeout(90)  # about 12 s on an idle 2-core machine, 20 s under heavy load
-@pytest.mark.xfail(
-    not _security_imports_zmq_auth(),
-    reason="common/security.py uses zmq.auth without importing it: an operator process "
-    "with CURVE dies with AttributeError (the robot's Authenticator imports it by chance)",
-    strict=True,
-)
 def test_example_configs_run_as_two_processes_over_curve(tmp_path, keys):
     tel, cmd = free_ports(2)
     link = [
