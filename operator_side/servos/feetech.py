@@ -371,6 +371,11 @@ class FeetechServoBus(ServoBus):
                     out = call()
                 except _IO_ERRORS as e:
                     self._lost(e)
+                except IndexError:  # the SDK indexes past a short, garbled reply
+                    out = None
+            if out is None:
+                self._counters["rx_corrupt"] += 1
+                continue
             result = out[1] if isinstance(out, tuple) else out
             if result == sdk.COMM_SUCCESS:
                 return out
@@ -380,6 +385,11 @@ class FeetechServoBus(ServoBus):
                 self._counters["rx_timeout"] += 1
             else:
                 return out  # busy/tx failure: retrying the same bytes will not help
+        if out is None:
+            raise ProtocolError(
+                f"servo bus {self.config.port}: replies stay garbled after "
+                f"{self.config.retries + 1} tries (noise on the line, or a wrong protocol_end?)"
+            )
         return out
 
     def _drain(self) -> None:
