@@ -383,6 +383,7 @@ def confusion_figure(a: Analysis, path: Path) -> Path:
     """The proportions as a heatmap, annotated: rows rendered, columns answered."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
 
     fig = Figure(figsize=(8.6, 7.2), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
@@ -402,6 +403,10 @@ def confusion_figure(a: Analysis, path: Path) -> Path:
                     fontsize=7,
                     color="black" if v > 0.6 else "white",
                 )
+    for d in range(N_PATTERNS):  # the right answers, outlined
+        ax.add_patch(
+            Rectangle((d - 0.5, d - 0.5), 1, 1, fill=False, edgecolor="white", linewidth=1.2)
+        )
     labels = [f"{p} {pattern_name(p)}" for p in range(N_PATTERNS)]
     ax.set_xticks(range(N_PATTERNS), [str(p) for p in range(N_PATTERNS)])
     ax.set_yticks(range(N_PATTERNS), labels, fontsize=8)
@@ -414,7 +419,7 @@ def confusion_figure(a: Analysis, path: Path) -> Path:
         fontsize=10,
     )
     fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, label="share of the row")
-    fig.savefig(path)
+    fig.savefig(path, bbox_inches="tight")
     return path
 
 
