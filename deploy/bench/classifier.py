@@ -20,7 +20,7 @@ import numpy as np
 
 from common.patterns import matches_pattern
 from deploy.bench.fixtures import FrameSet
-from deploy.bench.timing import summarize_ns, time_calls
+from deploy.bench.timing import summarize_ns, time_interleaved
 from robot_side.config import RobotConfig
 from robot_side.perception import BACKENDS, DEFAULT_MODEL, load_classifier
 from robot_side.perception.weights import read_weights
@@ -91,26 +91,25 @@ def classifier_tradeoff(
     eval_randomized: FrameSet | None,
     calls: int,
 ) -> dict[str, Any]:
-    """One row per (model, backend): latency, accuracy, match share, agreement."""
-    rows = []
+    """One row per (model, backend): latency, accuracy, match share, agreement.
+
+    All classifiers are loaded first and timed in turn, call by call, so
+    that the load drifting on a shared machine does not pick the winner.
+    """
+    rows: list[dict[str, Any]] = []
+    loaded: list[tuple[dict[str, Any], Any]] = []
     timing_frames = [np.ascontiguousarray(f[None]) for f in eval_default.frames[:512]]
     for path in models:
         info = _describe(path)
         is_default = info["model"] == "shipped default"
-        backends = backends_for_default if is_default else backends_for_others
         reference: np.ndarray | None = None
         acc_default = acc_rand = match = None
-        for backend in backends:
+        for backend in backends_for_default if is_default else backends_for_others:
             try:
                 clf = load_classifier(path, backend, num_threads=1)
             except Exception as e:  # a missing optional backend is a row, not a crash
                 rows.append({**info, "backend": backend, "error": str(e)})
                 continue
-            t = summarize_ns(
-                time_calls(
-                    lambda i, c=clf, f=timing_frames: c.predict_proba(f[i % len(f)]), calls, 200
-                )
-            )
             acc, pred = _accuracy(clf, eval_default)
             if reference is None:
                 reference = pred
@@ -118,19 +117,26 @@ def classifier_tradeoff(
                 match = _match_share(eval_default, pred)
                 if eval_randomized is not None:
                     acc_rand = _accuracy(clf, eval_randomized)[0]
-            rows.append(
-                {
-                    **info,
-                    "backend": backend,
-                    "median_us": t.median_us,
-                    "p99_us": t.p99_us,
-                    "accuracy_default_generator": acc_default,
-                    "accuracy_randomized": acc_rand,
-                    "stimulus_match": match,
-                    "agrees_with_first_backend": float(np.mean(pred == reference)),
-                }
-            )
-            log.info("classifier %s %s: %.1f us", info["model"], backend, t.median_us)
+            row = {
+                **info,
+                "backend": backend,
+                "accuracy_default_generator": acc_default,
+                "accuracy_randomized": acc_rand,
+                "stimulus_match": match,
+                "agrees_with_first_backend": float(np.mean(pred == reference)),
+            }
+            rows.append(row)
+            loaded.append((row, clf))
+    times = time_interleaved(
+        [lambda i, c=clf, f=timing_frames: c.predict_proba(f[i % len(f)]) for _, clf in loaded],
+        calls,
+        warmup=200,
+    )
+    for (row, _), samples in zip(loaded, times, strict=True):
+        t = summarize_ns(samples)
+        row["median_us"] = t.median_us
+        row["p99_us"] = t.p99_us
+        log.info("classifier %s %s: %.1f us", row["model"], row["backend"], t.median_us)
     return {
         "eval_default_frames": len(eval_default),
         "eval_default_seed": eval_default.seed,

@@ -27,7 +27,7 @@ import numpy as np
 
 from common.patterns import MASKS, MASKS_F32, matches_pattern
 from deploy.bench.fixtures import FrameSet
-from deploy.bench.timing import summarize_ns, time_calls
+from deploy.bench.timing import summarize_ns, time_interleaved
 from robot_side.rendering import (
     _WEIGHTS,
     METHODS,
@@ -148,35 +148,40 @@ def downsizing_tradeoff(
     sources: dict[str, np.ndarray | None] = {"true": fs.pattern, "none": None}
     if predicted is not None:
         sources["predicted"] = predicted
-    rows = []
-    for variant in variants:
-        render = _render_fn(variant, fused)
+    combos = [
+        (variant, order)
+        for variant in variants
         # masking only the kept cells is possible only when the mask comes first
-        for order in ("mask_then_peak",) if variant == "fused_masked" else ORDERS:
-            timing = summarize_ns(
-                time_calls(
-                    _timed_core(variant, fused, sanitized, fs.pattern, order),
-                    time_calls_n,
-                    warmup=200,
-                )
-            )
-            row: dict[str, Any] = {
-                "variant": variant,
-                "order": order,
-                "median_us": timing.median_us,
-                "p99_us": timing.p99_us,
-            }
-            for source, pats in sources.items():
-                if source == "none" and order != ORDERS[0] and rows[-1]["variant"] == variant:
-                    row["match_none"] = rows[-1]["match_none"]  # direct: no order
-                    continue
-                ok = 0
-                for k in range(len(fs)):
-                    pat = None if pats is None else int(pats[k])
-                    stim = render(fs.frames[k], pat, order)
-                    ok += matches_pattern(stim, int(fs.pattern[k]))
-                row[f"match_{source}"] = ok / len(fs)
-            rows.append(row)
+        for order in (("mask_then_peak",) if variant == "fused_masked" else ORDERS)
+    ]
+    times = time_interleaved(
+        [_timed_core(v, fused, sanitized, fs.pattern, o) for v, o in combos],
+        time_calls_n,
+        warmup=200,
+    )
+    rows: list[dict[str, Any]] = []
+    direct: dict[str, float] = {}
+    for (variant, order), samples in zip(combos, times, strict=True):
+        timing = summarize_ns(samples)
+        render = _render_fn(variant, fused)
+        row: dict[str, Any] = {
+            "variant": variant,
+            "order": order,
+            "median_us": timing.median_us,
+            "p99_us": timing.p99_us,
+        }
+        for source, pats in sources.items():
+            if source == "none" and variant in direct:
+                row["match_none"] = direct[variant]  # direct rendering has no order
+                continue
+            ok = 0
+            for k in range(len(fs)):
+                pat = None if pats is None else int(pats[k])
+                ok += matches_pattern(render(fs.frames[k], pat, order), int(fs.pattern[k]))
+            row[f"match_{source}"] = ok / len(fs)
+            if source == "none":
+                direct[variant] = row["match_none"]
+        rows.append(row)
     agreement = _fused_agreement(fused, sanitized[contact], fs.pattern[contact])
     by_pattern = _per_pattern(fs, "antialiased")
     return {

@@ -152,6 +152,28 @@ def time_calls(fn: Callable[[int], Any], n: int, warmup: int = 100, batch: int =
     return out
 
 
+def time_interleaved(
+    fns: list[Callable[[int], Any]], n: int, warmup: int = 100
+) -> list[np.ndarray]:
+    """Nanoseconds per call of each ``fn(i)``, the functions taking turns call by call.
+
+    On a shared machine the load drifts over seconds; timing alternatives in
+    turn gives each the same conditions, so their difference is theirs, not
+    the drift's (timing them one block after another is not comparable).
+    """
+    for i in range(warmup):
+        for fn in fns:
+            fn(i)
+    clock = time.perf_counter_ns
+    out = [np.empty(n, dtype=np.int64) for _ in fns]
+    for i in range(n):
+        for k, fn in enumerate(fns):
+            t = clock()
+            fn(i)
+            out[k][i] = clock() - t
+    return out
+
+
 def timer_overhead_ns(n: int = 10000) -> float:
     """Median cost of one pair of timer reads, to state next to sub-microsecond stages."""
     clock = time.perf_counter_ns
