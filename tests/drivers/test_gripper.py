@@ -137,15 +137,19 @@ def test_moving_before_activation_reports_the_fault(server):
         g.disconnect()
 
 
-def test_move_is_non_blocking_and_fingers_travel_at_finite_speed(gripper):
-    t0 = time.monotonic()
-    gripper.move(100, speed=0, force=255)  # SPE 0: the slowest finger speed, 500 counts/s
-    assert time.monotonic() - t0 < 0.05  # returned at once
-    assert gripper.state().object_status == 0  # still moving
-    assert 0 < gripper.position() < 100 or not settled(gripper)
-    assert wait_until(lambda: settled(gripper), 1.0)
-    assert time.monotonic() - t0 >= 100 / 500 * 0.9
-    assert gripper.position() == 100
+def test_move_is_non_blocking_and_fingers_travel_at_finite_speed():
+    slow = GripperModelConfig(activation_time_s=0.05, min_speed_counts_s=200.0)
+    with GripperSimServer(GripperSimConfig(host=loopback(), model=slow)) as server:
+        g = RobotiqSocketGripper(RobotiqSocketConfig(host=server.host, port=server.port))
+        with g:
+            t0 = time.monotonic()
+            g.move(100, speed=0, force=255)  # SPE 0: 200 counts/s here, 0.5 s of travel
+            assert time.monotonic() - t0 < 0.25  # returned long before the fingers arrive
+            assert g.state().object_status == 0  # still moving
+            assert 0 <= g.position() < 100
+            assert wait_until(lambda: settled(g), 2.0)
+            assert time.monotonic() - t0 >= 0.45
+            assert g.position() == 100
 
 
 def test_rigid_object_stops_the_fingers_and_is_detected(server, gripper):
@@ -237,7 +241,7 @@ def test_vanished_gripper_is_a_clear_error_and_reconnecting_works(server, grippe
     t0 = time.monotonic()
     with pytest.raises(DeviceNotConnectedError, match="connection lost"):
         gripper.position()
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 2.0
     assert not gripper.is_connected
     with pytest.raises(DeviceNotConnectedError, match="call connect"):
         gripper.open()
@@ -250,7 +254,7 @@ def test_a_hung_urcap_times_out_instead_of_hanging(server, gripper):
     t0 = time.monotonic()
     with pytest.raises(DeviceTimeoutError, match="did not answer"):
         gripper.position()
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 2.0  # the 0.3 s deadline, not a hang
     assert not gripper.is_connected  # a late reply can never be taken for the next one
     server.mute(False)
     gripper.connect()
@@ -348,7 +352,10 @@ def test_crc_matches_the_manual_example():
 @pytest.fixture
 def rtu():
     sim = RtuGripperSim(GripperModelConfig(**FAST)).start()
-    g = RobotiqRtuGripper(RobotiqRtuConfig(port=sim.port, reply_timeout_s=0.05, levels=LEVELS))
+    # generous deadlines: the pty and both threads share two cores with other tests
+    g = RobotiqRtuGripper(
+        RobotiqRtuConfig(port=sim.port, reply_timeout_s=0.25, retries=2, levels=LEVELS)
+    )
     yield sim, g
     g.disconnect()
     sim.stop()
@@ -389,9 +396,9 @@ def test_rtu_gives_up_with_a_clear_error_when_the_gripper_is_silent(rtu):
     g.connect()
     sim.muted = True
     t0 = time.monotonic()
-    with pytest.raises(DeviceTimeoutError, match="no reply after 2 tries"):
+    with pytest.raises(DeviceTimeoutError, match="no reply after 3 tries"):
         g.position()
-    assert time.monotonic() - t0 < 0.5
+    assert time.monotonic() - t0 < 3.0  # 3 x 0.25 s, with slack for a loaded machine
     sim.muted = False
     assert g.position() == 0  # the line recovers without reconnecting
 
@@ -406,7 +413,7 @@ def test_rtu_skips_garbage_on_the_line(rtu):
 
 def test_rtu_wrong_slave_id_times_out(rtu):
     sim, _ = rtu
-    g = RobotiqRtuGripper(RobotiqRtuConfig(port=sim.port, slave_id=3, reply_timeout_s=0.05))
+    g = RobotiqRtuGripper(RobotiqRtuConfig(port=sim.port, slave_id=3, reply_timeout_s=0.1))
     with pytest.raises(DeviceTimeoutError, match="slave 3"):
         g.connect()
     assert not g.is_connected

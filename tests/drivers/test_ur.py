@@ -57,9 +57,14 @@ def sim():
     s.stop()
 
 
+#: The robot's 0.1 s staleness limit is for a controller streaming at 500 Hz; a simulator
+#: sharing two cores with other test processes can pause longer than that.
+STALE_S = 0.5
+
+
 @pytest.fixture(scope="module")
 def arm(sim):
-    a = URArm(URArmConfig(host=sim.host, limits=LIMITS))
+    a = URArm(URArmConfig(host=sim.host, limits=LIMITS, stale_after_s=STALE_S))
     a.connect()
     yield a
     a.disconnect()  # before the module's simulator stops
@@ -199,7 +204,7 @@ def test_not_connected_arm_says_so():
 
 
 def test_no_controller_at_the_address_is_a_clear_error():
-    arm = URArm(URArmConfig(host="127.0.0.254"))
+    arm = URArm(URArmConfig(host="127.0.3.1"))  # outside the simulators' 127.0.0.x pool
     t0 = time.monotonic()
     with pytest.raises(DeviceNotConnectedError, match="is on, reachable"):
         arm.connect()
@@ -209,7 +214,7 @@ def test_no_controller_at_the_address_is_a_clear_error():
 
 def test_stale_stream_is_an_error_not_a_repeat():
     with URSimProcess() as sim:
-        arm = URArm(URArmConfig(host=sim.host, limits=LIMITS, stale_after_s=0.1))
+        arm = URArm(URArmConfig(host=sim.host, limits=LIMITS, stale_after_s=0.3))
         arm.connect()
         try:
             arm.tcp_pose()
@@ -219,7 +224,7 @@ def test_stale_stream_is_an_error_not_a_repeat():
                 while time.monotonic() - t0 < 2.0:
                     arm.tcp_pose()
                     time.sleep(0.01)
-            assert time.monotonic() - t0 < 0.5
+            assert time.monotonic() - t0 < 1.5  # 0.3 s limit; slack for a loaded machine
             with pytest.raises(StaleDataError):
                 arm.jog([0.0, 0.0, 0.01, 0.0, 0.0, 0.0])  # never jog on old data
             sim.freeze(False)
@@ -239,7 +244,7 @@ def _reads(arm: URArm) -> bool:
 
 def test_protective_stop_refuses_jogs_with_the_reason():
     with URSimProcess() as sim:
-        arm = URArm(URArmConfig(host=sim.host, limits=LIMITS))
+        arm = URArm(URArmConfig(host=sim.host, limits=LIMITS, stale_after_s=STALE_S))
         arm.connect()
         try:
             arm.jog([0.0, 0.0, 0.01, 0.0, 0.0, 0.0])
@@ -262,7 +267,8 @@ def test_protective_stop_refuses_jogs_with_the_reason():
 
 
 def test_simulated_kind_runs_the_real_driver_and_survives_a_vanished_controller():
-    arm = build_device(KINDS, {"kind": "simulated", "limits": {"jog_timeout_s": 0.3}}, "arm")
+    section = {"kind": "simulated", "stale_after_s": STALE_S, "limits": {"jog_timeout_s": 0.3}}
+    arm = build_device(KINDS, section, "arm")
     assert type(arm).__name__ == "SimulatedArm" and isinstance(arm, URArm)
     arm.connect()
     try:
@@ -278,7 +284,7 @@ def test_simulated_kind_runs_the_real_driver_and_survives_a_vanished_controller(
             arm.jog([0.0, 0.0, 0.01, 0.0, 0.0, 0.0])
         with pytest.raises(DeviceError):
             arm.stop()  # cannot be delivered: says so instead of hanging
-        assert time.monotonic() - t0 < 3.0
+        assert time.monotonic() - t0 < 5.0
     finally:
         t0 = time.monotonic()
         arm.disconnect()
@@ -286,7 +292,7 @@ def test_simulated_kind_runs_the_real_driver_and_survives_a_vanished_controller(
 
     # reconnecting: a controller comes back on the same address
     with URSimProcess(URSimConfig(host=host)) as sim:
-        again = URArm(URArmConfig(host=host, limits=LIMITS))
+        again = URArm(URArmConfig(host=host, limits=LIMITS, stale_after_s=STALE_S))
         again.connect()
         try:
             np.testing.assert_allclose(again.tcp_pose(), sim.tcp_pose(), atol=1e-6)
@@ -331,3 +337,38 @@ def test_simulator_speaks_rtde_like_a_controller():
             assert f.readline().strip().isdigit()
     finally:
         sim.stop()
+
+
+def test_raw_ur_rtde_servol_and_movej_against_the_simulator():
+    """The calls URArm does not use, straight from ur-rtde: the simulator is general."""
+    import rtde_control
+    import rtde_receive
+
+    with URSimProcess() as sim:
+        clients = {
+            "r": rtde_receive.RTDEReceiveInterface(sim.host),
+            "c": rtde_control.RTDEControlInterface(sim.host),
+        }
+        try:
+            _servol_then_movej(sim, **clients)
+        finally:
+            clients.clear()  # ur-rtde's destructors disconnect, before the simulator stops
+
+
+def _servol_then_movej(sim: URSimProcess, r, c) -> None:
+    start = np.array(r.getActualTCPPose())
+    target = start.copy()
+    for i in range(1, 26):  # 25 servo set-points, 2 mm apart, at 125 Hz
+        target[0] = start[0] + 0.002 * i
+        assert c.servoL(target.tolist(), 0.5, 0.5, 0.008, 0.1, 300)
+        time.sleep(0.008)
+    assert wait_until(lambda: abs(r.getActualTCPPose()[0] - target[0]) < 1e-4, 1.0)
+    assert c.servoStop()
+    q = np.array(r.getActualQ())
+    q_target = q + np.array([0.05, -0.05, 0.05, 0.0, 0.0, 0.1])
+    assert c.moveJ(q_target.tolist(), 1.0, 2.0)
+    # the receive stream is a separate connection: its next packages show the end
+    assert wait_until(lambda: np.allclose(r.getActualQ(), q_target, atol=1e-6), 1.0)
+    c.stopScript()
+    assert wait_until(lambda: not sim.stats()["program_running"], 1.0)
+    assert {24, 16, 1, 255} <= set(sim.commands_seen())

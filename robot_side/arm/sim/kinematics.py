@@ -149,7 +149,7 @@ class KinematicArm:
         self.move: _Move | None = None
         self.servo_target: np.ndarray | None = None
         self.servo_time = 0.008
-        self.move_j: tuple[np.ndarray, np.ndarray, float, float] | None = None
+        self._joint_move: tuple[np.ndarray, np.ndarray, float, float] | None = None
         self._joints_settled = False
 
     # -- commands ------------------------------------------------------------
@@ -163,7 +163,7 @@ class KinematicArm:
         self.mode = Mode.MOVE_L if length > 1e-9 else Mode.IDLE
 
     def move_j(self, q_target: np.ndarray, speed: float, accel: float) -> None:
-        self.move_j = (self.q.copy(), np.array(q_target, dtype=float), speed, accel)
+        self._joint_move = (self.q.copy(), np.array(q_target, dtype=float), speed, accel)
         self._mj_s, self._mj_sd = 0.0, 0.0
         self.mode = Mode.MOVE_J
 
@@ -185,7 +185,7 @@ class KinematicArm:
         self.mode = Mode.STOPPING
         self.move = None
         self.servo_target = None
-        self.move_j = None
+        self._joint_move = None
 
     @property
     def moving(self) -> bool:
@@ -253,11 +253,11 @@ class KinematicArm:
             self.move = None
 
     def _step_move_j(self, dt: float) -> None:
-        assert self.move_j is not None
-        q0, q1, speed, accel = self.move_j
+        assert self._joint_move is not None
+        q0, q1, speed, accel = self._joint_move
         length = float(np.max(np.abs(q1 - q0)))
         if length < 1e-9:
-            self.mode, self.move_j = Mode.IDLE, None
+            self.mode, self._joint_move = Mode.IDLE, None
             return
         remaining = length - self._mj_s
         if self._mj_sd**2 / (2 * accel) >= remaining:
@@ -273,7 +273,7 @@ class KinematicArm:
         self.pos, self.rot = t[:3, 3].copy(), t[:3, :3].copy()
         self.velocity = np.concatenate([(self.pos - old_pos) / dt, np.zeros(3)])
         if self._mj_s >= length:
-            self.mode, self.move_j = Mode.IDLE, None
+            self.mode, self._joint_move = Mode.IDLE, None
             self.qd = np.zeros(6)
             self.velocity = np.zeros(6)
 

@@ -462,9 +462,17 @@ class URSimulator:
             t = now_s()
             dt, last = min(t - last, MAX_TICK_S), t
             with self._lock:
-                self._script_cycle()
-                if dt > 0:
-                    self.arm.step(dt)
+                try:
+                    self._script_cycle()
+                    if dt > 0:
+                        self.arm.step(dt)
+                except Exception:
+                    # a controller stops the program on a runtime error and keeps serving
+                    log.exception("control script runtime error: program stopped")
+                    self.program_running = False
+                    self.arm.stop(10.0)
+                    self.arm.velocity[:] = 0.0
+                    self.arm.mode = Mode.IDLE
                 if self._pending_done and not self.arm.moving:
                     self._pending_done = False
                     self.out_int[0] = STATUS_DONE
