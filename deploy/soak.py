@@ -168,6 +168,7 @@ def scan_recording(path: Path) -> dict[str, Any]:
     from common.mcap_recorder import RecordingReader
 
     out: dict[str, Any] = {"records": 0, "nonfinite_values": 0, "servo_goals_out_of_limits": 0}
+    states: dict[str, int] = {}
     if not path.exists():
         out["missing"] = True
         return out
@@ -198,6 +199,11 @@ def scan_recording(path: Path) -> dict[str, Any]:
                 out["nonfinite_values"] += 1
         if channel == "robot/frame" and not np.all(np.isfinite(record["frame"])):
             out["nonfinite_values"] += 1
+        if channel.endswith("/link"):
+            states[str(record.get("state"))] = states.get(str(record.get("state")), 0) + 1
+    total = sum(states.values())
+    if total:  # link records come at the heartbeat rate: shares of samples are shares of time
+        out["link_state_share"] = {k: round(v / total, 4) for k, v in sorted(states.items())}
     out["closed_cleanly"] = reader.complete
     out["bytes"] = path.stat().st_size
     return out
@@ -342,6 +348,7 @@ def _report(
         "scenario": args.scenario,
         "render_mode": summary.get("render_mode"),
         "crashes": crashes,
+        "error_lines": logs.get("error_lines", 0),
         "memory_growth_mb": growth,
         "nonfinite_values": nonfinite,
         "servo_goals_out_of_limits": out_of_limits,
@@ -357,6 +364,7 @@ def _report(
             "pattern_match": summary.get("pattern_match"),
             "netsim": netsim,
         },
+        "link_state_share": {n: r.get("link_state_share") for n, r in recordings.items()},
         "recorder": {
             name: {k: r.get(k) for k in ("records", "bytes", "closed_cleanly")}
             for name, r in recordings.items()

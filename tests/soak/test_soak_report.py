@@ -40,3 +40,4 @@ def test_scan_counts_non_finite_values_and_out_of_limit_goals(tmp_path):
     assert out["records"] == 2
     assert out["servo_goals_out_of_limits"] == 1
     assert out["nonfinite_values"] == 1
+    assert out["link_state_share"] == {"ok": 1.0}
