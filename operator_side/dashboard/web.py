@@ -166,6 +166,9 @@ class WebServer:
             max_size=64 * 1024,  # pages send only tiny commands
             ping_interval=10,
             ping_timeout=10,
+            # after a page or a refusal, a client that keeps its socket open
+            # must not hold up stop() for the default 10 s
+            close_timeout=1,
             logger=_wire_log,
         ) as server:
             self.port = server.sockets[0].getsockname()[1]

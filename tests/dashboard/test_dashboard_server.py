@@ -174,6 +174,7 @@ def test_serves_its_own_files_with_a_same_origin_policy(dashboard):
     with pytest.raises(urllib.error.HTTPError) as e:
         urllib.request.urlopen(d.url + "../operator_side/node.py", timeout=2)
     assert e.value.code == 404
+    e.value.close()
 
 
 def test_a_taken_port_is_a_config_error_naming_it(dashboard):

@@ -45,11 +45,14 @@ pytestmark = pytest.mark.timeout(120)
 FAST = {"pause_s": 0.0, "feedback_s": 0.0}
 
 
-def felt_pattern(bus: RecordingServoBus, display: PalmDisplay) -> int | None:
-    """The pattern the linkages press now, or None while they are still moving."""
-    cal = display.calibration
+def contact_points(bus: RecordingServoBus, display: PalmDisplay) -> np.ndarray:
     counts = np.array([bus.read_positions()[i] for i in range(1, 7)])
-    points = forward_kinematics(cal.counts_to_angles(counts), display.renderer_config.geometry)
+    angles = display.calibration.counts_to_angles(counts)
+    return forward_kinematics(angles, display.renderer_config.geometry)
+
+
+def felt_pattern(points: np.ndarray, display: PalmDisplay) -> int | None:
+    """The pattern three resting contact points press, or None if they press none."""
     contact = display.renderer_config.contact
     cols = np.array(contact.column_x_mm)
     pressed = np.zeros((3, 3), bool)
@@ -77,12 +80,23 @@ class ScriptedPage(threading.Thread):
         self.done = threading.Event()
 
     def feel(self, timeout_s: float = 3.0) -> int:
+        """What the palm presses once the linkages have come to rest.
+
+        On their way from the retract point the contact points can cross the
+        palm's columns, so a pattern counts only when two readings 50 ms
+        apart agree and no point moved across the palm in between (noise
+        in the force moves them only in depth).
+        """
         deadline = time.monotonic() + timeout_s
+        before = contact_points(self.bus, self.display)
         while time.monotonic() < deadline:
-            p = felt_pattern(self.bus, self.display)
-            if p is not None:
+            time.sleep(0.05)
+            now = contact_points(self.bus, self.display)
+            p = felt_pattern(now, self.display)
+            still = np.abs(now[:, 0] - before[:, 0]).max() < 0.05
+            if p is not None and still and felt_pattern(before, self.display) == p:
                 return p
-            time.sleep(0.01)
+            before = now
         raise AssertionError("the palm never showed a whole pattern")
 
     def run(self) -> None:
@@ -109,6 +123,7 @@ class ScriptedPage(threading.Thread):
 
 def test_a_whole_masked_session_on_the_page_then_its_analysis(tmp_path):
     config = StudyConfig(mode="masked", seed=11, **FAST)
+    config.renderer.max_step_deg_per_cycle = 30.0  # quick moves: the rate limit is not on trial
     bus = RecordingServoBus()
     display = PalmDisplay(bus, config.renderer, frame_rate_hz=config.frame_rate_hz)
     responder = WebResponder(port=0)
