@@ -17,7 +17,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import add_config_arguments, load_node_config, print_config
+from common.cli_support import load_node_config, print_config
+from common.config import defaults_toml
 from common.errors import ConfigError
 from operator_side.study.protocol import MODES, StudyConfig
 
@@ -31,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="run (or resume) one participant's session",
         description="Training, practice and the 60-trial test for one participant and mode.",
     )
-    add_config_arguments(run_p, StudyConfig, "study")
+    _config_arguments(run_p)
     run_p.add_argument("--participant", help="participant code (names the results file)")
     run_p.add_argument("--mode", choices=MODES, help="rendering mode, overriding the config's")
     run_p.add_argument("--seed", type=int, help="trial order and grasps (default: from the id)")
@@ -70,6 +71,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     an.add_argument("--alpha", type=float, default=0.05, help="significance level")
     an.add_argument("--title", default="", help="the report's heading")
+
+
+def _config_arguments(parser: argparse.ArgumentParser) -> None:
+    """A config file and overrides as the nodes take them, without the nodes' run options."""
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = "Configuration: a TOML file with these keys, at the top level or under " + (
+        "[study]. Defaults:\n\n"
+        + "\n".join("  " + line for line in defaults_toml(StudyConfig, "study").splitlines())
+    )
+    parser.add_argument("--config", type=Path, help="TOML config (its [study] table)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one setting, e.g. --set repetitions=5 (repeatable)",
+    )
+    parser.add_argument(
+        "--print-config", action="store_true", help="print the effective config and exit"
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -14,6 +14,7 @@ import logging
 import queue
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TextIO
 
@@ -157,7 +158,7 @@ class SimulatedParticipant(Responder):
 
     def __init__(
         self,
-        feel: Any,
+        feel: Callable[[], np.ndarray | None],
         *,
         seed: int = 0,
         felt_n: float = 1.5,
@@ -166,7 +167,7 @@ class SimulatedParticipant(Responder):
         realtime: bool = False,
         dwell_s: float = 0.05,
     ) -> None:
-        self.feel = feel  # () -> the stimulus on the palm now (3x3) or None
+        self.feel = feel  # the stimulus on the palm now (3 x 3), or None
         self.rng = np.random.default_rng(seed)
         self.felt_n, self.lapse, self.rt_s = felt_n, lapse, rt_s
         self.realtime, self.dwell_s = realtime, dwell_s

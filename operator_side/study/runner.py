@@ -67,7 +67,9 @@ class Session:
         order = trial_order(self.seed, cfg.repetitions)
         done = self.results.completed_test_trials()
         self.results.write_header(cfg, self.responder.ui)
-        if done:
+        if len(done) >= len(order):
+            log.info("%s's %s session is already complete", self.participant, cfg.mode)
+        elif done:
             log.info(
                 "resuming %s: %d of %d test trials done", self.participant, len(done), len(order)
             )
