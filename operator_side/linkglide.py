@@ -27,6 +27,10 @@ import numpy as np
 
 from common.config import param
 
+#: A point this close outside the reach of a side is taken as on its edge, so a
+#: target computed onto the edge is not refused for a rounding error.
+EDGE_TOLERANCE_MM = 1e-10
+
 
 class UnreachableTargetError(ValueError):
     """No elbows-out pose of the linkage reaches this contact point."""
@@ -71,8 +75,11 @@ def _side_angle(
     f2 = link + d - distal
     f3 = distal - link + d
     f4 = distal + link - d
-    ok = (f2 >= 0) & (f3 >= 0) & (f4 >= 0) & (d > 0)
-    area = np.sqrt(np.where(ok, f1 * f2 * f3 * f4, 0.0))
+    ok = (f2 >= -EDGE_TOLERANCE_MM) & (f3 >= -EDGE_TOLERANCE_MM) & (f4 >= -EDGE_TOLERANCE_MM)
+    ok &= d > 0
+    area = np.sqrt(
+        np.where(ok, f1 * np.maximum(f2, 0) * np.maximum(f3, 0) * np.maximum(f4, 0), 0.0)
+    )
     gamma = np.arctan2(area, (link - distal) * (link + distal) + d * d)
     return np.arctan2(y, x), gamma, ok
 
@@ -164,11 +171,11 @@ def inverse_kinematics_one(
         px = x - bx0
         d = math.hypot(px, y)
         f2, f3, f4 = link + d - distal, distal - link + d, distal + link - d
-        if d <= 0 or f2 < 0 or f3 < 0 or f4 < 0:
+        if d <= 0 or min(f2, f3, f4) < -EDGE_TOLERANCE_MM:
             raise UnreachableTargetError(
                 f"contact point ({x!r}, {y!r}) mm is not reachable by linkage {g}"
             )
-        area = math.sqrt((link + d + distal) * f2 * f3 * f4)
+        area = math.sqrt((link + d + distal) * max(f2, 0.0) * max(f3, 0.0) * max(f4, 0.0))
         gamma = math.atan2(area, (link - distal) * (link + distal) + d * d)
         taus.append(math.atan2(y, px) + sign * gamma)
     ta, te = (_wrap_one(t) for t in taus)

@@ -6,11 +6,12 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from operator_side.linkglide import (
     DEFAULT_GEOMETRY,
+    EDGE_TOLERANCE_MM,
     LinkageGeometry,
     UnreachableTargetError,
     forward_kinematics,
@@ -59,7 +60,8 @@ def test_whole_workspace_grid_round_trips():
     assert np.abs(back - pts[mask]).max() < 1e-9
 
 
-@given(st.floats(-80, 100), st.floats(-80, 100))
+@settings(suppress_health_check=[HealthCheck.filter_too_much])
+@given(st.floats(-55, 75), st.floats(-20, 75))
 def test_round_trip_property(x, y):
     assume(_reachable(x, y))
     angles = inverse_kinematics(np.array([x, y]))
@@ -70,13 +72,15 @@ def test_round_trip_property(x, y):
     assert abs(fast[0] - angles[0]) < 1e-12 and abs(fast[1] - angles[1]) < 1e-12
 
 
-@given(st.floats(0, 2 * math.pi), st.floats(-1e-6, 1e-6))
+@given(st.floats(0, 2 * math.pi), st.one_of(st.just(0.0), st.floats(-1e-6, 1e-6)))
 def test_round_trip_at_the_outer_edge(theta, eps):
     # |C - A| = l2 + l3: the A side fully stretched.
     r = G.l2 + G.l3 + eps
     x, y = r * math.cos(theta), r * math.sin(theta)
     if not _reachable(x, y):
-        assert eps > 0 or not _reachable(x / r * (r - 1e-3), y / r * (r - 1e-3))
+        # only beyond the edge (or refused by the other side or the assembly
+        # mode, which then refuses the points just inside too)
+        assert eps > EDGE_TOLERANCE_MM / 2 or not _reachable(x / r * (r - 1e-3), y / r * (r - 1e-3))
         return
     back = forward_kinematics(inverse_kinematics(np.array([x, y])))
     assert np.abs(back - [x, y]).max() < 1e-9
