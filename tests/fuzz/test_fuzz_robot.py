@@ -44,11 +44,21 @@ def _check_good_commands(rig: RobotRig, k: int) -> None:
     rig.command("gripper_close", grip_level=level)
     rig.command("arm_jog", velocity=velocity)
     assert rig.sync(), "the robot node stopped reading its socket"
-    assert wait_for(lambda: len(rig.arm.sent_jogs) > 0, 1)
-    assert rig.gripper.commands[-1][0] == rig.gripper.levels.position(level)
-    assert np.allclose(rig.arm.sent_jogs[-1], velocity)
+
+    def applied() -> bool:  # read is not applied: the node acts after draining its socket
+        jogs, grips = rig.arm.sent_jogs, rig.gripper.commands
+        return (
+            bool(jogs and grips)
+            and grips[-1][0] == rig.gripper.levels.position(level)
+            and np.allclose(jogs[-1], velocity)
+        )
+
+    assert wait_for(applied, 2), "a good command was read but not applied"
 
 
+# A jog of 1e308 m/s overflows the norm in Arm.clip_jog to inf; the scale then is 0 and the
+# arm stops: safe, and the warning says so.
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
 def test_robot_survives_malformed_commands_and_keeps_serving(rig):
     t0 = time.monotonic()
     stream = MutantStream(seed=707, total=2 * N_MALFORMED, kinds=KINDS)
