@@ -57,6 +57,10 @@ class ClockEstimate:
     samples: int  # how many samples are in the window
 
 
+#: How far back a late heartbeat may be stamped and still count as reordered.
+REORDER_WINDOW_NS = 1_000_000_000
+
+
 class ClockSync:
     """Estimates the peer's clock offset from heartbeat round trips (NTP-style).
 
@@ -100,7 +104,11 @@ class ClockSync:
         Returns whether it yielded a usable offset sample (a heartbeat that
         echoes nothing yet, a duplicate or an impossible one does not).
         """
-        if self._peer_t_send_ns is None or t_send_ns > self._peer_t_send_ns:
+        newest = self._peer_t_send_ns
+        # Echo the newest heartbeat. One sent up to a second before the newest
+        # is a reordering and ignored; one far older means the newest was
+        # bogus (a corrupted, future stamp) or the peer restarted its clock.
+        if newest is None or t_send_ns > newest or t_send_ns < newest - REORDER_WINDOW_NS:
             self._peer_t_send_ns = t_send_ns
             self._peer_t_recv_ns = t_recv_ns
         if echo_t_send_ns is None or echo_t_recv_ns is None:

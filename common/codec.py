@@ -258,7 +258,7 @@ def decode(data: bytes) -> Message:
     if not isinstance(body, dict):
         raise MalformedMessageError(f"{topic.decode()} payload is not a map")
     version = body.get("v")
-    if version != PROTOCOL_VERSION:
+    if type(version) is not int or version != PROTOCOL_VERSION:  # not True, not 1.0
         raise UnsupportedVersionError(
             f"protocol version {version!r}; this build speaks {PROTOCOL_VERSION}"
         )

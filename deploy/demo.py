@@ -91,6 +91,19 @@ def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
     )
 
 
+def _wait_for_robot(node: Any, procs: list, stop: threading.Event, errors: list[str]) -> None:
+    """Until the operator hears the robot (devices connected, simulators up), at most 60 s."""
+    deadline = time.monotonic() + 60
+    while not stop.is_set() and time.monotonic() < deadline:
+        if node.counters["heartbeats_received"] > 0:
+            return
+        if any(proc.poll() is not None for _, proc, _ in procs):
+            return  # reported by the main loop
+        stop.wait(0.05)
+    if not stop.is_set():
+        errors.append("the robot node did not start within 60 s")
+
+
 def _stop(proc: subprocess.Popen, name: str, errors: list[str], log_path: Path) -> None:
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
@@ -185,8 +198,9 @@ def run(args: argparse.Namespace) -> int:
             stop.set()
 
     thread = threading.Thread(target=operate, name="operator", daemon=True)
-    t0 = time.monotonic()
     thread.start()
+    _wait_for_robot(node, procs, stop, errors)
+    t0 = time.monotonic()  # --duration counts from the first word of the robot
     keyboard = live_view.Keyboard() if not args.json else contextlib.nullcontext()
     dashboard, dashboard_line = None, ""
     try:
@@ -215,6 +229,7 @@ def run(args: argparse.Namespace) -> int:
                     sys.stdout.flush()
                 stop.wait(0.1 if args.json else 0.05)
     finally:
+        ran_s = time.monotonic() - t0
         if dashboard is not None:
             dashboard.stop()
         stop.set()
@@ -226,7 +241,7 @@ def run(args: argparse.Namespace) -> int:
     if node_error:
         errors.append(f"operator node failed: {node_error[0]!r}")
     summary = _summary(
-        scene, node, time.monotonic() - t0, robot_stats_path, netsim_stats_path, errors
+        scene, node, ran_s, robot_stats_path, netsim_stats_path, errors
     )
     summary["logs"] = str(workdir)
     print(json.dumps(summary, indent=2))

@@ -24,6 +24,11 @@ class OperatorLinkConfig:
         "a stimulus older than this is not rendered; with none fresher, every linkage lifts off",
     )
     heartbeat_rate_hz: float = param(20.0, "heartbeats keep the robot's deadman satisfied")
+    reopen_after_ms: float = param(
+        1000.0,
+        "no telemetry for this long: open the sockets again (libzmq gives up on a "
+        "connection after a protocol error such as an oversized frame)",
+    )
     security: SecurityConfig = param(
         SecurityConfig(), "CURVE keys: ours and the robot's public key"
     )

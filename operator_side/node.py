@@ -98,6 +98,9 @@ class OperatorNode:
         self._last_step_ns = 0
         self.pub: Publisher | None = None
         self.sub: Subscriber | None = None
+        self._sockets_opened_ns = 0
+        self._last_rx_ns = 0
+        self._rejected_before = 0  # rejections counted by sockets since reopened
 
     def _use_calibration(self, calibration: LinkGlideCalibration) -> None:
         self.calibration = calibration
@@ -123,15 +126,7 @@ class OperatorNode:
         try:
             for endpoint in (link.telemetry_endpoint, link.command_endpoint):
                 check_endpoint(endpoint, link.security)
-            opts = client_options(link.security)
-            self.sub = Subscriber(
-                self.ctx,
-                link.telemetry_endpoint,
-                bind=False,
-                sock_opts=opts,
-                name="operator telemetry",
-            )
-            self.pub = Publisher(self.ctx, link.command_endpoint, bind=False, sock_opts=opts)
+            self._open_sockets()
             self.servos.set_torque(True)
             self._write(self.renderer.retract_counts)
             log.info(
@@ -153,6 +148,37 @@ class OperatorNode:
                 if self._own_ctx:
                     self.ctx.term()
 
+    def _open_sockets(self) -> None:
+        link = self.config.link
+        opts = client_options(link.security)
+        self.sub = Subscriber(
+            self.ctx,
+            link.telemetry_endpoint,
+            bind=False,
+            sock_opts=opts,
+            name="operator telemetry",
+        )
+        self.pub = Publisher(self.ctx, link.command_endpoint, bind=False, sock_opts=opts)
+        self._sockets_opened_ns = now_ns()
+
+    def _reopen_sockets_if_silent(self, now: int) -> None:
+        """Open both sockets again after a long silence.
+
+        libzmq never reconnects a connecting socket after a protocol error (an
+        oversized or malformed frame from the peer), so a link that went silent
+        may be dead on our side only; a fresh socket costs nothing if it was not.
+        """
+        quiet_since = max(self._last_rx_ns, self._sockets_opened_ns)
+        if (now - quiet_since) / 1e6 < self.config.link.reopen_after_ms:
+            return
+        log.info("no telemetry for %.1f s: opening the sockets again", (now - quiet_since) / 1e9)
+        rejected = self.sub.rejected_total
+        self.sub.close()
+        self.pub.close()
+        self._open_sockets()
+        self._rejected_before += rejected
+        self.counters["sockets_reopened"] += 1
+
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
         rate = Rate(self.config.renderer.control_rate_hz)
         hb_period = round(1e9 / self.config.link.heartbeat_rate_hz)
@@ -172,12 +198,14 @@ class OperatorNode:
                 self._send_heartbeat()
                 next_hb = now + hb_period
             self._flush_commands()
+            self._reopen_sockets_if_silent(now)
 
     # ----------------------------------------------------------- receive
     def receive(self) -> bool:
         """Drain the socket; True when a new stimulus arrived."""
         new = False
         for msg, t_recv in self.sub.drain():
+            self._last_rx_ns = t_recv
             if isinstance(msg, Stimulus):
                 new |= self._on_stimulus(msg, t_recv)
             elif isinstance(msg, Heartbeat):
@@ -187,7 +215,7 @@ class OperatorNode:
                     self._frame = msg
             else:
                 self.counters["messages_unexpected"] += 1
-        self.counters["decode_errors"] = self.sub.rejected_total
+        self.counters["decode_errors"] = self._rejected_before + self.sub.rejected_total
         return new
 
     def _on_stimulus(self, msg: Stimulus, t_recv: int) -> bool:
