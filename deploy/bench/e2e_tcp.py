@@ -147,6 +147,110 @@ def end_to_end_tcp(
     return s
 
 
+def loopback_floor(
+    n_frames: int, rate_hz: float, cpu: int | None, peer_cpu: int | None = None
+) -> dict[str, Any]:
+    """The same two processes, pinning and pacing with no work: what this machine allows.
+
+    A stimulus-sized message carries its send time; the child takes it off the
+    socket and notes the time. On an idle machine this is ZeroMQ and two
+    wake-ups; on a loaded one it is mostly the wait for a core, which no code
+    of ours can shorten.
+    """
+    import struct
+
+    import zmq
+
+    peer_cpu = cpu if peer_cpu is None else peer_cpu
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    pub.bind("tcp://127.0.0.1:*")
+    endpoint = pub.getsockopt(zmq.LAST_ENDPOINT).decode()
+    out_path = Path(f"/tmp/deepxpalm-bench-floor-{os.getpid()}.json")
+    cmd = [
+        sys.executable,
+        "-m",
+        "deploy.bench.e2e_tcp",
+        "--floor",
+        "--endpoint",
+        endpoint,
+        "--count",
+        str(n_frames),
+        "--out",
+        str(out_path),
+    ]
+    if peer_cpu is not None:
+        cmd += ["--cpu", str(peer_cpu)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, env={**os.environ, **THREAD_ENV})
+    pad = bytes(192)
+
+    def send(seq: int) -> None:
+        pub.send(b"STIM" + struct.pack("<qq", seq, now_ns()) + pad)
+
+    try:
+        _wait_line(proc, "ready", 60.0)
+        warm = [0]
+
+        def tick() -> None:
+            warm[0] += 1
+            send(-warm[0])
+            time.sleep(0.01)
+
+        _wait_line(proc, "joined", 20.0, tick=tick)
+        rate = Rate(rate_hz)
+        for i in range(n_frames):
+            send(i)
+            rate.sleep()
+        proc.wait(timeout=30)
+        result = json.loads(out_path.read_text())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        out_path.unlink(missing_ok=True)
+        pub.close(0)
+        ctx.term()
+    s = summarize_ns(result["latencies_ns"]).as_dict()
+    s["received"] = len(result["latencies_ns"])
+    s["rate_hz"] = rate_hz
+    s["robot_core"] = cpu
+    s["operator_core"] = peer_cpu
+    return s
+
+
+def _floor_peer(args: argparse.Namespace) -> int:
+    import struct
+
+    import zmq
+
+    ctx = zmq.Context()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    sub.connect(args.endpoint)
+    print("ready", flush=True)
+    latencies: list[int] = []
+    joined = False
+    last = time.monotonic()
+    while len(latencies) < args.count and time.monotonic() - last < 5.0:
+        if not sub.poll(200):
+            continue
+        data = sub.recv()
+        t = now_ns()
+        last = time.monotonic()
+        seq, t0 = struct.unpack_from("<qq", data, 4)
+        if not joined:
+            joined = True
+            print("joined", flush=True)
+        if seq >= 0:
+            latencies.append(t - t0)
+    Path(args.out).write_text(json.dumps({"latencies_ns": latencies}))
+    sub.close(0)
+    ctx.term()
+    return 0
+
+
 def _peer(args: argparse.Namespace) -> int:
     """The operator side: count ``--count`` timed stimuli, then write their latencies."""
     if args.cpu is not None:
@@ -192,7 +296,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--count", type=int, required=True)
     parser.add_argument("--out", required=True)
     parser.add_argument("--cpu", type=int)
-    return _peer(parser.parse_args(argv))
+    parser.add_argument("--floor", action="store_true", help="no work: the machine's floor")
+    args = parser.parse_args(argv)
+    if args.floor:
+        if args.cpu is not None:
+            os.sched_setaffinity(0, {args.cpu})
+        return _floor_peer(args)
+    return _peer(args)
 
 
 if __name__ == "__main__":

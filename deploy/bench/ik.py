@@ -158,16 +158,16 @@ def edge_shell(
     reach = max(g.l2 + g.l3, g.l5 + g.l4)
     xs = np.arange(-reach, g.l1 + reach + step_mm, step_mm)
     ys = np.arange(-reach, reach + step_mm, step_mm)
-    xx, yy = np.meshgrid(xs, ys)
-    ok = reachable_mask(np.stack([xx, yy], axis=-1), g)
+    # row by row: bounded memory at fine steps
+    ok = np.stack([reachable_mask(np.stack([xs, np.full_like(xs, y)], axis=1), g) for y in ys])
     pairs_in, pairs_out = [], []
     for dy, dx in ((0, 1), (1, 0), (0, -1), (-1, 0)):
         nb = np.roll(ok, (-dy, -dx), axis=(0, 1))
         edge = ok & ~nb
         iy, ix = np.nonzero(edge)
         iy2, ix2 = (iy + dy) % ok.shape[0], (ix + dx) % ok.shape[1]
-        pairs_in.append(np.stack([xx[iy, ix], yy[iy, ix]], axis=1))
-        pairs_out.append(np.stack([xx[iy2, ix2], yy[iy2, ix2]], axis=1))
+        pairs_in.append(np.stack([xs[ix], ys[iy]], axis=1))
+        pairs_out.append(np.stack([xs[ix2], ys[iy2]], axis=1))
     a, b = np.concatenate(pairs_in), np.concatenate(pairs_out)
     if len(a) > max_points:
         pick = np.random.default_rng(seed).choice(len(a), max_points, replace=False)

@@ -117,13 +117,17 @@ def _measure(
     section("e2e_inproc", lambda: stages.end_to_end_inproc(sizes.e2e_frames, classifier))
 
     def tcp() -> dict[str, Any]:
-        from deploy.bench.e2e_tcp import end_to_end_tcp
+        from deploy.bench.e2e_tcp import end_to_end_tcp, loopback_floor
 
         out = end_to_end_tcp(sizes.tcp_frames, sizes.tcp_rate_hz, classifier, core)
+        out["floor"] = loopback_floor(sizes.tcp_frames, sizes.tcp_rate_hz, core)
         others = sorted(timing.original_affinity() - {core})
         if others:  # two machines in the field: the operator on a core of its own
             out["operator_on_other_core"] = end_to_end_tcp(
                 sizes.tcp_frames, sizes.tcp_rate_hz, classifier, core, peer_cpu=others[0]
+            )
+            out["operator_on_other_core"]["floor"] = loopback_floor(
+                sizes.tcp_frames, sizes.tcp_rate_hz, core, peer_cpu=others[0]
             )
         return out
 
