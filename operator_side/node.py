@@ -93,6 +93,7 @@ class OperatorNode:
         self._hb_seq = 0
         self._cmd_seq = 0
         self._goal = self.renderer.retract_counts.copy()
+        self._latency_cache: tuple[int, dict[str, float]] = (0, {})
         self._goal_key: int | None = None  # stimulus seq the goal was computed for
         self._written: np.ndarray | None = None
         self._last_step_ns = 0
@@ -293,6 +294,7 @@ class OperatorNode:
             self._write(nxt)
             if self._pending_latency_capture is not None and stimulus is not None:
                 self.latencies_ms.append((now_ns() - self._pending_latency_capture) / 1e6)
+                self.counters["latency_samples"] += 1
         self._pending_latency_capture = None  # a stimulus that moved nothing has no latency
 
     def _write(self, counts: np.ndarray) -> None:
@@ -360,12 +362,25 @@ class OperatorNode:
     # ------------------------------------------------------------ report
     def stats(self) -> dict[str, float]:
         out: dict[str, float] = {k: float(v) for k, v in self.counters.items()}
-        if self.latencies_ms:
-            lat = np.fromiter(self.latencies_ms, dtype=np.float64)
-            out["latency_p50_ms"] = float(np.percentile(lat, 50))
-            out["latency_p99_ms"] = float(np.percentile(lat, 99))
-            out["latency_max_ms"] = float(lat.max())
+        out.update(self._latency_summary())
         return out
+
+    def _latency_summary(self) -> dict[str, float]:
+        """Percentiles over the window, recomputed only when a sample was added."""
+        n = self.counters["latency_samples"]
+        if self._latency_cache[0] != n and self.latencies_ms:
+            lat = np.fromiter(self.latencies_ms, dtype=np.float64)
+            p50, p99 = np.percentile(lat, (50, 99))
+            self._latency_cache = (
+                n,
+                {
+                    "latency_p50_ms": float(p50),
+                    "latency_p99_ms": float(p99),
+                    "latency_max_ms": float(lat.max()),
+                    "latency_last_ms": float(lat[-1]),
+                },
+            )
+        return self._latency_cache[1]
 
     def snapshot(self) -> Snapshot:
         with self._lock:
