@@ -5,7 +5,7 @@ oversized frame (a protocol error), so nothing is read, allocated or
 counted. On the robot's bound command socket that costs only the sender's
 own connection. On the operator's telemetry socket it is the one link to
 the robot: the palm must lift off (the stimulus goes stale) and the node
-keep running; test_fuzz_found.py holds the failing test for reconnecting.
+keep running; test_fuzz_found.py checks that it reconnects.
 """
 
 from __future__ import annotations
