@@ -136,7 +136,9 @@ def skipping(result: dict[str, Any], path: Path) -> Path:
 def scale(result: dict[str, Any], path: Path) -> Path:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
-    measured = result.get("measured", [])
+    measured = [
+        r for r in result.get("measured", []) if r.get("content", "demo scene") == "demo scene"
+    ]
     modelled = result["modelled"]
     for label, rows, style in (
         (

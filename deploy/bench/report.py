@@ -275,6 +275,10 @@ def markdown(results: dict[str, Any], img_dir_rel: str = "img") -> str:
         f"{v['onnxruntime']}, torch {v['torch']}, scipy {v['scipy']}.",
         f"- Timer: `perf_counter_ns`, {results['timer_overhead_ns']:.0f} ns per pair of reads "
         "(included in every stage time).",
+        f"- One thread wake-up (a sleep of 1/240 s) costs "
+        f"{results.get('wakeup_cpu_us', float('nan')):.0f} us of CPU here; on a bare-metal "
+        "PC it is a few microseconds. The nodes wake several threads per frame, so on this "
+        "VM wake-ups, not computation, dominate their CPU share (see Node CPU).",
         "",
         "## Verdicts against issue 8",
         "",
@@ -693,6 +697,7 @@ def _scale_md(results: dict[str, Any], img: str) -> list[str]:
         ]
         out += _table(
             [
+                "frames",
                 "frame rate (Hz)",
                 "render cap (Hz)",
                 "backend",
@@ -705,6 +710,7 @@ def _scale_md(results: dict[str, Any], img: str) -> list[str]:
             ],
             [
                 [
+                    r.get("content", "demo scene"),
                     _f(r["rate_hz"], 0),
                     _f(r["publish_rate_hz"], 0),
                     r["backend"],
@@ -717,10 +723,13 @@ def _scale_md(results: dict[str, Any], img: str) -> list[str]:
                 ]
                 for r in s["measured"]
             ],
-            "|---:|---:|---|---:|---:|---:|---:|---:|---:|",
+            "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|",
         )
         out += [
             "",
+            "The last two rows split the cost: frames with no contact are read but never "
+            "classified; a board sending 2 scans/s leaves the node's fixed cost "
+            "(heartbeats, timeouts, wake-ups). "
             "Rates are inside the measured window, from the robot's heartbeat counters. "
             "A frame is superseded when a newer one arrived before the node's loop took it: "
             "a node that falls behind reads less and so costs less, which the CPU column "

@@ -252,6 +252,7 @@ def _measure(
         "versions": _versions(),
         "defaults": _defaults(default_backend),
         "timer_overhead_ns": timing.timer_overhead_ns(),
+        "wakeup_cpu_us": timing.wakeup_cpu_us(),
         "total_seconds": round(time.monotonic() - t_start, 1),
         "sections": sections,
     }

@@ -63,34 +63,48 @@ def measured(
     measure_s: float,
     cap_hz: float,
     backends: tuple[str | None, ...] = (None,),
+    decompose: bool = True,
 ) -> list[dict[str, Any]]:
-    """The robot node alone (no operator) at each rate, capped and uncapped."""
-    rows = []
+    """The robot node alone (no operator) at each rate, capped and uncapped.
+
+    ``decompose`` adds two runs that split the node's cost: frames with no
+    contact at the first rate (read, never classified) and a board sending
+    2 scans per second (the node's fixed cost: heartbeats, timeouts).
+    """
+    runs: list[tuple[str, list[np.ndarray], float, float, str | None]] = []
     for rate in rates:
         for capped in (True, False):
             for backend in backends if (capped and rate == rates[0]) else (None,):
-                publish = cap_hz if capped else rate
-                r = run_nodes(
-                    frames,
-                    rate,
-                    warmup_s,
-                    measure_s,
-                    publish_rate_hz=publish,
-                    backend=backend,
-                    with_operator=False,
-                )
-                cpu = r["robot_cpu_percent"]
-                rows.append(
-                    {
-                        "rate_hz": rate,
-                        "publish_rate_hz": publish,
-                        "backend": r["backend"],
-                        "cpu_percent": cpu,
-                        "streams_per_core": int(100 // cpu) if cpu > 0 else None,
-                        "scans_per_s": r["scans_per_s"],
-                        "window_per_s": r.get("robot_window_per_s", {}),
-                        "stats": r.get("robot_stats", {}),
-                    }
-                )
-                log.info("robot node at %s Hz (render cap %s): %.1f %% CPU", rate, publish, cpu)
+                runs.append(("demo scene", frames, rate, cap_hz if capped else rate, backend))
+    if decompose:
+        empty = [np.zeros_like(frames[0])]
+        runs.append(("no contact", empty, rates[0], cap_hz, None))
+        runs.append(("idle (2 scans/s)", empty, 2.0, cap_hz, None))
+    rows = []
+    for content, fr, rate, publish, backend in runs:
+        r = run_nodes(
+            fr,
+            rate,
+            warmup_s,
+            measure_s,
+            publish_rate_hz=publish,
+            backend=backend,
+            with_operator=False,
+        )
+        cpu = r["robot_cpu_percent"]
+        rows.append(
+            {
+                "content": content,
+                "rate_hz": rate,
+                "publish_rate_hz": publish,
+                "backend": r["backend"],
+                "cpu_percent": cpu,
+                "streams_per_core": int(100 // cpu) if cpu > 0 else None,
+                "scans_per_s": r["scans_per_s"],
+                "window_per_s": r.get("robot_window_per_s", {}),
+                "threads_percent": r.get("robot_threads_percent", {}),
+                "stats": r.get("robot_stats", {}),
+            }
+        )
+        log.info("robot node, %s at %s Hz (cap %s): %.1f %% CPU", content, rate, publish, cpu)
     return rows

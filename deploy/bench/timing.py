@@ -219,6 +219,36 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     return out
 
 
+def wakeup_cpu_us(rate_hz: float = 240.0, seconds: float = 2.0) -> float:
+    """CPU microseconds one sleeping thread spends per wake-up on this machine.
+
+    The nodes wake several threads per frame (serial reader, node loop,
+    ZeroMQ's I/O thread); where a wake-up is expensive (a VM's timer and
+    scheduler paths), that, not the computation, sets their CPU share.
+    """
+    import threading
+
+    stop = threading.Event()
+    box: list[int] = []
+
+    def sleeper() -> None:
+        period = 1.0 / rate_hz
+        c0 = time.thread_time_ns()
+        n = 0
+        while not stop.is_set():
+            time.sleep(period)
+            n += 1
+        box.extend([time.thread_time_ns() - c0, n])
+
+    th = threading.Thread(target=sleeper, name="bench-wakeups", daemon=True)
+    th.start()
+    time.sleep(seconds)
+    stop.set()
+    th.join()
+    cpu_ns, n = box
+    return cpu_ns / max(1, n) / 1e3
+
+
 def machine_load() -> dict[str, Any]:
     """Load averages and core count, to print beside every number taken on a shared machine."""
     one, five, fifteen = os.getloadavg()
