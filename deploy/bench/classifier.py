@@ -12,6 +12,7 @@ the true pattern.
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -51,13 +52,27 @@ def find_models(dirs: list[Path]) -> list[Path]:
 
 
 def _describe(path: Path) -> dict[str, Any]:
+    """The model's size, and the accuracies its own training report gives, if beside it."""
     _, meta = read_weights(path)
-    return {
+    out: dict[str, Any] = {
         "model": "shipped default" if path.resolve() == DEFAULT_MODEL.resolve() else path.name,
         "path": str(path),
         "width": meta.get("model", {}).get("width"),
         "parameters": meta.get("parameters"),
+        "report_test_accuracy": None,
+        "report_worst_robustness": None,
     }
+    report = path.with_suffix(".report.json")
+    if report.is_file():
+        try:
+            r = json.loads(report.read_text())
+            out["report_test_accuracy"] = r["test"]["both_accuracy"]
+            rob = r.get("robustness", {})
+            if rob:
+                out["report_worst_robustness"] = min(v["both_accuracy"] for v in rob.values())
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            log.warning("cannot read %s: %s", report, e)
+    return out
 
 
 def randomized_eval_set(repeats: int) -> FrameSet:

@@ -223,11 +223,13 @@ def default_checks(results: dict[str, Any]) -> list[dict[str, Any]]:
                     ),
                     "why": "; ".join(
                         f"{r['model']} (w={r['width']}): {_pct(r[acc_key], 2)}, "
-                        f"{_f(r['median_us'])} us"
+                        f"{_f(r['median_us'])} us, worst robustness set "
+                        f"{_pct(r.get('report_worst_robustness'), 1)}"
                         for r in models
                     )
-                    + f" ({acc_key.replace('_', ' ')}; best = the fastest within 0.5 points "
-                    "of the most accurate)",
+                    + f" ({acc_key.replace('_', ' ')}, backend {d['backend']}; best = the "
+                    "fastest within 0.5 points of the most accurate; robustness from each "
+                    "model's training report)",
                 }
             )
         else:
@@ -508,8 +510,10 @@ def _classifier_md(results: dict[str, Any], img: str) -> list[str]:
         f"{_f(s['eval_randomized_frames'])} domain-randomised frames drawn like the training "
         f"data from an unused seed ({s['eval_randomized_seed']}). Stimulus match: the "
         "predicted mask rendered with the node's defaults against the true pattern. No model "
-        "is trained by the bench; other widths are the perception engineer's files, when "
-        "found.",
+        "is trained by the bench: the other widths are the perception engineer's width "
+        "sweep (`benchmarks/perception_bench.py --widths`, read from `runs/width-sweep` or "
+        "`--models`), and the last two columns are copied from each model's own training "
+        "report (its test split and the worst of its robustness sets, docs/perception.md).",
         "",
     ]
     rows = []
@@ -522,6 +526,8 @@ def _classifier_md(results: dict[str, Any], img: str) -> list[str]:
                     _f(r.get("parameters")),
                     r["backend"],
                     "unavailable",
+                    "",
+                    "",
                     "",
                     "",
                     "",
@@ -542,6 +548,8 @@ def _classifier_md(results: dict[str, Any], img: str) -> list[str]:
                 _pct(r["accuracy_randomized"], 2),
                 _pct(r["stimulus_match"], 2),
                 _pct(r["agrees_with_first_backend"], 2),
+                _pct(r.get("report_test_accuracy"), 2),
+                _pct(r.get("report_worst_robustness"), 2),
             ]
         )
     out += _table(
@@ -556,9 +564,11 @@ def _classifier_md(results: dict[str, Any], img: str) -> list[str]:
             "accuracy, randomised",
             "stimulus match",
             "same predictions as first backend",
+            "test accuracy (its training report)",
+            "worst robustness set (its training report)",
         ],
         rows,
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|",
+        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     )
     out += ["", f"![classifier]({img}/bench_classifier.png)"]
     return out
