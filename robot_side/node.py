@@ -31,6 +31,7 @@ from common.recording import NullRecorder, Recorder
 from common.security import Authenticator, check_endpoint, server_options
 from common.transport import Publisher, Subscriber, make_context
 from robot_side.config import RobotConfig
+from robot_side.recovery import DeviceRecovery
 from robot_side.rendering import is_contact, render_stimulus, sanitize_frame
 from robot_side.tactile.base import TactileSample, TactileSensor
 
@@ -86,6 +87,9 @@ class RobotNode:
         self._first_seq: int | None = None
         self._last_seq = 0
         self._arm_moving = False
+        never = threading.Event()  # replaced in run(); lets stats() work before it
+        self._arm_recovery = DeviceRecovery(arm, "arm", never)
+        self._gripper_recovery = DeviceRecovery(gripper, "gripper", never)
         self.pub: Publisher | None = None
         self.sub: Subscriber | None = None
 
@@ -98,6 +102,12 @@ class RobotNode:
                 if device is not None and not device.is_connected:
                     device.connect()
                     stack.callback(device.disconnect)
+            halt = threading.Event()  # ends device recoveries before the devices close
+            self._arm_recovery = DeviceRecovery(self.arm, "arm", halt)
+            self._gripper_recovery = DeviceRecovery(self.gripper, "gripper", halt)
+            stack.callback(self._arm_recovery.join)
+            stack.callback(self._gripper_recovery.join)
+            stack.callback(halt.set)
             if self.arm is not None:
                 stack.callback(self._safe_stop_arm, "node shutting down")
             for endpoint in (link.telemetry_endpoint, link.command_endpoint):
@@ -317,20 +327,21 @@ class RobotNode:
             if cmd.action.startswith("gripper"):
                 if self.gripper is None:
                     raise DeviceError("this scene has no gripper")
+                call = self._gripper_recovery.call
                 if cmd.action == "gripper_open":
-                    self.gripper.open()
+                    call(self.gripper.open)
                 elif cmd.action == "gripper_close":
-                    self.gripper.close_to_level(cmd.grip_level or 16)
+                    call(self.gripper.close_to_level, cmd.grip_level or 16)
                 else:
-                    self.gripper.hold()
+                    call(self.gripper.hold)
             else:
                 if self.arm is None:
                     raise DeviceError("this scene has no arm")
                 if cmd.action == "arm_jog" and cmd.velocity is not None:
-                    self.arm.jog(cmd.velocity)
+                    self._arm_recovery.call(self.arm.jog, cmd.velocity)
                     self._arm_moving = any(v != 0 for v in cmd.velocity)
                 else:
-                    self.arm.stop()
+                    self._arm_recovery.call(self.arm.stop)
                     self._arm_moving = False
             self.counters["commands_applied"] += 1
             outcome = "applied"
@@ -362,7 +373,7 @@ class RobotNode:
                 self._safe_stop_arm("operator silent")
                 if self.gripper is not None:
                     with contextlib.suppress(DeviceError):
-                        self.gripper.hold()
+                        self._gripper_recovery.call(self.gripper.hold)
             self.link_state = new_state
             self.link_changes.append((now, new_state))
 
@@ -370,17 +381,18 @@ class RobotNode:
         if self.arm is None:
             return
         try:
-            self.arm.stop()
+            self._arm_recovery.call(self.arm.stop)
             self._arm_moving = False
             log.info("arm stopped: %s", why)
         except Exception:  # stopping must never raise out of a finally
+            self.counters["arm_stop_failures"] += 1
             log.exception("arm stop failed (%s)", why)
 
     # ---------------------------------------------------------- heartbeat
     def _send_heartbeat(self) -> None:
-        if self.gripper is not None:
+        if self.gripper is not None and self._gripper_recovery.available:
             try:
-                self._grip_level = self.gripper.grip_level()
+                self._grip_level = self._gripper_recovery.call(self.gripper.grip_level)
             except DeviceError as e:
                 self.counters["gripper_errors"] += 1
                 log.debug("gripper: %s", e)
@@ -405,6 +417,10 @@ class RobotNode:
 
     def stats(self) -> dict[str, float]:
         out = {k: float(v) for k, v in self.counters.items()}
+        for name, rec in (("arm", self._arm_recovery), ("gripper", self._gripper_recovery)):
+            if rec.device is not None:
+                out[f"{name}_available"] = float(rec.available)
+                out[f"{name}_reconnects"] = float(rec.recoveries)
         if self._first_seq is not None:
             out["frames_captured"] = float(self._last_seq - self._first_seq + 1)
         return out
