@@ -33,6 +33,9 @@ class NetsimConfig:
     scenario: str = param("lan", "built-in scenario name, or a path to a scenario .toml")
     seed: int = param(0, "same seed and scenario give the same impairment sequence")
     hwm: int = param(1000, "ZeroMQ high-water mark of each simulator socket, in messages")
+    spin_us: float = param(
+        300.0, "busy-wait this long before each due time; sleeping wakes too late on a VM"
+    )
     report_interval_s: float = param(5.0, "how often counters are logged; 0 = never")
     duration_s: float = param(0.0, "stop after this long; 0 = run until Ctrl-C")
     endpoints: Endpoints = param(Endpoints(), "")
@@ -103,7 +106,13 @@ def run(args: argparse.Namespace) -> int:
         done.set()
 
     old = signal.signal(signal.SIGTERM, _on_signal)
-    sim = LinkSimulator(scenario, endpoints=config.endpoints, seed=config.seed, hwm=config.hwm)
+    sim = LinkSimulator(
+        scenario,
+        endpoints=config.endpoints,
+        seed=config.seed,
+        hwm=config.hwm,
+        spin_us=config.spin_us,
+    )
     try:
         sim.start()
         log.warning(
