@@ -240,9 +240,7 @@ def run(args: argparse.Namespace) -> int:
             _stop(proc, name, errors, path)
     if node_error:
         errors.append(f"operator node failed: {node_error[0]!r}")
-    summary = _summary(
-        scene, node, ran_s, robot_stats_path, netsim_stats_path, errors
-    )
+    summary = _summary(scene, node, ran_s, robot_stats_path, netsim_stats_path, errors)
     summary["logs"] = str(workdir)
     print(json.dumps(summary, indent=2))
     return 1 if errors else 0
@@ -288,6 +286,7 @@ def _summary(
             "received_with_truth": with_truth,
             "what": "received stimuli pressing exactly the true pattern's cells",
         },
+        "link": {k[5:]: v for k, v in op.items() if k.startswith("link_")},
         "rejected_messages": {
             "operator": int(op.get("decode_errors", 0)),
             "robot": int(robot.get("decode_errors", 0)),

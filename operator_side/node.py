@@ -24,6 +24,7 @@ from common.clock import Rate, now_ns
 from common.clock_sync import ClockSync
 from common.codec import encode
 from common.devices import build_device
+from common.link_stats import LinkStats
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.patterns import matches_pattern
 from common.recording import NullRecorder, Recorder
@@ -76,6 +77,8 @@ class OperatorNode:
         self._own_ctx = ctx is None
         self.ctx = ctx or make_context()
         self.clock = ClockSync()
+        #: loss, latency, jitter and staleness of the stimulus stream
+        self.link = LinkStats(clock=self.clock)
         self.counters: Counter[str] = Counter()
         self.latencies_ms: collections.deque[float] = collections.deque(
             maxlen=config.latency_window
@@ -220,6 +223,7 @@ class OperatorNode:
         return new
 
     def _on_stimulus(self, msg: Stimulus, t_recv: int) -> bool:
+        self.link.on_message(msg.seq, msg.t_send_ns, t_recv)
         last = self._stim
         if last is not None and last.seq - RESTART_SEQ_GAP < msg.seq <= last.seq:
             self.counters["stimuli_out_of_order"] += 1
@@ -363,6 +367,9 @@ class OperatorNode:
     def stats(self) -> dict[str, float]:
         out: dict[str, float] = {k: float(v) for k, v in self.counters.items()}
         out.update(self._latency_summary())
+        for key, value in self.link.snapshot(now_ns()).as_dict().items():
+            if isinstance(value, (int, float)) and key != "window_s":
+                out[f"link_{key}"] = float(value)
         return out
 
     def _latency_summary(self) -> dict[str, float]:
