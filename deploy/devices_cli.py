@@ -23,7 +23,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--role", choices=("robot", "operator", "both"), default="both")
     parser.add_argument("--json", action="store_true", help="print one JSON report")
     parser.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help="override a scene setting, e.g. --set robot.tactile.port=/dev/ttyUSB1",
     )
 
