@@ -134,6 +134,22 @@ class Subscriber:
         self.sock.close(0)
 
 
+def free_loopback_ports(n: int, host: str = "127.0.0.1") -> list[int]:
+    """``n`` TCP ports free on ``host`` right now (for endpoints that must be known in advance)."""
+    import socket
+
+    socks = []
+    try:
+        for _ in range(n):
+            s = socket.socket()
+            s.bind((host, 0))
+            socks.append(s)
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
 def make_context() -> zmq.Context:
     """A fresh context per node (never the global instance), so tests can run nodes side by side."""
     return zmq.Context()

@@ -12,7 +12,6 @@ import contextlib
 import json
 import logging
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -23,6 +22,7 @@ from typing import Any
 
 from common.cli_support import stop_on_signals
 from common.config import config_toml, from_dict
+from common.transport import free_loopback_ports
 from deploy import live_view
 from deploy.scene import Scene, load_scene_dict
 from operator_side.node import build_operator_node
@@ -56,18 +56,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="override a scene setting, e.g. --set robot.render.mode=direct",
     )
-
-
-def _free_ports(n: int) -> list[int]:
-    socks = []
-    for _ in range(n):
-        s = socket.socket()
-        s.bind(("127.0.0.1", 0))
-        socks.append(s)
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def _die_with_parent() -> None:
@@ -125,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         scene.network.scenario = args.scenario
     use_netsim = scene.network.enabled and not args.no_netsim
     workdir = Path(tempfile.mkdtemp(prefix="deepxpalm-demo-"))
-    robot_tel, robot_cmd, op_tel, op_cmd = (f"tcp://127.0.0.1:{p}" for p in _free_ports(4))
+    robot_tel, robot_cmd, op_tel, op_cmd = (f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(4))
     scene.robot.link.telemetry_endpoint = robot_tel
     scene.robot.link.command_endpoint = robot_cmd
     scene.operator.link.telemetry_endpoint = op_tel if use_netsim else robot_tel

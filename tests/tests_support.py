@@ -2,20 +2,13 @@
 
 from __future__ import annotations
 
-import socket
 import time
+
+from common.transport import free_loopback_ports
 
 
 def free_ports(n: int) -> list[int]:
-    socks = []
-    for _ in range(n):
-        s = socket.socket()
-        s.bind(("127.0.0.1", 0))
-        socks.append(s)
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
+    return free_loopback_ports(n)
 
 
 class RecordingArm:

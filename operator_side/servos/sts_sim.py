@@ -29,7 +29,7 @@ from typing import Any, Self
 from common.clock import now_ns
 from common.config import param
 from common.errors import ConfigError
-from operator_side.servos._pty import PtyLink
+from common.pty_link import PtyLink
 from operator_side.servos.feetech import FeetechConfig, FeetechServoBus
 from operator_side.servos.sts_registers import (
     BAUD_RATES,

@@ -19,12 +19,9 @@ it to each sample, and the node code does not change.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import os
-import tempfile
-import termios
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -35,6 +32,7 @@ import numpy as np
 
 from common.clock import Rate, now_ns
 from common.config import param
+from common.pty_link import PtyLink
 from robot_side.tactile.base import GraspTruth
 from robot_side.tactile.board_calibration import WIRE_SHAPE, BoardCalibration
 from robot_side.tactile.script import GraspScript
@@ -84,11 +82,7 @@ class TactileBoardSimulator:
         self._rng = np.random.default_rng([cfg.seed, 0x5CE])
         self._fault_rng = np.random.default_rng([cfg.seed, 0xBAD])
         self._lock = threading.Lock()
-        self._master: int | None = None
-        self._slave: int | None = None
-        self._slave_path: str | None = None
-        self._own_dir: str | None = None
-        self._link: Path | None = None
+        self._pty: PtyLink | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._paused = threading.Event()
@@ -116,14 +110,14 @@ class TactileBoardSimulator:
     @property
     def port(self) -> str:
         """The stable name to open (a symlink to the current pty slave)."""
-        if self._link is None:
+        if self._pty is None:
             raise RuntimeError("tactile board simulator is not started")
-        return str(self._link)
+        return str(self._pty.path)
 
     @property
     def slave_path(self) -> str | None:
         """The current pty slave itself (changes on every reconnect)."""
-        return self._slave_path
+        return None if self._pty is None else self._pty.slave_path
 
     @property
     def running(self) -> bool:
@@ -131,23 +125,17 @@ class TactileBoardSimulator:
 
     @property
     def plugged_in(self) -> bool:
-        return self._master is not None
+        return self._pty is not None and self._pty.plugged_in
 
     def start(self) -> Self:
         if self._thread is not None:
             raise RuntimeError("tactile board simulator already started")
-        cfg = self.config
-        if cfg.link_dir is None:
-            self._own_dir = tempfile.mkdtemp(prefix="deepxpalm-tactile-")
-            self._link = Path(self._own_dir) / "tactile-board"
-        else:
-            cfg.link_dir.mkdir(parents=True, exist_ok=True)
-            self._link = cfg.link_dir / "tactile-board"
-        self._plug()
+        self._pty = PtyLink("tactile-board", self.config.link_dir)
+        self._pty.plug()
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="tactile-board-sim", daemon=True)
         self._thread.start()
-        log.info("tactile board simulator on %s -> %s", self._link, self._slave_path)
+        log.info("tactile board simulator on %s -> %s", self._pty.path, self._pty.slave_path)
         return self
 
     def stop(self) -> None:
@@ -155,11 +143,8 @@ class TactileBoardSimulator:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         self._thread = None
-        self._unplug()
-        if self._own_dir is not None:
-            with contextlib.suppress(OSError):
-                os.rmdir(self._own_dir)
-            self._own_dir = None
+        if self._pty is not None:
+            self._pty.close()
 
     def __enter__(self) -> Self:
         return self.start()
@@ -205,15 +190,16 @@ class TactileBoardSimulator:
     def disconnect(self) -> None:
         """Unplug: close the pty and remove the port name. Streaming stops."""
         with self._lock:
-            self._unplug()
+            if self._pty is not None:
+                self._pty.unplug()
         log.info("tactile board simulator unplugged")
 
     def reconnect(self) -> None:
         """Plug back in: a new pty behind the same port name. Sequence numbers continue."""
         with self._lock:
-            if self._master is None:
-                self._plug()
-        log.info("tactile board simulator plugged in again -> %s", self._slave_path)
+            if self._pty is not None and not self._pty.plugged_in:
+                self._pty.plug()
+        log.info("tactile board simulator plugged in again -> %s", self.slave_path)
 
     # -- ground truth ---------------------------------------------------------------
 
@@ -233,44 +219,6 @@ class TactileBoardSimulator:
         return dict(self.counters)
 
     # -- internals ------------------------------------------------------------------
-
-    def _plug(self) -> None:
-        master, slave = os.openpty()
-        os.set_blocking(master, False)  # a stalled reader must never stall the board
-        self._master, self._slave = master, slave
-        self._slave_path = os.ttyname(slave)
-        # The slave fd stays open here: without it, the master reads EIO whenever
-        # the driver closes its end, and the pty's settings reset.
-        attrs = termios.tcgetattr(slave)
-        attrs[0] = attrs[1] = attrs[3] = 0  # raw: no echo, no CR/LF translation
-        termios.tcsetattr(slave, termios.TCSANOW, attrs)
-        assert self._link is not None
-        tmp = self._link.with_name(self._link.name + ".new")
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        tmp.symlink_to(self._slave_path)
-        os.replace(tmp, self._link)
-
-    def _unplug(self) -> None:
-        if self._link is not None:
-            with contextlib.suppress(FileNotFoundError):
-                self._link.unlink()
-        for fd in (self._master, self._slave):
-            if fd is not None:
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-        self._master = self._slave = None
-
-    def _baud_matches(self) -> bool:
-        """Does the reader's line speed match ours? (On a pty, the master sees it.)"""
-        want = getattr(termios, f"B{self.config.baud}", None)
-        master = self._master
-        if want is None or master is None:
-            return True
-        try:
-            return termios.tcgetattr(master)[5] == want
-        except termios.error:
-            return True
 
     def _run(self) -> None:
         cfg = self.config
@@ -311,10 +259,10 @@ class TactileBoardSimulator:
             for pad in range(WIRE_SHAPE[0]):
                 data += self._faulty(encode(pad, seq, counts[pad]))
             self.counters["scans"] += 1
-            master = self._master
+            master = None if self._pty is None else self._pty.master
             if master is None:
                 return  # unplugged: the scan happens, nobody hears it
-            if not self._baud_matches():
+            if not self._pty.line_speed_is(cfg.baud):
                 self.counters["wrong_baud_scans"] += 1
                 data = bytearray(
                     self._fault_rng.integers(0, 256, len(data), dtype=np.uint8).tobytes()
