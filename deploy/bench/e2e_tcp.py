@@ -140,6 +140,11 @@ def end_to_end_tcp(
     s = summarize_ns(result["latencies_ns"]).as_dict()
     s["received"] = len(result["latencies_ns"])
     s["sent"] = n_frames
+    splits = np.array(result.get("splits_ns") or [[0, 0, 0]], dtype=np.int64)
+    s["split"] = {
+        name: summarize_ns(splits[:, k]).as_dict()
+        for k, name in enumerate(("robot", "transit", "operator"))
+    }
     s["rate_hz"] = rate_hz
     s["transport"] = "tcp loopback, two processes"
     s["robot_core"] = cpu
@@ -265,8 +270,20 @@ def _peer(args: argparse.Namespace) -> int:
     node = OperatorNode(OperatorConfig(), bus)
     node.sub = Subscriber(node.ctx, args.endpoint, bind=False, name="bench peer")
     period_ns = round(1e9 / node.config.renderer.control_rate_hz)
+    # the receive time of the newest message, to split the latency at the socket
+    drain = node.sub.drain
+    received = [0]
+
+    def timed_drain(*a: Any, **k: Any) -> Any:
+        out = drain(*a, **k)
+        if out:
+            received[0] = out[-1][1]
+        return out
+
+    node.sub.drain = timed_drain  # type: ignore[method-assign]
     print("ready", flush=True)
     latencies: list[int] = []
+    splits: list[tuple[int, int, int]] = []
     joined = False
     last_msg = time.monotonic()
     while len(latencies) < args.count and time.monotonic() - last_msg < 5.0:
@@ -284,7 +301,14 @@ def _peer(args: argparse.Namespace) -> int:
             print("joined", flush=True)
         if stim is not None and stim.frame_seq > TIMED_SEQ_START and bus.writes > writes:
             latencies.append(bus.last_write_ns - stim.t_capture_ns)
-    Path(args.out).write_text(json.dumps({"latencies_ns": latencies}))
+            splits.append(
+                (
+                    stim.t_send_ns - stim.t_capture_ns,  # robot: bytes in to message out
+                    received[0] - stim.t_send_ns,  # ZeroMQ over TCP, both I/O threads
+                    bus.last_write_ns - received[0],  # operator: decode to packet
+                )
+            )
+    Path(args.out).write_text(json.dumps({"latencies_ns": latencies, "splits_ns": splits}))
     node.sub.close()
     node.ctx.term()
     return 0

@@ -183,18 +183,32 @@ def scale(result: dict[str, Any], path: Path) -> Path:
 def stages(result: dict[str, Any], path: Path) -> Path:
     plt = _plt()
     names = list(result["stages"])
-    med = [result["stages"][n]["median_us"] for n in names]
-    p99 = [result["stages"][n]["p99_us"] for n in names]
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    y = range(len(names))
-    ax.barh([i + 0.2 for i in y], p99, height=0.4, label="p99", color="#f2b48c")
-    ax.barh([i - 0.2 for i in y], med, height=0.4, label="median", color="#4c72b0")
-    ax.set_yticks(list(y), names)
+    paced = (result.get("paced") or {}).get("stages", {})
+    series = [
+        ("back to back, median", [result["stages"][n]["median_us"] for n in names], "#4c72b0"),
+    ]
+    if paced:
+        rate = result["paced"]["pace_hz"]
+        series.append(
+            (f"paced {rate:g} Hz, median", [paced[n]["median_us"] for n in names], "#dd8452")
+        )
+        series.append((f"paced {rate:g} Hz, p99", [paced[n]["p99_us"] for n in names], "#f2c8a8"))
+    fig, ax = plt.subplots(figsize=(8.5, 5))
+    h = 0.8 / len(series)
+    for k, (label, values, color) in enumerate(series):
+        ax.barh(
+            [i - 0.4 + h * (k + 0.5) for i in range(len(names))],
+            values,
+            height=h,
+            label=label,
+            color=color,
+        )
+    ax.set_yticks(list(range(len(names))), names)
     ax.invert_yaxis()
     ax.set_xscale("log")
     ax.set_xlabel("microseconds (one core)")
     ax.set_title("latency budget per stage")
-    ax.legend()
+    ax.legend(fontsize=8)
     ax.grid(alpha=0.3, axis="x", which="both")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

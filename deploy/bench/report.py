@@ -60,13 +60,25 @@ def _sec(results: dict[str, Any], name: str) -> dict[str, Any] | None:
 def verdicts(results: dict[str, Any]) -> list[dict[str, Any]]:
     rows = []
     e2e = _sec(results, "e2e_inproc")
+    if e2e is not None and e2e.get("paced"):
+        warm, e2e = e2e, e2e["paced"]
+        how = f"paced at {e2e['pace_hz']:g} Hz"
+    else:
+        warm, how = None, "back to back"
+    measured = None
+    if e2e is not None:
+        measured = (
+            f"{how}: p99 {_f(e2e['p99_us'])} us (median {_f(e2e['median_us'])} us), "
+            f"CPU time p99 {_f(e2e.get('cpu', {}).get('p99_us'))} us"
+        )
+        if warm is not None:
+            measured += (
+                f"; back to back: p99 {_f(warm['p99_us'])} us (median {_f(warm['median_us'])} us)"
+            )
     rows.append(
         {
             "what": "end to end, one process, inproc: p99 < 1 ms",
-            "measured": None
-            if e2e is None
-            else f"p99 {_f(e2e['p99_us'])} us (median {_f(e2e['median_us'])} us); "
-            f"CPU time of the same frames: p99 {_f(e2e.get('cpu', {}).get('p99_us'))} us",
+            "measured": measured,
             "pass": None if e2e is None else e2e["p99_us"] < TARGETS["e2e_inproc_p99_us"],
         }
     )
@@ -325,35 +337,65 @@ def _stages_md(results: dict[str, Any], img: str) -> list[str]:
     s = _sec(results, "stages")
     if s is None:
         return ["", "## Latency budget per stage", "", "Not run."]
+    paced = s.get("paced") or {}
+    pst = paced.get("stages", {})
+    rate = paced.get("pace_hz")
     out = [
         "",
         "## Latency budget per stage",
         "",
-        f"{s['frames']:,} frames of every pattern and grip level, each taken through the "
-        "whole chain one at a time (so each stage meets the caches the one before left), "
-        f"classifier backend `{s['classifier_backend']}`, `{s['method']}` downsizing, "
-        f"`{s['order']}`. Microseconds, one core.",
+        f"Every frame is taken through the whole chain one at a time, so each stage meets "
+        f"the caches the one before left. **Back to back**: {s['frames']:,} frames with no "
+        f"pause. **Paced**: {_f(paced.get('frames'))} frames at {_f(rate, 0)} Hz, waiting "
+        "between frames as the node waits for the sensor. Classifier backend "
+        f"`{s['classifier_backend']}`, `{s['method']}` downsizing, `{s['order']}`. "
+        "Microseconds, one core.",
         "",
     ]
     out += _table(
-        ["stage", "median (us)", "p99 (us)", "what"],
         [
-            [f"`{k}`", _f(v["median_us"]), _f(v["p99_us"]), v["what"]]
+            "stage",
+            "back to back: median",
+            "p99",
+            f"paced at {_f(rate, 0)} Hz: median",
+            "p99",
+            "what",
+        ],
+        [
+            [
+                f"`{k}`",
+                _f(v["median_us"]),
+                _f(v["p99_us"]),
+                _f(pst.get(k, {}).get("median_us")),
+                _f(pst.get(k, {}).get("p99_us")),
+                v["what"],
+            ]
             for k, v in s["stages"].items()
         ],
-        "|---|---:|---:|---|",
+        "|---|---:|---:|---:|---:|---|",
     )
     tot = s["instrumented_total"]
+    ptot = paced.get("instrumented_total", {})
     out += [
         "",
-        f"Sum of the stage medians: {_f(s['sum_of_stage_medians_us'])} us; the instrumented "
-        f"chain end to end: median {_f(tot['median_us'])} us, p99 {_f(tot['p99_us'])} us.",
+        f"Sum of the stage medians: {_f(s['sum_of_stage_medians_us'])} us back to back, "
+        f"{_f(paced.get('sum_of_stage_medians_us'))} us paced; the instrumented chain end to "
+        f"end: median {_f(tot['median_us'])} / p99 {_f(tot['p99_us'])} us back to back, "
+        f"median {_f(ptot.get('median_us'))} / p99 {_f(ptot.get('p99_us'))} us paced.",
         "",
-        "One-way PUB to SUB in one process (a 204-byte message):",
+        "**The same code costs several times more when frames are paced.** Between two "
+        "frames the core runs other code (here other processes; on the robot PC the node's "
+        "own threads), which evicts the caches and retrains the branch predictors an "
+        "interpreter leans on: a pure-Python IK call that takes about 4 us back to back "
+        "takes 20 to 30 us after an 8 ms gap, whether the gap sleeps or spins. Back-to-back "
+        "numbers are what a micro-benchmark shows; paced numbers are what a frame costs in "
+        "the field, so the verdicts, the savings and the scale model below use them.",
+        "",
+        "One-way PUB to SUB in one process (a 204-byte message, back to back):",
         "",
     ]
     rows = []
-    for name, t in s["transit"].items():
+    for name, t in (s.get("transit") or {}).items():
         if "error" in t:
             rows.append([name, "n/a", "n/a"])
         else:
@@ -384,9 +426,12 @@ def _e2e_md(results: dict[str, Any]) -> list[str]:
         )
 
     if e is not None:
-        add("one process, ZeroMQ inproc", e)
-        if "cpu" in e:
-            add("... the same frames, CPU time of the thread", e["cpu"])
+        p = e.get("paced")
+        if p is not None:
+            add(f"one process, inproc, paced at {p['pace_hz']:g} Hz", p)
+            add("... the same frames, CPU time of the thread", p.get("cpu"))
+        add("one process, inproc, back to back", e)
+        add("... the same frames, CPU time of the thread", e.get("cpu"))
     if t is not None:
         for label, r in (
             ("same core", t),
@@ -401,6 +446,34 @@ def _e2e_md(results: dict[str, Any]) -> list[str]:
         rows,
         "|---|---:|---:|---:|---:|---:|",
     )
+    if t is not None and "split" in t:
+        out += [
+            "",
+            "Where the TCP path's time goes (same core; from the message's timestamps):",
+            "",
+        ]
+        sp = t["split"]
+        out += _table(
+            ["part", "median (us)", "p99 (us)"],
+            [
+                [
+                    "robot: scan bytes to stimulus sent",
+                    _f(sp["robot"]["median_us"]),
+                    _f(sp["robot"]["p99_us"]),
+                ],
+                [
+                    "ZeroMQ over loopback TCP (both I/O threads, the wake-up)",
+                    _f(sp["transit"]["median_us"]),
+                    _f(sp["transit"]["p99_us"]),
+                ],
+                [
+                    "operator: received to servo packet",
+                    _f(sp["operator"]["median_us"]),
+                    _f(sp["operator"]["p99_us"]),
+                ],
+            ],
+            "|---|---:|---:|",
+        )
     out += [
         "",
         "From the bytes of one scan (two 212-byte packets) entering the serial driver's "
@@ -410,16 +483,17 @@ def _e2e_md(results: dict[str, Any]) -> list[str]:
         "validate) and `control_step` (IK, counts, rate limit, packet). Every frame is "
         "forced to a packet (the robot forgets its last stimulus, the operator its last "
         "write), so these are the times of frames that change what the palm feels. "
+        "The inproc verdict uses the paced run (frames at the sensor's rate, as in the "
+        "field); back to back is the optimistic bound. "
         "The TCP peer measures from the stimulus's `t_capture_ns` on the shared monotonic "
         "clock; the verdict uses both processes pinned to the same core (the one-core rule); "
-        "the second row puts the operator on the other core, as two machines would. Frames "
-        "are paced at the sensor's rate so each meets sleeping processes, as in the field. "
+        "the other row puts the operator on the other core, as two machines would. "
         "CURVE encryption is off in both paths (the nodes turn it on for remote links).",
         "",
-        "Two rows separate our cost from the machine's. The CPU time of the inproc loop is "
-        "the work itself: where its p99 is far below the wall-clock p99, the tail is time "
-        "the thread spent waiting for a core other processes held. The floor sends a "
-        "stimulus-sized message between the same two processes at the same rate and "
+        "Two kinds of row separate our cost from the machine's. The CPU time of the inproc "
+        "loop is the work itself: where its p99 is far below the wall-clock p99, the tail "
+        "is time the thread spent waiting for a core other processes held. The floor sends "
+        "a stimulus-sized message between the same two processes at the same rate and "
         "pinning with no work at either end: the latency this machine imposes on any "
         "two-process design at its present load.",
     ]

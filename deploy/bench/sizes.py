@@ -30,6 +30,9 @@ class Sizes:
 
     stage_frames: int
     e2e_frames: int
+    pace_hz: float
+    stage_paced_frames: int
+    e2e_paced_frames: int
     tcp_frames: int
     tcp_rate_hz: float
     ds_repeats: int
@@ -61,6 +64,9 @@ PRESETS: dict[str, Sizes] = {
     "full": Sizes(
         stage_frames=20000,
         e2e_frames=20000,
+        pace_hz=120.0,
+        stage_paced_frames=1800,
+        e2e_paced_frames=2400,
         tcp_frames=3000,
         tcp_rate_hz=120.0,
         ds_repeats=8,
@@ -89,6 +95,9 @@ PRESETS: dict[str, Sizes] = {
     "quick": Sizes(
         stage_frames=2000,
         e2e_frames=2000,
+        pace_hz=120.0,
+        stage_paced_frames=300,
+        e2e_paced_frames=300,
         tcp_frames=600,
         tcp_rate_hz=200.0,
         ds_repeats=2,
@@ -117,6 +126,9 @@ PRESETS: dict[str, Sizes] = {
     "smallest": Sizes(
         stage_frames=100,
         e2e_frames=100,
+        pace_hz=500.0,
+        stage_paced_frames=30,
+        e2e_paced_frames=30,
         tcp_frames=50,
         tcp_rate_hz=500.0,
         ds_repeats=1,

@@ -89,28 +89,36 @@ def demo_frames(scene_name: str, cycles: float) -> tuple[list[np.ndarray], list[
 
 
 def _board_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list[Any], float]:
+    """The board simulator's scans, made by its own code, read by the real driver.
+
+    The simulator is never started (no pty, no thread): each scan is made by
+    its scan routine while unplugged, which still records the scan's newtons
+    and truth, and the bytes are encoded here from those newtons through the
+    board's own calibration. Only the simulator's ADC noise (1 count, about
+    0.003 N) is left out.
+    """
+    from robot_side.tactile.synthetic import mirror_finger2
+    from robot_side.tactile.wire import SEQ_MODULO, encode
+
     sim = device.simulator
     cfg = sim.config
-    captured: list[bytes] = []
-    # Stand-ins for the pty: the scan is made and encoded by the simulator's own
-    # code, and its bytes are taken here instead of written to a file descriptor.
-    sim._master = -1
-    sim._write = lambda _fd, data: captured.append(bytes(data))
-    sim._baud_matches = lambda: True
     driver = serial_sensor()
     if device.sim_config.use_factory_calibration:
         driver.set_calibration(sim.calibration)
     n = round(cfg.script.duration_s * cycles * cfg.rate_hz)
     frames, truths = [], []
     for i in range(n):
+        seq = (cfg.first_seq + i) % SEQ_MODULO
         sim._scan(i / cfg.rate_hz)
-        data = captured.pop()
-        for packet in driver._parser.feed(data):
+        newtons = sim.frame_for(seq)
+        if newtons is None:
+            raise RuntimeError("the board simulator kept no history of its scan")
+        wire = mirror_finger2(np.asarray(newtons, dtype=np.float64))
+        counts = np.clip(np.rint(sim.calibration.to_counts(wire)), 0, 0xFFFF).astype(np.uint16)
+        for packet in driver._parser.feed(encode(0, seq, counts[0]) + encode(1, seq, counts[1])):
             driver._on_packet(packet, i)
-        sample = driver.latest()
-        frames.append(sample.frame)
-        truths.append(sim.truth_for(i + cfg.first_seq))
-    sim._master = None
+        frames.append(driver.latest().frame)
+        truths.append(sim.truth_for(seq))
     return frames, truths, cfg.rate_hz
 
 
