@@ -7,6 +7,7 @@ docs/perception.md.
     python benchmarks/perception_bench.py                      # shipped model, all backends
     python benchmarks/perception_bench.py --cpu 1              # pinned to one core
     python benchmarks/perception_bench.py --widths 0.125,0.25,0.5,1 --out runs/widths
+    python benchmarks/perception_bench.py --latency-of runs/widths/width-0.25.npz,...
 """
 
 from __future__ import annotations
@@ -133,6 +134,20 @@ def width_sweep(widths: list[float], out: Path, epochs: int, repeats: int, calls
         )
 
 
+def latency_of(models: list[Path], calls: int, frames: np.ndarray) -> None:
+    """Re-measure trained models (e.g. a width sweep's) without retraining them."""
+    print("\n| model | parameters | numpy median / p99 (us) | ONNX Runtime median / p99 (us) |")
+    print("|---|---:|---:|---:|")
+    for path in models:
+        cells = []
+        for backend in ("numpy", "onnxruntime"):
+            clf = load_classifier(path, backend, num_threads=1)
+            t = latency_us(clf, frames, calls)
+            cells.append(f"{np.median(t):.1f} / {np.percentile(t, 99):.1f}")
+        params = clf.meta.get("parameters", 0)
+        print(f"| {path.name} | {params:,} | {cells[0]} | {cells[1]} |", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, default=DEFAULT_MODEL)
@@ -143,10 +158,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=ds.DatasetConfig().repeats)
     parser.add_argument("--out", type=Path, default=Path("runs/width-sweep"))
+    parser.add_argument("--latency-of", help="comma-separated .npz models: latency only")
     args = parser.parse_args(argv)
     if args.cpu is not None:
         os.sched_setaffinity(0, {args.cpu})
     frames = ds.generate(ds.DatasetConfig(repeats=1, seed=99)).frames
+    if args.latency_of:
+        latency_of([Path(p) for p in args.latency_of.split(",")], args.calls, frames)
+        return 0
     if args.widths:
         width_sweep(
             [float(w) for w in args.widths.split(",")],

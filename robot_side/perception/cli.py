@@ -95,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     out, name = (MODELS_DIR, DEFAULT_MODEL.stem) if args.ship else (args.out, args.name)
     progress = not args.no_progress and sys.stderr.isatty()
 
+    data_seconds = None
     if args.data is not None:
         data = ds.load(args.data)
         print(f"loaded {len(data)} frames from {args.data}")
@@ -103,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"generating {n} frames (seed {config.data.seed}) ...", flush=True)
         t0 = time.monotonic()
         data = ds.generate(config.data)
-        print(f"generated {n} frames in {time.monotonic() - t0:.1f} s")
+        data_seconds = time.monotonic() - t0
+        print(f"generated {n} frames in {data_seconds:.1f} s")
     if args.save_data is not None:
         data.save(args.save_data)
         print(f"saved the data set to {args.save_data}")
@@ -138,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         init_weights=init,
         checkpoint=args.out / f"{name}.best.pt",
         robustness=not args.no_robustness,
+        data_seconds=data_seconds,
         on_epoch=on_epoch,
         progress=progress,
     )

@@ -71,7 +71,9 @@ class RandomizationRanges:
         (4.0, 7.5), "Pasteur pipette stems vary by maker and by where they are held"
     )
     width_min_fraction: tuple[float, float] = param((0.08, 0.3), "stiffer or softer LDPE")
-    width_max_fraction: tuple[float, float] = param((0.6, 1.1), "how far the top level squashes")
+    width_max_fraction: tuple[float, float] = param(
+        (0.6, 1.4), "how far the top level squashes: a flat tube's contact nears pi/2 x diameter"
+    )
     line_load_min_n_per_mm: tuple[float, float] = param(
         (0.6, 1.6), "the lightest level from patchy (below the floor between rows) to clear"
     )

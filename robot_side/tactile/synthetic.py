@@ -114,10 +114,10 @@ class GeneratorParams:
         6.0, "perpendicular distance of a left/right (up/down) band from the pad centre"
     )
     angle_jitter_deg: float = param(
-        4.0, "max |error| of the pipette's angle: the grasp is never exactly square"
+        4.0, "largest error of the pipette's angle: the grasp is never exactly square"
     )
     offset_jitter_mm: float = param(
-        1.0, "max |error| of the band's perpendicular offset from its nominal place"
+        1.0, "largest error of the band's perpendicular offset from its nominal place"
     )
     # --- the pipette and the grip ------------------------------------------
     pipette_diameter_mm: float = param(
