@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,6 +60,9 @@ def robot_in_thread():
         thread = threading.Thread(target=node.run, args=(stop, 30.0), daemon=True)
         thread.start()
         started.append((stop, thread))
+        deadline = time.monotonic() + 10
+        while node.sub is None and thread.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.01)  # until both ports are bound: a probe before that is refused
         return node
 
     yield start
