@@ -14,7 +14,9 @@ from the bytes of a scan to the bytes of the servo packet.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import time
 from typing import Any
 
@@ -69,6 +71,13 @@ STAGES: dict[str, str] = {
     "counts_rate_limit": "angles -> servo counts (calibration, clip) + rate limit (step)",
     "servo_packet": "limits check + scservo_sdk GroupSyncWrite of 6 goals -> packet bytes",
 }
+
+
+def _recv(sub: zmq.Socket, timeout_ms: int = 2000) -> bytes:
+    """A message that must come: waiting longer means it was lost, which is an error."""
+    if not sub.poll(timeout_ms):
+        raise RuntimeError(f"a message sent on {sub.getsockopt(zmq.LAST_ENDPOINT)!r} never came")
+    return sub.recv()
 
 
 def _pair(ctx: zmq.Context, endpoint: str) -> tuple[zmq.Socket, zmq.Socket]:
@@ -162,7 +171,7 @@ def stage_budget(
             )
             t7 = clock()
             pub.send(wire)
-            got = sub.recv()
+            got = _recv(sub)
             t8 = clock()
             msg = decode(got)
             t9 = clock()
@@ -209,7 +218,8 @@ def transit_times(n: int) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, endpoint in (
         ("inproc", "inproc://bench-transit"),
-        ("ipc", "ipc:///tmp/deepxpalm-bench-transit.sock"),
+        # one path per process: two benches at once (a test run) must not share it
+        ("ipc", f"ipc:///tmp/deepxpalm-bench-transit-{os.getpid()}.sock"),
         ("tcp_loopback", "tcp://127.0.0.1:*"),
     ):
         ctx = zmq.Context()
@@ -225,13 +235,16 @@ def transit_times(n: int) -> dict[str, Any]:
             for i in range(-50, n):
                 t = clock()
                 pub.send(msg)
-                sub.recv()
+                _recv(sub)
                 if i >= 0:
                     samples[i] = clock() - t
         finally:
             pub.close(0)
             sub.close(0)
             ctx.term()
+            if endpoint.startswith("ipc://"):
+                with contextlib.suppress(OSError):
+                    os.unlink(endpoint[len("ipc://") :])
         out[name] = summarize_ns(samples).as_dict()
     return out
 
