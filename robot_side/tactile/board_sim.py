@@ -37,7 +37,7 @@ from robot_side.tactile.base import GraspTruth
 from robot_side.tactile.board_calibration import WIRE_SHAPE, BoardCalibration
 from robot_side.tactile.script import GraspScript
 from robot_side.tactile.serial_board import SerialTactileConfig, SerialTactileSensor
-from robot_side.tactile.synthetic import GeneratorParams, SyntheticTactileModel
+from robot_side.tactile.synthetic import GeneratorParams, HeldGrasp, SyntheticTactileModel
 from robot_side.tactile.wire import DEFAULT_BAUD, PACKET_SIZE, SEQ_MODULO, encode
 
 log = logging.getLogger(__name__)
@@ -80,6 +80,7 @@ class TactileBoardSimulator:
         #: the exact inverse of how this board makes counts: its "factory calibration"
         self.calibration = BoardCalibration(zero, gain)
         self._rng = np.random.default_rng([cfg.seed, 0x5CE])
+        self._held = HeldGrasp(self._model, self._rng)
         self._fault_rng = np.random.default_rng([cfg.seed, 0xBAD])
         self._lock = threading.Lock()
         self._pty: PtyLink | None = None
@@ -236,7 +237,7 @@ class TactileBoardSimulator:
     def _scan(self, t_s: float) -> None:
         cfg = self.config
         truth = cfg.script.truth_at(t_s)
-        frame = self._model.frame(truth.pattern, truth.grip_level or 1, self._rng)
+        frame = self._held.frame(truth.pattern, truth.grip_level)
         wire_newtons = frame.astype(np.float64)
         wire_newtons[1] = wire_newtons[1, :, ::-1].copy()  # finger 2 in its own view
         counts = self.calibration.to_counts(wire_newtons)

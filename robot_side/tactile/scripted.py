@@ -19,7 +19,7 @@ from common.config import param
 from common.errors import DeviceAlreadyConnectedError
 from robot_side.tactile.base import TactileSample, TactileSensor
 from robot_side.tactile.script import GraspScript
-from robot_side.tactile.synthetic import GeneratorParams, SyntheticTactileModel
+from robot_side.tactile.synthetic import GeneratorParams, HeldGrasp, SyntheticTactileModel
 
 log = logging.getLogger(__name__)
 
@@ -73,13 +73,14 @@ class ScriptedTactileSensor(TactileSensor):
             zero = np.mean(
                 [self._model.frame(None, 1, rng) for _ in range(self.config.tare_frames)], axis=0
             ).astype(np.float32)
+        held = HeldGrasp(self._model, rng)
         script = self.config.script
         rate = Rate(self.config.rate_hz)
         t0 = now_ns()
         seq = 0
         while not self._stop.is_set():
             truth = script.truth_at((now_ns() - t0) / 1e9)
-            frame = self._model.frame(truth.pattern, truth.grip_level or 1, rng) - zero
+            frame = held.frame(truth.pattern, truth.grip_level) - zero
             frame[frame < floor] = 0.0  # the floor applies after zeroing, as on the board
             seq += 1
             self._publish(TactileSample(frame=frame, seq=seq, t_capture_ns=now_ns(), truth=truth))

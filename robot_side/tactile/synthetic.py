@@ -442,3 +442,27 @@ def _blurred_profile(
 def _profile(u: np.ndarray, edge: float) -> np.ndarray:
     inside = np.clip(1.0 - u * u, 0.0, None)
     return np.sqrt(inside) * (1.0 - edge + 2.0 * edge * np.minimum(u * u, 1.0))
+
+
+class HeldGrasp:
+    """Frames of scripted grasps with the pipette still while each is held.
+
+    A new grasp (a new small error in angle and offset) is drawn when the
+    pattern changes or after a release; between, only the grip level and the
+    taxel noise change, as when a real gripper holds a pipette.
+    """
+
+    def __init__(self, model: SyntheticTactileModel, rng: np.random.Generator) -> None:
+        self.model = model
+        self.rng = rng
+        self._grasp: Grasp | None = None
+        self._pattern: int | None = None
+
+    def frame(self, pattern: int | None, grip_level: int | None) -> np.ndarray:
+        if pattern is None:
+            self._grasp = self._pattern = None
+            return self.model.grasp_frame(None, 1, self.rng)
+        if self._grasp is None or pattern != self._pattern:
+            self._grasp = self.model.draw_grasp(pattern, self.rng)
+            self._pattern = pattern
+        return self.model.grasp_frame(self._grasp, grip_level or 1, self.rng)
