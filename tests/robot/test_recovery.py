@@ -1,4 +1,4 @@
-"""A device that fails is brought back in the background; meanwhile it is refused, not waited for."""
+"""A failed device comes back in the background; meanwhile it is refused, not waited for."""
 
 from __future__ import annotations
 

@@ -73,7 +73,7 @@ def _first_change(changes, state, after_ns):
 
 
 def test_a_cut_link_lifts_the_palm_and_stops_the_arm_then_recovers(loop):
-    robot, operator, arm, bus, sim, stop = loop
+    robot, operator, arm, bus, sim, _ = loop
     t_start = sim.start_ns
     cut, back = (t_start + round(s * 1e9) for s in OUTAGE)
     # the operator keeps jogging the arm, as a person holding a jog key would

@@ -31,18 +31,19 @@ def _cli(*args: str) -> list[str]:
 def test_operator_process_never_imports_torch(tmp_path):
     """Run the operator node for a second, then look at what its process imported."""
     probe = tmp_path / "probe.py"
+    tel, cmd = _free_port(), _free_port()
     probe.write_text(
         "import sys, threading\n"
         "from operator_side.config import OperatorConfig\n"
         "from operator_side.node import build_operator_node\n"
         "import deploy.demo, deploy.live_view  # the demo's operator side too\n"
         "cfg = OperatorConfig()\n"
-        "cfg.link.telemetry_endpoint = 'tcp://127.0.0.1:%d'\n"
-        "cfg.link.command_endpoint = 'tcp://127.0.0.1:%d'\n"
+        f"cfg.link.telemetry_endpoint = 'tcp://127.0.0.1:{tel}'\n"
+        f"cfg.link.command_endpoint = 'tcp://127.0.0.1:{cmd}'\n"
         "node = build_operator_node(cfg)\n"
         "node.run(threading.Event(), 1.0)\n"
         "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'onnxruntime'))\n"
-        "print('HEAVY', heavy)\n" % (_free_port(), _free_port())
+        "print('HEAVY', heavy)\n"
     )
     out = subprocess.run([sys.executable, str(probe)], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
