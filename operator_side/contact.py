@@ -36,19 +36,20 @@ class ContactMapping:
             raise ValueError("max_depth_mm must not be negative")
 
 
-def row_to_point(row: np.ndarray, m: ContactMapping) -> tuple[float, float]:
+def row_to_point(row: list[float], m: ContactMapping) -> tuple[float, float]:
     """One stimulus row -> contact point. Anything not a positive finite force lifts off."""
-    col = int(np.argmax(row))
-    v = float(row[col])
-    if not (math.isfinite(v) and v > 0):
+    finite = [v if math.isfinite(v) else 0.0 for v in row]
+    v = max(finite)
+    col = finite.index(v)
+    if not v > 0:
         return m.retract_point_mm
     depth = min(max((v - m.force_floor_n) / (m.force_full_n - m.force_floor_n), 0.0), 1.0)
     return (m.column_x_mm[col], m.palm_y_mm + m.max_depth_mm * depth)
 
 
 def stimulus_to_points(stimulus: np.ndarray, m: ContactMapping) -> list[tuple[float, float]]:
-    s = np.asarray(stimulus, dtype=np.float64).reshape(3, 3)
-    return [row_to_point(s[n], m) for n in range(3)]
+    rows = np.asarray(stimulus, dtype=np.float64).reshape(3, 3).tolist()
+    return [row_to_point(row, m) for row in rows]
 
 
 def reachable_set(m: ContactMapping, depth_steps: int = 25) -> np.ndarray:

@@ -81,5 +81,8 @@ class LinkGlideRenderer:
         so event-driven updates keep the same speed limit.
         """
         limit = max(1, round(self.max_step_counts * min(max(fraction, 0.0), 1.0)))
-        delta = np.clip(target - current, -limit, limit)
-        return self.calibration.clip_counts(current + delta)
+        moved = [
+            c + min(max(t - c, -limit), limit)
+            for c, t in zip(np.asarray(current).tolist(), np.asarray(target).tolist(), strict=True)
+        ]
+        return np.array(self.calibration.clip_list(moved), dtype=np.int64)

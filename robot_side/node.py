@@ -32,7 +32,7 @@ from common.security import Authenticator, check_endpoint, server_options
 from common.transport import Publisher, Subscriber, make_context
 from robot_side.config import RobotConfig
 from robot_side.recovery import DeviceRecovery
-from robot_side.rendering import is_contact, render_stimulus, sanitize_frame
+from robot_side.rendering import is_contact, render_contact, sanitize_frame
 from robot_side.tactile.base import TactileSample, TactileSensor
 
 log = logging.getLogger(__name__)
@@ -227,13 +227,7 @@ class RobotNode:
             if render.mode != "direct" and pattern is None:
                 stimulus = np.zeros((3, 3), np.float32)  # ground truth: nothing is held
             else:
-                stimulus = render_stimulus(
-                    frame,
-                    pattern,
-                    method=render.method,
-                    order=render.order,
-                    contact_threshold_n=render.contact_threshold_n,
-                )
+                stimulus = render_contact(frame, pattern, method=render.method, order=render.order)
         if not self._changed(stimulus, pattern):
             self.counters["stimuli_unchanged"] += 1
             return self._maybe_keyframe(sample)

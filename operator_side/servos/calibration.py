@@ -60,6 +60,11 @@ class LinkGlideCalibration:
         self._scale = np.array([s.direction * COUNTS_PER_RAD for s in ordered])
         self.min_counts = np.array([s.min_counts for s in ordered], dtype=np.int64)
         self.max_counts = np.array([s.max_counts for s in ordered], dtype=np.int64)
+        #: (id, zero, counts per radian, min, max) per servo, ids 1..6, as plain numbers
+        self._per_servo = [
+            (s.id, float(s.zero_counts), s.direction * COUNTS_PER_RAD, s.min_counts, s.max_counts)
+            for s in ordered
+        ]
 
     def angles_to_counts(self, angles: np.ndarray) -> np.ndarray:
         """(3, 2) angles (tau_a, tau_e per linkage) -> (6,) int counts, ids 1..6, clipped.
@@ -67,12 +72,24 @@ class LinkGlideCalibration:
         Angles are wrapped to (-pi, pi] first; a non-finite angle raises,
         because no safe count can be guessed for it.
         """
-        flat = np.asarray(angles, dtype=np.float64).reshape(6)
-        if not np.all(np.isfinite(flat)):
-            raise ValueError(f"non-finite servo angle(s): {flat.tolist()}")
-        wrapped = np.pi - np.mod(np.pi - flat, 2 * np.pi)
-        counts = np.rint(self._zero + self._scale * wrapped)
-        return np.clip(counts, self.min_counts, self.max_counts).astype(np.int64)
+        flat = np.asarray(angles, dtype=np.float64).reshape(6).tolist()
+        out = []
+        for _, zero, scale, lo, hi in self._per_servo:
+            a = flat[len(out)]
+            if not math.isfinite(a):
+                raise ValueError(f"non-finite servo angle(s): {flat}")
+            wrapped = math.remainder(a, 2 * math.pi)
+            if wrapped == -math.pi:
+                wrapped = math.pi
+            out.append(min(max(round(zero + scale * wrapped), lo), hi))
+        return np.array(out, dtype=np.int64)
+
+    def clip_list(self, counts: list[int]) -> list[int]:
+        """``clip_counts`` for six plain ints (the 60 Hz loop's size)."""
+        return [
+            min(max(int(c), lo), hi)
+            for c, (_, _, _, lo, hi) in zip(counts, self._per_servo, strict=True)
+        ]
 
     def counts_to_angles(self, counts: np.ndarray) -> np.ndarray:
         flat = np.asarray(counts, dtype=np.float64).reshape(6)
