@@ -5,16 +5,19 @@ A stimulus matches when it presses exactly the true pattern's cells
 Each downsizing method is crossed with both rendering orders and three
 sources of the mask: the true pattern (the renderer alone), the
 classifier's prediction (what the robot node does) and none (direct
-rendering, the paper's baseline).
+rendering, the paper's baseline). The three methods are timed through
+``render_contact``, the node's own path (since d31f386: the pad mean and
+both weight matrices as one (9, 200) product, then mask and peak over nine
+numbers in plain Python).
 
-Faster variants built here, all exact rewrites of the antialiased default:
+Two more variants, exact rewrites of the antialiased default:
 
-- ``fused``: the pad mean and both weight matrices folded into one
-  (9, 200) matrix, so the whole downsizing is one matrix-vector product;
-- ``fused_masked``: only the rows of that matrix the mask keeps. Every
-  pattern's mask has at most one cell per row, so masking first and then
-  taking each row's peak is the masked cells themselves: 1 to 3 dot
-  products of length 200 instead of a 3x3 image.
+- ``two_products``: the path before d31f386, contact map then ``Wy @ X @
+  Wx.T`` then mask and peak in NumPy; kept to show what the fusion saved;
+- ``fused_masked``: only the rows of the (9, 200) matrix the mask keeps.
+  Every pattern's mask has at most one cell per row, so masking first and
+  then taking each row's peak is the masked cells themselves: 1 to 3 dot
+  products of length 200 instead of nine.
 """
 
 from __future__ import annotations
@@ -36,14 +39,15 @@ from robot_side.rendering import (
     contact_map,
     downsize,
     peak_per_row,
+    render_contact,
     render_stimulus,
     sanitize_frame,
 )
 
 log = logging.getLogger(__name__)
 
-#: variants devised for the benchmark (exact rewrites of the antialiased method)
-FUSED_VARIANTS = ("fused", "fused_masked")
+#: variants beside the node's path (exact rewrites of the antialiased method)
+EXTRA_VARIANTS = ("two_products", "fused_masked")
 
 
 def fused_matrix(method: str = "antialiased") -> np.ndarray:
@@ -94,22 +98,32 @@ def _one_cell_per_row() -> bool:
     return bool((MASKS.sum(axis=2) <= 1).all())
 
 
+def _two_products(f: np.ndarray, pattern: int | None, order: str) -> np.ndarray:
+    small = downsize(contact_map(f), "antialiased")
+    if pattern is None:
+        return peak_per_row(small)
+    mask = MASKS_F32[pattern]
+    return peak_per_row(small * mask) if order == "mask_then_peak" else peak_per_row(small) * mask
+
+
 def _render_fn(variant: str, fused: FusedRenderer) -> Callable[[np.ndarray, int | None, str], Any]:
+    """The variant from a raw frame (sanitize and contact check first), for the match share."""
     if variant in METHODS:
 
         def fn(frame: np.ndarray, pattern: int | None, order: str) -> np.ndarray:
             return render_stimulus(frame, pattern, method=variant, order=order)
 
         return fn
-    masked = variant == "fused_masked"
 
-    def fused_fn(frame: np.ndarray, pattern: int | None, order: str) -> np.ndarray:
+    def other(frame: np.ndarray, pattern: int | None, order: str) -> np.ndarray:
         f = sanitize_frame(frame)
         if f.max() < 1.0:
             return np.zeros((3, 3), np.float32)
-        return fused.render(f, pattern, order, masked)
+        if variant == "two_products":
+            return _two_products(f, pattern, order)
+        return fused.render(f, pattern, order, masked=True)
 
-    return fused_fn
+    return other
 
 
 def _timed_core(
@@ -118,21 +132,14 @@ def _timed_core(
     """Downsizing + mask only (the frame is already sanitized and in contact)."""
     n = len(frames)
     if variant in METHODS:
-        mask_first = order == "mask_then_peak"
 
         def fn(i: int) -> Any:
-            f = frames[i % n]
-            small = downsize(contact_map(f), variant)
-            mask = MASKS_F32[patterns[i % n]]
-            return peak_per_row(small * mask) if mask_first else peak_per_row(small) * mask
+            return render_contact(frames[i % n], int(patterns[i % n]), method=variant, order=order)
 
         return fn
-    masked = variant == "fused_masked"
-
-    def fused_fn(i: int) -> Any:
-        return fused.render(frames[i % n], int(patterns[i % n]), order, masked)
-
-    return fused_fn
+    if variant == "two_products":
+        return lambda i: _two_products(frames[i % n], int(patterns[i % n]), order)
+    return lambda i: fused.render(frames[i % n], int(patterns[i % n]), order, masked=True)
 
 
 def downsizing_tradeoff(
@@ -142,7 +149,7 @@ def downsizing_tradeoff(
     if not _one_cell_per_row():
         raise RuntimeError("a mask has two cells in one row: fused_masked would be wrong")
     fused = FusedRenderer("antialiased")
-    variants = (*METHODS, *FUSED_VARIANTS)
+    variants = (*METHODS, *EXTRA_VARIANTS)
     sanitized = np.stack([sanitize_frame(f) for f in fs.frames])
     contact = sanitized.reshape(len(fs), -1).max(axis=1) >= 1.0
     sources: dict[str, np.ndarray | None] = {"true": fs.pattern, "none": None}

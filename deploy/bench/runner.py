@@ -66,8 +66,10 @@ def run_bench(
     from deploy.bench import timing
 
     load_before = timing.machine_load()
+    commit = _git_commit()  # before: others may commit while the bench runs
     with timing.one_core(cpu) as core:
         results = _measure(sizes, preset, skip, core, models, progress)
+    results["git_commit"] = commit
     results["machine"]["load_before"] = load_before
     results["machine"]["load_after"] = timing.machine_load()
     return results
@@ -268,6 +270,7 @@ def _measure(
         "defaults": _defaults(default_backend),
         "timer_overhead_ns": timing.timer_overhead_ns(),
         "wakeup_cpu_us": timing.wakeup_cpu_us(),
+        "cold_call": timing.cold_call_us(),
         "total_seconds": round(time.monotonic() - t_start, 1),
         "sections": sections,
     }

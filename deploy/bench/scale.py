@@ -27,7 +27,7 @@ from deploy.bench.nodecpu import run_nodes
 log = logging.getLogger(__name__)
 
 READ_STAGES = ("wire_decode", "calibration")
-RENDER_STAGES = ("sanitize_contact", "classification", "downsizing", "masking", "encode")
+RENDER_STAGES = ("sanitize_contact", "classification", "render", "encode")
 
 
 def modelled(

@@ -228,7 +228,7 @@ def skipping(
     sent = node.pub.sent
     keyframes = sum(1 for m in sent if m.keyframe)
     m = stage_medians_us
-    render_us = m.get("downsizing", 0.0) + m.get("masking", 0.0)
+    render_us = m.get("render", 0.0)
     link_us = sum(
         m.get(k, 0.0)
         for k in (

@@ -26,7 +26,7 @@ import zmq
 from common.clock import Rate, now_ns
 from common.codec import decode, encode
 from common.messages import Stimulus
-from common.patterns import MASKS_F32, pattern_of
+from common.patterns import pattern_of
 from common.transport import Publisher, Subscriber
 from deploy.bench.fixtures import (
     PacketBuilder,
@@ -42,13 +42,7 @@ from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
-from robot_side.rendering import (
-    contact_map,
-    downsize,
-    is_contact,
-    peak_per_row,
-    sanitize_frame,
-)
+from robot_side.rendering import is_contact, render_contact, sanitize_frame
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +55,8 @@ STAGES: dict[str, str] = {
     "sanitize_contact": "sanitize_frame + is_contact (the node's prelude)",
     "classification": "predict_proba on one frame + argmax + pattern (shipped model, "
     "default backend)",
-    "downsizing": "contact map (mean of pads) + 10x10 -> 3x3 (default method)",
-    "masking": "mask and peak per row (default order)",
+    "render": "downsizing + masking: render_contact, the node's path since d31f386 (pad "
+    "mean and 10x10 -> 3x3 as one 9x200 product, then mask and peak over nine numbers)",
     "encode": "Stimulus -> topic + msgpack (common.codec.encode)",
     "zmq_transit_tcp": "PUB.send -> SUB.recv over loopback TCP, one process",
     "decode": "bytes -> validated Stimulus (common.codec.decode)",
@@ -119,7 +113,7 @@ def stage_budget(
     warm = min(50 if rate is not None else 200, n)
     scans = [scan_bytes(fs.frames[k], seq) for seq, k in enumerate(np.r_[order[:warm], order])]
     cfg = RobotConfig()
-    method, mask_first = cfg.render.method, cfg.render.order == "mask_then_peak"
+    method, order = cfg.render.method, cfg.render.order
     sensor = serial_sensor()
     parser = sensor._parser
     calibration = LinkGlideCalibration()
@@ -151,11 +145,8 @@ def stage_budget(
             pattern = pattern_of(a, p)
             confidence = float(np.clip(pa[0, a] * pp[0, p], 0.0, 1.0))
             t4 = clock()
-            small = downsize(contact_map(frame), method)
+            stim = render_contact(frame, pattern, method=method, order=order)
             t5 = clock()
-            mask = MASKS_F32[pattern]
-            stim = peak_per_row(small * mask) if mask_first else peak_per_row(small) * mask
-            t6 = clock()
             wire = encode(
                 Stimulus(
                     seq=i + warm + 1,
@@ -169,28 +160,28 @@ def stage_budget(
                     confidence=confidence,
                 )
             )
-            t7 = clock()
+            t6 = clock()
             pub.send(wire)
             got = _recv(sub)
-            t8 = clock()
+            t7 = clock()
             msg = decode(got)
-            t9 = clock()
+            t8 = clock()
             angles = renderer.target_angles(msg.stimulus)
-            t10 = clock()
+            t9 = clock()
             goal = calibration.angles_to_counts(angles)
             nxt = renderer.step(current, goal, 1.0)
-            t11 = clock()
+            t10 = clock()
             builder.build({sid: int(c) for sid, c in zip(ids, nxt, strict=True)})
-            t12 = clock()
+            t11 = clock()
             current = renderer.retract_counts if i % 2 else nxt  # keep the steps non-trivial
-            if i < 0:
-                continue
-            marks = (t0, t1, t2, t3, t4, t5, t6, t7, t8, t9, t10, t11, t12)
-            for k, name in enumerate(STAGES):
-                times[name][i] = marks[k + 1] - marks[k]
-            total[i] = t12 - t0
             if rate is not None:
                 rate.sleep()
+            if i < 0:
+                continue
+            marks = (t0, t1, t2, t3, t4, t5, t6, t7, t8, t9, t10, t11)
+            for k, name in enumerate(STAGES):
+                times[name][i] = marks[k + 1] - marks[k]
+            total[i] = t11 - t0
     finally:
         pub.close(0)
         sub.close(0)

@@ -249,6 +249,36 @@ def wakeup_cpu_us(rate_hz: float = 240.0, seconds: float = 2.0) -> float:
     return cpu_ns / max(1, n) / 1e3
 
 
+def cold_call_us(gap_s: float = 0.008, n: int = 150) -> dict[str, float]:
+    """One pure-Python IK call back to back, and the first one after an idle gap (us).
+
+    The gap is spent spinning on the clock, so the thread never leaves the
+    core: what the first call pays is the state the core lost meanwhile
+    (caches, TLB, branch predictors), which is what a node pays per frame.
+    """
+    from operator_side.linkglide import inverse_kinematics_one
+
+    clock = time.perf_counter_ns
+    warm, cold = [], []
+    for _ in range(n):
+        end = time.perf_counter() + gap_s
+        while time.perf_counter() < end:
+            pass
+        t = clock()
+        inverse_kinematics_one(10.0, 58.0)
+        t1 = clock()
+        inverse_kinematics_one(10.0, 58.0)
+        inverse_kinematics_one(10.0, 58.0)
+        t2 = clock()
+        cold.append(t1 - t)
+        warm.append((t2 - t1) / 2)
+    return {
+        "gap_ms": gap_s * 1e3,
+        "warm_us": float(np.median(warm)) / 1e3,
+        "first_after_gap_us": float(np.median(cold)) / 1e3,
+    }
+
+
 def machine_load() -> dict[str, Any]:
     """Load averages and core count, to print beside every number taken on a shared machine."""
     one, five, fifteen = os.getloadavg()
