@@ -57,9 +57,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--skip", action="append", default=[], choices=SECTIONS, help="leave a section out"
     )
     parser.add_argument("--no-figures", action="store_true", help="skip the PNGs")
+    parser.add_argument(
+        "--from-json",
+        type=Path,
+        metavar="PATH",
+        help="measure nothing: rewrite the report and figures from a benchmarks.json",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.from_json is not None:
+        import json
+
+        from deploy.bench.report import write_outputs
+
+        results = json.loads(args.from_json.read_text())
+        for p in write_outputs(results, args.out, figures=not args.no_figures):
+            print(f"wrote {p}")
+        return 0
     preset = "quick" if args.quick else (args.size or "full")
     sizes = PRESETS[preset]
     skip = set(args.skip)

@@ -20,27 +20,37 @@ def _plt() -> Any:
 
 def downsizing(result: dict[str, Any], path: Path) -> Path:
     plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4), sharey=True)
     markers = {"peak_then_mask": "o", "mask_then_peak": "s"}
+    variants = list(dict.fromkeys(r["variant"] for r in result["rows"]))
+    colors = {v: f"C{k}" for k, v in enumerate(variants)}
     for ax, source, title in (
         (axes[0], "match_true", "true pattern's mask"),
-        (axes[1], "match_predicted", "classifier's predicted mask"),
+        (axes[1], "match_predicted", "classifier's mask (the node)"),
     ):
         for row in result["rows"]:
             if source not in row:
                 continue
-            ax.scatter(row["median_us"], 100 * row[source], marker=markers[row["order"]], s=50)
-            ax.annotate(
-                f"{row['variant']}\n{row['order'].replace('_', ' ')}",
-                (row["median_us"], 100 * row[source]),
-                fontsize=7,
-                xytext=(4, 4),
-                textcoords="offset points",
+            ax.scatter(
+                row["median_us"],
+                100 * row[source],
+                marker=markers[row["order"]],
+                color=colors[row["variant"]],
+                s=60,
+                alpha=0.8,
             )
-        ax.set_title(f"downsizing + masking: {title}")
+        ax.set_title(title)
         ax.set_xlabel("median time per frame (us, one core)")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("stimuli matching the true pattern (%)")
+    handles = [
+        plt.Line2D([], [], color=colors[v], marker="o", ls="", label=v) for v in variants
+    ] + [
+        plt.Line2D([], [], color="grey", marker=m, ls="", label=o.replace("_", " "))
+        for o, m in markers.items()
+    ]
+    axes[1].legend(handles=handles, fontsize=8, loc="center right")
+    fig.suptitle("downsizing + masking: run time against the stimulus match")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -49,25 +59,30 @@ def downsizing(result: dict[str, Any], path: Path) -> Path:
 
 def classifier(result: dict[str, Any], path: Path) -> Path:
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.5, 4.5))
-    for row in result["rows"]:
-        if "median_us" not in row or row.get("accuracy_default_generator") is None:
-            continue
-        acc = 100 * (row.get("accuracy_randomized") or row["accuracy_default_generator"])
+    fig, ax = plt.subplots(figsize=(8, 4.6))
+    rows = [r for r in result["rows"] if "median_us" in r]
+    backends = list(dict.fromkeys(r["backend"] for r in rows))
+    widths = sorted({r["width"] for r in rows})
+    colors = {b: f"C{k}" for k, b in enumerate(backends)}
+    shapes = dict(zip(widths, "v^osDP*", strict=False))
+    for r in rows:
+        acc = r.get("accuracy_randomized") or r["accuracy_default_generator"]
         ax.errorbar(
-            row["median_us"],
-            acc,
-            xerr=[[0], [max(0.0, row["p99_us"] - row["median_us"])]],
-            fmt="o",
+            r["median_us"],
+            100 * acc,
+            xerr=[[0], [max(0.0, r["p99_us"] - r["median_us"])]],
+            fmt=shapes[r["width"]],
+            color=colors[r["backend"]],
             capsize=3,
+            alpha=0.8,
+            ms=7,
         )
-        ax.annotate(
-            f"{row['backend']} w={row['width']}",
-            (row["median_us"], acc),
-            fontsize=7,
-            xytext=(4, 4),
-            textcoords="offset points",
-        )
+    handles = [plt.Line2D([], [], color=colors[b], marker="o", ls="", label=b) for b in backends]
+    handles += [
+        plt.Line2D([], [], color="grey", marker=shapes[w], ls="", label=f"width {w:g}")
+        for w in widths
+    ]
+    ax.legend(handles=handles, fontsize=8, loc="lower right")
     ax.set_xscale("log")
     ax.set_xlabel("batch-1 latency, median (bar to p99), us, one core")
     ax.set_ylabel("pattern accuracy (%), randomised held-out set")
@@ -81,27 +96,31 @@ def classifier(result: dict[str, Any], path: Path) -> Path:
 
 def ik(result: dict[str, Any], path: Path) -> Path:
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    fig, ax = plt.subplots(figsize=(8, 4.6))
+    sets = (
+        ("operational", "o", "contact points"),
+        ("grid", "s", "workspace grid"),
+        ("shell", "^", "edge shell"),
+        ("grid_and_shell_sample", "D", "grid + shell sample"),
+    )
+    colors = {m["key"]: f"C{k}" for k, m in enumerate(result["methods"])}
     for m in result["methods"]:
         t = m["time_3"]["median_us"]
-        for key, marker, label in (
-            ("operational", "o", "contact points"),
-            ("grid", "s", "workspace grid"),
-            ("shell", "^", "edge shell"),
-            ("grid_and_shell_sample", "D", "grid + shell sample"),
-        ):
+        for key, marker, _ in sets:
             if key in m and m[key]["max_mm"] is not None:
-                ax.scatter(t, max(m[key]["max_mm"], 1e-16), marker=marker, s=45, label=label)
-        ax.annotate(
-            m["key"],
-            (t, max(m["operational"]["max_mm"] or 1e-16, 1e-16)),
-            fontsize=7,
-            xytext=(4, -10),
-            textcoords="offset points",
-        )
-    handles, labels = ax.get_legend_handles_labels()
-    uniq = dict(zip(labels, handles, strict=True))
-    ax.legend(uniq.values(), uniq.keys(), fontsize=8)
+                ax.scatter(
+                    t,
+                    max(m[key]["max_mm"], 1e-16),
+                    marker=marker,
+                    s=55,
+                    color=colors[m["key"]],
+                    alpha=0.85,
+                )
+    handles = [
+        plt.Line2D([], [], color=colors[m["key"]], marker="o", ls="", label=m["key"])
+        for m in result["methods"]
+    ] + [plt.Line2D([], [], color="grey", marker=mk, ls="", label=lb) for _, mk, lb in sets]
+    ax.legend(handles=handles, fontsize=8, loc="center right")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("time for three linkages, median (us, one core)")
@@ -122,8 +141,17 @@ def skipping(result: dict[str, Any], path: Path) -> Path:
     axes[0].barh(names, [r["cpu_saved_us_per_s"] / 1e3 for r in rows])
     axes[0].set_xlabel("CPU saved (ms per second of scene)")
     axes[0].set_title(f"work saved in the {result['scene']} scene")
-    axes[1].barh(names, [r["max_servo_counts_diff"] for r in rows])
-    axes[1].set_xlabel("largest servo goal difference it causes (counts; 1 count = 0.088 deg)")
+    diffs = [r["max_servo_counts_diff"] for r in rows]
+    axes[1].barh(names, diffs, color=["#c44e52" if d else "#55a868" for d in diffs])
+    for y, (d, r) in enumerate(zip(diffs, rows, strict=True)):
+        axes[1].annotate(
+            f" {d} counts, {r['max_abs_diff_n']:.3f} N",
+            (max(d, 0), y),
+            va="center",
+            fontsize=8,
+        )
+    axes[1].set_xscale("symlog", linthresh=1)
+    axes[1].set_xlabel("largest servo goal difference (counts; 1 count = 0.088 deg)")
     axes[1].set_title("error it costs")
     for ax in axes:
         ax.grid(alpha=0.3, axis="x")

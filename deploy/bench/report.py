@@ -398,8 +398,8 @@ def _stages_md(results: dict[str, Any], img: str) -> list[str]:
         "**The same code costs several times more when frames are paced.** Between two "
         "frames the core runs other code (here other processes; on the robot PC the node's "
         "own threads), which evicts the caches and retrains the branch predictors an "
-        "interpreter leans on: a pure-Python IK call that takes about 4 us back to back "
-        "takes 20 to 30 us after an 8 ms gap, whether the gap sleeps or spins. Back-to-back "
+        "interpreter leans on (see Conditions: the first IK call after a frame period's gap "
+        "costs many times a warm one, even when the gap spins on the same core). Back-to-back "
         "numbers are what a micro-benchmark shows; paced numbers are what a frame costs in "
         "the field, so the verdicts, the savings and the scale model below use them.",
         "",
@@ -495,8 +495,8 @@ def _e2e_md(results: dict[str, Any]) -> list[str]:
         "validate) and `control_step` (IK, counts, rate limit, packet). Every frame is "
         "forced to a packet (the robot forgets its last stimulus, the operator its last "
         "write), so these are the times of frames that change what the palm feels. "
-        "The inproc verdict uses the paced run (frames at the sensor's rate, as in the "
-        "field); back to back is the optimistic bound. "
+        "The verdicts give both inproc runs: paced at the sensor's rate (as in the field) "
+        "and back to back (a warm core, the optimistic bound). "
         "The TCP peer measures from the stimulus's `t_capture_ns` on the shared monotonic "
         "clock; the verdict uses both processes pinned to the same core (the one-core rule); "
         "the other row puts the operator on the other core, as two machines would. "
