@@ -1,6 +1,6 @@
 """``deepxpalm bench``: measure the loop, write docs/benchmarks.md, .json and the figures.
 
-    deepxpalm bench            # the full run (about 10 minutes; run it on a quiet machine)
+    deepxpalm bench            # the full run (about 7 minutes; run it on a quiet machine)
     deepxpalm bench --quick    # about a minute, smaller samples, modelled scale
     deepxpalm bench --out /tmp/bench --skip node_cpu
 
