@@ -735,7 +735,8 @@ def _skipping_md(results: dict[str, Any], img: str) -> list[str]:
         f"virtual time ({s['frames']:,} frames at {s['rate_hz']:g} Hz) through "
         "`RobotNode.process` with the node's clock made virtual, beside a shadow that "
         "classifies and renders every frame. CPU saved per skipped frame is the sum of the "
-        "stage medians it leaves out. Differences compare what the operator renders (the "
+        "paced stage medians (what a frame costs in the field) it leaves out. Differences "
+        "compare what the operator renders (the "
         "last stimulus sent) with what the shadow would have sent; for the no-contact skip, "
         "the node's all-zero stimulus with what classifying would have rendered.",
         "",
@@ -837,7 +838,8 @@ def _scale_md(results: dict[str, Any], img: str) -> list[str]:
             "",
         ]
     out += [
-        "Modelled from the stage medians: every frame is read (wire decode + calibration), "
+        "Modelled from the paced stage medians: every frame is read (wire decode + "
+        "calibration), "
         f"at most {s['cap_hz']:g} per second are rendered (sanitize, classify, downsize, mask, "
         "encode, half a loopback send); fixed costs (heartbeats, wake-ups) left out.",
         "",
