@@ -11,7 +11,9 @@ linkage off the palm, and rendering resumes by itself when fresh data does.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
+import os
 import queue
 import threading
 from collections import Counter
@@ -20,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import zmq
 
-from common.clock import Rate, now_ns
+from common.clock import now_ns
 from common.clock_sync import ClockSync
 from common.codec import encode
 from common.devices import build_device
@@ -87,6 +89,9 @@ class OperatorNode:
         #: (monotonic ns, new state) of the latest link state changes
         self.link_changes: collections.deque[tuple[int, str]] = collections.deque(maxlen=256)
         self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
+        self._wake_r, self._wake_w = os.pipe()  # send_command wakes a sleeping loop
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
         self._lock = threading.Lock()
         self._stim: Stimulus | None = None
         self._stim_local_capture_ns: int | None = None  # newest confirmation, local clock
@@ -118,6 +123,8 @@ class OperatorNode:
         self._commands.put(
             Command(seq=0, t_send_ns=0, action=action, grip_level=grip_level, velocity=velocity)
         )
+        with contextlib.suppress(BlockingIOError, OSError):
+            os.write(self._wake_w, b"c")  # the loop may be asleep until a deadline
 
     # --------------------------------------------------------------- run
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
@@ -163,6 +170,7 @@ class OperatorNode:
             name="operator telemetry",
         )
         self.pub = Publisher(self.ctx, link.command_endpoint, bind=False, sock_opts=opts)
+        self.sub.poller.register(self._wake_r, zmq.POLLIN)
         self._sockets_opened_ns = now_ns()
 
     def _reopen_sockets_if_silent(self, now: int) -> None:
@@ -184,25 +192,33 @@ class OperatorNode:
         self.counters["sockets_reopened"] += 1
 
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
-        rate = Rate(self.config.renderer.control_rate_hz)
+        period = round(1e9 / self.config.renderer.control_rate_hz)
         hb_period = round(1e9 / self.config.link.heartbeat_rate_hz)
-        next_hb = now_ns()
+        next_hb = next_control = now_ns()
         t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
         while not stop.is_set() and (t_end is None or now_ns() < t_end):
-            new_stimulus = False
-            if self.sub.poll(rate.remaining_s()):
-                new_stimulus = self.receive()
+            wait_s = max(0.0, (min(next_control, next_hb) - now_ns()) / 1e9)
+            changed = self.receive() if self.sub.poll(wait_s) else False
             now = now_ns()
-            if new_stimulus or rate.due():
-                # A new stimulus is rendered at once and the cycle re-phased to it,
-                # so latency stays low and writes stay at about one per cycle.
-                self.control_step(now, rate.period_ns)
-                rate.restart()
+            if changed or now >= next_control:
+                # Rendered as soon as something changed; otherwise the loop sleeps
+                # until the goal moves, the data would go stale, or a heartbeat.
+                self.control_step(now, period)
+                next_control = self._next_control_ns(now, period)
             if now >= next_hb:
                 self._send_heartbeat()
                 next_hb = now + hb_period
             self._flush_commands()
             self._reopen_sockets_if_silent(now)
+
+    def _next_control_ns(self, now: int, period: int) -> int:
+        """When the next control step is needed if no message arrives first."""
+        if self._written is not None and not np.array_equal(self._written, self._goal):
+            return now + period  # still stepping toward the goal
+        captured = self._stim_local_capture_ns
+        if self.link_state == "ok" and captured is not None:
+            return captured + round(self.config.link.stale_after_ms * 1e6) + 1
+        return now + 10 * period  # lifted and idle: messages wake the loop
 
     # ----------------------------------------------------------- receive
     def receive(self) -> bool:
@@ -214,6 +230,7 @@ class OperatorNode:
                 new |= self._on_stimulus(msg, t_recv)
             elif isinstance(msg, Heartbeat):
                 self._on_heartbeat(msg, t_recv)
+                new |= self.link_state != "ok"  # it may confirm a stimulus again
             elif isinstance(msg, TactileFrame):
                 with self._lock:
                     self._frame = msg
@@ -349,6 +366,8 @@ class OperatorNode:
         )
 
     def _flush_commands(self) -> None:
+        with contextlib.suppress(BlockingIOError, OSError):
+            os.read(self._wake_r, 4096)
         while True:
             try:
                 cmd = self._commands.get_nowait()
