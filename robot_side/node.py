@@ -86,6 +86,9 @@ class RobotNode:
         self._grip_level: int | None = None
         self._first_seq: int | None = None
         self._last_seq = 0
+        self._last_capture_seen: tuple[int, int] | None = None
+        self._frame_period_ns = 0.0  # estimated from the frames' capture times
+        self._skip_requested = 0
         self._arm_moving = False
         never = threading.Event()  # replaced in run(); lets stats() work before it
         self._arm_recovery = DeviceRecovery(arm, "arm", never)
@@ -143,7 +146,10 @@ class RobotNode:
         next_frame_msg = now_ns()
         while not stop.is_set() and (t_end is None or now_ns() < t_end):
             timeout = max(0.0, min((next_hb - now_ns()) / 1e9, 0.02))
-            sample = self.tactile.wait_for_frame(self._last_seq, timeout)
+            # Sleep through the frames that will not be rendered (120 Hz in, 60 out):
+            # wait for the first one due, instead of waking for each.
+            self._skip_requested = self._frames_until_due(min_interval)
+            sample = self.tactile.wait_for_frame(self._last_seq + self._skip_requested, timeout)
             self._handle_commands()
             now = now_ns()
             self._check_deadman(now)
@@ -161,12 +167,28 @@ class RobotNode:
                 next_hb = now + hb_period
 
     # ------------------------------------------------------------- frames
+    def _frames_until_due(self, min_interval: int) -> int:
+        """Frames that will arrive before the next render is due (0 before the rate is known)."""
+        period = self._frame_period_ns
+        if not self._last_seq or period <= 0:
+            return 0
+        remaining = self._last_process_ns + min_interval - now_ns()
+        return max(0, int(remaining // period))
+
     def _account(self, sample: TactileSample) -> None:
+        last = self._last_capture_seen
+        if last is not None and sample.seq > last[0]:
+            interval = (sample.t_capture_ns - last[1]) / (sample.seq - last[0])
+            if interval > 0:  # the sensor's frame period, smoothed
+                p = self._frame_period_ns
+                self._frame_period_ns = interval if p <= 0 else 0.9 * p + 0.1 * interval
+        self._last_capture_seen = (sample.seq, sample.t_capture_ns)
         if self._first_seq is None:
             self._first_seq = sample.seq
-        self.counters["frames_superseded"] += (
-            max(0, sample.seq - self._last_seq - 1) if self._last_seq else 0
-        )
+        gap = max(0, sample.seq - self._last_seq - 1) if self._last_seq else 0
+        slept = min(gap, self._skip_requested)  # frames deliberately not woken for
+        self.counters["frames_skipped_rate"] += slept
+        self.counters["frames_superseded"] += gap - slept
         self._last_seq = sample.seq
 
     def process(self, sample: TactileSample) -> Stimulus | None:

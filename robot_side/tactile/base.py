@@ -49,11 +49,13 @@ class TactileSensor(Device):
     def __init__(self) -> None:
         self._cond = threading.Condition()
         self._latest: TactileSample | None = None
+        self._waiting_after = -1  # the seq the current waiter needs to exceed
 
     def _publish(self, sample: TactileSample) -> None:
         with self._cond:
             self._latest = sample
-            self._cond.notify_all()
+            if sample.seq > self._waiting_after:  # wake a waiter only for what it waits for
+                self._cond.notify_all()
 
     def latest(self) -> TactileSample | None:
         with self._cond:
@@ -77,9 +79,11 @@ class TactileSensor(Device):
         """Block until a frame newer than ``after_seq`` exists; None on timeout."""
         self.require_connected()
         with self._cond:
+            self._waiting_after = after_seq
             self._cond.wait_for(
                 lambda: self._latest is not None and self._latest.seq > after_seq, timeout_s
             )
+            self._waiting_after = -1
             sample = self._latest
         if sample is None or sample.seq <= after_seq:
             return None
