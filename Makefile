@@ -28,6 +28,9 @@ test: $(STAMP)
 	bash scripts/install-test-browser.sh || [ -z "$$CI" ]
 	$(BIN)/python -m pytest $(ARGS)
 
+bench: $(STAMP)
+	$(BIN)/deepxpalm bench $(ARGS)
+
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
