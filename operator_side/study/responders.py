@@ -8,6 +8,7 @@ responder: a page or a terminal cannot give it away.
 
 from __future__ import annotations
 
+import abc
 import itertools
 import json
 import logging
@@ -42,30 +43,34 @@ class Answer:
     t_ns: int  # when the participant answered (monotonic)
 
 
-class Responder:
+class Responder(abc.ABC):
     """The participant's side of the study; ``train`` and ``ask`` are required."""
 
     ui: str = "?"
 
     def open(self) -> None:
         """Get ready (start a server, print a legend)."""
+        return None  # optional hook
 
     def close(self) -> None:
         """Release what ``open`` took."""
+        return None  # optional hook
 
+    @abc.abstractmethod
     def train(self, pattern: int, index: int, total: int) -> None:
         """Show ``pattern``'s picture while the palm feels it; return when they go on."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def ask(self, prompt: Prompt) -> Answer:
         """Wait for the participant's answer to the stimulus on the palm."""
-        raise NotImplementedError
 
     def feedback(self, prompt: Prompt, answer: Answer, truth: int) -> None:
         """Practice only: say whether the answer was right (after it was given)."""
+        return None  # optional hook
 
     def message(self, text: str) -> None:
         """A line for the participant (a break, the end)."""
+        return None  # optional hook
 
 
 # ---------------------------------------------------------------- keyboard
