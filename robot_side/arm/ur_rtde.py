@@ -31,6 +31,7 @@ import concurrent.futures
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -115,6 +116,12 @@ class ArmCommandRefusedError(DeviceError):
     """The controller refused a command (script not running, protective stop, ...)."""
 
 
+#: A controller frees the previous session's RTDE inputs when it sees the
+#: close; a reconnect right after a disconnect can arrive first.
+CONTROL_CONNECT_TRIES = 5
+CONTROL_CONNECT_RETRY_S = 0.2
+
+
 @dataclass
 class URArmConfig:
     host: str = param("192.168.1.10", "the UR controller's IP (pendant: Settings > Network)")
@@ -168,12 +175,21 @@ class URArm(Arm):
         except RuntimeError as e:
             msg = f"URArm: RTDE receive to {host} failed ({e}); {hint}"
             raise DeviceNotConnectedError(msg) from e
-        try:
-            ctrl = rtde_control.RTDEControlInterface(host)
-        except RuntimeError as e:
-            recv.disconnect()
-            msg = f"URArm: RTDE control to {host} failed ({e}); {hint}"
-            raise DeviceNotConnectedError(msg) from e
+        ctrl = None
+        for attempt in range(CONTROL_CONNECT_TRIES):
+            try:
+                ctrl = rtde_control.RTDEControlInterface(host)
+                break
+            except RuntimeError as e:
+                # Right after a disconnect the controller may still hold our previous
+                # session's input registers; they are freed when it sees the close.
+                if "already in use" in str(e) and attempt + 1 < CONTROL_CONNECT_TRIES:
+                    log.info("URArm: RTDE inputs at %s still held; trying again", host)
+                    time.sleep(CONTROL_CONNECT_RETRY_S)
+                    continue
+                recv.disconnect()
+                msg = f"URArm: RTDE control to {host} failed ({e}); {hint}"
+                raise DeviceNotConnectedError(msg) from e
         self._recv, self._ctrl = recv, ctrl
         self._ctrl_broken = None
         self._speeding = self._moving = False
