@@ -23,57 +23,38 @@ const LINK = {
 };
 
 // ------------------------------------------------------------------ socket
-let ws = null;
-let retryMs = 250;
+let socket = null;
 let drawPending = false;
 const changed = new Set();
 
-function connect() {
-  const scheme = location.protocol === "https:" ? "wss://" : "ws://";
-  ws = new WebSocket(scheme + location.host + "/ws");
-  ws.onopen = () => {
-    dxp.connected = true;
-    retryMs = 250;
-    $("conn").textContent = "live";
-    $("conn").className = "conn live";
-  };
-  ws.onclose = () => {
-    dxp.connected = false;
-    $("conn").textContent = "reconnecting…";
-    $("conn").className = "conn";
-    setTimeout(connect, retryMs);
-    retryMs = Math.min(retryMs * 2, 4000);
-  };
-  ws.onmessage = (ev) => {
-    const msg = JSON.parse(ev.data);
-    dxp.messages++;
-    if (msg.type === "hello") {
-      dxp.hello = msg;
-      changed.add("all");
-    } else if (msg.type === "state") {
-      for (const k of Object.keys(msg)) changed.add(k);
-      Object.assign(dxp.state, msg);
-    } else if (msg.type === "ack") {
-      dxp.acks.push(msg);
-      $("ack").textContent = msg.ok
-        ? `sent ${msg.action}${msg.grip_level ? " (level " + msg.grip_level + ")" : ""}`
-        : `refused: ${msg.error}`;
-    }
-    if (!drawPending) {
-      drawPending = true;
-      requestAnimationFrame(draw);
-    }
-  };
+function onMessage(msg) {
+  dxp.messages++;
+  if (msg.type === "hello") {
+    dxp.hello = msg;
+    changed.add("all");
+  } else if (msg.type === "state") {
+    for (const k of Object.keys(msg)) changed.add(k);
+    Object.assign(dxp.state, msg);
+  } else if (msg.type === "ack") {
+    dxp.acks.push(msg);
+    $("ack").textContent = msg.ok
+      ? `sent ${msg.action}${msg.grip_level ? " (level " + msg.grip_level + ")" : ""}`
+      : `refused: ${msg.error}`;
+  }
+  if (!drawPending) {
+    drawPending = true;
+    requestAnimationFrame(draw);
+  }
 }
 
 function sendCommand(action, gripLevel) {
-  if (!ws || ws.readyState !== WebSocket.OPEN) {
+  if (!socket || !socket.isOpen()) {
     $("ack").textContent = "not connected";
     return false;
   }
   const msg = { type: "command", action };
   if (gripLevel !== undefined) msg.grip_level = gripLevel;
-  ws.send(JSON.stringify(msg));
+  socket.send(msg);
   return true;
 }
 dxp.sendCommand = sendCommand;
@@ -361,4 +342,4 @@ $("open").addEventListener("click", () => sendCommand("gripper_open"));
 $("close").addEventListener("click", () => sendCommand("gripper_close", Number($("level").value)));
 
 drawColorbar();
-connect();
+socket = DXP.openSocket(dxp, "live", onMessage);

@@ -78,5 +78,36 @@ const DXP = (() => {
     ctx.restore();
   }
 
-  return { heatColor, drawPattern, ANGLES };
+  // A WebSocket to the node that served this page, reopened with a growing
+  // back-off; the #conn element says whether it is up. Returns a sender.
+  function openSocket(state, liveText, onMessage) {
+    const scheme = location.protocol === "https:" ? "wss://" : "ws://";
+    const conn = document.getElementById("conn");
+    let ws = null;
+    let retryMs = 250;
+    function connect() {
+      ws = new WebSocket(scheme + location.host + "/ws");
+      ws.onopen = () => {
+        state.connected = true;
+        retryMs = 250;
+        conn.textContent = liveText;
+        conn.className = "conn live";
+      };
+      ws.onclose = () => {
+        state.connected = false;
+        conn.textContent = "reconnecting…";
+        conn.className = "conn";
+        setTimeout(connect, retryMs);
+        retryMs = Math.min(retryMs * 2, 4000);
+      };
+      ws.onmessage = (ev) => onMessage(JSON.parse(ev.data));
+    }
+    connect();
+    return {
+      isOpen: () => ws !== null && ws.readyState === WebSocket.OPEN,
+      send: (msg) => ws.send(JSON.stringify(msg)),
+    };
+  }
+
+  return { heatColor, drawPattern, openSocket, ANGLES };
 })();

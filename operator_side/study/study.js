@@ -6,39 +6,20 @@
 const study = { hello: null, screen: null, sent: [], shown: [], connected: false };
 window.study = study;
 const $ = (id) => document.getElementById(id);
-let ws = null;
-let retryMs = 250;
+let socket = null;
 
-function connect() {
-  const scheme = location.protocol === "https:" ? "wss://" : "ws://";
-  ws = new WebSocket(scheme + location.host + "/ws");
-  ws.onopen = () => {
-    study.connected = true;
-    retryMs = 250;
-    $("conn").textContent = "connected";
-    $("conn").className = "conn live";
-  };
-  ws.onclose = () => {
-    study.connected = false;
-    $("conn").textContent = "reconnecting…";
-    $("conn").className = "conn";
-    setTimeout(connect, retryMs);
-    retryMs = Math.min(retryMs * 2, 4000);
-  };
-  ws.onmessage = (ev) => {
-    const msg = JSON.parse(ev.data);
-    if (msg.type === "hello") {
-      study.hello = msg;
-      buildGrid();
-    } else {
-      show(msg);
-    }
-  };
+function onMessage(msg) {
+  if (msg.type === "hello") {
+    study.hello = msg;
+    buildGrid();
+  } else {
+    show(msg);
+  }
 }
 
 function reply(msg) {
   study.sent.push(msg);
-  ws.send(JSON.stringify(msg));
+  socket.send(msg);
 }
 
 function only(id) {
@@ -121,4 +102,4 @@ $("next").addEventListener("click", () => {
   reply({ type: "next", id: s.id });
 });
 
-connect();
+socket = DXP.openSocket(study, "connected", onMessage);
