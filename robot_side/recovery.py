@@ -45,14 +45,23 @@ class DeviceRecovery:
         return self._available.is_set()
 
     def call(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """Run a device call; a ``DeviceError`` starts a recovery and is re-raised."""
+        """Run a device call; a ``DeviceError`` from a dead driver starts a recovery.
+
+        The error is always re-raised to the caller.
+        """
         if not self._available.is_set():
             raise DeviceError(f"{self.name} is reconnecting after a failure")
         try:
             return fn(*args)
         except DeviceError:
-            self.failed()
+            if self.needs_reconnect():  # a refused or timed-out call alone is not a dead driver
+                self.failed()
             raise
+
+    def needs_reconnect(self) -> bool:
+        """The driver lost its connection, or says it must be connected again."""
+        device = self.device
+        return not device.is_connected or bool(getattr(device, "needs_reconnect", False))
 
     def failed(self) -> None:
         if self._thread is not None and self._thread.is_alive():

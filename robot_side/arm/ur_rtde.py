@@ -157,6 +157,11 @@ class URArm(Arm):
     def is_connected(self) -> bool:
         return self._recv is not None and self._ctrl is not None
 
+    @property
+    def needs_reconnect(self) -> bool:
+        """The control interface was abandoned after a call missed its deadline."""
+        return self._ctrl_broken is not None
+
     def connect(self) -> None:
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"URArm at {self.config.host} is already connected")

@@ -44,7 +44,8 @@ def test_oversized_commands_cost_only_the_senders_connection(robot):
         robot.command("gripper_close", grip_level=level)
         assert robot.sync(5)
         want = robot.gripper.levels.position(level)
-        assert wait_for(lambda want=want: robot.gripper.commands[-1][0] == want, 2)
+        cmds = robot.gripper.commands
+        assert wait_for(lambda want=want: bool(cmds) and cmds[-1][0] == want, 2)
     assert robot.alive()
     assert robot.received() == robot.sent  # the oversized ones (not in sent) were never read
     # the evil connection is re-made by its own side (a PUB reconnects), and is heard again

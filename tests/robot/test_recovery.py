@@ -27,6 +27,14 @@ class FlakyArm:
     def disconnect(self) -> None:
         pass
 
+    @property
+    def is_connected(self) -> bool:
+        return True
+
+    @property
+    def needs_reconnect(self) -> bool:
+        return self.broken
+
     def stop(self) -> str:
         if self.broken:
             raise DeviceError("control interface unusable")
@@ -47,6 +55,18 @@ def test_a_failed_call_is_reraised_refused_meanwhile_and_recovered():
         time.sleep(0.01)
     assert rec.available and arm.connects == 2 and rec.recoveries == 1
     assert rec.call(arm.stop) == "stopped"
+
+
+def test_a_refused_call_on_a_live_driver_does_not_reconnect_it():
+    class Refusing(FlakyArm):
+        def stop(self) -> str:
+            raise DeviceError("protective stop")
+
+    arm, stop = Refusing(), threading.Event()
+    rec = DeviceRecovery(arm, "arm", stop, first_backoff_s=0.01)
+    with pytest.raises(DeviceError, match="protective"):
+        rec.call(arm.stop)
+    assert rec.available and rec.failures == 0 and arm.connects == 0
 
 
 def test_stopping_the_node_ends_a_recovery_that_cannot_succeed():
