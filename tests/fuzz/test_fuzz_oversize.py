@@ -45,7 +45,7 @@ def test_oversized_commands_cost_only_the_senders_connection(robot):
         assert robot.sync(5)
         want = robot.gripper.levels.position(level)
         cmds = robot.gripper.commands
-        assert wait_for(lambda want=want: bool(cmds) and cmds[-1][0] == want, 2)
+        assert wait_for(lambda want=want, cmds=cmds: bool(cmds) and cmds[-1][0] == want, 2)
     assert robot.alive()
     assert robot.received() == robot.sent  # the oversized ones (not in sent) were never read
     # the evil connection is re-made by its own side (a PUB reconnects), and is heard again
