@@ -56,3 +56,33 @@ class Rate:
         if remaining > 0:
             time.sleep(remaining)
         self.advance()
+
+
+class Periodic:
+    """A duty due once per period that may run up to ``early_s`` before its deadline.
+
+    A node that is awake anyway (a frame, a message) does the duty then
+    instead of waking again for it a few milliseconds later: a wake-up costs
+    50-90 us of CPU on a virtual machine. Deadlines stay on a fixed grid, so
+    the average rate is exact and an interval is never longer than one
+    period plus ``early_s``.
+    """
+
+    def __init__(self, hz: float, early_s: float, start_ns: int | None = None) -> None:
+        if not hz > 0:
+            raise ValueError(f"rate must be positive, not {hz!r}")
+        self.period_ns = round(1e9 / hz)
+        if not 0 <= early_s * 1e9 < self.period_ns:
+            raise ValueError(f"early_s must be in [0, one period), not {early_s!r}")
+        self.early_ns = round(early_s * 1e9)
+        #: the latest time the duty may run: a sleeping loop wakes for it then
+        self.deadline_ns = now_ns() if start_ns is None else start_ns
+
+    def due(self, now: int) -> bool:
+        return now >= self.deadline_ns - self.early_ns
+
+    def done(self, now: int) -> None:
+        """The duty ran at ``now``: the next deadline is one period on, or from now if behind."""
+        self.deadline_ns += self.period_ns
+        if self.due(now):  # more than a period late (a stall): no burst of catch-ups
+            self.deadline_ns = now + self.period_ns

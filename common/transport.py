@@ -10,6 +10,7 @@ queues. Decoding errors are counted by class and logged once per burst.
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
 from typing import Any
 
@@ -107,14 +108,28 @@ class Subscriber:
 
     def poll(self, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for something to read."""
-        return bool(self.poller.poll(max(0, int(timeout_s * 1000))))
+        return bool(self.ready(timeout_s))
+
+    def ready(self, timeout_s: float) -> dict[Any, int]:
+        """Wait up to ``timeout_s``; what is readable: this socket and any fd registered beside it.
+
+        The wait is rounded up to ZeroMQ's whole milliseconds. Rounded down,
+        the last millisecond before every deadline became a busy loop of
+        zero-length polls (about 90 turns per deadline, 3 % of a core at 60 Hz).
+        """
+        return dict(self.poller.poll(math.ceil(max(0.0, timeout_s) * 1000)))
 
     def drain(self, max_messages: int = 1024) -> list[tuple[Message, int]]:
         """Every valid queued message with its local receive time, oldest first."""
         out: list[tuple[Message, int]] = []
+        sock = self.sock
         for _ in range(max_messages):
+            # Ask before reading: an empty socket answers a NOBLOCK recv with an
+            # exception, which costs more than the check on every loop turn.
+            if not sock.get(zmq.EVENTS) & zmq.POLLIN:
+                break
             try:
-                data = self.sock.recv(zmq.NOBLOCK, copy=True)
+                data = sock.recv(zmq.NOBLOCK, copy=True)
             except zmq.Again:
                 break
             t_recv = now_ns()

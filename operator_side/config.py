@@ -24,6 +24,9 @@ class OperatorLinkConfig:
         "a stimulus older than this is not rendered; with none fresher, every linkage lifts off",
     )
     heartbeat_rate_hz: float = param(20.0, "heartbeats keep the robot's deadman satisfied")
+    heartbeat_early_ms: float = param(
+        20.0, "a heartbeat due within this long goes out on a wake-up already happening"
+    )
     reopen_after_ms: float = param(
         1000.0,
         "no telemetry for this long: open the sockets again (libzmq gives up on a "

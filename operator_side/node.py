@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import zmq
 
-from common.clock import now_ns
+from common.clock import Periodic, now_ns
 from common.clock_sync import ClockSync
 from common.codec import encode
 from common.devices import build_device
@@ -192,23 +192,27 @@ class OperatorNode:
         self.counters["sockets_reopened"] += 1
 
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
+        link = self.config.link
         period = round(1e9 / self.config.renderer.control_rate_hz)
-        hb_period = round(1e9 / self.config.link.heartbeat_rate_hz)
-        next_hb = next_control = now_ns()
+        heartbeat = Periodic(link.heartbeat_rate_hz, link.heartbeat_early_ms / 1e3)
+        next_control = now_ns()
         t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
         while not stop.is_set() and (t_end is None or now_ns() < t_end):
-            wait_s = max(0.0, (min(next_control, next_hb) - now_ns()) / 1e9)
-            changed = self.receive() if self.sub.poll(wait_s) else False
+            wait_s = (min(next_control, heartbeat.deadline_ns) - now_ns()) / 1e9
+            ready = self.sub.ready(wait_s)
+            self.counters["wakeups"] += 1
+            changed = self.receive() if self.sub.sock in ready else False
             now = now_ns()
             if changed or now >= next_control:
                 # Rendered as soon as something changed; otherwise the loop sleeps
                 # until the goal moves, the data would go stale, or a heartbeat.
                 self.control_step(now, period)
                 next_control = self._next_control_ns(now, period)
-            if now >= next_hb:
+            if heartbeat.due(now):
                 self._send_heartbeat()
-                next_hb = now + hb_period
-            self._flush_commands()
+                heartbeat.done(now)
+            if self._wake_r in ready:
+                self._flush_commands()
             self._reopen_sockets_if_silent(now)
 
     def _next_control_ns(self, now: int, period: int) -> int:

@@ -50,6 +50,9 @@ class RobotLinkConfig:
     heartbeat_rate_hz: float = param(
         20.0, "heartbeats confirm an unchanged stimulus is still current"
     )
+    heartbeat_early_ms: float = param(
+        20.0, "a heartbeat due within this long goes out with a frame's work, not on its own"
+    )
     frame_display_rate_hz: float = param(15.0, "raw frames for the operator's heatmaps; 0 = never")
     deadman_ms: float = param(
         250.0, "no word from the operator for this long: the arm stops and the gripper holds"

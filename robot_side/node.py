@@ -20,7 +20,7 @@ from typing import Any, Protocol
 import numpy as np
 import zmq
 
-from common.clock import now_ns
+from common.clock import Periodic, now_ns
 from common.clock_sync import ClockSync
 from common.codec import DecodeError
 from common.devices import Device, build_device
@@ -136,20 +136,21 @@ class RobotNode:
 
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
         link = self.config.link
-        hb_period = round(1e9 / link.heartbeat_rate_hz)
+        heartbeat = Periodic(link.heartbeat_rate_hz, link.heartbeat_early_ms / 1e3)
         frame_period = (
             round(1e9 / link.frame_display_rate_hz) if link.frame_display_rate_hz > 0 else None
         )
         min_interval = round(0.9e9 / self.config.publish_rate_hz)
         t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
-        next_hb = now_ns()
         next_frame_msg = now_ns()
         while not stop.is_set() and (t_end is None or now_ns() < t_end):
-            timeout = max(0.0, min((next_hb - now_ns()) / 1e9, 0.02))
+            # Commands are read on every wake-up: without frames, at least every 20 ms.
+            timeout = max(0.0, min((heartbeat.deadline_ns - now_ns()) / 1e9, 0.02))
             # Sleep through the frames that will not be rendered (120 Hz in, 60 out):
             # wait for the first one due, instead of waking for each.
             self._skip_requested = self._frames_until_due(min_interval)
             sample = self.tactile.wait_for_frame(self._last_seq + self._skip_requested, timeout)
+            self.counters["wakeups"] += 1
             self._handle_commands()
             now = now_ns()
             self._check_deadman(now)
@@ -162,9 +163,9 @@ class RobotNode:
                 if frame_period is not None and now >= next_frame_msg:
                     self._send_frame(sample)
                     next_frame_msg = now + frame_period
-            if now >= next_hb:
+            if heartbeat.due(now):  # with frames flowing, on a frame's wake-up
                 self._send_heartbeat()
-                next_hb = now + hb_period
+                heartbeat.done(now)
 
     # ------------------------------------------------------------- frames
     def _frames_until_due(self, min_interval: int) -> int:

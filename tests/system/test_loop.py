@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from common.patterns import MASKS
+from common.transport import free_loopback_ports
 from operator_side.config import OperatorConfig
 from operator_side.linkglide import forward_kinematics
 from operator_side.node import OperatorNode
@@ -131,3 +132,54 @@ def test_no_contact_lifts_every_linkage_and_skips_inference():
     assert stats.get("inferences", 0) == 0
     # an unchanged (all-zero) stimulus is not resent every frame
     assert stats.get("stimuli_published", 0) <= 2
+
+
+def test_both_nodes_wake_for_events_only():
+    """Frames, messages and deadlines wake a node; nothing makes it spin between them.
+
+    A loop that rounded a wait down to whole milliseconds turned the last
+    millisecond before each deadline into about 90 empty turns.
+    """
+    script = GraspScript(
+        grasps=[GraspStep(pattern=6, grip_level=20, ramp_s=0.2, hold_s=1.5, release_s=0.2)],
+        loop=True,
+        start_delay_s=0.2,
+    )
+    loop = Loop("mask_ground_truth", script)
+    loop.start()
+    try:
+        time.sleep(1.0)
+        robot0, operator0 = loop.robot.counters["wakeups"], loop.operator.counters["wakeups"]
+        time.sleep(2.0)
+        robot_rate = (loop.robot.counters["wakeups"] - robot0) / 2.0
+        operator_rate = (loop.operator.counters["wakeups"] - operator0) / 2.0
+    finally:
+        loop.close()
+    # robot: 60 rendered frames/s plus a few timeouts (measured 66/s); operator:
+    # the robot's messages plus its own deadlines (measured 54/s; 210/s with the
+    # millisecond rounded down)
+    assert 20 < robot_rate < 150, robot_rate
+    assert 10 < operator_rate < 120, operator_rate
+
+
+def test_an_operator_with_no_robot_sleeps_between_its_deadlines():
+    """Lifted and alone, the operator wakes for its heartbeats and idle checks only."""
+    tel, cmd = free_loopback_ports(2)
+    oc = OperatorConfig()
+    oc.link.telemetry_endpoint = f"tcp://127.0.0.1:{tel}"
+    oc.link.command_endpoint = f"tcp://127.0.0.1:{cmd}"
+    node = OperatorNode(oc, RecordingServoBus())
+    stop = threading.Event()
+    t = threading.Thread(target=node.run, args=(stop,), daemon=True)
+    t.start()
+    try:
+        time.sleep(0.5)
+        before = node.counters["wakeups"]
+        time.sleep(2.0)
+        rate = (node.counters["wakeups"] - before) / 2.0
+    finally:
+        stop.set()
+        t.join(timeout=5)
+    # 20 heartbeats/s and a 6 Hz idle check (measured 26/s); a wait rounded
+    # down to whole milliseconds spins about 90 times before each of them
+    assert rate < 60, rate
