@@ -234,10 +234,7 @@ class RobotReplay:
         if mode == "mask_ground_truth":
             return msg.sim_truth_pattern
         if self.classifier is not None:
-            from common.patterns import pattern_of
-
-            pa, pp = self.classifier.predict_proba(frame[None])
-            pattern = pattern_of(int(pa[0].argmax()), int(pp[0].argmax()))
+            pattern = self.classifier.predict_one(frame).pattern  # the node's own call
             if pattern != msg.pattern:
                 self.report.mismatch(
                     "pattern", f"seq {msg.seq}: sent {msg.pattern}, classified {pattern}"

@@ -26,20 +26,30 @@ from common.codec import DecodeError
 from common.devices import Device, build_device
 from common.errors import DeviceError
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
-from common.patterns import pattern_of
 from common.recording import NullRecorder, Recorder
 from common.security import Authenticator, check_endpoint, server_options
 from common.transport import Publisher, Subscriber, make_context
 from robot_side.config import RobotConfig
 from robot_side.recovery import DeviceRecovery
-from robot_side.rendering import is_contact, render_contact, sanitize_frame
+from robot_side.rendering import render_cells, sanitize_frame, sanitize_with_peak
 from robot_side.tactile.base import TactileSample, TactileSensor
 
 log = logging.getLogger(__name__)
 
+_NO_CELLS = [0.0] * 9  # every linkage lifted
+
+
+class Prediction(Protocol):
+    pattern: int
+    confidence: float
+    angle_probs: tuple[float, ...]
+    position_probs: tuple[float, ...]
+
 
 class Classifier(Protocol):
-    def predict_proba(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+    """What the node needs of robot_side.perception.TiltClassifier (no import of it here)."""
+
+    def predict_one(self, frame: np.ndarray) -> Prediction: ...
 
 
 class RobotNode:
@@ -75,7 +85,7 @@ class RobotNode:
         self._hb_seq = 0
         self._frame_msg_seq = 0
         self._last_frame: np.ndarray | None = None
-        self._last_stimulus: np.ndarray | None = None
+        self._last_cells: list[float] | None = None  # the last stimulus sent, row by row
         self._last_pattern: int | None = None
         self._last_stim_msg: Stimulus | None = None
         self._last_publish_ns = 0
@@ -202,7 +212,7 @@ class RobotNode:
         self.counters["frames_processed"] += 1
         self._last_capture_ns = sample.t_capture_ns
         render = self.config.render
-        frame = sanitize_frame(sample.frame)
+        frame, peak = sanitize_with_peak(sample.frame)
         if self._recording:
             self.recorder.write(
                 "robot/frame",
@@ -214,23 +224,22 @@ class RobotNode:
                 },
             )
         truth = sample.truth.pattern if sample.truth is not None else None
-        contact = is_contact(frame, render.contact_threshold_n)
+        contact = peak >= render.contact_threshold_n  # is_contact, from the same pass
         pattern: int | None = None
         confidence: float | None = None
         if not contact:
             self.counters["frames_no_contact"] += 1
             self._last_frame = None
-            stimulus = np.zeros((3, 3), np.float32)
+            cells = _NO_CELLS
         elif self._last_frame is not None and np.array_equal(frame, self._last_frame):
             self.counters["frames_identical"] += 1
             return self._maybe_keyframe(sample)
         else:
             self._last_frame = frame
             if render.mode == "mask":
-                pa, pp = self.classifier.predict_proba(frame[None])
-                a, p = int(pa[0].argmax()), int(pp[0].argmax())
-                pattern = pattern_of(a, p)
-                confidence = float(np.clip(pa[0, a] * pp[0, p], 0.0, 1.0))
+                prediction = self.classifier.predict_one(frame)
+                pattern = prediction.pattern
+                confidence = min(max(prediction.confidence, 0.0), 1.0)
                 self.counters["inferences"] += 1
                 if self._recording:
                     self.recorder.write(
@@ -238,8 +247,8 @@ class RobotNode:
                         now_ns(),
                         {
                             "frame_seq": sample.seq,
-                            "angle_probs": pa[0],
-                            "position_probs": pp[0],
+                            "angle_probs": np.array(prediction.angle_probs, np.float32),
+                            "position_probs": np.array(prediction.position_probs, np.float32),
                             "pattern": pattern,
                             "confidence": confidence,
                         },
@@ -248,21 +257,29 @@ class RobotNode:
                 pattern = truth
                 confidence = 1.0 if truth is not None else None
             if render.mode != "direct" and pattern is None:
-                stimulus = np.zeros((3, 3), np.float32)  # ground truth: nothing is held
+                cells = _NO_CELLS  # ground truth: nothing is held
             else:
-                stimulus = render_contact(frame, pattern, method=render.method, order=render.order)
-        if not self._changed(stimulus, pattern):
+                cells = render_cells(frame, pattern, method=render.method, order=render.order)
+        if not self._changed(cells, pattern):
             self.counters["stimuli_unchanged"] += 1
             return self._maybe_keyframe(sample)
-        return self._publish(sample, stimulus, contact, pattern, confidence, truth, keyframe=False)
+        return self._publish(sample, cells, contact, pattern, confidence, truth, keyframe=False)
 
-    def _changed(self, stimulus: np.ndarray, pattern: int | None) -> bool:
-        last = self._last_stimulus
+    def resend_next(self) -> None:
+        """Render and send the next frame whatever was sent before (benchmarks force each one)."""
+        self._last_cells = None
+        self._last_frame = None
+
+    def _changed(self, cells: list[float], pattern: int | None) -> bool:
+        """Another set of pressed cells, or a force moved by more than the dead band."""
+        last = self._last_cells
         if last is None or pattern != self._last_pattern:
             return True
-        if not np.array_equal(stimulus > 0, last > 0):
-            return True
-        return bool(np.abs(stimulus - last).max() > self.config.render.deadband_n)
+        deadband = self.config.render.deadband_n
+        return any(
+            (new > 0) != (old > 0) or abs(new - old) > deadband
+            for new, old in zip(cells, last, strict=True)
+        )
 
     def _maybe_keyframe(self, sample: TactileSample) -> Stimulus | None:
         interval = self.config.render.keyframe_interval_ms * 1e6
@@ -271,13 +288,13 @@ class RobotNode:
             return None
         truth = sample.truth.pattern if sample.truth is not None else None
         return self._publish(
-            sample, msg.stimulus, msg.contact, msg.pattern, msg.confidence, truth, keyframe=True
+            sample, self._last_cells, msg.contact, msg.pattern, msg.confidence, truth, keyframe=True
         )
 
     def _publish(
         self,
         sample: TactileSample,
-        stimulus: np.ndarray,
+        cells: list[float],
         contact: bool,
         pattern: int | None,
         confidence: float | None,
@@ -294,7 +311,7 @@ class RobotNode:
             frame_seq=sample.seq,
             mode=self.config.render.mode,
             contact=contact,
-            stimulus=stimulus,
+            stimulus=np.array(cells, np.float32).reshape(3, 3),
             pattern=pattern,
             confidence=confidence,
             grip_level=self._grip_level,
@@ -304,7 +321,7 @@ class RobotNode:
         data = self.pub.send(msg)
         if self._recording:
             self.recorder.write("robot/stimulus", now, {"seq": msg.seq, "wire": data})
-        self._last_stimulus = stimulus
+        self._last_cells = cells
         self._last_pattern = pattern
         self._last_stim_msg = msg
         self._last_publish_ns = now

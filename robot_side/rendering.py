@@ -134,14 +134,29 @@ def sanitize_frame(frame: np.ndarray) -> np.ndarray:
     """A (2, 10, 10) float32 frame held to the sensor's range, whatever came in.
 
     Non-finite taxels read 0 N and nothing exceeds saturation, so neither the
-    downsizing nor the classifier ever sees garbage.
+    downsizing nor the classifier ever sees garbage. A frame already in range
+    comes back as it is (no copy).
+    """
+    return sanitize_with_peak(frame)[0]
+
+
+def sanitize_with_peak(frame: np.ndarray) -> tuple[np.ndarray, float]:
+    """``sanitize_frame`` and the largest taxel of the result, in one pass over the frame.
+
+    The robot node's prelude on every frame: what a driver delivers is almost
+    always in range already, which one minimum and one maximum prove (a NaN
+    fails both comparisons). Only a frame that fails is copied and cleaned.
     """
     frame = np.asarray(frame, dtype=np.float32)
     if frame.shape != (2, 10, 10):
         raise ValueError(f"a frame has shape (2, 10, 10), not {frame.shape}")
+    lo, hi = float(frame.min()), float(frame.max())
+    if lo >= 0.0 and hi <= SENSOR_MAX_N:
+        return frame, hi
     if not np.isfinite(frame).all():
         frame = np.nan_to_num(frame, nan=0.0, posinf=0.0, neginf=0.0)
-    return np.clip(frame, 0.0, SENSOR_MAX_N)
+    frame = np.clip(frame, 0.0, SENSOR_MAX_N)
+    return frame, float(frame.max())
 
 
 def is_contact(frame: np.ndarray, threshold_n: float = CONTACT_THRESHOLD_N) -> bool:
@@ -177,10 +192,23 @@ def render_contact(
     method: Method = "antialiased",
     order: Order = "mask_then_peak",
 ) -> np.ndarray:
-    """``render_stimulus`` for a frame already sanitized and known to hold a contact.
+    """``render_stimulus`` for a frame already sanitized and known to hold a contact."""
+    cells = render_cells(frame, pattern, method=method, order=order)
+    return np.array(cells, dtype=np.float32).reshape(3, 3)
 
-    The hot path: one (9 x 200) product, then the peak and mask over nine
-    numbers in plain Python (NumPy's per-call cost dominates at this size).
+
+def render_cells(
+    frame: np.ndarray,
+    pattern: int | None,
+    *,
+    method: Method = "antialiased",
+    order: Order = "mask_then_peak",
+) -> list[float]:
+    """``render_contact`` as nine floats, row by row: the robot node's hot path.
+
+    One (9 x 200) product, then the peak and mask over nine numbers in plain
+    Python (NumPy's per-call cost dominates at this size). The cells are
+    float32 values, so an array made from them equals ``render_contact``'s.
     """
     values = (_FUSED[method] @ frame.reshape(200)).tolist()
     out = [0.0] * 9
@@ -198,4 +226,4 @@ def render_contact(
             if c != cols[r]:
                 continue  # the paper's order: a peak off the mask's cell is lost
         out[3 * r + c] = row[c]
-    return np.array(out, dtype=np.float32).reshape(3, 3)
+    return out

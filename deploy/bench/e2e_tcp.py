@@ -102,8 +102,7 @@ def end_to_end_tcp(
     seq = [0]
 
     def feed(wire_seq: int, frame: np.ndarray) -> None:
-        robot._last_stimulus = None  # force a publish: every frame reaches the palm
-        robot._last_frame = None
+        robot.resend_next()  # force a publish: every frame reaches the palm
         t0 = now_ns()
         for packet in sensor._parser.feed(scan_bytes(frame, wire_seq)):
             sensor._on_packet(packet, t0)
@@ -121,8 +120,7 @@ def end_to_end_tcp(
         scans = [scan_bytes(frames[i % len(frames)], TIMED_SEQ_START + i) for i in range(n_frames)]
         rate = Rate(rate_hz)
         for scan in scans:
-            robot._last_stimulus = None
-            robot._last_frame = None
+            robot.resend_next()
             t0 = now_ns()
             for packet in sensor._parser.feed(scan):
                 sensor._on_packet(packet, t0)

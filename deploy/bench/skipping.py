@@ -26,7 +26,6 @@ import numpy as np
 
 import robot_side.node as robot_node_module
 from common.devices import build_device
-from common.patterns import pattern_of
 from deploy.bench.fixtures import serial_sensor
 from deploy.scene import load_scene
 from operator_side.renderer import LinkGlideRenderer
@@ -146,8 +145,7 @@ def _shadow(frame: np.ndarray, truth: Any, classifier: Any, render: Any) -> np.n
     """What the node would send for this frame if it never skipped anything."""
     f = sanitize_frame(frame)
     if render.mode == "mask":  # even without contact: the no-contact skip is what is checked
-        pa, pp = classifier.predict_proba(f[None])
-        pattern = pattern_of(int(pa[0].argmax()), int(pp[0].argmax()))
+        pattern = classifier.predict_one(f).pattern
     elif render.mode == "mask_ground_truth":
         pattern = truth.pattern
     else:

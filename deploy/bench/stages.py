@@ -26,7 +26,6 @@ import zmq
 from common.clock import Rate, now_ns
 from common.codec import decode, encode
 from common.messages import Stimulus
-from common.patterns import pattern_of
 from common.transport import Publisher, Subscriber
 from deploy.bench.fixtures import (
     PacketBuilder,
@@ -51,9 +50,9 @@ STAGES: dict[str, str] = {
     "wire_decode": "serial bytes of one scan (2 packets, 424 B) -> 2 pad packets: "
     "StreamParser.feed (sync search, header, CRC)",
     "calibration": "pairing the pads, counts -> newtons, floor, saturation, mirror: "
-    "SerialTactileSensor._on_packet / _on_frame",
+    "SerialTactileSensor._on_packet / _on_scan, then the conversion when the node takes it",
     "sanitize_contact": "sanitize_frame + is_contact (the node's prelude)",
-    "classification": "predict_proba on one frame + argmax + pattern (shipped model, "
+    "classification": "predict_one: pattern and confidence of one frame (shipped model, "
     "default backend)",
     "render": "downsizing + masking: render_contact, the node's path since d31f386 (pad "
     "mean and 10x10 -> 3x3 as one 9x200 product, then mask and peak over nine numbers)",
@@ -140,10 +139,9 @@ def stage_budget(
             frame = sanitize_frame(sample.frame)
             contact = is_contact(frame)
             t3 = clock()
-            pa, pp = classifier.predict_proba(frame[None])
-            a, p = int(pa[0].argmax()), int(pp[0].argmax())
-            pattern = pattern_of(a, p)
-            confidence = float(np.clip(pa[0, a] * pp[0, p], 0.0, 1.0))
+            prediction = classifier.predict_one(frame)
+            pattern = prediction.pattern
+            confidence = min(max(prediction.confidence, 0.0), 1.0)
             t4 = clock()
             stim = render_contact(frame, pattern, method=method, order=order)
             t5 = clock()
@@ -279,8 +277,7 @@ class InprocLoop:
         waited for the core, which on a shared machine is other processes' doing.
         """
         robot, op = self.robot, self.operator
-        robot._last_stimulus = None
-        robot._last_frame = None
+        robot.resend_next()
         op._written = None
         writes = self.bus.writes
         c0 = time.thread_time_ns()

@@ -18,6 +18,7 @@ zero) and the worst case of what must stay bounded:
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import numpy as np
@@ -213,8 +214,9 @@ def rendering_stress(classifier: Any, n_random: int, seed: int = 8) -> dict[str,
             from robot_side.rendering import sanitize_frame
 
             try:
-                pa, pp = classifier.predict_proba(sanitize_frame(f32)[None])
-                clf_nonfinite += int(not (np.all(np.isfinite(pa)) and np.all(np.isfinite(pp))))
+                one = classifier.predict_one(sanitize_frame(f32))  # the node's call
+                probs = (*one.angle_probs, *one.position_probs, one.confidence)
+                clf_nonfinite += int(not all(math.isfinite(v) for v in probs))
             except Exception as e:
                 clf_raised += 1
                 log.error("classifier raised on %s: %s", name, e)

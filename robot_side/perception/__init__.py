@@ -10,6 +10,7 @@ from robot_side.perception.errors import DatasetError, ModelLoadError
 from robot_side.perception.inference import (
     BACKENDS,
     DEFAULT_BACKEND_ORDER,
+    Prediction,
     TiltClassifier,
     load_classifier,
 )
@@ -22,6 +23,7 @@ __all__ = [
     "MODELS_DIR",
     "DatasetError",
     "ModelLoadError",
+    "Prediction",
     "TiltClassifier",
     "load_classifier",
 ]

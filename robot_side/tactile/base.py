@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import abc
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -37,29 +39,63 @@ class TactileSample:
     truth: GraspTruth | None = None
 
 
+@dataclass(frozen=True, slots=True)
+class _RawSample:
+    """A frame not yet in newtons: converted only if somebody reads it."""
+
+    seq: int
+    t_capture_ns: int
+    truth: GraspTruth | None
+    convert: Callable[[Any], np.ndarray]
+    raw: Any
+
+
 class TactileSensor(Device):
     """A source of frames that keeps only the newest one (freshness first).
 
-    Subclasses call ``_publish(sample)`` from their reader thread; callers use
-    ``read_latest`` or ``wait_for_frame``.
+    Subclasses call ``_publish(sample)`` (or ``_publish_raw``) from their
+    reader thread; callers use ``read_latest`` or ``wait_for_frame``.
     """
 
     family = "tactile sensor"
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
-        self._latest: TactileSample | None = None
+        self._latest: TactileSample | _RawSample | None = None
         self._waiting_after = -1  # the seq the current waiter needs to exceed
 
-    def _publish(self, sample: TactileSample) -> None:
+    def _publish(self, sample: TactileSample | _RawSample) -> None:
         with self._cond:
             self._latest = sample
             if sample.seq > self._waiting_after:  # wake a waiter only for what it waits for
                 self._cond.notify_all()
 
+    def _publish_raw(
+        self,
+        seq: int,
+        t_capture_ns: int,
+        raw: Any,
+        convert: Callable[[Any], np.ndarray],
+        truth: GraspTruth | None = None,
+    ) -> None:
+        """Publish a frame as read off the wire; ``convert(raw)`` makes its newtons.
+
+        The conversion runs once, on the thread that takes the frame, and
+        never for a frame that is superseded unread: a node rendering 60 of
+        120 frames a second converts half of them.
+        """
+        self._publish(_RawSample(seq, t_capture_ns, truth, convert, raw))
+
+    def _newest(self) -> TactileSample | None:
+        """The newest frame in newtons; call with ``_cond`` held."""
+        s = self._latest
+        if type(s) is _RawSample:
+            s = self._latest = TactileSample(s.convert(s.raw), s.seq, s.t_capture_ns, s.truth)
+        return s  # type: ignore[return-value]
+
     def latest(self) -> TactileSample | None:
         with self._cond:
-            return self._latest
+            return self._newest()
 
     def read_latest(self, max_age_ms: float) -> TactileSample:
         """The newest frame; ``StaleDataError`` when it is older than ``max_age_ms``."""
@@ -84,7 +120,7 @@ class TactileSensor(Device):
                 lambda: self._latest is not None and self._latest.seq > after_seq, timeout_s
             )
             self._waiting_after = -1
-            sample = self._latest
+            sample = self._newest()
         if sample is None or sample.seq <= after_seq:
             return None
         return sample

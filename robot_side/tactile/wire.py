@@ -43,6 +43,7 @@ CRC_SIZE = 2
 PACKET_SIZE = HEADER_SIZE + PAYLOAD_SIZE + CRC_SIZE  # 212
 SEQ_MODULO = 1 << 32
 COUNTS_DTYPE = np.dtype("<u2")
+_CRC = struct.Struct("<H")
 
 #: the default line rate: 240 packets/s x 212 bytes = 50.9 kB/s, 55 % of 921600 8N1
 DEFAULT_BAUD = 921_600
@@ -61,7 +62,17 @@ def crc16_ccitt(data: bytes | bytearray | memoryview) -> int:
 class PadPacket:
     pad: int  # 0 = finger 1, 1 = finger 2
     seq: int  # uint32, shared by both pads of one scan
-    counts: np.ndarray  # (10, 10) uint16, the pad's own view (finger 2 NOT mirrored)
+    payload: bytes  # the 200 count bytes as sent: 100 x uint16 LE, row-major
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(10, 10) uint16, the pad's own view (finger 2 NOT mirrored)."""
+        return counts_of(self.payload).reshape(ROWS, COLS)
+
+
+def counts_of(payload: bytes) -> np.ndarray:
+    """Count bytes (one pad's payload, or several back to back) -> flat native uint16."""
+    return np.frombuffer(payload, COUNTS_DTYPE).astype(np.uint16, copy=False)
 
 
 def encode(pad: int, seq: int, counts: np.ndarray) -> bytes:
@@ -107,9 +118,7 @@ def _header_problem(buf: bytes | bytearray | memoryview, i: int) -> str | None:
 
 def _unpack(buf: bytes | bytearray | memoryview, i: int) -> PadPacket:
     _sync, _version, pad, seq, _rows, _cols = HEADER.unpack_from(buf, i)
-    # Slicing copies, so no view pins the parser's bytearray (it must stay resizable).
-    counts = np.frombuffer(buf[i + HEADER_SIZE : i + HEADER_SIZE + PAYLOAD_SIZE], COUNTS_DTYPE)
-    return PadPacket(pad=pad, seq=seq, counts=counts.astype(np.uint16).reshape(ROWS, COLS))
+    return PadPacket(pad, seq, bytes(buf[i + HEADER_SIZE : i + HEADER_SIZE + PAYLOAD_SIZE]))
 
 
 @dataclass
@@ -150,44 +159,53 @@ class StreamParser:
         self._skipping = False  # inside a run of discarded bytes (one resync per run)
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[PadPacket]:
-        """Append ``data`` and return every complete good packet now available."""
+        """Append ``data`` and return every complete good packet now available.
+
+        This runs for every scan on a core that has gone cold since the last
+        one, so a good packet costs one header unpack, one CRC over a view (no
+        copy) and one copy of its payload; the checks that name a problem run
+        only when the quick one fails.
+        """
         self.stats.bytes_in += len(data)
         buf = self._buf
         buf += data
         out: list[PadPacket] = []
         i = 0
         n = len(buf)
-        while True:
-            j = buf.find(SYNC, i)
-            if j < 0:
-                # Keep a trailing 0xA5: it may be the first half of the next sync.
-                keep_from = n - 1 if n and buf[-1] == SYNC[0] else n
-                keep_from = max(keep_from, i)
-                self._drop(keep_from - i)
-                i = keep_from
-                break
-            self._drop(j - i)
-            i = j
-            if n - i < HEADER_SIZE:
-                break
-            if _header_problem(buf, i):
-                self.stats.bad_header += 1
-                self._drop(1)
-                i += 1
-                continue
-            if n - i < PACKET_SIZE:
-                break
-            end = i + PACKET_SIZE
-            (crc,) = struct.unpack_from("<H", buf, end - CRC_SIZE)
-            if crc != crc16_ccitt(buf[i + 2 : end - CRC_SIZE]):  # a copy: buf must stay resizable
-                self.stats.bad_crc += 1
-                self._drop(1)
-                i += 1
-                continue
-            out.append(_unpack(buf, i))
-            self.stats.packets += 1
-            self._skipping = False
-            i = end
+        with memoryview(buf) as view:  # released before buf is resized below
+            while True:
+                j = buf.find(SYNC, i)
+                if j < 0:
+                    # Keep a trailing 0xA5: it may be the first half of the next sync.
+                    keep_from = n - 1 if n and buf[-1] == SYNC[0] else n
+                    keep_from = max(keep_from, i)
+                    self._drop(keep_from - i)
+                    i = keep_from
+                    break
+                self._drop(j - i)
+                i = j
+                if n - i < HEADER_SIZE:
+                    break
+                _sync, version, pad, seq, rows, cols = HEADER.unpack_from(buf, i)
+                if version != VERSION or pad >= N_PADS or rows != ROWS or cols != COLS:
+                    self.stats.bad_header += 1
+                    self._drop(1)
+                    i += 1
+                    continue
+                if n - i < PACKET_SIZE:
+                    break
+                end = i + PACKET_SIZE
+                if _CRC.unpack_from(buf, end - CRC_SIZE)[0] != crc16_ccitt(
+                    view[i + 2 : end - CRC_SIZE]
+                ):
+                    self.stats.bad_crc += 1
+                    self._drop(1)
+                    i += 1
+                    continue
+                out.append(PadPacket(pad, seq, bytes(view[i + HEADER_SIZE : end - CRC_SIZE])))
+                self.stats.packets += 1
+                self._skipping = False
+                i = end
         del buf[:i]
         return out
 

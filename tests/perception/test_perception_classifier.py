@@ -101,6 +101,30 @@ def test_backends_match_eager_torch(
         assert clf.predict(one)[0][0] == ta[i] and clf.predict(frames[i])[1][0] == tp[i]
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_one_frame_at_a_time_agrees_with_the_batch_path(
+    backend: str, fresh: ds.TactileDataset
+) -> None:
+    """predict_one (the robot node's call) gives predict's classes and predict_proba's odds."""
+    pytest.importorskip({"numpy": "numpy", "onnxruntime": "onnxruntime"}.get(backend, "torch"))
+    clf = load_classifier(backend=backend)
+    edge = [np.zeros((1, 2, 10, 10), np.float32), np.full((1, 2, 10, 10), 9.0, np.float32)]
+    frames = np.concatenate([*edge, fresh.frames[:200]])
+    ca, cp = clf.predict(frames)
+    pa, pp = clf.predict_proba(frames)
+    for i, frame in enumerate(frames):
+        one = clf.predict_one(frame)
+        assert (one.angle, one.position) == (ca[i], cp[i])
+        assert one.pattern == 3 * ca[i] + cp[i]
+        np.testing.assert_allclose(one.angle_probs, pa[i], atol=1e-6)
+        np.testing.assert_allclose(one.position_probs, pp[i], atol=1e-6)
+        assert 0.0 <= one.confidence <= 1.0
+    # float64 in, or a read-only array, is taken as is; a wrong shape is named
+    assert clf.predict_one(frames[5].astype(np.float64)).pattern == 3 * ca[5] + cp[5]
+    with pytest.raises(ValueError, match=r"\(2, 10, 10\)"):
+        clf.predict_one(frames[:1])
+
+
 def test_probabilities_are_distributions(numpy_classifier: TiltClassifier) -> None:
     frames = np.random.default_rng(0).uniform(0, 9, (50, 2, 10, 10)).astype(np.float32)
     a, p = numpy_classifier.predict_proba(frames)
