@@ -226,6 +226,11 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
     ],
 }
 _BY_TOPIC = {cls.TOPIC: cls for cls in MESSAGE_TYPES}
+#: per type, (field, its label in error messages, check, required): labels made once, not per field
+_DECODE_PLAN = {
+    cls: [(name, f"{cls.TYPE}.{name}", check, required) for name, check, required in fields]
+    for cls, fields in SCHEMAS.items()
+}
 
 
 # --------------------------------------------------------------------- encode
@@ -280,13 +285,13 @@ def decode(data: bytes) -> Message:
             f"type {body.get('type')!r} does not match topic {topic!r} ({cls.TYPE!r})"
         )
     kwargs: dict[str, Any] = {}
-    for name, check, required in SCHEMAS[cls]:
+    for name, label, check, required in _DECODE_PLAN[cls]:
         value = body.get(name)
         if value is None:
             if required:
                 raise MissingFieldError(f"{cls.TYPE} is missing required field {name!r}")
             continue
-        kwargs[name] = check(f"{cls.TYPE}.{name}", value)
+        kwargs[name] = check(label, value)
     return cls(**kwargs)
 
 

@@ -48,7 +48,10 @@ def row_to_point(row: list[float], m: ContactMapping) -> tuple[float, float]:
 
 
 def stimulus_to_points(stimulus: np.ndarray, m: ContactMapping) -> list[tuple[float, float]]:
-    rows = np.asarray(stimulus, dtype=np.float64).reshape(3, 3).tolist()
+    if type(stimulus) is np.ndarray and stimulus.shape == (3, 3):
+        rows = stimulus.tolist()  # what the codec delivers: one call, exact floats
+    else:
+        rows = np.asarray(stimulus, dtype=np.float64).reshape(3, 3).tolist()
     return [row_to_point(row, m) for row in rows]
 
 

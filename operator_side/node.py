@@ -100,10 +100,10 @@ class OperatorNode:
         self._robot_stats: dict[str, float] = {}
         self._hb_seq = 0
         self._cmd_seq = 0
-        self._goal = self.renderer.retract_counts.copy()
+        self._goal: list[int] = self.renderer.retract_goals  # six counts, ids 1..6
         self._latency_cache: tuple[int, dict[str, float]] = (0, {})
         self._goal_key: int | None = None  # stimulus seq the goal was computed for
-        self._written: np.ndarray | None = None
+        self._written: list[int] | None = None  # the goals last sent to the bus
         self._last_step_ns = 0
         self.pub: Publisher | None = None
         self.sub: Subscriber | None = None
@@ -114,6 +114,7 @@ class OperatorNode:
     def _use_calibration(self, calibration: LinkGlideCalibration) -> None:
         self.calibration = calibration
         self.renderer = LinkGlideRenderer(self.config.renderer, calibration)
+        self._servo_ids = [int(i) for i in calibration.ids]
 
     # ---------------------------------------------------------- commands
     def send_command(
@@ -139,7 +140,7 @@ class OperatorNode:
                 check_endpoint(endpoint, link.security)
             self._open_sockets()
             self.servos.set_torque(True)
-            self._write(self.renderer.retract_counts)
+            self._write(self.renderer.retract_goals)
             log.info(
                 "operator node up: telemetry %s, commands %s",
                 link.telemetry_endpoint,
@@ -217,7 +218,7 @@ class OperatorNode:
 
     def _next_control_ns(self, now: int, period: int) -> int:
         """When the next control step is needed if no message arrives first."""
-        if self._written is not None and not np.array_equal(self._written, self._goal):
+        if self._written is not None and self._written != self._goal:
             return now + period  # still stepping toward the goal
         captured = self._stim_local_capture_ns
         if self.link_state == "ok" and captured is not None:
@@ -308,39 +309,39 @@ class OperatorNode:
             self.link_changes.append((now, state))
         key = self._stim.seq if stimulus is not None else None
         if key != self._goal_key:  # IK only when what is rendered changed
-            self._goal = self.renderer.target_counts(stimulus)
+            self._goal = self.renderer.goals_for(stimulus)
             self._goal_key = key
             self.counters["targets_computed"] += 1
         fraction = 1.0 if not self._last_step_ns else (now - self._last_step_ns) / period_ns
-        current = self._written if self._written is not None else self.renderer.retract_counts
-        nxt = self.renderer.step(current, self._goal, fraction)
+        current = self._written if self._written is not None else self.renderer.retract_goals
+        nxt = self.renderer.step_goals(current, self._goal, fraction)
         self._last_step_ns = now
-        if self._written is None or not np.array_equal(nxt, self._written):
+        if nxt != self._written:
             self._write(nxt)
             if self._pending_latency_capture is not None and stimulus is not None:
                 self.latencies_ms.append((now_ns() - self._pending_latency_capture) / 1e6)
                 self.counters["latency_samples"] += 1
         self._pending_latency_capture = None  # a stimulus that moved nothing has no latency
 
-    def _write(self, counts: np.ndarray) -> None:
-        goals = {int(i): int(c) for i, c in zip(self.calibration.ids, counts, strict=True)}
-        self.servos.write_goals(goals)
-        self._written = np.array(counts, dtype=np.int64)
+    def _write(self, counts: list[int]) -> None:
+        self.servos.write_goals(dict(zip(self._servo_ids, counts, strict=True)))
+        self._written = counts
         if self._recording:
+            written = np.array(counts, dtype=np.int64)
             self.recorder.write(
                 "operator/servo_goals",
                 now_ns(),
                 {
                     "ids": self.calibration.ids,
-                    "counts": self._written,
-                    "angles": self.calibration.counts_to_angles(self._written),
+                    "counts": written,
+                    "angles": self.calibration.counts_to_angles(written),
                 },
             )
         self.counters["servo_writes"] += 1
 
     def _lift_off_now(self) -> None:
         """On shutdown: straight to the retract pose (a lift is always safe)."""
-        self._write(self.renderer.retract_counts)
+        self._write(self.renderer.retract_goals)
 
     # --------------------------------------------------------- heartbeat
     def _send_heartbeat(self) -> None:
@@ -417,7 +418,9 @@ class OperatorNode:
             stim, frame = self._stim, self._frame
         now = now_ns()
         _, age = self.fresh_stimulus(now)
-        written = self._written if self._written is not None else self.renderer.retract_counts
+        written = np.array(
+            self._written if self._written is not None else self.renderer.retract_goals, np.int64
+        )
         return Snapshot(
             link_state=self.link_state,
             stimulus=None if stim is None else stim.stimulus.copy(),
@@ -425,7 +428,7 @@ class OperatorNode:
             confidence=None if stim is None else stim.confidence,
             grip_level=None if stim is None else stim.grip_level,
             frame=None if frame is None else frame.frame.copy(),
-            goal_counts=written.copy(),
+            goal_counts=written,
             goal_angles=self.calibration.counts_to_angles(written),
             age_ms=age,
             stats=self.stats(),

@@ -56,33 +56,49 @@ class LinkGlideRenderer:
                 f"the contact mapping asks for a point LinkGlide cannot reach: {e}"
             ) from None
         rx, ry = config.contact.retract_point_mm
-        self.retract_angles = np.array([inverse_kinematics_one(rx, ry, self.geometry)] * 3)
-        self.retract_counts = calibration.angles_to_counts(self.retract_angles)
+        self._retract_pose = list(inverse_kinematics_one(rx, ry, self.geometry)) * 3
+        #: six goal counts (ids 1..6) with every linkage off the palm
+        self.retract_goals = calibration.counts_for(self._retract_pose)
+        self.retract_angles = np.array(self._retract_pose).reshape(3, 2)
+        self.retract_counts = np.array(self.retract_goals, dtype=np.int64)
 
-    def target_angles(self, stimulus: np.ndarray | None) -> np.ndarray:
-        """(3, 2) angles; ``None`` (no fresh stimulus) lifts every linkage off."""
+    # The node's loop works on six plain numbers (NumPy's per-call cost is
+    # many times the arithmetic at this size); the array forms wrap them.
+
+    def pose_for(self, stimulus: np.ndarray | None) -> list[float]:
+        """Six angles (tau_a, tau_e per linkage); ``None`` (no fresh stimulus) lifts all off."""
+        pose = self._retract_pose.copy()
         if stimulus is None:
-            return self.retract_angles.copy()
-        out = self.retract_angles.copy()
+            return pose
         for n, (x, y) in enumerate(stimulus_to_points(stimulus, self.config.contact)):
             try:
-                out[n] = inverse_kinematics_one(x, y, self.geometry)
+                pose[2 * n : 2 * n + 2] = inverse_kinematics_one(x, y, self.geometry)
             except UnreachableTargetError as e:  # cannot happen with a validated mapping
                 log.error("linkage %d: %s; lifting it off", n, e)
-        return out
+        return pose
 
-    def target_counts(self, stimulus: np.ndarray | None) -> np.ndarray:
-        return self.calibration.angles_to_counts(self.target_angles(stimulus))
+    def goals_for(self, stimulus: np.ndarray | None) -> list[int]:
+        """Six goal counts for ids 1..6: ``pose_for`` through the calibration."""
+        return self.calibration.counts_for(self.pose_for(stimulus))
 
-    def step(self, current: np.ndarray, target: np.ndarray, fraction: float = 1.0) -> np.ndarray:
+    def step_goals(self, current: list[int], target: list[int], fraction: float = 1.0) -> list[int]:
         """Move from ``current`` toward ``target`` by at most one cycle's step.
 
         ``fraction`` scales the step for a cycle shorter than the nominal one,
         so event-driven updates keep the same speed limit.
         """
         limit = max(1, round(self.max_step_counts * min(max(fraction, 0.0), 1.0)))
-        moved = [
-            c + min(max(t - c, -limit), limit)
-            for c, t in zip(np.asarray(current).tolist(), np.asarray(target).tolist(), strict=True)
-        ]
-        return np.array(self.calibration.clip_list(moved), dtype=np.int64)
+        moved = [c + min(max(t - c, -limit), limit) for c, t in zip(current, target, strict=True)]
+        return self.calibration.clip_list(moved)
+
+    def target_angles(self, stimulus: np.ndarray | None) -> np.ndarray:
+        """(3, 2) angles; ``None`` (no fresh stimulus) lifts every linkage off."""
+        return np.array(self.pose_for(stimulus)).reshape(3, 2)
+
+    def target_counts(self, stimulus: np.ndarray | None) -> np.ndarray:
+        return np.array(self.goals_for(stimulus), dtype=np.int64)
+
+    def step(self, current: np.ndarray, target: np.ndarray, fraction: float = 1.0) -> np.ndarray:
+        """``step_goals`` for arrays."""
+        moved = self.step_goals(np.asarray(current).tolist(), np.asarray(target).tolist(), fraction)
+        return np.array(moved, dtype=np.int64)

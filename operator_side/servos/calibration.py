@@ -73,16 +73,19 @@ class LinkGlideCalibration:
         because no safe count can be guessed for it.
         """
         flat = np.asarray(angles, dtype=np.float64).reshape(6).tolist()
+        return np.array(self.counts_for(flat), dtype=np.int64)
+
+    def counts_for(self, angles: list[float]) -> list[int]:
+        """``angles_to_counts`` for six plain floats (tau_a, tau_e per linkage): the hot path."""
         out = []
-        for _, zero, scale, lo, hi in self._per_servo:
-            a = flat[len(out)]
+        for a, (_, zero, scale, lo, hi) in zip(angles, self._per_servo, strict=True):
             if not math.isfinite(a):
-                raise ValueError(f"non-finite servo angle(s): {flat}")
+                raise ValueError(f"non-finite servo angle(s): {angles}")
             wrapped = math.remainder(a, 2 * math.pi)
             if wrapped == -math.pi:
                 wrapped = math.pi
             out.append(min(max(round(zero + scale * wrapped), lo), hi))
-        return np.array(out, dtype=np.int64)
+        return out
 
     def clip_list(self, counts: list[int]) -> list[int]:
         """``clip_counts`` for six plain ints (the 60 Hz loop's size)."""
