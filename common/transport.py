@@ -24,6 +24,10 @@ from common.messages import Message
 
 log = logging.getLogger(__name__)
 
+# Plain ints: pyzmq's constants are IntFlag members, and ``int & flag`` runs
+# the enum's Python-level __rand__, which builds a new member on every call.
+_EVENTS, _POLLIN, _NOBLOCK = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.NOBLOCK)
+
 
 def _open(
     ctx: zmq.Context, kind: int, endpoint: str, bind: bool, opts: dict[int, Any]
@@ -73,7 +77,7 @@ class Publisher:
 
     def send_raw(self, data: bytes) -> None:
         try:
-            self.sock.send(data, zmq.NOBLOCK)
+            self.sock.send(data, _NOBLOCK)
         except zmq.Again:  # only for exotic socket options; a PUB drops instead
             return
         self.sent += 1
@@ -126,10 +130,10 @@ class Subscriber:
         for _ in range(max_messages):
             # Ask before reading: an empty socket answers a NOBLOCK recv with an
             # exception, which costs more than the check on every loop turn.
-            if not sock.get(zmq.EVENTS) & zmq.POLLIN:
+            if not sock.get(_EVENTS) & _POLLIN:
                 break
             try:
-                data = sock.recv(zmq.NOBLOCK, copy=True)
+                data = sock.recv(_NOBLOCK, copy=True)
             except zmq.Again:
                 break
             t_recv = now_ns()

@@ -37,6 +37,7 @@ from robot_side.tactile.base import TactileSample, TactileSensor
 log = logging.getLogger(__name__)
 
 _NO_CELLS = [0.0] * 9  # every linkage lifted
+_NEVER_NS = 2**63 - 1  # a deadline that never comes
 
 
 class Prediction(Protocol):
@@ -155,7 +156,9 @@ class RobotNode:
         next_frame_msg = now_ns()
         while not stop.is_set() and (t_end is None or now_ns() < t_end):
             # Commands are read on every wake-up: without frames, at least every 20 ms.
-            timeout = max(0.0, min((heartbeat.deadline_ns - now_ns()) / 1e9, 0.02))
+            # The deadman is checked at its own deadline, not at the next frame.
+            wake_ns = min(heartbeat.deadline_ns, self._deadman_deadline_ns())
+            timeout = max(0.0, min((wake_ns - now_ns()) / 1e9, 0.02))
             # Sleep through the frames that will not be rendered (120 Hz in, 60 out):
             # wait for the first one due, instead of waking for each.
             self._skip_requested = self._frames_until_due(min_interval)
@@ -395,6 +398,13 @@ class RobotNode:
                     "outcome": outcome,
                 },
             )
+
+    def _deadman_deadline_ns(self) -> int:
+        """When the operator's silence stops the arm, if nothing is heard before then."""
+        heard = self._last_operator_ns
+        if heard is None or self.link_state != "ok":
+            return _NEVER_NS
+        return heard + round(self.config.link.deadman_ms * 1e6) + 1
 
     def _check_deadman(self, now: int) -> None:
         heard = self._last_operator_ns
