@@ -135,6 +135,8 @@ class RobotNode:
                 self.ctx, link.command_endpoint, bind=True, sock_opts=opts, name="robot commands"
             )
             stack.callback(self.sub.close)
+            # one wait for both: a frame the loop asked for, or a word from the operator
+            self.sub.poller.register(self.tactile.frame_fd(), zmq.POLLIN)
             if self.gripper is not None:
                 with contextlib.suppress(DeviceError):
                     self.gripper.activate()
@@ -155,14 +157,17 @@ class RobotNode:
         t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
         next_frame_msg = now_ns()
         while not stop.is_set() and (t_end is None or now_ns() < t_end):
-            # Commands are read on every wake-up: without frames, at least every 20 ms.
-            # The deadman is checked at its own deadline, not at the next frame.
-            wake_ns = min(heartbeat.deadline_ns, self._deadman_deadline_ns())
-            timeout = max(0.0, min((wake_ns - now_ns()) / 1e9, 0.02))
             # Sleep through the frames that will not be rendered (120 Hz in, 60 out):
-            # wait for the first one due, instead of waking for each.
+            # wait for the first one due, instead of waking for each. A command or
+            # heartbeat from the operator wakes the loop at once (and is stamped on
+            # arrival); the heartbeat and the deadman wake it at their deadlines.
             self._skip_requested = self._frames_until_due(min_interval)
-            sample = self.tactile.wait_for_frame(self._last_seq + self._skip_requested, timeout)
+            wanted_after = self._last_seq + self._skip_requested
+            sample = self.tactile.take_newer(wanted_after)
+            if sample is None:
+                deadline = min(heartbeat.deadline_ns, self._deadman_deadline_ns())
+                self.sub.ready((min(deadline, t_end or _NEVER_NS) - now_ns()) / 1e9)
+                sample = self.tactile.take_newer(wanted_after)
             self.counters["wakeups"] += 1
             self._handle_commands()
             now = now_ns()

@@ -34,7 +34,13 @@ import numpy as np
 from common.clock import Rate
 from common.config import config_toml
 from deploy.bench.fixtures import scan_bytes
-from deploy.bench.timing import deployed_env, original_affinity, process_cpu_s, thread_cpu_s
+from deploy.bench.timing import (
+    deployed_env,
+    original_affinity,
+    process_cpu_s,
+    summarize_ns,
+    thread_cpu_s,
+)
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +54,7 @@ WINDOW_COUNTERS = (
     "inferences",
     "stimuli_published",
     "stimuli_unchanged",
+    "wakeups",
 )
 
 
@@ -158,10 +165,13 @@ class RobotWatch:
         self.ctx = zmq.Context()
         self.sub = self.ctx.socket(zmq.SUB)
         self.sub.setsockopt(zmq.LINGER, 0)
+        self.sub.setsockopt(zmq.RCVHWM, 0)  # read once per window: keep every message
         self.sub.setsockopt(zmq.SUBSCRIBE, b"STIM")
         self.sub.setsockopt(zmq.SUBSCRIBE, b"HBRT")
         self.sub.connect(endpoint)
         self.stats: dict[str, float] = {}
+        #: per stimulus read by latest_stats: the robot's own latency, scan bytes to sent
+        self.capture_to_send_ns: list[int] = []
 
     def wait_ready(self, robot: subprocess.Popen, timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
@@ -173,6 +183,7 @@ class RobotWatch:
         raise RuntimeError(f"robot node published no stimulus within {timeout_s:.0f} s")
 
     def latest_stats(self) -> dict[str, float]:
+        """The newest robot counters; also notes each stimulus's capture-to-send time."""
         from common.codec import DecodeError, decode
 
         while True:
@@ -180,9 +191,12 @@ class RobotWatch:
                 data = self.sub.recv(self._zmq.NOBLOCK)
             except self._zmq.Again:
                 return dict(self.stats)
-            if data.startswith(b"HBRT"):
-                with contextlib.suppress(DecodeError):
-                    self.stats = dict(decode(data).stats or {})
+            with contextlib.suppress(DecodeError):
+                msg = decode(data)
+                if data.startswith(b"HBRT"):
+                    self.stats = dict(msg.stats or {})
+                elif not msg.keyframe:  # a keyframe resends an old frame's stimulus
+                    self.capture_to_send_ns.append(msg.t_send_ns - msg.t_capture_ns)
 
     def close(self) -> None:
         self.sub.close(0)
@@ -261,6 +275,7 @@ def run_nodes(
         threads0 = {name: thread_cpu_s(p.pid) for name, p in procs.items()}
         scans0 = feeder.scans
         stats0 = watch.latest_stats()
+        watch.capture_to_send_ns.clear()
         time.sleep(measure_s)
         stats1 = watch.latest_stats()
         cpu1 = {name: process_cpu_s(p.pid) for name, p in procs.items()}
@@ -280,6 +295,8 @@ def run_nodes(
             k: (v - stats0.get(k, 0.0)) / wall for k, v in stats1.items() if k in WINDOW_COUNTERS
         }
         result["feeder_overflow_bytes"] = feeder.overflow_bytes
+        if watch.capture_to_send_ns:
+            result["robot_capture_to_send"] = summarize_ns(watch.capture_to_send_ns).as_dict()
     finally:
         if watch is not None:
             watch.close()
@@ -303,6 +320,12 @@ def run_nodes(
                 "servo_writes",
                 "targets_computed",
                 "decode_errors",
+                "wakeups",
+                "latency_samples",
+                "latency_p50_ms",
+                "latency_p99_ms",
+                "latency_max_ms",
+                "link_clock_uncertainty_ms",
             )
             result[f"{name}_stats"] = {k: stats[k] for k in keep if k in stats}
     result["logs"] = str(workdir)

@@ -183,13 +183,19 @@ def default_checks(results: dict[str, Any]) -> list[dict[str, Any]]:
         )
     clf = _sec(results, "classifier")
     if clf is not None:
+        # the node classifies a frame on a cold core: paced times decide when measured
+        key = (
+            "paced_median_us"
+            if all("paced_median_us" in r for r in clf["rows"] if "median_us" in r)
+            else "median_us"
+        )
         shipped = [r for r in clf["rows"] if r["model"] == "shipped default" and "median_us" in r]
         exact = [r for r in shipped if r["agrees_with_first_backend"] == 1.0]
         if exact:
-            fastest = min(exact, key=lambda r: r["median_us"])
+            fastest = min(exact, key=lambda r: r[key])
             default_row = next((r for r in exact if r["backend"] == d["backend"]), None)
             agrees = default_row is not None and (
-                default_row["median_us"] <= fastest["median_us"] * (1 + TIE_FRACTION)
+                default_row[key] <= fastest[key] * (1 + TIE_FRACTION)
             )
             rows.append(
                 {
@@ -203,10 +209,13 @@ def default_checks(results: dict[str, Any]) -> list[dict[str, Any]]:
                     "best": fastest["backend"],
                     "agrees": agrees,
                     "why": ", ".join(
-                        f"{r['backend']}: {_f(r['median_us'])} / {_f(r['p99_us'])} us"
+                        f"{r['backend']}: {_f(r.get('paced_median_us'))} / "
+                        f"{_f(r.get('paced_p99_us'))} us paced, {_f(r['median_us'])} / "
+                        f"{_f(r['p99_us'])} us back to back"
                         for r in exact
                     )
-                    + " (median / p99, batch 1, shipped model, identical predictions)",
+                    + " (median / p99 of predict_one, the node's call; shipped model, "
+                    f"identical predictions; decided by {key.replace('_us', '')})",
                 }
             )
         models = [r for r in clf["rows"] if "median_us" in r and r["backend"] == d["backend"]]
@@ -218,7 +227,7 @@ def default_checks(results: dict[str, Any]) -> list[dict[str, Any]]:
             )
             best_acc = max(r[acc_key] for r in models)
             good = [r for r in models if r[acc_key] >= best_acc - 0.005]
-            choice = min(good, key=lambda r: r["median_us"])
+            choice = min(good, key=lambda r: r[key])
             rows.append(
                 {
                     "setting": "model width (shipped model)",
@@ -227,12 +236,12 @@ def default_checks(results: dict[str, Any]) -> list[dict[str, Any]]:
                     "agrees": choice["width"] == d["model_width"]
                     or any(
                         r["width"] == d["model_width"]
-                        and r["median_us"] <= choice["median_us"] * (1 + TIE_FRACTION)
+                        and r[key] <= choice[key] * (1 + TIE_FRACTION)
                         for r in good
                     ),
                     "why": "; ".join(
                         f"{r['model']} (w={r['width']}): {_pct(r[acc_key], 2)}, "
-                        f"{_f(r['median_us'])} us, worst robustness set "
+                        f"{_f(r[key])} us, worst robustness set "
                         f"{_pct(r.get('report_worst_robustness'), 1)}"
                         for r in models
                     )
@@ -486,6 +495,7 @@ def _e2e_md(results: dict[str, Any]) -> list[str]:
             ],
             "|---|---:|---:|",
         )
+    out += _deployed_md(results)
     out += [
         "",
         "From the bytes of one scan (two 212-byte packets) entering the serial driver's "
@@ -510,6 +520,54 @@ def _e2e_md(results: dict[str, Any]) -> list[str]:
         "two-process design at its present load.",
     ]
     return out
+
+
+def _deployed_md(results: dict[str, Any]) -> list[str]:
+    """The nodes as deployed (the Node CPU run): their threads, their loops, their wake-ups."""
+    s = _sec(results, "node_cpu")
+    if s is None:
+        return []
+    robot = s.get("robot_capture_to_send")
+    op = s.get("operator_stats", {})
+    rows = []
+    if robot:
+        rows.append(
+            [
+                "robot node: scan bytes read to stimulus sent",
+                _f(robot["n"]),
+                _f(robot["median_us"]),
+                _f(robot["p99_us"]),
+            ]
+        )
+    if op.get("latency_p50_ms") is not None:
+        rows.append(
+            [
+                "both nodes: scan bytes read to servo goals written",
+                _f(int(op.get("latency_samples", 0))),
+                _f(1e3 * op["latency_p50_ms"]),
+                _f(1e3 * op["latency_p99_ms"]),
+            ]
+        )
+    if not rows:
+        return []
+    return [
+        "",
+        "The same path through the nodes as deployed (the Node CPU run below: two "
+        "processes, every core, the robot reading a pty in its serial reader thread and "
+        "handing the frame to its loop, the operator writing to the recording bus). These "
+        "include what the rows above leave out: the reader thread's wake-up and the handoff "
+        "to the loop's thread, ZeroMQ's I/O threads, and each node's other duties. The "
+        "second row is the operator's own measure, from the frame's capture time mapped "
+        "through the heartbeat clock offset (one machine: offset about 0, uncertainty "
+        f"{_f(op.get('link_clock_uncertainty_ms'), 3)} ms) over the whole run, to the "
+        "moment the goals went to the bus:",
+        "",
+        *_table(
+            ["path (deployed nodes, loopback TCP)", "samples", "median (us)", "p99 (us)"],
+            rows,
+            "|---|---:|---:|---:|",
+        ),
+    ]
 
 
 def _downsizing_md(results: dict[str, Any], img: str) -> list[str]:
@@ -593,8 +651,18 @@ def _classifier_md(results: dict[str, Any], img: str) -> list[str]:
     out = ["", "## Run time against error: classifier backends and model widths", ""]
     if s is None:
         return [*out, "Not run."]
+    gap = s.get("paced_gap_s")
     out += [
-        f"Batch-1 `predict_proba`, one thread. Accuracy: the pattern (both heads right) on "
+        "Time: `predict_one`, the robot node's call (one frame through preallocated buffers, "
+        "the softmax over seven Python floats), one thread; back to back, and paced with "
+        + (
+            "no pause (not run)"
+            if gap is None
+            else f"{1e3 * gap:.1f} ms of sleep before each "
+            "call, as the node meets a frame on a cold core"
+        )
+        + ". Backends take turns call by call. "
+        f"Accuracy: the pattern (both heads right) on "
         f"{s['eval_default_frames']:,} frames of the default pad model (seed "
         f"{s['eval_default_seed']}) and on "
         f"{_f(s['eval_randomized_frames'])} domain-randomised frames drawn like the training "
@@ -623,6 +691,8 @@ def _classifier_md(results: dict[str, Any], img: str) -> list[str]:
                     "",
                     "",
                     "",
+                    "",
+                    "",
                 ]
             )
             continue
@@ -632,6 +702,8 @@ def _classifier_md(results: dict[str, Any], img: str) -> list[str]:
                 str(r["width"]),
                 _f(r["parameters"]),
                 r["backend"],
+                _f(r.get("paced_median_us")),
+                _f(r.get("paced_p99_us")),
                 _f(r["median_us"]),
                 _f(r["p99_us"]),
                 _pct(r["accuracy_default_generator"], 2),
@@ -648,7 +720,9 @@ def _classifier_md(results: dict[str, Any], img: str) -> list[str]:
             "width",
             "parameters",
             "backend",
-            "median (us)",
+            "paced: median (us)",
+            "p99 (us)",
+            "back to back: median (us)",
             "p99 (us)",
             "accuracy, default pads",
             "accuracy, randomised",
@@ -658,7 +732,7 @@ def _classifier_md(results: dict[str, Any], img: str) -> list[str]:
             "worst robustness set (its training report)",
         ],
         rows,
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     )
     out += ["", f"![classifier]({img}/bench_classifier.png)"]
     return out
@@ -939,10 +1013,18 @@ def _node_cpu_md(results: dict[str, Any]) -> list[str]:
         "",
     ]
     win = s.get("robot_window_per_s", {})
+    op_wakeups = s.get("operator_stats", {}).get("wakeups")
     out += [
         f"Inside the window the robot read {_f(win.get('frames_captured'))} frames/s, "
         f"rendered {_f(win.get('frames_processed'))}/s (cap {s['publish_rate_hz']:g}) and "
-        f"let {_f(win.get('frames_superseded'))}/s be superseded before its loop took them. "
+        f"let {_f(win.get('frames_superseded'))}/s be superseded before its loop took them; "
+        f"its loop woke {_f(win.get('wakeups'))} times/s"
+        + (
+            ""
+            if op_wakeups is None
+            else f", the operator's {op_wakeups:,.0f} times over the whole run"
+        )
+        + ". "
         "CPU per thread (% of one core): robot "
         + ", ".join(f"{k} {v:g}" for k, v in s.get("robot_threads_percent", {}).items())
         + "; operator "

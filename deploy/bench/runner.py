@@ -177,6 +177,8 @@ def _measure(
             eval_default,
             eval_rand,
             sizes.clf_calls,
+            sizes.clf_paced_calls,
+            1.0 / sizes.pace_hz,
         )
         timing.limit_torch_threads()
         return out

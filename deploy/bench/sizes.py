@@ -38,6 +38,7 @@ class Sizes:
     ds_repeats: int
     ds_calls: int
     clf_calls: int
+    clf_paced_calls: int
     clf_eval_repeats: int
     clf_randomized_repeats: int
     clf_backends_default: tuple[str, ...]
@@ -72,6 +73,7 @@ PRESETS: dict[str, Sizes] = {
         ds_repeats=8,
         ds_calls=20000,
         clf_calls=5000,
+        clf_paced_calls=600,
         clf_eval_repeats=4,
         clf_randomized_repeats=8,
         clf_backends_default=ALL_BACKENDS,
@@ -103,6 +105,7 @@ PRESETS: dict[str, Sizes] = {
         ds_repeats=2,
         ds_calls=2000,
         clf_calls=1000,
+        clf_paced_calls=150,
         clf_eval_repeats=1,
         clf_randomized_repeats=1,
         clf_backends_default=("numpy", "onnxruntime"),  # torch costs 10 s to load
@@ -134,6 +137,7 @@ PRESETS: dict[str, Sizes] = {
         ds_repeats=1,
         ds_calls=100,
         clf_calls=50,
+        clf_paced_calls=10,
         clf_eval_repeats=1,
         clf_randomized_repeats=0,
         clf_backends_default=("numpy", "onnxruntime"),

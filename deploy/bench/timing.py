@@ -153,13 +153,15 @@ def time_calls(fn: Callable[[int], Any], n: int, warmup: int = 100, batch: int =
 
 
 def time_interleaved(
-    fns: list[Callable[[int], Any]], n: int, warmup: int = 100
+    fns: list[Callable[[int], Any]], n: int, warmup: int = 100, gap_s: float = 0.0
 ) -> list[np.ndarray]:
     """Nanoseconds per call of each ``fn(i)``, the functions taking turns call by call.
 
     On a shared machine the load drifts over seconds; timing alternatives in
     turn gives each the same conditions, so their difference is theirs, not
     the drift's (timing them one block after another is not comparable).
+    ``gap_s`` sleeps before every call, as a node sleeps between frames: each
+    call then meets the cold caches it meets in the field.
     """
     for i in range(warmup):
         for fn in fns:
@@ -168,6 +170,8 @@ def time_interleaved(
     out = [np.empty(n, dtype=np.int64) for _ in fns]
     for i in range(n):
         for k, fn in enumerate(fns):
+            if gap_s > 0:
+                time.sleep(gap_s)
             t = clock()
             fn(i)
             out[k][i] = clock() - t

@@ -9,7 +9,10 @@ end), axis 2 the column (0 at the left).
 from __future__ import annotations
 
 import abc
+import contextlib
+import os
 import threading
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -21,6 +24,7 @@ from common.devices import Device
 from common.errors import StaleDataError
 
 FRAME_SHAPE = (2, 10, 10)
+_NEVER = 2**63 - 1  # a sequence number no frame reaches
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,12 +67,18 @@ class TactileSensor(Device):
         self._cond = threading.Condition()
         self._latest: TactileSample | _RawSample | None = None
         self._waiting_after = -1  # the seq the current waiter needs to exceed
+        self._fd_after = _NEVER  # frame_fd turns readable for a frame newer than this
+        self._fd_pair: tuple[int, int] | None = None
 
     def _publish(self, sample: TactileSample | _RawSample) -> None:
         with self._cond:
             self._latest = sample
             if sample.seq > self._waiting_after:  # wake a waiter only for what it waits for
                 self._cond.notify_all()
+            if sample.seq > self._fd_after:  # one byte per take_newer() that found nothing
+                self._fd_after = _NEVER
+                with contextlib.suppress(OSError):  # full or closed: readable already / gone
+                    os.write(self._fd_pair[1], b"f")  # type: ignore[index]
 
     def _publish_raw(
         self,
@@ -111,6 +121,40 @@ class TactileSensor(Device):
             )
         return sample
 
+    def frame_fd(self) -> int:
+        """A file descriptor to poll beside sockets, for a loop that waits on both.
+
+        It turns readable when a frame newer than the one the last
+        ``take_newer`` call found missing arrives; frames nobody asked for
+        never wake the loop.
+        """
+        with self._cond:
+            if self._fd_pair is None:
+                r, w = os.pipe()
+                os.set_blocking(r, False)
+                os.set_blocking(w, False)
+                self._fd_pair = (r, w)
+                weakref.finalize(self, _close_fds, r, w)
+            return self._fd_pair[0]
+
+    def take_newer(self, after_seq: int) -> TactileSample | None:
+        """The newest frame if it is newer than ``after_seq``; else None, and ``frame_fd`` wakes.
+
+        The poll-loop form of ``wait_for_frame``: call it, poll ``frame_fd``
+        with the loop's sockets if it found nothing, and call it again.
+        """
+        self.require_connected()
+        with self._cond:
+            if self._fd_pair is not None:
+                with contextlib.suppress(OSError):
+                    os.read(self._fd_pair[0], 64)
+            latest = self._latest
+            if latest is not None and latest.seq > after_seq:
+                self._fd_after = _NEVER
+                return self._newest()
+            self._fd_after = after_seq
+            return None
+
     def wait_for_frame(self, after_seq: int, timeout_s: float) -> TactileSample | None:
         """Block until a frame newer than ``after_seq`` exists; None on timeout."""
         self.require_connected()
@@ -128,3 +172,9 @@ class TactileSensor(Device):
     @abc.abstractmethod
     def stats(self) -> dict[str, int]:
         """Counters: frames received, dropped, resynchronisations, ..."""
+
+
+def _close_fds(*fds: int) -> None:
+    for fd in fds:
+        with contextlib.suppress(OSError):
+            os.close(fd)
