@@ -234,9 +234,17 @@ _DECODE_PLAN = {
 
 
 # --------------------------------------------------------------------- encode
+_PLAIN = (int, float, str, bool)
+_F32 = np.dtype("<f4")
+
+
 def _wire_value(v: Any) -> Any:
+    if type(v) in _PLAIN:  # most fields: as they are, no isinstance chain
+        return v
     if isinstance(v, np.ndarray):
-        return np.ascontiguousarray(v, dtype="<f4").tobytes()
+        if v.dtype == _F32 and v.flags.c_contiguous:
+            return v.tobytes()
+        return np.ascontiguousarray(v, dtype=_F32).tobytes()
     if isinstance(v, tuple):
         return list(v)
     if isinstance(v, (np.integer, np.floating, np.bool_)):
