@@ -152,7 +152,8 @@ class TactileSensor(Device):
             if latest is not None and latest.seq > after_seq:
                 self._fd_after = _NEVER
                 return self._newest()
-            self._fd_after = after_seq
+            if self._fd_pair is not None:  # without frame_fd() there is nothing to wake
+                self._fd_after = after_seq
             return None
 
     def wait_for_frame(self, after_seq: int, timeout_s: float) -> TactileSample | None:
