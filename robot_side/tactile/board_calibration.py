@@ -42,12 +42,12 @@ class BoardCalibration:
     def uniform(cls, zero_counts: float, gain_n_per_count: float) -> BoardCalibration:
         return cls(np.full(WIRE_SHAPE, zero_counts), np.full(WIRE_SHAPE, gain_n_per_count))
 
-    def to_newtons(self, counts: np.ndarray) -> np.ndarray:
-        """(2, 10, 10) counts -> newtons before floor and saturation (float64)."""
-        return (np.asarray(counts, dtype=np.float64) - self.zero_counts) * self.gain_n_per_count
-
     def to_counts(self, newtons: np.ndarray) -> np.ndarray:
-        """The inverse, for simulators: newtons -> counts (float64, not rounded)."""
+        """For simulators: newtons -> counts (float64, not rounded).
+
+        The other direction, with floor, saturation and the mirror, is the
+        serial driver's ``_Converter`` (one place, on its hot path).
+        """
         return np.asarray(newtons, dtype=np.float64) / self.gain_n_per_count + self.zero_counts
 
 
