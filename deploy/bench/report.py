@@ -323,7 +323,8 @@ def markdown(results: dict[str, Any], img_dir_rel: str = "img") -> str:
         f"{lb['loadavg_15m']} before, {la['loadavg_1m']}/{la['loadavg_5m']}/"
         f"{la['loadavg_15m']} after, on {m['cores']} cores shared with other work: "
         "tails (p99) carry other processes' preemptions, medians much less so.",
-        f"- Python {v['python']}, numpy {v['numpy']}, pyzmq {v['pyzmq']}, onnxruntime "
+        f"- Python {v['python']}, numpy {v['numpy']}, pyzmq {v['pyzmq']}, "
+        f"numba {v.get('numba')}, onnxruntime "
         f"{v['onnxruntime']}, torch {v['torch']}, scipy {v['scipy']}.",
         f"- Timer: `perf_counter_ns`, {results['timer_overhead_ns']:.0f} ns per pair of reads "
         "(included in every stage time).",

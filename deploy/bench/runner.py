@@ -36,7 +36,16 @@ def _versions() -> dict[str, str | None]:
     import importlib.metadata as md
 
     out: dict[str, str | None] = {"python": platform.python_version()}
-    for pkg in ("numpy", "pyzmq", "msgpack", "onnxruntime", "torch", "scipy", "feetech-servo-sdk"):
+    for pkg in (
+        "numpy",
+        "pyzmq",
+        "msgpack",
+        "numba",
+        "onnxruntime",
+        "torch",
+        "scipy",
+        "feetech-servo-sdk",
+    ):
         try:
             out[pkg] = md.version(pkg)
         except md.PackageNotFoundError:

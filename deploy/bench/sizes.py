@@ -60,7 +60,7 @@ class Sizes:
     scale_backends: tuple[str | None, ...]
 
 
-ALL_BACKENDS = ("numpy", "onnxruntime", "torchscript", "torch")
+ALL_BACKENDS = ("numba", "numpy", "onnxruntime", "torchscript", "torch")
 PRESETS: dict[str, Sizes] = {
     "full": Sizes(
         stage_frames=20000,
@@ -77,7 +77,7 @@ PRESETS: dict[str, Sizes] = {
         clf_eval_repeats=4,
         clf_randomized_repeats=8,
         clf_backends_default=ALL_BACKENDS,
-        clf_backends_others=("numpy", "onnxruntime"),
+        clf_backends_others=("numba", "onnxruntime"),
         ik_grid_mm=0.05,
         ik_shell_points=20000,
         ik_numeric_points=2000,
@@ -92,7 +92,7 @@ PRESETS: dict[str, Sizes] = {
         node_measure_s=20.0,
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=True,
-        scale_backends=(None, "numpy"),
+        scale_backends=(None, "onnxruntime", "numpy"),
     ),
     "quick": Sizes(
         stage_frames=2000,
@@ -108,8 +108,8 @@ PRESETS: dict[str, Sizes] = {
         clf_paced_calls=150,
         clf_eval_repeats=1,
         clf_randomized_repeats=1,
-        clf_backends_default=("numpy", "onnxruntime"),  # torch costs 10 s to load
-        clf_backends_others=("onnxruntime",),
+        clf_backends_default=("numba", "numpy", "onnxruntime"),  # torch costs 10 s to load
+        clf_backends_others=("numba",),
         ik_grid_mm=0.5,
         ik_shell_points=2000,
         ik_numeric_points=100,
@@ -140,7 +140,7 @@ PRESETS: dict[str, Sizes] = {
         clf_paced_calls=10,
         clf_eval_repeats=1,
         clf_randomized_repeats=0,
-        clf_backends_default=("numpy", "onnxruntime"),
+        clf_backends_default=("numba", "numpy", "onnxruntime"),
         clf_backends_others=(),
         ik_grid_mm=2.0,
         ik_shell_points=200,

@@ -1,5 +1,8 @@
-"""Classifying frames at 60 Hz: one interface, four backends of the same weights.
+"""Classifying frames at 60 Hz: one interface, five backends of the same weights.
 
+- ``numba``: the whole forward pass compiled to one function
+  (``numba_forward``): a few kilobytes of loops behind one call, which is
+  what a frame that meets cold caches needs.
 - ``numpy``: a hand-written forward pass (batch norm folded into the
   convolutions, convolutions as one gather and one matrix product, both
   heads merged into block-diagonal matrices). No dependency beyond NumPy.
@@ -9,9 +12,9 @@
 
 Every backend returns the same classes and probabilities within 1e-5 of
 eager torch (tests/perception). The default is the fastest of them on batch
-1, measured by benchmarks/perception_bench.py (docs/perception.md): ONNX
-Runtime, with NumPy as the fallback when onnxruntime or the ``.onnx`` is
-missing.
+1 when frames are paced as the sensor paces them, measured by ``deepxpalm
+bench`` (docs/benchmarks.md): numba, then ONNX Runtime when numba is not
+installed (or the ``.onnx`` is missing), then NumPy.
 
 A classifier keeps preallocated buffers for batch 1, the robot node's case,
 so one instance must not be used from two threads at once without a lock;
@@ -37,10 +40,11 @@ from robot_side.perception.weights import DEFAULT_MODEL, read_weights
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("numpy", "onnxruntime", "torchscript", "torch")
+BACKENDS = ("numba", "numpy", "onnxruntime", "torchscript", "torch")
 #: preference order when no backend is named: fastest measured first
-DEFAULT_BACKEND_ORDER = ("onnxruntime", "numpy", "torchscript", "torch")
+DEFAULT_BACKEND_ORDER = ("numba", "onnxruntime", "numpy", "torchscript", "torch")
 _MODULE_OF = {
+    "numba": "numba",
     "numpy": "numpy",
     "onnxruntime": "onnxruntime",
     "torch": "torch",
@@ -99,10 +103,13 @@ class TiltClassifier:
         meta: dict,
         path: Path,
         logits_one: Callable[[np.ndarray], Logits] | None = None,
+        classify_one: Callable[[np.ndarray], list[float]] | None = None,
     ):
         self._logits = logits_fn
         # one (2, 10, 10) frame -> (4,) and (3,) logits, through preallocated buffers
         self._logits_one = logits_one or (lambda x: tuple(z[0] for z in logits_fn(x[None])))
+        # a backend that also takes argmax and softmax: [angle, position, *probabilities]
+        self._classify_one = classify_one
         self.backend = backend
         self.meta = meta
         self.path = path
@@ -146,6 +153,11 @@ class TiltClassifier:
             x = np.asarray(frame, dtype=np.float32)
             if x.shape != (2, 10, 10):
                 raise ValueError(f"a frame has shape (2, 10, 10), not {x.shape}")
+        if self._classify_one is not None:
+            with self._lock:
+                r = self._classify_one(x)
+            a = 2 + N_ANGLES
+            return Prediction(int(r[0]), int(r[1]), tuple(r[2:a]), tuple(r[a:]))
         with self._lock:
             a, p = self._logits_one(x)
             a, p = a.tolist(), p.tolist()  # copies: the buffers are reused
@@ -178,8 +190,13 @@ def load_classifier(
             "or choose backend='numpy'"
         )
     weights, meta = read_weights(path)
-    one = None
-    if backend == "numpy":
+    one = classify = None
+    if backend == "numba":
+        from robot_side.perception.numba_forward import NumbaForward
+
+        fn = NumbaForward(weights, meta)
+        one, classify = fn.one, fn.classify_one
+    elif backend == "numpy":
         fn = NumpyForward(weights, meta)
     elif backend == "onnxruntime":
         fn, one = _onnx_logits(path.with_suffix(".onnx"), num_threads)
@@ -188,7 +205,7 @@ def load_classifier(
             weights, meta, scripted=backend == "torchscript", num_threads=num_threads
         )
     log.info("loaded tilt classifier %s with backend %s", path, backend)
-    return TiltClassifier(fn, backend, meta, path, logits_one=one)
+    return TiltClassifier(fn, backend, meta, path, logits_one=one, classify_one=classify)
 
 
 def _installed(backend: str) -> bool:

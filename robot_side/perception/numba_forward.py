@@ -1,0 +1,233 @@
+"""The TiltNet forward pass compiled to one machine-code function (numba).
+
+Why a fifth backend for a network of about 100 k multiply-adds: the robot
+node classifies one frame per sensor period, and between two frames the core
+runs other work, so every frame meets cold caches and branch predictors.
+Then the cost of a forward pass is set by how much distinct code it runs, not
+by its arithmetic: ONNX Runtime's session machinery costs about 300 us a
+frame that way, NumPy's dozen calls about as much. Here the whole pass, from
+the input features to both heads' logits, is a few kilobytes of straight
+loops behind a single call.
+
+Batch norm (eval mode) is folded into the convolutions in float64, then
+everything is float32 with the summation order left to the compiler (fast
+math without the non-finite assumptions), so logits agree with eager torch
+to about 1e-5 (tests/perception). The first load compiles for about 2 s and
+caches the machine code beside this file (or in the user's cache directory
+when that is read-only); later loads take a fraction of a second.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+
+from robot_side.perception.errors import ModelLoadError
+
+#: reassociation (vectorised sums), contraction (FMA), no signed zeros, reciprocals;
+#: not "nnan"/"ninf": a frame is finite by the time it is classified, but the
+#: compiler must not be allowed to assume it
+_FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
+_F0 = np.float32(0.0)
+_NINTH = np.float32(1.0 / 9.0)  # SATURATION_N
+_PEAK_FLOOR = np.float32(1.0)  # PEAK_FLOOR_N
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH)
+def _dense(z, w, b, out, relu):  # pragma: no cover - compiled
+    for o in range(w.shape[0]):
+        acc = b[o]
+        for k in range(w.shape[1]):
+            acc += z[k] * w[o, k]
+        if relu and acc < _F0:
+            acc = _F0
+        out[o] = acc
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH)
+def _forward_one(
+    x, w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, out
+):  # pragma: no cover
+    """One (2, 10, 10) frame -> 7 logits in ``out``; every buffer is preallocated.
+
+    ``pad1`` (4, 12, 12) and ``pad2`` (c1, 12, 12) keep zero borders, so the
+    3x3 convolutions run without bounds tests. ``heads``/``biases`` are the
+    four merged head layers; ``scratch`` holds each layer's output.
+    """
+    c1 = w1.shape[0]
+    c2 = w2.shape[0]
+    peak = _PEAK_FLOOR
+    for c in range(2):
+        for i in range(10):
+            for j in range(10):
+                v = x[c, i, j]
+                if v > peak:
+                    peak = v
+    inv_peak = np.float32(1.0) / peak
+    # InputFeatures: (pad 0, pad 1) / 9 N, then (pad 0, pad 1) / peak
+    for c in range(2):
+        for i in range(10):
+            for j in range(10):
+                v = x[c, i, j]
+                pad1[c, i + 1, j + 1] = v * _NINTH
+                pad1[c + 2, i + 1, j + 1] = v * inv_peak
+    for o in range(c1):
+        for i in range(10):
+            for j in range(10):
+                acc[i, j] = b1[o]
+        for c in range(4):
+            for di in range(3):
+                for dj in range(3):
+                    wv = w1[o, c, di, dj]
+                    for i in range(10):
+                        for j in range(10):
+                            acc[i, j] += wv * pad1[c, i + di, j + dj]
+        for i in range(10):
+            for j in range(10):
+                v = acc[i, j]
+                pad2[o, i + 1, j + 1] = v if v > _F0 else _F0
+    h2 = scratch[0]
+    for o in range(c2):
+        for i in range(10):
+            for j in range(10):
+                acc[i, j] = b2[o]
+        for c in range(c1):
+            for di in range(3):
+                for dj in range(3):
+                    wv = w2[o, c, di, dj]
+                    for i in range(10):
+                        for j in range(10):
+                            acc[i, j] += wv * pad2[c, i + di, j + dj]
+        for i in range(10):
+            for j in range(10):
+                v = acc[i, j]
+                h2[o * 100 + i * 10 + j] = v if v > _F0 else _F0  # torch's flatten order
+    n = len(heads)
+    for k in range(n - 1):
+        _dense(scratch[k], heads[k], biases[k], scratch[k + 1], True)
+    _dense(scratch[n - 1], heads[n - 1], biases[n - 1], out, False)
+
+
+@numba.njit(cache=True, nogil=True)
+def _argmax_softmax(z, out, at):  # pragma: no cover - compiled
+    """Class of ``z`` into ``out[0]`` (ties: the lowest, as NumPy), its softmax from ``at``."""
+    top = 0
+    for k in range(1, z.shape[0]):
+        if z[k] > z[top]:
+            top = k
+    total = 0.0
+    for k in range(z.shape[0]):
+        e = np.exp(np.float64(z[k]) - np.float64(z[top]))
+        out[at + k] = e
+        total += e
+    for k in range(z.shape[0]):
+        out[at + k] /= total
+    out[0] = top
+
+
+@numba.njit(cache=True, nogil=True)
+def _classify_one(
+    x, w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, logits, n_angle, result
+):  # pragma: no cover
+    """``result``: angle, position, then both heads' probabilities (float64)."""
+    _forward_one(x, w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, logits)
+    _argmax_softmax(logits[:n_angle], result, 2)
+    angle = result[0]
+    _argmax_softmax(logits[n_angle:], result, 2 + n_angle)
+    result[1] = result[0]
+    result[0] = angle
+
+
+@numba.njit(cache=True, nogil=True)
+def _forward_batch(
+    xs, w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, outs
+):  # pragma: no cover
+    for i in range(xs.shape[0]):
+        _forward_one(xs[i], w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, outs[i])
+
+
+class NumbaForward:
+    """Logits of (N, 2, 10, 10) frames; ``one`` for a single frame through fixed buffers.
+
+    Not thread-safe: the buffers are shared (TiltClassifier holds a lock).
+    """
+
+    def __init__(self, weights: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
+        from robot_side.perception.inference import _block_diag, _fold_bn
+
+        try:
+            w1, b1 = _fold_bn(
+                weights["backbone.0.weight"], weights["backbone.0.bias"], weights, "backbone.1"
+            )
+            w2, b2 = _fold_bn(
+                weights["backbone.3.weight"], weights["backbone.3.bias"], weights, "backbone.4"
+            )
+            heads = [
+                np.concatenate([weights["angle_head.0.weight"], weights["position_head.0.weight"]])
+            ]
+            biases = [
+                np.concatenate([weights["angle_head.0.bias"], weights["position_head.0.bias"]])
+            ]
+            for i in (3, 6, 9):
+                a, p = weights[f"angle_head.{i}.weight"], weights[f"position_head.{i}.weight"]
+                heads.append(_block_diag(a, p))
+                biases.append(
+                    np.concatenate(
+                        [weights[f"angle_head.{i}.bias"], weights[f"position_head.{i}.bias"]]
+                    )
+                )
+            self.n_angle = weights["angle_head.9.weight"].shape[0]
+        except KeyError as e:
+            raise ModelLoadError(f"model weights lack {e}: not a TiltNet file") from None
+
+        def f32(a: np.ndarray) -> np.ndarray:
+            return np.ascontiguousarray(a, dtype=np.float32)
+
+        c1 = w1.shape[0]
+        self._weights = (f32(w1), f32(b1), f32(w2), f32(b2))
+        # tuples of arrays: numba types them once, a list would be re-checked per call
+        self._heads = tuple(f32(h) for h in heads)
+        self._biases = tuple(f32(b) for b in biases)
+        self._pad1 = np.zeros((4, 12, 12), np.float32)
+        self._pad2 = np.zeros((c1, 12, 12), np.float32)
+        self._acc = np.zeros((10, 10), np.float32)
+        widths = [self._heads[0].shape[1]] + [h.shape[0] for h in self._heads[:-1]]
+        self._scratch = tuple(np.zeros(w, np.float32) for w in widths)
+        self._out = np.zeros(self._heads[-1].shape[0], np.float32)
+        self._result = np.zeros(2 + self._out.shape[0], np.float64)
+        # frames are copied in: one argument type, so nothing compiles on the hot path
+        # (a read-only or strided array would be a new signature, a 2 s compile)
+        self._x = np.zeros((2, 10, 10), np.float32)
+        self._args = (
+            *self._weights,
+            self._heads,
+            self._biases,
+            self._pad1,
+            self._pad2,
+            self._acc,
+            self._scratch,
+        )
+        # compile (or load the cached machine code) now, not on the first frame
+        self.classify_one(np.zeros((2, 10, 10), np.float32))
+
+    def classify_one(self, frame: np.ndarray) -> list[float]:
+        """[angle, position, *angle probabilities, *position probabilities] of one frame."""
+        result, x = self._result, self._x
+        np.copyto(x, frame)
+        _classify_one(x, *self._args, self._out, self.n_angle, result)
+        return result.tolist()
+
+    def one(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(4,) and (3,) logits of one float32 (2, 10, 10) frame: views of reused buffers."""
+        out, x = self._out, self._x
+        np.copyto(x, frame)
+        _forward_one(x, *self._args, out)
+        return out[: self.n_angle], out[self.n_angle :]
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = np.require(x, np.float32, ("C", "W"))
+        outs = np.empty((x.shape[0], self._out.shape[0]), np.float32)
+        _forward_batch(x, *self._args, outs)
+        return outs[:, : self.n_angle], outs[:, self.n_angle :]
