@@ -19,6 +19,7 @@ from common.devices import Device
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
 from operator_side.servos.limits import check_goals
+from operator_side.servos.sync_write import SyncWritePacket
 from robot_side.tactile.serial_board import SerialTactileConfig, SerialTactileSensor
 from robot_side.tactile.synthetic import (
     N_GRIP_LEVELS,
@@ -106,27 +107,21 @@ class PacketBuilder:
     """The servo packet exactly as the Feetech driver builds it, minus the serial write.
 
     Goals are checked against the calibration (``limits.check_goals``, as
-    every bus does) and packed by scservo_sdk's ``GroupSyncWrite`` into one
-    sync-write instruction.
+    every bus does) and laid into the goal sync-write packet
+    (``SyncWritePacket``, byte for byte what scservo_sdk's ``GroupSyncWrite``
+    builds), which the driver hands to the SDK's port handler.
     """
 
     def __init__(self, calibration: LinkGlideCalibration) -> None:
-        import scservo_sdk as sdk
-
-        self._sdk = sdk
         self.calibration = calibration
+        self.ids = tuple(int(i) for i in calibration.ids)
+        self.packet = SyncWritePacket(self.ids, GOAL_POSITION_ADDRESS)
         self.port = CapturePort()
-        self.handler = sdk.PacketHandler(0)  # STS: little-endian
 
     def build(self, goals: Mapping[int, int]) -> bytes:
-        sdk = self._sdk
         checked = check_goals(self.calibration, goals)
-        group = sdk.GroupSyncWrite(self.port, self.handler, GOAL_POSITION_ADDRESS, 2)
-        for sid, value in checked.items():
-            group.addParam(sid, [sdk.SCS_LOBYTE(value), sdk.SCS_HIBYTE(value)])
-        result = group.txPacket()
-        if result != sdk.COMM_SUCCESS:
-            raise RuntimeError(f"sync write packet not built: {result}")
+        self.port.clearPort()
+        self.port.writePort(self.packet.build([checked[i] for i in self.ids]))
         return self.port.last_packet
 
 

@@ -60,6 +60,8 @@ class LinkGlideCalibration:
         self._scale = np.array([s.direction * COUNTS_PER_RAD for s in ordered])
         self.min_counts = np.array([s.min_counts for s in ordered], dtype=np.int64)
         self.max_counts = np.array([s.max_counts for s in ordered], dtype=np.int64)
+        #: id -> (min, max) counts, for the bus's check of every write
+        self.limits_by_id = {s.id: (s.min_counts, s.max_counts) for s in ordered}
         #: (id, zero, counts per radian, min, max) per servo, ids 1..6, as plain numbers
         self._per_servo = [
             (s.id, float(s.zero_counts), s.direction * COUNTS_PER_RAD, s.min_counts, s.max_counts)

@@ -26,6 +26,17 @@ def check_goals(calibration: LinkGlideCalibration, goals: Mapping[int, int]) -> 
     Raises ``GoalOutOfLimitsError`` naming every offending servo, so a refused
     write says at once which linkage and which limit.
     """
+    # the 60 Hz case first: plain ints of known servos, all in range
+    limits = calibration.limits_by_id
+    if goals:
+        for sid, value in goals.items():
+            lim = limits.get(sid)
+            if lim is None or type(sid) is not int or type(value) is not int:
+                break
+            if not lim[0] <= value <= lim[1]:
+                break
+        else:
+            return dict(goals)
     by_id = {s.id: s for s in calibration.servos}
     if not goals:
         raise GoalOutOfLimitsError("write_goals got no goals; nothing to write")

@@ -138,6 +138,11 @@ def test_one_sync_write_per_call_and_positions_follow(fake) -> None:
         _wait(lambda: [fake.goal(i) for i in IDS] == [1500, 1600, 1700, 1800, 1900, 2000])
         assert fake.stats()["sync_write"] - before == 1
         _wait(lambda: bus.read_positions()[6] == 2000)
+        # some servos only: the SDK's GroupSyncWrite, not the laid-out packet of all six
+        bus.write_goals({2: 1650, 5: 1950})
+        _wait(lambda: [fake.goal(i) for i in IDS] == [1500, 1650, 1700, 1800, 1950, 2000])
+        assert fake.stats()["sync_write"] - before == 2
+        assert bus.stats()["sync_writes"] == 2 + 1  # and the hold at connect
 
 
 def test_out_of_limit_counts_are_never_written(fake) -> None:
