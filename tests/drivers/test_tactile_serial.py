@@ -232,6 +232,34 @@ def test_without_mirroring_finger2_comes_out_in_its_own_view(board) -> None:
         _assert_same_newtons(sample.frame[1], sim_frame[1][:, ::-1])
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    counts=st.lists(st.integers(0, 0xFFFF), min_size=200, max_size=200),
+    zero=st.floats(0, 4000),
+    gain=st.floats(1e-4, 0.1),
+    mirror=st.booleans(),
+    floor=st.floats(0, 2),
+    saturation=st.floats(2.5, 20),
+)
+def test_compiled_conversion_is_bit_identical_to_numpy(
+    counts: list[int], zero: float, gain: float, mirror: bool, floor: float, saturation: float
+) -> None:
+    pytest.importorskip("numba")
+    from robot_side.tactile.serial_board import _Converter
+
+    rng = np.random.default_rng(len(counts) + int(zero))
+    cal = BoardCalibration(
+        zero + rng.uniform(-50, 50, (2, 10, 10)), gain * rng.uniform(0.5, 2, (2, 10, 10))
+    )
+    cfg = SerialTactileConfig(mirror_finger2=mirror, floor_n=floor, saturation_n=saturation)
+    converter = _Converter(cal, cfg)
+    assert converter._compiled is not None
+    payloads = np.array(counts, "<u2").tobytes()
+    compiled, reference = converter(payloads), converter.numpy_path(payloads)
+    assert compiled.dtype == np.float32 and compiled.shape == (2, 10, 10)
+    np.testing.assert_array_equal(compiled, reference)
+
+
 def test_capture_zero_recovers_the_boards_offsets() -> None:
     gen = GeneratorParams(stuck_taxel_fraction=0.0)  # a stuck taxel is zeroed away, by design
     with TactileBoardSimulator(_board(generator=gen, script=_script(delay_s=5.0))) as board:
