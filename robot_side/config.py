@@ -25,6 +25,11 @@ class RenderConfig:
         "mask first: the paper's order loses 0-deg patterns (8-29% match vs 100%, docs/tactile.md)",
     )
     contact_threshold_n: float = param(1.0, "largest taxel below this = no contact (sensor floor)")
+    compiled_step: bool = param(
+        True,
+        "mask mode on the numba classifier: sanitize, classify and render a frame in one "
+        "compiled call (robot_side/compiled_step.py); false = the plain path",
+    )
     deadband_n: float = param(
         0.05, "a stimulus cell must change by more than this to be resent (0.04 mm of depth)"
     )

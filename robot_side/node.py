@@ -72,6 +72,8 @@ class RobotNode:
         self.config = config
         self.tactile = tactile
         self.classifier = classifier
+        # mask mode on the numba classifier: one compiled call per frame (None otherwise)
+        self._compiled = _compiled_step_for(classifier, config.render)
         self.gripper = gripper
         self.arm = arm
         self.recorder = recorder or NullRecorder()
@@ -219,64 +221,110 @@ class RobotNode:
             return None
         self.counters["frames_processed"] += 1
         self._last_capture_ns = sample.t_capture_ns
-        render = self.config.render
-        frame, peak = sanitize_with_peak(sample.frame)
-        if self._recording:
-            self.recorder.write(
-                "robot/frame",
-                now,
-                {
-                    "frame": frame,
-                    "frame_seq": sample.seq,
-                    "t_capture_ns": sample.t_capture_ns,
-                },
-            )
         truth = sample.truth.pattern if sample.truth is not None else None
-        contact = peak >= render.contact_threshold_n  # is_contact, from the same pass
-        pattern: int | None = None
-        confidence: float | None = None
-        if not contact:
-            self.counters["frames_no_contact"] += 1
-            self._last_frame = None
-            cells = _NO_CELLS
-        elif self._last_frame is not None and np.array_equal(frame, self._last_frame):
+        if self._compiled is not None:
+            outcome = self._render_compiled(sample, now)
+        else:
+            outcome = self._render(sample, now, truth)
+        if outcome is None:
             self.counters["frames_identical"] += 1
             return self._maybe_keyframe(sample)
-        else:
-            self._last_frame = frame
-            if render.mode == "mask":
-                prediction = self.classifier.predict_one(frame)
-                pattern = prediction.pattern
-                confidence = min(max(prediction.confidence, 0.0), 1.0)
-                self.counters["inferences"] += 1
-                if self._recording:
-                    self.recorder.write(
-                        "robot/prediction",
-                        now_ns(),
-                        {
-                            "frame_seq": sample.seq,
-                            "angle_probs": np.array(prediction.angle_probs, np.float32),
-                            "position_probs": np.array(prediction.position_probs, np.float32),
-                            "pattern": pattern,
-                            "confidence": confidence,
-                        },
-                    )
-            elif render.mode == "mask_ground_truth":
-                pattern = truth
-                confidence = 1.0 if truth is not None else None
-            if render.mode != "direct" and pattern is None:
-                cells = _NO_CELLS  # ground truth: nothing is held
-            else:
-                cells = render_cells(frame, pattern, method=render.method, order=render.order)
+        contact, cells, pattern, confidence = outcome
         if not self._changed(cells, pattern):
             self.counters["stimuli_unchanged"] += 1
             return self._maybe_keyframe(sample)
         return self._publish(sample, cells, contact, pattern, confidence, truth, keyframe=False)
 
+    def _render(
+        self, sample: TactileSample, now: int, truth: int | None
+    ) -> tuple[bool, list[float], int | None, float | None] | None:
+        """(contact, cells, pattern, confidence), or None for the last frame again."""
+        render = self.config.render
+        frame, peak = sanitize_with_peak(sample.frame)
+        if self._recording:
+            self._record_frame(sample, frame, now)
+        contact = peak >= render.contact_threshold_n  # is_contact, from the same pass
+        if not contact:
+            self.counters["frames_no_contact"] += 1
+            self._last_frame = None
+            return False, _NO_CELLS, None, None
+        if self._last_frame is not None and np.array_equal(frame, self._last_frame):
+            return None
+        self._last_frame = frame
+        pattern: int | None = None
+        confidence: float | None = None
+        if render.mode == "mask":
+            prediction = self.classifier.predict_one(frame)
+            pattern = prediction.pattern
+            confidence = min(max(prediction.confidence, 0.0), 1.0)
+            self._count_inference(sample, prediction.angle_probs, prediction.position_probs,
+                                  pattern, confidence)  # fmt: skip
+        elif render.mode == "mask_ground_truth":
+            pattern = truth
+            confidence = 1.0 if truth is not None else None
+        if render.mode != "direct" and pattern is None:
+            return True, _NO_CELLS, None, confidence  # ground truth: nothing is held
+        cells = render_cells(frame, pattern, method=render.method, order=render.order)
+        return True, cells, pattern, confidence
+
+    def _render_compiled(
+        self, sample: TactileSample, now: int
+    ) -> tuple[bool, list[float], int | None, float | None] | None:
+        """``_render`` in mask mode through the one compiled call (compiled_step.py)."""
+        step = self._compiled
+        r = step.step(sample.frame)
+        if self._recording:
+            self._record_frame(sample, step.sanitized.copy(), now)
+        status = r[0]
+        if status == step.NO_CONTACT:
+            self.counters["frames_no_contact"] += 1
+            return False, _NO_CELLS, None, None
+        if status == step.IDENTICAL:
+            return None
+        angle, position = int(r[step.ANGLE]), int(r[step.POSITION])
+        at = step.PROBS
+        angle_probs = tuple(r[at : at + 4])
+        position_probs = tuple(r[at + 4 : at + 7])
+        pattern = 3 * angle + position
+        confidence = min(max(angle_probs[angle] * position_probs[position], 0.0), 1.0)
+        self._count_inference(sample, angle_probs, position_probs, pattern, confidence)
+        return True, r[step.CELLS : step.CELLS + 9], pattern, confidence
+
+    def _record_frame(self, sample: TactileSample, frame: np.ndarray, now: int) -> None:
+        self.recorder.write(
+            "robot/frame",
+            now,
+            {"frame": frame, "frame_seq": sample.seq, "t_capture_ns": sample.t_capture_ns},
+        )
+
+    def _count_inference(
+        self,
+        sample: TactileSample,
+        angle_probs: tuple[float, ...],
+        position_probs: tuple[float, ...],
+        pattern: int,
+        confidence: float,
+    ) -> None:
+        self.counters["inferences"] += 1
+        if self._recording:
+            self.recorder.write(
+                "robot/prediction",
+                now_ns(),
+                {
+                    "frame_seq": sample.seq,
+                    "angle_probs": np.array(angle_probs, np.float32),
+                    "position_probs": np.array(position_probs, np.float32),
+                    "pattern": pattern,
+                    "confidence": confidence,
+                },
+            )
+
     def resend_next(self) -> None:
         """Render and send the next frame whatever was sent before (benchmarks force each one)."""
         self._last_cells = None
         self._last_frame = None
+        if self._compiled is not None:
+            self._compiled.forget()
 
     def _changed(self, cells: list[float], pattern: int | None) -> bool:
         """Another set of pressed cells, or a force moved by more than the dead band."""
@@ -473,6 +521,19 @@ class RobotNode:
         if self._first_seq is not None:
             out["frames_captured"] = float(self._last_seq - self._first_seq + 1)
         return out
+
+
+def _compiled_step_for(classifier: Any, render: Any) -> Any:
+    """``compiled_step.CompiledFrameStep`` where it applies (numba classifier, mask mode)."""
+    if getattr(classifier, "numba_forward", None) is None:
+        return None  # numba may not even be installed: import nothing
+    try:
+        from robot_side.compiled_step import CompiledFrameStep
+
+        return CompiledFrameStep.for_node(classifier, render)
+    except Exception as e:  # the plain path publishes the same stimuli, slower
+        log.warning("compiled frame step unavailable (%s); using the plain path", e)
+        return None
 
 
 def build_robot_node(

@@ -108,6 +108,16 @@ _MASK_COLS: list[list[int | None]] = [
 ]
 
 
+def downsizing_matrix(method: Method) -> np.ndarray:
+    """(9, 200) float32: both pads' mean and the 10x10 -> 3x3 downsizing as one matrix."""
+    return _FUSED[method]
+
+
+def mask_columns(pattern: int) -> list[int | None]:
+    """Per stimulus row, the column the pattern's mask keeps, or None for an empty row."""
+    return list(_MASK_COLS[pattern])
+
+
 def contact_map(frame: np.ndarray) -> np.ndarray:
     """(2, 10, 10) frame -> (10, 10) mean of both pads."""
     return (frame[0] + frame[1]) * np.float32(0.5)

@@ -141,8 +141,21 @@ def _scripted_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list
     return frames, truths, cfg.rate_hz
 
 
-def _shadow(frame: np.ndarray, truth: Any, classifier: Any, render: Any) -> np.ndarray:
-    """What the node would send for this frame if it never skipped anything."""
+def _shadow(
+    frame: np.ndarray, truth: Any, classifier: Any, render: Any, compiled: Any = None
+) -> np.ndarray:
+    """What the node would send for this frame if it never skipped anything.
+
+    ``compiled``: the node's compiled frame step (a second instance), so the
+    reference renders with the node's own arithmetic (its downsizing product
+    sums in float64, NumPy's in float32: a few 1e-7 N that are not a skip's cost).
+    """
+    if compiled is not None:
+        compiled.forget()  # never the identical-frame skip
+        r = compiled.step(frame)
+        if r[0] == compiled.NO_CONTACT:
+            return np.zeros((3, 3), np.float32)
+        return np.array(r[compiled.CELLS :], np.float32).reshape(3, 3)
     f = sanitize_frame(frame)
     if render.mode == "mask":  # even without contact: the no-contact skip is what is checked
         pattern = classifier.predict_one(f).pattern
@@ -175,6 +188,11 @@ def skipping(
     node = RobotNode(config, tactile=None, classifier=classifier)  # type: ignore[arg-type]
     node.pub = _CapturePublisher()  # type: ignore[assignment]
     render = config.render
+    shadow_step = None
+    if node._compiled is not None:
+        from robot_side.compiled_step import CompiledFrameStep
+
+        shadow_step = CompiledFrameStep.for_node(classifier, render)
     min_interval = round(0.9e9 / config.publish_rate_hz)
     period = round(1e9 / rate_hz)
     kinds = ("rate_cap", "no_contact", "identical_frame", "unchanged_stimulus", "published")
@@ -208,7 +226,7 @@ def skipping(
                         kinds_here.append(kind)
             else:
                 kinds_here.append("rate_cap")
-            full = _shadow(frame, truth, classifier, render)
+            full = _shadow(frame, truth, classifier, render, shadow_step)
             msg = node._last_stim_msg
             current = msg.stimulus if msg is not None else np.zeros((3, 3), np.float32)
             for kind in kinds_here:

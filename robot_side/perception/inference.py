@@ -118,6 +118,12 @@ class TiltClassifier:
     def __repr__(self) -> str:
         return f"TiltClassifier(backend={self.backend!r}, path={str(self.path)!r})"
 
+    @property
+    def numba_forward(self) -> Any:
+        """The compiled pass (``NumbaForward``) with the numba backend, else None: the
+        robot node folds it into its own compiled frame step (``robot_side.compiled_step``)."""
+        return self._logits if self.backend == "numba" else None
+
     def logits(self, frames: np.ndarray) -> Logits:
         """Raw scores (N, 4) and (N, 3), float32."""
         x = _as_batch(frames)
@@ -180,7 +186,14 @@ def load_classifier(
     """
     path = Path(path) if path is not None else DEFAULT_MODEL
     if backend is None:
-        backend = next(b for b in DEFAULT_BACKEND_ORDER if _usable(b, path))
+        read_weights(path)  # a bad file fails here, by name, whatever the backend
+        usable = [b for b in DEFAULT_BACKEND_ORDER if _usable(b, path)]
+        for b in usable[:-1]:  # a backend that fails to load gives way to the next
+            try:
+                return load_classifier(path, b, num_threads=num_threads)
+            except ModelLoadError as e:
+                log.warning("classifier backend %s unusable (%s); trying the next", b, e)
+        backend = usable[-1]
     if backend not in BACKENDS:
         raise ModelLoadError(f"unknown backend {backend!r}; choose one of {list(BACKENDS)}")
     if not _installed(backend):
@@ -192,9 +205,14 @@ def load_classifier(
     weights, meta = read_weights(path)
     one = classify = None
     if backend == "numba":
-        from robot_side.perception.numba_forward import NumbaForward
+        try:
+            from robot_side.perception.numba_forward import NumbaForward
 
-        fn = NumbaForward(weights, meta)
+            fn = NumbaForward(weights, meta)
+        except ModelLoadError:
+            raise
+        except Exception as e:  # numba's own errors: a broken install or toolchain
+            raise ModelLoadError(f"the numba backend failed to compile: {e}") from e
         one, classify = fn.one, fn.classify_one
     elif backend == "numpy":
         fn = NumpyForward(weights, meta)

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 from typing import Any
 
-import numba
 import numpy as np
 
+from robot_side.jit import njit
 from robot_side.perception.errors import ModelLoadError
 
 #: reassociation (vectorised sums), contraction (FMA), no signed zeros, reciprocals;
@@ -35,7 +35,7 @@ _NINTH = np.float32(1.0 / 9.0)  # SATURATION_N
 _PEAK_FLOOR = np.float32(1.0)  # PEAK_FLOOR_N
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH)
+@njit(fastmath=_FASTMATH)
 def _dense(z, w, b, out, relu):  # pragma: no cover - compiled
     for o in range(w.shape[0]):
         acc = b[o]
@@ -46,7 +46,7 @@ def _dense(z, w, b, out, relu):  # pragma: no cover - compiled
         out[o] = acc
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FASTMATH)
+@njit(fastmath=_FASTMATH)
 def _forward_one(
     x, w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, out
 ):  # pragma: no cover
@@ -110,7 +110,7 @@ def _forward_one(
     _dense(scratch[n - 1], heads[n - 1], biases[n - 1], out, False)
 
 
-@numba.njit(cache=True, nogil=True)
+@njit()
 def _argmax_softmax(z, out, at):  # pragma: no cover - compiled
     """Class of ``z`` into ``out[0]`` (ties: the lowest, as NumPy), its softmax from ``at``."""
     top = 0
@@ -127,8 +127,8 @@ def _argmax_softmax(z, out, at):  # pragma: no cover - compiled
     out[0] = top
 
 
-@numba.njit(cache=True, nogil=True)
-def _classify_one(
+@njit()
+def classify_frame(
     x, w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, logits, n_angle, result
 ):  # pragma: no cover
     """``result``: angle, position, then both heads' probabilities (float64)."""
@@ -140,7 +140,7 @@ def _classify_one(
     result[0] = angle
 
 
-@numba.njit(cache=True, nogil=True)
+@njit()
 def _forward_batch(
     xs, w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, outs
 ):  # pragma: no cover
@@ -185,38 +185,44 @@ class NumbaForward:
         def f32(a: np.ndarray) -> np.ndarray:
             return np.ascontiguousarray(a, dtype=np.float32)
 
-        c1 = w1.shape[0]
         self._weights = (f32(w1), f32(b1), f32(w2), f32(b2))
         # tuples of arrays: numba types them once, a list would be re-checked per call
         self._heads = tuple(f32(h) for h in heads)
         self._biases = tuple(f32(b) for b in biases)
-        self._pad1 = np.zeros((4, 12, 12), np.float32)
-        self._pad2 = np.zeros((c1, 12, 12), np.float32)
-        self._acc = np.zeros((10, 10), np.float32)
-        widths = [self._heads[0].shape[1]] + [h.shape[0] for h in self._heads[:-1]]
-        self._scratch = tuple(np.zeros(w, np.float32) for w in widths)
-        self._out = np.zeros(self._heads[-1].shape[0], np.float32)
-        self._result = np.zeros(2 + self._out.shape[0], np.float64)
+        self._args = self.kernel_args()
+        self._out = np.zeros(self.n_logits, np.float32)
+        self._result = np.zeros(2 + self.n_logits, np.float64)
         # frames are copied in: one argument type, so nothing compiles on the hot path
         # (a read-only or strided array would be a new signature, a 2 s compile)
         self._x = np.zeros((2, 10, 10), np.float32)
-        self._args = (
+        # compile (or load the cached machine code) now, not on the first frame
+        self.classify_one(np.zeros((2, 10, 10), np.float32))
+
+    @property
+    def n_logits(self) -> int:
+        return self._heads[-1].shape[0]
+
+    def kernel_args(self) -> tuple[Any, ...]:
+        """``_forward_one``'s arguments after the frame, before the output: the weights
+        (shared; never written) and a fresh set of work buffers, for a caller that
+        runs the pass in its own compiled code (``robot_side.compiled_step``)."""
+        c1 = self._weights[0].shape[0]
+        widths = [self._heads[0].shape[1]] + [h.shape[0] for h in self._heads[:-1]]
+        return (
             *self._weights,
             self._heads,
             self._biases,
-            self._pad1,
-            self._pad2,
-            self._acc,
-            self._scratch,
+            np.zeros((4, 12, 12), np.float32),  # padded input features
+            np.zeros((c1, 12, 12), np.float32),  # padded first layer
+            np.zeros((10, 10), np.float32),  # one output channel's sums
+            tuple(np.zeros(w, np.float32) for w in widths),  # each head layer's input
         )
-        # compile (or load the cached machine code) now, not on the first frame
-        self.classify_one(np.zeros((2, 10, 10), np.float32))
 
     def classify_one(self, frame: np.ndarray) -> list[float]:
         """[angle, position, *angle probabilities, *position probabilities] of one frame."""
         result, x = self._result, self._x
         np.copyto(x, frame)
-        _classify_one(x, *self._args, self._out, self.n_angle, result)
+        classify_frame(x, *self._args, self._out, self.n_angle, result)
         return result.tolist()
 
     def one(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -12,13 +12,14 @@ to NumPy without it.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from robot_side.jit import njit
 
 _ZERO = np.float32(0.0)
 
 
-@numba.njit(cache=True, nogil=True)
+@njit()
 def convert_scan(payloads, order, zero, gain, floor, saturation):  # pragma: no cover - compiled
     """Both pads' little-endian uint16 counts -> a new float32 (2, 10, 10) frame.
 

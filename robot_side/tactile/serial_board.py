@@ -547,4 +547,7 @@ def _compiled_converter() -> Any:
         from robot_side.tactile.compiled import convert_scan
     except ImportError:  # numba is in the robot extra; NumPy does the same, slower
         return None
+    except Exception as e:  # a broken numba install must not stop the sensor
+        log.warning("compiled tactile conversion unavailable (%s); using NumPy", e)
+        return None
     return convert_scan

@@ -173,3 +173,18 @@ def test_unusable_models_raise_model_load_error(tmp_path: Path) -> None:
         load_classifier(weights_only, backend="onnxruntime")
     # the default falls back to a backend that needs only the weights
     assert load_classifier(weights_only).backend in ("numba", "numpy")
+
+
+def test_a_default_backend_that_fails_to_load_gives_way_to_the_next(monkeypatch, caplog) -> None:
+    pytest.importorskip("numba")
+    from robot_side.perception import numba_forward
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("LLVM ERROR: out of registers")
+
+    monkeypatch.setattr(numba_forward, "NumbaForward", broken)
+    with pytest.raises(ModelLoadError, match="numba backend failed to compile"):
+        load_classifier(backend="numba")
+    clf = load_classifier()
+    assert clf.backend != "numba"
+    assert "numba unusable" in caplog.text
