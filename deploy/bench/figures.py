@@ -230,9 +230,19 @@ def stages(result: dict[str, Any], path: Path) -> Path:
     if paced:
         rate = result["paced"]["pace_hz"]
         series.append(
-            (f"paced {rate:g} Hz, median", [paced[n]["median_us"] for n in names], "#dd8452")
+            (
+                f"paced {rate:g} Hz, median",
+                [paced.get(n, {}).get("median_us", float("nan")) for n in names],
+                "#dd8452",
+            )
         )
-        series.append((f"paced {rate:g} Hz, p99", [paced[n]["p99_us"] for n in names], "#f2c8a8"))
+        series.append(
+            (
+                f"paced {rate:g} Hz, p99",
+                [paced.get(n, {}).get("p99_us", float("nan")) for n in names],
+                "#f2c8a8",
+            )
+        )
     fig, ax = plt.subplots(figsize=(8.5, 5))
     h = 0.8 / len(series)
     for k, (label, values, color) in enumerate(series):

@@ -406,6 +406,15 @@ def _stages_md(results: dict[str, Any], img: str) -> list[str]:
         "Microseconds, one core.",
         "",
     ]
+    if s.get("compiled_step"):
+        out += [
+            "The node runs `frame_step` (one compiled call) where the plain path runs "
+            "`sanitize_contact`, `classification` and `render`; frames alternate between the "
+            "two, so each row has half the frames and both paths meet the same conditions. The "
+            "plain rows are what `render.compiled_step = false` (or another classifier "
+            "backend) costs; sums and totals below are the node's path.",
+            "",
+        ]
     out += _table(
         [
             "stage",
@@ -430,12 +439,21 @@ def _stages_md(results: dict[str, Any], img: str) -> list[str]:
     )
     tot = s["instrumented_total"]
     ptot = paced.get("instrumented_total", {})
+    plain, pplain = s.get("instrumented_total_plain"), paced.get("instrumented_total_plain")
+    plain_note = ""
+    if plain and pplain:
+        plain_note = (
+            f" (the plain path's frames: median {_f(plain['median_us'])} / p99 "
+            f"{_f(plain['p99_us'])} us back to back, median {_f(pplain['median_us'])} / p99 "
+            f"{_f(pplain['p99_us'])} us paced)"
+        )
     out += [
         "",
         f"Sum of the stage medians: {_f(s['sum_of_stage_medians_us'])} us back to back, "
         f"{_f(paced.get('sum_of_stage_medians_us'))} us paced; the instrumented chain end to "
         f"end: median {_f(tot['median_us'])} / p99 {_f(tot['p99_us'])} us back to back, "
-        f"median {_f(ptot.get('median_us'))} / p99 {_f(ptot.get('p99_us'))} us paced.",
+        f"median {_f(ptot.get('median_us'))} / p99 {_f(ptot.get('p99_us'))} us paced"
+        f"{plain_note}.",
         "",
         "**The same code costs several times more when frames are paced.** Between two "
         "frames the core runs other code (here other processes; on the robot PC the node's "

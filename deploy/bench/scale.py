@@ -38,7 +38,10 @@ def modelled(
 ) -> list[dict[str, Any]]:
     """CPU microseconds per second of one stream, and streams per core, from stage medians."""
     read = sum(stage_medians_us.get(s, 0.0) for s in READ_STAGES)
-    render = sum(stage_medians_us.get(s, 0.0) for s in RENDER_STAGES) + transit_send_us
+    stages = RENDER_STAGES
+    if "frame_step" in stage_medians_us:  # the node's path: one compiled call for three
+        stages = ("frame_step", "encode")
+    render = sum(stage_medians_us.get(s, 0.0) for s in stages) + transit_send_us
     rows = []
     for rate in rates:
         for capped in (True, False):

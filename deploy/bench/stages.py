@@ -41,7 +41,7 @@ from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
-from robot_side.rendering import is_contact, render_contact, sanitize_frame
+from robot_side.rendering import is_contact, render_cells, sanitize_frame
 
 log = logging.getLogger(__name__)
 
@@ -54,16 +54,22 @@ STAGES: dict[str, str] = {
     "sanitize_contact": "sanitize_frame + is_contact (the node's prelude)",
     "classification": "predict_one: pattern and confidence of one frame (shipped model, "
     "default backend)",
-    "render": "downsizing + masking: render_contact, the node's path since d31f386 (pad "
+    "render": "downsizing + masking: render_cells, the plain path since d31f386 (pad "
     "mean and 10x10 -> 3x3 as one 9x200 product, then mask and peak over nine numbers)",
+    "frame_step": "the node's path in mask mode on the numba classifier: the three stages "
+    "above (sanitize, contact, identical-frame test, classify, downsize, mask) as one "
+    "compiled call (robot_side/compiled_step.py); timed on alternate frames",
     "encode": "Stimulus -> topic + msgpack (common.codec.encode)",
     "zmq_transit_tcp": "PUB.send -> SUB.recv over loopback TCP, one process",
     "decode": "bytes -> validated Stimulus (common.codec.decode)",
     "ik_3_linkages": "stimulus -> 3 contact points -> closed-form IK "
     "(LinkGlideRenderer.target_angles)",
     "counts_rate_limit": "angles -> servo counts (calibration, clip) + rate limit (step)",
-    "servo_packet": "limits check + scservo_sdk GroupSyncWrite of 6 goals -> packet bytes",
+    "servo_packet": "limits check + the goal sync-write packet of 6 servos (SyncWritePacket, "
+    "the bytes of scservo_sdk's GroupSyncWrite)",
 }
+#: the plain path's stages, which the compiled frame step replaces
+PLAIN_STAGES = ("sanitize_contact", "classification", "render")
 
 
 def _recv(sub: zmq.Socket, timeout_ms: int = 2000) -> bytes:
@@ -121,13 +127,20 @@ def stage_budget(
     ids = [int(i) for i in calibration.ids]
     ctx = zmq.Context()
     pub, sub = _pair(ctx, "tcp://127.0.0.1:*")
-    times = {name: np.empty(n, dtype=np.int64) for name in STAGES}
-    total = np.empty(n, dtype=np.int64)
+    from robot_side.node import _compiled_step_for
+
+    step = _compiled_step_for(classifier, cfg.render)
+    times: dict[str, list[int]] = {name: [] for name in STAGES}
+    total: list[int] = []  # frames through the node's path
+    total_plain: list[int] = []  # frames through the plain path, when the node compiles
     current = renderer.retract_counts.copy()
     clock = time.perf_counter_ns
     try:
         for j, data in enumerate(scans):
             i = j - warm
+            # with a compiled step, frames alternate between it and the plain path, so
+            # both are timed under the same conditions and neither warms the other
+            compiled = step is not None and j % 2 == 1
             t0 = clock()
             packets = parser.feed(data)
             t1 = clock()
@@ -136,15 +149,27 @@ def stage_budget(
                 sensor._on_packet(packet, t_cap)
             sample = sensor.latest()
             t2 = clock()
-            frame = sanitize_frame(sample.frame)
-            contact = is_contact(frame)
-            t3 = clock()
-            prediction = classifier.predict_one(frame)
-            pattern = prediction.pattern
-            confidence = min(max(prediction.confidence, 0.0), 1.0)
-            t4 = clock()
-            stim = render_contact(frame, pattern, method=method, order=order)
-            t5 = clock()
+            if compiled:
+                step.forget()
+                r = step.step(sample.frame)
+                contact = r[0] != step.NO_CONTACT
+                pattern = 3 * int(r[step.ANGLE]) + int(r[step.POSITION])
+                at = step.PROBS
+                confidence = min(
+                    max(r[at + int(r[step.ANGLE])] * r[at + 4 + int(r[step.POSITION])], 0.0), 1.0
+                )
+                cells = r[step.CELLS :]
+                t3 = t4 = t5 = clock()
+            else:
+                frame = sanitize_frame(sample.frame)
+                contact = is_contact(frame)
+                t3 = clock()
+                prediction = classifier.predict_one(frame)
+                pattern = prediction.pattern
+                confidence = min(max(prediction.confidence, 0.0), 1.0)
+                t4 = clock()
+                cells = render_cells(frame, pattern, method=method, order=order)
+                t5 = clock()
             wire = encode(
                 Stimulus(
                     seq=i + warm + 1,
@@ -153,7 +178,7 @@ def stage_budget(
                     frame_seq=sample.seq,
                     mode="mask",
                     contact=contact,
-                    stimulus=stim,
+                    stimulus=np.array(cells, np.float32).reshape(3, 3),
                     pattern=pattern,
                     confidence=confidence,
                 )
@@ -176,17 +201,31 @@ def stage_budget(
                 rate.sleep()
             if i < 0:
                 continue
-            marks = (t0, t1, t2, t3, t4, t5, t6, t7, t8, t9, t10, t11)
-            for k, name in enumerate(STAGES):
-                times[name][i] = marks[k + 1] - marks[k]
-            total[i] = t11 - t0
+            spans = {
+                "wire_decode": t1 - t0,
+                "calibration": t2 - t1,
+                "encode": t6 - t5,
+                "zmq_transit_tcp": t7 - t6,
+                "decode": t8 - t7,
+                "ik_3_linkages": t9 - t8,
+                "counts_rate_limit": t10 - t9,
+                "servo_packet": t11 - t10,
+            }
+            if compiled:
+                spans["frame_step"] = t5 - t2
+            else:
+                spans.update(sanitize_contact=t3 - t2, classification=t4 - t3, render=t5 - t4)
+            for name, dt in spans.items():
+                times[name].append(dt)
+            (total if compiled or step is None else total_plain).append(t11 - t0)
     finally:
         pub.close(0)
         sub.close(0)
         ctx.term()
-    stages = {name: summarize_ns(times[name]).as_dict() for name in STAGES}
-    for name, what in STAGES.items():
-        stages[name]["what"] = what
+    stages = {name: summarize_ns(times[name]).as_dict() for name in STAGES if times[name]}
+    for name in stages:
+        stages[name]["what"] = STAGES[name]
+    node_path = [k for k in stages if step is None or k not in PLAIN_STAGES]
     transit = transit_times(max(200, n // 4)) if rate is None else None
     return {
         "frames": n,
@@ -195,8 +234,11 @@ def stage_budget(
         "method": method,
         "order": cfg.render.order,
         "stages": stages,
-        "sum_of_stage_medians_us": float(sum(s["median_us"] for s in stages.values())),
+        "compiled_step": step is not None,
+        "node_path": node_path,
+        "sum_of_stage_medians_us": float(sum(stages[k]["median_us"] for k in node_path)),
         "instrumented_total": summarize_ns(total).as_dict(),
+        "instrumented_total_plain": summarize_ns(total_plain).as_dict() if total_plain else None,
         "transit": transit,
     }
 

@@ -63,13 +63,16 @@ def test_report_files_and_structure(smallest):
 
 
 def test_stage_budget_covers_every_stage(smallest):
-    stages = smallest[0]["sections"]["stages"]["stages"]
+    section = smallest[0]["sections"]["stages"]
+    stages = section["stages"]
+    compiled = ["frame_step"] if section["compiled_step"] else []
     assert list(stages) == [
         "wire_decode",
         "calibration",
         "sanitize_contact",
         "classification",
         "render",
+        *compiled,
         "encode",
         "zmq_transit_tcp",
         "decode",
@@ -79,6 +82,9 @@ def test_stage_budget_covers_every_stage(smallest):
     ]
     for s in stages.values():
         assert s["n"] > 0 and s["median_us"] > 0 and s["p99_us"] >= s["median_us"]
+    # the sums and totals are the node's path: the compiled step, not the three it replaces
+    skipped = {"sanitize_contact", "classification", "render"} if compiled else set()
+    assert section["node_path"] == [k for k in stages if k not in skipped]
     e2e = smallest[0]["sections"]["e2e_inproc"]
     assert e2e["n"] > 0 and e2e["frames_without_packet"] == 0
 
