@@ -63,8 +63,9 @@ STAGES: dict[str, str] = {
     "zmq_transit_tcp": "PUB.send -> SUB.recv over loopback TCP, one process",
     "decode": "bytes -> validated Stimulus (common.codec.decode)",
     "ik_3_linkages": "stimulus -> 3 contact points -> closed-form IK "
-    "(LinkGlideRenderer.target_angles)",
-    "counts_rate_limit": "angles -> servo counts (calibration, clip) + rate limit (step)",
+    "(LinkGlideRenderer.pose_for, the node's call)",
+    "counts_rate_limit": "angles -> servo counts (counts_for: calibration, clip) + rate limit "
+    "(step_goals), as the node calls them",
     "servo_packet": "limits check + the goal sync-write packet of 6 servos (SyncWritePacket, "
     "the bytes of scservo_sdk's GroupSyncWrite)",
 }
@@ -133,7 +134,7 @@ def stage_budget(
     times: dict[str, list[int]] = {name: [] for name in STAGES}
     total: list[int] = []  # frames through the node's path
     total_plain: list[int] = []  # frames through the plain path, when the node compiles
-    current = renderer.retract_counts.copy()
+    current = list(renderer.retract_goals)
     clock = time.perf_counter_ns
     try:
         for j, data in enumerate(scans):
@@ -189,14 +190,14 @@ def stage_budget(
             t7 = clock()
             msg = decode(got)
             t8 = clock()
-            angles = renderer.target_angles(msg.stimulus)
+            pose = renderer.pose_for(msg.stimulus)
             t9 = clock()
-            goal = calibration.angles_to_counts(angles)
-            nxt = renderer.step(current, goal, 1.0)
+            goal = calibration.counts_for(pose)
+            nxt = renderer.step_goals(current, goal, 1.0)
             t10 = clock()
-            builder.build({sid: int(c) for sid, c in zip(ids, nxt, strict=True)})
+            builder.build(dict(zip(ids, nxt, strict=True)))  # as OperatorNode._write
             t11 = clock()
-            current = renderer.retract_counts if i % 2 else nxt  # keep the steps non-trivial
+            current = renderer.retract_goals if i % 2 else nxt  # keep the steps non-trivial
             if rate is not None:
                 rate.sleep()
             if i < 0:
