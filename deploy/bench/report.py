@@ -865,7 +865,9 @@ def _skipping_md(results: dict[str, Any], img: str) -> list[str]:
         f"virtual time ({s['frames']:,} frames at {s['rate_hz']:g} Hz) through "
         "`RobotNode.process` with the node's clock made virtual, beside a shadow that "
         "classifies and renders every frame. CPU saved per skipped frame is the sum of the "
-        "paced stage medians (what a frame costs in the field) it leaves out. Differences "
+        "paced stage medians (what a frame costs in the field) it leaves out, counted on the "
+        "plain path's stages (the compiled frame step leaves out the same work inside its "
+        "one call; its early exits are not timed separately). Differences "
         "compare what the operator renders (the "
         "last stimulus sent) with what the shadow would have sent; for the no-contact skip, "
         "the node's all-zero stimulus with what classifying would have rendered.",
