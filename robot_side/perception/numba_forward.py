@@ -47,6 +47,21 @@ def _dense(z, w, b, out, relu):  # pragma: no cover - compiled
 
 
 @njit(fastmath=_FASTMATH)
+def _conv3x3(src, w, b, o, acc):  # pragma: no cover - compiled
+    """Output channel ``o`` of a 3x3 convolution of zero-padded ``src`` into ``acc`` (10, 10)."""
+    for i in range(10):
+        for j in range(10):
+            acc[i, j] = b[o]
+    for c in range(w.shape[1]):
+        for di in range(3):
+            for dj in range(3):
+                wv = w[o, c, di, dj]
+                for i in range(10):
+                    for j in range(10):
+                        acc[i, j] += wv * src[c, i + di, j + dj]
+
+
+@njit(fastmath=_FASTMATH)
 def _forward_one(
     x, w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, out
 ):  # pragma: no cover
@@ -74,32 +89,14 @@ def _forward_one(
                 pad1[c, i + 1, j + 1] = v * _NINTH
                 pad1[c + 2, i + 1, j + 1] = v * inv_peak
     for o in range(c1):
-        for i in range(10):
-            for j in range(10):
-                acc[i, j] = b1[o]
-        for c in range(4):
-            for di in range(3):
-                for dj in range(3):
-                    wv = w1[o, c, di, dj]
-                    for i in range(10):
-                        for j in range(10):
-                            acc[i, j] += wv * pad1[c, i + di, j + dj]
+        _conv3x3(pad1, w1, b1, o, acc)
         for i in range(10):
             for j in range(10):
                 v = acc[i, j]
                 pad2[o, i + 1, j + 1] = v if v > _F0 else _F0
     h2 = scratch[0]
     for o in range(c2):
-        for i in range(10):
-            for j in range(10):
-                acc[i, j] = b2[o]
-        for c in range(c1):
-            for di in range(3):
-                for dj in range(3):
-                    wv = w2[o, c, di, dj]
-                    for i in range(10):
-                        for j in range(10):
-                            acc[i, j] += wv * pad2[c, i + di, j + dj]
+        _conv3x3(pad2, w2, b2, o, acc)
         for i in range(10):
             for j in range(10):
                 v = acc[i, j]
