@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import signal
 import threading
@@ -85,6 +86,21 @@ class Attachment(Protocol):
     def stop(self) -> None: ...
 
 
+def freeze_startup_heap() -> int:
+    """Collect once, then exempt everything alive from the cyclic collector; returns how many.
+
+    A full collection walks every tracked object. With a node's stack loaded
+    (NumPy, ZeroMQ, and on the robot numba and the model) that is over 100,000
+    objects and tens of milliseconds (docs/benchmarks.md, Conditions): a stall
+    in a 60 Hz loop whenever the collector decides to run. What is alive once
+    the node is built lives as long as the process, so it is frozen
+    (``gc.freeze``) and later collections walk only what the loop makes.
+    """
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
+
+
 def run_node(
     args: argparse.Namespace,
     cls: type[T],
@@ -112,13 +128,18 @@ def run_node(
         node = build(config, recorder)
         extra = attach(node, config) if attach is not None else None
         watch = watch_node(node, stop)  # READY=1 once the loop runs, WATCHDOG=1 while it does
+        frozen = freeze_startup_heap()
+        full_before = gc.get_stats()[2]["collections"]
         try:
             node.run(stop, args.duration)
         finally:
             watch.stop()
             if extra is not None:
                 extra.stop()
-            write_stats(args.stats_file, node.stats())
+            stats = node.stats()
+            stats["gc_frozen_objects"] = float(frozen)
+            stats["gc_full_collections"] = float(gc.get_stats()[2]["collections"] - full_before)
+            write_stats(args.stats_file, stats)
     finally:
         if recorder is not None:
             recorder.close()

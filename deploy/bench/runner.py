@@ -282,6 +282,7 @@ def _measure(
         "timer_overhead_ns": timing.timer_overhead_ns(),
         "wakeup_cpu_us": timing.wakeup_cpu_us(),
         "cold_call": timing.cold_call_us(),
+        "full_collection": timing.full_collection_ms(),
         "total_seconds": round(time.monotonic() - t_start, 1),
         "sections": sections,
     }

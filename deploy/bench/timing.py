@@ -283,6 +283,29 @@ def cold_call_us(gap_s: float = 0.008, n: int = 150) -> dict[str, float]:
     }
 
 
+def full_collection_ms() -> dict[str, float]:
+    """A full cyclic-GC pass over this process's heap, as is and frozen (the nodes freeze it).
+
+    Measured in the bench process with the robot stack loaded; the freeze is
+    undone afterwards, so the rest of the bench runs as before.
+    """
+    import gc
+
+    gc.collect()
+    objects = len(gc.get_objects())
+    t = time.perf_counter()
+    gc.collect()
+    as_is = time.perf_counter() - t
+    gc.freeze()
+    try:
+        t = time.perf_counter()
+        gc.collect()
+        frozen = time.perf_counter() - t
+    finally:
+        gc.unfreeze()
+    return {"objects": float(objects), "as_is_ms": as_is * 1e3, "frozen_ms": frozen * 1e3}
+
+
 def machine_load() -> dict[str, Any]:
     """Load averages and core count, to print beside every number taken on a shared machine."""
     one, five, fifteen = os.getloadavg()

@@ -128,6 +128,9 @@ def test_example_configs_run_as_two_processes_over_curve(tmp_path, keys):
     # deadman tripped exactly once, when the operator stopped (it counts only after contact).
     assert rb["frames_processed"] > 0 and rb["stimuli_published"] > 0, rb
     assert rb["deadman_trips"] == 1, rb
+    # Both froze their startup heap, so no full collection walks it mid-loop.
+    for stats in (op, rb):
+        assert stats["gc_frozen_objects"] > 10_000, stats
     # Nothing was rejected or failed on either side.
     for stats in (op, rb):
         for key in ("decode_errors", "messages_unexpected", "commands_rejected", "gripper_errors"):
