@@ -527,6 +527,10 @@ class _Converter:
 
     def __call__(self, payloads: bytes) -> np.ndarray:
         if self._compiled is not None:
+            if len(payloads) != 2 * self._index.size:  # compiled code does not bounds-check
+                raise ValueError(
+                    f"a scan is {2 * self._index.size} count bytes, not {len(payloads)}"
+                )
             return self._compiled(
                 payloads, self._index, self._zero, self._gain, self._floor, self._saturation
             )

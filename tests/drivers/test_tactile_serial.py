@@ -258,6 +258,8 @@ def test_compiled_conversion_is_bit_identical_to_numpy(
     compiled, reference = converter(payloads), converter.numpy_path(payloads)
     assert compiled.dtype == np.float32 and compiled.shape == (2, 10, 10)
     np.testing.assert_array_equal(compiled, reference)
+    with pytest.raises(ValueError, match="400 count bytes"):
+        converter(payloads[:-2])
 
 
 def test_capture_zero_recovers_the_boards_offsets() -> None:
