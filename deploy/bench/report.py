@@ -381,7 +381,7 @@ def _gc_line(results: dict[str, Any]) -> str:
     return (
         f"- A full garbage collection walks {g['objects']:,.0f} objects in this bench process "
         f"(the robot stack, and torch for the comparisons) and takes {_f(g['as_is_ms'])} ms; "
-        "a robot node holds about a third as many. After `gc.freeze()`, which "
+        "a robot node, which never loads torch, holds fewer. After `gc.freeze()`, which "
         f"both nodes call once built (`common.cli_support.freeze_startup_heap`), "
         f"{_f(g['frozen_ms'] * 1e3)} us. Unfrozen, such a pass would stall a 60 Hz loop "
         "whenever the collector chose to run one."
