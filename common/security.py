@@ -25,6 +25,7 @@ import zmq.auth
 
 from common.config import param
 from common.errors import ConfigError, LinkError
+from common.logs import BurstLog
 
 log = logging.getLogger(__name__)
 
@@ -109,11 +110,56 @@ def client_options(security: SecurityConfig) -> dict[int, Any]:
     }
 
 
+class _Allowlist:
+    """The operator keys a robot accepts; every refusal is counted and logged (rate-limited).
+
+    Given to pyzmq's authenticator as its CURVE credentials provider (its
+    public callback hook), so a refused handshake is seen here rather than
+    only in pyzmq's debug log.
+    """
+
+    MAX_REMEMBERED = 32
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = Path(directory)
+        self.keys: frozenset[bytes] = frozenset()
+        self.refused = 0
+        #: z85 public keys refused so far, oldest first (at most MAX_REMEMBERED)
+        self.refused_keys: list[str] = []
+        self._log = BurstLog(log, "CURVE handshake refused")
+        self.load()
+
+    def load(self) -> None:
+        keys = set()
+        for path in sorted(self.directory.glob("*.key")):
+            try:
+                public, _ = zmq.auth.load_certificate(path)
+            except (OSError, ValueError) as e:
+                log.error("cannot read operator key %s: %s; it is not allowed", path, e)
+                continue
+            keys.add(public)
+        if not keys:
+            log.warning("no operator key in %s: nobody can connect", self.directory)
+        self.keys = frozenset(keys)
+
+    def callback(self, domain: str, z85_client_key: bytes) -> bool:
+        if z85_client_key in self.keys:
+            return True
+        self.refused += 1
+        key = z85_client_key.decode("ascii", "replace")
+        if key not in self.refused_keys:
+            self.refused_keys.append(key)
+            del self.refused_keys[: -self.MAX_REMEMBERED]
+        self._log(f"key {key} is not in {self.directory} (see `deepxpalm keys allow`)")
+        return False
+
+
 class Authenticator:
     """The robot's allowlist: only operator keys in ``authorized_keys_dir`` get in."""
 
     def __init__(self, ctx: zmq.Context, security: SecurityConfig) -> None:
         self._auth = None
+        self._allowlist: _Allowlist | None = None
         if security.mode != "curve":
             return
         directory = security.authorized_keys_dir
@@ -122,18 +168,28 @@ class Authenticator:
                 f"security.authorized_keys_dir {directory} is not a directory of operator "
                 "public keys (see `deepxpalm keys allow`)"
             )
-        if not any(Path(directory).glob("*.key")):
-            log.warning("no operator key in %s: nobody can connect", directory)
         from zmq.auth.thread import ThreadAuthenticator
 
+        self._allowlist = _Allowlist(Path(directory))
         self._auth = ThreadAuthenticator(ctx, log=logging.getLogger("deepxpalm.auth"))
         self._auth.start()
-        self._auth.configure_curve(domain="*", location=str(directory))
+        self._auth.configure_curve_callback(domain="*", credentials_provider=self._allowlist)
+
+    @property
+    def refused(self) -> int:
+        """CURVE handshakes refused because the client's key is not allowed."""
+        return 0 if self._allowlist is None else self._allowlist.refused
+
+    @property
+    def refused_keys(self) -> list[str]:
+        """The z85 public keys refused so far (the newest few)."""
+        return [] if self._allowlist is None else list(self._allowlist.refused_keys)
 
     def reload(self, security: SecurityConfig) -> None:
         """Re-read the allowlist (after `deepxpalm keys allow`)."""
-        if self._auth is not None:
-            self._auth.configure_curve(domain="*", location=str(security.authorized_keys_dir))
+        if self._allowlist is not None:
+            self._allowlist.directory = Path(security.authorized_keys_dir)
+            self._allowlist.load()
 
     def stop(self) -> None:
         if self._auth is not None:

@@ -38,7 +38,6 @@ import stat
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -781,31 +780,6 @@ def _check_endpoints(report: Report, role: str, link: Any) -> None:
         report.add("link security", PASS, "plain TCP, loopback only (no keys needed)")
 
 
-@contextlib.contextmanager
-def _capture_denials() -> Iterator[list[str]]:
-    """Client keys the robot's allowlist refused while the block ran (pyzmq logs them)."""
-    denied: list[str] = []
-
-    class Handler(logging.Handler):
-        def emit(self, record: logging.LogRecord) -> None:
-            msg = record.getMessage()
-            if msg.startswith("DENIED") and "client_key=" in msg:
-                key = msg.split("client_key=", 1)[1].strip("b'\" ")
-                if key not in denied:
-                    denied.append(key)
-
-    auth_log = logging.getLogger("deepxpalm.auth")
-    handler = Handler(logging.DEBUG)
-    old_level = auth_log.level
-    auth_log.addHandler(handler)
-    auth_log.setLevel(logging.DEBUG)
-    try:
-        yield denied
-    finally:
-        auth_log.removeHandler(handler)
-        auth_log.setLevel(old_level)
-
-
 class _Monitor:
     """Handshake events of one socket, read without blocking."""
 
@@ -879,9 +853,6 @@ def heartbeat_exchange(
         if server:
             auth = Authenticator(ctx, link.security)
             stack.callback(auth.stop)
-            denied = stack.enter_context(_capture_denials())
-        else:
-            denied = []
         pub = ctx.socket(zmq.PUB)
         sub = ctx.socket(zmq.SUB)
         for sock in (pub, sub):
@@ -954,7 +925,7 @@ def heartbeat_exchange(
         for m in monitors:
             m.poll()
         out.pub_events, out.sub_events = pub_mon.events, sub_mon.events
-        out.denied_keys = list(denied)
+        out.denied_keys = auth.refused_keys if server else []
     return out
 
 
