@@ -47,6 +47,10 @@ class MalformedMessageError(DecodeError):
     """Not a topic followed by a msgpack map."""
 
 
+class MultipartMessageError(MalformedMessageError):
+    """More than one ZeroMQ frame: every message on this protocol is a single frame."""
+
+
 class MessageTooLargeError(DecodeError):
     """Longer than ``MAX_MESSAGE_BYTES``."""
 
@@ -223,9 +227,17 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("action", _enum(COMMAND_ACTIONS), True),
         ("grip_level", _int_range(*GRIP_LEVELS), False),
         ("velocity", _velocity, False),
+        ("session", _int_range(1, _U63), False),
     ],
 }
 _BY_TOPIC = {cls.TOPIC: cls for cls in MESSAGE_TYPES}
+#: per type, every key its map may hold that the schema checks
+_KNOWN_KEYS = {
+    cls: frozenset(("v", "type", *(name for name, _, _ in fields)))
+    for cls, fields in SCHEMAS.items()
+}
+#: how deep an unknown value may nest before the message is refused as malformed
+MAX_UNKNOWN_DEPTH = 8
 #: per type, (field, its label in error messages, check, required): labels made once, not per field
 _DECODE_PLAN = {
     cls: [(name, f"{cls.TYPE}.{name}", check, required) for name, check, required in fields]
@@ -292,6 +304,8 @@ def decode(data: bytes) -> Message:
         raise UnknownMessageTypeError(
             f"type {body.get('type')!r} does not match topic {topic!r} ({cls.TYPE!r})"
         )
+    if not _KNOWN_KEYS[cls].issuperset(body):  # one C-level test on the common path
+        _check_unknown_keys(cls, body)
     kwargs: dict[str, Any] = {}
     for name, label, check, required in _DECODE_PLAN[cls]:
         value = body.get(name)
@@ -301,6 +315,32 @@ def decode(data: bytes) -> Message:
             continue
         kwargs[name] = check(label, value)
     return cls(**kwargs)
+
+
+def _check_unknown_keys(cls: type, body: dict[Any, Any]) -> None:
+    """Unknown keys are ignored, but only if they hold nothing the protocol forbids anywhere."""
+    known = _KNOWN_KEYS[cls]
+    for key, value in body.items():
+        if type(key) is not str:
+            raise FieldTypeError(f"{cls.TYPE} has a map key that is not a string: {key!r:.40}")
+        if key not in known:
+            _check_unknown_value(f"{cls.TYPE}.{key}", value, 0)
+
+
+def _check_unknown_value(label: str, value: Any, depth: int) -> None:
+    if depth > MAX_UNKNOWN_DEPTH:
+        raise MalformedMessageError(f"{label} nests deeper than {MAX_UNKNOWN_DEPTH} levels")
+    if type(value) is float:
+        if not math.isfinite(value):
+            raise NonFiniteValueError(f"{label} is {value}")
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            if type(k) is not str:
+                raise FieldTypeError(f"{label} has a map key that is not a string: {k!r:.40}")
+            _check_unknown_value(f"{label}.{k}", v, depth + 1)
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            _check_unknown_value(f"{label}[{i}]", v, depth + 1)
 
 
 def topic_of(data: bytes) -> bytes:

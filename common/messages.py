@@ -93,6 +93,7 @@ class Command:
     action: str  # one of COMMAND_ACTIONS
     grip_level: int | None = None  # gripper_close: 1..31
     velocity: tuple[float, ...] | None = None  # arm_jog: vx vy vz (m/s) wx wy wz (rad/s)
+    session: int | None = None  # random per operator run: seq and t_send_ns increase within it
 
     TOPIC = b"CMND"
     TYPE = "command"

@@ -17,7 +17,13 @@ from typing import Any
 import zmq
 
 from common.clock import now_ns
-from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
+from common.codec import (
+    MAX_MESSAGE_BYTES,
+    DecodeError,
+    MultipartMessageError,
+    decode,
+    encode,
+)
 from common.errors import LinkError
 from common.logs import BurstLog
 from common.messages import Message
@@ -27,6 +33,7 @@ log = logging.getLogger(__name__)
 # Plain ints: pyzmq's constants are IntFlag members, and ``int & flag`` runs
 # the enum's Python-level __rand__, which builds a new member on every call.
 _EVENTS, _POLLIN, _NOBLOCK = int(zmq.EVENTS), int(zmq.POLLIN), int(zmq.NOBLOCK)
+_RCVMORE = int(zmq.RCVMORE)
 
 
 def _open(
@@ -139,11 +146,23 @@ class Subscriber:
             t_recv = now_ns()
             self.received += 1
             try:
+                if sock.get(_RCVMORE):
+                    parts = 1 + self._discard_rest()
+                    raise MultipartMessageError(f"a message of {parts} frames (one is the rule)")
                 out.append((decode(data), t_recv))
             except DecodeError as e:
                 self.rejected[type(e).__name__] += 1
                 self._bad(str(e))
         return out
+
+    def _discard_rest(self) -> int:
+        """Read and drop the remaining frames of a multipart message (they arrive together)."""
+        n = 0
+        while True:
+            self.sock.recv(_NOBLOCK, copy=False)
+            n += 1
+            if not self.sock.get(_RCVMORE):
+                return n
 
     @property
     def rejected_total(self) -> int:

@@ -15,6 +15,7 @@ import contextlib
 import logging
 import os
 import queue
+import secrets
 import threading
 from collections import Counter
 from dataclasses import dataclass
@@ -100,6 +101,8 @@ class OperatorNode:
         self._robot_stats: dict[str, float] = {}
         self._hb_seq = 0
         self._cmd_seq = 0
+        #: this run's command session: the robot checks seq and send time increase within it
+        self._session = secrets.randbits(63) or 1
         self._goal: list[int] = self.renderer.retract_goals  # six counts, ids 1..6
         self._latency_cache: tuple[int, dict[str, float]] = (0, {})
         self._goal_key: int | None = None  # stimulus seq the goal was computed for
@@ -379,7 +382,7 @@ class OperatorNode:
             except queue.Empty:
                 return
             self._cmd_seq += 1
-            cmd.seq, cmd.t_send_ns = self._cmd_seq, now_ns()
+            cmd.seq, cmd.t_send_ns, cmd.session = self._cmd_seq, now_ns(), self._session
             data = self.pub.send(cmd)
             self.counters["commands_sent"] += 1
             if self._recording:

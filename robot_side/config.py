@@ -60,7 +60,23 @@ class RobotLinkConfig:
     )
     frame_display_rate_hz: float = param(15.0, "raw frames for the operator's heatmaps; 0 = never")
     deadman_ms: float = param(
-        250.0, "no word from the operator for this long: the arm stops and the gripper holds"
+        250.0,
+        "this long after the operator sent its newest fresh message (its clock, mapped to "
+        "ours), the arm stops and the gripper holds; must exceed the link's one-way delay",
+    )
+    max_command_age_ms: float = param(
+        250.0,
+        "a command sent longer ago than this (the operator's send time on our clock) is "
+        "refused, so a backlog ages out instead of moving the arm late; must exceed the "
+        "link's one-way delay (raise both on a satellite link)",
+    )
+    max_messages_per_wake: int = param(
+        64, "operator messages read per loop turn at most: a flood cannot take the frame loop"
+    )
+    command_backlog_pause_ms: float = param(
+        4.0,
+        "after a full batch, commands wait this long for the next turn while frames go on; "
+        "what waits only ages (stale commands are refused)",
     )
     security: SecurityConfig = param(SecurityConfig(), "CURVE keys and the operator allowlist")
 

@@ -13,8 +13,10 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
+import math
 import threading
 from collections import Counter
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -29,7 +31,9 @@ from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.recording import NullRecorder, Recorder
 from common.security import Authenticator, check_endpoint, server_options
 from common.transport import Publisher, Subscriber, make_context
+from robot_side.command_gate import CommandGate
 from robot_side.config import RobotConfig
+from robot_side.device_worker import DeviceRequest, DeviceWorker
 from robot_side.recovery import DeviceRecovery
 from robot_side.rendering import render_cells, sanitize_frame, sanitize_with_peak
 from robot_side.tactile.base import TactileSample, TactileSensor
@@ -94,20 +98,26 @@ class RobotNode:
         self._last_publish_ns = 0
         self._last_process_ns = 0
         self._last_capture_ns: int | None = None
-        self._last_operator_ns: int | None = None
         self.clock = ClockSync()
-        self._grip_level: int | None = None
+        #: what the robot acts on, judged on the operator's clock (command_gate.py)
+        self.gate = CommandGate(self.clock, round(config.link.max_command_age_ms * 1e6))
+        self._grip_level: int | None = None  # the gripper worker's latest reading
         self._first_seq: int | None = None
         self._last_seq = 0
         self._last_capture_seen: tuple[int, int] | None = None
         self._frame_period_ns = 0.0  # estimated from the frames' capture times
         self._skip_requested = 0
-        self._arm_moving = False
         never = threading.Event()  # replaced in run(); lets stats() work before it
         self._arm_recovery = DeviceRecovery(arm, "arm", never)
         self._gripper_recovery = DeviceRecovery(gripper, "gripper", never)
+        #: device calls run on these, never on the frame loop (None before run())
+        self._workers: dict[str, DeviceWorker] = {}
+        #: commands are not read again before this (monotonic ns) after a full batch
+        self._commands_paused_until = 0
         self.pub: Publisher | None = None
         self.sub: Subscriber | None = None
+        self._frames_poller: zmq.Poller | None = None
+        self._auth: Authenticator | None = None
 
     # ------------------------------------------------------------------ run
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
@@ -124,11 +134,10 @@ class RobotNode:
             stack.callback(self._arm_recovery.join)
             stack.callback(self._gripper_recovery.join)
             stack.callback(halt.set)
-            if self.arm is not None:
-                stack.callback(self._safe_stop_arm, "node shutting down")
+            self._start_workers(stack)
             for endpoint in (link.telemetry_endpoint, link.command_endpoint):
                 check_endpoint(endpoint, link.security)
-            auth = Authenticator(self.ctx, link.security)
+            auth = self._auth = Authenticator(self.ctx, link.security)
             stack.callback(auth.stop)
             opts = server_options(link.security)
             self.pub = Publisher(self.ctx, link.telemetry_endpoint, bind=True, sock_opts=opts)
@@ -139,9 +148,13 @@ class RobotNode:
             stack.callback(self.sub.close)
             # one wait for both: a frame the loop asked for, or a word from the operator
             self.sub.poller.register(self.tactile.frame_fd(), zmq.POLLIN)
+            # and one for frames alone, while a command backlog waits its turn
+            self._frames_poller = zmq.Poller()
+            self._frames_poller.register(self.tactile.frame_fd(), zmq.POLLIN)
             if self.gripper is not None:
-                with contextlib.suppress(DeviceError):
-                    self.gripper.activate()
+                self._workers["gripper"].post(
+                    DeviceRequest("gripper_activate", self.gripper.activate)
+                )
             log.info(
                 "robot node up: telemetry %s, commands %s", self.pub.endpoint, self.sub.endpoint
             )
@@ -167,12 +180,20 @@ class RobotNode:
             wanted_after = self._last_seq + self._skip_requested
             sample = self.tactile.take_newer(wanted_after)
             if sample is None:
-                deadline = min(heartbeat.deadline_ns, self._deadman_deadline_ns())
-                self.sub.ready((min(deadline, t_end or _NEVER_NS) - now_ns()) / 1e9)
+                deadline = min(
+                    heartbeat.deadline_ns, self._deadman_deadline_ns(), t_end or _NEVER_NS
+                )
+                paused_until = self._commands_paused_until
+                if now_ns() < paused_until:  # a backlog: frames only until its next turn
+                    wait_ms = math.ceil(max(0, min(deadline, paused_until) - now_ns()) / 1e6)
+                    self._frames_poller.poll(wait_ms)
+                else:
+                    self.sub.ready((deadline - now_ns()) / 1e9)
                 sample = self.tactile.take_newer(wanted_after)
             self.counters["wakeups"] += 1
-            self._handle_commands()
             now = now_ns()
+            if now >= self._commands_paused_until:
+                self._handle_commands(now)
             self._check_deadman(now)
             if sample is not None:
                 self._account(sample)
@@ -398,101 +419,149 @@ class RobotNode:
         )
 
     # ----------------------------------------------------------- commands
-    def _handle_commands(self) -> None:
-        for msg, t_recv in self.sub.drain():
-            self._last_operator_ns = t_recv
+    def _start_workers(self, stack: contextlib.ExitStack) -> None:
+        """A worker per device; on shutdown each finishes with a stop (the arm) or a hold."""
+        link = self.config.link
+        if self.arm is not None:
+            arm = self._workers["arm"] = DeviceWorker("arm", self._arm_recovery)
+            stack.callback(arm.close, DeviceRequest("arm_stop", self.arm.stop))
+        if self.gripper is not None:
+            gripper = self._workers["gripper"] = DeviceWorker(
+                "gripper",
+                self._gripper_recovery,
+                idle_poll=self._read_grip_level,
+                idle_poll_s=1.0 / link.heartbeat_rate_hz,
+            )
+            stack.callback(gripper.close)
+
+    def _read_grip_level(self) -> None:
+        """The gripper worker's poll: the stimuli carry the grip level without a device call."""
+        self._grip_level = self.gripper.grip_level()
+
+    def _handle_commands(self, now: int) -> None:
+        """Read at most one batch; act on the newest admitted command of each device.
+
+        A full batch means a backlog: the socket is left alone for
+        ``command_backlog_pause_ms`` so that frames, not a flood of commands,
+        get the loop. What waits meanwhile only ages, and stale commands are
+        refused (command_gate.py), so the pause can never move the arm late.
+        """
+        link = self.config.link
+        batch = self.sub.drain(link.max_messages_per_wake)
+        if len(batch) >= link.max_messages_per_wake:
+            self._commands_paused_until = now + round(link.command_backlog_pause_ms * 1e6)
+            self.counters["command_backlog_pauses"] += 1
+        newest: dict[str, tuple[Command, int | None]] = {}
+        for msg, t_recv in batch:
             if isinstance(msg, Heartbeat):
                 self.clock.on_heartbeat(
                     msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv
                 )
+                self.gate.heard(msg.t_send_ns, t_recv, now)
             elif isinstance(msg, Command):
                 self.counters["commands_received"] += 1
-                self._apply(msg)
+                refusal, sent = self.gate.admit(msg, t_recv, now)
+                if refusal is not None:
+                    self.counters[refusal] += 1
+                    self._record_command(msg, f"refused: {refusal}")
+                    continue
+                device = "gripper" if msg.action.startswith("gripper") else "arm"
+                older = newest.get(device)
+                if older is not None:  # newest only: an older wish is never acted on
+                    self.counters["commands_superseded"] += 1
+                    self._record_command(older[0], "superseded")
+                newest[device] = (msg, sent)
             else:
                 self.counters["messages_unexpected"] += 1
+        for device, (cmd, sent) in newest.items():
+            self._dispatch(device, cmd, sent)
         self.counters["decode_errors"] = self.sub.rejected_total
 
-    def _apply(self, cmd: Command) -> None:
-        try:
-            if cmd.action.startswith("gripper"):
-                if self.gripper is None:
-                    raise DeviceError("this scene has no gripper")
-                call = self._gripper_recovery.call
-                if cmd.action == "gripper_open":
-                    call(self.gripper.open)
-                elif cmd.action == "gripper_close":
-                    call(self.gripper.close_to_level, cmd.grip_level or 16)
-                else:
-                    call(self.gripper.hold)
-            else:
-                if self.arm is None:
-                    raise DeviceError("this scene has no arm")
-                if cmd.action == "arm_jog" and cmd.velocity is not None:
-                    self._arm_recovery.call(self.arm.jog, cmd.velocity)
-                    self._arm_moving = any(v != 0 for v in cmd.velocity)
-                else:
-                    self._arm_recovery.call(self.arm.stop)
-                    self._arm_moving = False
-            self.counters["commands_applied"] += 1
-            outcome = "applied"
-        except (DeviceError, ValueError, DecodeError) as e:
+    def _dispatch(self, device: str, cmd: Command, sent_ns: int | None) -> None:
+        """Hand the command to its device's worker; a missing device refuses at once."""
+        worker = self._workers.get(device)
+        if worker is None:
             self.counters["commands_rejected"] += 1
-            log.warning("command %s rejected: %s", cmd.action, e)
-            outcome = f"rejected: {e}"
-        if self._recording:
-            self.recorder.write(
-                "robot/command",
-                now_ns(),
-                {
-                    "seq": cmd.seq,
-                    "action": cmd.action,
-                    "grip_level": cmd.grip_level,
-                    "velocity": list(cmd.velocity) if cmd.velocity else None,
-                    "outcome": outcome,
-                },
-            )
+            log.warning("command %s rejected: this scene has no %s", cmd.action, device)
+            self._record_command(cmd, f"rejected: this scene has no {device}")
+            return
+        if device == "gripper":
+            gripper = self.gripper
+            if cmd.action == "gripper_open":
+                call, args = gripper.open, ()
+            elif cmd.action == "gripper_close":
+                call, args = gripper.close_to_level, (cmd.grip_level or 16,)
+            else:
+                call, args = gripper.hold, ()
+        elif cmd.action == "arm_jog" and cmd.velocity is not None:
+            issued_s = None if sent_ns is None else sent_ns / 1e9
+            call, args = self.arm.jog, (cmd.velocity, issued_s)
+        else:
+            call, args = self.arm.stop, ()
+        on_done = self._make_on_done(cmd)
+        worker.post(DeviceRequest(cmd.action, call, args, on_done))
+
+    def _make_on_done(self, cmd: Command) -> Callable[..., None]:
+        def on_done(request: DeviceRequest, result: Any, error: BaseException | None) -> None:
+            if error is None:
+                outcome = "applied"
+            elif isinstance(error, (DeviceError, ValueError, DecodeError)):
+                log.warning("command %s rejected: %s", cmd.action, error)
+                outcome = f"rejected: {error}"
+            else:
+                log.error("command %s failed: %r", cmd.action, error)
+                outcome = f"failed: {error!r}"
+            sent = result if cmd.action == "arm_jog" and error is None else None
+            self._record_command(cmd, outcome, sent)
+
+        return on_done
+
+    def _record_command(self, cmd: Command, outcome: str, sent: Any = None) -> None:
+        if not self._recording:
+            return
+        self.recorder.write(
+            "robot/command",
+            now_ns(),
+            {
+                "seq": cmd.seq,
+                "action": cmd.action,
+                "grip_level": cmd.grip_level,
+                "velocity": list(cmd.velocity) if cmd.velocity else None,
+                "sent_velocity": None if sent is None else [float(v) for v in sent],
+                "outcome": outcome,
+            },
+        )
 
     def _deadman_deadline_ns(self) -> int:
-        """When the operator's silence stops the arm, if nothing is heard before then."""
-        heard = self._last_operator_ns
+        """When the operator's silence stops the arm, if nothing fresh is heard before then."""
+        heard = self.gate.last_fresh_ns
         if heard is None or self.link_state != "ok":
             return _NEVER_NS
         return heard + round(self.config.link.deadman_ms * 1e6) + 1
 
     def _check_deadman(self, now: int) -> None:
-        heard = self._last_operator_ns
+        """Counted from the newest fresh message's send time: a backlog cannot extend it."""
+        heard = self.gate.last_fresh_ns
         fresh = heard is not None and (now - heard) / 1e6 <= self.config.link.deadman_ms
         new_state = "ok" if fresh else "down"
         if new_state != self.link_state:
             log.info("operator link %s -> %s", self.link_state, new_state)
             if new_state == "down" and heard is not None:
                 self.counters["deadman_trips"] += 1
-                self._safe_stop_arm("operator silent")
-                if self.gripper is not None:
-                    with contextlib.suppress(DeviceError):
-                        self._gripper_recovery.call(self.gripper.hold)
+                self._stop_devices("operator silent")
             self.link_state = new_state
             self.link_changes.append((now, new_state))
 
-    def _safe_stop_arm(self, why: str) -> None:
-        if self.arm is None:
-            return
-        try:
-            self._arm_recovery.call(self.arm.stop)
-            self._arm_moving = False
+    def _stop_devices(self, why: str) -> None:
+        """Stop the arm and hold the gripper, through their workers (never waiting here)."""
+        if self.arm is not None and "arm" in self._workers:
+            self._workers["arm"].post(DeviceRequest("arm_stop", self.arm.stop))
             log.info("arm stopped: %s", why)
-        except Exception:  # stopping must never raise out of a finally
-            self.counters["arm_stop_failures"] += 1
-            log.exception("arm stop failed (%s)", why)
+        if self.gripper is not None and "gripper" in self._workers:
+            self._workers["gripper"].post(DeviceRequest("gripper_hold", self.gripper.hold))
 
     # ---------------------------------------------------------- heartbeat
     def _send_heartbeat(self) -> None:
-        if self.gripper is not None and self._gripper_recovery.available:
-            try:
-                self._grip_level = self._gripper_recovery.call(self.gripper.grip_level)
-            except DeviceError as e:
-                self.counters["gripper_errors"] += 1
-                log.debug("gripper: %s", e)
         self._hb_seq += 1
         if self._recording:
             self.recorder.write("robot/link", now_ns(), {"state": self.link_state, **self.stats()})
@@ -514,6 +583,15 @@ class RobotNode:
 
     def stats(self) -> dict[str, float]:
         out = {k: float(v) for k, v in self.counters.items()}
+        for name, worker in self._workers.items():  # counted on the workers' own threads
+            c = worker.counters
+            out["commands_applied"] = out.get("commands_applied", 0.0) + c["done"]
+            out["commands_rejected"] = out.get("commands_rejected", 0.0) + c["failed"]
+            out["commands_superseded"] = out.get("commands_superseded", 0.0) + c["superseded"]
+            if c["poll_errors"]:
+                out[f"{name}_poll_errors"] = float(c["poll_errors"])
+        if self._auth is not None and self._auth.refused:
+            out["curve_refused"] = float(self._auth.refused)
         for name, rec in (("arm", self._arm_recovery), ("gripper", self._gripper_recovery)):
             if rec.device is not None:
                 out[f"{name}_available"] = float(rec.available)

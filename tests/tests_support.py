@@ -26,9 +26,10 @@ class RecordingArm:
     def disconnect(self) -> None:
         self.is_connected = False
 
-    def jog(self, velocity) -> None:
+    def jog(self, velocity, issued_at_s=None):
         self.jogs.append(tuple(velocity))
         self.jog_times.append(time.monotonic_ns())
+        return velocity
 
     def stop(self) -> None:
         self.stop_times.append(time.monotonic_ns())
@@ -36,3 +37,65 @@ class RecordingArm:
     @property
     def stops(self) -> int:
         return len(self.stop_times)
+
+
+class ProtocolOperator:
+    """An operator as docs/protocol.md describes it, on raw sockets: heartbeats that echo the
+    robot's, and commands stamped with a session, an increasing seq and the send time.
+
+    The robot acts on motion commands only once a heartbeat round trip has given it the
+    clock offset; ``sync()`` exchanges heartbeats until it has.
+    """
+
+    def __init__(self, sub, pub, session: int = 7) -> None:
+        self.sub, self.pub = sub, pub  # common.transport Subscriber / Publisher
+        self.session = session
+        self.seq = 0
+        self.hb_seq = 0
+        self.received: list = []
+        self._echo: tuple[int | None, int | None] = (None, None)
+        self._next_hb_ns = 0
+
+    def pump(self, duration_s: float = 0.0) -> None:
+        """Read telemetry and keep heartbeats going (20 Hz) for ``duration_s``."""
+        from common.clock import now_ns
+        from common.messages import Heartbeat
+
+        end = now_ns() + round(duration_s * 1e9)
+        while True:
+            for msg, t_recv in self.sub.drain():
+                self.received.append(msg)
+                if isinstance(msg, Heartbeat):
+                    self._echo = (msg.t_send_ns, t_recv)
+            now = now_ns()
+            if now >= self._next_hb_ns:
+                self.hb_seq += 1
+                self.pub.send(
+                    Heartbeat(
+                        seq=self.hb_seq,
+                        t_send_ns=now,
+                        node="operator",
+                        state="ok",
+                        echo_t_send_ns=self._echo[0],
+                        echo_t_recv_ns=self._echo[1],
+                    )
+                )
+                self._next_hb_ns = now + 50_000_000
+            if now >= end:
+                return
+            self.sub.poll(min(0.01, (end - now) / 1e9))
+
+    def sync(self) -> None:
+        """Long enough for the robot to take a clock sample from our echoes (3 round trips)."""
+        self.pump(0.35)
+
+    def command(self, action: str, **fields):
+        from common.clock import now_ns
+        from common.messages import Command
+
+        self.seq += 1
+        cmd = Command(
+            seq=self.seq, t_send_ns=now_ns(), action=action, session=self.session, **fields
+        )
+        self.pub.send(cmd)
+        return cmd

@@ -6,8 +6,9 @@ rotation vector in radians (UR's convention). Velocities are
 
 Safety lives here, not in the drivers: a jog is clipped to the speed limits
 and loses any component that would leave the workspace box; a ``move_to``
-outside the box is refused; a jog lasts only ``jog_timeout_s`` unless the
-operator sends another (the deadman), so a lost link stops the arm.
+outside the box is refused; a jog lasts only ``jog_timeout_s`` from when it
+was issued unless the operator sends another (the deadman), so a lost link
+stops the arm; every stop decelerates at ``stop_deceleration_m_s2``.
 """
 
 from __future__ import annotations
@@ -50,7 +51,12 @@ class ArmLimits:
         0.10, "jog and move speed cap: slow enough to stop before a pipette rack"
     )
     max_angular_speed_rad_s: float = param(0.5, "jog rotation cap (about 30 deg/s)")
-    linear_acceleration_m_s2: float = param(0.5, "acceleration for jogs, moves and stops")
+    linear_acceleration_m_s2: float = param(0.5, "acceleration for jogs and moves")
+    stop_deceleration_m_s2: float = param(
+        2.0,
+        "deceleration of every stop (arm_stop, deadman, jog expiry): 50 ms and 2.5 mm from "
+        "the speed cap; ur_rtde's own speedStop default is 10",
+    )
     angular_acceleration_rad_s2: float = param(1.0, "rotational acceleration for jogs")
     default_move_speed_m_s: float = param(0.05, "move_to speed when the caller gives none")
     jog_timeout_s: float = param(
@@ -68,6 +74,7 @@ class ArmLimits:
             "max_angular_speed_rad_s",
             "linear_acceleration_m_s2",
             "angular_acceleration_rad_s2",
+            "stop_deceleration_m_s2",
             "default_move_speed_m_s",
             "jog_timeout_s",
         ):
@@ -172,21 +179,30 @@ class Arm(Device):
                     lin[i] = 0.0
         return np.concatenate([lin, ang])
 
-    def jog(self, velocity: Sequence[float]) -> None:
+    def jog(self, velocity: Sequence[float], issued_at_s: float | None = None) -> np.ndarray:
         """Move the TCP at ``velocity`` until the next jog, ``stop()`` or the deadman.
 
-        The deadman stops the arm ``limits.jog_timeout_s`` after the last jog:
-        an operator holding a jog key must keep sending it.
+        The deadman stops the arm ``limits.jog_timeout_s`` after the jog was
+        issued (``issued_at_s``, monotonic seconds on this machine: when the
+        operator sent it; default now): an operator holding a jog key must
+        keep sending it, and a jog that arrives late moves the arm only for
+        what is left of its time. Returns the velocity actually sent (zeros:
+        the arm was stopped instead).
         """
         self.require_connected()
+        now = now_s()
+        until = now + self.limits.jog_timeout_s
+        if issued_at_s is not None:
+            until = min(until, issued_at_s + self.limits.jog_timeout_s)
         with self._lock:
             v = self.clip_jog(velocity, self._read_tcp_pose())
-            if not np.any(v):
+            if until <= now or not np.any(v):
                 self._stop_locked()
-                return
+                return np.zeros(6)
             self._send_jog(v)
             self._last_jog = v
-            self._jog_until = now_s() + self.limits.jog_timeout_s
+            self._jog_until = until
+            return v
 
     def move_to(self, pose: Sequence[float], speed: float | None = None, wait: bool = True) -> None:
         """Move the TCP linearly to ``pose``; refuses targets outside the workspace box.

@@ -392,13 +392,13 @@ class URArm(Arm):
         return True
 
     def _decel_time(self) -> float:
-        return self.limits.max_linear_speed_m_s / self.limits.linear_acceleration_m_s2
+        return self.limits.max_linear_speed_m_s / self.limits.stop_deceleration_m_s2
 
     def _stop_speed(self) -> None:
         ok = self._control(
             "speedStop",
             self._ctrl.speedStop,
-            self.limits.linear_acceleration_m_s2,
+            self.limits.stop_deceleration_m_s2,
             extra_s=self._decel_time(),
         )
         self._speeding = False
@@ -408,7 +408,7 @@ class URArm(Arm):
         self._control(
             "stopL",
             self._ctrl.stopL,
-            self.limits.linear_acceleration_m_s2,
+            self.limits.stop_deceleration_m_s2,
             False,
             extra_s=self._decel_time(),
         )

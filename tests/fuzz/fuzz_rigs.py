@@ -344,6 +344,8 @@ class RobotRig:
         self.hb_seq = 0
         self.cmd_seq = 0
         self.my_heartbeats: dict[int, int] = {}  # t_send_ns -> seq of the good heartbeats
+        self.robot_heartbeat: tuple[int | None, int | None] = (None, None)  # newest, for echoes
+        self.session = 4242  # the good operator's command session
         self.echoed = 0
         self.telemetry: dict[str, int] = {"stimulus": 0, "heartbeat": 0, "frame": 0}
         self._lock = threading.Lock()  # my_heartbeats and hb_seq, shared with the beat thread
@@ -379,6 +381,9 @@ class RobotRig:
         self._beating = threading.Event()
         self._beat_thread = threading.Thread(target=self._beat, name="fuzz-heartbeats", daemon=True)
         self._beat_thread.start()
+        # the robot moves nothing before a heartbeat round trip has given it our clock
+        assert wait_for(lambda: (self.read_telemetry(), self.node.clock.is_synced)[1], 5)
+        self.sent = self.received()
 
     def _beat(self) -> None:
         while not self._beating.wait(0.05):
@@ -411,13 +416,24 @@ class RobotRig:
             if len(self.my_heartbeats) > 10_000:
                 self.my_heartbeats.pop(next(iter(self.my_heartbeats)))
             seq = self.hb_seq
-        return encode(Heartbeat(seq=seq, t_send_ns=t, node="operator", state="ok"))
+            echo_send, echo_recv = self.robot_heartbeat
+        return encode(
+            Heartbeat(
+                seq=seq,
+                t_send_ns=t,
+                node="operator",
+                state="ok",
+                echo_t_send_ns=echo_send,
+                echo_t_recv_ns=echo_recv,
+            )
+        )
 
     def command(self, action: str, **kw: Any) -> None:
         self.cmd_seq += 1
-        self._send(
-            self.good, encode(Command(seq=self.cmd_seq, t_send_ns=now_ns(), action=action, **kw))
+        cmd = Command(
+            seq=self.cmd_seq, t_send_ns=now_ns(), action=action, session=self.session, **kw
         )
+        self._send(self.good, encode(cmd))
 
     def read_telemetry(self) -> None:
         while self.tel.poll(0):
@@ -426,6 +442,8 @@ class RobotRig:
             self.telemetry[kind] += 1
             with self._lock:
                 mine = isinstance(msg, Heartbeat) and msg.echo_t_send_ns in self.my_heartbeats
+                if isinstance(msg, Heartbeat):  # echoed in ours: the robot learns our clock
+                    self.robot_heartbeat = (msg.t_send_ns, now_ns())
             self.echoed += mine
 
     def sync(self, timeout_s: float = 10.0) -> bool:

@@ -49,11 +49,18 @@ def test_oversized_commands_cost_only_the_senders_connection(robot):
     assert robot.alive()
     assert robot.received() == robot.sent  # the oversized ones (not in sent) were never read
     # the evil connection is re-made by its own side (a PUB reconnects), and is heard again
-    jog = encode(Command(seq=9, t_send_ns=1, action="arm_jog", velocity=(0.01, 0, 0, 0, 0, 0)))
+    seq = iter(range(1, 10_000))
 
     def evil_heard() -> bool:
         before = len(robot.arm.sent_jogs)
-        robot.evil.send(jog)
+        jog = Command(
+            seq=next(seq),
+            t_send_ns=time.monotonic_ns(),
+            action="arm_jog",
+            velocity=(0.01, 0, 0, 0, 0, 0),
+            session=99,
+        )
+        robot.evil.send(encode(jog))
         time.sleep(0.05)
         return len(robot.arm.sent_jogs) > before
 

@@ -8,7 +8,7 @@ import time
 
 import pytest
 import zmq
-from tests_support import RecordingArm
+from tests_support import ProtocolOperator, RecordingArm
 
 from common.codec import encode
 from common.errors import LinkError
@@ -130,9 +130,11 @@ def test_only_an_allowed_key_reads_the_stream_or_moves_the_arm(keys):
         got = _collect(sub, 1.5)
         stimuli = [m for m in got if isinstance(m, Stimulus)]
         assert stimuli, "the allowed operator received no stimulus"
+        operator = ProtocolOperator(sub, pub)
+        operator.sync()  # the robot moves nothing before it knows the operator's clock
         for _ in range(10):
-            pub.send(jog)
-            time.sleep(0.02)
+            operator.command("arm_jog", velocity=jog.velocity)
+            operator.pump(0.02)
         deadline = time.monotonic() + 2
         while not arm.jogs and time.monotonic() < deadline:
             time.sleep(0.02)
