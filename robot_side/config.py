@@ -71,10 +71,10 @@ class RobotLinkConfig:
         "link's one-way delay (raise both on a satellite link)",
     )
     max_messages_per_wake: int = param(
-        64, "operator messages read per loop turn at most: a flood cannot take the frame loop"
+        32, "operator messages read per loop turn at most: a flood cannot take the frame loop"
     )
     command_backlog_pause_ms: float = param(
-        4.0,
+        8.0,
         "after a full batch, commands wait this long for the next turn while frames go on; "
         "what waits only ages (stale commands are refused)",
     )

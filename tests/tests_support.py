@@ -52,7 +52,7 @@ class ProtocolOperator:
         self.session = session
         self.seq = 0
         self.hb_seq = 0
-        self.received: list = []
+        self.received: list = []  # (local receive ns, message)
         self._echo: tuple[int | None, int | None] = (None, None)
         self._next_hb_ns = 0
 
@@ -64,7 +64,7 @@ class ProtocolOperator:
         end = now_ns() + round(duration_s * 1e9)
         while True:
             for msg, t_recv in self.sub.drain():
-                self.received.append(msg)
+                self.received.append((t_recv, msg))
                 if isinstance(msg, Heartbeat):
                     self._echo = (msg.t_send_ns, t_recv)
             now = now_ns()
