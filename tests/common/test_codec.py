@@ -182,3 +182,49 @@ def test_any_single_byte_corruption_is_rejected_or_still_valid(index, flip):
     assert isinstance(msg, Stimulus)
     assert np.isfinite(msg.stimulus).all() and msg.stimulus.min() >= 0
     assert ((msg.stimulus > 0).sum(axis=1) <= 1).all()
+
+
+@pytest.mark.parametrize(
+    ("extra", "error"),
+    [
+        ({"note": float("nan")}, NonFiniteValueError),
+        ({"note": [1.0, {"deep": float("-inf")}]}, NonFiniteValueError),
+        ({b"seq": 1}, FieldTypeError),
+        ({"note": {b"k": 1}}, FieldTypeError),
+        ({"note": [[[[[[[[[[1]]]]]]]]]]}, MalformedMessageError),
+    ],
+)
+def test_unknown_keys_may_hold_nothing_the_protocol_forbids_anywhere(extra, error):
+    body = msgpack.unpackb(encode(Command(seq=1, t_send_ns=2, action="arm_stop"))[4:])
+    body.update(extra)
+    with pytest.raises(error):
+        decode(b"CMND" + msgpack.packb(body, use_bin_type=True))
+
+
+def test_a_multipart_message_is_refused_and_counted_by_the_subscriber():
+    import time
+
+    import zmq
+
+    from common.transport import Subscriber
+
+    ctx = zmq.Context()
+    sub = Subscriber(ctx, "tcp://127.0.0.1:*", bind=True)
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    pub.connect(sub.endpoint)
+    try:
+        good = encode(Command(seq=1, t_send_ns=2, action="arm_stop"))
+        deadline = time.monotonic() + 5
+        got = []
+        while not got and time.monotonic() < deadline:
+            pub.send_multipart([good, b"trailer"])
+            pub.send(good)
+            sub.poll(0.05)
+            got = sub.drain()
+        assert got and all(isinstance(m, Command) for m, _ in got)
+        assert sub.rejected["MultipartMessageError"] >= 1
+    finally:
+        pub.close(0)
+        sub.close()
+        ctx.term()

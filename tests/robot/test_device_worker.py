@@ -1,0 +1,96 @@
+"""Device calls on their own thread: posting never waits on the device, and the newest wins."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from robot_side.device_worker import DeviceRequest, DeviceWorker
+from robot_side.recovery import DeviceRecovery
+
+
+class SlowDevice:
+    is_connected = True
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+        self.release = threading.Event()
+        self.started = threading.Event()
+
+    def act(self, name: str) -> str:
+        if name == "slow":
+            self.started.set()
+            self.release.wait(5)
+        self.calls.append(name)
+        return name
+
+
+def _worker(device: SlowDevice, **kw) -> DeviceWorker:
+    return DeviceWorker("test", DeviceRecovery(device, "test", threading.Event()), **kw)
+
+
+def _wait(predicate, timeout_s: float = 3.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return predicate()
+
+
+def test_posting_returns_while_the_device_is_still_busy_and_only_the_newest_waiting_runs():
+    device = SlowDevice()
+    worker = _worker(device)
+    try:
+        worker.post(DeviceRequest("slow", device.act, ("slow",)))
+        assert device.started.wait(3)
+        for name in ("a", "b", "c"):
+            worker.post(DeviceRequest(name, device.act, (name,)))
+        assert device.calls == []  # every post returned before the slow call ended
+        device.release.set()
+        assert _wait(lambda: worker.idle)
+        assert device.calls == ["slow", "c"]
+        assert worker.counters["superseded"] == 2
+    finally:
+        device.release.set()
+        worker.close()
+
+
+def test_close_runs_the_last_request_after_the_running_one():
+    device = SlowDevice()
+    worker = _worker(device)
+    worker.post(DeviceRequest("slow", device.act, ("slow",)))
+    assert device.started.wait(3)
+    worker.post(DeviceRequest("jog", device.act, ("jog",)))
+    threading.Timer(0.1, device.release.set).start()
+    worker.close(DeviceRequest("stop", device.act, ("stop",)))
+    assert device.calls == ["slow", "stop"]  # the pending jog never ran
+
+
+def test_a_failing_call_is_reported_and_the_worker_goes_on():
+    device = SlowDevice()
+    outcomes: list[object] = []
+
+    def boom() -> None:
+        raise ValueError("refused")
+
+    worker = _worker(device)
+    try:
+        worker.post(DeviceRequest("x", boom, on_done=lambda r, res, err: outcomes.append(err)))
+        assert _wait(lambda: outcomes)
+        assert isinstance(outcomes[0], ValueError)
+        worker.post(DeviceRequest("ok", device.act, ("ok",)))
+        assert _wait(lambda: device.calls == ["ok"])
+    finally:
+        worker.close()
+
+
+def test_an_idle_worker_polls_the_device_at_its_interval():
+    device = SlowDevice()
+    polls: list[float] = []
+    worker = _worker(device, idle_poll=lambda: polls.append(time.monotonic()), idle_poll_s=0.02)
+    try:
+        time.sleep(0.3)
+    finally:
+        worker.close()
+    assert 5 <= len(polls) <= 20
