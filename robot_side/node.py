@@ -165,12 +165,15 @@ class RobotNode:
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
         link = self.config.link
         heartbeat = Periodic(link.heartbeat_rate_hz, link.heartbeat_early_ms / 1e3)
-        frame_period = (
-            round(1e9 / link.frame_display_rate_hz) if link.frame_display_rate_hz > 0 else None
+        # raw frames on a fixed grid, so the average rate is the configured one even though
+        # the loop only wakes for the frames it renders (at 60 Hz, 15 Hz is every 4th)
+        frame_msgs = (
+            Periodic(link.frame_display_rate_hz, 0.5 / self.config.publish_rate_hz)
+            if link.frame_display_rate_hz > 0
+            else None
         )
         min_interval = round(0.9e9 / self.config.publish_rate_hz)
         t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
-        next_frame_msg = now_ns()
         while not stop.is_set() and (t_end is None or now_ns() < t_end):
             # Sleep through the frames that will not be rendered (120 Hz in, 60 out):
             # wait for the first one due, instead of waking for each. A command or
@@ -201,9 +204,9 @@ class RobotNode:
                     self.process(sample)
                 else:
                     self.counters["frames_skipped_rate"] += 1
-                if frame_period is not None and now >= next_frame_msg:
+                if frame_msgs is not None and frame_msgs.due(now):
                     self._send_frame(sample)
-                    next_frame_msg = now + frame_period
+                    frame_msgs.done(now)
             if heartbeat.due(now):  # with frames flowing, on a frame's wake-up
                 self._send_heartbeat()
                 heartbeat.done(now)
