@@ -106,6 +106,35 @@ def _stop(proc: subprocess.Popen, name: str, errors: list[str], log_path: Path) 
         errors.append(f"{name} exited with {proc.returncode}: " + " | ".join(tail))
 
 
+def _fit_command_timing(scene: Scene) -> None:
+    """Widen the robot's command age, deadman and jog time to the scenario's command delay.
+
+    The robot judges commands by the operator's send time, so on a link slower
+    than ``max_command_age_ms`` (a GEO satellite) nothing would ever be fresh
+    and the arm would never move. A real deployment sets these by hand
+    (docs/protocol.md); the demo sets them from the scenario it simulates.
+    """
+    from common.netsim.scenario import load_scenario
+
+    to_robot = load_scenario(scene.network.scenario).direction("to_robot")
+    needed_ms = to_robot.delay_ms + 4 * to_robot.jitter_ms + 100.0  # + heartbeat period, slack
+    link = scene.robot.link
+    if needed_ms <= link.max_command_age_ms:
+        return
+    link.max_command_age_ms = needed_ms
+    link.deadman_ms = max(link.deadman_ms, needed_ms)
+    if scene.robot.arm.get("kind", "none") != "none":
+        limits = scene.robot.arm.setdefault("limits", {})
+        limits["jog_timeout_s"] = max(limits.get("jog_timeout_s", 0.25), needed_ms / 1e3)
+    log.warning(
+        "scenario %s: commands take %.0f ms to reach the robot; command age, deadman and jog "
+        "time raised to %.0f ms",
+        scene.network.scenario,
+        to_robot.delay_ms,
+        needed_ms,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     data = load_scene_dict(args.scene, args.overrides)
     scene: Scene = from_dict(Scene, data, where="")
@@ -118,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
     scene.robot.link.command_endpoint = robot_cmd
     scene.operator.link.telemetry_endpoint = op_tel if use_netsim else robot_tel
     scene.operator.link.command_endpoint = op_cmd if use_netsim else robot_cmd
+    if use_netsim:
+        _fit_command_timing(scene)
     robot_cfg = workdir / "robot.toml"
     robot_cfg.write_text(config_toml(scene.robot, "robot"))
     errors: list[str] = []
