@@ -264,6 +264,13 @@ def _measure(
         return out
 
     section("node_cpu", node_cpu)
+
+    def command_path() -> dict[str, Any]:
+        from deploy.bench.command_path import measure
+
+        return measure(sizes.cmd_flood_messages, 2.0, sizes.cmd_cost_messages)
+
+    section("command_path", command_path)
     section("scale", scale)
     return {
         "generated_by": f"deepxpalm bench{'' if preset == 'full' else ' --size ' + preset}",

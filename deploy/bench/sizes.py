@@ -21,6 +21,7 @@ SECTIONS = (
     "scale",
     "stress",
     "node_cpu",
+    "command_path",
 )
 
 
@@ -55,6 +56,8 @@ class Sizes:
     stress_random_frames: int
     node_warmup_s: float
     node_measure_s: float
+    cmd_flood_messages: int  # command_path: jogs in the flood
+    cmd_cost_messages: int  # command_path: messages timed through the intake
     scale_rates: tuple[float, ...]
     scale_measured: bool
     scale_backends: tuple[str | None, ...]
@@ -90,6 +93,8 @@ PRESETS: dict[str, Sizes] = {
         stress_random_frames=500,
         node_warmup_s=5.0,
         node_measure_s=20.0,
+        cmd_flood_messages=100000,
+        cmd_cost_messages=20000,
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=True,
         scale_backends=(None, "onnxruntime", "numpy"),
@@ -122,6 +127,8 @@ PRESETS: dict[str, Sizes] = {
         stress_random_frames=30,
         node_warmup_s=4.0,
         node_measure_s=6.0,
+        cmd_flood_messages=30000,
+        cmd_cost_messages=5000,
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=False,
         scale_backends=(None,),
@@ -154,6 +161,8 @@ PRESETS: dict[str, Sizes] = {
         stress_random_frames=3,
         node_warmup_s=3.0,
         node_measure_s=2.0,
+        cmd_flood_messages=2000,
+        cmd_cost_messages=500,
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=False,
         scale_backends=(None,),

@@ -8,205 +8,67 @@ here are raw clients written from docs/protocol.md.
 
 from __future__ import annotations
 
-import multiprocessing
-import signal
-import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from flood_client import run as flood
-from tests_support import ProtocolOperator, free_ports
+import zmq
+from tests_support import ProtocolOperator
 
 from common.clock import now_ns
 from common.codec import encode
 from common.messages import Heartbeat, Stimulus
 from common.transport import Publisher, Subscriber
-from robot_side.arm.sim import URSimProcess
+from deploy.bench.command_path import PUBLISH_HZ, RobotUnderCommands
 from robot_side.gripper.base import GripLevels
-from robot_side.gripper.sim import GripperSimConfig, GripperSimServer
 
 N_FLOOD = 100_000
-PUBLISH_HZ = 60.0
-
-
-class ArmWatch:
-    """Samples the simulated controller's TCP speed (not the node's view of it) at ~100 Hz."""
-
-    def __init__(self, sim: URSimProcess) -> None:
-        self.sim = sim
-        self.samples: list[tuple[int, float]] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.01):
-            speed = float(np.linalg.norm(self.sim.tcp_speed()))
-            self.samples.append((now_ns(), speed))
-
-    def moving_between(self, t0: int, t1: int, above: float = 1e-4) -> list[int]:
-        return [t for t, v in self.samples if t0 <= t <= t1 and v > above]
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-
-
-class Telemetry:
-    """Every message the robot publishes, with its local receive time, from a passive listener."""
-
-    def __init__(self, ctx_endpoint: str) -> None:
-        import zmq
-
-        self.ctx = zmq.Context()
-        self.sub = Subscriber(self.ctx, ctx_endpoint, bind=False)
-        self.messages: list[tuple[int, object]] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            if self.sub.poll(0.01):
-                self.messages.extend((t, m) for m, t in self.sub.drain())
-
-    def times(self, kind: type, t0: int = 0, t1: int = 2**63) -> list[int]:
-        return [t for t, m in self.messages if isinstance(m, kind) and t0 <= t <= t1]
-
-    def robot_stats(self) -> dict[str, float]:
-        beats = [m for _, m in self.messages if isinstance(m, Heartbeat)]
-        return beats[-1].stats if beats else {}
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-        self.sub.close()
-        self.ctx.term()
-
-
-ROBOT_TOML = """
-[robot]
-publish_rate_hz = {rate}
-[robot.render]
-mode = "mask_ground_truth"
-deadband_n = 0.0  # every rendered frame that differs is sent: a steady stream to watch
-[robot.tactile]
-kind = "scripted"
-[robot.tactile.script]
-loop = false
-grasps = [{{pattern = 6, grip_level = 25, ramp_s = 0.1, hold_s = 600.0}}]
-[robot.gripper]
-kind = "robotiq_socket"
-host = "127.0.0.1"
-port = {gripper_port}
-[robot.arm]
-kind = "ur_rtde"
-host = "{arm_host}"
-[robot.link]
-telemetry_endpoint = "{tel}"
-command_endpoint = "{cmd}"
-"""
 
 
 @pytest.fixture
-def cell(tmp_path: Path):
-    """The robot node as its own process (as deployed), its devices' simulators in this one."""
-    tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_ports(2))
-    with URSimProcess() as arm_sim, GripperSimServer(GripperSimConfig(port=0)) as gripper_sim:
-        config = tmp_path / "robot.toml"
-        config.write_text(
-            ROBOT_TOML.format(
-                rate=PUBLISH_HZ,
-                gripper_port=gripper_sim.port,
-                arm_host=arm_sim.host,
-                tel=tel,
-                cmd=cmd,
-            )
-        )
-        log = tmp_path / "robot.log"
-        with log.open("w") as out:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "deploy.cli", "robot", "--config", str(config)],
-                stdout=out,
-                stderr=subprocess.STDOUT,
-            )
-        telemetry = Telemetry(tel)
-        watch = ArmWatch(arm_sim)
-        try:
-            deadline = time.monotonic() + 60
-            while not telemetry.times(Stimulus) and time.monotonic() < deadline:
-                assert proc.poll() is None, log.read_text()[-3000:]
-                time.sleep(0.05)
-            assert telemetry.times(Stimulus), "the robot node never published"
-            time.sleep(0.3)
-            yield arm_sim, gripper_sim, telemetry, watch, (tel, cmd)
-        finally:
-            watch.close()
-            telemetry.close()
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+def rig(tmp_path: Path):
+    with RobotUnderCommands(tmp_path) as r:
+        yield r
 
 
-def _rate(times: list[int], t0: int, t1: int) -> float:
-    return len([t for t in times if t0 <= t <= t1]) / ((t1 - t0) / 1e9)
-
-
-def test_a_flood_of_jogs_neither_starves_the_palm_nor_outlives_the_sender(cell):
-    _, _, telemetry, watch, (tel, cmd) = cell
+def test_a_flood_of_jogs_neither_starves_the_palm_nor_outlives_the_sender(rig):
     t0 = now_ns()
     time.sleep(2.0)
-    normal = _rate(telemetry.times(Stimulus), t0, now_ns())
+    normal = rig.stimulus_rate(t0, now_ns())
     assert normal > 0.8 * PUBLISH_HZ, f"the scripted grasp gave only {normal:.0f} stimuli/s"
-
-    mp = multiprocessing.get_context("spawn")
-    parent, child = mp.Pipe(duplex=False)
-    velocity = [0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
-    t_start = now_ns()
-    proc = mp.Process(target=flood, args=(tel, cmd, N_FLOOD, velocity, child), daemon=True)
-    proc.start()
-    assert parent.poll(120), "the flood client never finished"
-    report = parent.recv()
-    proc.join(10)
+    report = rig.flood(N_FLOOD)
     t_first, t_last = report["t_first_ns"], report["t_last_ns"]
     time.sleep(2.5)  # let the backlog in the kernel's and ZeroMQ's queues age out
 
     # the operator's jog moved the arm before the flood: the test can see motion at all
-    assert watch.moving_between(t_start, t_first, above=0.01), "the pre-flood jog never moved"
+    assert rig.arm.moving_between(report["t_start_ns"], t_first, above=0.01), "no pre-flood jog"
     # the arm is still 400 ms after the sender's last send, and stays still
-    late = watch.moving_between(t_last + 400_000_000, now_ns())
+    late = rig.arm.moving_between(t_last + 400_000_000, now_ns())
     assert not late, f"the arm moved {(late[-1] - t_last) / 1e6:.0f} ms after the last send"
     # the palm kept its stimuli while the flood and its backlog were read
-    during = _rate(telemetry.times(Stimulus), t_first, t_last + 2_000_000_000)
+    during = rig.stimulus_rate(t_first, t_last + 2_000_000_000)
     assert during >= 0.9 * normal, f"stimuli at {during / normal:.2f} of normal during the flood"
-    stats = telemetry.robot_stats()
+    stats = rig.telemetry.robot_stats()
     assert stats.get("commands_stale", 0) + stats.get("commands_superseded", 0) > 0
     print(
         f"\nflood: {N_FLOOD} jogs in {(t_last - t_first) / 1e9:.2f} s; stimuli {during:.1f}/s "
-        f"against {normal:.1f}/s; received {stats.get('commands_received', 0):.0f}, "
-        f"stale {stats.get('commands_stale', 0):.0f}, superseded "
-        f"{stats.get('commands_superseded', 0):.0f}, backlog pauses "
-        f"{stats.get('command_backlog_pauses', 0):.0f}"
+        f"against {normal:.1f}/s; counters {stats}"
     )
 
 
-def test_jog_and_stop_repeated_never_stall_the_telemetry(cell):
-    _, _, telemetry, watch, (tel, cmd) = cell
-    import zmq
-
+def test_jog_and_stop_repeated_never_stall_the_telemetry(rig):
+    telemetry, tel, cmd = rig.telemetry, rig.telemetry_endpoint, rig.command_endpoint
     ctx = zmq.Context()
     op = ProtocolOperator(
         Subscriber(ctx, tel, bind=False), Publisher(ctx, cmd, bind=False), session=11
     )
     try:
         op.sync()
+        # the machine's own stalls, with no command in flight: what the command path must not add to
+        i0 = now_ns()
+        op.pump(3.0)
+        i1 = now_ns()
         jogs = [(0.1, 0.0, 0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0, 0.0, 0.5)]
         t0 = now_ns()
         cycles = 0
@@ -228,23 +90,33 @@ def test_jog_and_stop_repeated_never_stall_the_telemetry(cell):
     beats = telemetry.times(Heartbeat, t0, t1)
     stim_gap = max(np.diff(stim)) / 1e6
     beat_gap = max(np.diff(beats)) / 1e6
-    assert watch.moving_between(t0, t1, above=0.01), "the jogs never moved the arm"
-    assert stim_gap <= 2 * 1000 / PUBLISH_HZ, f"a {stim_gap:.1f} ms gap in the stimuli"
-    assert beat_gap <= 70, f"a {beat_gap:.1f} ms gap between heartbeats"
+    idle_stim = max(np.diff(telemetry.times(Stimulus, i0, i1))) / 1e6
+    idle_beat = max(np.diff(telemetry.times(Heartbeat, i0, i1))) / 1e6
+    period = 1000 / PUBLISH_HZ
+    assert rig.arm.moving_between(t0, t1, above=0.01), "the jogs never moved the arm"
+    # two frame periods, or on a machine that stalls the node by itself (a loaded shared VM),
+    # no more than its own stalls plus one period: a blocking stop takes hundreds of ms
+    assert stim_gap <= max(2 * period, idle_stim + period), (
+        f"a {stim_gap:.1f} ms gap in the stimuli (idle: {idle_stim:.1f} ms)"
+    )
+    assert beat_gap <= max(70.0, idle_beat + period), (
+        f"a {beat_gap:.1f} ms gap between heartbeats (idle: {idle_beat:.1f} ms)"
+    )
     assert telemetry.robot_stats().get("deadman_trips", 0) == 0
-    print(f"\n{cycles} jog+stop cycles: stimulus gap {stim_gap:.1f} ms, heartbeat {beat_gap:.1f}")
+    print(
+        f"\n{cycles} jog+stop cycles: stimulus gap {stim_gap:.1f} ms (idle {idle_stim:.1f}), "
+        f"heartbeat gap {beat_gap:.1f} ms (idle {idle_beat:.1f})"
+    )
 
 
-def test_a_replayed_command_is_refused_and_counted(cell):
-    _, gripper_sim, telemetry, _, (tel, cmd) = cell
-    import zmq
-
+def test_a_replayed_command_is_refused_and_counted(rig):
+    telemetry, tel, cmd = rig.telemetry, rig.telemetry_endpoint, rig.command_endpoint
     ctx = zmq.Context()
     op = ProtocolOperator(
         Subscriber(ctx, tel, bind=False), Publisher(ctx, cmd, bind=False), session=21
     )
     replayer = Publisher(ctx, cmd, bind=False)  # a connection of its own
-    model = gripper_sim.model
+    model = rig.gripper_sim.model
 
     def requested() -> int:
         return model.read()["PRE"]

@@ -1,4 +1,4 @@
-"""A command flood from a client written from docs/protocol.md alone (raw pyzmq, msgpack, struct).
+"""A command flood from a client written from docs/protocol.md alone (raw pyzmq and msgpack).
 
 Runs in its own process (``run`` is the process target): it syncs clocks with
 the robot by echoing heartbeats, jogs the arm for a moment as an operator
