@@ -520,7 +520,19 @@ class RobotNode:
                 out[f"{name}_reconnects"] = float(rec.recoveries)
         if self._first_seq is not None:
             out["frames_captured"] = float(self._last_seq - self._first_seq + 1)
+        out.update(self._arm_telemetry())
         return out
+
+    def _arm_telemetry(self) -> dict[str, float]:
+        """The arm's pose, speed and safety state for the operator's dashboard; {} if unreadable."""
+        telemetry = getattr(self.arm, "telemetry", None)
+        if telemetry is None or not self._arm_recovery.available:
+            return {}
+        try:
+            return telemetry()
+        except DeviceError as e:  # a stale or lost controller: the recovery handles it elsewhere
+            log.debug("arm telemetry: %s", e)
+            return {}
 
 
 def _compiled_step_for(classifier: Any, render: Any) -> Any:

@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 
 from common.config import param
+from operator_side.dashboard.jog_config import JogConfig
 
 
 @dataclass
@@ -18,6 +19,9 @@ class DashboardConfig:
     port: int = param(8765, "HTTP and WebSocket port (one port, so one tunnel suffices)")
     max_rate_hz: float = param(
         60.0, "snapshots sampled and pushed per second at most; the stimulus rate is 60 Hz"
+    )
+    jog: JogConfig = param(
+        JogConfig(), "jogging the arm from the page: keyboard, gamepad, 3D mouse"
     )
 
     def __post_init__(self) -> None:
