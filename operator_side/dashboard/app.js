@@ -13,6 +13,7 @@ const dxp = {
   acks: [],
   sendCommand: null,
   jog: null,
+  video: null,
 };
 window.dxp = dxp;
 
@@ -34,9 +35,17 @@ function onMessage(msg) {
     dxp.hello = msg;
     changed.add("all");
     startJogger(msg.jog);
+    if (msg.video) startVideo();
   } else if (msg.type === "state") {
     for (const k of Object.keys(msg)) changed.add(k);
     Object.assign(dxp.state, msg);
+  } else if (msg.type === "video_answer") {
+    if (dxp.video) dxp.video.onAnswer(msg);
+    $("video-source").textContent = `${msg.source}, ${msg.width}x${msg.height} at ${msg.fps} fps`;
+    return;
+  } else if (msg.type === "video_closed") {
+    if (dxp.video) dxp.video.onClosed(msg);
+    return;
   } else if (msg.type === "ack") {
     dxp.acks.push(msg);
     if (dxp.acks.length > 200) dxp.acks.shift();
@@ -422,6 +431,21 @@ function drawArm(arm) {
   $("arm-program").textContent = arm.program_running == null ? "–" : arm.program_running ? "running" : "stopped";
   $("arm-deadman").textContent =
     `${arm.jogging ? "jogging" : "still"} · deadman stops ${arm.deadman_stops} · link trips ${arm.link_deadman_trips}`;
+}
+
+function startVideo() {
+  $("video-panel").hidden = false;
+  const status = (text) => ($("video-status").textContent = text);
+  if (!dxp.video) {
+    dxp.video = new VIDEO.Receiver($("video"), sendArm, status);
+    setInterval(() => {
+      const v = dxp.video;
+      if (v.source !== "test_pattern" || !v.latencies.length) return;
+      const s = v.summary();
+      status(`glass-to-glass p50 ${s.p50} ms, p99 ${s.p99} ms over ${s.stamped} frames`);
+    }, 1000);
+  }
+  dxp.video.start();
 }
 
 function startJogger(cfg) {

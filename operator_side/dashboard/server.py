@@ -12,6 +12,7 @@ so a test or a replay can feed the page with any object that has them.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import math
@@ -30,7 +31,8 @@ from operator_side.renderer import RendererConfig
 
 log = logging.getLogger(__name__)
 
-STATIC_FILES = ("index.html", "app.js", "jog.js", "patterns.js", "style.css")
+STATIC_FILES = ("index.html", "app.js", "jog.js", "video.js", "patterns.js", "style.css")
+VIDEO_ANSWER_TIMEOUT_S = 10.0
 REFRESH_S = 0.25  # ages and counters move even when the stimulus does not
 FULL_STATE_S = 1.0  # a page that missed a push (it lagged) is whole again within this
 GRIP_LEVELS = range(1, 32)
@@ -46,6 +48,7 @@ class _Page:
     jog_at: list[float] = field(default_factory=list)
     jogging: bool = False
     last_jog: float = 0.0
+    video: asyncio.Task | None = None  # the relayed signalling session to the robot
 
 
 class DashboardSource(Protocol):
@@ -79,10 +82,9 @@ class Dashboard:
         if stale_after_ms is None:
             link = getattr(node_config, "link", None)
             stale_after_ms = getattr(link, "stale_after_ms", 150.0)
-        self.hello = json.dumps(
-            hello_view(self.renderer, stale_after_ms, self.config.max_rate_hz, self.config.jog),
-            separators=(",", ":"),
-        )
+        hello = hello_view(self.renderer, stale_after_ms, self.config.max_rate_hz, self.config.jog)
+        hello["video"] = bool(self.config.video_url)
+        self.hello = json.dumps(hello, separators=(",", ":"))
         self.history = LinkHistory()
         self.server = WebServer(
             self.config.host,
@@ -183,6 +185,11 @@ class Dashboard:
         watchdog = asyncio.create_task(self._jog_watchdog(page))
         try:
             async for raw in conn:
+                if self.config.video_url and _is_video_offer(raw):
+                    if page.video is not None:
+                        page.video.cancel()  # the page renegotiates: drop the old session
+                    page.video = asyncio.create_task(self._relay_video(conn, json.loads(raw)))
+                    continue
                 reply = self._on_message(raw, page)
                 if reply is not None:
                     await conn.send(json.dumps(reply, separators=(",", ":")))
@@ -190,9 +197,36 @@ class Dashboard:
             pass
         finally:
             watchdog.cancel()
+            if page.video is not None:
+                page.video.cancel()
             if page.jogging:  # a closed or crashed tab must not leave the arm moving
                 self._stop_arm(page, "page disconnected while jogging")
             log.info("dashboard: page from %s disconnected", peer)
+
+    async def _relay_video(self, conn: ServerConnection, offer: dict[str, Any]) -> None:
+        """Carry the page's WebRTC offer to the robot's video server and its answer back.
+
+        The robot keeps the stream up for as long as this signalling
+        connection lives, so it is held open until the page leaves or
+        renegotiates (the task is cancelled then).
+        """
+        from websockets.asyncio.client import connect
+
+        url = self.config.video_url
+        try:
+            async with connect(url, open_timeout=5, max_size=256 * 1024) as robot:
+                await robot.send(json.dumps({"type": "offer", "sdp": offer.get("sdp")}))
+                answer = json.loads(await asyncio.wait_for(robot.recv(), VIDEO_ANSWER_TIMEOUT_S))
+                await conn.send(json.dumps({**answer, "type": "video_answer"}))
+                await robot.wait_closed()
+            reason = "the robot's video server closed the session"
+        except asyncio.CancelledError:
+            raise
+        except (OSError, TimeoutError, ConnectionClosed, ValueError) as e:
+            reason = f"no video from {url}: {e}"
+            log.warning("dashboard: %s", reason)
+        with contextlib.suppress(ConnectionClosed):
+            await conn.send(json.dumps({"type": "video_closed", "reason": reason}))
 
     async def _jog_watchdog(self, page: _Page) -> None:
         """Stop the arm when a jogging page goes quiet (a hung tab keeps its socket open)."""
@@ -277,6 +311,14 @@ class Dashboard:
         page.jogging, page.last_jog = True, now
         self.jogs_forwarded += 1
         return None
+
+
+def _is_video_offer(raw: str | bytes) -> bool:
+    try:
+        msg = json.loads(raw)
+    except (ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(msg, dict) and msg.get("type") == "video_offer"
 
 
 def cap_twist(velocity: list[float], max_linear: float, max_angular: float) -> tuple[float, ...]:
