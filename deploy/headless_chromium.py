@@ -256,15 +256,19 @@ class Chromium:
 
 
 def main(argv: list[str]) -> int:
-    if not 2 <= len(argv) <= 4:
-        print("usage: headless_chromium.py URL OUT.png [WAIT_S [UNTIL_JS]]", file=sys.stderr)
+    if not 2 <= len(argv) <= 5:
+        print(
+            "usage: headless_chromium.py URL OUT.png [WAIT_S [UNTIL_JS [WIDTHxHEIGHT]]]",
+            file=sys.stderr,
+        )
         return 2
     url, out = argv[0], Path(argv[1])
     wait_s = float(argv[2]) if len(argv) >= 3 else 3.0
-    with Chromium(width=1280, height=760) as browser:
+    width, height = (int(v) for v in argv[4].split("x")) if len(argv) == 5 else (1280, 760)
+    with Chromium(width=width, height=height) as browser:
         browser.navigate(url)
         time.sleep(wait_s)
-        if len(argv) == 4:
+        if len(argv) >= 4 and argv[3]:
             browser.wait_for(argv[3], timeout_s=30)
             time.sleep(0.2)
         browser.screenshot(out)

@@ -15,6 +15,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from deploy.bench.video import markdown as video_markdown
+
 log = logging.getLogger(__name__)
 
 TARGETS = {
@@ -369,6 +371,7 @@ def markdown(results: dict[str, Any], img_dir_rel: str = "img") -> str:
     out += _scale_md(results, img_dir_rel)
     out += _stress_md(results)
     out += _node_cpu_md(results)
+    out += video_markdown(_sec(results, "video"))
     out += _failures_md(results)
     out += _limits_md()
     return "\n".join(out) + "\n"

@@ -21,6 +21,7 @@ SECTIONS = (
     "scale",
     "stress",
     "node_cpu",
+    "video",
 )
 
 
@@ -58,6 +59,7 @@ class Sizes:
     scale_rates: tuple[float, ...]
     scale_measured: bool
     scale_backends: tuple[str | None, ...]
+    video_frames: int = 1200  # glass-to-glass: stamped frames read in the browser (40 s)
 
 
 ALL_BACKENDS = ("numba", "numpy", "onnxruntime", "torchscript", "torch")
@@ -125,6 +127,7 @@ PRESETS: dict[str, Sizes] = {
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=False,
         scale_backends=(None,),
+        video_frames=300,
     ),
     "smallest": Sizes(
         stage_frames=100,
@@ -157,6 +160,7 @@ PRESETS: dict[str, Sizes] = {
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=False,
         scale_backends=(None,),
+        video_frames=30,
     ),
 }
 

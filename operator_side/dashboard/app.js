@@ -376,7 +376,7 @@ function drawArm(arm) {
   const [lo, hi] = arm.workspace_mm;
   const p = arm.pose;
   // top view (x right, y up) on the left, z as a bar on the right
-  const W = cv.width - 70;
+  const W = cv.width - 80;
   const H = cv.height - 30;
   const k = Math.min(W / (hi[0] - lo[0]), H / (hi[1] - lo[1]));
   const ox = 10 + (W - (hi[0] - lo[0]) * k) / 2;
@@ -397,11 +397,12 @@ function drawArm(arm) {
   ctx.rotate(-Math.PI / 2);
   ctx.fillText(`y ${lo[1]}..${hi[1]} →`, 0, 0);
   ctx.restore();
-  const zx = cv.width - 45;
+  const zx = cv.width - 55;
   const ZY = (z) => 10 + (hi[2] - z) / (hi[2] - lo[2]) * H;
   ctx.strokeRect(zx, ZY(hi[2]), 14, H);
-  ctx.fillText(`z ${hi[2]}`, zx - 6, ZY(hi[2]) - 1 + H + 14);
-  ctx.fillText("z", zx + 3, 8);
+  ctx.fillText(`${hi[2]}`, zx + 17, ZY(hi[2]) + 9);
+  ctx.fillText(`${lo[2]}`, zx + 17, ZY(lo[2]));
+  ctx.fillText("z mm", zx - 4, H + 24);
   if (p) {
     const inside = p[0] >= lo[0] && p[0] <= hi[0] && p[1] >= lo[1] && p[1] <= hi[1] && p[2] >= lo[2] && p[2] <= hi[2];
     const colour = inside ? "#c0392b" : "#7d3c98";

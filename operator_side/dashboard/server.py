@@ -37,7 +37,7 @@ REFRESH_S = 0.25  # ages and counters move even when the stimulus does not
 FULL_STATE_S = 1.0  # a page that missed a push (it lagged) is whole again within this
 GRIP_LEVELS = range(1, 32)
 COMMANDS_PER_S = 10  # a stuck key or a buggy page cannot flood the robot's command link
-JOG_WATCHDOG_PERIODS = 4  # a jogging page silent for this many send periods is stopped
+JOG_WATCHDOG_PERIODS = 6  # a jogging page silent this many send periods (200 ms) is stopped
 
 
 @dataclass

@@ -93,8 +93,8 @@ def test_a_page_that_stops_sending_jogs_is_stopped_by_the_watchdog(dashboard):
             assert time.monotonic() < deadline
             time.sleep(0.01)
         stop_t = next(t for t, a, _ in node.commands if a == "arm_stop")
-        # watchdog: four send periods at 30 Hz (133 ms), checked every quarter of that
-        assert 0.1 < stop_t - t_last < 0.3
+        # watchdog: six send periods at 30 Hz (200 ms), checked every quarter of that
+        assert 0.15 < stop_t - t_last < 0.4
 
 
 def test_jog_rate_is_limited_but_stop_never_is(dashboard):
