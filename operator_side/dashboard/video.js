@@ -117,7 +117,10 @@ const VIDEO = (() => {
         this.unreadable++;
         return;
       }
-      if (this.lastCounter !== null) this.skipped += (stamp.counter - this.lastCounter - 1 + 256) % 256;
+      if (this.lastCounter !== null) {
+        const step = (stamp.counter - this.lastCounter + 256) % 256;
+        if (step > 1 && step < 128) this.skipped += step - 1; // 0: shown twice; >= 128: stale
+      }
       this.lastCounter = stamp.counter;
       const latency = (now - stamp.ms + MS_MODULO) % MS_MODULO;
       this.latencies.push(latency);
