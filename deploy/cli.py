@@ -19,6 +19,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("deploy.demo", "run both nodes, simulated devices and the link simulator"),
     "robot": ("robot_side.node_cli", "run the robot node (tactile pads, gripper, arm)"),
     "operator": ("operator_side.node_cli", "run the operator node (LinkGlide)"),
+    "video": ("robot_side.video.cli", "stream a camera from the robot PC to the dashboard"),
     "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
     "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
     "devices": ("deploy.devices_cli", "list, connect to and report a scene's devices"),

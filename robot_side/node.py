@@ -102,6 +102,7 @@ class RobotNode:
         #: what the robot acts on, judged on the operator's clock (command_gate.py)
         self.gate = CommandGate(self.clock, round(config.link.max_command_age_ms * 1e6))
         self._grip_level: int | None = None  # the gripper worker's latest reading
+        self._arm_state: dict[str, float] = {}  # the arm worker's latest reading
         self._first_seq: int | None = None
         self._last_seq = 0
         self._last_capture_seen: tuple[int, int] | None = None
@@ -426,7 +427,12 @@ class RobotNode:
         """A worker per device; on shutdown each finishes with a stop (the arm) or a hold."""
         link = self.config.link
         if self.arm is not None:
-            arm = self._workers["arm"] = DeviceWorker("arm", self._arm_recovery)
+            arm = self._workers["arm"] = DeviceWorker(
+                "arm",
+                self._arm_recovery,
+                idle_poll=self._read_arm_state,
+                idle_poll_s=1.0 / link.heartbeat_rate_hz,
+            )
             stack.callback(arm.close, DeviceRequest("arm_stop", self.arm.stop))
         if self.gripper is not None:
             gripper = self._workers["gripper"] = DeviceWorker(
@@ -436,6 +442,11 @@ class RobotNode:
                 idle_poll_s=1.0 / link.heartbeat_rate_hz,
             )
             stack.callback(gripper.close)
+
+    def _read_arm_state(self) -> None:
+        """The arm worker's poll: pose, speed and safety state for the operator's dashboard."""
+        telemetry = getattr(self.arm, "telemetry", None)
+        self._arm_state = telemetry() if telemetry is not None else {}
 
     def _read_grip_level(self) -> None:
         """The gripper worker's poll: the stimuli carry the grip level without a device call."""
@@ -601,6 +612,7 @@ class RobotNode:
                 out[f"{name}_reconnects"] = float(rec.recoveries)
         if self._first_seq is not None:
             out["frames_captured"] = float(self._last_seq - self._first_seq + 1)
+        out.update(self._arm_state)  # the arm worker's latest reading, for the dashboard
         return out
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from deploy.bench import command_path
+from deploy.bench.video import markdown as video_markdown
 
 log = logging.getLogger(__name__)
 
@@ -372,6 +373,7 @@ def markdown(results: dict[str, Any], img_dir_rel: str = "img") -> str:
     out += _stress_md(results)
     out += _node_cpu_md(results)
     out += command_path.markdown(results)
+    out += video_markdown(_sec(results, "video"))
     out += _failures_md(results)
     out += _limits_md()
     return "\n".join(out) + "\n"

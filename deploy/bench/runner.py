@@ -272,6 +272,13 @@ def _measure(
 
     section("command_path", command_path)
     section("scale", scale)
+
+    def video() -> dict[str, Any]:
+        from deploy.bench.video import glass_to_glass
+
+        return glass_to_glass(sizes.video_frames)
+
+    section("video", video)
     return {
         "generated_by": f"deepxpalm bench{'' if preset == 'full' else ' --size ' + preset}",
         "preset": preset,

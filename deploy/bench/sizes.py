@@ -22,6 +22,7 @@ SECTIONS = (
     "stress",
     "node_cpu",
     "command_path",
+    "video",
 )
 
 
@@ -61,6 +62,7 @@ class Sizes:
     scale_rates: tuple[float, ...]
     scale_measured: bool
     scale_backends: tuple[str | None, ...]
+    video_frames: int = 1200  # glass-to-glass: stamped frames read in the browser (40 s)
 
 
 ALL_BACKENDS = ("numba", "numpy", "onnxruntime", "torchscript", "torch")
@@ -132,6 +134,7 @@ PRESETS: dict[str, Sizes] = {
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=False,
         scale_backends=(None,),
+        video_frames=300,
     ),
     "smallest": Sizes(
         stage_frames=100,
@@ -166,6 +169,7 @@ PRESETS: dict[str, Sizes] = {
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=False,
         scale_backends=(None,),
+        video_frames=30,
     ),
 }
 

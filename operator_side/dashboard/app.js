@@ -9,9 +9,11 @@ const dxp = {
   joints: null,
   connected: false,
   messages: 0,
-  draws: { pads: 0, pattern: 0, stimulus: 0, linkage: 0, chart: 0 },
+  draws: { pads: 0, pattern: 0, stimulus: 0, linkage: 0, chart: 0, arm: 0 },
   acks: [],
   sendCommand: null,
+  jog: null,
+  video: null,
 };
 window.dxp = dxp;
 
@@ -32,11 +34,25 @@ function onMessage(msg) {
   if (msg.type === "hello") {
     dxp.hello = msg;
     changed.add("all");
+    startJogger(msg.jog);
+    if (msg.video) startVideo();
   } else if (msg.type === "state") {
     for (const k of Object.keys(msg)) changed.add(k);
     Object.assign(dxp.state, msg);
+  } else if (msg.type === "video_answer") {
+    if (dxp.video) dxp.video.onAnswer(msg);
+    $("video-source").textContent = `${msg.source}, ${msg.width}x${msg.height} at ${msg.fps} fps`;
+    return;
+  } else if (msg.type === "video_closed") {
+    if (dxp.video) dxp.video.onClosed(msg);
+    return;
   } else if (msg.type === "ack") {
     dxp.acks.push(msg);
+    if (dxp.acks.length > 200) dxp.acks.shift();
+    if (msg.action && msg.action.startsWith("arm")) {
+      if (!msg.ok) $("jog-source").textContent = `refused: ${msg.error}`;
+      return;
+    }
     $("ack").textContent = msg.ok
       ? `sent ${msg.action}${msg.grip_level ? " (level " + msg.grip_level + ")" : ""}`
       : `refused: ${msg.error}`;
@@ -59,6 +75,14 @@ function sendCommand(action, gripLevel) {
 }
 dxp.sendCommand = sendCommand;
 
+// The arm's jog and stop messages; false when the socket is down (the robot's
+// deadman stops a jog that is no longer renewed).
+function sendArm(msg) {
+  if (!socket || !socket.isOpen()) return false;
+  socket.send(msg);
+  return true;
+}
+
 // ------------------------------------------------------------------ drawing
 function draw() {
   drawPending = false;
@@ -75,6 +99,7 @@ function draw() {
   if (all || changed.has("angles")) drawLinkage(s.angles);
   if (all || changed.has("history")) drawChart(s.history);
   if (changed.has("stats")) drawCounters(s.stats);
+  if (all || changed.has("arm")) drawArm(s.arm);
   changed.clear();
 }
 
@@ -332,6 +357,181 @@ function drawCounters(st) {
   $("counters").textContent =
     `received ${f("stimuli_received")} · servo writes ${f("servo_writes")} · ` +
     `lift-offs ${f("lift_offs")} · commands ${f("commands_sent")} · rejected ${f("decode_errors")}`;
+}
+
+// ---------------------------------------------------------------------- arm
+const fmt = (v, d = 1) => (v == null ? "–" : v.toFixed(d));
+
+function drawArm(arm) {
+  const cv = $("workspace");
+  const ctx = cv.getContext("2d");
+  ctx.clearRect(0, 0, cv.width, cv.height);
+  dxp.draws.arm++;
+  if (!arm) {
+    ctx.fillStyle = "#777";
+    ctx.font = "13px sans-serif";
+    ctx.fillText("no arm reported by the robot", 20, cv.height / 2);
+    return;
+  }
+  const [lo, hi] = arm.workspace_mm;
+  const p = arm.pose;
+  // top view (x right, y up) on the left, z as a bar on the right
+  const W = cv.width - 80;
+  const H = cv.height - 30;
+  const k = Math.min(W / (hi[0] - lo[0]), H / (hi[1] - lo[1]));
+  const ox = 10 + (W - (hi[0] - lo[0]) * k) / 2;
+  const oy = 10 + (H - (hi[1] - lo[1]) * k) / 2;
+  const X = (x) => ox + (x - lo[0]) * k;
+  const Y = (y) => oy + (hi[1] - y) * k;
+  ctx.fillStyle = "#f4f7fa";
+  ctx.fillRect(X(lo[0]), Y(hi[1]), (hi[0] - lo[0]) * k, (hi[1] - lo[1]) * k);
+  ctx.strokeStyle = "#2c6e9e";
+  ctx.lineWidth = 1.5;
+  ctx.strokeRect(X(lo[0]), Y(hi[1]), (hi[0] - lo[0]) * k, (hi[1] - lo[1]) * k);
+  ctx.fillStyle = "#555";
+  ctx.font = "11px sans-serif";
+  ctx.textAlign = "left";
+  ctx.fillText(`x ${lo[0]}..${hi[0]} mm →`, X(lo[0]), Y(lo[1]) + 13);
+  ctx.save();
+  ctx.translate(X(lo[0]) - 3, Y(lo[1]));
+  ctx.rotate(-Math.PI / 2);
+  ctx.fillText(`y ${lo[1]}..${hi[1]} →`, 0, 0);
+  ctx.restore();
+  const zx = cv.width - 55;
+  const ZY = (z) => 10 + (hi[2] - z) / (hi[2] - lo[2]) * H;
+  ctx.strokeRect(zx, ZY(hi[2]), 14, H);
+  ctx.fillText(`${hi[2]}`, zx + 17, ZY(hi[2]) + 9);
+  ctx.fillText(`${lo[2]}`, zx + 17, ZY(lo[2]));
+  ctx.fillText("z mm", zx - 4, H + 24);
+  if (p) {
+    const inside = p[0] >= lo[0] && p[0] <= hi[0] && p[1] >= lo[1] && p[1] <= hi[1] && p[2] >= lo[2] && p[2] <= hi[2];
+    const colour = inside ? "#c0392b" : "#7d3c98";
+    // the tool: a dot, with a tick showing its rotation about z
+    const rz = (p[5] * Math.PI) / 180;
+    const [tx, ty] = [X(p[0]), Y(p[1])];
+    ctx.strokeStyle = colour;
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    ctx.moveTo(tx, ty);
+    ctx.lineTo(tx + 14 * Math.cos(rz), ty - 14 * Math.sin(rz));
+    ctx.stroke();
+    ctx.beginPath();
+    ctx.arc(tx, ty, 6, 0, 2 * Math.PI);
+    ctx.fillStyle = colour;
+    ctx.fill();
+    ctx.fillRect(zx - 3, ZY(Math.max(lo[2], Math.min(hi[2], p[2]))) - 2, 20, 4);
+    dxp.tcpPixel = [tx, ty];
+  }
+  $("arm-pose").textContent = p ? `x ${fmt(p[0])}  y ${fmt(p[1])}  z ${fmt(p[2])} mm` : "–";
+  $("arm-rot").textContent = p ? `rx ${fmt(p[3])}  ry ${fmt(p[4])}  rz ${fmt(p[5])}°` : "–";
+  $("arm-speed").textContent =
+    `${fmt(arm.speed_mm_s)} mm/s · ${fmt(arm.angular_deg_s)}°/s (caps ${arm.max_linear_mm_s}, ${arm.max_angular_deg_s})`;
+  const safety = $("arm-safety");
+  safety.textContent = arm.available ? arm.safety ?? "–" : "reconnecting";
+  safety.className = arm.safety === "normal" || arm.safety === "reduced" ? "" : "bad";
+  $("arm-program").textContent = arm.program_running == null ? "–" : arm.program_running ? "running" : "stopped";
+  $("arm-deadman").textContent =
+    `${arm.jogging ? "jogging" : "still"} · deadman stops ${arm.deadman_stops} · link trips ${arm.link_deadman_trips}`;
+}
+
+function startVideo() {
+  $("video-panel").hidden = false;
+  const status = (text) => ($("video-status").textContent = text);
+  if (!dxp.video) {
+    dxp.video = new VIDEO.Receiver($("video"), sendArm, status);
+    setInterval(() => {
+      const v = dxp.video;
+      if (v.source !== "test_pattern" || !v.latencies.length) return;
+      const s = v.summary();
+      status(`glass-to-glass p50 ${s.p50} ms, p99 ${s.p99} ms over ${s.stamped} frames`);
+    }, 1000);
+  }
+  dxp.video.start();
+}
+
+function startJogger(cfg) {
+  if (dxp.jog || !cfg) return;
+  dxp.jog = new JOG.Jogger(cfg, sendArm);
+  const pct = Math.round(cfg.default_speed_scale * 100);
+  $("speed").value = pct;
+  $("speed-out").textContent = `${pct}%`;
+  const keys = Object.entries(cfg.keyboard).map(([k, t]) => `${k} ${t}`).join(" · ");
+  $("key-help").textContent = `keys (hold): ${keys}; Esc stops`;
+  setInterval(showJogState, 200);
+}
+
+function showJogState() {
+  const j = dxp.jog;
+  const pads = (navigator.getGamepads ? [...navigator.getGamepads()] : []).filter((p) => p);
+  $("devices").textContent =
+    (pads.length ? pads.map((p) => `gamepad: ${p.id.slice(0, 24)}`).join(", ") : "no gamepad") +
+    (j.hidDevice ? ` · SpaceMouse: ${j.hidDevice.productName}` : "");
+  const v = j.last.velocity;
+  $("jog-source").textContent = j.last.enabled
+    ? `${j.last.source}: ${(Math.hypot(v[0], v[1], v[2]) * 1000).toFixed(0)} mm/s`
+    : j.latched ? "stopped: release all inputs" : "none (hold to move)";
+  for (const b of document.querySelectorAll(".jog-grid button")) {
+    b.classList.toggle("held", j.buttons.has(b.dataset.twist));
+  }
+}
+
+function stopArm() {
+  if (dxp.jog) {
+    dxp.jog.releaseAll();
+    dxp.jog.stop(true);
+  } else {
+    sendArm({ type: "command", action: "arm_stop" });
+  }
+}
+
+$("arm-stop").addEventListener("click", stopArm);
+$("speed").addEventListener("input", () => {
+  $("speed-out").textContent = `${$("speed").value}%`;
+  if (dxp.jog) dxp.jog.speedScale = Number($("speed").value) / 100;
+});
+for (const b of document.querySelectorAll(".jog-grid button")) {
+  const release = () => dxp.jog && dxp.jog.buttons.delete(b.dataset.twist);
+  b.addEventListener("pointerdown", (e) => {
+    if (!dxp.jog) return;
+    b.setPointerCapture(e.pointerId);
+    dxp.jog.buttons.add(b.dataset.twist);
+  });
+  for (const ev of ["pointerup", "pointercancel", "lostpointercapture"]) b.addEventListener(ev, release);
+}
+window.addEventListener("keydown", (e) => {
+  if (!dxp.jog || e.target.tagName === "INPUT") return;
+  if (e.key === "Escape" || e.key === " ") {
+    e.preventDefault();
+    stopArm();
+    return;
+  }
+  const key = e.key.toLowerCase();
+  if (key in dxp.jog.cfg.keyboard && !e.ctrlKey && !e.metaKey && !e.altKey) dxp.jog.keys.add(key);
+});
+window.addEventListener("keyup", (e) => dxp.jog && dxp.jog.keys.delete(e.key.toLowerCase()));
+// a key released while the window was not focused never sends keyup: release everything
+window.addEventListener("blur", () => dxp.jog && dxp.jog.releaseAll());
+document.addEventListener("visibilitychange", () => document.hidden && dxp.jog && dxp.jog.releaseAll());
+window.addEventListener("pagehide", () => dxp.jog && dxp.jog.releaseAll());
+window.addEventListener("gamepaddisconnected", () => dxp.jog && dxp.jog.tick());
+$("connect-spacemouse").addEventListener("click", async () => {
+  if (!navigator.hid) {
+    $("devices").textContent = "this browser has no WebHID (use Chromium, Chrome or Edge)";
+    return;
+  }
+  const [device] = await navigator.hid.requestDevice({ filters: JOG.HID_FILTERS });
+  if (device) await dxp.jog.connectSpaceMouse(device);
+});
+if (navigator.hid) {
+  // a SpaceMouse allowed once is reconnected without asking again
+  navigator.hid.getDevices().then((devices) => {
+    const known = devices.find((d) => JOG.HID_FILTERS.some((f) => f.vendorId === d.vendorId));
+    const attach = () => (dxp.jog ? dxp.jog.connectSpaceMouse(known) : setTimeout(attach, 200));
+    if (known) attach();
+  });
+  navigator.hid.addEventListener("disconnect", (e) => {
+    if (dxp.jog && e.device === dxp.jog.hidDevice) dxp.jog.spaceMouseLost();
+  });
 }
 
 // ------------------------------------------------------------------ controls

@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 
 from common.config import param
+from operator_side.dashboard.jog_config import JogConfig
 
 
 @dataclass
@@ -19,9 +20,19 @@ class DashboardConfig:
     max_rate_hz: float = param(
         60.0, "snapshots sampled and pushed per second at most; the stimulus rate is 60 Hz"
     )
+    video_url: str = param(
+        "",
+        "the robot's video signalling WebSocket (deepxpalm video), e.g. ws://127.0.0.1:8890/; "
+        "empty: no video panel",
+    )
+    jog: JogConfig = param(
+        JogConfig(), "jogging the arm from the page: keyboard, gamepad, 3D mouse"
+    )
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be 0..65535 (0: any free port), not {self.port}")
+        if self.video_url and not self.video_url.startswith(("ws://", "wss://")):
+            raise ValueError(f"video_url must be a ws:// or wss:// URL, not {self.video_url!r}")
         if not (math.isfinite(self.max_rate_hz) and 0 < self.max_rate_hz <= 240):
             raise ValueError(f"max_rate_hz must be in (0, 240], not {self.max_rate_hz}")

@@ -12,9 +12,12 @@ so a test or a replay can feed the page with any object that has them.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
+import math
 import time
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from websockets.asyncio.server import ServerConnection
@@ -28,11 +31,24 @@ from operator_side.renderer import RendererConfig
 
 log = logging.getLogger(__name__)
 
-STATIC_FILES = ("index.html", "app.js", "patterns.js", "style.css")
+STATIC_FILES = ("index.html", "app.js", "jog.js", "video.js", "patterns.js", "style.css")
+VIDEO_ANSWER_TIMEOUT_S = 10.0
 REFRESH_S = 0.25  # ages and counters move even when the stimulus does not
 FULL_STATE_S = 1.0  # a page that missed a push (it lagged) is whole again within this
 GRIP_LEVELS = range(1, 32)
 COMMANDS_PER_S = 10  # a stuck key or a buggy page cannot flood the robot's command link
+JOG_WATCHDOG_PERIODS = 6  # a jogging page silent this many send periods (200 ms) is stopped
+
+
+@dataclass
+class _Page:
+    """One connected page: its gripper command budget and whether it is jogging the arm."""
+
+    sent_at: list[float] = field(default_factory=list)
+    jog_at: list[float] = field(default_factory=list)
+    jogging: bool = False
+    last_jog: float = 0.0
+    video: asyncio.Task | None = None  # the relayed signalling session to the robot
 
 
 class DashboardSource(Protocol):
@@ -66,10 +82,9 @@ class Dashboard:
         if stale_after_ms is None:
             link = getattr(node_config, "link", None)
             stale_after_ms = getattr(link, "stale_after_ms", 150.0)
-        self.hello = json.dumps(
-            hello_view(self.renderer, stale_after_ms, self.config.max_rate_hz),
-            separators=(",", ":"),
-        )
+        hello = hello_view(self.renderer, stale_after_ms, self.config.max_rate_hz, self.config.jog)
+        hello["video"] = bool(self.config.video_url)
+        self.hello = json.dumps(hello, separators=(",", ":"))
         self.history = LinkHistory()
         self.server = WebServer(
             self.config.host,
@@ -87,6 +102,11 @@ class Dashboard:
         self._last_push = 0.0
         self._last_full = 0.0
         self._latest: dict[str, Any] | None = None
+        jog = self.config.jog
+        self._jog_watchdog_s = max(JOG_WATCHDOG_PERIODS / jog.send_rate_hz, 0.1)
+        self._jogs_per_s = 2 * jog.send_rate_hz  # twice the page's rate: slack for bursts
+        self.jogs_forwarded = 0
+        self.arm_stops = 0
 
     @property
     def url(self) -> str:
@@ -161,17 +181,69 @@ class Dashboard:
             first = {"type": "state", "seq": self._seq, **self._latest}
             first["history"] = self.history.view()
             await conn.send(json.dumps(first, separators=(",", ":")))
-        sent_at: list[float] = []
+        page = _Page()
+        watchdog = asyncio.create_task(self._jog_watchdog(page))
         try:
             async for raw in conn:
-                reply = self._on_message(raw, sent_at)
-                await conn.send(json.dumps(reply, separators=(",", ":")))
+                if self.config.video_url and _is_video_offer(raw):
+                    if page.video is not None:
+                        page.video.cancel()  # the page renegotiates: drop the old session
+                    page.video = asyncio.create_task(self._relay_video(conn, json.loads(raw)))
+                    continue
+                reply = self._on_message(raw, page)
+                if reply is not None:
+                    await conn.send(json.dumps(reply, separators=(",", ":")))
         except ConnectionClosed:
             pass
         finally:
+            watchdog.cancel()
+            if page.video is not None:
+                page.video.cancel()
+            if page.jogging:  # a closed or crashed tab must not leave the arm moving
+                self._stop_arm(page, "page disconnected while jogging")
             log.info("dashboard: page from %s disconnected", peer)
 
-    def _on_message(self, raw: str | bytes, sent_at: list[float]) -> dict[str, Any]:
+    async def _relay_video(self, conn: ServerConnection, offer: dict[str, Any]) -> None:
+        """Carry the page's WebRTC offer to the robot's video server and its answer back.
+
+        The robot keeps the stream up for as long as this signalling
+        connection lives, so it is held open until the page leaves or
+        renegotiates (the task is cancelled then).
+        """
+        from websockets.asyncio.client import connect
+
+        url = self.config.video_url
+        try:
+            async with connect(url, open_timeout=5, max_size=256 * 1024) as robot:
+                await robot.send(json.dumps({"type": "offer", "sdp": offer.get("sdp")}))
+                answer = json.loads(await asyncio.wait_for(robot.recv(), VIDEO_ANSWER_TIMEOUT_S))
+                await conn.send(json.dumps({**answer, "type": "video_answer"}))
+                await robot.wait_closed()
+            reason = "the robot's video server closed the session"
+        except asyncio.CancelledError:
+            raise
+        except (OSError, TimeoutError, ConnectionClosed, ValueError) as e:
+            reason = f"no video from {url}: {e}"
+            log.warning("dashboard: %s", reason)
+        with contextlib.suppress(ConnectionClosed):
+            await conn.send(json.dumps({"type": "video_closed", "reason": reason}))
+
+    async def _jog_watchdog(self, page: _Page) -> None:
+        """Stop the arm when a jogging page goes quiet (a hung tab keeps its socket open)."""
+        period = self._jog_watchdog_s / 4
+        while True:
+            await asyncio.sleep(period)
+            if page.jogging and time.monotonic() - page.last_jog > self._jog_watchdog_s:
+                self._stop_arm(page, "page stopped sending jogs")
+
+    def _stop_arm(self, page: _Page, why: str) -> None:
+        page.jogging = False
+        self.node.send_command("arm_stop")
+        self.arm_stops += 1
+        log.info("dashboard: arm_stop (%s)", why)
+
+    def _on_message(self, raw: str | bytes, page: _Page) -> dict[str, Any] | None:
+        """The reply to one page message; None for a jog that went through (30 a second)."""
         try:
             msg = json.loads(raw)
         except (ValueError, UnicodeDecodeError):
@@ -180,6 +252,12 @@ class Dashboard:
             return {"type": "ack", "ok": False, "error": "expected a command"}
         action = msg.get("action")
         now = time.monotonic()
+        if action == "arm_stop":  # never rate-limited: stopping must always get through
+            self._stop_arm(page, "asked by the page")
+            return {"type": "ack", "ok": True, "action": action}
+        if action == "arm_jog":
+            return self._on_jog(msg, page, now)
+        sent_at = page.sent_at
         sent_at[:] = [t for t in sent_at if now - t < 1.0]
         if len(sent_at) >= COMMANDS_PER_S:
             return {"type": "ack", "ok": False, "action": action, "error": "too many commands"}
@@ -201,3 +279,53 @@ class Dashboard:
         sent_at.append(now)
         log.info("dashboard: %s%s", action, "" if level is None else f" (grip level {level})")
         return {"type": "ack", "ok": True, "action": action, "grip_level": level}
+
+    def _on_jog(self, msg: dict[str, Any], page: _Page, now: float) -> dict[str, Any] | None:
+        velocity = msg.get("velocity")
+        if (
+            not isinstance(velocity, list)
+            or len(velocity) != 6
+            or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                for v in velocity
+            )
+        ):
+            return {
+                "type": "ack",
+                "ok": False,
+                "action": "arm_jog",
+                "error": "velocity must be 6 finite numbers (m/s, rad/s)",
+            }
+        page.jog_at[:] = [t for t in page.jog_at if now - t < 1.0]
+        if len(page.jog_at) >= self._jogs_per_s:
+            return {"type": "ack", "ok": False, "action": "arm_jog", "error": "too many jogs"}
+        page.jog_at.append(now)
+        twist = cap_twist(
+            velocity, self.config.jog.max_linear_speed_m_s, self.config.jog.max_angular_speed_rad_s
+        )
+        if not any(twist):
+            if page.jogging:
+                self._stop_arm(page, "zero jog")
+            return None
+        self.node.send_command("arm_jog", velocity=twist)
+        page.jogging, page.last_jog = True, now
+        self.jogs_forwarded += 1
+        return None
+
+
+def _is_video_offer(raw: str | bytes) -> bool:
+    try:
+        msg = json.loads(raw)
+    except (ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(msg, dict) and msg.get("type") == "video_offer"
+
+
+def cap_twist(velocity: list[float], max_linear: float, max_angular: float) -> tuple[float, ...]:
+    """Scale the linear and angular parts (direction kept) to the operator's caps."""
+    out = [float(v) for v in velocity]
+    for part, cap in ((slice(0, 3), max_linear), (slice(3, 6), max_angular)):
+        norm = math.sqrt(sum(v * v for v in out[part]))
+        if norm > cap:
+            out[part] = [v * cap / norm for v in out[part]]
+    return tuple(out)

@@ -13,14 +13,24 @@ from typing import Any
 
 import numpy as np
 
+from common.config import to_dict
 from common.patterns import MASKS, N_PATTERNS, pattern_name
+from operator_side.dashboard.jog_config import JogConfig
 from operator_side.node import Snapshot
 from operator_side.renderer import RendererConfig
 
 # Fields whose change is worth a push; age and counters ride along with them
 # or with the periodic refresh, or the page would be pushed at the full rate
 # even while nothing it draws moves.
-CONTENT_KEYS = ("link_state", "stimulus", "pattern", "confidence", "grip_level", "counts")
+CONTENT_KEYS = (
+    "link_state",
+    "stimulus",
+    "pattern",
+    "confidence",
+    "grip_level",
+    "counts",
+    "arm",
+)
 STATS_SHOWN = (
     "stimuli_received",
     "servo_writes",
@@ -62,13 +72,72 @@ def snapshot_view(snap: Snapshot) -> dict[str, Any]:
         "angles": _round(snap.goal_angles, 5),
         "counts": [int(c) for c in np.asarray(snap.goal_counts).reshape(-1)],
         "stats": {k: _finite(snap.stats.get(k), 2) for k in STATS_SHOWN if k in snap.stats},
+        "arm": arm_view(snap.robot_stats),
     }
 
 
-def hello_view(renderer: RendererConfig, stale_after_ms: float, max_rate_hz: float) -> dict:
+POSE_KEYS = ("arm_x", "arm_y", "arm_z", "arm_rx", "arm_ry", "arm_rz")
+SAFETY_MODES = {
+    1: "normal",
+    2: "reduced",
+    3: "protective stop",
+    4: "recovery",
+    5: "safeguard stop",
+    6: "system emergency stop",
+    7: "robot emergency stop",
+    8: "violation",
+    9: "fault",
+}
+
+
+def arm_view(robot_stats: dict[str, float]) -> dict[str, Any] | None:
+    """The arm as the robot's latest heartbeat reported it; None when it reports no arm.
+
+    Pose in millimetres and degrees (rotation vector), rounded to what a
+    person reads; the workspace box and speed caps are the robot's own.
+    """
+    r = robot_stats
+    if "arm_ws_min_x" not in r:
+        return None
+    pose = None
+    if all(k in r for k in POSE_KEYS):
+        pose = [round(r[k] * 1000, 1) for k in POSE_KEYS[:3]] + [
+            round(math.degrees(r[k]), 1) for k in POSE_KEYS[3:]
+        ]
+    safety = r.get("arm_safety_mode")
+    return {
+        "pose": pose,
+        "speed_mm_s": None if "arm_speed_m_s" not in r else round(r["arm_speed_m_s"] * 1000, 1),
+        "angular_deg_s": None
+        if "arm_angular_speed_rad_s" not in r
+        else round(math.degrees(r["arm_angular_speed_rad_s"]), 1),
+        "safety": None if safety is None else SAFETY_MODES.get(int(safety), f"mode {int(safety)}"),
+        "program_running": None
+        if "arm_program_running" not in r
+        else bool(r["arm_program_running"]),
+        "jogging": bool(r.get("arm_jogging", 0)),
+        "deadman_stops": int(r.get("arm_deadman_stops", 0)),
+        "link_deadman_trips": int(r.get("deadman_trips", 0)),
+        "available": bool(r.get("arm_available", 1)),
+        "workspace_mm": [
+            [round(r[f"arm_ws_min_{a}"] * 1000, 1) for a in "xyz"],
+            [round(r[f"arm_ws_max_{a}"] * 1000, 1) for a in "xyz"],
+        ],
+        "max_linear_mm_s": round(r.get("arm_max_linear_m_s", 0.0) * 1000, 1),
+        "max_angular_deg_s": round(math.degrees(r.get("arm_max_angular_rad_s", 0.0)), 1),
+    }
+
+
+def hello_view(
+    renderer: RendererConfig,
+    stale_after_ms: float,
+    max_rate_hz: float,
+    jog: JogConfig | None = None,
+) -> dict:
     """Sent once per connection: what the page needs to draw but never changes."""
     g, c = renderer.geometry, renderer.contact
     return {
+        "jog": to_dict(jog or JogConfig()),
         "type": "hello",
         "geometry": {"l1": g.l1, "l2": g.l2, "l3": g.l3, "l4": g.l4, "l5": g.l5},
         "contact": {

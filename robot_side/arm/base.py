@@ -32,6 +32,10 @@ from common.errors import ConfigError, DeviceError, DeviceTimeoutError
 log = logging.getLogger(__name__)
 
 
+#: Heartbeat stats keys of the TCP pose (metres, rotation vector in radians).
+TELEMETRY_POSE_KEYS = ("arm_x", "arm_y", "arm_z", "arm_rx", "arm_ry", "arm_rz")
+
+
 class WorkspaceLimitError(DeviceError):
     """A move target lies outside the configured workspace box."""
 
@@ -274,6 +278,29 @@ class Arm(Device):
                 out["joints"] = np.round(self.joint_positions(), 5).tolist()
             except DeviceError as e:
                 out["error"] = str(e)
+        return out
+
+    def telemetry(self) -> dict[str, float]:
+        """What the operator's dashboard shows, as flat numbers for the heartbeat's stats.
+
+        The TCP pose, whether a jog is live and how often the deadman stopped
+        one, and the safety envelope (workspace box, speed caps) so the
+        operator draws the box the robot actually enforces. Drivers add what
+        their controller reports (speed, safety mode, program state).
+        """
+        lim = self.limits
+        out = {
+            "arm_jogging": float(self._jog_until is not None),
+            "arm_deadman_stops": float(self._deadman_stops),
+            "arm_max_linear_m_s": lim.max_linear_speed_m_s,
+            "arm_max_angular_rad_s": lim.max_angular_speed_rad_s,
+        }
+        for axis, lo, hi in zip("xyz", lim.workspace_min, lim.workspace_max, strict=True):
+            out[f"arm_ws_min_{axis}"] = float(lo)
+            out[f"arm_ws_max_{axis}"] = float(hi)
+        if self.is_connected:
+            pose = self._read_tcp_pose()
+            out.update(zip(TELEMETRY_POSE_KEYS, (float(v) for v in pose), strict=True))
         return out
 
     # -- deadman -----------------------------------------------------------

@@ -427,6 +427,19 @@ class URArm(Arm):
         if errors:
             raise errors[0]
 
+    def telemetry(self) -> dict[str, float]:
+        """Adds the controller's TCP speed, safety mode and program state (RTDE cache reads)."""
+        out = super().telemetry()
+        if self.is_connected:
+            recv = self._fresh()
+            speed = np.asarray(recv.getActualTCPSpeed(), dtype=float)
+            out["arm_speed_m_s"] = float(np.linalg.norm(speed[:3]))
+            out["arm_angular_speed_rad_s"] = float(np.linalg.norm(speed[3:]))
+            out["arm_safety_mode"] = float(int(recv.getSafetyMode()))
+            # robot_status_bits: bit 1 is "program running" (the control script)
+            out["arm_program_running"] = float(bool(int(recv.getRobotStatus()) & 2))
+        return out
+
     def status(self) -> dict[str, Any]:
         out = super().status()
         out.update(host=self.config.host, stale_events=self._stale_events)

@@ -1,0 +1,261 @@
+"""Streams one video source to every browser that asks, over WebRTC (aiortc).
+
+Signalling is one WebSocket per viewer: the viewer (the operator's
+dashboard server, relaying its page) sends ``{"type": "offer", "sdp": ...}``
+and gets ``{"type": "answer", "sdp": ..., "source": ..., "width": ...,
+"height": ...}`` back; the peer connection lives as long as that WebSocket,
+so a closed tab or a lost dashboard ends it. Media then flows straight from
+this process to the browser (SRTP over UDP, VP8, congestion-controlled by
+the browser's REMB feedback).
+
+The source is shared through a relay: it is opened when the first viewer's
+encoder asks for a frame and closed when the last viewer leaves, so
+nothing is captured or encoded for nobody.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import json
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from fractions import Fraction
+from typing import Any
+
+from common.config import param
+from common.errors import ConfigError
+from robot_side.video.source import VideoSource
+from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
+from robot_side.video.v4l2 import V4L2Config, V4L2Source
+
+log = logging.getLogger(__name__)
+
+VIDEO_CLOCK = 90_000  # RTP's video clock rate
+OFFER_TIMEOUT_S = 10.0
+
+
+@dataclass
+class VideoConfig:
+    host: str = param(
+        "127.0.0.1", "signalling address; the operator's dashboard connects here (tunnel or VPN)"
+    )
+    port: int = param(8890, "signalling WebSocket port (media uses UDP ports ICE picks)")
+    source: str = param("test_pattern", "which camera: test_pattern, v4l2, or a registered kind")
+    max_viewers: int = param(4, "peer connections at once; each costs an encoder")
+    test_pattern: TestPatternConfig = param(TestPatternConfig(), "the stamped test picture")
+    v4l2: V4L2Config = param(V4L2Config(), "a USB camera on the robot PC")
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"video port must be 0..65535, not {self.port}")
+        if self.max_viewers < 1:
+            raise ValueError("video max_viewers must be at least 1")
+
+
+#: source kind -> factory from the video config; a simulated lab registers its camera here
+SOURCE_KINDS: dict[str, Callable[[VideoConfig], VideoSource]] = {
+    "test_pattern": lambda c: TestPatternSource(c.test_pattern),
+    "v4l2": lambda c: V4L2Source(c.v4l2),
+}
+
+
+def register_source(kind: str, factory: Callable[[VideoConfig], VideoSource]) -> None:
+    """Make ``source = kind`` available in the video config (a simulated lab's camera)."""
+    SOURCE_KINDS[kind] = factory
+
+
+def build_source(config: VideoConfig) -> VideoSource:
+    try:
+        factory = SOURCE_KINDS[config.source]
+    except KeyError:
+        raise ConfigError(
+            f"video source {config.source!r} is not one of {sorted(SOURCE_KINDS)}"
+        ) from None
+    return factory(config)
+
+
+def _source_track(source: VideoSource) -> Any:
+    """An aiortc track that opens ``source`` on its first frame and closes it on ``stop``."""
+    import av
+    from aiortc import MediaStreamTrack
+    from aiortc.mediastreams import MediaStreamError
+
+    class SourceTrack(MediaStreamTrack):
+        kind = "video"
+
+        def __init__(self) -> None:
+            super().__init__()
+            self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="video-cap")
+            self._open = False
+            self._t0: int | None = None
+            self.frames = 0
+
+        async def recv(self) -> av.VideoFrame:
+            if self.readyState != "live":
+                raise MediaStreamError  # the relay's reader ends quietly
+            loop = asyncio.get_running_loop()
+            try:
+                if not self._open:
+                    await loop.run_in_executor(self._pool, source.open)
+                    self._open = True
+                    log.info("video: %s opened for a viewer", source.name)
+                frame = await loop.run_in_executor(self._pool, source.capture)
+            except RuntimeError:  # stopped meanwhile: the pool no longer takes work
+                raise MediaStreamError from None
+            if self._t0 is None:
+                self._t0 = frame.capture_ns
+            out = av.VideoFrame.from_ndarray(frame.rgb, format="rgb24")
+            out.pts = (frame.capture_ns - self._t0) * VIDEO_CLOCK // 1_000_000_000
+            out.time_base = Fraction(1, VIDEO_CLOCK)
+            self.frames += 1
+            return out
+
+        def stop(self) -> None:
+            super().stop()
+            if self._open:
+                self._open = False
+                self._pool.submit(source.close)
+                log.info("video: %s closed (no viewers)", source.name)
+            self._pool.shutdown(wait=False)
+
+    return SourceTrack()
+
+
+class VideoServer:
+    """Answers WebRTC offers on a WebSocket and streams ``source``; ``start()`` / ``stop()``."""
+
+    def __init__(self, source: VideoSource, config: VideoConfig | None = None) -> None:
+        self.source = source
+        self.config = config or VideoConfig()
+        self.port = self.config.port
+        self.viewers = 0
+        self.sessions = 0
+        self._track: Any = None
+        self._relay: Any = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._thread: threading.Thread | None = None
+        self._started = threading.Event()
+        self._error: BaseException | None = None
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self.config.host}:{self.port}/"
+
+    def start(self, timeout_s: float = 10.0) -> VideoServer:
+        self._thread = threading.Thread(target=self._run, name="video-server", daemon=True)
+        self._thread.start()
+        if not self._started.wait(timeout_s) or self._error is not None:
+            raise ConfigError(
+                f"video: cannot serve on {self.config.host}:{self.config.port}: {self._error} "
+                "(is another program using the port?)"
+            )
+        log.info("video signalling at %s, source %s", self.url, self.source.name)
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        if self._loop is not None and self._stop is not None:
+            self._loop.call_soon_threadsafe(self._stop.set)
+        thread.join(timeout_s)
+
+    def __enter__(self) -> VideoServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def frames_encoded(self) -> int:
+        """Frames taken from the source by the current track (0 while nobody watches)."""
+        return 0 if self._track is None else self._track.frames
+
+    # ------------------------------------------------------------ internals
+    def _run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as e:
+            if not self._started.is_set():
+                self._error = e
+                self._started.set()
+            else:
+                log.exception("video server stopped on an error")
+
+    async def _main(self) -> None:
+        from aiortc.contrib.media import MediaRelay
+        from websockets.asyncio.server import serve
+
+        self._loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        self._relay = MediaRelay()
+        async with serve(
+            self._session, self.config.host, self.config.port, max_size=256 * 1024
+        ) as server:
+            self.port = server.sockets[0].getsockname()[1]
+            self._started.set()
+            await self._stop.wait()
+            for conn in list(server.connections):
+                await conn.close(1001, "video server stopping")
+        if self._track is not None:
+            self._track.stop()
+
+    async def _session(self, conn: Any) -> None:
+        from aiortc import RTCPeerConnection, RTCSessionDescription
+
+        if self.viewers >= self.config.max_viewers:
+            await conn.close(1013, f"at most {self.config.max_viewers} viewers")
+            return
+        try:
+            offer = json.loads(await asyncio.wait_for(conn.recv(), OFFER_TIMEOUT_S))
+            sdp = offer["sdp"]
+            if offer.get("type") != "offer" or not isinstance(sdp, str):
+                raise ValueError("expected {type: offer, sdp}")
+        except (TimeoutError, ValueError, KeyError, TypeError) as e:
+            await conn.close(1008, f"bad offer: {e}"[:120])
+            return
+        pc = RTCPeerConnection()
+        closed = asyncio.Event()
+
+        @pc.on("connectionstatechange")
+        async def _state() -> None:
+            log.info("video: viewer %s", pc.connectionState)
+            if pc.connectionState in ("failed", "closed"):
+                closed.set()
+
+        self.viewers += 1
+        self.sessions += 1
+        try:
+            if self._track is None:
+                self._track = _source_track(self.source)
+            pc.addTrack(self._relay.subscribe(self._track, buffered=False))
+            await pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="offer"))
+            await pc.setLocalDescription(await pc.createAnswer())
+            await conn.send(
+                json.dumps(
+                    {
+                        "type": "answer",
+                        "sdp": pc.localDescription.sdp,
+                        "source": self.source.name,
+                        "width": self.source.width,
+                        "height": self.source.height,
+                        "fps": self.source.fps,
+                    }
+                )
+            )
+            gone = asyncio.create_task(conn.wait_closed())
+            failed = asyncio.create_task(closed.wait())
+            await asyncio.wait({gone, failed}, return_when=asyncio.FIRST_COMPLETED)
+            gone.cancel()
+            failed.cancel()
+        finally:
+            await pc.close()
+            self.viewers -= 1
+            if self.viewers == 0 and self._track is not None:
+                self._track.stop()
+                self._track = None
+            await conn.close()

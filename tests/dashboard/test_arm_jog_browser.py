@@ -1,0 +1,218 @@
+"""Jogging the simulated arm from the dashboard in headless chromium, with injected devices.
+
+The whole path runs for real: the page reads an injected gamepad (its
+``navigator.getGamepads`` replaced) or raw SpaceMouse HID reports (fed to
+the same handler a WebHID device's ``inputreport`` events reach), shapes
+them, and sends jogs over its WebSocket; the dashboard server hands them to
+the operator node's command sender; the robot node applies them through the
+arm interface's clipping and deadman to ur-rtde, which drives the UR
+simulator. Motion and standstill are read from the simulator itself.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+from headless_chromium import Chromium, chromium_path
+from tests_support import free_ports
+
+from operator_side.config import OperatorConfig
+from operator_side.dashboard import Dashboard, DashboardConfig
+from operator_side.node import OperatorNode
+from operator_side.servos.recording import RecordingServoBus
+from robot_side.arm.sim import SimulatedArm
+from robot_side.config import RobotConfig
+from robot_side.node import RobotNode
+from robot_side.tactile.scripted import ScriptedTactileSensor
+
+pytestmark = [
+    pytest.mark.timeout(120),
+    pytest.mark.skipif(
+        chromium_path() is None and not os.environ.get("CI"),
+        reason="chromium is not installed: run scripts/install-test-browser.sh (required in CI)",
+    ),
+]
+
+STOP_WITHIN_S = 0.4
+STILL_M_S = 1e-4  # the simulator reports exactly zero at standstill; allow rounding
+SPEED_SCALE = 0.3  # the page's default: 30 % of the operator's 0.10 m/s cap
+
+PAD = """
+(() => {
+  const pad = { index: 0, id: "injected test pad", connected: true, mapping: "standard",
+    axes: [0, 0, 0, 0],
+    buttons: Array.from({ length: 17 }, () => ({ pressed: false, touched: false, value: 0 })) };
+  window.__pad = pad;
+  Object.defineProperty(navigator, "getGamepads",
+    { configurable: true, value: () => [window.__pad] });
+  return true;
+})()
+"""
+
+
+def hid(report_id: int, values: list[int], fmt: str = "<6h") -> str:
+    """JS that feeds one raw SpaceMouse report to the page's WebHID handler."""
+    import struct
+
+    raw = list(struct.pack(fmt, *values))
+    return f"dxp.jog.hidReport({report_id}, new Uint8Array({json.dumps(raw)}))"
+
+
+@pytest.fixture(scope="module")
+def station():
+    tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_ports(2))
+    rc = RobotConfig()
+    rc.render.mode = "mask_ground_truth"  # no classifier needed: this test is about the arm
+    rc.link.telemetry_endpoint, rc.link.command_endpoint = tel, cmd
+    arm = SimulatedArm()
+    robot = RobotNode(rc, ScriptedTactileSensor(), arm=arm)
+    oc = OperatorConfig()
+    oc.link.telemetry_endpoint, oc.link.command_endpoint = tel, cmd
+    operator = OperatorNode(oc, RecordingServoBus())
+    stop = threading.Event()
+    threads = [
+        threading.Thread(target=robot.run, args=(stop,), daemon=True),
+        threading.Thread(target=operator.run, args=(stop,), daemon=True),
+    ]
+    for t in threads:
+        t.start()
+    dashboard = Dashboard(operator, DashboardConfig(enabled=True, port=0))
+    dashboard.start()
+    try:
+        deadline = time.monotonic() + 30
+        while arm.sim is None or not arm.is_connected:
+            assert time.monotonic() < deadline, "the simulated arm did not connect"
+            time.sleep(0.05)
+        yield arm, dashboard
+    finally:
+        dashboard.stop()
+        stop.set()
+        for t in threads:
+            t.join(timeout=10)
+        assert not any(t.is_alive() for t in threads), "a node did not stop"
+
+
+@pytest.fixture
+def page(station):
+    arm, dashboard = station
+    with Chromium(width=1280, height=1000) as browser:
+        browser.navigate(dashboard.url)
+        browser.wait_for("dxp.jog !== null && dxp.state.arm && dxp.state.arm.pose", 20)
+        yield browser, arm
+        assert browser.page_errors() == []
+
+
+def speed(arm: SimulatedArm) -> float:
+    return float(np.linalg.norm(arm.sim.tcp_speed()[:3]))
+
+
+def wait_still(arm: SimulatedArm, timeout_s: float = 3.0) -> float:
+    """Seconds until the simulator's TCP is at standstill (printed: pytest -s shows them)."""
+    t0 = time.monotonic()
+    while speed(arm) > STILL_M_S or np.linalg.norm(arm.sim.tcp_speed()[3:]) > 1e-3:
+        assert time.monotonic() - t0 < timeout_s, "the arm never stopped"
+        time.sleep(0.005)
+    took = time.monotonic() - t0
+    print(f"standstill after {took * 1000:.0f} ms")
+    return took
+
+
+def move_for(arm: SimulatedArm, seconds: float) -> tuple[np.ndarray, float]:
+    """(pose change, top linear speed) over ``seconds`` of an already commanded jog."""
+    start = arm.sim.tcp_pose()
+    top = 0.0
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        top = max(top, speed(arm))
+        time.sleep(0.02)
+    return arm.sim.tcp_pose() - start, top
+
+
+def test_gamepad_moves_the_arm_only_while_enable_is_held_and_stops_on_release(page):
+    browser, arm = page
+    wait_still(arm)
+    browser.evaluate(PAD)
+    # stick pushed forward, enable not held: nothing may move
+    browser.evaluate("window.__pad.axes[1] = -1.0")
+    delta, top = move_for(arm, 0.4)
+    assert top < STILL_M_S and np.linalg.norm(delta[:3]) < 1e-4
+    # enable held: +x at the speed scale, nothing else
+    browser.evaluate("window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }")
+    browser.wait_until("dxp.jog.moving", bool)
+    delta, top = move_for(arm, 1.0)
+    assert delta[0] > 0.015, delta
+    assert abs(delta[1]) < 0.1 * delta[0] and abs(delta[2]) < 0.1 * delta[0], delta
+    assert top <= SPEED_SCALE * 0.10 * 1.02, top  # within the scaled cap
+    assert top > SPEED_SCALE * 0.10 * 0.8, top  # and really at it
+    # the page shows the arm moving where the simulator has it
+    shown = browser.evaluate("dxp.state.arm.pose[0]")
+    assert abs(shown / 1000 - arm.sim.tcp_pose()[0]) < 0.01
+    # release: standstill within 400 ms
+    browser.evaluate("window.__pad.buttons[5] = { pressed: false, touched: false, value: 0 }")
+    t_release = time.monotonic()
+    wait_still(arm)
+    assert time.monotonic() - t_release < STOP_WITHIN_S
+    # wrist rotation from the right stick
+    browser.evaluate("window.__pad.axes[1] = 0; window.__pad.axes[2] = -1.0")
+    browser.evaluate("window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }")
+    browser.wait_until("dxp.jog.moving", bool)
+    top_w, top_v = 0.0, 0.0
+    t_end = time.monotonic() + 0.6
+    while time.monotonic() < t_end:
+        w = arm.sim.tcp_speed()
+        top_w, top_v = max(top_w, w[5]), max(top_v, float(np.linalg.norm(w[:3])))
+        time.sleep(0.02)
+    assert SPEED_SCALE * 0.5 * 0.8 < top_w <= SPEED_SCALE * 0.5 * 1.02, top_w  # +wz, scaled
+    assert top_v < 1e-3, top_v  # the wrist turns, the TCP stays put
+    browser.evaluate("window.__pad.buttons[5] = { pressed: false, touched: false, value: 0 }")
+    t_release = time.monotonic()
+    wait_still(arm)
+    assert time.monotonic() - t_release < STOP_WITHIN_S
+
+
+def test_spacemouse_reports_move_the_arm_and_its_button_release_stops_it(page):
+    browser, arm = page
+    wait_still(arm)
+    # a newer SpaceMouse: one 12-byte report, cap pushed away (ty -350) and lifted (tz -350)
+    browser.evaluate(hid(1, [0, -350, -350, 0, 0, 0]))
+    delta, top = move_for(arm, 0.3)
+    assert top < STILL_M_S, "moved without the enable button"
+    browser.evaluate(hid(3, [1], "<B"))  # left button down
+    browser.wait_until("dxp.jog.moving", bool)
+    delta, top = move_for(arm, 1.0)
+    assert delta[0] > 0.01 and delta[2] > 0.01, delta  # +x and +z
+    assert abs(delta[1]) < 0.1 * delta[0], delta
+    assert top <= SPEED_SCALE * 0.10 * 1.02, top  # the scale caps the combined speed
+    browser.evaluate(hid(3, [0], "<B"))
+    t_release = time.monotonic()
+    wait_still(arm)
+    assert time.monotonic() - t_release < STOP_WITHIN_S
+    browser.evaluate(hid(1, [0, 0, 0, 0, 0, 0]))
+
+
+def test_closing_the_tab_stops_the_arm(station):
+    arm, dashboard = station
+    with Chromium(width=1280, height=1000) as browser:
+        browser.navigate(dashboard.url)
+        browser.wait_for("dxp.jog !== null && dxp.state.arm && dxp.state.arm.pose", 20)
+        wait_still(arm)
+        browser.evaluate(PAD)
+        browser.evaluate(
+            "window.__pad.axes[0] = 1.0;"  # stick right: -y
+            "window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }"
+        )
+        browser.wait_until("dxp.jog.moving", bool)
+        # moving -y at speed (a starved simulator makes the driver refuse jogs for a while)
+        deadline = time.monotonic() + 5
+        while arm.sim.tcp_speed()[1] > -0.8 * SPEED_SCALE * 0.10:
+            assert time.monotonic() < deadline, arm.sim.tcp_speed()
+            time.sleep(0.01)
+        browser.ws.send(json.dumps({"id": 10**6, "method": "Page.close", "params": {}}))
+        t_close = time.monotonic()
+        wait_still(arm)
+        assert time.monotonic() - t_close < STOP_WITHIN_S

@@ -1,0 +1,178 @@
+"""Arm jogs through the dashboard server, no browser: caps, checks, and every way a page stops."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_dashboard_server import FakeNode, _next, _ws_url
+from websockets.sync.client import connect
+
+from common.config import from_dict
+from common.errors import ConfigError
+from operator_side.dashboard import Dashboard, DashboardConfig
+from operator_side.dashboard.jog_config import JogConfig, parse_mapping
+from operator_side.dashboard.server import cap_twist
+from operator_side.dashboard.view import arm_view
+
+pytestmark = pytest.mark.timeout(30)
+
+
+class JogNode(FakeNode):
+    def send_command(self, action, grip_level=None, velocity=None) -> None:
+        self.commands.append((time.monotonic(), action, velocity))
+
+    def actions(self) -> list[str]:
+        return [a for _, a, _ in self.commands]
+
+
+@pytest.fixture
+def dashboard():
+    node = JogNode()
+    d = Dashboard(node, DashboardConfig(port=0))
+    d.start()
+    try:
+        yield node, d
+    finally:
+        d.stop()
+
+
+def _jog(ws, velocity) -> None:
+    ws.send(json.dumps({"type": "command", "action": "arm_jog", "velocity": velocity}))
+
+
+def test_jogs_are_capped_and_forwarded_and_bad_ones_refused(dashboard):
+    node, d = dashboard
+    with connect(_ws_url(d)) as ws:
+        hello = _next(ws, "hello")
+        assert hello["jog"]["gamepad"]["enable_button"] == 5
+        _jog(ws, [1.0, 0, 0, 0, 0, 3.0])  # far over the caps
+        for bad in ([0, 0, 0], [0, 0, 0, 0, 0, float("nan")], "fast", [True] * 6):
+            ws.send(
+                json.dumps({"type": "command", "action": "arm_jog", "velocity": bad}).replace(
+                    "NaN", "1e999"
+                )
+            )
+            ack = _next(ws, "ack")
+            assert not ack["ok"] and "velocity" in ack["error"]
+        ws.send(json.dumps({"type": "command", "action": "arm_stop"}))
+        assert _next(ws, "ack")["ok"]
+    first = node.commands[0]
+    assert first[1] == "arm_jog"
+    assert first[2] == pytest.approx((0.10, 0, 0, 0, 0, 0.5))
+    assert node.actions() == ["arm_jog", "arm_stop"]
+
+
+def test_a_closed_page_that_was_jogging_stops_the_arm(dashboard):
+    node, d = dashboard
+    with connect(_ws_url(d)) as ws:
+        _next(ws, "hello")
+        _jog(ws, [0.02, 0, 0, 0, 0, 0])
+        time.sleep(0.05)
+    t_closed = time.monotonic()
+    deadline = t_closed + 2
+    while "arm_stop" not in node.actions():
+        assert time.monotonic() < deadline, node.actions()
+        time.sleep(0.01)
+    stop_t = next(t for t, a, _ in node.commands if a == "arm_stop")
+    assert stop_t - t_closed < 0.2
+
+
+def test_a_page_that_stops_sending_jogs_is_stopped_by_the_watchdog(dashboard):
+    node, d = dashboard
+    with connect(_ws_url(d)) as ws:
+        _next(ws, "hello")
+        _jog(ws, [0.02, 0, 0, 0, 0, 0])
+        t_last = time.monotonic()
+        deadline = t_last + 2
+        while "arm_stop" not in node.actions():  # the socket stays open, the page is silent
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        stop_t = next(t for t, a, _ in node.commands if a == "arm_stop")
+        # watchdog: six send periods at 30 Hz (200 ms), checked every quarter of that
+        assert 0.15 < stop_t - t_last < 0.4
+
+
+def test_jog_rate_is_limited_but_stop_never_is(dashboard):
+    node, d = dashboard
+    with connect(_ws_url(d)) as ws:
+        _next(ws, "hello")
+        for _ in range(100):
+            _jog(ws, [0.01, 0, 0, 0, 0, 0])
+        for _ in range(20):
+            ws.send(json.dumps({"type": "command", "action": "arm_stop"}))
+        refused = 0
+        acks = 0
+        while acks < 20:
+            msg = _next(ws, "ack")
+            if msg["action"] == "arm_jog":
+                refused += 1
+            else:
+                acks += 1
+                assert msg["ok"]
+    assert node.actions().count("arm_jog") == 60  # twice the 30 Hz send rate, per second
+    assert refused == 40
+    assert node.actions().count("arm_stop") >= 20
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-10, 10), min_size=6, max_size=6))
+def test_cap_twist_keeps_direction_and_never_exceeds_the_caps(v):
+    out = cap_twist(v, 0.1, 0.5)
+    for part, cap in ((slice(0, 3), 0.1), (slice(3, 6), 0.5)):
+        n_in = math.hypot(*v[part])
+        n_out = math.hypot(*out[part])
+        assert n_out <= cap * (1 + 1e-9)
+        if n_in <= cap:
+            assert out[part] == pytest.approx(v[part])
+        else:
+            assert n_out == pytest.approx(cap)
+            for a, b in zip(v[part], out[part], strict=True):
+                assert a * b >= 0  # same direction
+
+
+def test_mappings_and_keys_are_checked_when_the_config_loads():
+    assert parse_mapping("button7-button6", ("axis", "button")) == [
+        (1.0, "button", 7),
+        (-1.0, "button", 6),
+    ]
+    for bad in (
+        {"gamepad": {"mapping": ["axis9x", "", "", "", "", ""]}},
+        {"gamepad": {"mapping": ["tx", "", "", "", "", ""]}},
+        {"spacemouse": {"mapping": ["-ty"]}},
+        {"keyboard": {"w": "forward"}},
+        {"send_rate_hz": 1.0},
+    ):
+        with pytest.raises(ConfigError):
+            from_dict(JogConfig, bad)
+
+
+def test_arm_view_turns_heartbeat_stats_into_what_the_panel_shows():
+    assert arm_view({"stimuli_published": 3.0}) is None
+    stats = {
+        "arm_x": 0.1,
+        "arm_y": -0.2,
+        "arm_z": 0.3,
+        "arm_rx": math.pi,
+        "arm_ry": 0.0,
+        "arm_rz": 0.0,
+        "arm_speed_m_s": 0.05,
+        "arm_angular_speed_rad_s": 0.0,
+        "arm_safety_mode": 3.0,
+        "arm_program_running": 1.0,
+        "arm_jogging": 0.0,
+        "arm_deadman_stops": 2.0,
+        "deadman_trips": 1.0,
+        "arm_max_linear_m_s": 0.1,
+        "arm_max_angular_rad_s": 0.5,
+        **{f"arm_ws_{e}_{a}": (-0.4 if e == "min" else 0.4) for e in ("min", "max") for a in "xyz"},
+    }
+    view = arm_view(stats)
+    assert view["pose"] == [100.0, -200.0, 300.0, 180.0, 0.0, 0.0]
+    assert view["speed_mm_s"] == 50.0 and view["safety"] == "protective stop"
+    assert view["program_running"] is True and view["deadman_stops"] == 2
+    assert view["workspace_mm"] == [[-400.0] * 3, [400.0] * 3]
