@@ -24,9 +24,10 @@ import zmq
 
 from common.clock import Periodic, now_ns
 from common.clock_sync import ClockSync
-from common.codec import DecodeError
+from common.codec import MAX_STATS, DecodeError
 from common.devices import Device, build_device
 from common.errors import DeviceError
+from common.logs import BurstLog
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.recording import NullRecorder, Recorder
 from common.security import Authenticator, check_endpoint, server_options
@@ -119,6 +120,7 @@ class RobotNode:
         self.sub: Subscriber | None = None
         self._frames_poller: zmq.Poller | None = None
         self._auth: Authenticator | None = None
+        self._stats_cut = BurstLog(log, "heartbeat stats over the protocol's limit")
 
     # ------------------------------------------------------------------ run
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
@@ -591,9 +593,17 @@ class RobotNode:
                 echo_t_recv_ns=echo_recv,
                 stimulus_seq=msg.seq if msg else None,
                 t_capture_ns=self._last_capture_ns if msg else None,
-                stats=self.stats(),
+                stats=self._heartbeat_stats(),
             )
         )
+
+    def _heartbeat_stats(self) -> dict[str, float]:
+        """``stats()``, cut to what a heartbeat may carry: the operator refuses a longer map."""
+        stats = self.stats()
+        if len(stats) > MAX_STATS:
+            self._stats_cut(f"{len(stats)} counters, {MAX_STATS} sent: {sorted(stats)[MAX_STATS:]}")
+            stats = dict(sorted(stats.items())[:MAX_STATS])
+        return stats
 
     def stats(self) -> dict[str, float]:
         out = {k: float(v) for k, v in self.counters.items()}
