@@ -120,8 +120,16 @@ def export(
         "records_read": records,
         "recorded_s": round(total_s, 1),
         "export_s": round(seconds, 2),
+        "peak_rss_mb": round(_peak_rss_mb(), 1),
         "features": [f.name for f in features],
     }
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory so far (Linux reports kB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def _bar(total_s: float, progress: bool) -> Any:
