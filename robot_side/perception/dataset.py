@@ -271,7 +271,8 @@ def load_lerobot(root: Path, labels: str = "truth") -> TactileDataset:
     if labels not in LEROBOT_LABELS:
         raise DatasetError(f"labels must be one of {sorted(LEROBOT_LABELS)}, not {labels!r}")
     column = LEROBOT_LABELS[labels]
-    wanted = ["observation.tactile.frames", "observation.tactile.frame_seq", "episode_index", column]
+    frame_columns = ["observation.tactile.frames", "observation.tactile.frame_seq"]
+    wanted = [*frame_columns, "episode_index", column]
     frames, pattern, sensor = [], [], []
     files = sorted((root / "data").glob("chunk-*/file-*.parquet"))
     if not files:

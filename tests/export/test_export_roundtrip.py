@@ -115,7 +115,7 @@ def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_p
 
 
 def test_one_episode_per_session_covers_the_recording(session, records, tmp_path):
-    summary, a, meta = _loaded(session, tmp_path, "session")
+    _, a, meta = _loaded(session, tmp_path, "session")
     assert meta["num_episodes"] == 1
     frames = records["robot/frame"]
     span_s = (frames[-1][0] - frames[0][0]) / 1e9
