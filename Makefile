@@ -26,6 +26,8 @@ demo: $(STAMP)
 test: $(STAMP)
 	@# Debian's chromium for the dashboard's browser test: required in CI, optional elsewhere
 	bash scripts/install-test-browser.sh || [ -z "$$CI" ]
+	@# LeRobot's own dataset class in an environment of its own (cached), to load exports with
+	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
 	$(BIN)/python -m pytest $(ARGS)
 
 bench: $(STAMP)

@@ -17,6 +17,8 @@ CHANNELS: dict[str, str] = {
     "robot/stimulus": "stimulus sent: the wire bytes (topic + msgpack) and seq",
     "robot/command": "operator command received and what was done with it",
     "robot/link": "robot link state and counters, at the heartbeat rate",
+    "robot/arm": "arm state at the heartbeat rate: tcp_pose (6) m and rad, joints (6) rad",
+    "robot/gripper": "gripper state at the heartbeat rate: position (0..255), object_status",
     "operator/stimulus": "stimulus received: the wire bytes and local receive time",
     "operator/servo_goals": "servo goal counts written (ids 1..6) and their angles",
     "operator/command": "command sent to the robot: the wire bytes",

@@ -32,6 +32,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("deploy.bench.cli", "latency budget, run time against error: docs/benchmarks.md"),
     "doctor": ("deploy.doctor", "check this machine before a session: config, devices, keys, peer"),
     "replay": ("deploy.replay", "check a recording against the pipeline, or publish it again"),
+    "export": ("deploy.export.cli", "recorded sessions -> a LeRobot dataset (docs/datasets.md)"),
     "soak": ("deploy.soak", "run the demo for a long time on a bad link and report how it aged"),
     "study": ("operator_side.study.cli", "run the palm perception study and analyse it"),
 }

@@ -206,6 +206,13 @@ def run(args: argparse.Namespace) -> int:
         from common.mcap_recorder import node_recorder
 
         recorder = node_recorder(args.record / "operator.mcap", scene.operator, "operator")
+        recorder.add_metadata(  # what `deepxpalm export` puts in a dataset's metadata
+            "deepxpalm.session",
+            {
+                "scene": scene.scene.name,
+                "network_scenario": scene.network.scenario if scene.network.enabled else "none",
+            },
+        )
     node = build_operator_node(scene.operator, recorder=recorder)
     node_error: list[BaseException] = []
 

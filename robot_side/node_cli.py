@@ -16,7 +16,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _build(config: RobotConfig, recorder: Any) -> Any:
     from robot_side.node import build_robot_node  # not for --help: it loads the devices
 
-    return build_robot_node(config, recorder=recorder)
+    node = build_robot_node(config, recorder=recorder)
+    if recorder is not None:  # arm and gripper state at each heartbeat, for datasets
+        from robot_side.device_recording import DeviceStateRecorder
+
+        node.recorder = DeviceStateRecorder(recorder, node.arm, node.gripper)
+    return node
 
 
 def run(args: argparse.Namespace) -> int:

@@ -101,6 +101,36 @@ def as_vector6(value: Sequence[float], what: str) -> np.ndarray:
     return arr
 
 
+def clip_jog_velocity(
+    limits: ArmLimits, velocity: Sequence[float], pose: Sequence[float] | None = None
+) -> np.ndarray:
+    """The velocity a jog actually sends: speed-capped, and kept inside the box.
+
+    Linear and angular parts are scaled (direction kept) to their caps. A
+    linear component that points out of the box is zeroed when the TCP is
+    at or beyond that face, so the operator can always jog back in. A
+    function of the limits alone, so an exporter can apply it to recorded
+    commands.
+    """
+    v = as_vector6(velocity, "jog velocity")
+    lin, ang = v[:3], v[3:]
+    n = float(np.linalg.norm(lin))
+    if n > limits.max_linear_speed_m_s:
+        lin = lin * (limits.max_linear_speed_m_s / n)
+    n = float(np.linalg.norm(ang))
+    if n > limits.max_angular_speed_rad_s:
+        ang = ang * (limits.max_angular_speed_rad_s / n)
+    lin = lin.copy()
+    if pose is not None:
+        xyz = as_vector6(pose, "pose")[:3]
+        for i in range(3):
+            if xyz[i] >= limits.workspace_max[i] and lin[i] > 0:
+                lin[i] = 0.0
+            if xyz[i] <= limits.workspace_min[i] and lin[i] < 0:
+                lin[i] = 0.0
+    return np.concatenate([lin, ang])
+
+
 class Arm(Device):
     """A 6-DoF arm with a TCP: reads, clipped jogs with a deadman, checked moves, stop.
 
@@ -159,29 +189,8 @@ class Arm(Device):
     def clip_jog(
         self, velocity: Sequence[float], pose: Sequence[float] | None = None
     ) -> np.ndarray:
-        """The velocity a jog actually sends: speed-capped, and kept inside the box.
-
-        Linear and angular parts are scaled (direction kept) to their caps. A
-        linear component that points out of the box is zeroed when the TCP is
-        at or beyond that face, so the operator can always jog back in.
-        """
-        v = as_vector6(velocity, "jog velocity")
-        lin, ang = v[:3], v[3:]
-        n = float(np.linalg.norm(lin))
-        if n > self.limits.max_linear_speed_m_s:
-            lin = lin * (self.limits.max_linear_speed_m_s / n)
-        n = float(np.linalg.norm(ang))
-        if n > self.limits.max_angular_speed_rad_s:
-            ang = ang * (self.limits.max_angular_speed_rad_s / n)
-        lin = lin.copy()
-        if pose is not None:
-            xyz = as_vector6(pose, "pose")[:3]
-            for i in range(3):
-                if xyz[i] >= self.limits.workspace_max[i] and lin[i] > 0:
-                    lin[i] = 0.0
-                if xyz[i] <= self.limits.workspace_min[i] and lin[i] < 0:
-                    lin[i] = 0.0
-        return np.concatenate([lin, ang])
+        """The velocity a jog actually sends (``clip_jog_velocity`` with these limits)."""
+        return clip_jog_velocity(self.limits, velocity, pose)
 
     def jog(self, velocity: Sequence[float], issued_at_s: float | None = None) -> np.ndarray:
         """Move the TCP at ``velocity`` until the next jog, ``stop()`` or the deadman.

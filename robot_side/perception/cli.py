@@ -31,7 +31,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help=f"write the shipped default model ({MODELS_DIR.name}/{DEFAULT_MODEL.stem}.*)",
     )
-    parser.add_argument("--data", type=Path, help="train on this .npz (e.g. recorded frames)")
+    parser.add_argument(
+        "--data",
+        type=Path,
+        help="train on this .npz (e.g. recorded frames) or a dataset `deepxpalm export` wrote",
+    )
+    parser.add_argument(
+        "--labels",
+        choices=["truth", "recognised"],
+        default="truth",
+        help="exported datasets: the simulator's true pattern (default) or the recognised one",
+    )
     parser.add_argument("--save-data", type=Path, help="also save the generated data set here")
     parser.add_argument("--generate-only", action="store_true", help="generate data, no training")
     parser.add_argument(
@@ -97,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
     data_seconds = None
     if args.data is not None:
-        data = ds.load(args.data)
+        data = ds.load(args.data, labels=args.labels)
         print(f"loaded {len(data)} frames from {args.data}")
     else:
         n = config.data.repeats * 12 * 31

@@ -229,9 +229,11 @@ def generate_with(
     )
 
 
-def load(path: str | Path) -> TactileDataset:
-    """Read a data set in the documented layout, synthetic or recorded."""
+def load(path: str | Path, labels: str = "truth") -> TactileDataset:
+    """Read a data set: the documented ``.npz``, or a folder ``deepxpalm export`` wrote."""
     path = Path(path)
+    if (path / "meta" / "info.json").is_file():
+        return load_lerobot(path, labels)
     if not path.is_file():
         raise DatasetError(f"data set {path} does not exist")
     try:
@@ -240,6 +242,65 @@ def load(path: str | Path) -> TactileDataset:
     except (OSError, ValueError, zipfile.BadZipFile) as e:
         raise DatasetError(f"data set {path} is not a readable .npz: {e}") from None
     return from_arrays(arrays, where=str(path))
+
+
+#: which per-row column of an exported dataset gives each kind of label
+LEROBOT_LABELS = {
+    "truth": "annotation.sim_truth_pattern",
+    "recognised": "observation.perception.pattern",
+}
+
+
+def load_lerobot(root: Path, labels: str = "truth") -> TactileDataset:
+    """Frames and pattern labels from a LeRobot dataset made by ``deepxpalm export``.
+
+    ``labels="truth"`` uses the simulator's true pattern (sessions on
+    simulated pads); ``"recognised"`` the pattern the robot's classifier
+    sent, which only teaches a model the old model's answers (and its
+    mistakes): use it to adapt to a new sensor, knowingly. Rows without a
+    label (-1: no contact, or no truth on real pads) are left out; rows
+    that repeat the previous row's frame (the frame was held) are left out,
+    so each frame counts once.
+    """
+    try:
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise DatasetError(
+            f"{root} is a LeRobot dataset: reading it needs pyarrow (pip install '.[dataset]')"
+        ) from None
+    if labels not in LEROBOT_LABELS:
+        raise DatasetError(f"labels must be one of {sorted(LEROBOT_LABELS)}, not {labels!r}")
+    column = LEROBOT_LABELS[labels]
+    frame_columns = ["observation.tactile.frames", "observation.tactile.frame_seq"]
+    wanted = [*frame_columns, "episode_index", column]
+    frames, pattern, sensor = [], [], []
+    files = sorted((root / "data").glob("chunk-*/file-*.parquet"))
+    if not files:
+        raise DatasetError(f"{root} has no data/chunk-*/file-*.parquet")
+    last_seq = None
+    for f in files:
+        table = pq.read_table(f, columns=wanted)
+        seq = table.column("observation.tactile.frame_seq").to_numpy()
+        label = table.column(column).to_numpy()
+        keep = label >= 0
+        repeat = np.concatenate([[seq[0] == last_seq], seq[1:] == seq[:-1]]) if len(seq) else seq
+        keep &= ~repeat
+        last_seq = seq[-1] if len(seq) else last_seq
+        flat = table.column("observation.tactile.frames").combine_chunks().flatten().flatten()
+        values = flat.flatten().to_numpy().reshape(-1, 2, 10, 10)
+        frames.append(values[keep])
+        pattern.append(label[keep])
+        sensor.append(table.column("episode_index").to_numpy()[keep])
+    arrays = {
+        "frames": np.concatenate(frames),
+        "pattern": np.concatenate(pattern).astype(np.int64),
+        "sensor": np.concatenate(sensor).astype(np.int64),
+    }
+    if len(arrays["frames"]) == 0:
+        raise DatasetError(f"{root}: no row has a {labels} label ({column} is -1 everywhere)")
+    data = from_arrays(arrays, where=str(root))
+    data.meta = {"source": "lerobot", "path": str(root), "labels": column}
+    return data
 
 
 def from_arrays(arrays: Mapping[str, np.ndarray], where: str = "data set") -> TactileDataset:

@@ -1,0 +1,166 @@
+"""``deepxpalm export``: recorded sessions -> one LeRobot dataset (format v3).
+
+Typical uses::
+
+    deepxpalm export runs/today --out datasets/today             # one episode per grasp
+    deepxpalm export runs/mon runs/tue --out ds --episodes session --fps 60
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from common.config import from_dict, load_toml
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from deploy.export.resample import ExportConfig
+
+    d = ExportConfig()
+    parser.add_argument(
+        "sessions",
+        type=Path,
+        nargs="+",
+        help="session folders (robot.mcap, operator.mcap), folders of them, or robot .mcap files",
+    )
+    parser.add_argument("--out", type=Path, required=True, help="new dataset folder")
+    parser.add_argument("--config", type=Path, help="TOML file with an [export] table")
+    parser.add_argument("--fps", type=int, help=f"rows per second (default {d.fps})")
+    parser.add_argument(
+        "--episodes",
+        choices=["grasp", "session"],
+        help=f"one episode per grasp or per session (default {d.episodes})",
+    )
+    parser.add_argument("--task", help=f"task string of every episode (default {d.task!r})")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def export(
+    paths: list[Path], out: Path, config: Any = None, *, progress: bool = False
+) -> dict[str, Any]:
+    """Export the sessions under ``paths`` into a new dataset at ``out``; a summary."""
+    from deploy.export.lerobot_v3 import LeRobotV3Writer
+    from deploy.export.resample import EpisodeCutter, ExportConfig, SessionResampler
+    from deploy.export.schema import features_for
+    from deploy.export.session import ExportError, find_sessions, robot_records, scan
+
+    config = config or ExportConfig()
+    t_start = time.monotonic()
+    sessions = [scan(s) for s in find_sessions(paths)]
+    groups = {"core"}
+    for group, channel in (("arm", "robot/arm"), ("gripper", "robot/gripper")):
+        have = [channel in s.channels for s in sessions]
+        if all(have):
+            groups.add(group)
+        elif any(have):
+            log.warning("only some sessions recorded %s: its features are left out", channel)
+    features = features_for(groups)
+    writer = LeRobotV3Writer(out, features, config.fps)
+    total_s = sum(s.metadata["duration_s"] for s in sessions)
+    bar = _bar(total_s, progress)
+    records = 0
+    for session in sessions:
+        resampler = SessionResampler(config.fps, session.robot_config, groups)
+        meta_json = json.dumps(session.metadata, sort_keys=True, default=str)
+        first_t: list[int] = []
+
+        def begin(session=session, meta_json=meta_json, first_t=first_t) -> None:
+            first_t.clear()
+            writer.begin_episode(
+                config.task,
+                {"deepxpalm/session": session.name, "deepxpalm/metadata": meta_json},
+            )
+
+        def add(row: dict[str, Any], first_t=first_t) -> None:
+            if not first_t:
+                first_t.append(row["t_ns"])
+                writer.ep["deepxpalm/t_first_ns"] = row["t_ns"]
+            writer.add(row)
+
+        cutter = EpisodeCutter(config, begin, add, writer.end_episode)
+        last_t = None
+        for channel, t_ns, record in robot_records(session):
+            records += 1
+            for row in resampler.feed(channel, t_ns, record):
+                cutter.add(row)
+            if bar is not None and resampler.t0 is not None and t_ns - (last_t or 0) > 1e9:
+                bar.update((t_ns - (last_t or resampler.t0)) / 1e9)
+                last_t = t_ns
+        cutter.finish()
+    if bar is not None:
+        bar.close()
+    if writer.index == 0:
+        raise ExportError(
+            "no rows to export: no grasp found (try --episodes session) or the recordings "
+            "hold no frames"
+        )
+    provenance = {
+        "exported_by": "deepxpalm export",
+        "export_config": dataclasses.asdict(config),
+        "features": {f.name: {"unit": f.unit, "frame": f.frame, "what": f.what} for f in features},
+        "sessions": [s.metadata for s in sessions],
+    }
+    info = writer.finish(provenance)
+    seconds = time.monotonic() - t_start
+    return {
+        "out": str(out),
+        "sessions": len(sessions),
+        "episodes": info["total_episodes"],
+        "frames": info["total_frames"],
+        "records_read": records,
+        "recorded_s": round(total_s, 1),
+        "export_s": round(seconds, 2),
+        "peak_rss_mb": round(_peak_rss_mb(), 1),
+        "features": [f.name for f in features],
+    }
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory so far (Linux reports kB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _bar(total_s: float, progress: bool) -> Any:
+    if not progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=round(total_s, 1), unit="s rec", desc="export", file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    from deploy.export.resample import ExportConfig
+
+    data = load_toml(args.config).get("export", {}) if args.config else {}
+    for key in ("fps", "episodes", "task"):
+        if getattr(args, key) is not None:
+            data[key] = getattr(args, key)
+    try:
+        config = from_dict(ExportConfig, data, where="export")
+    except ValueError as e:
+        from common.errors import ConfigError
+
+        raise ConfigError(f"export: {e}") from None
+    progress = not args.no_progress and sys.stderr.isatty()
+    summary = export(args.sessions, args.out, config, progress=progress)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(
+            f"{summary['out']}: {summary['episodes']} episodes, {summary['frames']} frames from "
+            f"{summary['sessions']} sessions ({summary['recorded_s']} s recorded) in "
+            f"{summary['export_s']} s"
+        )
+    return 0

@@ -1,0 +1,159 @@
+"""A recorded demo session, exported, loaded back by LeRobot's own LeRobotDataset.
+
+Every value LeRobot returns is checked against the MCAP file: frames and
+stimuli to float32 equality, each row holding the newest record at or
+before its time, the held frame within one sample period of the row.
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from lerobot_env import load_with_lerobot
+
+from common.mcap_recorder import read_recording
+from deploy.export.cli import export
+from deploy.export.resample import ExportConfig
+
+FPS = 30
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    """`deepxpalm demo --record`: both nodes, the simulated devices, 6 s."""
+    out = tmp_path_factory.mktemp("session")
+    proc = subprocess.run(
+        [sys.executable, "-m", "deploy.cli", "demo", "--duration", "6", "--json", "--record", out],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
+
+
+@pytest.fixture(scope="module")
+def records(session):
+    out: dict[str, list] = {}
+    for channel, t_ns, record in sorted(read_recording(session / "robot.mcap"), key=lambda r: r[1]):
+        out.setdefault(channel, []).append((t_ns, record))
+    return out
+
+
+def _loaded(session, tmp_path, episodes: str):
+    root = tmp_path / f"ds-{episodes}"
+    summary = export([session], root, ExportConfig(fps=FPS, episodes=episodes))
+    npz = tmp_path / f"loaded-{episodes}.npz"
+    load_with_lerobot(root, npz)
+    with np.load(npz) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays.pop("_meta").tobytes())
+    return summary, arrays, meta
+
+
+def _held(channel_records, t_row):
+    """The newest record at or before ``t_row``."""
+    times = [t for t, _ in channel_records]
+    i = bisect.bisect_right(times, t_row) - 1
+    assert i >= 0, "a row before the channel's first record"
+    return channel_records[i]
+
+
+def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_path):
+    summary, a, meta = _loaded(session, tmp_path, "grasp")
+    assert meta["num_frames"] == summary["frames"] == len(a["index"]) > 60
+    assert meta["num_episodes"] == summary["episodes"] >= 2
+    assert meta["fps"] == FPS
+    assert set(meta["tasks"]) == {"grasp the pipette"}
+    assert "observation.tactile.frames" in meta["stats_keys"]
+    np.testing.assert_array_equal(a["index"], np.arange(len(a["index"])))
+    np.testing.assert_array_equal(a["timestamp"], (a["frame_index"] / FPS).astype(np.float32))
+    period_ns = 1e9 / FPS
+    ages = []
+    for ep in meta["episodes"]:
+        rows = range(ep["dataset_from_index"], ep["dataset_to_index"])
+        assert ep["length"] == len(rows) and ep["deepxpalm/session"] == session.name
+        assert a["observation.tactile.frames"][list(rows)].max() >= 0.3  # a grasp has contact
+        for j, i in enumerate(rows):
+            assert a["episode_index"][i] == ep["episode_index"] and a["frame_index"][i] == j
+            t_row = ep["deepxpalm/t_first_ns"] + round(j * period_ns)
+            t_f, frame = _held(records["robot/frame"], t_row)
+            np.testing.assert_array_equal(a["observation.tactile.frames"][i], frame["frame"])
+            assert a["observation.tactile.frame_seq"][i] == frame["frame_seq"]
+            ages.append(t_row - t_f)
+            assert a["observation.tactile.age"][i] == pytest.approx((t_row - t_f) / 1e9, abs=2e-6)
+            stim = _held(records["robot/stimulus"], t_row)[1]["decoded"]
+            np.testing.assert_array_equal(a["observation.stimulus"][i], stim["stimulus"])
+            assert a["observation.perception.pattern"][i] == (
+                -1 if stim["pattern"] is None else stim["pattern"]
+            )
+            assert a["observation.perception.confidence"][i] == np.float32(
+                stim["confidence"] or 0.0
+            )
+            arm = _held(records["robot/arm"], t_row)[1]
+            np.testing.assert_array_equal(
+                a["observation.arm.joints"][i], arm["joints"].astype(np.float32)
+            )
+            np.testing.assert_array_equal(
+                a["observation.arm.tcp_pose"][i], arm["tcp_pose"].astype(np.float32)
+            )
+            grip = _held(records["robot/gripper"], t_row)[1]
+            assert a["observation.gripper.position"][i] == grip["position"]
+            assert a["observation.gripper.object_status"][i] == grip["object_status"]
+            # no operator commands in the demo: the arm holds still, the target stays the first
+            assert not a["action"][i][:6].any()
+            assert a["action"][i][6] == records["robot/gripper"][0][1]["requested_position"]
+    ages = np.array(ages)
+    assert (ages >= 0).all()
+    assert (ages < period_ns).mean() > 0.99, f"held frames older than a period: {ages.max()} ns"
+
+
+def test_one_episode_per_session_covers_the_recording(session, records, tmp_path):
+    _, a, meta = _loaded(session, tmp_path, "session")
+    assert meta["num_episodes"] == 1
+    frames = records["robot/frame"]
+    span_s = (frames[-1][0] - frames[0][0]) / 1e9
+    assert abs(len(a["index"]) - span_s * FPS) < FPS  # the whole session, at the chosen rate
+    truth = a["annotation.sim_truth_pattern"]
+    assert set(np.unique(truth[truth >= 0])) <= set(range(12)) and (truth >= 0).any()
+
+
+def test_train_reads_an_exported_dataset(session, tmp_path):
+    from robot_side.perception import dataset as ds
+
+    root = tmp_path / "ds"
+    export([session], root, ExportConfig(fps=FPS))
+    data = ds.load(root)
+    assert len(data) > 20 and data.frames.dtype == np.float32
+    assert set(np.unique(data.pattern)) <= set(range(12))
+    assert data.meta["labels"] == "annotation.sim_truth_pattern"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deploy.cli",
+            "train",
+            "--data",
+            str(root),
+            "--init",
+            "default",
+            "--epochs",
+            "1",
+            "--no-robustness",
+            "--no-progress",
+            "--out",
+            str(tmp_path / "model"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert f"loaded {len(data)} frames" in proc.stdout
+    assert (tmp_path / "model" / "model.onnx").is_file()
