@@ -942,8 +942,13 @@ def _clock_verdict(report: Report, role: str, config: Any, ex: Exchange) -> None
         )
         return
     rtt_ms = est.delay_ns / 1e6
-    limit_ms = config.link.stale_after_ms if role == "operator" else config.link.deadman_ms
-    limit_name = "operator.link.stale_after_ms" if role == "operator" else "robot.link.deadman_ms"
+    if role == "operator":
+        limit_ms, limit_name = config.link.stale_after_ms, "operator.link.stale_after_ms"
+    else:  # commands are judged on the operator's send time: both limits must cover the path
+        limit_ms, limit_name = min(
+            (config.link.deadman_ms, "robot.link.deadman_ms"),
+            (config.link.max_command_age_ms, "robot.link.max_command_age_ms"),
+        )
     detail = (
         f"offset {est.offset_ns / 1e9:+.6f} s (peer's monotonic clock minus ours; any value "
         f"is fine, boot times differ) +- {est.uncertainty_ns / 1e6:.2f} ms; round trip "
