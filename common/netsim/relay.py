@@ -163,6 +163,7 @@ class StreamRelay:
         self._counters = {name: DirectionCounters() for name in DIRECTIONS}
         self._engines: list[DirectionImpairment] = []
         self._connections = 0
+        self._unreachable: set[str] = set()
         self._listeners: list[tuple[str, socket.socket, tuple[str, int]]] = []
         self._pipes: list[_Pipe] = []
         self._thread: threading.Thread | None = None
@@ -269,9 +270,12 @@ class StreamRelay:
         try:
             upstream = socket.create_connection(target, timeout=_CONNECT_TIMEOUT_S)
         except OSError as e:
-            log.warning("netsim: robot %s link %s:%d unreachable: %s", link, *target, e)
+            if link not in self._unreachable:  # once until it works: ZeroMQ retries often
+                self._unreachable.add(link)
+                log.warning("netsim: robot %s link %s:%d unreachable: %s", link, *target, e)
             client.close()
             return
+        self._unreachable.discard(link)
         self._connections += 1
         n = self._connections
         for sock in (client, upstream):
