@@ -40,6 +40,11 @@ class NetsimConfig:
     spin_us: float = param(
         300.0, "busy-wait this long before each due time; sleeping wakes too late on a VM"
     )
+    anticipate_us: float = param(
+        300.0,
+        "stream mode: spin this long either side of a steady source's next chunk "
+        "(a sleeping relay wakes about 0.1 ms late); 0 = off",
+    )
     report_interval_s: float = param(5.0, "how often counters are logged; 0 = never")
     duration_s: float = param(0.0, "stop after this long; 0 = run until Ctrl-C")
     endpoints: Endpoints = param(Endpoints(), "")
@@ -163,7 +168,11 @@ def build_simulator(config: NetsimConfig, scenario: Scenario) -> LinkSimulator |
     """The byte-stream relay or the message-level simulator, as the mode says."""
     if mode_of(config, scenario) == "stream":
         return StreamRelay(
-            scenario, endpoints=config.endpoints, seed=config.seed, spin_us=config.spin_us
+            scenario,
+            endpoints=config.endpoints,
+            seed=config.seed,
+            spin_us=config.spin_us,
+            anticipate_us=config.anticipate_us,
         )
     return LinkSimulator(
         scenario,

@@ -124,6 +124,7 @@ def measure(
     seed: int = 1,
     mode: str = "stream",
     payload_bytes: int = 64,
+    netsim_args: tuple[str, ...] = (),
 ) -> FidelityRun:
     """Run the rig once: ``rate_hz`` messages a second on each path for ``seconds``."""
     config = load_scenario(scenario).to_operator
@@ -156,6 +157,7 @@ def measure(
         stats_path,
         "--set",
         "netsim.report_interval_s=0",
+        *netsim_args,
     ]
     ctx = zmq.Context()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)

@@ -99,7 +99,9 @@ def load_delay_trace(path: Path) -> DelayTrace:
         delays.append(delay)
     # Loop one mean interval after the last sample, so every sample lasts about as long.
     step = (times[-1] - times[0]) // max(1, len(times) - 1) if len(times) > 1 else NS_PER_MS
-    return DelayTrace(tuple(t - times[0] for t in times), tuple(delays), times[-1] - times[0] + step)
+    return DelayTrace(
+        tuple(t - times[0] for t in times), tuple(delays), times[-1] - times[0] + step
+    )
 
 
 def load_delivery_trace(path: Path) -> DeliveryTrace:

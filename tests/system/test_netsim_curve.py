@@ -75,7 +75,9 @@ def _run_secured(keys, scenario_name: str, seconds: float):
         loop=False,
         start_delay_s=0.2,
     )
-    robot = RobotNode(rc, ScriptedTactileSensor(ScriptedTactileConfig(script=hold)), arm=RecordingArm())
+    robot = RobotNode(
+        rc, ScriptedTactileSensor(ScriptedTactileConfig(script=hold)), arm=RecordingArm()
+    )
     relay = StreamRelay(
         _scenario(scenario_name),
         endpoints=Endpoints(
