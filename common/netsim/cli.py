@@ -40,11 +40,6 @@ class NetsimConfig:
     spin_us: float = param(
         300.0, "busy-wait this long before each due time; sleeping wakes too late on a VM"
     )
-    anticipate_us: float = param(
-        300.0,
-        "stream mode: spin this long either side of a steady source's next chunk "
-        "(a sleeping relay wakes about 0.1 ms late); 0 = off",
-    )
     report_interval_s: float = param(5.0, "how often counters are logged; 0 = never")
     duration_s: float = param(0.0, "stop after this long; 0 = run until Ctrl-C")
     endpoints: Endpoints = param(Endpoints(), "")
@@ -172,7 +167,6 @@ def build_simulator(config: NetsimConfig, scenario: Scenario) -> LinkSimulator |
             endpoints=config.endpoints,
             seed=config.seed,
             spin_us=config.spin_us,
-            anticipate_us=config.anticipate_us,
         )
     return LinkSimulator(
         scenario,

@@ -100,6 +100,7 @@ class FidelityRun:
             "verdicts": self.verdicts(),
             "ok": self.ok(),
             "netsim_own_latency_us": self.netsim_stats.get("own_latency_us"),
+            "netsim_relay": self.netsim_stats.get("directions", {}).get("relay"),
         }
 
 

@@ -224,7 +224,16 @@ class DirectionConfig:
 
     # -------------------------------------------------------- what it means
     def delay_quantile_ms(self, u: float) -> float:
-        """The configured one-way delay at probability ``u`` (before queueing and blocking)."""
+        """The configured one-way delay at probability ``u`` (before queueing and blocking).
+
+        A ``delays`` trace is its recorded delays' quantile; a ``mahimahi``
+        trace's delay depends on the traffic, so only ``delay_ms`` is known.
+        """
+        if self.trace_file:
+            if self.trace_format == "mahimahi":
+                return self.delay_ms
+            values = sorted(load_delay_trace(Path(self.trace_file)).delays_ms)
+            return self.delay_ms + _table_q(values, u)
         if self.distribution == "table":
             extra = _table_q(sorted(self.delay_table_ms), u)
             return self.delay_ms + extra

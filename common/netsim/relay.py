@@ -52,10 +52,6 @@ _ANC_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
 #: Recent release costs kept for the median the schedule subtracts.
 _COST_WINDOW = 128
 _COST_START_NS = 40_000
-#: Chunks looked at to see whether a source sends at a steady rate.
-_PERIOD_WINDOW = 16
-#: Faster than this (500 Hz) and waking up ahead of each chunk would cost too much CPU.
-_MIN_PERIOD_NS = 2_000_000
 #: A connection to the robot must be up within this (connects block the relay thread).
 _CONNECT_TIMEOUT_S = 1.0
 
@@ -107,13 +103,11 @@ class _Pipe:
     """One direction of one relayed connection."""
 
     __slots__ = (
-        "arrivals",
         "closed",
         "counters",
         "direction",
         "dst",
         "engine",
-        "expect_ns",
         "pending",
         "queue",
         "src",
@@ -136,21 +130,6 @@ class _Pipe:
         self.queue: deque[tuple[int, int, int, bytes]] = deque()
         self.pending = bytearray()  # released but not yet accepted by the kernel
         self.closed = False
-        self.arrivals: deque[int] = deque(maxlen=_PERIOD_WINDOW + 1)
-        self.expect_ns: int | None = None  # when the next chunk of a steady stream is due
-
-    def learn_arrival(self, t_ns: int) -> None:
-        """Expect the next chunk one period on, if this source sends at a steady rate."""
-        a = self.arrivals
-        a.append(t_ns)
-        self.expect_ns = None
-        if len(a) <= _PERIOD_WINDOW:
-            return
-        gaps = sorted(a[i + 1] - a[i] for i in range(len(a) - 1))
-        period = gaps[len(gaps) // 2]
-        spread = gaps[-2] - gaps[1]  # all but the extremes
-        if period >= _MIN_PERIOD_NS and spread <= period // 10:
-            self.expect_ns = t_ns + period
 
 
 class StreamRelay:
@@ -171,7 +150,6 @@ class StreamRelay:
         endpoints: Endpoints | None = None,
         seed: int = 0,
         spin_us: float = 300.0,
-        anticipate_us: float = 300.0,
         subtract_own_cost: bool = True,
     ) -> None:
         self.scenario = scenario if scenario is not None else Scenario()
@@ -180,14 +158,6 @@ class StreamRelay:
         if spin_us < 0:
             raise ConfigError(f"spin_us must be >= 0, not {spin_us}")
         self.spin_ns = round(spin_us * 1000)
-        #: Spin this long either side of the expected arrival of a steady
-        #: stream's next chunk: a thread woken by the chunk takes about
-        #: 70 us to run on this VM, and its first recv another 35 us; one
-        #: already running takes a few. Costs up to twice this of CPU per
-        #: chunk of a periodic source (about 4 % of a core at 60 Hz); 0 = off.
-        if anticipate_us < 0:
-            raise ConfigError(f"anticipate_us must be >= 0, not {anticipate_us}")
-        self.anticipate_ns = round(anticipate_us * 1000)
         self.subtract_own_cost = subtract_own_cost
         self._configs = {name: stream_config(self.scenario.direction(name)) for name in DIRECTIONS}
         self._passthrough = {name: _is_passthrough(c) for name, c in self._configs.items()}
@@ -196,6 +166,7 @@ class StreamRelay:
         self._connections = 0
         self._unreachable: set[str] = set()
         self._dirty = True  # the select lists need rebuilding
+        self._spun = 0  # reads found while spinning (ahead of a release or a chunk)
         self._listeners: list[tuple[str, socket.socket, tuple[str, int]]] = []
         self._pipes: list[_Pipe] = []
         self._thread: threading.Thread | None = None
@@ -278,7 +249,7 @@ class StreamRelay:
                     for key, value in engine.counts.as_dict().items():
                         row[key] = row.get(key, 0) + value
             out[name] = row
-        out["connections"] = {"accepted": self._connections}
+        out["relay"] = {"connections": self._connections, "reads_while_spinning": self._spun}
         return out
 
     def own_latency_ns(self) -> list[int]:
@@ -378,16 +349,12 @@ class StreamRelay:
             c.bytes_in += len(data)
             c.bytes_out += len(data)
             self._own_ns.append(t_sent - arrival)
-            if self.anticipate_ns:
-                pipe.learn_arrival(arrival)
             return
         t_read = time.monotonic_ns()
         if not data:  # the peer closed (or reset): pass the close on
             self._close_pair(pipe)
             return
         arrival = _arrival_ns(anc, t_read, real_minus_mono)
-        if self.anticipate_ns:
-            pipe.learn_arrival(arrival)
         c = pipe.counters
         c.received += 1
         c.bytes_in += len(data)
@@ -452,7 +419,6 @@ class StreamRelay:
         _set_timer_slack_ns(1_000)
         now_ns = time.monotonic_ns
         spin_ns = self.spin_ns
-        anticipate_ns = self.anticipate_ns
         stop = self._stop
         readers: list[Any] = []
         writers: list[Any] = []
@@ -479,12 +445,6 @@ class StreamRelay:
                         t = now_ns()
                     if q and (next_ns is None or q[0][1] - spin_ns < next_ns):
                         next_ns = q[0][1] - spin_ns
-                    expect = pipe.expect_ns
-                    if expect is not None:
-                        if t > expect + anticipate_ns:  # it did not come: stop expecting
-                            pipe.expect_ns = None
-                        elif next_ns is None or expect - anticipate_ns < next_ns:
-                            next_ns = expect - anticipate_ns
                 if self._dirty:
                     continue
                 # Wait for bytes, a writable receiver, or the next release.
@@ -492,6 +452,8 @@ class StreamRelay:
                 if next_ns is not None:
                     wait_s = max(0.0, min(wait_s, (next_ns - t) / 1e9))
                 readable, writable = _wait(readers, writers, wait_s)
+                if readable and wait_s == 0.0:
+                    self._spun += 1  # a chunk that came in while spinning for a release
                 if readable:
                     real_minus_mono = time.time_ns() - now_ns()
                     for sock in readable:

@@ -20,6 +20,7 @@ Either replaces the delay distribution (``delay_ms`` is still added, as
 from __future__ import annotations
 
 import bisect
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -84,8 +85,10 @@ def _lines(path: Path) -> list[list[str]]:
     return out
 
 
-def load_delay_trace(path: Path) -> DelayTrace:
+@functools.lru_cache(maxsize=16)
+def load_delay_trace(path: str | Path) -> DelayTrace:
     """Parse a ``t_s delay_ms`` series; ``ConfigError`` names the bad line."""
+    path = Path(path)
     times: list[int] = []
     delays: list[float] = []
     for n, fields in enumerate(_lines(path), 1):
@@ -104,8 +107,10 @@ def load_delay_trace(path: Path) -> DelayTrace:
     )
 
 
-def load_delivery_trace(path: Path) -> DeliveryTrace:
+@functools.lru_cache(maxsize=16)
+def load_delivery_trace(path: str | Path) -> DeliveryTrace:
     """Parse Mahimahi's one-millisecond-a-line format."""
+    path = Path(path)
     ms: list[int] = []
     for n, fields in enumerate(_lines(path), 1):
         try:
