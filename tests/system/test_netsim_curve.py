@@ -9,6 +9,10 @@ client with a stranger's key (or none) still reads nothing through it.
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
+import subprocess
+import sys
 import threading
 import time
 
@@ -171,3 +175,37 @@ def test_curve_through_the_relay_on_bad_day_lifts_off_and_recovers(keys):
     assert ok_again is not None and (ok_again - back) / 1e9 < 3.0, "no recovery after the outage"
     assert _pressing(bus, retract, ok_again, time.monotonic_ns()), "no pressing after recovery"
     assert relay.counters()["to_operator"]["retransmitted"] > 0
+
+
+def test_the_secured_demo_through_the_simulator_shows_the_scenario():
+    """``deepxpalm demo --curve --scenario intercontinental``: encrypted, and 37.5 ms away."""
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deploy.cli",
+            "demo",
+            "--duration",
+            "6",
+            "--json",
+            "--curve",
+            "--scenario",
+            "intercontinental",
+            "--set",
+            "robot.render.mode=mask_ground_truth",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=90,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    summary = json.loads(out.stdout)
+    assert summary["errors"] == [] and summary["security"] == "curve"
+    assert summary["netsim"]["mode"] == "stream"
+    assert summary["stimuli_received"] > 50
+    configured = summary["network_configured"]["to_operator_p50_ms"]
+    link = summary["link"]
+    # LinkStats' percentiles come from 4 % histogram bins
+    assert link["latency_p50_ms"] == pytest.approx(configured, rel=0.06)
+    assert abs(link["clock_offset_ms"]) < 2.0  # one machine: the truth is 0
