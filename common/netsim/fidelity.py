@@ -11,11 +11,13 @@ what the direct one saw.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -126,6 +128,7 @@ def measure(
     mode: str = "stream",
     payload_bytes: int = 64,
     netsim_args: tuple[str, ...] = (),
+    netsim_cpus: set[int] | None = None,
 ) -> FidelityRun:
     """Run the rig once: ``rate_hz`` messages a second on each path for ``seconds``."""
     config = load_scenario(scenario).to_operator
@@ -134,7 +137,9 @@ def measure(
     direct_at, relay_robot_at, robot_cmd_at, op_tel_at, op_cmd_at, _ = (
         f"tcp://127.0.0.1:{p}" for p in ports
     )
-    stats_path = f"/tmp/deepxpalm-fidelity-{os.getpid()}-{ports[0]}.json"
+    stats_path = os.path.join(
+        tempfile.gettempdir(), f"deepxpalm-fidelity-{os.getpid()}-{ports[0]}.json"
+    )
     cmd = [
         sys.executable,
         "-m",
@@ -162,6 +167,8 @@ def measure(
     ]
     ctx = zmq.Context()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    if netsim_cpus:  # a caller pinned to one core: the simulator is a process of its own
+        os.sched_setaffinity(proc.pid, netsim_cpus)
     try:
         pub_direct = ctx.socket(zmq.PUB)
         pub_via = ctx.socket(zmq.PUB)
@@ -223,8 +230,6 @@ def measure(
                 proc.wait()
         ctx.destroy(linger=0)
     try:
-        import json
-
         with open(stats_path) as f:
             run.netsim_stats = json.load(f)
         os.unlink(stats_path)

@@ -265,6 +265,13 @@ def _measure(
 
     section("node_cpu", node_cpu)
     section("scale", scale)
+
+    def netsim() -> dict[str, Any]:
+        from deploy.bench.netsim_fidelity import measure as netsim_fidelity
+
+        return netsim_fidelity(sizes.netsim_seconds, sizes.netsim_scenarios)
+
+    section("netsim", netsim)
     return {
         "generated_by": f"deepxpalm bench{'' if preset == 'full' else ' --size ' + preset}",
         "preset": preset,

@@ -21,6 +21,7 @@ SECTIONS = (
     "scale",
     "stress",
     "node_cpu",
+    "netsim",
 )
 
 
@@ -58,6 +59,14 @@ class Sizes:
     scale_rates: tuple[float, ...]
     scale_measured: bool
     scale_backends: tuple[str | None, ...]
+    netsim_seconds: float = 20.0  # per scenario, 100 messages a second
+    netsim_scenarios: tuple[str, ...] = (
+        "none",
+        "lan",
+        "metro",
+        "intercontinental",
+        "loopback_trace",
+    )
 
 
 ALL_BACKENDS = ("numba", "numpy", "onnxruntime", "torchscript", "torch")
@@ -125,6 +134,7 @@ PRESETS: dict[str, Sizes] = {
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=False,
         scale_backends=(None,),
+        netsim_seconds=5.0,
     ),
     "smallest": Sizes(
         stage_frames=100,
@@ -157,6 +167,8 @@ PRESETS: dict[str, Sizes] = {
         scale_rates=(120.0, 500.0, 1000.0),
         scale_measured=False,
         scale_backends=(None,),
+        netsim_seconds=1.0,
+        netsim_scenarios=("none",),
     ),
 }
 
