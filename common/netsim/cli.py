@@ -1,7 +1,9 @@
 """``deepxpalm netsim``: run the link simulator between the two nodes.
 
 Start the robot, then this, then point the operator at the simulator's bound
-endpoints (by default ports 5565/5566 instead of 5555/5556). Settings come
+endpoints (by default ports 5565/5566 instead of 5555/5556). The stream
+mode relays TCP bytes (CURVE passes), the message mode re-publishes ZeroMQ
+messages; the scenario says which, ``--mode`` overrides. Settings come
 from the defaults, then ``--config FILE`` (keys at the top level or under
 ``[netsim]``), then ``--set netsim.key=value``, then the explicit options.
 """
