@@ -42,6 +42,10 @@ def _ms(x: float | None) -> str:
     return "n/a" if x is None else f"{x:.2f}"
 
 
+def _us(x: float | None) -> str:
+    return "n/a" if x is None else str(round(x))
+
+
 def markdown(section: dict[str, Any] | None) -> list[str]:
     """The fidelity table (empty when the section was skipped or failed)."""
     if not section or "runs" not in section:
@@ -69,7 +73,7 @@ def markdown(section: dict[str, Any] | None) -> list[str]:
             f"| {r['scenario']} | {_ms(d['p5'])} / {_ms(d['p50'])} / {_ms(d['p95'])} / "
             f"{_ms(d['p99'])} | {_ms(c['p5'])} / {_ms(c['p50'])} / {_ms(c['p95'])} | "
             f"{_ms(v['p5'])} / {_ms(v['p50'])} / {_ms(v['p95'])} / {_ms(v['p99'])} | "
-            f"{own.get('p50', float('nan')):.0f} / {own.get('p99', float('nan')):.0f} | "
+            f"{_us(own.get('p50'))} / {_us(own.get('p99'))} | "
             f"{'yes' if r['ok'] else 'no (' + ', '.join(failed) + ')'} |"
         )
     out += [
