@@ -163,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
                         scene.network.scenario,
                         "--seed",
                         str(scene.network.seed),
+                        *(["--mode", scene.network.mode] if scene.network.mode else []),
                         "--robot-telemetry",
                         robot_tel,
                         "--robot-commands",
