@@ -163,6 +163,8 @@ class StreamRelay:
         self._passthrough = {name: _is_passthrough(c) for name, c in self._configs.items()}
         self._counters = {name: DirectionCounters() for name in DIRECTIONS}
         self._engines: list[DirectionImpairment] = []
+        #: Counts of the engines of connections already closed, per direction.
+        self._retired: dict[str, dict[str, int]] = {name: {} for name in DIRECTIONS}
         self._connections = 0
         self._unreachable: set[str] = set()
         self._dirty = True  # the select lists need rebuilding
@@ -244,6 +246,8 @@ class StreamRelay:
         out: dict[str, dict[str, Any]] = {}
         for name in DIRECTIONS:
             row: dict[str, Any] = self._counters[name].as_dict()
+            for key, value in dict(self._retired[name]).items():
+                row[key] = row.get(key, 0) + value
             for engine in list(self._engines):
                 if engine.name.startswith(name):
                     for key, value in engine.counts.as_dict().items():
@@ -311,6 +315,11 @@ class StreamRelay:
         for p in self._pipes:
             if p.src in socks:
                 p.closed = True
+                if p.engine is not None:  # keep its counts, not the engine
+                    retired = self._retired[p.direction]
+                    for key, value in p.engine.counts.as_dict().items():
+                        retired[key] = retired.get(key, 0) + value
+                    self._engines.remove(p.engine)
         for s in socks:
             s.close()
         self._pipes = [p for p in self._pipes if not p.closed]
