@@ -43,6 +43,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", help="network scenario, overriding the scene's")
     parser.add_argument("--no-netsim", action="store_true", help="connect the nodes directly")
     parser.add_argument(
+        "--curve",
+        action="store_true",
+        help="encrypt and authenticate the link with fresh CURVE keys (the simulator relays it)",
+    )
+    parser.add_argument(
         "--record", type=Path, metavar="DIR", help="record robot.mcap and operator.mcap here"
     )
     parser.add_argument(
@@ -149,6 +154,8 @@ def run(args: argparse.Namespace) -> int:
     scene.operator.link.command_endpoint = op_cmd if use_netsim else robot_cmd
     if use_netsim:
         _fit_command_timing(scene)
+    if args.curve:
+        _use_fresh_curve_keys(scene, workdir / "keys")
     robot_cfg = workdir / "robot.toml"
     robot_cfg.write_text(config_toml(scene.robot, "robot"))
     errors: list[str] = []
@@ -187,6 +194,7 @@ def run(args: argparse.Namespace) -> int:
                         scene.network.scenario,
                         "--seed",
                         str(scene.network.seed),
+                        *(["--mode", scene.network.mode] if scene.network.mode else []),
                         "--robot-telemetry",
                         robot_tel,
                         "--robot-commands",
@@ -195,6 +203,8 @@ def run(args: argparse.Namespace) -> int:
                         op_tel,
                         "--operator-commands",
                         op_cmd,
+                        "--stats-file",
+                        str(netsim_stats_path),
                     ],
                     workdir / "netsim.log",
                 ),
@@ -272,6 +282,38 @@ def run(args: argparse.Namespace) -> int:
     return 1 if errors else 0
 
 
+def _configured(scenario_name: str) -> dict[str, Any]:
+    """What the scenario says the operator should measure, to set beside what it did."""
+    from common.netsim.scenario import load_scenario
+
+    scenario = load_scenario(scenario_name)
+    out: dict[str, Any] = {"mode": scenario.mode}
+    for name in ("to_operator", "to_robot"):
+        out[f"{name}_p50_ms"] = round(scenario.direction(name).delay_quantile_ms(0.5), 3)
+    out["what"] = (
+        "median one-way path delay per direction; the operator's link latency_p50_ms should "
+        "match to_operator's, and clock_offset_ms be 0 (one machine) within its uncertainty"
+    )
+    return out
+
+
+def _use_fresh_curve_keys(scene: Scene, directory: Path) -> None:
+    """Keys for this run only: the robot allows just this operator's key."""
+    from common.security import SecurityConfig
+    from deploy.keys_cli import allow, generate
+
+    robot_pub, robot_sec = generate(directory / "robot", "robot")
+    op_pub, op_sec = generate(directory / "operator", "operator")
+    authorized = directory / "authorized"
+    allow(op_pub, authorized)
+    scene.robot.link.security = SecurityConfig(
+        mode="curve", secret_key_file=robot_sec, authorized_keys_dir=authorized
+    )
+    scene.operator.link.security = SecurityConfig(
+        mode="curve", secret_key_file=op_sec, server_public_key_file=robot_pub
+    )
+
+
 def _summary(
     scene: Scene, node: Any, elapsed: float, robot_path: Path, netsim_path: Path, errors: list[str]
 ) -> dict[str, Any]:
@@ -287,6 +329,7 @@ def _summary(
         "scene": scene.scene.name,
         "render_mode": scene.robot.render.mode,
         "network_scenario": scene.network.scenario if scene.network.enabled else None,
+        "security": scene.operator.link.security.mode,
         "duration_s": round(elapsed, 3),
         "frames_captured": int(robot.get("frames_captured", 0)),
         "frames_processed": int(robot.get("frames_processed", 0)),
@@ -321,4 +364,6 @@ def _summary(
     }
     if netsim_path.exists():
         out["netsim"] = json.loads(netsim_path.read_text())
+    if scene.network.enabled:
+        out["network_configured"] = _configured(scene.network.scenario)
     return out

@@ -24,6 +24,11 @@ class NetworkConfig:
     enabled: bool = param(True, "run the link simulator between the nodes")
     scenario: str = param("lan", "a named scenario (see `deepxpalm netsim --help`) or a TOML path")
     seed: int = param(0, "seeds every impairment: the same seed gives the same link")
+    mode: str = param(
+        "",
+        "stream (TCP byte relay, CURVE passes) or message (per-message faults incl. "
+        "corruption, plain only); empty = the scenario's (stream for every built-in one)",
+    )
 
 
 @dataclass

@@ -248,6 +248,9 @@ def run(args: argparse.Namespace) -> int:
         args.scenario,
         "--record",
         str(rec_dir),
+        # per-message faults, corruption included, so the decoders are exercised
+        "--set",
+        "network.mode=message",
     ]
     for override in args.overrides:
         cmd += ["--set", override]

@@ -1,6 +1,7 @@
-"""A message-level latency simulator between the robot and the operator.
+"""A latency simulator between the robot and the operator.
 
 Linux netem needs root and a kernel module; this runs anywhere, as a thread
 in a test or as ``deepxpalm netsim``, and impairs each direction of the
-ZeroMQ link independently. See docs/netsim.md.
+link independently: as a TCP byte relay (stream mode, CURVE passes) or as
+a ZeroMQ re-publisher (message mode). See docs/netsim.md.
 """

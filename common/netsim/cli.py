@@ -1,7 +1,9 @@
 """``deepxpalm netsim``: run the link simulator between the two nodes.
 
 Start the robot, then this, then point the operator at the simulator's bound
-endpoints (by default ports 5565/5566 instead of 5555/5556). Settings come
+endpoints (by default ports 5565/5566 instead of 5555/5556). The stream
+mode relays TCP bytes (CURVE passes), the message mode re-publishes ZeroMQ
+messages; the scenario says which, ``--mode`` overrides. Settings come
 from the defaults, then ``--config FILE`` (keys at the top level or under
 ``[netsim]``), then ``--set netsim.key=value``, then the explicit options.
 """
@@ -21,6 +23,7 @@ from common.config import param
 from common.errors import ConfigError
 from common.netsim.impairments import DIRECTIONS, Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
+from common.netsim.relay import StreamRelay
 from common.netsim.scenario import builtin_scenarios, load_scenario
 
 log = logging.getLogger(__name__)
@@ -31,8 +34,11 @@ class NetsimConfig:
     """Everything ``deepxpalm netsim`` needs."""
 
     scenario: str = param("lan", "built-in scenario name, or a path to a scenario .toml")
+    mode: str = param(
+        "", "stream (TCP byte relay, CURVE passes) or message (ZeroMQ); empty = the scenario's"
+    )
     seed: int = param(0, "same seed and scenario give the same impairment sequence")
-    hwm: int = param(1000, "ZeroMQ high-water mark of each simulator socket, in messages")
+    hwm: int = param(1000, "message mode: ZeroMQ high-water mark of each socket, in messages")
     spin_us: float = param(
         300.0, "busy-wait this long before each due time; sleeping wakes too late on a VM"
     )
@@ -48,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--scenario", help="built-in scenario name or path to a .toml file")
     parser.add_argument("--seed", type=int, help="random seed of the impairments")
+    parser.add_argument(
+        "--mode", choices=("stream", "message"), help="override the scenario's mode"
+    )
     parser.add_argument(
         "--delay-ms", type=float, help="base one-way delay in both directions (overrides scenario)"
     )
@@ -73,7 +82,7 @@ def config_from_args(args: argparse.Namespace) -> NetsimConfig:
         value = getattr(args, key, None)
         if value is not None:
             setattr(config.endpoints, key, value)
-    for key in ("scenario", "seed", "duration_s"):
+    for key in ("scenario", "seed", "duration_s", "mode"):
         value = getattr(args, key, None)
         if value is not None:
             setattr(config, key, value)
@@ -106,19 +115,14 @@ def run(args: argparse.Namespace) -> int:
         done.set()
 
     old = signal.signal(signal.SIGTERM, _on_signal)
-    sim = LinkSimulator(
-        scenario,
-        endpoints=config.endpoints,
-        seed=config.seed,
-        hwm=config.hwm,
-        spin_us=config.spin_us,
-    )
+    sim = build_simulator(config, scenario)
     try:
         sim.start()
         log.warning(
-            "netsim running scenario %r (seed %d): operator connects to %s (telemetry) "
-            "and %s (commands)",
+            "netsim running scenario %r (%s mode, seed %d): operator connects to %s "
+            "(telemetry) and %s (commands)",
             scenario.name,
+            mode_of(config, scenario),
             config.seed,
             sim.operator_telemetry_endpoint,
             sim.operator_commands_endpoint,
@@ -149,11 +153,38 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def final_stats(sim: LinkSimulator) -> dict[str, Any]:
+def mode_of(config: NetsimConfig, scenario: Scenario) -> str:
+    """The configured mode, or the scenario's when none is configured."""
+    mode = config.mode or scenario.mode
+    if mode not in ("stream", "message"):
+        raise ConfigError(f"netsim mode must be 'stream' or 'message', not {mode!r}")
+    return mode
+
+
+def build_simulator(config: NetsimConfig, scenario: Scenario) -> LinkSimulator | StreamRelay:
+    """The byte-stream relay or the message-level simulator, as the mode says."""
+    if mode_of(config, scenario) == "stream":
+        return StreamRelay(
+            scenario,
+            endpoints=config.endpoints,
+            seed=config.seed,
+            spin_us=config.spin_us,
+        )
+    return LinkSimulator(
+        scenario,
+        endpoints=config.endpoints,
+        seed=config.seed,
+        hwm=config.hwm,
+        spin_us=config.spin_us,
+    )
+
+
+def final_stats(sim: LinkSimulator | StreamRelay) -> dict[str, Any]:
     """Counters per direction and the simulator's own per-send cost, JSON-able."""
     own = sorted(sim.own_latency_ns())
     out: dict[str, Any] = {
         "scenario": sim.scenario.name,
+        "mode": "stream" if isinstance(sim, StreamRelay) else "message",
         "seed": sim.seed,
         "directions": sim.counters(),
     }

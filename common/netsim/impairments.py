@@ -34,11 +34,20 @@ import math
 import random
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 from statistics import NormalDist
 from typing import Literal
 
 from common.config import param
 from common.errors import ConfigError
+from common.netsim.trace import (
+    MAHIMAHI_PACKET_BYTES,
+    DelayTrace,
+    DeliveryTrace,
+    TraceFormat,
+    load_delay_trace,
+    load_delivery_trace,
+)
 
 NS_PER_MS = 1_000_000
 
@@ -55,6 +64,7 @@ MAX_RETRANSMISSIONS = 15
 
 Distribution = Literal["uniform", "normal", "pareto", "paretonormal", "table"]
 Delivery = Literal["stream", "datagram"]
+Mode = Literal["stream", "message"]
 LossModel = Literal["random", "gilbert_elliott"]
 CorruptMode = Literal["truncate", "bitflip"]
 
@@ -154,6 +164,12 @@ class DirectionConfig:
     outages: list[tuple[float, float]] = param(
         [], "[[t1_s, t2_s], ...]: link down from t1 to t2 seconds after start"
     )
+    trace_file: str = param(
+        "", "a recorded link to replay instead of the delay distribution (relative to the file)"
+    )
+    trace_format: TraceFormat = param(
+        "delays", "delays: 't_s delay_ms' lines; mahimahi: one delivery opportunity (ms) a line"
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -208,7 +224,16 @@ class DirectionConfig:
 
     # -------------------------------------------------------- what it means
     def delay_quantile_ms(self, u: float) -> float:
-        """The configured one-way delay at probability ``u`` (before queueing and blocking)."""
+        """The configured one-way delay at probability ``u`` (before queueing and blocking).
+
+        A ``delays`` trace is its recorded delays' quantile; a ``mahimahi``
+        trace's delay depends on the traffic, so only ``delay_ms`` is known.
+        """
+        if self.trace_file:
+            if self.trace_format == "mahimahi":
+                return self.delay_ms
+            values = sorted(load_delay_trace(Path(self.trace_file)).delays_ms)
+            return self.delay_ms + _table_q(values, u)
         if self.distribution == "table":
             extra = _table_q(sorted(self.delay_table_ms), u)
             return self.delay_ms + extra
@@ -249,6 +274,11 @@ class Scenario:
 
     name: str = param("none", "shown in logs and reports")
     description: str = param("no impairment", "one line on what the link stands for")
+    mode: Mode = param(
+        "stream",
+        "stream: relay TCP bytes unchanged (CURVE passes); message: re-publish ZeroMQ "
+        "messages (per-message loss, duplication, reordering, corruption; no CURVE)",
+    )
     to_operator: DirectionConfig = param(DirectionConfig(), "robot -> operator (telemetry)")
     to_robot: DirectionConfig = param(DirectionConfig(), "operator -> robot (commands)")
 
@@ -419,6 +449,14 @@ class DirectionImpairment:
         self._queue: deque[int] = deque()  # finish times of messages at the bottleneck
         self._link_free_ns = 0
         self._last_due_ns = 0
+        self._delay_trace: DelayTrace | None = None
+        self._deliveries: DeliveryTrace | None = None
+        self._next_opportunity = 0
+        if c.trace_file:
+            if c.trace_format == "mahimahi":
+                self._deliveries = load_delivery_trace(Path(c.trace_file))
+            else:
+                self._delay_trace = load_delay_trace(Path(c.trace_file))
 
     def in_outage(self, t_ns: int) -> bool:
         """Whether the link is down at ``t_ns``."""
@@ -443,6 +481,8 @@ class DirectionImpairment:
         delay_ms = self._delay.step()
         dup_delay_ms = self._dup_delay.independent() if self._duplicating else 0.0
 
+        if self._delay_trace is not None:
+            delay_ms = c.delay_ms + self._delay_trace.delay_ms(now_ns - self.start_ns)
         down = self.in_outage(now_ns) if self._outages else False
         if not self._stream and (lost or down):
             if down:
@@ -453,7 +493,14 @@ class DirectionImpairment:
 
         # Bottleneck: serialise after whatever is queued; a full queue drops.
         t = now_ns
-        if self._ns_per_byte:
+        if self._deliveries is not None:
+            # Wait for enough delivery opportunities; unused ones are gone.
+            trace, start = self._deliveries, self.start_ns
+            k = max(self._next_opportunity, trace.first_at_or_after(now_ns - start))
+            k += max(1, -(-(len(payload) + c.packet_overhead_bytes) // MAHIMAHI_PACKET_BYTES)) - 1
+            t = start + trace.opportunity_ns(k)
+            self._next_opportunity = k + 1
+        elif self._ns_per_byte:
             q = self._queue
             while q and q[0] <= now_ns:
                 q.popleft()

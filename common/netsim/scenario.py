@@ -27,8 +27,14 @@ def builtin_scenarios() -> list[str]:
     return sorted(f.name[: -len(".toml")] for f in files if f.name.endswith(".toml"))
 
 
-def scenario_from_dict(data: dict[str, Any], *, where: str = "scenario") -> Scenario:
-    """Build a ``Scenario``, merging ``[both]`` under each direction's own table."""
+def scenario_from_dict(
+    data: dict[str, Any], *, where: str = "scenario", base_dir: Path | None = None
+) -> Scenario:
+    """Build a ``Scenario``, merging ``[both]`` under each direction's own table.
+
+    A relative ``trace_file`` is taken relative to ``base_dir`` (the
+    scenario file's folder), so a scenario and its trace travel together.
+    """
     data = dict(data)
     both = data.pop("both", {}) or {}
     if not isinstance(both, dict):
@@ -37,7 +43,11 @@ def scenario_from_dict(data: dict[str, Any], *, where: str = "scenario") -> Scen
         own = data.get(name, {}) or {}
         if not isinstance(own, dict):
             raise ConfigError(f"[{where}.{name}] must be a table")
-        data[name] = {**both, **own}
+        merged = {**both, **own}
+        trace = merged.get("trace_file")
+        if isinstance(trace, str) and trace and base_dir is not None:
+            merged["trace_file"] = str((base_dir / trace).resolve())
+        data[name] = merged
     return from_dict(Scenario, data, where=where)
 
 
@@ -48,7 +58,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         path = Path(text)
         data = load_toml(path)
         data.setdefault("name", path.stem)
-        return scenario_from_dict(data, where=path.name)
+        return scenario_from_dict(data, where=path.name, base_dir=path.parent)
     known = builtin_scenarios()
     if text not in known:
         raise ConfigError(
@@ -58,4 +68,4 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     ref = resources.files(_PACKAGE).joinpath(f"{text}.toml")
     with resources.as_file(ref) as path:
         data = load_toml(path)
-    return scenario_from_dict(data, where=f"{text}.toml")
+        return scenario_from_dict(data, where=f"{text}.toml", base_dir=path.parent)

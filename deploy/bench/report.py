@@ -374,6 +374,7 @@ def markdown(results: dict[str, Any], img_dir_rel: str = "img") -> str:
     out += _node_cpu_md(results)
     out += command_path.markdown(results)
     out += video_markdown(_sec(results, "video"))
+    out += _netsim_md(results)
     out += _failures_md(results)
     out += _limits_md()
     return "\n".join(out) + "\n"
@@ -1132,6 +1133,12 @@ def _node_cpu_md(results: dict[str, Any]) -> list[str]:
     return out
 
 
+def _netsim_md(results: dict[str, Any]) -> list[str]:
+    from deploy.bench.netsim_fidelity import markdown as netsim_markdown
+
+    return netsim_markdown(_sec(results, "netsim"))
+
+
 def _failures_md(results: dict[str, Any]) -> list[str]:
     bad = {k: v for k, v in results["sections"].items() if isinstance(v, dict) and "error" in v}
     skipped = [
@@ -1188,6 +1195,12 @@ def write_outputs(results: dict[str, Any], out_dir: Path, figures: bool = True) 
                 break
     md = out_dir / "benchmarks.md"
     md.write_text(markdown(results))
+    netsim_doc = out_dir / "netsim.md"
+    if _sec(results, "netsim") is not None and netsim_doc.exists():
+        from deploy.bench.netsim_fidelity import update_doc
+
+        update_doc(netsim_doc, results["sections"]["netsim"])
+        paths.append(netsim_doc)
     js = out_dir / "benchmarks.json"
     slim = json.loads(json.dumps(results, default=str))
     for v in slim["sections"].values():

@@ -279,6 +279,13 @@ def _measure(
         return glass_to_glass(sizes.video_frames)
 
     section("video", video)
+
+    def netsim() -> dict[str, Any]:
+        from deploy.bench.netsim_fidelity import measure as netsim_fidelity
+
+        return netsim_fidelity(sizes.netsim_seconds, sizes.netsim_scenarios)
+
+    section("netsim", netsim)
     return {
         "generated_by": f"deepxpalm bench{'' if preset == 'full' else ' --size ' + preset}",
         "preset": preset,

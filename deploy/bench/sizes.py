@@ -23,6 +23,7 @@ SECTIONS = (
     "node_cpu",
     "command_path",
     "video",
+    "netsim",
 )
 
 
@@ -63,6 +64,14 @@ class Sizes:
     scale_measured: bool
     scale_backends: tuple[str | None, ...]
     video_frames: int = 1200  # glass-to-glass: stamped frames read in the browser (40 s)
+    netsim_seconds: float = 20.0  # per scenario, 100 messages a second
+    netsim_scenarios: tuple[str, ...] = (
+        "none",
+        "lan",
+        "metro",
+        "intercontinental",
+        "loopback_trace",
+    )
 
 
 ALL_BACKENDS = ("numba", "numpy", "onnxruntime", "torchscript", "torch")
@@ -135,6 +144,7 @@ PRESETS: dict[str, Sizes] = {
         scale_measured=False,
         scale_backends=(None,),
         video_frames=300,
+        netsim_seconds=5.0,
     ),
     "smallest": Sizes(
         stage_frames=100,
@@ -170,6 +180,8 @@ PRESETS: dict[str, Sizes] = {
         scale_measured=False,
         scale_backends=(None,),
         video_frames=30,
+        netsim_seconds=1.0,
+        netsim_scenarios=("none",),
     ),
 }
 

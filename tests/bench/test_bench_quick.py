@@ -16,8 +16,8 @@ from deploy.bench.report import write_outputs
 from deploy.bench.runner import run_bench
 from deploy.bench.sizes import PRESETS, SECTIONS
 
-# The two sections that start node processes are covered by the slow test below.
-PROCESS_SECTIONS = {"node_cpu", "e2e_tcp"}
+# The sections that start processes are covered by the slow test below.
+PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim"}
 
 
 @pytest.fixture(scope="module")
@@ -146,5 +146,9 @@ def test_process_sections_run(tmp_path):
     assert cpu["robot_cpu_percent"] > 0 and cpu["operator_cpu_percent"] > 0
     assert cpu["robot_stats"]["frames_captured"] > 0
     assert cpu["operator_stats"]["stimuli_received"] > 0
+    netsim = results["sections"]["netsim"]
+    assert "error" not in netsim, netsim.get("error")
+    assert netsim["runs"][0]["n_via"] > 0
     write_outputs(results, tmp_path, figures=False)
     assert "## Node CPU" in (tmp_path / "benchmarks.md").read_text()
+    assert "## Link simulator fidelity" in (tmp_path / "benchmarks.md").read_text()

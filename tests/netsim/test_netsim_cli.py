@@ -102,3 +102,24 @@ def test_config_file_then_set_then_options(tmp_path) -> None:
     assert config.endpoints.robot_telemetry == "tcp://127.0.0.1:7000"
     assert config.endpoints.robot_commands == "tcp://127.0.0.1:7001"
     assert cli.scenario_from_args(config, args).name == "metro"
+
+
+def test_scenarios_run_as_a_byte_stream_unless_the_message_mode_is_asked_for() -> None:
+    from common.netsim.proxy import LinkSimulator
+    from common.netsim.relay import StreamRelay
+
+    for argv, kind in (
+        (["--scenario", "bad_day"], StreamRelay),
+        (["--scenario", "bad_day", "--mode", "message"], LinkSimulator),
+    ):
+        config = cli.config_from_args(_parser().parse_args(argv))
+        sim = cli.build_simulator(
+            config, cli.scenario_from_args(config, _parser().parse_args(argv))
+        )
+        assert isinstance(sim, kind)
+    datagram = cli.scenario_from_args(
+        cli.config_from_args(_parser().parse_args([])), _parser().parse_args([])
+    )
+    datagram.to_operator.delivery = "datagram"
+    with pytest.raises(ConfigError, match="message"):
+        cli.build_simulator(cli.NetsimConfig(), datagram)

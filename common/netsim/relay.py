@@ -1,0 +1,525 @@
+"""The simulator as a TCP relay: each direction's byte stream forwarded unchanged.
+
+ZeroMQ's wire protocol (ZMTP), CURVE's handshake and its encrypted frames
+pass through untouched, so the deployed configuration (encrypted,
+allowlisted) runs under impairments. The relay never parses a byte; it
+only decides when each chunk it reads leaves, with the same engine as the
+message mode (``DirectionImpairment`` in the stream delivery model): delay
+with its distribution and correlation, the bottleneck rate, outages and
+losses as the retransmission stalls TCP would show. A chunk is what one
+``recv`` returned, the relay's stand-in for a packet.
+
+Its own cost is kept out of the delays: every chunk is timed from the
+kernel's receive timestamp (``SO_TIMESTAMPNS``), so the thread's wake-up
+and read are inside the scheduled delay, and a delayed chunk's send starts
+early by the measured cost of a release (median of the recent ones). A
+chunk whose delay is zero is sent as soon as it is read, without going
+through the schedule.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import errno
+import logging
+import math
+import select
+import socket
+import statistics
+import struct
+import threading
+import time
+from collections import deque
+from typing import Any, Self
+from urllib.parse import urlsplit
+
+from common.errors import ConfigError, LinkError
+from common.netsim.impairments import DIRECTIONS, DirectionConfig, DirectionImpairment, Scenario
+from common.netsim.proxy import DirectionCounters, Endpoints, _set_timer_slack_ns
+
+log = logging.getLogger(__name__)
+
+#: Longest the thread sleeps before checking for ``stop()``.
+_MAX_WAIT_S = 0.02
+_RECV_BYTES = 1 << 16
+#: Bytes waiting for a slow receiver before the relay stops reading its source.
+_BACKPRESSURE_BYTES = 1 << 22
+#: Linux's SO_TIMESTAMPNS (and SCM_TIMESTAMPNS); Python's socket module lacks it.
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_TIMESPEC = struct.Struct("qq")
+_ANC_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
+#: Recent release costs kept for the median the schedule subtracts.
+_COST_WINDOW = 128
+_COST_START_NS = 40_000
+#: A connection to the robot must be up within this (connects block the relay thread).
+_CONNECT_TIMEOUT_S = 1.0
+
+
+def _host_port(endpoint: str) -> tuple[str, int]:
+    """``tcp://host:port`` (port ``*`` = any free one) as a socket address."""
+    parts = urlsplit(endpoint)
+    if parts.scheme != "tcp" or not parts.hostname:
+        raise ConfigError(f"the stream relay needs tcp://HOST:PORT endpoints, not {endpoint!r}")
+    port_text = parts.netloc.rsplit(":", 1)[-1]
+    if port_text == "*":
+        return parts.hostname, 0
+    try:
+        return parts.hostname, int(port_text)
+    except ValueError:
+        raise ConfigError(f"bad port in endpoint {endpoint!r}") from None
+
+
+def stream_config(config: DirectionConfig) -> DirectionConfig:
+    """A direction's impairments as a byte stream can carry them.
+
+    A relay cannot drop or damage bytes without breaking the TCP stream it
+    stands for (TCP's checksum and flow control prevent both), so datagram
+    delivery is refused, corruption is left to the message mode, and a full
+    bottleneck queue holds the sender back instead of dropping.
+    """
+    if config.delivery != "stream":
+        raise ConfigError(
+            "delivery = 'datagram' needs the message mode (mode = 'message'): a byte-stream "
+            "relay cannot lose, duplicate or reorder what TCP delivers"
+        )
+    return dataclasses.replace(config, corrupt_percent=0.0, queue_limit=1 << 30)
+
+
+def _is_passthrough(config: DirectionConfig) -> bool:
+    """No impairment at all: every chunk leaves the moment it is read."""
+    return (
+        config.delay_ms == 0
+        and config.distribution != "table"
+        and config.jitter_ms == 0
+        and config.loss_rate() == 0
+        and config.rate_kbit == 0
+        and not config.outages
+        and not config.trace_file
+    )
+
+
+class _Pipe:
+    """One direction of one relayed connection."""
+
+    __slots__ = (
+        "closed",
+        "counters",
+        "direction",
+        "dst",
+        "engine",
+        "pending",
+        "queue",
+        "src",
+    )
+
+    def __init__(
+        self,
+        src: socket.socket,
+        dst: socket.socket,
+        direction: str,
+        engine: DirectionImpairment | None,
+        counters: DirectionCounters,
+    ) -> None:
+        self.src = src
+        self.dst = dst
+        self.direction = direction
+        self.engine = engine  # None: passthrough
+        self.counters = counters
+        #: (nominal due ns, release at ns, arrival ns, bytes), in due order.
+        self.queue: deque[tuple[int, int, int, bytes]] = deque()
+        self.pending = bytearray()  # released but not yet accepted by the kernel
+        self.closed = False
+
+
+class StreamRelay:
+    """Relays the robot's two TCP links, each direction impaired by ``scenario``.
+
+    The operator connects to ``operator_telemetry_endpoint`` and
+    ``operator_commands_endpoint`` (resolved after ``start()``); each
+    connection gets its own to the robot's endpoint. Bytes from the robot
+    are ``to_operator``, bytes to it ``to_robot``, on both links (the
+    telemetry link's ``to_robot`` bytes are ZMTP's handshake and
+    subscriptions). Same interface as ``LinkSimulator``.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario | None = None,
+        *,
+        endpoints: Endpoints | None = None,
+        seed: int = 0,
+        spin_us: float = 300.0,
+        subtract_own_cost: bool = True,
+    ) -> None:
+        self.scenario = scenario if scenario is not None else Scenario()
+        self.endpoints = endpoints if endpoints is not None else Endpoints()
+        self.seed = seed
+        if spin_us < 0:
+            raise ConfigError(f"spin_us must be >= 0, not {spin_us}")
+        self.spin_ns = round(spin_us * 1000)
+        self.subtract_own_cost = subtract_own_cost
+        self._configs = {name: stream_config(self.scenario.direction(name)) for name in DIRECTIONS}
+        self._passthrough = {name: _is_passthrough(c) for name, c in self._configs.items()}
+        self._counters = {name: DirectionCounters() for name in DIRECTIONS}
+        self._engines: list[DirectionImpairment] = []
+        #: Counts of the engines of connections already closed, per direction.
+        self._retired: dict[str, dict[str, int]] = {name: {} for name in DIRECTIONS}
+        self._connections = 0
+        self._unreachable: set[str] = set()
+        self._dirty = True  # the select lists need rebuilding
+        self._spun = 0  # reads found while spinning (ahead of a release or a chunk)
+        self._listeners: list[tuple[str, socket.socket, tuple[str, int]]] = []
+        self._pipes: list[_Pipe] = []
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._error: BaseException | None = None
+        self.start_ns: int | None = None
+        self._own_ns: deque[int] = deque(maxlen=100_000)
+        self._costs: deque[int] = deque(maxlen=_COST_WINDOW)
+        self._cost_ns = _COST_START_NS
+        self.operator_telemetry_endpoint: str | None = None
+        self.operator_commands_endpoint: str | None = None
+
+    # ------------------------------------------------------------ lifecycle
+    @property
+    def is_running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        """Bind the operator-side listeners and start relaying."""
+        if self._thread is not None:
+            raise LinkError("StreamRelay.start() called twice")
+        ep = self.endpoints
+        links = (
+            ("telemetry", ep.operator_telemetry, ep.robot_telemetry),
+            ("commands", ep.operator_commands, ep.robot_commands),
+        )
+        for name, bind_at, robot_at in links:
+            host, port = _host_port(bind_at)
+            target = _host_port(robot_at)
+            try:
+                listener = socket.create_server((host, port), reuse_port=False)
+            except OSError as e:
+                self._close_listeners()
+                raise LinkError(f"netsim cannot bind to {bind_at}: {e}") from None
+            listener.setblocking(False)
+            self._listeners.append((name, listener, target))
+        tel, cmd = (lst.getsockname() for _, lst, _ in self._listeners)
+        self.operator_telemetry_endpoint = f"tcp://{tel[0]}:{tel[1]}"
+        self.operator_commands_endpoint = f"tcp://{cmd[0]}:{cmd[1]}"
+        self.start_ns = time.monotonic_ns()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="netsim-relay", daemon=True)
+        self._thread.start()
+        log.info(
+            "netsim %r (byte stream): robot %s / %s <-> operator %s / %s",
+            self.scenario.name,
+            ep.robot_telemetry,
+            ep.robot_commands,
+            self.operator_telemetry_endpoint,
+            self.operator_commands_endpoint,
+        )
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Stop relaying and close every connection; bytes in flight are dropped."""
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        self._stop.set()
+        thread.join(timeout_s)
+        if thread.is_alive():
+            log.error("netsim relay thread did not stop within %.1f s", timeout_s)
+        if self._error is not None:
+            log.error("netsim relay thread failed: %r", self._error)
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------ state
+    def counters(self) -> dict[str, dict[str, Any]]:
+        """Per direction: chunks and bytes relayed, and the impairments' counts by cause."""
+        out: dict[str, dict[str, Any]] = {}
+        for name in DIRECTIONS:
+            row: dict[str, Any] = self._counters[name].as_dict()
+            for key, value in dict(self._retired[name]).items():
+                row[key] = row.get(key, 0) + value
+            for engine in list(self._engines):
+                if engine.name.startswith(name):
+                    for key, value in engine.counts.as_dict().items():
+                        row[key] = row.get(key, 0) + value
+            out[name] = row
+        out["relay"] = {"connections": self._connections, "reads_while_spinning": self._spun}
+        return out
+
+    def own_latency_ns(self) -> list[int]:
+        """Recent per-chunk costs of the relay: sent minus the later of arrival and due time."""
+        return list(self._own_ns)
+
+    def release_cost_ns(self) -> int:
+        """The current estimate of a release's own cost, taken off every scheduled delay."""
+        return self._cost_ns
+
+    @property
+    def error(self) -> BaseException | None:
+        return self._error
+
+    # ------------------------------------------------------------ connections
+    def _accept(self, link: str, listener: socket.socket, target: tuple[str, int]) -> None:
+        try:
+            client, _ = listener.accept()
+        except BlockingIOError:
+            return
+        try:
+            upstream = socket.create_connection(target, timeout=_CONNECT_TIMEOUT_S)
+        except OSError as e:
+            if link not in self._unreachable:  # once until it works: ZeroMQ retries often
+                self._unreachable.add(link)
+                log.warning("netsim: robot %s link %s:%d unreachable: %s", link, *target, e)
+            client.close()
+            return
+        self._unreachable.discard(link)
+        self._connections += 1
+        n = self._connections
+        for sock in (client, upstream):
+            sock.setblocking(False)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            # Without receive timestamps, chunks are timed when read.
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        for src, dst, direction in (
+            (upstream, client, "to_operator"),
+            (client, upstream, "to_robot"),
+        ):
+            engine = None
+            if not self._passthrough[direction]:
+                assert self.start_ns is not None
+                engine = DirectionImpairment(
+                    self._configs[direction],
+                    seed=self.seed,
+                    name=f"{direction}:{link}:{n}",
+                    start_ns=self.start_ns,
+                )
+                self._engines.append(engine)
+            self._pipes.append(_Pipe(src, dst, direction, engine, self._counters[direction]))
+        self._dirty = True
+        log.debug("netsim: %s connection %d relayed to %s:%d", link, n, *target)
+
+    def _close_pair(self, pipe: _Pipe) -> None:
+        """Close both directions of the connection ``pipe`` belongs to (as a reset would)."""
+        socks = {pipe.src, pipe.dst}
+        for p in self._pipes:
+            if p.src in socks:
+                p.closed = True
+                if p.engine is not None:  # keep its counts, not the engine
+                    retired = self._retired[p.direction]
+                    for key, value in p.engine.counts.as_dict().items():
+                        retired[key] = retired.get(key, 0) + value
+                    self._engines.remove(p.engine)
+        for s in socks:
+            s.close()
+        self._pipes = [p for p in self._pipes if not p.closed]
+        self._dirty = True
+
+    def _close_listeners(self) -> None:
+        for _, listener, _ in self._listeners:
+            listener.close()
+        self._listeners = []
+
+    # ------------------------------------------------------------ the loop
+    def _read(self, pipe: _Pipe, real_minus_mono: int) -> None:
+        try:
+            data, anc, _, _ = pipe.src.recvmsg(_RECV_BYTES, _ANC_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data, anc = b"", []
+        if pipe.engine is None and data and not pipe.pending:
+            # Nothing to simulate: out first, accounting after.
+            try:
+                sent = pipe.dst.send(data)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError:
+                self._close_pair(pipe)
+                return
+            t_sent = time.monotonic_ns()
+            if sent < len(data):
+                pipe.pending += data[sent:]
+                self._dirty = True
+            arrival = _arrival_ns(anc, t_sent, real_minus_mono)
+            c = pipe.counters
+            c.received += 1
+            c.sent += 1
+            c.bytes_in += len(data)
+            c.bytes_out += len(data)
+            self._own_ns.append(t_sent - arrival)
+            return
+        t_read = time.monotonic_ns()
+        if not data:  # the peer closed (or reset): pass the close on
+            self._close_pair(pipe)
+            return
+        arrival = _arrival_ns(anc, t_read, real_minus_mono)
+        c = pipe.counters
+        c.received += 1
+        c.bytes_in += len(data)
+        if pipe.engine is None:
+            self._release(pipe, data, arrival, arrival, arrival)
+            return
+        out = pipe.engine.process(arrival, data)
+        if not out:  # gave up after the retransmissions: TCP resets the connection
+            c.dropped += 1
+            log.warning("netsim: %s connection reset after repeated losses", pipe.direction)
+            self._close_pair(pipe)
+            return
+        due, payload = out[0]
+        release = max(arrival, due - self._cost_ns) if self.subtract_own_cost else due
+        if not pipe.queue and release <= t_read:
+            self._release(pipe, payload, arrival, due, release)
+        else:
+            pipe.queue.append((due, release, arrival, payload))
+
+    def _release(self, pipe: _Pipe, data: bytes, arrival: int, due: int, target: int) -> None:
+        """Send ``data`` (or queue it behind what the receiver has not taken yet)."""
+        if pipe.pending:
+            pipe.pending += data
+        else:
+            try:
+                sent = pipe.dst.send(data)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError:
+                self._close_pair(pipe)
+                return
+            if sent < len(data):
+                pipe.pending += data[sent:]
+                self._dirty = True
+        t1 = time.monotonic_ns()
+        c = pipe.counters
+        c.sent += 1
+        c.bytes_out += len(data)
+        start = due if due > arrival else arrival
+        self._own_ns.append(t1 - start)
+        late = t1 - due
+        if late > c.late_ns_max:
+            c.late_ns_max = late
+        if target > arrival:  # a scheduled release: learn how long one takes
+            self._costs.append(t1 - target)
+            if len(self._costs) % 16 == 0:
+                self._cost_ns = round(statistics.median(self._costs))
+
+    def _flush(self, pipe: _Pipe) -> None:
+        try:
+            sent = pipe.dst.send(pipe.pending)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self._close_pair(pipe)
+            return
+        del pipe.pending[:sent]
+        if not pipe.pending:
+            self._dirty = True
+
+    def _run(self) -> None:
+        _set_timer_slack_ns(1_000)
+        now_ns = time.monotonic_ns
+        spin_ns = self.spin_ns
+        stop = self._stop
+        readers: list[Any] = []
+        writers: list[Any] = []
+        by_sock: dict[Any, _Pipe] = {}
+        try:
+            while not stop.is_set():
+                if self._dirty:  # connections or blocked receivers changed
+                    self._dirty = False
+                    readers = [lst for _, lst, _ in self._listeners]
+                    writers = [p.dst for p in self._pipes if p.pending]
+                    by_sock = {}
+                    for pipe in self._pipes:
+                        if len(pipe.pending) < _BACKPRESSURE_BYTES:
+                            readers.append(pipe.src)
+                            by_sock[pipe.src] = pipe
+                # Release what is due, in due order per pipe.
+                next_ns = None
+                t = now_ns()
+                for pipe in self._pipes:
+                    q = pipe.queue
+                    while q and q[0][1] <= t and not pipe.closed:
+                        due, target, arrival, data = q.popleft()
+                        self._release(pipe, data, arrival, due, target)
+                        t = now_ns()
+                    if q and (next_ns is None or q[0][1] - spin_ns < next_ns):
+                        next_ns = q[0][1] - spin_ns
+                if self._dirty:
+                    continue
+                # Wait for bytes, a writable receiver, or the next release.
+                wait_s = _MAX_WAIT_S
+                if next_ns is not None:
+                    wait_s = max(0.0, min(wait_s, (next_ns - t) / 1e9))
+                readable, writable = _wait(readers, writers, wait_s)
+                if readable and wait_s == 0.0:
+                    self._spun += 1  # a chunk that came in while spinning for a release
+                if readable:
+                    real_minus_mono = time.time_ns() - now_ns()
+                    for sock in readable:
+                        pipe = by_sock.get(sock)
+                        if pipe is not None:
+                            if not pipe.closed:
+                                self._read(pipe, real_minus_mono)
+                            continue
+                        for link, listener, target in self._listeners:
+                            if listener is sock:
+                                self._accept(link, listener, target)
+                for sock in writable:
+                    for pipe in self._pipes:
+                        if pipe.dst is sock and pipe.pending and not pipe.closed:
+                            self._flush(pipe)
+        except BaseException as e:  # report, never die silently
+            self._error = e
+            log.exception("netsim relay stopped")
+        finally:
+            for pipe in self._pipes:
+                for s in (pipe.src, pipe.dst):
+                    s.close()
+            self._pipes = []
+            self._close_listeners()
+
+
+def _arrival_ns(anc: list[tuple[int, int, bytes]], t_read: int, real_minus_mono: int) -> int:
+    """When the chunk reached the kernel (its receive timestamp), on the monotonic clock."""
+    for level, kind, payload in anc:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
+            sec, nsec = _TIMESPEC.unpack_from(payload)
+            at = sec * 1_000_000_000 + nsec - real_minus_mono
+            if t_read - 1_000_000_000 < at <= t_read:  # ignore a wall-clock step
+                return at
+    return t_read
+
+
+def _wait(readers: list[Any], writers: list[Any], wait_s: float) -> tuple[list[Any], list[Any]]:
+    """``select`` (microsecond timeouts) while the descriptors allow it, else ``poll``."""
+    if all(s.fileno() < 1024 for s in (*readers, *writers)):
+        try:
+            r, w, _ = select.select(readers, writers, [], wait_s)
+        except OSError as e:  # a socket closed under us: look again
+            if e.errno != errno.EBADF:
+                raise
+            return [], []
+        return r, w
+    poller = select.poll()
+    for s in readers:
+        poller.register(s, select.POLLIN)
+    for s in writers:
+        poller.register(s, select.POLLOUT | (select.POLLIN if s in readers else 0))
+    fds = {s.fileno(): s for s in (*readers, *writers)}
+    r, w = [], []
+    for fd, ev in poller.poll(math.floor(wait_s * 1000)):
+        if ev & (select.POLLIN | select.POLLHUP | select.POLLERR) and fds[fd] in readers:
+            r.append(fds[fd])
+        if ev & select.POLLOUT:
+            w.append(fds[fd])
+    return r, w
