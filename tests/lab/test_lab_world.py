@@ -1,0 +1,153 @@
+"""The simulated lab through the real drivers: ur-rtde, the URCap socket, the serial board.
+
+One world process for the module; each test leaves the arm at the grasp
+pose's height above the rack with the gripper open.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (MuJoCo)")
+pytest.importorskip("rtde_control", reason="the lab's arm is driven through ur-rtde")
+
+from robot_side.arm.base import ArmLimits  # noqa: E402
+from robot_side.arm.sim.kinematics import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
+from robot_side.lab.devices import (  # noqa: E402
+    LabArm,
+    LabArmConfig,
+    LabGripper,
+    LabTactileSensor,
+)
+
+pytestmark = pytest.mark.timeout(120)
+
+#: the TCP this far below home puts the pads' centre 20 mm down the pipettes' tops
+GRASP_DEPTH_M = 0.025
+CONTACT_N = 1.0
+
+
+@pytest.fixture(scope="module")
+def lab():
+    limits = ArmLimits(workspace_min=(-0.45, -0.45, -0.05), max_linear_speed_m_s=0.2)
+    arm = LabArm(LabArmConfig(limits=limits))
+    gripper = LabGripper()
+    pads = LabTactileSensor()
+    arm.connect()
+    try:
+        gripper.connect()
+        pads.connect()
+        home = arm.tcp_pose()
+        yield arm, gripper, pads, home
+    finally:
+        pads.disconnect()
+        gripper.disconnect()
+        arm.disconnect()
+
+
+def _frame(pads: LabTactileSensor, settle_s: float = 0.3) -> np.ndarray:
+    time.sleep(settle_s)
+    sample = pads.read_latest(max_age_ms=200)
+    return sample.frame
+
+
+def _taxels_on(frame: np.ndarray) -> np.ndarray:
+    return (frame >= CONTACT_N).sum(axis=(1, 2))
+
+
+def _grasp_pose(home: np.ndarray, x_offset_m: float = 0.0, turn_deg: float = 0.0) -> np.ndarray:
+    """Home, lowered onto the centre pipette, shifted along the pad, turned about the fingers' axis."""
+    r = rotvec_to_matrix(home[3:])
+    pose = home.copy()
+    pose[:3] += r @ np.array([x_offset_m, 0.0, 0.0]) - np.array([0.0, 0.0, GRASP_DEPTH_M])
+    turn = rotvec_to_matrix(r @ np.array([0.0, math.radians(turn_deg), 0.0]))
+    pose[3:] = matrix_to_rotvec(turn @ r)
+    return pose
+
+
+def _above(home: np.ndarray) -> np.ndarray:
+    return home.copy()
+
+
+def _close(gripper: LabGripper, level: int = 16, timeout_s: float = 3.0) -> None:
+    gripper.close_to_level(level)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not gripper.object_detected():
+        time.sleep(0.02)
+
+
+def _open(gripper: LabGripper) -> None:
+    gripper.open()
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline and gripper.position() > 5:
+        time.sleep(0.02)
+
+
+def test_closing_on_a_pipette_presses_both_pads_and_releasing_leaves_none(lab):
+    arm, gripper, pads, home = lab
+    _open(gripper)
+    arm.move_to(_grasp_pose(home), speed=0.1)
+    _close(gripper)
+    assert gripper.object_detected(), "the 2F-85 reports an object from the real contact"
+    held = _frame(pads)
+    on = _taxels_on(held)
+    assert on[0] >= 5 and on[1] >= 5, f"both pads feel the pipette: {on} taxels >= 1 N"
+    assert held.max() <= 9.0 + 1e-6, "taxels saturate at 9 N"
+    _open(gripper)
+    released = _frame(pads)
+    assert _taxels_on(released).max() <= 2, "released: at most a stuck taxel reads anything"
+    arm.move_to(_above(home), speed=0.1)
+
+
+def test_a_45_degree_wrist_turn_moves_the_recognised_angle_by_one_class(lab):
+    from robot_side.perception.inference import load_classifier
+
+    arm, gripper, pads, home = lab
+    classifier = load_classifier()
+    classes = {}
+    for turn in (0.0, 45.0):
+        _open(gripper)
+        arm.move_to(_above(home), speed=0.1)
+        arm.move_to(_grasp_pose(home, turn_deg=turn), speed=0.1)
+        _close(gripper)
+        frame = _frame(pads)
+        assert _taxels_on(frame).min() >= 5
+        classes[turn] = classifier.predict_one(frame).angle_class
+        truth = gripper_truth = lab_truth(arm)
+        assert truth["pattern"] is not None, gripper_truth
+    _open(gripper)
+    arm.move_to(_above(home), speed=0.1)
+    assert classes[0.0] == 2, f"a vertical pipette reads 90 deg: {classes}"
+    assert abs(classes[45.0] - classes[0.0]) == 1, f"one class apart: {classes}"
+
+
+def lab_truth(arm: LabArm) -> dict:
+    assert arm.world is not None
+    return arm.world.grasp()
+
+
+def test_the_arm_stops_at_the_table(lab):
+    arm, gripper, pads, home = lab
+    _open(gripper)
+    beside = home.copy()
+    beside[:3] += rotvec_to_matrix(home[3:]) @ np.array([0.0, 0.12, 0.0])  # off the rack
+    arm.move_to(beside, speed=0.1)
+    deadline = time.monotonic() + 8.0
+    stopped = False
+    while time.monotonic() < deadline:
+        arm.jog([0.0, 0.0, -0.15, 0.0, 0.0, 0.0])
+        if arm.world.stats()["protective_stops"]:
+            stopped = True
+            break
+        time.sleep(0.03)
+    assert stopped, "touching the table is a protective stop"
+    stops = arm.world.stats()["protective_stops"]
+    assert "table" in stops[0]
+    z = arm.tcp_pose()[2]
+    time.sleep(0.3)
+    assert arm.tcp_pose()[2] == pytest.approx(z, abs=1e-3), "the arm stays stopped"
+    assert 0.0 < z < 0.03, f"stopped with the fingertips at the table top, TCP z {z:.3f}"
