@@ -47,7 +47,16 @@ def main(argv: list[str] | None = None) -> None:
     done = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: done.set())
     signal.signal(signal.SIGTERM, lambda *_: done.set())
-    print(json.dumps({k: v for k, v in server.addresses().items() if "tactile_" not in k or k == "tactile_port"}), flush=True)
+    print(
+        json.dumps(
+            {
+                k: v
+                for k, v in server.addresses().items()
+                if "tactile_" not in k or k == "tactile_port"
+            }
+        ),
+        flush=True,
+    )
     done.wait()
     server.stop()
 

@@ -64,13 +64,12 @@ def detach_world(world: LabWorldProcess) -> None:
                 return
 
 
-def _world_config_param() -> Path | None:
-    return param(None, "the world's settings (LabWorldConfig TOML); unset = the shipped lab")
+WORLD_CONFIG_WHY = "the world's settings (LabWorldConfig TOML); unset = the shipped lab"
 
 
 @dataclass
 class LabTactileConfig:
-    world_config: Path | None = _world_config_param()
+    world_config: Path | None = param(None, WORLD_CONFIG_WHY)
     driver: SerialTactileConfig = param(
         SerialTactileConfig(), "the real serial driver; its port is set to the world's board"
     )
@@ -113,7 +112,7 @@ class LabTactileSensor(SerialTactileSensor):
 class LabGripperConfig(RobotiqSocketConfig):
     host: str = param("auto", "ignored: the world's gripper simulator is used")
     port: int = param(0, "ignored: the world's gripper simulator is used")
-    world_config: Path | None = _world_config_param()
+    world_config: Path | None = param(None, WORLD_CONFIG_WHY)
 
 
 class LabGripper(RobotiqSocketGripper):
@@ -149,7 +148,10 @@ class LabGripper(RobotiqSocketGripper):
 @dataclass
 class LabArmConfig(URArmConfig):
     host: str = param("auto", "ignored: the world's UR controller simulator is used")
-    world_config: Path | None = _world_config_param()
+    stale_after_s: float = param(
+        0.5, "the simulated controller shares its process with the physics: allow it a stall"
+    )
+    world_config: Path | None = param(None, WORLD_CONFIG_WHY)
 
 
 class LabArm(URArm):

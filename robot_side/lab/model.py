@@ -128,9 +128,7 @@ def _finger(config: LabWorldConfig, k: int) -> str:
 
 def build_mjcf(config: LabWorldConfig) -> str:
     """The whole lab as MJCF text."""
-    links = "".join(
-        f'<body name="link{j}" mocap="true">{_link_geoms(j)}</body>' for j in range(6)
-    )
+    links = "".join(f'<body name="link{j}" mocap="true">{_link_geoms(j)}</body>' for j in range(6))
     ph = PALM_HALF_M
     gripper = f"""
     <body name="gripper" mocap="true">
@@ -144,7 +142,7 @@ def build_mjcf(config: LabWorldConfig) -> str:
         bottom = p.top - p.axis * PIPETTE_LENGTH_M
         pipettes.append(
             f'<geom name="pipette{i}" type="capsule" size="{p.radius_m:.5f}" '
-            f'fromto="{_f(*bottom, *p.top)}" contype="4" conaffinity="4" condim="3" '
+            f'fromto="{_f(*bottom, *p.top)}" contype="4" conaffinity="4" condim="1" '
             f'solref="{_f(*config.taxel_solref)}" solimp="{_f(*config.taxel_solimp)}" '
             'rgba=".92 .92 .85 .9"/>'
         )
@@ -159,7 +157,7 @@ def build_mjcf(config: LabWorldConfig) -> str:
   <default>
     <default class="taxel">
       <geom size="{_f(TAXEL_HALF_M, TAXEL_DEPTH_HALF_M, TAXEL_HALF_M)}" mass="0.0002"
-            contype="4" conaffinity="4" condim="3" solref="{_f(*config.taxel_solref)}"
+            contype="4" conaffinity="4" condim="1" solref="{_f(*config.taxel_solref)}"
             solimp="{_f(*config.taxel_solimp)}" rgba=".9 .55 .2 1"/>
     </default>
   </default>

@@ -98,7 +98,14 @@ class LabWorldProcess:
             self.stop()
             raise DeviceError(f"lab world failed to start: {msg.get('error', msg)}")
         self.addresses = msg["ready"]
-        log.info("lab world process %d: UR on %s, gripper on %s:%s, pads on %s", self._proc.pid, self.addresses["ur_host"], self.addresses["gripper_host"], self.addresses["gripper_port"], self.addresses["tactile_port"])
+        log.info(
+            "lab world process %d: UR on %s, gripper on %s:%s, pads on %s",
+            self._proc.pid,
+            self.addresses["ur_host"],
+            self.addresses["gripper_host"],
+            self.addresses["gripper_port"],
+            self.addresses["tactile_port"],
+        )
         return self
 
     def _read(self, timeout_s: float, what: str) -> dict[str, Any]:
@@ -143,7 +150,9 @@ class LabWorldProcess:
     def camera_names(self) -> list[str]:
         return self.call("camera_names")
 
-    def camera_frame(self, camera: str = "overview", width: int = 320, height: int = 240) -> np.ndarray:
+    def camera_frame(
+        self, camera: str = "overview", width: int = 320, height: int = 240
+    ) -> np.ndarray:
         """One RGB image rendered now (headless EGL by default: ~100 ms for 320x240)."""
         msg = self.call("camera_frame", camera, width, height, timeout_s=30.0)
         raw = base64.b64decode(msg["rgb"])

@@ -35,15 +35,13 @@ log = logging.getLogger(__name__)
 SIDE_THRESHOLD_MM = 3.0
 
 
-def import_mujoco():  # noqa: ANN201 - the module
+def import_mujoco():
     """MuJoCo, with headless EGL rendering unless the caller chose a GL backend."""
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:
         import mujoco
     except ImportError as e:
-        raise ImportError(
-            "the simulated lab needs MuJoCo: pip install 'deepxpalm[lab]'"
-        ) from e
+        raise ImportError("the simulated lab needs MuJoCo: pip install 'deepxpalm[lab]'") from e
     return mujoco
 
 
@@ -76,7 +74,10 @@ class LabWorld:
         self._link_mocap = [int(m.body_mocapid[body(f"link{j}")]) for j in range(6)]
         self._gripper_body = body("gripper")
         self._gripper_mocap = int(m.body_mocapid[self._gripper_body])
-        self._finger_qpos = [int(m.jnt_qposadr[mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, f"finger{k}")]) for k in (1, 2)]
+        self._finger_qpos = [
+            int(m.jnt_qposadr[mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, f"finger{k}")])
+            for k in (1, 2)
+        ]
         self._renderers: dict[tuple[int, int], object] = {}
         self.q = np.zeros(6)
         self.steps = 0
@@ -123,12 +124,13 @@ class LabWorld:
     # -- stepping ------------------------------------------------------------------------
 
     def step(self, n: int = 1) -> None:
-        with self.lock:
-            t0 = time.perf_counter()
-            for _ in range(n):
+        """``n`` physics steps, the lock taken per step so readers never wait for a batch."""
+        for _ in range(n):
+            with self.lock:
+                t0 = time.perf_counter()
                 self.mj.mj_step(self.model, self.data)
-            self.step_time_s += time.perf_counter() - t0
-            self.steps += n
+                self.step_time_s += time.perf_counter() - t0
+                self.steps += 1
 
     @property
     def sim_time_s(self) -> float:
@@ -178,7 +180,8 @@ class LabWorld:
             for a, b in ((g1, g2), (g2, g1)):
                 hit = (a == self._table) & self._robot_geoms[b]
                 if hit.any():
-                    return f"{self.mj.mj_id2name(self.model, self.mj.mjtObj.mjOBJ_GEOM, int(b[hit][0]))} touches the table"
+                    name = self.mj.mj_id2name(self.model, self.mj.mjtObj.mjOBJ_GEOM, int(b[hit][0]))
+                    return f"{name} touches the table"
             links, flange = link_poses(self.q)
         clearance = self.config.table_clearance_m
         from robot_side.arm.sim.kinematics import DH_A, DH_D
@@ -191,7 +194,9 @@ class LabWorld:
                 if z - LINK_RADIUS_M[j] < clearance:
                     return f"link {j} reaches the table"
         hx, hy, hz = PALM_HALF_M
-        corners = np.array([[sx * hx, sy * hy, sz, 1.0] for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 2 * hz)])
+        corners = np.array(
+            [[sx * hx, sy * hy, sz, 1.0] for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 2 * hz)]
+        )
         if float((corners @ flange.T)[:, 2].min()) < clearance:
             return "the gripper's palm reaches the table"
         return None

@@ -15,9 +15,10 @@ import pytest
 pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (MuJoCo)")
 pytest.importorskip("rtde_control", reason="the lab's arm is driven through ur-rtde")
 
-from robot_side.arm.base import ArmLimits  # noqa: E402
-from robot_side.arm.sim.kinematics import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
-from robot_side.lab.devices import (  # noqa: E402
+from robot_side.arm.base import ArmLimits
+from robot_side.arm.sim.kinematics import matrix_to_rotvec, rotvec_to_matrix
+from robot_side.arm.ur_rtde import ArmCommandRefusedError
+from robot_side.lab.devices import (
     LabArm,
     LabArmConfig,
     LabGripper,
@@ -51,7 +52,7 @@ def lab():
 
 def _frame(pads: LabTactileSensor, settle_s: float = 0.3) -> np.ndarray:
     time.sleep(settle_s)
-    sample = pads.read_latest(max_age_ms=200)
+    sample = pads.read_latest(max_age_ms=1000)  # a loaded CI machine stalls threads
     return sample.frame
 
 
@@ -60,7 +61,7 @@ def _taxels_on(frame: np.ndarray) -> np.ndarray:
 
 
 def _grasp_pose(home: np.ndarray, x_offset_m: float = 0.0, turn_deg: float = 0.0) -> np.ndarray:
-    """Home, lowered onto the centre pipette, shifted along the pad, turned about the fingers' axis."""
+    """Home lowered onto the centre pipette, shifted along the pad, turned about the fingers."""
     r = rotvec_to_matrix(home[3:])
     pose = home.copy()
     pose[:3] += r @ np.array([x_offset_m, 0.0, 0.0]) - np.array([0.0, 0.0, GRASP_DEPTH_M])
@@ -108,7 +109,7 @@ def test_a_45_degree_wrist_turn_moves_the_recognised_angle_by_one_class(lab):
 
     arm, gripper, pads, home = lab
     classifier = load_classifier()
-    classes = {}
+    classes, truths = {}, {}
     for turn in (0.0, 45.0):
         _open(gripper)
         arm.move_to(_above(home), speed=0.1)
@@ -116,13 +117,13 @@ def test_a_45_degree_wrist_turn_moves_the_recognised_angle_by_one_class(lab):
         _close(gripper)
         frame = _frame(pads)
         assert _taxels_on(frame).min() >= 5
-        classes[turn] = classifier.predict_one(frame).angle_class
-        truth = gripper_truth = lab_truth(arm)
-        assert truth["pattern"] is not None, gripper_truth
+        classes[turn] = classifier.predict_one(frame).angle
+        truths[turn] = lab_truth(arm)
     _open(gripper)
     arm.move_to(_above(home), speed=0.1)
-    assert classes[0.0] == 2, f"a vertical pipette reads 90 deg: {classes}"
-    assert abs(classes[45.0] - classes[0.0]) == 1, f"one class apart: {classes}"
+    true_classes = {t: truths[t]["pattern"] // 3 for t in truths}
+    assert true_classes[0.0] == 2 and abs(true_classes[45.0] - 2) == 1, truths
+    assert classes == true_classes, f"recognised {classes}, truth {truths}"
 
 
 def lab_truth(arm: LabArm) -> dict:
@@ -131,20 +132,20 @@ def lab_truth(arm: LabArm) -> dict:
 
 
 def test_the_arm_stops_at_the_table(lab):
-    arm, gripper, pads, home = lab
+    arm, gripper, _pads, home = lab
     _open(gripper)
     beside = home.copy()
     beside[:3] += rotvec_to_matrix(home[3:]) @ np.array([0.0, 0.12, 0.0])  # off the rack
     arm.move_to(beside, speed=0.1)
     deadline = time.monotonic() + 8.0
-    stopped = False
-    while time.monotonic() < deadline:
-        arm.jog([0.0, 0.0, -0.15, 0.0, 0.0, 0.0])
-        if arm.world.stats()["protective_stops"]:
-            stopped = True
-            break
+    refused = None
+    while time.monotonic() < deadline and refused is None:
+        try:
+            arm.jog([0.0, 0.0, -0.15, 0.0, 0.0, 0.0])
+        except ArmCommandRefusedError as e:
+            refused = e
         time.sleep(0.03)
-    assert stopped, "touching the table is a protective stop"
+    assert refused is not None and "protective stop" in str(refused), "the driver sees the stop"
     stops = arm.world.stats()["protective_stops"]
     assert "table" in stops[0]
     z = arm.tcp_pose()[2]
