@@ -133,7 +133,7 @@ def build_mjcf(config: LabWorldConfig) -> str:
     gripper = f"""
     <body name="gripper" mocap="true">
       <geom name="palm" type="box" size="{_f(*ph)}" pos="0 0 {ph[2]:.4f}" rgba=".2 .2 .22 1"/>
-      <camera name="wrist" pos="0.06 0 0.04" xyaxes="0 1 0 -0.6 0 0.8" fovy="70"/>
+      <camera name="wrist" pos="0.06 0 0.04" xyaxes="0 1 0 0.88 0 0.48" fovy="70"/>
       {_finger(config, 0)}
       {_finger(config, 1)}
     </body>"""
@@ -163,7 +163,7 @@ def build_mjcf(config: LabWorldConfig) -> str:
   </default>
   <worldbody>
     <light pos="0 -0.3 1.2" dir="0 0.3 -1" diffuse=".8 .8 .8"/>
-    <camera name="overview" pos="{_f(home[0] + 0.45, home[1] - 0.45, home[2] + 0.25)}"
+    <camera name="overview" pos="{_f(home[0] + 0.55, home[1] - 0.75, home[2] + 0.35)}"
             mode="targetbody" target="gripper"/>
     <geom name="table" type="box" size="0.6 0.6 0.02" pos="0 0 -0.02" rgba=".55 .45 .35 1"
           contype="1" conaffinity="1"/>

@@ -181,6 +181,7 @@ class LabServer:
             "sim_time_s": sim_s,
             "wall_time_s": self.wall_s,
             "protective_stops": list(self.protective_stops),
+            "camera_frames_rendered": w.frames_rendered,
             "safety_mode": self.ursim.safety_mode,
             "board": self.board.stats(),
         }

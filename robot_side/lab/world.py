@@ -80,6 +80,7 @@ class LabWorld:
         ]
         self._renderers: dict[tuple[int, int], object] = {}
         self.q = np.zeros(6)
+        self.frames_rendered = 0
         self.steps = 0
         self.step_time_s = 0.0
         from robot_side.arm.sim.kinematics import HOME_Q
@@ -257,6 +258,7 @@ class LabWorld:
             self._renderers[key] = renderer
         with self.lock:
             renderer.update_scene(self.data, camera=camera)
+        self.frames_rendered += 1
         return renderer.render()
 
     def close(self) -> None:
