@@ -15,6 +15,7 @@ import pytest
 pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (MuJoCo)")
 pytest.importorskip("rtde_control", reason="the lab's arm is driven through ur-rtde")
 
+from common.errors import DeviceError
 from robot_side.arm.base import ArmLimits
 from robot_side.arm.sim.kinematics import matrix_to_rotvec, rotvec_to_matrix
 from robot_side.arm.ur_rtde import ArmCommandRefusedError
