@@ -49,7 +49,9 @@ class LabWorldConfig:
     finger_force_min_n: float = param(20.0, "grip force at FOR 0 (2F-85: 20 N)")
     finger_force_max_n: float = param(235.0, "grip force at FOR 255 (2F-85: 235 N)")
     finger_stroke_mm: float = param(42.5, "travel of each finger from open to closed (2F-85)")
-    open_gap_mm: float = param(76.0, "distance between the two pads' surfaces when open")
+    open_gap_mm: float = param(
+        73.0, "distance between the two pads' surfaces when open: level 1 touches"
+    )
     table_clearance_m: float = param(
         0.002, "an arm link or the gripper this close to the table top is a collision"
     )

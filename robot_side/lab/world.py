@@ -140,15 +140,17 @@ class LabWorld:
     # -- what the engine saw ---------------------------------------------------------------
 
     def _contacts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(geom1, geom2, normal force) of every contact; call with ``lock`` held."""
         d = self.data
         n = d.ncon
         if n == 0:
             e = np.zeros(0, dtype=np.int64)
             return e, e, np.zeros(0)
         c = d.contact
-        g1 = np.asarray(c.geom1[:n])
-        g2 = np.asarray(c.geom2[:n])
-        adr = np.asarray(c.efc_address[:n])
+        # copies: the arrays are views of the engine's memory, which the next step rewrites
+        g1 = np.array(c.geom1[:n])
+        g2 = np.array(c.geom2[:n])
+        adr = np.array(c.efc_address[:n])
         # elliptic cones: a contact's first constraint row is its normal force
         force = np.where(adr >= 0, d.efc_force[np.maximum(adr, 0)], 0.0)
         return g1, g2, force
