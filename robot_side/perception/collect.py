@@ -50,6 +50,7 @@ class CollectConfig:
     frames_per_level: int = param(36, "consecutive frames kept per pattern and level (paper: 36)")
     settle_s: float = param(0.25, "wait after the gripper stops before keeping frames")
     grasp_timeout_s: float = param(3.0, "longest wait for the fingers to stop on the pipette")
+    frame_timeout_s: float = param(10.0, "longest wait for the next frame before giving up")
     start_angle_deg: float = param(
         90.0, "the pipette's tilt on the pads at the start pose (90: vertical, grasped from above)"
     )
@@ -234,11 +235,13 @@ def _grasp_at(gripper: Gripper, level: int, config: CollectConfig) -> None:
 
 
 def _keep_frames(pads: TactileSensor, config: CollectConfig) -> list[np.ndarray]:
-    sample = pads.read_latest(max_age_ms=1000)
+    # the grasp is held still, so a frame late on a loaded machine is still a true one:
+    # only a board silent for seconds ends the collection
+    sample = pads.latest()
+    seq = -1 if sample is None else sample.seq
     frames = []
-    seq = sample.seq
     for _ in range(config.frames_per_level):
-        nxt = pads.wait_for_frame(seq, timeout_s=1.0)
+        nxt = pads.wait_for_frame(seq, timeout_s=config.frame_timeout_s)
         if nxt is None:
             raise DeviceError("tactile pads stopped streaming during collection")
         frames.append(np.array(nxt.frame, dtype=np.float32))

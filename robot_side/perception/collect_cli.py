@@ -3,6 +3,7 @@
     deepxpalm collect --scene lab --out lab_session0.npz           # the simulated lab
     deepxpalm collect --scene covid_lab --out site.npz --present    # a person holds the pipette
     deepxpalm train --data lab_session0.npz --init default          # fine-tune on them
+    deepxpalm collect --evaluate lab_session1.npz --model runs/perception/model.npz
 
 With the arm (the default) the wrist turns the pipette's tilt on the pads
 and shifts it along them, from the pose the arm is in at the start: above
@@ -36,7 +37,15 @@ def _ints(text: str) -> list[int]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default="lab", help="scene whose devices to use (default: lab)")
-    parser.add_argument("--out", type=Path, required=True, help="the .npz to write")
+    parser.add_argument("--out", type=Path, help="the .npz to write")
+    parser.add_argument(
+        "--evaluate",
+        type=Path,
+        nargs="+",
+        metavar="NPZ",
+        help="no collection: print a model's accuracy on these sets per pattern and level",
+    )
+    parser.add_argument("--model", type=Path, help="with --evaluate: weights (default: shipped)")
     parser.add_argument("--patterns", type=_ints, help="e.g. 0-11 or 4,5 (default: all twelve)")
     parser.add_argument("--levels", type=_ints, help="grip levels, e.g. 1-31 (default: all)")
     parser.add_argument("--frames-per-level", type=int, help="frames kept per level (default 36)")
@@ -77,6 +86,15 @@ def run(args: argparse.Namespace) -> int:
     if args.world_config is not None:
         for family in ("tactile", "gripper", "arm"):
             overrides.append(f"robot.{family}.world_config={args.world_config}")
+    if args.evaluate:
+        from robot_side.perception.evaluate import evaluate, markdown
+
+        acc = evaluate(args.evaluate, args.model)
+        title = f"{args.model or 'shipped model'} on {', '.join(p.name for p in args.evaluate)}"
+        print(markdown(acc, title), end="")
+        return 0
+    if args.out is None:
+        raise SystemExit("deepxpalm collect: --out FILE.npz is required (or --evaluate)")
     scene = from_dict(Scene, load_scene_dict(args.scene, overrides), where="")
     config = CollectConfig(session=args.session)
     if args.patterns is not None:

@@ -142,6 +142,31 @@ def test_a_45_degree_wrist_turn_moves_the_recognised_angle_by_one_class(lab):
     assert classes == true_classes, f"recognised {classes}, truth {truths}"
 
 
+def test_collect_writes_a_labelled_set_that_train_accepts(lab, tmp_path):
+    from deploy.cli import main as deepxpalm
+    from robot_side.perception import dataset
+    from robot_side.perception.collect import CollectConfig, collect
+
+    arm, gripper, pads, _home = lab
+    config = CollectConfig(
+        patterns=[6, 7, 8, 10], grip_levels=[8, 31], frames_per_level=3, turn_speed_rad_s=0.2
+    )
+    data = collect(pads, gripper, config, arm=arm, truth=lambda: arm.world.grasp()["pattern"])
+    assert data.meta["truth_checked"] == 8 and data.meta["truth_mismatches"] == 0, data.meta
+    path = data.save(tmp_path / "collected.npz")
+    loaded = dataset.load(path)
+    assert len(loaded) == 4 * 2 * 3
+    assert sorted(set(loaded.pattern.tolist())) == [6, 7, 8, 10]
+    assert set(loaded.grip_level.tolist()) == {8, 31}
+    strong = loaded.frames[loaded.grip_level == 31]
+    assert (strong >= 1.0).sum(axis=(2, 3)).min() >= 5, "both pads feel every strong grasp"
+    out = tmp_path / "run"
+    args = ["train", "--data", str(path), "--init", "default", "--epochs", "1"]
+    args += ["--no-robustness", "--no-progress", "--out", str(out)]
+    assert deepxpalm(args) == 0
+    assert any(out.iterdir()), "training wrote its model and report"
+
+
 def lab_truth(arm: LabArm) -> dict:
     assert arm.world is not None
     return arm.world.grasp()
