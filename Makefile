@@ -26,6 +26,8 @@ demo: $(STAMP)
 test: $(STAMP)
 	@# Debian's chromium for the dashboard's browser test: required in CI, optional elsewhere
 	bash scripts/install-test-browser.sh || [ -z "$$CI" ]
+	@# Mesa's EGL for the simulated lab's camera test: required in CI, optional elsewhere
+	bash scripts/install-test-gl.sh || [ -z "$$CI" ]
 	$(BIN)/python -m pytest $(ARGS)
 
 bench: $(STAMP)
