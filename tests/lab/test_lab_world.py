@@ -167,6 +167,18 @@ def test_collect_writes_a_labelled_set_that_train_accepts(lab, tmp_path):
     assert any(out.iterdir()), "training wrote its model and report"
 
 
+def test_collect_refuses_a_plan_that_leaves_the_workspace_before_moving(lab):
+    from robot_side.arm.base import WorkspaceLimitError
+    from robot_side.perception.collect import CollectConfig, collect
+
+    arm, gripper, pads, _home = lab
+    before = arm.tcp_pose()
+    config = CollectConfig(patterns=[7], grip_levels=[8], approach_depth_m=0.3)  # below the box
+    with pytest.raises(WorkspaceLimitError, match="outside the workspace box"):
+        collect(pads, gripper, config, arm=arm)
+    assert np.allclose(arm.tcp_pose(), before, atol=1e-4), "no move was started"
+
+
 def lab_truth(arm: LabArm) -> dict:
     assert arm.world is not None
     return arm.world.grasp()
