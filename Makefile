@@ -28,6 +28,8 @@ test: $(STAMP)
 	bash scripts/install-test-browser.sh || [ -z "$$CI" ]
 	@# LeRobot's own dataset class in an environment of its own (cached), to load exports with
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
+	@# Mesa's EGL for the simulated lab's camera test: required in CI, optional elsewhere
+	bash scripts/install-test-gl.sh || [ -z "$$CI" ]
 	$(BIN)/python -m pytest $(ARGS)
 
 bench: $(STAMP)

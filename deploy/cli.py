@@ -22,6 +22,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "video": ("robot_side.video.cli", "stream a camera from the robot PC to the dashboard"),
     "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
     "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
+    "collect": (
+        "robot_side.perception.collect_cli",
+        "collect labelled frames of every pattern and grip level (lab world or robot)",
+    ),
     "devices": ("deploy.devices_cli", "list, connect to and report a scene's devices"),
     "calibrate": (
         "operator_side.servos.calibrate_cli",

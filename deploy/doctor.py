@@ -60,8 +60,8 @@ SERVICE_USER = "deepxpalm"
 SERVICE_GROUPS = ("dialout",)
 #: ur-rtde's fixed ports: RTDE, dashboard, the script port.
 UR_PORTS = {30004: "RTDE", 29999: "dashboard", 30003: "script"}
-#: Device kinds that simulate their hardware: no port or host to look for.
-SIMULATED_KINDS = {"scripted", "recording"}
+#: Device kinds that simulate their hardware (lab: a physics world): no port or host to look for.
+SIMULATED_KINDS = {"scripted", "recording", "lab"}
 #: (family in the node config, registry module), per role.
 FAMILIES = {
     "robot": (

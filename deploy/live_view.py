@@ -84,7 +84,8 @@ def render(snap: Snapshot, scene_name: str, elapsed_s: float) -> str:
                 for k in ("stimuli_received", "servo_writes", "lift_offs", "decode_errors")
             )
         ),
-        "keys: o open  c close  1-9 grip level  w/a/s/d/r/f jog arm  space stop   Ctrl-C quit",
+        "keys: o open  c close  1-9 grip level  w/a/s/d/r/f jog arm  q/e turn wrist  space stop"
+        "   Ctrl-C quit",
     ]
     return "\x1b[H\x1b[2J" + "\n".join(lines) + "\n"
 
@@ -94,10 +95,14 @@ class Keyboard:
 
     o / c: open the gripper / close it to the current grip level; 1-9: grip
     level 3..27; w a s d r f: jog the arm +X -Y -X +Y +Z -Z (held keys repeat,
-    which keeps the jog alive); space: stop the arm.
+    which keeps the jog alive); q / e: turn the wrist about the base X axis
+    (the fingers' closing axis at the UR's home pose, so the pipette's tilt on
+    the pads changes); space: stop the arm.
     """
 
     JOG_M_S = 0.02
+    TURN_RAD_S = 0.3
+    _TURNS: ClassVar[dict[str, int]] = {"q": 1, "e": -1}
     _JOGS: ClassVar[dict[str, tuple[int, int, int]]] = {
         "w": (1, 0, 0), "s": (-1, 0, 0), "a": (0, -1, 0), "d": (0, 1, 0),
         "r": (0, 0, 1), "f": (0, 0, -1),
@@ -144,6 +149,9 @@ class Keyboard:
                 out.append(("gripper_close", {"grip_level": self.grip_level}))
             elif key in self._JOGS:
                 v = (*(self.JOG_M_S * c for c in self._JOGS[key]), 0.0, 0.0, 0.0)
+                out.append(("arm_jog", {"velocity": v}))
+            elif key in self._TURNS:
+                v = (0.0, 0.0, 0.0, self.TURN_RAD_S * self._TURNS[key], 0.0, 0.0)
                 out.append(("arm_jog", {"velocity": v}))
             elif key == " ":
                 out.append(("arm_stop", {}))

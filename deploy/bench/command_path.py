@@ -73,6 +73,13 @@ class Telemetry:
     def times(self, kind: type, t0: int = 0, t1: int = 2**63) -> list[int]:
         return [t for t, m in self.messages if isinstance(m, kind) and t0 <= t <= t1]
 
+    def sent_times(self, kind: type, t0: int = 0, t1: int = 2**63) -> list[int]:
+        """The robot's own send stamps (same machine, same clock) of what arrived in [t0, t1].
+
+        Gaps here are the robot's; gaps in :meth:`times` also hold this listener's own stalls.
+        """
+        return [m.t_send_ns for t, m in self.messages if isinstance(m, kind) and t0 <= t <= t1]
+
     def robot_stats(self) -> dict[str, float]:
         beats = [m for _, m in self.messages if isinstance(m, Heartbeat)]
         return beats[-1].stats if beats else {}

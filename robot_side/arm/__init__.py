@@ -8,4 +8,5 @@ driver talking to an in-process simulator on a loopback address.
 KINDS = {
     "ur_rtde": "robot_side.arm.ur_rtde:URArm",
     "simulated": "robot_side.arm.sim:SimulatedArm",
+    "lab": "robot_side.lab.devices:LabArm",
 }

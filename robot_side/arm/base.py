@@ -92,6 +92,21 @@ class ArmLimits:
         return all(lo <= v <= hi for v, (lo, hi) in zip(xyz, bounds, strict=True))
 
 
+def _rotation(rotvec: np.ndarray) -> np.ndarray:
+    theta = float(np.linalg.norm(rotvec))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = rotvec / theta
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(theta) * kx + (1 - math.cos(theta)) * (kx @ kx)
+
+
+def _turn_angle(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (rad) between two orientations given as rotation vectors."""
+    cos = (float(np.trace(_rotation(b) @ _rotation(a).T)) - 1.0) / 2.0
+    return math.acos(max(-1.0, min(1.0, cos)))
+
+
 def as_vector6(value: Sequence[float], what: str) -> np.ndarray:
     arr = np.asarray(value, dtype=float).reshape(-1)
     if arr.shape != (6,):
@@ -245,7 +260,11 @@ class Arm(Device):
             start = self._read_tcp_pose()
             self._send_move(target, float(speed))
         if wait:
-            distance = float(np.linalg.norm(target[:3] - start[:3]))
+            # a pure turn's moveL runs at ``speed`` rad/s: its length is the angle
+            distance = max(
+                float(np.linalg.norm(target[:3] - start[:3])),
+                _turn_angle(start[3:], target[3:]),
+            )
             accel = self.limits.linear_acceleration_m_s2
             # twice the trapezoid's duration, plus slack for the handshake and rotations
             timeout = 2 * (distance / speed + speed / accel) + 5.0

@@ -9,4 +9,5 @@ KINDS = {
     "robotiq_socket": "robot_side.gripper.urcap_socket:RobotiqSocketGripper",
     "robotiq_rtu": "robot_side.gripper.modbus_rtu:RobotiqRtuGripper",
     "simulated": "robot_side.gripper.sim:SimulatedGripper",
+    "lab": "robot_side.lab.devices:LabGripper",
 }

@@ -16,6 +16,11 @@ requested position lies deeper, the fingers stop there and report OBJ=2
 (stopped on an object while closing); otherwise they reach the request and
 report OBJ=3, as a real 2F does on a soft object. OBJ=1 (contact while
 opening, an internal grip) is not modelled.
+
+A physics world can take the fingers over (``GripperModel.fingers``, a
+``FingerDrive``): the model then ramps the commanded position at the set
+speed, hands it and the force setting to the world, and reads back where the
+fingers really are; an object is detected when they stall against something.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import logging
 import socket
 import threading
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from common.clock import Rate, now_s
 from common.config import param
@@ -37,6 +42,21 @@ log = logging.getLogger(__name__)
 wire_log = logging.getLogger("robot_side.gripper.sim.wire")
 
 FAULT_NOT_ACTIVATED = 0x07
+#: counts between commanded and actual finger position that still count as "there"
+AT_POSITION_TOLERANCE = 2.0
+
+
+class FingerDrive(Protocol):
+    """Fingers that a world moves: the model commands them and reads them back."""
+
+    def command(self, position_counts: float, force_setting: int) -> None:
+        """Servo the fingers toward ``position_counts`` pushing no harder than ``force_setting``."""
+
+    def position_counts(self) -> float:
+        """Where the fingers are, in Robotiq counts."""
+
+    def stalled_on_object(self) -> bool:
+        """The fingers have stopped against an object between them."""
 
 
 @dataclass
@@ -80,6 +100,9 @@ class GripperModel:
         self._activation_done_at: float | None = None
         self._activation_fault = 0
         self._moving = False
+        #: a world's fingers, when one drives them (None: the built-in object model)
+        self.fingers: FingerDrive | None = None
+        self._commanded = 0.0
 
     # -- register writes ------------------------------------------------------
 
@@ -187,7 +210,13 @@ class GripperModel:
 
     def step(self, dt: float) -> None:
         with self.lock:
+            if self.fingers is not None and self.sta != ActivationStatus.ACTIVATING:
+                self._step_driven(self.fingers, dt)
+                return
             if self.sta == ActivationStatus.ACTIVATING:
+                if self.fingers is not None:  # activation opens the fingers fully
+                    self._commanded = 0.0
+                    self.fingers.command(0.0, 255)
                 # activation opens the fingers fully
                 self.pos = max(0.0, self.pos - self.config.max_speed_counts_s * dt)
                 if self._activation_done_at is not None and now_s() >= self._activation_done_at:
@@ -226,6 +255,26 @@ class GripperModel:
             if self.pos == target:
                 self._moving = False
                 self.obj = ObjectStatus.AT_POSITION
+
+    def _step_driven(self, fingers: FingerDrive, dt: float) -> None:
+        """The world moves the fingers: ramp the command, read the position, detect objects."""
+        self.pos = min(255.0, max(0.0, fingers.position_counts()))
+        if not self._moving or self.sta != ActivationStatus.ACTIVE or self.flt >= 0x0A:
+            return
+        c = self.config
+        speed = c.min_speed_counts_s + (c.max_speed_counts_s - c.min_speed_counts_s) * (
+            self.spe / 255
+        )
+        target = float(min(self.pr, c.stroke_end_position))
+        error = target - self._commanded
+        self._commanded += max(-speed * dt, min(speed * dt, error))
+        fingers.command(self._commanded, self.force)
+        if abs(self.pos - target) <= AT_POSITION_TOLERANCE:
+            self._moving = False
+            self.obj = ObjectStatus.AT_POSITION
+        elif self._commanded == target and target > self.pos and fingers.stalled_on_object():
+            self._moving = False
+            self.obj = ObjectStatus.CONTACT_CLOSING
 
 
 @dataclass

@@ -8,4 +8,5 @@ KINDS = {
     "scripted": "robot_side.tactile.scripted:ScriptedTactileSensor",
     "serial": "robot_side.tactile.serial_board:SerialTactileSensor",
     "simulated_serial": "robot_side.tactile.board_sim:SimulatedSerialTactileSensor",
+    "lab": "robot_side.lab.devices:LabTactileSensor",
 }

@@ -11,6 +11,11 @@ garbage, bad CRCs, dropped bytes, lost scans, silence, and an unplug.
 name: after ``disconnect()`` and ``reconnect()`` the pty is new but the name
 is the same, so the driver's reopen-by-name is exercised as on a USB replug.
 
+What the pads feel comes from the grasp script, or from a ``ContactSource``
+(a physics world's taxel forces and ground truth); either way it goes
+through the same pad model (gain spread, noise, floor, saturation, dead and
+stuck taxels) and the same ADC calibration before it reaches the wire.
+
 The simulator also remembers the ground truth of each scan it sent
 (``truth_for(seq)``), so a node in the same process can score what it
 inferred; ``SimulatedSerialTactileSensor`` (kind ``simulated_serial``) attaches
@@ -26,7 +31,7 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Self
+from typing import Any, Protocol, Self
 
 import numpy as np
 
@@ -41,6 +46,13 @@ from robot_side.tactile.synthetic import GeneratorParams, HeldGrasp, SyntheticTa
 from robot_side.tactile.wire import DEFAULT_BAUD, PACKET_SIZE, SEQ_MODULO, encode
 
 log = logging.getLogger(__name__)
+
+
+class ContactSource(Protocol):
+    """Where the pads' true contact forces come from when a world feeds the board."""
+
+    def contact_at(self, t_s: float) -> tuple[np.ndarray, GraspTruth]:
+        """(2, 10, 10) true normal force per taxel (N, common view) and what is grasped."""
 
 
 @dataclass
@@ -71,8 +83,12 @@ class TactileBoardSimConfig:
 class TactileBoardSimulator:
     """The simulated board: start/stop (or ``with``), fault injection, ground truth."""
 
-    def __init__(self, config: TactileBoardSimConfig | None = None) -> None:
+    def __init__(
+        self, config: TactileBoardSimConfig | None = None, source: ContactSource | None = None
+    ) -> None:
         self.config = cfg = config or TactileBoardSimConfig()
+        #: a world's contact forces; None: the grasp script and the synthetic band model
+        self.source = source
         self._model = SyntheticTactileModel(cfg.generator, seed=cfg.seed)
         crng = np.random.default_rng([cfg.seed, 0x7AC])
         zero = crng.uniform(cfg.zero_counts_min, cfg.zero_counts_max, WIRE_SHAPE)
@@ -236,8 +252,12 @@ class TactileBoardSimulator:
 
     def _scan(self, t_s: float) -> None:
         cfg = self.config
-        truth = cfg.script.truth_at(t_s)
-        frame = self._held.frame(truth.pattern, truth.grip_level)
+        if self.source is not None:
+            force, truth = self.source.contact_at(t_s)
+            frame = self._model.sense(force, self._rng)
+        else:
+            truth = cfg.script.truth_at(t_s)
+            frame = self._held.frame(truth.pattern, truth.grip_level)
         wire_newtons = frame.astype(np.float64)
         wire_newtons[1] = wire_newtons[1, :, ::-1].copy()  # finger 2 in its own view
         counts = self.calibration.to_counts(wire_newtons)

@@ -306,6 +306,11 @@ class URSimulator:
         with self._lock:
             return self.arm.current_pose()
 
+    def joint_positions(self) -> np.ndarray:
+        """The joints as the controller has them: what a physics world shows and checks."""
+        with self._lock:
+            return self.arm.q.copy()
+
     def tcp_speed(self) -> np.ndarray:
         with self._lock:
             return self.arm.velocity.copy()

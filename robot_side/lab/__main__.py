@@ -1,0 +1,65 @@
+"""Serve a simulated lab: ``python -m robot_side.lab`` (``--stdio`` for a parent process).
+
+Prints where the UR controller, the Robotiq URCap and the tactile board's
+pty are; point ur-rtde, the socket driver and the serial driver at them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+
+from common.config import from_dict
+from robot_side.lab.config import LabWorldConfig
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m robot_side.lab", description=__doc__)
+    ap.add_argument("--stdio", action="store_true", help="take requests as JSON lines on stdin")
+    ap.add_argument("--config-json", help="the whole LabWorldConfig as JSON")
+    ap.add_argument("--log-level", type=int, default=logging.INFO)
+    args = ap.parse_args(argv)
+    logging.basicConfig(
+        level=args.log_level, format="%(asctime)s lab %(name)s: %(message)s", stream=sys.stderr
+    )
+    config = (
+        from_dict(LabWorldConfig, json.loads(args.config_json), where="world")
+        if args.config_json
+        else LabWorldConfig()
+    )
+    from robot_side.lab.server import LabServer
+
+    try:
+        server = LabServer(config).start()
+    except Exception as e:
+        if args.stdio:
+            print(json.dumps({"error": f"{type(e).__name__}: {e}"}), flush=True)
+        raise SystemExit(f"lab: {e}") from None
+    if args.stdio:
+        from robot_side.lab.process import serve_stdio
+
+        serve_stdio(server, sys.stdin, sys.stdout)
+        return
+    done = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: done.set())
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    print(
+        json.dumps(
+            {
+                k: v
+                for k, v in server.addresses().items()
+                if "tactile_" not in k or k == "tactile_port"
+            }
+        ),
+        flush=True,
+    )
+    done.wait()
+    server.stop()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,65 @@
+"""The simulated lab's settings: where things stand, how soft they are, how fast it steps.
+
+One ``LabWorldConfig`` describes one world. The three lab device kinds (tactile
+pads, gripper, arm) name the same world through ``world_config`` (a TOML file
+of these fields, or the shipped default), so they attach to one process.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from common.config import param
+from common.errors import ConfigError
+
+
+@dataclass
+class PipetteConfig:
+    x_m: float = param(0.0, "offset from the rack centre along the rack row (m, base frame)")
+    tilt_deg: float = param(0.0, "lean in the grasp plane from vertical (deg, + = top towards +x)")
+    radius_mm: float = param(4.5, "outer radius of the pipette's stem where it is grasped")
+
+
+def _three_pipettes() -> list[PipetteConfig]:
+    return [
+        PipetteConfig(x_m=-0.06, tilt_deg=0.0),
+        PipetteConfig(x_m=0.0, tilt_deg=0.0),
+        PipetteConfig(x_m=0.06, tilt_deg=30.0),
+    ]
+
+
+@dataclass
+class LabWorldConfig:
+    seed: int = param(0, "seeds the pads' defects, calibration and noise")
+    timestep_s: float = param(0.002, "physics step; 2 ms keeps the soft pad contact stable")
+    rack_centre_m: tuple[float, float] = param(
+        (0.0, 0.0), "rack centre (x, y) relative to the tool's home position (m, base frame)"
+    )
+    pipette_top_below_tcp_m: float = param(
+        0.005, "pipette tops this far below the fingertip centre at home: jog down to grasp"
+    )
+    pipettes: list[PipetteConfig] = param(_three_pipettes(), "the pipettes in the rack")
+    taxel_solref: tuple[float, float] = param(
+        (0.01, 1.0), "contact time constant and damping of a taxel: the pad's softness"
+    )
+    taxel_solimp: tuple[float, float, float] = param(
+        (0.05, 0.95, 0.003), "contact impedance (dmin, dmax, width m): soft at first touch"
+    )
+    finger_kp_n_m: float = param(40000.0, "finger position servo stiffness (N/m)")
+    finger_force_min_n: float = param(20.0, "grip force at FOR 0 (2F-85: 20 N)")
+    finger_force_max_n: float = param(235.0, "grip force at FOR 255 (2F-85: 235 N)")
+    finger_stroke_mm: float = param(42.5, "travel of each finger from open to closed (2F-85)")
+    open_gap_mm: float = param(
+        73.0, "distance between the two pads' surfaces when open: level 1 touches"
+    )
+    table_clearance_m: float = param(
+        0.002, "an arm link or the gripper this close to the table top is a collision"
+    )
+
+    def __post_init__(self) -> None:
+        if not 0 < self.timestep_s <= 0.01:
+            raise ConfigError("lab world: timestep_s must be in (0, 0.01] s")
+        if not self.pipettes:
+            raise ConfigError("lab world: the rack needs at least one pipette")
+        if not 0 < self.finger_force_min_n <= self.finger_force_max_n:
+            raise ConfigError("lab world: need 0 < finger_force_min_n <= finger_force_max_n")

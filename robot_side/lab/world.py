@@ -1,0 +1,269 @@
+"""The lab's physics: one MuJoCo model and data, stepped by one thread, read under a lock.
+
+``LabWorld`` is the engine side only: it places the arm from joint angles,
+drives the fingers, steps, and reports what the engine saw: per-taxel
+normal forces, whether anything hit the table, the grasped pipette's tilt
+and offset on the pads (the ground truth), and camera images on demand (a
+renderer is only created when somebody asks for an image).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+import time
+
+import numpy as np
+
+from robot_side.lab.config import LabWorldConfig
+from robot_side.lab.model import (
+    N_COLS,
+    N_ROWS,
+    PAD_CENTRE_Z_M,
+    PALM_HALF_M,
+    build_mjcf,
+    link_poses,
+    pipette_placements,
+)
+from robot_side.tactile.synthetic import offset_direction
+
+log = logging.getLogger(__name__)
+
+#: a band this far (mm) from the pad centre, across its axis, is "left"/"right" (or up/down)
+SIDE_THRESHOLD_MM = 3.0
+
+
+def import_mujoco():
+    """MuJoCo, with headless EGL rendering unless the caller chose a GL backend."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    try:
+        import mujoco
+    except ImportError as e:
+        raise ImportError("the simulated lab needs MuJoCo: pip install 'deepxpalm[lab]'") from e
+    return mujoco
+
+
+class LabWorld:
+    """One simulated lab. Thread-safe: every method takes ``lock``."""
+
+    def __init__(self, config: LabWorldConfig | None = None) -> None:
+        self.mj = mj = import_mujoco()
+        self.config = cfg = config or LabWorldConfig()
+        self.model = mj.MjModel.from_xml_string(build_mjcf(cfg))
+        self.data = mj.MjData(self.model)
+        self.lock = threading.RLock()
+        m = self.model
+        gid = lambda name: mj.mj_name2id(m, mj.mjtObj.mjOBJ_GEOM, name)  # noqa: E731
+        self._taxel_index = np.full(m.ngeom, -1, dtype=np.int64)
+        for pad in range(2):
+            for r in range(N_ROWS):
+                for c in range(N_COLS):
+                    self._taxel_index[gid(f"taxel{pad}_{r}_{c}")] = (pad * N_ROWS + r) * N_COLS + c
+        self.pipettes = pipette_placements(cfg)
+        self._pipette_geom = np.full(m.ngeom, -1, dtype=np.int64)
+        for i in range(len(self.pipettes)):
+            self._pipette_geom[gid(f"pipette{i}")] = i
+        self._table = gid("table")
+        self._robot_geoms = np.zeros(m.ngeom, dtype=bool)
+        for k in (1, 2):
+            self._robot_geoms[gid(f"finger{k}_body")] = True
+        self._robot_geoms[self._taxel_index >= 0] = True
+        body = lambda name: mj.mj_name2id(m, mj.mjtObj.mjOBJ_BODY, name)  # noqa: E731
+        self._link_mocap = [int(m.body_mocapid[body(f"link{j}")]) for j in range(6)]
+        self._gripper_body = body("gripper")
+        self._gripper_mocap = int(m.body_mocapid[self._gripper_body])
+        self._finger_qpos = [
+            int(m.jnt_qposadr[mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, f"finger{k}")])
+            for k in (1, 2)
+        ]
+        self._renderers: dict[tuple[int, int], object] = {}
+        self.q = np.zeros(6)
+        self.frames_rendered = 0
+        self.steps = 0
+        self.step_time_s = 0.0
+        from robot_side.arm.sim.kinematics import HOME_Q
+
+        self.set_arm(np.array(HOME_Q))
+        mj.mj_forward(m, self.data)
+
+    # -- the arm: placed, not integrated ---------------------------------------------
+
+    def set_arm(self, q: np.ndarray) -> None:
+        """Place the links and the gripper for joint angles ``q`` (the controller's)."""
+        links, flange = link_poses(q)
+        quat = np.empty(4)
+        with self.lock:
+            self.q = np.array(q, dtype=float)
+            d = self.data
+            for mocap, t in zip(self._link_mocap, links, strict=True):
+                d.mocap_pos[mocap] = t[:3, 3]
+                self.mj.mju_mat2Quat(quat, t[:3, :3].ravel())
+                d.mocap_quat[mocap] = quat
+            d.mocap_pos[self._gripper_mocap] = flange[:3, 3]
+            self.mj.mju_mat2Quat(quat, flange[:3, :3].ravel())
+            d.mocap_quat[self._gripper_mocap] = quat
+
+    # -- the fingers -------------------------------------------------------------------
+
+    def command_fingers(self, closure_m: float, force_n: float) -> None:
+        """Each finger's servo: this far in from open, pushing with at most ``force_n``."""
+        stroke = self.config.finger_stroke_mm / 1000
+        with self.lock:
+            self.data.ctrl[:] = min(max(closure_m, 0.0), stroke)
+            self.model.actuator_forcerange[:] = (-force_n, force_n)
+
+    def finger_closure_m(self) -> float:
+        with self.lock:
+            return float(np.mean([self.data.qpos[a] for a in self._finger_qpos]))
+
+    def finger_speed_m_s(self) -> float:
+        with self.lock:
+            return float(np.mean(np.abs(self.data.qvel[[a for a in self._finger_qpos]])))
+
+    # -- stepping ------------------------------------------------------------------------
+
+    def step(self, n: int = 1) -> None:
+        """``n`` physics steps, the lock taken per step so readers never wait for a batch."""
+        for _ in range(n):
+            with self.lock:
+                t0 = time.perf_counter()
+                self.mj.mj_step(self.model, self.data)
+                self.step_time_s += time.perf_counter() - t0
+                self.steps += 1
+
+    @property
+    def sim_time_s(self) -> float:
+        return float(self.data.time)
+
+    # -- what the engine saw ---------------------------------------------------------------
+
+    def _contacts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(geom1, geom2, normal force) of every contact; call with ``lock`` held."""
+        d = self.data
+        n = d.ncon
+        if n == 0:
+            e = np.zeros(0, dtype=np.int64)
+            return e, e, np.zeros(0)
+        c = d.contact
+        # copies: the arrays are views of the engine's memory, which the next step rewrites
+        g1 = np.array(c.geom1[:n])
+        g2 = np.array(c.geom2[:n])
+        adr = np.array(c.efc_address[:n])
+        # elliptic cones: a contact's first constraint row is its normal force
+        force = np.where(adr >= 0, d.efc_force[np.maximum(adr, 0)], 0.0)
+        return g1, g2, force
+
+    def taxel_forces(self) -> np.ndarray:
+        """(2, 10, 10) normal force on each taxel, newtons, in the common view."""
+        out = np.zeros(2 * N_ROWS * N_COLS)
+        with self.lock:
+            g1, g2, force = self._contacts()
+        for g in (g1, g2):
+            idx = self._taxel_index[g]
+            hit = idx >= 0
+            np.add.at(out, idx[hit], force[hit])
+        return out.reshape(2, N_ROWS, N_COLS)
+
+    def touching_pipette(self) -> int | None:
+        """Index of a pipette a pad presses on, or None."""
+        with self.lock:
+            g1, g2, force = self._contacts()
+        for a, b in ((g1, g2), (g2, g1)):
+            hit = (self._pipette_geom[a] >= 0) & (self._taxel_index[b] >= 0) & (force > 0)
+            if hit.any():
+                return int(self._pipette_geom[a][hit][0])
+        return None
+
+    def table_collision(self) -> str | None:
+        """What of the robot touches the table (a contact, or a link within clearance)."""
+        with self.lock:
+            g1, g2, _ = self._contacts()
+            for a, b in ((g1, g2), (g2, g1)):
+                hit = (a == self._table) & self._robot_geoms[b]
+                if hit.any():
+                    name = self.mj.mj_id2name(self.model, self.mj.mjtObj.mjOBJ_GEOM, int(b[hit][0]))
+                    return f"{name} touches the table"
+            links, flange = link_poses(self.q)
+        clearance = self.config.table_clearance_m
+        from robot_side.arm.sim.kinematics import DH_A, DH_D
+        from robot_side.lab.model import LINK_RADIUS_M
+
+        for j in range(1, 6):  # link 0 stands on the table
+            t = links[j]
+            for p in ((0, 0, 0), (0, 0, DH_D[j]), (DH_A[j], 0, DH_D[j])):
+                z = (t @ np.array([*p, 1.0]))[2]
+                if z - LINK_RADIUS_M[j] < clearance:
+                    return f"link {j} reaches the table"
+        hx, hy, hz = PALM_HALF_M
+        corners = np.array(
+            [[sx * hx, sy * hy, sz, 1.0] for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 2 * hz)]
+        )
+        if float((corners @ flange.T)[:, 2].min()) < clearance:
+            return "the gripper's palm reaches the table"
+        return None
+
+    def flange(self) -> np.ndarray:
+        """The gripper's frame (4x4, base frame) as the engine has it."""
+        with self.lock:
+            t = np.eye(4)
+            t[:3, :3] = self.data.xmat[self._gripper_body].reshape(3, 3)
+            t[:3, 3] = self.data.xpos[self._gripper_body]
+            return t
+
+    def grasp_geometry(self, pipette: int) -> tuple[float, float]:
+        """(tilt deg in 0..180, offset mm along class 1's direction) of a pipette on the pads."""
+        t = self.flange()
+        p = self.pipettes[pipette]
+        rot = t[:3, :3]
+        axis = rot.T @ p.axis
+        top = rot.T @ (p.top - t[:3, 3])
+        u = np.array([axis[0], axis[2]])
+        u /= max(float(np.linalg.norm(u)), 1e-9)
+        theta = math.degrees(math.atan2(u[1], u[0])) % 180.0
+        rel = np.array([top[0], top[2] - PAD_CENTRE_Z_M])
+        w = rel - float(rel @ u) * u  # pad centre -> the axis line, across it
+        angle_class = round(theta / 45.0) % 4
+        dx, dy = offset_direction(angle_class)
+        return theta, float(w[0] * dx + w[1] * dy) * 1000.0
+
+    def grasp_pattern(self) -> int | None:
+        """The tactile contract's pattern (3 * angle + position) being felt, or None."""
+        i = self.touching_pipette()
+        if i is None:
+            return None
+        theta, offset_mm = self.grasp_geometry(i)
+        angle_class = round(theta / 45.0) % 4
+        if offset_mm > SIDE_THRESHOLD_MM:
+            position = 1
+        elif offset_mm < -SIDE_THRESHOLD_MM:
+            position = 2
+        else:
+            position = 0
+        return 3 * angle_class + position
+
+    # -- cameras, on demand ---------------------------------------------------------------------
+
+    def camera_names(self) -> list[str]:
+        m = self.model
+        return [self.mj.mj_id2name(m, self.mj.mjtObj.mjOBJ_CAMERA, i) for i in range(m.ncam)]
+
+    def render(self, camera: str = "overview", width: int = 320, height: int = 240) -> np.ndarray:
+        """One RGB image (height, width, 3) uint8. Call from one thread only (its GL context)."""
+        if camera not in self.camera_names():
+            raise ValueError(f"no camera {camera!r}; cameras: {self.camera_names()}")
+        key = (width, height)
+        renderer = self._renderers.get(key)
+        if renderer is None:
+            renderer = self.mj.Renderer(self.model, height, width)
+            self._renderers[key] = renderer
+        with self.lock:
+            renderer.update_scene(self.data, camera=camera)
+        self.frames_rendered += 1
+        return renderer.render()
+
+    def close(self) -> None:
+        for r in self._renderers.values():
+            r.close()
+        self._renderers.clear()

@@ -1,0 +1,207 @@
+"""The simulated lab through the real drivers: ur-rtde, the URCap socket, the serial board.
+
+One world process for the module; each test leaves the arm at the grasp
+pose's height above the rack with the gripper open.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (MuJoCo)")
+pytest.importorskip("rtde_control", reason="the lab's arm is driven through ur-rtde")
+
+from common.errors import DeviceError
+from robot_side.arm.base import ArmLimits
+from robot_side.arm.sim.kinematics import matrix_to_rotvec, rotvec_to_matrix
+from robot_side.arm.ur_rtde import ArmCommandRefusedError
+from robot_side.lab.devices import (
+    LabArm,
+    LabArmConfig,
+    LabGripper,
+    LabTactileSensor,
+)
+
+pytestmark = pytest.mark.timeout(120)
+
+#: the TCP this far below home puts the pads' centre 20 mm down the pipettes' tops
+GRASP_DEPTH_M = 0.025
+CONTACT_N = 1.0
+
+
+@pytest.fixture(scope="module")
+def lab():
+    limits = ArmLimits(workspace_min=(-0.45, -0.45, -0.05), max_linear_speed_m_s=0.2)
+    arm = LabArm(LabArmConfig(limits=limits))
+    gripper = LabGripper()
+    pads = LabTactileSensor()
+    arm.connect()
+    try:
+        gripper.connect()
+        pads.connect()
+        home = arm.tcp_pose()
+        yield arm, gripper, pads, home
+    finally:
+        pads.disconnect()
+        gripper.disconnect()
+        arm.disconnect()
+
+
+def _frame(pads: LabTactileSensor, settle_s: float = 0.3) -> np.ndarray:
+    time.sleep(settle_s)
+    sample = pads.read_latest(max_age_ms=1000)  # a loaded CI machine stalls threads
+    return sample.frame
+
+
+def _taxels_on(frame: np.ndarray) -> np.ndarray:
+    return (frame >= CONTACT_N).sum(axis=(1, 2))
+
+
+def _grasp_pose(home: np.ndarray, x_offset_m: float = 0.0, turn_deg: float = 0.0) -> np.ndarray:
+    """Home lowered onto the centre pipette, shifted along the pad, turned about the fingers."""
+    r = rotvec_to_matrix(home[3:])
+    pose = home.copy()
+    pose[:3] += r @ np.array([x_offset_m, 0.0, 0.0]) - np.array([0.0, 0.0, GRASP_DEPTH_M])
+    turn = rotvec_to_matrix(r @ np.array([0.0, math.radians(turn_deg), 0.0]))
+    pose[3:] = matrix_to_rotvec(turn @ r)
+    return pose
+
+
+def _above(home: np.ndarray) -> np.ndarray:
+    return home.copy()
+
+
+def _close(gripper: LabGripper, level: int = 16, timeout_s: float = 3.0) -> None:
+    gripper.close_to_level(level)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not gripper.object_detected():
+        time.sleep(0.02)
+
+
+def _open(gripper: LabGripper) -> None:
+    gripper.open()
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline and gripper.position() > 5:
+        time.sleep(0.02)
+
+
+def test_the_world_keeps_real_time_and_renders_only_on_request(lab):
+    arm, _gripper, _pads, _home = lab
+    stats = arm.world.stats()
+    assert stats["real_time_factor"] > 1.0, stats
+    assert stats["sim_time_s"] == pytest.approx(stats["wall_time_s"], rel=0.2), stats
+    assert stats["camera_frames_rendered"] == 0, "nothing asked for an image: none rendered"
+    try:
+        image = arm.world.camera_frame("overview", 160, 120)
+    except DeviceError as e:
+        pytest.skip(f"no OpenGL for MuJoCo's offscreen renderer here (Mesa EGL): {e}")
+    assert image.shape == (120, 160, 3) and image.dtype == np.uint8
+    assert image.std() > 5, "the picture shows something, not a blank"
+    assert arm.world.stats()["camera_frames_rendered"] == 1
+
+
+def test_closing_on_a_pipette_presses_both_pads_and_releasing_leaves_none(lab):
+    arm, gripper, pads, home = lab
+    _open(gripper)
+    arm.move_to(_grasp_pose(home), speed=0.1)
+    _close(gripper)
+    assert gripper.object_detected(), "the 2F-85 reports an object from the real contact"
+    held = _frame(pads)
+    on = _taxels_on(held)
+    assert on[0] >= 5 and on[1] >= 5, f"both pads feel the pipette: {on} taxels >= 1 N"
+    assert held.max() <= 9.0 + 1e-6, "taxels saturate at 9 N"
+    _open(gripper)
+    released = _frame(pads)
+    assert _taxels_on(released).max() <= 2, "released: at most a stuck taxel reads anything"
+    arm.move_to(_above(home), speed=0.1)
+
+
+def test_a_45_degree_wrist_turn_moves_the_recognised_angle_by_one_class(lab):
+    from robot_side.perception.inference import load_classifier
+
+    arm, gripper, pads, home = lab
+    classifier = load_classifier()
+    classes, truths = {}, {}
+    for turn in (0.0, 45.0):
+        _open(gripper)
+        arm.move_to(_above(home), speed=0.1)
+        arm.move_to(_grasp_pose(home, turn_deg=turn), speed=0.1)
+        _close(gripper)
+        frame = _frame(pads)
+        assert _taxels_on(frame).min() >= 5
+        classes[turn] = classifier.predict_one(frame).angle
+        truths[turn] = lab_truth(arm)
+    _open(gripper)
+    arm.move_to(_above(home), speed=0.1)
+    true_classes = {t: truths[t]["pattern"] // 3 for t in truths}
+    assert true_classes[0.0] == 2 and abs(true_classes[45.0] - 2) == 1, truths
+    assert classes == true_classes, f"recognised {classes}, truth {truths}"
+
+
+def test_collect_writes_a_labelled_set_that_train_accepts(lab, tmp_path):
+    from deploy.cli import main as deepxpalm
+    from robot_side.perception import dataset
+    from robot_side.perception.collect import CollectConfig, collect
+
+    arm, gripper, pads, _home = lab
+    config = CollectConfig(
+        patterns=[6, 7, 8, 10], grip_levels=[8, 31], frames_per_level=3, turn_speed_rad_s=0.2
+    )
+    data = collect(pads, gripper, config, arm=arm, truth=lambda: arm.world.grasp()["pattern"])
+    assert data.meta["truth_checked"] == 8 and data.meta["truth_mismatches"] == 0, data.meta
+    path = data.save(tmp_path / "collected.npz")
+    loaded = dataset.load(path)
+    assert len(loaded) == 4 * 2 * 3
+    assert sorted(set(loaded.pattern.tolist())) == [6, 7, 8, 10]
+    assert set(loaded.grip_level.tolist()) == {8, 31}
+    strong = loaded.frames[loaded.grip_level == 31]
+    assert (strong >= 1.0).sum(axis=(2, 3)).min() >= 5, "both pads feel every strong grasp"
+    out = tmp_path / "run"
+    args = ["train", "--data", str(path), "--init", "default", "--epochs", "1"]
+    args += ["--no-robustness", "--no-progress", "--out", str(out)]
+    assert deepxpalm(args) == 0
+    assert any(out.iterdir()), "training wrote its model and report"
+
+
+def test_collect_refuses_a_plan_that_leaves_the_workspace_before_moving(lab):
+    from robot_side.arm.base import WorkspaceLimitError
+    from robot_side.perception.collect import CollectConfig, collect
+
+    arm, gripper, pads, _home = lab
+    before = arm.tcp_pose()
+    config = CollectConfig(patterns=[7], grip_levels=[8], approach_depth_m=0.3)  # below the box
+    with pytest.raises(WorkspaceLimitError, match="outside the workspace box"):
+        collect(pads, gripper, config, arm=arm)
+    assert np.allclose(arm.tcp_pose(), before, atol=1e-4), "no move was started"
+
+
+def lab_truth(arm: LabArm) -> dict:
+    assert arm.world is not None
+    return arm.world.grasp()
+
+
+def test_the_arm_stops_at_the_table(lab):
+    arm, gripper, _pads, home = lab
+    _open(gripper)
+    beside = home.copy()
+    beside[:3] += rotvec_to_matrix(home[3:]) @ np.array([0.0, 0.12, 0.0])  # off the rack
+    arm.move_to(beside, speed=0.1)
+    deadline = time.monotonic() + 8.0
+    refused = None
+    while time.monotonic() < deadline and refused is None:
+        try:
+            arm.jog([0.0, 0.0, -0.15, 0.0, 0.0, 0.0])
+        except ArmCommandRefusedError as e:
+            refused = e
+        time.sleep(0.03)
+    assert refused is not None and "protective stop" in str(refused), "the driver sees the stop"
+    stops = arm.world.stats()["protective_stops"]
+    assert "table" in stops[0]
+    z = arm.tcp_pose()[2]
+    time.sleep(0.3)
+    assert arm.tcp_pose()[2] == pytest.approx(z, abs=1e-3), "the arm stays stopped"
+    assert 0.0 < z < 0.03, f"stopped with the fingertips at the table top, TCP z {z:.3f}"
