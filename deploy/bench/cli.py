@@ -1,8 +1,15 @@
-"""``deepxpalm bench``: measure the loop, write docs/benchmarks.md, .json and the figures.
+"""``deepxpalm bench``: measure the loop, write benchmarks.md, .json and the figures.
 
-    deepxpalm bench            # the full run (about 7 minutes; run it on a quiet machine)
-    deepxpalm bench --quick    # about a minute, smaller samples, modelled scale
+    deepxpalm bench                  # the full run (about 12 minutes; on a quiet machine)
+    deepxpalm bench --quick          # a few minutes, smaller samples, modelled scale
+    deepxpalm bench --update-docs    # the full run, written over docs/ (the committed report)
+    deepxpalm bench --only netsim --update-docs   # re-measure one section into docs/
     deepxpalm bench --out /tmp/bench --skip node_cpu
+
+A run writes to a folder of its own (runs/bench/<date-time>/) unless told
+--out or --update-docs, so trying it never dirties the committed report.
+With --only, the sections measured replace those in the folder's existing
+benchmarks.json and the rest is kept; each section says when it was measured.
 
 One process, pinned to one core, with BLAS/OpenMP pools at one thread and
 torch and ONNX Runtime at one intra-op thread, so every number is a
@@ -36,11 +43,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     size.add_argument(
         "--size", choices=sorted(PRESETS), help="a named preset (smallest is for the tests)"
     )
-    parser.add_argument(
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument(
         "--out",
         type=Path,
-        default=Path("docs"),
-        help="where benchmarks.md, benchmarks.json and img/bench_*.png go (default: ./docs)",
+        help="where benchmarks.md, benchmarks.json and img/bench_*.png go "
+        "(default: runs/bench/<date-time>)",
+    )
+    where.add_argument(
+        "--update-docs",
+        action="store_true",
+        help="write over docs/benchmarks.md, .json and docs/img (the committed report)",
     )
     parser.add_argument(
         "--cpu", type=int, help="the core to pin to (default: the last one this process may use)"
@@ -53,8 +66,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="more classifier .npz files or folders to compare with the shipped model "
         "(default: runs/width-sweep if it exists, the perception width sweep's output)",
     )
-    parser.add_argument(
+    only_or_skip = parser.add_mutually_exclusive_group()
+    only_or_skip.add_argument(
         "--skip", action="append", default=[], choices=SECTIONS, help="leave a section out"
+    )
+    only_or_skip.add_argument(
+        "--only",
+        action="append",
+        default=[],
+        choices=SECTIONS,
+        help="measure only this section (repeatable) and merge it into the folder's report",
     )
     parser.add_argument("--no-figures", action="store_true", help="skip the PNGs")
     parser.add_argument(
@@ -65,7 +86,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def output_folder(args: argparse.Namespace) -> Path:
+    """Where this run writes: docs/ only when asked, else a folder of its own."""
+    if args.update_docs:
+        return Path("docs")
+    if args.out is not None:
+        return args.out
+    import time
+
+    return Path("runs/bench") / time.strftime("%Y%m%d-%H%M%S")
+
+
 def run(args: argparse.Namespace) -> int:
+    args.out = output_folder(args)
     if args.from_json is not None:
         import json
 
@@ -77,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     preset = "quick" if args.quick else (args.size or "full")
     sizes = PRESETS[preset]
-    skip = set(args.skip)
+    skip = set(SECTIONS) - set(args.only) if args.only else set(args.skip)
     models = args.models
     if models is None:
         default_sweep = Path("runs/width-sweep")
@@ -86,6 +119,10 @@ def run(args: argparse.Namespace) -> int:
     from deploy.bench.runner import run_bench
 
     results = run_bench(sizes, preset, skip, args.cpu, models, progress=True)
+    if args.only:
+        from deploy.bench.report import merge_sections
+
+        results = merge_sections(args.out / "benchmarks.json", results, args.only)
 
     paths = write_outputs(results, args.out, figures=not args.no_figures)
     for p in paths:
