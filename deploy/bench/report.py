@@ -1141,7 +1141,8 @@ def _node_cpu_md(results: dict[str, Any]) -> list[str]:
 def _netsim_md(results: dict[str, Any]) -> list[str]:
     from deploy.bench.netsim_fidelity import markdown as netsim_markdown
 
-    return netsim_markdown(_sec(results, "netsim"))
+    table = netsim_markdown(_sec(results, "netsim"))
+    return ["", *table] if table else []
 
 
 def _failures_md(results: dict[str, Any]) -> list[str]:
@@ -1175,9 +1176,9 @@ def _limits_md() -> list[str]:
 def _remeasured_lines(results: dict[str, Any]) -> list[str]:
     later = results.get("remeasured") or {}
     return [
-        f"- Section `{name}` re-measured alone ({r['generated_by']}): {r['date']}, commit "
-        f"`{r['git_commit']}`, machine load (1 min) {r['load_before']} before and "
-        f"{r['load_after']} after."
+        f"- Section `{name}` re-measured alone ({r['generated_by']}), run finished "
+        f"{r['date']}, commit `{r['git_commit']}`, machine load (1 min) "
+        f"{r['load_before']} before and {r['load_after']} after."
         for name, r in sorted(later.items())
     ]
 
