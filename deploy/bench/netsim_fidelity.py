@@ -98,7 +98,8 @@ def update_doc(path: Path, section: dict[str, Any]) -> None:
     body = "\n".join(
         [
             BEGIN,
-            f"Measured {time.strftime('%Y-%m-%d')}; regenerate with `deepxpalm bench --only netsim --update-docs` or "
+            f"Measured {time.strftime('%Y-%m-%d')}; regenerate with "
+            "`deepxpalm bench --only netsim --update-docs` or "
             "`python -m deploy.bench.netsim_fidelity --update docs/netsim.md`.",
             "",
             *markdown(section)[2:],
