@@ -426,8 +426,11 @@ class FakeStsBus:
 @dataclass
 class SimulatedFeetechConfig:
     bus: FakeStsBusConfig = param(FakeStsBusConfig(), "the fake servos (speed, faults, ...)")
+    # More retries than a real bus needs: the fake servos answer from a thread of this
+    # process, which a loaded machine can hold up past the SDK's fixed ~34 ms reply window.
     driver: FeetechConfig = param(
-        FeetechConfig(), "the real driver's settings; its port is set to the fake bus"
+        FeetechConfig(retries=5),
+        "the real driver's settings; its port is set to the fake bus",
     )
 
 
