@@ -24,12 +24,10 @@ demo: $(STAMP)
 	$(BIN)/deepxpalm demo $(ARGS)
 
 test: $(STAMP)
-	@# Debian's chromium for the dashboard's browser test: required in CI, optional elsewhere
-	bash scripts/install-test-browser.sh || [ -z "$$CI" ]
+	@# chromium (browser tests) and Mesa's EGL (the lab's camera): required in CI, optional elsewhere
+	bash scripts/install-test-system-packages.sh || [ -z "$$CI" ]
 	@# LeRobot's own dataset class in an environment of its own (cached), to load exports with
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
-	@# Mesa's EGL for the simulated lab's camera test: required in CI, optional elsewhere
-	bash scripts/install-test-gl.sh || [ -z "$$CI" ]
 	$(BIN)/python -m pytest $(ARGS)
 
 bench: $(STAMP)

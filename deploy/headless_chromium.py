@@ -63,7 +63,9 @@ class Chromium:
     def __init__(self, width: int = 1280, height: int = 900, timeout_s: float = 15.0) -> None:
         exe = chromium_path()
         if exe is None:
-            raise BrowserError("chromium is not installed (scripts/install-test-browser.sh)")
+            raise BrowserError(
+                "chromium is not installed (scripts/install-test-system-packages.sh)"
+            )
         self.profile = Path(tempfile.mkdtemp(prefix="dxp-chromium-"))
         self.log_path = self.profile / "chromium.log"
         self._log = self.log_path.open("wb")

@@ -12,13 +12,12 @@ simulator. Motion and standstill are read from the simulator itself.
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 
 import numpy as np
 import pytest
-from headless_chromium import Chromium, chromium_path
+from headless_chromium import Chromium, needs_chromium
 from tests_support import free_ports
 
 from operator_side.config import OperatorConfig
@@ -32,10 +31,7 @@ from robot_side.tactile.scripted import ScriptedTactileSensor
 
 pytestmark = [
     pytest.mark.timeout(120),
-    pytest.mark.skipif(
-        chromium_path() is None and not os.environ.get("CI"),
-        reason="chromium is not installed: run scripts/install-test-browser.sh (required in CI)",
-    ),
+    needs_chromium,
 ]
 
 STOP_WITHIN_S = 0.4

@@ -10,13 +10,12 @@ reached the stand-in robot's socket.
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 
 import numpy as np
 import pytest
-from headless_chromium import Chromium, chromium_path
+from headless_chromium import Chromium, needs_chromium
 
 from common.clock import now_ns
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
@@ -30,10 +29,7 @@ from operator_side.servos.recording import RecordingServoBus
 
 pytestmark = [
     pytest.mark.timeout(60),
-    pytest.mark.skipif(
-        chromium_path() is None and not os.environ.get("CI"),
-        reason="chromium is not installed: run scripts/install-test-browser.sh (required in CI)",
-    ),
+    needs_chromium,
 ]
 
 FORCE_N = 5.0

@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
 import random
 import struct
 
 import pytest
-from headless_chromium import Chromium, chromium_path
+from headless_chromium import Chromium, needs_chromium
 from test_dashboard_server import FakeNode
 
 from common.config import to_dict
@@ -24,10 +23,7 @@ from operator_side.dashboard.jog_config import JogConfig
 
 pytestmark = [
     pytest.mark.timeout(60),
-    pytest.mark.skipif(
-        chromium_path() is None and not os.environ.get("CI"),
-        reason="chromium is not installed: run scripts/install-test-browser.sh (required in CI)",
-    ),
+    needs_chromium,
 ]
 
 CFG = to_dict(JogConfig())

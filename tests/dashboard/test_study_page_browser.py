@@ -5,12 +5,11 @@ Lives beside the dashboard's browser test to share its DevTools helper.
 
 from __future__ import annotations
 
-import os
 import threading
 
 import numpy as np
 import pytest
-from headless_chromium import Chromium, chromium_path
+from headless_chromium import Chromium, needs_chromium
 
 from common.patterns import MASKS
 from operator_side.servos.recording import RecordingServoBus
@@ -21,10 +20,7 @@ from operator_side.study.runner import Session
 
 pytestmark = [
     pytest.mark.timeout(90),
-    pytest.mark.skipif(
-        chromium_path() is None and not os.environ.get("CI"),
-        reason="chromium is not installed: run scripts/install-test-browser.sh (required in CI)",
-    ),
+    needs_chromium,
 ]
 
 

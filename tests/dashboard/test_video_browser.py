@@ -8,10 +8,8 @@ pixels, and the source is closed once the tab is gone.
 
 from __future__ import annotations
 
-import os
-
 import pytest
-from headless_chromium import chromium_path
+from headless_chromium import needs_chromium
 
 pytest.importorskip("aiortc")
 
@@ -19,10 +17,7 @@ from deploy.bench.video import glass_to_glass
 
 pytestmark = [
     pytest.mark.timeout(90),
-    pytest.mark.skipif(
-        chromium_path() is None and not os.environ.get("CI"),
-        reason="chromium is not installed: run scripts/install-test-browser.sh (required in CI)",
-    ),
+    needs_chromium,
 ]
 
 
