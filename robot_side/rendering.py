@@ -16,15 +16,14 @@ from typing import Literal
 
 import numpy as np
 
-from common.patterns import MASKS_F32
+from common.tactile import CONTACT_FLOOR_N as CONTACT_THRESHOLD_N
+from common.tactile import MASKS_F32
+from common.tactile import SATURATION_N as SENSOR_MAX_N
 
 Method = Literal["antialiased", "plain", "area"]
 Order = Literal["peak_then_mask", "mask_then_peak"]
 METHODS: tuple[str, ...] = ("antialiased", "plain", "area")
 ORDERS: tuple[str, ...] = ("peak_then_mask", "mask_then_peak")
-
-SENSOR_MAX_N = 9.0
-CONTACT_THRESHOLD_N = 1.0
 
 
 def _cubic(x: np.ndarray, a: float) -> np.ndarray:

@@ -30,7 +30,7 @@ import numpy as np
 
 from common.clock import Rate, now_ns
 from common.errors import DeviceError
-from common.patterns import MASKS
+from common.tactile import MASKS
 from operator_side.renderer import LinkGlideRenderer, RendererConfig
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration

@@ -23,16 +23,18 @@ from typing import Any
 
 import numpy as np
 
+from common.tactile import CONTACT_FLOOR_N, SATURATION_N
 from robot_side.jit import njit
 from robot_side.perception.errors import ModelLoadError
+from robot_side.perception.folding import block_diag, fold_batch_norm
 
 #: reassociation (vectorised sums), contraction (FMA), no signed zeros, reciprocals;
 #: not "nnan"/"ninf": a frame is finite by the time it is classified, but the
 #: compiler must not be allowed to assume it
 _FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
 _F0 = np.float32(0.0)
-_NINTH = np.float32(1.0 / 9.0)  # SATURATION_N
-_PEAK_FLOOR = np.float32(1.0)  # PEAK_FLOOR_N
+_NINTH = np.float32(1.0 / SATURATION_N)
+_PEAK_FLOOR = np.float32(CONTACT_FLOOR_N)
 
 
 @njit(fastmath=_FASTMATH)
@@ -152,13 +154,11 @@ class NumbaForward:
     """
 
     def __init__(self, weights: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
-        from robot_side.perception.inference import _block_diag, _fold_bn
-
         try:
-            w1, b1 = _fold_bn(
+            w1, b1 = fold_batch_norm(
                 weights["backbone.0.weight"], weights["backbone.0.bias"], weights, "backbone.1"
             )
-            w2, b2 = _fold_bn(
+            w2, b2 = fold_batch_norm(
                 weights["backbone.3.weight"], weights["backbone.3.bias"], weights, "backbone.4"
             )
             heads = [
@@ -169,7 +169,7 @@ class NumbaForward:
             ]
             for i in (3, 6, 9):
                 a, p = weights[f"angle_head.{i}.weight"], weights[f"position_head.{i}.weight"]
-                heads.append(_block_diag(a, p))
+                heads.append(block_diag(a, p))
                 biases.append(
                     np.concatenate(
                         [weights[f"angle_head.{i}.bias"], weights[f"position_head.{i}.bias"]]

@@ -12,10 +12,8 @@ from dataclasses import dataclass
 
 from common.config import param
 from common.errors import ConfigError
+from common.tactile import N_GRIP_LEVELS, N_PATTERNS
 from robot_side.tactile.base import GraspTruth
-
-N_PATTERNS = 12
-N_GRIP_LEVELS = 31
 
 
 @dataclass

@@ -6,8 +6,7 @@ frames hard: a light grip that barely crosses the sensor's 1 N floor, a
 squeezed tube whose band is wide and uneven, two pads that do not agree, and
 taxels that are dead, stuck, noisy or mis-calibrated.
 
-Conventions (the project's tactile contract, stated here so nothing needs to
-read it at run time):
+Conventions (the project's tactile contract, declared in ``common.tactile``):
 
 - A frame is float32 newtons of shape (2, 10, 10): axis 0 the pad (0 = finger
   1, 1 = finger 2 already mirrored into finger 1's view), axis 1 the row (0 at
@@ -40,11 +39,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.config import param
-from common.patterns import (
+from common.tactile import (
     ANGLES_DEG,
+    CONTACT_FLOOR_N,
+    FRAME_SHAPE,
     N_ANGLES,
+    N_GRIP_LEVELS,
     N_PATTERNS,
     N_POSITIONS,
+    PAD_COLS,
+    PAD_ROWS,
+    SATURATION_N,
     classes_of,
     pattern_of,
 )
@@ -62,11 +67,6 @@ __all__ = [
     "offset_direction",
     "pattern_of",
 ]
-
-N_ROWS = 10
-N_COLS = 10
-FRAME_SHAPE = (2, N_ROWS, N_COLS)
-N_GRIP_LEVELS = 31
 
 #: subsamples per taxel side used to integrate pressure over a taxel's area
 _SUB = 4
@@ -104,8 +104,8 @@ class GeneratorParams:
 
     # --- the pad -----------------------------------------------------------
     pitch_mm: float = param(2.41, "taxel pitch: 10 taxels over a 5.8 cm^2 pad (24.1 mm)")
-    floor_n: float = param(1.0, "the sensor's floor: a taxel below 1 N reads 0")
-    saturation_n: float = param(9.0, "the sensor's ceiling: a taxel above 9 N reads 9 N")
+    floor_n: float = param(CONTACT_FLOOR_N, "the sensor's floor: a taxel below 1 N reads 0")
+    saturation_n: float = param(SATURATION_N, "the sensor's ceiling: a taxel above 9 N reads 9 N")
     cover_blur_mm: float = param(
         0.6, "std dev of the elastomer cover's spreading of a point load onto the taxels"
     )
@@ -190,7 +190,7 @@ class GeneratorParams:
         0.002, "fraction of taxels stuck at a fixed reading (shorted traces, per sensor)"
     )
     stuck_min_n: float = param(1.5, "lowest reading a stuck taxel is stuck at")
-    stuck_max_n: float = param(9.0, "highest reading a stuck taxel is stuck at")
+    stuck_max_n: float = param(SATURATION_N, "highest reading a stuck taxel is stuck at")
 
     def __post_init__(self) -> None:
         positive = ("pitch_mm", "pipette_diameter_mm", "saturation_n", "width_max_fraction")
@@ -273,9 +273,9 @@ class SyntheticTactileModel:
         # and y up. Pad 2's points are where its taxels really sit in finger
         # 1's frame after its mounting error.
         pitch = params.pitch_mm
-        k = (np.arange(N_COLS * _SUB) + 0.5) / _SUB - N_COLS / 2
+        k = (np.arange(PAD_COLS * _SUB) + 0.5) / _SUB - PAD_COLS / 2
         xs = k * pitch
-        ys = -((np.arange(N_ROWS * _SUB) + 0.5) / _SUB - N_ROWS / 2) * pitch
+        ys = -((np.arange(PAD_ROWS * _SUB) + 0.5) / _SUB - PAD_ROWS / 2) * pitch
         x1, y1 = np.meshgrid(xs, ys)
         c, s = math.cos(rot), math.sin(rot)
         x2 = c * x1 - s * y1 + shift[0]
@@ -283,7 +283,7 @@ class SyntheticTactileModel:
         self._x = np.stack([x1, x2])  # (2, 10*SUB, 10*SUB)
         self._y = np.stack([y1, y2])
         self._sample_area = (pitch / _SUB) ** 2
-        self._half_extent = pitch * max(N_ROWS, N_COLS) / 2
+        self._half_extent = pitch * max(PAD_ROWS, PAD_COLS) / 2
 
     @property
     def defects(self) -> dict[str, np.ndarray]:
@@ -370,7 +370,7 @@ class SyntheticTactileModel:
             q = np.where(sign * t <= t_end, q, 0.0)
         pressure = q * _blurred_profile(d, half_width, local_half, edge, p.cover_blur_mm)
         pressure *= np.asarray(grasp.pad_share)[:, None, None]
-        force = pressure.reshape(2, N_ROWS, _SUB, N_COLS, _SUB).sum(axis=(2, 4))
+        force = pressure.reshape(2, PAD_ROWS, _SUB, PAD_COLS, _SUB).sum(axis=(2, 4))
         return force * self._sample_area
 
     def frame(self, pattern: int | None, grip_level: int, rng: np.random.Generator) -> np.ndarray:
