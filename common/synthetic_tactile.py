@@ -45,32 +45,13 @@ from common.tactile import (
     ANGLES_DEG,
     CONTACT_FLOOR_N,
     FRAME_SHAPE,
-    N_ANGLES,
     N_GRIP_LEVELS,
     N_PATTERNS,
-    N_POSITIONS,
     PAD_COLS,
     PAD_ROWS,
     SATURATION_N,
     classes_of,
-    pattern_of,
 )
-
-__all__ = [
-    "ANGLES_DEG",
-    "FRAME_SHAPE",
-    "N_ANGLES",
-    "N_GRIP_LEVELS",
-    "N_PATTERNS",
-    "N_POSITIONS",
-    "GeneratorParams",
-    "Grasp",
-    "HeldGrasp",
-    "SyntheticTactileModel",
-    "mirror_finger2",
-    "offset_direction",
-    "pattern_of",
-]
 
 #: subsamples per taxel side used to integrate pressure over a taxel's area
 _SUB = 4

@@ -8,18 +8,20 @@ the data set and the bench keep importing it from here.
 from __future__ import annotations
 
 from common.synthetic_tactile import (
-    ANGLES_DEG,
-    FRAME_SHAPE,
-    N_ANGLES,
-    N_GRIP_LEVELS,
-    N_PATTERNS,
-    N_POSITIONS,
     GeneratorParams,
     Grasp,
     HeldGrasp,
     SyntheticTactileModel,
     mirror_finger2,
     offset_direction,
+)
+from common.tactile import (
+    ANGLES_DEG,
+    FRAME_SHAPE,
+    N_ANGLES,
+    N_GRIP_LEVELS,
+    N_PATTERNS,
+    N_POSITIONS,
     pattern_of,
 )
 
