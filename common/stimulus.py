@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 
 from common.tactile import CONTACT_FLOOR_N as CONTACT_THRESHOLD_N
-from common.tactile import MASKS_F32
+from common.tactile import FRAME_SHAPE, MASKS_F32
 from common.tactile import SATURATION_N as SENSOR_MAX_N
 
 Method = Literal["antialiased", "plain", "area"]
@@ -161,8 +161,8 @@ def sanitize_with_peak(frame: np.ndarray) -> tuple[np.ndarray, float]:
     fails both comparisons). Only a frame that fails is copied and cleaned.
     """
     frame = np.asarray(frame, dtype=np.float32)
-    if frame.shape != (2, 10, 10):
-        raise ValueError(f"a frame has shape (2, 10, 10), not {frame.shape}")
+    if frame.shape != FRAME_SHAPE:
+        raise ValueError(f"a frame has shape {FRAME_SHAPE}, not {frame.shape}")
     lo, hi = float(frame.min()), float(frame.max())
     if lo >= 0.0 and hi <= SENSOR_MAX_N:
         return frame, hi

@@ -271,7 +271,7 @@ class Dashboard:
                     "type": "ack",
                     "ok": False,
                     "action": action,
-                    "error": "grip_level must be an integer 1..31",
+                    "error": f"grip_level must be an integer 1..{GRIP_LEVELS[-1]}",
                 }
             self.node.send_command("gripper_close", grip_level=level)
         else:

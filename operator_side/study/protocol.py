@@ -54,7 +54,7 @@ class StudyConfig:
     )
     sensor_seed: int = param(0, "the simulated pads' fixed defects (direct and masked modes)")
     grip_level_min: int = param(16, "weakest simulated grip of a trial (1..31)")
-    grip_level_max: int = param(31, "strongest simulated grip of a trial (1..31)")
+    grip_level_max: int = param(N_GRIP_LEVELS, "strongest simulated grip of a trial (1..31)")
     ideal_force_n: float = param(5.0, "force of every pressed cell in ideal mode")
     frame_rate_hz: float = param(
         30.0, "new simulated frames per second: the stimulus carries the sensor's noise"

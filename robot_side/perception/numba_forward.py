@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from common.tactile import CONTACT_FLOOR_N, SATURATION_N
+from common.tactile import CONTACT_FLOOR_N, FRAME_SHAPE, SATURATION_N
 from robot_side.jit import njit
 from robot_side.perception.errors import ModelLoadError
 from robot_side.perception.folding import block_diag, fold_batch_norm
@@ -191,9 +191,9 @@ class NumbaForward:
         self._result = np.zeros(2 + self.n_logits, np.float64)
         # frames are copied in: one argument type, so nothing compiles on the hot path
         # (a read-only or strided array would be a new signature, a 2 s compile)
-        self._x = np.zeros((2, 10, 10), np.float32)
+        self._x = np.zeros(FRAME_SHAPE, np.float32)
         # compile (or load the cached machine code) now, not on the first frame
-        self.classify_one(np.zeros((2, 10, 10), np.float32))
+        self.classify_one(np.zeros(FRAME_SHAPE, np.float32))
 
     @property
     def n_logits(self) -> int:
