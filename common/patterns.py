@@ -1,6 +1,7 @@
-"""The twelve patterns, now part of the tactile contract in ``common.tactile``.
+"""The twelve patterns and their masks: another name for that part of ``common.tactile``.
 
-Kept so existing imports keep working; new code imports ``common.tactile``.
+The tactile contract declares them; modules that import them from here keep
+working, and new code imports ``common.tactile``.
 """
 
 from common.tactile import (
