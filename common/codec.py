@@ -29,12 +29,10 @@ from common.messages import (
     Stimulus,
     TactileFrame,
 )
+from common.tactile import FRAME_SHAPE, N_GRIP_LEVELS, N_PATTERNS, SATURATION_N, STIMULUS_SHAPE
 
 TOPIC_LEN = 4
 MAX_MESSAGE_BYTES = 16 * 1024
-STIMULUS_MAX_N = 9.0  # the sensor saturates at 9 N; anything above is not a stimulus
-N_PATTERNS = 12
-GRIP_LEVELS = (1, 31)
 MAX_STATS = 64
 _U63 = 2**63 - 1
 
@@ -165,12 +163,12 @@ def _stimulus_array(name: str, v: Any) -> np.ndarray:
     for value in cells:
         if not math.isfinite(value):
             raise NonFiniteValueError(f"{name} holds a non-finite value")
-        if not 0.0 <= value <= STIMULUS_MAX_N:
-            raise OutOfRangeError(f"{name} holds values outside 0.0..{STIMULUS_MAX_N}")
+        if not 0.0 <= value <= SATURATION_N:
+            raise OutOfRangeError(f"{name} holds values outside 0.0..{SATURATION_N}")
     for r in (0, 3, 6):
         if (cells[r] > 0) + (cells[r + 1] > 0) + (cells[r + 2] > 0) > 1:
             raise OutOfRangeError(f"{name} has more than one non-zero cell in a row")
-    return np.array(cells, dtype=np.float32).reshape(3, 3)
+    return np.array(cells, dtype=np.float32).reshape(STIMULUS_SHAPE)
 
 
 def _velocity(name: str, v: Any) -> tuple[float, ...]:
@@ -202,7 +200,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("stimulus", _stimulus_array, True),
         ("pattern", _int_range(0, N_PATTERNS - 1), False),
         ("confidence", _float_range(0.0, 1.0), False),
-        ("grip_level", _int_range(*GRIP_LEVELS), False),
+        ("grip_level", _int_range(1, N_GRIP_LEVELS), False),
         ("keyframe", _bool, False),
         ("sim_truth_pattern", _int_range(0, N_PATTERNS - 1), False),
     ],
@@ -210,7 +208,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         *_COMMON,
         ("t_capture_ns", _uint, True),
         ("frame_seq", _uint, True),
-        ("frame", _f32_array((2, 10, 10), 0.0, STIMULUS_MAX_N), True),
+        ("frame", _f32_array(FRAME_SHAPE, 0.0, SATURATION_N), True),
     ],
     Heartbeat: [
         *_COMMON,
@@ -225,7 +223,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
     Command: [
         *_COMMON,
         ("action", _enum(COMMAND_ACTIONS), True),
-        ("grip_level", _int_range(*GRIP_LEVELS), False),
+        ("grip_level", _int_range(1, N_GRIP_LEVELS), False),
         ("velocity", _velocity, False),
         ("session", _int_range(1, _U63), False),
     ],

@@ -1,239 +1,56 @@
-"""From a tactile frame to the 3x3 stimulus (docs/tactile.md, "Downsizing").
+"""From a tactile frame to the 3x3 stimulus: the robot node's name for ``common.stimulus``.
 
-contact map (mean of both pads) -> bicubic downsizing to 3x3 -> keep the
-peak of each row -> multiply by the recognised pattern's mask. Downsizing is
-a precomputed pair of weight matrices, ``Wy @ X @ Wx.T`` (a few microseconds).
-
-The default is antialiased bicubic (the kernel widened by the scale factor,
-as PIL's BICUBIC and torch's ``antialias=True``): every taxel contributes, so
-a band between the sample points is not missed. ``plain`` bicubic (4 x 4 taps
-per output, as torch's default) and ``area`` averaging stay for comparison.
+The rendering is NumPy only and lives in ``common`` so the operator's study
+renders exactly as the robot does without importing the robot side; the
+robot's modules keep importing it from here.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from common.stimulus import (
+    _WEIGHTS,  # the downsizing bench compares the weight variants directly
+    CONTACT_THRESHOLD_N,
+    METHODS,
+    ORDERS,
+    SENSOR_MAX_N,
+    Method,
+    Order,
+    antialiased_bicubic_weights,
+    area_weights,
+    contact_map,
+    downsize,
+    downsizing_matrix,
+    is_contact,
+    mask_columns,
+    peak_per_row,
+    plain_bicubic_weights,
+    render_cells,
+    render_contact,
+    render_stimulus,
+    sanitize_frame,
+    sanitize_with_peak,
+)
 
-import numpy as np
-
-from common.patterns import MASKS_F32
-
-Method = Literal["antialiased", "plain", "area"]
-Order = Literal["peak_then_mask", "mask_then_peak"]
-METHODS: tuple[str, ...] = ("antialiased", "plain", "area")
-ORDERS: tuple[str, ...] = ("peak_then_mask", "mask_then_peak")
-
-SENSOR_MAX_N = 9.0
-CONTACT_THRESHOLD_N = 1.0
-
-
-def _cubic(x: np.ndarray, a: float) -> np.ndarray:
-    """Keys' cubic convolution kernel."""
-    x = np.abs(x)
-    return np.where(
-        x < 1,
-        ((a + 2) * x - (a + 3)) * x * x + 1,
-        np.where(x < 2, (((x - 5) * x + 8) * x - 4) * a, 0.0),
-    )
-
-
-def antialiased_bicubic_weights(n_in: int, n_out: int, a: float = -0.5) -> np.ndarray:
-    """(n_out, n_in) weights: PIL's BICUBIC resampling for a reduction."""
-    scale = n_in / n_out
-    support = 2.0 * scale
-    w = np.zeros((n_out, n_in))
-    for i in range(n_out):
-        center = (i + 0.5) * scale
-        lo = max(0, int(np.floor(center - support)))
-        hi = min(n_in, int(np.ceil(center + support)))
-        j = np.arange(lo, hi)
-        w[i, lo:hi] = _cubic((j + 0.5 - center) / scale, a)
-        w[i] /= w[i].sum()
-    return w
-
-
-def plain_bicubic_weights(n_in: int, n_out: int, a: float = -0.75) -> np.ndarray:
-    """(n_out, n_in) weights: 4 taps around each sample, edges replicated."""
-    scale = n_in / n_out
-    w = np.zeros((n_out, n_in))
-    for i in range(n_out):
-        src = (i + 0.5) * scale - 0.5
-        base = int(np.floor(src))
-        t = src - base
-        for k in range(-1, 3):
-            j = min(max(base + k, 0), n_in - 1)
-            w[i, j] += _cubic(np.array(t - k), a)
-    return w
-
-
-def area_weights(n_in: int, n_out: int) -> np.ndarray:
-    """(n_out, n_in) weights: the mean over each output cell's footprint."""
-    scale = n_in / n_out
-    w = np.zeros((n_out, n_in))
-    for i in range(n_out):
-        lo, hi = i * scale, (i + 1) * scale
-        for j in range(n_in):
-            w[i, j] = max(0.0, min(hi, j + 1) - max(lo, j))
-        w[i] /= w[i].sum()
-    return w
-
-
-_WEIGHTS = {
-    "antialiased": antialiased_bicubic_weights(10, 3),
-    "plain": plain_bicubic_weights(10, 3),
-    "area": area_weights(10, 3),
-}
-# float32 copies for the hot path: X is float32 and float64 buys nothing at 2e-7 N.
-_W32 = {
-    k: (w.astype(np.float32), np.ascontiguousarray(w.T, dtype=np.float32))
-    for k, w in _WEIGHTS.items()
-}
-
-
-def _fused(w: np.ndarray) -> np.ndarray:
-    """(9, 200): the mean of both pads and both downsizing products as one matrix.
-
-    out[3 i + j] = sum over pads, rows k, columns l of
-    0.5 * Wy[i, k] * Wx[j, l] * frame[pad, k, l], i.e. half of kron(Wy, Wx)
-    applied to each pad: one matrix-vector product per frame.
-    """
-    k = 0.5 * np.kron(w, w)
-    return np.ascontiguousarray(np.hstack([k, k]), dtype=np.float32)
-
-
-_FUSED = {k: _fused(w) for k, w in _WEIGHTS.items()}
-#: per pattern, per row: the mask's column in that row, or None
-_MASK_COLS: list[list[int | None]] = [
-    [next((c for c in range(3) if m[r, c]), None) for r in range(3)] for m in MASKS_F32 > 0
+__all__ = [
+    "CONTACT_THRESHOLD_N",
+    "METHODS",
+    "ORDERS",
+    "SENSOR_MAX_N",
+    "_WEIGHTS",
+    "Method",
+    "Order",
+    "antialiased_bicubic_weights",
+    "area_weights",
+    "contact_map",
+    "downsize",
+    "downsizing_matrix",
+    "is_contact",
+    "mask_columns",
+    "peak_per_row",
+    "plain_bicubic_weights",
+    "render_cells",
+    "render_contact",
+    "render_stimulus",
+    "sanitize_frame",
+    "sanitize_with_peak",
 ]
-
-
-def downsizing_matrix(method: Method) -> np.ndarray:
-    """(9, 200) float32: both pads' mean and the 10x10 -> 3x3 downsizing as one matrix."""
-    return _FUSED[method]
-
-
-def mask_columns(pattern: int) -> list[int | None]:
-    """Per stimulus row, the column the pattern's mask keeps, or None for an empty row."""
-    return list(_MASK_COLS[pattern])
-
-
-def contact_map(frame: np.ndarray) -> np.ndarray:
-    """(2, 10, 10) frame -> (10, 10) mean of both pads."""
-    return (frame[0] + frame[1]) * np.float32(0.5)
-
-
-def downsize(cmap: np.ndarray, method: Method = "antialiased") -> np.ndarray:
-    """(10, 10) -> (3, 3) float32, clipped to [0, 9] N (cubic lobes overshoot)."""
-    wy, wxt = _W32[method]
-    out = wy @ cmap @ wxt
-    np.clip(out, 0.0, SENSOR_MAX_N, out=out)
-    return out
-
-
-def peak_per_row(x: np.ndarray) -> np.ndarray:
-    """Keep the largest cell of each row (ties: lowest column); zero the rest."""
-    out = np.zeros_like(x)
-    cols = np.argmax(x, axis=1)
-    rows = np.arange(x.shape[0])
-    out[rows, cols] = x[rows, cols]
-    return out
-
-
-def sanitize_frame(frame: np.ndarray) -> np.ndarray:
-    """A (2, 10, 10) float32 frame held to the sensor's range, whatever came in.
-
-    Non-finite taxels read 0 N and nothing exceeds saturation, so neither the
-    downsizing nor the classifier ever sees garbage. A frame already in range
-    comes back as it is (no copy).
-    """
-    return sanitize_with_peak(frame)[0]
-
-
-def sanitize_with_peak(frame: np.ndarray) -> tuple[np.ndarray, float]:
-    """``sanitize_frame`` and the largest taxel of the result, in one pass over the frame.
-
-    The robot node's prelude on every frame: what a driver delivers is almost
-    always in range already, which one minimum and one maximum prove (a NaN
-    fails both comparisons). Only a frame that fails is copied and cleaned.
-    """
-    frame = np.asarray(frame, dtype=np.float32)
-    if frame.shape != (2, 10, 10):
-        raise ValueError(f"a frame has shape (2, 10, 10), not {frame.shape}")
-    lo, hi = float(frame.min()), float(frame.max())
-    if lo >= 0.0 and hi <= SENSOR_MAX_N:
-        return frame, hi
-    if not np.isfinite(frame).all():
-        frame = np.nan_to_num(frame, nan=0.0, posinf=0.0, neginf=0.0)
-    frame = np.clip(frame, 0.0, SENSOR_MAX_N)
-    return frame, float(frame.max())
-
-
-def is_contact(frame: np.ndarray, threshold_n: float = CONTACT_THRESHOLD_N) -> bool:
-    """A frame whose largest taxel reaches the threshold holds a grasp."""
-    return bool(frame.max() >= threshold_n)
-
-
-def render_stimulus(
-    frame: np.ndarray,
-    pattern: int | None,
-    *,
-    method: Method = "antialiased",
-    order: Order = "mask_then_peak",
-    contact_threshold_n: float = CONTACT_THRESHOLD_N,
-) -> np.ndarray:
-    """The 3x3 float32 stimulus for a (2, 10, 10) frame in newtons.
-
-    ``pattern=None`` is direct rendering (no mask, the paper's baseline).
-    Readings are held to the sensor's range first: non-finite taxels count as
-    0 N (a broken taxel must not poison a stimulus), and nothing reads above
-    saturation, so no garbage can overflow the downsizing.
-    """
-    frame = sanitize_frame(frame)
-    if not is_contact(frame, contact_threshold_n):
-        return np.zeros((3, 3), dtype=np.float32)
-    return render_contact(frame, pattern, method=method, order=order)
-
-
-def render_contact(
-    frame: np.ndarray,
-    pattern: int | None,
-    *,
-    method: Method = "antialiased",
-    order: Order = "mask_then_peak",
-) -> np.ndarray:
-    """``render_stimulus`` for a frame already sanitized and known to hold a contact."""
-    cells = render_cells(frame, pattern, method=method, order=order)
-    return np.array(cells, dtype=np.float32).reshape(3, 3)
-
-
-def render_cells(
-    frame: np.ndarray,
-    pattern: int | None,
-    *,
-    method: Method = "antialiased",
-    order: Order = "mask_then_peak",
-) -> list[float]:
-    """``render_contact`` as nine floats, row by row: the robot node's hot path.
-
-    One (9 x 200) product, then the peak and mask over nine numbers in plain
-    Python (NumPy's per-call cost dominates at this size). The cells are
-    float32 values, so an array made from them equals ``render_contact``'s.
-    """
-    values = (_FUSED[method] @ frame.reshape(200)).tolist()
-    out = [0.0] * 9
-    cols = None if pattern is None else _MASK_COLS[pattern]
-    for r in range(3):
-        row = [min(max(v, 0.0), SENSOR_MAX_N) for v in values[3 * r : 3 * r + 3]]
-        if cols is None:
-            c = row.index(max(row))
-        elif cols[r] is None:
-            continue
-        elif order == "mask_then_peak":
-            c = cols[r]
-        else:
-            c = row.index(max(row))
-            if c != cols[r]:
-                continue  # the paper's order: a peak off the mask's cell is lost
-        out[3 * r + c] = row[c]
-    return out

@@ -23,6 +23,7 @@ from typing import Any, Protocol
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
+from common.tactile import GRIP_LEVELS
 from operator_side.dashboard.config import DashboardConfig
 from operator_side.dashboard.view import CONTENT_KEYS, LinkHistory, hello_view, snapshot_view
 from operator_side.dashboard.web import WebServer, package_files
@@ -35,7 +36,6 @@ STATIC_FILES = ("index.html", "app.js", "jog.js", "video.js", "patterns.js", "st
 VIDEO_ANSWER_TIMEOUT_S = 10.0
 REFRESH_S = 0.25  # ages and counters move even when the stimulus does not
 FULL_STATE_S = 1.0  # a page that missed a push (it lagged) is whole again within this
-GRIP_LEVELS = range(1, 32)
 COMMANDS_PER_S = 10  # a stuck key or a buggy page cannot flood the robot's command link
 JOG_WATCHDOG_PERIODS = 6  # a jogging page silent this many send periods (200 ms) is stopped
 
@@ -271,7 +271,7 @@ class Dashboard:
                     "type": "ack",
                     "ok": False,
                     "action": action,
-                    "error": "grip_level must be an integer 1..31",
+                    "error": f"grip_level must be an integer 1..{GRIP_LEVELS[-1]}",
                 }
             self.node.send_command("gripper_close", grip_level=level)
         else:

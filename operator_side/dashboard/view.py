@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from common.config import to_dict
-from common.patterns import MASKS, N_PATTERNS, pattern_name
+from common.tactile import MASKS, N_PATTERNS, pattern_name
 from operator_side.dashboard.jog_config import JogConfig
 from operator_side.node import Snapshot
 from operator_side.renderer import RendererConfig

@@ -14,9 +14,9 @@ A stimulus source per trial:
 - ``ideal``: exactly the mask's cells at a fixed force (no sensor at all).
 
 ``direct`` and ``masked`` draw fresh sensor noise at ``frame_rate_hz``, as a
-live grasp would. ``robot_side.rendering`` and ``robot_side.tactile.synthetic``
-are NumPy only; they are imported here, lazily, so the operator node itself
-never loads them.
+live grasp would. The pad model and the rendering are the robot's own
+(``common.synthetic_tactile``, ``common.stimulus``): NumPy only, shared
+through ``common`` so the study never imports the robot side.
 """
 
 from __future__ import annotations
@@ -30,7 +30,9 @@ import numpy as np
 
 from common.clock import Rate, now_ns
 from common.errors import DeviceError
-from common.patterns import MASKS
+from common.stimulus import render_stimulus
+from common.synthetic_tactile import SyntheticTactileModel
+from common.tactile import MASKS
 from operator_side.renderer import LinkGlideRenderer, RendererConfig
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
@@ -48,8 +50,6 @@ class StimulusMaker:
         self.config = config
         self._model = None
         if config.mode in ("direct", "masked"):
-            from robot_side.tactile.synthetic import SyntheticTactileModel
-
             self._model = SyntheticTactileModel(seed=config.sensor_seed)
 
     def source(self, pattern: int, rng: np.random.Generator) -> tuple[StimulusSource, int]:
@@ -59,8 +59,6 @@ class StimulusMaker:
         if cfg.mode == "ideal":
             stim = (MASKS[pattern] * np.float32(cfg.ideal_force_n)).astype(np.float32)
             return (lambda: stim), grip
-        from robot_side.rendering import render_stimulus
-
         model = self._model
         grasp = model.draw_grasp(pattern, rng)
         mask = pattern if cfg.mode == "masked" else None

@@ -28,7 +28,7 @@ import numpy as np
 
 from common.config import param, to_dict
 from common.errors import ConfigError
-from common.patterns import N_PATTERNS
+from common.tactile import N_GRIP_LEVELS, N_PATTERNS, SATURATION_N
 from operator_side.renderer import RendererConfig
 
 log = logging.getLogger(__name__)
@@ -54,7 +54,7 @@ class StudyConfig:
     )
     sensor_seed: int = param(0, "the simulated pads' fixed defects (direct and masked modes)")
     grip_level_min: int = param(16, "weakest simulated grip of a trial (1..31)")
-    grip_level_max: int = param(31, "strongest simulated grip of a trial (1..31)")
+    grip_level_max: int = param(N_GRIP_LEVELS, "strongest simulated grip of a trial (1..31)")
     ideal_force_n: float = param(5.0, "force of every pressed cell in ideal mode")
     frame_rate_hz: float = param(
         30.0, "new simulated frames per second: the stimulus carries the sensor's noise"
@@ -73,10 +73,14 @@ class StudyConfig:
             raise ValueError(f"repetitions must be 1..50, not {self.repetitions}")
         if not 0 <= self.practice_rounds <= 10:
             raise ValueError(f"practice_rounds must be 0..10, not {self.practice_rounds}")
-        if not 1 <= self.grip_level_min <= self.grip_level_max <= 31:
-            raise ValueError("grip levels must satisfy 1 <= grip_level_min <= grip_level_max <= 31")
-        if not 0 < self.ideal_force_n <= 9:
-            raise ValueError(f"ideal_force_n must be in (0, 9] N, not {self.ideal_force_n}")
+        if not 1 <= self.grip_level_min <= self.grip_level_max <= N_GRIP_LEVELS:
+            raise ValueError(
+                f"grip levels must satisfy 1 <= grip_level_min <= grip_level_max <= {N_GRIP_LEVELS}"
+            )
+        if not 0 < self.ideal_force_n <= SATURATION_N:
+            raise ValueError(
+                f"ideal_force_n must be in (0, {SATURATION_N:g}] N, not {self.ideal_force_n}"
+            )
         if not 0 < self.frame_rate_hz <= 120:
             raise ValueError(f"frame_rate_hz must be in (0, 120], not {self.frame_rate_hz}")
         if self.pause_s < 0 or self.feedback_s < 0:

@@ -24,7 +24,7 @@ from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
 from common.clock import now_ns
-from common.patterns import MASKS, N_PATTERNS, pattern_name
+from common.tactile import MASKS, N_PATTERNS, pattern_name
 
 log = logging.getLogger(__name__)
 

@@ -27,10 +27,10 @@ from common.clock import now_s
 from common.config import param
 from common.devices import Device
 from common.errors import ConfigError, DeviceError, DeviceTimeoutError
+from common.tactile import N_GRIP_LEVELS
 
 log = logging.getLogger(__name__)
 
-N_GRIP_LEVELS = 31
 POSITION_OPEN = 0
 POSITION_MAX = 255
 

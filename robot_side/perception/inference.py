@@ -35,7 +35,9 @@ from typing import Any
 
 import numpy as np
 
+from common.tactile import CONTACT_FLOOR_N, FRAME_SHAPE, N_ANGLES, N_POSITIONS, SATURATION_N
 from robot_side.perception.errors import ModelLoadError
+from robot_side.perception.folding import block_diag, fold_batch_norm
 from robot_side.perception.weights import DEFAULT_MODEL, read_weights
 
 log = logging.getLogger(__name__)
@@ -50,12 +52,6 @@ _MODULE_OF = {
     "torch": "torch",
     "torchscript": "torch",
 }
-
-N_ANGLES = 4
-N_POSITIONS = 3
-SATURATION_N = 9.0
-PEAK_FLOOR_N = 1.0
-_BN_EPS = 1e-5
 
 Logits = tuple[np.ndarray, np.ndarray]
 
@@ -155,10 +151,10 @@ class TiltClassifier:
         tens of microseconds, so the fewer calls the better.
         """
         x = frame
-        if type(x) is not np.ndarray or x.dtype != np.float32 or x.shape != (2, 10, 10):
+        if type(x) is not np.ndarray or x.dtype != np.float32 or x.shape != FRAME_SHAPE:
             x = np.asarray(frame, dtype=np.float32)
-            if x.shape != (2, 10, 10):
-                raise ValueError(f"a frame has shape (2, 10, 10), not {x.shape}")
+            if x.shape != FRAME_SHAPE:
+                raise ValueError(f"a frame has shape {FRAME_SHAPE}, not {x.shape}")
         if self._classify_one is not None:
             with self._lock:
                 r = self._classify_one(x)
@@ -240,7 +236,7 @@ def _as_batch(frames: np.ndarray) -> np.ndarray:
     x = np.ascontiguousarray(frames, dtype=np.float32)
     if x.ndim == 3:
         x = x[None]
-    if x.ndim != 4 or x.shape[1:] != (2, 10, 10):
+    if x.ndim != 4 or x.shape[1:] != FRAME_SHAPE:
         raise ValueError(f"frames must have shape (N, 2, 10, 10), not {np.shape(frames)}")
     return x
 
@@ -271,25 +267,9 @@ def _conv_gather_index(channels: int, channels_last: bool) -> np.ndarray:
     return np.ascontiguousarray(idx.reshape(100, -1)).astype(np.intp)
 
 
-def _fold_bn(w: np.ndarray, b: np.ndarray, weights: dict[str, np.ndarray], prefix: str):
-    gamma = weights[f"{prefix}.weight"].astype(np.float64)
-    beta = weights[f"{prefix}.bias"].astype(np.float64)
-    mean = weights[f"{prefix}.running_mean"].astype(np.float64)
-    var = weights[f"{prefix}.running_var"].astype(np.float64)
-    scale = gamma / np.sqrt(var + _BN_EPS)
-    return w.astype(np.float64) * scale[:, None, None, None], (b - mean) * scale + beta
-
-
 def _with_bias_row(w: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(K, M) weights and (M,) bias as one (K + 1, M) matrix for inputs ending in a 1."""
     return np.ascontiguousarray(np.vstack([w, b[None, :]]), dtype=np.float32)
-
-
-def _block_diag(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    out = np.zeros((a.shape[0] + b.shape[0], a.shape[1] + b.shape[1]), dtype=np.float64)
-    out[: a.shape[0], : a.shape[1]] = a
-    out[a.shape[0] :, a.shape[1] :] = b
-    return out
 
 
 class NumpyForward:
@@ -311,8 +291,8 @@ class NumpyForward:
         self._buffers: dict[int, dict[str, Any]] = {}
 
     def _build(self, w: dict[str, np.ndarray]) -> None:
-        w1, b1 = _fold_bn(w["backbone.0.weight"], w["backbone.0.bias"], w, "backbone.1")
-        w2, b2 = _fold_bn(w["backbone.3.weight"], w["backbone.3.bias"], w, "backbone.4")
+        w1, b1 = fold_batch_norm(w["backbone.0.weight"], w["backbone.0.bias"], w, "backbone.1")
+        w2, b2 = fold_batch_norm(w["backbone.3.weight"], w["backbone.3.bias"], w, "backbone.4")
         self.c1, self.c2 = c1, c2 = w1.shape[0], w2.shape[0]
         # conv1 reads the input channels-first; its 4 feature channels are
         # (pad 0, pad 1) / 9 N, then (pad 0, pad 1) / peak, as InputFeatures.
@@ -333,7 +313,7 @@ class NumpyForward:
         for i in (3, 6, 9):
             a_w, p_w = w[f"angle_head.{i}.weight"], w[f"position_head.{i}.weight"]
             bias = np.concatenate([w[f"angle_head.{i}.bias"], w[f"position_head.{i}.bias"]])
-            self.fc.append(_with_bias_row(_block_diag(a_w.T, p_w.T), bias))
+            self.fc.append(_with_bias_row(block_diag(a_w.T, p_w.T), bias))
         self.n_angle = w["angle_head.9.weight"].shape[0]
 
     def _buf(self, n: int) -> dict[str, Any]:
@@ -376,9 +356,9 @@ class NumpyForward:
         np.take(pad1.reshape(n, -1), self.idx1, axis=1, out=raw)  # (n, 100, 18)
         # the peak-normalised copy first, then the raw columns scaled in place
         if n == 1:
-            np.divide(raw, max(float(x.max()), PEAK_FLOOR_N), out=scaled)
+            np.divide(raw, max(float(x.max()), CONTACT_FLOOR_N), out=scaled)
         else:
-            peak = np.maximum(x.reshape(n, -1).max(axis=1), PEAK_FLOOR_N).reshape(n, 1, 1)
+            peak = np.maximum(x.reshape(n, -1).max(axis=1), CONTACT_FLOOR_N).reshape(n, 1, 1)
             np.divide(raw, peak, out=scaled)
         np.multiply(raw, np.float32(1.0 / SATURATION_N), out=raw)
         h1 = b["h1"]

@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from common.config import param
+from common.tactile import CONTACT_FLOOR_N, N_ANGLES, N_POSITIONS, SATURATION_N
 from robot_side.perception.errors import ModelLoadError
 
 log = logging.getLogger(__name__)
@@ -39,11 +40,6 @@ log = logging.getLogger(__name__)
 #: the paper's layer sizes, which ``width`` scales
 PAPER_CONV = (16, 32)
 PAPER_HIDDEN = (128, 64, 32)
-N_ANGLES = 4
-N_POSITIONS = 3
-SATURATION_N = 9.0
-#: a frame's peak is clamped to at least the sensor floor before dividing by it
-PEAK_FLOOR_N = 1.0
 FORMAT_VERSION = 1
 
 
@@ -73,7 +69,8 @@ class InputFeatures(nn.Module):
     """(N, 2, 10, 10) newtons -> (N, 4, 10, 10): scaled by 9 N and by the frame's peak."""
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
-        peak = frames.amax(dim=(1, 2, 3), keepdim=True).clamp_min(PEAK_FLOOR_N)
+        # the peak is clamped to at least the sensor floor before dividing by it
+        peak = frames.amax(dim=(1, 2, 3), keepdim=True).clamp_min(CONTACT_FLOOR_N)
         return torch.cat([frames * (1.0 / SATURATION_N), frames / peak], dim=1)
 
 

@@ -23,16 +23,18 @@ from typing import Any
 
 import numpy as np
 
+from common.tactile import CONTACT_FLOOR_N, FRAME_SHAPE, SATURATION_N
 from robot_side.jit import njit
 from robot_side.perception.errors import ModelLoadError
+from robot_side.perception.folding import block_diag, fold_batch_norm
 
 #: reassociation (vectorised sums), contraction (FMA), no signed zeros, reciprocals;
 #: not "nnan"/"ninf": a frame is finite by the time it is classified, but the
 #: compiler must not be allowed to assume it
 _FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
 _F0 = np.float32(0.0)
-_NINTH = np.float32(1.0 / 9.0)  # SATURATION_N
-_PEAK_FLOOR = np.float32(1.0)  # PEAK_FLOOR_N
+_NINTH = np.float32(1.0 / SATURATION_N)
+_PEAK_FLOOR = np.float32(CONTACT_FLOOR_N)
 
 
 @njit(fastmath=_FASTMATH)
@@ -152,13 +154,11 @@ class NumbaForward:
     """
 
     def __init__(self, weights: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
-        from robot_side.perception.inference import _block_diag, _fold_bn
-
         try:
-            w1, b1 = _fold_bn(
+            w1, b1 = fold_batch_norm(
                 weights["backbone.0.weight"], weights["backbone.0.bias"], weights, "backbone.1"
             )
-            w2, b2 = _fold_bn(
+            w2, b2 = fold_batch_norm(
                 weights["backbone.3.weight"], weights["backbone.3.bias"], weights, "backbone.4"
             )
             heads = [
@@ -169,7 +169,7 @@ class NumbaForward:
             ]
             for i in (3, 6, 9):
                 a, p = weights[f"angle_head.{i}.weight"], weights[f"position_head.{i}.weight"]
-                heads.append(_block_diag(a, p))
+                heads.append(block_diag(a, p))
                 biases.append(
                     np.concatenate(
                         [weights[f"angle_head.{i}.bias"], weights[f"position_head.{i}.bias"]]
@@ -191,9 +191,9 @@ class NumbaForward:
         self._result = np.zeros(2 + self.n_logits, np.float64)
         # frames are copied in: one argument type, so nothing compiles on the hot path
         # (a read-only or strided array would be a new signature, a 2 s compile)
-        self._x = np.zeros((2, 10, 10), np.float32)
+        self._x = np.zeros(FRAME_SHAPE, np.float32)
         # compile (or load the cached machine code) now, not on the first frame
-        self.classify_one(np.zeros((2, 10, 10), np.float32))
+        self.classify_one(np.zeros(FRAME_SHAPE, np.float32))
 
     @property
     def n_logits(self) -> int:

@@ -23,7 +23,6 @@ from common.clock import now_ns
 from common.devices import Device
 from common.errors import StaleDataError
 
-FRAME_SHAPE = (2, 10, 10)
 _NEVER = 2**63 - 1  # a sequence number no frame reaches
 
 

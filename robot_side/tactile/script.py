@@ -12,10 +12,8 @@ from dataclasses import dataclass
 
 from common.config import param
 from common.errors import ConfigError
+from common.tactile import N_GRIP_LEVELS, N_PATTERNS
 from robot_side.tactile.base import GraspTruth
-
-N_PATTERNS = 12
-N_GRIP_LEVELS = 31
 
 
 @dataclass
@@ -29,9 +27,9 @@ class GraspStep:
 
     def __post_init__(self) -> None:
         if not 0 <= self.pattern < N_PATTERNS:
-            raise ConfigError(f"grasp pattern {self.pattern} is not in 0..11")
+            raise ConfigError(f"grasp pattern {self.pattern} is not in 0..{N_PATTERNS - 1}")
         if not 1 <= self.grip_level <= N_GRIP_LEVELS:
-            raise ConfigError(f"grasp grip_level {self.grip_level} is not in 1..31")
+            raise ConfigError(f"grasp grip_level {self.grip_level} is not in 1..{N_GRIP_LEVELS}")
         for name in ("ramp_s", "hold_s", "release_s", "pause_s"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"grasp {name} must not be negative")
