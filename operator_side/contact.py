@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.config import param
+from common.tactile import SATURATION_N
 
 
 @dataclass(frozen=True)
@@ -27,7 +28,9 @@ class ContactMapping:
     palm_y_mm: float = param(55.0, "Y of the palm's surface")
     max_depth_mm: float = param(6.0, "how far a full-scale force presses into the palm")
     force_floor_n: float = param(1.0, "force that just touches the palm (the sensor's floor)")
-    force_full_n: float = param(9.0, "force that presses max_depth_mm (the sensor's saturation)")
+    force_full_n: float = param(
+        SATURATION_N, "force that presses max_depth_mm (the sensor's saturation)"
+    )
 
     def __post_init__(self) -> None:
         if not self.force_full_n > self.force_floor_n:

@@ -72,11 +72,11 @@ def end_to_end_tcp(
     import zmq
 
     from common.transport import Publisher
-    from deploy.bench.fixtures import frame_set, scan_bytes, serial_sensor
+    from deploy.bench.fixtures import frame_set_of_at_least, scan_bytes, serial_sensor
     from robot_side.config import RobotConfig
     from robot_side.node import RobotNode
 
-    fs = frame_set(max(1, -(-n_frames // (12 * 31))), seed=seed)
+    fs = frame_set_of_at_least(n_frames, seed=seed)
     order = np.random.default_rng(seed).permutation(len(fs))
     frames = fs.frames[order]
     ctx = zmq.Context()

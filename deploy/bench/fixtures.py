@@ -51,6 +51,11 @@ class FrameSet:
         return len(self.frames)
 
 
+def frame_set_of_at_least(n_frames: int, seed: int = 0) -> FrameSet:
+    """The smallest whole number of :func:`frame_set` repeats holding ``n_frames``."""
+    return frame_set(max(1, -(-n_frames // (N_PATTERNS * N_GRIP_LEVELS))), seed=seed)
+
+
 def frame_set(repeats: int, seed: int = 0, params: GeneratorParams | None = None) -> FrameSet:
     """12 patterns x 31 grip levels x ``repeats``, one simulated sensor per seed.
 

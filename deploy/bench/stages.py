@@ -30,7 +30,7 @@ from common.transport import Publisher, Subscriber
 from deploy.bench.fixtures import (
     PacketBuilder,
     PacketServoBus,
-    frame_set,
+    frame_set_of_at_least,
     scan_bytes,
     serial_sensor,
 )
@@ -113,7 +113,7 @@ def stage_budget(
     makes every stage several times slower (the report shows both).
     """
     rate = Rate(pace_hz) if pace_hz else None
-    fs = frame_set(max(1, -(-n_frames // (12 * 31))), seed=seed)
+    fs = frame_set_of_at_least(n_frames, seed=seed)
     n = min(n_frames, len(fs))
     order = np.random.default_rng(seed).permutation(len(fs))[:n]
     warm = min(50 if rate is not None else 200, n)
@@ -349,7 +349,7 @@ def end_to_end_inproc(
     ``pace_hz``: wait between frames as a sensor paces them (see stage_budget).
     """
     rate = Rate(pace_hz) if pace_hz else None
-    fs = frame_set(max(1, -(-n_frames // (12 * 31))), seed=seed)
+    fs = frame_set_of_at_least(n_frames, seed=seed)
     n = min(n_frames, len(fs))
     order = np.random.default_rng(seed).permutation(len(fs))[:n]
     warm = min(50 if rate is not None else 200, n)

@@ -25,6 +25,7 @@ import numpy as np
 
 from common.codec import DecodeError, decode, encode
 from common.messages import Stimulus
+from common.tactile import SATURATION_N
 from deploy.bench.ik import edge_shell, reachable_mask, round_trip_mm, workspace_grid
 from operator_side.linkglide import DEFAULT_GEOMETRY, inverse_kinematics, inverse_kinematics_one
 from operator_side.renderer import LinkGlideRenderer, RendererConfig
@@ -43,9 +44,9 @@ EXTREMES = np.array(
         0.999,
         1.0,
         1.0001,
-        8.999,
-        9.0,
-        9.0001,
+        SATURATION_N - 0.001,
+        SATURATION_N,
+        SATURATION_N + 0.0001,
         1e6,
         3.4e38,
         -1.0,
@@ -147,8 +148,8 @@ def _stress_frames(rng: np.random.Generator, n_random: int) -> dict[str, np.ndar
         "zeros": np.zeros(shape),
         "just_below_floor": np.full(shape, 0.999),
         "at_floor": np.full(shape, 1.0),
-        "at_saturation": np.full(shape, 9.0),
-        "above_saturation": np.full(shape, 9.0001),
+        "at_saturation": np.full(shape, SATURATION_N),
+        "above_saturation": np.full(shape, SATURATION_N + 0.0001),
         "huge": np.full(shape, 3.4e38),
         "all_nan": np.full(shape, np.nan),
         "all_inf": np.full(shape, np.inf),
@@ -156,12 +157,12 @@ def _stress_frames(rng: np.random.Generator, n_random: int) -> dict[str, np.ndar
         "negative": np.full(shape, -5.0),
     }
     band = np.zeros(shape)
-    band[:, 4:6, :] = 9.0
+    band[:, 4:6, :] = SATURATION_N
     frames["saturated_row_band"] = band
     col = np.zeros(shape)
     col[:, :, 3] = 1.0
     frames["floor_column_band"] = col
-    checker = np.where(np.indices(shape).sum(axis=0) % 2 == 0, 9.0, 0.0)
+    checker = np.where(np.indices(shape).sum(axis=0) % 2 == 0, SATURATION_N, 0.0)
     frames["checkerboard_saturated"] = checker
     nan_band = band.copy()
     nan_band[0, 5, 5] = np.nan
@@ -194,7 +195,7 @@ def rendering_stress(classifier: Any, n_random: int, seed: int = 8) -> dict[str,
                     if not np.all(np.isfinite(s)):
                         nonfinite += 1
                         continue
-                    out_of_range += int(s.min() < 0 or s.max() > 9.0)
+                    out_of_range += int(s.min() < 0 or s.max() > SATURATION_N)
                     two_in_row += int(((s > 0).sum(axis=1) > 1).any())
                     msg = Stimulus(
                         seq=1,

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from common.clock import Rate, now_s
+from common.tactile import N_GRIP_LEVELS
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.gripper.base import GripLevels
 from robot_side.gripper.sim import GripperModelConfig, GripperSimConfig, GripperSimServer
@@ -80,7 +81,7 @@ class WorldContact:
             return force, GraspTruth(pattern=None, grip_level=None)
         requested = self.gripper.model.read()["PRE"]
         level = self.levels.level_at(requested) or 1
-        return force, GraspTruth(pattern=pattern, grip_level=max(1, min(31, level)))
+        return force, GraspTruth(pattern=pattern, grip_level=max(1, min(N_GRIP_LEVELS, level)))
 
 
 class LabServer:

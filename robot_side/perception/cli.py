@@ -19,6 +19,7 @@ from pathlib import Path
 
 from common.config import from_dict, load_toml
 from common.errors import ConfigError
+from common.tactile import N_GRIP_LEVELS, N_PATTERNS
 from robot_side.perception.weights import DEFAULT_MODEL, MODELS_DIR
 
 
@@ -110,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         data = ds.load(args.data, labels=args.labels)
         print(f"loaded {len(data)} frames from {args.data}")
     else:
-        n = config.data.repeats * 12 * 31
+        n = config.data.repeats * N_PATTERNS * N_GRIP_LEVELS
         print(f"generating {n} frames (seed {config.data.seed}) ...", flush=True)
         t0 = time.monotonic()
         data = ds.generate(config.data)

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from common.config import param, to_dict
+from common.tactile import N_GRIP_LEVELS, N_PATTERNS
 from robot_side.perception import dataset as ds
 from robot_side.perception.model import (
     ModelConfig,
@@ -308,7 +309,7 @@ def run_training(
     if checkpoint is not None:
         Path(checkpoint).parent.mkdir(parents=True, exist_ok=True)
     if data is None:
-        log.info("generating %d frames", config.data.repeats * 12 * 31)
+        log.info("generating %d frames", config.data.repeats * N_PATTERNS * N_GRIP_LEVELS)
         data = ds.generate(config.data)
         data_seconds = time.monotonic() - t_start
     train_set, val_set, test_set = ds.split(data, seed=config.split_seed)
