@@ -1,8 +1,13 @@
 """From a tactile frame to the 3x3 stimulus (docs/tactile.md, "Downsizing").
 
 contact map (mean of both pads) -> bicubic downsizing to 3x3 -> keep the
-peak of each row -> multiply by the recognised pattern's mask. Downsizing is
-a precomputed pair of weight matrices, ``Wy @ X @ Wx.T`` (a few microseconds).
+peak of each row -> multiply by the recognised pattern's mask. The pad mean
+and both downsizing weight matrices are one precomputed (9, 200) matrix, so
+a frame costs one matrix-vector product (``downsizing_matrix``).
+
+``render_frame`` is the rule for one frame (mode -> pattern -> nothing
+pressed or the rendered cells): the robot node, replay and the bench all
+call it, so they cannot disagree on a frame.
 
 The default is antialiased bicubic (the kernel widened by the scale factor,
 as PIL's BICUBIC and torch's ``antialias=True``): every taxel contributes, so
@@ -12,7 +17,8 @@ per output, as torch's default) and ``area`` averaging stay for comparison.
 
 from __future__ import annotations
 
-from typing import Literal
+from collections.abc import Callable
+from typing import Literal, Protocol
 
 import numpy as np
 
@@ -25,6 +31,8 @@ ORDERS: tuple[str, ...] = ("peak_then_mask", "mask_then_peak")
 
 SENSOR_MAX_N = 9.0
 CONTACT_THRESHOLD_N = 1.0
+#: the stimulus of a frame without contact: every linkage lifted
+NO_CELLS: tuple[float, ...] = (0.0,) * 9
 
 
 def _cubic(x: np.ndarray, a: float) -> np.ndarray:
@@ -83,11 +91,6 @@ _WEIGHTS = {
     "plain": plain_bicubic_weights(10, 3),
     "area": area_weights(10, 3),
 }
-# float32 copies for the hot path: X is float32 and float64 buys nothing at 2e-7 N.
-_W32 = {
-    k: (w.astype(np.float32), np.ascontiguousarray(w.T, dtype=np.float32))
-    for k, w in _WEIGHTS.items()
-}
 
 
 def _fused(w: np.ndarray) -> np.ndarray:
@@ -108,6 +111,11 @@ _MASK_COLS: list[list[int | None]] = [
 ]
 
 
+def downsizing_weights(method: Method) -> np.ndarray:
+    """(3, 10) float64: one axis of the 10x10 -> 3x3 downsizing (the same for both axes)."""
+    return _WEIGHTS[method].copy()
+
+
 def downsizing_matrix(method: Method) -> np.ndarray:
     """(9, 200) float32: both pads' mean and the 10x10 -> 3x3 downsizing as one matrix."""
     return _FUSED[method]
@@ -116,28 +124,6 @@ def downsizing_matrix(method: Method) -> np.ndarray:
 def mask_columns(pattern: int) -> list[int | None]:
     """Per stimulus row, the column the pattern's mask keeps, or None for an empty row."""
     return list(_MASK_COLS[pattern])
-
-
-def contact_map(frame: np.ndarray) -> np.ndarray:
-    """(2, 10, 10) frame -> (10, 10) mean of both pads."""
-    return (frame[0] + frame[1]) * np.float32(0.5)
-
-
-def downsize(cmap: np.ndarray, method: Method = "antialiased") -> np.ndarray:
-    """(10, 10) -> (3, 3) float32, clipped to [0, 9] N (cubic lobes overshoot)."""
-    wy, wxt = _W32[method]
-    out = wy @ cmap @ wxt
-    np.clip(out, 0.0, SENSOR_MAX_N, out=out)
-    return out
-
-
-def peak_per_row(x: np.ndarray) -> np.ndarray:
-    """Keep the largest cell of each row (ties: lowest column); zero the rest."""
-    out = np.zeros_like(x)
-    cols = np.argmax(x, axis=1)
-    rows = np.arange(x.shape[0])
-    out[rows, cols] = x[rows, cols]
-    return out
 
 
 def sanitize_frame(frame: np.ndarray) -> np.ndarray:
@@ -237,3 +223,39 @@ def render_cells(
                 continue  # the paper's order: a peak off the mask's cell is lost
         out[3 * r + c] = row[c]
     return out
+
+
+class RenderSettings(Protocol):
+    """What ``render_frame`` reads of ``robot_side.config.RenderConfig``."""
+
+    mode: str
+    method: Method
+    order: Order
+
+
+def render_frame(
+    frame: np.ndarray,
+    contact: bool,
+    render: RenderSettings,
+    *,
+    classify: Callable[[np.ndarray], int] | None = None,
+    truth: int | None = None,
+) -> tuple[list[float], int | None]:
+    """The rule for one frame: (the nine cells sent, the pattern they were rendered with).
+
+    ``frame`` is sanitized and ``contact`` its contact test. Without contact
+    nothing is pressed and nothing is classified. The mode picks the mask:
+    ``mask`` the classifier's (``classify`` is called only then),
+    ``mask_ground_truth`` the simulator's ``truth``, ``direct`` none. A mask
+    mode without a pattern (nothing held) presses nothing.
+    """
+    if not contact:
+        return list(NO_CELLS), None
+    mode = render.mode
+    if mode == "direct":
+        pattern = None
+    else:
+        pattern = classify(frame) if mode == "mask" else truth
+        if pattern is None:
+            return list(NO_CELLS), None
+    return render_cells(frame, pattern, method=render.method, order=render.order), pattern
