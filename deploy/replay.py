@@ -262,7 +262,7 @@ class OperatorReplay:
     def __init__(self, config: Any, report: Report, calibration_file: Path | None = None) -> None:
         from operator_side.renderer import LinkGlideRenderer
 
-        self.calibration = _calibration(config, calibration_file)
+        self.calibration = calibration_for(config, calibration_file)
         self.renderer = LinkGlideRenderer(config.renderer, self.calibration)
         self.report = report
         self.target: np.ndarray | None = None  # goal counts of the newest stimulus
@@ -343,7 +343,8 @@ def _is_step(prev: np.ndarray, nxt: np.ndarray, target: np.ndarray, max_step: in
     return bool(np.all(step == step[0]) and np.all(np.abs(need[~clipped]) <= step[0]))
 
 
-def _calibration(config: Any, calibration_file: Path | None) -> Any:
+def calibration_for(config: Any, calibration_file: Path | None) -> Any:
+    """The servo calibration an operator recording was made with, as far as it can be found."""
     from operator_side.servos.calibration import LinkGlideCalibration, load_calibration
 
     if calibration_file is not None:

@@ -196,7 +196,7 @@ def load_classifier(
         backend = usable[-1]
     if backend not in BACKENDS:
         raise ModelLoadError(f"unknown backend {backend!r}; choose one of {list(BACKENDS)}")
-    if not _installed(backend):
+    if not backend_installed(backend):
         raise ModelLoadError(
             f"backend {backend!r} needs the Python package {_MODULE_OF[backend]!r}, which is "
             "not installed: install the robot extra (pip install 'deepxpalm[robot]') "
@@ -226,14 +226,15 @@ def load_classifier(
     return TiltClassifier(fn, backend, meta, path, logits_one=one, classify_one=classify)
 
 
-def _installed(backend: str) -> bool:
+def backend_installed(backend: str) -> bool:
+    """Whether the backend's package imports here (the bench picks its default by this)."""
     return importlib.util.find_spec(_MODULE_OF[backend]) is not None
 
 
 def _usable(backend: str, path: Path) -> bool:
     if backend == "onnxruntime" and not path.with_suffix(".onnx").is_file():
         return False
-    return _installed(backend)
+    return backend_installed(backend)
 
 
 def _as_batch(frames: np.ndarray) -> np.ndarray:
@@ -271,7 +272,10 @@ def _conv_gather_index(channels: int, channels_last: bool) -> np.ndarray:
     return np.ascontiguousarray(idx.reshape(100, -1)).astype(np.intp)
 
 
-def _fold_bn(w: np.ndarray, b: np.ndarray, weights: dict[str, np.ndarray], prefix: str):
+def fold_batch_norm(
+    w: np.ndarray, b: np.ndarray, weights: dict[str, np.ndarray], prefix: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """A convolution's weights and bias with the batch norm after it folded in (float64)."""
     gamma = weights[f"{prefix}.weight"].astype(np.float64)
     beta = weights[f"{prefix}.bias"].astype(np.float64)
     mean = weights[f"{prefix}.running_mean"].astype(np.float64)
@@ -285,7 +289,8 @@ def _with_bias_row(w: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.vstack([w, b[None, :]]), dtype=np.float32)
 
 
-def _block_diag(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def block_diag(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Two heads' weights side by side as one matrix: one product computes both."""
     out = np.zeros((a.shape[0] + b.shape[0], a.shape[1] + b.shape[1]), dtype=np.float64)
     out[: a.shape[0], : a.shape[1]] = a
     out[a.shape[0] :, a.shape[1] :] = b
@@ -311,8 +316,8 @@ class NumpyForward:
         self._buffers: dict[int, dict[str, Any]] = {}
 
     def _build(self, w: dict[str, np.ndarray]) -> None:
-        w1, b1 = _fold_bn(w["backbone.0.weight"], w["backbone.0.bias"], w, "backbone.1")
-        w2, b2 = _fold_bn(w["backbone.3.weight"], w["backbone.3.bias"], w, "backbone.4")
+        w1, b1 = fold_batch_norm(w["backbone.0.weight"], w["backbone.0.bias"], w, "backbone.1")
+        w2, b2 = fold_batch_norm(w["backbone.3.weight"], w["backbone.3.bias"], w, "backbone.4")
         self.c1, self.c2 = c1, c2 = w1.shape[0], w2.shape[0]
         # conv1 reads the input channels-first; its 4 feature channels are
         # (pad 0, pad 1) / 9 N, then (pad 0, pad 1) / peak, as InputFeatures.
@@ -333,7 +338,7 @@ class NumpyForward:
         for i in (3, 6, 9):
             a_w, p_w = w[f"angle_head.{i}.weight"], w[f"position_head.{i}.weight"]
             bias = np.concatenate([w[f"angle_head.{i}.bias"], w[f"position_head.{i}.bias"]])
-            self.fc.append(_with_bias_row(_block_diag(a_w.T, p_w.T), bias))
+            self.fc.append(_with_bias_row(block_diag(a_w.T, p_w.T), bias))
         self.n_angle = w["angle_head.9.weight"].shape[0]
 
     def _buf(self, n: int) -> dict[str, Any]:

@@ -152,13 +152,13 @@ class NumbaForward:
     """
 
     def __init__(self, weights: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
-        from robot_side.perception.inference import _block_diag, _fold_bn
+        from robot_side.perception.inference import block_diag, fold_batch_norm
 
         try:
-            w1, b1 = _fold_bn(
+            w1, b1 = fold_batch_norm(
                 weights["backbone.0.weight"], weights["backbone.0.bias"], weights, "backbone.1"
             )
-            w2, b2 = _fold_bn(
+            w2, b2 = fold_batch_norm(
                 weights["backbone.3.weight"], weights["backbone.3.bias"], weights, "backbone.4"
             )
             heads = [
@@ -169,7 +169,7 @@ class NumbaForward:
             ]
             for i in (3, 6, 9):
                 a, p = weights[f"angle_head.{i}.weight"], weights[f"position_head.{i}.weight"]
-                heads.append(_block_diag(a, p))
+                heads.append(block_diag(a, p))
                 biases.append(
                     np.concatenate(
                         [weights[f"angle_head.{i}.bias"], weights[f"position_head.{i}.bias"]]
