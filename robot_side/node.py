@@ -64,7 +64,7 @@ class RobotNode:
     def __init__(
         self,
         config: RobotConfig,
-        tactile: TactileSensor,
+        tactile: TactileSensor | None,
         *,
         classifier: Classifier | None = None,
         gripper: Any | None = None,
@@ -74,7 +74,10 @@ class RobotNode:
         now: Clock = now_ns,
         link: Link | None = None,
     ) -> None:
-        """``now`` and ``link``: the clock and the link, handed in to replay or bench the node."""
+        """``now`` and ``link``: the clock and the link, handed in to replay or bench the node.
+
+        A node handed a link is driven through ``process`` and needs no ``tactile``.
+        """
         if config.render.mode == "mask" and classifier is None:
             raise ValueError("mask mode needs a classifier")
         self.config = config

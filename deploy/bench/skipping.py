@@ -109,7 +109,7 @@ def _scripted_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list
     return frames, truths, cfg.rate_hz
 
 
-def _shadow(
+def shadow_stimulus(
     frame: np.ndarray, truth: Any, classifier: Any, render: Any, compiled: Any = None
 ) -> np.ndarray:
     """What the node would send for this frame if it never skipped anything.
@@ -150,7 +150,7 @@ def skipping(
     link = CaptureLink()
     node = RobotNode(
         config,
-        tactile=None,  # type: ignore[arg-type]
+        tactile=None,
         classifier=classifier,
         now=clock,
         link=link,
@@ -193,7 +193,7 @@ def skipping(
                     kinds_here.append(kind)
         else:
             kinds_here.append("rate_cap")
-        full = _shadow(frame, truth, classifier, render, shadow_step)
+        full = shadow_stimulus(frame, truth, classifier, render, shadow_step)
         msg = node.last_stimulus
         current = msg.stimulus if msg is not None else np.zeros((3, 3), np.float32)
         for kind in kinds_here:
