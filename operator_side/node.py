@@ -72,7 +72,10 @@ class OperatorNode:
         now: Clock = now_ns,
         link: Link | None = None,
     ) -> None:
-        """``now`` and ``link``: the clock and the link, handed in to replay or bench the node."""
+        """``now`` and ``link``: the clock and the link, handed in to replay or bench the node.
+
+        ``link`` is the transport (``pub``, ``sub``); ``self.link`` keeps its statistics.
+        """
         self.config = config
         self.servos = servos
         self.now = now
