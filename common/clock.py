@@ -8,12 +8,36 @@ monotonic clocks is estimated from heartbeat round trips, never assumed.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 now_ns = time.monotonic_ns
+
+#: what a node reads the time from: ``now_ns`` when it runs, a ``VirtualClock`` in a replay
+Clock = Callable[[], int]
 
 
 def now_s() -> float:
     return time.monotonic()
+
+
+class VirtualClock:
+    """A clock that moves only when told: replays and benches run a node in recorded time.
+
+    A node handed one reads it wherever it would read ``now_ns``, so its
+    stale-frame check, keyframes and timestamps follow the replayed times, and
+    a 27 s scene costs what its frames cost.
+    """
+
+    def __init__(self, t_ns: int = 1_000_000_000) -> None:
+        self.t_ns = t_ns
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+    def advance(self, ns: int) -> int:
+        """Move the clock on by ``ns``; the new time."""
+        self.t_ns += ns
+        return self.t_ns
 
 
 class Rate:

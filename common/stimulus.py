@@ -1,8 +1,9 @@
 """From a tactile frame to the 3x3 stimulus (docs/tactile.md, "Downsizing").
 
 contact map (mean of both pads) -> bicubic downsizing to 3x3 -> keep the
-peak of each row -> multiply by the recognised pattern's mask. Downsizing is
-a precomputed pair of weight matrices, ``Wy @ X @ Wx.T`` (a few microseconds).
+peak of each row -> multiply by the recognised pattern's mask. The pad mean
+and both downsizing weight matrices are one precomputed (9, 200) matrix, so
+a frame costs one matrix-vector product (``downsizing_matrix``).
 
 NumPy only and in ``common`` because both nodes render: the robot node every
 frame (``robot_side.rendering`` is its name for this module), the operator's
@@ -28,6 +29,8 @@ Method = Literal["antialiased", "plain", "area"]
 Order = Literal["peak_then_mask", "mask_then_peak"]
 METHODS: tuple[str, ...] = ("antialiased", "plain", "area")
 ORDERS: tuple[str, ...] = ("peak_then_mask", "mask_then_peak")
+#: the stimulus of a frame without contact: every linkage lifted
+NO_CELLS: tuple[float, ...] = (0.0,) * 9
 
 
 def _cubic(x: np.ndarray, a: float) -> np.ndarray:
@@ -86,11 +89,6 @@ _WEIGHTS = {
     "plain": plain_bicubic_weights(10, 3),
     "area": area_weights(10, 3),
 }
-# float32 copies for the hot path: X is float32 and float64 buys nothing at 2e-7 N.
-_W32 = {
-    k: (w.astype(np.float32), np.ascontiguousarray(w.T, dtype=np.float32))
-    for k, w in _WEIGHTS.items()
-}
 
 
 def _fused(w: np.ndarray) -> np.ndarray:
@@ -111,6 +109,11 @@ _MASK_COLS: list[list[int | None]] = [
 ]
 
 
+def downsizing_weights(method: Method) -> np.ndarray:
+    """(3, 10) float64: one axis of the 10x10 -> 3x3 downsizing (the same for both axes)."""
+    return _WEIGHTS[method].copy()
+
+
 def downsizing_matrix(method: Method) -> np.ndarray:
     """(9, 200) float32: both pads' mean and the 10x10 -> 3x3 downsizing as one matrix."""
     return _FUSED[method]
@@ -119,28 +122,6 @@ def downsizing_matrix(method: Method) -> np.ndarray:
 def mask_columns(pattern: int) -> list[int | None]:
     """Per stimulus row, the column the pattern's mask keeps, or None for an empty row."""
     return list(_MASK_COLS[pattern])
-
-
-def contact_map(frame: np.ndarray) -> np.ndarray:
-    """(2, 10, 10) frame -> (10, 10) mean of both pads."""
-    return (frame[0] + frame[1]) * np.float32(0.5)
-
-
-def downsize(cmap: np.ndarray, method: Method = "antialiased") -> np.ndarray:
-    """(10, 10) -> (3, 3) float32, clipped to [0, 9] N (cubic lobes overshoot)."""
-    wy, wxt = _W32[method]
-    out = wy @ cmap @ wxt
-    np.clip(out, 0.0, SENSOR_MAX_N, out=out)
-    return out
-
-
-def peak_per_row(x: np.ndarray) -> np.ndarray:
-    """Keep the largest cell of each row (ties: lowest column); zero the rest."""
-    out = np.zeros_like(x)
-    cols = np.argmax(x, axis=1)
-    rows = np.arange(x.shape[0])
-    out[rows, cols] = x[rows, cols]
-    return out
 
 
 def sanitize_frame(frame: np.ndarray) -> np.ndarray:

@@ -1,12 +1,14 @@
 """``deepxpalm replay FILE``: feed a recording back through the pipeline.
 
-A robot recording: every recorded frame is rendered again (and classified
-again in mask mode, when the classifier loads) and the result is compared
-with the stimulus the node sent for it. An operator recording: every
-received stimulus is rendered again through the LinkGlide renderer, and each
-recorded servo write must be one rate-limited step from the previous write
-toward that stimulus's goal, or toward the lifted pose (the stimulus went
-stale), every count inside the calibrated limits. Both use the node's
+A robot recording: every recorded frame goes through the robot node's own
+``process`` again (classified again in mask mode, when the classifier
+loads), at its recorded time, and what the node sends is compared with what
+it sent then: the frame rule, the dead band and the keyframes are checked.
+An operator recording: every received stimulus is rendered again through
+the LinkGlide renderer, and each recorded servo write must be one
+rate-limited step from the previous write toward that stimulus's goal, or
+toward the lifted pose (the stimulus went stale), every count inside the
+calibrated limits. Both use the node's
 effective config stored in the recording, so a change of code or defaults
 since the session shows up as a mismatch.
 
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import json
 import logging
 import threading
@@ -139,17 +142,46 @@ class Report:
 
 
 # ----------------------------------------------------------- robot check
+@dataclasses.dataclass(frozen=True)
+class RecordedPrediction:
+    """A ``robot/prediction`` record, in the shape the node reads of a prediction."""
+
+    pattern: int
+    confidence: float
+    angle_probs: tuple[float, ...] = ()
+    position_probs: tuple[float, ...] = ()
+
+
+class RecordedPredictions:
+    """A classifier that answers with the predictions the recording holds (``--no-classifier``)."""
+
+    def __init__(self) -> None:
+        self.current: RecordedPrediction | None = None  # for the frame being replayed
+
+    def predict_one(self, frame: np.ndarray) -> RecordedPrediction | None:
+        return self.current
+
+
 class RobotReplay:
-    """Frames -> (classifier) -> rendering, compared with the stimuli sent for them."""
+    """Recorded frames through the robot node's own ``process``, compared with what it sent.
+
+    The node is built from the recorded config and handed a virtual clock and
+    a capture link, so the frame rule, the identical-frame skip, the dead band
+    and the keyframes are checked by the code that made them. Each frame is
+    replayed at its recorded time, or at its stimulus's send time when one
+    was sent for it: the node decided on a keyframe between the two, so a
+    keyframe is due at the second exactly when it was due then.
+    """
 
     def __init__(self, config: Any, atol: float, use_classifier: bool, report: Report) -> None:
+        from common.clock import VirtualClock
+        from common.transport import CaptureLink
+        from robot_side.node import RobotNode
+
         self.config = config
         self.render = config.render
         self.atol = atol
         self.report = report
-        self.frames: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
-        self.predictions: collections.OrderedDict[int, int] = collections.OrderedDict()
-        self.last_sent: Stimulus | None = None
         self.classifier = None
         if self.render.mode == "mask" and use_classifier:
             try:
@@ -161,21 +193,33 @@ class RobotReplay:
             except Exception as e:  # a missing model or backend: fall back, and say so
                 log.warning("cannot load the classifier (%s); using the recorded patterns", e)
         self.reclassified = self.classifier is not None
+        self.recorded = RecordedPredictions()
+        if self.render.mode == "mask" and self.classifier is None:
+            classifier: Any = self.recorded
+        else:
+            classifier = self.classifier
+        self.clock = VirtualClock(0)
+        self.link = CaptureLink()
+        self.node = RobotNode(config, None, classifier=classifier, now=self.clock, link=self.link)
+        self.frame: dict[str, Any] | None = None  # the frame waiting for its records
+        self.frame_t_ns = 0
+        self.prediction: dict[str, Any] | None = None
+        self.sent: Stimulus | None = None  # what the node sent for that frame
+        self.last_pattern: int | None = None  # of the last stimulus sent
 
-    def feed(self, channel: str, record: dict[str, Any]) -> None:
+    def feed(self, channel: str, record: dict[str, Any], t_ns: int = 0) -> None:
         if channel == "robot/frame":
-            seq = int(record["frame_seq"])
-            self.frames[seq] = np.asarray(record["frame"], dtype=np.float32)
-            _trim(self.frames)
+            try:
+                self.finish()  # a frame's prediction and stimulus come before the next frame
+            finally:
+                self.frame, self.frame_t_ns = record, t_ns
         elif channel == "robot/prediction":
-            self.predictions[int(record["frame_seq"])] = int(record["pattern"])
-            _trim(self.predictions)
+            if self.frame is not None and int(record["frame_seq"]) == int(self.frame["frame_seq"]):
+                self.prediction = record
         elif channel == "robot/stimulus":
             self._stimulus(record)
 
     def _stimulus(self, record: dict[str, Any]) -> None:
-        from robot_side.rendering import is_contact, render_stimulus
-
         try:
             msg = decode(record["wire"])
         except (DecodeError, KeyError, TypeError) as e:
@@ -188,71 +232,95 @@ class RobotReplay:
             self.report.mismatch(
                 "mode", f"seq {msg.seq} sent {msg.mode!r}, the config says {self.render.mode!r}"
             )
-        if msg.keyframe:
-            last = self.last_sent
-            if last is None:
-                self.report.ok("keyframes_unchecked")
-            elif np.array_equal(msg.stimulus, last.stimulus) and msg.pattern == last.pattern:
-                self.report.ok("keyframes_matching")
-            else:
-                self.report.mismatch("keyframe", f"seq {msg.seq} differs from seq {last.seq}")
-            return
-        self.last_sent = msg
-        frame = self.frames.get(msg.frame_seq)
-        if frame is None:
-            self.report.ok("stimuli_without_frame")  # the frame's record was dropped
-            return
-        contact = is_contact(frame, self.render.contact_threshold_n)
-        if contact != msg.contact:
-            self.report.mismatch("contact", f"seq {msg.seq}: sent {msg.contact}, frame {contact}")
-            return
-        pattern = self._pattern(msg, frame)
-        if not contact or (self.render.mode != "direct" and pattern is None):
-            expected = np.zeros((3, 3), np.float32)
+        if self.frame is not None and msg.frame_seq == int(self.frame["frame_seq"]):
+            self.sent = msg
         else:
-            expected = render_stimulus(
-                frame,
-                pattern,
-                method=self.render.method,
-                order=self.render.order,
-                contact_threshold_n=self.render.contact_threshold_n,
+            self.report.ok("stimuli_without_frame")  # the frame's record was dropped
+            self.last_pattern = msg.pattern
+
+    def finish(self) -> None:
+        """Replay the waiting frame through the node and compare what both sent for it."""
+        from robot_side.tactile.base import GraspTruth, TactileSample
+
+        record, sent = self.frame, self.sent
+        if record is None:
+            return
+        self.frame, self.sent = None, None
+        seq = int(record["frame_seq"])
+        # what the node knew and the recording only shows in the stimulus it sent
+        truth = sent.sim_truth_pattern if sent is not None else self.last_pattern
+        self.recorded.current = self._recorded_prediction(self.prediction, sent)
+        self.prediction = None
+        self.clock.t_ns = sent.t_send_ns if sent is not None else self.frame_t_ns
+        n = len(self.link.messages)
+        self.node.process(
+            TactileSample(
+                frame=np.asarray(record["frame"], dtype=np.float32),
+                seq=seq,
+                t_capture_ns=int(record["t_capture_ns"]),
+                truth=GraspTruth(pattern=truth, grip_level=None),
             )
-        err = float(np.abs(expected - msg.stimulus).max())
+        )
+        replayed = self.link.messages[n] if len(self.link.messages) > n else None
+        self.report.ok("frames_replayed")
+        if sent is not None:
+            self.last_pattern = sent.pattern
+        self._compare(seq, sent, replayed)
+
+    def _compare(self, frame_seq: int, sent: Stimulus | None, replayed: Any) -> None:
+        if sent is None and replayed is None:
+            return
+        if sent is None or replayed is None:
+            one = sent or replayed
+            kind = "keyframe" if one.keyframe else "stimulus"
+            who = "the node sent" if replayed is None else "the replay sends"
+            self.report.mismatch(kind, f"frame {frame_seq}: only {who} a {kind}")
+            return
+        if sent.keyframe != replayed.keyframe:
+            self.report.mismatch(
+                "keyframe",
+                f"seq {sent.seq}: keyframe {sent.keyframe}, replayed {replayed.keyframe}",
+            )
+            return
+        if sent.contact != replayed.contact:
+            self.report.mismatch(
+                "contact", f"seq {sent.seq}: sent {sent.contact}, replayed {replayed.contact}"
+            )
+            return
+        if sent.pattern != replayed.pattern:
+            how = "classified" if self.reclassified else "recorded prediction"
+            self.report.mismatch(
+                "pattern", f"seq {sent.seq}: sent {sent.pattern}, {how} {replayed.pattern}"
+            )
+        elif self.reclassified and sent.contact and not sent.keyframe:
+            self.report.ok("patterns_matching")
+        err = float(np.abs(replayed.stimulus - sent.stimulus).max())
         if err > self.atol:
             self.report.mismatch(
-                "stimulus",
-                f"seq {msg.seq} (frame {msg.frame_seq}): off by {err:.3g} N; "
-                f"sent {msg.stimulus.round(3).tolist()}, rendered {expected.round(3).tolist()}",
+                "keyframe" if sent.keyframe else "stimulus",
+                f"seq {sent.seq} (frame {frame_seq}): off by {err:.3g} N; "
+                f"sent {sent.stimulus.round(3).tolist()}, "
+                f"rendered {replayed.stimulus.round(3).tolist()}",
             )
         else:
-            self.report.ok("stimuli_matching")
+            self.report.ok("keyframes_matching" if sent.keyframe else "stimuli_matching")
 
-    def _pattern(self, msg: Stimulus, frame: np.ndarray) -> int | None:
-        mode = self.render.mode
-        if mode == "direct" or not msg.contact:
-            return None
-        if mode == "mask_ground_truth":
-            return msg.sim_truth_pattern
-        if self.classifier is not None:
-            pattern = self.classifier.predict_one(frame).pattern  # the node's own call
-            if pattern != msg.pattern:
-                self.report.mismatch(
-                    "pattern", f"seq {msg.seq}: sent {msg.pattern}, classified {pattern}"
-                )
-            else:
-                self.report.ok("patterns_matching")
-            return pattern
-        recorded = self.predictions.get(msg.frame_seq)
-        if recorded is not None and recorded != msg.pattern:
-            self.report.mismatch(
-                "pattern", f"seq {msg.seq}: sent {msg.pattern}, recorded prediction {recorded}"
+    def _recorded_prediction(
+        self, record: dict[str, Any] | None, sent: Stimulus | None
+    ) -> RecordedPrediction | None:
+        """What the classifier said of the frame, as recorded (or as the stimulus shows)."""
+        if record is not None:
+            return RecordedPrediction(
+                int(record["pattern"]),
+                float(record["confidence"]),
+                tuple(float(p) for p in record["angle_probs"]),
+                tuple(float(p) for p in record["position_probs"]),
             )
-        return msg.pattern
-
-
-def _trim(d: collections.OrderedDict) -> None:
-    while len(d) > FRAME_WINDOW:
-        d.popitem(last=False)
+        pattern = sent.pattern if sent is not None else self.last_pattern
+        if pattern is None:
+            return None
+        confidence = sent.confidence if sent is not None else None
+        return RecordedPrediction(pattern, 1.0 if confidence is None else confidence)
 
 
 # -------------------------------------------------------- operator check
@@ -262,7 +330,7 @@ class OperatorReplay:
     def __init__(self, config: Any, report: Report, calibration_file: Path | None = None) -> None:
         from operator_side.renderer import LinkGlideRenderer
 
-        self.calibration = _calibration(config, calibration_file)
+        self.calibration = calibration_for(config, calibration_file)
         self.renderer = LinkGlideRenderer(config.renderer, self.calibration)
         self.report = report
         self.target: np.ndarray | None = None  # goal counts of the newest stimulus
@@ -270,7 +338,7 @@ class OperatorReplay:
         self.pending_jump: tuple[np.ndarray, np.ndarray] | None = None
         self.calibration_checked = False
 
-    def feed(self, channel: str, record: dict[str, Any]) -> None:
+    def feed(self, channel: str, record: dict[str, Any], t_ns: int = 0) -> None:
         if channel == "operator/stimulus":
             try:
                 msg = decode(record["wire"])
@@ -343,7 +411,8 @@ def _is_step(prev: np.ndarray, nxt: np.ndarray, target: np.ndarray, max_step: in
     return bool(np.all(step == step[0]) and np.all(np.abs(need[~clipped]) <= step[0]))
 
 
-def _calibration(config: Any, calibration_file: Path | None) -> Any:
+def calibration_for(config: Any, calibration_file: Path | None) -> Any:
+    """The servo calibration an operator recording was made with, as far as it can be found."""
     from operator_side.servos.calibration import LinkGlideCalibration, load_calibration
 
     if calibration_file is not None:
@@ -386,11 +455,13 @@ def check(
         t_first = t_ns if t_first is None else t_first
         t_last = t_ns
         try:
-            replay.feed(channel, record)
+            replay.feed(channel, record, t_ns)
         except (KeyError, TypeError, ValueError) as e:
             report.mismatch("record", f"{channel} at {t_ns}: {type(e).__name__}: {e}")
-    if isinstance(replay, OperatorReplay):
+    try:
         replay.finish()
+    except (KeyError, TypeError, ValueError) as e:
+        report.mismatch("record", f"the last frame: {type(e).__name__}: {e}")
     summary: dict[str, Any] = {
         "file": str(path),
         "node": node,

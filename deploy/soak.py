@@ -175,9 +175,9 @@ def scan_recording(path: Path) -> dict[str, Any]:
     limits = None
     if "operator" in path.name:
         from common.mcap_recorder import read_metadata
-        from deploy.replay import _calibration, recorded_config
+        from deploy.replay import calibration_for, recorded_config
 
-        cal = _calibration(recorded_config(read_metadata(path), "operator"), None)
+        cal = calibration_for(recorded_config(read_metadata(path), "operator"), None)
         limits = (cal.min_counts, cal.max_counts)
     reader = RecordingReader(path)
     for channel, _, record in reader:

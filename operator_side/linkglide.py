@@ -84,7 +84,8 @@ def _side_angle(
     return np.arctan2(y, x), gamma, ok
 
 
-def _solve(points: np.ndarray, g: LinkageGeometry) -> tuple[np.ndarray, np.ndarray]:
+def solve_linkages(points: np.ndarray, g: LinkageGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """Both motor angles per point, and which points are reachable (no error raised)."""
     x = points[..., 0]
     y = points[..., 1]
     psi_a, gamma_a, ok_a = _side_angle(x, y, g.l2, g.l3)
@@ -114,7 +115,7 @@ def inverse_kinematics(points: np.ndarray, geometry: LinkageGeometry | None = No
     if pts.shape[-1:] != (2,):
         raise ValueError(f"points must have shape (..., 2), not {pts.shape}")
     with np.errstate(invalid="ignore", over="ignore"):
-        angles, ok = _solve(pts, g)
+        angles, ok = solve_linkages(pts, g)
     if not np.all(ok):
         bad = np.argwhere(~np.asarray(ok))[0] if pts.ndim > 1 else ()
         point = pts[tuple(bad)] if pts.ndim > 1 else pts

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import zmq
 
-from common.clock import Periodic, now_ns
+from common.clock import Clock, Periodic, now_ns
 from common.clock_sync import ClockSync
 from common.codec import encode
 from common.devices import build_device
@@ -32,7 +32,7 @@ from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.patterns import matches_pattern
 from common.recording import NullRecorder, Recorder
 from common.security import check_endpoint, client_options
-from common.transport import Publisher, Subscriber, make_context
+from common.transport import Link, Publisher, Receiver, Sender, Subscriber, make_context
 from operator_side.config import OperatorConfig
 from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
@@ -69,9 +69,16 @@ class OperatorNode:
         calibration: LinkGlideCalibration | None = None,
         ctx: zmq.Context | None = None,
         recorder: Recorder | None = None,
+        now: Clock = now_ns,
+        link: Link | None = None,
     ) -> None:
+        """``now`` and ``link``: the clock and the link, handed in to replay or bench the node.
+
+        ``link`` is the transport (``pub``, ``sub``); ``self.link`` keeps its statistics.
+        """
         self.config = config
         self.servos = servos
+        self.now = now
         self.recorder = recorder or NullRecorder()
         self._recording = not isinstance(self.recorder, NullRecorder)
         self._use_calibration(
@@ -108,8 +115,9 @@ class OperatorNode:
         self._goal_key: int | None = None  # stimulus seq the goal was computed for
         self._written: list[int] | None = None  # the goals last sent to the bus
         self._last_step_ns = 0
-        self.pub: Publisher | None = None
-        self.sub: Subscriber | None = None
+        self._handed_link = link is not None
+        self.pub: Sender | None = link.pub if link is not None else None
+        self.sub: Receiver | None = link.sub if link is not None else None
         self._sockets_opened_ns = 0
         self._last_rx_ns = 0
         self._rejected_before = 0  # rejections counted by sockets since reopened
@@ -132,6 +140,8 @@ class OperatorNode:
 
     # --------------------------------------------------------------- run
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
+        if self._handed_link:
+            raise RuntimeError("a node handed a link is driven by its caller; run() opens its own")
         link = self.config.link
         if not self.servos.is_connected:
             self.servos.connect()
@@ -175,7 +185,7 @@ class OperatorNode:
         )
         self.pub = Publisher(self.ctx, link.command_endpoint, bind=False, sock_opts=opts)
         self.sub.poller.register(self._wake_r, zmq.POLLIN)
-        self._sockets_opened_ns = now_ns()
+        self._sockets_opened_ns = self.now()
 
     def _reopen_sockets_if_silent(self, now: int) -> None:
         """Open both sockets again after a long silence.
@@ -199,14 +209,14 @@ class OperatorNode:
         link = self.config.link
         period = round(1e9 / self.config.renderer.control_rate_hz)
         heartbeat = Periodic(link.heartbeat_rate_hz, link.heartbeat_early_ms / 1e3)
-        next_control = now_ns()
-        t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
-        while not stop.is_set() and (t_end is None or now_ns() < t_end):
-            wait_s = (min(next_control, heartbeat.deadline_ns) - now_ns()) / 1e9
+        next_control = self.now()
+        t_end = None if duration_s is None else self.now() + round(duration_s * 1e9)
+        while not stop.is_set() and (t_end is None or self.now() < t_end):
+            wait_s = (min(next_control, heartbeat.deadline_ns) - self.now()) / 1e9
             ready = self.sub.ready(wait_s)
             self.counters["wakeups"] += 1
             changed = self.receive() if self.sub.sock in ready else False
-            now = now_ns()
+            now = self.now()
             if changed or now >= next_control:
                 # Rendered as soon as something changed; otherwise the loop sleeps
                 # until the goal moves, the data would go stale, or a heartbeat.
@@ -322,7 +332,7 @@ class OperatorNode:
         if nxt != self._written:
             self._write(nxt)
             if self._pending_latency_capture is not None and stimulus is not None:
-                self.latencies_ms.append((now_ns() - self._pending_latency_capture) / 1e6)
+                self.latencies_ms.append((self.now() - self._pending_latency_capture) / 1e6)
                 self.counters["latency_samples"] += 1
         self._pending_latency_capture = None  # a stimulus that moved nothing has no latency
 
@@ -333,7 +343,7 @@ class OperatorNode:
             written = np.array(counts, dtype=np.int64)
             self.recorder.write(
                 "operator/servo_goals",
-                now_ns(),
+                self.now(),
                 {
                     "ids": self.calibration.ids,
                     "counts": written,
@@ -341,6 +351,20 @@ class OperatorNode:
                 },
             )
         self.counters["servo_writes"] += 1
+
+    def rewrite_next(self) -> None:
+        """Write the next control step's goals even if unchanged (benchmarks force each one)."""
+        self._written = None
+
+    @property
+    def written_goals(self) -> list[int] | None:
+        """The goal counts last written to the servos (None before the first write)."""
+        return self._written
+
+    @property
+    def last_stimulus(self) -> Stimulus | None:
+        """The newest stimulus received, fresh or not."""
+        return self._stim
 
     def _lift_off_now(self) -> None:
         """On shutdown: straight to the retract pose (a lift is always safe)."""
@@ -353,7 +377,7 @@ class OperatorNode:
             est = self.clock.estimate()
             self.recorder.write(
                 "operator/link",
-                now_ns(),
+                self.now(),
                 {
                     "state": self.link_state,
                     "clock_offset_ns": None if est is None else est.offset_ns,
@@ -365,7 +389,7 @@ class OperatorNode:
         self.pub.send(
             Heartbeat(
                 seq=self._hb_seq,
-                t_send_ns=now_ns(),
+                t_send_ns=self.now(),
                 node="operator",
                 state=self.link_state,
                 echo_t_send_ns=echo_send,
@@ -382,7 +406,7 @@ class OperatorNode:
             except queue.Empty:
                 return
             self._cmd_seq += 1
-            cmd.seq, cmd.t_send_ns, cmd.session = self._cmd_seq, now_ns(), self._session
+            cmd.seq, cmd.t_send_ns, cmd.session = self._cmd_seq, self.now(), self._session
             data = self.pub.send(cmd)
             self.counters["commands_sent"] += 1
             if self._recording:
@@ -394,7 +418,7 @@ class OperatorNode:
     def stats(self) -> dict[str, float]:
         out: dict[str, float] = {k: float(v) for k, v in self.counters.items()}
         out.update(self._latency_summary())
-        for key, value in self.link.snapshot(now_ns()).as_dict().items():
+        for key, value in self.link.snapshot(self.now()).as_dict().items():
             if isinstance(value, (int, float)) and key != "window_s":
                 out[f"link_{key}"] = float(value)
         return out
@@ -419,7 +443,7 @@ class OperatorNode:
     def snapshot(self) -> Snapshot:
         with self._lock:
             stim, frame = self._stim, self._frame
-        now = now_ns()
+        now = self.now()
         _, age = self.fresh_stimulus(now)
         written = np.array(
             self._written if self._written is not None else self.renderer.retract_goals, np.int64

@@ -22,7 +22,7 @@ from typing import Any, Protocol
 import numpy as np
 import zmq
 
-from common.clock import Periodic, now_ns
+from common.clock import Clock, Periodic, now_ns
 from common.clock_sync import ClockSync
 from common.codec import MAX_STATS, DecodeError
 from common.devices import Device, build_device
@@ -31,17 +31,17 @@ from common.logs import BurstLog
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.recording import NullRecorder, Recorder
 from common.security import Authenticator, check_endpoint, server_options
-from common.transport import Publisher, Subscriber, make_context
+from common.transport import Link, Publisher, Receiver, Sender, Subscriber, make_context
 from robot_side.command_gate import CommandGate
 from robot_side.config import RobotConfig
 from robot_side.device_worker import DeviceRequest, DeviceWorker
 from robot_side.recovery import DeviceRecovery
-from robot_side.rendering import render_cells, sanitize_frame, sanitize_with_peak
+from robot_side.rendering import NO_CELLS, render_frame, sanitize_frame, sanitize_with_peak
 from robot_side.tactile.base import TactileSample, TactileSensor
 
 log = logging.getLogger(__name__)
 
-_NO_CELLS = [0.0] * 9  # every linkage lifted
+_NO_CELLS = list(NO_CELLS)  # every linkage lifted
 _NEVER_NS = 2**63 - 1  # a deadline that never comes
 
 
@@ -64,21 +64,27 @@ class RobotNode:
     def __init__(
         self,
         config: RobotConfig,
-        tactile: TactileSensor,
+        tactile: TactileSensor | None,
         *,
         classifier: Classifier | None = None,
         gripper: Any | None = None,
         arm: Any | None = None,
         ctx: zmq.Context | None = None,
         recorder: Recorder | None = None,
+        now: Clock = now_ns,
+        link: Link | None = None,
     ) -> None:
+        """``now`` and ``link``: the clock and the link, handed in to replay or bench the node.
+
+        A node handed a link is driven through ``process`` and needs no ``tactile``.
+        """
         if config.render.mode == "mask" and classifier is None:
             raise ValueError("mask mode needs a classifier")
         self.config = config
         self.tactile = tactile
         self.classifier = classifier
         # mask mode on the numba classifier: one compiled call per frame (None otherwise)
-        self._compiled = _compiled_step_for(classifier, config.render)
+        self._compiled = compiled_step_for(classifier, config.render)
         self.gripper = gripper
         self.arm = arm
         self.recorder = recorder or NullRecorder()
@@ -116,8 +122,10 @@ class RobotNode:
         self._workers: dict[str, DeviceWorker] = {}
         #: commands are not read again before this (monotonic ns) after a full batch
         self._commands_paused_until = 0
-        self.pub: Publisher | None = None
-        self.sub: Subscriber | None = None
+        self.now = now
+        self._handed_link = link is not None
+        self.pub: Sender | None = link.pub if link is not None else None
+        self.sub: Receiver | None = link.sub if link is not None else None
         self._frames_poller: zmq.Poller | None = None
         self._auth: Authenticator | None = None
         self._stats_cut = BurstLog(log, "heartbeat stats over the protocol's limit")
@@ -125,6 +133,8 @@ class RobotNode:
     # ------------------------------------------------------------------ run
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
         """Connect, loop until ``stop`` is set (or ``duration_s``), and always stop the arm."""
+        if self._handed_link:
+            raise RuntimeError("a node handed a link is driven by its caller; run() opens its own")
         link = self.config.link
         with contextlib.ExitStack() as stack:
             for device in (self.tactile, self.gripper, self.arm):
@@ -176,8 +186,8 @@ class RobotNode:
             else None
         )
         min_interval = round(0.9e9 / self.config.publish_rate_hz)
-        t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
-        while not stop.is_set() and (t_end is None or now_ns() < t_end):
+        t_end = None if duration_s is None else self.now() + round(duration_s * 1e9)
+        while not stop.is_set() and (t_end is None or self.now() < t_end):
             # Sleep through the frames that will not be rendered (120 Hz in, 60 out):
             # wait for the first one due, instead of waking for each. A command or
             # heartbeat from the operator wakes the loop at once (and is stamped on
@@ -190,14 +200,14 @@ class RobotNode:
                     heartbeat.deadline_ns, self._deadman_deadline_ns(), t_end or _NEVER_NS
                 )
                 paused_until = self._commands_paused_until
-                if now_ns() < paused_until:  # a backlog: frames only until its next turn
-                    wait_ms = math.ceil(max(0, min(deadline, paused_until) - now_ns()) / 1e6)
+                if self.now() < paused_until:  # a backlog: frames only until its next turn
+                    wait_ms = math.ceil(max(0, min(deadline, paused_until) - self.now()) / 1e6)
                     self._frames_poller.poll(wait_ms)
                 else:
-                    self.sub.ready((deadline - now_ns()) / 1e9)
+                    self.sub.ready((deadline - self.now()) / 1e9)
                 sample = self.tactile.take_newer(wanted_after)
             self.counters["wakeups"] += 1
-            now = now_ns()
+            now = self.now()
             if now >= self._commands_paused_until:
                 self._handle_commands(now)
             self._check_deadman(now)
@@ -220,7 +230,7 @@ class RobotNode:
         period = self._frame_period_ns
         if not self._last_seq or period <= 0:
             return 0
-        remaining = self._last_process_ns + min_interval - now_ns()
+        remaining = self._last_process_ns + min_interval - self.now()
         return max(0, int(remaining // period))
 
     def _account(self, sample: TactileSample) -> None:
@@ -241,7 +251,7 @@ class RobotNode:
 
     def process(self, sample: TactileSample) -> Stimulus | None:
         """Render one frame and publish the stimulus if it changed. Returns what was sent."""
-        now = now_ns()
+        now = self.now()
         self._last_process_ns = now
         if (now - sample.t_capture_ns) / 1e6 > self.config.max_frame_age_ms:
             self.counters["frames_stale"] += 1
@@ -278,20 +288,19 @@ class RobotNode:
         if self._last_frame is not None and np.array_equal(frame, self._last_frame):
             return None
         self._last_frame = frame
-        pattern: int | None = None
         confidence: float | None = None
-        if render.mode == "mask":
-            prediction = self.classifier.predict_one(frame)
-            pattern = prediction.pattern
+
+        def classify(f: np.ndarray) -> int:
+            nonlocal confidence
+            prediction = self.classifier.predict_one(f)
             confidence = min(max(prediction.confidence, 0.0), 1.0)
             self._count_inference(sample, prediction.angle_probs, prediction.position_probs,
-                                  pattern, confidence)  # fmt: skip
-        elif render.mode == "mask_ground_truth":
-            pattern = truth
+                                  prediction.pattern, confidence)  # fmt: skip
+            return prediction.pattern
+
+        cells, pattern = render_frame(frame, True, render, classify=classify, truth=truth)
+        if render.mode == "mask_ground_truth":
             confidence = 1.0 if truth is not None else None
-        if render.mode != "direct" and pattern is None:
-            return True, _NO_CELLS, None, confidence  # ground truth: nothing is held
-        cells = render_cells(frame, pattern, method=render.method, order=render.order)
         return True, cells, pattern, confidence
 
     def _render_compiled(
@@ -336,7 +345,7 @@ class RobotNode:
         if self._recording:
             self.recorder.write(
                 "robot/prediction",
-                now_ns(),
+                self.now(),
                 {
                     "frame_seq": sample.seq,
                     "angle_probs": np.array(angle_probs, np.float32),
@@ -353,6 +362,16 @@ class RobotNode:
         if self._compiled is not None:
             self._compiled.forget()
 
+    @property
+    def uses_compiled_step(self) -> bool:
+        """Whether frames take the one compiled call (compiled_step.py), not the plain path."""
+        return self._compiled is not None
+
+    @property
+    def last_stimulus(self) -> Stimulus | None:
+        """The stimulus the operator renders now: the last one sent, keyframes included."""
+        return self._last_stim_msg
+
     def _changed(self, cells: list[float], pattern: int | None) -> bool:
         """Another set of pressed cells, or a force moved by more than the dead band."""
         last = self._last_cells
@@ -367,7 +386,7 @@ class RobotNode:
     def _maybe_keyframe(self, sample: TactileSample) -> Stimulus | None:
         interval = self.config.render.keyframe_interval_ms * 1e6
         msg = self._last_stim_msg
-        if msg is None or now_ns() - self._last_publish_ns < interval:
+        if msg is None or self.now() - self._last_publish_ns < interval:
             return None
         truth = sample.truth.pattern if sample.truth is not None else None
         return self._publish(
@@ -386,7 +405,7 @@ class RobotNode:
         keyframe: bool,
     ) -> Stimulus:
         self._stim_seq += 1
-        now = now_ns()
+        now = self.now()
         msg = Stimulus(
             seq=self._stim_seq,
             t_send_ns=now,
@@ -417,7 +436,7 @@ class RobotNode:
         self.pub.send(
             TactileFrame(
                 seq=self._frame_msg_seq,
-                t_send_ns=now_ns(),
+                t_send_ns=self.now(),
                 t_capture_ns=sample.t_capture_ns,
                 frame_seq=sample.seq,
                 frame=frame,
@@ -537,7 +556,7 @@ class RobotNode:
             return
         self.recorder.write(
             "robot/command",
-            now_ns(),
+            self.now(),
             {
                 "seq": cmd.seq,
                 "action": cmd.action,
@@ -580,13 +599,14 @@ class RobotNode:
     def _send_heartbeat(self) -> None:
         self._hb_seq += 1
         if self._recording:
-            self.recorder.write("robot/link", now_ns(), {"state": self.link_state, **self.stats()})
+            stats = {"state": self.link_state, **self.stats()}
+            self.recorder.write("robot/link", self.now(), stats)
         echo_send, echo_recv = self.clock.echo_fields()
         msg = self._last_stim_msg
         self.pub.send(
             Heartbeat(
                 seq=self._hb_seq,
-                t_send_ns=now_ns(),
+                t_send_ns=self.now(),
                 node="robot",
                 state=self.link_state,
                 echo_t_send_ns=echo_send,
@@ -626,8 +646,12 @@ class RobotNode:
         return out
 
 
-def _compiled_step_for(classifier: Any, render: Any) -> Any:
-    """``compiled_step.CompiledFrameStep`` where it applies (numba classifier, mask mode)."""
+def compiled_step_for(classifier: Any, render: Any) -> Any:
+    """``compiled_step.CompiledFrameStep`` where it applies (numba classifier, mask mode), or None.
+
+    Here rather than in compiled_step.py: that module imports numba, which a
+    node without the numba backend never needs.
+    """
     if getattr(classifier, "numba_forward", None) is None:
         return None  # numba may not even be installed: import nothing
     try:

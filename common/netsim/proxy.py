@@ -74,7 +74,7 @@ class DirectionCounters:
         return dict(self.__dict__)
 
 
-def _set_timer_slack_ns(ns: int) -> None:
+def set_timer_slack_ns(ns: int) -> None:
     """Ask Linux to wake this thread on time (default slack is 50 us); best effort."""
     try:
         import ctypes
@@ -256,7 +256,7 @@ class LinkSimulator:
             self._ctx = None
 
     def _run(self) -> None:
-        _set_timer_slack_ns(1_000)
+        set_timer_slack_ns(1_000)
         dirs = self._dirs
         fds = [d.fd for d in dirs]
         # select() has microsecond timeouts but only takes descriptors below

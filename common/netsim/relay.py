@@ -36,7 +36,7 @@ from urllib.parse import urlsplit
 
 from common.errors import ConfigError, LinkError
 from common.netsim.impairments import DIRECTIONS, DirectionConfig, DirectionImpairment, Scenario
-from common.netsim.proxy import DirectionCounters, Endpoints, _set_timer_slack_ns
+from common.netsim.proxy import DirectionCounters, Endpoints, set_timer_slack_ns
 
 log = logging.getLogger(__name__)
 
@@ -425,7 +425,7 @@ class StreamRelay:
             self._dirty = True
 
     def _run(self) -> None:
-        _set_timer_slack_ns(1_000)
+        set_timer_slack_ns(1_000)
         now_ns = time.monotonic_ns
         spin_ns = self.spin_ns
         stop = self._stop

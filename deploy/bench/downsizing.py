@@ -13,7 +13,8 @@ numbers in plain Python).
 Two more variants, exact rewrites of the antialiased default:
 
 - ``two_products``: the path before d31f386, contact map then ``Wy @ X @
-  Wx.T`` then mask and peak in NumPy; kept to show what the fusion saved;
+  Wx.T`` then mask and peak in NumPy; kept here (not in the node's code) to
+  show what the fusion saved, and as the tests' independent oracle;
 - ``fused_masked``: only the rows of the (9, 200) matrix the mask keeps.
   Every pattern's mask has at most one cell per row, so masking first and
   then taking each row's peak is the masked cells themselves: 1 to 3 dot
@@ -32,13 +33,12 @@ from common.patterns import MASKS, MASKS_F32, matches_pattern
 from deploy.bench.fixtures import FrameSet
 from deploy.bench.timing import summarize_ns, time_interleaved
 from robot_side.rendering import (
-    _WEIGHTS,
     METHODS,
     ORDERS,
     SENSOR_MAX_N,
-    contact_map,
-    downsize,
-    peak_per_row,
+    Method,
+    downsizing_matrix,
+    downsizing_weights,
     render_contact,
     render_stimulus,
     sanitize_frame,
@@ -50,18 +50,55 @@ log = logging.getLogger(__name__)
 EXTRA_VARIANTS = ("two_products", "fused_masked")
 
 
-def fused_matrix(method: str = "antialiased") -> np.ndarray:
-    """(9, 200) float32: frame (2, 10, 10) flattened -> 3x3 flattened, pad mean included."""
-    w = _WEIGHTS[method]
-    k = np.kron(w, w)  # out[i*3+j] = sum_rc w[i, r] w[j, c] x[r, c]
-    return np.ascontiguousarray(0.5 * np.hstack([k, k]), dtype=np.float32)
+# The separable path: both pads' mean, then the two weight matrices one after the other.
+# float32 copies: X is float32 and float64 buys nothing at 2e-7 N.
+_SEPARABLE = {
+    m: (
+        downsizing_weights(m).astype(np.float32),
+        np.ascontiguousarray(downsizing_weights(m).T, dtype=np.float32),
+    )
+    for m in METHODS
+}
+
+
+def contact_map(frame: np.ndarray) -> np.ndarray:
+    """(2, 10, 10) frame -> (10, 10) mean of both pads."""
+    return (frame[0] + frame[1]) * np.float32(0.5)
+
+
+def downsize(cmap: np.ndarray, method: Method = "antialiased") -> np.ndarray:
+    """(10, 10) -> (3, 3) float32: ``Wy @ X @ Wx.T``, clipped to [0, 9] N (cubic overshoot)."""
+    wy, wxt = _SEPARABLE[method]
+    out = wy @ cmap @ wxt
+    np.clip(out, 0.0, SENSOR_MAX_N, out=out)
+    return out
+
+
+def peak_per_row(x: np.ndarray) -> np.ndarray:
+    """Keep the largest cell of each row (ties: lowest column); zero the rest."""
+    out = np.zeros_like(x)
+    cols = np.argmax(x, axis=1)
+    rows = np.arange(x.shape[0])
+    out[rows, cols] = x[rows, cols]
+    return out
+
+
+def separable_stimulus(
+    frame: np.ndarray, pattern: int | None, order: str, method: Method = "antialiased"
+) -> np.ndarray:
+    """The stimulus for a sanitized contact frame through the separable path."""
+    small = downsize(contact_map(frame), method)
+    if pattern is None:
+        return peak_per_row(small)
+    mask = MASKS_F32[pattern]
+    return peak_per_row(small * mask) if order == "mask_then_peak" else peak_per_row(small) * mask
 
 
 class FusedRenderer:
     """The fused variants of downsizing + masking; agree with render_stimulus to float32."""
 
-    def __init__(self, method: str = "antialiased") -> None:
-        self.m = fused_matrix(method)
+    def __init__(self, method: Method = "antialiased") -> None:
+        self.m = downsizing_matrix(method)
         # per pattern: the flat indices of its cells and their rows of the fused matrix
         self.cells = [np.flatnonzero(MASKS[p].ravel()) for p in range(len(MASKS))]
         self.rows = [np.ascontiguousarray(self.m[c]) for c in self.cells]
@@ -98,14 +135,6 @@ def _one_cell_per_row() -> bool:
     return bool((MASKS.sum(axis=2) <= 1).all())
 
 
-def _two_products(f: np.ndarray, pattern: int | None, order: str) -> np.ndarray:
-    small = downsize(contact_map(f), "antialiased")
-    if pattern is None:
-        return peak_per_row(small)
-    mask = MASKS_F32[pattern]
-    return peak_per_row(small * mask) if order == "mask_then_peak" else peak_per_row(small) * mask
-
-
 def _render_fn(variant: str, fused: FusedRenderer) -> Callable[[np.ndarray, int | None, str], Any]:
     """The variant from a raw frame (sanitize and contact check first), for the match share."""
     if variant in METHODS:
@@ -120,7 +149,7 @@ def _render_fn(variant: str, fused: FusedRenderer) -> Callable[[np.ndarray, int 
         if f.max() < 1.0:
             return np.zeros((3, 3), np.float32)
         if variant == "two_products":
-            return _two_products(f, pattern, order)
+            return separable_stimulus(f, pattern, order)
         return fused.render(f, pattern, order, masked=True)
 
     return other
@@ -138,7 +167,7 @@ def _timed_core(
 
         return fn
     if variant == "two_products":
-        return lambda i: _two_products(frames[i % n], int(patterns[i % n]), order)
+        return lambda i: separable_stimulus(frames[i % n], int(patterns[i % n]), order)
     return lambda i: fused.render(frames[i % n], int(patterns[i % n]), order, masked=True)
 
 

@@ -71,7 +71,7 @@ def end_to_end_tcp(
     peer_cpu = cpu if peer_cpu is None else peer_cpu
     import zmq
 
-    from common.transport import Publisher
+    from common.transport import Link, Publisher
     from deploy.bench.fixtures import frame_set_of_at_least, scan_bytes, serial_sensor
     from robot_side.config import RobotConfig
     from robot_side.node import RobotNode
@@ -81,15 +81,15 @@ def end_to_end_tcp(
     frames = fs.frames[order]
     ctx = zmq.Context()
     sensor = serial_sensor()
-    robot = RobotNode(RobotConfig(), sensor, classifier=classifier, ctx=ctx)
-    robot.pub = Publisher(ctx, "tcp://127.0.0.1:*", bind=True)
+    pub = Publisher(ctx, "tcp://127.0.0.1:*", bind=True)
+    robot = RobotNode(RobotConfig(), sensor, classifier=classifier, ctx=ctx, link=Link(pub=pub))
     out_path = Path(f"/tmp/deepxpalm-bench-tcp-{os.getpid()}.json")
     cmd = [
         sys.executable,
         "-m",
         "deploy.bench.e2e_tcp",
         "--endpoint",
-        robot.pub.endpoint,
+        pub.endpoint,
         "--count",
         str(n_frames),
         "--out",
@@ -103,9 +103,7 @@ def end_to_end_tcp(
 
     def feed(wire_seq: int, frame: np.ndarray) -> None:
         robot.resend_next()  # force a publish: every frame reaches the palm
-        t0 = now_ns()
-        for packet in sensor._parser.feed(scan_bytes(frame, wire_seq)):
-            sensor._on_packet(packet, t0)
+        sensor.feed(scan_bytes(frame, wire_seq), now_ns())
         robot.process(sensor.latest())
 
     def warm() -> None:
@@ -121,9 +119,7 @@ def end_to_end_tcp(
         rate = Rate(rate_hz)
         for scan in scans:
             robot.resend_next()
-            t0 = now_ns()
-            for packet in sensor._parser.feed(scan):
-                sensor._on_packet(packet, t0)
+            sensor.feed(scan, now_ns())
             robot.process(sensor.latest())
             rate.sleep()
         proc.wait(timeout=30)
@@ -133,7 +129,7 @@ def end_to_end_tcp(
             proc.kill()
             proc.wait()
         out_path.unlink(missing_ok=True)
-        robot.pub.close()
+        pub.close()
         ctx.term()
     s = summarize_ns(result["latencies_ns"]).as_dict()
     s["received"] = len(result["latencies_ns"])
@@ -258,42 +254,45 @@ def _peer(args: argparse.Namespace) -> int:
     """The operator side: count ``--count`` timed stimuli, then write their latencies."""
     if args.cpu is not None:
         os.sched_setaffinity(0, {args.cpu})
-    from common.transport import Subscriber
+    import zmq
+
+    from common.transport import Link, Subscriber
     from deploy.bench.fixtures import PacketServoBus
     from operator_side.config import OperatorConfig
     from operator_side.node import OperatorNode
 
+    class StampedSubscriber(Subscriber):
+        """Keeps the newest message's receive time, to split the latency at the socket."""
+
+        last_recv_ns = 0
+
+        def drain(self, max_messages: int = 1024) -> list[tuple[Any, int]]:
+            out = super().drain(max_messages)
+            if out:
+                self.last_recv_ns = out[-1][1]
+            return out
+
     bus = PacketServoBus()
     bus.connect()
-    node = OperatorNode(OperatorConfig(), bus)
-    node.sub = Subscriber(node.ctx, args.endpoint, bind=False, name="bench peer")
+    ctx = zmq.Context()
+    sub = StampedSubscriber(ctx, args.endpoint, bind=False, name="bench peer")
+    node = OperatorNode(OperatorConfig(), bus, ctx=ctx, link=Link(sub=sub))
     period_ns = round(1e9 / node.config.renderer.control_rate_hz)
-    # the receive time of the newest message, to split the latency at the socket
-    drain = node.sub.drain
-    received = [0]
-
-    def timed_drain(*a: Any, **k: Any) -> Any:
-        out = drain(*a, **k)
-        if out:
-            received[0] = out[-1][1]
-        return out
-
-    node.sub.drain = timed_drain  # type: ignore[method-assign]
     print("ready", flush=True)
     latencies: list[int] = []
     splits: list[tuple[int, int, int]] = []
     joined = False
     last_msg = time.monotonic()
     while len(latencies) < args.count and time.monotonic() - last_msg < 5.0:
-        if not node.sub.poll(0.2):
+        if not sub.poll(0.2):
             continue
-        node._written = None  # force the packet, as the robot side forces the stimulus
+        node.rewrite_next()  # force the packet, as the robot side forces the stimulus
         writes = bus.writes
         if not node.receive():
             continue
         node.control_step(now_ns(), period_ns)
         last_msg = time.monotonic()
-        stim = node._stim
+        stim = node.last_stimulus
         if not joined:
             joined = True
             print("joined", flush=True)
@@ -302,13 +301,13 @@ def _peer(args: argparse.Namespace) -> int:
             splits.append(
                 (
                     stim.t_send_ns - stim.t_capture_ns,  # robot: bytes in to message out
-                    received[0] - stim.t_send_ns,  # ZeroMQ over TCP, both I/O threads
-                    bus.last_write_ns - received[0],  # operator: decode to packet
+                    sub.last_recv_ns - stim.t_send_ns,  # ZeroMQ over TCP, both I/O threads
+                    bus.last_write_ns - sub.last_recv_ns,  # operator: decode to packet
                 )
             )
     Path(args.out).write_text(json.dumps({"latencies_ns": latencies, "splits_ns": splits}))
-    node.sub.close()
-    node.ctx.term()
+    sub.close()
+    ctx.term()
     return 0
 
 

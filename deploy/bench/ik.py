@@ -30,10 +30,10 @@ from operator_side.linkglide import (
     DEFAULT_GEOMETRY,
     LinkageGeometry,
     UnreachableTargetError,
-    _solve,
     forward_kinematics,
     inverse_kinematics,
     inverse_kinematics_one,
+    solve_linkages,
 )
 
 log = logging.getLogger(__name__)
@@ -47,7 +47,7 @@ SHELL_DEPTHS_MM = (1e-9, 1e-6, 1e-3, 1e-2, 1e-1)
 def reachable_mask(points: np.ndarray, g: LinkageGeometry = DEFAULT_GEOMETRY) -> np.ndarray:
     """Which points the closed form accepts (the project's own test of reach and mode)."""
     with np.errstate(invalid="ignore", over="ignore"):
-        _, ok = _solve(np.asarray(points, dtype=np.float64), g)
+        _, ok = solve_linkages(np.asarray(points, dtype=np.float64), g)
     return np.asarray(ok)
 
 

@@ -94,11 +94,11 @@ def _measure(
 ) -> dict[str, Any]:
     from deploy.bench import timing
     from robot_side.perception import DEFAULT_BACKEND_ORDER, load_classifier
-    from robot_side.perception.inference import _installed
+    from robot_side.perception.inference import backend_installed
 
     classifier = load_classifier()  # the node's default: shipped model, first installed backend
     timing.limit_torch_threads()
-    default_backend = next(b for b in DEFAULT_BACKEND_ORDER if _installed(b))
+    default_backend = next(b for b in DEFAULT_BACKEND_ORDER if backend_installed(b))
     t_start = time.monotonic()
     sections: dict[str, Any] = {}
 

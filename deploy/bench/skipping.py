@@ -2,8 +2,8 @@
 
 The demo's scripted sensor is replayed frame by frame in virtual time (the
 same pad model, seed, tare and grasp script as ``ScriptedTactileSensor``),
-through ``RobotNode.process`` itself with the node's clock replaced by the
-virtual one, so the rate cap, the no-contact and identical-frame skips, the
+through ``RobotNode.process`` itself, handed a virtual clock and a capture
+link, so the rate cap, the no-contact and identical-frame skips, the
 dead band and the keyframes behave as in the live node, and a 27 s scene
 costs a second or two.
 
@@ -17,54 +17,23 @@ price of rendering 60 of the 120 frames per second.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 
-import robot_side.node as robot_node_module
+from common.clock import VirtualClock
 from common.devices import build_device
+from common.transport import CaptureLink
 from deploy.bench.fixtures import serial_sensor
 from deploy.scene import load_scene
 from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 from robot_side.node import RobotNode
-from robot_side.rendering import render_stimulus, sanitize_frame
+from robot_side.rendering import render_frame, sanitize_with_peak
 from robot_side.tactile import KINDS as TACTILE_KINDS
 
 log = logging.getLogger(__name__)
-
-
-class _VirtualClock:
-    def __init__(self) -> None:
-        self.t_ns = 1_000_000_000
-
-    def __call__(self) -> int:
-        return self.t_ns
-
-
-class _CapturePublisher:
-    """Takes the node's messages instead of a socket."""
-
-    def __init__(self) -> None:
-        self.sent: list[Any] = []
-
-    def send(self, msg: Any) -> bytes:
-        self.sent.append(msg)
-        return b""
-
-
-@contextlib.contextmanager
-def _virtual_time(clock: _VirtualClock) -> Iterator[None]:
-    """The robot node reads its clock through its module's ``now_ns``; swap it for a replay."""
-    real = robot_node_module.now_ns
-    robot_node_module.now_ns = clock
-    try:
-        yield
-    finally:
-        robot_node_module.now_ns = real
 
 
 def demo_frames(scene_name: str, cycles: float) -> tuple[list[np.ndarray], list[Any], float]:
@@ -108,14 +77,13 @@ def _board_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list[An
     frames, truths = [], []
     for i in range(n):
         seq = (cfg.first_seq + i) % SEQ_MODULO
-        sim._scan(i / cfg.rate_hz)
+        sim.scan_at(i / cfg.rate_hz)
         newtons = sim.frame_for(seq)
         if newtons is None:
             raise RuntimeError("the board simulator kept no history of its scan")
         wire = mirror_finger2(np.asarray(newtons, dtype=np.float64))
         counts = np.clip(np.rint(sim.calibration.to_counts(wire)), 0, 0xFFFF).astype(np.uint16)
-        for packet in driver._parser.feed(encode(0, seq, counts[0]) + encode(1, seq, counts[1])):
-            driver._on_packet(packet, i)
+        driver.feed(encode(0, seq, counts[0]) + encode(1, seq, counts[1]), i)
         frames.append(driver.latest().frame)
         truths.append(sim.truth_for(seq))
     return frames, truths, cfg.rate_hz
@@ -123,7 +91,7 @@ def _board_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list[An
 
 def _scripted_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list[Any], float]:
     cfg = device.config
-    model = device._model
+    model = device.model
     rng = np.random.default_rng(cfg.seed + 1)  # as ScriptedTactileSensor._run
     zero = np.zeros((2, 10, 10), np.float32)
     if cfg.tare_frames > 0:
@@ -141,7 +109,7 @@ def _scripted_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list
     return frames, truths, cfg.rate_hz
 
 
-def _shadow(
+def shadow_stimulus(
     frame: np.ndarray, truth: Any, classifier: Any, render: Any, compiled: Any = None
 ) -> np.ndarray:
     """What the node would send for this frame if it never skipped anything.
@@ -149,6 +117,7 @@ def _shadow(
     ``compiled``: the node's compiled frame step (a second instance), so the
     reference renders with the node's own arithmetic (its downsizing product
     sums in float64, NumPy's in float32: a few 1e-7 N that are not a skip's cost).
+    Otherwise the node's own frame rule (``render_frame``), every frame.
     """
     if compiled is not None:
         compiled.forget()  # never the identical-frame skip
@@ -156,22 +125,15 @@ def _shadow(
         if r[0] == compiled.NO_CONTACT:
             return np.zeros((3, 3), np.float32)
         return np.array(r[compiled.CELLS :], np.float32).reshape(3, 3)
-    f = sanitize_frame(frame)
-    if render.mode == "mask":  # even without contact: the no-contact skip is what is checked
-        pattern = classifier.predict_one(f).pattern
-    elif render.mode == "mask_ground_truth":
-        pattern = truth.pattern
-    else:
-        pattern = None
-    if render.mode != "direct" and pattern is None:
-        return np.zeros((3, 3), np.float32)
-    return render_stimulus(
+    f, peak = sanitize_with_peak(frame)
+    cells, _ = render_frame(
         f,
-        pattern,
-        method=render.method,
-        order=render.order,
-        contact_threshold_n=render.contact_threshold_n,
+        peak >= render.contact_threshold_n,
+        render,
+        classify=lambda x: classifier.predict_one(x).pattern,
+        truth=None if truth is None else truth.pattern,
     )
+    return np.array(cells, np.float32).reshape(3, 3)
 
 
 def skipping(
@@ -184,12 +146,18 @@ def skipping(
     config = scene.robot
     frames, truths, rate_hz = demo_frames(scene_name, cycles)
     renderer = LinkGlideRenderer(scene.operator.renderer, LinkGlideCalibration())
-    clock = _VirtualClock()
-    node = RobotNode(config, tactile=None, classifier=classifier)  # type: ignore[arg-type]
-    node.pub = _CapturePublisher()  # type: ignore[assignment]
+    clock = VirtualClock()
+    link = CaptureLink()
+    node = RobotNode(
+        config,
+        tactile=None,
+        classifier=classifier,
+        now=clock,
+        link=link,
+    )
     render = config.render
     shadow_step = None
-    if node._compiled is not None:
+    if node.uses_compiled_step:
         from robot_side.compiled_step import CompiledFrameStep
 
         shadow_step = CompiledFrameStep.for_node(classifier, render)
@@ -206,42 +174,41 @@ def skipping(
             counts_cache[key] = renderer.target_counts(stim)
         return counts_cache[key]
 
-    with _virtual_time(clock):
-        for i, (frame, truth) in enumerate(zip(frames, truths, strict=True)):
-            clock.t_ns += period
-            before = dict(node.counters)
-            sample = TactileSample(frame=frame, seq=i + 1, t_capture_ns=clock.t_ns, truth=truth)
-            kinds_here: list[str] = []
-            if clock.t_ns - last_process >= min_interval:
-                last_process = clock.t_ns
-                node.process(sample)
-                after = node.counters
-                for counter, kind in (
-                    ("frames_no_contact", "no_contact"),
-                    ("frames_identical", "identical_frame"),
-                    ("stimuli_unchanged", "unchanged_stimulus"),
-                    ("stimuli_published", "published"),
-                ):
-                    if after[counter] > before.get(counter, 0):
-                        kinds_here.append(kind)
-            else:
-                kinds_here.append("rate_cap")
-            full = _shadow(frame, truth, classifier, render, shadow_step)
-            msg = node._last_stim_msg
-            current = msg.stimulus if msg is not None else np.zeros((3, 3), np.float32)
-            for kind in kinds_here:
-                # the no-contact skip leaves out the classifier: compare what the node
-                # computed (all zeros) with what classifying would have rendered
-                got = np.zeros((3, 3), np.float32) if kind == "no_contact" else current
-                d = diff[kind]
-                d["frames"] += 1
-                d["max_abs_n"] = max(d["max_abs_n"], float(np.abs(got - full).max()))
-                d["cells_differ"] += int(not np.array_equal(got > 0, full > 0))
-                d["max_counts"] = max(
-                    d["max_counts"], int(np.abs(counts_of(got) - counts_of(full)).max())
-                )
+    for i, (frame, truth) in enumerate(zip(frames, truths, strict=True)):
+        clock.advance(period)
+        before = dict(node.counters)
+        sample = TactileSample(frame=frame, seq=i + 1, t_capture_ns=clock.t_ns, truth=truth)
+        kinds_here: list[str] = []
+        if clock.t_ns - last_process >= min_interval:
+            last_process = clock.t_ns
+            node.process(sample)
+            after = node.counters
+            for counter, kind in (
+                ("frames_no_contact", "no_contact"),
+                ("frames_identical", "identical_frame"),
+                ("stimuli_unchanged", "unchanged_stimulus"),
+                ("stimuli_published", "published"),
+            ):
+                if after[counter] > before.get(counter, 0):
+                    kinds_here.append(kind)
+        else:
+            kinds_here.append("rate_cap")
+        full = shadow_stimulus(frame, truth, classifier, render, shadow_step)
+        msg = node.last_stimulus
+        current = msg.stimulus if msg is not None else np.zeros((3, 3), np.float32)
+        for kind in kinds_here:
+            # the no-contact skip leaves out the classifier: compare what the node
+            # computed (all zeros) with what classifying would have rendered
+            got = np.zeros((3, 3), np.float32) if kind == "no_contact" else current
+            d = diff[kind]
+            d["frames"] += 1
+            d["max_abs_n"] = max(d["max_abs_n"], float(np.abs(got - full).max()))
+            d["cells_differ"] += int(not np.array_equal(got > 0, full > 0))
+            d["max_counts"] = max(
+                d["max_counts"], int(np.abs(counts_of(got) - counts_of(full)).max())
+            )
     duration_s = len(frames) / rate_hz
-    sent = node.pub.sent
+    sent = link.messages
     keyframes = sum(1 for m in sent if m.keyframe)
     m = stage_medians_us
     render_us = m.get("render", 0.0)

@@ -26,7 +26,7 @@ import zmq
 from common.clock import Rate, now_ns
 from common.codec import decode, encode
 from common.messages import Stimulus
-from common.transport import Publisher, Subscriber
+from common.transport import Link, Publisher, Subscriber
 from deploy.bench.fixtures import (
     PacketBuilder,
     PacketServoBus,
@@ -50,7 +50,7 @@ STAGES: dict[str, str] = {
     "wire_decode": "serial bytes of one scan (2 packets, 424 B) -> 2 pad packets: "
     "StreamParser.feed (sync search, header, CRC)",
     "calibration": "pairing the pads, counts -> newtons, floor, saturation, mirror: "
-    "SerialTactileSensor._on_packet / _on_scan, then the conversion when the node takes it",
+    "SerialTactileSensor.accept_packet / _on_scan, then the conversion when the node takes it",
     "sanitize_contact": "sanitize_frame + is_contact (the node's prelude)",
     "classification": "predict_one: pattern and confidence of one frame (shipped model, "
     "default backend)",
@@ -121,16 +121,15 @@ def stage_budget(
     cfg = RobotConfig()
     method, order = cfg.render.method, cfg.render.order
     sensor = serial_sensor()
-    parser = sensor._parser
     calibration = LinkGlideCalibration()
     renderer = LinkGlideRenderer(OperatorConfig().renderer, calibration)
     builder = PacketBuilder(calibration)
     ids = [int(i) for i in calibration.ids]
     ctx = zmq.Context()
     pub, sub = _pair(ctx, "tcp://127.0.0.1:*")
-    from robot_side.node import _compiled_step_for
+    from robot_side.node import compiled_step_for
 
-    step = _compiled_step_for(classifier, cfg.render)
+    step = compiled_step_for(classifier, cfg.render)
     times: dict[str, list[int]] = {name: [] for name in STAGES}
     total: list[int] = []  # frames through the node's path
     total_plain: list[int] = []  # frames through the plain path, when the node compiles
@@ -143,11 +142,11 @@ def stage_budget(
             # both are timed under the same conditions and neither warms the other
             compiled = step is not None and j % 2 == 1
             t0 = clock()
-            packets = parser.feed(data)
+            packets = sensor.parse(data)
             t1 = clock()
             t_cap = now_ns()
             for packet in packets:
-                sensor._on_packet(packet, t_cap)
+                sensor.accept_packet(packet, t_cap)
             sample = sensor.latest()
             t2 = clock()
             if compiled:
@@ -293,12 +292,21 @@ class InprocLoop:
     def __init__(self, classifier: Any, endpoint: str = "inproc://bench-e2e") -> None:
         self.ctx = zmq.Context()
         self.sensor = serial_sensor()
-        self.robot = RobotNode(RobotConfig(), self.sensor, classifier=classifier, ctx=self.ctx)
-        self.robot.pub = Publisher(self.ctx, endpoint, bind=True)
+        self.robot = RobotNode(
+            RobotConfig(),
+            self.sensor,
+            classifier=classifier,
+            ctx=self.ctx,
+            link=Link(pub=Publisher(self.ctx, endpoint, bind=True)),
+        )
         self.bus = PacketServoBus()
         self.bus.connect()
-        self.operator = OperatorNode(OperatorConfig(), self.bus, ctx=self.ctx)
-        self.operator.sub = Subscriber(self.ctx, endpoint, bind=False, name="bench operator")
+        self.operator = OperatorNode(
+            OperatorConfig(),
+            self.bus,
+            ctx=self.ctx,
+            link=Link(sub=Subscriber(self.ctx, endpoint, bind=False, name="bench operator")),
+        )
         self.period_ns = round(1e9 / OperatorConfig().renderer.control_rate_hz)
         self._join()
 
@@ -321,12 +329,11 @@ class InprocLoop:
         """
         robot, op = self.robot, self.operator
         robot.resend_next()
-        op._written = None
+        op.rewrite_next()
         writes = self.bus.writes
         c0 = time.thread_time_ns()
         t0 = now_ns()
-        for packet in self.sensor._parser.feed(scan):
-            self.sensor._on_packet(packet, t0)
+        self.sensor.feed(scan, t0)
         robot.process(self.sensor.latest())
         op.receive()
         op.control_step(now_ns(), self.period_ns)

@@ -185,7 +185,7 @@ def build_mjcf(config: LabWorldConfig) -> str:
 
 def link_poses(q: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
     """Mocap transforms of the six link bodies and the flange, from joint angles."""
-    from robot_side.arm.sim.kinematics import _dh
+    from robot_side.arm.sim.kinematics import dh_transform
 
     t = np.eye(4)
     links = []
@@ -193,5 +193,5 @@ def link_poses(q: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
         c, s = math.cos(float(q[j])), math.sin(float(q[j]))
         rz = np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
         links.append(t @ rz)
-        t = t @ _dh(float(q[j]), j)
+        t = t @ dh_transform(float(q[j]), j)
     return links, t

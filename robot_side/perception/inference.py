@@ -192,7 +192,7 @@ def load_classifier(
         backend = usable[-1]
     if backend not in BACKENDS:
         raise ModelLoadError(f"unknown backend {backend!r}; choose one of {list(BACKENDS)}")
-    if not _installed(backend):
+    if not backend_installed(backend):
         raise ModelLoadError(
             f"backend {backend!r} needs the Python package {_MODULE_OF[backend]!r}, which is "
             "not installed: install the robot extra (pip install 'deepxpalm[robot]') "
@@ -222,14 +222,15 @@ def load_classifier(
     return TiltClassifier(fn, backend, meta, path, logits_one=one, classify_one=classify)
 
 
-def _installed(backend: str) -> bool:
+def backend_installed(backend: str) -> bool:
+    """Whether the backend's package imports here (the bench picks its default by this)."""
     return importlib.util.find_spec(_MODULE_OF[backend]) is not None
 
 
 def _usable(backend: str, path: Path) -> bool:
     if backend == "onnxruntime" and not path.with_suffix(".onnx").is_file():
         return False
-    return _installed(backend)
+    return backend_installed(backend)
 
 
 def _as_batch(frames: np.ndarray) -> np.ndarray:

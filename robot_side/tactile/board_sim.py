@@ -232,6 +232,14 @@ class TactileBoardSimulator:
             entry = self._history.get(seq % SEQ_MODULO)
         return None if entry is None else entry[1]
 
+    def scan_at(self, t_s: float) -> None:
+        """One scan at script time ``t_s``, as the scan thread makes it.
+
+        Unplugged, nobody hears it, but its newtons and truth are kept
+        (``frame_for``, ``truth_for``): the bench replays a script this way.
+        """
+        self._scan(t_s)
+
     def stats(self) -> dict[str, int]:
         return dict(self.counters)
 

@@ -49,6 +49,11 @@ class ScriptedTactileSensor(TactileSensor):
         self._frames = 0
 
     @property
+    def model(self) -> SyntheticTactileModel:
+        """The pad model the frames come from (the bench replays the script through it)."""
+        return self._model
+
+    @property
     def is_connected(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 

@@ -360,7 +360,7 @@ class SerialTactileSensor(TactileSensor):
             self._last_byte_ns = t
             for packet in self._parser.feed(chunk):
                 self._last_packet_ns = t
-                self._on_packet(packet, t)
+                self.accept_packet(packet, t)
 
     def _on_link_lost(self, error: BaseException) -> None:
         self._counters["disconnects"] += 1
@@ -375,7 +375,20 @@ class SerialTactileSensor(TactileSensor):
             "reopening it when it comes back" if self.config.auto_reconnect else "not reconnecting",
         )
 
-    def _on_packet(self, packet: PadPacket, t_ns: int) -> None:
+    def feed(self, data: bytes, t_ns: int) -> None:
+        """Bytes from the board, arrived at ``t_ns``, as the reader thread takes them.
+
+        The bench and replays drive the driver this way, without a port or a thread.
+        """
+        for packet in self.parse(data):
+            self.accept_packet(packet, t_ns)
+
+    def parse(self, data: bytes) -> list[PadPacket]:
+        """``feed``'s first half: the packets the bytes complete (the bench times it alone)."""
+        return self._parser.feed(data)
+
+    def accept_packet(self, packet: PadPacket, t_ns: int) -> None:
+        """``feed``'s second half: pair the pads of a scan; a complete scan becomes a frame."""
         if packet.seq != self._pending_seq:
             if self._pending:
                 self._counters["incomplete_frames"] += 1

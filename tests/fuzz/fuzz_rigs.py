@@ -285,7 +285,7 @@ class OperatorRig:
         return wait_for(lambda: self.received() >= self.sent or not self.alive(), timeout_s)
 
     def goal_reached(self, target: np.ndarray) -> bool:
-        last = self.node._written
+        last = self.node.written_goals
         return last is not None and np.array_equal(last, target)
 
     def servo_violations(self) -> list[str]:

@@ -89,4 +89,4 @@ def test_an_oversized_telemetry_frame_lifts_the_palm_and_nothing_worse(operator)
     assert wait_for(lambda: rig.goal_reached(retract), 5)
     assert rig.alive()
     assert rig.servo_violations() == []
-    assert np.array_equal(rig.node._written, retract)
+    assert np.array_equal(rig.node.written_goals, retract)

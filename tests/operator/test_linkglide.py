@@ -53,9 +53,9 @@ def test_whole_workspace_grid_round_trips():
     pts = np.stack([xs, ys], -1).reshape(-1, 2)
     ok = np.array([_reachable(*p) for p in pts[::97]])  # sanity: both kinds exist
     assert ok.any() and not ok.all()
-    from operator_side.linkglide import _solve
+    from operator_side.linkglide import solve_linkages
 
-    angles, mask = _solve(pts, G)
+    angles, mask = solve_linkages(pts, G)
     back = forward_kinematics(angles[mask])
     assert np.abs(back - pts[mask]).max() < 1e-9
 

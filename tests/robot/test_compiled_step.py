@@ -10,7 +10,8 @@ from hypothesis.extra.numpy import arrays
 
 pytest.importorskip("numba")
 
-from common.codec import encode
+from common.clock import VirtualClock
+from common.transport import CaptureLink
 from deploy.bench.fixtures import frame_set
 from robot_side.compiled_step import CompiledFrameStep
 from robot_side.config import RobotConfig
@@ -26,23 +27,15 @@ def classifier():
     return load_classifier(backend="numba")
 
 
-class _CapturePublisher:
-    def __init__(self) -> None:
-        self.sent: list = []
-
-    def send(self, msg) -> bytes:
-        self.sent.append(msg)
-        return encode(msg)
-
-
-def _node(classifier, compiled: bool, order: str) -> RobotNode:
+def _node(classifier, compiled: bool, order: str) -> tuple[RobotNode, CaptureLink]:
     config = RobotConfig()
     config.render.compiled_step = compiled
     config.render.order = order
-    node = RobotNode(config, ScriptedTactileSensor(), classifier=classifier)
-    node.pub = _CapturePublisher()
-    assert (node._compiled is not None) == compiled
-    return node
+    link = CaptureLink()
+    clock = VirtualClock(t_ns=0)  # every frame captured now: none is stale
+    node = RobotNode(config, ScriptedTactileSensor(), classifier=classifier, now=clock, link=link)
+    assert node.uses_compiled_step == compiled
+    return node, link
 
 
 def _garbage(rng: np.random.Generator, frame: np.ndarray) -> np.ndarray:
@@ -70,15 +63,16 @@ def test_both_paths_publish_the_same_stimuli(classifier, order: str) -> None:
             frames.append(_garbage(rng, f))
         elif roll < 0.40:
             frames.append(f.astype(np.float64)[:, ::-1, :])  # another dtype, strided
-    plain, compiled = _node(classifier, False, order), _node(classifier, True, order)
+    (plain, plain_sent), (compiled, compiled_sent) = (
+        _node(classifier, False, order),
+        _node(classifier, True, order),
+    )
     for seq, frame in enumerate(frames, start=1):
         sample = TactileSample(frame=frame, seq=seq, t_capture_ns=0)
-        plain._last_process_ns = compiled._last_process_ns = 0
         for node in (plain, compiled):
-            node.config.max_frame_age_ms = float("inf")
             node.process(sample)
-    assert len(plain.pub.sent) == len(compiled.pub.sent) > len(fs) // 2
-    for a, b in zip(plain.pub.sent, compiled.pub.sent, strict=True):
+    assert len(plain_sent.messages) == len(compiled_sent.messages) > len(fs) // 2
+    for a, b in zip(plain_sent.messages, compiled_sent.messages, strict=True):
         assert (a.frame_seq, a.pattern, a.contact) == (b.frame_seq, b.pattern, b.contact)
         np.testing.assert_allclose(a.stimulus, b.stimulus, atol=2e-6)
         assert np.array_equal(a.stimulus > 0, b.stimulus > 0)

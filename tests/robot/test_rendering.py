@@ -9,11 +9,10 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from common.patterns import MASKS, matches_pattern
+from deploy.bench.downsizing import downsize, peak_per_row
 from robot_side.rendering import (
     antialiased_bicubic_weights,
     area_weights,
-    downsize,
-    peak_per_row,
     plain_bicubic_weights,
     render_stimulus,
 )
@@ -122,3 +121,19 @@ def test_any_frame_gives_a_finite_non_negative_bounded_stimulus(frame, pattern, 
 def test_cubic_overshoot_never_goes_negative(x):
     out = downsize(x)
     assert out.min() >= 0 and out.max() <= 9.0
+
+
+@pytest.mark.parametrize("method", ["antialiased", "plain", "area"])
+@pytest.mark.parametrize("order", ["mask_then_peak", "peak_then_mask"])
+def test_the_fused_path_renders_what_the_separable_oracle_renders(method, order):
+    """One (9, 200) product per frame against contact map, ``Wy @ X @ Wx.T``, peak, mask."""
+    from deploy.bench.downsizing import separable_stimulus
+    from robot_side.rendering import render_cells, sanitize_frame
+
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        frame = sanitize_frame(rng.uniform(0, 9, (2, 10, 10)).astype(np.float32))
+        for pattern in (None, *range(len(MASKS))):
+            got = np.array(render_cells(frame, pattern, method=method, order=order), np.float32)
+            want = separable_stimulus(frame, pattern, order, method)
+            np.testing.assert_allclose(got.reshape(3, 3), want, atol=2e-6)

@@ -57,7 +57,8 @@ _YZX = [1, 2, 0]
 _ZXY = [2, 0, 1]
 
 
-def _dh(theta: float, i: int) -> np.ndarray:
+def dh_transform(theta: float, i: int) -> np.ndarray:
+    """Joint ``i``'s Denavit-Hartenberg transform at angle ``theta``."""
     ct, st = math.cos(theta), math.sin(theta)
     ca, sa = math.cos(DH_ALPHA[i]), math.sin(DH_ALPHA[i])
     return np.array(
@@ -89,7 +90,7 @@ def forward(q: np.ndarray, tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for i in range(6):
         z[i] = t[:3, 2]
         o[i] = t[:3, 3]
-        t = t @ _dh(float(q[i]), i)
+        t = t @ dh_transform(float(q[i]), i)
     t_tcp = t @ tcp
     jac = np.empty((6, 6))
     r = t_tcp[:3, 3] - o  # np.cross costs ~60 us here; the explicit form ~5 us
