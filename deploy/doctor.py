@@ -32,9 +32,6 @@ import importlib
 import json
 import logging
 import os
-import pwd
-import socket
-import stat
 import sys
 import threading
 import time
@@ -49,6 +46,16 @@ from common.config import from_dict, load_toml
 from common.devices import Device, build_device
 from common.errors import ConfigError, DeepXPalmError
 from common.overrides import apply_overrides
+from common.preflight import (
+    PreflightContext,
+    current_user_name,
+    groups_of,
+    owner_text,
+    permits,
+    processes_holding,
+    tcp_probe,
+    user_named,
+)
 
 log = logging.getLogger(__name__)
 
@@ -58,10 +65,6 @@ ROLES = ("robot", "operator")
 SERVICE_USER = "deepxpalm"
 #: What the units add to the service user's groups (SupplementaryGroups=).
 SERVICE_GROUPS = ("dialout",)
-#: ur-rtde's fixed ports: RTDE, dashboard, the script port.
-UR_PORTS = {30004: "RTDE", 29999: "dashboard", 30003: "script"}
-#: Device kinds that simulate their hardware (lab: a physics world): no port or host to look for.
-SIMULATED_KINDS = {"scripted", "recording", "lab"}
 #: (family in the node config, registry module), per role.
 FAMILIES = {
     "robot": (
@@ -205,81 +208,7 @@ def _check_config(report: Report, role: str, data: dict[str, Any]) -> Any | None
     return config
 
 
-# ------------------------------------------------------------------ files
-def _user(name: str) -> pwd.struct_passwd | None:
-    try:
-        return pwd.getpwnam(name)
-    except KeyError:
-        return None
-
-
-def _groups_of(user: pwd.struct_passwd, extra: tuple[str, ...] = ()) -> set[int]:
-    import grp
-
-    gids = {user.pw_gid}
-    for g in grp.getgrall():
-        if user.pw_name in g.gr_mem or g.gr_name in extra:
-            gids.add(g.gr_gid)
-    return gids
-
-
-def _permits(st: os.stat_result, uid: int, gids: set[int], want: int) -> bool:
-    """Whether uid/gids get ``want`` (an R_OK|W_OK mask) on a file with this stat."""
-    if uid == 0:
-        return True
-    if st.st_uid == uid:
-        bits = (st.st_mode >> 6) & 7
-    elif st.st_gid in gids:
-        bits = (st.st_mode >> 3) & 7
-    else:
-        bits = st.st_mode & 7
-    return (bits & want) == want
-
-
-def _owner(st: os.stat_result) -> str:
-    import grp
-
-    try:
-        user = pwd.getpwuid(st.st_uid).pw_name
-    except KeyError:
-        user = str(st.st_uid)
-    try:
-        group = grp.getgrgid(st.st_gid).gr_name
-    except KeyError:
-        group = str(st.st_gid)
-    return f"{user}:{group} {stat.filemode(st.st_mode)}"
-
-
-def _processes_using(path: str) -> list[tuple[int, str]]:
-    """(pid, command line) of other processes holding ``path`` open (those /proc lets us see)."""
-    target = os.path.realpath(path)
-    found = []
-    for fd_dir in glob.glob("/proc/[0-9]*/fd"):
-        pid = int(fd_dir.split("/")[2])
-        if pid == os.getpid():
-            continue
-        try:
-            fds = os.listdir(fd_dir)
-        except OSError:
-            continue
-        for fd in fds:
-            try:
-                if os.readlink(f"{fd_dir}/{fd}") == target:
-                    found.append((pid, _cmdline(pid)))
-                    break
-            except OSError:
-                continue
-    return found
-
-
-def _cmdline(pid: int) -> str:
-    try:
-        raw = Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return "?"
-    return raw.replace(b"\0", b" ").decode(errors="replace").strip()
-
-
+# ------------------------------------------------------------------ processes
 def _listener_pids(port: int) -> list[tuple[int, str]]:
     """Processes with a TCP socket listening on ``port``, from /proc/net/tcp{,6}."""
     inodes = set()
@@ -292,27 +221,11 @@ def _listener_pids(port: int) -> list[tuple[int, str]]:
             cols = line.split()
             if len(cols) > 9 and cols[3] == "0A" and int(cols[1].rsplit(":", 1)[1], 16) == port:
                 inodes.add(f"socket:[{cols[9]}]")
-    found = []
-    if not inodes:
-        return found
-    for fd_dir in glob.glob("/proc/[0-9]*/fd"):
-        pid = int(fd_dir.split("/")[2])
-        try:
-            fds = os.listdir(fd_dir)
-        except OSError:
-            continue
-        for fd in fds:
-            try:
-                if os.readlink(f"{fd_dir}/{fd}") in inodes:
-                    found.append((pid, _cmdline(pid)))
-                    break
-            except OSError:
-                continue
-    return found
+    return processes_holding(inodes, skip_self=False)
 
 
-def _is_robot_node(cmdline: str) -> bool:
-    return ("deepxpalm" in cmdline or "deploy.cli" in cmdline) and " robot" in cmdline
+def _is_robot_node(command: str) -> bool:
+    return ("deepxpalm" in command or "deploy.cli" in command) and " robot" in command
 
 
 # ------------------------------------------------------------------- keys
@@ -357,7 +270,7 @@ def _check_secret_key(report: Report, role: str, path: Path | None, options: Doc
         report.add(
             name,
             FAIL,
-            f"cannot read {path} ({_owner(st)}) as {pwd.getpwuid(os.geteuid()).pw_name}",
+            f"cannot read {path} ({owner_text(st)}) as {current_user_name()}",
             f"run doctor as the service user (`sudo -u {options.service_user} deepxpalm "
             "doctor ...`) or fix the owner",
         )
@@ -382,7 +295,7 @@ def _check_secret_key(report: Report, role: str, path: Path | None, options: Doc
         report.add(
             name,
             FAIL,
-            f"{path} is open to other users ({_owner(st)}): whoever reads it can "
+            f"{path} is open to other users ({owner_text(st)}): whoever reads it can "
             "impersonate this node",
             f"chmod 600 {path}",
         )
@@ -397,10 +310,10 @@ def _check_secret_key(report: Report, role: str, path: Path | None, options: Doc
             "the public half",
         )
         return None
-    detail = f"{path} ({_owner(st)}) is a valid pair, public {public.decode()}"
-    service = _user(options.service_user)
-    if service is not None and not _permits(
-        st, service.pw_uid, _groups_of(service, SERVICE_GROUPS), os.R_OK
+    detail = f"{path} ({owner_text(st)}) is a valid pair, public {public.decode()}"
+    service = user_named(options.service_user)
+    if service is not None and not permits(
+        st, service.pw_uid, groups_of(service, SERVICE_GROUPS), os.R_OK
     ):
         report.add(
             name,
@@ -524,103 +437,6 @@ def _check_keys(report: Report, role: str, security: Any, options: DoctorOptions
 
 
 # ---------------------------------------------------------------- devices
-def _tcp_probe(host: str, port: int, timeout_s: float) -> str | None:
-    """None when something accepts a TCP connection; otherwise why not, in words."""
-    try:
-        with socket.create_connection((host, port), timeout=timeout_s):
-            return None
-    except ConnectionRefusedError:
-        return f"{host}:{port} refused the connection (the host is up; nothing listens there)"
-    except TimeoutError:
-        return (
-            f"no answer from {host}:{port} within {timeout_s:.1f} s (wrong address, host off, "
-            "cable, or a firewall dropping packets)"
-        )
-    except socket.gaierror as e:
-        return f"cannot resolve {host!r}: {e.strerror}"
-    except OSError as e:
-        return f"{host}:{port}: {e.strerror or e}"
-
-
-def _is_simulated(kind: str) -> bool:
-    return kind.startswith("simulated") or kind in SIMULATED_KINDS
-
-
-def _serial_presence(
-    report: Report, name: str, where: str, port: str, baud: int | None, options: DoctorOptions
-) -> bool:
-    """The checks before a driver opens a serial port; False stops the driver check."""
-    try:
-        st = os.stat(port)
-    except FileNotFoundError:
-        dangling = os.path.islink(port)
-        report.add(
-            name,
-            FAIL,
-            f"serial port {port} does not exist"
-            + (" (the udev link is there but its device is gone)" if dangling else ""),
-            "plug the device in and power it; `ls -l /dev/serial/by-id/` lists what is "
-            f"connected; install deploy/udev/99-deepxpalm.rules with its serial number "
-            f"(docs/bring-up.md) or set {where}.port to its /dev/serial/by-id/ name",
-        )
-        return False
-    if not stat.S_ISCHR(st.st_mode):
-        report.add(
-            name,
-            FAIL,
-            f"{port} is not a character device (a regular file or directory?)",
-            f"set {where}.port to the serial device",
-        )
-        return False
-    if not os.access(port, os.R_OK | os.W_OK):
-        report.add(
-            name,
-            FAIL,
-            f"no permission to open {port} ({_owner(st)}) as {pwd.getpwuid(os.geteuid()).pw_name}",
-            "add the user to dialout (`sudo usermod -aG dialout $USER`, then log in again); "
-            "the udev rules give the device GROUP=dialout MODE=0660",
-        )
-        return False
-    service = _user(options.service_user)
-    if service is not None and not _permits(
-        st, service.pw_uid, _groups_of(service, SERVICE_GROUPS), os.R_OK | os.W_OK
-    ):
-        report.add(
-            name,
-            FAIL,
-            f"the service user {options.service_user} (with dialout) cannot open {port} "
-            f"({_owner(st)})",
-            "install deploy/udev/99-deepxpalm.rules (GROUP=dialout, MODE=0660) and replug",
-        )
-        return False
-    users = _processes_using(port)
-    if users:
-        pid, cmd = users[0]
-        report.add(
-            name,
-            WARN,
-            f"{port} is open in pid {pid} ({cmd[:80]}); not touching it",
-            "if that is the node, it owns the device: stop it (`systemctl stop "
-            "deepxpalm-robot` / `deepxpalm-operator`) for a full check; otherwise stop "
-            "that process (two readers corrupt each other's bytes)",
-        )
-        return False
-    try:
-        import serial
-
-        with serial.Serial(port, baudrate=baud or 9600, timeout=0):
-            pass
-    except (OSError, ValueError) as e:  # SerialException is an OSError
-        report.add(
-            name,
-            FAIL,
-            f"{port} exists but does not open at {baud} baud: {e}",
-            "check the adapter (dmesg | tail), and that no other program holds it",
-        )
-        return False
-    return True
-
-
 def _run_with_deadline(fn: Any, timeout_s: float) -> tuple[bool, Any]:
     """(finished, result or exception); a driver stuck past the deadline is left behind."""
     box: dict[str, Any] = {}
@@ -680,39 +496,19 @@ def _check_devices(report: Report, role: str, config: Any, options: DoctorOption
                 f"install this machine's extra: pip install 'deepxpalm[{role}]'",
             )
             continue
-        label = f"{kind}"
-        if not _is_simulated(kind):
-            port = section.get("port")
-            host = section.get("host")
-            if isinstance(port, str):
-                baud = section.get("baud", section.get("baudrate"))
-                if not _serial_presence(report, name, where, port, baud, options):
-                    continue
-                label = f"{kind} on {port} at {baud} baud"
-            elif isinstance(host, str):
-                ports = dict(UR_PORTS) if kind == "ur_rtde" else {}
-                if isinstance(port, int):
-                    ports[port] = kind
-                problems = [
-                    p
-                    for p in (_tcp_probe(host, n, options.tcp_timeout_s) for n in ports)
-                    if p is not None
-                ]
-                if problems:
-                    fix = (
-                        f"check {where}.host, the Ethernet cable and this PC's address on the "
-                        "robot's subnet (`ping " + host + "`)"
-                    )
-                    if kind == "ur_rtde":
-                        fix += (
-                            "; on the pendant: robot powered on, Remote Control mode "
-                            "(Settings > System > Remote Control), no firewall on the controller"
-                        )
-                    elif kind == "robotiq_socket":
-                        fix += "; the Robotiq URCap must be installed and the gripper activated"
-                    report.add(name, FAIL, "; ".join(problems), fix)
-                    continue
-                label = f"{kind} at {host} ports {sorted(ports)}"
+        findings = device.preflight(
+            PreflightContext(
+                where=where,
+                tcp_timeout_s=options.tcp_timeout_s,
+                service_user=options.service_user,
+                service_groups=SERVICE_GROUPS,
+            )
+        )
+        if findings:
+            for finding in findings:
+                report.add(name, finding.status, finding.detail, finding.fix)
+            continue
+        label = f"{kind} {device.location()}".rstrip()
         if not options.connect_devices:
             report.add(name, PASS, f"{label}: present (driver not opened: --no-connect)")
             continue
@@ -1095,7 +891,7 @@ def _check_operator_link(report: Report, config: Any, options: DoctorOptions) ->
         hp = _host_port(endpoint)
         if hp is None:
             continue
-        problem = _tcp_probe(hp[0], hp[1], options.tcp_timeout_s)
+        problem = tcp_probe(hp[0], hp[1], options.tcp_timeout_s)
         if problem is not None:
             refused = "refused" in problem
             report.add(
@@ -1249,7 +1045,7 @@ def _check_realtime(report: Report) -> None:
 
 
 def _check_service_user(report: Report, options: DoctorOptions) -> None:
-    user = _user(options.service_user)
+    user = user_named(options.service_user)
     if user is None:
         report.add(
             "service user",

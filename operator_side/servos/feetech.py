@@ -48,6 +48,7 @@ from common.errors import (
     DeviceTimeoutError,
     ProtocolError,
 )
+from common.preflight import Finding, PreflightContext, serial_findings
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration, load_calibration
 from operator_side.servos.limits import check_goals
@@ -148,6 +149,12 @@ class FeetechServoBus(ServoBus):
         self.last_read_s = 0.0
 
     # -- lifecycle ----------------------------------------------------------------
+
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        return serial_findings(self.config.port, self.config.baudrate, context)
+
+    def _location(self) -> str:
+        return f"on {self.config.port} at {self.config.baudrate} baud"
 
     @property
     def is_connected(self) -> bool:

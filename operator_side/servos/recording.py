@@ -53,6 +53,7 @@ class RecordingServoBus(ServoBus):
     """Records each sync write; refuses out-of-limit counts like the real bus."""
 
     Config = RecordingServoBusConfig
+    simulated = True
 
     def __init__(self, config: RecordingServoBusConfig | None = None) -> None:
         self.config = config or RecordingServoBusConfig()

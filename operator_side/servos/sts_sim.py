@@ -435,6 +435,7 @@ class SimulatedFeetechServoBus(FeetechServoBus):
     """The real ``FeetechServoBus`` (and the real SDK) on a fake STS bus."""
 
     Config = SimulatedFeetechConfig  # type: ignore[assignment]
+    simulated = True
 
     def __init__(self, config: SimulatedFeetechConfig | None = None) -> None:
         self.sim_config = config or SimulatedFeetechConfig()

@@ -346,6 +346,7 @@ class SimulatedSerialTactileSensor(SerialTactileSensor):
     """
 
     Config = SimulatedSerialConfig  # type: ignore[assignment]
+    simulated = True
 
     def __init__(self, config: SimulatedSerialConfig | None = None) -> None:
         self.sim_config = config or SimulatedSerialConfig()

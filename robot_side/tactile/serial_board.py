@@ -35,6 +35,7 @@ from common.errors import (
     ProtocolError,
     StaleDataError,
 )
+from common.preflight import Finding, PreflightContext, serial_findings
 from robot_side.tactile.base import GraspTruth, TactileSample, TactileSensor
 from robot_side.tactile.board_calibration import (
     WIRE_SHAPE,
@@ -193,6 +194,12 @@ class SerialTactileSensor(TactileSensor):
         save_board_calibration(self._calibration, path)
 
     # -- lifecycle --------------------------------------------------------------
+
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        return serial_findings(self.config.port, self.config.baud, context)
+
+    def _location(self) -> str:
+        return f"on {self.config.port} at {self.config.baud} baud"
 
     @property
     def is_connected(self) -> bool:
