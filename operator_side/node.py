@@ -74,9 +74,7 @@ class OperatorNode:
         self.servos = servos
         self.recorder = recorder or NullRecorder()
         self._recording = not isinstance(self.recorder, NullRecorder)
-        self._use_calibration(
-            calibration or servos.calibration or LinkGlideCalibration()
-        )
+        self._use_calibration(calibration or servos.calibration or LinkGlideCalibration())
         self._own_ctx = ctx is None
         self.ctx = ctx or make_context()
         self.clock = ClockSync()

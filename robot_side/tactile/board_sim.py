@@ -8,7 +8,7 @@ view, un-mirrored, as the hardware does. It can misbehave on request:
 garbage, bad CRCs, dropped bytes, lost scans, silence, and an unplug.
 
 ``port`` is a symlink to the current pty slave, like a /dev/serial/by-id
-name: after ``disconnect()`` and ``reconnect()`` the pty is new but the name
+name: after ``unplug()`` and ``replug()`` the pty is new but the name
 is the same, so the driver's reopen-by-name is exercised as on a USB replug.
 
 What the pads feel comes from the grasp script, or from a ``ContactSource``
@@ -204,14 +204,14 @@ class TactileBoardSimulator:
     def resume(self) -> None:
         self._paused.clear()
 
-    def disconnect(self) -> None:
-        """Unplug: close the pty and remove the port name. Streaming stops."""
+    def unplug(self) -> None:
+        """Pull the USB cable: close the pty and remove the port name. Streaming stops."""
         with self._lock:
             if self._pty is not None:
                 self._pty.unplug()
         log.info("tactile board simulator unplugged")
 
-    def reconnect(self) -> None:
+    def replug(self) -> None:
         """Plug back in: a new pty behind the same port name. Sequence numbers continue."""
         with self._lock:
             if self._pty is not None and not self._pty.plugged_in:
