@@ -61,7 +61,9 @@ class TactileBoardSimConfig:
     seed: int = param(0, "seeds the pad model, the ADC calibration and the grasp variation")
     script: GraspScript = param(GraspScript(), "the grasps the pads feel")
     generator: GeneratorParams = param(GeneratorParams(), "the synthetic pad model (newtons)")
-    baud: int = param(DEFAULT_BAUD, "the firmware's rate: a driver opening another sees garbage")
+    baudrate: int = param(
+        DEFAULT_BAUD, "the firmware's rate: a driver opening another sees garbage"
+    )
     zero_counts_min: float = param(150.0, "ADC zero offsets are drawn per taxel in [min, max]")
     zero_counts_max: float = param(450.0, "ADC zero offsets are drawn per taxel in [min, max]")
     counts_at_9n: float = param(3000.0, "nominal counts above zero at 9 N (12-bit ADC headroom)")
@@ -283,7 +285,7 @@ class TactileBoardSimulator:
             master = None if self._pty is None else self._pty.master
             if master is None:
                 return  # unplugged: the scan happens, nobody hears it
-            if not self._pty.line_speed_is(cfg.baud):
+            if not self._pty.line_speed_is(cfg.baudrate):
                 self.counters["wrong_baud_scans"] += 1
                 data = bytearray(
                     self._fault_rng.integers(0, 256, len(data), dtype=np.uint8).tobytes()

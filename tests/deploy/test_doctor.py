@@ -161,9 +161,9 @@ def test_serial_board_answers_at_its_baud_and_not_at_another():
     tel, cmd = free_ports(2)
     with TactileBoardSimulator() as board:
         data = _light_robot(tel, cmd)
-        data["tactile"] = {"kind": "serial", "port": board.port, "baud": 921600}
+        data["tactile"] = {"kind": "serial", "port": board.port, "baudrate": 921600}
         good = diagnose("robot", data, "t", NO_PEER).find("device robot.tactile")
-        data["tactile"]["baud"] = 115200
+        data["tactile"]["baudrate"] = 115200
         wrong = diagnose("robot", data, "t", NO_PEER).find("device robot.tactile")
     assert good.status == PASS and "answers" in good.detail
     assert wrong.status == FAIL and "baud" in wrong.detail.lower()

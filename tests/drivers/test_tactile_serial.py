@@ -416,7 +416,7 @@ def test_missing_port_is_named_with_a_hint() -> None:
 
 
 def test_wrong_baud_rate_is_called_that(board) -> None:
-    sensor = _driver(board.port, baud=115200, connect_timeout_s=0.3)
+    sensor = _driver(board.port, baudrate=115200, connect_timeout_s=0.3)
     with pytest.raises(ProtocolError, match="wrong baud rate"):
         sensor.connect()
     assert not sensor.is_connected
