@@ -45,6 +45,7 @@ class PreflightContext:
 
 # ------------------------------------------------------------------ users, files
 def user_named(name: str | None) -> pwd.struct_passwd | None:
+    """None for no name or a user this machine does not have."""
     if name is None:
         return None
     try:
@@ -58,6 +59,7 @@ def current_user_name() -> str:
 
 
 def groups_of(user: pwd.struct_passwd, extra: Iterable[str] = ()) -> set[int]:
+    """The user's groups plus ``extra``: what a unit's SupplementaryGroups= gives it."""
     import grp
 
     extra = tuple(extra)
@@ -107,6 +109,7 @@ def service_user_can(
 
 
 def cmdline(pid: int) -> str:
+    """A process by its command line, for naming who holds a port or a device."""
     try:
         raw = Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:

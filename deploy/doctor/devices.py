@@ -59,6 +59,7 @@ def _short_status(status: Any) -> str:
 
 
 def check_devices(report: Report, role: str, config: Any, options: DoctorOptions) -> None:
+    """Each configured device: its own preflight first, so a missing port is named as one."""
     for family, module in FAMILIES[role]:
         where = f"{role}.{family}"
         section = dict(getattr(config, family))

@@ -140,6 +140,7 @@ def _load_public(path: Path) -> bytes:
 
 
 def check_keys(report: Report, role: str, security: Any, options: DoctorOptions) -> None:
+    """The CURVE keys, one by one: a failed handshake never says which key is wrong."""
     if security.mode != "curve":
         return
     own = _check_secret_key(report, role, security.secret_key_file, options)

@@ -55,6 +55,7 @@ def _host_port(endpoint: str) -> tuple[str, int] | None:
 
 
 def check_endpoints(report: Report, role: str, link: Any) -> None:
+    """Refuse plain TCP off this machine, as the node itself would."""
     from common.security import check_endpoint
 
     for endpoint in (link.telemetry_endpoint, link.command_endpoint):
@@ -386,6 +387,7 @@ def _bind_failure(report: Report, endpoints: list[str], e: Any) -> None:
 
 
 def check_operator_link(report: Report, config: Any, options: DoctorOptions) -> None:
+    """Reach the robot's ports, then talk to it with this operator's own keys and options."""
     import zmq
 
     link = config.link

@@ -20,6 +20,7 @@ def node_section(data: dict[str, Any], role: str) -> dict[str, Any]:
 
 
 def infer_role(data: dict[str, Any]) -> str | None:
+    """The node a file configures when it names only one."""
     present = [r for r in ROLES if isinstance(data.get(r), dict)]
     return present[0] if len(present) == 1 else None
 
@@ -35,6 +36,7 @@ def _config_class(role: str) -> type:
 
 
 def check_config(report: Report, role: str, data: dict[str, Any]) -> Any | None:
+    """Parse the table as the node does; None when it would not start."""
     try:
         config = from_dict(_config_class(role), data, where=role)
     except ConfigError as e:

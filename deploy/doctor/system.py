@@ -13,6 +13,7 @@ from deploy.doctor.report import DoctorOptions, Report
 
 
 def check_governor(report: Report) -> None:
+    """A clock that ramps adds jitter to a 60 Hz loop."""
     files = sorted(glob.glob("/sys/devices/system/cpu/cpu[0-9]*/cpufreq/scaling_governor"))
     if not files:
         report.add(
@@ -59,6 +60,7 @@ def _can_use_fifo() -> tuple[bool, str]:
 
 
 def check_realtime(report: Report) -> None:
+    """Whether the real-time drop-in can work here (only a warning: the units do not need it)."""
     import resource
 
     if not hasattr(os, "SCHED_FIFO"):
@@ -93,6 +95,7 @@ def check_realtime(report: Report) -> None:
 
 
 def check_service_user(report: Report, options: DoctorOptions) -> None:
+    """The systemd units run as this user; its rights are what the doctor checks files against."""
     user = user_named(options.service_user)
     if user is None:
         report.add(
