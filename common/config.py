@@ -9,6 +9,7 @@ that name the key, never silently ignored.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import tomllib
 import types
@@ -20,6 +21,11 @@ from typing import Any, Literal, TypeVar, get_args, get_origin
 from common.errors import ConfigError
 
 T = TypeVar("T")
+
+log = logging.getLogger(__name__)
+
+#: Keys renamed since configs were written: the old name is still read, with a warning.
+RENAMED_KEYS = {"baud": "baudrate"}
 
 
 def param(default: Any, doc: str = "", **kwargs: Any) -> Any:
@@ -56,6 +62,7 @@ def from_dict(cls: type[T], data: Mapping[str, Any] | None, *, where: str = "") 
         raise ConfigError(f"{where or cls.__name__} must be a table, not {type(data).__name__}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    data = _renamed_keys(data, fields, where or cls.__name__)
     unknown = set(data) - set(fields)
     if unknown:
         raise ConfigError(
@@ -71,6 +78,25 @@ def from_dict(cls: type[T], data: Mapping[str, Any] | None, *, where: str = "") 
     except (TypeError, ValueError) as e:
         raise ConfigError(f"[{where or cls.__name__}]: {e}") from None
     return obj
+
+
+def _renamed_keys(
+    data: Mapping[str, Any], fields: Mapping[str, Any], where: str
+) -> Mapping[str, Any]:
+    """``data`` with old key names (``RENAMED_KEYS``) read as their new ones, with a warning."""
+    old = [k for k in data if k not in fields and RENAMED_KEYS.get(k) in fields]
+    if not old:
+        return data
+    data = dict(data)
+    for key in old:
+        new = RENAMED_KEYS[key]
+        if new in data:
+            raise ConfigError(
+                f"[{where}] sets both {key!r} and {new!r}: {key!r} is the old name; keep {new!r}"
+            )
+        log.warning("[%s] %s is deprecated: call it %s (read as that for now)", where, key, new)
+        data[new] = data.pop(key)
+    return data
 
 
 def _convert(tp: Any, value: Any, key: str) -> Any:

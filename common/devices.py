@@ -4,6 +4,10 @@ A device is built from its typed config, does no I/O until ``connect()``,
 and raises ``DeviceNotConnectedError`` when used outside that window. Nodes
 only ever talk to these interfaces, so swapping a scripted source for a
 serial driver against a pseudo-terminal simulator touches no node code.
+
+A device also describes itself to ``deepxpalm doctor``: ``simulated`` says
+there is no hardware behind it, ``location()`` where its hardware is, and
+``preflight()`` what is wrong there before the driver opens it.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from typing import Any, ClassVar, Self
 
 from common.config import from_dict
 from common.errors import ConfigError, DeviceNotConnectedError
+from common.preflight import Finding, PreflightContext
 
 log = logging.getLogger(__name__)
 
@@ -27,6 +32,8 @@ class Device(abc.ABC):
     Config: ClassVar[type]
     #: Human-readable family name used in error messages ("tactile sensor").
     family: ClassVar[str] = "device"
+    #: True when no hardware sits behind it (a simulator, a memory fake, the lab world).
+    simulated: ClassVar[bool] = False
 
     @abc.abstractmethod
     def connect(self) -> None: ...
@@ -43,6 +50,28 @@ class Device(abc.ABC):
             raise DeviceNotConnectedError(
                 f"{self.family} {type(self).__name__} is not connected: call connect() first"
             )
+
+    def preflight(self, context: PreflightContext) -> list[Finding]:
+        """Problems with the hardware found without opening the driver; empty: go ahead.
+
+        A simulated device has no hardware to look for. Drivers override
+        ``_preflight`` (``common.preflight`` has the serial and TCP checks).
+        """
+        if self.simulated:
+            return []
+        return self._preflight(context)
+
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        return []
+
+    def location(self) -> str:
+        """Where the hardware is, for reports ("on /dev/ttyACM0 at 921600 baud"); "" if none."""
+        if self.simulated:
+            return ""
+        return self._location()
+
+    def _location(self) -> str:
+        return ""
 
     def status(self) -> dict[str, Any]:
         """A small JSON-able summary for `deepxpalm devices` and the live view."""

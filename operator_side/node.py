@@ -81,9 +81,7 @@ class OperatorNode:
         self.now = now
         self.recorder = recorder or NullRecorder()
         self._recording = not isinstance(self.recorder, NullRecorder)
-        self._use_calibration(
-            calibration or getattr(servos, "calibration", None) or LinkGlideCalibration()
-        )
+        self._use_calibration(calibration or servos.calibration or LinkGlideCalibration())
         self._own_ctx = ctx is None
         self.ctx = ctx or make_context()
         self.clock = ClockSync()
@@ -145,7 +143,7 @@ class OperatorNode:
         link = self.config.link
         if not self.servos.is_connected:
             self.servos.connect()
-        bus_calibration = getattr(self.servos, "calibration", None)
+        bus_calibration = self.servos.calibration
         if bus_calibration is not None and bus_calibration is not self.calibration:
             self._use_calibration(bus_calibration)  # the bus's limits are the ones enforced
         try:

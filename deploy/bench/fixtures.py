@@ -124,7 +124,10 @@ class PacketBuilder:
         self.port = CapturePort()
 
     def build(self, goals: Mapping[int, int]) -> bytes:
-        checked = check_goals(self.calibration, goals)
+        return self.send(check_goals(self.calibration, goals))
+
+    def send(self, checked: Mapping[int, int]) -> bytes:
+        """Goals already checked (``ServoBus.write_goals`` does) into the packet."""
         self.port.clearPort()
         self.port.writePort(self.packet.build([checked[i] for i in self.ids]))
         return self.port.last_packet
@@ -157,8 +160,8 @@ class PacketServoBus(ServoBus):
     def is_connected(self) -> bool:
         return self._connected
 
-    def write_goals(self, goals: Mapping[int, int]) -> None:
-        self.last_packet = self.builder.build(goals)
+    def _write_goals(self, goals: dict[int, int]) -> None:
+        self.last_packet = self.builder.send(goals)
         self.last_write_ns = now_ns()
         self.writes += 1
 

@@ -2,7 +2,9 @@
 
 Angles are converted to counts (and clipped to each servo's limits) by
 ``operator_side.servos.calibration`` before they reach a bus; a bus refuses
-counts outside those limits as a second line of defence.
+counts outside those limits as a second line of defence. That check lives
+here, in ``write_goals``, so no bus can forget it: a bus only implements
+``_write_goals`` for goals that have passed it.
 """
 
 from __future__ import annotations
@@ -11,14 +13,41 @@ import abc
 from collections.abc import Mapping
 
 from common.devices import Device
+from common.errors import DeviceError
+from operator_side.servos.calibration import LinkGlideCalibration
+from operator_side.servos.limits import GoalOutOfLimitsError, check_goals
 
 
 class ServoBus(Device):
     family = "servo bus"
 
+    #: The limits this bus enforces (None until ``connect`` loads them); the node renders with them.
+    calibration: LinkGlideCalibration | None = None
+    #: Writes refused by the limits check (nothing was sent for them).
+    refused_writes: int = 0
+
+    def write_goals(self, goals: Mapping[int, int]) -> dict[int, int]:
+        """Send all goal positions (servo id -> counts) in one sync write; returns what was sent.
+
+        Out-of-limit goals raise ``GoalOutOfLimitsError`` and nothing is sent.
+        """
+        self.require_connected()
+        calibration = self.calibration
+        if calibration is None:
+            raise DeviceError(
+                f"servo bus {type(self).__name__} has no calibration: connect() loads it"
+            )
+        try:
+            checked = check_goals(calibration, goals)
+        except GoalOutOfLimitsError:
+            self.refused_writes += 1
+            raise
+        self._write_goals(checked)
+        return checked
+
     @abc.abstractmethod
-    def write_goals(self, goals: Mapping[int, int]) -> None:
-        """Send all goal positions (servo id -> counts) in one sync write."""
+    def _write_goals(self, goals: dict[int, int]) -> None:
+        """Put goals already checked against the calibration on the wire."""
 
     @abc.abstractmethod
     def read_positions(self) -> dict[int, int]:

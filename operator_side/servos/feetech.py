@@ -3,7 +3,7 @@
 What the driver adds to the SDK, and why:
 
 - Safety first: goals outside the calibrated limits are refused before any
-  byte is built (``limits.check_goals``); torque goes off on ``disconnect``
+  byte is built (``ServoBus.write_goals``); torque goes off on ``disconnect``
   and on every fatal error, so a failing bus leaves the palm free.
 - One lock per port: the SDK's ``is_using`` flag is not thread-safe, and the
   node's control loop and a monitor may share the bus.
@@ -48,6 +48,7 @@ from common.errors import (
     DeviceTimeoutError,
     ProtocolError,
 )
+from common.preflight import Finding, PreflightContext, serial_findings
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration, load_calibration
 from operator_side.servos.limits import check_goals
@@ -149,6 +150,12 @@ class FeetechServoBus(ServoBus):
 
     # -- lifecycle ----------------------------------------------------------------
 
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        return serial_findings(self.config.port, self.config.baudrate, context)
+
+    def _location(self) -> str:
+        return f"on {self.config.port} at {self.config.baudrate} baud"
+
     @property
     def is_connected(self) -> bool:
         return self._port is not None
@@ -199,11 +206,9 @@ class FeetechServoBus(ServoBus):
 
     # -- ServoBus -------------------------------------------------------------------
 
-    def write_goals(self, goals: Mapping[int, int]) -> None:
-        """One sync write of every goal; out-of-limit goals raise and nothing is sent."""
+    def _write_goals(self, checked: dict[int, int]) -> None:
+        """One sync write of every goal (``write_goals`` has checked them against the limits)."""
         self._require_healthy()
-        assert self._calibration is not None
-        checked = check_goals(self._calibration, goals)
         t = time.perf_counter()
         if checked.keys() == self._goal_id_set:  # every servo: the control loop's write
             self._write_packet(self._goal_packet.build([checked[i] for i in self._goal_ids]))

@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import threading
 from collections import deque
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,7 +22,6 @@ from common.devices import Device
 from common.errors import DeviceAlreadyConnectedError
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration, load_calibration
-from operator_side.servos.limits import check_goals
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +51,7 @@ class RecordingServoBus(ServoBus):
     """Records each sync write; refuses out-of-limit counts like the real bus."""
 
     Config = RecordingServoBusConfig
+    simulated = True
 
     def __init__(self, config: RecordingServoBusConfig | None = None) -> None:
         self.config = config or RecordingServoBusConfig()
@@ -63,7 +62,6 @@ class RecordingServoBus(ServoBus):
         self._positions: dict[int, int] = {}
         self._torque = False
         self._writes = 0
-        self._refused = 0
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -92,15 +90,7 @@ class RecordingServoBus(ServoBus):
 
     # -- ServoBus ------------------------------------------------------------
 
-    def write_goals(self, goals: Mapping[int, int]) -> None:
-        self.require_connected()
-        assert self._calibration is not None
-        try:
-            checked = check_goals(self._calibration, goals)
-        except Exception:
-            with self._lock:
-                self._refused += 1
-            raise
+    def _write_goals(self, checked: dict[int, int]) -> None:
         with self._lock:
             self._records.append(GoalRecord(now_ns(), checked))
             self._positions.update(checked)
@@ -138,5 +128,5 @@ class RecordingServoBus(ServoBus):
     def status(self) -> dict[str, Any]:
         s = Device.status(self)
         with self._lock:
-            s.update(writes=self._writes, refused=self._refused, torque=self._torque)
+            s.update(writes=self._writes, refused=self.refused_writes, torque=self._torque)
         return s

@@ -239,13 +239,13 @@ class FakeStsBus:
                 servo.position = float(counts)
                 servo._put(PRESENT_POSITION.address, 2, counts & 0xFFFF)
 
-    def disconnect(self) -> None:
+    def unplug(self) -> None:
         """Unplug the adapter: the pty and its name disappear."""
         with self._lock:
             self._link.unplug()
             self._buf.clear()
 
-    def reconnect(self) -> None:
+    def replug(self) -> None:
         """Plug it back: a new pty behind the same name; servos keep their state."""
         with self._lock:
             if not self._link.plugged_in:
@@ -438,6 +438,7 @@ class SimulatedFeetechServoBus(FeetechServoBus):
     """The real ``FeetechServoBus`` (and the real SDK) on a fake STS bus."""
 
     Config = SimulatedFeetechConfig  # type: ignore[assignment]
+    simulated = True
 
     def __init__(self, config: SimulatedFeetechConfig | None = None) -> None:
         self.sim_config = config or SimulatedFeetechConfig()

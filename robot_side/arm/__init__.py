@@ -2,11 +2,13 @@
 
 ``KINDS`` maps a scene's ``kind`` to the class that implements it; a kind a
 scene does not name is never imported. "simulated" is the real ur-rtde
-driver talking to an in-process simulator on a loopback address.
+driver talking to an in-process simulator on a loopback address; "memory"
+is the safety layer over a driver that only records (tests, benches).
 """
 
 KINDS = {
     "ur_rtde": "robot_side.arm.ur_rtde:URArm",
     "simulated": "robot_side.arm.sim:SimulatedArm",
     "lab": "robot_side.lab.devices:LabArm",
+    "memory": "robot_side.arm.memory:MemoryArm",
 }

@@ -47,6 +47,7 @@ from common.errors import (
     DeviceTimeoutError,
     StaleDataError,
 )
+from common.preflight import Finding, PreflightContext, tcp_findings
 from robot_side.arm.base import Arm, ArmLimits
 
 log = logging.getLogger(__name__)
@@ -76,6 +77,9 @@ SAFETY_MODES = {
     9: "fault",
 }
 
+
+#: ur-rtde's fixed ports on the controller: RTDE, dashboard, the script port.
+CONTROLLER_PORTS = {30004: "RTDE", 29999: "dashboard", 30003: "script"}
 
 #: Control interfaces with a call stuck inside (see ``_control``), kept so no destructor runs.
 _ABANDONED: list[Any] = []
@@ -152,6 +156,16 @@ class URArm(Arm):
         self._stale_events = 0
 
     # -- lifecycle -----------------------------------------------------------
+
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        hint = (
+            "on the pendant: robot powered on, Remote Control mode "
+            "(Settings > System > Remote Control), no firewall on the controller"
+        )
+        return tcp_findings(self.config.host, CONTROLLER_PORTS, context, hint)
+
+    def _location(self) -> str:
+        return f"at {self.config.host} ports {sorted(CONTROLLER_PORTS)}"
 
     @property
     def is_connected(self) -> bool:

@@ -2,7 +2,8 @@
 
 ``KINDS`` maps a scene's ``kind`` to the class that implements it; a kind a
 scene does not name is never imported. "simulated" is the real socket
-driver talking to an in-process simulator over loopback TCP.
+driver talking to an in-process simulator over loopback TCP; "memory" keeps
+the registers in memory (tests, benches).
 """
 
 KINDS = {
@@ -10,4 +11,5 @@ KINDS = {
     "robotiq_rtu": "robot_side.gripper.modbus_rtu:RobotiqRtuGripper",
     "simulated": "robot_side.gripper.sim:SimulatedGripper",
     "lab": "robot_side.lab.devices:LabGripper",
+    "memory": "robot_side.gripper.memory:MemoryGripper",
 }

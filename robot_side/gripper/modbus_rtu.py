@@ -33,6 +33,7 @@ from common.errors import (
     DeviceTimeoutError,
     ProtocolError,
 )
+from common.preflight import Finding, PreflightContext, serial_findings
 from robot_side.gripper.base import GripLevels, Gripper, GripperState
 
 log = logging.getLogger(__name__)
@@ -136,6 +137,12 @@ class RobotiqRtuGripper(Gripper):
         self.crc_errors = 0
         self.timeouts = 0
         self.transactions = 0
+
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        return serial_findings(self.config.port, self.config.baudrate, context)
+
+    def _location(self) -> str:
+        return f"on {self.config.port} at {self.config.baudrate} baud"
 
     @property
     def is_connected(self) -> bool:

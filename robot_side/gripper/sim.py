@@ -433,6 +433,7 @@ class SimulatedGripper(RobotiqSocketGripper):
     """The real socket driver against a simulator it starts on connect, stops on disconnect."""
 
     Config = SimulatedGripperConfig
+    simulated = True
 
     def __init__(self, config: SimulatedGripperConfig | None = None) -> None:
         super().__init__(config or SimulatedGripperConfig())

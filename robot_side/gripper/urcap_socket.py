@@ -29,6 +29,7 @@ from common.errors import (
     DeviceTimeoutError,
     ProtocolError,
 )
+from common.preflight import Finding, PreflightContext, tcp_findings
 from robot_side.gripper.base import GripLevels, Gripper, GripperState
 
 log = logging.getLogger(__name__)
@@ -64,6 +65,13 @@ class RobotiqSocketGripper(Gripper):
     @property
     def where(self) -> str:
         return f"{self.config.host}:{self.config.port}"
+
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        hint = "the Robotiq URCap must be installed and the gripper activated"
+        return tcp_findings(self.config.host, [self.config.port], context, hint)
+
+    def _location(self) -> str:
+        return f"at {self.config.host} ports {[self.config.port]}"
 
     # -- lifecycle -----------------------------------------------------------
 

@@ -79,6 +79,7 @@ class LabTactileSensor(SerialTactileSensor):
     """The real serial driver reading the world's tactile board on its pty."""
 
     Config = LabTactileConfig  # type: ignore[assignment]
+    simulated = True
 
     def __init__(self, config: LabTactileConfig | None = None) -> None:
         self.lab_config = config or LabTactileConfig()
@@ -119,6 +120,7 @@ class LabGripper(RobotiqSocketGripper):
     """The real URCap socket driver against the world's 2F-85."""
 
     Config = LabGripperConfig
+    simulated = True
 
     def __init__(self, config: LabGripperConfig | None = None) -> None:
         super().__init__(config or LabGripperConfig())
@@ -158,6 +160,7 @@ class LabArm(URArm):
     """The real ur-rtde driver against the world's UR3e controller."""
 
     Config = LabArmConfig
+    simulated = True
 
     def __init__(self, config: LabArmConfig | None = None) -> None:
         super().__init__(config or LabArmConfig())

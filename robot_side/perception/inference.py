@@ -42,16 +42,8 @@ from robot_side.perception.weights import DEFAULT_MODEL, read_weights
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("numba", "numpy", "onnxruntime", "torchscript", "torch")
 #: preference order when no backend is named: fastest measured first
 DEFAULT_BACKEND_ORDER = ("numba", "onnxruntime", "numpy", "torchscript", "torch")
-_MODULE_OF = {
-    "numba": "numba",
-    "numpy": "numpy",
-    "onnxruntime": "onnxruntime",
-    "torch": "torch",
-    "torchscript": "torch",
-}
 
 Logits = tuple[np.ndarray, np.ndarray]
 
@@ -190,45 +182,83 @@ def load_classifier(
             except ModelLoadError as e:
                 log.warning("classifier backend %s unusable (%s); trying the next", b, e)
         backend = usable[-1]
-    if backend not in BACKENDS:
+    if backend not in BACKEND_TABLE:
         raise ModelLoadError(f"unknown backend {backend!r}; choose one of {list(BACKENDS)}")
     if not backend_installed(backend):
         raise ModelLoadError(
-            f"backend {backend!r} needs the Python package {_MODULE_OF[backend]!r}, which is "
-            "not installed: install the robot extra (pip install 'deepxpalm[robot]') "
+            f"backend {backend!r} needs the Python package {BACKEND_TABLE[backend].module!r}, "
+            "which is not installed: install the robot extra (pip install 'deepxpalm[robot]') "
             "or choose backend='numpy'"
         )
     weights, meta = read_weights(path)
-    one = classify = None
-    if backend == "numba":
-        try:
-            from robot_side.perception.numba_forward import NumbaForward
-
-            fn = NumbaForward(weights, meta)
-        except ModelLoadError:
-            raise
-        except Exception as e:  # numba's own errors: a broken install or toolchain
-            raise ModelLoadError(f"the numba backend failed to compile: {e}") from e
-        one, classify = fn.one, fn.classify_one
-    elif backend == "numpy":
-        fn = NumpyForward(weights, meta)
-    elif backend == "onnxruntime":
-        fn, one = _onnx_logits(path.with_suffix(".onnx"), num_threads)
-    else:
-        fn = _torch_logits(
-            weights, meta, scripted=backend == "torchscript", num_threads=num_threads
-        )
+    fn, one, classify = BACKEND_TABLE[backend].load(weights, meta, path, num_threads)
     log.info("loaded tilt classifier %s with backend %s", path, backend)
     return TiltClassifier(fn, backend, meta, path, logits_one=one, classify_one=classify)
 
 
+Weights = dict[str, np.ndarray]
+Meta = dict[str, Any]
+#: A loaded forward pass: (batch logits, batch-1 logits or None, batch-1 classify or None).
+Loaded = tuple[Callable[..., Any], Callable[..., Any] | None, Callable[..., Any] | None]
+
+
+@dataclass(frozen=True)
+class Backend:
+    """One way to run the weights: the package it needs, a file it needs, how it loads."""
+
+    module: str  # the Python package that must be installed
+    load: Callable[[Weights, Meta, Path, int], Loaded]
+    beside_weights: str = ""  # a suffix of a file it needs next to the .npz (".onnx")
+
+
+def _load_numba(weights: Weights, meta: Meta, path: Path, num_threads: int) -> Loaded:
+    try:
+        from robot_side.perception.numba_forward import NumbaForward
+
+        fn = NumbaForward(weights, meta)
+    except ModelLoadError:
+        raise
+    except Exception as e:  # numba's own errors: a broken install or toolchain
+        raise ModelLoadError(f"the numba backend failed to compile: {e}") from e
+    return fn, fn.one, fn.classify_one
+
+
+def _load_numpy(weights: Weights, meta: Meta, path: Path, num_threads: int) -> Loaded:
+    return NumpyForward(weights, meta), None, None
+
+
+def _load_onnxruntime(weights: Weights, meta: Meta, path: Path, num_threads: int) -> Loaded:
+    fn, one = _onnx_logits(path.with_suffix(".onnx"), num_threads)
+    return fn, one, None
+
+
+def _load_torchscript(weights: Weights, meta: Meta, path: Path, num_threads: int) -> Loaded:
+    return _torch_logits(weights, meta, scripted=True, num_threads=num_threads), None, None
+
+
+def _load_torch(weights: Weights, meta: Meta, path: Path, num_threads: int) -> Loaded:
+    return _torch_logits(weights, meta, scripted=False, num_threads=num_threads), None, None
+
+
+#: Every backend by name; a new one is a loader and a line here.
+BACKEND_TABLE: dict[str, Backend] = {
+    "numba": Backend("numba", _load_numba),
+    "numpy": Backend("numpy", _load_numpy),
+    "onnxruntime": Backend("onnxruntime", _load_onnxruntime, beside_weights=".onnx"),
+    "torchscript": Backend("torch", _load_torchscript),
+    "torch": Backend("torch", _load_torch),
+}
+BACKENDS = tuple(BACKEND_TABLE)
+
+
 def backend_installed(backend: str) -> bool:
     """Whether the backend's package imports here (the bench picks its default by this)."""
-    return importlib.util.find_spec(_MODULE_OF[backend]) is not None
+    return importlib.util.find_spec(BACKEND_TABLE[backend].module) is not None
 
 
 def _usable(backend: str, path: Path) -> bool:
-    if backend == "onnxruntime" and not path.with_suffix(".onnx").is_file():
+    needs = BACKEND_TABLE[backend].beside_weights
+    if needs and not path.with_suffix(needs).is_file():
         return False
     return backend_installed(backend)
 

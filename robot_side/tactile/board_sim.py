@@ -8,7 +8,7 @@ view, un-mirrored, as the hardware does. It can misbehave on request:
 garbage, bad CRCs, dropped bytes, lost scans, silence, and an unplug.
 
 ``port`` is a symlink to the current pty slave, like a /dev/serial/by-id
-name: after ``disconnect()`` and ``reconnect()`` the pty is new but the name
+name: after ``unplug()`` and ``replug()`` the pty is new but the name
 is the same, so the driver's reopen-by-name is exercised as on a USB replug.
 
 What the pads feel comes from the grasp script, or from a ``ContactSource``
@@ -61,7 +61,9 @@ class TactileBoardSimConfig:
     seed: int = param(0, "seeds the pad model, the ADC calibration and the grasp variation")
     script: GraspScript = param(GraspScript(), "the grasps the pads feel")
     generator: GeneratorParams = param(GeneratorParams(), "the synthetic pad model (newtons)")
-    baud: int = param(DEFAULT_BAUD, "the firmware's rate: a driver opening another sees garbage")
+    baudrate: int = param(
+        DEFAULT_BAUD, "the firmware's rate: a driver opening another sees garbage"
+    )
     zero_counts_min: float = param(150.0, "ADC zero offsets are drawn per taxel in [min, max]")
     zero_counts_max: float = param(450.0, "ADC zero offsets are drawn per taxel in [min, max]")
     counts_at_9n: float = param(3000.0, "nominal counts above zero at 9 N (12-bit ADC headroom)")
@@ -204,14 +206,14 @@ class TactileBoardSimulator:
     def resume(self) -> None:
         self._paused.clear()
 
-    def disconnect(self) -> None:
-        """Unplug: close the pty and remove the port name. Streaming stops."""
+    def unplug(self) -> None:
+        """Pull the USB cable: close the pty and remove the port name. Streaming stops."""
         with self._lock:
             if self._pty is not None:
                 self._pty.unplug()
         log.info("tactile board simulator unplugged")
 
-    def reconnect(self) -> None:
+    def replug(self) -> None:
         """Plug back in: a new pty behind the same port name. Sequence numbers continue."""
         with self._lock:
             if self._pty is not None and not self._pty.plugged_in:
@@ -291,7 +293,7 @@ class TactileBoardSimulator:
             master = None if self._pty is None else self._pty.master
             if master is None:
                 return  # unplugged: the scan happens, nobody hears it
-            if not self._pty.line_speed_is(cfg.baud):
+            if not self._pty.line_speed_is(cfg.baudrate):
                 self.counters["wrong_baud_scans"] += 1
                 data = bytearray(
                     self._fault_rng.integers(0, 256, len(data), dtype=np.uint8).tobytes()
@@ -354,6 +356,7 @@ class SimulatedSerialTactileSensor(SerialTactileSensor):
     """
 
     Config = SimulatedSerialConfig  # type: ignore[assignment]
+    simulated = True
 
     def __init__(self, config: SimulatedSerialConfig | None = None) -> None:
         self.sim_config = config or SimulatedSerialConfig()

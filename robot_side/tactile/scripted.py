@@ -39,6 +39,7 @@ class ScriptedTactileConfig:
 
 class ScriptedTactileSensor(TactileSensor):
     Config = ScriptedTactileConfig
+    simulated = True
 
     def __init__(self, config: ScriptedTactileConfig | None = None) -> None:
         super().__init__()

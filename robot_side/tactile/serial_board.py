@@ -35,6 +35,7 @@ from common.errors import (
     ProtocolError,
     StaleDataError,
 )
+from common.preflight import Finding, PreflightContext, serial_findings
 from robot_side.tactile.base import GraspTruth, TactileSample, TactileSensor
 from robot_side.tactile.board_calibration import (
     WIRE_SHAPE,
@@ -62,7 +63,9 @@ class SerialTactileConfig:
     port: str = param(
         "/dev/ttyACM0", "the board's serial port; prefer its stable /dev/serial/by-id/... name"
     )
-    baud: int = param(DEFAULT_BAUD, "must match the board firmware; 921600 carries 120 Hz at 55 %")
+    baudrate: int = param(
+        DEFAULT_BAUD, "must match the board firmware; 921600 carries 120 Hz at 55 %"
+    )
     max_age_ms: float = param(
         50.0, "read_latest() default: a newer frame is due every 8.3 ms, so 6 missed = stale"
     )
@@ -96,8 +99,8 @@ class SerialTactileConfig:
             raise ValueError("need 0 <= floor_n < saturation_n")
         if self.zero_on_connect_frames < 0:
             raise ValueError("zero_on_connect_frames must not be negative")
-        if self.baud <= 0:
-            raise ValueError(f"baud must be positive, not {self.baud}")
+        if self.baudrate <= 0:
+            raise ValueError(f"baudrate must be positive, not {self.baudrate}")
 
 
 class SerialTactileSensor(TactileSensor):
@@ -194,6 +197,12 @@ class SerialTactileSensor(TactileSensor):
 
     # -- lifecycle --------------------------------------------------------------
 
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        return serial_findings(self.config.port, self.config.baudrate, context)
+
+    def _location(self) -> str:
+        return f"on {self.config.port} at {self.config.baudrate} baud"
+
     @property
     def is_connected(self) -> bool:
         return self._running
@@ -222,7 +231,7 @@ class SerialTactileSensor(TactileSensor):
         except BaseException:
             self.disconnect()
             raise
-        log.info("tactile board streaming on %s at %d baud", cfg.port, cfg.baud)
+        log.info("tactile board streaming on %s at %d baud", cfg.port, cfg.baudrate)
 
     def disconnect(self) -> None:
         self._stop.set()
@@ -257,7 +266,7 @@ class SerialTactileSensor(TactileSensor):
 
     def status(self) -> dict[str, Any]:
         s = Device.status(self)
-        s.update(port=self.config.port, baud=self.config.baud, link=self._link)
+        s.update(port=self.config.port, baudrate=self.config.baudrate, link=self._link)
         if self._link_error:
             s["link_error"] = self._link_error
         s.update(self.stats())
@@ -277,10 +286,12 @@ class SerialTactileSensor(TactileSensor):
             raise DeviceError(f"tactile board port {cfg.port} does not exist: {_PORT_HINT}")
         try:
             return serial.Serial(
-                cfg.port, baudrate=cfg.baud, timeout=cfg.read_timeout_s, exclusive=True
+                cfg.port, baudrate=cfg.baudrate, timeout=cfg.read_timeout_s, exclusive=True
             )
         except ValueError as e:  # pyserial rejects the rate or a setting
-            raise ConfigError(f"tactile board: baud {cfg.baud} rejected by {cfg.port}: {e}") from e
+            raise ConfigError(
+                f"tactile board: baudrate {cfg.baudrate} rejected by {cfg.port}: {e}"
+            ) from e
         except serial.SerialException as e:
             if isinstance(e.__context__, PermissionError) or "Permission denied" in str(e):
                 raise DeviceError(
@@ -476,7 +487,7 @@ class SerialTactileSensor(TactileSensor):
             return (
                 f"bytes arrive on {cfg.port} but no valid packet "
                 f"(bad_crc={st.bad_crc}, bad_header={st.bad_header}, dropped_bytes="
-                f"{st.dropped_bytes}): wrong baud rate? baud = {cfg.baud}, "
+                f"{st.dropped_bytes}): wrong baud rate? baudrate = {cfg.baudrate}, "
                 "it must match the firmware"
             )
         return (
@@ -493,7 +504,7 @@ class SerialTactileSensor(TactileSensor):
             )
         if st.bytes_in == 0:
             return DeviceTimeoutError(
-                f"opened {cfg.port} at {cfg.baud} baud but the tactile board sent nothing in "
+                f"opened {cfg.port} at {cfg.baudrate} baud but the tactile board sent nothing in "
                 f"{waited_s:.1f} s: is it powered and streaming? Is this the right port? "
                 f"({_PORT_HINT})"
             )
@@ -501,7 +512,7 @@ class SerialTactileSensor(TactileSensor):
             return ProtocolError(
                 f"received {st.bytes_in} bytes on {cfg.port} in {waited_s:.1f} s but not one valid "
                 f"packet (bad_crc={st.bad_crc}, bad_header={st.bad_header}): wrong baud rate? "
-                f"baud = {cfg.baud} must match the board firmware (docs/tactile-wire.md); "
+                f"baudrate = {cfg.baudrate} must match the board firmware (docs/tactile-wire.md); "
                 "or this is not a tactile board"
             )
         return ProtocolError(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import re
 import subprocess
 from importlib import resources
@@ -74,10 +75,15 @@ def test_netsim_scene_simulates_every_device_and_names_a_real_scenario():
     from common.netsim.scenario import load_scenario
 
     scene = load_scene("netsim")
-    kinds = [scene.robot.tactile, scene.robot.gripper, scene.robot.arm, scene.operator.servos]
-    assert all(
-        k["kind"].startswith("simulated") or k["kind"] in ("scripted", "recording") for k in kinds
-    )
+    sections = {
+        "robot_side.tactile": scene.robot.tactile,
+        "robot_side.gripper": scene.robot.gripper,
+        "robot_side.arm": scene.robot.arm,
+        "operator_side.servos": scene.operator.servos,
+    }
+    for family, section in sections.items():
+        kind = importlib.import_module(family).KINDS[section["kind"]]
+        assert load_object(kind).simulated, f"{family} kind {section['kind']!r} is real hardware"
     assert scene.network.enabled
     load_scenario(scene.network.scenario)
     text = resources.files("deploy.scenes").joinpath("netsim.toml").read_text()

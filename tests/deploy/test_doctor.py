@@ -11,9 +11,11 @@ import pytest
 from deploy_support import ENV, cli, loopback
 from tests_support import free_ports
 
+from common.preflight import Finding, PreflightContext
 from deploy.doctor import FAIL, PASS, SKIP, WARN, DoctorOptions, diagnose, node_section
 from deploy.keys_cli import generate
 from deploy.scene import load_scene_dict
+from robot_side.gripper.memory import MemoryGripper
 
 #: No test may depend on whether this machine has the units' user.
 OPTS = DoctorOptions(peer_timeout_s=1.5, device_timeout_s=15.0, service_user="nobody-deepxpalm")
@@ -161,9 +163,9 @@ def test_serial_board_answers_at_its_baud_and_not_at_another():
     tel, cmd = free_ports(2)
     with TactileBoardSimulator() as board:
         data = _light_robot(tel, cmd)
-        data["tactile"] = {"kind": "serial", "port": board.port, "baud": 921600}
+        data["tactile"] = {"kind": "serial", "port": board.port, "baudrate": 921600}
         good = diagnose("robot", data, "t", NO_PEER).find("device robot.tactile")
-        data["tactile"]["baud"] = 115200
+        data["tactile"]["baudrate"] = 115200
         wrong = diagnose("robot", data, "t", NO_PEER).find("device robot.tactile")
     assert good.status == PASS and "answers" in good.detail
     assert wrong.status == FAIL and "baud" in wrong.detail.lower()
@@ -344,3 +346,24 @@ def test_missing_robot_public_key_says_where_to_copy_it_from(keys, tmp_path):
     )
     assert check.status == FAIL and check.detail == f"{missing} does not exist"
     assert "robot PC" in check.fix
+
+
+# ------------------------------------------------------------- device kinds
+class _OwnKindGripper(MemoryGripper):
+    """A kind doctor has never heard of: what it reports comes from the device alone."""
+
+    simulated = False
+
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        return [Finding(WARN, "the gripper's LED blinks red", f"press reset ({context.where})")]
+
+
+def test_doctor_reports_a_kinds_own_preflight_findings(monkeypatch):
+    import robot_side.gripper
+
+    monkeypatch.setitem(robot_side.gripper.KINDS, "own_kind", f"{__name__}:_OwnKindGripper")
+    tel, cmd = free_ports(2)
+    data = _light_robot(tel, cmd, gripper={"kind": "own_kind"})
+    check = diagnose("robot", data, "t", NO_PEER).find("device robot.gripper")
+    assert (check.status, check.detail) == (WARN, "the gripper's LED blinks red")
+    assert check.fix == "press reset (robot.gripper)"

@@ -237,14 +237,14 @@ def test_error_bits_at_connect_are_reported_not_fatal(fake, caplog) -> None:
 
 def test_vanished_adapter_and_reconnect(fake) -> None:
     with _bus(fake.port) as bus:
-        fake.disconnect()
+        fake.unplug()
         with pytest.raises(DeviceError, match="vanished"):
             for _ in range(3):  # the first write may still land in the pty buffer
                 bus.write_goals(_goals(2100))
                 bus.read_positions()
         with pytest.raises(DeviceError, match="reconnect"):
             bus.read_positions()
-        fake.reconnect()
+        fake.replug()
         bus.reconnect()
         bus.write_goals(_goals(2150))
         _wait(lambda: bus.read_positions()[1] == 2150)

@@ -92,3 +92,34 @@ def test_inline_calibration_from_scene_section() -> None:
             bus.write_goals(_goals(201))
     with pytest.raises(ConfigError, match="max_records"):
         build_device(KINDS, {"kind": "recording", "max_records": 0}, "servos")
+
+
+def test_every_bus_checks_limits_itself_and_returns_what_it_sent() -> None:
+    """The check is ServoBus's: a bus that only puts bytes on the wire cannot skip it."""
+    from operator_side.servos.base import ServoBus
+
+    class WireOnlyBus(ServoBus):
+        Config = dict
+        calibration = LinkGlideCalibration()
+        is_connected = True
+
+        def __init__(self) -> None:
+            self.sent: list[dict[int, int]] = []
+
+        def connect(self) -> None: ...
+
+        def disconnect(self) -> None: ...
+
+        def _write_goals(self, goals: dict[int, int]) -> None:
+            self.sent.append(goals)
+
+        def read_positions(self) -> dict[int, int]:
+            return {}
+
+        def set_torque(self, enabled: bool) -> None: ...
+
+    bus = WireOnlyBus()
+    assert bus.write_goals({1: 2048.0}) == {1: 2048}
+    with pytest.raises(GoalOutOfLimitsError, match="servo 2"):
+        bus.write_goals({1: 2048, 2: 5000})
+    assert bus.sent == [{1: 2048}] and bus.refused_writes == 1

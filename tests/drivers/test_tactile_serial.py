@@ -378,14 +378,14 @@ def test_a_board_that_stops_streaming_is_a_stale_data_error(board) -> None:
 def test_vanished_board_is_detected_and_reconnected(board) -> None:
     with _driver(board.port) as sensor:
         first = _frames(sensor, 2)[-1]
-        board.disconnect()
+        board.unplug()
         _wait(lambda: sensor.stats()["disconnects"] == 1)
         assert sensor.status()["link"] == "down"
         time.sleep(0.03)  # let the newest frame age past the limit
         with pytest.raises(StaleDataError, match="vanished"):
             sensor.read_latest(max_age_ms=20)
         time.sleep(0.1)  # a few failed reopen attempts while unplugged
-        board.reconnect()
+        board.replug()
         again = sensor.wait_for_frame(first.seq, 2.0)
         assert again is not None and again.seq > first.seq
         assert sensor.stats()["reconnects"] == 1
@@ -396,9 +396,9 @@ def test_explicit_reconnect_without_auto_reconnect(board) -> None:
     sensor = _driver(board.port, auto_reconnect=False)
     with sensor:
         first = _frames(sensor, 1)[0]
-        board.disconnect()
+        board.unplug()
         _wait(lambda: sensor.stats()["disconnects"] == 1)
-        board.reconnect()
+        board.replug()
         time.sleep(0.1)
         with pytest.raises(StaleDataError, match="auto_reconnect is off"):
             sensor.read_latest(max_age_ms=20)
@@ -416,7 +416,7 @@ def test_missing_port_is_named_with_a_hint() -> None:
 
 
 def test_wrong_baud_rate_is_called_that(board) -> None:
-    sensor = _driver(board.port, baud=115200, connect_timeout_s=0.3)
+    sensor = _driver(board.port, baudrate=115200, connect_timeout_s=0.3)
     with pytest.raises(ProtocolError, match="wrong baud rate"):
         sensor.connect()
     assert not sensor.is_connected

@@ -5,7 +5,7 @@ valid stream going (what the node must keep serving) and an "evil" socket
 carries the fuzz. Sends are paced on the node's own receive counter, so no
 message is dropped at a high-water mark and every rejection can be
 accounted for exactly. The devices behind the robot node are the project's
-real safety layers (``Arm``, ``Gripper``) over in-memory drivers that keep
+real safety layers (``Arm``, ``Gripper``) over its memory kinds, which keep
 what they were told.
 """
 
@@ -29,9 +29,9 @@ from common.transport import last_endpoint
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus, RecordingServoBusConfig
-from robot_side.arm.base import Arm
+from robot_side.arm.memory import MemoryArm
 from robot_side.config import RobotConfig
-from robot_side.gripper.base import ActivationStatus, Gripper, GripperState, ObjectStatus
+from robot_side.gripper.memory import MemoryGripper
 from robot_side.node import RobotNode
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
@@ -70,108 +70,29 @@ def wait_for(cond, timeout_s: float, step_s: float = 0.002) -> bool:
     return bool(cond())
 
 
-# ------------------------------------------------------------ fake devices
-class FakeArm(Arm):
-    """The real ``Arm`` safety layer (clipping, deadman) over a driver that only records."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self._connected = False
-        self.sent_jogs: list[np.ndarray] = []
-        self.stops = 0
-        self._lock_rec = threading.Lock()
-
-    def connect(self) -> None:
-        self._connected = True
-        self._start_deadman()
-
-    def disconnect(self) -> None:
-        self._stop_deadman()
-        self._connected = False
-
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
-    def _read_tcp_pose(self) -> np.ndarray:
-        return np.array([0.0, 0.0, 0.3, 0.0, 3.14, 0.0])
-
-    def _read_joints(self) -> np.ndarray:
-        return np.zeros(6)
-
-    def _send_jog(self, velocity: np.ndarray) -> None:
-        with self._lock_rec:
-            self.sent_jogs.append(np.array(velocity, dtype=float))
-
-    def _send_move(self, pose: np.ndarray, speed: float) -> None:
-        raise AssertionError("nothing on the wire asks for a move")
-
-    def _move_finished(self) -> bool:
-        return True
-
-    def _send_stop(self) -> None:
-        self.stops += 1
-
-    def violations(self) -> list[str]:
-        """Every jog the driver was told must be finite and inside the speed caps."""
-        lim = self.limits
-        bad = []
-        with self._lock_rec:
-            jogs = list(self.sent_jogs)
-        for v in jogs:
-            if v.shape != (6,) or not np.isfinite(v).all():
-                bad.append(f"non-finite or misshapen jog {v!r}")
-            elif np.linalg.norm(v[:3]) > lim.max_linear_speed_m_s * (1 + 1e-9):
-                bad.append(f"jog over the linear cap: {v.tolist()}")
-            elif np.linalg.norm(v[3:]) > lim.max_angular_speed_rad_s * (1 + 1e-9):
-                bad.append(f"jog over the angular cap: {v.tolist()}")
-        return bad
+# ------------------------------------------------------------ device checks
+def arm_violations(arm: MemoryArm) -> list[str]:
+    """Every jog the driver was told must be finite and inside the speed caps; no moves."""
+    lim = arm.limits
+    bad = [f"a move to {pose.tolist()} (nothing on the wire asks for one)" for pose, _ in arm.moves]
+    for v in arm.sent_jogs:
+        if v.shape != (6,) or not np.isfinite(v).all():
+            bad.append(f"non-finite or misshapen jog {v!r}")
+        elif np.linalg.norm(v[:3]) > lim.max_linear_speed_m_s * (1 + 1e-9):
+            bad.append(f"jog over the linear cap: {v.tolist()}")
+        elif np.linalg.norm(v[3:]) > lim.max_angular_speed_rad_s * (1 + 1e-9):
+            bad.append(f"jog over the angular cap: {v.tolist()}")
+    return bad
 
 
-class FakeGripper(Gripper):
-    """The real ``Gripper`` checks over registers kept in memory; fingers arrive at once."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self._connected = False
-        self._active = False
-        self._position = 0
-        self.commands: list[tuple[int, int, int, bool]] = []
-
-    def connect(self) -> None:
-        self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
-    def _write_activate(self) -> None:
-        self._active = True
-
-    def _write_command(self, position: int, speed: int, force: int, go: bool) -> None:
-        self.commands.append((position, speed, force, go))
-        self._position = position
-
-    def _read_state(self) -> GripperState:
-        return GripperState(
-            activation=ActivationStatus.ACTIVE if self._active else 0,
-            goto=True,
-            object_status=ObjectStatus.AT_POSITION,
-            fault=0,
-            requested_position=self._position,
-            position=self._position,
-        )
-
-    def violations(self) -> list[str]:
-        bad = []
-        for cmd in list(self.commands):
-            for v in cmd[:3]:
-                if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 255:
-                    bad.append(f"gripper register value {v!r} in {cmd}")
-        return bad
+def gripper_violations(gripper: MemoryGripper) -> list[str]:
+    """Every register value the gripper was sent must be a byte."""
+    bad = []
+    for cmd in gripper.commands:
+        for v in cmd[:3]:
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 255:
+                bad.append(f"gripper register value {v!r} in {cmd}")
+    return bad
 
 
 # ---------------------------------------------------------------- operator
@@ -332,8 +253,8 @@ class RobotRig:
         rc.render.mode = "mask_ground_truth"
         rc.link.telemetry_endpoint = "tcp://127.0.0.1:*"
         rc.link.command_endpoint = "tcp://127.0.0.1:*"
-        self.arm = FakeArm()
-        self.gripper = FakeGripper()
+        self.arm = MemoryArm()
+        self.gripper = MemoryGripper()
         sensor = ScriptedTactileSensor(ScriptedTactileConfig(script=_hold_script(), seed=11))
         self.node = RobotNode(rc, sensor, gripper=self.gripper, arm=self.arm)
         self.stop = threading.Event()

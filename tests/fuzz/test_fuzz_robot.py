@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 import pytest
-from fuzz_rigs import MutantStream, RobotRig, wait_for
+from fuzz_rigs import MutantStream, RobotRig, arm_violations, gripper_violations, wait_for
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -108,7 +108,7 @@ def test_robot_survives_malformed_commands_and_keeps_serving(rig):
     assert rig.rejected() - base_rejected == sent_bad, "a rejected message was not counted"
     received_cmds = rig.node.counters["commands_received"] - base_cmds
     assert received_cmds == good_cmds + sent_valid_cmds
-    assert rig.arm.violations() == [] and rig.gripper.violations() == []
+    assert arm_violations(rig.arm) == [] and gripper_violations(rig.gripper) == []
     # it kept publishing and answering our heartbeats all along
     assert wait_for(lambda: (rig.read_telemetry(), rig.echoed)[1] > 0, 2)
     assert rig.telemetry["stimulus"] > base_stimuli
@@ -130,7 +130,7 @@ def test_robot_survives_malformed_commands_and_keeps_serving(rig):
             assert rig.sync()
     assert rig.sync() and rig.alive()
     _check_good_commands(rig, checks + 1)
-    assert rig.arm.violations() == [] and rig.gripper.violations() == []
+    assert arm_violations(rig.arm) == [] and gripper_violations(rig.gripper) == []
     assert rig.rejected() - base_rejected == sent_bad
 
 
@@ -189,4 +189,4 @@ def test_robot_obeys_only_commands_that_decode(rig, batch):
     assert rig.sync() and rig.alive()
     assert rig.rejected() - before_rejected == expected_rejected
     assert rig.node.counters["commands_received"] - before_cmds == expected_cmds
-    assert rig.arm.violations() == [] and rig.gripper.violations() == []
+    assert arm_violations(rig.arm) == [] and gripper_violations(rig.gripper) == []

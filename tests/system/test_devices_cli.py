@@ -43,7 +43,7 @@ def test_missing_port_is_named():
 
 def test_wrong_baud_rate_is_diagnosed():
     code, report = devices(
-        'robot.tactile={kind="simulated_serial", driver={baud=115200}}', role="robot"
+        'robot.tactile={kind="simulated_serial", driver={baudrate=115200}}', role="robot"
     )
     assert code == 1
     assert "wrong baud rate" in by_device(report)["robot.tactile"]["error"]

@@ -33,6 +33,7 @@ class SimulatedArm(URArm):
     """The real URArm driver against a simulator it starts on connect and stops on disconnect."""
 
     Config = SimulatedArmConfig
+    simulated = True
 
     def __init__(self, config: SimulatedArmConfig | None = None) -> None:
         super().__init__(config or SimulatedArmConfig())

@@ -1,0 +1,30 @@
+"""An old key name still loads, with a warning that names the new one."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from common.config import from_dict
+from common.errors import ConfigError
+from robot_side.tactile.serial_board import SerialTactileConfig
+
+
+def test_old_baud_key_is_read_as_baudrate_with_a_warning(caplog) -> None:
+    with caplog.at_level(logging.WARNING, logger="common.config"):
+        config = from_dict(SerialTactileConfig, {"baud": 115200}, where="robot.tactile")
+    assert config.baudrate == 115200
+    assert "[robot.tactile] baud is deprecated: call it baudrate" in caplog.text
+
+
+def test_both_names_at_once_is_an_error_that_says_which_to_keep() -> None:
+    with pytest.raises(ConfigError, match="keep 'baudrate'"):
+        from_dict(SerialTactileConfig, {"baud": 1, "baudrate": 2}, where="robot.tactile")
+
+
+def test_an_old_name_the_table_does_not_have_stays_unknown() -> None:
+    from robot_side.arm.ur_rtde import URArmConfig
+
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['baud'\]"):
+        from_dict(URArmConfig, {"baud": 1}, where="robot.arm")
