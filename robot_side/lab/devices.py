@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,6 +68,43 @@ def detach_world(world: LabWorldProcess) -> None:
 WORLD_CONFIG_WHY = "the world's settings (LabWorldConfig TOML); unset = the shipped lab"
 
 
+class OnTheWorld(ABC):
+    """A real driver's ``connect``/``disconnect`` around the shared world process.
+
+    Mixed in before the driver class: ``connect`` attaches to the world,
+    lets the kind point its driver at the world's simulator
+    (:meth:`point_at`), then connects the driver; a failure or a
+    ``disconnect`` detaches again, so the last user stops the world.
+    """
+
+    world: LabWorldProcess | None = None
+
+    def world_config_path(self) -> Path | None:
+        return self.config.world_config  # type: ignore[attr-defined]
+
+    @abstractmethod
+    def point_at(self, addresses: dict) -> None:
+        """Set the driver's port or host from where the world's simulators listen."""
+
+    def connect(self) -> None:
+        self.world = attach_world(self.world_config_path())
+        try:
+            self.point_at(self.world.addresses)
+            super().connect()  # type: ignore[misc]
+        except BaseException:
+            detach_world(self.world)
+            self.world = None
+            raise
+
+    def disconnect(self) -> None:
+        try:
+            super().disconnect()  # type: ignore[misc]
+        finally:
+            if self.world is not None:
+                detach_world(self.world)
+                self.world = None
+
+
 @dataclass
 class LabTactileConfig:
     world_config: Path | None = param(None, WORLD_CONFIG_WHY)
@@ -75,7 +113,7 @@ class LabTactileConfig:
     )
 
 
-class LabTactileSensor(SerialTactileSensor):
+class LabTactileSensor(OnTheWorld, SerialTactileSensor):
     """The real serial driver reading the world's tactile board on its pty."""
 
     Config = LabTactileConfig  # type: ignore[assignment]
@@ -84,29 +122,15 @@ class LabTactileSensor(SerialTactileSensor):
     def __init__(self, config: LabTactileConfig | None = None) -> None:
         self.lab_config = config or LabTactileConfig()
         super().__init__(self.lab_config.driver)
-        self.world: LabWorldProcess | None = None
 
-    def connect(self) -> None:
-        self.world = attach_world(self.lab_config.world_config)
-        a = self.world.addresses
-        try:
-            self.config = dataclasses.replace(self.config, port=a["tactile_port"])
-            if self.config.calibration_file is None:
-                cal = BoardCalibration(np.asarray(a["tactile_zero"]), np.asarray(a["tactile_gain"]))
-                self.set_calibration(cal)
-            super().connect()
-        except BaseException:
-            detach_world(self.world)
-            self.world = None
-            raise
+    def world_config_path(self) -> Path | None:
+        return self.lab_config.world_config
 
-    def disconnect(self) -> None:
-        try:
-            super().disconnect()
-        finally:
-            if self.world is not None:
-                detach_world(self.world)
-                self.world = None
+    def point_at(self, addresses: dict) -> None:
+        self.config = dataclasses.replace(self.config, port=addresses["tactile_port"])
+        if self.config.calibration_file is None:
+            zero, gain = addresses["tactile_zero"], addresses["tactile_gain"]
+            self.set_calibration(BoardCalibration(np.asarray(zero), np.asarray(gain)))
 
 
 @dataclass
@@ -116,7 +140,7 @@ class LabGripperConfig(RobotiqSocketConfig):
     world_config: Path | None = param(None, WORLD_CONFIG_WHY)
 
 
-class LabGripper(RobotiqSocketGripper):
+class LabGripper(OnTheWorld, RobotiqSocketGripper):
     """The real URCap socket driver against the world's 2F-85."""
 
     Config = LabGripperConfig
@@ -124,27 +148,10 @@ class LabGripper(RobotiqSocketGripper):
 
     def __init__(self, config: LabGripperConfig | None = None) -> None:
         super().__init__(config or LabGripperConfig())
-        self.world: LabWorldProcess | None = None
 
-    def connect(self) -> None:
-        assert isinstance(self.config, LabGripperConfig)
-        self.world = attach_world(self.config.world_config)
-        self.config.host = self.world.addresses["gripper_host"]
-        self.config.port = self.world.addresses["gripper_port"]
-        try:
-            super().connect()
-        except BaseException:
-            detach_world(self.world)
-            self.world = None
-            raise
-
-    def disconnect(self) -> None:
-        try:
-            super().disconnect()
-        finally:
-            if self.world is not None:
-                detach_world(self.world)
-                self.world = None
+    def point_at(self, addresses: dict) -> None:
+        self.config.host = addresses["gripper_host"]
+        self.config.port = addresses["gripper_port"]
 
 
 @dataclass
@@ -156,7 +163,7 @@ class LabArmConfig(URArmConfig):
     world_config: Path | None = param(None, WORLD_CONFIG_WHY)
 
 
-class LabArm(URArm):
+class LabArm(OnTheWorld, URArm):
     """The real ur-rtde driver against the world's UR3e controller."""
 
     Config = LabArmConfig
@@ -164,23 +171,6 @@ class LabArm(URArm):
 
     def __init__(self, config: LabArmConfig | None = None) -> None:
         super().__init__(config or LabArmConfig())
-        self.world: LabWorldProcess | None = None
 
-    def connect(self) -> None:
-        assert isinstance(self.config, LabArmConfig)
-        self.world = attach_world(self.config.world_config)
-        self.config.host = self.world.addresses["ur_host"]
-        try:
-            super().connect()
-        except BaseException:
-            detach_world(self.world)
-            self.world = None
-            raise
-
-    def disconnect(self) -> None:
-        try:
-            super().disconnect()
-        finally:
-            if self.world is not None:
-                detach_world(self.world)
-                self.world = None
+    def point_at(self, addresses: dict) -> None:
+        self.config.host = addresses["ur_host"]
