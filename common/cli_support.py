@@ -18,6 +18,18 @@ from common.sd_notify import watch_node
 T = TypeVar("T")
 
 
+def add_overrides_argument(parser: argparse.ArgumentParser, example: str) -> None:
+    """``--set KEY=VALUE`` (repeatable) into ``args.overrides``, as every config CLI takes it."""
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"override one setting, e.g. --set {example} (repeatable)",
+    )
+
+
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type, section: str) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = (
@@ -26,14 +38,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, section: st
         + _indent(defaults_toml(cls, section))
     )
     parser.add_argument("--config", type=Path, help="TOML config or scene file")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help=f"override one setting, e.g. --set {section}.render.mode=direct (repeatable)",
-    )
+    add_overrides_argument(parser, f"{section}.render.mode=direct")
     parser.add_argument(
         "--print-config", action="store_true", help="print the effective config and exit"
     )

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import stop_on_signals
+from common.cli_support import add_overrides_argument, stop_on_signals
 from common.config import config_toml, from_dict
 from common.transport import free_loopback_ports
 from deploy import live_view
@@ -53,14 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--dashboard", action="store_true", help="serve the live web dashboard (URL shown)"
     )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a scene setting, e.g. --set robot.render.mode=direct",
-    )
+    add_overrides_argument(parser, "robot.render.mode=direct")
 
 
 def _die_with_parent() -> None:

@@ -13,6 +13,7 @@ import json
 import sys
 from typing import Any
 
+from common.cli_support import add_overrides_argument
 from common.devices import build_device
 from common.errors import DeepXPalmError
 from deploy.scene import load_scene_dict
@@ -22,14 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default="demo", help="shipped scene name or TOML path")
     parser.add_argument("--role", choices=("robot", "operator", "both"), default="both")
     parser.add_argument("--json", action="store_true", help="print one JSON report")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a scene setting, e.g. --set robot.tactile.port=/dev/ttyUSB1",
-    )
+    add_overrides_argument(parser, "robot.tactile.port=/dev/ttyUSB1")
 
 
 def _registries(role: str) -> list[tuple[str, str, str]]:

@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from common.cli_support import add_overrides_argument
+
 log = logging.getLogger(__name__)
 
 MAX_GROWTH_MB = 20.0  # issue 6: memory growth under 20 MB over the soak
@@ -41,14 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--minutes", type=float, default=30.0, help="how long (default 30)")
     parser.add_argument("--scenario", default="bad_day", help="network scenario (default bad_day)")
     parser.add_argument("--scene", default="demo", help="scene name or TOML (default demo)")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="scene override passed to the demo, e.g. --set robot.render.mode=mask_ground_truth",
-    )
+    add_overrides_argument(parser, "robot.render.mode=mask_ground_truth")
     parser.add_argument(
         "--sample-s", type=float, default=10.0, help="seconds between memory samples (default 10)"
     )

@@ -28,6 +28,7 @@ import json
 import sys
 from typing import Any
 
+from common.cli_support import add_overrides_argument
 from common.config import load_toml
 from common.errors import ConfigError
 from common.overrides import apply_overrides
@@ -86,14 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--role", choices=ROLES, help="which node this machine runs (default: the file's only one)"
     )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a setting, e.g. --set robot.tactile.port=/dev/ttyUSB1 (repeatable)",
-    )
+    add_overrides_argument(parser, "robot.tactile.port=/dev/ttyUSB1")
     parser.add_argument("--json", action="store_true", help="print one JSON report")
     parser.add_argument(
         "--device-timeout", type=float, default=5.0, help="seconds per device (default 5)"

@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import load_node_config, print_config
+from common.cli_support import add_overrides_argument, load_node_config, print_config
 from common.config import defaults_toml
 from common.errors import ConfigError
 from operator_side.study.protocol import MODES, StudyConfig
@@ -81,14 +81,7 @@ def _config_arguments(parser: argparse.ArgumentParser) -> None:
         + "\n".join("  " + line for line in defaults_toml(StudyConfig, "study").splitlines())
     )
     parser.add_argument("--config", type=Path, help="TOML config (its [study] table)")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override one setting, e.g. --set repetitions=5 (repeatable)",
-    )
+    add_overrides_argument(parser, "repetitions=5")
     parser.add_argument(
         "--print-config", action="store_true", help="print the effective config and exit"
     )

@@ -19,6 +19,7 @@ import logging
 import sys
 from pathlib import Path
 
+from common.cli_support import add_overrides_argument
 from common.config import from_dict
 from common.devices import build_device
 from robot_side.perception.collect import POSITION_NAMES, CollectConfig, collect
@@ -58,14 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--present", action="store_true", help="a person presents the pipette; the arm stays"
     )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a scene setting, e.g. --set robot.tactile.world_config=world.toml",
-    )
+    add_overrides_argument(parser, "robot.tactile.world_config=world.toml")
 
 
 def _prompt(pattern: int) -> None:
