@@ -207,9 +207,10 @@ def markdown(results: Results) -> list[str]:
         f"data from an unused seed ({s['eval_randomized_seed']}). Stimulus match: the "
         "predicted mask rendered with the node's defaults against the true pattern. No model "
         "is trained by the bench: the other widths are the perception engineer's width "
-        "sweep (`benchmarks/perception_bench.py --widths`, read from `runs/width-sweep` or "
-        "`--models`), and the last two columns are copied from each model's own training "
-        "report (its test split and the worst of its robustness sets, docs/perception.md).",
+        "sweep (`python -m deploy.bench.perception_sweep --widths`, read from "
+        "`runs/width-sweep` or `--models`), and the last two columns are copied from each "
+        "model's own training report (its test split and the worst of its robustness sets, "
+        "docs/perception.md).",
         "",
     ]
     rows = []

@@ -2,12 +2,14 @@
 
 Not a test: numbers depend on the machine and on what else runs on it.
 Run it on an otherwise idle robot PC and copy the tables into
-docs/perception.md.
+docs/perception.md. Apart from ``deepxpalm bench`` because it trains: the
+bench's classifier section compares the models this sweep writes to
+runs/width-sweep, and trains none.
 
-    python benchmarks/perception_bench.py                      # shipped model, all backends
-    python benchmarks/perception_bench.py --cpu 1              # pinned to one core
-    python benchmarks/perception_bench.py --widths 0.125,0.25,0.5,1 --out runs/widths
-    python benchmarks/perception_bench.py --latency-of runs/widths/width-0.25.npz,...
+    python -m deploy.bench.perception_sweep                      # shipped model, all backends
+    python -m deploy.bench.perception_sweep --cpu 1              # pinned to one core
+    python -m deploy.bench.perception_sweep --widths 0.125,0.25,0.5,1 --out runs/widths
+    python -m deploy.bench.perception_sweep --latency-of runs/widths/width-0.25.npz,...
 """
 
 from __future__ import annotations
