@@ -118,7 +118,9 @@ def run(args: argparse.Namespace) -> int:
     from deploy.bench.report import write_outputs
     from deploy.bench.runner import run_bench
 
-    results = run_bench(sizes, preset, skip, args.cpu, models, progress=True)
+    results = run_bench(
+        sizes, preset, skip, args.cpu, models, progress=lambda line: print(line, flush=True)
+    )
     if args.only:
         from deploy.bench.report import merge_sections
 

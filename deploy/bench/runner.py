@@ -13,6 +13,7 @@ import platform
 import subprocess
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -69,9 +70,12 @@ def run_bench(
     skip: set[str],
     cpu: int | None,
     models: list[Path],
-    progress: bool = False,
+    progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-    """Every section not skipped; a section that fails is reported, not fatal."""
+    """Every section not skipped; a section that fails is reported, not fatal.
+
+    ``progress`` is told when each section starts and ends (the CLI prints it).
+    """
     from deploy.bench import timing
 
     load_before = timing.machine_load()
@@ -90,7 +94,7 @@ def _measure(
     skip: set[str],
     core: int,
     models: list[Path],
-    progress: bool,
+    progress: Callable[[str], None] | None,
 ) -> dict[str, Any]:
     from deploy.bench import timing
     from deploy.bench.sections import SECTIONS
@@ -131,11 +135,13 @@ def _measure(
     }
 
 
-def _run_section(section: Section, ctx: Context, sizes: Any, progress: bool) -> dict[str, Any]:
+def _run_section(
+    section: Section, ctx: Context, sizes: Any, progress: Callable[[str], None] | None
+) -> dict[str, Any]:
     """One section's results, or its error: one broken section must not lose the others."""
     t = time.monotonic()
     if progress:
-        print(f"[bench] {section.name} ...", flush=True)
+        progress(f"[bench] {section.name} ...")
     try:
         out = section.measure(ctx, sizes)
     except Exception as e:
@@ -143,7 +149,7 @@ def _run_section(section: Section, ctx: Context, sizes: Any, progress: bool) -> 
         return {"error": f"{type(e).__name__}: {e}", "trace": traceback.format_exc()}
     out["seconds"] = round(time.monotonic() - t, 2)
     if progress:
-        print(f"[bench] {section.name}: {out['seconds']} s", flush=True)
+        progress(f"[bench] {section.name}: {out['seconds']} s")
     return out
 
 

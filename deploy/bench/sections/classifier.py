@@ -9,6 +9,8 @@ from typing import Any
 from deploy.bench.fmt import IMG_DIR, TIE_FRACTION, num, pct, pyplot, results_of, save_figure, table
 from deploy.bench.section import Context, DefaultCheck, Results, Section
 
+TITLE = "Run time against error: classifier backends and model widths"
+
 ALL_BACKENDS = ("numba", "numpy", "onnxruntime", "torchscript", "torch")
 
 
@@ -186,7 +188,7 @@ def _backend_cpu_note(results: dict[str, Any]) -> str:
 
 def markdown(results: Results) -> list[str]:
     s = results_of(results, "classifier")
-    out = ["", "## Run time against error: classifier backends and model widths", ""]
+    out = ["", f"## {TITLE}", ""]
     if s is None:
         return [*out, "Not run."]
     gap = s.get("paced_gap_s")
@@ -325,7 +327,7 @@ def figure(result: dict[str, Any], path: Path) -> Path:
 
 SECTION = Section(
     name="classifier",
-    title="Run time against error: classifier backends and model widths",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

@@ -8,6 +8,8 @@ from typing import Any
 from deploy.bench.fmt import results_of
 from deploy.bench.section import Context, Results, Section, Verdict
 
+TITLE = "The command path under a flood"
+
 #: the issue's goals: stimuli at this share of their normal rate or better during a flood
 RATE_RATIO_GOAL = 0.9
 #: and the arm still within this long of the sender's last send
@@ -53,7 +55,7 @@ def verdicts(results: Results) -> list[Verdict]:
 def markdown(results: Results) -> list[str]:
     """The report's section on the command path."""
     r = results_of(results, "command_path")
-    out = ["", "## The command path under a flood", ""]
+    out = ["", f"## {TITLE}", ""]
     if r is None:
         return [*out, "Not run."]
     c, n, d = r["cost"], r["interval_ms_normal"], r["interval_ms_during"]
@@ -106,7 +108,7 @@ def markdown(results: Results) -> list[str]:
 
 SECTION = Section(
     name="command_path",
-    title="The command path under a flood",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

@@ -19,6 +19,8 @@ from deploy.bench.fmt import (
 )
 from deploy.bench.section import Context, DefaultCheck, Results, Section
 
+TITLE = "Run time against error: downsizing and rendering order"
+
 
 @dataclass(frozen=True)
 class DownsizingSizes:
@@ -106,7 +108,7 @@ def default_checks(results: Results) -> list[DefaultCheck]:
 
 def markdown(results: Results) -> list[str]:
     s = results_of(results, "downsizing")
-    out = ["", "## Run time against error: downsizing and rendering order", ""]
+    out = ["", f"## {TITLE}", ""]
     if s is None:
         return [*out, "Not run."]
     out += [
@@ -221,7 +223,7 @@ def figure(result: dict[str, Any], path: Path) -> Path:
 
 SECTION = Section(
     name="downsizing",
-    title="Run time against error: downsizing and rendering order",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

@@ -11,6 +11,8 @@ from typing import Any
 from deploy.bench.fmt import num, results_of, table
 from deploy.bench.section import Context, Results, Section, Verdict
 
+TITLE = "End to end: frame bytes to servo packet"
+
 #: the issue's target for the one-process chain
 P99_TARGET_US = 1000.0
 
@@ -62,7 +64,7 @@ def verdicts(results: Results) -> list[Verdict]:
 
 
 def markdown(results: Results) -> list[str]:
-    out = ["", "## End to end: frame bytes to servo packet", ""]
+    out = ["", f"## {TITLE}", ""]
     e = results_of(results, "e2e_inproc")
     t = results_of(results, "e2e_tcp")
     rows = []
@@ -212,7 +214,7 @@ def _deployed_md(results: dict[str, Any]) -> list[str]:
 
 SECTION = Section(
     name="e2e_inproc",
-    title="End to end: frame bytes to servo packet",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

@@ -9,6 +9,8 @@ from typing import Any
 from deploy.bench.fmt import IMG_DIR, num, pct, pyplot, results_of, save_figure, sci, table
 from deploy.bench.section import Context, Results, Section
 
+TITLE = "Run time against error: inverse kinematics"
+
 
 @dataclass(frozen=True)
 class IkSizes:
@@ -58,7 +60,7 @@ def measure(ctx: Context, sizes: IkSizes) -> dict[str, Any]:
 
 def markdown(results: Results) -> list[str]:
     s = results_of(results, "ik")
-    out = ["", "## Run time against error: inverse kinematics", ""]
+    out = ["", f"## {TITLE}", ""]
     if s is None:
         return [*out, "Not run."]
     out += [
@@ -155,7 +157,7 @@ def figure(result: dict[str, Any], path: Path) -> Path:
 
 SECTION = Section(
     name="ik",
-    title="Run time against error: inverse kinematics",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

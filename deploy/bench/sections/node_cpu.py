@@ -8,6 +8,8 @@ from typing import Any
 from deploy.bench.fmt import num, results_of, table
 from deploy.bench.section import Context, Results, Section, Verdict
 
+TITLE = "Node CPU"
+
 #: the issue's targets, percent of one core
 ROBOT_CPU_TARGET = 10.0
 OPERATOR_CPU_TARGET = 5.0
@@ -66,7 +68,7 @@ def verdicts(results: Results) -> list[Verdict]:
 
 def markdown(results: Results) -> list[str]:
     s = results_of(results, "node_cpu")
-    out = ["", "## Node CPU", ""]
+    out = ["", f"## {TITLE}", ""]
     if s is None:
         return [*out, "Not run."]
     out += [
@@ -122,7 +124,7 @@ def markdown(results: Results) -> list[str]:
 
 SECTION = Section(
     name="node_cpu",
-    title="Node CPU",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

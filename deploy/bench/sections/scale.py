@@ -8,6 +8,9 @@ from typing import Any
 
 from deploy.bench.fmt import IMG_DIR, num, pyplot, results_of, save_figure, table
 from deploy.bench.section import Context, Results, Section
+from deploy.bench.sections.node_cpu import ROBOT_CPU_TARGET
+
+TITLE = "Scale: frame rate and streams per core"
 
 
 @dataclass(frozen=True)
@@ -70,7 +73,7 @@ def measure(ctx: Context, sizes: ScaleSizes) -> dict[str, Any]:
 
 def markdown(results: Results) -> list[str]:
     s = results_of(results, "scale")
-    out = ["", "## Scale: frame rate and streams per core", ""]
+    out = ["", f"## {TITLE}", ""]
     if s is None:
         return [*out, "Not run."]
     if s.get("measured"):
@@ -176,9 +179,14 @@ def figure(result: dict[str, Any], path: Path) -> Path:
             seen.setdefault(r["rate_hz"], r["cpu_percent"])
         xs = sorted(seen)
         ax.plot(xs, [seen[x] for x in xs], style, label=label)
-    ax.axhline(10, color="grey", lw=0.8, ls=":")
+    target = ROBOT_CPU_TARGET
+    ax.axhline(target, color="grey", lw=0.8, ls=":")
     ax.annotate(
-        "10 % budget at 120 Hz", (120, 10), fontsize=8, xytext=(4, 4), textcoords="offset points"
+        f"{target:g} % budget at 120 Hz",
+        (120, target),
+        fontsize=8,
+        xytext=(4, 4),
+        textcoords="offset points",
     )
     ax.set_xlabel("frame rate (Hz)")
     ax.set_ylabel("robot node CPU (% of one core)")
@@ -190,7 +198,7 @@ def figure(result: dict[str, Any], path: Path) -> Path:
 
 SECTION = Section(
     name="scale",
-    title="Scale: frame rate and streams per core",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

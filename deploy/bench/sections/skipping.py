@@ -9,6 +9,8 @@ from typing import Any
 from deploy.bench.fmt import IMG_DIR, num, pyplot, results_of, save_figure, table
 from deploy.bench.section import Context, Results, Section
 
+TITLE = "Run time against error: skipping work"
+
 
 @dataclass(frozen=True)
 class SkippingSizes:
@@ -31,7 +33,7 @@ def measure(ctx: Context, sizes: SkippingSizes) -> dict[str, Any]:
 
 def markdown(results: Results) -> list[str]:
     s = results_of(results, "skipping")
-    out = ["", "## Run time against error: skipping work", ""]
+    out = ["", f"## {TITLE}", ""]
     if s is None:
         return [*out, "Not run."]
     out += [
@@ -118,7 +120,7 @@ def figure(result: dict[str, Any], path: Path) -> Path:
 
 SECTION = Section(
     name="skipping",
-    title="Run time against error: skipping work",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

@@ -9,6 +9,8 @@ from typing import Any
 from deploy.bench.fmt import IMG_DIR, num, pyplot, results_of, save_figure, table
 from deploy.bench.section import Context, Results, Section
 
+TITLE = "Latency budget per stage"
+
 
 @dataclass(frozen=True)
 class StagesSizes:
@@ -39,13 +41,13 @@ def measure(ctx: Context, sizes: StagesSizes) -> dict[str, Any]:
 def markdown(results: Results) -> list[str]:
     s = results_of(results, "stages")
     if s is None:
-        return ["", "## Latency budget per stage", "", "Not run."]
+        return ["", f"## {TITLE}", "", "Not run."]
     paced = s.get("paced") or {}
     pst = paced.get("stages", {})
     rate = paced.get("pace_hz")
     out = [
         "",
-        "## Latency budget per stage",
+        f"## {TITLE}",
         "",
         f"Every frame is taken through the whole chain one at a time, so each stage meets "
         f"the caches the one before left. **Back to back**: {s['frames']:,} frames with no "
@@ -171,7 +173,7 @@ def figure(result: dict[str, Any], path: Path) -> Path:
 
 SECTION = Section(
     name="stages",
-    title="Latency budget per stage",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

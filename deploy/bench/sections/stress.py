@@ -8,6 +8,8 @@ from typing import Any
 from deploy.bench.fmt import num, results_of, sci, table
 from deploy.bench.section import Context, Results, Section, Verdict
 
+TITLE = "Numerical stress"
+
 
 @dataclass(frozen=True)
 class StressSizes:
@@ -60,7 +62,7 @@ def verdicts(results: Results) -> list[Verdict]:
 
 def markdown(results: Results) -> list[str]:
     s = results_of(results, "stress")
-    out = ["", "## Numerical stress", ""]
+    out = ["", f"## {TITLE}", ""]
     if s is None:
         return [*out, "Not run."]
     ik, rd, fr = s["ik"], s["renderer"], s["rendering"]
@@ -115,15 +117,28 @@ def markdown(results: Results) -> list[str]:
         "",
         f"Total non-finite outputs: **{s['total_nonfinite_outputs']}**. Largest round-trip "
         f"error: {sci(s['largest_round_trip_mm'])} mm. Largest servo step per cycle: "
-        f"{s['largest_servo_step_counts']} counts (4 deg rounds to "
-        f"{rd['max_step_counts_allowed']} counts, 4.04 deg).",
+        f"{s['largest_servo_step_counts']} counts ({_step_limit(rd['max_step_counts_allowed'])}).",
     ]
     return out
 
 
+def _step_limit(counts: int) -> str:
+    """The renderer's per-cycle limit as configured, and what it rounds to in whole counts."""
+    import math
+
+    from operator_side.renderer import RendererConfig
+    from operator_side.servos.calibration import COUNTS_PER_RAD
+
+    configured = RendererConfig().max_step_deg_per_cycle
+    return (
+        f"{configured:g} deg rounds to {counts} counts, "
+        f"{math.degrees(counts / COUNTS_PER_RAD):.2f} deg"
+    )
+
+
 SECTION = Section(
     name="stress",
-    title="Numerical stress",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,

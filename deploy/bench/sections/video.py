@@ -9,6 +9,8 @@ from deploy.bench.fmt import results_of
 from deploy.bench.section import Context, Results, Section, Verdict
 from deploy.bench.video import STALL_MS, WARMUP_FRAMES
 
+TITLE = "Video: glass to glass"
+
 #: the goal for the median latency
 P50_GOAL_MS = 80.0
 
@@ -57,7 +59,7 @@ def markdown(results: Results) -> list[str]:
     verdict = "passes" if goal.passed else "fails"
     return [
         "",
-        "## Video: glass to glass",
+        f"## {TITLE}",
         "",
         f"The stamped test pattern ({section['width']}x{section['height']} at "
         f"{section['fps_source']:g} fps) from the robot's video server (aiortc, VP8, WebRTC "
@@ -84,7 +86,7 @@ def markdown(results: Results) -> list[str]:
 
 SECTION = Section(
     name="video",
-    title="Video: glass to glass",
+    title=TITLE,
     sizes=SIZES,
     measure=measure,
     markdown=markdown,
