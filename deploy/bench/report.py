@@ -19,6 +19,8 @@ from deploy.bench.section import Verdict
 from deploy.bench.sections import SECTIONS
 
 log = logging.getLogger(__name__)
+#: 8N1: a start bit, eight data bits, a stop bit
+BITS_PER_BYTE_ON_THE_LINE = 10
 
 
 def markdown(results: dict[str, Any]) -> str:
@@ -141,11 +143,15 @@ def _failures_md(results: dict[str, Any]) -> list[str]:
 
 
 def _limits_md() -> list[str]:
+    from robot_side.tactile.wire import DEFAULT_BAUD, N_PADS, PACKET_SIZE
+
+    scan_ms = 1e3 * N_PADS * PACKET_SIZE * BITS_PER_BYTE_ON_THE_LINE / DEFAULT_BAUD
     return [
         "",
         "## What these numbers do not cover",
         "",
-        "- A real serial line (the UART's 4.6 ms per scan at 921600 baud, USB latency) and "
+        f"- A real serial line (the UART's {scan_ms:.1f} ms per scan at {DEFAULT_BAUD} baud, "
+        "USB latency) and "
         "real servos: the chain starts at bytes in memory and ends at packet bytes.",
         "- CURVE encryption (off here; the nodes enable it for remote links) and network "
         "impairment (deepxpalm netsim covers that).",
@@ -210,12 +216,10 @@ def write_outputs(results: dict[str, Any], out_dir: Path, figures: bool = True) 
                 break
     md = out_dir / "benchmarks.md"
     md.write_text(markdown(results))
-    netsim_doc = out_dir / "netsim.md"
-    if results_of(results, "netsim") is not None and netsim_doc.exists():
-        from deploy.bench.netsim_fidelity import update_doc
-
-        update_doc(netsim_doc, results["sections"]["netsim"])
-        paths.append(netsim_doc)
+    for section in SECTIONS:
+        s = results_of(results, section.name)
+        if s is not None:
+            paths += section.update_other_docs(s, out_dir)
     js = out_dir / "benchmarks.json"
     slim = json.loads(json.dumps(results, default=str))
     for v in slim["sections"].values():

@@ -71,6 +71,10 @@ def _no_checks(results: Results) -> list[DefaultCheck]:
     return []
 
 
+def _no_other_docs(section: dict[str, Any], out_dir: Path) -> list[Path]:
+    return []
+
+
 @dataclass(frozen=True)
 class Section:
     """One measurement of the bench, from its sizes to its verdicts.
@@ -90,3 +94,5 @@ class Section:
     figure: Callable[[dict[str, Any], Path], Path] | None = None
     verdicts: Callable[[Results], list[Verdict]] = _no_verdicts
     default_checks: Callable[[Results], list[DefaultCheck]] = _no_checks
+    #: other pages in the report's folder that carry this section's numbers, brought up to date
+    update_other_docs: Callable[[dict[str, Any], Path], list[Path]] = _no_other_docs

@@ -64,6 +64,8 @@ def verdicts(results: Results) -> list[Verdict]:
 
 
 def markdown(results: Results) -> list[str]:
+    from robot_side.tactile.wire import PACKET_SIZE
+
     out = ["", f"## {TITLE}", ""]
     e = results_of(results, "e2e_inproc")
     t = results_of(results, "e2e_tcp")
@@ -138,7 +140,7 @@ def markdown(results: Results) -> list[str]:
     out += _deployed_md(results)
     out += [
         "",
-        "From the bytes of one scan (two 212-byte packets) entering the serial driver's "
+        f"From the bytes of one scan (two {PACKET_SIZE}-byte packets) entering the serial driver's "
         "parser to the sync-write packet for six servos leaving scservo_sdk, through the "
         "nodes' own code: the driver's parser and frame assembly, `RobotNode.process` "
         "(classify, render, encode, publish), ZeroMQ, `OperatorNode.receive` (decode, "

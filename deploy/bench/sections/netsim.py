@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from deploy.bench.fmt import results_of
@@ -37,10 +38,22 @@ def markdown(results: Results) -> list[str]:
     return ["", *lines] if lines else []
 
 
+def update_netsim_doc(section: dict[str, Any], out_dir: Path) -> list[Path]:
+    """docs/netsim.md carries the same table between its markers, when the folder has it."""
+    from deploy.bench.netsim_fidelity import update_doc
+
+    page = out_dir / "netsim.md"
+    if not page.exists():
+        return []
+    update_doc(page, section)
+    return [page]
+
+
 SECTION = Section(
     name="netsim",
     title="Link simulator fidelity",
     sizes=SIZES,
     measure=measure,
     markdown=markdown,
+    update_other_docs=update_netsim_doc,
 )
