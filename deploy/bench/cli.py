@@ -30,7 +30,8 @@ import logging  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from deploy.bench.sizes import PRESETS, SECTIONS  # noqa: E402
+from deploy.bench.sections import SECTION_NAMES as SECTIONS  # noqa: E402
+from deploy.bench.sizes import PRESETS  # noqa: E402
 
 log = logging.getLogger(__name__)
 
