@@ -4,7 +4,8 @@ The report states its conditions first (machine, load, pinning, sizes),
 then the verdicts against the issue's targets, then whether each default in
 the code is the one the measurements favour, then every table. Numbers
 come only from the results dictionary, which is also the JSON file, so the
-two cannot disagree.
+two cannot disagree. Everything after the conditions is the sections'
+own (deploy/bench/sections), in the table's order.
 """
 
 from __future__ import annotations

@@ -51,7 +51,7 @@ class Context:
     stage_medians_us: dict[str, float] = field(default_factory=dict)
     #: one-way PUB to SUB over loopback TCP in one process, filled in by the stages section
     tcp_transit_us: float = 0.0
-    _demo_frames: list[Any] = field(default_factory=list)
+    _demo_frames: list[Any] = field(default_factory=list, init=False, repr=False)
 
     def demo_frames(self) -> list[Any]:
         """The demo scene's frames, made once for every section that drives the nodes."""
