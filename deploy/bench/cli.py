@@ -30,7 +30,8 @@ import logging  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from deploy.bench.sizes import PRESETS, SECTIONS  # noqa: E402
+from deploy.bench.sections import SECTION_NAMES as SECTIONS  # noqa: E402
+from deploy.bench.sizes import PRESETS  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +119,9 @@ def run(args: argparse.Namespace) -> int:
     from deploy.bench.report import write_outputs
     from deploy.bench.runner import run_bench
 
-    results = run_bench(sizes, preset, skip, args.cpu, models, progress=True)
+    results = run_bench(
+        sizes, preset, skip, args.cpu, models, progress=lambda line: print(line, flush=True)
+    )
     if args.only:
         from deploy.bench.report import merge_sections
 

@@ -13,10 +13,11 @@ import platform
 import subprocess
 import time
 import traceback
-from dataclasses import asdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from deploy.bench.section import Context, Section
 from deploy.bench.sizes import Sizes
 
 log = logging.getLogger(__name__)
@@ -69,9 +70,12 @@ def run_bench(
     skip: set[str],
     cpu: int | None,
     models: list[Path],
-    progress: bool = False,
+    progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-    """Every section not skipped; a section that fails is reported, not fatal."""
+    """Every section not skipped; a section that fails is reported, not fatal.
+
+    ``progress`` is told when each section starts and ends (the CLI prints it).
+    """
     from deploy.bench import timing
 
     load_before = timing.machine_load()
@@ -90,206 +94,28 @@ def _measure(
     skip: set[str],
     core: int,
     models: list[Path],
-    progress: bool,
+    progress: Callable[[str], None] | None,
 ) -> dict[str, Any]:
     from deploy.bench import timing
+    from deploy.bench.sections import SECTIONS
     from robot_side.perception import DEFAULT_BACKEND_ORDER, load_classifier
     from robot_side.perception.inference import backend_installed
 
-    classifier = load_classifier()  # the node's default: shipped model, first installed backend
+    # the node's default: shipped model, first installed backend
+    ctx = Context(preset=preset, core=core, models=models, classifier=load_classifier())
     timing.limit_torch_threads()
     default_backend = next(b for b in DEFAULT_BACKEND_ORDER if backend_installed(b))
     t_start = time.monotonic()
     sections: dict[str, Any] = {}
-
-    def section(name: str, fn: Any) -> Any:
-        if name in skip:
-            sections[name] = {"skipped": True}
-            return None
-        t = time.monotonic()
-        if progress:
-            print(f"[bench] {name} ...", flush=True)
-        try:
-            out = fn()
-        except Exception as e:  # one broken section must not lose the others
-            log.exception("section %s failed", name)
-            sections[name] = {"error": f"{type(e).__name__}: {e}", "trace": traceback.format_exc()}
-            return None
-        out["seconds"] = round(time.monotonic() - t, 2)
-        sections[name] = out
-        if progress:
-            print(f"[bench] {name}: {out['seconds']} s", flush=True)
-        return out
-
-    from deploy.bench import stages
-
-    def budget_fn() -> dict[str, Any]:
-        out = stages.stage_budget(sizes.stage_frames, classifier)
-        out["paced"] = stages.stage_budget(
-            sizes.stage_paced_frames, classifier, pace_hz=sizes.pace_hz
-        )
-        return out
-
-    def inproc_fn() -> dict[str, Any]:
-        out = stages.end_to_end_inproc(sizes.e2e_frames, classifier)
-        out["paced"] = stages.end_to_end_inproc(
-            sizes.e2e_paced_frames, classifier, pace_hz=sizes.pace_hz
-        )
-        return out
-
-    budget = section("stages", budget_fn)
-    # the costs a frame pays in the field (paced), for the savings and the scale model
-    medians = {k: v["median_us"] for k, v in budget["paced"]["stages"].items()} if budget else {}
-    section("e2e_inproc", inproc_fn)
-
-    def tcp() -> dict[str, Any]:
-        from deploy.bench.e2e_tcp import end_to_end_tcp, loopback_floor
-
-        out = end_to_end_tcp(sizes.tcp_frames, sizes.tcp_rate_hz, classifier, core)
-        out["floor"] = loopback_floor(sizes.tcp_frames, sizes.tcp_rate_hz, core)
-        others = sorted(timing.original_affinity() - {core})
-        if others:  # two machines in the field: the operator on a core of its own
-            out["operator_on_other_core"] = end_to_end_tcp(
-                sizes.tcp_frames, sizes.tcp_rate_hz, classifier, core, peer_cpu=others[0]
-            )
-            out["operator_on_other_core"]["floor"] = loopback_floor(
-                sizes.tcp_frames, sizes.tcp_rate_hz, core, peer_cpu=others[0]
-            )
-        return out
-
-    section("e2e_tcp", tcp)
-
-    def downsizing() -> dict[str, Any]:
-        from deploy.bench.downsizing import downsizing_tradeoff
-        from deploy.bench.fixtures import frame_set
-
-        fs = frame_set(sizes.ds_repeats, seed=0)
-        a, p = classifier.predict(fs.frames)
-        return downsizing_tradeoff(fs, 3 * a + p, sizes.ds_calls)
-
-    section("downsizing", downsizing)
-
-    def clf() -> dict[str, Any]:
-        from deploy.bench import classifier as cb
-        from deploy.bench.fixtures import frame_set
-
-        eval_default = frame_set(sizes.clf_eval_repeats, seed=11)
-        eval_rand = (
-            cb.randomized_eval_set(sizes.clf_randomized_repeats)
-            if sizes.clf_randomized_repeats > 0
-            else None
-        )
-        out = cb.classifier_tradeoff(
-            cb.find_models(models),
-            list(sizes.clf_backends_default),
-            list(sizes.clf_backends_others),
-            eval_default,
-            eval_rand,
-            sizes.clf_calls,
-            sizes.clf_paced_calls,
-            1.0 / sizes.pace_hz,
-        )
-        timing.limit_torch_threads()
-        return out
-
-    section("classifier", clf)
-
-    def ik() -> dict[str, Any]:
-        from deploy.bench.ik import ik_tradeoff
-
-        return ik_tradeoff(
-            sizes.ik_grid_mm,
-            sizes.ik_shell_points,
-            sizes.ik_numeric_points,
-            sizes.ik_calls,
-            least_squares=sizes.ik_least_squares,
-        )
-
-    section("ik", ik)
-
-    def skipping() -> dict[str, Any]:
-        from deploy.bench.skipping import skipping as run_skipping
-
-        return run_skipping(classifier, medians, sizes.skip_cycles)
-
-    section("skipping", skipping)
-
-    def stress() -> dict[str, Any]:
-        from deploy.bench.stress import stress as run_stress
-
-        return run_stress(
-            classifier,
-            sizes.stress_grid_mm,
-            sizes.stress_shell_points,
-            sizes.stress_stimuli,
-            sizes.stress_random_frames,
-        )
-
-    section("stress", stress)
-    demo_frames: list[Any] = []
-
-    def frames_for_nodes() -> list[Any]:
-        if not demo_frames:
-            from deploy.bench.skipping import demo_frames as make
-
-            demo_frames.extend(make("demo", 1.0 if preset == "full" else 0.3)[0])
-        return demo_frames
-
-    def node_cpu() -> dict[str, Any]:
-        from deploy.bench.nodecpu import run_nodes
-
-        # the nodes are processes of their own: unpin them (they inherit this affinity)
-        return run_nodes(frames_for_nodes(), 120.0, sizes.node_warmup_s, sizes.node_measure_s)
-
-    def scale() -> dict[str, Any]:
-        from deploy.bench import scale as sc
-        from robot_side.config import RobotConfig
-
-        cap = RobotConfig().publish_rate_hz
-        transit = (budget or {}).get("transit", {}).get("tcp_loopback", {}).get("median_us", 0.0)
-        # the sender's share of a one-process round trip: half, a rough split
-        out: dict[str, Any] = {
-            "cap_hz": cap,
-            "modelled": sc.modelled(medians, transit / 2, sizes.scale_rates, cap),
-        }
-        if sizes.scale_measured:
-            out["measured"] = sc.measured(
-                frames_for_nodes(),
-                sizes.scale_rates,
-                sizes.node_warmup_s,
-                sizes.node_measure_s / 2,
-                cap,
-                sizes.scale_backends,
-            )
-        return out
-
-    section("node_cpu", node_cpu)
-
-    def command_path() -> dict[str, Any]:
-        from deploy.bench.command_path import measure
-
-        return measure(sizes.cmd_flood_messages, 2.0, sizes.cmd_cost_messages)
-
-    section("command_path", command_path)
-    section("scale", scale)
-
-    def video() -> dict[str, Any]:
-        from deploy.bench.video import glass_to_glass
-
-        return glass_to_glass(sizes.video_frames)
-
-    section("video", video)
-
-    def netsim() -> dict[str, Any]:
-        from deploy.bench.netsim_fidelity import measure as netsim_fidelity
-
-        return netsim_fidelity(sizes.netsim_seconds, sizes.netsim_scenarios)
-
-    section("netsim", netsim)
+    for section in SECTIONS:
+        if section.name in skip:
+            sections[section.name] = {"skipped": True}
+            continue
+        sections[section.name] = _run_section(section, ctx, sizes[section.name], progress)
     return {
         "generated_by": f"deepxpalm bench{'' if preset == 'full' else ' --size ' + preset}",
         "preset": preset,
-        "sizes": asdict(sizes),
+        "sizes": sizes.flat(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "git_commit": _git_commit(),
         "machine": {
@@ -307,6 +133,24 @@ def _measure(
         "total_seconds": round(time.monotonic() - t_start, 1),
         "sections": sections,
     }
+
+
+def _run_section(
+    section: Section, ctx: Context, sizes: Any, progress: Callable[[str], None] | None
+) -> dict[str, Any]:
+    """One section's results, or its error: one broken section must not lose the others."""
+    t = time.monotonic()
+    if progress:
+        progress(f"[bench] {section.name} ...")
+    try:
+        out = section.measure(ctx, sizes)
+    except Exception as e:
+        log.exception("section %s failed", section.name)
+        return {"error": f"{type(e).__name__}: {e}", "trace": traceback.format_exc()}
+    out["seconds"] = round(time.monotonic() - t, 2)
+    if progress:
+        progress(f"[bench] {section.name}: {out['seconds']} s")
+    return out
 
 
 def _defaults(backend: str) -> dict[str, Any]:

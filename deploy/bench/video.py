@@ -111,36 +111,3 @@ def glass_to_glass(
         "load_before": load_before,
         "load_after": machine_load(),
     }
-
-
-def markdown(section: dict[str, Any] | None) -> list[str]:
-    """The report's video section (empty when the section did not run)."""
-    if not section:
-        return []
-    lat = section["latency_ms"]
-    verdict = "passes" if lat["p50"] < 80 and section["stalls_over_500ms"] == 0 else "fails"
-    return [
-        "",
-        "## Video: glass to glass",
-        "",
-        f"The stamped test pattern ({section['width']}x{section['height']} at "
-        f"{section['fps_source']:g} fps) from the robot's video server (aiortc, VP8, WebRTC "
-        "on loopback) to the dashboard in headless chromium, which reads each presented "
-        "frame's capture time back from its pixels (`deploy/bench/video.py`). "
-        f"{section['frames']} frames after a {WARMUP_FRAMES}-frame warm-up; the goal is p50 "
-        f"under 80 ms and no stall over 500 ms: it {verdict}. Measured {section['date']}, "
-        f"machine load (1 min) {section['load_before']['loadavg_1m']} before and "
-        f"{section['load_after']['loadavg_1m']} after, on a machine shared with other work.",
-        "",
-        "| frames | p50 ms | p90 ms | p99 ms | max ms | presented fps | longest gap ms "
-        "| stalls > 500 ms | frames not presented | sender CPU (share of a core) |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-        f"| {section['frames']} | {lat['p50']:.0f} | {lat['p90']:.0f} | {lat['p99']:.0f} | "
-        f"{lat['max']:.0f} | {section['fps_presented']} | {section['longest_gap_ms']:.0f} | "
-        f"{section['stalls_over_500ms']} | {section['skipped_frames']} | "
-        f"{section.get('server_cpu_share', float('nan')):.2f} |",
-        "",
-        "Not measured here: the link simulator scenarios (it relays the ZeroMQ sockets; "
-        "WebRTC media is UDP and does not pass through it), and a real camera's exposure "
-        "and USB transfer, which come before the stamp.",
-    ]

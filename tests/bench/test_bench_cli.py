@@ -50,3 +50,15 @@ def test_only_replaces_the_sections_it_measured_and_says_when(tmp_path):
 def test_only_into_an_empty_folder_is_the_run_itself(tmp_path):
     fresh = _results({"netsim": {"x": 2}}, "now", "bbb", 1.5)
     assert merge_sections(tmp_path / "benchmarks.json", fresh, ["netsim"]) is fresh
+
+
+def test_every_preset_writes_the_flat_sizes_the_committed_report_holds():
+    """Each section keeps its own sizes; together they are the JSON's one flat dict."""
+    from deploy.bench.sizes import PRESETS
+
+    committed = json.loads(Path("docs/benchmarks.json").read_text())["sizes"]
+    full = PRESETS["full"].flat()
+    assert full.keys() == committed.keys()
+    assert json.loads(json.dumps(full)) == committed
+    for sizes in PRESETS.values():
+        assert sizes.flat().keys() == full.keys()

@@ -2,18 +2,21 @@
 
 Not a test: numbers depend on the machine and on what else runs on it.
 Run it on an otherwise idle robot PC and copy the tables into
-docs/perception.md.
+docs/perception.md. Apart from ``deepxpalm bench`` because it trains: the
+bench's classifier section compares the models this sweep writes to
+runs/width-sweep, and trains none.
 
-    python benchmarks/perception_bench.py                      # shipped model, all backends
-    python benchmarks/perception_bench.py --cpu 1              # pinned to one core
-    python benchmarks/perception_bench.py --widths 0.125,0.25,0.5,1 --out runs/widths
-    python benchmarks/perception_bench.py --latency-of runs/widths/width-0.25.npz,...
+    python -m deploy.bench.perception_sweep                      # shipped model, all backends
+    python -m deploy.bench.perception_sweep --cpu 1              # pinned to one core
+    python -m deploy.bench.perception_sweep --widths 0.125,0.25,0.5,1 --out runs/widths
+    python -m deploy.bench.perception_sweep --latency-of runs/widths/width-0.25.npz,...
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -24,6 +27,8 @@ import numpy as np
 
 from robot_side.perception import BACKENDS, DEFAULT_MODEL, load_classifier
 from robot_side.perception import dataset as ds
+
+log = logging.getLogger(__name__)
 
 
 def latency_us(classifier, frames: np.ndarray, calls: int, warmup: int = 300) -> np.ndarray:
@@ -61,7 +66,7 @@ def bench_backends(model: Path, backends: list[str], calls: int, frames: np.ndar
         try:
             clf = load_classifier(model, backend, num_threads=1)
         except Exception as e:  # a missing optional backend is a row, not a crash
-            print(f"{backend}: unavailable ({e})", file=sys.stderr)
+            log.warning("%s: unavailable (%s)", backend, e)
             continue
         t = latency_us(clf, frames, calls)
         rows.append(
@@ -160,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("runs/width-sweep"))
     parser.add_argument("--latency-of", help="comma-separated .npz models: latency only")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.cpu is not None:
         os.sched_setaffinity(0, {args.cpu})
     frames = ds.generate(ds.DatasetConfig(repeats=1, seed=99)).frames

@@ -1,7 +1,8 @@
 """The link simulator against its configuration, and its own cost on real sockets.
 
 Not a test: the socket numbers depend on the machine and on what else runs
-on it. Two parts:
+on it. Kept beside ``deepxpalm bench`` rather than in it: its netsim section
+measures the stream mode from outside, this the engine itself. Two parts:
 
 1. Virtual time. Every built-in scenario (and a datagram stress config
    with duplication, reordering and corruption) carries 10,000 timestamped
@@ -16,11 +17,11 @@ on it. Two parts:
    time with the same seed to measure how late the proxy releases each
    message against the delay the engine chose for it.
 
-    python benchmarks/netsim_bench.py                       # everything, tables to stdout
-    python benchmarks/netsim_bench.py --update-docs docs/netsim.md --json runs/netsim.json
-    python benchmarks/netsim_bench.py --skip-sockets        # virtual time only (seconds)
+    python -m deploy.bench.netsim_engine                       # everything, tables to stdout
+    python -m deploy.bench.netsim_engine --update-docs docs/netsim.md --json runs/netsim.json
+    python -m deploy.bench.netsim_engine --skip-sockets        # virtual time only (seconds)
 
-Exits 1 if a criterion of issue 5 fails: delay p50/p99 within 0.5 ms or 5%
+Exits 1 if a criterion fails: delay p50/p99 within 0.5 ms or 5%
 (whichever is larger) of configured, loss within 1 percentage point, the
 simulator's own median cost under 100 us.
 """
@@ -360,7 +361,7 @@ def report(rows: list[dict], sockets: list[dict], n: int, seed: int) -> tuple[st
         f"Measured {time.strftime('%Y-%m-%d')} on {platform.machine()} ({os.cpu_count()} cores, "
         f"load average {load} at the end), Python "
         f"{platform.python_version()}, seed {seed} (x 1000 + rate), {n:,} messages of {SIZE} B "
-        "per run; `python benchmarks/netsim_bench.py` regenerates this section.",
+        "per run; `python -m deploy.bench.netsim_engine` regenerates this section.",
         "",
         "### Path delay and loss (datagram, virtual time): configured / measured",
         "",

@@ -1,0 +1,42 @@
+"""The bench's sections, in report order: the one table the runner, the report and the CLI read.
+
+Adding a section: a module here with its sizes, ``measure``, ``markdown``,
+optional ``figure`` and ``verdicts``, ending in a ``SECTION``; then a line
+below.
+"""
+
+from __future__ import annotations
+
+from deploy.bench.section import Section
+from deploy.bench.sections import (
+    classifier,
+    command_path,
+    downsizing,
+    e2e_inproc,
+    e2e_tcp,
+    ik,
+    netsim,
+    node_cpu,
+    scale,
+    skipping,
+    stages,
+    stress,
+    video,
+)
+
+SECTIONS: tuple[Section, ...] = (
+    stages.SECTION,
+    e2e_inproc.SECTION,
+    e2e_tcp.SECTION,
+    downsizing.SECTION,
+    classifier.SECTION,
+    ik.SECTION,
+    skipping.SECTION,
+    scale.SECTION,
+    stress.SECTION,
+    node_cpu.SECTION,
+    command_path.SECTION,
+    video.SECTION,
+    netsim.SECTION,
+)
+SECTION_NAMES: tuple[str, ...] = tuple(s.name for s in SECTIONS)

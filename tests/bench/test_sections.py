@@ -1,0 +1,40 @@
+"""The table of sections: what the runner, the report and the command line all read."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from deploy.bench.report import markdown, summary_verdicts
+from deploy.bench.sections import SECTION_NAMES, SECTIONS
+from deploy.bench.sizes import PRESETS
+
+
+def _committed() -> dict:
+    return json.loads(Path("docs/benchmarks.json").read_text())
+
+
+def test_every_section_is_named_once_and_sized_for_every_preset():
+    assert len(set(SECTION_NAMES)) == len(SECTIONS)
+    for section in SECTIONS:
+        assert set(section.sizes) == set(PRESETS), section.name
+
+
+def test_the_committed_report_has_every_section_of_the_table():
+    assert set(_committed()["sections"]) == set(SECTION_NAMES)
+
+
+def test_issue_targets_come_before_the_checks_any_machine_must_pass():
+    kinds = [v.table for v in summary_verdicts(_committed())]
+    assert kinds == sorted(kinds, key=["target", "check"].index)
+    assert "check" in kinds and "target" in kinds
+
+
+def test_a_report_with_every_section_skipped_still_holds_together():
+    results = _committed()
+    results["sections"] = {name: {"skipped": True} for name in SECTION_NAMES}
+    md = markdown(results)
+    assert md.count("Not run.") >= 8
+    for name in SECTION_NAMES:
+        assert f"- `{name}` skipped (`--skip`)" in md
+    assert all(v.passed is None for v in summary_verdicts(results))
