@@ -21,3 +21,21 @@ def zmq_ctx():
     ctx = zmq.Context()
     yield ctx
     ctx.destroy(linger=0)
+
+
+@pytest.fixture
+def quiet_gc():
+    """The test process's heap frozen for one timing-sensitive test.
+
+    After a few hundred tests (torch among the imports) a full collection in
+    this process takes a hundred milliseconds or more and stops every thread:
+    an in-process simulator misses its reply window, a test-side operator
+    falls silent long enough for the robot's deadman. The nodes freeze their
+    own startup heap for the same reason (``freeze_startup_heap``).
+    """
+    import gc
+
+    gc.collect()
+    gc.freeze()
+    yield
+    gc.unfreeze()

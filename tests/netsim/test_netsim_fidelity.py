@@ -16,6 +16,8 @@ import pytest
 
 from common.netsim.fidelity import measure
 
+pytestmark = pytest.mark.usefixtures("quiet_gc")
+
 SECONDS = 10.0
 
 

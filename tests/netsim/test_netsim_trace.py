@@ -13,6 +13,8 @@ from common.netsim.scenario import load_scenario, scenario_from_dict
 from common.netsim.trace import delay_percentiles_ms, load_delay_trace
 from common.netsim.virtual import VirtualLink
 
+pytestmark = pytest.mark.usefixtures("quiet_gc")
+
 QUANTILES = (0.05, 0.5, 0.95)
 
 

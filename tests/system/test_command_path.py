@@ -25,6 +25,8 @@ from robot_side.gripper.base import GripLevels
 
 N_FLOOD = 100_000
 
+pytestmark = pytest.mark.usefixtures("quiet_gc")
+
 
 @pytest.fixture
 def rig(tmp_path: Path):
