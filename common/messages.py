@@ -66,6 +66,21 @@ class TactileFrame:
     TYPE = "frame"
 
 
+#: Names of the arm's safety modes, as a robot heartbeat's ``arm_safety_mode`` carries them
+#: (the UR controller's numbering): the robot's errors and the dashboard both name them.
+ARM_SAFETY_MODES = {
+    1: "normal",
+    2: "reduced",
+    3: "protective stop",
+    4: "recovery",
+    5: "safeguard stop",
+    6: "system emergency stop",
+    7: "robot emergency stop",
+    8: "violation",
+    9: "fault",
+}
+
+
 @dataclass(slots=True)
 class Heartbeat:
     """Both ways: liveness, clock-offset samples, link state and counters."""

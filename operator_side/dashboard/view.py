@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from common.config import to_dict
+from common.messages import ARM_SAFETY_MODES
 from common.tactile import MASKS, N_PATTERNS, pattern_name
 from operator_side.dashboard.jog_config import JogConfig
 from operator_side.node import Snapshot
@@ -77,17 +78,6 @@ def snapshot_view(snap: Snapshot) -> dict[str, Any]:
 
 
 POSE_KEYS = ("arm_x", "arm_y", "arm_z", "arm_rx", "arm_ry", "arm_rz")
-SAFETY_MODES = {
-    1: "normal",
-    2: "reduced",
-    3: "protective stop",
-    4: "recovery",
-    5: "safeguard stop",
-    6: "system emergency stop",
-    7: "robot emergency stop",
-    8: "violation",
-    9: "fault",
-}
 
 
 def arm_view(robot_stats: dict[str, float]) -> dict[str, Any] | None:
@@ -111,7 +101,9 @@ def arm_view(robot_stats: dict[str, float]) -> dict[str, Any] | None:
         "angular_deg_s": None
         if "arm_angular_speed_rad_s" not in r
         else round(math.degrees(r["arm_angular_speed_rad_s"]), 1),
-        "safety": None if safety is None else SAFETY_MODES.get(int(safety), f"mode {int(safety)}"),
+        "safety": None
+        if safety is None
+        else ARM_SAFETY_MODES.get(int(safety), f"mode {int(safety)}"),
         "program_running": None
         if "arm_program_running" not in r
         else bool(r["arm_program_running"]),

@@ -47,6 +47,7 @@ from common.errors import (
     DeviceTimeoutError,
     StaleDataError,
 )
+from common.messages import ARM_SAFETY_MODES
 from common.preflight import Finding, PreflightContext, tcp_findings
 from robot_side.arm.base import Arm, ArmLimits
 
@@ -64,18 +65,6 @@ RECEIVE_VARIABLES = [
     "robot_status_bits",
     "safety_status_bits",
 ]
-
-SAFETY_MODES = {
-    1: "normal",
-    2: "reduced",
-    3: "protective stop",
-    4: "recovery",
-    5: "safeguard stop",
-    6: "system emergency stop",
-    7: "robot emergency stop",
-    8: "violation",
-    9: "fault",
-}
 
 
 #: ur-rtde's fixed ports on the controller: RTDE, dashboard, the script port.
@@ -295,7 +284,7 @@ class URArm(Arm):
             mode = int(self._recv.getSafetyMode())
         except Exception:  # only used to word an error message
             return "unknown"
-        return SAFETY_MODES.get(mode, f"mode {mode}")
+        return ARM_SAFETY_MODES.get(mode, f"mode {mode}")
 
     # -- control side --------------------------------------------------------
 
@@ -363,7 +352,7 @@ class URArm(Arm):
         mode = int(self._recv.getSafetyMode())
         if mode not in (1, 2):  # normal, reduced
             raise ArmCommandRefusedError(
-                f"URArm: {what} refused: the robot is in {SAFETY_MODES.get(mode, mode)}; "
+                f"URArm: {what} refused: the robot is in {ARM_SAFETY_MODES.get(mode, mode)}; "
                 "clear it on the pendant, then disconnect() and connect() again"
             )
 
