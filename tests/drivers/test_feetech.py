@@ -45,7 +45,9 @@ def fake() -> Iterator[FakeStsBus]:
 
 
 def _bus(port: str, **kw: object) -> FeetechServoBus:
-    kw.setdefault("retries", 1)
+    # the fake servos answer from a thread of this process, which the machine can hold up
+    # past the SDK's ~34 ms reply window now and then: tests of silence set their own
+    kw.setdefault("retries", 3)
     return FeetechServoBus(FeetechConfig(port=port, **kw))  # type: ignore[arg-type]
 
 
@@ -177,20 +179,23 @@ def test_out_of_limit_counts_are_never_written(fake) -> None:
 
 def test_corrupt_reply_is_retried(fake) -> None:
     with _bus(fake.port) as bus:
+        before = bus.stats()
         fake.corrupt_replies(1, sid=4)
         assert bus.read_positions() == _goals(2048)
         stats = bus.stats()
-        assert stats["rx_corrupt"] == 1 and stats["retries"] == 1
+        assert stats["rx_corrupt"] - before["rx_corrupt"] == 1
+        assert stats["retries"] - before["retries"] >= 1
         assert bus.fault is None
 
 
 def test_lost_reply_is_retried(fake) -> None:
     with _bus(fake.port) as bus:
+        before = bus.stats()["rx_timeout"]
         fake.drop_replies(1, sid=3)
         t = time.monotonic()
         assert bus.read_positions() == _goals(2048)
         assert time.monotonic() - t > 0.02  # the SDK's fixed timeout was paid once
-        assert bus.stats()["rx_timeout"] == 1
+        assert bus.stats()["rx_timeout"] - before >= 1
 
 
 def test_servo_that_does_not_answer_at_connect_is_named(fake) -> None:
