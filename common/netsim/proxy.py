@@ -20,6 +20,7 @@ import math
 import select
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass
 from typing import Any, Self
@@ -98,7 +99,69 @@ class _Direction:
         self.counters = DirectionCounters()
 
 
-class LinkSimulator:
+class ForwardingThread(ABC):
+    """One background thread that forwards until stopped: the netsim proxy's and relay's life.
+
+    A subclass sets up its sockets in ``start`` and then calls :meth:`_launch`;
+    ``_run`` stores what ended it in ``_error``; :meth:`_after_stop` runs once
+    the thread has ended.
+    """
+
+    thread_name = "netsim"
+
+    def _init_thread(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._error: BaseException | None = None
+
+    @property
+    def is_running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def error(self) -> BaseException | None:
+        """The exception that ended the forwarding thread, if any."""
+        return self._error
+
+    @abstractmethod
+    def start(self) -> None:
+        """Open the sockets, then :meth:`_launch` the thread."""
+
+    @abstractmethod
+    def _run(self) -> None:
+        """Forward until ``_stop`` is set; store an exception that ends it in ``_error``."""
+
+    def _launch(self) -> None:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=self.thread_name, daemon=True)
+        self._thread.start()
+
+    def _after_stop(self) -> None:  # noqa: B027 - an optional hook; nothing by default
+        """What to release once the thread has ended (not if it hangs)."""
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Stop forwarding and close everything; what is still in flight is dropped."""
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        self._stop.set()
+        thread.join(timeout_s)
+        if thread.is_alive():  # only if a socket call hangs: leak rather than hang too
+            log.error("%s thread did not stop within %.1f s", self.thread_name, timeout_s)
+        else:
+            self._after_stop()
+        if self._error is not None:
+            log.error("%s thread failed: %r", self.thread_name, self._error)
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+class LinkSimulator(ForwardingThread):
     """Forwards robot <-> operator traffic, each direction impaired by ``scenario``.
 
     Use as a context manager or call ``start()``/``stop()``. After
@@ -131,10 +194,8 @@ class LinkSimulator:
         self.spin_ns = round(spin_us * 1000)
         self._own_context = context is None
         self._ctx = context
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._init_thread()
         self._dirs: list[_Direction] = []
-        self._error: BaseException | None = None
         self.start_ns: int | None = None
         #: Per send: when it finished minus when it could have started
         #: (max of due time and receive time), the simulator's own cost.
@@ -143,10 +204,6 @@ class LinkSimulator:
         self.operator_commands_endpoint: str | None = None
 
     # ------------------------------------------------------------ lifecycle
-    @property
-    def is_running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
     def start(self) -> None:
         """Open the four sockets and start forwarding; raises ``LinkError`` on a bad endpoint."""
         if self._thread is not None:
@@ -180,9 +237,7 @@ class LinkSimulator:
             rx, tx = rx_tx[name]
             self._dirs.append(_Direction(name, rx, tx, engine))
             assert self._dirs[i].name == name
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="netsim", daemon=True)
-        self._thread.start()
+        self._launch()
         log.info(
             "netsim %r: robot %s / %s <-> operator %s / %s",
             self.scenario.name,
@@ -192,26 +247,8 @@ class LinkSimulator:
             self.operator_commands_endpoint,
         )
 
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """Stop forwarding and close everything; what is still in flight is dropped."""
-        thread, self._thread = self._thread, None
-        if thread is None:
-            return
-        self._stop.set()
-        thread.join(timeout_s)
-        if thread.is_alive():  # only if a socket call hangs: leak rather than hang too
-            log.error("netsim thread did not stop within %.1f s", timeout_s)
-        else:
-            self._close_context()
-        if self._error is not None:
-            log.error("netsim thread failed: %r", self._error)
-
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+    def _after_stop(self) -> None:
+        self._close_context()
 
     # ------------------------------------------------------------ state
     def counters(self) -> dict[str, dict[str, Any]]:
@@ -224,11 +261,6 @@ class LinkSimulator:
     def own_latency_ns(self) -> list[int]:
         """Recent per-send costs of the simulator itself, ns (at zero delay: receive to sent)."""
         return list(self._own_ns)
-
-    @property
-    def error(self) -> BaseException | None:
-        """The exception that ended the forwarding thread, if any."""
-        return self._error
 
     # ------------------------------------------------------------ internals
     def _open(self, kind: int, endpoint: str, *, bind: bool, socks: list[zmq.Socket]) -> zmq.Socket:

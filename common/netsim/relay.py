@@ -28,15 +28,19 @@ import select
 import socket
 import statistics
 import struct
-import threading
 import time
 from collections import deque
-from typing import Any, Self
+from typing import Any
 from urllib.parse import urlsplit
 
 from common.errors import ConfigError, LinkError
 from common.netsim.impairments import DIRECTIONS, DirectionConfig, DirectionImpairment, Scenario
-from common.netsim.proxy import DirectionCounters, Endpoints, set_timer_slack_ns
+from common.netsim.proxy import (
+    DirectionCounters,
+    Endpoints,
+    ForwardingThread,
+    set_timer_slack_ns,
+)
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +136,7 @@ class _Pipe:
         self.closed = False
 
 
-class StreamRelay:
+class StreamRelay(ForwardingThread):
     """Relays the robot's two TCP links, each direction impaired by ``scenario``.
 
     The operator connects to ``operator_telemetry_endpoint`` and
@@ -142,6 +146,8 @@ class StreamRelay:
     telemetry link's ``to_robot`` bytes are ZMTP's handshake and
     subscriptions). Same interface as ``LinkSimulator``.
     """
+
+    thread_name = "netsim-relay"
 
     def __init__(
         self,
@@ -171,9 +177,7 @@ class StreamRelay:
         self._spun = 0  # reads found while spinning (ahead of a release or a chunk)
         self._listeners: list[tuple[str, socket.socket, tuple[str, int]]] = []
         self._pipes: list[_Pipe] = []
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._error: BaseException | None = None
+        self._init_thread()
         self.start_ns: int | None = None
         self._own_ns: deque[int] = deque(maxlen=100_000)
         self._costs: deque[int] = deque(maxlen=_COST_WINDOW)
@@ -182,10 +186,6 @@ class StreamRelay:
         self.operator_commands_endpoint: str | None = None
 
     # ------------------------------------------------------------ lifecycle
-    @property
-    def is_running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
     def start(self) -> None:
         """Bind the operator-side listeners and start relaying."""
         if self._thread is not None:
@@ -209,9 +209,7 @@ class StreamRelay:
         self.operator_telemetry_endpoint = f"tcp://{tel[0]}:{tel[1]}"
         self.operator_commands_endpoint = f"tcp://{cmd[0]}:{cmd[1]}"
         self.start_ns = time.monotonic_ns()
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="netsim-relay", daemon=True)
-        self._thread.start()
+        self._launch()
         log.info(
             "netsim %r (byte stream): robot %s / %s <-> operator %s / %s",
             self.scenario.name,
@@ -220,25 +218,6 @@ class StreamRelay:
             self.operator_telemetry_endpoint,
             self.operator_commands_endpoint,
         )
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """Stop relaying and close every connection; bytes in flight are dropped."""
-        thread, self._thread = self._thread, None
-        if thread is None:
-            return
-        self._stop.set()
-        thread.join(timeout_s)
-        if thread.is_alive():
-            log.error("netsim relay thread did not stop within %.1f s", timeout_s)
-        if self._error is not None:
-            log.error("netsim relay thread failed: %r", self._error)
-
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     # ------------------------------------------------------------ state
     def counters(self) -> dict[str, dict[str, Any]]:
@@ -263,10 +242,6 @@ class StreamRelay:
     def release_cost_ns(self) -> int:
         """The current estimate of a release's own cost, taken off every scheduled delay."""
         return self._cost_ns
-
-    @property
-    def error(self) -> BaseException | None:
-        return self._error
 
     # ------------------------------------------------------------ connections
     def _accept(self, link: str, listener: socket.socket, target: tuple[str, int]) -> None:

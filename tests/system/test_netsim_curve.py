@@ -26,7 +26,6 @@ from common.netsim.relay import StreamRelay
 from common.netsim.scenario import load_scenario
 from common.security import SecurityConfig, client_options
 from common.transport import Subscriber
-from deploy.keys_cli import allow, generate
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus
@@ -37,26 +36,6 @@ from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSe
 
 #: bad_day's 2-s outage, moved from 20 s to early in the run to keep the test short.
 OUTAGE = (3.0, 5.0)
-
-
-@pytest.fixture
-def keys(tmp_path):
-    robot_pub, robot_sec = generate(tmp_path / "robot", "robot")
-    op_pub, op_sec = generate(tmp_path / "operator", "operator")
-    _, stranger_sec = generate(tmp_path / "stranger", "stranger")
-    authorized = tmp_path / "authorized"
-    allow(op_pub, authorized)
-    return {
-        "robot": SecurityConfig(
-            mode="curve", secret_key_file=robot_sec, authorized_keys_dir=authorized
-        ),
-        "operator": SecurityConfig(
-            mode="curve", secret_key_file=op_sec, server_public_key_file=robot_pub
-        ),
-        "stranger": SecurityConfig(
-            mode="curve", secret_key_file=stranger_sec, server_public_key_file=robot_pub
-        ),
-    }
 
 
 def _scenario(name: str):

@@ -15,7 +15,6 @@ from common.errors import LinkError
 from common.messages import Command, Stimulus
 from common.security import SecurityConfig, check_endpoint, client_options
 from common.transport import Publisher, Subscriber
-from deploy.keys_cli import allow, generate
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.tactile.scripted import ScriptedTactileSensor
@@ -53,26 +52,6 @@ class Relay:
 
     def close(self) -> None:
         self.server.close()
-
-
-@pytest.fixture
-def keys(tmp_path):
-    robot_pub, robot_sec = generate(tmp_path / "robot", "robot")
-    op_pub, op_sec = generate(tmp_path / "operator", "operator")
-    _, stranger_sec = generate(tmp_path / "stranger", "stranger")
-    authorized = tmp_path / "authorized"
-    allow(op_pub, authorized)
-    return {
-        "robot": SecurityConfig(
-            mode="curve", secret_key_file=robot_sec, authorized_keys_dir=authorized
-        ),
-        "operator": SecurityConfig(
-            mode="curve", secret_key_file=op_sec, server_public_key_file=robot_pub
-        ),
-        "stranger": SecurityConfig(
-            mode="curve", secret_key_file=stranger_sec, server_public_key_file=robot_pub
-        ),
-    }
 
 
 def _ports() -> tuple[int, int]:
