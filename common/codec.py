@@ -77,6 +77,18 @@ class OutOfRangeError(DecodeError):
     """A number is outside the range its field allows."""
 
 
+class RobotNameError(DecodeError):
+    """A robot name that is empty, too long or holds a byte outside ``NAME_CHARS``."""
+
+
+class WrongRobotError(DecodeError):
+    """A message named for another robot than the one this socket serves."""
+
+
+class SignatureError(DecodeError):
+    """A ``sig`` that is misplaced, lacks its ``signer``, or does not verify."""
+
+
 # ---------------------------------------------------------------- field checks
 Check = Callable[[str, Any], Any]
 
@@ -188,6 +200,17 @@ def _stats(name: str, v: Any) -> dict[str, float]:
     return out
 
 
+def _bin(size: int) -> Check:
+    def check(name: str, v: Any) -> bytes:
+        if not isinstance(v, bytes) or len(v) != size:
+            raise FieldTypeError(f"{name} must be {size} bytes")
+        return v
+
+    return check
+
+
+_KEY = _bin(32)  # an Ed25519 public key
+
 # (field, check, required). Optional fields may be absent or nil.
 _COMMON = [("seq", _uint, True), ("t_send_ns", _uint, True)]
 SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
@@ -219,6 +242,10 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("stimulus_seq", _uint, False),
         ("t_capture_ns", _uint, False),
         ("stats", _stats, False),
+        ("signer", _KEY, False),
+        ("echo_signer", _KEY, False),
+        ("controller", _KEY, False),
+        ("lease_pending", _KEY, False),
     ],
     Command: [
         *_COMMON,
@@ -226,12 +253,14 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("grip_level", _int_range(1, N_GRIP_LEVELS), False),
         ("velocity", _velocity, False),
         ("session", _int_range(1, _U63), False),
+        ("grantee", _KEY, False),
+        ("signer", _KEY, False),
     ],
 }
 _BY_TOPIC = {cls.TOPIC: cls for cls in MESSAGE_TYPES}
 #: per type, every key its map may hold that the schema checks
 _KNOWN_KEYS = {
-    cls: frozenset(("v", "type", *(name for name, _, _ in fields)))
+    cls: frozenset(("v", "type", "sig", *(name for name, _, _ in fields)))
     for cls, fields in SCHEMAS.items()
 }
 #: how deep an unknown value may nest before the message is refused as malformed
@@ -262,23 +291,93 @@ def _wire_value(v: Any) -> Any:
     return v
 
 
-def encode(msg: Message) -> bytes:
-    """Topic + msgpack map. Optional fields that are None are left out."""
+def encode(msg: Message, name: bytes = b"", signer: Any = None) -> bytes:
+    """Topic (+ robot name) + msgpack map. Optional fields that are None are left out.
+
+    ``signer`` (a ``common.signing.Signer``): the message carries its public
+    key as ``signer`` and, as the map's last entry, ``sig``: the signature
+    over every byte before that entry (docs/protocol.md, Signed messages).
+    """
     cls = type(msg)
     body: dict[str, Any] = {"v": PROTOCOL_VERSION, "type": cls.TYPE}
-    for name, _, required in SCHEMAS[cls]:
-        value = getattr(msg, name)
+    for field_name, _, required in SCHEMAS[cls]:
+        value = getattr(msg, field_name)
         if value is None and not required:
             continue
-        body[name] = _wire_value(value)
+        body[field_name] = _wire_value(value)
     if cls is Heartbeat and not msg.stats:
         body.pop("stats", None)
-    return cls.TOPIC + msgpack.packb(body, use_bin_type=True)
+    prefix = name_prefix(cls.TOPIC, name) if name else cls.TOPIC
+    if signer is None:
+        return prefix + msgpack.packb(body, use_bin_type=True)
+    body["signer"] = signer.public
+    body["sig"] = _NO_SIG  # a placeholder of the right size: the map header counts it
+    signed = (prefix + msgpack.packb(body, use_bin_type=True))[:-SIG_ENTRY_BYTES]
+    return signed + SIG_TAG + signer.sign(signed)
+
+
+# ---------------------------------------------------------------- robot names
+#: a robot's name on the wire: 1 to 32 of these bytes, after the topic and a length byte
+NAME_CHARS = frozenset(b"abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.")
+MAX_NAME_LEN = 32
+
+
+def check_robot_name(name: str | bytes) -> bytes:
+    """The name as wire bytes; raises ``RobotNameError`` for a name the protocol forbids."""
+    raw = name.encode("ascii", "replace") if isinstance(name, str) else bytes(name)
+    if not 1 <= len(raw) <= MAX_NAME_LEN or not NAME_CHARS.issuperset(raw):
+        raise RobotNameError(
+            f"robot name {name!r} must be 1 to {MAX_NAME_LEN} of A-Z a-z 0-9 _ - ."
+        )
+    return raw
+
+
+def name_prefix(topic: bytes, name: bytes = b"") -> bytes:
+    """What a frame starts with: the topic, then (named robots) the name's length and the name.
+
+    It is also the ZeroMQ subscription that selects one message type of one
+    robot: the length byte makes ``cell1`` and ``cell10`` different prefixes.
+    """
+    if not name:
+        return topic
+    return topic + bytes((len(name),)) + name
+
+
+def split_name(data: bytes) -> tuple[bytes, int]:
+    """(robot name or b"", where the msgpack body starts) of a frame.
+
+    After the topic a msgpack map starts with 0x80-0x8f, 0xde or 0xdf; a
+    name's length byte is 1 to 32, so the two can never be confused.
+    """
+    n = data[TOPIC_LEN] if len(data) > TOPIC_LEN else 0
+    if not 1 <= n <= MAX_NAME_LEN:
+        return b"", TOPIC_LEN
+    end = TOPIC_LEN + 1 + n
+    name = bytes(data[TOPIC_LEN + 1 : end])
+    if len(name) != n or not NAME_CHARS.issuperset(name):
+        raise RobotNameError(f"malformed robot name after topic {bytes(data[:TOPIC_LEN])!r}")
+    return name, end
+
+
+# ----------------------------------------------------------------- signatures
+#: the ``sig`` entry as it ends a signed frame: fixstr "sig", bin 8 of 64 bytes, the signature
+SIG_TAG = b"\xa3sig\xc4\x40"
+SIG_ENTRY_BYTES = len(SIG_TAG) + 64
+_NO_SIG = bytes(64)
 
 
 # --------------------------------------------------------------------- decode
 def decode(data: bytes) -> Message:
     """Validate and build a message; raises a ``DecodeError`` subclass."""
+    return decode_named(data)[1]
+
+
+def decode_named(data: bytes) -> tuple[bytes, Message]:
+    """(robot name or b"", message) of a frame that may carry a robot's name.
+
+    A message with a ``sig`` is returned only if the signature verifies, so
+    a decoded message's ``signer`` is the key that really signed it.
+    """
     if len(data) > MAX_MESSAGE_BYTES:
         raise MessageTooLargeError(f"{len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")
     if len(data) <= TOPIC_LEN:
@@ -287,8 +386,9 @@ def decode(data: bytes) -> Message:
     cls = _BY_TOPIC.get(topic)
     if cls is None:
         raise UnknownMessageTypeError(f"unknown topic {topic!r}")
+    name, start = split_name(data)
     try:
-        body = msgpack.unpackb(data[TOPIC_LEN:], raw=False, strict_map_key=True)
+        body = msgpack.unpackb(data[start:], raw=False, strict_map_key=True)
     except Exception as e:  # msgpack raises several unrelated types
         raise MalformedMessageError(f"{topic.decode()} payload is not msgpack: {e}") from None
     if not isinstance(body, dict):
@@ -305,14 +405,32 @@ def decode(data: bytes) -> Message:
     if not _KNOWN_KEYS[cls].issuperset(body):  # one C-level test on the common path
         _check_unknown_keys(cls, body)
     kwargs: dict[str, Any] = {}
-    for name, label, check, required in _DECODE_PLAN[cls]:
-        value = body.get(name)
+    for field_name, label, check, required in _DECODE_PLAN[cls]:
+        value = body.get(field_name)
         if value is None:
             if required:
-                raise MissingFieldError(f"{cls.TYPE} is missing required field {name!r}")
+                raise MissingFieldError(f"{cls.TYPE} is missing required field {field_name!r}")
             continue
-        kwargs[name] = check(label, value)
-    return cls(**kwargs)
+        kwargs[field_name] = check(label, value)
+    if "sig" in body:
+        _check_signature(cls, data, body)
+    elif "signer" in kwargs:
+        raise SignatureError(f"{cls.TYPE} names a signer but carries no sig")
+    return name, cls(**kwargs)
+
+
+def _check_signature(cls: type, data: bytes, body: dict[str, Any]) -> None:
+    from common.signing import verify
+
+    sig = body["sig"]
+    tail = bytes(data[-SIG_ENTRY_BYTES:])
+    if not isinstance(sig, bytes) or len(sig) != 64 or tail != SIG_TAG + sig:
+        raise SignatureError(f"{cls.TYPE}.sig must be 64 bytes and the map's last entry")
+    signer = body.get("signer")
+    if not isinstance(signer, bytes):
+        raise SignatureError(f"{cls.TYPE} carries a sig but no signer")
+    if not verify(signer, sig, bytes(data[:-SIG_ENTRY_BYTES])):
+        raise SignatureError(f"{cls.TYPE} signature does not verify for its signer")
 
 
 def _check_unknown_keys(cls: type, body: dict[Any, Any]) -> None:

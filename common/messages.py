@@ -18,7 +18,16 @@ PROTOCOL_VERSION = 1
 
 RenderMode = Literal["direct", "mask", "mask_ground_truth"]
 LinkState = Literal["ok", "stale", "down"]
-CommandAction = Literal["gripper_open", "gripper_close", "gripper_hold", "arm_jog", "arm_stop"]
+CommandAction = Literal[
+    "gripper_open",
+    "gripper_close",
+    "gripper_hold",
+    "arm_jog",
+    "arm_stop",
+    "lease_request",
+    "lease_grant",
+    "lease_release",
+]
 
 RENDER_MODES: tuple[str, ...] = ("direct", "mask", "mask_ground_truth")
 LINK_STATES: tuple[str, ...] = ("ok", "stale", "down")
@@ -28,7 +37,14 @@ COMMAND_ACTIONS: tuple[str, ...] = (
     "gripper_hold",
     "arm_jog",
     "arm_stop",
+    "lease_request",
+    "lease_grant",
+    "lease_release",
 )
+#: actions that ask for, hand over or give up control of a robot (the control lease)
+LEASE_ACTIONS: frozenset[str] = frozenset({"lease_request", "lease_grant", "lease_release"})
+#: what an operator key may be (roster, docs/security.md): only controllers may hold the lease
+ROLES: tuple[str, ...] = ("controller", "observer", "recorder")
 
 
 @dataclass(slots=True)
@@ -94,6 +110,10 @@ class Heartbeat:
     stimulus_seq: int | None = None  # robot: the stimulus that is still current
     t_capture_ns: int | None = None  # robot: newest frame that confirmed it
     stats: dict[str, float] = field(default_factory=dict)
+    signer: bytes | None = None  # operator: its Ed25519 public key (signed messages)
+    echo_signer: bytes | None = None  # robot: whose heartbeat the echo fields answer
+    controller: bytes | None = None  # robot: the key holding the control lease
+    lease_pending: bytes | None = None  # robot: a key asking for the lease
 
     TOPIC = b"HBRT"
     TYPE = "heartbeat"
@@ -109,6 +129,8 @@ class Command:
     grip_level: int | None = None  # gripper_close: 1..31
     velocity: tuple[float, ...] | None = None  # arm_jog: vx vy vz (m/s) wx wy wz (rad/s)
     session: int | None = None  # random per operator run: seq and t_send_ns increase within it
+    grantee: bytes | None = None  # lease_grant: the key the lease goes to
+    signer: bytes | None = None  # the sender's Ed25519 public key (signed messages)
 
     TOPIC = b"CMND"
     TYPE = "command"

@@ -23,7 +23,8 @@ from common.codec import (
     MAX_MESSAGE_BYTES,
     DecodeError,
     MultipartMessageError,
-    decode,
+    WrongRobotError,
+    decode_named,
     encode,
 )
 from common.errors import LinkError
@@ -63,7 +64,14 @@ def last_endpoint(sock: zmq.Socket) -> str:
 
 
 class Publisher:
-    """Sends messages; a PUB never blocks, and drops for a subscriber that lags."""
+    """Sends messages; a PUB never blocks, and drops for a subscriber that lags.
+
+    ``name``: a robot's name, carried after every topic (docs/protocol.md) so
+    that one relay can carry several robots. ``signer``: every message is
+    signed (common/signing.py). ``watch_subscriptions``: an XPUB instead of a
+    PUB, so the sender sees what its subscribers (or a relay on their behalf)
+    ask for and can skip encoding what nobody wants.
+    """
 
     def __init__(
         self,
@@ -73,16 +81,56 @@ class Publisher:
         bind: bool,
         sndhwm: int = 64,
         sock_opts: dict[int, Any] | None = None,
+        name: bytes = b"",
+        signer: Any = None,
+        watch_subscriptions: bool = False,
     ) -> None:
-        self.sock = _open(ctx, zmq.PUB, endpoint, bind, {zmq.SNDHWM: sndhwm, **(sock_opts or {})})
+        kind = zmq.XPUB if watch_subscriptions else zmq.PUB
+        opts = {zmq.SNDHWM: sndhwm, **(sock_opts or {})}
+        if watch_subscriptions:
+            opts[zmq.MAXMSGSIZE] = 1 + MAX_MESSAGE_BYTES  # a subscription: 1 byte + a prefix
+        self.sock = _open(ctx, kind, endpoint, bind, opts)
         self.endpoint = last_endpoint(self.sock) if bind else endpoint
+        self.name = name
+        self.signer = signer
+        self.watching = watch_subscriptions
         self.sent = 0
         self.bytes_sent = 0
+        #: subscription prefixes in force (XPUB only; a relay forwards each prefix once)
+        self.subscriptions: set[bytes] = set()
 
     def send(self, msg: Message) -> bytes:
-        data = encode(msg)
+        data = encode(msg, self.name, self.signer)
         self.send_raw(data)
         return data
+
+    def read_subscriptions(self) -> bool:
+        """Take in queued (un)subscriptions (XPUB only); True if the set changed."""
+        if not self.watching:
+            return False
+        changed = False
+        sock = self.sock
+        while sock.get(_EVENTS) & _POLLIN:
+            try:
+                data = sock.recv(_NOBLOCK)
+            except zmq.Again:
+                break
+            if not data or data[0] not in (0, 1):
+                continue  # nothing but subscriptions is ever read from a publisher
+            prefix = bytes(data[1:])
+            if data[0] == 1 and prefix not in self.subscriptions:
+                self.subscriptions.add(prefix)
+                changed = True
+            elif data[0] == 0 and prefix in self.subscriptions:
+                self.subscriptions.discard(prefix)
+                changed = True
+        return changed
+
+    def wanted(self, prefix: bytes) -> bool:
+        """Does any subscription select frames starting with ``prefix``? (True for a PUB.)"""
+        if not self.watching:
+            return True
+        return any(prefix.startswith(s) for s in self.subscriptions)
 
     def send_raw(self, data: bytes) -> None:
         try:
@@ -108,10 +156,19 @@ class Subscriber:
         rcvhwm: int = 256,
         sock_opts: dict[int, Any] | None = None,
         name: str = "subscriber",
+        topics: tuple[bytes, ...] = (b"",),
+        expect_name: bytes | None = None,
     ) -> None:
+        """``topics``: subscription prefixes (``codec.name_prefix``), b"" for everything.
+
+        ``expect_name``: a robot name every message must carry (b"" for none);
+        another is refused as ``WrongRobotError``. None accepts any.
+        """
         opts = {zmq.RCVHWM: rcvhwm, zmq.MAXMSGSIZE: MAX_MESSAGE_BYTES, **(sock_opts or {})}
         self.sock = _open(ctx, zmq.SUB, endpoint, bind, opts)
-        self.sock.setsockopt(zmq.SUBSCRIBE, b"")
+        for topic in topics:
+            self.sock.setsockopt(zmq.SUBSCRIBE, topic)
+        self.expect_name = expect_name
         self.endpoint = last_endpoint(self.sock) if bind else endpoint
         self.poller = zmq.Poller()
         self.poller.register(self.sock, zmq.POLLIN)
@@ -151,7 +208,10 @@ class Subscriber:
                 if sock.get(_RCVMORE):
                     parts = 1 + self._discard_rest()
                     raise MultipartMessageError(f"a message of {parts} frames (one is the rule)")
-                out.append((decode(data), t_recv))
+                robot, msg = decode_named(data)
+                if self.expect_name is not None and robot != self.expect_name:
+                    raise WrongRobotError(f"for robot {robot!r}, not {self.expect_name!r}")
+                out.append((msg, t_recv))
             except DecodeError as e:
                 self.rejected[type(e).__name__] += 1
                 self._bad(str(e))

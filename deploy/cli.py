@@ -20,6 +20,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "robot": ("robot_side.node_cli", "run the robot node (tactile pads, gripper, arm)"),
     "operator": ("operator_side.node_cli", "run the operator node (LinkGlide)"),
     "video": ("robot_side.video.cli", "stream a camera from the robot PC to the dashboard"),
+    "relay": (
+        "relay_side.cli",
+        "run the relay: robots and operators connect out to it (docs/deploy.md)",
+    ),
     "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
     "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
     "collect": (

@@ -4,7 +4,9 @@
     deepxpalm keys generate --dir keys --name operator    # on the operator PC
     deepxpalm keys allow keys/operator.key --authorized /etc/deepxpalm/operators
 
-Copy only public ``.key`` files between machines; ``.key_secret`` files
+    deepxpalm keys generate-signing --dir keys --name operator-alice   # Ed25519, signs commands
+
+Copy only public ``.key`` and ``.sign`` files between machines; ``.key_secret`` files
 never leave the machine they were made on (they are written mode 0600).
 """
 
@@ -33,6 +35,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     allow.add_argument(
         "--authorized", type=Path, required=True, help="the robot's authorized_keys_dir"
     )
+    sign = sub.add_parser(
+        "generate-signing",
+        help="make an Ed25519 signing key NAME.sign / NAME.sign_secret (roster signing_key)",
+    )
+    sign.add_argument("--dir", type=Path, required=True, help="where to write the files")
+    sign.add_argument("--name", required=True, help="e.g. operator-alice")
+    sign.add_argument("--force", action="store_true", help="overwrite an existing pair")
     show = sub.add_parser("show", help="print a key file's public key (Z85)")
     show.add_argument("key_file", type=Path)
 
@@ -64,6 +73,12 @@ def run(args: argparse.Namespace) -> int:
     if args.keys_command == "generate":
         public, secret = generate(args.dir, args.name, args.force)
         print(f"public key: {public}  (copy this one to the other machine)")
+        print(f"secret key: {secret}  (keep it here; mode 0600)")
+    elif args.keys_command == "generate-signing":
+        from common.signing import generate_key_files
+
+        public, secret = generate_key_files(args.dir, args.name, args.force)
+        print(f"public key: {public}  (its hex goes into the rosters as signing_key)")
         print(f"secret key: {secret}  (keep it here; mode 0600)")
     elif args.keys_command == "allow":
         target = allow(args.public_key, args.authorized)

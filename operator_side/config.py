@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from common.config import param
@@ -32,8 +33,26 @@ class OperatorLinkConfig:
         "no telemetry for this long: open the sockets again (libzmq gives up on a "
         "connection after a protocol error such as an oversized frame)",
     )
+    robot_name: str = param(
+        "",
+        "the robot to follow through a relay (its link.robot_name); empty = an unnamed robot "
+        "on a direct link",
+    )
+    signing_key_file: Path | None = param(
+        None,
+        "our Ed25519 key (NAME.sign_secret from `deepxpalm keys generate-signing`): every "
+        "command and heartbeat is signed, as a robot with a roster requires",
+    )
+    want_frames: bool = param(
+        True, "subscribe to raw frames (heatmaps); false = the robot skips them if nobody wants"
+    )
+    request_control: bool = param(
+        False,
+        "ask the robot for its control lease at start, and again while nobody holds it "
+        "(controller keys only; a held lease changes hands only when its holder grants it)",
+    )
     security: SecurityConfig = param(
-        SecurityConfig(), "CURVE keys: ours and the robot's public key"
+        SecurityConfig(), "CURVE keys: ours and the robot's (or the relay's) public key"
     )
 
 

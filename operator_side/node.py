@@ -25,8 +25,9 @@ import zmq
 
 from common.clock import Clock, Periodic, now_ns
 from common.clock_sync import ClockSync
-from common.codec import encode
+from common.codec import DecodeError, check_robot_name, encode, name_prefix
 from common.devices import build_device
+from common.errors import ConfigError
 from common.link_stats import LinkStats
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.patterns import matches_pattern
@@ -119,6 +120,19 @@ class OperatorNode:
         self._sockets_opened_ns = 0
         self._last_rx_ns = 0
         self._rejected_before = 0  # rejections counted by sockets since reopened
+        link_cfg = config.link
+        try:
+            self.robot_name = check_robot_name(link_cfg.robot_name) if link_cfg.robot_name else b""
+        except DecodeError as e:
+            raise ConfigError(f"operator link.robot_name: {e}") from None
+        self.signer = None
+        if link_cfg.signing_key_file is not None:
+            from common.signing import load_signer  # cryptography only when signing
+
+            self.signer = load_signer(link_cfg.signing_key_file)
+        #: the key holding the robot's control lease, as its newest heartbeat says
+        self.lease_holder: bytes | None = None
+        self._next_lease_request_ns = 0
 
     def _use_calibration(self, calibration: LinkGlideCalibration) -> None:
         self.calibration = calibration
@@ -127,11 +141,22 @@ class OperatorNode:
 
     # ---------------------------------------------------------- commands
     def send_command(
-        self, action: str, grip_level: int | None = None, velocity: tuple[float, ...] | None = None
+        self,
+        action: str,
+        grip_level: int | None = None,
+        velocity: tuple[float, ...] | None = None,
+        grantee: bytes | None = None,
     ) -> None:
         """Queue a command for the robot; thread-safe (sockets stay on the loop thread)."""
         self._commands.put(
-            Command(seq=0, t_send_ns=0, action=action, grip_level=grip_level, velocity=velocity)
+            Command(
+                seq=0,
+                t_send_ns=0,
+                action=action,
+                grip_level=grip_level,
+                velocity=velocity,
+                grantee=grantee,
+            )
         )
         with contextlib.suppress(BlockingIOError, OSError):
             os.write(self._wake_w, b"c")  # the loop may be asleep until a deadline
@@ -171,6 +196,21 @@ class OperatorNode:
                 if self._own_ctx:
                     self.ctx.term()
 
+    @property
+    def is_controller(self) -> bool:
+        """Whether the robot's newest heartbeat names our key as the lease holder."""
+        return self.signer is not None and self.lease_holder == self.signer.public
+
+    def _topics(self) -> tuple[bytes, ...]:
+        """What we subscribe to: one robot's stimuli and heartbeats, and frames if wanted."""
+        name = self.robot_name
+        if not name:
+            return (b"",)
+        topics = [name_prefix(Stimulus.TOPIC, name), name_prefix(Heartbeat.TOPIC, name)]
+        if self.config.link.want_frames:
+            topics.append(name_prefix(TactileFrame.TOPIC, name))
+        return tuple(topics)
+
     def _open_sockets(self) -> None:
         link = self.config.link
         opts = client_options(link.security)
@@ -180,8 +220,17 @@ class OperatorNode:
             bind=False,
             sock_opts=opts,
             name="operator telemetry",
+            topics=self._topics(),
+            expect_name=self.robot_name,
         )
-        self.pub = Publisher(self.ctx, link.command_endpoint, bind=False, sock_opts=opts)
+        self.pub = Publisher(
+            self.ctx,
+            link.command_endpoint,
+            bind=False,
+            sock_opts=opts,
+            name=self.robot_name,
+            signer=self.signer,
+        )
         self.sub.poller.register(self._wake_r, zmq.POLLIN)
         self._sockets_opened_ns = self.now()
 
@@ -223,6 +272,7 @@ class OperatorNode:
             if heartbeat.due(now):
                 self._send_heartbeat()
                 heartbeat.done(now)
+            self._maybe_request_control(now)
             if self._wake_r in ready:
                 self._flush_commands()
             self._reopen_sockets_if_silent(now)
@@ -275,11 +325,31 @@ class OperatorNode:
                 self.counters["stimuli_matching_truth"] += 1
         return True
 
+    def _maybe_request_control(self, now: int) -> None:
+        """``request_control``: ask while nobody holds the lease (refused until clocks sync)."""
+        if not self.config.link.request_control or self.signer is None:
+            return
+        if self.lease_holder is not None or now < self._next_lease_request_ns:
+            return
+        self._next_lease_request_ns = now + 250_000_000
+        self.counters["lease_requests_sent"] += 1
+        self.send_command("lease_request")
+
     def _on_heartbeat(self, msg: Heartbeat, t_recv: int) -> None:
         if msg.node != "robot":
             return
         self.counters["heartbeats_received"] += 1
-        self.clock.on_heartbeat(msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv)
+        echo_send, echo_recv = msg.echo_t_send_ns, msg.echo_t_recv_ns
+        if msg.echo_signer is not None and (
+            self.signer is None or msg.echo_signer != self.signer.public
+        ):
+            echo_send = echo_recv = None  # it answers another operator's heartbeat
+        self.clock.on_heartbeat(msg.t_send_ns, echo_send, echo_recv, t_recv)
+        was = self.is_controller
+        self.lease_holder = msg.controller
+        if self.is_controller != was:
+            self.counters["lease_gained" if not was else "lease_lost"] += 1
+            log.info("control lease %s", "ours" if not was else "no longer ours")
         self._robot_stats = msg.stats
         stim = self._stim
         if stim is not None and msg.stimulus_seq == stim.seq and msg.t_capture_ns is not None:
@@ -419,6 +489,8 @@ class OperatorNode:
         for key, value in self.link.snapshot(self.now()).as_dict().items():
             if isinstance(value, (int, float)) and key != "window_s":
                 out[f"link_{key}"] = float(value)
+        if self.signer is not None:
+            out["lease_holder"] = float(self.is_controller)
         return out
 
     def _latency_summary(self) -> dict[str, float]:

@@ -78,7 +78,29 @@ class RobotLinkConfig:
         "after a full batch, commands wait this long for the next turn while frames go on; "
         "what waits only ages (stale commands are refused)",
     )
-    security: SecurityConfig = param(SecurityConfig(), "CURVE keys and the operator allowlist")
+    mode: Literal["bind", "relay"] = param(
+        "bind",
+        "bind: the operator connects to our two endpoints (one site opens a port); relay: we "
+        "connect out to a relay's robot-facing endpoints (deepxpalm relay), nobody connects in",
+    )
+    robot_name: str = param(
+        "",
+        "our name on the wire, after every topic (docs/protocol.md); needed with a relay, "
+        "which carries several robots; empty = unnamed (direct link only)",
+    )
+    roster_file: Path | None = param(
+        None,
+        "operators and their roles (common/roster.py): commands must then be signed, and "
+        "only the holder of the control lease is obeyed; needed with a relay",
+    )
+    lease_request_timeout_ms: float = param(
+        2000.0, "a lease request the holder neither grants nor answers lapses after this"
+    )
+    security: SecurityConfig = param(
+        SecurityConfig(),
+        "CURVE keys and the operator allowlist; with a relay, server_public_key_file is the "
+        "relay's public key",
+    )
 
 
 @dataclass

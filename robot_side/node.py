@@ -24,17 +24,19 @@ import zmq
 
 from common.clock import Clock, Periodic, now_ns
 from common.clock_sync import ClockSync
-from common.codec import MAX_STATS, DecodeError
+from common.codec import MAX_STATS, DecodeError, check_robot_name, name_prefix
 from common.devices import Device, build_device
-from common.errors import DeviceError
+from common.errors import ConfigError, DeviceError
 from common.logs import BurstLog
-from common.messages import Command, Heartbeat, Stimulus, TactileFrame
+from common.messages import LEASE_ACTIONS, Command, Heartbeat, Stimulus, TactileFrame
 from common.recording import NullRecorder, Recorder
-from common.security import Authenticator, check_endpoint, server_options
+from common.roster import load_roster
+from common.security import Authenticator, check_endpoint, client_options, server_options
 from common.transport import Link, Publisher, Receiver, Sender, Subscriber, make_context
 from robot_side.command_gate import CommandGate
 from robot_side.config import RobotConfig
 from robot_side.device_worker import DeviceRequest, DeviceWorker
+from robot_side.lease import ControlLease
 from robot_side.recovery import DeviceRecovery
 from robot_side.rendering import NO_CELLS, render_frame, sanitize_frame, sanitize_with_peak
 from robot_side.tactile.base import TactileSample, TactileSensor
@@ -108,6 +110,26 @@ class RobotNode:
         self.clock = ClockSync()
         #: what the robot acts on, judged on the operator's clock (command_gate.py)
         self.gate = CommandGate(self.clock, round(config.link.max_command_age_ms * 1e6))
+        #: our name on the wire (b"" = unnamed); ConfigError for a name the protocol forbids
+        self.name = _wire_name(config.link.robot_name)
+        #: with a roster: signed commands, obeyed only from the lease holder (lease.py)
+        self.lease: ControlLease | None = None
+        if config.link.roster_file is not None:
+            roster = load_roster(config.link.roster_file)
+            self.lease = ControlLease(
+                roster.by_signing_key(),
+                round(config.link.max_command_age_ms * 1e6),
+                round(config.link.lease_request_timeout_ms * 1e6),
+            )
+            self.gate = self.lease.holder_gate
+        elif config.link.mode == "relay":
+            raise ConfigError(
+                "robot link.mode = 'relay' needs link.roster_file: through a relay only "
+                "signed commands from the lease holder may move the arm (docs/security.md)"
+            )
+        self._lease_changes_seen = 0
+        self._echo_turn = 0  # round robin over the operators whose heartbeats we echo
+        self._heartbeat_now = False  # a lease change is announced at once, not in 50 ms
         self._grip_level: int | None = None  # the gripper worker's latest reading
         self._arm_state: dict[str, float] = {}  # the arm worker's latest reading
         self._first_seq: int | None = None
@@ -150,13 +172,36 @@ class RobotNode:
             self._start_workers(stack)
             for endpoint in (link.telemetry_endpoint, link.command_endpoint):
                 check_endpoint(endpoint, link.security)
-            auth = self._auth = Authenticator(self.ctx, link.security)
-            stack.callback(auth.stop)
-            opts = server_options(link.security)
-            self.pub = Publisher(self.ctx, link.telemetry_endpoint, bind=True, sock_opts=opts)
+            bind = link.mode == "bind"
+            if bind:
+                auth = self._auth = Authenticator(self.ctx, link.security)
+                stack.callback(auth.stop)
+                opts = server_options(link.security)
+            else:  # the relay is the CURVE server; its allowlist and ours (the roster) both apply
+                opts = client_options(link.security)
+            name = self.name
+            self.pub = Publisher(
+                self.ctx,
+                link.telemetry_endpoint,
+                bind=bind,
+                sock_opts=opts,
+                name=name,
+                watch_subscriptions=not bind,  # the relay tells us what anyone subscribed to
+            )
             stack.callback(self.pub.close)
+            topics = (
+                (name_prefix(Command.TOPIC, name), name_prefix(Heartbeat.TOPIC, name))
+                if name
+                else (b"",)
+            )
             self.sub = Subscriber(
-                self.ctx, link.command_endpoint, bind=True, sock_opts=opts, name="robot commands"
+                self.ctx,
+                link.command_endpoint,
+                bind=bind,
+                sock_opts=opts,
+                name="robot commands",
+                topics=topics,
+                expect_name=name,
             )
             stack.callback(self.sub.close)
             # one wait for both: a frame the loop asked for, or a word from the operator
@@ -211,6 +256,7 @@ class RobotNode:
             if now >= self._commands_paused_until:
                 self._handle_commands(now)
             self._check_deadman(now)
+            self.pub.read_subscriptions()
             if sample is not None:
                 self._account(sample)
                 if now - self._last_process_ns >= min_interval:
@@ -220,7 +266,7 @@ class RobotNode:
                 if frame_msgs is not None and frame_msgs.due(now):
                     self._send_frame(sample)
                     frame_msgs.done(now)
-            if heartbeat.due(now):  # with frames flowing, on a frame's wake-up
+            if heartbeat.due(now) or self._heartbeat_now:  # with frames, on a frame's wake-up
                 self._send_heartbeat()
                 heartbeat.done(now)
 
@@ -431,6 +477,9 @@ class RobotNode:
         return msg
 
     def _send_frame(self, sample: TactileSample) -> None:
+        if not self.pub.wanted(name_prefix(TactileFrame.TOPIC, self.name)):
+            self.counters["frames_unwanted"] += 1  # nobody subscribed: not even encoded
+            return
         self._frame_msg_seq += 1
         frame = sanitize_frame(sample.frame)
         self.pub.send(
@@ -487,6 +536,9 @@ class RobotNode:
             self._commands_paused_until = now + round(link.command_backlog_pause_ms * 1e6)
             self.counters["command_backlog_pauses"] += 1
         newest: dict[str, tuple[Command, int | None]] = {}
+        if self.lease is not None:
+            self._handle_signed(batch, now, newest)
+            batch = []
         for msg, t_recv in batch:
             if isinstance(msg, Heartbeat):
                 self.clock.on_heartbeat(
@@ -511,6 +563,79 @@ class RobotNode:
         for device, (cmd, sent) in newest.items():
             self._dispatch(device, cmd, sent)
         self.counters["decode_errors"] = self.sub.rejected_total
+
+    def _handle_signed(
+        self,
+        batch: list[tuple[Any, int]],
+        now: int,
+        newest: dict[str, tuple[Command, int | None]],
+    ) -> None:
+        """With a roster: each key its own clock and gate; only the lease holder commands.
+
+        The codec has already checked every signature (a message whose ``sig``
+        does not verify never gets here); what is left is whether its signer
+        is one of ours, and whether it holds the lease.
+        """
+        lease = self.lease
+        for msg, t_recv in batch:
+            key = getattr(msg, "signer", None)
+            if key is None:
+                self.counters["messages_unsigned"] += 1
+                continue
+            peer = lease.peer(key)
+            if peer is None:
+                self.counters["messages_unknown_signer"] += 1
+                continue
+            peer.last_heard_ns = now
+            if isinstance(msg, Heartbeat):
+                peer.clock.on_heartbeat(
+                    msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv
+                )
+                peer.gate.heard(msg.t_send_ns, t_recv, now)
+                continue
+            if not isinstance(msg, Command):
+                self.counters["messages_unexpected"] += 1
+                continue
+            self.counters["commands_received"] += 1
+            refusal, sent = peer.gate.admit(msg, t_recv, now)
+            if refusal is not None:
+                self.counters[refusal] += 1
+                self._record_command(msg, f"refused: {refusal}")
+                continue
+            if msg.action in LEASE_ACTIONS:
+                outcome = lease.handle(key, msg, now)
+                self.counters[outcome] += 1
+                self._record_command(msg, outcome)
+                continue
+            if key != lease.holder:
+                self.counters["commands_not_controller"] += 1
+                self._record_command(msg, "refused: not the lease holder")
+                continue
+            device = "gripper" if msg.action.startswith("gripper") else "arm"
+            older = newest.get(device)
+            if older is not None:
+                self.counters["commands_superseded"] += 1
+                self._record_command(older[0], "superseded")
+            newest[device] = (msg, sent)
+        timed_out = lease.tick(now)
+        if timed_out is not None:
+            self.counters[timed_out] += 1
+        self._follow_lease(now, newest)
+
+    def _follow_lease(self, now: int, newest: dict[str, tuple[Command, int | None]]) -> None:
+        """After the holder changed: the deadman follows the new holder, the arm stops once.
+
+        Stopping at a hand-over means the new holder starts from rest, never
+        from the old holder's last jog; its own commands in this batch still go.
+        """
+        lease = self.lease
+        if lease.changes == self._lease_changes_seen:
+            return
+        self._lease_changes_seen = lease.changes
+        self.gate = lease.holder_gate
+        self._heartbeat_now = True
+        if not any(cmd.action == "arm_jog" for cmd, _ in newest.values()):
+            self._stop_devices(f"control lease now {lease.holder_name() or 'nobody'}'s")
 
     def _dispatch(self, device: str, cmd: Command, sent_ns: int | None) -> None:
         """Hand the command to its device's worker; a missing device refuses at once."""
@@ -584,6 +709,10 @@ class RobotNode:
             if new_state == "down" and heard is not None:
                 self.counters["deadman_trips"] += 1
                 self._stop_devices("operator silent")
+                if self.lease is not None and self.lease.holder is not None:
+                    self.counters["lease_expired"] += 1
+                    self.lease.expire(now)
+                    self._follow_lease(now, {})
             self.link_state = new_state
             self.link_changes.append((now, new_state))
 
@@ -597,11 +726,16 @@ class RobotNode:
 
     # ---------------------------------------------------------- heartbeat
     def _send_heartbeat(self) -> None:
+        self._heartbeat_now = False
         self._hb_seq += 1
         if self._recording:
             stats = {"state": self.link_state, **self.stats()}
             self.recorder.write("robot/link", self.now(), stats)
         echo_send, echo_recv = self.clock.echo_fields()
+        echo_signer = controller = pending = None
+        if self.lease is not None:
+            echo_signer, echo_send, echo_recv = self._next_echo()
+            controller, pending = self.lease.holder, self.lease.pending
         msg = self._last_stim_msg
         self.pub.send(
             Heartbeat(
@@ -614,8 +748,26 @@ class RobotNode:
                 stimulus_seq=msg.seq if msg else None,
                 t_capture_ns=self._last_capture_ns if msg else None,
                 stats=self._heartbeat_stats(),
+                echo_signer=echo_signer,
+                controller=controller,
+                lease_pending=pending,
             )
         )
+
+    def _next_echo(self) -> tuple[bytes | None, int | None, int | None]:
+        """(key, echo fields) of the next operator heard in the last second, round robin.
+
+        One heartbeat echoes one operator; taking turns gives each of five
+        operators four clock samples a second, which its offset filter needs.
+        """
+        now = self.now()
+        recent = [k for k, p in self.lease.peers.items() if now - p.last_heard_ns < 1_000_000_000]
+        if not recent:
+            return None, None, None
+        self._echo_turn = (self._echo_turn + 1) % len(recent)
+        key = recent[self._echo_turn]
+        echo_send, echo_recv = self.lease.peers[key].clock.echo_fields()
+        return key, echo_send, echo_recv
 
     def _heartbeat_stats(self) -> dict[str, float]:
         """``stats()``, cut to what a heartbeat may carry: the operator refuses a longer map."""
@@ -644,6 +796,15 @@ class RobotNode:
             out["frames_captured"] = float(self._last_seq - self._first_seq + 1)
         out.update(self._arm_state)  # the arm worker's latest reading, for the dashboard
         return out
+
+
+def _wire_name(name: str) -> bytes:
+    if not name:
+        return b""
+    try:
+        return check_robot_name(name)
+    except DecodeError as e:
+        raise ConfigError(f"robot link.robot_name: {e}") from None
 
 
 def compiled_step_for(classifier: Any, render: Any) -> Any:

@@ -1,0 +1,114 @@
+"""Ed25519 signatures end to end, operator to robot (docs/security.md).
+
+CURVE protects each hop; a relay in the middle terminates two CURVE
+connections and sees every message in clear. So the operator also signs what
+it sends with a key only it holds, and the robot checks the signature
+against its roster: a relay (or anything else on the path) can then drop or
+delay a command, never make or change one. The library is ``cryptography``
+(OpenSSL's Ed25519); this module only stores keys and wraps its two calls.
+
+Key files are text: ``NAME.sign`` holds the public key as 64 hex digits (it
+goes into rosters), ``NAME.sign_secret`` the 32-byte seed as hex (mode 0600,
+it never leaves the machine it was made on).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from common.errors import ConfigError
+
+PUBLIC_KEY_BYTES = 32
+SIGNATURE_BYTES = 64
+
+
+class Signer:
+    """A private signing key: ``sign(data)`` gives 64 bytes; ``public`` is its 32-byte key."""
+
+    def __init__(self, seed: bytes) -> None:
+        from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+        from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+        if len(seed) != 32:
+            raise ConfigError(f"an Ed25519 seed is 32 bytes, not {len(seed)}")
+        self._key = Ed25519PrivateKey.from_private_bytes(seed)
+        self.public = self._key.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+
+    @classmethod
+    def generate(cls) -> Signer:
+        return cls(os.urandom(32))
+
+    def sign(self, data: bytes) -> bytes:
+        return self._key.sign(data)
+
+
+_VERIFIERS: dict[bytes, object] = {}  # public key -> its loaded key object (a roster is small)
+
+
+def verify(public: bytes, signature: bytes, data: bytes) -> bool:
+    """Whether ``signature`` is ``public``'s over ``data``."""
+    from cryptography.exceptions import InvalidSignature
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
+    key = _VERIFIERS.get(public)
+    if key is None:
+        try:
+            key = Ed25519PublicKey.from_public_bytes(public)
+        except ValueError:
+            return False
+        if len(_VERIFIERS) < 1024:
+            _VERIFIERS[public] = key
+    try:
+        key.verify(signature, data)
+    except InvalidSignature:
+        return False
+    return True
+
+
+def parse_public_key(text: str, where: str = "signing key") -> bytes:
+    """A public key written as 64 hex digits; ``ConfigError`` otherwise."""
+    try:
+        raw = bytes.fromhex(text.strip())
+    except ValueError:
+        raw = b""
+    if len(raw) != PUBLIC_KEY_BYTES:
+        raise ConfigError(f"{where} must be {2 * PUBLIC_KEY_BYTES} hex digits, not {text!r:.80}")
+    return raw
+
+
+def generate_key_files(directory: Path, name: str, force: bool = False) -> tuple[Path, Path]:
+    """Write ``NAME.sign`` (public, hex) and ``NAME.sign_secret`` (seed, hex, mode 0600)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    public, secret = directory / f"{name}.sign", directory / f"{name}.sign_secret"
+    if not force and (public.exists() or secret.exists()):
+        raise ConfigError(f"{public} or {secret} exists; pass --force to replace them")
+    seed = os.urandom(32)
+    fd = os.open(secret, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(seed.hex() + "\n")
+    os.chmod(secret, 0o600)
+    public.write_text(Signer(seed).public.hex() + "\n")
+    return public, secret
+
+
+def load_signer(path: Path) -> Signer:
+    """The signing key in a ``NAME.sign_secret`` file."""
+    try:
+        text = Path(path).read_text()
+    except OSError as e:
+        raise ConfigError(f"cannot read signing key {path}: {e}") from None
+    try:
+        seed = bytes.fromhex(text.strip())
+    except ValueError:
+        raise ConfigError(f"{path} is not a NAME.sign_secret file (64 hex digits)") from None
+    return Signer(seed)
+
+
+def load_public_key(path: Path) -> bytes:
+    """The public key in a ``NAME.sign`` file."""
+    try:
+        text = Path(path).read_text()
+    except OSError as e:
+        raise ConfigError(f"cannot read public signing key {path}: {e}") from None
+    return parse_public_key(text, str(path))

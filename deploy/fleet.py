@@ -1,0 +1,278 @@
+"""A relay, robots and operators as real processes on this machine (tests, bench, trials).
+
+Every hop is CURVE, every operator signs, and one roster says who is who:
+the same layout as three machines (docs/deploy.md), on 127.0.0.1 with free
+ports. ``Fleet`` writes the keys, the roster and each process's config into
+one work folder, starts the processes and stops them all.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import zmq.auth
+
+from common.signing import generate_key_files, load_public_key
+from common.transport import free_loopback_ports
+from deploy.keys_cli import generate
+
+log = logging.getLogger(__name__)
+
+_ROBOT_TOML = """
+[robot]
+publish_rate_hz = {rate}
+[robot.render]
+mode = "mask_ground_truth"
+deadband_n = 0.0
+[robot.tactile]
+kind = "scripted"
+[robot.tactile.script]
+loop = false
+grasps = [{{pattern = 6, grip_level = 25, ramp_s = 0.1, hold_s = 3600.0}}]
+[robot.arm]
+{arm}
+[robot.link]
+mode = "relay"
+robot_name = "{name}"
+roster_file = "{roster}"
+telemetry_endpoint = "{tel}"
+command_endpoint = "{cmd}"
+frame_display_rate_hz = {frames}
+[robot.link.security]
+mode = "curve"
+secret_key_file = "{secret}"
+server_public_key_file = "{relay_public}"
+"""
+
+_OPERATOR_TOML = """
+[operator]
+[operator.servos]
+kind = "recording"
+[operator.link]
+robot_name = "{robot}"
+signing_key_file = "{signing}"
+telemetry_endpoint = "{tel}"
+command_endpoint = "{cmd}"
+want_frames = {frames}
+request_control = {request}
+[operator.link.security]
+mode = "curve"
+secret_key_file = "{secret}"
+server_public_key_file = "{relay_public}"
+"""
+
+_RELAY_TOML = """
+[relay]
+robots_telemetry_endpoint = "tcp://127.0.0.1:{p0}"
+robots_command_endpoint = "tcp://127.0.0.1:{p1}"
+operators_telemetry_endpoint = "tcp://127.0.0.1:{p2}"
+operators_command_endpoint = "tcp://127.0.0.1:{p3}"
+roster_file = "{roster}"
+stats_interval_s = 0
+[relay.security]
+mode = "curve"
+secret_key_file = "{secret}"
+"""
+
+
+@dataclass
+class Member:
+    """One person (an operator key) or robot in the roster."""
+
+    name: str
+    role: str  # controller, observer, recorder, or robot
+    curve_public: Path
+    curve_secret: Path
+    signing_secret: Path | None = None
+    signing_public: bytes | None = None
+
+
+@dataclass
+class Proc:
+    name: str
+    popen: subprocess.Popen
+    log_path: Path
+    stats_path: Path
+    stdin: IO[str] | None = None
+
+    def send(self, command: dict[str, Any]) -> None:
+        """One JSON command line to an operator started with ``--commands-from-stdin``."""
+        self.stdin.write(json.dumps(command) + "\n")
+        self.stdin.flush()
+
+    def stats(self) -> dict[str, float]:
+        return json.loads(self.stats_path.read_text()) if self.stats_path.exists() else {}
+
+    def log_text(self) -> str:
+        return self.log_path.read_text() if self.log_path.exists() else ""
+
+
+@dataclass
+class Fleet:
+    """Keys, roster and processes under ``workdir``; a context manager that stops everything."""
+
+    robots: list[str]
+    operators: dict[str, str]  # name -> role
+    workdir: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="deepxpalm-fleet-")))
+    #: relay's roster, if it should differ from the robots' (a compromised-relay trial)
+    relay_roles: dict[str, str] | None = None
+    members: dict[str, Member] = field(default_factory=dict)
+    procs: dict[str, Proc] = field(default_factory=dict)
+    env: dict[str, str] = field(default_factory=lambda: {**os.environ, "PYTHONUNBUFFERED": "1"})
+
+    def __post_init__(self) -> None:
+        keys = self.workdir / "keys"
+        pub, sec = generate(keys, "relay")
+        self.members["relay"] = Member("relay", "relay", pub, sec)
+        for name in self.robots:
+            pub, sec = generate(keys, f"robot-{name}")
+            self.members[name] = Member(name, "robot", pub, sec)
+        for name, role in self.operators.items():
+            pub, sec = generate(keys, name)
+            spub, ssec = generate_key_files(keys, name)
+            self.members[name] = Member(name, role, pub, sec, ssec, load_public_key(spub))
+        self.roster = self._write_roster("roster.toml", self.operators)
+        self.relay_roster = (
+            self.roster
+            if self.relay_roles is None
+            else self._write_roster("relay-roster.toml", self.relay_roles)
+        )
+        ports = free_loopback_ports(4)
+        self.robots_telemetry, self.robots_command, self.ops_telemetry, self.ops_command = (
+            f"tcp://127.0.0.1:{p}" for p in ports
+        )
+        self._ports = ports
+
+    def _write_roster(self, filename: str, roles: dict[str, str]) -> Path:
+        lines = []
+        for name, role in roles.items():
+            m = self.members[name]
+            curve, _ = zmq.auth.load_certificate(m.curve_public)
+            lines += [
+                "[[operator]]",
+                f'name = "{name}"',
+                f'role = "{role}"',
+                f'curve_key = "{curve.decode()}"',
+                f'signing_key = "{m.signing_public.hex()}"',
+                "",
+            ]
+        for name in self.robots:
+            curve, _ = zmq.auth.load_certificate(self.members[name].curve_public)
+            lines += ["[[robot]]", f'name = "{name}"', f'curve_key = "{curve.decode()}"', ""]
+        path = self.workdir / filename
+        path.write_text("\n".join(lines))
+        return path
+
+    def signing_key(self, name: str) -> bytes:
+        return self.members[name].signing_public
+
+    # ------------------------------------------------------------ processes
+    def _start(self, name: str, args: list[str], stdin: bool = False) -> Proc:
+        log_path = self.workdir / f"{name}.log"
+        stats_path = self.workdir / f"{name}-stats.json"
+        with log_path.open("w") as out:
+            popen = subprocess.Popen(
+                [sys.executable, "-m", "deploy.cli", *args, "--stats-file", str(stats_path)],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
+                env=self.env,
+                text=True,
+            )
+        proc = Proc(name, popen, log_path, stats_path, popen.stdin if stdin else None)
+        self.procs[name] = proc
+        return proc
+
+    def start_relay(self) -> Proc:
+        p = self._ports
+        config = self.workdir / "relay.toml"
+        config.write_text(
+            _RELAY_TOML.format(
+                p0=p[0],
+                p1=p[1],
+                p2=p[2],
+                p3=p[3],
+                roster=self.relay_roster,
+                secret=self.members["relay"].curve_secret,
+            )
+        )
+        return self._start("relay", ["-v", "relay", "--config", str(config)])
+
+    def start_robot(self, name: str, arm_host: str | None, rate_hz: float = 60.0) -> Proc:
+        arm = f'kind = "ur_rtde"\nhost = "{arm_host}"' if arm_host else 'kind = "none"'
+        config = self.workdir / f"{name}.toml"
+        config.write_text(
+            _ROBOT_TOML.format(
+                rate=rate_hz,
+                arm=arm,
+                name=name,
+                roster=self.roster,
+                tel=self.robots_telemetry,
+                cmd=self.robots_command,
+                frames=15.0,
+                secret=self.members[name].curve_secret,
+                relay_public=self.members["relay"].curve_public,
+            )
+        )
+        return self._start(name, ["-v", "robot", "--config", str(config)])
+
+    def start_operator(
+        self,
+        name: str,
+        robot: str,
+        *,
+        request_control: bool = False,
+        want_frames: bool = True,
+        extra: list[str] | None = None,
+    ) -> Proc:
+        m = self.members[name]
+        config = self.workdir / f"{name}.toml"
+        config.write_text(
+            _OPERATOR_TOML.format(
+                robot=robot,
+                signing=m.signing_secret,
+                tel=self.ops_telemetry,
+                cmd=self.ops_command,
+                frames=str(want_frames).lower(),
+                request=str(request_control).lower(),
+                secret=m.curve_secret,
+                relay_public=self.members["relay"].curve_public,
+            )
+        )
+        args = ["-v", "operator", "--config", str(config), "--commands-from-stdin"]
+        return self._start(name, [*args, *(extra or [])], stdin=True)
+
+    def stop(self, name: str, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> int:
+        proc = self.procs[name]
+        if proc.popen.poll() is None:
+            proc.popen.send_signal(sig)
+            try:
+                proc.popen.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                proc.popen.kill()
+                proc.popen.wait()
+        return proc.popen.returncode
+
+    def close(self) -> None:
+        for name in reversed(list(self.procs)):  # operators first, the relay last
+            self.stop(name)
+            stdin = self.procs[name].stdin
+            if stdin is not None and not stdin.closed:
+                with contextlib.suppress(BrokenPipeError):
+                    stdin.close()
+
+    def __enter__(self) -> Fleet:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,160 @@
+"""The control lease: which one operator key a robot acts on, and how it changes hands.
+
+Several operators see one robot through a relay; exactly one of them may
+command it at a time. Every operator message is signed (common/signing.py)
+and its signer looked up in the robot's own roster (common/roster.py):
+
+- a key not in the roster is ignored, whatever the relay let through;
+- only ``controller`` keys may ask for the lease (``lease_request``); the
+  first to ask while nobody holds it gets it;
+- a request while someone holds it waits for the holder: ``lease_grant``
+  (to the requester, or any controller key) hands it over at once,
+  ``lease_release`` gives it up (to a waiting requester, if any). A request
+  nobody grants lapses after ``request_timeout_ns``;
+- the holder's silence ends the lease: the robot's deadman (counted from
+  the holder's newest fresh message only) stops the arm and the lease
+  expires; a waiting requester then gets it.
+
+Each operator key has its own clock-offset estimate and its own command
+gate (freshness, replay window): five operators' heartbeats are five clocks.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from common.clock_sync import ClockSync
+from common.messages import Command
+from common.roster import OperatorEntry
+from robot_side.command_gate import CommandGate
+
+log = logging.getLogger(__name__)
+
+#: Outcomes of a lease action, each the name of the counter it increments.
+GRANTED = "lease_granted"
+HANDED_OVER = "lease_handed_over"
+PENDING = "lease_pending"
+HELD = "lease_already_held"
+RELEASED = "lease_released"
+REFUSED_ROLE = "lease_refused_role"
+REFUSED_NOT_HOLDER = "lease_refused_not_holder"
+REFUSED_GRANTEE = "lease_refused_grantee"
+TIMED_OUT = "lease_requests_timed_out"
+EXPIRED = "lease_expired"
+
+
+@dataclass
+class Peer:
+    """One operator key: who it is, its clock and its command gate."""
+
+    entry: OperatorEntry
+    clock: ClockSync
+    gate: CommandGate
+    last_heard_ns: int = 0
+    sessions: set[int] = field(default_factory=set)
+
+
+class ControlLease:
+    """Holder, waiting requester and every known key's gate."""
+
+    def __init__(
+        self, operators: dict[bytes, OperatorEntry], max_age_ns: int, request_timeout_ns: int
+    ) -> None:
+        self.operators = operators
+        self.max_age_ns = max_age_ns
+        self.request_timeout_ns = request_timeout_ns
+        self.peers: dict[bytes, Peer] = {}
+        self.holder: bytes | None = None
+        self.pending: bytes | None = None
+        self.pending_until_ns = 0
+        #: the gate nobody feeds: the deadman's reference while nobody holds the lease
+        self.idle_gate = CommandGate(ClockSync(), max_age_ns)
+        self.changes = 0
+
+    def peer(self, key: bytes) -> Peer | None:
+        """The key's state, made on first contact; None for a key not in the roster."""
+        peer = self.peers.get(key)
+        if peer is None:
+            entry = self.operators.get(key)
+            if entry is None:
+                return None
+            clock = ClockSync()
+            peer = self.peers[key] = Peer(entry, clock, CommandGate(clock, self.max_age_ns))
+        return peer
+
+    @property
+    def holder_gate(self) -> CommandGate:
+        """The gate whose newest fresh message the deadman counts from."""
+        if self.holder is None:
+            return self.idle_gate
+        return self.peers[self.holder].gate
+
+    def holder_name(self) -> str | None:
+        return None if self.holder is None else self.operators[self.holder].name
+
+    def _set_holder(self, key: bytes | None) -> None:
+        if key != self.holder:
+            log.info(
+                "control lease: %s -> %s",
+                self.holder_name() or "nobody",
+                "nobody" if key is None else self.operators[key].name,
+            )
+            self.holder = key
+            self.changes += 1
+        if key is not None and key == self.pending:
+            self.pending = None
+
+    def handle(self, key: bytes, cmd: Command, now_ns: int) -> str:
+        """Act on one admitted lease action from ``key``; the outcome's counter name."""
+        self.tick(now_ns)
+        role = self.operators[key].role
+        if cmd.action == "lease_request":
+            if role != "controller":
+                return REFUSED_ROLE
+            if self.holder == key:
+                return HELD
+            if self.holder is None:
+                self._set_holder(key)
+                return GRANTED
+            self.pending = key
+            self.pending_until_ns = now_ns + self.request_timeout_ns
+            return PENDING
+        if cmd.action == "lease_grant":
+            if self.holder != key:
+                return REFUSED_NOT_HOLDER
+            grantee = cmd.grantee if cmd.grantee is not None else self.pending
+            entry = None if grantee is None else self.operators.get(grantee)
+            if entry is None or entry.role != "controller":
+                return REFUSED_GRANTEE
+            self.peer(grantee)
+            self._set_holder(grantee)
+            return HANDED_OVER
+        # lease_release
+        if self.pending == key:
+            self.pending = None
+        if self.holder != key:
+            return REFUSED_NOT_HOLDER
+        if self.pending is not None:
+            self._set_holder(self.pending)
+            return HANDED_OVER
+        self._set_holder(None)
+        return RELEASED
+
+    def tick(self, now_ns: int) -> str | None:
+        """Let a request nobody granted lapse."""
+        if self.pending is not None and now_ns >= self.pending_until_ns:
+            self.pending = None
+            return TIMED_OUT
+        return None
+
+    def expire(self, now_ns: int) -> None:
+        """The holder went silent (the deadman tripped): a fresh waiting requester takes over."""
+        self.tick(now_ns)
+        nxt = self.pending
+        if nxt is not None:
+            gate = self.peers[nxt].gate
+            last = gate.last_fresh_ns
+            if last is None or now_ns - last > self.max_age_ns:
+                nxt = None
+        self._set_holder(nxt)
