@@ -24,6 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "relay_side.cli",
         "run the relay: robots and operators connect out to it (docs/deploy.md)",
     ),
+    "record": ("operator_side.record_cli", "keep every robot's stream from a relay, to a file"),
     "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
     "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
     "collect": (

@@ -236,7 +236,8 @@ class Fleet:
         extra: list[str] | None = None,
     ) -> Proc:
         m = self.members[name]
-        config = self.workdir / f"{name}.toml"
+        proc_name = f"{name}@{robot}"  # one key may follow several robots, a process each
+        config = self.workdir / f"{proc_name}.toml"
         config.write_text(
             _OPERATOR_TOML.format(
                 robot=robot,
@@ -250,7 +251,26 @@ class Fleet:
             )
         )
         args = ["-v", "operator", "--config", str(config), "--commands-from-stdin"]
-        return self._start(name, [*args, *(extra or [])], stdin=True)
+        return self._start(proc_name, [*args, *(extra or [])], stdin=True)
+
+    def start_recorder(self, name: str, output: Path | None = None) -> Proc:
+        m = self.members[name]
+        config = self.workdir / f"{name}.toml"
+        lines = [
+            "[recorder]",
+            f'telemetry_endpoint = "{self.ops_telemetry}"',
+            f"robots = [{', '.join(repr(r).replace(chr(39), chr(34)) for r in self.robots)}]",
+        ]
+        if output is not None:
+            lines.append(f'output = "{output}"')
+        lines += [
+            "[recorder.security]",
+            'mode = "curve"',
+            f'secret_key_file = "{m.curve_secret}"',
+            f'server_public_key_file = "{self.members["relay"].curve_public}"',
+        ]
+        config.write_text("\n".join(lines) + "\n")
+        return self._start(name, ["-v", "record", "--config", str(config)])
 
     def stop(self, name: str, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> int:
         proc = self.procs[name]

@@ -1,0 +1,125 @@
+"""``deepxpalm record``: keep every robot's stream from a relay, for later analysis.
+
+A recorder is a roster key with the role ``recorder``: it subscribes to the
+whole telemetry of the robots it names (frames included), checks every
+message with the codec (a bad one is counted, never written) and appends
+the wire bytes to a file, each as ``<u64 receive ns><u32 length><bytes>``
+(little-endian). It sends nothing, so it can never command a robot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import struct
+import threading
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import zmq
+
+from common.cli_support import (
+    add_config_arguments,
+    load_node_config,
+    print_config,
+    stop_on_signals,
+    write_stats,
+)
+from common.clock import now_ns
+from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, DecodeError, decode_named
+from common.config import param
+from common.logs import BurstLog
+from common.security import SecurityConfig, check_endpoint, client_options
+
+log = logging.getLogger(__name__)
+
+_RECORD = struct.Struct("<QI")
+
+
+@dataclass
+class RecorderConfig:
+    telemetry_endpoint: str = param(
+        "tcp://127.0.0.1:5585", "the relay's operator-facing telemetry XPUB"
+    )
+    robots: list[str] = param([], "robot names to record; empty = every one")
+    output: Path | None = param(None, "append the wire messages here; unset = count only")
+    security: SecurityConfig = param(SecurityConfig(), "CURVE: our key pair and the relay's key")
+
+
+class StreamRecorder:
+    """Subscribes, validates, counts per robot and topic, and writes what passed."""
+
+    def __init__(self, config: RecorderConfig, ctx: zmq.Context | None = None) -> None:
+        from common.codec import check_robot_name, name_prefix
+
+        self.config = config
+        self._own_ctx = ctx is None
+        self.ctx = ctx or zmq.Context()
+        self.counters: Counter[str] = Counter()
+        self._bad = BurstLog(log, "recorder: rejected message")
+        check_endpoint(config.telemetry_endpoint, config.security)
+        self.sock = self.ctx.socket(zmq.SUB)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.RCVHWM, 10000)
+        self.sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES + 1 + MAX_NAME_LEN)
+        for opt, value in client_options(config.security).items():
+            self.sock.setsockopt(opt, value)
+        self.sock.connect(config.telemetry_endpoint)
+        names = [check_robot_name(r) for r in config.robots]
+        for name in names or [b""]:
+            for topic in (b"STIM", b"FRAM", b"HBRT") if name else (b"",):
+                self.sock.setsockopt(zmq.SUBSCRIBE, name_prefix(topic, name))
+        self._out = open(config.output, "ab") if config.output else None  # noqa: SIM115
+
+    def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
+        t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
+        try:
+            while not stop.is_set() and (t_end is None or now_ns() < t_end):
+                if not self.sock.poll(100):
+                    continue
+                while self.sock.get(zmq.EVENTS) & zmq.POLLIN:
+                    data = self.sock.recv(zmq.NOBLOCK)
+                    self.take(data, now_ns())
+        finally:
+            self.close()
+
+    def take(self, data: bytes, t_recv_ns: int) -> None:
+        try:
+            name, msg = decode_named(data)
+        except DecodeError as e:
+            self.counters["rejected"] += 1
+            self._bad(str(e))
+            return
+        self.counters[f"{name.decode() or '-'}_{type(msg).TOPIC.decode()}"] += 1
+        if self._out is not None:
+            self._out.write(_RECORD.pack(t_recv_ns, len(data)) + data)
+
+    def stats(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.counters.items()}
+
+    def close(self) -> None:
+        if self._out is not None:
+            self._out.close()
+            self._out = None
+        self.sock.close(0)
+        if self._own_ctx:
+            self.ctx.term()
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_config_arguments(parser, RecorderConfig, "recorder")
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_node_config(args, RecorderConfig, "recorder")
+    if args.print_config:
+        print_config(config, "recorder")
+        return 0
+    stop = stop_on_signals()
+    recorder = StreamRecorder(config)
+    try:
+        recorder.run(stop, args.duration)
+    finally:
+        write_stats(args.stats_file, recorder.stats())
+    return 0
