@@ -184,3 +184,99 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
     for robot in ("cell1", "cell2"):
         assert stats[robot]["lease_granted"] >= 1, stats[robot]
     assert stats["cell2"]["lease_expired"] == 1 and stats["cell2"]["deadman_trips"] >= 1
+
+
+@pytest.fixture
+def arm_sim():
+    from robot_side.arm.sim import URSimProcess
+
+    sim = URSimProcess().start()
+    yield sim
+    sim.stop()
+
+
+def test_hand_over_is_fast_loses_no_stimulus_and_moves_the_arm_for_the_new_holder_only(
+    tmp_path, arm_sim, quiet_gc
+):
+    fleet = Fleet(
+        robots=["cell1"],
+        operators={"a": "controller", "b": "controller", "rec": "recorder"},
+        workdir=tmp_path,
+    )
+    with fleet:
+        fleet.start_relay()
+        fleet.start_robot("cell1", arm_sim.host)
+        a = fleet.start_operator("a", "cell1", request_control=True)
+        b = fleet.start_operator("b", "cell1")
+        monitor = Monitor(fleet, "rec", ["cell1"])
+        key_a, key_b = fleet.signing_key("a"), fleet.signing_key("b")
+        try:
+            _wait(lambda: monitor.holder_since(key_a, 0) is not None, 60, "a's lease", fleet)
+            time.sleep(0.5)  # b's clock synced at the robot (its heartbeats echoed)
+            t_req = now_ns()
+            b.send({"action": "lease_request"})
+            pending = lambda: any(  # noqa: E731
+                t >= t_req and hb.lease_pending == key_b for t, hb in list(monitor.heartbeats)
+            )
+            _wait(pending, 5, "b's request to show as pending", fleet)
+            times = []
+            t0 = now_ns()
+            a.send({"action": "lease_grant", "grantee": key_b.hex()})
+            _wait(lambda: monitor.holder_since(key_b, t0) is not None, 5, "b's lease", fleet)
+            times.append((monitor.holder_since(key_b, t0) - t0) / 1e6)
+            # and back again, to measure twice
+            time.sleep(0.3)
+            t0 = now_ns()
+            b.send({"action": "lease_grant", "grantee": key_a.hex()})
+            _wait(lambda: monitor.holder_since(key_a, t0) is not None, 5, "a's lease back", fleet)
+            times.append((monitor.holder_since(key_a, t0) - t0) / 1e6)
+            assert max(times) < 50, f"hand-over took {times} ms"
+            # a holds it again: b's jogs (y) are refused by the robot itself, a's (x) move it
+            start = arm_sim.tcp_pose()[:3].copy()
+            jog_b = threading.Thread(target=_jog_for, args=(b, JOG_Y, 1.0))
+            jog_b.start()
+            _jog_for(a, JOG_X, 1.0)
+            jog_b.join()
+            time.sleep(0.3)
+            moved = arm_sim.tcp_pose()[:3] - start
+            assert moved[0] > 0.01 and abs(moved[1]) < 1e-3, moved
+        finally:
+            monitor.close()
+    stats = {name: p.stats() for name, p in fleet.procs.items()}
+    for name in ("a@cell1", "b@cell1"):
+        s = stats[name]
+        assert s["link_lost"] == 0 and s.get("lift_offs", 0) == 0, (name, s)
+        assert s["stimuli_received"] > 100
+    robot = stats["cell1"]
+    assert robot["lease_handed_over"] == 2 and robot["commands_not_controller"] > 5, robot
+    print("hand-over times (ms):", [round(t, 1) for t in times])
+
+
+def test_a_relay_that_lets_an_observer_command_still_cannot_move_the_arm(
+    tmp_path, arm_sim, quiet_gc
+):
+    """The relay's roster says mallory may command; the robot's own roster says observer."""
+    fleet = Fleet(
+        robots=["cell1"],
+        operators={"mallory": "observer", "rec": "recorder"},
+        relay_roles={"mallory": "controller", "rec": "recorder"},
+        workdir=tmp_path,
+    )
+    with fleet:
+        fleet.start_relay()
+        fleet.start_robot("cell1", arm_sim.host)
+        mallory = fleet.start_operator("mallory", "cell1", request_control=True)
+        monitor = Monitor(fleet, "rec", ["cell1"])
+        try:
+            _wait(lambda: len(monitor.heartbeats) > 20, 60, "the robot's heartbeats", fleet)
+            start = arm_sim.tcp_pose()[:3].copy()
+            _jog_for(mallory, JOG_X, 1.5)
+            time.sleep(0.3)
+            assert np.abs(arm_sim.tcp_pose()[:3] - start).max() < 1e-4
+            assert all(hb.controller is None for _, hb in monitor.heartbeats)
+        finally:
+            monitor.close()
+    robot = fleet.procs["cell1"].stats()
+    relay = fleet.procs["relay"].stats()
+    assert relay.get("commands_dropped_role", 0) == 0  # the relay let everything through
+    assert robot["lease_refused_role"] >= 1 and robot["commands_not_controller"] > 10, robot
