@@ -1,0 +1,112 @@
+"""Robot names after the topic, and end-to-end signatures (docs/protocol.md)."""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+import zmq
+
+from common.codec import (
+    DecodeError,
+    RobotNameError,
+    SignatureError,
+    check_robot_name,
+    decode,
+    decode_named,
+    encode,
+    name_prefix,
+)
+from common.messages import Command, Heartbeat, Stimulus
+from common.signing import Signer
+from common.transport import Publisher, Subscriber
+
+
+def _stim() -> Stimulus:
+    cells = np.zeros((3, 3), np.float32)
+    cells[0, 1] = 2.5
+    return Stimulus(seq=3, t_send_ns=10, t_capture_ns=9, frame_seq=1, mode="direct",
+                    contact=True, stimulus=cells)  # fmt: skip
+
+
+def _jog(seq: int = 1) -> Command:
+    return Command(seq=seq, t_send_ns=100 + seq, action="arm_jog", velocity=(0.01, 0, 0, 0, 0, 0))
+
+
+def test_a_named_frame_round_trips_and_an_unnamed_one_is_version_1_as_before():
+    data = encode(_stim(), b"cell1")
+    assert data.startswith(b"STIM\x05cell1")
+    name, msg = decode_named(data)
+    assert name == b"cell1" and msg.stimulus[0, 1] == pytest.approx(2.5)
+    plain = encode(_stim())
+    assert plain[4] in range(0x80, 0x90)  # a msgpack fixmap: never a name's length byte
+    assert decode_named(plain)[0] == b"" and msgpack.unpackb(plain[4:])["v"] == 1
+
+
+def test_a_prefix_selects_one_robot_only():
+    assert not name_prefix(b"STIM", b"cell10").startswith(name_prefix(b"STIM", b"cell1"))
+
+
+@pytest.mark.parametrize("bad", ["", "x" * 33, "cell 1", "cellé", "a/b"])
+def test_a_name_the_protocol_forbids_is_refused(bad):
+    with pytest.raises(RobotNameError):
+        check_robot_name(bad)
+
+
+def test_a_length_byte_that_overruns_or_a_forbidden_byte_is_a_named_error():
+    with pytest.raises(DecodeError):
+        decode(b"STIM\x05ce")
+    with pytest.raises(RobotNameError):
+        decode(b"STIM\x03c l" + msgpack.packb({"v": 1}))
+
+
+def test_a_signed_command_verifies_and_names_its_signer():
+    signer = Signer.generate()
+    name, msg = decode_named(encode(_jog(), b"cell1", signer))
+    assert name == b"cell1" and msg.signer == signer.public and msg.velocity[0] == 0.01
+
+
+def test_every_tampering_is_caught():
+    signer = Signer.generate()
+    data = encode(_jog(), b"cell1", signer)
+    # another robot's name: the signature covers the name, so a relay cannot redirect
+    redirected = b"CMND\x05cell2" + data[len(b"CMND\x05cell1") :]
+    with pytest.raises(SignatureError):
+        decode(redirected)
+    # a changed velocity, same length
+    body = msgpack.unpackb(data[10:])
+    assert body["velocity"][0] == 0.01
+    i = data.index(msgpack.packb(0.01))
+    changed = data[:i] + msgpack.packb(0.09) + data[i + 9 :]
+    with pytest.raises(SignatureError):
+        decode(changed)
+    # another key's claim: the signer field swapped for an attacker's key
+    mallory = Signer.generate()
+    swapped = data.replace(signer.public, mallory.public)
+    with pytest.raises(SignatureError):
+        decode(swapped)
+    # a signer without a signature, and a signature that is not the last entry
+    unsigned = dict(body)
+    del unsigned["sig"]
+    with pytest.raises(SignatureError):
+        decode(b"CMND\x05cell1" + msgpack.packb(unsigned))
+    moved = {"sig": body["sig"], **unsigned}
+    with pytest.raises(SignatureError):
+        decode(b"CMND\x05cell1" + msgpack.packb(moved))
+
+
+def test_a_subscriber_for_one_robot_refuses_another_robots_messages_and_counts_them():
+    ctx = zmq.Context()
+    try:
+        pub = Publisher(ctx, "inproc://names", bind=True, name=b"cell2")
+        sub = Subscriber(ctx, "inproc://names", bind=False, expect_name=b"cell1")
+        import time
+
+        time.sleep(0.05)
+        pub.send(Heartbeat(seq=1, t_send_ns=1, node="robot", state="ok"))
+        assert sub.poll(1.0)
+        assert sub.drain() == [] and sub.rejected["WrongRobotError"] == 1
+        pub.close()
+        sub.close()
+    finally:
+        ctx.term()

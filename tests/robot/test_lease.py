@@ -1,0 +1,73 @@
+"""The control lease's rules (robot_side/lease.py): request, grant, release, timeout, expiry."""
+
+from __future__ import annotations
+
+from common.messages import Command
+from common.roster import OperatorEntry
+from robot_side import lease as L
+from robot_side.lease import ControlLease
+
+MS = 1_000_000
+A, B, OBS = b"a" * 32, b"b" * 32, b"o" * 32
+
+
+def _lease() -> ControlLease:
+    ops = {
+        A: OperatorEntry("a", "controller", None, A),
+        B: OperatorEntry("b", "controller", None, B),
+        OBS: OperatorEntry("obs", "observer", None, OBS),
+    }
+    return ControlLease(ops, 250 * MS, 2000 * MS)
+
+
+def _cmd(action: str, grantee: bytes | None = None) -> Command:
+    return Command(seq=1, t_send_ns=1, action=action, grantee=grantee)
+
+
+def test_the_first_controller_to_ask_gets_it_an_observer_never():
+    lease = _lease()
+    assert lease.peer(b"x" * 32) is None  # not in the roster
+    for key in (A, B, OBS):
+        lease.peer(key)
+    assert lease.handle(OBS, _cmd("lease_request"), 0) == L.REFUSED_ROLE
+    assert lease.handle(A, _cmd("lease_request"), 0) == L.GRANTED and lease.holder == A
+    assert lease.handle(A, _cmd("lease_request"), 0) == L.HELD
+
+
+def test_a_held_lease_moves_only_when_its_holder_grants_or_releases_it():
+    lease = _lease()
+    for key in (A, B, OBS):
+        lease.peer(key)
+    lease.handle(A, _cmd("lease_request"), 0)
+    assert lease.handle(B, _cmd("lease_request"), 0) == L.PENDING and lease.holder == A
+    assert lease.handle(B, _cmd("lease_grant", B), 0) == L.REFUSED_NOT_HOLDER
+    assert lease.handle(A, _cmd("lease_grant", OBS), 0) == L.REFUSED_GRANTEE
+    assert lease.handle(A, _cmd("lease_grant"), 0) == L.HANDED_OVER and lease.holder == B
+    assert lease.pending is None
+    assert lease.handle(A, _cmd("lease_request"), 0) == L.PENDING
+    assert lease.handle(B, _cmd("lease_release"), 0) == L.HANDED_OVER and lease.holder == A
+    assert lease.handle(A, _cmd("lease_release"), 0) == L.RELEASED and lease.holder is None
+
+
+def test_an_unanswered_request_lapses():
+    lease = _lease()
+    for key in (A, B):
+        lease.peer(key)
+    lease.handle(A, _cmd("lease_request"), 0)
+    lease.handle(B, _cmd("lease_request"), 0)
+    assert lease.tick(1999 * MS) is None and lease.pending == B
+    assert lease.tick(2000 * MS) == L.TIMED_OUT and lease.pending is None and lease.holder == A
+
+
+def test_a_silent_holder_loses_it_to_a_fresh_waiting_requester_only():
+    lease = _lease()
+    for key in (A, B):
+        lease.peer(key)
+    lease.handle(A, _cmd("lease_request"), 0)
+    lease.handle(B, _cmd("lease_request"), 0)
+    lease.peers[B].gate.heard(900 * MS, 900 * MS, 900 * MS)
+    lease.expire(1000 * MS)
+    assert lease.holder == B
+    lease.handle(A, _cmd("lease_request"), 1000 * MS)  # a asks again, but is silent after
+    lease.expire(1500 * MS)
+    assert lease.holder is None  # a's newest word is too old to hand it the arm
