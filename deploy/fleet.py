@@ -129,6 +129,8 @@ class Fleet:
     members: dict[str, Member] = field(default_factory=dict)
     procs: dict[str, Proc] = field(default_factory=dict)
     env: dict[str, str] = field(default_factory=lambda: {**os.environ, "PYTHONUNBUFFERED": "1"})
+    #: relay name -> its four endpoints, for every relay started
+    relay_endpoints: dict[str, dict[str, str]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         keys = self.workdir / "keys"
@@ -173,6 +175,14 @@ class Fleet:
         path.write_text("\n".join(lines))
         return path
 
+    def client_security(self, name: str) -> dict[str, str]:
+        """A member's CURVE client settings toward the relay, as SecurityConfig keys."""
+        return {
+            "mode": "curve",
+            "secret_key_file": str(self.members[name].curve_secret),
+            "server_public_key_file": str(self.members["relay"].curve_public),
+        }
+
     def signing_key(self, name: str) -> bytes:
         return self.members[name].signing_public
 
@@ -193,9 +203,16 @@ class Fleet:
         self.procs[name] = proc
         return proc
 
-    def start_relay(self) -> Proc:
-        p = self._ports
-        config = self.workdir / "relay.toml"
+    def start_relay(self, name: str = "relay") -> Proc:
+        """The relay; another ``name`` starts a second one on fresh ports (``relay_endpoints``)."""
+        p = self._ports if name == "relay" else free_loopback_ports(4)
+        self.relay_endpoints[name] = {
+            "robots_telemetry": f"tcp://127.0.0.1:{p[0]}",
+            "robots_command": f"tcp://127.0.0.1:{p[1]}",
+            "operators_telemetry": f"tcp://127.0.0.1:{p[2]}",
+            "operators_command": f"tcp://127.0.0.1:{p[3]}",
+        }
+        config = self.workdir / f"{name}.toml"
         config.write_text(
             _RELAY_TOML.format(
                 p0=p[0],
@@ -206,7 +223,7 @@ class Fleet:
                 secret=self.members["relay"].curve_secret,
             )
         )
-        return self._start("relay", ["-v", "relay", "--config", str(config)])
+        return self._start(name, ["-v", "relay", "--config", str(config)])
 
     def start_robot(self, name: str, arm_host: str | None, rate_hz: float = 60.0) -> Proc:
         arm = f'kind = "ur_rtde"\nhost = "{arm_host}"' if arm_host else 'kind = "none"'

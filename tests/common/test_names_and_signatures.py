@@ -25,8 +25,15 @@ from common.transport import Publisher, Subscriber
 def _stim() -> Stimulus:
     cells = np.zeros((3, 3), np.float32)
     cells[0, 1] = 2.5
-    return Stimulus(seq=3, t_send_ns=10, t_capture_ns=9, frame_seq=1, mode="direct",
-                    contact=True, stimulus=cells)  # fmt: skip
+    return Stimulus(
+        seq=3,
+        t_send_ns=10,
+        t_capture_ns=9,
+        frame_seq=1,
+        mode="direct",
+        contact=True,
+        stimulus=cells,
+    )
 
 
 def _jog(seq: int = 1) -> Command:

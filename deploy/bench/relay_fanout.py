@@ -1,0 +1,341 @@
+"""Many subscribers behind a relay, in one process: what the relay section and its tests measure.
+
+``swarm`` (a process target) holds many relay clients at once, each with its
+own CURVE and signing key, and serves them from one poll loop so that every
+subscriber is treated alike: a ``normal`` one reads everything at once and
+notes each stimulus's latency (receive time minus the sender's send time:
+one machine, one monotonic clock); a ``stalled`` one subscribes and never
+reads; a ``slow`` one reads no faster than ``slow_bytes_per_s`` (64 kbit/s
+is 8,000 bytes/s) with small socket buffers, as a thin link would. Clients
+with a signing key also send signed heartbeats that echo the robot's, so
+the robot sees them as the observers they stand for.
+
+``publish`` (a process target) sends the same stimulus stream to several
+relays at once, alternating which goes first, so that two relays' subscribers
+can be compared side by side in one run.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zmq
+
+from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, DecodeError, decode_named, name_prefix
+from common.messages import Heartbeat, Stimulus, TactileFrame
+from common.security import SecurityConfig, client_options
+from common.signing import load_signer
+
+
+@dataclass
+class ClientSpec:
+    """One subscriber of the swarm."""
+
+    label: str
+    endpoint: str  # the relay's operator telemetry endpoint
+    command_endpoint: str | None  # where its heartbeats go (None: it sends nothing)
+    security: dict[str, str]  # SecurityConfig keys
+    signing_secret: str | None = None
+    kind: str = "normal"  # normal, stalled, slow
+
+
+def _security(d: dict[str, str]) -> SecurityConfig:
+    return SecurityConfig(
+        mode=d.get("mode", "plain"),
+        secret_key_file=d.get("secret_key_file"),
+        server_public_key_file=d.get("server_public_key_file"),
+    )
+
+
+def swarm(
+    clients: list[ClientSpec],
+    robot: str,
+    duration_s: float,
+    heartbeat_hz: float,
+    slow_bytes_per_s: float,
+    conn: Any,
+) -> None:
+    """Serve every client for ``duration_s``; send back per-client counts and latencies (us)."""
+    from common.clock_sync import ClockSync
+
+    ctx = zmq.Context()
+    name = robot.encode()
+    subs, pubs, signers, clocks = [], [], [], []
+    for spec in clients:
+        opts = client_options(_security(spec.security))
+        sub = ctx.socket(zmq.SUB)
+        sub.setsockopt(zmq.LINGER, 0)
+        sub.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES + 1 + MAX_NAME_LEN)
+        if spec.kind == "slow":  # a thin link: little buffered anywhere on the way in
+            sub.setsockopt(zmq.RCVBUF, 4096)
+            sub.setsockopt(zmq.RCVHWM, 4)
+        for k, v in opts.items():
+            sub.setsockopt(k, v)
+        sub.connect(spec.endpoint)
+        for topic in (Stimulus.TOPIC, Heartbeat.TOPIC, TactileFrame.TOPIC):
+            sub.setsockopt(zmq.SUBSCRIBE, name_prefix(topic, name))
+        subs.append(sub)
+        pub = None
+        if spec.command_endpoint is not None and spec.signing_secret is not None:
+            pub = ctx.socket(zmq.PUB)
+            pub.setsockopt(zmq.LINGER, 0)
+            for k, v in opts.items():
+                pub.setsockopt(k, v)
+            pub.connect(spec.command_endpoint)
+        pubs.append(pub)
+        signers.append(load_signer(spec.signing_secret) if spec.signing_secret else None)
+        clocks.append(ClockSync())
+    poller = zmq.Poller()
+    readers = [i for i, spec in enumerate(clients) if spec.kind != "stalled"]
+    for i in readers:
+        poller.register(subs[i], zmq.POLLIN)
+    latencies: list[list[float]] = [[] for _ in clients]
+    received = [0] * len(clients)
+    bytes_in = [0] * len(clients)
+    rejected = [0] * len(clients)
+    budget = [0.0] * len(clients)
+    hb_seq = 0
+    period = 1e9 / heartbeat_hz if heartbeat_hz > 0 else None
+    next_hb = time.monotonic_ns()
+    last_t = time.monotonic_ns()
+    t_end = time.monotonic() + duration_s
+    from common.codec import encode
+
+    turn = 0
+    while time.monotonic() < t_end:
+        ready = dict(poller.poll(5))
+        now = time.monotonic_ns()
+        dt = (now - last_t) / 1e9
+        last_t = now
+        turn += 1
+        for i in readers if turn % 2 else readers[::-1]:  # nobody always reads first
+            sock = subs[i]
+            slow = clients[i].kind == "slow"
+            if slow:
+                budget[i] = min(budget[i] + dt * slow_bytes_per_s, 2 * slow_bytes_per_s / 10)
+            if sock not in ready and not slow:
+                continue
+            while sock.get(zmq.EVENTS) & zmq.POLLIN:
+                if slow and budget[i] <= 0:
+                    break
+                data = sock.recv(zmq.NOBLOCK)
+                t_recv = time.monotonic_ns()
+                received[i] += 1
+                bytes_in[i] += len(data)
+                if slow:
+                    budget[i] -= len(data)
+                try:
+                    _, msg = decode_named(data)
+                except DecodeError:
+                    rejected[i] += 1
+                    continue
+                if isinstance(msg, Stimulus):
+                    latencies[i].append((t_recv - msg.t_send_ns) / 1e3)
+                elif isinstance(msg, Heartbeat):
+                    echo = msg.echo_signer
+                    mine = signers[i] is not None and echo == signers[i].public
+                    clocks[i].on_heartbeat(
+                        msg.t_send_ns,
+                        msg.echo_t_send_ns if mine else None,
+                        msg.echo_t_recv_ns if mine else None,
+                        t_recv,
+                    )
+        if period is not None and now >= next_hb:
+            next_hb = now + period
+            hb_seq += 1
+            for i, pub in enumerate(pubs):
+                if pub is None:
+                    continue
+                echo_send, echo_recv = clocks[i].echo_fields()
+                hb = Heartbeat(
+                    seq=hb_seq,
+                    t_send_ns=time.monotonic_ns(),
+                    node="operator",
+                    state="ok",
+                    echo_t_send_ns=echo_send,
+                    echo_t_recv_ns=echo_recv,
+                )
+                pub.send(encode(hb, name, signers[i]), zmq.NOBLOCK)
+    out = []
+    for i, spec in enumerate(clients):
+        lat = np.asarray(latencies[i])
+        out.append(
+            {
+                "label": spec.label,
+                "kind": spec.kind,
+                "received": received[i],
+                "bytes": bytes_in[i],
+                "rejected": rejected[i],
+                "stimuli": len(lat),
+                "p50_us": float(np.percentile(lat, 50)) if len(lat) else None,
+                "p99_us": float(np.percentile(lat, 99)) if len(lat) else None,
+                "latencies_us": lat.tolist(),
+            }
+        )
+    for sock in subs + [p for p in pubs if p is not None]:
+        sock.close(0)
+    ctx.term()
+    conn.send(out)
+
+
+def publish(
+    endpoints: list[str],
+    security: dict[str, str],
+    robot: str,
+    rate_hz: float,
+    frame_every: int,
+    duration_s: float,
+    conn: Any,
+) -> None:
+    """The same stream to every relay: stimuli at ``rate_hz``, a raw frame every few."""
+    from common.codec import encode
+
+    ctx = zmq.Context()
+    opts = client_options(_security(security))
+    socks = []
+    for endpoint in endpoints:
+        sock = ctx.socket(zmq.PUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.SNDHWM, 1000)
+        for k, v in opts.items():
+            sock.setsockopt(k, v)
+        sock.connect(endpoint)
+        socks.append(sock)
+    name = robot.encode()
+    cells = np.zeros((3, 3), np.float32)
+    cells[1, 1] = 3.0
+    frame = np.full((2, 10, 10), 1.5, np.float32)
+    time.sleep(1.0)  # subscriptions reach the relays and come back to us
+    period = 1.0 / rate_hz
+    t_next = time.monotonic()
+    t_end = t_next + duration_s
+    seq = 0
+    while time.monotonic() < t_end:
+        seq += 1
+        now = time.monotonic_ns()
+        msgs = [
+            Stimulus(
+                seq=seq,
+                t_send_ns=now,
+                t_capture_ns=now,
+                frame_seq=seq,
+                mode="direct",
+                contact=True,
+                stimulus=cells,
+            )
+        ]
+        if seq % frame_every == 0:
+            msgs.append(
+                TactileFrame(seq=seq, t_send_ns=now, t_capture_ns=now, frame_seq=seq, frame=frame)
+            )
+        order = socks if seq % 2 else socks[::-1]  # neither relay always goes first
+        for msg in msgs:
+            data = encode(msg, name)
+            for sock in order:
+                sock.send(data, zmq.NOBLOCK)
+        t_next += period
+        delay = t_next - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+    for sock in socks:
+        sock.close(0)
+    ctx.term()
+    conn.send({"sent": seq})
+
+
+def run_isolation(
+    duration_s: float = 10.0,
+    rate_hz: float = 200.0,
+    frame_every: int = 1,
+    slow_bytes_per_s: float = 8000.0,
+    workdir: Any = None,
+) -> dict[str, Any]:
+    """Two relays fed the same stream: relay A has two normal subscribers, a stalled one
+    and a 64 kbit/s one; relay B has only two normal ones. Each normal subscriber's p99
+    on A against its twin on B, in one run, one process, one poll loop.
+    """
+    import multiprocessing
+
+    from deploy.fleet import Fleet
+
+    fleet = Fleet(
+        robots=["pub"],
+        operators={n: "observer" for n in ("a1", "a2", "stall", "slow", "b1", "b2")},
+        **({} if workdir is None else {"workdir": workdir}),
+    )
+    mp = multiprocessing.get_context("spawn")
+    with fleet:
+        fleet.start_relay("relay")
+        fleet.start_relay("relay_b")
+        ends = fleet.relay_endpoints
+        time.sleep(1.0)
+        clients = []
+        for label, relay, kind in (
+            ("a1", "relay", "normal"),
+            ("b1", "relay_b", "normal"),
+            ("stall", "relay", "stalled"),
+            ("slow", "relay", "slow"),
+            ("a2", "relay", "normal"),
+            ("b2", "relay_b", "normal"),
+        ):
+            clients.append(
+                ClientSpec(
+                    label,
+                    ends[relay]["operators_telemetry"],
+                    None,
+                    fleet.client_security(label),
+                    kind=kind,
+                )
+            )
+        sw_parent, sw_child = mp.Pipe(duplex=False)
+        pub_parent, pub_child = mp.Pipe(duplex=False)
+        sw = mp.Process(
+            target=swarm,
+            args=(clients, "pub", duration_s + 3.0, 0.0, slow_bytes_per_s, sw_child),
+            daemon=True,
+        )
+        sw.start()
+        time.sleep(1.0)
+        pub = mp.Process(
+            target=publish,
+            args=(
+                [ends["relay"]["robots_telemetry"], ends["relay_b"]["robots_telemetry"]],
+                fleet.client_security("pub"),
+                "pub",
+                rate_hz,
+                frame_every,
+                duration_s,
+                pub_child,
+            ),
+            daemon=True,
+        )
+        pub.start()
+        sent = pub_parent.recv() if pub_parent.poll(duration_s + 60) else {}
+        result = sw_parent.recv() if sw_parent.poll(duration_s + 60) else []
+        pub.join(5)
+        sw.join(5)
+    by = {r["label"]: r for r in result}
+    pooled = {}
+    for side, labels in (("with_stalled", ("a1", "a2")), ("without", ("b1", "b2"))):
+        lat = np.concatenate([by[x]["latencies_us"] for x in labels if x in by] or [[]])
+        pooled[side] = {
+            "p50_us": float(np.percentile(lat, 50)) if len(lat) else None,
+            "p99_us": float(np.percentile(lat, 99)) if len(lat) else None,
+            "samples": len(lat),
+        }
+    for r in by.values():
+        r.pop("latencies_us", None)
+    with_p99, without_p99 = pooled["with_stalled"]["p99_us"], pooled["without"]["p99_us"]
+    return {
+        "pooled": pooled,
+        "p99_ratio": None if not with_p99 or not without_p99 else with_p99 / without_p99,
+        "rate_hz": rate_hz,
+        "frame_every": frame_every,
+        "duration_s": duration_s,
+        "sent": sent.get("sent"),
+        "slow_bytes_per_s": slow_bytes_per_s,
+        "clients": by,
+    }
