@@ -280,3 +280,56 @@ def test_a_relay_that_lets_an_observer_command_still_cannot_move_the_arm(
     relay = fleet.procs["relay"].stats()
     assert relay.get("commands_dropped_role", 0) == 0  # the relay let everything through
     assert robot["lease_refused_role"] >= 1 and robot["commands_not_controller"] > 10, robot
+
+
+def test_the_robot_skips_raw_frames_while_nobody_behind_the_relay_wants_them(tmp_path, quiet_gc):
+    fleet = Fleet(
+        robots=["cell1"],
+        operators={"obs": "observer", "rec": "recorder"},
+        workdir=tmp_path,
+    )
+    with fleet:
+        fleet.start_relay()
+        fleet.start_robot("cell1", None)
+        fleet.start_operator("obs", "cell1", want_frames=False)
+        monitor = Monitor(fleet, "rec", ["cell1"])
+
+        def unwanted() -> float:
+            hbs = [hb for _, hb in list(monitor.heartbeats) if hb.node == "robot"]
+            return hbs[-1].stats.get("frames_unwanted", 0.0) if hbs else 0.0
+
+        try:
+            _wait(lambda: unwanted() > 15, 60, "frames skipped for want of a subscriber", fleet)
+            m = fleet.members["rec"]
+            security = SecurityConfig(
+                mode="curve",
+                secret_key_file=m.curve_secret,
+                server_public_key_file=fleet.members["relay"].curve_public,
+            )
+            ctx = zmq.Context()
+            frames = Subscriber(
+                ctx,
+                fleet.ops_telemetry,
+                bind=False,
+                sock_opts=client_options(security),
+                topics=(name_prefix(b"FRAM", b"cell1"),),
+            )
+            try:
+                time.sleep(0.5)  # the subscription travels relay -> robot
+                before = unwanted()
+                got = 0
+                end = time.monotonic() + 2.0
+                while time.monotonic() < end:
+                    if frames.poll(0.1):
+                        got += len(frames.drain())
+                during = unwanted() - before
+            finally:
+                frames.close()
+                ctx.term()
+            time.sleep(1.5)  # the unsubscription travels back
+            after = unwanted() - before - during
+        finally:
+            monitor.close()
+    assert got > 20, got  # 15 Hz for 2 s once someone asks
+    assert during <= 2, during  # none skipped while wanted (the heartbeat's lag aside)
+    assert after > 10, after  # and skipped again once nobody wants them
