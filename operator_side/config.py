@@ -51,6 +51,12 @@ class OperatorLinkConfig:
         "ask the robot for its control lease at start, and again while nobody holds it "
         "(controller keys only; a held lease changes hands only when its holder grants it)",
     )
+    observer_heartbeat_rate_hz: float = param(
+        2.0,
+        "signed and neither holding nor asking for the lease: heartbeats only keep the "
+        "robot's clock estimate for us, and each costs it a signature check (about 0.2 ms), "
+        "so an observer sends this few; holders and requesters send heartbeat_rate_hz",
+    )
     security: SecurityConfig = param(
         SecurityConfig(), "CURVE keys: ours and the robot's (or the relay's) public key"
     )

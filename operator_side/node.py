@@ -132,6 +132,9 @@ class OperatorNode:
             self.signer = load_signer(link_cfg.signing_key_file)
         #: the key holding the robot's control lease, as its newest heartbeat says
         self.lease_holder: bytes | None = None
+        #: the key waiting for the lease, as the robot's newest heartbeat says
+        self.lease_pending: bytes | None = None
+        self._hb_turn = 0
         self._next_lease_request_ns = 0
 
     def _use_calibration(self, calibration: LinkGlideCalibration) -> None:
@@ -270,7 +273,8 @@ class OperatorNode:
                 self.control_step(now, period)
                 next_control = self._next_control_ns(now, period)
             if heartbeat.due(now):
-                self._send_heartbeat()
+                if self._heartbeat_wanted():
+                    self._send_heartbeat()
                 heartbeat.done(now)
             self._maybe_request_control(now)
             if self._wake_r in ready:
@@ -325,6 +329,17 @@ class OperatorNode:
                 self.counters["stimuli_matching_truth"] += 1
         return True
 
+    def _heartbeat_wanted(self) -> bool:
+        """Every due heartbeat, unless we are a signed observer (``observer_heartbeat_rate_hz``)."""
+        link = self.config.link
+        self._hb_turn += 1
+        if self.signer is None or self.is_controller or link.request_control:
+            return True
+        if self.lease_pending == self.signer.public:
+            return True  # asked: the robot's deadman will count from us as soon as it grants
+        every = max(1, round(link.heartbeat_rate_hz / max(link.observer_heartbeat_rate_hz, 1e-3)))
+        return self._hb_turn % every == 0
+
     def _maybe_request_control(self, now: int) -> None:
         """``request_control``: ask while nobody holds the lease (refused until clocks sync)."""
         if not self.config.link.request_control or self.signer is None:
@@ -347,6 +362,7 @@ class OperatorNode:
         self.clock.on_heartbeat(msg.t_send_ns, echo_send, echo_recv, t_recv)
         was = self.is_controller
         self.lease_holder = msg.controller
+        self.lease_pending = msg.lease_pending
         if self.is_controller != was:
             self.counters["lease_gained" if not was else "lease_lost"] += 1
             log.info("control lease %s", "ours" if not was else "no longer ours")

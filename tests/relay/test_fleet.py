@@ -212,7 +212,7 @@ def test_hand_over_is_fast_loses_no_stimulus_and_moves_the_arm_for_the_new_holde
         key_a, key_b = fleet.signing_key("a"), fleet.signing_key("b")
         try:
             _wait(lambda: monitor.holder_since(key_a, 0) is not None, 60, "a's lease", fleet)
-            time.sleep(0.5)  # b's clock synced at the robot (its heartbeats echoed)
+            time.sleep(1.5)  # b's clock synced at the robot (its 2 Hz heartbeats echoed)
             t_req = now_ns()
             b.send({"action": "lease_request"})
             pending = lambda: any(  # noqa: E731
