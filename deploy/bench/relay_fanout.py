@@ -26,8 +26,9 @@ import zmq
 
 from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, DecodeError, decode_named, name_prefix
 from common.messages import Heartbeat, Stimulus, TactileFrame
-from common.security import SecurityConfig, client_options
+from common.security import SecurityConfig, client_options, server_options
 from common.signing import load_signer
+from common.transport import free_loopback_ports
 
 
 @dataclass
@@ -40,6 +41,8 @@ class ClientSpec:
     security: dict[str, str]  # SecurityConfig keys
     signing_secret: str | None = None
     kind: str = "normal"  # normal, stalled, slow
+    #: bind ``endpoint`` as the CURVE server with ``security``'s key (a direct path, no relay)
+    bind: bool = False
 
 
 def _security(d: dict[str, str]) -> SecurityConfig:
@@ -65,7 +68,8 @@ def swarm(
     name = robot.encode()
     subs, pubs, signers, clocks = [], [], [], []
     for spec in clients:
-        opts = client_options(_security(spec.security))
+        sec = _security(spec.security)
+        opts = server_options(sec) if spec.bind else client_options(sec)
         sub = ctx.socket(zmq.SUB)
         sub.setsockopt(zmq.LINGER, 0)
         sub.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES + 1 + MAX_NAME_LEN)
@@ -74,7 +78,10 @@ def swarm(
             sub.setsockopt(zmq.RCVHWM, 4)
         for k, v in opts.items():
             sub.setsockopt(k, v)
-        sub.connect(spec.endpoint)
+        if spec.bind:
+            sub.bind(spec.endpoint)
+        else:
+            sub.connect(spec.endpoint)
         for topic in (Stimulus.TOPIC, Heartbeat.TOPIC, TactileFrame.TOPIC):
             sub.setsockopt(zmq.SUBSCRIBE, name_prefix(topic, name))
         subs.append(sub)
@@ -82,7 +89,7 @@ def swarm(
         if spec.command_endpoint is not None and spec.signing_secret is not None:
             pub = ctx.socket(zmq.PUB)
             pub.setsockopt(zmq.LINGER, 0)
-            for k, v in opts.items():
+            for k, v in client_options(sec).items():
                 pub.setsockopt(k, v)
             pub.connect(spec.command_endpoint)
         pubs.append(pub)
@@ -338,4 +345,174 @@ def run_isolation(
         "sent": sent.get("sent"),
         "slow_bytes_per_s": slow_bytes_per_s,
         "clients": by,
+    }
+
+
+def run_latency(duration_s: float, rate_hz: float, workdir: Any = None) -> dict[str, Any]:
+    """One stream, two paths in the same run: through the relay, and straight to a subscriber.
+
+    Both are CURVE; the direct subscriber binds (as a robot does today) and the
+    publisher connects to it and to the relay, sending each message on both,
+    alternating which goes first.
+    """
+    import multiprocessing
+
+    from deploy.fleet import Fleet
+
+    fleet = Fleet(
+        robots=["pub"],
+        operators={"via_relay": "observer", "direct": "observer"},
+        **({} if workdir is None else {"workdir": workdir}),
+    )
+    mp = multiprocessing.get_context("spawn")
+    with fleet:
+        fleet.start_relay()
+        (direct_port,) = free_loopback_ports(1)
+        direct = f"tcp://127.0.0.1:{direct_port}"
+        relay_keys = {"mode": "curve", "secret_key_file": str(fleet.members["relay"].curve_secret)}
+        clients = [
+            ClientSpec("via_relay", fleet.ops_telemetry, None, fleet.client_security("via_relay")),
+            ClientSpec("direct", direct, None, relay_keys, bind=True),
+        ]
+        time.sleep(1.0)
+        result, sent = _run_pair(
+            mp, clients, [fleet.robots_telemetry, direct], fleet, rate_hz, duration_s
+        )
+    by = {r["label"]: r for r in result}
+    for r in by.values():
+        r.pop("latencies_us", None)
+    relay, straight = by.get("via_relay", {}), by.get("direct", {})
+
+    def ratio(key: str) -> float | None:
+        a, b = relay.get(key), straight.get(key)
+        return None if not a or not b else a / b
+
+    return {
+        "rate_hz": rate_hz,
+        "duration_s": duration_s,
+        "sent": sent.get("sent"),
+        "via_relay": relay,
+        "direct": straight,
+        "p50_ratio": ratio("p50_us"),
+        "p99_ratio": ratio("p99_us"),
+        "p50_added_us": None
+        if relay.get("p50_us") is None or straight.get("p50_us") is None
+        else relay["p50_us"] - straight["p50_us"],
+    }
+
+
+def _run_pair(
+    mp: Any,
+    clients: list[ClientSpec],
+    endpoints: list[str],
+    fleet: Any,
+    rate_hz: float,
+    duration_s: float,
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    sw_parent, sw_child = mp.Pipe(duplex=False)
+    pub_parent, pub_child = mp.Pipe(duplex=False)
+    sw = mp.Process(
+        target=swarm, args=(clients, "pub", duration_s + 3.0, 0.0, 8000.0, sw_child), daemon=True
+    )
+    sw.start()
+    time.sleep(1.0)
+    pub = mp.Process(
+        target=publish,
+        args=(endpoints, fleet.client_security("pub"), "pub", rate_hz, 4, duration_s, pub_child),
+        daemon=True,
+    )
+    pub.start()
+    sent = pub_parent.recv() if pub_parent.poll(duration_s + 60) else {}
+    result = sw_parent.recv() if sw_parent.poll(duration_s + 60) else []
+    pub.join(5)
+    sw.join(5)
+    return result, sent
+
+
+def process_cpu_s(pid: int) -> float:
+    """utime + stime of a process so far, seconds (/proc)."""
+    import os
+
+    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()  # noqa: SIM115
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_robot_cpu(
+    counts: tuple[int, ...], warmup_s: float, measure_s: float, workdir: Any = None
+) -> dict[str, Any]:
+    """A robot node behind the relay, and 1, 4, 16 ... observers (signed, heartbeating at the
+    observer rate): the robot's and the relay's CPU over the same window for each count.
+    """
+    import multiprocessing
+
+    from deploy.fleet import Fleet
+    from operator_side.config import OperatorLinkConfig
+
+    n_max = max(counts)
+    names = [f"obs{i}" for i in range(n_max)]
+    fleet = Fleet(
+        robots=["cell1"],
+        operators=dict.fromkeys(names, "observer"),
+        **({} if workdir is None else {"workdir": workdir}),
+    )
+    mp = multiprocessing.get_context("spawn")
+    rows = []
+    hb_hz = OperatorLinkConfig().observer_heartbeat_rate_hz
+    with fleet:
+        relay = fleet.start_relay()
+        robot = fleet.start_robot("cell1", None)
+        time.sleep(4.0)  # the robot node up and streaming
+        for n in counts:
+            clients = [
+                ClientSpec(
+                    name,
+                    fleet.ops_telemetry,
+                    fleet.ops_command,
+                    fleet.client_security(name),
+                    signing_secret=str(fleet.members[name].signing_secret),
+                )
+                for name in names[:n]
+            ]
+            parent, child = mp.Pipe(duplex=False)
+            sw = mp.Process(
+                target=swarm,
+                args=(clients, "cell1", warmup_s + measure_s + 0.5, hb_hz, 8000.0, child),
+                daemon=True,
+            )
+            sw.start()
+            time.sleep(warmup_s)
+            r0, q0, t0 = (
+                process_cpu_s(robot.popen.pid),
+                process_cpu_s(relay.popen.pid),
+                time.monotonic(),
+            )
+            time.sleep(measure_s)
+            r1, q1, t1 = (
+                process_cpu_s(robot.popen.pid),
+                process_cpu_s(relay.popen.pid),
+                time.monotonic(),
+            )
+            out = parent.recv() if parent.poll(60) else []
+            sw.join(5)
+            got = [c["stimuli"] for c in out]
+            rows.append(
+                {
+                    "observers": n,
+                    "robot_cpu_percent": 100.0 * (r1 - r0) / (t1 - t0),
+                    "relay_cpu_percent": 100.0 * (q1 - q0) / (t1 - t0),
+                    "stimuli_per_observer_min": min(got) if got else 0,
+                    "stimuli_per_observer_max": max(got) if got else 0,
+                }
+            )
+    robot_stats = fleet.procs["cell1"].stats()
+    base = rows[0]["robot_cpu_percent"] if rows else None
+    for row in rows:
+        row["robot_cpu_ratio"] = None if not base else row["robot_cpu_percent"] / base
+    keep = ("stimuli_published", "messages_unknown_signer", "decode_errors", "frames_unwanted")
+    return {
+        "warmup_s": warmup_s,
+        "measure_s": measure_s,
+        "observer_heartbeat_hz": hb_hz,
+        "rows": rows,
+        "robot_stats": {k: v for k, v in robot_stats.items() if k in keep},
     }

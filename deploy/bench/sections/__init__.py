@@ -17,6 +17,7 @@ from deploy.bench.sections import (
     ik,
     netsim,
     node_cpu,
+    relay,
     scale,
     skipping,
     stages,
@@ -38,5 +39,6 @@ SECTIONS: tuple[Section, ...] = (
     command_path.SECTION,
     video.SECTION,
     netsim.SECTION,
+    relay.SECTION,
 )
 SECTION_NAMES: tuple[str, ...] = tuple(s.name for s in SECTIONS)
