@@ -225,7 +225,8 @@ class Fleet:
         )
         return self._start(name, ["-v", "relay", "--config", str(config)])
 
-    def start_robot(self, name: str, arm_host: str | None, rate_hz: float = 60.0) -> Proc:
+    def robot_config(self, name: str, arm_host: str | None, rate_hz: float = 60.0) -> Path:
+        """Write robot ``name``'s config (relay mode, CURVE, the roster); its path."""
         arm = f'kind = "ur_rtde"\nhost = "{arm_host}"' if arm_host else 'kind = "none"'
         config = self.workdir / f"{name}.toml"
         config.write_text(
@@ -241,6 +242,10 @@ class Fleet:
                 relay_public=self.members["relay"].curve_public,
             )
         )
+        return config
+
+    def start_robot(self, name: str, arm_host: str | None, rate_hz: float = 60.0) -> Proc:
+        config = self.robot_config(name, arm_host, rate_hz)
         return self._start(name, ["-v", "robot", "--config", str(config)])
 
     def start_operator(

@@ -188,6 +188,10 @@ class _CommandPath:
         self.backend.send(frame, zmq.NOBLOCK, copy=False)
         self.counters["msgs_out"] += 1
 
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(5)
@@ -297,10 +301,25 @@ class Relay:
             out[f"curve_refused_{domain}"] = float(allowlist.refused)
         return out
 
+    def alive(self) -> bool:
+        """Both paths forwarding: the proxy answers its control socket, the command loop runs."""
+        telemetry, commands = self._telemetry, self._commands
+        if telemetry is None or commands is None or not commands.running:
+            return False
+        return bool(telemetry.statistics(timeout_s=0.5))
+
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
-        """Forward until ``stop`` (or ``duration_s``), logging the counters now and then."""
+        """Forward until ``stop`` (or ``duration_s``), logging the counters now and then.
+
+        Under systemd (``Type=notify``) it says READY once bound and pings the
+        watchdog only while both paths answer, so a wedged proxy is restarted.
+        """
+        from common.sd_notify import Notifier
+
         if self._telemetry is None:
             self.start()
+        notifier = Notifier()
+        notifier.ready(f"relay up: {len(self.endpoints)} endpoints")
         interval = self.config.stats_interval_s
         t_end = None if duration_s is None else time.monotonic() + duration_s
         next_log = time.monotonic() + interval if interval > 0 else None
@@ -311,10 +330,14 @@ class Relay:
                     break
                 deadlines = [d for d in (t_end, next_log, now + 1.0) if d is not None]
                 stop.wait(max(0.0, min(deadlines) - now))
+                if notifier.enabled and self.alive():
+                    notifier.watchdog()
                 if next_log is not None and time.monotonic() >= next_log:
                     log.info("relay counters: %s", self.stats())
                     next_log += interval
         finally:
+            notifier.stopping()
+            notifier.close()
             self.close()
 
     def close(self) -> None:

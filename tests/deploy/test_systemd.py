@@ -176,3 +176,45 @@ def test_udev_rules_cover_the_common_usb_serial_bridges():
         assert f'ATTRS{{idVendor}}=="{vendor}"' in text
     assert "udevadm info" in text
     assert 'ATTR{latency_timer}="1"' in text
+
+
+def test_the_relay_unit_is_watched_and_starts_a_relay_the_cli_accepts(tmp_path):
+    unit = _parse(_unit("relay"))
+    assert _get(unit, "Service", "Type") == ["notify"]
+    assert _get(unit, "Service", "WatchdogSec") == ["5s"]
+    assert _get(unit, "Service", "User") == ["deepxpalm"]
+    assert _get(unit, "Install", "WantedBy") == ["multi-user.target"]
+    (exec_start,) = _get(unit, "Service", "ExecStart")
+    argv = shlex.split(exec_start)
+    assert argv[0] == INSTALLED and "/etc/deepxpalm/relay.toml" in argv
+    args = [
+        str(EXAMPLES / "relay.toml")
+        if a == "/etc/deepxpalm/relay.toml"
+        else str(tmp_path / Path(a).name)
+        if a.startswith("/var/lib/deepxpalm/")
+        else a
+        for a in argv[1:]
+    ]
+    out = subprocess.run(
+        [sys.executable, "-m", "deploy.cli", *args, "--print-config"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=ENV,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "[relay]" in out.stdout and 'mode = "curve"' in out.stdout
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="no systemd-analyze here")
+def test_the_relay_unit_passes_systemd_analyze_verify(tmp_path):
+    text = _unit("relay").read_text().replace(INSTALLED, _deepxpalm_here())
+    copy = tmp_path / _unit("relay").name
+    copy.write_text(text)
+    out = subprocess.run(
+        ["systemd-analyze", "verify", "--man=no", str(copy)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0 and out.stderr.strip() == "", out.stderr

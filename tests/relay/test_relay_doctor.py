@@ -1,0 +1,85 @@
+"""deepxpalm doctor on the relay host, and from a robot whose link goes through a relay."""
+
+from __future__ import annotations
+
+import tomllib
+
+from common.preflight import FAIL, PASS, WARN
+from deploy.doctor.cli import diagnose
+from deploy.doctor.report import DoctorOptions
+from deploy.fleet import Fleet
+from relay_side.config import RelayConfig, RelaySecurityConfig
+from relay_side.relay import Relay
+
+OPTIONS = DoctorOptions(check_peer=True, connect_devices=False, service_user="nobody-here")
+
+
+def _fleet(tmp_path) -> Fleet:
+    return Fleet(robots=["cell1"], operators={"alice": "controller"}, workdir=tmp_path)
+
+
+def _relay_table(fleet: Fleet) -> dict:
+    return {
+        "robots_telemetry_endpoint": fleet.robots_telemetry,
+        "robots_command_endpoint": fleet.robots_command,
+        "operators_telemetry_endpoint": fleet.ops_telemetry,
+        "operators_command_endpoint": fleet.ops_command,
+        "roster_file": str(fleet.roster),
+        "security": {"mode": "curve", "secret_key_file": str(fleet.members["relay"].curve_secret)},
+    }
+
+
+def test_a_ready_relay_host_passes_and_a_running_relay_is_recognised(tmp_path):
+    fleet = _fleet(tmp_path)
+    table = _relay_table(fleet)
+    report = diagnose("relay", table, "relay.toml", OPTIONS)
+    assert report.find("config").status == PASS
+    assert report.find("roster").status == PASS
+    assert report.find("keys: relay").status == PASS
+    assert all(c.status == PASS for c in report.checks if c.name.startswith("port "))
+    config = RelayConfig(
+        **{k: v for k, v in table.items() if k not in ("security", "roster_file")},
+        roster_file=fleet.roster,
+        security=RelaySecurityConfig(
+            mode="curve", secret_key_file=fleet.members["relay"].curve_secret
+        ),
+    )
+    with Relay(config):
+        busy = diagnose("relay", table, "relay.toml", OPTIONS)
+    ports = [c for c in busy.checks if c.name.startswith("port ")]
+    assert len(ports) == 4 and all(c.status == WARN for c in ports), ports
+
+
+def test_a_bad_roster_or_a_readable_key_fails(tmp_path):
+    fleet = _fleet(tmp_path)
+    table = _relay_table(fleet)
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[operator]]\nname = "x"\nrole = "boss"\n')
+    table["roster_file"] = str(bad)
+    fleet.members["relay"].curve_secret.chmod(0o644)
+    report = diagnose("relay", table, "relay.toml", OPTIONS)
+    assert report.find("roster").status == FAIL and "boss" in report.find("roster").detail
+    assert report.find("keys: relay").status == FAIL
+
+
+def test_a_robot_in_relay_mode_is_told_whether_the_relay_answers(tmp_path):
+    fleet = _fleet(tmp_path)
+    toml = fleet.robot_config("cell1", None)
+    robot = tomllib.loads(toml.read_text())["robot"]
+    report = diagnose("robot", robot, str(toml), OPTIONS)
+    assert report.find("robot name").status == PASS
+    assert report.find("roster").status == PASS
+    relay_checks = [c for c in report.checks if c.name.startswith("relay ")]
+    assert len(relay_checks) == 2 and all(c.status == FAIL for c in relay_checks)
+    table = _relay_table(fleet)
+    config = RelayConfig(
+        **{k: v for k, v in table.items() if k not in ("security", "roster_file")},
+        roster_file=fleet.roster,
+        security=RelaySecurityConfig(
+            mode="curve", secret_key_file=fleet.members["relay"].curve_secret
+        ),
+    )
+    with Relay(config):
+        up = diagnose("robot", robot, str(toml), OPTIONS)
+    relay_checks = [c for c in up.checks if c.name.startswith("relay ")]
+    assert len(relay_checks) == 2 and all(c.status == PASS for c in relay_checks)
