@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("robot_side", "operator_side", "common", "deploy")
+PACKAGES = ("robot_side", "operator_side", "relay_side", "common", "deploy")
 #: underscore names that are public API elsewhere (namedtuple's, the interpreter's)
 PUBLIC_UNDERSCORE = {"_replace", "_asdict", "_fields", "_make", "_exit", "_getframe"}
 
