@@ -139,7 +139,8 @@ class Fleet:
         for name in self.robots:
             pub, sec = generate(keys, f"robot-{name}")
             self.members[name] = Member(name, "robot", pub, sec)
-        for name, role in self.operators.items():
+        everyone = {**(self.relay_roles or {}), **self.operators}
+        for name, role in everyone.items():
             pub, sec = generate(keys, name)
             spub, ssec = generate_key_files(keys, name)
             self.members[name] = Member(name, role, pub, sec, ssec, load_public_key(spub))

@@ -259,18 +259,23 @@ def test_a_relay_that_lets_an_observer_command_still_cannot_move_the_arm(
     fleet = Fleet(
         robots=["cell1"],
         operators={"mallory": "observer", "rec": "recorder"},
-        relay_roles={"mallory": "controller", "rec": "recorder"},
+        # the relay also lets in "eve", a key the robot has never heard of
+        relay_roles={"mallory": "controller", "eve": "controller", "rec": "recorder"},
         workdir=tmp_path,
     )
     with fleet:
         fleet.start_relay()
         fleet.start_robot("cell1", arm_sim.host)
         mallory = fleet.start_operator("mallory", "cell1", request_control=True)
+        eve = fleet.start_operator("eve", "cell1", request_control=True)
         monitor = Monitor(fleet, "rec", ["cell1"])
         try:
             _wait(lambda: len(monitor.heartbeats) > 20, 60, "the robot's heartbeats", fleet)
             start = arm_sim.tcp_pose()[:3].copy()
+            jog_eve = threading.Thread(target=_jog_for, args=(eve, JOG_Y, 1.5))
+            jog_eve.start()
             _jog_for(mallory, JOG_X, 1.5)
+            jog_eve.join()
             time.sleep(0.3)
             assert np.abs(arm_sim.tcp_pose()[:3] - start).max() < 1e-4
             assert all(hb.controller is None for _, hb in monitor.heartbeats)
@@ -280,6 +285,7 @@ def test_a_relay_that_lets_an_observer_command_still_cannot_move_the_arm(
     relay = fleet.procs["relay"].stats()
     assert relay.get("commands_dropped_role", 0) == 0  # the relay let everything through
     assert robot["lease_refused_role"] >= 1 and robot["commands_not_controller"] > 10, robot
+    assert robot["messages_unknown_signer"] > 10, robot  # eve: every message ignored
 
 
 def test_the_robot_skips_raw_frames_while_nobody_behind_the_relay_wants_them(tmp_path, quiet_gc):
