@@ -166,6 +166,7 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
             # the deadman (250 ms) plus the stop's deceleration (0.03 m/s at 2 m/s^2: 15 ms)
             # and the simulator's poll
             assert (stopped_at - t_kill) / 1e6 < 250 + 15 + 60
+            print(f"cell2 stopped {(stopped_at - t_kill) / 1e6:.0f} ms after its controller died")
         finally:
             monitor.close()
         time.sleep(0.3)
