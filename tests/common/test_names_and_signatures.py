@@ -117,3 +117,28 @@ def test_a_subscriber_for_one_robot_refuses_another_robots_messages_and_counts_t
         sub.close()
     finally:
         ctx.term()
+
+
+def test_a_command_signed_exactly_as_the_protocol_doc_says_is_accepted():
+    """docs/protocol.md, Signed messages: built with msgpack and cryptography only."""
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+    from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+    key = Ed25519PrivateKey.generate()
+    public = key.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+    body = {
+        "v": 1,
+        "type": "command",
+        "seq": 4,
+        "t_send_ns": 99,
+        "action": "arm_stop",
+        "session": 5,
+        "signer": public,
+    }
+    # the map header counts the sig entry that follows the signed bytes
+    header = bytes((0x80 + len(body) + 1,))
+    entries = msgpack.packb(body)[1:]  # drop packb's own fixmap header
+    signed = b"CMND\x05cell1" + header + entries
+    data = signed + b"\xa3sig\xc4\x40" + key.sign(signed)
+    name, msg = decode_named(data)
+    assert name == b"cell1" and msg.action == "arm_stop" and msg.signer == public

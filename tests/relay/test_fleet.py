@@ -340,3 +340,51 @@ def test_the_robot_skips_raw_frames_while_nobody_behind_the_relay_wants_them(tmp
     assert got > 20, got  # 15 Hz for 2 s once someone asks
     assert during <= 2, during  # none skipped while wanted (the heartbeat's lag aside)
     assert after > 10, after  # and skipped again once nobody wants them
+
+
+def test_a_client_written_from_the_protocol_doc_reads_one_named_robot_through_the_relay(
+    tmp_path,
+):
+    """Raw pyzmq, msgpack and struct: topic, length byte, name, map (docs/protocol.md)."""
+    import struct
+
+    import msgpack
+
+    fleet = Fleet(robots=["cell1", "cell10"], operators={"rec": "recorder"}, workdir=tmp_path)
+    with fleet:
+        fleet.start_relay()
+        fleet.start_robot("cell1", None)
+        fleet.start_robot("cell10", None)
+        ctx = zmq.Context()
+        sub = ctx.socket(zmq.SUB)
+        sub.setsockopt(zmq.LINGER, 0)
+        sub.setsockopt(zmq.RCVTIMEO, 200)
+        sec = fleet.client_security("rec")
+        for k, v in client_options(
+            SecurityConfig(
+                mode="curve",
+                secret_key_file=sec["secret_key_file"],
+                server_public_key_file=sec["server_public_key_file"],
+            )
+        ).items():
+            sub.setsockopt(k, v)
+        sub.connect(fleet.ops_telemetry)
+        sub.setsockopt(zmq.SUBSCRIBE, b"STIM\x05cell1")  # not cell10: the length byte differs
+        names, seen = set(), 0
+        try:
+            deadline = time.monotonic() + 60
+            while seen < 30 and time.monotonic() < deadline:
+                try:
+                    data = sub.recv()
+                except zmq.Again:
+                    continue
+                n = data[4]
+                name, body = data[5 : 5 + n], msgpack.unpackb(data[5 + n :], raw=False)
+                assert data[:4] == b"STIM" and body["v"] == 1 and body["type"] == "stimulus"
+                assert len(struct.unpack("<9f", body["stimulus"])) == 9
+                names.add(name)
+                seen += 1
+        finally:
+            sub.close()
+            ctx.term()
+    assert seen == 30 and names == {b"cell1"}
