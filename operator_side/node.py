@@ -19,6 +19,7 @@ import secrets
 import threading
 from collections import Counter
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import zmq
@@ -59,6 +60,8 @@ class Snapshot:
     age_ms: float | None
     stats: dict[str, float]
     robot_stats: dict[str, float]
+    #: with a signing key: who holds the robot's control lease (``OperatorNode.control_view``)
+    control: dict[str, Any] | None = None
 
 
 class OperatorNode:
@@ -546,7 +549,22 @@ class OperatorNode:
             age_ms=age,
             stats=self.stats(),
             robot_stats=dict(self._robot_stats),
+            control=self.control_view(),
         )
+
+    def control_view(self) -> dict[str, Any] | None:
+        """The control lease as the robot's newest heartbeat states it (None when unsigned)."""
+        if self.signer is None:
+            return None
+        own = self.signer.public
+        holder, pending = self.lease_holder, self.lease_pending
+        return {
+            "ours": holder == own,
+            "holder": None if holder is None else holder.hex()[:12],
+            "pending": None if pending is None else pending.hex()[:12],
+            "asked": pending == own,
+            "key": own.hex()[:12],
+        }
 
 
 def build_operator_node(

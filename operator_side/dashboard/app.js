@@ -100,7 +100,23 @@ function draw() {
   if (all || changed.has("history")) drawChart(s.history);
   if (changed.has("stats")) drawCounters(s.stats);
   if (all || changed.has("arm")) drawArm(s.arm);
+  if (all || changed.has("control")) drawControl(s.control);
   changed.clear();
+}
+
+// The control lease (through a relay, several operators; the robot obeys one).
+function drawControl(c) {
+  $("control").hidden = !c;
+  if (!c) return;
+  let text;
+  if (c.ours) text = "you have control";
+  else if (c.holder) text = `control: ${c.holder}…` + (c.asked ? " (you asked)" : "");
+  else text = "nobody has control";
+  if (c.pending && c.ours) text += ` · ${c.pending}… asks for it`;
+  $("control-text").textContent = text;
+  $("lease-request").hidden = c.ours;
+  $("lease-grant").hidden = !(c.ours && c.pending);
+  $("lease-release").hidden = !c.ours;
 }
 
 function drawLink(s) {
@@ -539,6 +555,9 @@ $("level").addEventListener("input", () => {
   $("level-out").textContent = $("level").value;
 });
 $("open").addEventListener("click", () => sendCommand("gripper_open"));
+for (const action of ["lease_request", "lease_grant", "lease_release"]) {
+  $(action.replace("_", "-")).addEventListener("click", () => sendCommand(action));
+}
 $("close").addEventListener("click", () => sendCommand("gripper_close", Number($("level").value)));
 
 drawColorbar();

@@ -264,6 +264,10 @@ class Dashboard:
         if action == "gripper_open":
             self.node.send_command("gripper_open")
             level = None
+        elif action in ("lease_request", "lease_grant", "lease_release"):
+            # the robot decides (robot_side/lease.py): a grant goes to whoever asked
+            self.node.send_command(action)
+            level = None
         elif action == "gripper_close":
             level = msg.get("grip_level", 16)
             if isinstance(level, bool) or not isinstance(level, int) or level not in GRIP_LEVELS:

@@ -31,6 +31,7 @@ CONTENT_KEYS = (
     "grip_level",
     "counts",
     "arm",
+    "control",
 )
 STATS_SHOWN = (
     "stimuli_received",
@@ -74,6 +75,7 @@ def snapshot_view(snap: Snapshot) -> dict[str, Any]:
         "counts": [int(c) for c in np.asarray(snap.goal_counts).reshape(-1)],
         "stats": {k: _finite(snap.stats.get(k), 2) for k in STATS_SHOWN if k in snap.stats},
         "arm": arm_view(snap.robot_stats),
+        "control": snap.control,
     }
 
 

@@ -236,3 +236,23 @@ def test_history_keeps_one_minute_and_survives_a_robot_restart():
     assert len(v["latency_ms"]) == 60
     assert v["t"][0] == -59 and v["t"][-1] == 0
     assert v["summary"]["loss"] == 0.0
+
+
+def test_the_control_lease_buttons_reach_the_node_and_the_lease_is_shown(dashboard):
+    node, d = dashboard
+    control = {"ours": False, "holder": "ab12", "pending": None, "asked": False, "key": "cd34"}
+    original = node.snapshot
+
+    def with_control() -> Snapshot:
+        snap = original()
+        snap.control = control
+        return snap
+
+    node.snapshot = with_control
+    with connect(_ws_url(d)) as ws:
+        _next(ws, "hello")
+        assert _next(ws, "state")["control"] == control
+        for action in ("lease_request", "lease_grant", "lease_release"):
+            ws.send(json.dumps({"type": "command", "action": action}))
+            assert _next(ws, "ack")["ok"] is True
+    assert [a for a, _ in node.commands] == ["lease_request", "lease_grant", "lease_release"]
