@@ -40,6 +40,7 @@ RELEASED = "lease_released"
 REFUSED_ROLE = "lease_refused_role"
 REFUSED_NOT_HOLDER = "lease_refused_not_holder"
 REFUSED_GRANTEE = "lease_refused_grantee"
+REFUSED_SILENT = "lease_refused_grantee_silent"
 TIMED_OUT = "lease_requests_timed_out"
 EXPIRED = "lease_expired"
 
@@ -127,7 +128,10 @@ class ControlLease:
             entry = None if grantee is None else self.operators.get(grantee)
             if entry is None or entry.role != "controller":
                 return REFUSED_GRANTEE
-            self.peer(grantee)
+            if not self._fresh(grantee, now_ns):
+                # handing the arm to a key we have not heard lately would trip the deadman at
+                # once and leave nobody in control: the holder keeps it
+                return REFUSED_SILENT
             self._set_holder(grantee)
             return HANDED_OVER
         # lease_release
@@ -135,11 +139,16 @@ class ControlLease:
             self.pending = None
         if self.holder != key:
             return REFUSED_NOT_HOLDER
-        if self.pending is not None:
+        if self.pending is not None and self._fresh(self.pending, now_ns):
             self._set_holder(self.pending)
             return HANDED_OVER
         self._set_holder(None)
         return RELEASED
+
+    def _fresh(self, key: bytes, now_ns: int) -> bool:
+        """Has ``key`` sent something fresh lately (its gate's newest fresh message)?"""
+        last = self.peer(key).gate.last_fresh_ns
+        return last is not None and now_ns - last <= self.max_age_ns
 
     def tick(self, now_ns: int) -> str | None:
         """Let a request nobody granted lapse."""
@@ -152,9 +161,6 @@ class ControlLease:
         """The holder went silent (the deadman tripped): a fresh waiting requester takes over."""
         self.tick(now_ns)
         nxt = self.pending
-        if nxt is not None:
-            gate = self.peers[nxt].gate
-            last = gate.last_fresh_ns
-            if last is None or now_ns - last > self.max_age_ns:
-                nxt = None
+        if nxt is not None and not self._fresh(nxt, now_ns):
+            nxt = None
         self._set_holder(nxt)

@@ -34,10 +34,14 @@ def test_the_first_controller_to_ask_gets_it_an_observer_never():
     assert lease.handle(A, _cmd("lease_request"), 0) == L.HELD
 
 
+def _heard(lease: ControlLease, key: bytes, t_ns: int) -> None:
+    lease.peer(key).gate.heard(t_ns, t_ns, t_ns)
+
+
 def test_a_held_lease_moves_only_when_its_holder_grants_or_releases_it():
     lease = _lease()
     for key in (A, B, OBS):
-        lease.peer(key)
+        _heard(lease, key, 0)
     lease.handle(A, _cmd("lease_request"), 0)
     assert lease.handle(B, _cmd("lease_request"), 0) == L.PENDING and lease.holder == A
     assert lease.handle(B, _cmd("lease_grant", B), 0) == L.REFUSED_NOT_HOLDER
@@ -71,3 +75,16 @@ def test_a_silent_holder_loses_it_to_a_fresh_waiting_requester_only():
     lease.handle(A, _cmd("lease_request"), 1000 * MS)  # a asks again, but is silent after
     lease.expire(1500 * MS)
     assert lease.holder is None  # a's newest word is too old to hand it the arm
+
+
+def test_a_grant_to_a_key_not_heard_lately_is_refused_and_the_holder_keeps_it():
+    lease = _lease()
+    _heard(lease, A, 0)
+    _heard(lease, B, 0)
+    lease.handle(A, _cmd("lease_request"), 0)
+    now = 1000 * MS  # b last heard a second ago: beyond max_age (250 ms)
+    _heard(lease, A, now)
+    assert lease.handle(A, _cmd("lease_grant", B), now) == L.REFUSED_SILENT
+    assert lease.holder == A
+    _heard(lease, B, now)
+    assert lease.handle(A, _cmd("lease_grant", B), now) == L.HANDED_OVER and lease.holder == B
