@@ -54,7 +54,7 @@ class OperatorLinkConfig:
     observer_heartbeat_rate_hz: float = param(
         2.0,
         "signed and neither holding nor asking for the lease: heartbeats only keep the "
-        "robot's clock estimate for us, and each costs it a signature check (about 0.2 ms), "
+        "robot's clock estimate for us, and each costs it a signature check (docs/security.md), "
         "so an observer sends this few; holders and requesters send heartbeat_rate_hz",
     )
     security: SecurityConfig = param(
