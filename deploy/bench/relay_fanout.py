@@ -259,10 +259,13 @@ def run_isolation(
     frame_every: int = 1,
     slow_bytes_per_s: float = 8000.0,
     workdir: Any = None,
+    swap: bool = False,
 ) -> dict[str, Any]:
-    """Two relays fed the same stream: relay A has two normal subscribers, a stalled one
-    and a 64 kbit/s one; relay B has only two normal ones. Each normal subscriber's p99
-    on A against its twin on B, in one run, one process, one poll loop.
+    """Two relays fed the same stream, four subscribers each: on A two measured ones, a
+    stalled one and a 64 kbit/s one; on B two measured ones and two more that read
+    everything (so B forwards as much as A, or more). The measured subscribers' pooled
+    p99 on A against B's, in one run, one process, one poll loop. ``swap``: the stalled
+    and slow subscribers go to the other relay process (A and B trade places).
     """
     import multiprocessing
 
@@ -270,7 +273,7 @@ def run_isolation(
 
     fleet = Fleet(
         robots=["pub"],
-        operators={n: "observer" for n in ("a1", "a2", "stall", "slow", "b1", "b2")},
+        operators={n: "observer" for n in ("a1", "a2", "stall", "slow", "b1", "b2", "b3", "b4")},
         **({} if workdir is None else {"workdir": workdir}),
     )
     mp = multiprocessing.get_context("spawn")
@@ -280,13 +283,16 @@ def run_isolation(
         ends = fleet.relay_endpoints
         time.sleep(1.0)
         clients = []
+        ra, rb = ("relay_b", "relay") if swap else ("relay", "relay_b")
         for label, relay, kind in (
-            ("a1", "relay", "normal"),
-            ("b1", "relay_b", "normal"),
-            ("stall", "relay", "stalled"),
-            ("slow", "relay", "slow"),
-            ("a2", "relay", "normal"),
-            ("b2", "relay_b", "normal"),
+            ("a1", ra, "normal"),
+            ("b1", rb, "normal"),
+            ("stall", ra, "stalled"),
+            ("slow", ra, "slow"),
+            ("b3", rb, "normal"),
+            ("b4", rb, "normal"),
+            ("a2", ra, "normal"),
+            ("b2", rb, "normal"),
         ):
             clients.append(
                 ClientSpec(
@@ -337,6 +343,7 @@ def run_isolation(
         r.pop("latencies_us", None)
     with_p99, without_p99 = pooled["with_stalled"]["p99_us"], pooled["without"]["p99_us"]
     return {
+        "swapped": swap,
         "pooled": pooled,
         "p99_ratio": None if not with_p99 or not without_p99 else with_p99 / without_p99,
         "rate_hz": rate_hz,
