@@ -21,6 +21,7 @@ from deploy.bench.sections import (
     skipping,
     stages,
     stress,
+    task,
     video,
 )
 
@@ -38,5 +39,6 @@ SECTIONS: tuple[Section, ...] = (
     command_path.SECTION,
     video.SECTION,
     netsim.SECTION,
+    task.SECTION,
 )
 SECTION_NAMES: tuple[str, ...] = tuple(s.name for s in SECTIONS)
