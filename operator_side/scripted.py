@@ -15,7 +15,8 @@ fingertips). A 45 deg band turns the wrist +45 deg about the closing axis, a
 (45 becomes 135) is halved back, one that lands far off (0 deg) is undone and
 tried the other way. Once the band is upright (or the turns have shrunk below
 ``min_turn_deg``), points off the centre line shift the fingers that way along
-the tool's x, and points that lean turn the wrist by ``min_turn_deg``.
+the tool's x (halved back when they cross the centre), and points that lean
+turn the wrist by ``min_turn_deg``.
 """
 
 from __future__ import annotations
@@ -295,6 +296,7 @@ class ScriptedOperator:
         r_start = rotvec_to_matrix(start[3:])
         turn_deg, shift_m, searches = 0.0, 0.0, 0
         last_step = 0.0  # the last wrist correction (deg), 0 after a shift
+        last_shift = 0.0  # the last sideways correction (m)
         outcome = Outcome(lifted=False, t_decision_s=None)
         for _ in range(cfg.max_attempts):
             grasp = self._grasp_pose(start, r_start, turn_deg, shift_m)
@@ -321,7 +323,11 @@ class ScriptedOperator:
             if angle == 2 or 0 < abs(last_step) < cfg.min_turn_deg:
                 # upright enough, or turning no longer helps: centre the points, then straighten
                 if abs(side) >= SIDE_CELLS:
-                    shift_m += math.copysign(cfg.shift_step_m, side)
+                    if last_shift and side * last_shift < 0:
+                        last_shift = -last_shift / 2.0  # past the centre: halve back
+                    else:
+                        last_shift = math.copysign(cfg.shift_step_m, side)
+                    shift_m += last_shift
                     last_step = 0.0
                 elif lean:
                     turn_deg += lean * cfg.min_turn_deg
