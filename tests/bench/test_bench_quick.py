@@ -151,7 +151,7 @@ def test_process_sections_run(tmp_path):
     assert netsim["runs"][0]["n_via"] > 0
     task = results["sections"]["task"]
     assert "error" not in task, task.get("error")
-    assert [c["feedback"] for c in task["cells"]] == ["mask", "none"]
+    assert [c["feedback"] for c in task["cells"]] == ["none"]
     assert all(len(c["trials"]) == 1 and not c["errors"] for c in task["cells"]), task["cells"]
     write_outputs(results, tmp_path, figures=False)
     assert "## The task" in (tmp_path / "benchmarks.md").read_text()

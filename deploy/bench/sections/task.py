@@ -25,7 +25,7 @@ class TaskSizes:
 SIZES = {
     "full": TaskSizes(50, ("lan", "intercontinental", "bad_day"), ("mask", "direct", "none")),
     "quick": TaskSizes(5, ("lan", "intercontinental", "bad_day"), ("mask", "direct", "none")),
-    "smallest": TaskSizes(1, ("lan",), ("mask", "none")),
+    "smallest": TaskSizes(1, ("lan",), ("none",)),  # the plumbing; tests/lab checks the task
 }
 
 
