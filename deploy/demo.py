@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_overrides_argument(parser, "robot.render.mode=direct")
 
 
-def _die_with_parent() -> None:
+def die_with_parent() -> None:
     """In the child: SIGTERM when the demo dies, even by SIGKILL (Linux), so nothing lingers."""
     try:
         import ctypes
@@ -66,18 +66,18 @@ def _die_with_parent() -> None:
         pass
 
 
-def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
+def spawn_cli(args: list[str], log_path: Path) -> subprocess.Popen:
     out = log_path.open("wb")
     return subprocess.Popen(
         [sys.executable, "-m", "deploy.cli", *args],
         stdout=out,
         stderr=subprocess.STDOUT,
         start_new_session=True,  # Ctrl-C reaches the demo only; it stops the children in order
-        preexec_fn=_die_with_parent,
+        preexec_fn=die_with_parent,
     )
 
 
-def _wait_for_robot(node: Any, procs: list, stop: threading.Event, errors: list[str]) -> None:
+def wait_for_robot(node: Any, procs: list, stop: threading.Event, errors: list[str]) -> None:
     """Until the operator hears the robot (devices connected, simulators up), at most 60 s."""
     deadline = time.monotonic() + 60
     while not stop.is_set() and time.monotonic() < deadline:
@@ -90,7 +90,7 @@ def _wait_for_robot(node: Any, procs: list, stop: threading.Event, errors: list[
         errors.append("the robot node did not start within 60 s")
 
 
-def _stop(proc: subprocess.Popen, name: str, errors: list[str], log_path: Path) -> None:
+def stop_child(proc: subprocess.Popen, name: str, errors: list[str], log_path: Path) -> None:
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
         try:
@@ -104,7 +104,20 @@ def _stop(proc: subprocess.Popen, name: str, errors: list[str], log_path: Path) 
         errors.append(f"{name} exited with {proc.returncode}: " + " | ".join(tail))
 
 
-def _fit_command_timing(scene: Scene) -> None:
+def netsim_args(scene: Scene, endpoints: tuple[str, str, str, str]) -> list[str]:
+    """``deepxpalm netsim`` between the robot's (telemetry, commands) and the operator's."""
+    robot_tel, robot_cmd, op_tel, op_cmd = endpoints
+    net = scene.network
+    return [
+        "netsim",
+        *("--scenario", net.scenario, "--seed", str(net.seed)),
+        *(["--mode", net.mode] if net.mode else []),
+        *("--robot-telemetry", robot_tel, "--robot-commands", robot_cmd),
+        *("--operator-telemetry", op_tel, "--operator-commands", op_cmd),
+    ]
+
+
+def fit_command_timing(scene: Scene) -> None:
     """Widen the robot's command age, deadman and jog time to the scenario's command delay.
 
     The robot judges commands by the operator's send time, so on a link slower
@@ -146,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
     scene.operator.link.telemetry_endpoint = op_tel if use_netsim else robot_tel
     scene.operator.link.command_endpoint = op_cmd if use_netsim else robot_cmd
     if use_netsim:
-        _fit_command_timing(scene)
+        fit_command_timing(scene)
     if args.curve:
         _use_fresh_curve_keys(scene, workdir / "keys")
     robot_cfg = workdir / "robot.toml"
@@ -160,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
     procs.append(
         (
             "robot",
-            _spawn(
+            spawn_cli(
                 [
                     *verbosity,
                     "robot",
@@ -179,25 +192,11 @@ def run(args: argparse.Namespace) -> int:
         procs.append(
             (
                 "netsim",
-                _spawn(
+                spawn_cli(
                     [
                         *verbosity,
-                        "netsim",
-                        "--scenario",
-                        scene.network.scenario,
-                        "--seed",
-                        str(scene.network.seed),
-                        *(["--mode", scene.network.mode] if scene.network.mode else []),
-                        "--robot-telemetry",
-                        robot_tel,
-                        "--robot-commands",
-                        robot_cmd,
-                        "--operator-telemetry",
-                        op_tel,
-                        "--operator-commands",
-                        op_cmd,
-                        "--stats-file",
-                        str(netsim_stats_path),
+                        *netsim_args(scene, (robot_tel, robot_cmd, op_tel, op_cmd)),
+                        *("--stats-file", str(netsim_stats_path)),
                     ],
                     workdir / "netsim.log",
                 ),
@@ -228,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
 
     thread = threading.Thread(target=operate, name="operator", daemon=True)
     thread.start()
-    _wait_for_robot(node, procs, stop, errors)
+    wait_for_robot(node, procs, stop, errors)
     t0 = time.monotonic()  # --duration counts from the first word of the robot
     keyboard = live_view.Keyboard() if not args.json else contextlib.nullcontext()
     dashboard, dashboard_line = None, ""
@@ -266,7 +265,7 @@ def run(args: argparse.Namespace) -> int:
         if recorder is not None:
             recorder.close()
         for name, proc, path in reversed(procs):
-            _stop(proc, name, errors, path)
+            stop_child(proc, name, errors, path)
     if node_error:
         errors.append(f"operator node failed: {node_error[0]!r}")
     summary = _summary(scene, node, ran_s, robot_stats_path, netsim_stats_path, errors)

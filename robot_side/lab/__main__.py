@@ -12,6 +12,7 @@ import logging
 import signal
 import sys
 import threading
+from pathlib import Path
 
 from common.config import from_dict
 from robot_side.lab.config import LabWorldConfig
@@ -22,6 +23,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--stdio", action="store_true", help="take requests as JSON lines on stdin")
     ap.add_argument("--config-json", help="the whole LabWorldConfig as JSON")
     ap.add_argument("--log-level", type=int, default=logging.INFO)
+    ap.add_argument(
+        "--addresses-file",
+        type=Path,
+        help="also write the addresses (with the board's calibration) here, for running_world",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(
         level=args.log_level, format="%(asctime)s lab %(name)s: %(message)s", stream=sys.stderr
@@ -44,6 +50,8 @@ def main(argv: list[str] | None = None) -> None:
 
         serve_stdio(server, sys.stdin, sys.stdout)
         return
+    if args.addresses_file is not None:
+        args.addresses_file.write_text(json.dumps(server.addresses()))
     done = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: done.set())
     signal.signal(signal.SIGTERM, lambda *_: done.set())

@@ -45,6 +45,17 @@ class LabWorldConfig:
     taxel_solimp: tuple[float, float, float] = param(
         (0.05, 0.95, 0.003), "contact impedance (dmin, dmax, width m): soft at first touch"
     )
+    pipette_travel_m: float = param(
+        0.1, "how far a pipette slides up out of its rack hole along its axis before it is free"
+    )
+    pipette_mass_kg: float = param(0.01, "a pipette's mass (a 10 ml serological pipette: ~10 g)")
+    pipette_damping_n_s_m: float = param(2.0, "the rack hole's sliding damping")
+    pipette_friction: float = param(
+        0.8, "sliding friction between the pads and a pipette (silicone on polystyrene)"
+    )
+    wrist_weld_solref: tuple[float, float] = param(
+        (0.004, 1.0), "how stiffly the gripper follows the flange (time constant s, damping ratio)"
+    )
     finger_kp_n_m: float = param(40000.0, "finger position servo stiffness (N/m)")
     finger_force_min_n: float = param(20.0, "grip force at FOR 0 (2F-85: 20 N)")
     finger_force_max_n: float = param(235.0, "grip force at FOR 255 (2F-85: 235 N)")

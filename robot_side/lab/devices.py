@@ -11,6 +11,7 @@ the pipette on the same pads the tactile driver reads.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import threading
 from abc import ABC, abstractmethod
@@ -20,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from common.config import from_dict, load_toml, param
+from common.errors import ConfigError
 from robot_side.arm.ur_rtde import URArm, URArmConfig
 from robot_side.gripper.urcap_socket import RobotiqSocketConfig, RobotiqSocketGripper
 from robot_side.lab.config import LabWorldConfig
@@ -40,20 +42,49 @@ def world_config_from(path: Path | None) -> LabWorldConfig:
     return from_dict(LabWorldConfig, load_toml(path), where=str(path))
 
 
-def attach_world(path: Path | None) -> LabWorldProcess:
-    """The running world for ``path`` in this process, started on first use."""
-    key = str(path.resolve()) if path is not None else "<default>"
+class RunningWorld:
+    """A world another process started: only where its simulators listen, read from a file.
+
+    ``python -m robot_side.lab --addresses-file F`` (or a bench harness holding
+    a ``LabWorldProcess``) writes the file; this process never stops that world.
+    """
+
+    def __init__(self, path: Path) -> None:
+        try:
+            self.addresses = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as e:
+            raise ConfigError(
+                f"running_world {path}: cannot read the world's addresses: {e}"
+            ) from e
+        missing = {"ur_host", "gripper_host", "gripper_port", "tactile_port"} - set(self.addresses)
+        if missing:
+            raise ConfigError(f"running_world {path}: no {sorted(missing)} in the addresses")
+
+    def stop(self) -> None:
+        """Nothing: the world belongs to the process that started it."""
+
+
+def attach_world(path: Path | None, running: Path | None = None) -> LabWorldProcess | RunningWorld:
+    """The world for ``path`` in this process, started on first use; or a running one's."""
+    if running is not None:
+        path, key = None, f"running:{Path(running).resolve()}"
+    else:
+        key = str(path.resolve()) if path is not None else "<default>"
     with _worlds_lock:
         if key in _worlds:
             world, users = _worlds[key]
             _worlds[key] = (world, users + 1)
             return world
-        world = LabWorldProcess(world_config_from(path)).start()
+        world = (
+            RunningWorld(running)
+            if running is not None
+            else LabWorldProcess(world_config_from(path)).start()
+        )
         _worlds[key] = (world, 1)
         return world
 
 
-def detach_world(world: LabWorldProcess) -> None:
+def detach_world(world: LabWorldProcess | RunningWorld) -> None:
     with _worlds_lock:
         for key, (w, users) in list(_worlds.items()):
             if w is world:
@@ -66,6 +97,10 @@ def detach_world(world: LabWorldProcess) -> None:
 
 
 WORLD_CONFIG_WHY = "the world's settings (LabWorldConfig TOML); unset = the shipped lab"
+RUNNING_WORLD_WHY = (
+    "a world another process runs: its addresses JSON (python -m robot_side.lab "
+    "--addresses-file); unset = start one here from world_config"
+)
 
 
 class OnTheWorld(ABC):
@@ -77,17 +112,20 @@ class OnTheWorld(ABC):
     ``disconnect`` detaches again, so the last user stops the world.
     """
 
-    world: LabWorldProcess | None = None
+    world: LabWorldProcess | RunningWorld | None = None
 
     def world_config_path(self) -> Path | None:
         return self.config.world_config  # type: ignore[attr-defined]
+
+    def running_world_path(self) -> Path | None:
+        return self.config.running_world  # type: ignore[attr-defined]
 
     @abstractmethod
     def point_at(self, addresses: dict) -> None:
         """Set the driver's port or host from where the world's simulators listen."""
 
     def connect(self) -> None:
-        self.world = attach_world(self.world_config_path())
+        self.world = attach_world(self.world_config_path(), self.running_world_path())
         try:
             self.point_at(self.world.addresses)
             super().connect()  # type: ignore[misc]
@@ -108,6 +146,7 @@ class OnTheWorld(ABC):
 @dataclass
 class LabTactileConfig:
     world_config: Path | None = param(None, WORLD_CONFIG_WHY)
+    running_world: Path | None = param(None, RUNNING_WORLD_WHY)
     driver: SerialTactileConfig = param(
         SerialTactileConfig(), "the real serial driver; its port is set to the world's board"
     )
@@ -126,6 +165,9 @@ class LabTactileSensor(OnTheWorld, SerialTactileSensor):
     def world_config_path(self) -> Path | None:
         return self.lab_config.world_config
 
+    def running_world_path(self) -> Path | None:
+        return self.lab_config.running_world
+
     def point_at(self, addresses: dict) -> None:
         self.config = dataclasses.replace(self.config, port=addresses["tactile_port"])
         if self.config.calibration_file is None:
@@ -138,6 +180,7 @@ class LabGripperConfig(RobotiqSocketConfig):
     host: str = param("auto", "ignored: the world's gripper simulator is used")
     port: int = param(0, "ignored: the world's gripper simulator is used")
     world_config: Path | None = param(None, WORLD_CONFIG_WHY)
+    running_world: Path | None = param(None, RUNNING_WORLD_WHY)
 
 
 class LabGripper(OnTheWorld, RobotiqSocketGripper):
@@ -161,6 +204,7 @@ class LabArmConfig(URArmConfig):
         0.5, "the simulated controller shares its process with the physics: allow it a stall"
     )
     world_config: Path | None = param(None, WORLD_CONFIG_WHY)
+    running_world: Path | None = param(None, RUNNING_WORLD_WHY)
 
 
 class LabArm(OnTheWorld, URArm):

@@ -1,7 +1,9 @@
 """The lab as an MJCF model: a UR3e, a 2F-85-like gripper with taxel pads, a table, a rack.
 
-Simple geometry, real sizes. The arm's links and the gripper's palm are mocap
-bodies placed from the UR3e's DH chain (the UR simulator owns the joints: the
+Simple geometry, real sizes. The arm's links are mocap bodies placed from the
+UR3e's DH chain, and the gripper is a free body welded to a mocap target at
+the flange: a teleported mocap body has no velocity, so the pads would slide
+over a pipette without friction and could never lift it (the UR simulator owns the joints: the
 world shows and checks them, it does not integrate them). The two fingers are
 dynamic bodies on slide joints with force-limited position servos, and each
 carries a pad of 10 x 10 small box geoms, one per taxel, with soft contact: a
@@ -24,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_side.arm.sim.kinematics import DH_A, DH_D, HOME_Q, forward, pose_to_matrix
-from robot_side.lab.config import LabWorldConfig
+from robot_side.lab.config import LabWorldConfig, PipetteConfig
 
 N_ROWS = N_COLS = 10
 PITCH_M = 0.00241  # 24.1 mm / 10: 5.8 cm^2 per pad
@@ -53,8 +55,8 @@ def home_tool() -> np.ndarray:
     return t
 
 
-def pipette_placements(config: LabWorldConfig) -> list[PipettePlacement]:
-    """Where the rack holds each pipette: tilts lie in the home grasp plane (tool x-z)."""
+def pipette_placement(config: LabWorldConfig, pipette: PipetteConfig) -> PipettePlacement:
+    """Where the rack holds one pipette: its tilt lies in the home grasp plane (tool x-z)."""
     tool = home_tool()
     row_dir = tool[:3, 0].copy()  # tool x at home: along the rack row
     row_dir[2] = 0.0
@@ -62,13 +64,27 @@ def pipette_placements(config: LabWorldConfig) -> list[PipettePlacement]:
     centre = tool[:3, 3].copy()
     centre[:2] += np.asarray(config.rack_centre_m)
     top_z = centre[2] - config.pipette_top_below_tcp_m
-    out = []
-    for p in config.pipettes:
-        tilt = math.radians(p.tilt_deg)
-        axis = np.array([0.0, 0.0, math.cos(tilt)]) + row_dir * math.sin(tilt)
-        top = np.array([centre[0], centre[1], top_z]) + row_dir * p.x_m
-        out.append(PipettePlacement(top, axis / np.linalg.norm(axis), p.radius_mm / 1000))
-    return out
+    tilt = math.radians(pipette.tilt_deg)
+    axis = np.array([0.0, 0.0, math.cos(tilt)]) + row_dir * math.sin(tilt)
+    top = np.array([centre[0], centre[1], top_z]) + row_dir * pipette.x_m
+    return PipettePlacement(top, axis / np.linalg.norm(axis), pipette.radius_mm / 1000)
+
+
+def pipette_placements(config: LabWorldConfig) -> list[PipettePlacement]:
+    """Where the rack holds each pipette."""
+    return [pipette_placement(config, p) for p in config.pipettes]
+
+
+def axis_quat(axis: np.ndarray) -> np.ndarray:
+    """The unit quaternion (w, x, y, z) that turns +z onto ``axis``."""
+    z = np.array([0.0, 0.0, 1.0])
+    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    k = np.cross(z, a)
+    s = float(np.linalg.norm(k))
+    if s < 1e-12:
+        return np.array([1.0, 0.0, 0.0, 0.0]) if a[2] > 0 else np.array([0.0, 1.0, 0.0, 0.0])
+    angle = math.atan2(s, float(z @ a))
+    return np.array([math.cos(angle / 2), *(math.sin(angle / 2) * k / s)])
 
 
 def rack_top_z(config: LabWorldConfig) -> float:
@@ -85,18 +101,22 @@ def _f(*v: float) -> str:
     return " ".join(f"{x:.6g}" for x in v)
 
 
+_VISUAL = 'contype="0" conaffinity="0"'
+
+
 def _link_geoms(j: int) -> str:
     a, d, r = DH_A[j], DH_D[j], LINK_RADIUS_M[j]
-    parts = [f'<geom type="sphere" size="{r * 1.1:.4f}" rgba=".25 .45 .75 1"/>']
+    # visual only: the guard checks links against the table geometrically
+    parts = [f'<geom type="sphere" size="{r * 1.1:.4f}" rgba=".25 .45 .75 1" {_VISUAL}/>']
     if abs(d) > 1e-6:
         parts.append(
             f'<geom name="link{j}_d" type="capsule" size="{r:.4f}" fromto="{_f(0, 0, 0, 0, 0, d)}" '
-            'rgba=".75 .78 .82 1"/>'
+            f'rgba=".75 .78 .82 1" {_VISUAL}/>'
         )
     if abs(a) > 1e-6:
         parts.append(
             f'<geom name="link{j}_a" type="capsule" size="{r:.4f}" fromto="{_f(0, 0, d, a, 0, d)}" '
-            'rgba=".75 .78 .82 1"/>'
+            f'rgba=".75 .78 .82 1" {_VISUAL}/>'
         )
     return "".join(parts)
 
@@ -116,7 +136,7 @@ def _finger(config: LabWorldConfig, k: int) -> str:
                 f'pos="{_f(x, taxel_y, z)}"/>'
             )
     return f"""
-      <body name="finger{k + 1}" pos="0 0 0">
+      <body name="finger{k + 1}" pos="0 0 0" gravcomp="1">
         <joint name="finger{k + 1}" type="slide" axis="{_f(0, -side, 0)}"
                range="0 {config.finger_stroke_mm / 1000:.5f}" damping="80" armature="0.1"/>
         <geom name="finger{k + 1}_body" type="box" size="0.014 0.004 0.04"
@@ -131,7 +151,8 @@ def build_mjcf(config: LabWorldConfig) -> str:
     links = "".join(f'<body name="link{j}" mocap="true">{_link_geoms(j)}</body>' for j in range(6))
     ph = PALM_HALF_M
     gripper = f"""
-    <body name="gripper" mocap="true">
+    <body name="gripper" gravcomp="1">
+      <freejoint name="gripper"/>
       <geom name="palm" type="box" size="{_f(*ph)}" pos="0 0 {ph[2]:.4f}" rgba=".2 .2 .22 1"/>
       <camera name="wrist" pos="0.06 0 0.04" xyaxes="0 1 0 0.88 0 0.48" fovy="70"/>
       {_finger(config, 0)}
@@ -139,12 +160,18 @@ def build_mjcf(config: LabWorldConfig) -> str:
     </body>"""
     pipettes = []
     for i, p in enumerate(pipette_placements(config)):
-        bottom = p.top - p.axis * PIPETTE_LENGTH_M
+        # the body's origin is the top end and its z the axis: the rack's hole lets it slide
+        # up along its own axis, and re-placing it (a new trial) is one body pose
         pipettes.append(
+            f'<body name="pipette{i}" pos="{_f(*p.top)}" quat="{_f(*axis_quat(p.axis))}">'
+            f'<joint name="pipette{i}" type="slide" axis="0 0 1" '
+            f'range="0 {config.pipette_travel_m:.4f}" damping="{config.pipette_damping_n_s_m}"/>'
             f'<geom name="pipette{i}" type="capsule" size="{p.radius_m:.5f}" '
-            f'fromto="{_f(*bottom, *p.top)}" contype="4" conaffinity="4" condim="1" '
+            f'fromto="0 0 {-PIPETTE_LENGTH_M} 0 0 0" mass="{config.pipette_mass_kg}" '
+            f'contype="8" conaffinity="4" condim="3" '
+            f'friction="{config.pipette_friction} 0.005 0.0001" '
             f'solref="{_f(*config.taxel_solref)}" solimp="{_f(*config.taxel_solimp)}" '
-            'rgba=".92 .92 .85 .9"/>'
+            'rgba=".92 .92 .85 .9"/></body>'
         )
     home = home_tool()[:3, 3]
     rack_c = home.copy()
@@ -157,7 +184,7 @@ def build_mjcf(config: LabWorldConfig) -> str:
   <default>
     <default class="taxel">
       <geom size="{_f(TAXEL_HALF_M, TAXEL_DEPTH_HALF_M, TAXEL_HALF_M)}" mass="0.0002"
-            contype="4" conaffinity="4" condim="1" solref="{_f(*config.taxel_solref)}"
+            contype="4" conaffinity="12" condim="1" solref="{_f(*config.taxel_solref)}"
             solimp="{_f(*config.taxel_solimp)}" rgba=".9 .55 .2 1"/>
     </default>
   </default>
@@ -171,8 +198,13 @@ def build_mjcf(config: LabWorldConfig) -> str:
           rgba=".3 .5 .3 1" contype="0" conaffinity="0"/>
     {"".join(pipettes)}
     {links}
+    <body name="flange_target" mocap="true"/>
     {gripper}
   </worldbody>
+  <equality>
+    <weld name="wrist" body1="gripper" body2="flange_target"
+          solref="{_f(*config.wrist_weld_solref)}"/>
+  </equality>
   <actuator>
     <position name="finger1" joint="finger1" kp="{config.finger_kp_n_m}"
               ctrlrange="0 {finger_ctrl:.5f}" forcelimited="true" forcerange="-50 50"/>

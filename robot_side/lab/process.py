@@ -69,6 +69,14 @@ class LabWorldProcess(StdioChild):
         """Ground truth: which pipette the pads press, its pattern, tilt and offset."""
         return self.call("grasp")
 
+    def reset_trial(self, pipette: int, x_m: float, tilt_deg: float) -> dict[str, Any]:
+        """A new trial (simulation only): arm home at rest, the pipette re-placed in the rack."""
+        return self.call("reset_trial", pipette, x_m, tilt_deg)
+
+    def pipette_lift_mm(self, pipette: int) -> float:
+        """How far the pipette has been drawn up out of its rack hole (mm)."""
+        return float(self.call("pipette_lift_mm", pipette))
+
     def camera_names(self) -> list[str]:
         return self.call("camera_names")
 

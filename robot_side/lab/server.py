@@ -25,7 +25,7 @@ from common.tactile import N_GRIP_LEVELS
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.gripper.base import GripLevels
 from robot_side.gripper.sim import GripperModelConfig, GripperSimConfig, GripperSimServer
-from robot_side.lab.config import LabWorldConfig
+from robot_side.lab.config import LabWorldConfig, PipetteConfig
 from robot_side.lab.model import TCP_OFFSET
 from robot_side.lab.world import LabWorld
 from robot_side.tactile.base import GraspTruth
@@ -200,7 +200,27 @@ class LabServer:
             "pattern": self.world.grasp_pattern(),
             "tilt_deg": theta,
             "offset_mm": offset,
+            "lift_mm": self.world.pipette_lift_m(i) * 1000.0,
         }
+
+    def reset_trial(self, pipette: int, x_m: float, tilt_deg: float) -> dict[str, Any]:
+        """A new trial: the arm at home at rest, the pipette back in the rack at a new place.
+
+        The experimenter's hands, in simulation: the operator under test
+        never calls this. Open the gripper first (through the robot), or the
+        pipette is placed between closed fingers.
+        """
+        with self.world.lock:
+            self.ursim.teleport_home()
+            self.world.set_arm(self.ursim.joint_positions())
+            self.world.gripper_to_flange()
+            self.world.place_pipette(int(pipette), PipetteConfig(x_m=x_m, tilt_deg=tilt_deg))
+            self.protective_stops.clear()
+        return {"tcp_pose": self.tcp_pose(), "sim_time_s": self.world.sim_time_s}
+
+    def pipette_lift_mm(self, pipette: int) -> float:
+        """How far the pipette has been drawn out of its rack hole (mm): a lift's ground truth."""
+        return self.world.pipette_lift_m(int(pipette)) * 1000.0
 
     def tcp_pose(self) -> list:
         return self.ursim.tcp_pose().tolist()
@@ -222,5 +242,15 @@ class LabServer:
 
 #: what the parent may call through the pipe
 REMOTE_METHODS = frozenset(
-    {"addresses", "stats", "taxel_forces", "grasp", "tcp_pose", "camera_frame", "camera_names"}
+    {
+        "addresses",
+        "stats",
+        "taxel_forces",
+        "grasp",
+        "tcp_pose",
+        "camera_frame",
+        "camera_names",
+        "reset_trial",
+        "pipette_lift_mm",
+    }
 )

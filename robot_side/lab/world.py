@@ -17,14 +17,16 @@ import time
 
 import numpy as np
 
-from robot_side.lab.config import LabWorldConfig
+from robot_side.lab.config import LabWorldConfig, PipetteConfig
 from robot_side.lab.model import (
     N_COLS,
     N_ROWS,
     PAD_CENTRE_Z_M,
     PALM_HALF_M,
+    axis_quat,
     build_mjcf,
     link_poses,
+    pipette_placement,
     pipette_placements,
 )
 from robot_side.tactile.synthetic import offset_direction
@@ -73,11 +75,19 @@ class LabWorld:
         body = lambda name: mj.mj_name2id(m, mj.mjtObj.mjOBJ_BODY, name)  # noqa: E731
         self._link_mocap = [int(m.body_mocapid[body(f"link{j}")]) for j in range(6)]
         self._gripper_body = body("gripper")
-        self._gripper_mocap = int(m.body_mocapid[self._gripper_body])
-        self._finger_qpos = [
-            int(m.jnt_qposadr[mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, f"finger{k}")])
-            for k in (1, 2)
+        self._gripper_mocap = int(m.body_mocapid[body("flange_target")])
+        self._gripper_joint = mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, "gripper")
+        self._gripper_qpos = int(m.jnt_qposadr[self._gripper_joint])
+        joints = [
+            mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, f"pipette{i}")
+            for i in range(len(self.pipettes))
         ]
+        self._pipette_qpos = [int(m.jnt_qposadr[j]) for j in joints]
+        self._pipette_dof = [int(m.jnt_dofadr[j]) for j in joints]
+        self._pipette_body = [body(f"pipette{i}") for i in range(len(self.pipettes))]
+        fingers = [mj.mj_name2id(m, mj.mjtObj.mjOBJ_JOINT, f"finger{k}") for k in (1, 2)]
+        self._finger_qpos = [int(m.jnt_qposadr[j]) for j in fingers]
+        self._finger_dof = [int(m.jnt_dofadr[j]) for j in fingers]
         self._renderers: dict[tuple[int, int], object] = {}
         self.q = np.zeros(6)
         self.frames_rendered = 0
@@ -86,7 +96,7 @@ class LabWorld:
         from robot_side.arm.sim.kinematics import HOME_Q
 
         self.set_arm(np.array(HOME_Q))
-        mj.mj_forward(m, self.data)
+        self.gripper_to_flange()
 
     # -- the arm: placed, not integrated ---------------------------------------------
 
@@ -105,6 +115,16 @@ class LabWorld:
             self.mj.mju_mat2Quat(quat, flange[:3, :3].ravel())
             d.mocap_quat[self._gripper_mocap] = quat
 
+    def gripper_to_flange(self) -> None:
+        """Put the welded gripper at rest where its flange target is (no yank from the weld)."""
+        with self.lock:
+            d, a = self.data, self._gripper_qpos
+            d.qpos[a : a + 3] = d.mocap_pos[self._gripper_mocap]
+            d.qpos[a + 3 : a + 7] = d.mocap_quat[self._gripper_mocap]
+            dof = int(self.model.jnt_dofadr[self._gripper_joint])
+            d.qvel[dof : dof + 6] = 0.0
+            self.mj.mj_forward(self.model, d)
+
     # -- the fingers -------------------------------------------------------------------
 
     def command_fingers(self, closure_m: float, force_n: float) -> None:
@@ -120,7 +140,33 @@ class LabWorld:
 
     def finger_speed_m_s(self) -> float:
         with self.lock:
-            return float(np.mean(np.abs(self.data.qvel[[a for a in self._finger_qpos]])))
+            return float(np.mean(np.abs(self.data.qvel[self._finger_dof])))
+
+    # -- the rack ------------------------------------------------------------------------
+
+    def place_pipette(self, pipette: int, placement: PipetteConfig) -> None:
+        """Put pipette ``pipette`` back in the rack at a new offset and tilt (a new trial)."""
+        if not 0 <= pipette < len(self.pipettes):
+            raise ValueError(f"no pipette {pipette}; the rack holds {len(self.pipettes)}")
+        p = pipette_placement(self.config, placement)
+        with self.lock:
+            b = self._pipette_body[pipette]
+            self.model.body_pos[b] = p.top
+            self.model.body_quat[b] = axis_quat(p.axis)
+            self.data.qpos[self._pipette_qpos[pipette]] = 0.0
+            self.data.qvel[self._pipette_dof[pipette]] = 0.0
+            self.pipettes[pipette] = p
+            self.mj.mj_forward(self.model, self.data)
+
+    def pipette_lift_m(self, pipette: int) -> float:
+        """How far pipette ``pipette`` has been drawn up out of its rack hole (m)."""
+        with self.lock:
+            return float(self.data.qpos[self._pipette_qpos[pipette]])
+
+    def pipette_top(self, pipette: int) -> np.ndarray:
+        """The pipette's top end now (base frame)."""
+        p = self.pipettes[pipette]
+        return p.top + p.axis * self.pipette_lift_m(pipette)
 
     # -- stepping ------------------------------------------------------------------------
 
@@ -218,7 +264,7 @@ class LabWorld:
         p = self.pipettes[pipette]
         rot = t[:3, :3]
         axis = rot.T @ p.axis
-        top = rot.T @ (p.top - t[:3, 3])
+        top = rot.T @ (self.pipette_top(pipette) - t[:3, 3])
         u = np.array([axis[0], axis[2]])
         u /= max(float(np.linalg.norm(u)), 1e-9)
         theta = math.degrees(math.atan2(u[1], u[0])) % 180.0

@@ -17,7 +17,7 @@ from deploy.bench.runner import run_bench
 from deploy.bench.sizes import PRESETS, SECTIONS
 
 # The sections that start processes are covered by the slow test below.
-PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim"}
+PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim", "task"}
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +135,7 @@ def test_fused_downsizing_is_an_exact_rewrite(smallest):
 
 @pytest.mark.slow
 def test_process_sections_run(tmp_path):
-    """The two-process TCP loop and the node CPU measurement, at the smallest sizes."""
+    """The two-process TCP loop, node CPU, link simulator and task, at the smallest sizes."""
     sections = set(SECTIONS) - PROCESS_SECTIONS
     results = run_bench(PRESETS["smallest"], "smallest", sections, None, [])
     tcp = results["sections"]["e2e_tcp"]
@@ -149,6 +149,11 @@ def test_process_sections_run(tmp_path):
     netsim = results["sections"]["netsim"]
     assert "error" not in netsim, netsim.get("error")
     assert netsim["runs"][0]["n_via"] > 0
+    task = results["sections"]["task"]
+    assert "error" not in task, task.get("error")
+    assert [c["feedback"] for c in task["cells"]] == ["none"]
+    assert all(len(c["trials"]) == 1 and not c["errors"] for c in task["cells"]), task["cells"]
     write_outputs(results, tmp_path, figures=False)
+    assert "## The task" in (tmp_path / "benchmarks.md").read_text()
     assert "## Node CPU" in (tmp_path / "benchmarks.md").read_text()
     assert "## Link simulator fidelity" in (tmp_path / "benchmarks.md").read_text()

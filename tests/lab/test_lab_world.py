@@ -120,6 +120,29 @@ def test_closing_on_a_pipette_presses_both_pads_and_releasing_leaves_none(lab):
     arm.move_to(_above(home), speed=0.1)
 
 
+def test_a_grasp_lifts_the_pipette_out_of_the_rack_and_an_open_gripper_does_not(lab):
+    arm, gripper, _pads, home = lab
+    _open(gripper)
+    arm.move_to(_grasp_pose(home), speed=0.1)
+    pipette = 1  # the centre one, under the TCP
+    before = arm.world.pipette_lift_mm(pipette)
+    arm.move_to(_grasp_pose(home) + np.array([0, 0, 0.03, 0, 0, 0]), speed=0.1)
+    assert arm.world.pipette_lift_mm(pipette) == pytest.approx(before, abs=0.5), "open: it stays"
+    arm.move_to(_grasp_pose(home), speed=0.1)
+    _close(gripper)
+    arm.move_to(_grasp_pose(home) + np.array([0, 0, 0.03, 0, 0, 0]), speed=0.05)
+    time.sleep(0.2)
+    lifted = arm.world.pipette_lift_mm(pipette)
+    truth = lab_truth(arm)
+    _open(gripper)
+    time.sleep(0.5)
+    dropped = arm.world.pipette_lift_mm(pipette)
+    arm.move_to(_above(home), speed=0.1)
+    assert lifted > 25.0, f"friction on the pads drew the pipette {lifted:.1f} mm up the rack"
+    assert truth["pipette"] == pipette and truth["lift_mm"] == pytest.approx(lifted, abs=1.0)
+    assert dropped < 1.0, f"released, it slides back into its hole ({dropped:.1f} mm)"
+
+
 def test_a_45_degree_wrist_turn_moves_the_recognised_angle_by_one_class(lab):
     from robot_side.perception.inference import load_classifier
 

@@ -22,6 +22,7 @@ from deploy.bench.sections import (
     skipping,
     stages,
     stress,
+    task,
     video,
 )
 
@@ -40,5 +41,6 @@ SECTIONS: tuple[Section, ...] = (
     video.SECTION,
     netsim.SECTION,
     relay.SECTION,
+    task.SECTION,
 )
 SECTION_NAMES: tuple[str, ...] = tuple(s.name for s in SECTIONS)

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.rotation import matrix_to_rotvec, rotvec_to_matrix
+
 # UR3e DH parameters (Universal Robots' published values), metres and radians.
 DH_A = (0.0, -0.24355, -0.2132, 0.0, 0.0, 0.0)
 DH_D = (0.15185, 0.0, 0.0, 0.13105, 0.08535, 0.0921)
@@ -26,31 +28,6 @@ HOME_Q = (0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0)
 
 MAX_TCP_SPEED_M_S = 1.0  # UR3e tool speed limit
 MAX_TCP_ROT_SPEED_RAD_S = math.pi
-
-
-def rotvec_to_matrix(r: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(r))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = r / theta
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(theta) * kx + (1 - math.cos(theta)) * (kx @ kx)
-
-
-def matrix_to_rotvec(m: np.ndarray) -> np.ndarray:
-    cos = max(-1.0, min(1.0, (np.trace(m) - 1) / 2))
-    theta = math.acos(cos)
-    if theta < 1e-9:
-        return np.zeros(3)
-    if math.pi - theta < 1e-6:
-        # near 180 deg the skew part vanishes: take the axis from the diagonal
-        axis = np.sqrt(np.maximum((np.diag(m) + 1) / 2, 0.0))
-        i = int(np.argmax(axis))
-        col = (m[:, i] + np.eye(3)[:, i]) / 2
-        axis = col / np.linalg.norm(col)
-        return axis * theta
-    v = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
-    return v / (2 * math.sin(theta)) * theta
 
 
 _YZX = [1, 2, 0]

@@ -296,6 +296,15 @@ class URSimulator:
             self.program_running = False
             self.out_int[0] = 0
 
+    def teleport_home(self) -> None:
+        """The arm back at its home joints, at rest: a fresh trial (simulation only)."""
+        with self._lock:
+            self.arm = KinematicArm(
+                tcp_offset=np.array(self.config.tcp_offset, dtype=float),
+                q=np.array(self.config.home_q, dtype=float),
+            )
+            self.safety_mode = SAFETY_MODE_NORMAL
+
     def unlock_protective_stop(self) -> None:
         with self._lock:
             self.safety_mode = SAFETY_MODE_NORMAL

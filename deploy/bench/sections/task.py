@@ -1,0 +1,147 @@
+"""Section: the task benchmark, does the palm help an operator grasp a pipette right?"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from deploy.bench.fmt import results_of
+from deploy.bench.section import Context, Results, Section, Verdict
+
+TITLE = "The task: grasp a pipette at 90 deg, centre, and lift it"
+
+#: the seed of the trials' placements (the same placements in every cell)
+TRIAL_SEED = 2026
+
+
+@dataclass(frozen=True)
+class TaskSizes:
+    trials: int  # per cell
+    scenarios: tuple[str, ...]
+    feedbacks: tuple[str, ...]
+
+
+SIZES = {
+    "full": TaskSizes(50, ("lan", "intercontinental", "bad_day"), ("mask", "direct", "none")),
+    "quick": TaskSizes(5, ("lan", "intercontinental", "bad_day"), ("mask", "direct", "none")),
+    "smallest": TaskSizes(1, ("lan",), ("none",)),  # the plumbing; tests/lab checks the task
+}
+
+
+def measure(ctx: Context, sizes: TaskSizes) -> dict[str, Any]:
+    from deploy.bench.task import LIFTED_MM, OFFSET_RANGE_M, TILT_RANGE_DEG, run_cell, trial_setups
+    from deploy.bench.timing import machine_load
+
+    setups = trial_setups(TRIAL_SEED, sizes.trials)
+    load_before = machine_load()
+    cells = [
+        run_cell(scenario, feedback, setups)
+        for scenario in sizes.scenarios
+        for feedback in sizes.feedbacks
+    ]
+    return {
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "seed": TRIAL_SEED,
+        "trials_per_cell": sizes.trials,
+        "tilt_range_deg": TILT_RANGE_DEG,
+        "offset_range_mm": OFFSET_RANGE_M * 1000,
+        "lifted_mm": LIFTED_MM,
+        "cells": cells,
+        "load_before": load_before,
+        "load_after": machine_load(),
+    }
+
+
+def _rate(summary: dict[str, Any]) -> str:
+    lo, hi = summary["success_ci95"]
+    rate = summary["success_rate"]
+    if rate is None:
+        return "-"
+    return f"{rate * 100:.0f} % ({lo * 100:.0f}-{hi * 100:.0f})"
+
+
+def _s(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"
+
+
+def verdicts(results: Results) -> list[Verdict]:
+    """The palm helps: in every scenario, both feedback conditions beat none."""
+    s = results_of(results, "task")
+    if s is None:
+        return []
+    by = {(c["scenario"], c["feedback"]): c["summary"] for c in s["cells"]}
+    out = []
+    for scenario in dict.fromkeys(c["scenario"] for c in s["cells"]):
+        none = by.get((scenario, "none"))
+        for feedback in ("mask", "direct"):
+            cell = by.get((scenario, feedback))
+            if cell is None or none is None or not cell["trials"]:
+                continue
+            out.append(
+                Verdict(
+                    f"{scenario}: {feedback} feedback succeeds more often than none",
+                    f"{cell['successes']}/{cell['trials']} against "
+                    f"{none['successes']}/{none['trials']}",
+                    cell["successes"] > none["successes"],
+                    table=None,
+                )
+            )
+    return out
+
+
+def markdown(results: Results) -> list[str]:
+    """The table per scenario and feedback; nothing when the section did not run."""
+    s = results_of(results, "task")
+    if not s:
+        return []
+    lines = [
+        "",
+        f"## {TITLE}",
+        "",
+        "A scripted operator (`operator_side/scripted.py`) works through the operator node "
+        "and the link simulator on the simulated lab (`deploy/bench/task.py`). Each trial "
+        "puts the rack's one pipette at a tilt it does not know (uniform in "
+        f"+-{s['tilt_range_deg']:g} deg) and an offset along the rack (+-"
+        f"{s['offset_range_mm']:g} mm); it lowers the open gripper, closes, feels the palm "
+        "and, unless the palm presses exactly the three cells of 90 deg centre, opens, turns "
+        "the wrist or shifts the fingers as the palm says, and tries again (at most 6 "
+        "grasps); then it lifts 40 mm along the tool's axis. Without feedback it closes once "
+        "and lifts. A trial succeeds when the world's ground truth at the decision to lift is "
+        f"90 deg centre and the pipette comes at least {s['lifted_mm']:g} mm out of its hole. "
+        "Time to a correct grasp runs from the trial's start to that decision (successes "
+        f"only). {s['trials_per_cell']} trials per cell, the same seeded placements (seed "
+        f"{s['seed']}) in every cell; 95 % Wilson intervals. Measured {s['date']}, load "
+        f"(1 min) {s['load_before']['loadavg_1m']} before and "
+        f"{s['load_after']['loadavg_1m']} after, on 2 shared cores.",
+        "",
+        "| link | feedback | success (95 % CI) | correct grasps | time to correct p50 s "
+        "| p90 s | grasps per trial | errors |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for c in s["cells"]:
+        m = c["summary"]
+        lines.append(
+            f"| {c['scenario']} | {c['feedback']} | {_rate(m)} | {m['correct_grasps']} | "
+            f"{_s(m['time_to_correct_s_p50'])} | {_s(m['time_to_correct_s_p90'])} | "
+            f"{_s(m['attempts_mean'])} | {m['errors']} |"
+        )
+    lines += [
+        "",
+        "`mask`: the robot's CNN picks the pattern and the palm presents its mask over the "
+        "downsized frame (the paper's method); `direct`: the frame downsized, no CNN; `none`: "
+        "the operator ignores the palm. The operator names what it feels by the nearest of "
+        "the twelve masks (a partial band is assumed upright), so `direct` feedback is read "
+        "with the same rule. Rerun: `deepxpalm bench --only task` (about 40 minutes here).",
+    ]
+    return lines
+
+
+SECTION = Section(
+    name="task",
+    title=TITLE,
+    sizes=SIZES,
+    measure=measure,
+    markdown=markdown,
+    verdicts=verdicts,
+)

@@ -1,0 +1,39 @@
+"""The task benchmark's trial, through everything: does the palm's feedback fix a grasp?
+
+The robot node (its own process, the real drivers on the lab world), the link
+simulator and the operator node with the scripted operator, as
+`deepxpalm bench --only task` runs them. A pipette standing 6 mm to the
+left of where the operator reaches: without feedback the operator grasps it
+off-centre; with the palm it feels "90 deg left", shifts and lifts it centred.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (MuJoCo)")
+pytest.importorskip("rtde_control", reason="the lab's arm is driven through ur-rtde")
+
+from common.tactile import pattern_of
+from deploy.bench.task import LIFTED_MM, TrialSetup, run_cell
+
+pytestmark = [pytest.mark.timeout(240), pytest.mark.usefixtures("quiet_gc")]
+
+OFF_CENTRE = TrialSetup(index=0, tilt_deg=0.0, offset_m=-0.006)
+
+
+def test_the_palm_turns_an_off_centre_grasp_into_a_correct_lift(tmp_path):
+    cell = run_cell("lan", "mask", [OFF_CENTRE], workdir=tmp_path / "mask")
+    assert not cell["errors"], cell["errors"]
+    (trial,) = cell["trials"]
+    assert trial["felt"][0] == pattern_of(2, 1), f"felt 90 deg left first: {trial}"
+    assert trial["felt_truth"][0] == pattern_of(2, 1), "and the world agrees"
+    assert trial["success"], trial
+    assert trial["truth"] == "90 deg centre" and trial["lifted_mm"] >= LIFTED_MM
+
+
+def test_without_feedback_the_same_grasp_is_lifted_off_centre(tmp_path):
+    cell = run_cell("lan", "none", [OFF_CENTRE], workdir=tmp_path / "none")
+    assert not cell["errors"], cell["errors"]
+    (trial,) = cell["trials"]
+    assert not trial["success"] and trial["truth"] == "90 deg left", trial
