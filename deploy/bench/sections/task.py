@@ -95,6 +95,10 @@ def markdown(results: Results) -> list[str]:
     s = results_of(results, "task")
     if not s:
         return []
+    from operator_side.scripted import ScriptedOperatorConfig
+
+    cfg = ScriptedOperatorConfig()
+    minutes = sum(c["cell_s"] for c in s["cells"]) / 60
     lines = [
         "",
         f"## {TITLE}",
@@ -104,16 +108,18 @@ def markdown(results: Results) -> list[str]:
         "puts the rack's one pipette at a tilt it does not know (uniform in "
         f"+-{s['tilt_range_deg']:g} deg) and an offset along the rack (+-"
         f"{s['offset_range_mm']:g} mm); it lowers the open gripper, closes, feels the palm "
-        "and, unless the palm presses exactly the three cells of 90 deg centre, opens, turns "
-        "the wrist or shifts the fingers as the palm says, and tries again (at most 6 "
-        "grasps); then it lifts 40 mm along the tool's axis. Without feedback it closes once "
+        "and, unless the palm presses two or three points all on the centre line (90 deg "
+        "centre), opens, turns the wrist or shifts the fingers as the palm says, and tries "
+        f"again (at most {cfg.max_attempts} grasps); then it lifts "
+        f"{cfg.lift_m * 1000:g} mm along the tool's axis. Without feedback it closes once "
         "and lifts. A trial succeeds when the world's ground truth at the decision to lift is "
         f"90 deg centre and the pipette comes at least {s['lifted_mm']:g} mm out of its hole. "
         "Time to a correct grasp runs from the trial's start to that decision (successes "
         f"only). {s['trials_per_cell']} trials per cell, the same seeded placements (seed "
         f"{s['seed']}) in every cell; 95 % Wilson intervals. Measured {s['date']}, load "
         f"(1 min) {s['load_before']['loadavg_1m']} before and "
-        f"{s['load_after']['loadavg_1m']} after, on 2 shared cores.",
+        f"{s['load_after']['loadavg_1m']} after, on 2 shared cores; the run took "
+        f"{minutes:.0f} minutes.",
         "",
         "| link | feedback | success (95 % CI) | correct grasps | time to correct p50 s "
         "| p90 s | grasps per trial | errors |",
@@ -132,7 +138,7 @@ def markdown(results: Results) -> list[str]:
         "downsized frame (the paper's method); `direct`: the frame downsized, no CNN; `none`: "
         "the operator ignores the palm. The operator names what it feels by the nearest of "
         "the twelve masks (a partial band is assumed upright), so `direct` feedback is read "
-        "with the same rule. Rerun: `deepxpalm bench --only task` (about 40 minutes here).",
+        "with the same rule. Rerun: `deepxpalm bench --only task`.",
     ]
     return lines
 
