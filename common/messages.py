@@ -10,7 +10,7 @@ own clock with the offset estimated from heartbeats.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -29,18 +29,10 @@ CommandAction = Literal[
     "lease_release",
 ]
 
-RENDER_MODES: tuple[str, ...] = ("direct", "mask", "mask_ground_truth")
-LINK_STATES: tuple[str, ...] = ("ok", "stale", "down")
-COMMAND_ACTIONS: tuple[str, ...] = (
-    "gripper_open",
-    "gripper_close",
-    "gripper_hold",
-    "arm_jog",
-    "arm_stop",
-    "lease_request",
-    "lease_grant",
-    "lease_release",
-)
+# the Literals above, as tuples to check against and to list in errors
+RENDER_MODES: tuple[str, ...] = get_args(RenderMode)
+LINK_STATES: tuple[str, ...] = get_args(LinkState)
+COMMAND_ACTIONS: tuple[str, ...] = get_args(CommandAction)
 #: actions that ask for, hand over or give up control of a robot (the control lease)
 LEASE_ACTIONS: frozenset[str] = frozenset({"lease_request", "lease_grant", "lease_release"})
 #: what an operator key may be (roster, docs/security.md): only controllers may hold the lease
