@@ -89,6 +89,11 @@ ARM_SAFETY_MODES = {
 }
 
 
+#: a heartbeat's stats are floats, exact to 2^53: a session is named by its low 32 bits
+#: (the robot's ``gripper_command_session``)
+SESSION_LOW_MASK = 0xFFFFFFFF
+
+
 @dataclass(slots=True)
 class Heartbeat:
     """Both ways: liveness, clock-offset samples, link state and counters."""

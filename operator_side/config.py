@@ -51,6 +51,14 @@ class OperatorLinkConfig:
         "ask the robot for its control lease at start, and again while nobody holds it "
         "(controller keys only; a held lease changes hands only when its holder grants it)",
     )
+    gripper_confirm_ms: float = param(
+        600.0,
+        "a gripper command the robot's heartbeats have not confirmed by then (lost, or refused "
+        "as stale on a slow link) is sent again, fresh",
+    )
+    gripper_resends: int = param(
+        2, "resends of an unconfirmed gripper command before it is counted gripper_unconfirmed"
+    )
     observer_heartbeat_rate_hz: float = param(
         2.0,
         "signed and neither holding nor asking for the lease: heartbeats only keep the "

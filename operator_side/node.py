@@ -30,7 +30,7 @@ from common.codec import DecodeError, check_robot_name, encode, name_prefix
 from common.devices import build_device
 from common.errors import ConfigError
 from common.link_stats import LinkStats
-from common.messages import Command, Heartbeat, Stimulus, TactileFrame
+from common.messages import SESSION_LOW_MASK, Command, Heartbeat, Stimulus, TactileFrame
 from common.patterns import matches_pattern
 from common.recording import NullRecorder, Recorder
 from common.security import check_endpoint, client_options
@@ -62,6 +62,15 @@ class Snapshot:
     robot_stats: dict[str, float]
     #: with a signing key: who holds the robot's control lease (``OperatorNode.control_view``)
     control: dict[str, Any] | None = None
+
+
+@dataclass
+class _PendingGripper:
+    action: str
+    grip_level: int | None
+    seq: int
+    deadline_ns: int
+    resends: int
 
 
 class OperatorNode:
@@ -112,6 +121,8 @@ class OperatorNode:
         self._cmd_seq = 0
         #: this run's command session: the robot checks seq and send time increase within it
         self._session = secrets.randbits(63) or 1
+        #: the newest gripper command until the robot's heartbeat confirms it
+        self._gripper_pending: _PendingGripper | None = None
         self._goal: list[int] = self.renderer.retract_goals  # six counts, ids 1..6
         self._latency_cache: tuple[int, dict[str, float]] = (0, {})
         self._goal_key: int | None = None  # stimulus seq the goal was computed for
@@ -281,7 +292,8 @@ class OperatorNode:
                 heartbeat.done(now)
             self._maybe_request_control(now)
             if self._wake_r in ready:
-                self._flush_commands()
+                self._drain_wake_pipe()
+            self.flush_commands(now)
             self._reopen_sockets_if_silent(now)
 
     def _next_control_ns(self, now: int, period: int) -> int:
@@ -370,6 +382,7 @@ class OperatorNode:
             self.counters["lease_gained" if not was else "lease_lost"] += 1
             log.info("control lease %s", "ours" if not was else "no longer ours")
         self._robot_stats = msg.stats
+        self._confirm_gripper(msg.stats)
         stim = self._stim
         if stim is not None and msg.stimulus_seq == stim.seq and msg.t_capture_ns is not None:
             local = self._to_local(msg.t_capture_ns, t_recv)
@@ -484,22 +497,67 @@ class OperatorNode:
             )
         )
 
-    def _flush_commands(self) -> None:
+    def _drain_wake_pipe(self) -> None:
         with contextlib.suppress(BlockingIOError, OSError):
             os.read(self._wake_r, 4096)
+
+    def flush_commands(self, now: int) -> None:
+        """Send what ``send_command`` queued; resend a gripper command nobody confirmed.
+
+        A gripper command is one-shot: lost, or refused as stale after a stall
+        on the link, the gripper would silently not move. The robot's heartbeat
+        names the newest gripper command it acted on (``gripper_command_seq``,
+        ``gripper_command_session``); until it names ours, it is sent again as
+        a new command (fresh seq and send time) every ``gripper_confirm_ms``,
+        ``gripper_resends`` times at most.
+        """
         while True:
             try:
                 cmd = self._commands.get_nowait()
             except queue.Empty:
-                return
-            self._cmd_seq += 1
-            cmd.seq, cmd.t_send_ns, cmd.session = self._cmd_seq, self.now(), self._session
-            data = self.pub.send(cmd)
-            self.counters["commands_sent"] += 1
-            if self._recording:
-                self.recorder.write(
-                    "operator/command", cmd.t_send_ns, {"seq": cmd.seq, "wire": data}
-                )
+                break
+            self._send_command(cmd, now, resends=0)
+        pending = self._gripper_pending
+        if pending is None or now < pending.deadline_ns:
+            return
+        link = self.config.link
+        if pending.resends >= link.gripper_resends:
+            self._gripper_pending = None
+            self.counters["gripper_unconfirmed"] += 1
+            log.warning(
+                "the robot never confirmed %s (%d resends): not the lease holder, or the link "
+                "is down",
+                pending.action,
+                pending.resends,
+            )
+            return
+        self.counters["gripper_resent"] += 1
+        again = Command(seq=0, t_send_ns=0, action=pending.action, grip_level=pending.grip_level)
+        self._send_command(again, now, resends=pending.resends + 1)
+
+    def _send_command(self, cmd: Command, now: int, resends: int) -> None:
+        self._cmd_seq += 1
+        cmd.seq, cmd.t_send_ns, cmd.session = self._cmd_seq, self.now(), self._session
+        data = self.pub.send(cmd)
+        self.counters["commands_sent"] += 1
+        if self._recording:
+            self.recorder.write("operator/command", cmd.t_send_ns, {"seq": cmd.seq, "wire": data})
+        if cmd.action.startswith("gripper"):
+            deadline = now + round(self.config.link.gripper_confirm_ms * 1e6)
+            self._gripper_pending = _PendingGripper(
+                cmd.action, cmd.grip_level, cmd.seq, deadline, resends
+            )
+
+    def _confirm_gripper(self, stats: dict[str, float]) -> None:
+        """The robot's heartbeat names the newest gripper command it acted on."""
+        pending = self._gripper_pending
+        if pending is None:
+            return
+        if stats.get("gripper_command_session") != float(self._session & SESSION_LOW_MASK):
+            return
+        if stats.get("gripper_command_seq", -1.0) >= pending.seq:
+            self._gripper_pending = None
+            self.counters["gripper_confirmed"] += 1
 
     # ------------------------------------------------------------ report
     def stats(self) -> dict[str, float]:

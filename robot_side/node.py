@@ -28,7 +28,14 @@ from common.codec import MAX_STATS, DecodeError, check_robot_name, name_prefix
 from common.devices import Device, build_device
 from common.errors import ConfigError, DeviceError
 from common.logs import BurstLog
-from common.messages import LEASE_ACTIONS, Command, Heartbeat, Stimulus, TactileFrame
+from common.messages import (
+    LEASE_ACTIONS,
+    SESSION_LOW_MASK,
+    Command,
+    Heartbeat,
+    Stimulus,
+    TactileFrame,
+)
 from common.recording import NullRecorder, Recorder
 from common.roster import load_roster
 from common.security import Authenticator, check_endpoint, client_options, server_options
@@ -131,6 +138,8 @@ class RobotNode:
         self._echo_turn = 0  # round robin over the operators whose heartbeats we echo
         self._heartbeat_now = False  # a lease change is announced at once, not in 50 ms
         self._grip_level: int | None = None  # the gripper worker's latest reading
+        #: (seq, low 32 bits of the session) of the newest gripper command handed to the gripper
+        self._gripper_ack: tuple[float, float] | None = None
         self._arm_state: dict[str, float] = {}  # the arm worker's latest reading
         self._first_seq: int | None = None
         self._last_seq = 0
@@ -646,6 +655,8 @@ class RobotNode:
             self._record_command(cmd, f"rejected: this scene has no {device}")
             return
         if device == "gripper":
+            # the heartbeat names it, so the operator can resend a gripper command we never saw
+            self._gripper_ack = (float(cmd.seq), float((cmd.session or 0) & SESSION_LOW_MASK))
             gripper = self.gripper
             if cmd.action == "gripper_open":
                 call, args = gripper.open, ()
@@ -795,6 +806,8 @@ class RobotNode:
         if self._first_seq is not None:
             out["frames_captured"] = float(self._last_seq - self._first_seq + 1)
         out.update(self._arm_state)  # the arm worker's latest reading, for the dashboard
+        if self._gripper_ack is not None:
+            out["gripper_command_seq"], out["gripper_command_session"] = self._gripper_ack
         return out
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from common.clock import VirtualClock
-from common.messages import Stimulus
+from common.messages import SESSION_LOW_MASK, Command, Heartbeat, Stimulus
 from common.transport import CaptureLink
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
@@ -57,3 +57,54 @@ def test_a_node_handed_a_link_refuses_to_run() -> None:
     node = OperatorNode(OperatorConfig(), RecordingServoBus(), link=CaptureLink())
     with pytest.raises(RuntimeError, match="handed a link"):
         node.run(threading.Event())
+
+
+def _robot_heartbeat(t_ns: int, stats: dict[str, float]) -> Heartbeat:
+    return Heartbeat(seq=1, t_send_ns=t_ns, node="robot", state="ok", stats=stats)
+
+
+def test_an_unconfirmed_gripper_command_is_sent_again_fresh_until_the_robot_names_it() -> None:
+    clock = VirtualClock(t_ns=1_000_000_000)
+    link = CaptureLink()
+    node = OperatorNode(OperatorConfig(), RecordingServoBus(), now=clock, link=link)
+    confirm = round(node.config.link.gripper_confirm_ms * 1e6)
+    node.send_command("gripper_close", grip_level=9)
+    node.flush_commands(clock())
+    first = [m for m in link.messages if isinstance(m, Command)]
+    assert [(c.action, c.grip_level) for c in first] == [("gripper_close", 9)]
+    clock.advance(confirm - 1)
+    node.flush_commands(clock())
+    assert len([m for m in link.messages if isinstance(m, Command)]) == 1, "not yet due"
+    clock.advance(1)
+    node.flush_commands(clock())
+    sent = [m for m in link.messages if isinstance(m, Command)]
+    assert len(sent) == 2 and node.counters["gripper_resent"] == 1
+    assert sent[1].action == "gripper_close" and sent[1].grip_level == 9
+    assert sent[1].seq > sent[0].seq and sent[1].t_send_ns > sent[0].t_send_ns, "a new command"
+    session = float(sent[1].session & SESSION_LOW_MASK)
+    # another session's confirmation is not ours; the robot naming our resend is
+    other = {"gripper_command_seq": 99.0, "gripper_command_session": session + 1}
+    link.deliver(_robot_heartbeat(clock(), other), clock())
+    node.receive()
+    assert node.counters["gripper_confirmed"] == 0
+    ours = {"gripper_command_seq": float(sent[1].seq), "gripper_command_session": session}
+    link.deliver(_robot_heartbeat(clock(), ours), clock())
+    node.receive()
+    assert node.counters["gripper_confirmed"] == 1
+    clock.advance(10 * confirm)
+    node.flush_commands(clock())
+    assert len([m for m in link.messages if isinstance(m, Command)]) == 2, "confirmed: quiet"
+
+
+def test_a_gripper_command_never_confirmed_is_counted_after_its_resends() -> None:
+    clock = VirtualClock(t_ns=1_000_000_000)
+    link = CaptureLink()
+    node = OperatorNode(OperatorConfig(), RecordingServoBus(), now=clock, link=link)
+    confirm = round(node.config.link.gripper_confirm_ms * 1e6)
+    node.send_command("gripper_open")
+    for _ in range(10):
+        node.flush_commands(clock())
+        clock.advance(confirm)
+    sent = [m for m in link.messages if isinstance(m, Command)]
+    assert len(sent) == 1 + node.config.link.gripper_resends
+    assert node.counters["gripper_unconfirmed"] == 1

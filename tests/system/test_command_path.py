@@ -18,7 +18,7 @@ from tests_support import ProtocolOperator
 
 from common.clock import now_ns
 from common.codec import encode
-from common.messages import Heartbeat, Stimulus
+from common.messages import Command, Heartbeat, Stimulus
 from common.transport import Publisher, Subscriber
 from deploy.bench.command_path import PUBLISH_HZ, RobotUnderCommands
 from robot_side.gripper.base import GripLevels
@@ -183,3 +183,44 @@ def test_a_replayed_command_is_refused_and_counted(rig):
     stats = telemetry.robot_stats()
     # both replays: seq and send time did not increase in the session (the late one is stale too)
     assert stats.get("commands_replayed", 0) >= 2
+
+
+def test_the_heartbeat_names_the_gripper_command_acted_on_and_never_a_stale_one(rig):
+    """What lets an operator resend a lost or stale gripper command: the robot's heartbeat."""
+    tel, cmd = rig.telemetry_endpoint, rig.command_endpoint
+    ctx = zmq.Context()
+    session = (1 << 40) + 5  # the heartbeat carries the low 32 bits: 5
+    op = ProtocolOperator(
+        Subscriber(ctx, tel, bind=False), Publisher(ctx, cmd, bind=False), session=session
+    )
+
+    def named() -> tuple[float | None, float | None]:
+        beats = [m for _, m in op.received if isinstance(m, Heartbeat) and m.node == "robot"]
+        stats = beats[-1].stats if beats else {}
+        return stats.get("gripper_command_seq"), stats.get("gripper_command_session")
+
+    try:
+        op.sync()
+        close = op.command("gripper_close", grip_level=12)
+        op.pump(0.4)
+        assert named() == (float(close.seq), 5.0)
+        assert rig.gripper_sim.model.read()["PRE"] == GripLevels().position(12)
+        stale = Command(
+            seq=op.seq + 1,
+            t_send_ns=now_ns() - 2_000_000_000,  # held up on the link for 2 s
+            action="gripper_open",
+            session=session,
+        )
+        op.seq += 1
+        op.pub.send(stale)
+        op.pump(0.4)
+        assert named() == (float(close.seq), 5.0), "a refused command is never named"
+        assert rig.gripper_sim.model.read()["PRE"] == GripLevels().position(12)
+        again = op.command("gripper_open")  # what the operator node resends, fresh
+        op.pump(0.4)
+        assert named() == (float(again.seq), 5.0)
+        assert rig.gripper_sim.model.read()["PRE"] == 0
+    finally:
+        op.sub.close()
+        op.pub.close()
+        ctx.term()
