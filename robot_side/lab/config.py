@@ -48,10 +48,21 @@ class LabWorldConfig:
     pipette_travel_m: float = param(
         0.1, "how far a pipette slides up out of its rack hole along its axis before it is free"
     )
-    pipette_mass_kg: float = param(0.01, "a pipette's mass (a 10 ml serological pipette: ~10 g)")
+    pipette_mass_kg: float = param(
+        3.0,
+        "a pipette's mass as the engine sees it: a 10 ml pipette weighs ~10 g, but MuJoCo's soft "
+        "contact against so light a body on a slide is soft too, and the lowest grip levels "
+        "would press no taxel past 1 N; 3 kg keeps the pads as stiff as against a fixed "
+        "pipette, and only means a lift needs 30 N of friction",
+    )
     pipette_damping_n_s_m: float = param(2.0, "the rack hole's sliding damping")
     pipette_friction: float = param(
         0.8, "sliding friction between the pads and a pipette (silicone on polystyrene)"
+    )
+    gripper_mass_kg: float = param(
+        5.0,
+        "the welded gripper's mass: the wrist and arm behind it, so a squeeze does not "
+        "soften against a light body",
     )
     wrist_weld_solref: tuple[float, float] = param(
         (0.004, 1.0), "how stiffly the gripper follows the flange (time constant s, damping ratio)"

@@ -153,7 +153,8 @@ def build_mjcf(config: LabWorldConfig) -> str:
     gripper = f"""
     <body name="gripper" gravcomp="1">
       <freejoint name="gripper"/>
-      <geom name="palm" type="box" size="{_f(*ph)}" pos="0 0 {ph[2]:.4f}" rgba=".2 .2 .22 1"/>
+      <geom name="palm" type="box" size="{_f(*ph)}" pos="0 0 {ph[2]:.4f}" rgba=".2 .2 .22 1"
+            mass="{config.gripper_mass_kg}"/>
       <camera name="wrist" pos="0.06 0 0.04" xyaxes="0 1 0 0.88 0 0.48" fovy="70"/>
       {_finger(config, 0)}
       {_finger(config, 1)}
