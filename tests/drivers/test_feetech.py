@@ -120,7 +120,8 @@ def test_connect_pings_all_holds_pose_and_turns_torque_on(fake) -> None:
         assert all(fake.torque(i) for i in IDS)
         assert fake.goal(2) == 2300 and fake.goal(1) == 2048  # goal = present: no jump
         assert bus.read_positions() == {1: 2048, 2: 2300, 3: 2048, 4: 2048, 5: 2048, 6: 2048}
-        assert fake.stats()["ping"] == 6
+        # one ping per servo; a reply missed on a loaded machine is pinged again (a retry)
+        assert 6 <= fake.stats()["ping"] <= 6 + bus.stats()["retries"]
     _wait(lambda: not any(fake.torque(i) for i in IDS))  # torque off on disconnect
 
 
