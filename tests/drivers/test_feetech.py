@@ -65,23 +65,37 @@ def _wait(cond, timeout_s: float = 2.0) -> None:
 # -- the fake bus decodes what the SDK sends ------------------------------------------------
 
 
+def _answered(call, *args):
+    """A raw SDK transaction, tried again when the reply missed the SDK's fixed window.
+
+    The fake answers from a thread of this process; a loaded machine can hold
+    that thread past the window. Every call here is idempotent.
+    """
+    for _ in range(3):
+        out = call(*args)
+        code = out if isinstance(out, int) else out[-2]
+        if code != sdk.COMM_RX_TIMEOUT:
+            return out
+    return out
+
+
 def test_fake_bus_answers_every_instruction_the_sdk_sends(fake) -> None:
     port = sdk.PortHandler(fake.port)
     assert port.openPort()
     ph = sdk.PacketHandler(0)
     try:
-        model, result, error = ph.ping(port, 3)
+        model, result, error = _answered(ph.ping, port, 3)
         assert (model, result, error) == (777, sdk.COMM_SUCCESS, 0)
-        assert ph.write1ByteTxRx(port, 3, TORQUE_ENABLE.address, 1) == (sdk.COMM_SUCCESS, 0)
-        assert ph.regWriteTxRx(port, 3, GOAL_POSITION.address, 2, [0x00, 0x09]) == (
-            sdk.COMM_SUCCESS,
-            0,
-        )
+        write = _answered(ph.write1ByteTxRx, port, 3, TORQUE_ENABLE.address, 1)
+        assert write == (sdk.COMM_SUCCESS, 0)
+        goal = [0x00, 0x09]
+        reg = _answered(ph.regWriteTxRx, port, 3, GOAL_POSITION.address, 2, goal)
+        assert reg == (sdk.COMM_SUCCESS, 0)
         assert fake.goal(3) == 2048  # REG_WRITE waits for ACTION
-        assert ph.action(port, 3) == sdk.COMM_SUCCESS
+        assert _answered(ph.action, port, 3) == sdk.COMM_SUCCESS
         assert fake.goal(3) == 0x900
         _wait(lambda: fake.present(3) == 0x900)
-        value, result, _ = ph.read2ByteTxRx(port, 3, PRESENT_POSITION.address)
+        value, result, _ = _answered(ph.read2ByteTxRx, port, 3, PRESENT_POSITION.address)
         assert (value, result) == (0x900, sdk.COMM_SUCCESS)
         # A packet with a bad checksum is ignored, as a servo does: no reply.
         bad = bytearray(packet(3, 0x01))
