@@ -90,14 +90,8 @@ def test_unit_is_a_watched_restarting_service_of_the_dedicated_user(role):
     assert _get(unit, "Install", "WantedBy") == ["multi-user.target"]
 
 
-@pytest.mark.parametrize("role", ROLES)
-def test_execstart_is_a_command_line_the_node_accepts(role, tmp_path):
-    unit = _parse(_unit(role))
-    (exec_start,) = _get(unit, "Service", "ExecStart")
-    argv = shlex.split(exec_start)
-    assert argv[0] == INSTALLED
-    assert f"/etc/deepxpalm/{role}.toml" in argv
-    # The same arguments, with the example config standing in for /etc, parse and load.
+def _print_config(role: str, argv: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
+    """The unit's command line, the example config standing in for /etc, with --print-config."""
     args = [
         str(EXAMPLES / f"{role}.toml")
         if a == f"/etc/deepxpalm/{role}.toml"
@@ -106,13 +100,24 @@ def test_execstart_is_a_command_line_the_node_accepts(role, tmp_path):
         else a
         for a in argv[1:]
     ]
-    out = subprocess.run(
+    return subprocess.run(
         [sys.executable, "-m", "deploy.cli", *args, "--print-config"],
         capture_output=True,
         text=True,
         timeout=60,
         env=ENV,
     )
+
+
+@pytest.mark.parametrize("role", ROLES)
+def test_execstart_is_a_command_line_the_node_accepts(role, tmp_path):
+    unit = _parse(_unit(role))
+    (exec_start,) = _get(unit, "Service", "ExecStart")
+    argv = shlex.split(exec_start)
+    assert argv[0] == INSTALLED
+    assert f"/etc/deepxpalm/{role}.toml" in argv
+    # The same arguments, with the example config standing in for /etc, parse and load.
+    out = _print_config(role, argv, tmp_path)
     assert out.returncode == 0, out.stderr
     assert f"[{role}]" in out.stdout
 
@@ -187,21 +192,7 @@ def test_the_relay_unit_is_watched_and_starts_a_relay_the_cli_accepts(tmp_path):
     (exec_start,) = _get(unit, "Service", "ExecStart")
     argv = shlex.split(exec_start)
     assert argv[0] == INSTALLED and "/etc/deepxpalm/relay.toml" in argv
-    args = [
-        str(EXAMPLES / "relay.toml")
-        if a == "/etc/deepxpalm/relay.toml"
-        else str(tmp_path / Path(a).name)
-        if a.startswith("/var/lib/deepxpalm/")
-        else a
-        for a in argv[1:]
-    ]
-    out = subprocess.run(
-        [sys.executable, "-m", "deploy.cli", *args, "--print-config"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=ENV,
-    )
+    out = _print_config("relay", argv, tmp_path)
     assert out.returncode == 0, out.stderr
     assert "[relay]" in out.stdout and 'mode = "curve"' in out.stdout
 
