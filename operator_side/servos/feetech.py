@@ -11,8 +11,9 @@ What the driver adds to the SDK, and why:
   returns 0 for it with no error unless ``txRxPacket``'s result is read.
 - A corrupt or missing status packet is retried (``retries``) after the line
   is drained (the SDK's ``clearPort`` flushes output only, so stale replies
-  would otherwise be read as the next answer). A silent servo costs about
-  34 ms per attempt: the SDK's packet timeout is fixed.
+  would otherwise be read as the next answer). A silent servo costs one
+  reply window per attempt: the SDK's 34 ms (twice a 16 ms USB latency
+  timer, plus 2 ms), or ``reply_timeout_ms`` when set.
 - Errors name what to check: which ids did not answer, the port, the baud.
 - The 60 Hz goal write of all six servos is laid out once
   (``sync_write.SyncWritePacket``, the SDK's bytes exactly) and sent through
@@ -84,7 +85,12 @@ class FeetechConfig:
     calibration_file: Path | None = param(
         None, "TOML written by `deepxpalm calibrate`; overrides the inline calibration"
     )
-    retries: int = param(2, "extra attempts after a corrupt or missing reply (~34 ms each if mute)")
+    retries: int = param(2, "extra attempts after a corrupt or missing reply (one window each)")
+    reply_timeout_ms: float | None = param(
+        None,
+        "how long to wait for a status packet; unset = the SDK's 34 ms. Raise it for an "
+        "adapter whose USB latency timer is above 16 ms",
+    )
     protocol_end: int = param(0, "0 = STS (little-endian), 1 = SCS; one per process (SDK global)")
     expected_model: int | None = param(
         None, "refuse servos with another model number (777 = STS3215); unset = any"
@@ -110,12 +116,31 @@ class FeetechConfig:
             raise ValueError(f"servo ids must be in 0..252, not {self.ids}")
         if self.retries < 0:
             raise ValueError("retries must not be negative")
+        if self.reply_timeout_ms is not None and not 1.0 <= self.reply_timeout_ms <= 1000.0:
+            raise ValueError(f"reply_timeout_ms = {self.reply_timeout_ms} is not in 1..1000")
         if self.protocol_end not in (0, 1):
             raise ValueError("protocol_end must be 0 (STS) or 1 (SCS)")
         for name in ("goal_speed", "acceleration"):
             v = getattr(self, name)
             if v is not None and not 0 <= v <= (0xFF if name == "acceleration" else 0xFFFF):
                 raise ValueError(f"{name} = {v} is out of the register's range")
+
+
+class _ReplyWindowPort(sdk.PortHandler):
+    """The SDK's port with a reply window of our choosing.
+
+    The SDK derives it from a module constant (a 16 ms latency timer); an
+    adapter set slower, or servos simulated by a thread of a busy process,
+    answer after it closes.
+    """
+
+    def __init__(self, port_name: str, reply_timeout_ms: float) -> None:
+        super().__init__(port_name)
+        self.reply_timeout_ms = reply_timeout_ms
+
+    def setPacketTimeout(self, packet_length: int) -> None:  # the SDK calls it by this name
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = self.tx_time_per_byte * packet_length + self.reply_timeout_ms
 
 
 class FeetechServoBus(ServoBus):
@@ -279,7 +304,11 @@ class FeetechServoBus(ServoBus):
         cfg = self.config
         if not os.path.exists(cfg.port):
             raise DeviceError(f"servo bus port {cfg.port} does not exist: {_PORT_HINT}")
-        port = sdk.PortHandler(cfg.port)
+        port = (
+            sdk.PortHandler(cfg.port)
+            if cfg.reply_timeout_ms is None
+            else _ReplyWindowPort(cfg.port, cfg.reply_timeout_ms)
+        )
         port.baudrate = cfg.baudrate
         try:
             ok = port.setBaudRate(cfg.baudrate)

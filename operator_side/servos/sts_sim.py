@@ -426,10 +426,10 @@ class FakeStsBus:
 @dataclass
 class SimulatedFeetechConfig:
     bus: FakeStsBusConfig = param(FakeStsBusConfig(), "the fake servos (speed, faults, ...)")
-    # More retries than a real bus needs: the fake servos answer from a thread of this
-    # process, which a loaded machine can hold up past the SDK's fixed ~34 ms reply window.
+    # A wider reply window and more retries than a real bus needs: the fake servos answer
+    # from a thread of this process, which a loaded machine can hold up past 34 ms.
     driver: FeetechConfig = param(
-        FeetechConfig(retries=5),
+        FeetechConfig(retries=3, reply_timeout_ms=150.0),
         "the real driver's settings; its port is set to the fake bus",
     )
 
