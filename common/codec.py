@@ -20,14 +20,17 @@ from common.errors import DeepXPalmError
 from common.messages import (
     COMMAND_ACTIONS,
     LINK_STATES,
+    MAX_SDP_CHARS,
     MESSAGE_TYPES,
     PROTOCOL_VERSION,
     RENDER_MODES,
+    VIDEO_SIGNAL_KINDS,
     Command,
     Heartbeat,
     Message,
     Stimulus,
     TactileFrame,
+    VideoSignal,
 )
 from common.tactile import FRAME_SHAPE, N_GRIP_LEVELS, N_PATTERNS, SATURATION_N, STIMULUS_SHAPE
 
@@ -200,6 +203,17 @@ def _stats(name: str, v: Any) -> dict[str, float]:
     return out
 
 
+def _text(max_chars: int) -> Check:
+    def check(name: str, v: Any) -> str:
+        if not isinstance(v, str):
+            raise FieldTypeError(f"{name} must be a string, not {type(v).__name__}")
+        if len(v) > max_chars:
+            raise OutOfRangeError(f"{name} is {len(v)} characters, more than {max_chars}")
+        return v
+
+    return check
+
+
 def _bin(size: int) -> Check:
     def check(name: str, v: Any) -> bytes:
         if not isinstance(v, bytes) or len(v) != size:
@@ -254,6 +268,18 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("velocity", _velocity, False),
         ("session", _int_range(1, _U63), False),
         ("grantee", _KEY, False),
+        ("signer", _KEY, False),
+    ],
+    VideoSignal: [
+        *_COMMON,
+        ("kind", _enum(VIDEO_SIGNAL_KINDS), True),
+        ("viewer", _int_range(1, _U63), True),
+        ("sdp", _text(MAX_SDP_CHARS), False),
+        ("reason", _text(200), False),
+        ("source", _text(64), False),
+        ("width", _int_range(1, 8192), False),
+        ("height", _int_range(1, 8192), False),
+        ("fps", _float_range(0.0, 1000.0), False),
         ("signer", _KEY, False),
     ],
 }

@@ -29,10 +29,15 @@ CommandAction = Literal[
     "lease_release",
 ]
 
+VideoSignalKind = Literal["offer", "answer", "bye", "closed"]
+
 # the Literals above, as tuples to check against and to list in errors
 RENDER_MODES: tuple[str, ...] = get_args(RenderMode)
 LINK_STATES: tuple[str, ...] = get_args(LinkState)
 COMMAND_ACTIONS: tuple[str, ...] = get_args(CommandAction)
+VIDEO_SIGNAL_KINDS: tuple[str, ...] = get_args(VideoSignalKind)
+#: the longest session description a video signal may carry (a browser's offer is 3-7 kB)
+MAX_SDP_CHARS = 12_000
 #: actions that ask for, hand over or give up control of a robot (the control lease)
 LEASE_ACTIONS: frozenset[str] = frozenset({"lease_request", "lease_grant", "lease_release"})
 #: what an operator key may be (roster, docs/security.md): only controllers may hold the lease
@@ -133,5 +138,31 @@ class Command:
     TYPE = "command"
 
 
-Message = Stimulus | TactileFrame | Heartbeat | Command
-MESSAGE_TYPES: tuple[type, ...] = (Stimulus, TactileFrame, Heartbeat, Command)
+@dataclass(slots=True)
+class VideoSignal:
+    """Both ways: a viewer's WebRTC offer and the robot's answer, carried by the link.
+
+    Signalling takes the nodes' own sockets (and the relay), so video needs no
+    port of its own on either site; the media then flows peer to peer.
+    ``viewer`` is a random number per viewing session: it pairs an answer
+    with its offer among everyone who reads the robot's stream.
+    """
+
+    seq: int
+    t_send_ns: int
+    kind: str  # one of VIDEO_SIGNAL_KINDS
+    viewer: int
+    sdp: str | None = None  # offer, answer
+    reason: str | None = None  # closed: why the robot ended (or refused) the session
+    source: str | None = None  # answer: the camera's name
+    width: int | None = None  # answer
+    height: int | None = None  # answer
+    fps: float | None = None  # answer
+    signer: bytes | None = None  # operator: its Ed25519 public key (signed messages)
+
+    TOPIC = b"VSIG"
+    TYPE = "video_signal"
+
+
+Message = Stimulus | TactileFrame | Heartbeat | Command | VideoSignal
+MESSAGE_TYPES: tuple[type, ...] = (Stimulus, TactileFrame, Heartbeat, Command, VideoSignal)

@@ -48,6 +48,7 @@ roster_file = "{roster}"
 telemetry_endpoint = "{tel}"
 command_endpoint = "{cmd}"
 frame_display_rate_hz = {frames}
+video_url = "{video_url}"
 [robot.link.security]
 mode = "curve"
 secret_key_file = "{secret}"
@@ -226,8 +227,13 @@ class Fleet:
         )
         return self._start(name, ["-v", "relay", "--config", str(config)])
 
-    def robot_config(self, name: str, arm_host: str | None, rate_hz: float = 60.0) -> Path:
-        """Write robot ``name``'s config (relay mode, CURVE, the roster); its path."""
+    def robot_config(
+        self, name: str, arm_host: str | None, rate_hz: float = 60.0, video_url: str = ""
+    ) -> Path:
+        """Write robot ``name``'s config (relay mode, CURVE, the roster); its path.
+
+        ``video_url``: a video server on this machine that viewers reach through the relay.
+        """
         arm = f'kind = "ur_rtde"\nhost = "{arm_host}"' if arm_host else 'kind = "none"'
         config = self.workdir / f"{name}.toml"
         config.write_text(
@@ -241,13 +247,24 @@ class Fleet:
                 frames=15.0,
                 secret=self.members[name].curve_secret,
                 relay_public=self.members["relay"].curve_public,
+                video_url=video_url,
             )
         )
         return config
 
-    def start_robot(self, name: str, arm_host: str | None, rate_hz: float = 60.0) -> Proc:
-        config = self.robot_config(name, arm_host, rate_hz)
+    def start_robot(
+        self, name: str, arm_host: str | None, rate_hz: float = 60.0, video_url: str = ""
+    ) -> Proc:
+        config = self.robot_config(name, arm_host, rate_hz, video_url)
         return self._start(name, ["-v", "robot", "--config", str(config)])
+
+    def start_video(self, name: str = "video", fps: float = 15.0) -> tuple[Proc, str]:
+        """A video server (the stamped test pattern, 320x240) on loopback; (process, its URL)."""
+        port = free_loopback_ports(1)[0]
+        settings = [f"port={port}", "test_pattern.width=320", "test_pattern.height=240"]
+        settings.append(f"test_pattern.fps={fps}")
+        args = ["-v", "video", *(a for s in settings for a in ("--set", s))]
+        return self._start(name, args), f"ws://127.0.0.1:{port}/"
 
     def start_operator(
         self,

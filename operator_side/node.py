@@ -18,6 +18,7 @@ import queue
 import secrets
 import threading
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,7 +31,14 @@ from common.codec import DecodeError, check_robot_name, encode, name_prefix
 from common.devices import build_device
 from common.errors import ConfigError
 from common.link_stats import LinkStats
-from common.messages import SESSION_LOW_MASK, Command, Heartbeat, Stimulus, TactileFrame
+from common.messages import (
+    SESSION_LOW_MASK,
+    Command,
+    Heartbeat,
+    Stimulus,
+    TactileFrame,
+    VideoSignal,
+)
 from common.patterns import matches_pattern
 from common.recording import NullRecorder, Recorder
 from common.security import check_endpoint, client_options
@@ -107,7 +115,10 @@ class OperatorNode:
         self.link_state = "down"
         #: (monotonic ns, new state) of the latest link state changes
         self.link_changes: collections.deque[tuple[int, str]] = collections.deque(maxlen=256)
-        self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
+        self._commands: queue.SimpleQueue[Command | VideoSignal] = queue.SimpleQueue()
+        #: called on the node's thread with each video signal the robot sends (the dashboard)
+        self.video_signal_handler: Callable[[VideoSignal], None] | None = None
+        self._vsig_seq = 0
         self._wake_r, self._wake_w = os.pipe()  # send_command wakes a sleeping loop
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
@@ -178,6 +189,16 @@ class OperatorNode:
         with contextlib.suppress(BlockingIOError, OSError):
             os.write(self._wake_w, b"c")  # the loop may be asleep until a deadline
 
+    def send_video_signal(self, kind: str, viewer: int, sdp: str | None = None) -> None:
+        """Queue a WebRTC offer or bye for the robot's video server; thread-safe.
+
+        It travels the command link (signed, through the relay when there is
+        one), so video needs no connection of its own to the robot PC.
+        """
+        self._commands.put(VideoSignal(seq=0, t_send_ns=0, kind=kind, viewer=viewer, sdp=sdp))
+        with contextlib.suppress(BlockingIOError, OSError):
+            os.write(self._wake_w, b"v")
+
     # --------------------------------------------------------------- run
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
         if self._handed_link:
@@ -226,6 +247,8 @@ class OperatorNode:
         topics = [name_prefix(Stimulus.TOPIC, name), name_prefix(Heartbeat.TOPIC, name)]
         if self.config.link.want_frames:
             topics.append(name_prefix(TactileFrame.TOPIC, name))
+        if self.video_signal_handler is not None:
+            topics.append(name_prefix(VideoSignal.TOPIC, name))
         return tuple(topics)
 
     def _open_sockets(self) -> None:
@@ -319,6 +342,8 @@ class OperatorNode:
             elif isinstance(msg, TactileFrame):
                 with self._lock:
                     self._frame = msg
+            elif isinstance(msg, VideoSignal) and self.video_signal_handler is not None:
+                self.video_signal_handler(msg)
             else:
                 self.counters["messages_unexpected"] += 1
         self.counters["decode_errors"] = self._rejected_before + self.sub.rejected_total
@@ -516,6 +541,12 @@ class OperatorNode:
                 cmd = self._commands.get_nowait()
             except queue.Empty:
                 break
+            if isinstance(cmd, VideoSignal):
+                self._vsig_seq += 1
+                cmd.seq, cmd.t_send_ns = self._vsig_seq, self.now()
+                self.pub.send(cmd)
+                self.counters[f"video_{cmd.kind}s_sent"] += 1
+                continue
             self._send_command(cmd, now, resends=0)
         pending = self._gripper_pending
         if pending is None or now < pending.deadline_ns:

@@ -96,11 +96,25 @@ class RobotLinkConfig:
     lease_request_timeout_ms: float = param(
         2000.0, "a lease request the holder neither grants nor answers lapses after this"
     )
+    video_url: str = param(
+        "",
+        "the video server on this PC (deepxpalm video, e.g. ws://127.0.0.1:8890/): viewers' "
+        "offers reach it through this link, so video opens no port; empty = no video here",
+    )
+    video_viewer_timeout_s: float = param(
+        5.0, "a viewer whose node has not been heard for this long loses its video session"
+    )
     security: SecurityConfig = param(
         SecurityConfig(),
         "CURVE keys and the operator allowlist; with a relay, server_public_key_file is the "
         "relay's public key",
     )
+
+    def __post_init__(self) -> None:
+        if self.video_url and not self.video_url.startswith(("ws://", "wss://")):
+            raise ValueError(f"link.video_url must be a ws:// or wss:// URL: {self.video_url!r}")
+        if self.video_viewer_timeout_s <= 0:
+            raise ValueError("link.video_viewer_timeout_s must be positive")
 
 
 @dataclass

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import importlib.util
 import logging
 import math
 import threading
@@ -35,6 +36,7 @@ from common.messages import (
     Heartbeat,
     Stimulus,
     TactileFrame,
+    VideoSignal,
 )
 from common.recording import NullRecorder, Recorder
 from common.roster import load_roster
@@ -47,6 +49,7 @@ from robot_side.lease import ControlLease
 from robot_side.recovery import DeviceRecovery
 from robot_side.rendering import NO_CELLS, render_frame, sanitize_frame, sanitize_with_peak
 from robot_side.tactile.base import TactileSample, TactileSensor
+from robot_side.video.link_signalling import LinkSignalling
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +137,18 @@ class RobotNode:
                 "robot link.mode = 'relay' needs link.roster_file: through a relay only "
                 "signed commands from the lease holder may move the arm (docs/security.md)"
             )
+        #: viewers' WebRTC signalling, carried to the local video server (None: no video here)
+        self.video: LinkSignalling | None = None
+        if config.link.video_url:
+            if importlib.util.find_spec("websockets") is None:
+                raise ConfigError(
+                    "robot link.video_url is set but websockets is not installed: "
+                    "pip install 'deepxpalm[video]' on the robot PC"
+                )
+            self.video = LinkSignalling(config.link.video_url)
+        self._video_heard_ns: int = 0  # direct link: when the operator was last heard
+        self._next_video_expiry_ns = 0
+        self._vsig_seq = 0
         self._lease_changes_seen = 0
         self._echo_turn = 0  # round robin over the operators whose heartbeats we echo
         self._heartbeat_now = False  # a lease change is announced at once, not in 50 ms
@@ -198,11 +213,12 @@ class RobotNode:
                 watch_subscriptions=not bind,  # the relay tells us what anyone subscribed to
             )
             stack.callback(self.pub.close)
-            topics = (
-                (name_prefix(Command.TOPIC, name), name_prefix(Heartbeat.TOPIC, name))
-                if name
-                else (b"",)
-            )
+            topics: tuple[bytes, ...] = (b"",)
+            if name:
+                wanted = [Command.TOPIC, Heartbeat.TOPIC]
+                if self.video is not None:  # viewers' offers, only where a camera is served
+                    wanted.append(VideoSignal.TOPIC)
+                topics = tuple(name_prefix(topic, name) for topic in wanted)
             self.sub = Subscriber(
                 self.ctx,
                 link.command_endpoint,
@@ -222,6 +238,8 @@ class RobotNode:
                 self._workers["gripper"].post(
                     DeviceRequest("gripper_activate", self.gripper.activate)
                 )
+            if self.video is not None:
+                stack.callback(self.video.close)
             log.info(
                 "robot node up: telemetry %s, commands %s", self.pub.endpoint, self.sub.endpoint
             )
@@ -278,6 +296,8 @@ class RobotNode:
             if heartbeat.due(now) or self._heartbeat_now:  # with frames, on a frame's wake-up
                 self._send_heartbeat()
                 heartbeat.done(now)
+            if self.video is not None:
+                self._serve_video(now)
 
     # ------------------------------------------------------------- frames
     def _frames_until_due(self, min_interval: int) -> int:
@@ -567,8 +587,12 @@ class RobotNode:
                     self.counters["commands_superseded"] += 1
                     self._record_command(older[0], "superseded")
                 newest[device] = (msg, sent)
+            elif isinstance(msg, VideoSignal):
+                self._on_video_signal(msg, None)
             else:
                 self.counters["messages_unexpected"] += 1
+        if batch:
+            self._video_heard_ns = now
         for device, (cmd, sent) in newest.items():
             self._dispatch(device, cmd, sent)
         self.counters["decode_errors"] = self.sub.rejected_total
@@ -601,6 +625,9 @@ class RobotNode:
                     msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv
                 )
                 peer.gate.heard(msg.t_send_ns, t_recv, now)
+                continue
+            if isinstance(msg, VideoSignal):  # any role may watch: the roster vouched for it
+                self._on_video_signal(msg, key)
                 continue
             if not isinstance(msg, Command):
                 self.counters["messages_unexpected"] += 1
@@ -703,6 +730,52 @@ class RobotNode:
             },
         )
 
+    # -------------------------------------------------------------- video
+    def _on_video_signal(self, msg: VideoSignal, signer: bytes | None) -> None:
+        self.counters["video_signals_received"] += 1
+        if self.video is None:
+            self.counters["video_signals_unserved"] += 1
+            if msg.kind == "offer":
+                self._publish_video(
+                    VideoSignal(
+                        seq=0,
+                        t_send_ns=0,
+                        kind="closed",
+                        viewer=msg.viewer,
+                        reason="this robot serves no video (its link.video_url is empty)",
+                    )
+                )
+            return
+        self.video.on_signal(msg, signer)
+
+    def _serve_video(self, now: int) -> None:
+        """Publish the answers the video sessions produced; end the sessions of quiet viewers."""
+        video = self.video
+        if video.outgoing:
+            for msg in video.take_outgoing():
+                self._publish_video(msg)
+        if now < self._next_video_expiry_ns:
+            return
+        self._next_video_expiry_ns = now + 1_000_000_000
+        if video.sessions:
+            video.expire(self._video_viewer_heard)
+
+    def _video_viewer_heard(self, signer: bytes | None) -> bool:
+        """Called on the video thread: a stale read of these times is harmless."""
+        limit = round(self.config.link.video_viewer_timeout_s * 1e9)
+        if signer is None or self.lease is None:
+            last = self._video_heard_ns
+        else:
+            peer = self.lease.peer(signer)
+            last = peer.last_heard_ns if peer is not None else 0
+        return self.now() - last < limit
+
+    def _publish_video(self, msg: VideoSignal) -> None:
+        self._vsig_seq += 1
+        msg.seq, msg.t_send_ns = self._vsig_seq, self.now()
+        self.pub.send(msg)
+        self.counters[f"video_{msg.kind}s_sent"] += 1
+
     def _deadman_deadline_ns(self) -> int:
         """When the operator's silence stops the arm, if nothing fresh is heard before then."""
         heard = self.gate.last_fresh_ns
@@ -797,6 +870,8 @@ class RobotNode:
             out["commands_superseded"] = out.get("commands_superseded", 0.0) + c["superseded"]
             if c["poll_errors"]:
                 out[f"{name}_poll_errors"] = float(c["poll_errors"])
+        if self.video is not None:
+            out.update((k, float(v)) for k, v in self.video.counters.items())
         if self._auth is not None and self._auth.refused:
             out["curve_refused"] = float(self._auth.refused)
         for name, rec in (("arm", self._arm_recovery), ("gripper", self._gripper_recovery)):

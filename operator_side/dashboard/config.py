@@ -9,6 +9,9 @@ from dataclasses import dataclass
 from common.config import param
 from operator_side.dashboard.jog_config import JogConfig
 
+#: ``video_url`` value: signalling rides the operator node's link to the robot
+VIDEO_OVER_LINK = "link"
+
 
 @dataclass
 class DashboardConfig:
@@ -22,8 +25,9 @@ class DashboardConfig:
     )
     video_url: str = param(
         "",
-        "the robot's video signalling WebSocket (deepxpalm video), e.g. ws://127.0.0.1:8890/; "
-        "empty: no video panel",
+        "where the robot's video is offered: 'link' = through this node's link to the robot "
+        "(and its relay; the robot sets link.video_url), or the video server's WebSocket, "
+        "e.g. ws://127.0.0.1:8890/; empty: no video panel",
     )
     jog: JogConfig = param(
         JogConfig(), "jogging the arm from the page: keyboard, gamepad, 3D mouse"
@@ -32,7 +36,11 @@ class DashboardConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be 0..65535 (0: any free port), not {self.port}")
-        if self.video_url and not self.video_url.startswith(("ws://", "wss://")):
-            raise ValueError(f"video_url must be a ws:// or wss:// URL, not {self.video_url!r}")
+        if self.video_url not in ("", VIDEO_OVER_LINK) and not self.video_url.startswith(
+            ("ws://", "wss://")
+        ):
+            raise ValueError(
+                f"video_url must be 'link' or a ws:// or wss:// URL, not {self.video_url!r}"
+            )
         if not (math.isfinite(self.max_rate_hz) and 0 < self.max_rate_hz <= 240):
             raise ValueError(f"max_rate_hz must be in (0, 240], not {self.max_rate_hz}")

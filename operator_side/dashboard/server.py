@@ -16,6 +16,7 @@ import contextlib
 import json
 import logging
 import math
+import secrets
 import time
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -23,8 +24,10 @@ from typing import Any, Protocol
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
+from common.errors import ConfigError
+from common.messages import MAX_SDP_CHARS, VideoSignal
 from common.tactile import GRIP_LEVELS
-from operator_side.dashboard.config import DashboardConfig
+from operator_side.dashboard.config import VIDEO_OVER_LINK, DashboardConfig
 from operator_side.dashboard.view import CONTENT_KEYS, LinkHistory, hello_view, snapshot_view
 from operator_side.dashboard.web import WebServer, package_files
 from operator_side.node import Snapshot
@@ -86,6 +89,12 @@ class Dashboard:
         hello["video"] = bool(self.config.video_url)
         self.hello = json.dumps(hello, separators=(",", ":"))
         self.history = LinkHistory()
+        #: video sessions over the link awaiting the robot's word, by viewer number
+        self._viewers: dict[int, asyncio.Queue[VideoSignal]] = {}
+        if self.config.video_url == VIDEO_OVER_LINK:
+            if not hasattr(node, "send_video_signal"):
+                raise ConfigError("dashboard video_url = 'link' needs an operator node's link")
+            node.video_signal_handler = self._on_video_signal
         self.server = WebServer(
             self.config.host,
             self.config.port,
@@ -203,7 +212,68 @@ class Dashboard:
                 self._stop_arm(page, "page disconnected while jogging")
             log.info("dashboard: page from %s disconnected", peer)
 
+    def _on_video_signal(self, msg: VideoSignal) -> None:
+        """On the node's thread: a robot's answer (or close) to the session awaiting it."""
+        waiting = self._viewers.get(msg.viewer)
+        if waiting is not None:
+            self.server.call(waiting.put_nowait, msg)
+
     async def _relay_video(self, conn: ServerConnection, offer: dict[str, Any]) -> None:
+        if self.config.video_url == VIDEO_OVER_LINK:
+            await self._video_over_link(conn, offer)
+        else:
+            await self._video_over_websocket(conn, offer)
+
+    async def _video_over_link(self, conn: ServerConnection, offer: dict[str, Any]) -> None:
+        """The page's offer to the robot as a signed ``VideoSignal`` on the node's link.
+
+        The robot's answer comes back on its telemetry, picked out by this
+        session's random viewer number. The session holds until the page
+        leaves or renegotiates (a ``bye`` then) or the robot closes it.
+        """
+        sdp = offer.get("sdp")
+        if not isinstance(sdp, str) or len(sdp) > MAX_SDP_CHARS:
+            reason = f"the page's offer is not a session description of <= {MAX_SDP_CHARS} chars"
+            with contextlib.suppress(ConnectionClosed):
+                await conn.send(json.dumps({"type": "video_closed", "reason": reason}))
+            return
+        viewer = secrets.randbits(63) or 1
+        answers: asyncio.Queue[VideoSignal] = asyncio.Queue()
+        self._viewers[viewer] = answers
+        closed_by_robot = False
+        try:
+            self.node.send_video_signal("offer", viewer, sdp)
+            try:
+                msg = await asyncio.wait_for(answers.get(), VIDEO_ANSWER_TIMEOUT_S)
+            except TimeoutError:
+                reason = (
+                    f"the robot did not answer the video offer in {VIDEO_ANSWER_TIMEOUT_S:.0f} s "
+                    "(is the link up, and the robot's link.video_url set?)"
+                )
+            else:
+                if msg.kind == "answer":
+                    answer = {
+                        "type": "video_answer",
+                        "sdp": msg.sdp,
+                        "source": msg.source,
+                        "width": msg.width,
+                        "height": msg.height,
+                        "fps": msg.fps,
+                    }
+                    await conn.send(json.dumps(answer))
+                    while msg.kind != "closed":
+                        msg = await answers.get()
+                closed_by_robot = msg.kind == "closed"
+                reason = msg.reason or "the robot ended the video session"
+        finally:
+            self._viewers.pop(viewer, None)
+            if not closed_by_robot:  # the page left or renegotiates: free the robot's encoder
+                self.node.send_video_signal("bye", viewer)
+        log.info("dashboard: video over the link ended: %s", reason)
+        with contextlib.suppress(ConnectionClosed):
+            await conn.send(json.dumps({"type": "video_closed", "reason": reason}))
+
+    async def _video_over_websocket(self, conn: ServerConnection, offer: dict[str, Any]) -> None:
         """Carry the page's WebRTC offer to the robot's video server and its answer back.
 
         The robot keeps the stream up for as long as this signalling

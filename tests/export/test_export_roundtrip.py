@@ -57,12 +57,21 @@ def _loaded(session, tmp_path, episodes: str):
     return summary, arrays, meta
 
 
-def _held(channel_records, t_row):
-    """The newest record at or before ``t_row``."""
+def _held(channel_records, t_row, before_first=None):
+    """The newest record at or before ``t_row``; ``before_first`` if there is none yet."""
     times = [t for t, _ in channel_records]
     i = bisect.bisect_right(times, t_row) - 1
+    if i < 0 and before_first is not None:
+        return None, before_first
     assert i >= 0, "a row before the channel's first record"
     return channel_records[i]
+
+
+#: a row before the robot's first stimulus (a grasp from the session's start, on a slow
+#: machine) holds no stimulus: zeros, no pattern (docs/datasets.md)
+NO_STIMULUS = {
+    "decoded": {"stimulus": np.zeros((3, 3), np.float32), "pattern": None, "confidence": None}
+}
 
 
 def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_path):
@@ -88,7 +97,7 @@ def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_p
             assert a["observation.tactile.frame_seq"][i] == frame["frame_seq"]
             ages.append(t_row - t_f)
             assert a["observation.tactile.age"][i] == pytest.approx((t_row - t_f) / 1e9, abs=2e-6)
-            stim = _held(records["robot/stimulus"], t_row)[1]["decoded"]
+            stim = _held(records["robot/stimulus"], t_row, NO_STIMULUS)[1]["decoded"]
             np.testing.assert_array_equal(a["observation.stimulus"][i], stim["stimulus"])
             assert a["observation.perception.pattern"][i] == (
                 -1 if stim["pattern"] is None else stim["pattern"]

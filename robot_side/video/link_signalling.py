@@ -1,0 +1,201 @@
+"""WebRTC signalling through the robot node's link, so video opens no port of its own.
+
+A viewer's offer reaches the robot node as a ``VideoSignal`` on the command
+path (directly, or through the relay); this bridge carries it to the video
+server on the robot PC (``deepxpalm video``, its WebSocket on loopback) and
+hands the answer back to the node, which publishes it on its telemetry. The
+media then flows peer to peer (ICE), which needs no inbound port where one
+side can reach the other or a STUN/TURN server (docs/dashboard.md, Video).
+
+The video server keeps a viewer's stream up while its signalling WebSocket
+lives; here that WebSocket lives until the viewer says ``bye``, the video
+server ends the session (the browser's peer connection failed), or the
+viewer's key goes unheard for ``viewer_timeout_s`` (a tab that vanished
+without a word). So the camera is captured and encoded only while someone
+watches.
+
+Nothing here blocks the frame loop: the node calls ``on_signal`` and
+``take_outgoing`` (a deque each way), and the sessions run on an asyncio
+loop of their own thread, started at the first offer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import json
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from common.messages import VideoSignal
+
+log = logging.getLogger(__name__)
+
+ANSWER_TIMEOUT_S = 10.0
+
+
+@dataclass
+class _Session:
+    signer: bytes | None
+    task: asyncio.Task[None] | None = None
+
+
+class LinkSignalling:
+    """Carries viewers' offers to the local video server and its answers back."""
+
+    def __init__(self, video_url: str, *, max_sessions: int = 8) -> None:
+        self.video_url = video_url
+        self.max_sessions = max_sessions
+        #: signals for the node to publish, appended by the sessions' thread
+        self.outgoing: collections.deque[VideoSignal] = collections.deque()
+        self.counters: collections.Counter[str] = collections.Counter()
+        self._sessions: dict[int, _Session] = {}  # viewer -> session (the loop's thread only)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._finishing: asyncio.Future[None] | None = None
+
+    # ----------------------------------------------------- the node's side
+    def on_signal(self, msg: VideoSignal, signer: bytes | None) -> None:
+        """An offer or a bye from a viewer; never blocks."""
+        if msg.kind == "offer" and msg.sdp:
+            self.counters["video_offers"] += 1
+            self._call(self._open, msg.viewer, msg.sdp, signer)
+        elif msg.kind == "bye":
+            self._call(self._end, msg.viewer, signer, None)
+        else:
+            self.counters["video_signals_ignored"] += 1
+
+    def take_outgoing(self) -> list[VideoSignal]:
+        out = []
+        while self.outgoing:
+            out.append(self.outgoing.popleft())
+        return out
+
+    def expire(self, heard_lately: Callable[[bytes | None], bool]) -> None:
+        """End the sessions of viewers whose key has gone quiet (``heard_lately`` says no)."""
+        if self._loop is None:
+            return
+        self._call(self._expire, heard_lately)
+
+    @property
+    def sessions(self) -> int:
+        return len(self._sessions)
+
+    def close(self) -> None:
+        with self._lock:
+            loop, thread = self._loop, self._thread
+            self._loop = self._thread = None
+        if loop is None or thread is None:
+            return
+        loop.call_soon_threadsafe(self._stop_all)
+        thread.join(5)
+
+    # ------------------------------------------------------------ internals
+    def _call(self, fn: Callable[..., object], *args: object) -> None:
+        with self._lock:
+            if self._loop is None:
+                ready = threading.Event()
+                self._thread = threading.Thread(
+                    target=self._run, args=(ready,), name="video-signalling", daemon=True
+                )
+                self._thread.start()
+                ready.wait(5)
+            loop = self._loop
+        if loop is not None:
+            loop.call_soon_threadsafe(fn, *args)
+
+    def _run(self, ready: threading.Event) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        ready.set()
+        try:
+            loop.run_forever()
+        finally:
+            loop.close()
+
+    def _stop_all(self) -> None:
+        tasks = [s.task for s in self._sessions.values() if s.task is not None]
+        for task in tasks:
+            task.cancel()
+
+        async def finish() -> None:
+            await asyncio.gather(*tasks, return_exceptions=True)
+            asyncio.get_running_loop().stop()
+
+        self._finishing = asyncio.ensure_future(finish())
+
+    def _open(self, viewer: int, sdp: str, signer: bytes | None) -> None:
+        old = self._sessions.get(viewer)
+        if old is not None:
+            if old.signer != signer:
+                self.counters["video_offers_refused"] += 1
+                return  # someone else's viewer number: never take over their session
+            if old.task is not None:
+                old.task.cancel()  # the page renegotiates
+            del self._sessions[viewer]
+        if len(self._sessions) >= self.max_sessions:
+            self.counters["video_offers_refused"] += 1
+            self._emit(viewer, "closed", reason=f"at most {self.max_sessions} video sessions")
+            return
+        session = _Session(signer)
+        self._sessions[viewer] = session
+        session.task = asyncio.ensure_future(self._session(viewer, sdp, session))
+
+    def _end(self, viewer: int, signer: bytes | None, reason: str | None) -> None:
+        session = self._sessions.get(viewer)
+        if session is None or session.signer != signer:
+            return
+        del self._sessions[viewer]
+        if session.task is not None:
+            session.task.cancel()
+        if reason is not None:
+            self._emit(viewer, "closed", reason=reason)
+
+    def _expire(self, heard_lately: Callable[[bytes | None], bool]) -> None:
+        for viewer, session in list(self._sessions.items()):
+            if not heard_lately(session.signer):
+                self.counters["video_sessions_expired"] += 1
+                self._end(viewer, session.signer, "the viewer went quiet")
+
+    def _emit(self, viewer: int, kind: str, **fields: object) -> None:
+        self.outgoing.append(VideoSignal(seq=0, t_send_ns=0, kind=kind, viewer=viewer, **fields))
+
+    async def _session(self, viewer: int, sdp: str, session: _Session) -> None:
+        from websockets.asyncio.client import connect
+        from websockets.exceptions import ConnectionClosed
+
+        reason = "the video server ended the session"
+        try:
+            async with connect(self.video_url, open_timeout=5, max_size=256 * 1024) as ws:
+                await ws.send(json.dumps({"type": "offer", "sdp": sdp}))
+                answer = json.loads(await asyncio.wait_for(ws.recv(), ANSWER_TIMEOUT_S))
+                self._emit(
+                    viewer,
+                    "answer",
+                    sdp=str(answer["sdp"]),
+                    source=str(answer.get("source", ""))[:64] or None,
+                    width=int(answer["width"]),
+                    height=int(answer["height"]),
+                    fps=float(answer["fps"]),
+                )
+                self.counters["video_answers"] += 1
+                log.info("video: viewer %016x connected through the link", viewer)
+                await ws.wait_closed()
+                if ws.close_reason:
+                    reason = f"the video server ended the session: {ws.close_reason}"
+        except asyncio.CancelledError:
+            log.info("video: viewer %016x left", viewer)
+            raise
+        except ConnectionClosed as e:
+            reason = f"the video server refused: {e.rcvd.reason if e.rcvd else e}"
+        except (OSError, TimeoutError, ValueError, KeyError, TypeError) as e:
+            reason = f"no video server at {self.video_url}: {e}"
+            log.warning("video: %s", reason)
+        if self._sessions.get(viewer) is session:
+            del self._sessions[viewer]
+        with contextlib.suppress(Exception):
+            self._emit(viewer, "closed", reason=reason[:200])

@@ -1,0 +1,131 @@
+"""The robot's bridge from link video signals to its video server, against the real server.
+
+The offers are real WebRTC offers from an aiortc peer; the server is the real
+``VideoServer`` on loopback. What a viewer sees is the signal the robot would
+publish (``outgoing``) and whether the camera is open.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+pytest.importorskip("aiortc")
+
+from common.messages import VideoSignal
+from common.transport import CaptureLink
+from robot_side.config import RenderConfig, RobotConfig, RobotLinkConfig
+from robot_side.node import RobotNode
+from robot_side.video.link_signalling import LinkSignalling
+from robot_side.video.server import VideoConfig, VideoServer
+from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
+
+pytestmark = pytest.mark.timeout(60)
+
+ALICE, BOB = b"a" * 32, b"b" * 32
+
+
+def _offer_sdp() -> str:
+    async def make() -> str:
+        from aiortc import RTCPeerConnection
+
+        pc = RTCPeerConnection()
+        pc.addTransceiver("video", direction="recvonly")
+        await pc.setLocalDescription(await pc.createOffer())
+        sdp = pc.localDescription.sdp
+        await pc.close()
+        return sdp
+
+    return asyncio.run(make())
+
+
+def _signal(kind: str, viewer: int, sdp: str | None = None) -> VideoSignal:
+    return VideoSignal(seq=1, t_send_ns=1, kind=kind, viewer=viewer, sdp=sdp)
+
+
+def _next(bridge: LinkSignalling, timeout_s: float = 15.0) -> VideoSignal:
+    deadline = time.monotonic() + timeout_s
+    while not bridge.outgoing:
+        assert time.monotonic() < deadline, "the bridge said nothing"
+        time.sleep(0.01)
+    return bridge.outgoing.popleft()
+
+
+@pytest.fixture
+def server():
+    source = TestPatternSource(TestPatternConfig(width=320, height=240, fps=15))
+    with VideoServer(source, VideoConfig(port=0, max_viewers=1)) as s:
+        yield s
+
+
+def test_offer_is_answered_and_a_bye_from_someone_else_changes_nothing(server):
+    bridge = LinkSignalling(server.url)
+    try:
+        bridge.on_signal(_signal("offer", 7, _offer_sdp()), ALICE)
+        answer = _next(bridge)
+        assert answer.kind == "answer" and answer.viewer == 7
+        assert "m=video" in answer.sdp
+        assert (answer.width, answer.height, answer.source) == (320, 240, "test_pattern")
+        bridge.on_signal(_signal("bye", 7), BOB)  # not Bob's session to end
+        time.sleep(0.3)
+        assert bridge.sessions == 1 and server.viewers == 1
+        bridge.on_signal(_signal("bye", 7), ALICE)
+        deadline = time.monotonic() + 5
+        while server.viewers and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert server.viewers == 0 and bridge.sessions == 0
+    finally:
+        bridge.close()
+
+
+def test_a_viewer_beyond_the_servers_limit_is_told_why(server):
+    bridge = LinkSignalling(server.url)
+    try:
+        bridge.on_signal(_signal("offer", 1, _offer_sdp()), ALICE)
+        assert _next(bridge).kind == "answer"
+        bridge.on_signal(_signal("offer", 2, _offer_sdp()), BOB)
+        refused = _next(bridge)
+        assert refused.kind == "closed" and refused.viewer == 2
+        assert "at most 1 viewers" in refused.reason
+    finally:
+        bridge.close()
+
+
+def test_a_quiet_viewer_loses_its_session(server):
+    bridge = LinkSignalling(server.url)
+    try:
+        bridge.on_signal(_signal("offer", 3, _offer_sdp()), ALICE)
+        assert _next(bridge).kind == "answer"
+        bridge.expire(lambda signer: signer != ALICE)
+        closed = _next(bridge)
+        assert closed.kind == "closed" and closed.reason == "the viewer went quiet"
+        deadline = time.monotonic() + 5
+        while server.viewers and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert server.viewers == 0
+        assert bridge.counters["video_sessions_expired"] == 1
+    finally:
+        bridge.close()
+
+
+def test_no_video_server_is_a_closed_session_with_the_address():
+    bridge = LinkSignalling("ws://127.0.0.1:9/")  # discard port: nothing listens
+    try:
+        bridge.on_signal(_signal("offer", 4, "v=0"), ALICE)
+        closed = _next(bridge)
+        assert closed.kind == "closed" and "ws://127.0.0.1:9/" in closed.reason
+    finally:
+        bridge.close()
+
+
+def test_a_robot_without_video_answers_an_offer_with_the_reason():
+    link = CaptureLink()
+    config = RobotConfig(render=RenderConfig(mode="direct"), link=RobotLinkConfig())
+    node = RobotNode(config, None, link=link)
+    link.deliver(_signal("offer", 5, "v=0"), 1)
+    node._handle_commands(1)
+    sent = [m for m in link.messages if isinstance(m, VideoSignal)]
+    assert len(sent) == 1 and sent[0].kind == "closed" and sent[0].viewer == 5
+    assert "link.video_url" in sent[0].reason
