@@ -131,6 +131,7 @@ def read_palm(stimulus: np.ndarray | None) -> int | None:
     if pressed is None:
         return None
     s = np.nan_to_num(np.asarray(stimulus, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
+    s = np.clip(s, 0.0, 1e6)  # garbage of any size weighs in, but never sums to infinity
     best, best_score = None, (-1.0, False, -1.0)
     for p in range(N_PATTERNS):
         mask = MASKS[p]

@@ -454,7 +454,7 @@ function startVideo() {
   $("video-panel").hidden = false;
   const status = (text) => ($("video-status").textContent = text);
   if (!dxp.video) {
-    dxp.video = new VIDEO.Receiver($("video"), sendArm, status);
+    dxp.video = new VIDEO.Receiver($("video"), sendArm, status, dxp.hello.ice_servers || []);
     setInterval(() => {
       const v = dxp.video;
       if (v.source !== "test_pattern" || !v.latencies.length) return;

@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 
 from common.config import param
+from common.ice import IceConfig
 from operator_side.dashboard.jog_config import JogConfig
 
 #: ``video_url`` value: signalling rides the operator node's link to the robot
@@ -28,6 +29,10 @@ class DashboardConfig:
         "where the robot's video is offered: 'link' = through this node's link to the robot "
         "(and its relay; the robot sets link.video_url), or the video server's WebSocket, "
         "e.g. ws://127.0.0.1:8890/; empty: no video panel",
+    )
+    ice: IceConfig = param(
+        IceConfig(),
+        "STUN/TURN servers for the page's video; the robot's video server uses the same",
     )
     jog: JogConfig = param(
         JogConfig(), "jogging the arm from the page: keyboard, gamepad, 3D mouse"

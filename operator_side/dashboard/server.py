@@ -87,6 +87,7 @@ class Dashboard:
             stale_after_ms = getattr(link, "stale_after_ms", 150.0)
         hello = hello_view(self.renderer, stale_after_ms, self.config.max_rate_hz, self.config.jog)
         hello["video"] = bool(self.config.video_url)
+        hello["ice_servers"] = self.config.ice.as_dicts() if self.config.video_url else []
         self.hello = json.dumps(hello, separators=(",", ":"))
         self.history = LinkHistory()
         #: video sessions over the link awaiting the robot's word, by viewer number

@@ -39,8 +39,9 @@ const VIDEO = (() => {
   }
 
   class Receiver {
-    constructor(videoEl, send, status) {
+    constructor(videoEl, send, status, iceServers) {
       this.video = videoEl;
+      this.iceServers = iceServers || []; // the dashboard's: none = host candidates only
       this.send = send;
       this.status = status;
       this.pc = null;
@@ -58,7 +59,7 @@ const VIDEO = (() => {
     async start() {
       clearTimeout(this.retry);
       if (this.pc) this.pc.close();
-      const pc = new RTCPeerConnection({ iceServers: [] });
+      const pc = new RTCPeerConnection({ iceServers: this.iceServers });
       this.pc = pc;
       pc.addTransceiver("video", { direction: "recvonly" });
       pc.ontrack = (e) => {

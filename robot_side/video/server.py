@@ -27,6 +27,7 @@ from typing import Any
 
 from common.config import param
 from common.errors import ConfigError
+from common.ice import IceConfig
 from robot_side.video.source import VideoSource
 from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 from robot_side.video.v4l2 import V4L2Config, V4L2Source
@@ -45,6 +46,9 @@ class VideoConfig:
     port: int = param(8890, "signalling WebSocket port (media uses UDP ports ICE picks)")
     source: str = param("test_pattern", "which camera: test_pattern, v4l2, or a registered kind")
     max_viewers: int = param(4, "peer connections at once; each costs an encoder")
+    ice: IceConfig = param(
+        IceConfig(), "STUN/TURN servers; the operator's dashboard needs the same"
+    )
     test_pattern: TestPatternConfig = param(TestPatternConfig(), "the stamped test picture")
     v4l2: V4L2Config = param(V4L2Config(), "a USB camera on the robot PC")
 
@@ -122,6 +126,16 @@ def _source_track(source: VideoSource) -> Any:
             self._pool.shutdown(wait=False)
 
     return SourceTrack()
+
+
+def rtc_configuration(ice: IceConfig) -> Any:
+    """aiortc's configuration: exactly the configured servers (none: host candidates only).
+
+    Left unset, aiortc would ask Google's public STUN server from the robot PC.
+    """
+    from aiortc import RTCConfiguration, RTCIceServer
+
+    return RTCConfiguration(iceServers=[RTCIceServer(**server) for server in ice.as_dicts()])
 
 
 class VideoServer:
@@ -218,7 +232,7 @@ class VideoServer:
         except (TimeoutError, ValueError, KeyError, TypeError) as e:
             await conn.close(1008, f"bad offer: {e}"[:120])
             return
-        pc = RTCPeerConnection()
+        pc = RTCPeerConnection(rtc_configuration(self.config.ice))
         closed = asyncio.Event()
 
         @pc.on("connectionstatechange")
