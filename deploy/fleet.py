@@ -16,6 +16,8 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -311,6 +313,15 @@ class Fleet:
         ]
         config.write_text("\n".join(lines) + "\n")
         return self._start(name, ["-v", "record", "--config", str(config)])
+
+    def wait_for(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
+        """Poll ``cond`` until true; else fail naming ``what``, with every process's log tail."""
+        deadline = time.monotonic() + timeout_s
+        while not cond():
+            if time.monotonic() > deadline:
+                logs = "\n".join(f"--- {n}\n{p.log_text()[-3000:]}" for n, p in self.procs.items())
+                raise AssertionError(f"timed out waiting for {what}\n{logs}")
+            time.sleep(0.05)
 
     def stop(self, name: str, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> int:
         proc = self.procs[name]

@@ -75,15 +75,6 @@ class Monitor:
         self.ctx.term()
 
 
-def _wait(cond, timeout_s: float, what: str, fleet: Fleet) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            logs = "\n".join(f"--- {n}\n{p.log_text()[-3000:]}" for n, p in fleet.procs.items())
-            raise AssertionError(f"timed out waiting for {what}\n{logs}")
-        time.sleep(0.05)
-
-
 def _jog_for(proc, velocity: list[float], seconds: float) -> None:
     end = time.monotonic() + seconds
     while time.monotonic() < end and proc.popen.poll() is None:
@@ -133,7 +124,7 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
             for c in ("c1", "c2"):
                 key = fleet.signing_key(c)
                 held = lambda k=key: monitor.holder_since(k, 0) is not None  # noqa: E731
-                _wait(held, 60, f"{c}'s lease", fleet)
+                fleet.wait_for(held, 60, f"{c}'s lease")
             start = [sim.tcp_pose()[:3].copy() for sim in arm_sims]
             # The observers jog both robots along y; only cell1's controller jogs (along x).
             jogging = [threading.Thread(target=_jog_for, args=(o, JOG_Y, 1.5)) for o in observers]
@@ -212,24 +203,24 @@ def test_hand_over_is_fast_loses_no_stimulus_and_moves_the_arm_for_the_new_holde
         monitor = Monitor(fleet, "rec", ["cell1"])
         key_a, key_b = fleet.signing_key("a"), fleet.signing_key("b")
         try:
-            _wait(lambda: monitor.holder_since(key_a, 0) is not None, 60, "a's lease", fleet)
+            fleet.wait_for(lambda: monitor.holder_since(key_a, 0) is not None, 60, "a's lease")
             time.sleep(1.5)  # b's clock synced at the robot (its 2 Hz heartbeats echoed)
             t_req = now_ns()
             b.send({"action": "lease_request"})
             pending = lambda: any(  # noqa: E731
                 t >= t_req and hb.lease_pending == key_b for t, hb in list(monitor.heartbeats)
             )
-            _wait(pending, 5, "b's request to show as pending", fleet)
+            fleet.wait_for(pending, 5, "b's request to show as pending")
             times = []
             t0 = now_ns()
             a.send({"action": "lease_grant", "grantee": key_b.hex()})
-            _wait(lambda: monitor.holder_since(key_b, t0) is not None, 5, "b's lease", fleet)
+            fleet.wait_for(lambda: monitor.holder_since(key_b, t0) is not None, 5, "b's lease")
             times.append((monitor.holder_since(key_b, t0) - t0) / 1e6)
             # and back again, to measure twice
             time.sleep(0.3)
             t0 = now_ns()
             b.send({"action": "lease_grant", "grantee": key_a.hex()})
-            _wait(lambda: monitor.holder_since(key_a, t0) is not None, 5, "a's lease back", fleet)
+            fleet.wait_for(lambda: monitor.holder_since(key_a, t0) is not None, 5, "a's lease back")
             times.append((monitor.holder_since(key_a, t0) - t0) / 1e6)
             assert max(times) < 50, f"hand-over took {times} ms"
             # a holds it again: b's jogs (y) are refused by the robot itself, a's (x) move it
@@ -271,7 +262,7 @@ def test_a_relay_that_lets_an_observer_command_still_cannot_move_the_arm(
         eve = fleet.start_operator("eve", "cell1", request_control=True)
         monitor = Monitor(fleet, "rec", ["cell1"])
         try:
-            _wait(lambda: len(monitor.heartbeats) > 20, 60, "the robot's heartbeats", fleet)
+            fleet.wait_for(lambda: len(monitor.heartbeats) > 20, 60, "the robot's heartbeats")
             start = arm_sim.tcp_pose()[:3].copy()
             jog_eve = threading.Thread(target=_jog_for, args=(eve, JOG_Y, 1.5))
             jog_eve.start()
@@ -306,7 +297,7 @@ def test_the_robot_skips_raw_frames_while_nobody_behind_the_relay_wants_them(tmp
             return hbs[-1].stats.get("frames_unwanted", 0.0) if hbs else 0.0
 
         try:
-            _wait(lambda: unwanted() > 15, 60, "frames skipped for want of a subscriber", fleet)
+            fleet.wait_for(lambda: unwanted() > 15, 60, "frames skipped for want of a subscriber")
             m = fleet.members["rec"]
             security = SecurityConfig(
                 mode="curve",

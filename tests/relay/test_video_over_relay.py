@@ -25,15 +25,6 @@ from robot_side.video.stamp import read_stamp
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 
-def _wait_for(cond, timeout_s: float, what: str, fleet: Fleet) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            logs = "\n".join(f"--- {n}\n{p.log_text()[-3000:]}" for n, p in fleet.procs.items())
-            raise AssertionError(f"timed out waiting for {what}\n{logs}")
-        time.sleep(0.1)
-
-
 async def _watch(page_ws: str, frames: int) -> dict:
     """The page's side: offer over the dashboard's socket, then decode ``frames`` frames."""
     from aiortc import RTCPeerConnection, RTCSessionDescription
@@ -84,12 +75,8 @@ def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leav
             'operator.dashboard.video_url="link"',
         ]
         fleet.start_operator("obs1", "cell1", want_frames=False, extra=dashboard)
-        _wait_for(
-            lambda: "operator node up" in fleet.procs["obs1@cell1"].log_text(),
-            30,
-            "the operator node",
-            fleet,
-        )
+        operator_log = fleet.procs["obs1@cell1"].log_text
+        fleet.wait_for(lambda: "operator node up" in operator_log(), 30, "the operator node")
         time.sleep(1.0)  # the subscriptions cross the relay
         out = asyncio.run(_watch(f"ws://127.0.0.1:{page_port}/ws", frames=30))
         assert "closed" not in out, out
@@ -101,12 +88,8 @@ def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leav
         counters = [c for _, c in out["stamps"]]
         assert len(set(counters)) >= 15
         # The page left: the dashboard said bye through the relay and the camera closed.
-        _wait_for(
-            lambda: "closed (no viewers)" in video.log_text(),
-            15,
-            "the video source to close",
-            fleet,
-        )
+        closed = lambda: "closed (no viewers)" in video.log_text()  # noqa: E731
+        fleet.wait_for(closed, 15, "the video source to close")
         assert "opened for a viewer" in video.log_text()
         fleet.stop("obs1@cell1")
         fleet.stop("cell1")

@@ -53,6 +53,12 @@ def _next(bridge: LinkSignalling, timeout_s: float = 15.0) -> VideoSignal:
     return bridge.outgoing.popleft()
 
 
+def _until(cond, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond() and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
 @pytest.fixture
 def server():
     source = TestPatternSource(TestPatternConfig(width=320, height=240, fps=15))
@@ -60,54 +66,45 @@ def server():
         yield s
 
 
-def test_offer_is_answered_and_a_bye_from_someone_else_changes_nothing(server):
-    bridge = LinkSignalling(server.url)
-    try:
-        bridge.on_signal(_signal("offer", 7, _offer_sdp()), ALICE)
-        answer = _next(bridge)
-        assert answer.kind == "answer" and answer.viewer == 7
-        assert "m=video" in answer.sdp
-        assert (answer.width, answer.height, answer.source) == (320, 240, "test_pattern")
-        bridge.on_signal(_signal("bye", 7), BOB)  # not Bob's session to end
-        time.sleep(0.3)
-        assert bridge.sessions == 1 and server.viewers == 1
-        bridge.on_signal(_signal("bye", 7), ALICE)
-        deadline = time.monotonic() + 5
-        while server.viewers and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert server.viewers == 0 and bridge.sessions == 0
-    finally:
-        bridge.close()
+@pytest.fixture
+def bridge(server):
+    b = LinkSignalling(server.url)
+    yield b
+    b.close()
 
 
-def test_a_viewer_beyond_the_servers_limit_is_told_why(server):
-    bridge = LinkSignalling(server.url)
-    try:
-        bridge.on_signal(_signal("offer", 1, _offer_sdp()), ALICE)
-        assert _next(bridge).kind == "answer"
-        bridge.on_signal(_signal("offer", 2, _offer_sdp()), BOB)
-        refused = _next(bridge)
-        assert refused.kind == "closed" and refused.viewer == 2
-        assert "at most 1 viewers" in refused.reason
-    finally:
-        bridge.close()
+def test_offer_is_answered_and_a_bye_from_someone_else_changes_nothing(server, bridge):
+    bridge.on_signal(_signal("offer", 7, _offer_sdp()), ALICE)
+    answer = _next(bridge)
+    assert answer.kind == "answer" and answer.viewer == 7
+    assert "m=video" in answer.sdp
+    assert (answer.width, answer.height, answer.source) == (320, 240, "test_pattern")
+    bridge.on_signal(_signal("bye", 7), BOB)  # not Bob's session to end
+    time.sleep(0.3)
+    assert bridge.sessions == 1 and server.viewers == 1
+    bridge.on_signal(_signal("bye", 7), ALICE)
+    _until(lambda: server.viewers == 0)
+    assert server.viewers == 0 and bridge.sessions == 0
 
 
-def test_a_quiet_viewer_loses_its_session(server):
-    bridge = LinkSignalling(server.url)
-    try:
-        bridge.on_signal(_signal("offer", 3, _offer_sdp()), ALICE)
-        assert _next(bridge).kind == "answer"
-        bridge.expire(lambda signer: signer != ALICE)
-        closed = _next(bridge)
-        assert closed.kind == "closed" and closed.reason == "the viewer went quiet"
-        deadline = time.monotonic() + 5
-        while server.viewers and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert server.viewers == 0
-        assert bridge.counters["video_sessions_expired"] == 1
-    finally:
-        bridge.close()
+def test_a_viewer_beyond_the_servers_limit_is_told_why(server, bridge):
+    bridge.on_signal(_signal("offer", 1, _offer_sdp()), ALICE)
+    assert _next(bridge).kind == "answer"
+    bridge.on_signal(_signal("offer", 2, _offer_sdp()), BOB)
+    refused = _next(bridge)
+    assert refused.kind == "closed" and refused.viewer == 2
+    assert "at most 1 viewers" in refused.reason
+
+
+def test_a_quiet_viewer_loses_its_session(server, bridge):
+    bridge.on_signal(_signal("offer", 3, _offer_sdp()), ALICE)
+    assert _next(bridge).kind == "answer"
+    bridge.expire(lambda signer: signer != ALICE)
+    closed = _next(bridge)
+    assert closed.kind == "closed" and closed.reason == "the viewer went quiet"
+    _until(lambda: server.viewers == 0)
+    assert server.viewers == 0
+    assert bridge.counters["video_sessions_expired"] == 1
 
 
 def test_no_video_server_is_a_closed_session_with_the_address():
