@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import json
 import logging
 import signal
@@ -22,9 +23,11 @@ from typing import Any
 
 from common.cli_support import add_overrides_argument, stop_on_signals
 from common.config import config_toml, from_dict
+from common.errors import ConfigError
 from common.transport import free_loopback_ports
 from deploy import live_view
 from deploy.scene import Scene, load_scene_dict
+from operator_side.dashboard.config import VIDEO_OVER_LINK
 from operator_side.node import build_operator_node
 
 log = logging.getLogger(__name__)
@@ -52,6 +55,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--dashboard", action="store_true", help="serve the live web dashboard (URL shown)"
+    )
+    parser.add_argument(
+        "--no-video",
+        action="store_true",
+        help="no camera in the dashboard (default: the lab's camera, or the test pattern, "
+        "when the video extra is installed)",
     )
     add_overrides_argument(parser, "robot.render.mode=direct")
 
@@ -146,6 +155,69 @@ def fit_command_timing(scene: Scene) -> None:
     )
 
 
+LAB_DEVICES = ("tactile", "gripper", "arm")
+WORLD_START_S = 60.0
+
+
+def start_lab_world(scene: Scene, workdir: Path) -> tuple[subprocess.Popen, Path] | None:
+    """The simulated lab as its own process, when the scene's devices live in one.
+
+    Its addresses file then points the robot's lab devices (``running_world``)
+    and the video server's lab camera at it. None when no device is a lab
+    kind, or one already names a running world.
+    """
+    sections = [getattr(scene.robot, d) for d in LAB_DEVICES]
+    lab = [s for s in sections if s.get("kind") == "lab"]
+    if not lab or any(s.get("running_world") for s in lab):
+        return None
+    configs = {str(s["world_config"]) for s in lab if s.get("world_config")}
+    if len(configs) > 1:
+        raise ConfigError(f"the scene's lab devices name different worlds: {sorted(configs)}")
+    addresses = workdir / "world.json"
+    args = [sys.executable, "-m", "robot_side.lab", "--addresses-file", str(addresses)]
+    if configs:
+        args += ["--config", configs.pop()]
+    log_path = workdir / "world.log"
+    proc = subprocess.Popen(
+        args,
+        stdout=subprocess.DEVNULL,
+        stderr=log_path.open("wb"),
+        start_new_session=True,
+        preexec_fn=die_with_parent,
+    )
+    deadline = time.monotonic() + WORLD_START_S
+    while not addresses.exists():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            tail = log_path.read_text(errors="replace").strip().splitlines()[-5:]
+            raise ConfigError(f"the lab world did not start: {' | '.join(tail)}")
+        time.sleep(0.1)
+    for section in lab:
+        section["running_world"] = str(addresses)
+    return proc, addresses
+
+
+def video_wanted(args: argparse.Namespace, scene: Scene) -> bool:
+    """A camera for the dashboard: when there is a dashboard and the video extra is here."""
+    if args.no_video or not (args.dashboard or scene.operator.dashboard.enabled):
+        return False
+    if importlib.util.find_spec("aiortc") is None:
+        log.info("no video in the dashboard: the video extra (aiortc) is not installed")
+        return False
+    return True
+
+
+def video_args(world_addresses: Path | None) -> tuple[list[str], str]:
+    """``deepxpalm video`` on a free loopback port: the lab's camera, or the test pattern."""
+    port = free_loopback_ports(1)[0]
+    settings = [f"port={port}"]
+    if world_addresses is not None:
+        settings += ['source="lab"', f'lab.addresses_file="{world_addresses}"']
+    else:
+        settings += ["test_pattern.width=320", "test_pattern.height=240", "test_pattern.fps=15"]
+    return ["video", *(a for s in settings for a in ("--set", s))], f"ws://127.0.0.1:{port}/"
+
+
 def run(args: argparse.Namespace) -> int:
     data = load_scene_dict(args.scene, args.overrides)
     scene: Scene = from_dict(Scene, data, where="")
@@ -162,11 +234,19 @@ def run(args: argparse.Namespace) -> int:
         fit_command_timing(scene)
     if args.curve:
         _use_fresh_curve_keys(scene, workdir / "keys")
+    procs: list[tuple[str, subprocess.Popen, Path]] = []
+    world = start_lab_world(scene, workdir)
+    if world is not None:
+        procs.append(("world", world[0], workdir / "world.log"))
+    video = None
+    if video_wanted(args, scene):
+        video, video_url = video_args(world[1] if world is not None else None)
+        scene.robot.link.video_url = video_url  # offers reach it through the robot's link
+        scene.operator.dashboard.video_url = VIDEO_OVER_LINK
     robot_cfg = workdir / "robot.toml"
     robot_cfg.write_text(config_toml(scene.robot, "robot"))
     errors: list[str] = []
     stop = stop_on_signals()
-    procs: list[tuple[str, subprocess.Popen, Path]] = []
     robot_stats_path = workdir / "robot-stats.json"
     netsim_stats_path = workdir / "netsim-stats.json"
     verbosity = ["-v"] if logging.getLogger().level <= logging.INFO else []
@@ -203,6 +283,9 @@ def run(args: argparse.Namespace) -> int:
                 workdir / "netsim.log",
             )
         )
+    if video is not None:
+        video_log = workdir / "video.log"  # -v: it says when the camera opens and closes
+        procs.append(("video", spawn_cli(["-v", *video], video_log), video_log))
     recorder = None
     if args.record:
         from common.mcap_recorder import node_recorder

@@ -14,7 +14,7 @@ import sys
 import threading
 from pathlib import Path
 
-from common.config import from_dict
+from common.config import from_dict, load_toml
 from robot_side.lab.config import LabWorldConfig
 
 
@@ -22,6 +22,9 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m robot_side.lab", description=__doc__)
     ap.add_argument("--stdio", action="store_true", help="take requests as JSON lines on stdin")
     ap.add_argument("--config-json", help="the whole LabWorldConfig as JSON")
+    ap.add_argument(
+        "--config", type=Path, help="a LabWorldConfig TOML file (a scene's world_config)"
+    )
     ap.add_argument("--log-level", type=int, default=logging.INFO)
     ap.add_argument(
         "--addresses-file",
@@ -32,11 +35,12 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(
         level=args.log_level, format="%(asctime)s lab %(name)s: %(message)s", stream=sys.stderr
     )
-    config = (
-        from_dict(LabWorldConfig, json.loads(args.config_json), where="world")
-        if args.config_json
-        else LabWorldConfig()
-    )
+    if args.config_json:
+        config = from_dict(LabWorldConfig, json.loads(args.config_json), where="world")
+    elif args.config is not None:
+        config = from_dict(LabWorldConfig, load_toml(args.config), where=str(args.config))
+    else:
+        config = LabWorldConfig()
     from robot_side.lab.server import LabServer
 
     try:
@@ -50,8 +54,10 @@ def main(argv: list[str] | None = None) -> None:
 
         serve_stdio(server, sys.stdin, sys.stdout)
         return
-    if args.addresses_file is not None:
-        args.addresses_file.write_text(json.dumps(server.addresses()))
+    if args.addresses_file is not None:  # whole or not at all: a reader polls for it
+        partial = args.addresses_file.with_suffix(".partial")
+        partial.write_text(json.dumps(server.addresses()))
+        partial.replace(args.addresses_file)
     done = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: done.set())
     signal.signal(signal.SIGTERM, lambda *_: done.set())

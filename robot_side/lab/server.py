@@ -16,6 +16,7 @@ import logging
 import math
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,7 @@ from common.tactile import N_GRIP_LEVELS
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.gripper.base import GripLevels
 from robot_side.gripper.sim import GripperModelConfig, GripperSimConfig, GripperSimServer
+from robot_side.lab.camera_server import CameraServer
 from robot_side.lab.config import LabWorldConfig, PipetteConfig
 from robot_side.lab.model import TCP_OFFSET
 from robot_side.lab.world import LabWorld
@@ -98,6 +100,9 @@ class LabServer:
             TactileBoardSimConfig(seed=cfg.seed),
             source=WorldContact(self.world, self.gripper, GripLevels()),
         )
+        # every image is rendered on this one thread: a GL context is current on one at a time
+        self._render_thread = ThreadPoolExecutor(1, thread_name_prefix="lab-render")
+        self.cameras = CameraServer(self.render)
         self._quit = threading.Event()
         self._thread: threading.Thread | None = None
         self.protective_stops: list[str] = []
@@ -108,6 +113,7 @@ class LabServer:
         self.ursim.start()
         self.gripper.start()
         self.board.start()
+        self.cameras.start()
         self._quit.clear()
         self._thread = threading.Thread(target=self._run, name="lab-physics", daemon=True)
         self._thread.start()
@@ -117,10 +123,12 @@ class LabServer:
         self._quit.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+        self.cameras.stop()
         self.board.stop()
         self.gripper.stop()
         self.ursim.stop()
-        self.world.close()
+        self._render_thread.submit(self.world.close).result(timeout=5.0)
+        self._render_thread.shutdown()
 
     def addresses(self) -> dict[str, Any]:
         cal = self.board.calibration
@@ -129,6 +137,7 @@ class LabServer:
             "gripper_host": self.gripper.host,
             "gripper_port": self.gripper.port,
             "tactile_port": self.board.port,
+            "camera_port": self.cameras.port,
             "tactile_zero": cal.zero_counts.tolist(),
             "tactile_gain": cal.gain_n_per_count.tolist(),
         }
@@ -225,9 +234,13 @@ class LabServer:
     def tcp_pose(self) -> list:
         return self.ursim.tcp_pose().tolist()
 
+    def render(self, camera: str, width: int, height: int) -> Future:
+        """An image of ``camera`` rendered now, on the render thread."""
+        return self._render_thread.submit(self.world.render, camera, int(width), int(height))
+
     def camera_frame(self, camera: str = "overview", width: int = 320, height: int = 240) -> dict:
         t0 = time.perf_counter()
-        image = self.world.render(camera, int(width), int(height))
+        image = self.render(camera, width, height).result(timeout=30.0)
         return {
             "width": image.shape[1],
             "height": image.shape[0],

@@ -28,6 +28,7 @@ from typing import Any
 from common.config import param
 from common.errors import ConfigError
 from common.ice import IceConfig
+from robot_side.video.lab_camera import LabCameraConfig, LabCameraSource
 from robot_side.video.source import VideoSource
 from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 from robot_side.video.v4l2 import V4L2Config, V4L2Source
@@ -44,13 +45,16 @@ class VideoConfig:
         "127.0.0.1", "signalling address; the operator's dashboard connects here (tunnel or VPN)"
     )
     port: int = param(8890, "signalling WebSocket port (media uses UDP ports ICE picks)")
-    source: str = param("test_pattern", "which camera: test_pattern, v4l2, or a registered kind")
+    source: str = param(
+        "test_pattern", "which camera: test_pattern, v4l2, lab (a simulated one), or one registered"
+    )
     max_viewers: int = param(4, "peer connections at once; each costs an encoder")
     ice: IceConfig = param(
         IceConfig(), "STUN/TURN servers; the operator's dashboard needs the same"
     )
     test_pattern: TestPatternConfig = param(TestPatternConfig(), "the stamped test picture")
     v4l2: V4L2Config = param(V4L2Config(), "a USB camera on the robot PC")
+    lab: LabCameraConfig = param(LabCameraConfig(), "a camera of a running simulated lab")
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
@@ -63,6 +67,7 @@ class VideoConfig:
 SOURCE_KINDS: dict[str, Callable[[VideoConfig], VideoSource]] = {
     "test_pattern": lambda c: TestPatternSource(c.test_pattern),
     "v4l2": lambda c: V4L2Source(c.v4l2),
+    "lab": lambda c: LabCameraSource(c.lab),
 }
 
 

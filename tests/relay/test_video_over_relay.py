@@ -11,50 +11,18 @@ from the video server's own log.
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 
 import pytest
 
 pytest.importorskip("aiortc")
 
+from video_page import watch_video
+
 from common.transport import free_loopback_ports
 from deploy.fleet import Fleet
-from robot_side.video.stamp import read_stamp
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
-
-
-async def _watch(page_ws: str, frames: int) -> dict:
-    """The page's side: offer over the dashboard's socket, then decode ``frames`` frames."""
-    from aiortc import RTCPeerConnection, RTCSessionDescription
-    from websockets.asyncio.client import connect
-
-    pc = RTCPeerConnection()
-    pc.addTransceiver("video", direction="recvonly")
-    track_future: asyncio.Future = asyncio.get_running_loop().create_future()
-    pc.on("track", lambda track: track_future.done() or track_future.set_result(track))
-    await pc.setLocalDescription(await pc.createOffer())
-    stamps = []
-    try:
-        async with connect(page_ws, max_size=2**22) as ws:
-            await ws.send(json.dumps({"type": "video_offer", "sdp": pc.localDescription.sdp}))
-            while True:
-                msg = json.loads(await asyncio.wait_for(ws.recv(), 20))
-                if msg["type"] in ("video_answer", "video_closed"):
-                    break
-            if msg["type"] == "video_closed":
-                return {"closed": msg["reason"]}
-            await pc.setRemoteDescription(RTCSessionDescription(msg["sdp"], "answer"))
-            track = await asyncio.wait_for(track_future, 20)
-            for _ in range(frames):
-                frame = await asyncio.wait_for(track.recv(), 20)
-                stamp = read_stamp(frame.to_ndarray(format="rgb24"))
-                if stamp is not None:
-                    stamps.append(stamp)
-        return {"answer": msg, "stamps": stamps}
-    finally:
-        await pc.close()
 
 
 def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leaves(
@@ -78,7 +46,7 @@ def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leav
         operator_log = fleet.procs["obs1@cell1"].log_text
         fleet.wait_for(lambda: "operator node up" in operator_log(), 30, "the operator node")
         time.sleep(1.0)  # the subscriptions cross the relay
-        out = asyncio.run(_watch(f"ws://127.0.0.1:{page_port}/ws", frames=30))
+        out = asyncio.run(watch_video(f"ws://127.0.0.1:{page_port}/ws", frames=30))
         assert "closed" not in out, out
         answer = out["answer"]
         assert (answer["width"], answer["height"]) == (320, 240)

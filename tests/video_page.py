@@ -1,0 +1,51 @@
+"""The dashboard page's side of a video session, in Python: what a browser does.
+
+aiortc sends a ``video_offer`` over the dashboard's WebSocket, as
+``video.js`` does, takes the ``video_answer`` and decodes frames from the
+track; a stamped frame's capture time is read back.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+from robot_side.video.stamp import read_stamp
+
+
+async def watch_video(page_ws: str, frames: int) -> dict:
+    """Offer over the dashboard's socket, then decode ``frames`` frames.
+
+    Returns ``{"answer": ..., "stamps": [...], "frames": [rgb, ...]}``, or
+    ``{"closed": reason}`` when the dashboard says the video closed.
+    """
+    from aiortc import RTCConfiguration, RTCPeerConnection, RTCSessionDescription
+    from websockets.asyncio.client import connect
+
+    pc = RTCPeerConnection(RTCConfiguration(iceServers=[]))  # as the page: host candidates
+    pc.addTransceiver("video", direction="recvonly")
+    track_future: asyncio.Future = asyncio.get_running_loop().create_future()
+    pc.on("track", lambda track: track_future.done() or track_future.set_result(track))
+    await pc.setLocalDescription(await pc.createOffer())
+    stamps, images = [], []
+    try:
+        async with connect(page_ws, max_size=2**22) as ws:
+            await ws.send(json.dumps({"type": "video_offer", "sdp": pc.localDescription.sdp}))
+            while True:
+                msg = json.loads(await asyncio.wait_for(ws.recv(), 20))
+                if msg["type"] in ("video_answer", "video_closed"):
+                    break
+            if msg["type"] == "video_closed":
+                return {"closed": msg["reason"]}
+            await pc.setRemoteDescription(RTCSessionDescription(msg["sdp"], "answer"))
+            track = await asyncio.wait_for(track_future, 20)
+            for _ in range(frames):
+                frame = await asyncio.wait_for(track.recv(), 30)
+                rgb = frame.to_ndarray(format="rgb24")
+                images.append(rgb)
+                stamp = read_stamp(rgb)
+                if stamp is not None:
+                    stamps.append(stamp)
+        return {"answer": msg, "stamps": stamps, "frames": images}
+    finally:
+        await pc.close()
