@@ -41,6 +41,7 @@ from deploy.doctor.node_config import check_config, infer_role, node_section
 from deploy.doctor.relay import check_relay_from_node, diagnose_relay
 from deploy.doctor.report import ROLES, DoctorOptions, Report
 from deploy.doctor.system import check_governor, check_realtime, check_service_user
+from deploy.doctor.video import check_video
 
 
 def diagnose(
@@ -75,6 +76,8 @@ def diagnose(
         report.add("devices", SKIP, "the robot node owns them")
     else:
         check_devices(report, role, config, options)
+    if role == "robot":
+        check_video(report, config, options)
     if role == "operator" and not config.link.robot_name:
         if keys_failed:
             report.add("peer robot", SKIP, "not checked: the keys above fail")

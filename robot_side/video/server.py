@@ -229,11 +229,16 @@ class VideoServer:
         if self.viewers >= self.config.max_viewers:
             await conn.close(1013, f"at most {self.config.max_viewers} viewers")
             return
+        from websockets.exceptions import ConnectionClosed
+
         try:
             offer = json.loads(await asyncio.wait_for(conn.recv(), OFFER_TIMEOUT_S))
             sdp = offer["sdp"]
             if offer.get("type") != "offer" or not isinstance(sdp, str):
                 raise ValueError("expected {type: offer, sdp}")
+        except ConnectionClosed:
+            log.debug("video: a connection closed before offering (a probe, or a page gone)")
+            return
         except (TimeoutError, ValueError, KeyError, TypeError) as e:
             await conn.close(1008, f"bad offer: {e}"[:120])
             return

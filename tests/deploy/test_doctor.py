@@ -367,3 +367,22 @@ def test_doctor_reports_a_kinds_own_preflight_findings(monkeypatch):
     check = diagnose("robot", data, "t", NO_PEER).find("device robot.gripper")
     assert (check.status, check.detail) == (WARN, "the gripper's LED blinks red")
     assert check.fix == "press reset (robot.gripper)"
+
+
+# ----------------------------------------------------------------- video
+def test_the_robots_video_server_is_checked_where_viewers_will_reach_it():
+    pytest.importorskip("aiortc")
+    from robot_side.video.server import VideoConfig, VideoServer
+    from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
+
+    tel, cmd, dead = free_ports(3)
+    robot = _light_robot(tel, cmd)
+    robot["link"]["video_url"] = f"ws://127.0.0.1:{dead}/"
+    check = diagnose("robot", robot, "t", NO_PEER).find("video server")
+    assert check.status == FAIL and f"127.0.0.1:{dead}" in check.detail
+    assert "deepxpalm video" in check.fix
+    source = TestPatternSource(TestPatternConfig(width=320, height=240))
+    with VideoServer(source, VideoConfig(port=0)) as server:
+        robot["link"]["video_url"] = server.url
+        assert diagnose("robot", robot, "t", NO_PEER).find("video server").status == PASS
+        assert server.frames_encoded == 0  # a knock on the door, no viewer: nothing encoded
