@@ -42,7 +42,9 @@ OFFER_TIMEOUT_S = 10.0
 @dataclass
 class VideoConfig:
     host: str = param(
-        "127.0.0.1", "signalling address; the operator's dashboard connects here (tunnel or VPN)"
+        "127.0.0.1",
+        "signalling address: loopback, where the robot node carries viewers' offers "
+        "(its link.video_url); another only for dashboards connecting straight here",
     )
     port: int = param(8890, "signalling WebSocket port (media uses UDP ports ICE picks)")
     source: str = param(

@@ -209,3 +209,30 @@ def test_the_relay_unit_passes_systemd_analyze_verify(tmp_path):
         timeout=60,
     )
     assert out.returncode == 0 and out.stderr.strip() == "", out.stderr
+
+
+def test_the_video_unit_starts_a_video_server_the_cli_accepts(tmp_path):
+    unit = _parse(_unit("video"))
+    assert _get(unit, "Service", "User") == ["deepxpalm"]
+    assert _get(unit, "Service", "SupplementaryGroups") == ["video"]  # /dev/video*
+    assert _get(unit, "Install", "WantedBy") == ["multi-user.target"]
+    (exec_start,) = _get(unit, "Service", "ExecStart")
+    argv = shlex.split(exec_start)
+    assert argv[0] == INSTALLED and "/etc/deepxpalm/video.toml" in argv
+    out = _print_config("video", argv, tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert 'host = "127.0.0.1"' in out.stdout and 'source = "v4l2"' in out.stdout
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="no systemd-analyze here")
+def test_the_video_unit_passes_systemd_analyze_verify(tmp_path):
+    text = _unit("video").read_text().replace(INSTALLED, _deepxpalm_here())
+    copy = tmp_path / _unit("video").name
+    copy.write_text(text)
+    out = subprocess.run(
+        ["systemd-analyze", "verify", "--man=no", str(copy)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0 and out.stderr.strip() == "", out.stderr
