@@ -240,12 +240,14 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("grip_level", _int_range(1, N_GRIP_LEVELS), False),
         ("keyframe", _bool, False),
         ("sim_truth_pattern", _int_range(0, N_PATTERNS - 1), False),
+        ("signer", _KEY, False),
     ],
     TactileFrame: [
         *_COMMON,
         ("t_capture_ns", _uint, True),
         ("frame_seq", _uint, True),
         ("frame", _f32_array(FRAME_SHAPE, 0.0, SATURATION_N), True),
+        ("signer", _KEY, False),
     ],
     Heartbeat: [
         *_COMMON,

@@ -61,6 +61,8 @@ class Stimulus:
     keyframe: bool = False  # resent unchanged so a lost change cannot persist
     sim_truth_pattern: int | None = None  # simulation only: the pattern actually shown
 
+    signer: bytes | None = None  # robot: its Ed25519 public key (a signed stream)
+
     TOPIC = b"STIM"
     TYPE = "stimulus"
 
@@ -74,6 +76,8 @@ class TactileFrame:
     t_capture_ns: int
     frame_seq: int
     frame: np.ndarray  # (2, 10, 10) float32 newtons, common view
+
+    signer: bytes | None = None  # robot: its Ed25519 public key (a signed stream)
 
     TOPIC = b"FRAM"
     TYPE = "frame"
@@ -112,7 +116,7 @@ class Heartbeat:
     stimulus_seq: int | None = None  # robot: the stimulus that is still current
     t_capture_ns: int | None = None  # robot: newest frame that confirmed it
     stats: dict[str, float] = field(default_factory=dict)
-    signer: bytes | None = None  # operator: its Ed25519 public key (signed messages)
+    signer: bytes | None = None  # the sender's Ed25519 public key (signed messages)
     echo_signer: bytes | None = None  # robot: whose heartbeat the echo fields answer
     controller: bytes | None = None  # robot: the key holding the control lease
     lease_pending: bytes | None = None  # robot: a key asking for the lease
@@ -158,7 +162,7 @@ class VideoSignal:
     width: int | None = None  # answer
     height: int | None = None  # answer
     fps: float | None = None  # answer
-    signer: bytes | None = None  # operator: its Ed25519 public key (signed messages)
+    signer: bytes | None = None  # the sender's Ed25519 public key (signed messages)
 
     TOPIC = b"VSIG"
     TYPE = "video_signal"

@@ -51,6 +51,7 @@ telemetry_endpoint = "{tel}"
 command_endpoint = "{cmd}"
 frame_display_rate_hz = {frames}
 video_url = "{video_url}"
+signing_key_file = "{signing}"
 [robot.link.security]
 mode = "curve"
 secret_key_file = "{secret}"
@@ -64,6 +65,7 @@ kind = "recording"
 [operator.link]
 robot_name = "{robot}"
 signing_key_file = "{signing}"
+robot_key_file = "{robot_key}"
 telemetry_endpoint = "{tel}"
 command_endpoint = "{cmd}"
 want_frames = {frames}
@@ -139,9 +141,10 @@ class Fleet:
         keys = self.workdir / "keys"
         pub, sec = generate(keys, "relay")
         self.members["relay"] = Member("relay", "relay", pub, sec)
-        for name in self.robots:
+        for name in self.robots:  # a robot signs its stream: a relay cannot forge a palm
             pub, sec = generate(keys, f"robot-{name}")
-            self.members[name] = Member(name, "robot", pub, sec)
+            spub, ssec = generate_key_files(keys, f"robot-{name}")
+            self.members[name] = Member(name, "robot", pub, sec, ssec, load_public_key(spub))
         everyone = {**(self.relay_roles or {}), **self.operators}
         for name, role in everyone.items():
             pub, sec = generate(keys, name)
@@ -250,6 +253,7 @@ class Fleet:
                 secret=self.members[name].curve_secret,
                 relay_public=self.members["relay"].curve_public,
                 video_url=video_url,
+                signing=self.members[name].signing_secret,
             )
         )
         return config
@@ -284,6 +288,7 @@ class Fleet:
             _OPERATOR_TOML.format(
                 robot=robot,
                 signing=m.signing_secret,
+                robot_key=self.workdir / "keys" / f"robot-{robot}.sign",
                 tel=self.ops_telemetry,
                 cmd=self.ops_command,
                 frames=str(want_frames).lower(),

@@ -43,6 +43,11 @@ class OperatorLinkConfig:
         "our Ed25519 key (NAME.sign_secret from `deepxpalm keys generate-signing`): every "
         "command and heartbeat is signed, as a robot with a roster requires",
     )
+    robot_key_file: Path | None = param(
+        None,
+        "the robot's public signing key (its NAME.sign): telemetry not signed by it is "
+        "dropped (a relay cannot forge what the palm feels); unset = unsigned telemetry accepted",
+    )
     want_frames: bool = param(
         True, "subscribe to raw frames (heatmaps); false = the robot skips them if nobody wants"
     )

@@ -31,6 +31,7 @@ from common.codec import DecodeError, check_robot_name, encode, name_prefix
 from common.devices import build_device
 from common.errors import ConfigError
 from common.link_stats import LinkStats
+from common.logs import BurstLog
 from common.messages import (
     SESSION_LOW_MASK,
     Command,
@@ -155,12 +156,19 @@ class OperatorNode:
             from common.signing import load_signer  # cryptography only when signing
 
             self.signer = load_signer(link_cfg.signing_key_file)
+        #: the robot's public key: telemetry signed by anyone else (or unsigned) is dropped
+        self.robot_key: bytes | None = None
+        if link_cfg.robot_key_file is not None:
+            from common.signing import load_public_key
+
+            self.robot_key = load_public_key(link_cfg.robot_key_file)
         #: the key holding the robot's control lease, as its newest heartbeat says
         self.lease_holder: bytes | None = None
         #: the key waiting for the lease, as the robot's newest heartbeat says
         self.lease_pending: bytes | None = None
         self._hb_turn = 0
         self._next_lease_request_ns = 0
+        self._forged_log = BurstLog(log, "telemetry dropped: not signed by the robot's key")
 
     def _use_calibration(self, calibration: LinkGlideCalibration) -> None:
         self.calibration = calibration
@@ -332,7 +340,14 @@ class OperatorNode:
     def receive(self) -> bool:
         """Drain the socket; True when a new stimulus arrived."""
         new = False
+        robot_key = self.robot_key
         for msg, t_recv in self.sub.drain():
+            if robot_key is not None and msg.signer != robot_key:
+                # not from our robot: a relay (or anyone on the path) cannot make the palm move
+                what = "telemetry_unsigned" if msg.signer is None else "telemetry_forged"
+                self.counters[what] += 1
+                self._forged_log(f"{type(msg).__name__}: {what}")
+                continue
             self._last_rx_ns = t_recv
             if isinstance(msg, Stimulus):
                 new |= self._on_stimulus(msg, t_recv)

@@ -96,6 +96,12 @@ class RobotLinkConfig:
     lease_request_timeout_ms: float = param(
         2000.0, "a lease request the holder neither grants nor answers lapses after this"
     )
+    signing_key_file: Path | None = param(
+        None,
+        "our Ed25519 key (NAME.sign_secret, `deepxpalm keys generate-signing`): everything we "
+        "send is signed, and operators holding our public key drop telemetry that is not, so "
+        "a relay cannot forge what a palm feels; unset = unsigned",
+    )
     video_url: str = param(
         "",
         "the video server on this PC (deepxpalm video, e.g. ws://127.0.0.1:8890/): viewers' "

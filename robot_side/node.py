@@ -137,6 +137,12 @@ class RobotNode:
                 "robot link.mode = 'relay' needs link.roster_file: through a relay only "
                 "signed commands from the lease holder may move the arm (docs/security.md)"
             )
+        #: signs everything we send when set: operators holding our key drop what is not ours
+        self.signer = None
+        if config.link.signing_key_file is not None:
+            from common.signing import load_signer  # cryptography only when signing
+
+            self.signer = load_signer(config.link.signing_key_file)
         #: viewers' WebRTC signalling, carried to the local video server (None: no video here)
         self.video: LinkSignalling | None = None
         if config.link.video_url:
@@ -210,6 +216,7 @@ class RobotNode:
                 bind=bind,
                 sock_opts=opts,
                 name=name,
+                signer=self.signer,
                 watch_subscriptions=not bind,  # the relay tells us what anyone subscribed to
             )
             stack.callback(self.pub.close)

@@ -68,7 +68,13 @@ STAGES: dict[str, str] = {
     "(step_goals), as the node calls them",
     "servo_packet": "limits check + the goal sync-write packet of 6 servos (SyncWritePacket, "
     "the bytes of scservo_sdk's GroupSyncWrite)",
+    "encode_signed": "instead of encode, with the robot's link.signing_key_file: the built "
+    "Stimulus packed and signed (Ed25519, cryptography); timed beside the node's path",
+    "decode_verified": "instead of decode, with the operator's link.robot_key_file: the "
+    "signed bytes decoded and their signature verified; timed beside the node's path",
 }
+#: stages that replace encode and decode when the robot signs its stream: not in the sum
+SIGNED_STAGES = ("encode_signed", "decode_verified")
 #: the plain path's stages, which the compiled frame step replaces
 PLAIN_STAGES = ("sanitize_contact", "classification", "render")
 
@@ -130,6 +136,9 @@ def stage_budget(
     from robot_side.node import compiled_step_for
 
     step = compiled_step_for(classifier, cfg.render)
+    from common.signing import Signer
+
+    signer = Signer.generate()
     times: dict[str, list[int]] = {name: [] for name in STAGES}
     total: list[int] = []  # frames through the node's path
     total_plain: list[int] = []  # frames through the plain path, when the node compiles
@@ -170,19 +179,18 @@ def stage_budget(
                 t4 = clock()
                 cells = render_cells(frame, pattern, method=method, order=order)
                 t5 = clock()
-            wire = encode(
-                Stimulus(
-                    seq=i + warm + 1,
-                    t_send_ns=now_ns(),
-                    t_capture_ns=sample.t_capture_ns,
-                    frame_seq=sample.seq,
-                    mode="mask",
-                    contact=contact,
-                    stimulus=np.array(cells, np.float32).reshape(3, 3),
-                    pattern=pattern,
-                    confidence=confidence,
-                )
+            stimulus = Stimulus(
+                seq=i + warm + 1,
+                t_send_ns=now_ns(),
+                t_capture_ns=sample.t_capture_ns,
+                frame_seq=sample.seq,
+                mode="mask",
+                contact=contact,
+                stimulus=np.array(cells, np.float32).reshape(3, 3),
+                pattern=pattern,
+                confidence=confidence,
             )
+            wire = encode(stimulus)  # encode: building the message and packing it
             t6 = clock()
             pub.send(wire)
             got = _recv(sub)
@@ -197,6 +205,11 @@ def stage_budget(
             builder.build(dict(zip(ids, nxt, strict=True)))  # as OperatorNode._write
             t11 = clock()
             current = renderer.retract_goals if i % 2 else nxt  # keep the steps non-trivial
+            t12 = clock()  # a signed stream's two stages, off the timed path
+            signed = encode(stimulus, b"", signer)
+            t13 = clock()
+            decode(signed)
+            t14 = clock()
             if rate is not None:
                 rate.sleep()
             if i < 0:
@@ -210,6 +223,8 @@ def stage_budget(
                 "ik_3_linkages": t9 - t8,
                 "counts_rate_limit": t10 - t9,
                 "servo_packet": t11 - t10,
+                "encode_signed": t13 - t12,
+                "decode_verified": t14 - t13,
             }
             if compiled:
                 spans["frame_step"] = t5 - t2
@@ -225,7 +240,9 @@ def stage_budget(
     stages = {name: summarize_ns(times[name]).as_dict() for name in STAGES if times[name]}
     for name in stages:
         stages[name]["what"] = STAGES[name]
-    node_path = [k for k in stages if step is None or k not in PLAIN_STAGES]
+    node_path = [
+        k for k in stages if (step is None or k not in PLAIN_STAGES) and k not in SIGNED_STAGES
+    ]
     transit = transit_times(max(200, n // 4)) if rate is None else None
     return {
         "frames": n,

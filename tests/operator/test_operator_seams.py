@@ -108,3 +108,39 @@ def test_a_gripper_command_never_confirmed_is_counted_after_its_resends() -> Non
     sent = [m for m in link.messages if isinstance(m, Command)]
     assert len(sent) == 1 + node.config.link.gripper_resends
     assert node.counters["gripper_unconfirmed"] == 1
+
+
+def test_with_the_robots_key_only_its_signed_telemetry_reaches_the_palm(tmp_path) -> None:
+    from common.codec import SignatureError, decode, encode
+    from common.signing import Signer, generate_key_files, load_signer
+
+    public, secret = generate_key_files(tmp_path, "cell1")
+    robot, relay = load_signer(secret), Signer.generate()  # the relay holds no robot key
+    clock = VirtualClock()
+    link = CaptureLink()
+    bus = RecordingServoBus()
+    bus.connect()
+    config = OperatorConfig()
+    config.link.robot_key_file = public
+    node = OperatorNode(config, bus, now=clock, link=link)
+    period = round(1e9 / node.config.renderer.control_rate_hz)
+    # forged on the path: validly signed, by the wrong key; and unsigned
+    link.deliver(decode(encode(_stimulus(1, clock()), b"cell1", relay)), clock())
+    link.deliver(_stimulus(2, clock()), clock())
+    assert not node.receive()
+    assert node.counters["telemetry_forged"] == 1 and node.counters["telemetry_unsigned"] == 1
+    node.control_step(clock(), period)
+    assert node.last_stimulus is None
+    assert node.written_goals in (None, node.renderer.retract_goals)  # the palm stays free
+    # the robot's own
+    wire = encode(_stimulus(3, clock()), b"cell1", robot)
+    link.deliver(decode(wire), clock())
+    assert node.receive() and node.last_stimulus.seq == 3
+    node.control_step(clock(), period)
+    assert node.written_goals != node.renderer.retract_goals
+    # and its bytes cannot be altered on the way: the stimulus cells are signed too
+    tampered = bytearray(wire)
+    cells = wire.rindex(b"\xa8stimulus") + 9 + 2  # the key, then bin8's header: the cells
+    tampered[cells + 4] ^= 0x01
+    with pytest.raises(SignatureError):
+        decode(bytes(tampered))
