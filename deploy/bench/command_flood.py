@@ -39,22 +39,30 @@ def run(telemetry: str, commands: str, n: int, velocity: list[float], conn) -> N
     pub = ctx.socket(zmq.PUB)
     pub.setsockopt(zmq.LINGER, 0)
     pub.connect(commands)
-    state = {"echo": None, "hb": 0, "next_hb": 0}
+    state = {"echo": None, "hb": 0, "next_hb": 0, "first_echoing": None, "synced": False}
 
     def tend() -> None:
         """Read the robot's heartbeats (non-blocking) and send ours every 50 ms."""
         while sub.poll(0):
             data = sub.recv()
-            state["echo"] = (msgpack.unpackb(data[4:])["t_send_ns"], time.monotonic_ns())
+            body = msgpack.unpackb(data[4:])
+            state["echo"] = (body["t_send_ns"], time.monotonic_ns())
+            first, echoed = state["first_echoing"], body.get("echo_t_send_ns")
+            if first is not None and echoed is not None and echoed >= first:
+                state["synced"] = True  # it read a heartbeat of ours that echoed one of its own
         now = time.monotonic_ns()
         if now >= state["next_hb"]:
             state["hb"] += 1
+            if state["echo"] is not None and state["first_echoing"] is None:
+                state["first_echoing"] = now
             pub.send(_heartbeat(state["hb"], state["echo"]))
             state["next_hb"] = now + 50_000_000
 
     seq = 0
-    end = time.monotonic() + 0.8  # heartbeats until the robot knows our clock
-    while time.monotonic() < end:
+    # heartbeats until the robot knows our clock: a round trip it has answered, however
+    # long a loaded machine takes, and never less than 0.8 s
+    start = time.monotonic()
+    while time.monotonic() < start + 0.8 or (not state["synced"] and time.monotonic() < start + 15):
         tend()
         time.sleep(0.005)
     end = time.monotonic() + 0.6  # an operator jogging, renewed every 50 ms
