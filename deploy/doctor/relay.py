@@ -204,6 +204,7 @@ def check_relay_from_node(report: Report, role: str, config: Any, options: Docto
             report.add("signing key", PASS, f"public key {signer.public.hex()} (the roster's)")
         except DeepXPalmError as e:
             report.add("signing key", FAIL, str(e), "generate it again or correct the path")
+    _check_stream_signing(report, role, link)
     if not options.check_peer:
         report.add("relay", SKIP, "not checked (--no-peer)")
         return
@@ -222,3 +223,26 @@ def check_relay_from_node(report: Report, role: str, config: Any, options: Docto
                 "start the relay (`deepxpalm relay`, deploy/systemd/deepxpalm-relay.service) "
                 "and open that port on the relay host only",
             )
+
+
+def _check_stream_signing(report: Report, role: str, link: Any) -> None:
+    """Through a relay: is the robot's stream signed, and does the operator check it?"""
+    path = link.signing_key_file if role == "robot" else link.robot_key_file
+    setting = "link.signing_key_file" if role == "robot" else "link.robot_key_file"
+    if path is None:
+        report.add(
+            "signed stream",
+            WARN,
+            f"{setting} is not set: a compromised relay could forge what a palm feels",
+            "give the robot a signing key and its operators its public NAME.sign "
+            "(docs/deploy.md: A signed stream)",
+        )
+        return
+    from common.signing import load_public_key, load_signer
+
+    try:
+        key = load_signer(path).public if role == "robot" else load_public_key(path)
+    except DeepXPalmError as e:
+        report.add("signed stream", FAIL, str(e), "generate it again or correct the path")
+        return
+    report.add("signed stream", PASS, f"the robot's key {key.hex()}")

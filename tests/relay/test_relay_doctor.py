@@ -83,3 +83,25 @@ def test_a_robot_in_relay_mode_is_told_whether_the_relay_answers(tmp_path):
         up = diagnose("robot", robot, str(toml), OPTIONS)
     relay_checks = [c for c in up.checks if c.name.startswith("relay ")]
     assert len(relay_checks) == 2 and all(c.status == PASS for c in relay_checks)
+
+
+def test_the_doctor_says_whether_the_robots_stream_is_signed_and_checked(tmp_path):
+    fleet = _fleet(tmp_path)  # the fleet's robots sign, its operators check
+    toml = fleet.robot_config("cell1", None)
+    robot = tomllib.loads(toml.read_text())["robot"]
+    signed = diagnose("robot", robot, str(toml), OPTIONS).find("signed stream")
+    assert signed.status == PASS and fleet.signing_key("cell1").hex() in signed.detail
+    del robot["link"]["signing_key_file"]
+    unsigned = diagnose("robot", robot, str(toml), OPTIONS).find("signed stream")
+    assert unsigned.status == WARN and "forge" in unsigned.detail
+    operator = {
+        "link": {
+            "robot_name": "cell1",
+            "telemetry_endpoint": fleet.ops_telemetry,
+            "command_endpoint": fleet.ops_command,
+            "robot_key_file": str(tmp_path / "missing.sign"),
+            "security": fleet.client_security("alice"),
+        }
+    }
+    wrong = diagnose("operator", operator, "operator.toml", OPTIONS).find("signed stream")
+    assert wrong.status == FAIL and "missing.sign" in wrong.detail
