@@ -178,6 +178,7 @@ def merge_sections(existing_json: Path, fresh: dict[str, Any], names: list[str])
     The report keeps its own conditions; the merged sections are listed with theirs.
     """
     import json
+    from dataclasses import asdict
 
     if not existing_json.exists():
         return fresh
@@ -189,11 +190,15 @@ def merge_sections(existing_json: Path, fresh: dict[str, Any], names: list[str])
         "load_before": fresh["machine"]["load_before"]["loadavg_1m"],
         "load_after": fresh["machine"]["load_after"]["loadavg_1m"],
     }
+    from deploy.bench.sizes import PRESETS
+
     for name in names:
         merged["sections"][name] = fresh["sections"][name]
         merged.setdefault("remeasured", {})[name] = stamp
+        # the measured sections' own sizes are the fresh run's; any new key joins too
+        own = set(asdict(PRESETS["full"][name]))
         merged["sizes"].update(
-            {k: v for k, v in fresh["sizes"].items() if k not in merged["sizes"]}
+            {k: v for k, v in fresh["sizes"].items() if k in own or k not in merged["sizes"]}
         )
     return merged
 

@@ -62,3 +62,14 @@ def test_every_preset_writes_the_flat_sizes_the_committed_report_holds():
     assert json.loads(json.dumps(full)) == committed
     for sizes in PRESETS.values():
         assert sizes.flat().keys() == full.keys()
+
+
+def test_a_remeasured_section_brings_its_own_sizes_and_leaves_the_others(tmp_path):
+    old = _results({"task": {"x": 1}, "netsim": {"x": 1}}, "then", "aaa", 0.5)
+    old["sizes"].update(parallel_cells=3, netsim_seconds=10.0)
+    (tmp_path / "benchmarks.json").write_text(json.dumps(old))
+    fresh = _results({"task": {"x": 2}, "netsim": {"x": 2}}, "now", "bbb", 1.5)
+    fresh["sizes"].update(parallel_cells=1, netsim_seconds=20.0)
+    merged = merge_sections(tmp_path / "benchmarks.json", fresh, ["task"])
+    assert merged["sizes"]["parallel_cells"] == 1  # the task ran its cells one at a time
+    assert merged["sizes"]["netsim_seconds"] == 10.0  # netsim was not measured again
