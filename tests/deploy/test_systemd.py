@@ -111,17 +111,26 @@ def _print_config(role: str, argv: list[str], tmp_path: Path) -> subprocess.Comp
     )
 
 
-@pytest.mark.parametrize("role", ROLES)
-def test_execstart_is_a_command_line_the_node_accepts(role, tmp_path):
-    unit = _parse(_unit(role))
+def _config_the_unit_starts(unit: dict, role: str, tmp_path: Path) -> str:
+    """The unit's ExecStart, with the example config standing in for /etc, run to --print-config.
+
+    The installed entry point and the /etc config are asserted on the way; the
+    printed config is returned for the caller's own checks.
+    """
     (exec_start,) = _get(unit, "Service", "ExecStart")
     argv = shlex.split(exec_start)
     assert argv[0] == INSTALLED
     assert f"/etc/deepxpalm/{role}.toml" in argv
-    # The same arguments, with the example config standing in for /etc, parse and load.
     out = _print_config(role, argv, tmp_path)
     assert out.returncode == 0, out.stderr
-    assert f"[{role}]" in out.stdout
+    return out.stdout
+
+
+@pytest.mark.parametrize("role", ROLES)
+def test_execstart_is_a_command_line_the_node_accepts(role, tmp_path):
+    # The same arguments, with the example config standing in for /etc, parse and load.
+    printed = _config_the_unit_starts(_parse(_unit(role)), role, tmp_path)
+    assert f"[{role}]" in printed
 
 
 def test_sysusers_makes_the_units_user_in_dialout():
@@ -191,12 +200,8 @@ def test_the_relay_unit_is_watched_and_starts_a_relay_the_cli_accepts(tmp_path):
     assert _get(unit, "Service", "WatchdogSec") == ["5s"]
     assert _get(unit, "Service", "User") == ["deepxpalm"]
     assert _get(unit, "Install", "WantedBy") == ["multi-user.target"]
-    (exec_start,) = _get(unit, "Service", "ExecStart")
-    argv = shlex.split(exec_start)
-    assert argv[0] == INSTALLED and "/etc/deepxpalm/relay.toml" in argv
-    out = _print_config("relay", argv, tmp_path)
-    assert out.returncode == 0, out.stderr
-    assert "[relay]" in out.stdout and 'mode = "curve"' in out.stdout
+    printed = _config_the_unit_starts(unit, "relay", tmp_path)
+    assert "[relay]" in printed and 'mode = "curve"' in printed
 
 
 def test_the_video_unit_starts_a_video_server_the_cli_accepts(tmp_path):
@@ -204,9 +209,5 @@ def test_the_video_unit_starts_a_video_server_the_cli_accepts(tmp_path):
     assert _get(unit, "Service", "User") == ["deepxpalm"]
     assert _get(unit, "Service", "SupplementaryGroups") == ["video"]  # /dev/video*
     assert _get(unit, "Install", "WantedBy") == ["multi-user.target"]
-    (exec_start,) = _get(unit, "Service", "ExecStart")
-    argv = shlex.split(exec_start)
-    assert argv[0] == INSTALLED and "/etc/deepxpalm/video.toml" in argv
-    out = _print_config("video", argv, tmp_path)
-    assert out.returncode == 0, out.stderr
-    assert 'host = "127.0.0.1"' in out.stdout and 'source = "v4l2"' in out.stdout
+    printed = _config_the_unit_starts(unit, "video", tmp_path)
+    assert 'host = "127.0.0.1"' in printed and 'source = "v4l2"' in printed
