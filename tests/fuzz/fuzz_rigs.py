@@ -70,6 +70,22 @@ def wait_for(cond, timeout_s: float, step_s: float = 0.002) -> bool:
     return bool(cond())
 
 
+def handled_all(rig: Any, timeout_s: float) -> bool:
+    """True once the rig's node has read everything sent and finished the loop turn that did.
+
+    The socket's receive counter moves as each message is read, before it is
+    decoded, counted as rejected, or acted on, all later in the same loop
+    turn; a counter read right after the last receive could miss them. The
+    next turn's wake-up proves that turn is over.
+    """
+    deadline = time.monotonic() + timeout_s
+    if not wait_for(lambda: rig.received() >= rig.sent or not rig.alive(), timeout_s):
+        return False
+    turn = rig.node.counters["wakeups"]
+    left = max(0.0, deadline - time.monotonic())
+    return wait_for(lambda: rig.node.counters["wakeups"] > turn or not rig.alive(), left)
+
+
 # ------------------------------------------------------------ device checks
 def arm_violations(arm: MemoryArm) -> list[str]:
     """Every jog the driver was told must be finite and inside the speed caps; no moves."""
@@ -202,8 +218,8 @@ class OperatorRig:
         return msg
 
     def sync(self, timeout_s: float = 10.0) -> bool:
-        """Wait until the node has read everything sent so far."""
-        return wait_for(lambda: self.received() >= self.sent or not self.alive(), timeout_s)
+        """Wait until the node has read, and acted on, everything sent so far."""
+        return handled_all(self, timeout_s)
 
     def goal_reached(self, target: np.ndarray) -> bool:
         last = self.node.written_goals
@@ -368,7 +384,8 @@ class RobotRig:
             self.echoed += mine
 
     def sync(self, timeout_s: float = 10.0) -> bool:
-        return wait_for(lambda: self.received() >= self.sent or not self.alive(), timeout_s)
+        """Wait until the node has read, and acted on, everything sent so far."""
+        return handled_all(self, timeout_s)
 
     def close(self) -> None:
         self._beating.set()
