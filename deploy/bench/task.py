@@ -182,12 +182,15 @@ def _trial(world: Any, hands: Any, setup: TrialSetup) -> dict[str, Any]:
     world.reset_trial(0, setup.offset_m, setup.tilt_deg)
     time.sleep(0.3)  # the next heartbeats carry the home pose
     truth_at_lift: dict[str, Any] = {}
+    pose_at_lift: list[np.ndarray] = []
+
+    def at_lift() -> None:
+        truth_at_lift.update(world.grasp())
+        pose_at_lift.append(hands.pose())
+
     row: dict[str, Any] = asdict(setup)
     try:
-        outcome = hands.grasp_and_lift(
-            on_lift=lambda: truth_at_lift.update(world.grasp()),
-            observe=lambda: world.grasp().get("pattern"),
-        )
+        outcome = hands.grasp_and_lift(at_lift, observe=lambda: world.grasp().get("pattern"))
     except ScriptedOperatorError as e:
         hands.node.send_command("arm_stop")
         stops = world.stats()["protective_stops"]
@@ -196,11 +199,18 @@ def _trial(world: Any, hands: Any, setup: TrialSetup) -> dict[str, Any]:
         return row
     time.sleep(0.2)
     lifted_mm = world.pipette_lift_mm(0)
+    # How far the tool rose (the heartbeat's pose): beside lifted_mm, what slipped in the pads.
+    tool_mm = (
+        1000 * float(np.linalg.norm(hands.pose()[:3] - pose_at_lift[0][:3]))
+        if pose_at_lift
+        else 0.0
+    )
     correct = truth_at_lift.get("pattern") == 6
     row.update(
         success=bool(outcome.lifted and correct and lifted_mm >= LIFTED_MM),
         correct_grasp=bool(outcome.lifted and correct),
         lifted_mm=round(lifted_mm, 1),
+        tool_lift_mm=round(tool_mm, 1),
         t_decision_s=None if outcome.t_decision_s is None else round(outcome.t_decision_s, 2),
         attempts=len(outcome.attempts) or 1,
         felt=[a.felt_pattern for a in outcome.attempts],

@@ -7,6 +7,7 @@ of these fields, or the shipped default), so they attach to one process.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from common.config import param
@@ -55,7 +56,20 @@ class LabWorldConfig:
         "would press no taxel past 1 N; 3 kg keeps the pads as stiff as against a fixed "
         "pipette, and only means a lift needs 30 N of friction",
     )
+    pipette_weight_kg: float = param(
+        0.3,
+        "what gravity pulls on a pipette, the rest of its engine mass floating (MuJoCo's "
+        "gravcomp): a real one weighs ~10 g, but against the 3 kg it moves with it would "
+        "fall back into its hole 300 times too slowly; at 0.3 kg a lift needs 3 N of "
+        "friction, not 30, and a released pipette drops 40 mm in 0.3 s",
+    )
     pipette_damping_n_s_m: float = param(2.0, "the rack hole's sliding damping")
+    friction_impratio: float = param(
+        10.0,
+        "how much stiffer friction is than the normal contact (MuJoCo's impratio): at 1 a "
+        "held pipette creeps down soft pads under its engine weight, and a 40 mm lift drew "
+        "it only 19 to 35 mm up",
+    )
     pipette_friction: float = param(
         0.8, "sliding friction between the pads and a pipette (silicone on polystyrene)"
     )
@@ -79,6 +93,10 @@ class LabWorldConfig:
     )
 
     def __post_init__(self) -> None:
+        if not 0 < self.pipette_weight_kg <= self.pipette_mass_kg:
+            raise ConfigError("lab world: pipette_weight_kg must be in (0, pipette_mass_kg]")
+        if not math.isfinite(self.friction_impratio) or self.friction_impratio < 1:
+            raise ConfigError("lab world: friction_impratio must be at least 1")
         if not 0 < self.timestep_s <= 0.01:
             raise ConfigError("lab world: timestep_s must be in (0, 0.01] s")
         if not self.pipettes:

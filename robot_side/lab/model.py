@@ -164,7 +164,8 @@ def build_mjcf(config: LabWorldConfig) -> str:
         # the body's origin is the top end and its z the axis: the rack's hole lets it slide
         # up along its own axis, and re-placing it (a new trial) is one body pose
         pipettes.append(
-            f'<body name="pipette{i}" pos="{_f(*p.top)}" quat="{_f(*axis_quat(p.axis))}">'
+            f'<body name="pipette{i}" pos="{_f(*p.top)}" quat="{_f(*axis_quat(p.axis))}" '
+            f'gravcomp="{1 - config.pipette_weight_kg / config.pipette_mass_kg:.6f}">'
             f'<joint name="pipette{i}" type="slide" axis="0 0 1" '
             f'range="0 {config.pipette_travel_m:.4f}" damping="{config.pipette_damping_n_s_m}"/>'
             f'<geom name="pipette{i}" type="capsule" size="{p.radius_m:.5f}" '
@@ -180,7 +181,8 @@ def build_mjcf(config: LabWorldConfig) -> str:
     rack_c[2] = rack_top_z(config) - RACK_HALF_M[2]
     finger_ctrl = config.finger_stroke_mm / 1000
     return f"""<mujoco model="deepxpalm_lab">
-  <option timestep="{config.timestep_s}" integrator="implicitfast" cone="elliptic"/>
+  <option timestep="{config.timestep_s}" integrator="implicitfast" cone="elliptic"
+          impratio="{config.friction_impratio}"/>
   <visual><global offwidth="640" offheight="480"/></visual>
   <default>
     <default class="taxel">
