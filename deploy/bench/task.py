@@ -232,6 +232,12 @@ def summarise(trials: list[dict[str, Any]]) -> dict[str, Any]:
     n = len(trials)
     wins = sum(t["success"] for t in trials)
     times = [t["t_decision_s"] for t in trials if t["success"] and t.get("t_decision_s")]
+    # How much less than the tool the pipette rose, over the correct grasps it lifted
+    slips = [
+        t["tool_lift_mm"] - t["lifted_mm"]
+        for t in trials
+        if t["correct_grasp"] and t.get("tool_lift_mm") is not None
+    ]
     lo, hi = wilson(wins, n)
     return {
         "trials": n,
@@ -243,6 +249,8 @@ def summarise(trials: list[dict[str, Any]]) -> dict[str, Any]:
         "time_to_correct_s_p50": float(np.median(times)) if times else None,
         "time_to_correct_s_p90": float(np.percentile(times, 90)) if times else None,
         "attempts_mean": float(np.mean([t.get("attempts", 1) for t in trials])) if n else None,
+        "slip_mm_p50": float(np.median(slips)) if slips else None,
+        "slip_mm_max": float(np.max(slips)) if slips else None,
     }
 
 

@@ -131,15 +131,16 @@ def markdown(results: Results) -> list[str]:
         + (f", {side_by_side} cells side by side." if side_by_side > 1 else "."),
         "",
         "| link | feedback | success (95 % CI) | correct grasps | time to correct p50 s "
-        "| p90 s | grasps per trial | errors |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
+        "| p90 s | grasps per trial | slip in the pads p50 / max mm | errors |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for c in s["cells"]:
         m = c["summary"]
         lines.append(
             f"| {c['scenario']} | {c['feedback']} | {_rate(m)} | {m['correct_grasps']} | "
             f"{_s(m['time_to_correct_s_p50'])} | {_s(m['time_to_correct_s_p90'])} | "
-            f"{_s(m['attempts_mean'])} | {m['errors']} |"
+            f"{_s(m['attempts_mean'])} | {_s(m.get('slip_mm_p50'))} / "
+            f"{_s(m.get('slip_mm_max'))} | {m['errors']} |"
         )
     lines += [
         "",
@@ -147,7 +148,9 @@ def markdown(results: Results) -> list[str]:
         "downsized frame (the paper's method); `direct`: the frame downsized, no CNN; `none`: "
         "the operator ignores the palm. The operator names what it feels by the nearest of "
         "the twelve masks (a partial band is assumed upright), so `direct` feedback is read "
-        "with the same rule. Rerun: `deepxpalm bench --only task`.",
+        "with the same rule. Slip: how much less than the tool the pipette rose over the "
+        "correct grasps (the tool's rise read from the robot's heartbeat pose). "
+        "Rerun: `deepxpalm bench --only task`.",
     ]
     return lines
 
