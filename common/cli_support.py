@@ -80,6 +80,12 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
+def reload_on_hangup(reload: threading.Event) -> None:
+    """SIGHUP (systemd's ``ExecReload``) sets ``reload``; the process's loop acts on it."""
+    if hasattr(signal, "SIGHUP"):
+        signal.signal(signal.SIGHUP, lambda _signum, _frame: reload.set())
+
+
 def write_stats(path: Path | None, stats: dict[str, Any]) -> None:
     if path is not None:
         tmp = path.with_suffix(path.suffix + ".tmp")
@@ -131,6 +137,9 @@ def run_node(
     stop = stop_on_signals()
     try:
         node = build(config, recorder)
+        reload = getattr(node, "roster_reload", None)  # the robot's, with a roster
+        if reload is not None:
+            reload_on_hangup(reload)
         extra = attach(node, config) if attach is not None else None
         watch = watch_node(node, stop)  # READY=1 once the loop runs, WATCHDOG=1 while it does
         frozen = freeze_startup_heap()

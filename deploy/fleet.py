@@ -147,9 +147,7 @@ class Fleet:
             self.members[name] = Member(name, "robot", pub, sec, ssec, load_public_key(spub))
         everyone = {**(self.relay_roles or {}), **self.operators}
         for name, role in everyone.items():
-            pub, sec = generate(keys, name)
-            spub, ssec = generate_key_files(keys, name)
-            self.members[name] = Member(name, role, pub, sec, ssec, load_public_key(spub))
+            self.add_member(name, role)
         self.roster = self._write_roster("roster.toml", self.operators)
         self.relay_roster = (
             self.roster
@@ -161,6 +159,22 @@ class Fleet:
             f"tcp://127.0.0.1:{p}" for p in ports
         )
         self._ports = ports
+
+    def add_member(self, name: str, role: str) -> Member:
+        """Keys for a person not (yet) in the roster: ``rewrite_roster`` lets them in."""
+        keys = self.workdir / "keys"
+        pub, sec = generate(keys, name)
+        spub, ssec = generate_key_files(keys, name)
+        self.members[name] = Member(name, role, pub, sec, ssec, load_public_key(spub))
+        return self.members[name]
+
+    def rewrite_roster(self, roles: dict[str, str]) -> None:
+        """The shared roster now lists ``roles`` (name -> role); SIGHUP makes them read it."""
+        if self.relay_roster != self.roster:
+            raise ValueError("this fleet's relay has a roster of its own")
+        self.operators = dict(roles)
+        tmp = self._write_roster("roster.toml.new", roles)
+        tmp.replace(self.roster)  # atomic: a reload never reads half a file
 
     def _write_roster(self, filename: str, roles: dict[str, str]) -> Path:
         lines = []

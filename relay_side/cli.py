@@ -9,6 +9,7 @@ from common.cli_support import (
     add_config_arguments,
     load_node_config,
     print_config,
+    reload_on_hangup,
     stop_on_signals,
     write_stats,
 )
@@ -30,6 +31,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     stop = stop_on_signals()
     relay = Relay(config).start()
+    reload_on_hangup(relay.roster_reload)
     print("relay up: " + " ".join(f"{k}={v}" for k, v in relay.endpoints.items()), flush=True)
     try:
         relay.run(stop, args.duration)

@@ -39,7 +39,8 @@ class RelayConfig:
     roster_file: Path | None = param(
         None,
         "who may connect and with which role (common/roster.py); needed with curve. Commands "
-        "from keys whose role is not controller are dropped here (and again at the robot)",
+        "from keys whose role is not controller are dropped here (and again at the robot). "
+        "SIGHUP (systemctl reload) reads it again",
     )
     subscriber_queue: int = param(
         100,

@@ -63,6 +63,11 @@ _CMND = b"CMND"
 _MAX_FRAME = MAX_MESSAGE_BYTES + 1 + MAX_NAME_LEN
 
 
+def _roles(roster: Roster) -> dict[bytes, str]:
+    """Each operator's CURVE key (z85) and role: what the command path checks."""
+    return {key: op.role for key, op in roster.by_curve_key().items()}
+
+
 class KeyAllowlist:
     """The CURVE keys one side of the relay accepts (pyzmq authenticator's callback hook)."""
 
@@ -211,6 +216,10 @@ class Relay:
         self._auth: Any = None
         self._allowlists: dict[str, KeyAllowlist] = {}
         self.last_stats: dict[str, float] = {}
+        #: set it (SIGHUP: ``systemctl reload``) to read the roster again within a second
+        self.roster_reload = threading.Event()
+        self.roster_reloads = 0
+        self.roster_reloads_failed = 0
 
     def start(self) -> Relay:
         c = self.config
@@ -229,9 +238,7 @@ class Relay:
         cmd_out = self._socket(zmq.XPUB, "robots_command_endpoint", ROBOTS_DOMAIN)
         cmd_in.send(b"\x01")  # nothing is filtered by topic: roles decide, below
         self._telemetry = _TelemetryProxy(self.ctx, tel_in, tel_out)
-        roles = None
-        if curve:
-            roles = {op.curve_key: op.role for op in self.roster.operators if op.curve_key}
+        roles = _roles(self.roster) if curve else None
         self._commands = _CommandPath(self.ctx, cmd_in, cmd_out, roles)
         log.info("relay up: %s", ", ".join(f"{k} {v}" for k, v in self.endpoints.items()))
         return self
@@ -280,17 +287,51 @@ class Relay:
         roster = self.roster
         self._allowlists = {
             ROBOTS_DOMAIN: KeyAllowlist(roster.robot_curve_keys(), "robot"),
-            OPERATORS_DOMAIN: KeyAllowlist(
-                frozenset(op.curve_key for op in roster.operators if op.curve_key), "operator"
-            ),
+            OPERATORS_DOMAIN: KeyAllowlist(frozenset(roster.by_curve_key()), "operator"),
         }
         self._auth = ThreadAuthenticator(self.ctx, log=logging.getLogger("deepxpalm.auth"))
         self._auth.start()
         for domain, allowlist in self._allowlists.items():
             self._auth.configure_curve_callback(domain=domain, credentials_provider=allowlist)
 
+    def reload_roster(self) -> bool:
+        """Read ``roster_file`` again; a broken file keeps the roster in force.
+
+        From the next handshake an added key gets in and a removed one is
+        refused; from the next message a removed key's commands (or those of a
+        key no longer a controller) are dropped. A removed key's connection
+        that is already open keeps receiving telemetry until it drops or the
+        relay restarts: ZeroMQ cannot close one peer of a bound socket.
+        """
+        path = self.config.roster_file
+        if path is None:
+            log.warning("roster reload asked, but this relay has no roster_file")
+            return False
+        try:
+            roster = load_roster(Path(path))
+        except ConfigError as e:
+            self.roster_reloads_failed += 1
+            log.error("roster reload failed, the roster in force stays: %s", e)
+            return False
+        self.roster = roster
+        if self._allowlists:  # each swap is one attribute: the handshake thread reads either
+            self._allowlists[ROBOTS_DOMAIN].keys = roster.robot_curve_keys()
+            self._allowlists[OPERATORS_DOMAIN].keys = frozenset(roster.by_curve_key())
+        if self._commands is not None and self._commands.roles is not None:
+            self._commands.roles = _roles(roster)
+        self.roster_reloads += 1
+        log.info(
+            "roster %s reloaded: %d operators, %d robots",
+            path,
+            len(roster.operators),
+            len(roster.robots),
+        )
+        return True
+
     def stats(self) -> dict[str, float]:
-        out: dict[str, float] = {}
+        out: dict[str, float] = {"roster_reloads": float(self.roster_reloads)}
+        if self.roster_reloads_failed:
+            out["roster_reloads_failed"] = float(self.roster_reloads_failed)
         if self._telemetry is not None:
             for key, value in self._telemetry.statistics().items():
                 out[f"telemetry_{key}"] = float(value)
@@ -330,6 +371,9 @@ class Relay:
                     break
                 deadlines = [d for d in (t_end, next_log, now + 1.0) if d is not None]
                 stop.wait(max(0.0, min(deadlines) - now))
+                if self.roster_reload.is_set():
+                    self.roster_reload.clear()
+                    self.reload_roster()
                 if notifier.enabled and self.alive():
                     notifier.watchdog()
                 if next_log is not None and time.monotonic() >= next_log:

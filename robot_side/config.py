@@ -91,7 +91,8 @@ class RobotLinkConfig:
     roster_file: Path | None = param(
         None,
         "operators and their roles (common/roster.py): commands must then be signed, and "
-        "only the holder of the control lease is obeyed; needed with a relay",
+        "only the holder of the control lease is obeyed; needed with a relay. SIGHUP "
+        "(systemctl reload) reads it again",
     )
     lease_request_timeout_ms: float = param(
         2000.0, "a lease request the holder neither grants nor answers lapses after this"

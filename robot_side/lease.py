@@ -150,6 +150,41 @@ class ControlLease:
         last = self.peer(key).gate.last_fresh_ns
         return last is not None and now_ns - last <= self.max_age_ns
 
+    def replace_roster(self, operators: dict[bytes, OperatorEntry]) -> list[str]:
+        """Take a re-read roster; what changed, in words (for the log).
+
+        A key no longer in it is forgotten (its clock, gate and sessions); a key
+        whose role changed keeps its clock. A holder that is gone, or no longer a
+        controller, loses the lease at once, and so does a waiting request.
+        """
+        changed = []
+        for key in list(self.peers):
+            entry = operators.get(key)
+            old = self.peers[key].entry
+            if entry is None:
+                del self.peers[key]
+            elif entry != old:
+                self.peers[key].entry = entry
+        for key, old in self.operators.items():
+            entry = operators.get(key)
+            if entry is None:
+                changed.append(f"{old.name} removed")
+            elif entry.role != old.role or entry.name != old.name:
+                changed.append(f"{old.name} ({old.role}) now {entry.name} ({entry.role})")
+        changed += [f"{e.name} ({e.role}) added" for k, e in operators.items() if k not in self.operators]
+        self.operators = operators
+
+        def may_hold(key: bytes | None) -> bool:
+            return key is not None and key in operators and operators[key].role == "controller"
+
+        if self.pending is not None and not may_hold(self.pending):
+            self.pending = None
+        if self.holder is not None and not may_hold(self.holder):
+            self.holder = None  # not _set_holder: the old name may be gone from the roster
+            self.changes += 1
+            changed.append("the lease holder may no longer hold it: nobody holds it now")
+        return changed
+
     def tick(self, now_ns: int) -> str | None:
         """Let a request nobody granted lapse."""
         if self.pending is not None and now_ns >= self.pending_until_ns:

@@ -124,6 +124,8 @@ class RobotNode:
         self.name = _wire_name(config.link.robot_name)
         #: with a roster: signed commands, obeyed only from the lease holder (lease.py)
         self.lease: ControlLease | None = None
+        #: set it (SIGHUP: ``systemctl reload``) to read the roster again at the next loop turn
+        self.roster_reload = threading.Event()
         if config.link.roster_file is not None:
             roster = load_roster(config.link.roster_file)
             self.lease = ControlLease(
@@ -287,6 +289,9 @@ class RobotNode:
                 sample = self.tactile.take_newer(wanted_after)
             self.counters["wakeups"] += 1
             now = self.now()
+            if self.roster_reload.is_set():
+                self.roster_reload.clear()
+                self.reload_roster(now)
             if now >= self._commands_paused_until:
                 self._handle_commands(now)
             self._check_deadman(now)
@@ -664,6 +669,34 @@ class RobotNode:
         if timed_out is not None:
             self.counters[timed_out] += 1
         self._follow_lease(now, newest)
+
+    def reload_roster(self, now: int) -> bool:
+        """Read ``link.roster_file`` again; a broken file keeps the roster in force.
+
+        A key added may act from its next message; a key removed is ignored
+        from now on, and if it held the lease the arm stops (as at any change
+        of holder).
+        """
+        path = self.config.link.roster_file
+        if self.lease is None or path is None:
+            log.warning("roster reload asked, but this robot has no link.roster_file")
+            return False
+        try:
+            roster = load_roster(path)
+        except ConfigError as e:
+            self.counters["roster_reloads_failed"] += 1
+            log.error("roster reload failed, the roster in force stays: %s", e)
+            return False
+        changes = self.lease.replace_roster(roster.by_signing_key())
+        self.counters["roster_reloads"] += 1
+        log.info(
+            "roster %s reloaded: %d operator keys; %s",
+            path,
+            len(self.lease.operators),
+            "; ".join(changes) or "nothing changed",
+        )
+        self._follow_lease(now, {})
+        return True
 
     def _follow_lease(self, now: int, newest: dict[str, tuple[Command, int | None]]) -> None:
         """After the holder changed: the deadman follows the new holder, the arm stops once.

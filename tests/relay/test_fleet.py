@@ -14,10 +14,10 @@ import time
 import numpy as np
 import pytest
 import zmq
+from fleet_monitor import Monitor, jog_for
 
 from common.clock import now_ns
 from common.codec import name_prefix
-from common.messages import Heartbeat, Stimulus
 from common.security import SecurityConfig, client_options
 from common.transport import Subscriber
 from deploy.fleet import Fleet
@@ -26,63 +26,6 @@ pytestmark = pytest.mark.slow
 
 JOG_X = [0.03, 0.0, 0.0, 0.0, 0.0, 0.0]  # the controllers jog along x
 JOG_Y = [0.0, 0.03, 0.0, 0.0, 0.0, 0.0]  # the observers try y: it must never happen
-
-
-class Monitor:
-    """The test's own relay client (the recorder's key): robot heartbeats and stimuli, timed."""
-
-    def __init__(self, fleet: Fleet, key: str, robots: list[str]) -> None:
-        m = fleet.members[key]
-        security = SecurityConfig(
-            mode="curve",
-            secret_key_file=m.curve_secret,
-            server_public_key_file=fleet.members["relay"].curve_public,
-        )
-        self.ctx = zmq.Context()
-        topics = tuple(
-            name_prefix(t, r.encode()) for r in robots for t in (Heartbeat.TOPIC, Stimulus.TOPIC)
-        )
-        self.sub = Subscriber(
-            self.ctx,
-            fleet.ops_telemetry,
-            bind=False,
-            sock_opts=client_options(security),
-            topics=topics,
-        )
-        self.heartbeats: list[tuple[int, Heartbeat]] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            if self.sub.poll(0.05):
-                for msg, t in self.sub.drain():
-                    if isinstance(msg, Heartbeat):
-                        self.heartbeats.append((t, msg))
-
-    def holder_since(self, key: bytes, t0: int) -> int | None:
-        """Arrival time of the first robot heartbeat after ``t0`` that names ``key`` as holder."""
-        for t, hb in list(self.heartbeats):
-            if t >= t0 and hb.controller == key:
-                return t
-        return None
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-        self.sub.close()
-        self.ctx.term()
-
-
-def _jog_for(proc, velocity: list[float], seconds: float) -> None:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and proc.popen.poll() is None:
-        try:
-            proc.send({"action": "arm_jog", "velocity": velocity})
-        except BrokenPipeError:  # the process was killed on purpose
-            return
-        time.sleep(0.05)
 
 
 @pytest.fixture
@@ -127,10 +70,10 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
                 fleet.wait_for(held, 60, f"{c}'s lease")
             start = [sim.tcp_pose()[:3].copy() for sim in arm_sims]
             # The observers jog both robots along y; only cell1's controller jogs (along x).
-            jogging = [threading.Thread(target=_jog_for, args=(o, JOG_Y, 1.5)) for o in observers]
+            jogging = [threading.Thread(target=jog_for, args=(o, JOG_Y, 1.5)) for o in observers]
             for t in jogging:
                 t.start()
-            _jog_for(c1, JOG_X, 1.0)
+            jog_for(c1, JOG_X, 1.0)
             for t in jogging:
                 t.join()
             time.sleep(0.5)
@@ -140,7 +83,7 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
             assert np.abs(moved[1]).max() < 1e-3, f"cell2 moved with no jog from c2: {moved[1]}"
 
             # Killing cell2's controller mid-jog stops that arm within the deadman.
-            jog = threading.Thread(target=_jog_for, args=(c2, JOG_X, 1.5))
+            jog = threading.Thread(target=jog_for, args=(c2, JOG_X, 1.5))
             jog.start()
             time.sleep(0.8)
             assert np.linalg.norm(arm_sims[1].tcp_speed()[:3]) > 0.01, "cell2 never moved"
@@ -176,15 +119,6 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
     for robot in ("cell1", "cell2"):
         assert stats[robot]["lease_granted"] >= 1, stats[robot]
     assert stats["cell2"]["lease_expired"] == 1 and stats["cell2"]["deadman_trips"] >= 1
-
-
-@pytest.fixture
-def arm_sim():
-    from robot_side.arm.sim import URSimProcess
-
-    sim = URSimProcess().start()
-    yield sim
-    sim.stop()
 
 
 def test_hand_over_is_fast_loses_no_stimulus_and_moves_the_arm_for_the_new_holder_only(
@@ -225,9 +159,9 @@ def test_hand_over_is_fast_loses_no_stimulus_and_moves_the_arm_for_the_new_holde
             assert max(times) < 50, f"hand-over took {times} ms"
             # a holds it again: b's jogs (y) are refused by the robot itself, a's (x) move it
             start = arm_sim.tcp_pose()[:3].copy()
-            jog_b = threading.Thread(target=_jog_for, args=(b, JOG_Y, 1.0))
+            jog_b = threading.Thread(target=jog_for, args=(b, JOG_Y, 1.0))
             jog_b.start()
-            _jog_for(a, JOG_X, 1.0)
+            jog_for(a, JOG_X, 1.0)
             jog_b.join()
             time.sleep(0.3)
             moved = arm_sim.tcp_pose()[:3] - start
@@ -264,9 +198,9 @@ def test_a_relay_that_lets_an_observer_command_still_cannot_move_the_arm(
         try:
             fleet.wait_for(lambda: len(monitor.heartbeats) > 20, 60, "the robot's heartbeats")
             start = arm_sim.tcp_pose()[:3].copy()
-            jog_eve = threading.Thread(target=_jog_for, args=(eve, JOG_Y, 1.5))
+            jog_eve = threading.Thread(target=jog_for, args=(eve, JOG_Y, 1.5))
             jog_eve.start()
-            _jog_for(mallory, JOG_X, 1.5)
+            jog_for(mallory, JOG_X, 1.5)
             jog_eve.join()
             time.sleep(0.3)
             assert np.abs(arm_sim.tcp_pose()[:3] - start).max() < 1e-4

@@ -88,3 +88,25 @@ def test_a_grant_to_a_key_not_heard_lately_is_refused_and_the_holder_keeps_it():
     assert lease.holder == A
     _heard(lease, B, now)
     assert lease.handle(A, _cmd("lease_grant", B), now) == L.HANDED_OVER and lease.holder == B
+
+
+def test_a_reloaded_roster_takes_the_lease_from_a_holder_demoted_or_removed():
+    lease = _lease()
+    for key in (A, B):
+        _heard(lease, key, 0)
+    lease.handle(A, _cmd("lease_request"), 0)
+    lease.handle(B, _cmd("lease_request"), 0)  # waiting
+    demoted = {**lease.operators, A: OperatorEntry("a", "observer", None, A)}
+    changes_before = lease.changes
+    assert lease.replace_roster(demoted) == [
+        "a (controller) now a (observer)",
+        "the lease holder may no longer hold it: nobody holds it now",
+    ]
+    assert lease.holder is None and lease.changes == changes_before + 1
+    assert lease.pending == B, "a waiting controller still waits"
+    assert lease.peer(A).entry.role == "observer", "its clock kept, its role new"
+    assert lease.handle(A, _cmd("lease_request"), 0) == L.REFUSED_ROLE
+    without_b = {k: e for k, e in demoted.items() if k != B}
+    assert lease.replace_roster(without_b) == ["b removed"]
+    assert lease.pending is None and lease.peer(B) is None
+    assert lease.replace_roster(without_b) == [], "the same file again changes nothing"

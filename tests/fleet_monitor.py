@@ -1,0 +1,71 @@
+"""A test's own relay client, and an operator process jogging, for the fleet tests."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import zmq
+
+from common.codec import name_prefix
+from common.messages import Heartbeat, Stimulus
+from common.security import SecurityConfig, client_options
+from common.transport import Subscriber
+from deploy.fleet import Fleet
+
+
+class Monitor:
+    """The test's own relay client (the recorder's key): robot heartbeats and stimuli, timed."""
+
+    def __init__(self, fleet: Fleet, key: str, robots: list[str]) -> None:
+        m = fleet.members[key]
+        security = SecurityConfig(
+            mode="curve",
+            secret_key_file=m.curve_secret,
+            server_public_key_file=fleet.members["relay"].curve_public,
+        )
+        self.ctx = zmq.Context()
+        topics = tuple(
+            name_prefix(t, r.encode()) for r in robots for t in (Heartbeat.TOPIC, Stimulus.TOPIC)
+        )
+        self.sub = Subscriber(
+            self.ctx,
+            fleet.ops_telemetry,
+            bind=False,
+            sock_opts=client_options(security),
+            topics=topics,
+        )
+        self.heartbeats: list[tuple[int, Heartbeat]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            if self.sub.poll(0.05):
+                for msg, t in self.sub.drain():
+                    if isinstance(msg, Heartbeat):
+                        self.heartbeats.append((t, msg))
+
+    def holder_since(self, key: bytes, t0: int) -> int | None:
+        """Arrival time of the first robot heartbeat after ``t0`` that names ``key`` as holder."""
+        for t, hb in list(self.heartbeats):
+            if t >= t0 and hb.controller == key:
+                return t
+        return None
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.sub.close()
+        self.ctx.term()
+
+
+def jog_for(proc, velocity: list[float], seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and proc.popen.poll() is None:
+        try:
+            proc.send({"action": "arm_jog", "velocity": velocity})
+        except BrokenPipeError:  # the process was killed on purpose
+            return
+        time.sleep(0.05)
