@@ -171,7 +171,9 @@ class ControlLease:
                 changed.append(f"{old.name} removed")
             elif entry.role != old.role or entry.name != old.name:
                 changed.append(f"{old.name} ({old.role}) now {entry.name} ({entry.role})")
-        changed += [f"{e.name} ({e.role}) added" for k, e in operators.items() if k not in self.operators]
+        changed += [
+            f"{e.name} ({e.role}) added" for k, e in operators.items() if k not in self.operators
+        ]
         self.operators = operators
 
         def may_hold(key: bytes | None) -> bool:
