@@ -24,7 +24,8 @@ demo: $(STAMP)
 	$(BIN)/deepxpalm demo $(ARGS)
 
 test: $(STAMP)
-	@# chromium (browser tests) and Mesa's EGL (the lab's camera): required in CI, optional elsewhere
+	@# chromium (browser tests), Mesa's EGL (the lab's camera), coturn (video through TURN):
+	@# required in CI, optional elsewhere
 	bash scripts/install-test-system-packages.sh || [ -z "$$CI" ]
 	@# LeRobot's own dataset class in an environment of its own (cached), to load exports with
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]

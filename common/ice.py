@@ -32,8 +32,20 @@ class IceConfig:
     credential_file: Path | None = param(
         None, "a file holding the TURN password (mode 0600); the page is given it too"
     )
+    transport_policy: str = param(
+        "all",
+        "'relay': the page sends and takes media only through the TURN server (for a "
+        "site whose policy forbids direct UDP, or to prove the TURN path); 'all' also "
+        "tries direct paths. The robot's end (aiortc) always offers every path",
+    )
 
     def __post_init__(self) -> None:
+        if self.transport_policy not in ("all", "relay"):
+            raise ValueError("ice.transport_policy must be 'all' or 'relay'")
+        if self.transport_policy == "relay" and not any(
+            u.startswith(("turn:", "turns:")) for u in self.servers
+        ):
+            raise ValueError("ice.transport_policy = 'relay' needs a TURN server in ice.servers")
         for url in self.servers:
             if not url.startswith(SCHEMES):
                 raise ValueError(f"ICE server {url!r} must start with one of {SCHEMES}")

@@ -4,7 +4,10 @@
 #   the real page through chromium's DevTools protocol;
 # - Mesa's EGL and software OpenGL, for the simulated lab's camera test (tests/lab):
 #   MuJoCo renders headless through EGL (MUJOCO_GL=egl) on llvmpipe, no GPU needed.
-# CI needs both; a developer without them gets clear skips. Idempotent: one
+# - coturn, a TURN server, for the video test that sends media through TURN only
+#   (tests/dashboard/test_video_turn_browser.py); it runs on loopback for the test
+#   and is never started as a service.
+# CI needs all three; a developer without them gets clear skips. Idempotent: one
 # apt-get run for whatever is missing, nothing when all is there.
 set -eu
 
@@ -18,6 +21,11 @@ if ldconfig -p | grep -q "libEGL_mesa.so.0" && ldconfig -p | grep -q "libEGL.so.
     echo "Mesa EGL already installed"
 else
     missing="$missing libegl1 libegl-mesa0 libgl1-mesa-dri"
+fi
+if command -v turnserver >/dev/null 2>&1; then
+    echo "coturn already installed"
+else
+    missing="$missing coturn"
 fi
 [ -n "$missing" ] || exit 0
 

@@ -454,7 +454,8 @@ function startVideo() {
   $("video-panel").hidden = false;
   const status = (text) => ($("video-status").textContent = text);
   if (!dxp.video) {
-    dxp.video = new VIDEO.Receiver($("video"), sendArm, status, dxp.hello.ice_servers || []);
+    dxp.video = new VIDEO.Receiver($("video"), sendArm, status, dxp.hello.ice_servers || [],
+      dxp.hello.ice_transport_policy || "all");
     setInterval(() => {
       const v = dxp.video;
       if (v.source !== "test_pattern" || !v.latencies.length) return;

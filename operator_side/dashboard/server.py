@@ -88,6 +88,7 @@ class Dashboard:
         hello = hello_view(self.renderer, stale_after_ms, self.config.max_rate_hz, self.config.jog)
         hello["video"] = bool(self.config.video_url)
         hello["ice_servers"] = self.config.ice.as_dicts() if self.config.video_url else []
+        hello["ice_transport_policy"] = self.config.ice.transport_policy
         self.hello = json.dumps(hello, separators=(",", ":"))
         self.history = LinkHistory()
         #: video sessions over the link awaiting the robot's word, by viewer number

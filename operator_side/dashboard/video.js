@@ -39,9 +39,10 @@ const VIDEO = (() => {
   }
 
   class Receiver {
-    constructor(videoEl, send, status, iceServers) {
+    constructor(videoEl, send, status, iceServers, iceTransportPolicy) {
       this.video = videoEl;
       this.iceServers = iceServers || []; // the dashboard's: none = host candidates only
+      this.iceTransportPolicy = iceTransportPolicy || "all"; // "relay": through TURN only
       this.send = send;
       this.status = status;
       this.pc = null;
@@ -59,7 +60,10 @@ const VIDEO = (() => {
     async start() {
       clearTimeout(this.retry);
       if (this.pc) this.pc.close();
-      const pc = new RTCPeerConnection({ iceServers: this.iceServers });
+      const pc = new RTCPeerConnection({
+        iceServers: this.iceServers,
+        iceTransportPolicy: this.iceTransportPolicy,
+      });
       this.pc = pc;
       pc.addTransceiver("video", { direction: "recvonly" });
       pc.ontrack = (e) => {
@@ -88,6 +92,21 @@ const VIDEO = (() => {
       this.source = msg.source;
       await this.pc.setRemoteDescription({ type: "answer", sdp: msg.sdp });
       if (this.video.requestVideoFrameCallback) this.video.requestVideoFrameCallback((t, m) => this.onFrame(m));
+    }
+
+    async path() {
+      // the candidate types of the pair in use: "relay" on either end means through TURN
+      if (!this.pc) return null;
+      const stats = await this.pc.getStats();
+      let out = null;
+      stats.forEach((r) => {
+        if (r.type !== "transport" || !r.selectedCandidatePairId) return;
+        const pair = stats.get(r.selectedCandidatePairId);
+        const local = pair && stats.get(pair.localCandidateId);
+        const remote = pair && stats.get(pair.remoteCandidateId);
+        if (local && remote) out = { local: local.candidateType, remote: remote.candidateType };
+      });
+      return out;
     }
 
     onClosed(msg) {

@@ -72,5 +72,22 @@ def test_the_page_is_told_the_dashboards_ice_servers():
                     break
         assert msg["video"] is True
         assert msg["ice_servers"] == [{"urls": ["stun:10.0.0.1:3478"]}]
+        assert msg["ice_transport_policy"] == "all"
     finally:
         d.stop()
+
+
+def test_relay_only_needs_a_turn_server_and_is_the_only_other_policy(tmp_path):
+    with pytest.raises(ValueError, match="needs a TURN server"):
+        IceConfig(servers=("stun:10.0.0.1:3478",), transport_policy="relay")
+    with pytest.raises(ValueError, match="'all' or 'relay'"):
+        IceConfig(transport_policy="direct")
+    secret = tmp_path / "pw"
+    secret.write_text("x")
+    turn = IceConfig(
+        servers=("turn:10.0.0.1:3478",),
+        username="u",
+        credential_file=secret,
+        transport_policy="relay",
+    )
+    assert turn.as_dicts()[0]["credential"] == "x"
