@@ -228,7 +228,8 @@ def test_the_arm_stops_at_the_table(lab):
     assert stops and "table" in stops[-1], f"the world's stops: {stops}"
     z = arm.tcp_pose()[2]
     time.sleep(0.3)
-    assert arm.tcp_pose()[2] == pytest.approx(z, abs=1e-3), "the arm stays stopped"
+    later = arm.tcp_pose()[2]
+    assert later == pytest.approx(z, abs=1e-3), f"the arm stays stopped: z {z:.4f} -> {later:.4f}"
     assert 0.0 < z < 0.03, f"stopped with the fingertips at the table top, TCP z {z:.3f}"
 
 
