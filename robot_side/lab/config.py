@@ -54,7 +54,7 @@ class LabWorldConfig:
         "a pipette's mass as the engine sees it: a 10 ml pipette weighs ~10 g, but MuJoCo's soft "
         "contact against so light a body on a slide is soft too, and the lowest grip levels "
         "would press no taxel past 1 N; 3 kg keeps the pads as stiff as against a fixed "
-        "pipette, and only means a lift needs 30 N of friction",
+        "pipette (what gravity pulls is pipette_weight_kg)",
     )
     pipette_weight_kg: float = param(
         0.3,
@@ -71,7 +71,9 @@ class LabWorldConfig:
         "it only 19 to 35 mm up",
     )
     pipette_friction: float = param(
-        0.8, "sliding friction between the pads and a pipette (silicone on polystyrene)"
+        1.0,
+        "sliding friction between the pads and a pipette (silicone on plastic): both the "
+        "taxels and the pipettes get it, as MuJoCo takes the larger of a contact's two",
     )
     gripper_mass_kg: float = param(
         5.0,

@@ -188,6 +188,7 @@ def build_mjcf(config: LabWorldConfig) -> str:
     <default class="taxel">
       <geom size="{_f(TAXEL_HALF_M, TAXEL_DEPTH_HALF_M, TAXEL_HALF_M)}" mass="0.0002"
             contype="4" conaffinity="12" condim="1" solref="{_f(*config.taxel_solref)}"
+            friction="{config.pipette_friction} 0.005 0.0001"
             solimp="{_f(*config.taxel_solimp)}" rgba=".9 .55 .2 1"/>
     </default>
   </default>
