@@ -107,3 +107,38 @@ def build_device(registry: Mapping[str, str], section: Mapping[str, Any], where:
     config = from_dict(cls.Config, rest, where=where)
     log.debug("building %s kind %s", where, kind)
     return cls(config)
+
+
+class OnItsSimulator:
+    """Mixin for a simulated kind: the real driver, connected to a simulator it owns.
+
+    ``connect`` starts the simulator and points the driver's config at it
+    (``_start_simulator``) before the driver's own ``connect``; the
+    simulator stops again if either fails, and after the driver's
+    ``disconnect`` (clients first: a simulator that vanishes under a driver
+    makes it retry). Put it first in the bases: ``class SimulatedX(OnItsSimulator, XDriver)``.
+    """
+
+    simulated: ClassVar[bool] = True
+
+    def _start_simulator(self) -> None:
+        """Start the simulator if it is not running, and point ``self.config`` at it."""
+        raise NotImplementedError
+
+    def _stop_simulator(self) -> None:
+        """Stop the simulator; safe when it is not running or only half started."""
+        raise NotImplementedError
+
+    def connect(self) -> None:
+        try:
+            self._start_simulator()
+            super().connect()  # type: ignore[misc]
+        except BaseException:
+            self._stop_simulator()
+            raise
+
+    def disconnect(self) -> None:
+        try:
+            super().disconnect()  # type: ignore[misc]
+        finally:
+            self._stop_simulator()

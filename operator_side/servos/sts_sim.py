@@ -28,6 +28,7 @@ from typing import Any, Self
 
 from common.clock import now_ns
 from common.config import param
+from common.devices import OnItsSimulator
 from common.errors import ConfigError
 from common.pty_link import PtyLink
 from operator_side.servos.feetech import FeetechConfig, FeetechServoBus
@@ -434,31 +435,22 @@ class SimulatedFeetechConfig:
     )
 
 
-class SimulatedFeetechServoBus(FeetechServoBus):
+class SimulatedFeetechServoBus(OnItsSimulator, FeetechServoBus):
     """The real ``FeetechServoBus`` (and the real SDK) on a fake STS bus."""
 
     Config = SimulatedFeetechConfig  # type: ignore[assignment]
-    simulated = True
 
     def __init__(self, config: SimulatedFeetechConfig | None = None) -> None:
         self.sim_config = config or SimulatedFeetechConfig()
         super().__init__(self.sim_config.driver)
         self.fake_bus = FakeStsBus(self.sim_config.bus)
 
-    def connect(self) -> None:
+    def _start_simulator(self) -> None:
         self.fake_bus.start()
-        try:
-            self.config = dataclasses.replace(self.config, port=self.fake_bus.port)
-            super().connect()
-        except BaseException:
-            self.fake_bus.stop()
-            raise
+        self.config = dataclasses.replace(self.config, port=self.fake_bus.port)
 
-    def disconnect(self) -> None:
-        try:
-            super().disconnect()
-        finally:
-            self.fake_bus.stop()
+    def _stop_simulator(self) -> None:
+        self.fake_bus.stop()
 
     def status(self) -> dict[str, Any]:
         s = super().status()

@@ -34,6 +34,7 @@ from typing import Any, Protocol
 
 from common.clock import Rate, now_s
 from common.config import param
+from common.devices import OnItsSimulator
 from common.errors import ConfigError, DeviceError
 from robot_side.gripper.base import ActivationStatus, ObjectStatus
 from robot_side.gripper.urcap_socket import RobotiqSocketConfig, RobotiqSocketGripper
@@ -429,36 +430,24 @@ class SimulatedGripperConfig(RobotiqSocketConfig):
     sim: GripperModelConfig = param(GripperModelConfig(), "the simulated gripper and object")
 
 
-class SimulatedGripper(RobotiqSocketGripper):
+class SimulatedGripper(OnItsSimulator, RobotiqSocketGripper):
     """The real socket driver against a simulator it starts on connect, stops on disconnect."""
 
     Config = SimulatedGripperConfig
-    simulated = True
 
     def __init__(self, config: SimulatedGripperConfig | None = None) -> None:
         super().__init__(config or SimulatedGripperConfig())
         self.server: GripperSimServer | None = None
         self._configured_port = self.config.port
 
-    def connect(self) -> None:
+    def _start_simulator(self) -> None:
         assert isinstance(self.config, SimulatedGripperConfig)
         if self.server is None:
             sim = GripperSimConfig(self.config.host, self.config.port, self.config.sim)
             self.server = GripperSimServer(sim).start()
         self.config.port = self.server.port
-        try:
-            super().connect()
-        except BaseException:
-            self._stop_server()
-            raise
 
-    def disconnect(self) -> None:
-        try:
-            super().disconnect()
-        finally:
-            self._stop_server()
-
-    def _stop_server(self) -> None:
+    def _stop_simulator(self) -> None:
         server, self.server = self.server, None
         if server is not None:
             server.stop()

@@ -37,6 +37,7 @@ import numpy as np
 
 from common.clock import Rate, now_ns
 from common.config import param
+from common.devices import OnItsSimulator
 from common.pty_link import PtyLink
 from robot_side.tactile.base import GraspTruth
 from robot_side.tactile.board_calibration import WIRE_SHAPE, BoardCalibration
@@ -347,7 +348,7 @@ class SimulatedSerialConfig:
     )
 
 
-class SimulatedSerialTactileSensor(SerialTactileSensor):
+class SimulatedSerialTactileSensor(OnItsSimulator, SerialTactileSensor):
     """The real ``SerialTactileSensor`` reading a simulated board on a pty.
 
     Only the port and the calibration come from the simulator; every byte
@@ -356,26 +357,19 @@ class SimulatedSerialTactileSensor(SerialTactileSensor):
     """
 
     Config = SimulatedSerialConfig  # type: ignore[assignment]
-    simulated = True
 
     def __init__(self, config: SimulatedSerialConfig | None = None) -> None:
         self.sim_config = config or SimulatedSerialConfig()
         super().__init__(self.sim_config.driver)
         self.simulator = TactileBoardSimulator(self.sim_config.board)
 
-    def connect(self) -> None:
+    def _start_simulator(self) -> None:
         self.simulator.start()
-        try:
-            self.config = dataclasses.replace(self.config, port=self.simulator.port)
-            if self.sim_config.use_factory_calibration and self.config.calibration_file is None:
-                self.set_calibration(self.simulator.calibration)
-            super().connect()
-        except BaseException:
-            self.simulator.stop()
-            raise
+        self.config = dataclasses.replace(self.config, port=self.simulator.port)
+        if self.sim_config.use_factory_calibration and self.config.calibration_file is None:
+            self.set_calibration(self.simulator.calibration)
 
-    def disconnect(self) -> None:
-        super().disconnect()
+    def _stop_simulator(self) -> None:
         self.simulator.stop()
 
     def _truth_for_wire_seq(self, wire_seq: int) -> GraspTruth | None:

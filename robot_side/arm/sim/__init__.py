@@ -14,6 +14,7 @@ import logging
 from dataclasses import dataclass
 
 from common.config import param
+from common.devices import OnItsSimulator
 from robot_side.arm.sim.process import URSimProcess
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.arm.ur_rtde import URArm, URArmConfig
@@ -29,34 +30,23 @@ class SimulatedArmConfig(URArmConfig):
     sim: URSimConfig = param(URSimConfig(), "the simulated controller")
 
 
-class SimulatedArm(URArm):
+class SimulatedArm(OnItsSimulator, URArm):
     """The real URArm driver against a simulator it starts on connect and stops on disconnect."""
 
     Config = SimulatedArmConfig
-    simulated = True
 
     def __init__(self, config: SimulatedArmConfig | None = None) -> None:
         super().__init__(config or SimulatedArmConfig())
         self.sim: URSimProcess | None = None
 
-    def connect(self) -> None:
+    def _start_simulator(self) -> None:
         assert isinstance(self.config, SimulatedArmConfig)
         if self.sim is None or not self.sim.running:
             self.sim = URSimProcess(self.config.sim).start()
         assert self.sim.host is not None
         self.config.host = self.sim.host
-        try:
-            super().connect()
-        except BaseException:
+
+    def _stop_simulator(self) -> None:
+        if self.sim is not None:
             self.sim.stop()
             self.sim = None
-            raise
-
-    def disconnect(self) -> None:
-        # clients first: a simulator that vanishes under ur-rtde makes it retry
-        try:
-            super().disconnect()
-        finally:
-            if self.sim is not None:
-                self.sim.stop()
-                self.sim = None
