@@ -220,6 +220,10 @@ class Relay:
         self.roster_reload = threading.Event()
         self.roster_reloads = 0
         self.roster_reloads_failed = 0
+        self.reopens = 0
+        #: the counters of paths closed by a reopen, so ``stats`` stays cumulative
+        self._telemetry_before: Counter[str] = Counter()
+        self._commands_before: Counter[str] = Counter()
 
     def start(self) -> Relay:
         c = self.config
@@ -232,16 +236,42 @@ class Relay:
         for endpoint in self._endpoint_config().values():
             check_endpoint(endpoint, check)
         self._start_auth()
-        tel_in = self._socket(zmq.XSUB, "robots_telemetry_endpoint", ROBOTS_DOMAIN)
-        tel_out = self._socket(zmq.XPUB, "operators_telemetry_endpoint", OPERATORS_DOMAIN)
-        cmd_in = self._socket(zmq.XSUB, "operators_command_endpoint", OPERATORS_DOMAIN)
-        cmd_out = self._socket(zmq.XPUB, "robots_command_endpoint", ROBOTS_DOMAIN)
-        cmd_in.send(b"\x01")  # nothing is filtered by topic: roles decide, below
-        self._telemetry = _TelemetryProxy(self.ctx, tel_in, tel_out)
-        roles = _roles(self.roster) if curve else None
-        self._commands = _CommandPath(self.ctx, cmd_in, cmd_out, roles)
+        self._open_paths()
         log.info("relay up: %s", ", ".join(f"{k} {v}" for k, v in self.endpoints.items()))
         return self
+
+    def _open_paths(self, rebind_s: float = 0.0) -> None:
+        """Bind the four sockets and start both paths; ``rebind_s``: retry a busy address."""
+        tel_in = self._socket(zmq.XSUB, "robots_telemetry_endpoint", ROBOTS_DOMAIN, rebind_s)
+        tel_out = self._socket(zmq.XPUB, "operators_telemetry_endpoint", OPERATORS_DOMAIN, rebind_s)
+        cmd_in = self._socket(zmq.XSUB, "operators_command_endpoint", OPERATORS_DOMAIN, rebind_s)
+        cmd_out = self._socket(zmq.XPUB, "robots_command_endpoint", ROBOTS_DOMAIN, rebind_s)
+        cmd_in.send(b"\x01")  # nothing is filtered by topic: roles decide, below
+        self._telemetry = _TelemetryProxy(self.ctx, tel_in, tel_out)
+        roles = _roles(self.roster) if self.config.security.mode == "curve" else None
+        self._commands = _CommandPath(self.ctx, cmd_in, cmd_out, roles)
+
+    def _close_paths(self) -> None:
+        """Stop both paths, keeping their counters for ``stats``; the sockets close with them."""
+        if self._telemetry is not None:
+            self._telemetry_before.update(self._telemetry.statistics())
+            self._telemetry.stop()
+            self._telemetry = None
+        if self._commands is not None:
+            self._commands.stop()
+            self._commands_before.update(self._commands.counters)
+            self._commands = None
+
+    def _reopen_paths(self) -> None:
+        """Close every connection and bind again: each client reconnects, through the handshake.
+
+        The only way to cut a key that left the roster: ZeroMQ cannot close one
+        peer of a bound socket. Everyone is back within a reconnect interval
+        (ZeroMQ's default 100 ms) plus a handshake; a controller's robot may
+        meanwhile stop its arm (the deadman), which is the safe side.
+        """
+        self._close_paths()
+        self._open_paths(rebind_s=5.0)
 
     def _endpoint_config(self) -> dict[str, str]:
         c = self.config
@@ -252,7 +282,7 @@ class Relay:
             "operators_command_endpoint": c.operators_command_endpoint,
         }
 
-    def _socket(self, kind: int, key: str, domain: str) -> zmq.Socket:
+    def _socket(self, kind: int, key: str, domain: str, rebind_s: float = 0.0) -> zmq.Socket:
         c = self.config
         sock = self.ctx.socket(kind)
         sock.setsockopt(zmq.LINGER, 0)
@@ -270,12 +300,19 @@ class Relay:
             for opt, value in options.items():
                 sock.setsockopt(opt, value)
             sock.setsockopt(zmq.ZAP_DOMAIN, domain.encode())
-        endpoint = getattr(c, key)
-        try:
-            sock.bind(endpoint)
-        except zmq.ZMQError as e:
-            sock.close(0)
-            raise ConfigError(f"relay cannot bind {key} {endpoint}: {e}") from None
+        endpoint = self.endpoints.get(key) or getattr(c, key)  # again: the same port
+        deadline = time.monotonic() + rebind_s
+        while True:
+            try:
+                sock.bind(endpoint)
+                break
+            except zmq.ZMQError as e:
+                # the I/O thread closes a socket's listener a moment after close()
+                if e.errno == zmq.EADDRINUSE and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                    continue
+                sock.close(0)
+                raise ConfigError(f"relay cannot bind {key} {endpoint}: {e}") from None
         self.endpoints[key] = sock.getsockopt(zmq.LAST_ENDPOINT).decode()
         return sock
 
@@ -298,10 +335,10 @@ class Relay:
         """Read ``roster_file`` again; a broken file keeps the roster in force.
 
         From the next handshake an added key gets in and a removed one is
-        refused; from the next message a removed key's commands (or those of a
-        key no longer a controller) are dropped. A removed key's connection
-        that is already open keeps receiving telemetry until it drops or the
-        relay restarts: ZeroMQ cannot close one peer of a bound socket.
+        refused; from the next message a key no longer a controller has its
+        commands dropped. When a key left the roster, every connection is
+        closed and bound again (``_reopen_paths``), so its open connection ends
+        and its reconnect is refused; the others are back in a moment.
         """
         path = self.config.roster_file
         if path is None:
@@ -313,7 +350,13 @@ class Relay:
             self.roster_reloads_failed += 1
             log.error("roster reload failed, the roster in force stays: %s", e)
             return False
+        old = self.roster
         self.roster = roster
+        gone = set()
+        if old is not None:
+            gone = (set(old.by_curve_key()) - set(roster.by_curve_key())) | (
+                old.robot_curve_keys() - roster.robot_curve_keys()
+            )
         if self._allowlists:  # each swap is one attribute: the handshake thread reads either
             self._allowlists[ROBOTS_DOMAIN].keys = roster.robot_curve_keys()
             self._allowlists[OPERATORS_DOMAIN].keys = frozenset(roster.by_curve_key())
@@ -321,23 +364,34 @@ class Relay:
             self._commands.roles = _roles(roster)
         self.roster_reloads += 1
         log.info(
-            "roster %s reloaded: %d operators, %d robots",
+            "roster %s reloaded: %d operators, %d robots; %d keys removed",
             path,
             len(roster.operators),
             len(roster.robots),
+            len(gone),
         )
+        if gone and self._allowlists and self._telemetry is not None:
+            log.warning("closing every connection so the %d removed keys lose theirs", len(gone))
+            self._reopen_paths()
+            self.reopens += 1
         return True
 
     def stats(self) -> dict[str, float]:
         out: dict[str, float] = {"roster_reloads": float(self.roster_reloads)}
         if self.roster_reloads_failed:
             out["roster_reloads_failed"] = float(self.roster_reloads_failed)
+        if self.reopens:
+            out["reopens"] = float(self.reopens)
+        telemetry = Counter(self._telemetry_before)
         if self._telemetry is not None:
-            for key, value in self._telemetry.statistics().items():
-                out[f"telemetry_{key}"] = float(value)
+            telemetry.update(self._telemetry.statistics())
+        for key, value in telemetry.items():
+            out[f"telemetry_{key}"] = float(value)
+        commands = Counter(self._commands_before)
         if self._commands is not None:
-            for key, value in self._commands.counters.items():
-                out[f"commands_{key}" if not key.startswith("commands") else key] = float(value)
+            commands.update(self._commands.counters)
+        for key, value in commands.items():
+            out[f"commands_{key}" if not key.startswith("commands") else key] = float(value)
         for domain, allowlist in self._allowlists.items():
             out[f"curve_refused_{domain}"] = float(allowlist.refused)
         return out
@@ -387,12 +441,7 @@ class Relay:
     def close(self) -> None:
         if self._telemetry is not None or self._commands is not None:
             self.last_stats = self.stats()
-        if self._telemetry is not None:
-            self._telemetry.stop()
-            self._telemetry = None
-        if self._commands is not None:
-            self._commands.stop()
-            self._commands = None
+        self._close_paths()
         if self._auth is not None:
             self._auth.stop()
             self._auth = None

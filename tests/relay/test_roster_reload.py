@@ -36,7 +36,9 @@ def test_a_key_added_may_take_control_and_a_key_removed_loses_it_and_stops_the_a
     tmp_path, arm_sim, quiet_gc
 ):
     fleet = Fleet(
-        robots=["cell1"], operators={"a": "controller", "rec": "recorder"}, workdir=tmp_path
+        robots=["cell1"],
+        operators={"a": "controller", "rec": "recorder", "obs": "observer"},
+        workdir=tmp_path,
     )
     fleet.add_member("late", "controller")
     late_key = fleet.signing_key("late")
@@ -44,6 +46,7 @@ def test_a_key_added_may_take_control_and_a_key_removed_loses_it_and_stops_the_a
         relay = fleet.start_relay()
         robot = fleet.start_robot("cell1", arm_sim.host)
         monitor = Monitor(fleet, "rec", ["cell1"])
+        observer = Monitor(fleet, "obs", ["cell1"])
         try:
             fleet.wait_for(lambda: monitor.heartbeats, 60, "the robot's heartbeats")
             late = fleet.start_operator("late", "cell1", request_control=True, want_frames=False)
@@ -55,7 +58,8 @@ def test_a_key_added_may_take_control_and_a_key_removed_loses_it_and_stops_the_a
             assert monitor.holder_since(late_key, 0) is None
 
             # let it in: the same file for both, re-read on SIGHUP, nothing restarted
-            fleet.rewrite_roster({"a": "controller", "rec": "recorder", "late": "controller"})
+            everyone = {"a": "controller", "rec": "recorder", "obs": "observer"}
+            fleet.rewrite_roster({**everyone, "late": "controller"})
             _hang_up(fleet, "relay", "cell1")
             fleet.wait_for(
                 lambda: monitor.holder_since(late_key, 0) is not None, 30, "late's lease"
@@ -74,7 +78,8 @@ def test_a_key_added_may_take_control_and_a_key_removed_loses_it_and_stops_the_a
             jog_for(late, JOG_X, 0.5)
             assert arm_sim.tcp_pose()[0] - start[0] > 0.005, "still the holder"
 
-            # removed while jogging: the lease goes, the arm stops
+            # late and obs removed, late while jogging: the lease goes, the arm stops, and
+            # the relay cuts obs's open connection (everyone reconnects; obs is refused)
             jogging = threading.Thread(target=jog_for, args=(late, JOG_X, 4.0))
             jogging.start()
             time.sleep(1.0)
@@ -88,12 +93,18 @@ def test_a_key_added_may_take_control_and_a_key_removed_loses_it_and_stops_the_a
             drift = abs(arm_sim.tcp_pose()[0] - stopped_at[0])
             jogging.join()
             assert drift < 1e-4, f"the arm moved {drift * 1000:.2f} mm after late was removed"
+            t_cut = now_ns() - 500_000_000  # the reopen is long done
+            time.sleep(1.0)
+            assert any(t > t_cut for t, _ in list(monitor.heartbeats)), "rec reconnected"
+            assert not any(t > t_cut for t, _ in list(observer.heartbeats)), "obs was cut off"
         finally:
+            observer.close()
             monitor.close()
     stats = {name: p.stats() for name, p in fleet.procs.items()}
     assert stats["cell1"]["roster_reloads"] == 2, stats["cell1"]
     assert stats["cell1"]["roster_reloads_failed"] == 1, stats["cell1"]
     assert stats["cell1"]["messages_unknown_signer"] > 0, "late's messages after removal"
     assert stats["relay"]["roster_reloads"] == 2, stats["relay"]
+    assert stats["relay"]["reopens"] == 1, stats["relay"]
     assert "late (controller) added" in robot.log_text()
     assert "late removed" in robot.log_text()
