@@ -93,7 +93,10 @@ def test_a_key_added_may_take_control_and_a_key_removed_loses_it_and_stops_the_a
             drift = abs(arm_sim.tcp_pose()[0] - stopped_at[0])
             jogging.join()
             assert drift < 1e-4, f"the arm moved {drift * 1000:.2f} mm after late was removed"
-            t_cut = now_ns() - 500_000_000  # the reopen is long done
+            reopened = lambda: "closing every connection" in relay.log_text()  # noqa: E731
+            fleet.wait_for(reopened, 10, "the relay to close every connection")
+            time.sleep(0.3)  # what was in flight when it closed has arrived
+            t_cut = now_ns()
             time.sleep(1.0)
             assert any(t > t_cut for t, _ in list(monitor.heartbeats)), "rec reconnected"
             assert not any(t > t_cut for t, _ in list(observer.heartbeats)), "obs was cut off"
