@@ -138,7 +138,8 @@ def test_a_grasp_lifts_the_pipette_out_of_the_rack_and_an_open_gripper_does_not(
     time.sleep(0.5)
     dropped = arm.world.pipette_lift_mm(pipette)
     arm.move_to(_above(home), speed=0.1)
-    assert lifted > 25.0, f"friction on the pads drew the pipette {lifted:.1f} mm up the rack"
+    # the tool rose 30 mm along the pipette's own axis: it rises with the pads, no creep
+    assert lifted > 28.5, f"friction on the pads drew the pipette {lifted:.1f} mm up the rack"
     assert truth["pipette"] == pipette and truth["lift_mm"] == pytest.approx(lifted, abs=1.0)
     assert dropped < 1.0, f"released, it slides back into its hole ({dropped:.1f} mm)"
 
