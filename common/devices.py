@@ -109,7 +109,7 @@ def build_device(registry: Mapping[str, str], section: Mapping[str, Any], where:
     return cls(config)
 
 
-class OnItsSimulator:
+class OnItsSimulator(abc.ABC):
     """Mixin for a simulated kind: the real driver, connected to a simulator it owns.
 
     ``connect`` starts the simulator and points the driver's config at it
@@ -121,13 +121,13 @@ class OnItsSimulator:
 
     simulated: ClassVar[bool] = True
 
+    @abc.abstractmethod
     def _start_simulator(self) -> None:
         """Start the simulator if it is not running, and point ``self.config`` at it."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def _stop_simulator(self) -> None:
         """Stop the simulator; safe when it is not running or only half started."""
-        raise NotImplementedError
 
     def connect(self) -> None:
         try:

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import signal
+import subprocess
+import sys
 import time
 
 from common.transport import free_loopback_ports
@@ -99,3 +103,45 @@ class ProtocolOperator:
         )
         self.pub.send(cmd)
         return cmd
+
+
+class DashboardDemo:
+    """``deepxpalm demo --dashboard --json`` as a user runs it, its page on a known port.
+
+    ``with`` starts it and returns once the demo names its dashboard (the robot
+    answered); ``finish()`` ends it with Ctrl-C, as a user does, and returns
+    (exit code, the JSON summary or None, stderr).
+    """
+
+    def __init__(self, *args: str, duration_s: float = 120.0, ready_timeout_s: float = 90.0):
+        self.port = free_loopback_ports(1)[0]
+        self.argv = [sys.executable, "-m", "deploy.cli", "demo", "--dashboard", "--json"]
+        self.argv += [*args, "--duration", str(duration_s)]
+        self.argv += ["--set", f"operator.dashboard.port={self.port}"]
+        self.ready_timeout_s = ready_timeout_s
+        self.proc: subprocess.Popen | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}/"
+
+    def __enter__(self) -> DashboardDemo:
+        self.proc = subprocess.Popen(
+            self.argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        deadline = time.monotonic() + self.ready_timeout_s
+        for line in self.proc.stderr:  # the demo names its dashboard once the robot answered
+            if "dashboard http" in line or time.monotonic() > deadline:
+                break
+        return self
+
+    def finish(self, timeout_s: float = 60.0) -> tuple[int, dict | None, str]:
+        self.proc.send_signal(signal.SIGINT)  # Ctrl-C, as a user ends it
+        stdout, stderr = self.proc.communicate(timeout=timeout_s)
+        summary = json.loads(stdout) if stdout.strip() else None
+        return self.proc.returncode, summary, stderr
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()

@@ -18,7 +18,23 @@ needs_chromium = pytest.mark.skipif(
     "(required in CI)",
 )
 
-__all__ = ["BrowserError", "Chromium", "chromium_path", "main", "needs_chromium"]
+
+def play_video(browser: Chromium, url: str, frames: int, timeout_s: float = 60.0) -> tuple:
+    """Open the dashboard at ``url`` and wait for ``frames`` stamped frames on its screen.
+
+    What the page says of them (``dxp.video.summary()``) and the page's errors.
+    """
+    browser.navigate(url)
+    browser.wait_until(
+        "dxp.video ? dxp.video.latencies.length : 0",
+        lambda n: n >= frames,
+        timeout_s=timeout_s,
+        poll_s=0.5,
+    )
+    return browser.evaluate("dxp.video.summary()"), browser.page_errors()
+
+
+__all__ = ["BrowserError", "Chromium", "chromium_path", "main", "needs_chromium", "play_video"]
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))

@@ -17,7 +17,7 @@ import subprocess
 import time
 
 import pytest
-from headless_chromium import Chromium, needs_chromium
+from headless_chromium import Chromium, needs_chromium, play_video
 
 pytest.importorskip("aiortc")
 
@@ -82,16 +82,8 @@ def test_the_page_gets_the_robots_video_through_turn_only(turn_server):
         dashboard.start()
         try:
             with Chromium(width=1280, height=900) as browser:
-                browser.navigate(dashboard.url)
-                browser.wait_until(
-                    "dxp.video ? dxp.video.latencies.length : 0",
-                    lambda n: n >= 20,
-                    timeout_s=60,
-                    poll_s=0.5,
-                )
+                summary, errors = play_video(browser, dashboard.url, frames=20)
                 path = browser.evaluate("dxp.video.path()")
-                summary = browser.evaluate("dxp.video.summary()")
-                errors = browser.page_errors()
         finally:
             dashboard.stop()
     assert errors == [], errors

@@ -10,11 +10,6 @@ to the robot and its video server, and the lab's frames come back.
 from __future__ import annotations
 
 import asyncio
-import json
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -22,37 +17,22 @@ import pytest
 pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (MuJoCo)")
 pytest.importorskip("aiortc", reason="the demo's video needs the 'video' extra")
 
+from tests_support import DashboardDemo
 from video_page import watch_video
-
-from common.transport import free_loopback_ports
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(150)]
 
 
 def test_the_lab_demo_shows_the_lab_camera_through_the_link():
-    port = free_loopback_ports(1)[0]
-    argv = [sys.executable, "-m", "deploy.cli", "demo", "--scene", "lab", "--dashboard"]
-    argv += ["--json", "--duration", "120", "--set", f"operator.dashboard.port={port}"]
-    demo = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 90
-        for line in demo.stderr:  # the demo names its dashboard once the robot answered
-            if "dashboard http" in line or time.monotonic() > deadline:
-                break
-        out = asyncio.run(watch_video(f"ws://127.0.0.1:{port}/ws", frames=4))
+    with DashboardDemo("--scene", "lab") as demo:
+        out = asyncio.run(watch_video(f"ws://127.0.0.1:{demo.port}/ws", frames=4))
         assert "closed" not in out, out
         assert out["answer"]["source"] == "lab overview"
         assert (out["answer"]["width"], out["answer"]["height"]) == (320, 240)
         for rgb in out["frames"]:
             assert rgb.shape == (240, 320, 3) and rgb.std() > 5  # the lab, not a blank
-        demo.send_signal(signal.SIGINT)  # Ctrl-C, as a user ends it
-        stdout, stderr = demo.communicate(timeout=60)
-    finally:
-        if demo.poll() is None:
-            demo.kill()
-            demo.wait()
-    assert demo.returncode == 0, stderr[-3000:]
-    summary = json.loads(stdout)
+        code, summary, stderr = demo.finish()
+    assert code == 0, stderr[-3000:]
     assert summary["errors"] == []
     logs = Path(summary["logs"])
     video_log = (logs / "video.log").read_text()
