@@ -63,6 +63,14 @@ _CMND = b"CMND"
 _MAX_FRAME = MAX_MESSAGE_BYTES + 1 + MAX_NAME_LEN
 
 
+def _allowed_keys(roster: Roster) -> dict[str, frozenset[bytes]]:
+    """The CURVE keys each side of the relay lets in (z85)."""
+    return {
+        ROBOTS_DOMAIN: roster.robot_curve_keys(),
+        OPERATORS_DOMAIN: frozenset(roster.by_curve_key()),
+    }
+
+
 def _roles(roster: Roster) -> dict[bytes, str]:
     """Each operator's CURVE key (z85) and role: what the command path checks."""
     return {key: op.role for key, op in roster.by_curve_key().items()}
@@ -321,10 +329,10 @@ class Relay:
             return
         from zmq.auth.thread import ThreadAuthenticator
 
-        roster = self.roster
+        what = {ROBOTS_DOMAIN: "robot", OPERATORS_DOMAIN: "operator"}
         self._allowlists = {
-            ROBOTS_DOMAIN: KeyAllowlist(roster.robot_curve_keys(), "robot"),
-            OPERATORS_DOMAIN: KeyAllowlist(frozenset(roster.by_curve_key()), "operator"),
+            domain: KeyAllowlist(keys, what[domain])
+            for domain, keys in _allowed_keys(self.roster).items()
         }
         self._auth = ThreadAuthenticator(self.ctx, log=logging.getLogger("deepxpalm.auth"))
         self._auth.start()
@@ -352,14 +360,13 @@ class Relay:
             return False
         old = self.roster
         self.roster = roster
-        gone = set()
+        allowed = _allowed_keys(roster)
+        gone: set[bytes] = set()
         if old is not None:
-            gone = (set(old.by_curve_key()) - set(roster.by_curve_key())) | (
-                old.robot_curve_keys() - roster.robot_curve_keys()
-            )
-        if self._allowlists:  # each swap is one attribute: the handshake thread reads either
-            self._allowlists[ROBOTS_DOMAIN].keys = roster.robot_curve_keys()
-            self._allowlists[OPERATORS_DOMAIN].keys = frozenset(roster.by_curve_key())
+            for domain, keys in _allowed_keys(old).items():
+                gone |= keys - allowed[domain]
+        for domain, allowlist in self._allowlists.items():
+            allowlist.keys = allowed[domain]  # one attribute: the handshake thread reads either
         if self._commands is not None and self._commands.roles is not None:
             self._commands.roles = _roles(roster)
         self.roster_reloads += 1
