@@ -28,6 +28,7 @@ from common.clock import now_s
 from common.config import param
 from common.devices import Device
 from common.errors import ConfigError, DeviceError, DeviceTimeoutError
+from common.rotation import rotation_angle, rotvec_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -92,19 +93,9 @@ class ArmLimits:
         return all(lo <= v <= hi for v, (lo, hi) in zip(xyz, bounds, strict=True))
 
 
-def _rotation(rotvec: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(rotvec))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = rotvec / theta
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(theta) * kx + (1 - math.cos(theta)) * (kx @ kx)
-
-
 def _turn_angle(a: np.ndarray, b: np.ndarray) -> float:
     """Angle (rad) between two orientations given as rotation vectors."""
-    cos = (float(np.trace(_rotation(b) @ _rotation(a).T)) - 1.0) / 2.0
-    return math.acos(max(-1.0, min(1.0, cos)))
+    return rotation_angle(rotvec_to_matrix(a), rotvec_to_matrix(b))
 
 
 def as_vector6(value: Sequence[float], what: str) -> np.ndarray:
