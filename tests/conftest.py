@@ -7,11 +7,23 @@ import os
 import pytest
 from hypothesis import HealthCheck, settings
 
+# CI is derandomized: the same examples every run, so a red CI is a regression, not a
+# lucky draw (and a green one is not luck either). "random" draws new examples each run
+# to find new cases: HYPOTHESIS_PROFILE=random make test. "dev" is the default elsewhere.
 settings.register_profile(
-    "ci", max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+    "ci",
+    max_examples=200,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow],
 )
 settings.register_profile("dev", max_examples=100, deadline=None)
-settings.load_profile("ci" if os.environ.get("CI") else "dev")
+settings.register_profile(
+    "random", max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.load_profile(
+    os.environ.get("HYPOTHESIS_PROFILE") or ("ci" if os.environ.get("CI") else "dev")
+)
 
 
 @pytest.fixture
