@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -69,7 +70,7 @@ def test_a_flood_of_jogs_neither_starves_the_palm_nor_outlives_the_sender(rig):
     )
 
 
-def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, float]:
+def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
     """Largest telemetry gaps (ms, by the robot's own send stamps) idle, then under jog+stop."""
     telemetry, tel, cmd = rig.telemetry, rig.telemetry_endpoint, rig.command_endpoint
     ctx = zmq.Context()
@@ -85,11 +86,13 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, float]:
         jogs = [(0.1, 0.0, 0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0, 0.0, 0.5)]
         t0 = now_ns()
         cycles = 0
+        stops: list[int] = []
         while now_ns() - t0 < seconds * 1e9:
             velocity = jogs[cycles % 2]
             for _ in range(4):  # a held key: renewed every 50 ms
                 op.command("arm_jog", velocity=velocity)
                 op.pump(0.05)
+            stops.append(now_ns())
             op.command("arm_stop")
             op.pump(0.1)
             cycles += 1
@@ -106,34 +109,63 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, float]:
         return float(max(np.diff(sorted(telemetry.sent_times(kind, a, b))))) / 1e6
 
     return {
-        "cycles": cycles,
-        "stimulus": gap(Stimulus, t0, t1),
-        "heartbeat": gap(Heartbeat, t0, t1),
+        "stops": stops,
+        "stimulus": telemetry.sent_times(Stimulus, t0, t1 + STALL_WINDOW_NS),
+        "heartbeat": telemetry.sent_times(Heartbeat, t0, t1 + STALL_WINDOW_NS),
         "idle_stimulus": gap(Stimulus, i0, i1),
         "idle_heartbeat": gap(Heartbeat, i0, i1),
-        "as_received": float(max(np.diff(telemetry.times(Stimulus, t0, t1)))) / 1e6,
     }
 
 
+#: a stop that blocked the loop shows as a telemetry gap right after it
+STALL_WINDOW_NS = 300_000_000
+#: share of stops a loaded machine may stall by chance; a blocking stop stalls nearly all
+MAX_STALLED_SHARE = 0.25
+
+
 def test_jog_and_stop_repeated_never_stall_the_telemetry(rig):
-    period = 1000 / PUBLISH_HZ
+    """A stop never blocks the frame loop: no telemetry gap follows the stops.
 
-    def within_bounds(g: dict[str, float]) -> bool:
-        # two frame periods, or on a machine that stalls the node by itself (a loaded shared
-        # VM), no more than its own stalls plus one period: a blocking stop takes hundreds of ms
-        return g["stimulus"] <= max(2 * period, g["idle_stimulus"] + period) and g[
-            "heartbeat"
-        ] <= max(70.0, g["idle_heartbeat"] + period)
-
-    gaps = _jog_and_stop_for(rig, 10.0, session=11)
-    first = gaps
-    if not within_bounds(gaps):  # another process may have held the core: measure once more
-        gaps = _jog_and_stop_for(rig, 10.0, session=12)
-    assert gaps["stimulus"] <= max(2 * period, gaps["idle_stimulus"] + period), (gaps, first)
-    assert gaps["heartbeat"] <= max(70.0, gaps["idle_heartbeat"] + period), (gaps, first)
-    # no false deadman trip in either run
+    A machine that stalls the node by itself (a loaded CI host) makes gaps
+    at random times; a stop that waits on the arm (hundreds of ms of
+    deceleration) makes one after every stop. So each stop is judged by the
+    largest gap within 300 ms after it, and the test fails only when a
+    quarter of the stops or more are followed by one: the message says
+    which it was, with the idle baseline measured in the same run.
+    """
+    period_ms = 1000 / PUBLISH_HZ
+    limits_ms = {"stimulus": 3 * period_ms, "heartbeat": 3 * 1000 / 20.0}
+    run = _jog_and_stop_for(rig, 10.0, session=11)
+    stops = run["stops"]
+    assert len(stops) >= 20, f"only {len(stops)} jog+stop cycles in 10 s"
+    for kind, limit in limits_ms.items():
+        after = _gap_after_each(run[kind], stops)
+        stalled = [g for g in after if g > limit]
+        share = len(stalled) / len(stops)
+        idle = run[f"idle_{kind}"]
+        assert share < MAX_STALLED_SHARE, (
+            f"{len(stalled)} of {len(stops)} stops were followed by a {kind} gap over "
+            f"{limit:.0f} ms (largest {max(after):.0f} ms): the stop blocks the robot's loop "
+            f"(a product defect). Idle, the machine's own largest gap was {idle:.0f} ms."
+        )
+    # no false deadman trip
     assert rig.telemetry.robot_stats().get("deadman_trips", 0) == 0
-    print(f"\njog+stop: {gaps} (first try {first})")
+    print(
+        f"\njog+stop: {len(stops)} cycles; largest gap after a stop "
+        f"{max(_gap_after_each(run['stimulus'], stops)):.0f} ms stimulus, idle "
+        f"{run['idle_stimulus']:.0f} ms"
+    )
+
+
+def _gap_after_each(sent: list[int], marks: list[int]) -> list[float]:
+    """For each mark, the largest gap (ms) between sends that overlaps the window after it."""
+    s = np.asarray(sorted(sent), dtype=np.int64)
+    starts, ends, gaps = s[:-1], s[1:], np.diff(s)
+    out = []
+    for t in marks:
+        near = (ends > t) & (starts < t + STALL_WINDOW_NS)
+        out.append(float(gaps[near].max()) / 1e6 if near.any() else float("inf"))
+    return out
 
 
 def test_a_replayed_command_is_refused_and_counted(rig):
