@@ -120,7 +120,16 @@ def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_p
             assert a["action"][i][6] == records["robot/gripper"][0][1]["requested_position"]
     ages = np.array(ages)
     assert (ages >= 0).all()
-    assert (ages < period_ns).mean() > 0.99, f"held frames older than a period: {ages.max()} ns"
+    # a row holds a frame older than a period only where the recording itself has a longer
+    # gap (the robot stalled: a loaded machine); the export adds no age of its own
+    t_frames = np.array([t for t, _ in records["robot/frame"]], dtype=np.int64)
+    gaps = np.diff(t_frames)
+    in_gaps = np.clip(gaps - period_ns, 0, None).sum() / (t_frames[-1] - t_frames[0])
+    old = (ages >= period_ns).mean()
+    assert old <= in_gaps + 0.01, (
+        f"{old:.1%} of rows hold a frame older than a period, but the recording spends only "
+        f"{in_gaps:.1%} of its time in gaps that long (largest gap {gaps.max() / 1e6:.0f} ms)"
+    )
 
 
 def test_one_episode_per_session_covers_the_recording(session, records, tmp_path):
