@@ -145,3 +145,34 @@ class DashboardDemo:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+
+
+class VideoServerProcess:
+    """``deepxpalm video`` on the test pattern as its own process, so its crash is seen from
+    outside; ``with`` starts it and waits until it serves (``url``)."""
+
+    def __init__(self, port: int | None = None, *settings: str) -> None:
+        self.port = port or free_loopback_ports(1)[0]
+        self.argv = [sys.executable, "-m", "deploy.cli", "video", "--set", f"port={self.port}"]
+        for s in settings:
+            self.argv += ["--set", s]
+        self.proc: subprocess.Popen | None = None
+
+    @property
+    def url(self) -> str:
+        return f"ws://127.0.0.1:{self.port}/"
+
+    def __enter__(self) -> VideoServerProcess:
+        self.proc = subprocess.Popen(
+            self.argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        line = self.proc.stdout.readline()  # "video: ws://... (source ...)" once it serves
+        if not line.startswith("video: ws://"):
+            self.proc.kill()
+            raise RuntimeError(f"the video server did not start: {self.proc.stderr.read()[-2000:]}")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()

@@ -16,6 +16,7 @@ import asyncio
 import json
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -104,3 +105,15 @@ async def watch(url: str, viewers: int, seconds: float) -> list[ViewerRun]:
     runs = [ViewerRun() for _ in range(viewers)]
     await asyncio.gather(*(view(url, seconds, run) for run in runs))
     return runs
+
+
+def cpu_times() -> tuple[float, float]:
+    """(idle, total) jiffies of the whole machine since boot (Linux ``/proc/stat``)."""
+    fields = [float(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    return fields[3] + fields[4], sum(fields[:8])  # idle + iowait; user .. steal
+
+
+def idle_share(before: tuple[float, float], after: tuple[float, float]) -> float:
+    """Share of the machine's CPU time left idle between two ``cpu_times()`` readings."""
+    total = after[1] - before[1]
+    return (after[0] - before[0]) / total if total > 0 else 0.0
