@@ -176,3 +176,31 @@ class VideoServerProcess:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+
+
+def child_processes(parent_pid: int) -> dict[str, int]:
+    """The pids of a ``deepxpalm demo``'s children by role, read from /proc, as ``ps`` would.
+
+    Roles: the ``deepxpalm`` subcommand (robot, netsim, video), or ``world`` for the lab.
+    """
+    import os
+
+    found: dict[str, int] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                words = f.read().decode(errors="replace").split("\0")
+        except (OSError, ValueError, IndexError):
+            continue  # gone meanwhile
+        if ppid != parent_pid:
+            continue
+        if "robot_side.lab" in words:
+            found["world"] = int(entry)
+        for role in ("robot", "netsim", "video"):
+            if role in words:
+                found[role] = int(entry)
+    return found
