@@ -15,6 +15,12 @@ def _python(code: str):
     return lambda n: subprocess.Popen([sys.executable, "-c", code])
 
 
+def _log(tmp_path, name: str):
+    path = tmp_path / f"{name}.log"
+    path.touch()  # stop_child quotes a child's log when it exits badly
+    return path
+
+
 def _poll_until(sup: Supervisor, errors: list, cond, timeout_s: float = 20.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while not cond():
@@ -33,7 +39,9 @@ def test_the_delays_are_the_shipped_units():
 
 def test_a_killed_child_is_restarted_after_its_delay(tmp_path):
     sup, errors = Supervisor(), []
-    child = sup.add(Child("robot", _python("import time; time.sleep(60)"), tmp_path / "r", 0.3))
+    child = sup.add(
+        Child("robot", _python("import time; time.sleep(60)"), _log(tmp_path, "r"), 0.3)
+    )
     sup.armed = True
     first = child.proc.pid
     child.proc.kill()
@@ -50,8 +58,12 @@ def test_a_killed_child_is_restarted_after_its_delay(tmp_path):
 
 def test_a_child_that_keeps_dying_is_given_up_on(tmp_path):
     sup, errors = Supervisor(), []
-    video = sup.add(Child("video", _python("raise SystemExit(3)"), tmp_path / "v", 0.01, False))
-    robot = sup.add(Child("robot", _python("import time; time.sleep(60)"), tmp_path / "r", 0.01))
+    video = sup.add(
+        Child("video", _python("raise SystemExit(3)"), _log(tmp_path, "v"), 0.01, False)
+    )
+    robot = sup.add(
+        Child("robot", _python("import time; time.sleep(60)"), _log(tmp_path, "r"), 0.01)
+    )
     sup.armed = True
     _poll_until(sup, errors, lambda: video.gave_up)
     assert len(video.restart_times) == START_LIMIT_BURST and video.exits == [3] * 6
@@ -68,6 +80,6 @@ def test_a_child_that_keeps_dying_is_given_up_on(tmp_path):
 
 def test_a_child_failing_while_the_demo_starts_ends_it(tmp_path):
     sup, errors = Supervisor(), []
-    sup.add(Child("robot", _python("raise SystemExit(2)"), tmp_path / "r", 0.01)).proc.wait()
+    sup.add(Child("robot", _python("raise SystemExit(2)"), _log(tmp_path, "r"), 0.01)).proc.wait()
     assert not sup.poll(errors)  # not armed: a wrong setting would otherwise loop
     assert "robot stopped early with 2" in errors[0]
