@@ -15,6 +15,10 @@ def _python(code: str):
     return lambda n: subprocess.Popen([sys.executable, "-c", code])
 
 
+SLEEPER = _python("import time; time.sleep(60)")
+FAILER = _python("raise SystemExit(3)")
+
+
 def _log(tmp_path, name: str):
     path = tmp_path / f"{name}.log"
     path.touch()  # stop_child quotes a child's log when it exits badly
@@ -39,9 +43,7 @@ def test_the_delays_are_the_shipped_units():
 
 def test_a_killed_child_is_restarted_after_its_delay(tmp_path):
     sup, errors = Supervisor(), []
-    child = sup.add(
-        Child("robot", _python("import time; time.sleep(60)"), _log(tmp_path, "r"), 0.3)
-    )
+    child = sup.add(Child("robot", SLEEPER, _log(tmp_path, "r"), 0.3))
     sup.armed = True
     first = child.proc.pid
     child.proc.kill()
@@ -58,12 +60,8 @@ def test_a_killed_child_is_restarted_after_its_delay(tmp_path):
 
 def test_a_child_that_keeps_dying_is_given_up_on(tmp_path):
     sup, errors = Supervisor(), []
-    video = sup.add(
-        Child("video", _python("raise SystemExit(3)"), _log(tmp_path, "v"), 0.01, False)
-    )
-    robot = sup.add(
-        Child("robot", _python("import time; time.sleep(60)"), _log(tmp_path, "r"), 0.01)
-    )
+    video = sup.add(Child("video", FAILER, _log(tmp_path, "v"), 0.01, False))
+    robot = sup.add(Child("robot", SLEEPER, _log(tmp_path, "r"), 0.01))
     sup.armed = True
     _poll_until(sup, errors, lambda: video.gave_up)
     assert len(video.restart_times) == START_LIMIT_BURST and video.exits == [3] * 6
