@@ -107,6 +107,32 @@ async def watch(url: str, viewers: int, seconds: float) -> list[ViewerRun]:
     return runs
 
 
+def many_viewers(
+    viewers: int, seconds: float, width: int = 640, height: int = 480, fps: float = 30.0
+) -> dict[str, Any]:
+    """``viewers`` viewers at once on a video server in this process, for the bench."""
+    from robot_side.video.server import VideoConfig, VideoServer
+    from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
+
+    source = TestPatternSource(TestPatternConfig(width=width, height=height, fps=fps))
+    cpu0 = cpu_times()
+    with VideoServer(source, VideoConfig(port=0, max_viewers=viewers)) as server:
+        runs = asyncio.run(watch(server.url, viewers, seconds))
+    lat = np.concatenate([np.asarray(r.latencies_ms) for r in runs] + [np.zeros(0)])
+    each = [r.summary() for r in runs]
+    return {
+        "viewers": viewers,
+        "seconds": seconds,
+        "p50_ms": round(float(np.percentile(lat, 50)), 1) if lat.size else None,
+        "p99_ms": round(float(np.percentile(lat, 99)), 1) if lat.size else None,
+        "stalls_over_500ms": sum(v["stalls"] for v in each),
+        "longest_gap_ms": max((v["longest_gap_ms"] or 0.0) for v in each),
+        "fps_per_viewer": round(min(v["frames"] for v in each) / seconds, 1),
+        "ended_early": sum(v["ended"] is not None for v in each),
+        "machine_idle_cpu": round(idle_share(cpu0, cpu_times()), 3),
+    }
+
+
 def cpu_times() -> tuple[float, float]:
     """(idle, total) jiffies of the whole machine since boot (Linux ``/proc/stat``)."""
     fields = [float(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
