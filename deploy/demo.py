@@ -3,6 +3,10 @@
 The robot node and the link simulator run as child processes, as they would
 on their own machines; the operator node runs here, with the live view (or
 headless with ``--json``). Latency comes from the messages' timestamps.
+
+A child that dies while the demo runs (the robot node, the link simulator,
+the lab world, the video server) is restarted as its systemd unit would be
+(``deploy/supervisor.py``); the live view and the summary say so.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +32,7 @@ from common.errors import ConfigError
 from common.transport import free_loopback_ports
 from deploy import live_view
 from deploy.scene import Scene, load_scene_dict
+from deploy.supervisor import DEFAULT_RESTART_S, Child, Supervisor, unit_restart_s
 from operator_side.dashboard.config import VIDEO_OVER_LINK
 from operator_side.node import build_operator_node
 
@@ -76,7 +82,7 @@ def die_with_parent() -> None:
 
 
 def spawn_cli(args: list[str], log_path: Path) -> subprocess.Popen:
-    out = log_path.open("wb")
+    out = log_path.open("ab")  # a restarted child's log follows its crash
     return subprocess.Popen(
         [sys.executable, "-m", "deploy.cli", *args],
         stdout=out,
@@ -159,12 +165,15 @@ LAB_DEVICES = ("tactile", "gripper", "arm")
 WORLD_START_S = 60.0
 
 
-def start_lab_world(scene: Scene, workdir: Path) -> tuple[subprocess.Popen, Path] | None:
+def start_lab_world(
+    scene: Scene, workdir: Path
+) -> tuple[subprocess.Popen, Path, str | None] | None:
     """The simulated lab as its own process, when the scene's devices live in one.
 
     Its addresses file then points the robot's lab devices (``running_world``)
-    and the video server's lab camera at it. None when no device is a lab
-    kind, or one already names a running world.
+    and the video server's lab camera at it: (process, addresses, world
+    config). None when no device is a lab kind, or one already names a
+    running world.
     """
     sections = [getattr(scene.robot, d) for d in LAB_DEVICES]
     lab = [s for s in sections if s.get("kind") == "lab"]
@@ -174,14 +183,23 @@ def start_lab_world(scene: Scene, workdir: Path) -> tuple[subprocess.Popen, Path
     if len(configs) > 1:
         raise ConfigError(f"the scene's lab devices name different worlds: {sorted(configs)}")
     addresses = workdir / "world.json"
+    config = configs.pop() if configs else None
+    proc = spawn_lab_world(addresses, config, workdir / "world.log")
+    for section in lab:
+        section["running_world"] = str(addresses)
+    return proc, addresses, config
+
+
+def spawn_lab_world(addresses: Path, config: str | None, log_path: Path) -> subprocess.Popen:
+    """``python -m robot_side.lab``, once it has written ``addresses`` (a stale one removed)."""
+    addresses.unlink(missing_ok=True)
     args = [sys.executable, "-m", "robot_side.lab", "--addresses-file", str(addresses)]
-    if configs:
-        args += ["--config", configs.pop()]
-    log_path = workdir / "world.log"
+    if config is not None:
+        args += ["--config", config]
     proc = subprocess.Popen(
         args,
         stdout=subprocess.DEVNULL,
-        stderr=log_path.open("wb"),
+        stderr=log_path.open("ab"),
         start_new_session=True,
         preexec_fn=die_with_parent,
     )
@@ -192,9 +210,7 @@ def start_lab_world(scene: Scene, workdir: Path) -> tuple[subprocess.Popen, Path
             tail = log_path.read_text(errors="replace").strip().splitlines()[-5:]
             raise ConfigError(f"the lab world did not start: {' | '.join(tail)}")
         time.sleep(0.1)
-    for section in lab:
-        section["running_world"] = str(addresses)
-    return proc, addresses
+    return proc
 
 
 def video_wanted(args: argparse.Namespace, scene: Scene) -> bool:
@@ -234,15 +250,27 @@ def run(args: argparse.Namespace) -> int:
         fit_command_timing(scene)
     if args.curve:
         _use_fresh_curve_keys(scene, workdir / "keys")
-    procs: list[tuple[str, subprocess.Popen, Path]] = []
+    children = Supervisor()
     world = start_lab_world(scene, workdir)
-    if world is not None:
-        procs.append(("world", world[0], workdir / "world.log"))
     video = None
     if video_wanted(args, scene):
         video, video_url = video_args(world[1] if world is not None else None)
         scene.robot.link.video_url = video_url  # offers reach it through the robot's link
         scene.operator.dashboard.video_url = VIDEO_OVER_LINK
+    if world is not None:
+        world_proc, addresses, world_config = world
+        world_log = workdir / "world.log"
+        children.add(
+            Child(
+                "world",
+                lambda n: (
+                    world_proc if n == 0 else spawn_lab_world(addresses, world_config, world_log)
+                ),
+                world_log,
+                DEFAULT_RESTART_S,
+                restarts_too=("robot", "video"),  # they found it by its addresses
+            )
+        )
     robot_cfg = workdir / "robot.toml"
     robot_cfg.write_text(config_toml(scene.robot, "robot"))
     errors: list[str] = []
@@ -250,42 +278,34 @@ def run(args: argparse.Namespace) -> int:
     robot_stats_path = workdir / "robot-stats.json"
     netsim_stats_path = workdir / "netsim-stats.json"
     verbosity = ["-v"] if logging.getLogger().level <= logging.INFO else []
-    procs.append(
-        (
-            "robot",
-            spawn_cli(
-                [
-                    *verbosity,
-                    "robot",
-                    "--config",
-                    str(robot_cfg),
-                    "--stats-file",
-                    str(robot_stats_path),
-                    *(["--record", str(args.record / "robot.mcap")] if args.record else []),
-                ],
-                workdir / "robot.log",
-            ),
-            workdir / "robot.log",
-        )
-    )
+
+    def robot_args(n: int) -> list[str]:
+        args_ = [*verbosity, "robot", "--config", str(robot_cfg)]
+        args_ += ["--stats-file", str(robot_stats_path)]
+        if args.record:  # a restarted node records beside the crashed one's file, not over it
+            name = "robot.mcap" if n == 0 else f"robot.restart{n}.mcap"
+            args_ += ["--record", str(args.record / name)]
+        return args_
+
+    def cli_child(name: str, argv: Callable[[int], list[str]], **kw: Any) -> None:
+        log_path = workdir / f"{name}.log"
+        children.add(Child(name, lambda n: spawn_cli(argv(n), log_path), log_path, **kw))
+
+    cli_child("robot", robot_args, restart_delay_s=unit_restart_s("robot"))
     if use_netsim:
-        procs.append(
-            (
-                "netsim",
-                spawn_cli(
-                    [
-                        *verbosity,
-                        *netsim_args(scene, (robot_tel, robot_cmd, op_tel, op_cmd)),
-                        *("--stats-file", str(netsim_stats_path)),
-                    ],
-                    workdir / "netsim.log",
-                ),
-                workdir / "netsim.log",
-            )
+        netsim = [
+            *verbosity,
+            *netsim_args(scene, (robot_tel, robot_cmd, op_tel, op_cmd)),
+            *("--stats-file", str(netsim_stats_path)),
+        ]
+        cli_child("netsim", lambda n: netsim, restart_delay_s=DEFAULT_RESTART_S)
+    if video is not None:  # -v: it says when the camera opens and closes
+        cli_child(
+            "video",
+            lambda n: ["-v", *video],
+            restart_delay_s=unit_restart_s("video"),
+            essential=False,  # the demo runs on without a camera
         )
-    if video is not None:
-        video_log = workdir / "video.log"  # -v: it says when the camera opens and closes
-        procs.append(("video", spawn_cli(["-v", *video], video_log), video_log))
     recorder = None
     if args.record:
         from common.mcap_recorder import node_recorder
@@ -310,7 +330,8 @@ def run(args: argparse.Namespace) -> int:
 
     thread = threading.Thread(target=operate, name="operator", daemon=True)
     thread.start()
-    wait_for_robot(node, procs, stop, errors)
+    wait_for_robot(node, children.procs(), stop, errors)
+    children.armed = node.counters["heartbeats_received"] > 0  # up: from now on, restart
     t0 = time.monotonic()  # --duration counts from the first word of the robot
     keyboard = live_view.Keyboard() if not args.json else contextlib.nullcontext()
     dashboard, dashboard_line = None, ""
@@ -328,15 +349,13 @@ def run(args: argparse.Namespace) -> int:
                 elapsed = time.monotonic() - t0
                 if args.duration is not None and elapsed >= args.duration:
                     break
-                for name, proc, path in procs:
-                    if proc.poll() is not None:
-                        errors.append(f"{name} stopped early with {proc.returncode}; see {path}")
-                        stop.set()
+                if not children.poll(errors):
+                    stop.set()
                 if not args.json:
                     for action, kwargs in keyboard.commands():
                         node.send_command(action, **kwargs)
                     view = live_view.render(node.snapshot(), scene.scene.name, elapsed)
-                    sys.stdout.write(view + dashboard_line)
+                    sys.stdout.write(view + children.status_line() + "\n" + dashboard_line)
                     sys.stdout.flush()
                 stop.wait(0.1 if args.json else 0.05)
     finally:
@@ -347,11 +366,11 @@ def run(args: argparse.Namespace) -> int:
         thread.join(timeout=10)
         if recorder is not None:
             recorder.close()
-        for name, proc, path in reversed(procs):
-            stop_child(proc, name, errors, path)
+        children.stop_all(stop_child, errors)
     if node_error:
         errors.append(f"operator node failed: {node_error[0]!r}")
     summary = _summary(scene, node, ran_s, robot_stats_path, netsim_stats_path, errors)
+    summary["processes"] = children.summary()
     summary["logs"] = str(workdir)
     print(json.dumps(summary, indent=2))
     return 1 if errors else 0

@@ -145,3 +145,62 @@ class DashboardDemo:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+
+
+class VideoServerProcess:
+    """``deepxpalm video`` on the test pattern as its own process, so its crash is seen from
+    outside; ``with`` starts it and waits until it serves (``url``)."""
+
+    def __init__(self, port: int | None = None, *settings: str) -> None:
+        self.port = port or free_loopback_ports(1)[0]
+        self.argv = [sys.executable, "-m", "deploy.cli", "video", "--set", f"port={self.port}"]
+        for s in settings:
+            self.argv += ["--set", s]
+        self.proc: subprocess.Popen | None = None
+
+    @property
+    def url(self) -> str:
+        return f"ws://127.0.0.1:{self.port}/"
+
+    def __enter__(self) -> VideoServerProcess:
+        self.proc = subprocess.Popen(
+            self.argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        line = self.proc.stdout.readline()  # "video: ws://... (source ...)" once it serves
+        if not line.startswith("video: ws://"):
+            self.proc.kill()
+            raise RuntimeError(f"the video server did not start: {self.proc.stderr.read()[-2000:]}")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def child_processes(parent_pid: int) -> dict[str, int]:
+    """The pids of a ``deepxpalm demo``'s children by role, read from /proc, as ``ps`` would.
+
+    Roles: the ``deepxpalm`` subcommand (robot, netsim, video), or ``world`` for the lab.
+    """
+    import os
+
+    found: dict[str, int] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                words = f.read().decode(errors="replace").split("\0")
+        except (OSError, ValueError, IndexError):
+            continue  # gone meanwhile
+        if ppid != parent_pid:
+            continue
+        if "robot_side.lab" in words:
+            found["world"] = int(entry)
+        for role in ("robot", "netsim", "video"):
+            if role in words:
+                found[role] = int(entry)
+    return found

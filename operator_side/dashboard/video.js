@@ -3,12 +3,24 @@
 // server). When the source is the stamped test pattern, each presented
 // frame's capture time is read back from its pixels and glass-to-glass
 // latency is kept on dxp.video (robot/stamp.py describes the stamp).
+//
+// The receiver reconnects by itself, with backoff, when its peer connection
+// fails, the robot closes the session (its video server restarted, say) or
+// no frame is decoded for a while: the first retries come fast, since a
+// restarted video server is back within seconds, later ones slower.
 "use strict";
 
 const VIDEO = (() => {
   const STAMP_BITS = 40;
   const MS_MODULO = 2 ** 32;
   const MARGIN = 60;
+  const RETRY_FIRST_MS = 250; // then doubled per failed attempt, up to:
+  const RETRY_MAX_MS = 1000; // while the outage is young (a restart: seconds)
+  const RETRY_SLOW_MS = 5000; // after RETRY_FAST_TRIES attempts without a frame
+  const RETRY_FAST_TRIES = 8;
+  const FIRST_FRAME_MS = 6000; // after the answer: ICE, DTLS, the first keyframe
+  const STALL_MS = 3000; // no frame decoded for this long: reconnect
+  const WATCH_MS = 500;
 
   // (capture ms modulo 2^32, counter) from the stamp rows of an RGBA band, or null
   function readStamp(data, width) {
@@ -55,11 +67,25 @@ const VIDEO = (() => {
       this.canvas = document.createElement("canvas");
       this.ctx = null;
       this.retry = null;
+      this.failures = 0; // attempts since frames last flowed
+      this.reconnects = 0; // sessions started again after a failure, a close or a stall
+      this.lastReason = null;
+      this.lastStamp = null; // the last stamped frame's capture time (ms modulo 2^32)
+      this.answeredAt = null; // when this session's answer was applied (ms)
+      this.decodedAt = null; // when framesDecoded last grew (ms)
+      this.framesDecoded = 0;
+      this.watch = setInterval(() => this.checkFlow(), WATCH_MS);
     }
 
     async start() {
       clearTimeout(this.retry);
-      if (this.pc) this.pc.close();
+      this.retry = null;
+      const old = this.pc;
+      this.pc = null; // its state changes from here on are not ours to act on
+      if (old) old.close();
+      this.answeredAt = this.decodedAt = null;
+      this.framesDecoded = 0;
+      this.lastCounter = null; // a restarted server counts its frames from 0
       const pc = new RTCPeerConnection({
         iceServers: this.iceServers,
         iceTransportPolicy: this.iceTransportPolicy,
@@ -71,9 +97,10 @@ const VIDEO = (() => {
         this.video.play().catch(() => {});
       };
       pc.onconnectionstatechange = () => {
+        if (pc !== this.pc) return;
         this.status(`video ${pc.connectionState}`);
-        if (pc === this.pc && (pc.connectionState === "failed" || pc.connectionState === "closed")) {
-          this.retry = setTimeout(() => this.start(), 2000);
+        if (pc.connectionState === "failed" || pc.connectionState === "closed") {
+          this.reconnect(`video ${pc.connectionState}`);
         }
       };
       await pc.setLocalDescription(await pc.createOffer());
@@ -84,14 +111,67 @@ const VIDEO = (() => {
         pc.addEventListener("icegatheringstatechange", done);
         setTimeout(resolve, 2000);
       });
+      if (pc !== this.pc) return; // started again meanwhile
       this.send({ type: "video_offer", sdp: pc.localDescription.sdp });
       this.status("video: waiting for the robot");
     }
 
+    // Start again after a delay that grows with each attempt that brought no frame.
+    reconnect(reason) {
+      this.lastReason = reason;
+      if (this.retry) return; // one attempt pending is enough
+      const cap = this.failures < RETRY_FAST_TRIES ? RETRY_MAX_MS : RETRY_SLOW_MS;
+      const delay = Math.min(cap, RETRY_FIRST_MS * 2 ** this.failures);
+      this.failures++;
+      this.status(`${reason}; video again in ${(delay / 1000).toFixed(1)} s`);
+      this.retry = setTimeout(() => {
+        this.retry = null;
+        this.reconnects++;
+        this.start().catch((e) => this.reconnect(`video: ${e}`));
+      }, delay);
+    }
+
+    // Frames decoded, from the statistics (they count in a hidden tab too, where
+    // requestVideoFrameCallback does not run); none for too long: reconnect.
+    async checkFlow() {
+      const pc = this.pc;
+      if (!pc || this.answeredAt === null || this.retry) return;
+      let decoded = 0;
+      try {
+        (await pc.getStats()).forEach((r) => {
+          if (r.type === "inbound-rtp" && r.kind === "video") decoded += r.framesDecoded || 0;
+        });
+      } catch (e) {
+        return; // closed meanwhile
+      }
+      if (pc !== this.pc || this.answeredAt === null) return;
+      const now = Date.now();
+      if (decoded > this.framesDecoded) {
+        this.framesDecoded = decoded;
+        this.decodedAt = now;
+        this.failures = 0; // flowing: the next outage starts with fast retries again
+        return;
+      }
+      if (this.decodedAt === null ? now - this.answeredAt > FIRST_FRAME_MS : now - this.decodedAt > STALL_MS) {
+        this.reconnect(this.decodedAt === null ? "video: no picture came" : "video stalled");
+      }
+    }
+
     async onAnswer(msg) {
+      const pc = this.pc;
+      if (!pc || pc.signalingState !== "have-local-offer") return; // an older offer's answer
       this.source = msg.source;
-      await this.pc.setRemoteDescription({ type: "answer", sdp: msg.sdp });
-      if (this.video.requestVideoFrameCallback) this.video.requestVideoFrameCallback((t, m) => this.onFrame(m));
+      try {
+        await pc.setRemoteDescription({ type: "answer", sdp: msg.sdp });
+      } catch (e) {
+        this.reconnect(`video: ${e}`);
+        return;
+      }
+      this.answeredAt = Date.now();
+      if (this.video.requestVideoFrameCallback && !this.frameCallback) {
+        this.frameCallback = true; // one chain of callbacks for the element, whatever the session
+        this.video.requestVideoFrameCallback((t, m) => this.onFrame(m));
+      }
     }
 
     async path() {
@@ -110,8 +190,7 @@ const VIDEO = (() => {
     }
 
     onClosed(msg) {
-      this.status(msg.reason);
-      this.retry = setTimeout(() => this.start(), 2000);
+      this.reconnect(msg.reason || "video closed");
     }
 
     onFrame(meta) {
@@ -142,6 +221,7 @@ const VIDEO = (() => {
         if (step > 1 && step < 128) this.skipped += step - 1; // 0: shown twice; >= 128: stale
       }
       this.lastCounter = stamp.counter;
+      this.lastStamp = stamp.ms;
       const latency = (now - stamp.ms + MS_MODULO) % MS_MODULO;
       this.latencies.push(latency);
       if (this.latencies.length > 20000) this.latencies.splice(0, 10000);
@@ -152,7 +232,7 @@ const VIDEO = (() => {
       const pct = (p) => (lat.length ? lat[Math.min(lat.length - 1, Math.floor((p / 100) * lat.length))] : null);
       let stall = 0;
       for (let i = 1; i < this.presented.length; i++) stall = Math.max(stall, this.presented[i] - this.presented[i - 1]);
-      return { frames: this.presented.length, stamped: lat.length, p50: pct(50), p99: pct(99), max_gap_ms: stall, unreadable: this.unreadable, skipped: this.skipped };
+      return { frames: this.presented.length, stamped: lat.length, p50: pct(50), p99: pct(99), max_gap_ms: stall, unreadable: this.unreadable, skipped: this.skipped, reconnects: this.reconnects, last_reason: this.lastReason };
     }
   }
 

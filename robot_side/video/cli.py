@@ -1,9 +1,16 @@
-"""``deepxpalm video``: stream a camera from the robot PC to the operator's dashboard."""
+"""``deepxpalm video``: stream a camera from the robot PC to the operator's dashboard.
+
+SIGTERM (systemd's stop) and Ctrl-C close every viewer and exit. Should an
+encoder thread be stuck in native code, the process exits without joining
+it (Python would otherwise wait for it forever at exit, and systemd would
+have to SIGKILL a server that had looked as if it ignored SIGTERM).
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 
 from common.cli_support import (
     add_config_arguments,
@@ -28,7 +35,14 @@ def run(args: argparse.Namespace) -> int:
     from robot_side.video.server import VideoServer, build_source  # aiortc: only to serve
 
     stop = stop_on_signals()
-    with VideoServer(build_source(config), config) as server:
+    server = VideoServer(build_source(config), config).start()
+    try:
         print(f"video: {server.url} (source {config.source})", flush=True)
         stop.wait(args.duration)
+    finally:
+        clean = server.stop()
+    if not clean:
+        log.error("video: exiting without waiting for a stuck encoder thread")
+        logging.shutdown()
+        os._exit(1)
     return 0

@@ -14,6 +14,11 @@ viewer's key goes unheard for ``viewer_timeout_s`` (a tab that vanished
 without a word). So the camera is captured and encoded only while someone
 watches.
 
+Each offer opens its own connection, so a video server that died and came
+back (systemd, or ``deepxpalm demo``, restarts it) needs nothing here: a
+session it held ends with ``closed``, an offer while it is down is answered
+``closed`` with the reason, and the next offer after it is back works.
+
 Nothing here blocks the frame loop: the node calls ``on_signal`` and
 ``take_outgoing`` (a deque each way), and the sessions run on an asyncio
 loop of their own thread, started at the first offer.
@@ -35,6 +40,7 @@ from common.messages import VideoSignal
 log = logging.getLogger(__name__)
 
 ANSWER_TIMEOUT_S = 10.0
+ABNORMAL_CLOSURE = 1006  # the video server's socket dropped without a close (it died)
 
 
 @dataclass
@@ -187,11 +193,16 @@ class LinkSignalling:
                 await ws.wait_closed()
                 if ws.close_reason:
                     reason = f"the video server ended the session: {ws.close_reason}"
+                elif ws.close_code == ABNORMAL_CLOSURE:
+                    reason = "the video server stopped (its connection dropped)"
         except asyncio.CancelledError:
             log.info("video: viewer %016x left", viewer)
             raise
         except ConnectionClosed as e:
             reason = f"the video server refused: {e.rcvd.reason if e.rcvd else e}"
+        except ConnectionRefusedError:
+            reason = f"no video server is running at {self.video_url} (restarting?)"
+            log.warning("video: %s", reason)
         except (OSError, TimeoutError, ValueError, KeyError, TypeError) as e:
             reason = f"no video server at {self.video_url}: {e}"
             log.warning("video: %s", reason)

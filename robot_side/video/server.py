@@ -10,7 +10,17 @@ the browser's REMB feedback).
 
 The source is shared through a relay: it is opened when the first viewer's
 encoder asks for a frame and closed when the last viewer leaves, so
-nothing is captured or encoded for nobody.
+nothing is captured or encoded for nobody. Each frame is converted to
+``yuv420p`` once, on the capture thread, before the relay hands the same
+frame object to every viewer's encoder: aiortc's VP8 encoder reformats any
+other format on its own thread, and PyAV's ``reformat`` of one frame from
+two threads at once crashes the process or hangs it
+(docs/dashboard.md, Video). A ``yuv420p`` frame is passed through untouched.
+
+``stop()`` (SIGTERM, Ctrl-C) closes every viewer's peer connection and
+returns within its timeout even when an encoder thread is stuck in native
+code; it says whether the server stopped cleanly, so the process can exit
+without waiting for such a thread.
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ import concurrent.futures
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
@@ -29,7 +40,7 @@ from common.config import param
 from common.errors import ConfigError
 from common.ice import IceConfig
 from robot_side.video.lab_camera import LabCameraConfig, LabCameraSource
-from robot_side.video.source import VideoSource
+from robot_side.video.source import CapturedFrame, VideoSource
 from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 from robot_side.video.v4l2 import V4L2Config, V4L2Source
 
@@ -37,6 +48,8 @@ log = logging.getLogger(__name__)
 
 VIDEO_CLOCK = 90_000  # RTP's video clock rate
 OFFER_TIMEOUT_S = 10.0
+CLOSE_TIMEOUT_S = 3.0  # for every viewer's peer connection to close at stop
+SHARED_FORMAT = "yuv420p"  # what the VP8 encoder takes as it is (no reformat on its thread)
 
 
 @dataclass
@@ -88,6 +101,15 @@ def build_source(config: VideoConfig) -> VideoSource:
     return factory(config)
 
 
+def _capture_shareable(source: VideoSource) -> tuple[CapturedFrame, Any]:
+    """The next frame, and it as a ``yuv420p`` VideoFrame every viewer's encoder may share."""
+    import av
+
+    frame = source.capture()
+    rgb = av.VideoFrame.from_ndarray(frame.rgb, format="rgb24")
+    return frame, rgb.reformat(format=SHARED_FORMAT)
+
+
 def _source_track(source: VideoSource) -> Any:
     """An aiortc track that opens ``source`` on its first frame and closes it on ``stop``."""
     import av
@@ -113,12 +135,11 @@ def _source_track(source: VideoSource) -> Any:
                     await loop.run_in_executor(self._pool, source.open)
                     self._open = True
                     log.info("video: %s opened for a viewer", source.name)
-                frame = await loop.run_in_executor(self._pool, source.capture)
+                frame, out = await loop.run_in_executor(self._pool, _capture_shareable, source)
             except RuntimeError:  # stopped meanwhile: the pool no longer takes work
                 raise MediaStreamError from None
             if self._t0 is None:
                 self._t0 = frame.capture_ns
-            out = av.VideoFrame.from_ndarray(frame.rgb, format="rgb24")
             out.pts = (frame.capture_ns - self._t0) * VIDEO_CLOCK // 1_000_000_000
             out.time_base = Fraction(1, VIDEO_CLOCK)
             self.frames += 1
@@ -161,6 +182,8 @@ class VideoServer:
         self._thread: threading.Thread | None = None
         self._started = threading.Event()
         self._error: BaseException | None = None
+        self._peers: set[Any] = set()  # the viewers' RTCPeerConnections (the loop's thread)
+        self._encoder_prefix = f"video-encode-{id(self):x}"
 
     @property
     def url(self) -> str:
@@ -177,13 +200,34 @@ class VideoServer:
         log.info("video signalling at %s, source %s", self.url, self.source.name)
         return self
 
-    def stop(self, timeout_s: float = 5.0) -> None:
+    def stop(self, timeout_s: float = 5.0) -> bool:
+        """Close every viewer and stop serving; False when something did not end in time.
+
+        Waits at most ``timeout_s``. An encoder thread stuck in native code is
+        not waited for beyond that; then, and only then, the answer is False
+        and the process should exit without joining its threads
+        (``deepxpalm video`` does).
+        """
         thread, self._thread = self._thread, None
         if thread is None:
-            return
+            return True
+        deadline = time.monotonic() + timeout_s
         if self._loop is not None and self._stop is not None:
             self._loop.call_soon_threadsafe(self._stop.set)
         thread.join(timeout_s)
+        stuck = [t for t in threading.enumerate() if t.name.startswith(self._encoder_prefix)]
+        for t in stuck:
+            t.join(max(0.0, deadline - time.monotonic()))
+        stuck = [t.name for t in stuck if t.is_alive()]
+        if thread.is_alive() or stuck:
+            log.error(
+                "video: did not stop within %.1f s (server thread %s, encoder threads %s)",
+                timeout_s,
+                "running" if thread.is_alive() else "ended",
+                stuck or "ended",
+            )
+            return False
+        return True
 
     def __enter__(self) -> VideoServer:
         return self.start()
@@ -198,14 +242,28 @@ class VideoServer:
 
     # ------------------------------------------------------------ internals
     def _run(self) -> None:
+        # The encoders run on the loop's default executor (aiortc's RTCRtpSender):
+        # named, so stop() can tell whether they ended, and never joined at exit here.
+        loop = asyncio.new_event_loop()
+        asyncio.set_event_loop(loop)  # this thread's own
+        encoders = concurrent.futures.ThreadPoolExecutor(thread_name_prefix=self._encoder_prefix)
+        loop.set_default_executor(encoders)
         try:
-            asyncio.run(self._main())
+            loop.run_until_complete(self._main())
         except BaseException as e:
             if not self._started.is_set():
                 self._error = e
                 self._started.set()
             else:
                 log.exception("video server stopped on an error")
+        finally:
+            encoders.shutdown(wait=False, cancel_futures=True)
+            left = asyncio.all_tasks(loop)  # the relay's readers, waiting on a capture
+            for task in left:
+                task.cancel()
+            loop.run_until_complete(asyncio.gather(*left, return_exceptions=True))
+            loop.run_until_complete(loop.shutdown_asyncgens())
+            loop.close()
 
     async def _main(self) -> None:
         from aiortc.contrib.media import MediaRelay
@@ -220,10 +278,21 @@ class VideoServer:
             self.port = server.sockets[0].getsockname()[1]
             self._started.set()
             await self._stop.wait()
-            for conn in list(server.connections):
-                await conn.close(1001, "video server stopping")
+            # every viewer's peer connection closed first (the browser hears a BYE
+            # rather than waiting for ICE to time out), then the signalling sockets
+            peers = [asyncio.ensure_future(pc.close()) for pc in self._peers]
+            if peers:
+                _, late = await asyncio.wait(peers, timeout=CLOSE_TIMEOUT_S)
+                if late:
+                    log.warning("video: %d viewer(s) did not close in time", len(late))
+            server.close(code=1001, reason="video server stopping")
+            try:
+                await asyncio.wait_for(server.wait_closed(), CLOSE_TIMEOUT_S)
+            except TimeoutError:
+                log.warning("video: signalling sessions did not end in time")
         if self._track is not None:
             self._track.stop()
+            self._track = None
 
     async def _session(self, conn: Any) -> None:
         from aiortc import RTCPeerConnection, RTCSessionDescription
@@ -255,6 +324,7 @@ class VideoServer:
 
         self.viewers += 1
         self.sessions += 1
+        self._peers.add(pc)
         try:
             if self._track is None:
                 self._track = _source_track(self.source)
@@ -279,6 +349,7 @@ class VideoServer:
             gone.cancel()
             failed.cancel()
         finally:
+            self._peers.discard(pc)
             await pc.close()
             self.viewers -= 1
             if self.viewers == 0 and self._track is not None:

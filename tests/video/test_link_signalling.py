@@ -126,3 +126,31 @@ def test_a_robot_without_video_answers_an_offer_with_the_reason():
     sent = [m for m in link.messages if isinstance(m, VideoSignal)]
     assert len(sent) == 1 and sent[0].kind == "closed" and sent[0].viewer == 5
     assert "link.video_url" in sent[0].reason
+
+
+def test_a_video_server_that_died_and_came_back_serves_the_next_offer():
+    """kill -9 of the video server: the session it held ends with "closed", an offer while it
+    is down is answered "closed" with the reason, and an offer once it is back is answered."""
+    from tests_support import VideoServerProcess
+
+    settings = ("test_pattern.width=320", "test_pattern.height=240", "test_pattern.fps=15")
+    first = VideoServerProcess(None, *settings)
+    bridge = LinkSignalling(first.url)
+    try:
+        with first:
+            bridge.on_signal(_signal("offer", 1, _offer_sdp()), ALICE)
+            assert _next(bridge).kind == "answer"
+            first.proc.kill()  # SIGKILL: no close frame, no goodbye
+            ended = _next(bridge)
+        assert ended.kind == "closed" and ended.viewer == 1
+        assert "stopped" in ended.reason, ended.reason
+        bridge.on_signal(_signal("offer", 2, _offer_sdp()), ALICE)
+        gap = _next(bridge)
+        assert gap.kind == "closed" and gap.viewer == 2
+        assert "no video server is running" in gap.reason and first.url in gap.reason
+        with VideoServerProcess(first.port, *settings):  # back, on the same port
+            bridge.on_signal(_signal("offer", 3, _offer_sdp()), ALICE)
+            again = _next(bridge)
+            assert again.kind == "answer" and again.viewer == 3, again
+    finally:
+        bridge.close()

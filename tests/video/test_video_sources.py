@@ -137,3 +137,32 @@ def test_server_streams_only_while_a_viewer_is_connected():
             assert time.monotonic() < deadline, "the source kept running without a viewer"
             time.sleep(0.05)
         assert source.opened == 1
+
+
+def test_sigterm_ends_a_server_with_two_viewers_promptly():
+    """systemd's stop with viewers watching: the process exits 0 within seconds and the viewers'
+    streams end. The old server's second viewer hung an encoder thread, and Python's exit waited
+    for it forever: SIGTERM looked ignored."""
+    import signal
+
+    from tests_support import VideoServerProcess
+
+    from deploy.bench.video_viewers import watch
+
+    async def watch_then_term(server) -> tuple[list, float]:
+        viewers = asyncio.ensure_future(watch(server.url, 2, 30.0))
+        await asyncio.sleep(4.0)
+        server.proc.send_signal(signal.SIGTERM)
+        t0 = time.monotonic()
+        while server.proc.poll() is None and time.monotonic() - t0 < 10:
+            await asyncio.sleep(0.02)
+        took = time.monotonic() - t0
+        return await viewers, took
+
+    with VideoServerProcess(None, "test_pattern.width=320", "test_pattern.height=240") as server:
+        runs, took = asyncio.run(watch_then_term(server))
+        code = server.proc.poll()
+    assert code == 0, f"SIGTERM: exit {code} after {took:.1f} s"
+    assert took < 5.0, f"SIGTERM took {took:.1f} s"
+    assert all(r.arrivals_s for r in runs), [r.summary() for r in runs]  # both were watching
+    assert all(r.ended for r in runs), [r.summary() for r in runs]  # and their streams ended

@@ -1,0 +1,225 @@
+"""The demo's child processes, kept running as systemd keeps the units running.
+
+A child that exits while the demo runs (a crash, ``kill -9``) is started
+again after its unit's ``RestartSec=`` (``deploy/systemd/deepxpalm-<name>.service``;
+``DEFAULT_RESTART_S`` for the link simulator and the lab world, which have no
+unit), as ``Restart=on-failure`` would: the demo never asks a child to stop
+before its end, so any exit is a failure. The shipped units never give up
+(``StartLimitIntervalSec=0``: a device may come back after an hour); a demo
+that restarted a broken child forever would hide the fault, so here a child
+restarted ``START_LIMIT_BURST`` times within ``START_LIMIT_INTERVAL_S`` is
+given up on (systemd's own default burst), which ends the demo when the child
+is essential (without it nothing is demonstrated) and leaves the demo running
+without it otherwise (the video).
+
+A child can bring others down with it (``restarts_too``): a restarted lab
+world listens on new ports, so the robot node and the video server, which
+found it through its addresses file, are restarted after it (systemd's
+``PartOf=``).
+
+Restarts are armed only once the demo is up: a child that fails while the
+demo starts (a wrong setting) ends it at once with its log, as before.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import signal
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+UNITS = Path(__file__).parent / "systemd"
+DEFAULT_RESTART_S = 1.0
+START_LIMIT_BURST = 5
+START_LIMIT_INTERVAL_S = 60.0
+
+
+def unit_restart_s(unit: str, default: float = DEFAULT_RESTART_S) -> float:
+    """``RestartSec=`` of the shipped ``deepxpalm-<unit>.service``; ``default`` without one."""
+    path = UNITS / f"deepxpalm-{unit}.service"
+    if not path.exists():
+        return default
+    found = re.search(r"^RestartSec=([0-9.]+)(ms|s)?\s*$", path.read_text(), re.MULTILINE)
+    if found is None:
+        return default
+    value = float(found.group(1))
+    return value / 1e3 if found.group(2) == "ms" else value
+
+
+@dataclass
+class Child:
+    """One process of the demo; ``start(incarnation)`` spawns it (0 first, then 1, 2 ...)."""
+
+    name: str
+    start: Callable[[int], subprocess.Popen]
+    log_path: Path
+    restart_delay_s: float
+    essential: bool = True  # given up on: the demo ends
+    restarts_too: tuple[str, ...] = ()  # restarted after this one (they depend on it)
+    proc: subprocess.Popen | None = None
+    incarnation: int = 0
+    pids: list[int] = field(default_factory=list)
+    exits: list[int] = field(default_factory=list)  # return codes of the unexpected exits
+    restart_times: list[float] = field(default_factory=list)  # monotonic
+    restart_at: float | None = None  # when a restart is due
+    gave_up: bool = False
+
+    def spawn(self) -> None:
+        self.proc = self.start(self.incarnation)
+        self.pids.append(self.proc.pid)
+
+    @property
+    def state(self) -> str:
+        if self.gave_up:
+            return "gave up"
+        if self.restart_at is not None:
+            return "restarting"
+        return "running"
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "state": self.state,
+            "pid": self.proc.pid if self.proc is not None and self.state == "running" else None,
+            "restarts": len(self.restart_times),
+            "exit_codes": self.exits,
+            "pids": self.pids,
+            "log": str(self.log_path),
+        }
+
+
+class Supervisor:
+    """Watches the children; ``poll()`` restarts or gives up; ``stop_all()`` at the end."""
+
+    def __init__(self) -> None:
+        self.children: dict[str, Child] = {}
+        self.armed = False  # set once the demo is up; before, an exit is a startup failure
+        self.events: list[str] = []  # what happened, for the summary
+
+    def add(self, child: Child) -> Child:
+        child.spawn()
+        self.children[child.name] = child
+        return child
+
+    def procs(self) -> list[tuple[str, subprocess.Popen, Path]]:
+        """(name, process, log) of each child, as ``deploy.demo`` helpers take them."""
+        return [(c.name, c.proc, c.log_path) for c in self.children.values() if c.proc]
+
+    def poll(self, errors: list[str]) -> bool:
+        """Restart what died, when due; False when the demo must end (see ``errors``)."""
+        now = time.monotonic()
+        for child in list(self.children.values()):
+            if child.gave_up:
+                continue
+            if child.restart_at is None:
+                code = child.proc.poll() if child.proc is not None else None
+                if code is None:
+                    continue
+                if not self.armed:
+                    errors.append(f"{child.name} stopped early with {code}; see {child.log_path}")
+                    return False
+                self._died(child, code, now)
+            if child.gave_up:
+                if child.essential:
+                    return False
+                continue
+            if child.restart_at is not None and now >= child.restart_at:
+                self._restart(child, now)
+        return True
+
+    def _died(self, child: Child, code: int, now: float) -> None:
+        child.exits.append(code)
+        recent = [t for t in child.restart_times if now - t < START_LIMIT_INTERVAL_S]
+        if len(recent) >= START_LIMIT_BURST:
+            child.gave_up = True
+            self._say(
+                logging.ERROR,
+                f"{child.name} exited with {code} after {len(recent)} restarts in "
+                f"{START_LIMIT_INTERVAL_S:.0f} s: given up on"
+                + ("" if child.essential else "; the demo runs on without it")
+                + f"; see {child.log_path}",
+            )
+            return
+        child.restart_at = now + child.restart_delay_s
+        self._say(
+            logging.WARNING,
+            f"{child.name} (pid {child.proc.pid}) exited with {code}: restarting in "
+            f"{child.restart_delay_s:g} s; see {child.log_path}",
+        )
+
+    def _restart(self, child: Child, now: float) -> None:
+        child.restart_at = None
+        child.restart_times.append(now)
+        child.incarnation += 1
+        try:
+            child.spawn()
+        except Exception as e:  # it did not come up (the lab world's start timed out): a failure
+            self._say(logging.WARNING, f"{child.name} did not start again: {e}")
+            self._died(child, child.proc.returncode if child.proc else -1, time.monotonic())
+            return
+        self._say(logging.WARNING, f"{child.name} restarted (pid {child.proc.pid})")
+        for name in child.restarts_too:
+            dependent = self.children.get(name)
+            if dependent is None or dependent.gave_up or dependent.restart_at is not None:
+                continue
+            stop_process(dependent.proc)
+            dependent.incarnation += 1
+            dependent.restart_times.append(now)
+            dependent.spawn()
+            self._say(
+                logging.WARNING,
+                f"{name} restarted with {child.name} (pid {dependent.proc.pid})",
+            )
+
+    def _say(self, level: int, message: str) -> None:
+        log.log(level, "demo: %s", message)
+        self.events.append(f"{time.strftime('%H:%M:%S')} {message}")
+
+    def status_line(self) -> str:
+        """One line for the live view: each child's state and restarts."""
+        parts = []
+        for c in self.children.values():
+            n = len(c.restart_times)
+            parts.append(f"{c.name} {c.state}" + (f" ({n} restart{'s' * (n > 1)})" if n else ""))
+        return "processes: " + "  ".join(parts)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "children": {name: c.describe() for name, c in self.children.items()},
+            "events": self.events,
+            "policy": (
+                f"a child that exits is restarted after its unit's RestartSec "
+                f"(robot {unit_restart_s('robot'):g} s, video {unit_restart_s('video'):g} s, "
+                f"others {DEFAULT_RESTART_S:g} s), given up on after {START_LIMIT_BURST} "
+                f"restarts in {START_LIMIT_INTERVAL_S:.0f} s"
+            ),
+        }
+
+    def stop_all(self, stop_child: Callable[..., None], errors: list[str]) -> None:
+        """Every running child stopped, last started first; a given-up one is an error."""
+        for child in reversed(list(self.children.values())):
+            if child.gave_up:
+                errors.append(
+                    f"{child.name} was given up on after {len(child.restart_times)} "
+                    f"restarts; see {child.log_path}"
+                )
+            elif child.proc is not None and child.restart_at is None:
+                stop_child(child.proc, child.name, errors, child.log_path)
+
+
+def stop_process(proc: subprocess.Popen | None, timeout_s: float = 10.0) -> None:
+    """Ctrl-C, then SIGKILL after ``timeout_s``: a child restarted with another."""
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()

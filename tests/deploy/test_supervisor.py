@@ -1,0 +1,83 @@
+"""The demo's supervisor on real processes: a child that dies is started again after its
+delay, one that keeps dying is given up on, and that ends the demo only if it is essential."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+from deploy.demo import stop_child
+from deploy.supervisor import START_LIMIT_BURST, Child, Supervisor, unit_restart_s
+
+
+def _python(code: str):
+    return lambda n: subprocess.Popen([sys.executable, "-c", code])
+
+
+SLEEPER = _python("import time; time.sleep(60)")
+FAILER = _python("raise SystemExit(3)")
+
+
+def _log(tmp_path, name: str):
+    path = tmp_path / f"{name}.log"
+    path.touch()  # stop_child quotes a child's log when it exits badly
+    return path
+
+
+def _poll_until(sup: Supervisor, errors: list, cond, timeout_s: float = 20.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, sup.summary()
+        if not sup.poll(errors):
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def test_the_delays_are_the_shipped_units():
+    assert unit_restart_s("robot") == 3.0  # deploy/systemd/deepxpalm-robot.service
+    assert unit_restart_s("video") == 1.0
+    assert unit_restart_s("netsim") == 1.0  # no unit: the default
+
+
+def test_a_killed_child_is_restarted_after_its_delay(tmp_path):
+    sup, errors = Supervisor(), []
+    child = sup.add(Child("robot", SLEEPER, _log(tmp_path, "r"), 0.3))
+    sup.armed = True
+    first = child.proc.pid
+    child.proc.kill()
+    child.proc.wait()
+    t0 = time.monotonic()
+    _poll_until(sup, errors, lambda: child.proc.pid != first)
+    assert time.monotonic() - t0 >= 0.3
+    assert child.describe()["exit_codes"] == [-9] and child.describe()["restarts"] == 1
+    assert "restarting in 0.3 s" in sup.events[0] and "restarted" in sup.events[1]
+    assert "robot running (1 restart)" in sup.status_line()
+    sup.stop_all(stop_child, errors)
+    assert errors == []
+
+
+def test_a_child_that_keeps_dying_is_given_up_on(tmp_path):
+    sup, errors = Supervisor(), []
+    video = sup.add(Child("video", FAILER, _log(tmp_path, "v"), 0.01, False))
+    robot = sup.add(Child("robot", SLEEPER, _log(tmp_path, "r"), 0.01))
+    sup.armed = True
+    _poll_until(sup, errors, lambda: video.gave_up)
+    assert len(video.restart_times) == START_LIMIT_BURST and video.exits == [3] * 6
+    assert sup.poll(errors)  # not essential: the demo runs on
+    robot.essential = True
+    robot.proc.kill()
+    robot.restart_times = [time.monotonic()] * START_LIMIT_BURST  # as if it had looped
+    robot.proc.wait()
+    assert not _poll_until(sup, errors, lambda: False)  # essential: the demo must end
+    assert robot.gave_up and "given up on" in sup.events[-1]
+    sup.stop_all(stop_child, errors)
+    assert any("video was given up on" in e for e in errors), errors
+
+
+def test_a_child_failing_while_the_demo_starts_ends_it(tmp_path):
+    sup, errors = Supervisor(), []
+    sup.add(Child("robot", _python("raise SystemExit(2)"), _log(tmp_path, "r"), 0.01)).proc.wait()
+    assert not sup.poll(errors)  # not armed: a wrong setting would otherwise loop
+    assert "robot stopped early with 2" in errors[0]
