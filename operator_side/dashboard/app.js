@@ -14,6 +14,8 @@ const dxp = {
   sendCommand: null,
   jog: null,
   video: null,
+  latched: false, // the robot's stop latch, as its newest heartbeat says
+  latchChanges: [], // {latched, t: performance.now()} each time this page saw it change
 };
 window.dxp = dxp;
 
@@ -49,6 +51,10 @@ function onMessage(msg) {
   } else if (msg.type === "ack") {
     dxp.acks.push(msg);
     if (dxp.acks.length > 200) dxp.acks.shift();
+    if (msg.action === "arm_resume") {
+      onResumeAck(msg);
+      return;
+    }
     if (msg.action && msg.action.startsWith("arm")) {
       if (!msg.ok) $("jog-source").textContent = `refused: ${msg.error}`;
       return;
@@ -99,7 +105,10 @@ function draw() {
   if (all || changed.has("angles")) drawLinkage(s.angles);
   if (all || changed.has("history")) drawChart(s.history);
   if (changed.has("stats")) drawCounters(s.stats);
-  if (all || changed.has("arm")) drawArm(s.arm);
+  if (all || changed.has("arm")) {
+    drawArm(s.arm);
+    drawLatch(s.arm);
+  }
   if (all || changed.has("control")) drawControl(s.control);
   changed.clear();
 }
@@ -450,6 +459,41 @@ function drawArm(arm) {
     `${arm.jogging ? "jogging" : "still"} · deadman stops ${arm.deadman_stops} · link trips ${arm.link_deadman_trips}`;
 }
 
+// The robot's stop latch (its heartbeat): the same on every page of every operator.
+function drawLatch(arm) {
+  const latched = !!(arm && arm.stop_latched);
+  if (latched !== dxp.latched) {
+    dxp.latched = latched;
+    dxp.latchChanges.push({ latched, t: performance.now() });
+    if (!latched) $("latch-note").textContent = "";
+  }
+  $("latch").hidden = !latched;
+  document.body.classList.toggle("stopped", latched);
+  $("arm-latch").textContent = !arm ? "–" : latched ? "STOPPED (latched on the robot)" : "free";
+  $("arm-latch").className = latched ? "bad" : "";
+  if (dxp.jog) dxp.jog.setRobotLatched(latched);
+}
+
+// RESUME: the robot obeys it from the lease holder only; the server says so at
+// once when it knows we are not, and a resume the robot ignored shows here too.
+function resumeArm() {
+  $("latch-note").textContent = "resume sent…";
+  sendCommand("arm_resume");
+}
+
+function onResumeAck(msg) {
+  if (!msg.ok) {
+    $("latch-note").textContent = `resume refused: ${msg.error}`;
+    return;
+  }
+  setTimeout(() => {
+    if (dxp.latched) {
+      $("latch-note").textContent =
+        "the robot kept its stop: a resume counts only from the lease holder, fresh (is the link up?)";
+    }
+  }, 1500);
+}
+
 function startVideo() {
   $("video-panel").hidden = false;
   const status = (text) => ($("video-status").textContent = text);
@@ -468,12 +512,13 @@ function startVideo() {
 
 function startJogger(cfg) {
   if (dxp.jog || !cfg) return;
-  dxp.jog = new JOG.Jogger(cfg, sendArm);
+  dxp.jog = new JOG.Jogger(cfg, sendArm, stopArm);
+  dxp.jog.setRobotLatched(!!dxp.latched);
   const pct = Math.round(cfg.default_speed_scale * 100);
   $("speed").value = pct;
   $("speed-out").textContent = `${pct}%`;
   const keys = Object.entries(cfg.keyboard).map(([k, t]) => `${k} ${t}`).join(" · ");
-  $("key-help").textContent = `keys (hold): ${keys}; Esc stops`;
+  $("key-help").textContent = `keys (hold): ${keys}; Esc or Space: STOP (held until RESUME)`;
   setInterval(showJogState, 200);
 }
 
@@ -484,9 +529,13 @@ function showJogState() {
     (pads.length ? pads.map((p) => `gamepad: ${p.id.slice(0, 24)}`).join(", ") : "no gamepad") +
     (j.hidDevice ? ` · SpaceMouse: ${j.hidDevice.productName}` : "");
   const v = j.last.velocity;
-  $("jog-source").textContent = j.last.enabled
-    ? `${j.last.source}: ${(Math.hypot(v[0], v[1], v[2]) * 1000).toFixed(0)} mm/s`
-    : j.latched ? "stopped: release all inputs" : "none (hold to move)";
+  $("jog-source").textContent = j.robotLatched
+    ? "STOPPED on the robot: RESUME, then release and hold again"
+    : j.latched
+      ? "stopped: release all inputs"
+      : j.last.enabled
+        ? `${j.last.source}: ${(Math.hypot(v[0], v[1], v[2]) * 1000).toFixed(0)} mm/s`
+        : "none (hold to move)";
   for (const b of document.querySelectorAll(".jog-grid button")) {
     b.classList.toggle("held", j.buttons.has(b.dataset.twist));
   }
@@ -502,6 +551,7 @@ function stopArm() {
 }
 
 $("arm-stop").addEventListener("click", stopArm);
+$("arm-resume").addEventListener("click", resumeArm);
 $("speed").addEventListener("input", () => {
   $("speed-out").textContent = `${$("speed").value}%`;
   if (dxp.jog) dxp.jog.speedScale = Number($("speed").value) / 100;

@@ -90,7 +90,7 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, float]:
             for _ in range(4):  # a held key: renewed every 50 ms
                 op.command("arm_jog", velocity=velocity)
                 op.pump(0.05)
-            op.command("arm_stop")
+            op.command("arm_jog_end")  # the key let go (arm_stop would latch: a STOP)
             op.pump(0.1)
             cycles += 1
         t1 = now_ns()
