@@ -16,6 +16,7 @@ const dxp = {
   video: null,
   latched: false, // the robot's stop latch, as its newest heartbeat says
   latchChanges: [], // {latched, t: performance.now()} each time this page saw it change
+  stopSentAt: null, // Date.now() of this page's latest STOP
 };
 window.dxp = dxp;
 
@@ -542,6 +543,7 @@ function showJogState() {
 }
 
 function stopArm() {
+  dxp.stopSentAt = Date.now(); // wall clock: a test compares it with the arm's own timeline
   if (dxp.jog) {
     dxp.jog.releaseAll();
     dxp.jog.stop(true);
@@ -557,7 +559,11 @@ $("speed").addEventListener("input", () => {
   if (dxp.jog) dxp.jog.speedScale = Number($("speed").value) / 100;
 });
 for (const b of document.querySelectorAll(".jog-grid button")) {
-  const release = () => dxp.jog && dxp.jog.buttons.delete(b.dataset.twist);
+  const release = () => {
+    if (!dxp.jog) return;
+    dxp.jog.buttons.delete(b.dataset.twist);
+    dxp.jog.released();
+  };
   b.addEventListener("pointerdown", (e) => {
     if (!dxp.jog) return;
     b.setPointerCapture(e.pointerId);
@@ -575,7 +581,11 @@ window.addEventListener("keydown", (e) => {
   const key = e.key.toLowerCase();
   if (key in dxp.jog.cfg.keyboard && !e.ctrlKey && !e.metaKey && !e.altKey) dxp.jog.keys.add(key);
 });
-window.addEventListener("keyup", (e) => dxp.jog && dxp.jog.keys.delete(e.key.toLowerCase()));
+window.addEventListener("keyup", (e) => {
+  if (!dxp.jog) return;
+  dxp.jog.keys.delete(e.key.toLowerCase());
+  dxp.jog.released();
+});
 // a key released while the window was not focused never sends keyup: release everything
 window.addEventListener("blur", () => dxp.jog && dxp.jog.releaseAll());
 document.addEventListener("visibilitychange", () => document.hidden && dxp.jog && dxp.jog.releaseAll());

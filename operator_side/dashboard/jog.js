@@ -159,6 +159,13 @@ const JOG = (() => {
       return out;
     }
 
+    // An input was let go (keyup, pointerup): with nothing left held, the page's own
+    // latch clears now rather than at the next tick, so a quick release-and-press moves.
+    released() {
+      const wants = this.sources().some((x) => x.enabled && x.twist.some((v) => v !== 0));
+      if (!wants && !this.robotLatched) this.latched = false;
+    }
+
     tick() {
       const sources = this.sources();
       for (const s of sources) {
