@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -23,6 +24,11 @@ pytestmark = pytest.mark.timeout(30)
 
 
 class JogNode(FakeNode):
+    control = None  # the control lease as the robot's heartbeat states it (None: unsigned)
+
+    def snapshot(self):
+        return dataclasses.replace(super().snapshot(), control=self.control)
+
     def send_command(self, action, grip_level=None, velocity=None) -> None:
         self.commands.append((time.monotonic(), action, velocity))
 
@@ -120,6 +126,14 @@ def test_jog_rate_is_limited_but_stop_never_is(dashboard):
     assert node.actions().count("arm_stop") >= 20
 
 
+def _sampled(d: Dashboard, control: dict) -> None:
+    """Wait until the dashboard's sampler has taken the node's new control view."""
+    deadline = time.monotonic() + 5
+    while (d._latest or {}).get("control") != control:
+        assert time.monotonic() < deadline, "the dashboard never sampled the node"
+        time.sleep(0.01)
+
+
 def test_resume_goes_to_the_robot_from_the_holder_and_is_refused_with_a_reason_otherwise(
     dashboard,
 ):
@@ -129,11 +143,13 @@ def test_resume_goes_to_the_robot_from_the_holder_and_is_refused_with_a_reason_o
         ws.send(json.dumps({"type": "command", "action": "arm_resume"}))
         assert _next(ws, "ack")["ok"], "unsigned: the one operator holds the arm"
         assert node.actions() == ["arm_resume"]
-        d._latest = {"control": {"ours": False, "holder": "a1b2c3", "pending": None}}
+        node.control = {"ours": False, "holder": "a1b2c3", "pending": None}
+        _sampled(d, node.control)
         ws.send(json.dumps({"type": "command", "action": "arm_resume"}))
         ack = _next(ws, "ack")
         assert not ack["ok"] and "a1b2c3… holds it" in ack["error"], ack
-        d._latest = {"control": {"ours": False, "holder": None, "pending": None}}
+        node.control = {"ours": False, "holder": None, "pending": None}
+        _sampled(d, node.control)
         ws.send(json.dumps({"type": "command", "action": "arm_resume"}))
         assert "ask for control" in _next(ws, "ack")["error"]
     assert node.actions() == ["arm_resume"], "a resume the robot would refuse is not sent"
