@@ -123,7 +123,7 @@ def release_ms(page: Chromium, log: SpeedLog) -> float:
     return (at_rest - page.evaluate("window.__keyupAt") / 1000) * 1000
 
 
-def shows_latch(page: Chromium, latched: bool, timeout_s: float = 3.0) -> None:
+def shows_latch(page: Chromium, latched: bool, timeout_s: float = 10.0) -> None:
     page.wait_until(
         "[dxp.latched, !document.getElementById('latch').hidden, dxp.jog.robotLatched]",
         lambda v: v == [latched] * 3,
