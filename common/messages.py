@@ -23,7 +23,9 @@ CommandAction = Literal[
     "gripper_close",
     "gripper_hold",
     "arm_jog",
+    "arm_jog_end",
     "arm_stop",
+    "arm_resume",
     "lease_request",
     "lease_grant",
     "lease_release",
@@ -42,6 +44,9 @@ MAX_SDP_CHARS = 12_000
 LEASE_ACTIONS: frozenset[str] = frozenset({"lease_request", "lease_grant", "lease_release"})
 #: what an operator key may be (roster, docs/security.md): only controllers may hold the lease
 ROLES: tuple[str, ...] = ("controller", "observer", "recorder")
+#: roles whose ``arm_stop`` the robot obeys whoever holds the lease: a stop is any person's to
+#: press (a shop floor's emergency stop); a recorder is a machine and presses nothing
+STOP_ROLES: frozenset[str] = frozenset({"controller", "observer"})
 
 
 @dataclass(slots=True)

@@ -84,10 +84,18 @@ def render(snap: Snapshot, scene_name: str, elapsed_s: float) -> str:
                 for k in ("stimuli_received", "servo_writes", "lift_offs", "decode_errors")
             )
         ),
-        "keys: o open  c close  1-9 grip level  w/a/s/d/r/f jog arm  q/e turn wrist  space stop"
-        "   Ctrl-C quit",
+        _latch_line(r),
+        "keys: o open  c close  1-9 grip level  w/a/s/d/r/f jog arm  q/e turn wrist  space STOP"
+        "  g resume   Ctrl-C quit",
     ]
     return "\x1b[H\x1b[2J" + "\n".join(lines) + "\n"
+
+
+def _latch_line(robot_stats: dict[str, float]) -> str:
+    """The robot's stop latch, as every operator sees it (its heartbeat)."""
+    if robot_stats.get("arm_stop_latched"):
+        return "arm \x1b[41m STOPPED \x1b[0m latched on the robot: jogs refused until g (resume)"
+    return "arm free to jog (space: STOP, latched on the robot until g)"
 
 
 class Keyboard:
@@ -97,7 +105,8 @@ class Keyboard:
     level 3..27; w a s d r f: jog the arm +X -Y -X +Y +Z -Z (held keys repeat,
     which keeps the jog alive); q / e: turn the wrist about the base X axis
     (the fingers' closing axis at the UR's home pose, so the pipette's tilt on
-    the pads changes); space: stop the arm.
+    the pads changes); space: STOP the arm (latched on the robot: every jog,
+    from here or a dashboard, is refused until a resume); g: resume.
     """
 
     JOG_M_S = 0.02
@@ -155,4 +164,6 @@ class Keyboard:
                 out.append(("arm_jog", {"velocity": v}))
             elif key == " ":
                 out.append(("arm_stop", {}))
+            elif key == "g":
+                out.append(("arm_resume", {}))
         return out

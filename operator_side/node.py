@@ -183,7 +183,12 @@ class OperatorNode:
         velocity: tuple[float, ...] | None = None,
         grantee: bytes | None = None,
     ) -> None:
-        """Queue a command for the robot; thread-safe (sockets stay on the loop thread)."""
+        """Queue a command for the robot; thread-safe (sockets stay on the loop thread).
+
+        ``arm_stop`` is a STOP: it latches on the robot, which then refuses
+        every jog (from anyone) until the lease holder sends ``arm_resume``;
+        ``arm_jog_end`` ends a jog without latching (docs/protocol.md).
+        """
         self._commands.put(
             Command(
                 seq=0,
@@ -241,6 +246,11 @@ class OperatorNode:
                 self.servos.disconnect()
                 if self._own_ctx:
                     self.ctx.term()
+
+    @property
+    def arm_stop_latched(self) -> bool:
+        """Whether the robot's newest heartbeat says a STOP holds the arm (anyone's stop)."""
+        return bool(self._robot_stats.get("arm_stop_latched"))
 
     @property
     def is_controller(self) -> bool:

@@ -245,7 +245,13 @@ class ScriptedOperator:
         end = self.clock() + cfg.move_timeout_s
         r_target = rotvec_to_matrix(target[3:])
         while not self.stop.is_set():
-            if self.node.snapshot().link_state != "ok":
+            snap = self.node.snapshot()
+            if snap.robot_stats.get("arm_stop_latched"):
+                raise ScriptedOperatorError(
+                    "someone pressed STOP: the robot refuses every jog until the lease holder "
+                    "resumes (arm_resume)"
+                )
+            if snap.link_state != "ok":
                 self.stop.wait(cfg.jog_period_s)  # the robot's deadman has stopped the arm
                 if self.clock() > end:
                     break
@@ -254,7 +260,7 @@ class ScriptedOperator:
             dp = target[:3] - pose[:3]
             dr = matrix_to_rotvec(r_target @ rotvec_to_matrix(pose[3:]).T)
             if np.linalg.norm(dp) <= cfg.tolerance_m and np.linalg.norm(dr) <= cfg.tolerance_rad:
-                self.node.send_command("arm_stop")
+                self.node.send_command("arm_jog_end")
                 return
             if self.clock() > end:
                 break
@@ -262,7 +268,7 @@ class ScriptedOperator:
             w = _capped(cfg.gain_per_s * dr, cfg.turn_speed_rad_s)
             self.node.send_command("arm_jog", velocity=(*v.tolist(), *w.tolist()))
             self.stop.wait(cfg.jog_period_s)
-        self.node.send_command("arm_stop")
+        self.node.send_command("arm_jog_end")
         raise ScriptedOperatorError(f"the arm did not reach {np.round(target, 4).tolist()}")
 
     def close(self) -> None:

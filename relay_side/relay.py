@@ -15,8 +15,10 @@ opens an inbound port. Two paths:
   by a small loop instead of the proxy, because the relay enforces roles
   here: with CURVE each message arrives with its sender's key (ZAP
   ``User-Id``) and a ``CMND`` from a key whose roster role is not
-  ``controller`` is dropped and counted. Commands are low-rate (tens a
-  second), so a Python loop costs nothing measurable.
+  ``controller`` is dropped and counted, except an ``arm_stop`` from a role
+  that may stop (``STOP_ROLES``: an observer may press STOP; the robot
+  checks the signer's role again). Commands are low-rate (tens a second),
+  so a Python loop costs nothing measurable.
 
 The relay holds no key that can command a robot: commands are signed by the
 operator (common/signing.py) and the robot checks them against its own
@@ -34,11 +36,13 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import zmq
 
-from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, TOPIC_LEN
+from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, TOPIC_LEN, DecodeError, split_name
 from common.errors import ConfigError
 from common.logs import BurstLog
+from common.messages import STOP_ROLES
 from common.roster import Roster, load_roster
 from common.security import SecurityConfig, check_endpoint, server_options
 from relay_side.config import RelayConfig
@@ -194,7 +198,9 @@ class _CommandPath:
         if self.roles is not None and frame.bytes[:TOPIC_LEN] == _CMND:
             key = frame.get("User-Id").encode("ascii", "replace")
             role = self.roles.get(key)
-            if role != "controller":
+            if role in STOP_ROLES and role != "controller" and _is_arm_stop(frame.bytes):
+                self.counters["stops_passed_role"] += 1
+            elif role != "controller":
                 self.counters["commands_dropped_role"] += 1
                 self._dropped(f"key {key.decode()} has role {role}, not controller")
                 return
@@ -208,6 +214,16 @@ class _CommandPath:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(5)
+
+
+def _is_arm_stop(data: bytes) -> bool:
+    """Whether a command frame asks for ``arm_stop`` (read, not verified: the robot verifies)."""
+    try:
+        _, start = split_name(data)
+        body = msgpack.unpackb(data[start:], raw=False)
+    except (DecodeError, ValueError, TypeError, msgpack.UnpackException):  # never a stop
+        return False
+    return isinstance(body, dict) and body.get("action") == "arm_stop"
 
 
 class Relay:

@@ -21,9 +21,10 @@ the robot got round to reading it:
   about 100 ms after an operator connects) no send time can be judged, so
   only commands that cannot start motion are acted on.
 
-``arm_stop`` and ``gripper_hold`` only ever end motion: they are acted on
-however old they are (still once, in order), since refusing a late stop
-could only keep the arm moving longer.
+``arm_stop``, ``arm_jog_end`` and ``gripper_hold`` only ever end motion:
+they are acted on however old they are (still once, in order), since
+refusing a late stop could only keep the arm moving longer. ``arm_resume``
+is the opposite (it lets the arm move again): it must be fresh like a jog.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from common.clock_sync import ClockSync
 from common.messages import Command
 
 #: Commands that can only end motion: safe to act on when late or before the clock is known.
-SAFE_WHEN_LATE = frozenset({"arm_stop", "gripper_hold"})
+SAFE_WHEN_LATE = frozenset({"arm_stop", "arm_jog_end", "gripper_hold"})
 
 #: Refusal reasons, each the name of the counter it increments.
 UNSYNCED = "commands_unsynced"

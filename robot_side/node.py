@@ -48,6 +48,7 @@ from robot_side.device_worker import DeviceRequest, DeviceWorker
 from robot_side.lease import ControlLease
 from robot_side.recovery import DeviceRecovery
 from robot_side.rendering import NO_CELLS, render_frame, sanitize_frame, sanitize_with_peak
+from robot_side.stop_latch import REFUSALS, StopLatch
 from robot_side.tactile.base import TactileSample, TactileSensor
 from robot_side.video.link_signalling import LinkSignalling
 
@@ -124,6 +125,8 @@ class RobotNode:
         self.name = _wire_name(config.link.robot_name)
         #: with a roster: signed commands, obeyed only from the lease holder (lease.py)
         self.lease: ControlLease | None = None
+        #: an operator's arm_stop holds the arm until the holder's arm_resume (stop_latch.py)
+        self.stop_latch = StopLatch()
         #: set it (SIGHUP: ``systemctl reload``) to read the roster again at the next loop turn
         self.roster_reload = threading.Event()
         if config.link.roster_file is not None:
@@ -593,6 +596,8 @@ class RobotNode:
                     self.counters[refusal] += 1
                     self._record_command(msg, f"refused: {refusal}")
                     continue
+                if not self._latch_lets(msg, True, None, "operator", now):
+                    continue
                 device = "gripper" if msg.action.startswith("gripper") else "arm"
                 older = newest.get(device)
                 if older is not None:  # newest only: an older wish is never acted on
@@ -655,9 +660,8 @@ class RobotNode:
                 self.counters[outcome] += 1
                 self._record_command(msg, outcome)
                 continue
-            if key != lease.holder:
-                self.counters["commands_not_controller"] += 1
-                self._record_command(msg, "refused: not the lease holder")
+            holder, who = key == lease.holder, peer.entry
+            if not self._latch_lets(msg, holder, who.role, who.name, now):
                 continue
             device = "gripper" if msg.action.startswith("gripper") else "arm"
             older = newest.get(device)
@@ -669,6 +673,28 @@ class RobotNode:
         if timed_out is not None:
             self.counters[timed_out] += 1
         self._follow_lease(now, newest)
+
+    def _latch_lets(self, msg: Command, holder: bool, role: str | None, who: str, now: int) -> bool:
+        """The stop latch's word on an admitted command: True to act on it on the device.
+
+        A refusal is counted and recorded with its reason; an ``arm_resume``
+        is used up here (it moves nothing), an ``arm_stop`` latches and goes
+        on to stop the arm.
+        """
+        latch = self.stop_latch
+        refusal = latch.judge(msg.action, holder, role)
+        if refusal is not None:
+            self.counters[refusal] += 1
+            self._record_command(msg, f"refused: {REFUSALS[refusal]}")
+            return False
+        if msg.action in ("arm_stop", "arm_resume"):
+            if latch.apply(msg.action, who, now):
+                self._heartbeat_now = True  # every operator sees the latch change at once
+            self.counters["arm_stops_latched" if msg.action == "arm_stop" else "arm_resumes"] += 1
+        if msg.action == "arm_resume":
+            self._record_command(msg, "applied")
+            return False
+        return True
 
     def reload_roster(self, now: int) -> bool:
         """Read ``link.roster_file`` again; a broken file keeps the roster in force.
@@ -921,6 +947,7 @@ class RobotNode:
         if self._first_seq is not None:
             out["frames_captured"] = float(self._last_seq - self._first_seq + 1)
         out.update(self._arm_state)  # the arm worker's latest reading, for the dashboard
+        out["arm_stop_latched"] = float(self.stop_latch.latched)
         if self._gripper_ack is not None:
             out["gripper_command_seq"], out["gripper_command_session"] = self._gripper_ack
         return out

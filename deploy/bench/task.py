@@ -192,7 +192,7 @@ def _trial(world: Any, hands: Any, setup: TrialSetup) -> dict[str, Any]:
     try:
         outcome = hands.grasp_and_lift(at_lift, observe=lambda: world.grasp().get("pattern"))
     except ScriptedOperatorError as e:
-        hands.node.send_command("arm_stop")
+        hands.node.send_command("arm_jog_end")  # a STOP (arm_stop) would latch the next trials
         stops = world.stats()["protective_stops"]
         row.update(success=False, correct_grasp=False, lifted_mm=0.0, error=str(e), stops=stops)
         log.warning("task trial %s failed: %s (protective stops: %s)", setup, e, stops)

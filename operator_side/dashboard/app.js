@@ -14,6 +14,9 @@ const dxp = {
   sendCommand: null,
   jog: null,
   video: null,
+  latched: false, // the robot's stop latch, as its newest heartbeat says
+  latchChanges: [], // {latched, t: performance.now()} each time this page saw it change
+  stopSentAt: null, // Date.now() of this page's latest STOP
 };
 window.dxp = dxp;
 
@@ -49,6 +52,10 @@ function onMessage(msg) {
   } else if (msg.type === "ack") {
     dxp.acks.push(msg);
     if (dxp.acks.length > 200) dxp.acks.shift();
+    if (msg.action === "arm_resume") {
+      onResumeAck(msg);
+      return;
+    }
     if (msg.action && msg.action.startsWith("arm")) {
       if (!msg.ok) $("jog-source").textContent = `refused: ${msg.error}`;
       return;
@@ -99,7 +106,10 @@ function draw() {
   if (all || changed.has("angles")) drawLinkage(s.angles);
   if (all || changed.has("history")) drawChart(s.history);
   if (changed.has("stats")) drawCounters(s.stats);
-  if (all || changed.has("arm")) drawArm(s.arm);
+  if (all || changed.has("arm")) {
+    drawArm(s.arm);
+    drawLatch(s.arm);
+  }
   if (all || changed.has("control")) drawControl(s.control);
   changed.clear();
 }
@@ -450,6 +460,41 @@ function drawArm(arm) {
     `${arm.jogging ? "jogging" : "still"} · deadman stops ${arm.deadman_stops} · link trips ${arm.link_deadman_trips}`;
 }
 
+// The robot's stop latch (its heartbeat): the same on every page of every operator.
+function drawLatch(arm) {
+  const latched = !!(arm && arm.stop_latched);
+  if (latched !== dxp.latched) {
+    dxp.latched = latched;
+    dxp.latchChanges.push({ latched, t: performance.now() });
+    if (!latched) $("latch-note").textContent = "";
+  }
+  $("latch").hidden = !latched;
+  document.body.classList.toggle("stopped", latched);
+  $("arm-latch").textContent = !arm ? "–" : latched ? "STOPPED (latched on the robot)" : "free";
+  $("arm-latch").className = latched ? "bad" : "";
+  if (dxp.jog) dxp.jog.setRobotLatched(latched);
+}
+
+// RESUME: the robot obeys it from the lease holder only; the server says so at
+// once when it knows we are not, and a resume the robot ignored shows here too.
+function resumeArm() {
+  $("latch-note").textContent = "resume sent…";
+  sendCommand("arm_resume");
+}
+
+function onResumeAck(msg) {
+  if (!msg.ok) {
+    $("latch-note").textContent = `resume refused: ${msg.error}`;
+    return;
+  }
+  setTimeout(() => {
+    if (dxp.latched) {
+      $("latch-note").textContent =
+        "the robot kept its stop: a resume counts only from the lease holder, fresh (is the link up?)";
+    }
+  }, 1500);
+}
+
 function startVideo() {
   $("video-panel").hidden = false;
   const status = (text) => ($("video-status").textContent = text);
@@ -468,12 +513,13 @@ function startVideo() {
 
 function startJogger(cfg) {
   if (dxp.jog || !cfg) return;
-  dxp.jog = new JOG.Jogger(cfg, sendArm);
+  dxp.jog = new JOG.Jogger(cfg, sendArm, stopArm);
+  dxp.jog.setRobotLatched(!!dxp.latched);
   const pct = Math.round(cfg.default_speed_scale * 100);
   $("speed").value = pct;
   $("speed-out").textContent = `${pct}%`;
   const keys = Object.entries(cfg.keyboard).map(([k, t]) => `${k} ${t}`).join(" · ");
-  $("key-help").textContent = `keys (hold): ${keys}; Esc stops`;
+  $("key-help").textContent = `keys (hold): ${keys}; Esc or Space: STOP (held until RESUME)`;
   setInterval(showJogState, 200);
 }
 
@@ -484,15 +530,20 @@ function showJogState() {
     (pads.length ? pads.map((p) => `gamepad: ${p.id.slice(0, 24)}`).join(", ") : "no gamepad") +
     (j.hidDevice ? ` · SpaceMouse: ${j.hidDevice.productName}` : "");
   const v = j.last.velocity;
-  $("jog-source").textContent = j.last.enabled
-    ? `${j.last.source}: ${(Math.hypot(v[0], v[1], v[2]) * 1000).toFixed(0)} mm/s`
-    : j.latched ? "stopped: release all inputs" : "none (hold to move)";
+  $("jog-source").textContent = j.robotLatched
+    ? "STOPPED on the robot: RESUME, then release and hold again"
+    : j.latched
+      ? "stopped: release all inputs"
+      : j.last.enabled
+        ? `${j.last.source}: ${(Math.hypot(v[0], v[1], v[2]) * 1000).toFixed(0)} mm/s`
+        : "none (hold to move)";
   for (const b of document.querySelectorAll(".jog-grid button")) {
     b.classList.toggle("held", j.buttons.has(b.dataset.twist));
   }
 }
 
 function stopArm() {
+  dxp.stopSentAt = Date.now(); // wall clock: a test compares it with the arm's own timeline
   if (dxp.jog) {
     dxp.jog.releaseAll();
     dxp.jog.stop(true);
@@ -502,12 +553,17 @@ function stopArm() {
 }
 
 $("arm-stop").addEventListener("click", stopArm);
+$("arm-resume").addEventListener("click", resumeArm);
 $("speed").addEventListener("input", () => {
   $("speed-out").textContent = `${$("speed").value}%`;
   if (dxp.jog) dxp.jog.speedScale = Number($("speed").value) / 100;
 });
 for (const b of document.querySelectorAll(".jog-grid button")) {
-  const release = () => dxp.jog && dxp.jog.buttons.delete(b.dataset.twist);
+  const release = () => {
+    if (!dxp.jog) return;
+    dxp.jog.buttons.delete(b.dataset.twist);
+    dxp.jog.released();
+  };
   b.addEventListener("pointerdown", (e) => {
     if (!dxp.jog) return;
     b.setPointerCapture(e.pointerId);
@@ -525,7 +581,11 @@ window.addEventListener("keydown", (e) => {
   const key = e.key.toLowerCase();
   if (key in dxp.jog.cfg.keyboard && !e.ctrlKey && !e.metaKey && !e.altKey) dxp.jog.keys.add(key);
 });
-window.addEventListener("keyup", (e) => dxp.jog && dxp.jog.keys.delete(e.key.toLowerCase()));
+window.addEventListener("keyup", (e) => {
+  if (!dxp.jog) return;
+  dxp.jog.keys.delete(e.key.toLowerCase());
+  dxp.jog.released();
+});
 // a key released while the window was not focused never sends keyup: release everything
 window.addEventListener("blur", () => dxp.jog && dxp.jog.releaseAll());
 document.addEventListener("visibilitychange", () => document.hidden && dxp.jog && dxp.jog.releaseAll());

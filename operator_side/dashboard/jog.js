@@ -1,10 +1,16 @@
 // Jogging the arm from the page: keyboard, on-screen buttons, gamepads (Gamepad
 // API) and 3Dconnexion SpaceMice (WebHID). Every source is hold-to-move: the
 // arm moves only while a key, a button or the device's enable button is held,
-// and the moment nothing is held one arm_stop goes out. Jogs go to the
+// and the moment nothing is held one arm_jog_end goes out. Jogs go to the
 // dashboard server at send_rate_hz; the server caps them again and hands them
 // to the operator node's command sender; the robot clips them to its envelope
 // and stops on its own deadman when they cease.
+//
+// STOP (the page's button, Esc, Space, the gamepad's stop button) sends
+// arm_stop, which latches on the robot: it refuses every jog, from this page
+// or any other, until the lease holder resumes. While the robot reports its
+// latch this page sends no jog either, and after a resume it waits until
+// every input is released, so a resume never restarts a held jog.
 //
 // The decoding and shaping functions are pure and exported on JOG so a test
 // can run them on recorded raw input in a real browser.
@@ -87,7 +93,8 @@ const JOG = (() => {
     const enabled = btn(cfg.enable_button) > 0.5;
     const read = (t) => (t.name === "axis" ? pad.axes[t.index] ?? 0 : btn(t.index));
     const twist = mapTwist(cfg.mapping, read, cfg.dead_zone, cfg.curve_exponent);
-    return { enabled, twist: enabled ? twist : [0, 0, 0, 0, 0, 0] };
+    const stop = cfg.stop_button >= 0 && btn(cfg.stop_button) > 0.5;
+    return { enabled, stop, twist: enabled ? twist : [0, 0, 0, 0, 0, 0] };
   }
 
   // ----------------------------------------------------------------- keyboard
@@ -116,11 +123,13 @@ const JOG = (() => {
 
   // -------------------------------------------------------------- the jogger
   // Polls every source at send_rate_hz, sends arm_jog while anything is held
-  // and one arm_stop when it stops. `send(msg)` returns false when not connected.
+  // and one arm_jog_end when it stops. `send(msg)` returns false when not
+  // connected; `onStop()` is called when a gamepad's stop button goes down.
   class Jogger {
-    constructor(cfg, send) {
+    constructor(cfg, send, onStop) {
       this.cfg = cfg;
       this.send = send;
+      this.onStop = onStop || (() => this.stop(true));
       this.speedScale = cfg.default_speed_scale;
       this.keys = new Set();
       this.buttons = new Set(); // on-screen buttons held, as "+vx" etc.
@@ -128,6 +137,8 @@ const JOG = (() => {
       this.hidDevice = null;
       this.moving = false;
       this.latched = false; // after STOP: nothing moves until every input is released
+      this.robotLatched = false; // the robot's own latch, from its heartbeat: nothing moves
+      this.padStops = new Set(); // gamepads whose stop button is down (a press stops once)
       this.last = { source: "none", velocity: [0, 0, 0, 0, 0, 0], enabled: false };
       this.sent = { jogs: 0, stops: 0 };
       this.timer = setInterval(() => this.tick(), 1000 / cfg.send_rate_hz);
@@ -148,14 +159,28 @@ const JOG = (() => {
       return out;
     }
 
+    // An input was let go (keyup, pointerup): with nothing left held, the page's own
+    // latch clears now rather than at the next tick, so a quick release-and-press moves.
+    released() {
+      const wants = this.sources().some((x) => x.enabled && x.twist.some((v) => v !== 0));
+      if (!wants && !this.robotLatched) this.latched = false;
+    }
+
     tick() {
-      const active = this.sources().filter((s) => s.enabled && s.twist.some((v) => v !== 0));
+      const sources = this.sources();
+      for (const s of sources) {
+        if (!s.source.startsWith("gamepad")) continue;
+        if (s.stop && !this.padStops.has(s.source)) this.onStop();
+        if (s.stop) this.padStops.add(s.source);
+        else this.padStops.delete(s.source);
+      }
+      const active = sources.filter((s) => s.enabled && s.twist.some((v) => v !== 0));
       const unit = [0, 0, 0, 0, 0, 0];
       for (const s of active) s.twist.forEach((v, i) => (unit[i] += v));
       const clipped = unit.map((v) => Math.max(-1, Math.min(1, v)));
       const velocity = scaleTwist(clipped, this.cfg, this.speedScale);
       const wants = velocity.some((v) => v !== 0);
-      if (!wants) this.latched = false;
+      if (!wants && !this.robotLatched) this.latched = false;
       this.last = { source: active.map((s) => s.source).join("+") || "none", velocity, enabled: active.length > 0 };
       if (wants && !this.latched) {
         if (this.send({ type: "command", action: "arm_jog", velocity })) {
@@ -167,11 +192,19 @@ const JOG = (() => {
       }
     }
 
+    // latch: STOP (arm_stop, latched on the robot); otherwise the end of a jog
     stop(latch = false) {
       this.latched = this.latched || latch;
       this.moving = false;
       this.sent.stops++;
-      this.send({ type: "command", action: "arm_stop" });
+      this.send({ type: "command", action: latch ? "arm_stop" : "arm_jog_end" });
+    }
+
+    // The robot's latch as its heartbeat reports it: while set, this page jogs nothing,
+    // and once released it still waits for every input to be let go.
+    setRobotLatched(latched) {
+      this.robotLatched = latched;
+      if (latched) this.latched = true;
     }
 
     releaseAll() {

@@ -69,12 +69,29 @@ class GamepadConfig:
         "vx vy vz wx wy wz from the standard mapping: left stick x/y, triggers z, right stick x "
         "turns the wrist",
     )
+    stop_button: int = param(
+        1,
+        "pressing it is STOP ARM: latched on the robot until a resume (1: B / circle); -1: none",
+    )
 
     def __post_init__(self) -> None:
         _check_shaping(self.dead_zone, self.curve_exponent, "gamepad")
         if not 0 <= self.enable_button < 32:
             raise ValueError(f"gamepad enable_button must be 0..31, not {self.enable_button}")
         _check_mapping(self.mapping, ("axis", "button"), "gamepad")
+        if not -1 <= self.stop_button < 32:
+            raise ValueError(f"gamepad stop_button must be 0..31 or -1, not {self.stop_button}")
+        used = {
+            index
+            for expr in self.mapping
+            for _, name, index in parse_mapping(expr, ("axis", "button"))
+            if name == "button"
+        }
+        if self.stop_button in used | {self.enable_button}:
+            raise ValueError(
+                f"gamepad stop_button {self.stop_button} is already the enable button or in "
+                "the mapping: a stop must do nothing else"
+            )
 
 
 @dataclass

@@ -117,6 +117,7 @@ class Dashboard:
         self._jog_watchdog_s = max(JOG_WATCHDOG_PERIODS / jog.send_rate_hz, 0.1)
         self._jogs_per_s = 2 * jog.send_rate_hz  # twice the page's rate: slack for bursts
         self.jogs_forwarded = 0
+        self.jog_ends = 0
         self.arm_stops = 0
 
     @property
@@ -211,7 +212,7 @@ class Dashboard:
             if page.video is not None:
                 page.video.cancel()
             if page.jogging:  # a closed or crashed tab must not leave the arm moving
-                self._stop_arm(page, "page disconnected while jogging")
+                self._end_jog(page, "page disconnected while jogging")
             log.info("dashboard: page from %s disconnected", peer)
 
     def _on_video_signal(self, msg: VideoSignal) -> None:
@@ -306,13 +307,30 @@ class Dashboard:
         while True:
             await asyncio.sleep(period)
             if page.jogging and time.monotonic() - page.last_jog > self._jog_watchdog_s:
-                self._stop_arm(page, "page stopped sending jogs")
+                self._end_jog(page, "page stopped sending jogs")
 
-    def _stop_arm(self, page: _Page, why: str) -> None:
+    def _end_jog(self, page: _Page, why: str) -> None:
+        """The page's jog is over: the arm stops, and nothing is latched."""
+        page.jogging = False
+        self.node.send_command("arm_jog_end")
+        self.jog_ends += 1
+        log.info("dashboard: arm_jog_end (%s)", why)
+
+    def _stop_arm(self, page: _Page) -> None:
+        """STOP pressed on the page: latched on the robot, whoever else is jogging."""
         page.jogging = False
         self.node.send_command("arm_stop")
         self.arm_stops += 1
-        log.info("dashboard: arm_stop (%s)", why)
+        log.warning("dashboard: STOP (arm_stop) from a page: latched on the robot until a resume")
+
+    def _resume_refusal(self) -> str | None:
+        """Why the robot would refuse our ``arm_resume``, as far as its newest heartbeat tells."""
+        control = (self._latest or {}).get("control")
+        if control is None or control["ours"]:  # unsigned: the one operator holds the arm
+            return None
+        if control["holder"] is None:
+            return "only the lease holder may resume the arm, and nobody holds it: ask for control"
+        return f"only the lease holder may resume the arm: {control['holder']}… holds it, not you"
 
     def _on_message(self, raw: str | bytes, page: _Page) -> dict[str, Any] | None:
         """The reply to one page message; None for a jog that went through (30 a second)."""
@@ -325,7 +343,10 @@ class Dashboard:
         action = msg.get("action")
         now = time.monotonic()
         if action == "arm_stop":  # never rate-limited: stopping must always get through
-            self._stop_arm(page, "asked by the page")
+            self._stop_arm(page)
+            return {"type": "ack", "ok": True, "action": action}
+        if action == "arm_jog_end":  # nor is the end of a jog
+            self._end_jog(page, "released on the page")
             return {"type": "ack", "ok": True, "action": action}
         if action == "arm_jog":
             return self._on_jog(msg, page, now)
@@ -333,7 +354,13 @@ class Dashboard:
         sent_at[:] = [t for t in sent_at if now - t < 1.0]
         if len(sent_at) >= COMMANDS_PER_S:
             return {"type": "ack", "ok": False, "action": action, "error": "too many commands"}
-        if action == "gripper_open":
+        if action == "arm_resume":
+            refusal = self._resume_refusal()
+            if refusal is not None:  # the robot would refuse it: say why instead of sending it
+                return {"type": "ack", "ok": False, "action": action, "error": refusal}
+            self.node.send_command("arm_resume")
+            level = None
+        elif action == "gripper_open":
             self.node.send_command("gripper_open")
             level = None
         elif action in ("lease_request", "lease_grant", "lease_release"):
@@ -381,7 +408,7 @@ class Dashboard:
         )
         if not any(twist):
             if page.jogging:
-                self._stop_arm(page, "zero jog")
+                self._end_jog(page, "zero jog")
             return None
         self.node.send_command("arm_jog", velocity=twist)
         page.jogging, page.last_jog = True, now

@@ -110,6 +110,8 @@ def arm_view(robot_stats: dict[str, float]) -> dict[str, Any] | None:
         if "arm_program_running" not in r
         else bool(r["arm_program_running"]),
         "jogging": bool(r.get("arm_jogging", 0)),
+        # an operator's STOP holds the arm on the robot: every page of every operator shows it
+        "stop_latched": bool(r.get("arm_stop_latched", 0)),
         "deadman_stops": int(r.get("arm_deadman_stops", 0)),
         "link_deadman_trips": int(r.get("deadman_trips", 0)),
         "available": bool(r.get("arm_available", 1)),

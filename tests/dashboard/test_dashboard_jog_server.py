@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -23,6 +24,11 @@ pytestmark = pytest.mark.timeout(30)
 
 
 class JogNode(FakeNode):
+    control = None  # the control lease as the robot's heartbeat states it (None: unsigned)
+
+    def snapshot(self):
+        return dataclasses.replace(super().snapshot(), control=self.control)
+
     def send_command(self, action, grip_level=None, velocity=None) -> None:
         self.commands.append((time.monotonic(), action, velocity))
 
@@ -75,11 +81,12 @@ def test_a_closed_page_that_was_jogging_stops_the_arm(dashboard):
         time.sleep(0.05)
     t_closed = time.monotonic()
     deadline = t_closed + 2
-    while "arm_stop" not in node.actions():
+    while "arm_jog_end" not in node.actions():
         assert time.monotonic() < deadline, node.actions()
         time.sleep(0.01)
-    stop_t = next(t for t, a, _ in node.commands if a == "arm_stop")
+    stop_t = next(t for t, a, _ in node.commands if a == "arm_jog_end")
     assert stop_t - t_closed < 0.2
+    assert "arm_stop" not in node.actions(), "a closed tab ends its jog; it is not a STOP"
 
 
 def test_a_page_that_stops_sending_jogs_is_stopped_by_the_watchdog(dashboard):
@@ -89,10 +96,10 @@ def test_a_page_that_stops_sending_jogs_is_stopped_by_the_watchdog(dashboard):
         _jog(ws, [0.02, 0, 0, 0, 0, 0])
         t_last = time.monotonic()
         deadline = t_last + 2
-        while "arm_stop" not in node.actions():  # the socket stays open, the page is silent
+        while "arm_jog_end" not in node.actions():  # the socket stays open, the page is silent
             assert time.monotonic() < deadline
             time.sleep(0.01)
-        stop_t = next(t for t, a, _ in node.commands if a == "arm_stop")
+        stop_t = next(t for t, a, _ in node.commands if a == "arm_jog_end")
         # watchdog: six send periods at 30 Hz (200 ms), checked every quarter of that
         assert 0.15 < stop_t - t_last < 0.4
 
@@ -117,6 +124,35 @@ def test_jog_rate_is_limited_but_stop_never_is(dashboard):
     assert node.actions().count("arm_jog") == 60  # twice the 30 Hz send rate, per second
     assert refused == 40
     assert node.actions().count("arm_stop") >= 20
+
+
+def _sampled(d: Dashboard, control: dict) -> None:
+    """Wait until the dashboard's sampler has taken the node's new control view."""
+    deadline = time.monotonic() + 5
+    while (d._latest or {}).get("control") != control:
+        assert time.monotonic() < deadline, "the dashboard never sampled the node"
+        time.sleep(0.01)
+
+
+def test_resume_goes_to_the_robot_from_the_holder_and_is_refused_with_a_reason_otherwise(
+    dashboard,
+):
+    node, d = dashboard
+    with connect(_ws_url(d)) as ws:
+        _next(ws, "hello")
+        ws.send(json.dumps({"type": "command", "action": "arm_resume"}))
+        assert _next(ws, "ack")["ok"], "unsigned: the one operator holds the arm"
+        assert node.actions() == ["arm_resume"]
+        node.control = {"ours": False, "holder": "a1b2c3", "pending": None}
+        _sampled(d, node.control)
+        ws.send(json.dumps({"type": "command", "action": "arm_resume"}))
+        ack = _next(ws, "ack")
+        assert not ack["ok"] and "a1b2c3… holds it" in ack["error"], ack
+        node.control = {"ours": False, "holder": None, "pending": None}
+        _sampled(d, node.control)
+        ws.send(json.dumps({"type": "command", "action": "arm_resume"}))
+        assert "ask for control" in _next(ws, "ack")["error"]
+    assert node.actions() == ["arm_resume"], "a resume the robot would refuse is not sent"
 
 
 @settings(max_examples=200, deadline=None)
@@ -146,6 +182,9 @@ def test_mappings_and_keys_are_checked_when_the_config_loads():
         {"spacemouse": {"mapping": ["-ty"]}},
         {"keyboard": {"w": "forward"}},
         {"send_rate_hz": 1.0},
+        {"gamepad": {"stop_button": 5}},  # the enable button
+        {"gamepad": {"stop_button": 7}},  # a trigger in the default mapping
+        {"gamepad": {"stop_button": 40}},
     ):
         with pytest.raises(ConfigError):
             from_dict(JogConfig, bad)
@@ -176,3 +215,5 @@ def test_arm_view_turns_heartbeat_stats_into_what_the_panel_shows():
     assert view["speed_mm_s"] == 50.0 and view["safety"] == "protective stop"
     assert view["program_running"] is True and view["deadman_stops"] == 2
     assert view["workspace_mm"] == [[-400.0] * 3, [400.0] * 3]
+    assert view["stop_latched"] is False
+    assert arm_view({**stats, "arm_stop_latched": 1.0})["stop_latched"] is True

@@ -93,8 +93,12 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
                 op.command("arm_jog", velocity=velocity)
                 op.pump(0.05)
             stops.append(now_ns())
-            op.command("arm_stop")
+            # a key let go (arm_jog_end), and every other cycle a STOP, which latches
+            # until the resume: both stop the arm, neither may block the loop
+            op.command("arm_jog_end" if cycles % 2 else "arm_stop")
             op.pump(0.1)
+            if not cycles % 2:
+                op.command("arm_resume")
             cycles += 1
         t1 = now_ns()
         op.pump(0.2)

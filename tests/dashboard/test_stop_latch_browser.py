@@ -1,0 +1,272 @@
+"""STOP means stop: two pages of one dashboard and a gamepad, the arm read from the UR simulator.
+
+Page A holds a jog (a key held down, as a person holds it); STOP is pressed
+on page B, with the mouse and then with a gamepad's stop button. The arm,
+read from the simulator (not from any node), must come to rest at once and
+stay at rest while A still holds its key, both pages must show the robot's
+latch, and only a RESUME lets a jog move the arm again (after A lets go
+and presses again: a resume never restarts a held jog).
+
+Before the latch lived on the robot, B's stop lasted until A's next jog,
+33 ms later: the arm went on at 30 mm/s.
+
+Times are wall-clock (``time.time()`` here, ``Date.now()`` in the pages,
+``LogRecord.created`` for the robot's log), one clock on one machine, so a
+stop is timed from the press in the page, not from when DevTools got round
+to delivering it.
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+from headless_chromium import Chromium, needs_chromium
+from test_arm_jog_browser import PAD, SPEED_SCALE, STILL_M_S, station  # noqa: F401 (fixture)
+
+pytestmark = [pytest.mark.timeout(240), pytest.mark.slow, needs_chromium]
+
+STOP_BUDGET_MS = 100  # issue 25: a stop from any page stops a jog held on another within this
+STAY_STILL_S = 1.0  # how long A holds its key against the latch
+ROUNDS = 3  # stops of each kind: their median is held to the budget, so one stall is not a verdict
+JOG_M_S = SPEED_SCALE * 0.10  # the page's default speed scale times the operator's cap
+KEY_W = {"key": "w", "code": "KeyW", "windowsVirtualKeyCode": 87}  # +x in the default keymap
+KEYUP_CLOCK = "window.addEventListener('keyup', () => (window.__keyupAt = Date.now()))"
+
+
+class SpeedLog:
+    """The simulator's TCP speed every 2 ms on a thread, so a stop's timing is read off it."""
+
+    def __init__(self, arm) -> None:
+        self.arm = arm
+        self.samples: list[tuple[float, float, float]] = []  # (time.time(), linear, angular)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            v = self.arm.sim.tcp_speed()
+            lin, ang = float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:]))
+            self.samples.append((time.time(), lin, ang))
+            time.sleep(0.002)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+
+    def at_rest_after(self, t0: float, timeout_s: float = 3.0) -> float:
+        """Wall time of the first sample at rest after ``t0``; fails if none in ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for t, lin, ang in list(self.samples):
+                if t >= t0 and lin <= STILL_M_S and ang <= 1e-3:
+                    return t
+            time.sleep(0.01)
+        raise AssertionError(f"the arm never came to rest within {timeout_s} s of the stop")
+
+    def moving_at(self, t: float) -> bool:
+        """Whether the newest sample at or before ``t`` has the arm at the jog's speed."""
+        before = [lin for ts, lin, _ in list(self.samples) if ts <= t]
+        return bool(before) and before[-1] >= 0.5 * JOG_M_S
+
+    def top_speed(self, t0: float, t1: float) -> float:
+        return max((lin for t, lin, _ in list(self.samples) if t0 <= t <= t1), default=0.0)
+
+
+@pytest.fixture
+def pages(station, quiet_gc) -> Iterator[tuple[Chromium, Chromium, SpeedLog]]:  # noqa: F811
+    arm, dashboard = station
+    with Chromium(width=1280, height=1000) as a, Chromium(width=1280, height=1000) as b:
+        for page in (a, b):
+            page.navigate(dashboard.url)
+            page.wait_for("dxp.jog !== null && dxp.state.arm && dxp.state.arm.pose", 20)
+            page.evaluate(KEYUP_CLOCK)
+            # no event per WebSocket frame (90 a second here): unread, they make closing slow
+            page.call("Network.disable")
+        log = SpeedLog(arm)
+        try:
+            yield a, b, log
+        finally:
+            log.close()
+        assert a.page_errors() == [] and b.page_errors() == []
+
+
+def key(page: Chromium, kind: str) -> None:
+    """A real key event (DevTools input), as a person presses or lets go of a key."""
+    text = {"text": "w"} if kind == "keyDown" else {}
+    page.call("Input.dispatchKeyEvent", type=kind, **KEY_W, **text)
+
+
+def hold_until_moving(page: Chromium, log: SpeedLog, timeout_s: float = 10.0) -> None:
+    """Page holds +x until the simulator's TCP runs at the jog's speed."""
+    key(page, "keyDown")
+    deadline = time.monotonic() + timeout_s
+    while not log.samples or log.samples[-1][1] < 0.8 * JOG_M_S:
+        assert time.monotonic() < deadline, (
+            f"the held key never moved the arm in {timeout_s} s: {log.samples[-1:]} "
+            f"(robot: {page.evaluate('JSON.stringify(dxp.state.arm)')})"
+        )
+        time.sleep(0.01)
+
+
+def release_ms(page: Chromium, log: SpeedLog) -> float:
+    """Let go of the held key: ms from the page's keyup to the arm at rest (the baseline path)."""
+    t0 = time.time()
+    key(page, "keyUp")
+    at_rest = log.at_rest_after(t0)
+    return (at_rest - page.evaluate("window.__keyupAt") / 1000) * 1000
+
+
+def shows_latch(page: Chromium, latched: bool, timeout_s: float = 10.0) -> None:
+    page.wait_until(
+        "[dxp.latched, !document.getElementById('latch').hidden, dxp.jog.robotLatched]",
+        lambda v: v == [latched] * 3,
+        timeout_s=timeout_s,
+    )
+
+
+def stays_still_while_held(log: SpeedLog, what: str) -> None:
+    t0 = time.time()
+    time.sleep(STAY_STILL_S)
+    top = log.top_speed(t0, time.time())
+    assert top <= STILL_M_S, (
+        f"the arm moved at {top * 1000:.1f} mm/s after {what} while page A held its jog: "
+        "the stop did not hold"
+    )
+
+
+def robot_heard_stop(caplog: pytest.LogCaptureFixture, after: float) -> float:
+    """Wall time the robot logged the stop's arrival (it latches as it admits the command)."""
+    deadline = time.monotonic() + 3
+    while True:
+        times = [
+            r.created
+            for r in caplog.records
+            if r.name == "robot_side.stop_latch" and "latched by" in r.getMessage()
+        ]
+        if times and times[-1] >= after:
+            return times[-1]
+        assert time.monotonic() < deadline, "the robot never logged the stop"
+        time.sleep(0.01)
+
+
+class Stops:
+    """Page A holds its key; ``press`` stops the arm; the arm, the pages and the robot are read.
+
+    Each stop is (press, robot heard it, arm at rest) in wall seconds; each
+    resume ends with a plain release of A's key, timed as the baseline.
+    """
+
+    def __init__(self, a: Chromium, b: Chromium, log: SpeedLog, caplog) -> None:
+        self.a, self.b, self.log, self.caplog = a, b, log, caplog
+        self.stops: dict[str, list[tuple[float, float, float]]] = {}
+        self.releases: list[float] = []
+
+    def stop(self, what: str, press: Callable[[], float], check_hold: bool) -> None:
+        hold_until_moving(self.a, self.log)
+        t0 = time.time()
+        pressed = press()
+        at_rest = self.log.at_rest_after(pressed)
+        heard = robot_heard_stop(self.caplog, t0)
+        if self.log.moving_at(pressed):  # else A's jog had stuttered (a loaded machine): untimed
+            self.stops.setdefault(what, []).append((pressed, heard, at_rest))
+        for page in (self.a, self.b):
+            shows_latch(page, True)
+        if check_hold:
+            stays_still_while_held(self.log, what)
+
+    def resume(self, resumer: Chromium, check_hold: bool) -> None:
+        """RESUME; A's still-held key moves nothing until let go and pressed again."""
+        resumer.click("#arm-resume")
+        for page in (self.a, self.b):
+            shows_latch(page, False)
+        if check_hold:
+            stays_still_while_held(self.log, "the resume (A never let go)")
+        key(self.a, "keyUp")
+        self.a.wait_for("!dxp.jog.latched")  # what the page says: "none (hold to move)"
+        hold_until_moving(self.a, self.log)
+        self.releases.append(release_ms(self.a, self.log))
+
+    def check_budget(self, what: str) -> None:
+        """Median within 100 ms of the press; over it only if the machine was slow, not the product.
+
+        The robot's part (the stop's arrival to rest) must be within budget
+        whatever the load; the whole is compared with the plain releases of a
+        held key in this run, which take the same page, server, node and robot.
+        """
+        runs = self.stops.get(what)
+        assert runs, f"load: page A's jog stuttered at every {what}; no stop could be timed"
+        total = statistics.median((rest - pressed) * 1000 for pressed, _, rest in runs)
+        robot = statistics.median((rest - heard) * 1000 for _, heard, rest in runs)
+        release = statistics.median(self.releases)
+        print(
+            f"{what}: arm at rest {[round((r - p) * 1000) for p, _, r in runs]} ms after the "
+            f"press, {[round((r - h) * 1000) for _, h, r in runs]} ms after the robot heard it; "
+            f"plain releases {[round(r) for r in self.releases]} ms"
+        )
+        assert robot <= STOP_BUDGET_MS, (
+            f"product: the robot took {robot:.0f} ms (median) from {what}'s arrival to rest"
+        )
+        if total <= STOP_BUDGET_MS:
+            return
+        assert total <= 1.5 * release + 20, (
+            f"product: {what} took {total:.0f} ms (median) from the press to rest, budget "
+            f"{STOP_BUDGET_MS}, while letting go of a held key took {release:.0f} ms (median) "
+            "through the same page, server and node in this run: not the machine's load"
+        )
+        print(f"load: {what} over {STOP_BUDGET_MS} ms, and so was a plain release in this run")
+
+
+def test_a_stop_on_one_page_or_a_gamepad_holds_the_jog_of_another_until_a_resume(
+    station,  # noqa: F811
+    pages,
+    caplog,
+):
+    _, dashboard = station
+    a, b, log = pages
+    caplog.set_level(logging.WARNING, logger="robot_side.stop_latch")
+    for page in (a, b):
+        shows_latch(page, False)
+    run = Stops(a, b, log, caplog)
+    hold_until_moving(a, log)
+    run.releases.append(release_ms(a, log))
+
+    def click() -> float:
+        b.click("#arm-stop")
+        return b.evaluate("dxp.stopSentAt") / 1000
+
+    def pad_button() -> float:
+        pressed = b.evaluate(
+            "window.__pad.buttons[1] = { pressed: true, touched: true, value: 1 }; Date.now()"
+        )
+        b.wait_for("dxp.latched")  # pressed once: the page stops once, then it is let go
+        b.evaluate("window.__pad.buttons[1] = { pressed: false, touched: false, value: 0 }")
+        return pressed / 1000
+
+    # STOP ARM clicked on page B while page A holds its key; B resumes
+    what = "STOP ARM clicked on page B"
+    for n in range(3 * ROUNDS):
+        run.stop(what, click, check_hold=n == 0)
+        run.resume(b, check_hold=n == 0)
+        if len(run.stops.get(what, [])) >= ROUNDS:
+            break
+    # the gamepad's stop button (the standard mapping's B) on page B; A resumes (it may too)
+    b.evaluate(PAD)
+    what = "the gamepad's stop button on page B"
+    for n in range(3 * ROUNDS):
+        run.stop(what, pad_button, check_hold=n == 0)
+        run.resume(a, check_hold=n == 0)
+        if len(run.stops.get(what, [])) >= ROUNDS:
+            break
+
+    robot_stats = dashboard.node.snapshot().robot_stats
+    assert robot_stats["arm_stops_latched"] >= 2 * ROUNDS, robot_stats
+    assert robot_stats["arm_resumes"] >= 2 * ROUNDS and robot_stats["arm_stop_latched"] == 0.0
+    run.check_budget("STOP ARM clicked on page B")
+    run.check_budget("the gamepad's stop button on page B")
