@@ -42,6 +42,8 @@ def _check_good_commands(rig: RobotRig, k: int) -> None:
     level = 1 + k % 31
     velocity = (0.01 * ((k % 5) - 2), 0.02, 0.0, 0.0, 0.0, 0.1)
     rig.command("gripper_close", grip_level=level)
+    # a mutant arm_stop that decodes is a STOP and latches the arm: the operator resumes
+    rig.command("arm_resume")
     rig.command("arm_jog", velocity=velocity)
     assert rig.sync(), "the robot node stopped reading its socket"
 
@@ -93,7 +95,7 @@ def test_robot_survives_malformed_commands_and_keeps_serving(rig):
             assert rig.alive(), f"the robot node died: {rig.error}"
             if n % CHECK_EVERY_BATCHES == 0:
                 _check_good_commands(rig, checks)
-                good_cmds += 2
+                good_cmds += 3  # a close, a resume, a jog
                 checks += 1
             if sent_bad >= N_MALFORMED:
                 break
