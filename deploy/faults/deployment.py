@@ -60,6 +60,11 @@ host = "{gripper_host}"
 port = {gripper_port}
 """
 
+#: a pipette the fingers stop on at every grip level (the default gives way past level 20's goal)
+_PIPETTE = """[model]
+compression_at_full_force = 20.0
+"""
+
 _SERVOS = """kind = "feetech"
 port = "{port}"
 """
@@ -233,10 +238,11 @@ class Deployment:
         ur = self._add("ur", lambda: self._sim("ur", 'host = "auto"\n'))
         self.ur_host = _announcement(ur.proc)["host"]
         ur.start = lambda: self._sim("ur", f'host = "{self.ur_host}"\n')
-        gripper = self._add("gripper", lambda: self._sim("gripper", "port = 0\n"))
+        gripper = self._add("gripper", lambda: self._sim("gripper", "port = 0\n" + _PIPETTE))
         g = _announcement(gripper.proc)
         self.gripper = (g["host"], g["port"])
-        gripper.start = lambda: self._sim("gripper", f'host = "{g["host"]}"\nport = {g["port"]}\n')
+        at = f'host = "{g["host"]}"\nport = {g["port"]}\n'
+        gripper.start = lambda: self._sim("gripper", at + _PIPETTE)
         board = _BOARD_TOML.format(link_dir=self.dir / "tactile-link")
         tactile = self._add("tactile", lambda: self._sim("tactile", board))
         self.tactile_port = _announcement(tactile.proc)["port"]
