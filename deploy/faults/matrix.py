@@ -83,7 +83,11 @@ def full_matrix() -> list[Cell]:
 
 
 def quick_matrix() -> list[Cell]:
+    """The cells the tests hold too: the robot node killed and frozen, the relay, the link."""
     return [Cell("robot", KILL), Cell("robot", STOP), Cell("relay", KILL), Cell("link", OUTAGE)]
+
+
+MATRICES = {"full": full_matrix, "quick": quick_matrix, "smallest": lambda: [Cell("robot", KILL)]}
 
 
 @dataclass
