@@ -19,12 +19,11 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
-from typing import Any
-
 import signal
 import threading
 import time
+from pathlib import Path
+from typing import Any
 
 from common.cli_support import stop_on_signals, write_stats
 from common.config import from_dict, load_toml

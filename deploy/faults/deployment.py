@@ -12,6 +12,7 @@ RestartSec= when its Restart= says so.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import signal
@@ -153,7 +154,9 @@ class Supervisor:
                     if not unit.policy.restarts_after(code):
                         continue
                     due[name] = now + unit.policy.restart_sec
-                    log.info("%s ended (%s): restart in %.1f s", name, code, unit.policy.restart_sec)
+                    log.info(
+                        "%s ended (%s): restart in %.1f s", name, code, unit.policy.restart_sec
+                    )
                 if now >= due[name]:
                     del due[name]
                     unit.launch()
@@ -258,7 +261,9 @@ class Deployment:
         )
         self._add(
             "robot",
-            lambda: fleet.start_robot(ROBOT, self.ur_host, video_url=self.video_url, devices=devices),
+            lambda: fleet.start_robot(
+                ROBOT, self.ur_host, video_url=self.video_url, devices=devices
+            ),
             "robot",
         )
         self.netsim_endpoints = tuple(f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2))
@@ -344,10 +349,8 @@ class Deployment:
                     popen.kill()
                     popen.wait()
             if unit.proc.stdin is not None:
-                try:
+                with contextlib.suppress(BrokenPipeError, OSError):
                     unit.proc.stdin.close()
-                except (BrokenPipeError, OSError):
-                    pass
 
     def __enter__(self) -> Deployment:
         try:

@@ -134,7 +134,9 @@ class Jogger:
         while not self._stop.wait(0.05):
             if self.active.is_set():
                 sign = 1.0 if int((time.monotonic() - t0) / FLIP_S) % 2 == 0 else -1.0
-                self.d.operator_send({"action": "arm_jog", "velocity": [sign * JOG_M_S, 0, 0, 0, 0, 0]})
+                self.d.operator_send(
+                    {"action": "arm_jog", "velocity": [sign * JOG_M_S, 0, 0, 0, 0, 0]}
+                )
 
     def close(self) -> None:
         self._stop.set()
@@ -298,10 +300,7 @@ class CellRun:
         arm_still, arm_back, palm_off, palm_back = self._broken_and_back(tl)
         since = lambda t: None if t is None else round(t - tl.t_fault, 3)  # noqa: E731
         backs = [b for b, broke in ((arm_back, arm_still), (palm_back, palm_off)) if broke]
-        if any(b is None for b in backs):
-            recovered = None
-        else:
-            recovered = max(backs, default=tl.t_fault)
+        recovered = None if any(b is None for b in backs) else max(backs, default=tl.t_fault)
         held, min_pos = self._gripper_held(tl)
         rec_ok, rec_gap, rec_n = self._recording(tl)
         unit = self.d.units.get(self.cell.target)
@@ -316,7 +315,9 @@ class CellRun:
             recovered_s=since(recovered),
             gripper_held=held,
             gripper_min_pos=min_pos,
-            released_still_s=None if released_still is None else round(released_still - t_release, 3),
+            released_still_s=None
+            if released_still is None
+            else round(released_still - t_release, 3),
             recording_ok=rec_ok,
             recording_gap_s=rec_gap,
             recording_records=rec_n,

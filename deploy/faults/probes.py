@@ -48,7 +48,7 @@ class _Probe:
         while not self._stop.is_set():
             try:
                 value = self.read()
-            except Exception as e:  # noqa: BLE001 (a device that died: a gap, then reconnect)
+            except Exception as e:
                 log.debug("%s: %r", type(self).__name__, e)
                 self.reset()
                 self._stop.wait(0.1)
