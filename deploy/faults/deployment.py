@@ -83,6 +83,13 @@ retransmit_ms = 34.0
 outages = [[{t1}, {t2}]]
 """
 
+#: hardware and the network come back by themselves: a device's power, the link. The
+#: supervisor (a thread that lives as long as the deployment) starts them again, because a
+#: child's PR_SET_PDEATHSIG follows the *thread* that forked it: one forked from a short
+#: thread would get SIGTERM the moment that thread ends
+DEVICE_BACK = RestartPolicy(unit="", restart="on-failure", restart_sec=2.0, watchdog_sec=0.0)
+DEVICES = ("ur", "gripper", "tactile", "servos", "netsim")
+
 #: never, for a deployment whose link does not fail
 NO_OUTAGE_AT_S = 1e6
 
@@ -215,7 +222,8 @@ class Deployment:
         return Proc(f"sim-{device}", spawn_cli(args, log_path), log_path, stats)
 
     def _add(self, name: str, start: Callable[[], Proc], unit: str | None = None) -> Unit:
-        self.units[name] = Unit(name, start, policy(unit) if unit else None)
+        rule = policy(unit) if unit else (DEVICE_BACK if name in DEVICES else None)
+        self.units[name] = Unit(name, start, rule)
         self.units[name].launch()
         return self.units[name]
 

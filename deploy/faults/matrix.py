@@ -12,6 +12,7 @@ that failed (``probes``), on the monotonic clock all processes share.
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import threading
 import time
@@ -37,10 +38,6 @@ PROCESSES = (
     "tactile",
     "servos",
 )
-#: processes standing for hardware or the network: after a kill the harness brings them back
-#: (power or the link returns) after this long; nothing of ours restarts them
-DEVICE_BACK_S = 2.0
-DEVICES = ("ur", "gripper", "tactile", "servos", "netsim")
 STOP_S = 2.0
 UNPLUG_S = 3.0
 
@@ -169,6 +166,7 @@ def first_still(samples: list[Sample], after: float) -> float | None:
 class _Timeline:
     t_fault: float
     t_end: float  # when the fault is over (SIGCONT, replug, outage end, restart issued)
+    t_release: float = math.inf  # the operator let go: what follows is not the fault's doing
 
 
 class CellRun:
@@ -225,9 +223,7 @@ class CellRun:
             return _Timeline(*window)
         t_fault = time.monotonic()
         if fault == KILL:
-            d.signal(target, signal.SIGKILL)
-            if target in DEVICES:
-                threading.Timer(DEVICE_BACK_S, self._device_back, args=(target,)).start()
+            d.signal(target, signal.SIGKILL)  # the supervisor starts it again, as its rule says
             return _Timeline(t_fault, t_fault)
         if fault == STOP:
             d.signal(target, signal.SIGSTOP)
@@ -243,14 +239,9 @@ class CellRun:
             return _Timeline(t_fault, time.monotonic())
         raise ValueError(f"unknown fault {fault!r}")
 
-    def _device_back(self, target: str) -> None:
-        unit = self.d.units[target]
-        unit.proc.popen.wait()
-        unit.launch()
-        unit.restarted_at.append(time.monotonic())
-
     def _broken_and_back(self, tl: _Timeline) -> tuple[float | None, ...]:
-        arm, palm = self.arm.samples, self.palm.samples
+        arm = self.arm.between(tl.t_fault, tl.t_release)
+        palm = self.palm.between(tl.t_fault, tl.t_release)
         arm_still = first_still(arm, tl.t_fault)
         arm_back = (
             _first(arm, max(arm_still, tl.t_end), lambda v: v > MOVING_M_S)
@@ -287,7 +278,7 @@ class CellRun:
                 while not self._settled(tl) and time.monotonic() < deadline:
                     time.sleep(0.1)
                 jogger.active.clear()
-                t_release = time.monotonic()
+                tl.t_release = t_release = time.monotonic()
                 time.sleep(1.5)
                 released_still = first_still(self.arm.samples, t_release)
             finally:
@@ -361,12 +352,13 @@ class CellRun:
 def restarted_by(cell: Cell, policy: Any) -> str:
     if cell.fault in (STOP, OUTAGE, UNPLUG):
         return "-"
+    systemd = policy is not None and policy.unit
     if cell.fault == RESTART:
-        return "systemctl restart" if policy is not None else "a human (restart)"
-    if policy is not None:
+        return "systemctl restart" if systemd else "a human (restart)"
+    if systemd:
         return f"systemd ({policy.restart_sec:g} s)"
-    if cell.target in DEVICES:
-        return f"power/link back ({DEVICE_BACK_S:g} s)"
+    if policy is not None:
+        return f"power/link back ({policy.restart_sec:g} s)"
     return "nobody (no unit)"
 
 

@@ -71,16 +71,18 @@ def _arm(row: dict[str, Any]) -> str:
 
 
 def _palm(row: dict[str, Any]) -> str:
-    from deploy.faults.matrix import PALM_LIFT_BUDGET_S
+    from deploy.faults.matrix import KILL, PALM_LIFT_BUDGET_S, RESTART, STOP, UNPLUG
 
     off = row["palm_off_s"]
+    if row["target"] == "operator" and row["fault"] in (KILL, STOP):
+        # physical: the process that lifts the palm is the one that failed; servos hold
+        why = "no: the operator node lifts it, and it failed (servos hold their last goal)"
+        return why if off is None else f"{why}; off at {_s(off)}, by the restarted node"
     if off is None:
-        if row["target"] == "operator":
-            return "no: the process that lifts it is the one that failed"
-        if row["target"] == "servos":
+        if row["target"] == "servos" and row["fault"] in (KILL, RESTART, UNPLUG):
             return "no reading: the bus itself failed"
         return "stayed on (stimuli kept coming)"
-    return f"yes, {_s(off)}" if off <= PALM_LIFT_BUDGET_S else f"late, {_s(off)}"
+    return f"yes, {_s(off)}" if off <= PALM_LIFT_BUDGET_S else f"**late**, {_s(off)}"
 
 
 def _gripper(row: dict[str, Any]) -> str:
