@@ -61,13 +61,24 @@ def _s(x: float | None) -> str:
     return "-" if x is None else f"{x * 1e3:.0f} ms" if x < 1 else f"{x:.1f} s"
 
 
-def _arm(row: dict[str, Any]) -> str:
+#: the processes whose failure cuts the operator's jogs off the arm: the stop budget applies
+CUTS_THE_JOG = ("robot", "operator", "relay", "netsim", "link")
+
+
+def _late(row: dict[str, Any]) -> bool:
     from deploy.faults.matrix import ARM_STILL_BUDGET_S
 
     still = row["arm_still_s"]
+    return row["target"] in CUTS_THE_JOG and (still is None or still > ARM_STILL_BUDGET_S)
+
+
+def _arm(row: dict[str, Any]) -> str:
+    still = row["arm_still_s"]
     if still is None:
-        return "kept following the jog"
-    return f"{_s(still)}" + (" **over budget**" if still > ARM_STILL_BUDGET_S else "")
+        return "**kept moving**" if _late(row) else "kept following the jog"
+    if row["target"] not in CUTS_THE_JOG:
+        return f"stopped at {_s(still)} (an interruption)"
+    return f"{_s(still)}" + (" **over budget**" if _late(row) else "")
 
 
 def _palm(row: dict[str, Any]) -> str:
@@ -141,7 +152,7 @@ def verdicts(results: Results) -> list[Verdict]:
         return []
     rows = [c for c in r["cells"] if not c.get("error")]
     moving = [c for c in rows if c["released_still_s"] is None]
-    late = [c for c in rows if c["arm_still_s"] is not None and c["arm_still_s"] > 0.4]
+    late = [c for c in rows if _late(c)]
     opened = [c for c in rows if c["gripper_held"] is False]
     failed = [c for c in r["cells"] if c.get("error")]
     bad = moving + late + opened
@@ -151,7 +162,8 @@ def verdicts(results: Results) -> list[Verdict]:
     )
     return [
         Verdict(
-            "fault matrix: no cell leaves the arm moving (still within 400 ms) or the gripper open",
+            "fault matrix: no cell leaves the arm moving or the gripper open; the arm still "
+            "within 400 ms when a failure cuts the operator's jogs off",
             measured,
             not bad and not failed,
         )
