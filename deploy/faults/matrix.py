@@ -94,6 +94,7 @@ class CellResult:
     target: str
     fault: str
     restarted_by: str
+    arm_speed_at_fault_m_s: float | None  # the arm must be cruising when the fault comes
     arm_still_s: float | None  # the arm still after the fault (None: it kept following the jog)
     arm_back_s: float | None  # a jog moves it again
     palm_off_s: float | None  # every linkage off the palm
@@ -221,6 +222,7 @@ class CellRun:
                 raise DeploymentError("the deployment was ready only after the scheduled outage")
             time.sleep(window[0] - time.monotonic())
             return _Timeline(*window)
+        self._wait(self._cruising, 10.0, "the arm never cruised at the jog's speed (load?)")
         t_fault = time.monotonic()
         if fault == KILL:
             d.signal(target, signal.SIGKILL)  # the supervisor starts it again, as its rule says
@@ -238,6 +240,11 @@ class CellRun:
             d.signal(target, signal.SIGUSR2)
             return _Timeline(t_fault, time.monotonic())
         raise ValueError(f"unknown fault {fault!r}")
+
+    def _cruising(self) -> bool:
+        """The arm at the jog's speed now, not stalled by a loaded machine nor reversing."""
+        recent = self.arm.between(time.monotonic() - 0.1)
+        return bool(recent) and min(s.value for s in recent) > 0.75 * JOG_M_S
 
     def _broken_and_back(self, tl: _Timeline) -> tuple[float | None, ...]:
         arm = self.arm.between(tl.t_fault, tl.t_release)
@@ -292,6 +299,7 @@ class CellRun:
         since = lambda t: None if t is None else round(t - tl.t_fault, 3)  # noqa: E731
         backs = [b for b, broke in ((arm_back, arm_still), (palm_back, palm_off)) if broke]
         recovered = None if any(b is None for b in backs) else max(backs, default=tl.t_fault)
+        at_fault = self.arm.between(tl.t_fault - 0.05, tl.t_fault)
         held, min_pos = self._gripper_held(tl)
         rec_ok, rec_gap, rec_n = self._recording(tl)
         unit = self.d.units.get(self.cell.target)
@@ -299,6 +307,7 @@ class CellRun:
             target=self.cell.target,
             fault=self.cell.fault,
             restarted_by=restarted_by(self.cell, unit.policy if unit else None),
+            arm_speed_at_fault_m_s=round(at_fault[-1].value, 4) if at_fault else None,
             arm_still_s=since(arm_still),
             arm_back_s=since(arm_back),
             palm_off_s=since(palm_off),

@@ -65,6 +65,15 @@ def _s(x: float | None) -> str:
 CUTS_THE_JOG = ("robot", "operator", "relay", "netsim", "link")
 
 
+def _cruising(row: dict[str, Any]) -> bool:
+    """Whether the arm was at the jog's speed when the fault came (a run before the cells
+    checked it has no speed: a stop within 50 ms, faster than any path, says it was not)."""
+    speed, still = row.get("arm_speed_at_fault_m_s"), row["arm_still_s"]
+    if speed is None:
+        return still is None or still >= 0.05
+    return speed >= 0.015
+
+
 def _late(row: dict[str, Any]) -> bool:
     from deploy.faults.matrix import ARM_STILL_BUDGET_S
 
@@ -73,6 +82,8 @@ def _late(row: dict[str, Any]) -> bool:
 
 
 def _arm(row: dict[str, Any]) -> str:
+    if not _cruising(row):
+        return "(not moving at the fault: the machine's load had stalled the jog)"
     still = row["arm_still_s"]
     if still is None:
         return "**kept moving**" if _late(row) else "kept following the jog"
