@@ -100,9 +100,10 @@ def _palm(row: dict[str, Any]) -> str:
         # physical: the process that lifts the palm is the one that failed; servos hold
         why = "no: the operator node lifts it, and it failed (servos hold their last goal)"
         return why if off is None else f"{why}; off at {_s(off)}, by the restarted node"
+    if row["target"] == "servos" and row["fault"] in (KILL, RESTART, UNPLUG):
+        why = "no: the bus itself failed (no goal reaches a servo)"
+        return why if off is None else f"{why}; off at {_s(off)}, once it was back"
     if off is None:
-        if row["target"] == "servos" and row["fault"] in (KILL, RESTART, UNPLUG):
-            return "no reading: the bus itself failed"
         return "stayed on (stimuli kept coming)"
     return f"yes, {_s(off)}" if off <= PALM_LIFT_BUDGET_S else f"**late**, {_s(off)}"
 
