@@ -33,14 +33,7 @@ log = logging.getLogger(__name__)
 _ROBOT_TOML = """
 [robot]
 publish_rate_hz = {rate}
-[robot.render]
-mode = "mask_ground_truth"
-deadband_n = 0.0
-[robot.tactile]
-kind = "scripted"
-[robot.tactile.script]
-loop = false
-grasps = [{{pattern = 6, grip_level = 25, ramp_s = 0.1, hold_s = 3600.0}}]
+{devices}
 [robot.arm]
 {arm}
 [robot.link]
@@ -58,10 +51,22 @@ secret_key_file = "{secret}"
 server_public_key_file = "{relay_public}"
 """
 
+#: the tactile source and renderer of a robot with no devices of its own: a grasp held for an hour
+SCRIPTED_TACTILE = """
+[robot.render]
+mode = "mask_ground_truth"
+deadband_n = 0.0
+[robot.tactile]
+kind = "scripted"
+[robot.tactile.script]
+loop = false
+grasps = [{pattern = 6, grip_level = 25, ramp_s = 0.1, hold_s = 3600.0}]
+"""
+
 _OPERATOR_TOML = """
 [operator]
 [operator.servos]
-kind = "recording"
+{servos}
 [operator.link]
 robot_name = "{robot}"
 signing_key_file = "{signing}"
@@ -247,11 +252,18 @@ class Fleet:
         return self._start(name, ["-v", "relay", "--config", str(config)])
 
     def robot_config(
-        self, name: str, arm_host: str | None, rate_hz: float = 60.0, video_url: str = ""
+        self,
+        name: str,
+        arm_host: str | None,
+        rate_hz: float = 60.0,
+        video_url: str = "",
+        devices: str = SCRIPTED_TACTILE,
     ) -> Path:
         """Write robot ``name``'s config (relay mode, CURVE, the roster); its path.
 
         ``video_url``: a video server on this machine that viewers reach through the relay.
+        ``devices``: TOML of every robot section but the arm and the link (the renderer,
+        the tactile source, a gripper); by default a scripted grasp and no gripper.
         """
         arm = f'kind = "ur_rtde"\nhost = "{arm_host}"' if arm_host else 'kind = "none"'
         config = self.workdir / f"{name}.toml"
@@ -268,19 +280,29 @@ class Fleet:
                 relay_public=self.members["relay"].curve_public,
                 video_url=video_url,
                 signing=self.members[name].signing_secret,
+                devices=devices,
             )
         )
         return config
 
     def start_robot(
-        self, name: str, arm_host: str | None, rate_hz: float = 60.0, video_url: str = ""
+        self,
+        name: str,
+        arm_host: str | None,
+        rate_hz: float = 60.0,
+        video_url: str = "",
+        devices: str = SCRIPTED_TACTILE,
     ) -> Proc:
-        config = self.robot_config(name, arm_host, rate_hz, video_url)
+        config = self.robot_config(name, arm_host, rate_hz, video_url, devices)
         return self._start(name, ["-v", "robot", "--config", str(config)])
 
-    def start_video(self, name: str = "video", fps: float = 15.0) -> tuple[Proc, str]:
-        """A video server (the stamped test pattern, 320x240) on loopback; (process, its URL)."""
-        port = free_loopback_ports(1)[0]
+    def start_video(
+        self, name: str = "video", fps: float = 15.0, port: int | None = None
+    ) -> tuple[Proc, str]:
+        """A video server (the stamped test pattern, 320x240) on loopback; (process, its URL).
+
+        ``port``: the one it had before a restart (default: a free one)."""
+        port = port or free_loopback_ports(1)[0]
         settings = [f"port={port}", "test_pattern.width=320", "test_pattern.height=240"]
         settings.append(f"test_pattern.fps={fps}")
         args = ["-v", "video", *(a for s in settings for a in ("--set", s))]
@@ -294,8 +316,13 @@ class Fleet:
         request_control: bool = False,
         want_frames: bool = True,
         extra: list[str] | None = None,
+        servos: str = 'kind = "recording"',
+        endpoints: tuple[str, str] | None = None,
     ) -> Proc:
+        """An operator process; ``servos`` is its ``[operator.servos]`` TOML body, and
+        ``endpoints`` (telemetry, commands) another path to the relay (a link simulator)."""
         m = self.members[name]
+        tel, cmd = endpoints or (self.ops_telemetry, self.ops_command)
         proc_name = f"{name}@{robot}"  # one key may follow several robots, a process each
         config = self.workdir / f"{proc_name}.toml"
         config.write_text(
@@ -303,9 +330,10 @@ class Fleet:
                 robot=robot,
                 signing=m.signing_secret,
                 robot_key=self.workdir / "keys" / f"robot-{robot}.sign",
-                tel=self.ops_telemetry,
-                cmd=self.ops_command,
+                tel=tel,
+                cmd=cmd,
                 frames=str(want_frames).lower(),
+                servos=servos,
                 request=str(request_control).lower(),
                 secret=m.curve_secret,
                 relay_public=self.members["relay"].curve_public,

@@ -7,16 +7,25 @@ compare what each says to the same driver, byte for byte.
     deepxpalm sim servos         # a fake Feetech STS bus on a pty
     deepxpalm sim gripper        # the Robotiq URCap socket protocol on TCP
     deepxpalm sim ur             # RTDE 30004, dashboard 29999, script 30003
+
+A simulator with a cable (tactile, servos, gripper) is unplugged by SIGUSR1
+and plugged back by SIGUSR2, as a hand pulls and pushes a connector.
+``--status-file`` is its front panel: its counters (and the servos' goal
+positions) rewritten every 20 ms, for an observer outside every process it
+serves (the fault matrix reads the palm this way).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import stop_on_signals
+from common.cli_support import stop_on_signals, write_stats
 from common.config import from_dict, load_toml
 
 SIMULATORS = {
@@ -33,6 +42,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("device", choices=sorted(SIMULATORS))
     parser.add_argument("--config", type=Path, help="TOML with the simulator's settings")
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument(
+        "--status-file",
+        type=Path,
+        help="rewrite the simulator's state here every 20 ms (JSON, replaced atomically)",
+    )
+
+
+STATUS_PERIOD_S = 0.02
+
+
+def front_panel(sim: Any) -> dict[str, Any]:
+    """What an observer may read of a running simulator: its counters, the servos' goals."""
+    stats = getattr(sim, "stats", None)
+    panel: dict[str, Any] = {"t_ns": time.monotonic_ns(), **(stats() if callable(stats) else {})}
+    ids = getattr(getattr(sim, "config", None), "ids", None)
+    if ids is not None and callable(getattr(sim, "goal", None)):
+        panel["goals"] = {str(i): sim.goal(i) for i in ids}
+        panel["torque"] = {str(i): sim.torque(i) for i in ids}
+    plugged = getattr(sim, "plugged_in", None)
+    if isinstance(plugged, bool):
+        panel["plugged_in"] = plugged
+    return panel
+
+
+def _cable_on_signals(sim: Any) -> None:
+    """SIGUSR1 unplugs, SIGUSR2 plugs back in, for simulators that have a cable."""
+    if callable(getattr(sim, "unplug", None)):
+        signal.signal(signal.SIGUSR1, lambda _s, _f: sim.unplug())
+        signal.signal(signal.SIGUSR2, lambda _s, _f: sim.replug())
+
+
+def _publish_status(sim: Any, path: Path, stop: threading.Event) -> None:
+    while not stop.wait(STATUS_PERIOD_S):
+        write_stats(path, front_panel(sim))
 
 
 def _where(sim: Any) -> dict[str, Any]:
@@ -54,10 +97,17 @@ def run(args: argparse.Namespace) -> int:
     stop = stop_on_signals()
     sim = getattr(module, cls_name)(config)
     sim.start()
+    _cable_on_signals(sim)
+    if args.status_file is not None:
+        write_stats(args.status_file, front_panel(sim))
+        threading.Thread(
+            target=_publish_status, args=(sim, args.status_file, stop), daemon=True
+        ).start()
     try:
         print(json.dumps({"simulator": args.device, **_where(sim)}), flush=True)
         stop.wait(args.duration)
     finally:
+        stop.set()
         sim.stop()
         stats = getattr(sim, "stats", None)
         if callable(stats):

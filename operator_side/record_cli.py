@@ -14,6 +14,7 @@ import logging
 import struct
 import threading
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -105,6 +106,25 @@ class StreamRecorder:
         self.sock.close(0)
         if self._own_ctx:
             self.ctx.term()
+
+
+def read_records(path: Path) -> Iterator[tuple[int, bytes, object]]:
+    """(receive ns, robot name, message) for every whole record of a recorder's file.
+
+    Stops quietly where the file ends mid-record (a killed recorder); a record
+    that does not decode raises ``DecodeError`` (the recorder wrote only valid ones).
+    """
+    with open(path, "rb") as f:
+        while True:
+            head = f.read(_RECORD.size)
+            if len(head) < _RECORD.size:
+                return
+            t_recv_ns, length = _RECORD.unpack(head)
+            data = f.read(length)
+            if len(data) < length:
+                return
+            name, msg = decode_named(data)
+            yield t_recv_ns, name, msg
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

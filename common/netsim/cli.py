@@ -120,12 +120,14 @@ def run(args: argparse.Namespace) -> int:
         sim.start()
         log.warning(
             "netsim running scenario %r (%s mode, seed %d): operator connects to %s "
-            "(telemetry) and %s (commands)",
+            "(telemetry) and %s (commands); schedule_start_ns=%d (monotonic: outages count "
+            "from it)",
             scenario.name,
             mode_of(config, scenario),
             config.seed,
             sim.operator_telemetry_endpoint,
             sim.operator_commands_endpoint,
+            sim.start_ns,
         )
         t_end = time.monotonic() + config.duration_s if config.duration_s > 0 else None
         t_report = time.monotonic()

@@ -338,9 +338,27 @@ class Arm(Device):
         if t is not None and t is not threading.current_thread():
             t.join(timeout=2.0)
 
+    @property
+    def deadman_period_s(self) -> float:
+        """How often the deadman thread wakes: its jog check and ``_keep_alive`` run this often."""
+        return min(0.02, self.limits.jog_timeout_s / 5)
+
+    def _keep_alive(self) -> None:
+        """Tell the controller this process is alive; called every deadman period.
+
+        Runs on the deadman thread, which lives and dies (or freezes) with this
+        process, so a controller that watches for it stops the arm when the
+        process cannot (ur-rtde's watchdog, ``URArm``). It must never block:
+        it shares the thread with the jog deadman. Nothing to do by default.
+        """
+
     def _deadman_loop(self) -> None:
-        period = min(0.02, self.limits.jog_timeout_s / 5)
+        period = self.deadman_period_s
         while not self._deadman_quit.wait(period):
+            try:
+                self._keep_alive()
+            except Exception:  # the deadman below must run whatever the keep-alive does
+                log.exception("%s: keep-alive failed", type(self).__name__)
             until = self._jog_until
             if until is None or now_s() < until:
                 continue

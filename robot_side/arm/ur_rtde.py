@@ -23,6 +23,19 @@ realtime commands (the call writes the registers and returns in about
 operator's jog is, and its deceleration is ours to choose. jogStart waits
 for a full command handshake per update. Neither stops by itself; the
 deadman in :class:`~robot_side.arm.base.Arm` does.
+
+That deadman lives in this process, so the controller must also stop the arm
+when this process cannot (``kill -9``, ``SIGSTOP``, a wedged interpreter):
+``connect`` arms ur-rtde's watchdog (``setWatchdog``: the control script calls
+``rtde_set_watchdog("input_int_register_0", watchdog_hz, "stop")``) and the
+deadman thread kicks it every period (``kickWatchdog`` writes 0 to that
+register; any command does too). When no update arrives for
+``1/watchdog_hz`` s the controller stops the program, and the arm with it.
+A script that stopped while the safety mode stayed normal (that trip, or a
+stop on the pendant) makes the driver refuse every command and ask for a
+reconnect, which uploads a fresh script with a cleared command register:
+nothing sent before the stop can move the arm after it. docs/arm.md has the
+stop budget.
 """
 
 from __future__ import annotations
@@ -41,6 +54,7 @@ import numpy as np
 from common.clock import now_s
 from common.config import param
 from common.errors import (
+    ConfigError,
     DeviceAlreadyConnectedError,
     DeviceError,
     DeviceNotConnectedError,
@@ -72,6 +86,14 @@ CONTROLLER_PORTS = {30004: "RTDE", 29999: "dashboard", 30003: "script"}
 
 #: Control interfaces with a call stuck inside (see ``_control``), kept so no destructor runs.
 _ABANDONED: list[Any] = []
+
+#: The whole stop budget of a dead node (docs/arm.md): the watchdog window must fit inside it.
+STOP_BUDGET_S = 0.4
+
+#: A kick writes 0 to the command register. Within one controller cycle (2 ms on an e-Series,
+#: 8 ms on a CB3) after a speedL it could overwrite the command before the script read it, so
+#: no kick follows a command sooner than this; that command updated the register itself.
+KICK_AFTER_COMMAND_S = 0.01
 
 
 class _Worker:
@@ -125,6 +147,12 @@ class URArmConfig:
     command_timeout_s: float = param(
         2.0, "a control call still busy after this (plus any deceleration) is abandoned"
     )
+    watchdog_hz: float = param(
+        10.0,
+        "ur-rtde's watchdog: the controller stops the program and the arm when this process "
+        "sends nothing for 1/watchdog_hz s (kill -9, SIGSTOP); kicked every 20 ms, so a kick "
+        "may come 80 ms late before it trips",
+    )
     limits: ArmLimits = param(ArmLimits(), "workspace box, speed caps and the jog deadman")
 
 
@@ -134,6 +162,7 @@ class URArm(Arm):
     def __init__(self, config: URArmConfig | None = None) -> None:
         self.config = config or URArmConfig()
         super().__init__(self.config.limits)
+        self._check_watchdog_config()
         self._recv: Any = None
         self._ctrl: Any = None
         self._worker: _Worker | None = None
@@ -143,6 +172,40 @@ class URArm(Arm):
         self._last_ts = -1.0
         self._last_ts_change = 0.0
         self._stale_events = 0
+        # one control call on the wire at a time: a kick between a command and the script's
+        # answer would overwrite the command register (see _keep_alive)
+        self._wire = threading.Lock()
+        self._watchdog_armed_ts: float | None = None  # controller time it was armed at
+        self._last_sent = 0.0  # monotonic s: the last write to the command register
+        self._silence_max_s = 0.0  # longest the controller heard nothing from us (connected)
+        self._kicks = 0
+        self._program_lost: str | None = None
+
+    def _check_watchdog_config(self) -> None:
+        hz, lim = self.config.watchdog_hz, self.limits
+        if not hz > 0:
+            raise ConfigError("arm watchdog_hz must be positive: the watchdog cannot be turned off")
+        window = 1.0 / hz
+        if window > STOP_BUDGET_S:
+            raise ConfigError(
+                f"arm watchdog_hz {hz:g} gives a {window * 1000:.0f} ms window, longer than the "
+                f"{STOP_BUDGET_S * 1000:.0f} ms a dead node may leave the arm moving; raise it"
+            )
+        if window < 3 * self.deadman_period_s:
+            raise ConfigError(
+                f"arm watchdog_hz {hz:g} gives a {window * 1000:.0f} ms window: less than three "
+                f"kicks ({self.deadman_period_s * 1000:.0f} ms apart), so one late thread would "
+                "stop the program; lower it"
+            )
+        decel_s = lim.max_linear_speed_m_s / lim.stop_deceleration_m_s2
+        if decel_s > window / 2:
+            raise ConfigError(
+                f"arm stop_deceleration_m_s2 {lim.stop_deceleration_m_s2:g} takes "
+                f"{decel_s * 1000:.0f} ms from the speed cap, over half the watchdog window "
+                f"({window * 1000:.0f} ms): a stop sends nothing while it waits for the script, "
+                "so the watchdog would trip on our own stops. Raise the deceleration or lower "
+                "watchdog_hz"
+            )
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -162,8 +225,8 @@ class URArm(Arm):
 
     @property
     def needs_reconnect(self) -> bool:
-        """The control interface was abandoned after a call missed its deadline."""
-        return self._ctrl_broken is not None
+        """The control interface was abandoned, or the control script stopped under us."""
+        return self._ctrl_broken is not None or self._program_lost is not None
 
     def connect(self) -> None:
         if self.is_connected:
@@ -199,13 +262,28 @@ class URArm(Arm):
                 msg = f"URArm: RTDE control to {host} failed ({e}); {hint}"
                 raise DeviceNotConnectedError(msg) from e
         self._recv, self._ctrl = recv, ctrl
-        self._ctrl_broken = None
+        self._ctrl_broken = self._program_lost = None
         self._speeding = self._moving = False
         self._worker = _Worker(f"urarm-ctrl-{host}")
         self._last_ts = recv.getTimestamp()
         self._last_ts_change = now_s()
+        self._arm_watchdog()
         self._start_deadman()
-        log.info("URArm connected to %s", host)
+        log.info("URArm connected to %s (watchdog %g Hz)", host, self.config.watchdog_hz)
+
+    def _arm_watchdog(self) -> None:
+        """From here on the controller stops the arm whenever this process falls silent."""
+        self._silence_max_s, self._kicks = 0.0, 0
+        try:
+            ok = self._control("setWatchdog", self._ctrl.setWatchdog, self.config.watchdog_hz)
+            self._check(ok, "setWatchdog")
+        except DeviceError as e:
+            self.disconnect()
+            raise DeviceNotConnectedError(
+                f"URArm: could not arm the controller's watchdog at {self.config.host} ({e}); "
+                "without it a dead node would leave the arm moving, so the arm is not connected"
+            ) from e
+        self._watchdog_armed_ts = float(self._recv.getTimestamp())
 
     def disconnect(self) -> None:
         """Stop the arm, end the control script, close both interfaces, whatever fails."""
@@ -215,15 +293,17 @@ class URArm(Arm):
         recv, ctrl = self._recv, self._ctrl
         try:
             with self._lock:
-                try:
-                    self._stop_locked()
-                except DeviceError as e:
-                    log.warning("URArm: stop on disconnect failed: %s", e)
-                try:
-                    self._control("stopScript", ctrl.stopScript)
-                except DeviceError as e:
-                    log.warning("URArm: stopScript on disconnect failed: %s", e)
+                if self._program_lost is None:  # else there is no script left to tell
+                    try:
+                        self._stop_locked()
+                    except DeviceError as e:
+                        log.warning("URArm: stop on disconnect failed: %s", e)
+                    try:
+                        self._control("stopScript", ctrl.stopScript)
+                    except DeviceError as e:
+                        log.warning("URArm: stopScript on disconnect failed: %s", e)
         finally:
+            self._watchdog_armed_ts = None
             self._recv = self._ctrl = None
             if self._ctrl_broken is not None:
                 # a call is stuck inside it; destroying it now would block on that call
@@ -310,28 +390,106 @@ class URArm(Arm):
                 f"URArm: control interface unusable ({self._ctrl_broken}); disconnect() and "
                 "connect() again"
             )
+        if self._program_lost is not None:
+            raise DeviceError(f"URArm: {what} refused: {self._program_lost}")
         if not ctrl.isConnected():
             raise DeviceNotConnectedError(
                 f"URArm: lost the control connection to {self.config.host} before {what}; "
                 "the controller's own stop applies. disconnect() and connect() again"
             )
-        if realtime:
+        timeout = self.config.command_timeout_s + extra_s
+        with self._wire:
+            self._note_sent()
             try:
-                return fn(*args)
+                if realtime:
+                    return fn(*args)
+                return self._worker.submit(fn, *args).result(timeout=timeout)
+            except concurrent.futures.TimeoutError:
+                self._ctrl_broken = f"{what} did not return in {timeout:.1f} s"
+                raise DeviceTimeoutError(
+                    f"URArm: {what} did not return in {timeout:.1f} s (ur-rtde keeps retrying a "
+                    f"controller that went away); check {self.config.host}, then reconnect"
+                ) from None
             except RuntimeError as e:
                 raise DeviceError(f"URArm: {what} failed: {e}") from e
-        future = self._worker.submit(fn, *args)
-        timeout = self.config.command_timeout_s + extra_s
+            finally:
+                self._note_sent()  # a waiting call ends with a write too (ur-rtde's clear)
+
+    # -- the controller's watchdog --------------------------------------------
+
+    def _note_sent(self) -> None:
+        """A write to the command register left: the controller's watchdog heard from us."""
+        now = now_s()
+        if self._watchdog_armed_ts is not None:
+            self._silence_max_s = max(self._silence_max_s, now - self._last_sent)
+        self._last_sent = now
+
+    def _keep_alive(self) -> None:
+        """Kick the watchdog unless a command just did; notice a script that stopped under us.
+
+        Called every deadman period on the deadman thread; never waits: a kick
+        while another call is on the wire is skipped, since that call writes
+        the register itself and a kick in the middle of its handshake would
+        overwrite the command before the script read it.
+        """
+        recv, ctrl = self._recv, self._ctrl
+        if (
+            self._watchdog_armed_ts is None
+            or recv is None
+            or ctrl is None
+            or self._ctrl_broken is not None
+            or self._program_lost is not None
+        ):
+            return
+        self._notice_program_stop(recv)
+        if self._program_lost is not None or now_s() - self._last_sent < KICK_AFTER_COMMAND_S:
+            return
+        if not self._wire.acquire(blocking=False):
+            return
         try:
-            return future.result(timeout=timeout)
-        except concurrent.futures.TimeoutError:
-            self._ctrl_broken = f"{what} did not return in {timeout:.1f} s"
-            raise DeviceTimeoutError(
-                f"URArm: {what} did not return in {timeout:.1f} s (ur-rtde keeps retrying a "
-                f"controller that went away); check {self.config.host}, then reconnect"
-            ) from None
-        except RuntimeError as e:
-            raise DeviceError(f"URArm: {what} failed: {e}") from e
+            if ctrl is not self._ctrl or self._ctrl_broken is not None:
+                return
+            self._note_sent()
+            try:
+                ctrl.kickWatchdog()
+            except RuntimeError as e:  # the next command finds out and says so
+                log.debug("URArm: kickWatchdog failed: %s", e)
+            self._kicks += 1
+        finally:
+            self._wire.release()
+
+    def _notice_program_stop(self, recv: Any) -> None:
+        """The control script stopped while the safety mode is normal: a watchdog trip or a stop.
+
+        A protective or emergency stop is left to ``_check_safety``, which names it.
+        """
+        try:
+            if not recv.isConnected():
+                return
+            ts = float(recv.getTimestamp())
+            armed = self._watchdog_armed_ts
+            # judge only data the controller sent after the script was certainly running
+            if armed is None or ts < armed + 0.01 or int(recv.getRobotStatus()) & 2:
+                return
+            if int(recv.getSafetyMode()) not in (1, 2):
+                return
+        except RuntimeError:
+            return
+        silence_ms = (now_s() - self._last_sent) * 1000
+        self._program_lost = (
+            f"the control script on {self.config.host} stopped with the safety mode normal: "
+            f"the watchdog ({1000 / self.config.watchdog_hz:.0f} ms) tripped, or someone pressed "
+            "stop on the pendant or the dashboard; the controller stopped the arm. Reconnect "
+            "to upload the script again"
+        )
+        log.warning(
+            "URArm: %s (this process last wrote %.0f ms ago; longest silence since connect "
+            "%.0f ms, %d kicks)",
+            self._program_lost,
+            silence_ms,
+            self._silence_max_s * 1000,
+            self._kicks,
+        )
 
     def _check(self, ok: Any, what: str) -> None:
         if ok is False:
@@ -419,6 +577,10 @@ class URArm(Arm):
 
     def _send_stop(self) -> None:
         """speedStop ends a jog's speed thread; stopL ends a move (and anything else)."""
+        if self._program_lost is not None:
+            log.debug("URArm: stop: no control script runs; the controller stopped the arm")
+            self._speeding = self._moving = False
+            return
         errors = []
         for step in (self._stop_speed if self._speeding else None, self._stop_move):
             if step is None:
@@ -432,6 +594,8 @@ class URArm(Arm):
 
     def telemetry(self) -> dict[str, float]:
         """Adds the controller's TCP speed, safety mode and program state (RTDE cache reads)."""
+        if self._program_lost is not None:  # the node's poll then reconnects at once
+            raise DeviceError(f"URArm: {self._program_lost}")
         out = super().telemetry()
         if self.is_connected:
             recv = self._fresh()
@@ -445,7 +609,15 @@ class URArm(Arm):
 
     def status(self) -> dict[str, Any]:
         out = super().status()
-        out.update(host=self.config.host, stale_events=self._stale_events)
+        out.update(
+            host=self.config.host,
+            stale_events=self._stale_events,
+            watchdog_hz=self.config.watchdog_hz,
+            watchdog_kicks=self._kicks,
+            longest_silence_ms=round(self._silence_max_s * 1000, 1),
+        )
+        if self._program_lost is not None:
+            out["program_lost"] = self._program_lost
         if self.is_connected:
             out["safety"] = self._safety_text()
             out["program_running"] = self._program_running()

@@ -345,6 +345,34 @@ class GripperSimServer:
                 c.shutdown(socket.SHUT_RDWR)
             c.close()
 
+    def unplug(self) -> None:
+        """Pull the network cable: the port refuses connections and open ones close.
+
+        The fingers keep their command (a real 2F-85 holds its grip when its
+        link drops); ``replug`` listens on the same address again.
+        """
+        if self._listener is not None:
+            with contextlib.suppress(OSError):
+                self._listener.shutdown(socket.SHUT_RDWR)
+            self._listener.close()
+            self._listener = None
+        self.drop_connections()
+        log.info("gripper simulator unplugged")
+
+    def replug(self) -> None:
+        """Listen again on the address it had: the driver's reconnect finds the same gripper."""
+        if self._listener is not None:
+            return
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind((self.host, self.port))
+        s.listen(4)
+        self._listener = s
+        t = threading.Thread(target=self._accept_loop, name="grippersim-accept", daemon=True)
+        self._threads.append(t)
+        t.start()
+        log.info("gripper simulator plugged in again on %s:%d", self.host, self.port)
+
     def mute(self, muted: bool = True) -> None:
         """Read requests but answer none (a hung URCap)."""
         if muted:

@@ -16,8 +16,9 @@ from deploy.bench.report import write_outputs
 from deploy.bench.runner import run_bench
 from deploy.bench.sizes import PRESETS, SECTIONS
 
-# The sections that start processes are covered by the slow test below.
-PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim", "task"}
+# The sections that start processes are covered by the slow test below (and the fault
+# matrix's by tests/faults, which hold its safety cells).
+PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim", "task", "faults"}
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,7 @@ from deploy.bench.sections import (
     downsizing,
     e2e_inproc,
     e2e_tcp,
+    faults,
     ik,
     netsim,
     node_cpu,
@@ -42,5 +43,6 @@ SECTIONS: tuple[Section, ...] = (
     netsim.SECTION,
     relay.SECTION,
     task.SECTION,
+    faults.SECTION,
 )
 SECTION_NAMES: tuple[str, ...] = tuple(s.name for s in SECTIONS)

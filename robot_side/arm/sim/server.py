@@ -11,7 +11,10 @@ Three TCP servers on one host address, on the controller's fixed ports:
 - The script port on 30003: accepts the URScript ur-rtde uploads and "runs"
   it: the control script's register handshake is emulated in Python (command
   in ``input_int_register_0``, status in ``output_int_register_0``: 1 ready,
-  2 done; bit 1 of ``robot_status_bits`` while the program runs).
+  2 done; bit 1 of ``robot_status_bits`` while the program runs), and so is
+  its RTDE watchdog (``setWatchdog``: ``rtde_set_watchdog(
+  "input_int_register_0", f, "stop")``): with no data package carrying that
+  register for 1/f s the program stops and the arm decelerates.
 
 Behind them a :class:`~robot_side.arm.sim.kinematics.KinematicArm` moves the
 TCP as moveL/moveJ/speedL/servoL/jog/stop say. Because ur-rtde's ports are
@@ -63,6 +66,7 @@ CMD_SERVO_STOP = 16
 CMD_SERVOL = 24
 CMD_STOPL = 33
 CMD_STOPJ = 34
+CMD_SET_WATCHDOG = 35
 CMD_JOG_START = 41
 CMD_JOG_STOP = 42
 CMD_STOP_SCRIPT = 255
@@ -71,6 +75,15 @@ REALTIME_CMDS = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69,
 
 #: Longest step the kinematics take when the machine stalls the tick thread.
 MAX_TICK_S = 0.05
+
+#: The input ur-rtde's script watches (``reg_offset_int`` 0, the only offset simulated).
+WATCHDOG_VARIABLE = "input_int_register_0"
+#: A tick this late means the simulator itself stalled (a loaded machine, a physics step
+#: holding the GIL): packages that arrived meanwhile are still unread, so the watchdog is
+#: judged only after WATCHDOG_GRACE_S more, once the RTDE threads have read them. A real
+#: controller is hard real time and has no such stalls.
+LATE_TICK_S = 0.02
+WATCHDOG_GRACE_S = 0.01
 
 STATUS_RECEIVED = 0
 STATUS_READY = 1
@@ -103,6 +116,11 @@ class URSimConfig:
         HOME_Q, "joint angles at power-on (rad): tool down above the table"
     )
     script_start_delay_s: float = param(0.02, "time from script upload to 'program running'")
+    program_stop_deceleration_m_s2: float = param(
+        10.0,
+        "how hard the arm stops when the program ends (stopScript, the dashboard's stop, the "
+        "RTDE watchdog, a runtime error); ur-rtde's own stop default, not a measured UR figure",
+    )
 
 
 def _names(payload: bytes) -> list[str]:
@@ -173,6 +191,11 @@ class URSimulator:
         self._commands_seen: list[int] = []  # every new command value, for tests
         self.scripts_received = 0
         self.data_packages_sent = 0
+        # the control script's RTDE watchdog: the minimum update frequency, None when off
+        self.watchdog_hz: float | None = None
+        self._watchdog_heard = 0.0  # monotonic s: the last package carrying the variable
+        self._watchdog_judge_after = 0.0
+        self.watchdog_trips = 0
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -294,7 +317,16 @@ class URSimulator:
             self.safety_mode = SAFETY_MODE_PROTECTIVE_STOP
             self.arm.stop(10.0)
             self.program_running = False
+            self.watchdog_hz = None
             self.out_int[0] = 0
+
+    def _stop_program(self, why: str) -> None:
+        """The program ends: the arm decelerates and, as URScript says, its watchdogs go."""
+        self.program_running = False
+        self.watchdog_hz = None
+        self.out_int[0] = 0
+        self.arm.stop(self.config.program_stop_deceleration_m_s2)
+        log.info("control script stopped: %s", why)
 
     def teleport_home(self) -> None:
         """The arm back at its home joints, at rest: a fresh trial (simulation only)."""
@@ -347,6 +379,8 @@ class URSimulator:
                 "rtde_clients": sum(1 for c in self._conns if c.alive),
                 "safety_mode": self.safety_mode,
                 "mode": self.arm.mode.value,
+                "watchdog_hz": self.watchdog_hz,
+                "watchdog_trips": self.watchdog_trips,
             }
 
     def client_count(self) -> int:
@@ -450,6 +484,8 @@ class URSimulator:
             with self._lock:
                 for n, v in zip(names, values, strict=True):
                     self.inputs[n] = v
+                if WATCHDOG_VARIABLE in names:  # an update, whether or not the value changed
+                    self._watchdog_heard = now_s()
                 cmd = self.inputs.get("input_int_register_0", 0)
                 if cmd != self._last_cmd:
                     args = dict(zip(names, values, strict=True))
@@ -474,17 +510,18 @@ class URSimulator:
             # step by the time that really passed: on a loaded machine ticks are missed,
             # and the arm must still move in real time, as the robot would
             t = now_s()
+            last_tick = last
             dt, last = min(t - last, MAX_TICK_S), t
             with self._lock:
                 try:
+                    self._judge_watchdog(t, late=t - last_tick > LATE_TICK_S)
                     self._script_cycle()
                     if dt > 0:
                         self.arm.step(dt)
                 except Exception:
                     # a controller stops the program on a runtime error and keeps serving
                     log.exception("control script runtime error: program stopped")
-                    self.program_running = False
-                    self.arm.stop(10.0)
+                    self._stop_program("runtime error")
                     self.arm.velocity[:] = 0.0
                     self.arm.mode = Mode.IDLE
                 if self._pending_done and not self.arm.moving:
@@ -572,6 +609,26 @@ class URSimulator:
 
     # -- the uploaded control script, emulated ---------------------------------
 
+    def _judge_watchdog(self, now: float, late: bool) -> None:
+        """``rtde_set_watchdog(..., "stop")``: no update for 1/f s stops the program."""
+        if self.watchdog_hz is None or not self.program_running:
+            return
+        if late:  # this process stalled: read what arrived meanwhile before judging
+            self._watchdog_judge_after = now + WATCHDOG_GRACE_S
+        if now < self._watchdog_judge_after:
+            return
+        silent = now - self._watchdog_heard
+        if silent <= 1.0 / self.watchdog_hz:
+            return
+        self.watchdog_trips += 1
+        log.warning(
+            "RTDE watchdog: no update of %s for %.0f ms (minimum %.3g Hz)",
+            WATCHDOG_VARIABLE,
+            silent * 1000,
+            self.watchdog_hz,
+        )
+        self._stop_program("the RTDE input watchdog tripped")
+
     def _script_cycle(self) -> None:
         if self._script_start_at is not None and now_s() >= self._script_start_at:
             self._script_start_at = None
@@ -635,10 +692,15 @@ class URSimulator:
             arm.speed_l(speeds, acc)
             return True
         if cmd == CMD_STOP_SCRIPT:
-            self.program_running = False
-            arm.stop(10.0)
-            self.out_int[0] = 0
-            log.info("control script stopped by the client")
+            self._stop_program("stopScript from the client")
+            return True
+        if cmd == CMD_SET_WATCHDOG:
+            hz = self._f(0)
+            if hz <= 0:
+                log.warning("rtde_set_watchdog with %.3g Hz is not simulated: ignored", hz)
+                return True
+            self.watchdog_hz, self._watchdog_heard = hz, now_s()
+            log.info("RTDE watchdog on %s at %.3g Hz", WATCHDOG_VARIABLE, hz)
             return True
         if cmd in (47, 48):  # isSteady (numbering differs between ur-rtde versions)
             self.out_int[1] = 0 if arm.moving else 1
@@ -718,8 +780,7 @@ class URSimulator:
             if cmd == "play":
                 return "Starting program"
             if cmd == "stop":
-                self.program_running = False
-                self.arm.stop(10.0)
+                self._stop_program("stop on the dashboard")
                 return "Stopped"
             if cmd == "pause":
                 return "Pausing program"
@@ -789,4 +850,5 @@ class URSimulator:
         with self._lock:
             self.scripts_received += 1
             self.program_running = False
+            self.watchdog_hz = None  # a new program replaces the old one and its watchdogs
             self._script_start_at = now_s() + self.config.script_start_delay_s

@@ -1,0 +1,392 @@
+"""One cell of the fault matrix: a deployment, an operator jogging and grasping, one fault.
+
+Each cell starts a fresh ``Deployment``, waits until the arm follows the
+jog, the gripper holds the pipette and the palm feels it, injects one fault
+and keeps jogging (the direction flips every 2 s, so the arm stays in its
+box) until everything works again or the cell's time is up. Then the
+operator lets go, and the arm must be still within the stop budget: no
+cell may leave it moving. Every figure is read from outside the process
+that failed (``probes``), on the monotonic clock all processes share.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from deploy.faults.deployment import Deployment, DeploymentError
+from deploy.faults.probes import ArmProbe, GripperProbe, PalmProbe, Sample
+
+log = logging.getLogger(__name__)
+
+KILL, STOP, RESTART, OUTAGE, UNPLUG = "kill -9", "SIGSTOP 2 s", "restart", "outage 5 s", "unplug"
+PROCESSES = (
+    "robot",
+    "operator",
+    "relay",
+    "netsim",
+    "video",
+    "recorder",
+    "ur",
+    "gripper",
+    "tactile",
+    "servos",
+)
+STOP_S = 2.0
+UNPLUG_S = 3.0
+
+#: the issue's budget: the arm still this long after the path of its commands breaks
+ARM_STILL_BUDGET_S = 0.4
+STILL_M_S = 0.002  # below this the arm counts as still
+STILL_FOR_S = 0.15  # ... for this long (a jog reversing passes zero for a few ms)
+MOVING_M_S = 0.01
+JOG_M_S = 0.02
+FLIP_S = 2.0
+#: the operator's stale_after_ms (150), the renderer's travel to the retract pose at
+#: 4 deg a cycle (about 100 ms from the held grasp) and 100 ms for the front panel and
+#: the last stimulus's flight
+PALM_LIFT_BUDGET_S = 0.35
+PALM_PRESSED = 50.0  # counts from the retract pose: a linkage on the palm
+GRASP_LEVEL = 20
+GRIP_SLACK = 5  # finger counts (of 255) the grip may relax and still hold
+READY_TIMEOUT_S = 90.0
+#: the outage starts this long after netsim does: after a slow start, before a bored wait
+OUTAGE_AT_S = 30.0
+RECOVER_TIMEOUT_S = 30.0
+UNAFFECTED_S = 3.0  # nothing broke this long after the fault ended: the cell is over
+
+
+@dataclass(frozen=True)
+class Cell:
+    target: str  # a process, or "link"
+    fault: str
+
+    @property
+    def label(self) -> str:
+        return f"{self.target}: {self.fault}"
+
+
+def full_matrix() -> list[Cell]:
+    cells = [Cell(p, f) for p in PROCESSES for f in (KILL, STOP, RESTART)]
+    cells.append(Cell("link", OUTAGE))
+    cells += [Cell(d, UNPLUG) for d in ("tactile", "gripper", "servos")]
+    return cells
+
+
+def quick_matrix() -> list[Cell]:
+    """The cells the tests hold too: the robot node killed and frozen, the relay, the link."""
+    return [Cell("robot", KILL), Cell("robot", STOP), Cell("relay", KILL), Cell("link", OUTAGE)]
+
+
+MATRICES = {"full": full_matrix, "quick": quick_matrix, "smallest": lambda: [Cell("robot", KILL)]}
+
+
+@dataclass
+class CellResult:
+    """One row of the table; times in seconds from the fault, None: did not happen."""
+
+    target: str
+    fault: str
+    restarted_by: str
+    arm_speed_at_fault_m_s: float | None  # the arm must be cruising when the fault comes
+    arm_still_s: float | None  # the arm still after the fault (None: it kept following the jog)
+    arm_back_s: float | None  # a jog moves it again
+    palm_off_s: float | None  # every linkage off the palm
+    palm_back_s: float | None  # stimuli press the palm again
+    recovered_s: float | None  # both back (or never interrupted: 0)
+    gripper_held: bool | None  # None: the gripper's own process died (nothing to read)
+    gripper_min_pos: float | None
+    released_still_s: float | None  # after the operator let go at the end
+    recording_ok: bool | None
+    recording_gap_s: float | None  # last record before the fault, seconds before it
+    recording_records: int
+    notes: str
+    error: str | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class Jogger:
+    """An operator holding a jog: ``arm_jog`` every 50 ms, flipping direction every 2 s."""
+
+    def __init__(self, deployment: Deployment) -> None:
+        self.d = deployment
+        self.active = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="jogger", daemon=True)
+
+    def start(self) -> Jogger:
+        self.active.set()
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        t0 = time.monotonic()
+        while not self._stop.wait(0.05):
+            if self.active.is_set():
+                sign = 1.0 if int((time.monotonic() - t0) / FLIP_S) % 2 == 0 else -1.0
+                self.d.operator_send(
+                    {"action": "arm_jog", "velocity": [sign * JOG_M_S, 0, 0, 0, 0, 0]}
+                )
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+
+
+def _first(samples: list[Sample], after: float, pred: Callable[[float], bool]) -> float | None:
+    for s in samples:
+        if s.t_s >= after and pred(s.value):
+            return s.t_s
+    return None
+
+
+def first_still(samples: list[Sample], after: float) -> float | None:
+    """Start of the first stretch of STILL_FOR_S with every sample below STILL_M_S."""
+    start: float | None = None
+    for s in samples:
+        if s.t_s < after:
+            continue
+        if s.value < STILL_M_S:
+            start = s.t_s if start is None else start
+            if s.t_s - start >= STILL_FOR_S:
+                return start
+        else:
+            start = None
+    return None
+
+
+@dataclass
+class _Timeline:
+    t_fault: float
+    t_end: float  # when the fault is over (SIGCONT, replug, outage end, restart issued)
+    t_release: float = math.inf  # the operator let go: what follows is not the fault's doing
+
+
+class CellRun:
+    """The probes and the deployment of one cell, and the reading of what they saw."""
+
+    def __init__(self, cell: Cell, retract_goals: list[int]) -> None:
+        self.cell = cell
+        outage_at = None
+        if cell.fault == OUTAGE:
+            outage_at = OUTAGE_AT_S
+        self.d = Deployment(**({} if outage_at is None else {"outage_at_s": outage_at}))
+        self.retract = retract_goals
+        self.arm: ArmProbe | None = None
+        self.gripper: GripperProbe | None = None
+        self.palm: PalmProbe | None = None
+
+    # ------------------------------------------------------------ phases
+    def _wait(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not cond():
+            if time.monotonic() > deadline:
+                raise DeploymentError(f"{what} within {timeout_s:.0f} s\n{self.d.log_tails()}")
+            time.sleep(0.05)
+
+    def _ready(self, jogger: Jogger) -> None:
+        t0 = time.monotonic()
+        self._wait(
+            lambda: _first(self.arm.samples, t0, lambda v: v > MOVING_M_S) is not None,
+            READY_TIMEOUT_S,
+            "the arm never followed the jog",
+        )
+        self.d.operator_send({"action": "gripper_close", "grip_level": GRASP_LEVEL})
+        self._wait(
+            lambda: bool(self.gripper.objects) and self.gripper.objects[-1].value == 2,
+            20.0,
+            "the gripper never closed on the pipette",
+        )
+        self._wait(
+            lambda: bool(self.palm.samples) and self.palm.samples[-1].value > PALM_PRESSED,
+            20.0,
+            "the palm never felt the grasp",
+        )
+        time.sleep(1.0)  # a steady second before the fault
+
+    def _inject(self) -> _Timeline:
+        d, target, fault = self.d, self.cell.target, self.cell.fault
+        if fault == OUTAGE:
+            window = d.outage_window()
+            if window is None:
+                raise DeploymentError("netsim did not log its schedule start")
+            if window[0] < time.monotonic():
+                raise DeploymentError("the deployment was ready only after the scheduled outage")
+            time.sleep(window[0] - time.monotonic())
+            return _Timeline(*window)
+        self._wait(self._cruising, 10.0, "the arm never cruised at the jog's speed (load?)")
+        t_fault = time.monotonic()
+        if fault == KILL:
+            d.signal(target, signal.SIGKILL)  # the supervisor starts it again, as its rule says
+            return _Timeline(t_fault, t_fault)
+        if fault == STOP:
+            d.signal(target, signal.SIGSTOP)
+            time.sleep(STOP_S)
+            d.signal(target, signal.SIGCONT)
+            return _Timeline(t_fault, time.monotonic())
+        if fault == RESTART:
+            return _Timeline(t_fault, d.clean_restart(target))
+        if fault == UNPLUG:
+            d.signal(target, signal.SIGUSR1)
+            time.sleep(UNPLUG_S)
+            d.signal(target, signal.SIGUSR2)
+            return _Timeline(t_fault, time.monotonic())
+        raise ValueError(f"unknown fault {fault!r}")
+
+    def _cruising(self) -> bool:
+        """The arm at the jog's speed now, not stalled by a loaded machine nor reversing."""
+        recent = self.arm.between(time.monotonic() - 0.1)
+        return bool(recent) and min(s.value for s in recent) > 0.75 * JOG_M_S
+
+    def _broken_and_back(self, tl: _Timeline) -> tuple[float | None, ...]:
+        arm = self.arm.between(tl.t_fault, tl.t_release)
+        palm = self.palm.between(tl.t_fault, tl.t_release)
+        arm_still = first_still(arm, tl.t_fault)
+        arm_back = (
+            _first(arm, max(arm_still, tl.t_end), lambda v: v > MOVING_M_S)
+            if arm_still is not None
+            else None
+        )
+        palm_off = _first(palm, tl.t_fault, lambda v: v == 0)
+        palm_back = (
+            _first(palm, max(palm_off, tl.t_end), lambda v: v > PALM_PRESSED)
+            if palm_off is not None
+            else None
+        )
+        return arm_still, arm_back, palm_off, palm_back
+
+    def _settled(self, tl: _Timeline) -> bool:
+        arm_still, arm_back, palm_off, palm_back = self._broken_and_back(tl)
+        now = time.monotonic()
+        arm_done = arm_back is not None or (arm_still is None and now > tl.t_end + UNAFFECTED_S)
+        palm_done = palm_back is not None or (palm_off is None and now > tl.t_end + UNAFFECTED_S)
+        return arm_done and palm_done
+
+    # ------------------------------------------------------------ the cell
+    def run(self) -> CellResult:
+        d = self.d
+        with d:
+            self.arm = ArmProbe(d.ur_host).start()
+            self.gripper = GripperProbe(*d.gripper).start()
+            self.palm = PalmProbe(d.servo_status, self.retract).start()
+            jogger = Jogger(d).start()
+            try:
+                self._ready(jogger)
+                tl = self._inject()
+                deadline = tl.t_end + RECOVER_TIMEOUT_S
+                while not self._settled(tl) and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                jogger.active.clear()
+                tl.t_release = t_release = time.monotonic()
+                time.sleep(1.5)
+                released_still = first_still(self.arm.samples, t_release)
+            finally:
+                jogger.close()
+                for probe in (self.arm, self.gripper, self.palm):
+                    probe.close()
+        return self._result(tl, released_still, t_release)
+
+    def _result(self, tl: _Timeline, released_still: float | None, t_release: float) -> CellResult:
+        arm_still, arm_back, palm_off, palm_back = self._broken_and_back(tl)
+        since = lambda t: None if t is None else round(t - tl.t_fault, 3)  # noqa: E731
+        backs = [b for b, broke in ((arm_back, arm_still), (palm_back, palm_off)) if broke]
+        recovered = None if any(b is None for b in backs) else max(backs, default=tl.t_fault)
+        at_fault = self.arm.between(tl.t_fault - 0.05, tl.t_fault)
+        held, min_pos = self._gripper_held(tl)
+        rec_ok, rec_gap, rec_n = self._recording(tl)
+        unit = self.d.units.get(self.cell.target)
+        return CellResult(
+            target=self.cell.target,
+            fault=self.cell.fault,
+            restarted_by=restarted_by(self.cell, unit.policy if unit else None),
+            arm_speed_at_fault_m_s=round(at_fault[-1].value, 4) if at_fault else None,
+            arm_still_s=since(arm_still),
+            arm_back_s=since(arm_back),
+            palm_off_s=since(palm_off),
+            palm_back_s=since(palm_back),
+            recovered_s=since(recovered),
+            gripper_held=held,
+            gripper_min_pos=min_pos,
+            released_still_s=None
+            if released_still is None
+            else round(released_still - t_release, 3),
+            recording_ok=rec_ok,
+            recording_gap_s=rec_gap,
+            recording_records=rec_n,
+            notes="",
+        )
+
+    def _gripper_held(self, tl: _Timeline) -> tuple[bool | None, float | None]:
+        """Held: the fingers never opened from the pipette (a hold re-targets where they are,
+        so the object flag may turn from 'stopped on an object' to 'at position': still held)."""
+        before = self.gripper.between(tl.t_fault - 1.0, tl.t_fault)
+        after = self.gripper.between(tl.t_fault)
+        if not before or not after:
+            return None, None
+        grip = min(s.value for s in before)
+        lowest = min(s.value for s in after)
+        if self.cell.target == "gripper" and self.cell.fault in (KILL, RESTART):
+            return None, lowest  # a new simulator process: the grip died with the old one
+        return lowest >= grip - GRIP_SLACK, lowest
+
+    def _recording(self, tl: _Timeline) -> tuple[bool | None, float | None, int]:
+        """Whether the recorder's file reads back up to the fault: its last record before it."""
+        from common.codec import DecodeError
+        from operator_side.record_cli import read_records
+
+        path = self.d.recording
+        if not path.exists():
+            return False, None, 0
+        times: list[int] = []
+        try:
+            for t_ns, _name, _msg in read_records(path):
+                times.append(t_ns)
+        except DecodeError:
+            return False, None, len(times)
+        before = [t for t in times if t < tl.t_fault * 1e9]
+        if not before:
+            return False, None, len(times)
+        gap = round(tl.t_fault - max(before) / 1e9, 3)
+        return gap < 1.0, gap, len(times)
+
+
+def restarted_by(cell: Cell, policy: Any) -> str:
+    if cell.fault in (STOP, OUTAGE, UNPLUG):
+        return "-"
+    systemd = policy is not None and policy.unit
+    if cell.fault == RESTART:
+        return "systemctl restart" if systemd else "a human (restart)"
+    if systemd:
+        return f"systemd ({policy.restart_sec:g} s)"
+    if policy is not None:
+        return f"power/link back ({policy.restart_sec:g} s)"
+    return "nobody (no unit)"
+
+
+def run_cells(
+    cells: list[Cell], progress: Callable[[str], None] | None = None
+) -> list[dict[str, Any]]:
+    from operator_side.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.servos.feetech import FeetechConfig
+
+    retract = LinkGlideRenderer(RendererConfig(), FeetechConfig().calibration).retract_goals
+    rows = []
+    for cell in cells:
+        t0 = time.monotonic()
+        try:
+            row = CellRun(cell, retract).run().as_dict()
+        except DeploymentError as e:
+            row = {"target": cell.target, "fault": cell.fault, "error": str(e)[:4000]}
+        row["seconds"] = round(time.monotonic() - t0, 1)
+        rows.append(row)
+        if progress is not None:
+            progress(f"  faults: {cell.label}: {row}")
+    return rows

@@ -1,0 +1,64 @@
+"""What systemd does when a shipped unit's process ends: read from deploy/systemd/*.service.
+
+The fault matrix restarts a process exactly when and as late as systemd
+would on the deployed machine, so "recovers with no human" means the same
+in the table as in the field.
+"""
+
+from __future__ import annotations
+
+import re
+import signal
+from dataclasses import dataclass
+from pathlib import Path
+
+UNITS_DIR = Path(__file__).resolve().parent.parent / "systemd"
+
+#: signals systemd counts as a clean end (systemd.service, "Restart=")
+_CLEAN_SIGNALS = {signal.SIGHUP, signal.SIGINT, signal.SIGTERM, signal.SIGPIPE}
+
+
+@dataclass(frozen=True)
+class RestartPolicy:
+    """A unit's Restart=, RestartSec= and WatchdogSec= (0: none)."""
+
+    unit: str
+    restart: str
+    restart_sec: float
+    watchdog_sec: float
+
+    def restarts_after(self, returncode: int) -> bool:
+        """Whether systemd starts the process again after it ended with ``returncode``."""
+        if self.restart == "always":
+            return True
+        if self.restart != "on-failure":
+            return False
+        if returncode < 0:
+            return -returncode not in _CLEAN_SIGNALS
+        return returncode != 0
+
+
+def _seconds(value: str) -> float:
+    match = re.fullmatch(r"\s*([0-9.]+)\s*(ms|s|min)?\s*", value)
+    if match is None:
+        raise ValueError(f"cannot read the time span {value!r}")
+    scale = {"ms": 1e-3, "s": 1.0, "min": 60.0, None: 1.0}[match.group(2)]
+    return float(match.group(1)) * scale
+
+
+def policy(unit: str, units_dir: Path = UNITS_DIR) -> RestartPolicy | None:
+    """``deepxpalm-<unit>.service``'s policy; None when no unit ships for that process."""
+    path = units_dir / f"deepxpalm-{unit}.service"
+    if not path.exists():
+        return None
+    keys: dict[str, str] = {}
+    for line in path.read_text().splitlines():
+        key, sep, value = line.partition("=")
+        if sep and not line.lstrip().startswith("#"):
+            keys[key.strip()] = value.strip()
+    return RestartPolicy(
+        unit=path.name,
+        restart=keys.get("Restart", "no"),
+        restart_sec=_seconds(keys.get("RestartSec", "100ms")),
+        watchdog_sec=_seconds(keys.get("WatchdogSec", "0")),
+    )

@@ -1,0 +1,77 @@
+"""The fault matrix's safety cells as tests: real processes, read from outside the one that fails.
+
+Each cell is a whole deployment (relay, robot and operator nodes, netsim,
+video, recorder, and the four device simulators as processes of their own)
+with an operator jogging and holding a grasp; ``deploy/faults/matrix.py``
+injects the fault and reads the arm from the UR simulator, the gripper from
+its socket and the palm from the servo bus. The bounds are the product's
+budgets widened for a loaded machine; each message says which it was: a
+stop that never came is the product, a late one is compared with the same
+cell's own stop after the operator let go (the node's deadman, measured in
+the same run under the same load).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from deploy.faults.deployment import DeploymentError
+from deploy.faults.matrix import (
+    ARM_STILL_BUDGET_S,
+    KILL,
+    OUTAGE,
+    PALM_LIFT_BUDGET_S,
+    STOP,
+    Cell,
+    CellRun,
+)
+
+#: how much a loaded machine may add to a budget before the test calls it the product's fault
+LOAD_SLACK_S = 0.6
+
+CELLS = [Cell("robot", KILL), Cell("robot", STOP), Cell("relay", KILL), Cell("link", OUTAGE)]
+
+
+@pytest.fixture(scope="module")
+def retract_goals() -> list[int]:
+    from operator_side.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.servos.feetech import FeetechConfig
+
+    return LinkGlideRenderer(RendererConfig(), FeetechConfig().calibration).retract_goals
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cell", CELLS, ids=lambda c: c.label.replace(" ", "_"))
+def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int]) -> None:
+    try:
+        row = CellRun(cell, retract_goals).run()
+    except DeploymentError as e:
+        pytest.fail(f"the deployment never got ready (load, or a start-up failure): {e}")
+    baseline = row.released_still_s
+    assert baseline is not None, (
+        f"{cell.label}: the arm was still moving 1.5 s after the operator let go at the end "
+        "(product: nothing stopped it)"
+    )
+    assert row.arm_still_s is not None, (
+        f"{cell.label}: the arm never stopped while the path of its commands was broken "
+        f"(product: nothing outside the failed process stops it); {row}"
+    )
+    assert row.arm_still_s <= ARM_STILL_BUDGET_S + LOAD_SLACK_S, (
+        f"{cell.label}: the arm was still {row.arm_still_s * 1e3:.0f} ms after the fault, budget "
+        f"{ARM_STILL_BUDGET_S * 1e3:.0f} ms; the node's own deadman stop in the same cell took "
+        f"{baseline * 1e3:.0f} ms (if that is late too, the machine is loaded; if not, the "
+        "product is slow to stop)"
+    )
+    assert row.gripper_held, (
+        f"{cell.label}: the gripper opened to {row.gripper_min_pos} during the fault (product: "
+        "the pipette must never drop because a process died)"
+    )
+    assert row.palm_off_s is not None and row.palm_off_s <= PALM_LIFT_BUDGET_S + LOAD_SLACK_S, (
+        f"{cell.label}: the palm lifted off {row.palm_off_s} s after the fault, budget "
+        f"{PALM_LIFT_BUDGET_S * 1e3:.0f} ms (None: never, the product's staleness limit failed)"
+    )
+    assert row.recovered_s is not None, (
+        f"{cell.label}: 30 s after the fault the palm or the arm still did not work again with no "
+        f"human (product: a restart or reconnect that never happens); {row}"
+    )
+    assert row.recording_ok, f"{cell.label}: the recording up to the fault did not read back"
