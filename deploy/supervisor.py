@@ -24,7 +24,6 @@ demo starts (a wrong setting) ends it at once with its log, as before.
 from __future__ import annotations
 
 import logging
-import re
 import signal
 import subprocess
 import time
@@ -33,9 +32,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from deploy.unit_policy import policy
+
 log = logging.getLogger(__name__)
 
-UNITS = Path(__file__).parent / "systemd"
 DEFAULT_RESTART_S = 1.0
 START_LIMIT_BURST = 5
 START_LIMIT_INTERVAL_S = 60.0
@@ -43,14 +43,8 @@ START_LIMIT_INTERVAL_S = 60.0
 
 def unit_restart_s(unit: str, default: float = DEFAULT_RESTART_S) -> float:
     """``RestartSec=`` of the shipped ``deepxpalm-<unit>.service``; ``default`` without one."""
-    path = UNITS / f"deepxpalm-{unit}.service"
-    if not path.exists():
-        return default
-    found = re.search(r"^RestartSec=([0-9.]+)(ms|s)?\s*$", path.read_text(), re.MULTILINE)
-    if found is None:
-        return default
-    value = float(found.group(1))
-    return value / 1e3 if found.group(2) == "ms" else value
+    found = policy(unit)
+    return default if found is None else found.restart_sec
 
 
 @dataclass

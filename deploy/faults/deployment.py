@@ -25,8 +25,8 @@ from pathlib import Path
 
 from common.transport import free_loopback_ports
 from deploy.demo import spawn_cli
-from deploy.faults.systemd import RestartPolicy, policy
 from deploy.fleet import Fleet, Proc
+from deploy.unit_policy import RestartPolicy, policy
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ import pytest
 
 from common.codec import encode
 from common.messages import Heartbeat
-from deploy.faults.systemd import policy
+from deploy.unit_policy import policy
 from operator_side.record_cli import _RECORD, read_records
 from robot_side.gripper.sim import GripperSimServer
 
@@ -39,7 +39,10 @@ def test_an_unplugged_gripper_refuses_and_comes_back_holding():
         held = sim.model.read()["POS"]
         client = socket.create_connection((sim.host, sim.port), timeout=1)
         sim.unplug()
-        assert client.recv(16) == b""  # the open connection is gone
+        try:  # the open connection is gone: closed, or reset when the close races a read
+            assert client.recv(16) == b""
+        except ConnectionResetError:
+            pass
         with pytest.raises(OSError):
             socket.create_connection((sim.host, sim.port), timeout=1)
         sim.replug()

@@ -1,6 +1,6 @@
 """What systemd does when a shipped unit's process ends: read from deploy/systemd/*.service.
 
-The fault matrix restarts a process exactly when and as late as systemd
+The fault matrix and `deepxpalm demo` restart a process when and as late as systemd
 would on the deployed machine, so "recovers with no human" means the same
 in the table as in the field.
 """
@@ -12,7 +12,7 @@ import signal
 from dataclasses import dataclass
 from pathlib import Path
 
-UNITS_DIR = Path(__file__).resolve().parent.parent / "systemd"
+UNITS_DIR = Path(__file__).resolve().parent / "systemd"
 
 #: signals systemd counts as a clean end (systemd.service, "Restart=")
 _CLEAN_SIGNALS = {signal.SIGHUP, signal.SIGINT, signal.SIGTERM, signal.SIGPIPE}
