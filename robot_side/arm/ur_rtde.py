@@ -458,24 +458,29 @@ class URArm(Arm):
         finally:
             self._wire.release()
 
-    def _notice_program_stop(self, recv: Any) -> None:
+    def _notice_program_stop(self, recv: Any, refused: bool = False) -> None:
         """The control script stopped while the safety mode is normal: a watchdog trip or a stop.
 
-        A protective or emergency stop is left to ``_check_safety``, which names it.
+        Seen in the receive stream (only in data sent after the script was
+        certainly running), or as ``refused``: ur-rtde answered a command
+        False because its own view says the script is not running. A
+        protective or emergency stop is left to ``_check_safety``, which names it.
         """
+        if self._program_lost is not None:
+            return
         try:
-            if not recv.isConnected():
+            if not recv.isConnected() or int(recv.getSafetyMode()) not in (1, 2):
                 return
-            ts = float(recv.getTimestamp())
-            armed = self._watchdog_armed_ts
-            # judge only data the controller sent after the script was certainly running
-            if armed is None or ts < armed + 0.01 or int(recv.getRobotStatus()) & 2:
-                return
-            if int(recv.getSafetyMode()) not in (1, 2):
-                return
+            if refused:
+                if self._ctrl.isProgramRunning():
+                    return
+            else:
+                armed = self._watchdog_armed_ts
+                ts = float(recv.getTimestamp())
+                if armed is None or ts < armed + 0.01 or int(recv.getRobotStatus()) & 2:
+                    return
         except RuntimeError:
             return
-        silence_ms = (now_s() - self._last_sent) * 1000
         self._program_lost = (
             f"the control script on {self.config.host} stopped with the safety mode normal: "
             f"the watchdog ({1000 / self.config.watchdog_hz:.0f} ms) tripped, or someone pressed "
@@ -483,16 +488,19 @@ class URArm(Arm):
             "to upload the script again"
         )
         log.warning(
-            "URArm: %s (this process last wrote %.0f ms ago; longest silence since connect "
-            "%.0f ms, %d kicks)",
+            "URArm: %s (this process last wrote to the controller %.0f ms ago; the longest "
+            "silence since connect was %.0f ms; %d kicks)",
             self._program_lost,
-            silence_ms,
+            (now_s() - self._last_sent) * 1000,
             self._silence_max_s * 1000,
             self._kicks,
         )
 
     def _check(self, ok: Any, what: str) -> None:
         if ok is False:
+            self._notice_program_stop(self._recv, refused=True)
+            if self._program_lost is not None:
+                raise DeviceError(f"URArm: {what} refused: {self._program_lost}")
             raise ArmCommandRefusedError(
                 f"URArm: the controller refused {what} (safety: {self._safety_text()}, "
                 f"program running: {self._program_running()}); clear any stop on the pendant "
@@ -589,7 +597,7 @@ class URArm(Arm):
                 step()
             except DeviceError as e:
                 errors.append(e)
-        if errors:
+        if errors and self._program_lost is None:  # else the controller stopped the arm
             raise errors[0]
 
     def telemetry(self) -> dict[str, float]:
