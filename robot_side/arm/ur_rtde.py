@@ -41,6 +41,7 @@ stop budget.
 from __future__ import annotations
 
 import concurrent.futures
+import gc
 import logging
 import queue
 import threading
@@ -87,8 +88,8 @@ CONTROLLER_PORTS = {30004: "RTDE", 29999: "dashboard", 30003: "script"}
 #: Control interfaces with a call stuck inside (see ``_control``), kept so no destructor runs.
 _ABANDONED: list[Any] = []
 
-#: A dead node's arm is still within this (docs/arm.md), even on a controller that trips
-#: as late as two windows after the last update (reported for URSim) and then decelerates.
+#: A dead node's arm is still within this (docs/arm.md): two watchdog windows (a controller
+#: was reported to trip that late, on URSim) must leave time to decelerate inside it.
 STOP_BUDGET_S = 0.4
 
 #: A kick writes 0 to the command register. Within one controller cycle (2 ms on an e-Series,
@@ -188,13 +189,11 @@ class URArm(Arm):
             raise ConfigError(
                 "arm watchdog_window_s must be positive: the watchdog cannot be turned off"
             )
-        decel_s = lim.max_linear_speed_m_s / lim.stop_deceleration_m_s2
-        if 2 * window + decel_s > STOP_BUDGET_S:
+        if 2 * window >= STOP_BUDGET_S:
             raise ConfigError(
-                f"arm watchdog_window_s {window:g}: two windows and a "
-                f"{decel_s * 1000:.0f} ms stop come to {(2 * window + decel_s) * 1000:.0f} ms, "
-                f"over the {STOP_BUDGET_S * 1000:.0f} ms a dead node may leave the arm moving "
-                "(docs/arm.md); shorten it"
+                f"arm watchdog_window_s {window:g}: a controller that trips as late as two "
+                f"windows would leave no time to decelerate within the {STOP_BUDGET_S * 1000:.0f}"
+                " ms a dead node may leave the arm moving (docs/arm.md); shorten it"
             )
         if window < 3 * self.deadman_period_s:
             raise ConfigError(
@@ -202,12 +201,23 @@ class URArm(Arm):
                 f"({self.deadman_period_s * 1000:.0f} ms apart): one late thread would stop "
                 "the program; lengthen it"
             )
-        if decel_s > window / 2:
+        # a stop waits for the script's answer and no kick may interrupt it (_keep_alive)
+        decel_s = lim.max_linear_speed_m_s / lim.stop_deceleration_m_s2
+        if decel_s >= window:
             raise ConfigError(
                 f"arm stop_deceleration_m_s2 {lim.stop_deceleration_m_s2:g} takes "
-                f"{decel_s * 1000:.0f} ms from the speed cap, over half the watchdog window "
+                f"{decel_s * 1000:.0f} ms from the speed cap, as long as the watchdog window "
                 f"({window * 1000:.0f} ms): a stop sends nothing while it waits for the script, "
                 "so the watchdog would trip on our own stops. Raise the deceleration"
+            )
+        if decel_s > window / 2:
+            log.warning(
+                "URArm: a stop from the %.2f m/s cap takes %.0f ms, over half the %.0f ms "
+                "watchdog window: on a loaded machine the watchdog may trip during a stop "
+                "(the arm stops either way); raise stop_deceleration_m_s2",
+                lim.max_linear_speed_m_s,
+                decel_s * 1000,
+                window * 1000,
             )
 
     # -- lifecycle -----------------------------------------------------------
@@ -259,6 +269,10 @@ class URArm(Arm):
                 # session's input registers; they are freed when it sees the close.
                 if "already in use" in str(e) and attempt + 1 < CONTROL_CONNECT_TRIES:
                     log.info("URArm: RTDE inputs at %s still held; trying again", host)
+                    if attempt == 0:
+                        # an exception's traceback can keep our previous interface alive in
+                        # cyclic garbage, and only its destructor closes the connection
+                        gc.collect()
                     time.sleep(CONTROL_CONNECT_RETRY_S)
                     continue
                 recv.disconnect()
@@ -299,11 +313,13 @@ class URArm(Arm):
         recv, ctrl = self._recv, self._ctrl
         try:
             with self._lock:
-                if self._program_lost is None:  # else there is no script left to tell
+                # once the script is known to have stopped there is nothing left to tell it
+                if self._program_lost is None:
                     try:
                         self._stop_locked()
                     except DeviceError as e:
                         log.warning("URArm: stop on disconnect failed: %s", e)
+                if self._program_lost is None:
                     try:
                         self._control("stopScript", ctrl.stopScript)
                     except DeviceError as e:
@@ -480,24 +496,23 @@ class URArm(Arm):
     def _notice_program_stop(self, recv: Any, refused: bool = False) -> None:
         """The control script stopped while the safety mode is normal: a watchdog trip or a stop.
 
-        Seen in the receive stream (only in data sent after the script was
-        certainly running), or as ``refused``: ur-rtde answered a command
-        False because its own view says the script is not running. A
-        protective or emergency stop is left to ``_check_safety``, which names it.
+        Seen in the receive stream: every deadman period (only in data sent
+        after the script was certainly running), and when ur-rtde ``refused`` a
+        command. A protective or emergency stop is left to ``_check_safety``,
+        which names it.
         """
         if self._program_lost is not None:
             return
         try:
-            if not recv.isConnected() or int(recv.getSafetyMode()) not in (1, 2):
+            if not recv.isConnected():
                 return
-            if refused:
-                if self._ctrl.isProgramRunning():
-                    return
-            else:
-                armed = self._watchdog_armed_ts
-                ts = float(recv.getTimestamp())
-                if armed is None or ts < armed + 0.01 or int(recv.getRobotStatus()) & 2:
-                    return
+            armed = self._watchdog_armed_ts
+            if not refused and (armed is None or float(recv.getTimestamp()) < armed + 0.01):
+                return
+            # the status first: a safety mode read after it is from the same package or a
+            # newer one, so a protective stop that ended the program is seen as one
+            if int(recv.getRobotStatus()) & 2 or int(recv.getSafetyMode()) not in (1, 2):
+                return
         except RuntimeError:
             return
         self._program_lost = (
@@ -556,6 +571,19 @@ class URArm(Arm):
         )
         self._check(ok, "speedL")
         self._speeding = True
+
+    def move_to(self, pose: Any, speed: float | None = None, wait: bool = True) -> None:
+        """As ``Arm.move_to``; after a watchdog trip it first reconnects (a fresh script).
+
+        A move is an absolute target asked for now, not a velocity that was
+        right only when it was sent: a jog after a trip is refused instead, and
+        the node's recovery reconnects.
+        """
+        if self._program_lost is not None:
+            log.warning("URArm: reconnecting for a move: %s", self._program_lost)
+            self.disconnect()
+            self.connect()
+        super().move_to(pose, speed, wait)
 
     def _send_move(self, pose: np.ndarray, speed: float) -> None:
         ctrl = self._ctrl

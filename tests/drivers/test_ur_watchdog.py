@@ -8,6 +8,7 @@ what is tested is the wire: ``setWatchdog`` (command 35, the frequency in
 
 from __future__ import annotations
 
+import dataclasses
 import socket
 import time
 
@@ -82,7 +83,8 @@ def test_no_update_for_one_period_stops_the_program_and_the_arm(sim, receive):
         assert wait_until(lambda: _speed(receive) == 0.0, 1.0)
         t_still = time.monotonic() - t_last
         assert sim.stats()["watchdog_trips"] == trips + 1
-        assert t_stopped >= 0.1, f"tripped {t_stopped * 1000:.0f} ms after the last kick"
+        # not before the window (give or take the 2 ms controller cycle it is judged on)
+        assert t_stopped >= 0.095, f"tripped {t_stopped * 1000:.0f} ms after the last kick"
         # a generous upper bound: only this machine's load can make it later than 100 ms
         assert t_still < 0.4, f"still only {t_still * 1000:.0f} ms after the last kick"
         # a stopped program takes no command, and the watchdog went with it
@@ -119,7 +121,8 @@ LIMITS = ArmLimits(max_linear_speed_m_s=0.10, linear_acceleration_m_s2=1.0, jog_
 
 @pytest.fixture
 def arm(sim):
-    a = URArm(URArmConfig(host=sim.host, limits=LIMITS, stale_after_s=0.5))
+    limits = dataclasses.replace(LIMITS)  # a test may change its own
+    a = URArm(URArmConfig(host=sim.host, limits=limits, stale_after_s=0.5))
     a.connect()
     yield a
     a.disconnect()
@@ -156,12 +159,13 @@ def test_the_driver_arms_the_watchdog_and_its_deadman_thread_keeps_it_quiet(arm,
 def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecting(
     arm, sim, receive
 ):
+    arm.limits.jog_timeout_s = 5.0  # only the watchdog may stop this jog
     arm.jog(JOG)
     assert wait_until(lambda: _speed(receive) == pytest.approx(0.03), 1.0)
     # the deadman thread falls silent, as when the process freezes (SIGSTOP, a wedged GIL)
     arm._keep_alive = lambda: None
+    assert wait_until(lambda: not _program_running(receive), 1.0)
     assert wait_until(lambda: _speed(receive) == 0.0, 1.0)
-    assert not _program_running(receive)
     del arm._keep_alive  # the thread is alive again: it notices the stopped program
     assert wait_until(lambda: arm.needs_reconnect, 1.0)
     assert "program_lost" in arm.status()
@@ -181,7 +185,7 @@ def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecti
     arm.stop()
 
 
-def test_a_stop_on_the_dashboard_is_noticed_as_well(arm, sim, receive):
+def test_a_stop_on_the_dashboard_is_noticed_and_a_move_reconnects_first(arm, sim, receive):
     with socket.create_connection((sim.host, 29999), timeout=2) as dash:
         f = dash.makefile("rwb")
         f.readline()
@@ -191,15 +195,20 @@ def test_a_stop_on_the_dashboard_is_noticed_as_well(arm, sim, receive):
     assert wait_until(lambda: arm.needs_reconnect, 1.0)
     with pytest.raises(DeviceError, match="pendant or the dashboard"):
         arm.jog(JOG)
+    # a move is an absolute target asked for now: it reconnects (a fresh script) and moves
+    target = arm.tcp_pose() + np.array([0.0, 0.01, 0, 0, 0, 0])
+    arm.move_to(target, speed=0.05)
+    assert not arm.needs_reconnect
+    np.testing.assert_allclose(arm.tcp_pose()[:3], target[:3], atol=1e-4)
 
 
 @pytest.mark.parametrize(
     ("section", "why"),
     [
-        ({"watchdog_window_s": 0.2}, "come to 450 ms, over the 400 ms"),
+        ({"watchdog_window_s": 0.2}, "no time to decelerate within the 400 ms"),
         ({"watchdog_window_s": 0.0}, "cannot be turned off"),
         ({"watchdog_window_s": 0.05}, "less than three kicks"),
-        ({"limits": ArmLimits(stop_deceleration_m_s2=1.25)}, "over half the watchdog window"),
+        ({"limits": ArmLimits(stop_deceleration_m_s2=0.6)}, "as long as the watchdog window"),
     ],
 )
 def test_a_watchdog_that_cannot_work_is_refused_at_construction(section, why):
