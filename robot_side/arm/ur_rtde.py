@@ -97,6 +97,9 @@ STOP_BUDGET_S = 0.4
 #: no kick follows a command sooner than this; that command updated the register itself.
 KICK_AFTER_COMMAND_S = 0.01
 
+#: How long a refused command waits for the receive stream to show the stopped script.
+REFUSAL_CATCH_UP_S = 0.05
+
 
 class _Worker:
     """One daemon thread running control calls in order.
@@ -509,9 +512,16 @@ class URArm(Arm):
             armed = self._watchdog_armed_ts
             if not refused and (armed is None or float(recv.getTimestamp()) < armed + 0.01):
                 return
+            # ur-rtde refused on its control connection's view, which may be a package or
+            # two ahead of ours: give ours a moment to show the stop too
+            deadline = now_s() + (REFUSAL_CATCH_UP_S if refused else 0.0)
+            while int(recv.getRobotStatus()) & 2:
+                if now_s() >= deadline:
+                    return
+                time.sleep(0.002)
             # the status first: a safety mode read after it is from the same package or a
             # newer one, so a protective stop that ended the program is seen as one
-            if int(recv.getRobotStatus()) & 2 or int(recv.getSafetyMode()) not in (1, 2):
+            if int(recv.getSafetyMode()) not in (1, 2):
                 return
         except RuntimeError:
             return
