@@ -510,11 +510,11 @@ class URSimulator:
             # step by the time that really passed: on a loaded machine ticks are missed,
             # and the arm must still move in real time, as the robot would
             t = now_s()
-            last_tick = last
-            dt, last = min(t - last, MAX_TICK_S), t
+            elapsed, last = t - last, t
+            dt = min(elapsed, MAX_TICK_S)
             with self._lock:
                 try:
-                    self._judge_watchdog(min(t - last_tick, MAX_SILENCE_TICK_S))
+                    self._judge_watchdog(min(elapsed, MAX_SILENCE_TICK_S))
                     self._script_cycle()
                     if dt > 0:
                         self.arm.step(dt)
