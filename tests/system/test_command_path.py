@@ -87,9 +87,12 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
         t0 = now_ns()
         cycles = 0
         stops: list[int] = []
+        mid_jogs: list[int] = []
         while now_ns() - t0 < seconds * 1e9:
             velocity = jogs[cycles % 2]
-            for _ in range(4):  # a held key: renewed every 50 ms
+            for i in range(4):  # a held key: renewed every 50 ms
+                if i == 2:
+                    mid_jogs.append(now_ns())  # the control: a window as long, mid-jog
                 op.command("arm_jog", velocity=velocity)
                 op.pump(0.05)
             stops.append(now_ns())
@@ -114,6 +117,7 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
 
     return {
         "stops": stops,
+        "mid_jogs": mid_jogs,
         "stimulus": telemetry.sent_times(Stimulus, t0, t1 + STALL_WINDOW_NS),
         "heartbeat": telemetry.sent_times(Heartbeat, t0, t1 + STALL_WINDOW_NS),
         "idle_stimulus": gap(Stimulus, i0, i1),
@@ -121,43 +125,44 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
     }
 
 
-#: a stop that blocked the loop shows as a telemetry gap right after it
-STALL_WINDOW_NS = 300_000_000
-#: share of stops a loaded machine may stall by chance; a blocking stop stalls nearly all
-MAX_STALLED_SHARE = 0.25
+#: a stop that blocked the loop shows as a telemetry gap in this window right after it
+STALL_WINDOW_NS = 100_000_000
+#: how much more often a gap may follow a stop than the same window mid-jog
+MAX_EXCESS_SHARE = 0.3
 
 
 def test_jog_and_stop_repeated_never_stall_the_telemetry(rig):
-    """A stop never blocks the frame loop: no telemetry gap follows the stops.
+    """A stop never blocks the frame loop: no more telemetry gaps after stops than mid-jog.
 
     A machine that stalls the node by itself (a loaded CI host) makes gaps
     at random times; a stop that waits on the arm (hundreds of ms of
-    deceleration) makes one after every stop. So each stop is judged by the
-    largest gap within 300 ms after it, and the test fails only when a
-    quarter of the stops or more are followed by one: the message says
-    which it was, with the idle baseline measured in the same run.
+    deceleration) makes one after every stop. So the window right after
+    each stop is compared with a window of the same length in the middle of
+    each jog, in the same run: the test fails when gaps follow the stops
+    clearly more often than they fall mid-jog, and the message gives both.
     """
     period_ms = 1000 / PUBLISH_HZ
     limits_ms = {"stimulus": 3 * period_ms, "heartbeat": 3 * 1000 / 20.0}
     run = _jog_and_stop_for(rig, 10.0, session=11)
-    stops = run["stops"]
+    stops, mid_jogs = run["stops"], run["mid_jogs"]
     assert len(stops) >= 20, f"only {len(stops)} jog+stop cycles in 10 s"
     for kind, limit in limits_ms.items():
         after = _gap_after_each(run[kind], stops)
-        stalled = [g for g in after if g > limit]
-        share = len(stalled) / len(stops)
-        idle = run[f"idle_{kind}"]
-        assert share < MAX_STALLED_SHARE, (
-            f"{len(stalled)} of {len(stops)} stops were followed by a {kind} gap over "
-            f"{limit:.0f} ms (largest {max(after):.0f} ms): the stop blocks the robot's loop "
-            f"(a product defect). Idle, the machine's own largest gap was {idle:.0f} ms."
+        control = _gap_after_each(run[kind], mid_jogs)
+        share = sum(g > limit for g in after) / len(after)
+        share_control = sum(g > limit for g in control) / len(control)
+        assert share <= share_control + MAX_EXCESS_SHARE, (
+            f"{share:.0%} of {len(stops)} stops were followed by a {kind} gap over {limit:.0f} ms "
+            f"(largest {max(after):.0f} ms), against {share_control:.0%} of the same windows "
+            f"mid-jog (largest {max(control):.0f} ms): the stop blocks the robot's loop (a "
+            "product defect), not the machine's load, which stalls both alike"
         )
     # no false deadman trip
     assert rig.telemetry.robot_stats().get("deadman_trips", 0) == 0
     print(
         f"\njog+stop: {len(stops)} cycles; largest gap after a stop "
-        f"{max(_gap_after_each(run['stimulus'], stops)):.0f} ms stimulus, idle "
-        f"{run['idle_stimulus']:.0f} ms"
+        f"{max(_gap_after_each(run['stimulus'], stops)):.0f} ms, mid-jog "
+        f"{max(_gap_after_each(run['stimulus'], mid_jogs)):.0f} ms"
     )
 
 
