@@ -266,7 +266,12 @@ class CellRun:
     def _settled(self, tl: _Timeline) -> bool:
         arm_still, arm_back, palm_off, palm_back = self._broken_and_back(tl)
         now = time.monotonic()
-        arm_done = arm_back is not None or (arm_still is None and now > tl.t_end + UNAFFECTED_S)
+        # unaffected only if the arm can be read now: a controller that is away gives no
+        # samples, which is no sign that the arm is still following the jog
+        arm_live = bool(self.arm.between(now - UNAFFECTED_S / 3))
+        arm_done = arm_back is not None or (
+            arm_still is None and arm_live and now > tl.t_end + UNAFFECTED_S
+        )
         palm_done = palm_back is not None or (palm_off is None and now > tl.t_end + UNAFFECTED_S)
         return arm_done and palm_done
 
