@@ -46,6 +46,9 @@ ARM_STILL_BUDGET_S = 0.4
 STILL_M_S = 0.002  # below this the arm counts as still
 STILL_FOR_S = 0.15  # ... for this long (a jog reversing passes zero for a few ms)
 MOVING_M_S = 0.01
+#: no reading of the arm for this long: its controller is away (killed, frozen, restarting);
+#: far longer than the probe's own stalls on a loaded machine
+ARM_UNREADABLE_S = 0.8
 JOG_M_S = 0.02
 FLIP_S = 2.0
 #: the operator's stale_after_ms (150), the renderer's travel to the retract pose at
@@ -96,6 +99,8 @@ class CellResult:
     restarted_by: str
     arm_speed_at_fault_m_s: float | None  # the arm must be cruising when the fault comes
     arm_still_s: float | None  # the arm still after the fault (None: it kept following the jog)
+    #: its controller stopped answering (None: it always answered); the arm was not following
+    arm_unreadable_s: float | None
     arm_back_s: float | None  # a jog moves it again
     palm_off_s: float | None  # every linkage off the palm
     palm_back_s: float | None  # stimuli press the palm again
@@ -161,6 +166,18 @@ def first_still(samples: list[Sample], after: float) -> float | None:
         else:
             start = None
     return None
+
+
+def first_unreadable(samples: list[Sample], after: float, until: float) -> float | None:
+    """The last reading before the first silence of ARM_UNREADABLE_S after ``after``."""
+    last = after
+    for s in samples:
+        if s.t_s < after:
+            continue
+        if s.t_s - last >= ARM_UNREADABLE_S:
+            return last
+        last = s.t_s
+    return last if until - last >= ARM_UNREADABLE_S else None
 
 
 @dataclass
@@ -250,6 +267,9 @@ class CellRun:
         arm = self.arm.between(tl.t_fault, tl.t_release)
         palm = self.palm.between(tl.t_fault, tl.t_release)
         arm_still = first_still(arm, tl.t_fault)
+        unreadable = first_unreadable(arm, tl.t_fault, min(tl.t_release, time.monotonic()))
+        if unreadable is not None and (arm_still is None or unreadable < arm_still):
+            arm_still = unreadable  # a controller that is away is not following the jog
         arm_back = (
             _first(arm, max(arm_still, tl.t_end), lambda v: v > MOVING_M_S)
             if arm_still is not None
@@ -266,12 +286,7 @@ class CellRun:
     def _settled(self, tl: _Timeline) -> bool:
         arm_still, arm_back, palm_off, palm_back = self._broken_and_back(tl)
         now = time.monotonic()
-        # unaffected only if the arm can be read now: a controller that is away gives no
-        # samples, which is no sign that the arm is still following the jog
-        arm_live = bool(self.arm.between(now - UNAFFECTED_S / 3))
-        arm_done = arm_back is not None or (
-            arm_still is None and arm_live and now > tl.t_end + UNAFFECTED_S
-        )
+        arm_done = arm_back is not None or (arm_still is None and now > tl.t_end + UNAFFECTED_S)
         palm_done = palm_back is not None or (palm_off is None and now > tl.t_end + UNAFFECTED_S)
         return arm_done and palm_done
 
@@ -314,6 +329,9 @@ class CellRun:
             restarted_by=restarted_by(self.cell, unit.policy if unit else None),
             arm_speed_at_fault_m_s=round(at_fault[-1].value, 4) if at_fault else None,
             arm_still_s=since(arm_still),
+            arm_unreadable_s=since(
+                first_unreadable(self.arm.between(tl.t_fault), tl.t_fault, tl.t_release)
+            ),
             arm_back_s=since(arm_back),
             palm_off_s=since(palm_off),
             palm_back_s=since(palm_back),
