@@ -47,6 +47,25 @@ def quiet_gc():
     """
     import gc
 
+    outer = gc.get_freeze_count() > 0  # a module's freeze (quiet_gc_module) outlives this test
+    gc.collect()
+    gc.freeze()
+    yield
+    if not outer:
+        gc.unfreeze()
+
+
+@pytest.fixture(scope="module")
+def quiet_gc_module():
+    """The heap frozen for a whole module, for one whose fixture keeps a UR arm connected.
+
+    A full collection holds the GIL for its whole length (hundreds of
+    milliseconds here), and the arm's controller stops the program when the
+    driver's kicks stop for its watchdog window (docs/arm.md). Request it
+    before the arm connects; ``quiet_gc`` inside keeps this freeze.
+    """
+    import gc
+
     gc.collect()
     gc.freeze()
     yield

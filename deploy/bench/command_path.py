@@ -148,23 +148,32 @@ class RobotUnderCommands:
                 cmd=self.command_endpoint,
             )
         )
+        self.config = config
         self.log = self.workdir / "robot.log"
-        with self.log.open("w") as out:
+        self.telemetry = Telemetry(self.telemetry_endpoint)
+        self.arm = ArmWatch(self.arm_sim)
+        try:
+            self.start_node()
+        except RuntimeError:
+            self.__exit__()
+            raise
+        time.sleep(0.3)
+        return self
+
+    def start_node(self, timeout_s: float = 60.0) -> None:
+        """Start the robot node process; returns once it publishes (again, after a restart)."""
+        t0 = now_ns()
+        with self.log.open("a") as out:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "deploy.cli", "robot", "--config", str(config)],
+                [sys.executable, "-m", "deploy.cli", "robot", "--config", str(self.config)],
                 stdout=out,
                 stderr=subprocess.STDOUT,
             )
-        self.telemetry = Telemetry(self.telemetry_endpoint)
-        self.arm = ArmWatch(self.arm_sim)
-        deadline = time.monotonic() + 60
-        while not self.telemetry.times(Stimulus):
+        deadline = time.monotonic() + timeout_s
+        while not self.telemetry.times(Stimulus, t0):
             if self.proc.poll() is not None or time.monotonic() > deadline:
-                self.__exit__()
                 raise RuntimeError(f"the robot node never published:\n{self.log.read_text()}")
-            time.sleep(0.05)
-        time.sleep(0.3)
-        return self
+            time.sleep(0.02)
 
     def __exit__(self, *exc: object) -> None:
         self.arm.close()

@@ -27,10 +27,10 @@ deadman in :class:`~robot_side.arm.base.Arm` does.
 That deadman lives in this process, so the controller must also stop the arm
 when this process cannot (``kill -9``, ``SIGSTOP``, a wedged interpreter):
 ``connect`` arms ur-rtde's watchdog (``setWatchdog``: the control script calls
-``rtde_set_watchdog("input_int_register_0", watchdog_hz, "stop")``) and the
-deadman thread kicks it every period (``kickWatchdog`` writes 0 to that
-register; any command does too). When no update arrives for
-``1/watchdog_hz`` s the controller stops the program, and the arm with it.
+``rtde_set_watchdog("input_int_register_0", 1 / watchdog_window_s, "stop")``)
+and the deadman thread kicks it every period (``kickWatchdog`` writes 0 to
+that register; any command does too). When no update arrives for
+``watchdog_window_s`` the controller stops the program, and the arm with it.
 A script that stopped while the safety mode stayed normal (that trip, or a
 stop on the pendant) makes the driver refuse every command and ask for a
 reconnect, which uploads a fresh script with a cleared command register:
@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import ctypes
+import gc
 import logging
 import queue
 import threading
@@ -91,13 +92,17 @@ _ABANDONED: list[Any] = []
 #: how long connect() waits for each controller port to accept before calling ur-rtde
 PORT_PROBE_TIMEOUT_S = 1.0
 
-#: The whole stop budget of a dead node (docs/arm.md): the watchdog window must fit inside it.
+#: A dead node's arm is still within this (docs/arm.md): two watchdog windows (a controller
+#: was reported to trip that late, on URSim) must leave time to decelerate inside it.
 STOP_BUDGET_S = 0.4
 
 #: A kick writes 0 to the command register. Within one controller cycle (2 ms on an e-Series,
 #: 8 ms on a CB3) after a speedL it could overwrite the command before the script read it, so
 #: no kick follows a command sooner than this; that command updated the register itself.
 KICK_AFTER_COMMAND_S = 0.01
+
+#: How long a refused command waits for the receive stream to show the stopped script.
+REFUSAL_CATCH_UP_S = 0.05
 
 
 class _Worker:
@@ -169,11 +174,11 @@ class URArmConfig:
     command_timeout_s: float = param(
         2.0, "a control call still busy after this (plus any deceleration) is abandoned"
     )
-    watchdog_hz: float = param(
-        10.0,
-        "ur-rtde's watchdog: the controller stops the program and the arm when this process "
-        "sends nothing for 1/watchdog_hz s (kill -9, SIGSTOP); kicked every 20 ms, so a kick "
-        "may come 80 ms late before it trips",
+    watchdog_window_s: float = param(
+        0.15,
+        "ur-rtde's watchdog (setWatchdog at 1/window Hz): the controller stops the program and "
+        "the arm when this process sends nothing this long (kill -9, SIGSTOP); kicked every "
+        "20 ms, so a kick may come 130 ms late before it trips",
     )
     limits: ArmLimits = param(ArmLimits(), "workspace box, speed caps and the jog deadman")
 
@@ -204,29 +209,40 @@ class URArm(Arm):
         self._program_lost: str | None = None
 
     def _check_watchdog_config(self) -> None:
-        hz, lim = self.config.watchdog_hz, self.limits
-        if not hz > 0:
-            raise ConfigError("arm watchdog_hz must be positive: the watchdog cannot be turned off")
-        window = 1.0 / hz
-        if window > STOP_BUDGET_S:
+        window, lim = self.config.watchdog_window_s, self.limits
+        if not window > 0:
             raise ConfigError(
-                f"arm watchdog_hz {hz:g} gives a {window * 1000:.0f} ms window, longer than the "
-                f"{STOP_BUDGET_S * 1000:.0f} ms a dead node may leave the arm moving; raise it"
+                "arm watchdog_window_s must be positive: the watchdog cannot be turned off"
+            )
+        if 2 * window >= STOP_BUDGET_S:
+            raise ConfigError(
+                f"arm watchdog_window_s {window:g}: a controller that trips as late as two "
+                f"windows would leave no time to decelerate within the {STOP_BUDGET_S * 1000:.0f}"
+                " ms a dead node may leave the arm moving (docs/arm.md); shorten it"
             )
         if window < 3 * self.deadman_period_s:
             raise ConfigError(
-                f"arm watchdog_hz {hz:g} gives a {window * 1000:.0f} ms window: less than three "
-                f"kicks ({self.deadman_period_s * 1000:.0f} ms apart), so one late thread would "
-                "stop the program; lower it"
+                f"arm watchdog_window_s {window:g} is less than three kicks "
+                f"({self.deadman_period_s * 1000:.0f} ms apart): one late thread would stop "
+                "the program; lengthen it"
             )
+        # a stop waits for the script's answer and no kick may interrupt it (_keep_alive)
         decel_s = lim.max_linear_speed_m_s / lim.stop_deceleration_m_s2
-        if decel_s > window / 2:
+        if decel_s >= window:
             raise ConfigError(
                 f"arm stop_deceleration_m_s2 {lim.stop_deceleration_m_s2:g} takes "
-                f"{decel_s * 1000:.0f} ms from the speed cap, over half the watchdog window "
+                f"{decel_s * 1000:.0f} ms from the speed cap, as long as the watchdog window "
                 f"({window * 1000:.0f} ms): a stop sends nothing while it waits for the script, "
-                "so the watchdog would trip on our own stops. Raise the deceleration or lower "
-                "watchdog_hz"
+                "so the watchdog would trip on our own stops. Raise the deceleration"
+            )
+        if decel_s > window / 2:
+            log.warning(
+                "URArm: a stop from the %.2f m/s cap takes %.0f ms, over half the %.0f ms "
+                "watchdog window: on a loaded machine the watchdog may trip during a stop "
+                "(the arm stops either way); raise stop_deceleration_m_s2",
+                lim.max_linear_speed_m_s,
+                decel_s * 1000,
+                window * 1000,
             )
 
     # -- lifecycle -----------------------------------------------------------
@@ -291,6 +307,10 @@ class URArm(Arm):
                 # session's input registers; they are freed when it sees the close.
                 if "already in use" in str(e) and attempt + 1 < CONTROL_CONNECT_TRIES:
                     log.info("URArm: RTDE inputs at %s still held; trying again", host)
+                    if attempt == 0:
+                        # an exception's traceback can keep our previous interface alive in
+                        # cyclic garbage, and only its destructor closes the connection
+                        gc.collect()
                     time.sleep(CONTROL_CONNECT_RETRY_S)
                     continue
                 _retire(recv)
@@ -304,7 +324,9 @@ class URArm(Arm):
         self._last_ts_change = now_s()
         self._arm_watchdog()
         self._start_deadman()
-        log.info("URArm connected to %s (watchdog %g Hz)", host, self.config.watchdog_hz)
+        log.info(
+            "URArm connected to %s (watchdog %.0f ms)", host, self.config.watchdog_window_s * 1000
+        )
 
     def _require_ports_open(self, hint: str) -> None:
         """Refuse at once when a controller port does not accept a connection.
@@ -324,7 +346,8 @@ class URArm(Arm):
         """From here on the controller stops the arm whenever this process falls silent."""
         self._silence_max_s, self._kicks = 0.0, 0
         try:
-            ok = self._control("setWatchdog", self._ctrl.setWatchdog, self.config.watchdog_hz)
+            hz = 1.0 / self.config.watchdog_window_s
+            ok = self._control("setWatchdog", self._ctrl.setWatchdog, hz)
             self._check(ok, "setWatchdog")
         except DeviceError as e:
             self.disconnect()
@@ -342,11 +365,13 @@ class URArm(Arm):
         recv, ctrl = self._recv, self._ctrl
         try:
             with self._lock:
-                if self._program_lost is None:  # else there is no script left to tell
+                # once the script is known to have stopped there is nothing left to tell it
+                if self._program_lost is None:
                     try:
                         self._stop_locked()
                     except DeviceError as e:
                         log.warning("URArm: stop on disconnect failed: %s", e)
+                if self._program_lost is None:
                     try:
                         self._control("stopScript", ctrl.stopScript)
                     except DeviceError as e:
@@ -448,7 +473,7 @@ class URArm(Arm):
             )
         timeout = self.config.command_timeout_s + extra_s
         with self._wire:
-            self._note_sent()
+            self._note_sent(what)
             try:
                 if realtime:
                     return fn(*args)
@@ -462,15 +487,28 @@ class URArm(Arm):
             except RuntimeError as e:
                 raise DeviceError(f"URArm: {what} failed: {e}") from e
             finally:
-                self._note_sent()  # a waiting call ends with a write too (ur-rtde's clear)
+                self._note_sent(f"the end of {what}")  # ur-rtde's clear ends a waiting call
 
     # -- the controller's watchdog --------------------------------------------
 
-    def _note_sent(self) -> None:
-        """A write to the command register left: the controller's watchdog heard from us."""
+    def _note_sent(self, what: str) -> None:
+        """A write to the command register left: the controller's watchdog heard from us.
+
+        A silence over half the watchdog window is logged: the next one may trip it.
+        """
         now = now_s()
+        silence = now - self._last_sent
         if self._watchdog_armed_ts is not None:
-            self._silence_max_s = max(self._silence_max_s, now - self._last_sent)
+            self._silence_max_s = max(self._silence_max_s, silence)
+            if silence > 0.5 * self.config.watchdog_window_s:
+                log.warning(
+                    "URArm: the controller heard nothing from this process for %.0f ms before "
+                    "%s (its watchdog stops the arm at %.0f ms): this process or the machine "
+                    "is overloaded",
+                    silence * 1000,
+                    what,
+                    self.config.watchdog_window_s * 1000,
+                )
         self._last_sent = now
 
     def _keep_alive(self) -> None:
@@ -501,7 +539,7 @@ class URArm(Arm):
         try:
             if ctrl is not self._ctrl or self._ctrl_broken is not None:
                 return
-            self._note_sent()
+            self._note_sent("a kick")
             try:
                 ctrl.kickWatchdog()
             except RuntimeError as e:  # the next command finds out and says so
@@ -510,41 +548,55 @@ class URArm(Arm):
         finally:
             self._wire.release()
 
-    def _notice_program_stop(self, recv: Any) -> None:
+    def _notice_program_stop(self, recv: Any, refused: bool = False) -> None:
         """The control script stopped while the safety mode is normal: a watchdog trip or a stop.
 
-        A protective or emergency stop is left to ``_check_safety``, which names it.
+        Seen in the receive stream: every deadman period (only in data sent
+        after the script was certainly running), and when ur-rtde ``refused`` a
+        command. A protective or emergency stop is left to ``_check_safety``,
+        which names it.
         """
+        if self._program_lost is not None:
+            return
         try:
             if not recv.isConnected():
                 return
-            ts = float(recv.getTimestamp())
             armed = self._watchdog_armed_ts
-            # judge only data the controller sent after the script was certainly running
-            if armed is None or ts < armed + 0.01 or int(recv.getRobotStatus()) & 2:
+            if not refused and (armed is None or float(recv.getTimestamp()) < armed + 0.01):
                 return
+            # ur-rtde refused on its control connection's view, which may be a package or
+            # two ahead of ours: give ours a moment to show the stop too
+            deadline = now_s() + (REFUSAL_CATCH_UP_S if refused else 0.0)
+            while int(recv.getRobotStatus()) & 2:
+                if now_s() >= deadline:
+                    return
+                time.sleep(0.002)
+            # the status first: a safety mode read after it is from the same package or a
+            # newer one, so a protective stop that ended the program is seen as one
             if int(recv.getSafetyMode()) not in (1, 2):
                 return
         except RuntimeError:
             return
-        silence_ms = (now_s() - self._last_sent) * 1000
         self._program_lost = (
             f"the control script on {self.config.host} stopped with the safety mode normal: "
-            f"the watchdog ({1000 / self.config.watchdog_hz:.0f} ms) tripped, or someone pressed "
-            "stop on the pendant or the dashboard; the controller stopped the arm. Reconnect "
-            "to upload the script again"
+            f"the watchdog ({self.config.watchdog_window_s * 1000:.0f} ms) tripped, or someone "
+            "pressed stop on the pendant or the dashboard; the controller stopped the arm. "
+            "Reconnect to upload the script again"
         )
         log.warning(
-            "URArm: %s (this process last wrote %.0f ms ago; longest silence since connect "
-            "%.0f ms, %d kicks)",
+            "URArm: %s (this process last wrote to the controller %.0f ms ago; the longest "
+            "silence since connect was %.0f ms; %d kicks)",
             self._program_lost,
-            silence_ms,
+            (now_s() - self._last_sent) * 1000,
             self._silence_max_s * 1000,
             self._kicks,
         )
 
     def _check(self, ok: Any, what: str) -> None:
         if ok is False:
+            self._notice_program_stop(self._recv, refused=True)
+            if self._program_lost is not None:
+                raise DeviceError(f"URArm: {what} refused: {self._program_lost}")
             raise ArmCommandRefusedError(
                 f"URArm: the controller refused {what} (safety: {self._safety_text()}, "
                 f"program running: {self._program_running()}); clear any stop on the pendant "
@@ -581,6 +633,19 @@ class URArm(Arm):
         )
         self._check(ok, "speedL")
         self._speeding = True
+
+    def move_to(self, pose: Any, speed: float | None = None, wait: bool = True) -> None:
+        """As ``Arm.move_to``; after a watchdog trip it first reconnects (a fresh script).
+
+        A move is an absolute target asked for now, not a velocity that was
+        right only when it was sent: a jog after a trip is refused instead, and
+        the node's recovery reconnects.
+        """
+        if self._program_lost is not None:
+            log.warning("URArm: reconnecting for a move: %s", self._program_lost)
+            self.disconnect()
+            self.connect()
+        super().move_to(pose, speed, wait)
 
     def _send_move(self, pose: np.ndarray, speed: float) -> None:
         ctrl = self._ctrl
@@ -641,7 +706,7 @@ class URArm(Arm):
                 step()
             except DeviceError as e:
                 errors.append(e)
-        if errors:
+        if errors and self._program_lost is None:  # else the controller stopped the arm
             raise errors[0]
 
     def telemetry(self) -> dict[str, float]:
@@ -664,7 +729,7 @@ class URArm(Arm):
         out.update(
             host=self.config.host,
             stale_events=self._stale_events,
-            watchdog_hz=self.config.watchdog_hz,
+            watchdog_window_ms=self.config.watchdog_window_s * 1000,
             watchdog_kicks=self._kicks,
             longest_silence_ms=round(self._silence_max_s * 1000, 1),
         )

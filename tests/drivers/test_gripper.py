@@ -124,6 +124,60 @@ def test_activation_runs_the_sta_sequence(server):
         g.disconnect()
 
 
+HELD = ("ACT", "GTO", "STA", "PRE", "SPE", "FOR")
+
+
+def _registers(model) -> dict[str, int]:
+    return {k: v for k, v in model.read().items() if k in (*HELD, "POS", "OBJ")}
+
+
+def _holds_through_a_restart(model, connect_again) -> None:
+    """A node holding the pipette dies; a new one connects: the fingers must not move."""
+    held = _registers(model)
+    assert held["ACT"] == 1 and held["STA"] == 3 and held["PRE"] > 0 and held["OBJ"] in (2, 3)
+    again = connect_again()  # activate_on_connect, as the node's drivers do
+    try:
+        assert again.grip_level() is not None
+        time.sleep(0.3)  # the fingers would be on their way open by now
+        assert _registers(model) == held, "connecting to an active gripper moved it"
+    finally:
+        again.disconnect()
+
+
+def test_a_new_socket_driver_leaves_a_closed_gripper_closed(server):
+    def driver() -> RobotiqSocketGripper:
+        g = RobotiqSocketGripper(
+            RobotiqSocketConfig(host=server.host, port=server.port, levels=LEVELS)
+        )
+        g.connect()
+        return g
+
+    first = driver()
+    first.close_to_level(20)
+    assert wait_until(lambda: settled(first))
+    first._sock.close()  # the process dies: no goodbye, no last command
+    lines: list[str] = []
+    handle = server.handle
+    server.handle = lambda line: (lines.append(line), handle(line))[1]
+    _holds_through_a_restart(server.model, driver)
+    assert not [line for line in lines if line.startswith("SET")], lines
+
+
+def test_a_new_rtu_driver_leaves_a_closed_gripper_closed(rtu):
+    sim, first = rtu
+    first.connect()
+    first.close_to_level(20)
+    assert wait_until(lambda: settled(first))
+    first.disconnect()
+
+    def driver() -> RobotiqRtuGripper:
+        g = RobotiqRtuGripper(RobotiqRtuConfig(port=sim.port, reply_timeout_s=0.25, retries=2))
+        g.connect()
+        return g
+
+    _holds_through_a_restart(sim.model, driver)
+
+
 def test_moving_before_activation_reports_the_fault(server):
     g = RobotiqSocketGripper(
         RobotiqSocketConfig(host=server.host, port=server.port, activate_on_connect=False)

@@ -34,21 +34,23 @@ CONTACT_N = 1.0
 
 
 @pytest.fixture(scope="module")
-def lab():
+def lab(quiet_gc_module):
     limits = ArmLimits(workspace_min=(-0.45, -0.45, -0.05), max_linear_speed_m_s=0.2)
     arm = LabArm(LabArmConfig(limits=limits))
     gripper = LabGripper()
     pads = LabTactileSensor()
-    arm.connect()
+    # the arm last: the pads' first connect compiles, and a process that stalls for the
+    # watchdog window has its arm stopped by the controller (docs/arm.md)
+    pads.connect()
     try:
         gripper.connect()
-        pads.connect()
+        arm.connect()
         home = arm.tcp_pose()
         yield arm, gripper, pads, home
     finally:
-        pads.disconnect()
-        gripper.disconnect()
         arm.disconnect()
+        gripper.disconnect()
+        pads.disconnect()
 
 
 def _frame(pads: LabTactileSensor, settle_s: float = 0.3) -> np.ndarray:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import random
+import select
 import socket
 import struct
 import threading
@@ -78,12 +79,11 @@ MAX_TICK_S = 0.05
 
 #: The input ur-rtde's script watches (``reg_offset_int`` 0, the only offset simulated).
 WATCHDOG_VARIABLE = "input_int_register_0"
-#: A tick this late means the simulator itself stalled (a loaded machine, a physics step
-#: holding the GIL): packages that arrived meanwhile are still unread, so the watchdog is
-#: judged only after WATCHDOG_GRACE_S more, once the RTDE threads have read them. A real
-#: controller is hard real time and has no such stalls.
-LATE_TICK_S = 0.02
-WATCHDOG_GRACE_S = 0.01
+#: The longest a single tick adds to the watchdog's silence. A tick later than this means
+#: the simulator itself stalled (a loaded machine, a physics step holding the GIL): a real
+#: controller is hard real time and never does, so the stall is not counted against the
+#: client, whose answer to a command may be waiting on this very tick.
+MAX_SILENCE_TICK_S = 0.02
 
 STATUS_RECEIVED = 0
 STATUS_READY = 1
@@ -193,8 +193,8 @@ class URSimulator:
         self.data_packages_sent = 0
         # the control script's RTDE watchdog: the minimum update frequency, None when off
         self.watchdog_hz: float | None = None
-        self._watchdog_heard = 0.0  # monotonic s: the last package carrying the variable
-        self._watchdog_judge_after = 0.0
+        # controller time since the last package carrying the variable (stalls not counted)
+        self._watchdog_silent_s = 0.0
         self.watchdog_trips = 0
 
     # -- lifecycle -----------------------------------------------------------
@@ -485,7 +485,7 @@ class URSimulator:
                 for n, v in zip(names, values, strict=True):
                     self.inputs[n] = v
                 if WATCHDOG_VARIABLE in names:  # an update, whether or not the value changed
-                    self._watchdog_heard = now_s()
+                    self._watchdog_silent_s = 0.0
                 cmd = self.inputs.get("input_int_register_0", 0)
                 if cmd != self._last_cmd:
                     args = dict(zip(names, values, strict=True))
@@ -514,7 +514,7 @@ class URSimulator:
             dt, last = min(t - last, MAX_TICK_S), t
             with self._lock:
                 try:
-                    self._judge_watchdog(t, late=t - last_tick > LATE_TICK_S)
+                    self._judge_watchdog(min(t - last_tick, MAX_SILENCE_TICK_S))
                     self._script_cycle()
                     if dt > 0:
                         self.arm.step(dt)
@@ -609,16 +609,13 @@ class URSimulator:
 
     # -- the uploaded control script, emulated ---------------------------------
 
-    def _judge_watchdog(self, now: float, late: bool) -> None:
+    def _judge_watchdog(self, tick_s: float) -> None:
         """``rtde_set_watchdog(..., "stop")``: no update for 1/f s stops the program."""
         if self.watchdog_hz is None or not self.program_running:
             return
-        if late:  # this process stalled: read what arrived meanwhile before judging
-            self._watchdog_judge_after = now + WATCHDOG_GRACE_S
-        if now < self._watchdog_judge_after:
-            return
-        silent = now - self._watchdog_heard
-        if silent <= 1.0 / self.watchdog_hz:
+        self._watchdog_silent_s += tick_s
+        silent = self._watchdog_silent_s
+        if silent <= 1.0 / self.watchdog_hz or self._input_unread():
             return
         self.watchdog_trips += 1
         log.warning(
@@ -628,6 +625,20 @@ class URSimulator:
             self.watchdog_hz,
         )
         self._stop_program("the RTDE input watchdog tripped")
+
+    def _input_unread(self) -> bool:
+        """A client that writes inputs has bytes this process has not read yet.
+
+        A real controller reads each package as it arrives; here the threads
+        that read them can lag behind on a loaded machine, and an update that
+        has arrived must not count as missing.
+        """
+        socks = [c.sock for c in self._conns if c.alive and c.inputs]
+        try:
+            readable, _, _ = select.select(socks, [], [], 0)
+        except (OSError, ValueError):  # a socket closed meanwhile: judge on what was read
+            return False
+        return bool(readable)
 
     def _script_cycle(self) -> None:
         if self._script_start_at is not None and now_s() >= self._script_start_at:
@@ -699,7 +710,7 @@ class URSimulator:
             if hz <= 0:
                 log.warning("rtde_set_watchdog with %.3g Hz is not simulated: ignored", hz)
                 return True
-            self.watchdog_hz, self._watchdog_heard = hz, now_s()
+            self.watchdog_hz, self._watchdog_silent_s = hz, 0.0
             log.info("RTDE watchdog on %s at %.3g Hz", WATCHDOG_VARIABLE, hz)
             return True
         if cmd in (47, 48):  # isSteady (numbering differs between ur-rtde versions)

@@ -1,0 +1,216 @@
+"""ur-rtde's watchdog: the UR simulator trips it as the control script would, the driver arms it.
+
+The simulator runs in its own process; ur-rtde's own clients talk to it, so
+what is tested is the wire: ``setWatchdog`` (command 35, the frequency in
+``input_double_register_0``) and every package that carries
+``input_int_register_0`` (a kick, or any command) as an update.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from common.errors import ConfigError, DeviceError
+from robot_side.arm.base import ArmLimits
+from robot_side.arm.sim import URSimProcess
+from robot_side.arm.ur_rtde import URArm, URArmConfig
+
+pytestmark = pytest.mark.timeout(60)
+
+JOG = [0.03, 0.0, 0.0, 0.0, 0.0, 0.0]
+
+
+def wait_until(cond, timeout_s: float, period_s: float = 0.002) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(period_s)
+    return cond()
+
+
+@pytest.fixture(scope="module")
+def sim():
+    s = URSimProcess().start()
+    yield s
+    s.stop()
+
+
+@pytest.fixture(scope="module")
+def receive(sim):
+    import rtde_receive
+
+    r = rtde_receive.RTDEReceiveInterface(sim.host)
+    yield r
+    r.disconnect()
+
+
+def _speed(receive) -> float:
+    return float(np.linalg.norm(receive.getActualTCPSpeed()[:3]))
+
+
+def _program_running(receive) -> bool:
+    return bool(int(receive.getRobotStatus()) & 2)
+
+
+def test_no_update_for_one_period_stops_the_program_and_the_arm(sim, receive):
+    import rtde_control
+
+    ctrl = rtde_control.RTDEControlInterface(sim.host)
+    try:
+        assert ctrl.setWatchdog(10.0)
+        assert sim.stats()["watchdog_hz"] == 10.0
+        trips = sim.stats()["watchdog_trips"]
+        assert ctrl.speedL(JOG, 0.5, 0.0)
+        for _ in range(25):  # kicks alone keep it running for longer than the window ...
+            assert ctrl.kickWatchdog()
+            time.sleep(0.02)
+        for _ in range(5):  # ... and so do commands: any package with the register counts
+            assert ctrl.speedL(JOG, 0.5, 0.0)
+            time.sleep(0.05)
+        assert _program_running(receive) and _speed(receive) == pytest.approx(0.03)
+        assert sim.stats()["watchdog_trips"] == trips
+        t_last = time.monotonic()
+        assert ctrl.kickWatchdog()
+        # silence: the program stops 100 ms after the last update and the arm decelerates
+        assert wait_until(lambda: not _program_running(receive), 2.0)
+        t_stopped = time.monotonic() - t_last
+        assert wait_until(lambda: _speed(receive) == 0.0, 1.0)
+        t_still = time.monotonic() - t_last
+        assert sim.stats()["watchdog_trips"] == trips + 1
+        # not before the window (give or take the 2 ms controller cycle it is judged on)
+        assert t_stopped >= 0.095, f"tripped {t_stopped * 1000:.0f} ms after the last kick"
+        # a generous upper bound: only this machine's load can make it later than 100 ms
+        assert t_still < 0.4, f"still only {t_still * 1000:.0f} ms after the last kick"
+        # a stopped program takes no command, and the watchdog went with it
+        assert not ctrl.speedL(JOG, 0.5, 0.0)
+        assert sim.stats()["watchdog_hz"] is None
+        time.sleep(0.1)
+        assert _speed(receive) == 0.0
+    finally:
+        ctrl.stopScript()
+        ctrl.disconnect()
+
+
+def test_a_new_program_starts_without_a_watchdog_and_a_stopped_arm(sim, receive):
+    import rtde_control
+
+    ctrl = rtde_control.RTDEControlInterface(sim.host)
+    try:
+        assert ctrl.setWatchdog(10.0)
+        assert ctrl.speedL(JOG, 0.5, 0.0)
+        assert wait_until(lambda: not _program_running(receive), 2.0)  # never kicked
+        ctrl.disconnect()
+        ctrl = rtde_control.RTDEControlInterface(sim.host)  # a new script, as a reconnect
+        assert _program_running(receive)
+        time.sleep(0.3)  # three windows with nothing sent: no watchdog armed, no trip
+        assert _program_running(receive) and sim.stats()["watchdog_hz"] is None
+        assert _speed(receive) == 0.0, "the new script ran the old program's speedL"
+    finally:
+        ctrl.stopScript()
+        ctrl.disconnect()
+
+
+LIMITS = ArmLimits(max_linear_speed_m_s=0.10, linear_acceleration_m_s2=1.0, jog_timeout_s=0.3)
+
+
+@pytest.fixture
+def arm(sim):
+    limits = dataclasses.replace(LIMITS)  # a test may change its own
+    a = URArm(URArmConfig(host=sim.host, limits=limits, stale_after_s=0.5))
+    a.connect()
+    yield a
+    a.disconnect()
+
+
+def _quiet_for_a_while(arm: URArm, sim, receive) -> tuple[bool, dict]:
+    """Idle, a move (which sends nothing while it runs) and a jog: did the watchdog trip?"""
+    trips = sim.stats()["watchdog_trips"]
+    time.sleep(0.6)  # idle: only the kicks speak
+    arm.move_to(arm.tcp_pose() + np.array([0.01, 0, 0, 0, 0, 0]), speed=0.05)
+    arm.jog(JOG)
+    time.sleep(0.2)
+    arm.stop()
+    return sim.stats()["watchdog_trips"] == trips and _program_running(receive), arm.status()
+
+
+def test_the_driver_arms_the_watchdog_and_its_deadman_thread_keeps_it_quiet(arm, sim, receive):
+    assert sim.stats()["watchdog_hz"] == pytest.approx(1 / arm.config.watchdog_window_s)
+    quiet, status = _quiet_for_a_while(arm, sim, receive)
+    window_ms = arm.config.watchdog_window_s * 1000
+    if not quiet and status["longest_silence_ms"] > window_ms:
+        # this process was stalled longer than the window (the machine's load, not the
+        # driver): the controller did its job. Reconnect and measure once more
+        first = status["longest_silence_ms"]
+        arm.disconnect()
+        arm.connect()
+        quiet, status = _quiet_for_a_while(arm, sim, receive)
+        status["first_try_silence_ms"] = first
+    assert quiet, f"the watchdog tripped under a live driver: {status}"
+    assert status["watchdog_kicks"] > 20 and "program_lost" not in status
+    assert status["longest_silence_ms"] < window_ms, status
+
+
+def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecting(
+    arm, sim, receive
+):
+    arm.limits.jog_timeout_s = 5.0  # only the watchdog may stop this jog
+    arm.jog(JOG)
+    assert wait_until(lambda: _speed(receive) == pytest.approx(0.03), 1.0)
+    # the deadman thread falls silent, as when the process freezes (SIGSTOP, a wedged GIL)
+    arm._keep_alive = lambda: None
+    assert wait_until(lambda: not _program_running(receive), 1.0)
+    assert wait_until(lambda: _speed(receive) == 0.0, 1.0)
+    del arm._keep_alive  # the thread is alive again: it notices the stopped program
+    assert wait_until(lambda: arm.needs_reconnect, 1.0)
+    assert "program_lost" in arm.status()
+    with pytest.raises(DeviceError, match="stopped with the safety mode normal"):
+        arm.jog(JOG)
+    arm.stop()  # the controller stopped the arm: nothing to tell it, no error
+    with pytest.raises(DeviceError, match="Reconnect"):
+        arm.telemetry()  # what makes the node's arm worker start its recovery at once
+    time.sleep(0.2)
+    assert _speed(receive) == 0.0, "moved on a command sent to the stopped program"
+    arm.disconnect()
+    arm.connect()
+    assert not arm.needs_reconnect and sim.stats()["watchdog_hz"] == pytest.approx(1 / 0.15)
+    assert _speed(receive) == 0.0
+    arm.jog(JOG)  # a fresh command moves it again
+    assert wait_until(lambda: _speed(receive) > 0.0, 1.0)
+    arm.stop()
+
+
+def test_a_stop_on_the_dashboard_is_noticed_and_a_move_reconnects_first(arm, sim, receive):
+    with socket.create_connection((sim.host, 29999), timeout=2) as dash:
+        f = dash.makefile("rwb")
+        f.readline()
+        f.write(b"stop\n")
+        f.flush()
+        assert f.readline().strip() == b"Stopped"
+    assert wait_until(lambda: arm.needs_reconnect, 1.0)
+    with pytest.raises(DeviceError, match="pendant or the dashboard"):
+        arm.jog(JOG)
+    # a move is an absolute target asked for now: it reconnects (a fresh script) and moves
+    target = arm.tcp_pose() + np.array([0.0, 0.01, 0, 0, 0, 0])
+    arm.move_to(target, speed=0.05)
+    assert not arm.needs_reconnect
+    np.testing.assert_allclose(arm.tcp_pose()[:3], target[:3], atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("section", "why"),
+    [
+        ({"watchdog_window_s": 0.2}, "no time to decelerate within the 400 ms"),
+        ({"watchdog_window_s": 0.0}, "cannot be turned off"),
+        ({"watchdog_window_s": 0.05}, "less than three kicks"),
+        ({"limits": ArmLimits(stop_deceleration_m_s2=0.6)}, "as long as the watchdog window"),
+    ],
+)
+def test_a_watchdog_that_cannot_work_is_refused_at_construction(section, why):
+    with pytest.raises(ConfigError, match=why):
+        URArm(URArmConfig(**section))
