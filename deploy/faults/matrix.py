@@ -270,8 +270,8 @@ class CellRun:
         unreadable = first_unreadable(arm, tl.t_fault, min(tl.t_release, time.monotonic()))
         if unreadable is not None and (arm_still is None or unreadable < arm_still):
             arm_still = unreadable  # a controller that is away is not following the jog
-        arm_back = (
-            _first(arm, max(arm_still, tl.t_end), lambda v: v > MOVING_M_S)
+        arm_back = (  # after the reading that broke (the last one before a silence moved)
+            _first(arm, max(arm_still + 1e-6, tl.t_end), lambda v: v > MOVING_M_S)
             if arm_still is not None
             else None
         )
