@@ -46,8 +46,8 @@ ARM_STILL_BUDGET_S = 0.4
 STILL_M_S = 0.002  # below this the arm counts as still
 STILL_FOR_S = 0.15  # ... for this long (a jog reversing passes zero for a few ms)
 MOVING_M_S = 0.01
-#: no reading of the arm for this long: its controller is away (killed, frozen, restarting);
-#: far longer than the probe's own stalls on a loaded machine
+#: no reading of the arm for this long in a UR controller cell: the controller is away
+#: (killed, frozen, restarting); far longer than the probe's own stalls on a loaded machine
 ARM_UNREADABLE_S = 0.8
 JOG_M_S = 0.02
 FLIP_S = 2.0
@@ -267,7 +267,7 @@ class CellRun:
         arm = self.arm.between(tl.t_fault, tl.t_release)
         palm = self.palm.between(tl.t_fault, tl.t_release)
         arm_still = first_still(arm, tl.t_fault)
-        unreadable = first_unreadable(arm, tl.t_fault, min(tl.t_release, time.monotonic()))
+        unreadable = self._controller_away(arm, tl, min(tl.t_release, time.monotonic()))
         if unreadable is not None and (arm_still is None or unreadable < arm_still):
             arm_still = unreadable  # a controller that is away is not following the jog
         arm_back = (  # after the reading that broke (the last one before a silence moved)
@@ -282,6 +282,13 @@ class CellRun:
             else None
         )
         return arm_still, arm_back, palm_off, palm_back
+
+    def _controller_away(self, arm: list[Sample], tl: _Timeline, until: float) -> float | None:
+        """When the UR controller stopped answering, in its own cells only: elsewhere a
+        silence is the probe's stall, and must never pass for an arm that stopped in time."""
+        if self.cell.target != "ur":
+            return None
+        return first_unreadable(arm, tl.t_fault, until)
 
     def _settled(self, tl: _Timeline) -> bool:
         arm_still, arm_back, palm_off, palm_back = self._broken_and_back(tl)
@@ -330,7 +337,7 @@ class CellRun:
             arm_speed_at_fault_m_s=round(at_fault[-1].value, 4) if at_fault else None,
             arm_still_s=since(arm_still),
             arm_unreadable_s=since(
-                first_unreadable(self.arm.between(tl.t_fault), tl.t_fault, tl.t_release)
+                self._controller_away(self.arm.between(tl.t_fault), tl, tl.t_release)
             ),
             arm_back_s=since(arm_back),
             palm_off_s=since(palm_off),
