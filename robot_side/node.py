@@ -54,6 +54,13 @@ from robot_side.video.link_signalling import LinkSignalling
 
 log = logging.getLogger(__name__)
 
+#: The arm's reconnects back off to at most this: a try while the controller is still away
+#: costs one refused TCP connect (URArm checks its ports before ur-rtde's constructors), so
+#: a controller that reboots or gets its cable back is used again within about this long.
+ARM_RECONNECT_MAX_BACKOFF_S = 2.0
+#: the arm telemetry that describes the robot node's own limits, not the controller's state
+ARM_ENVELOPE_KEYS = ("arm_ws_", "arm_max_")
+
 _NO_CELLS = list(NO_CELLS)  # every linkage lifted
 _NEVER_NS = 2**63 - 1  # a deadline that never comes
 
@@ -199,7 +206,9 @@ class RobotNode:
                     device.connect()
                     stack.callback(device.disconnect)
             halt = threading.Event()  # ends device recoveries before the devices close
-            self._arm_recovery = DeviceRecovery(self.arm, "arm", halt)
+            self._arm_recovery = DeviceRecovery(
+                self.arm, "arm", halt, max_backoff_s=ARM_RECONNECT_MAX_BACKOFF_S
+            )
             self._gripper_recovery = DeviceRecovery(self.gripper, "gripper", halt)
             stack.callback(self._arm_recovery.join)
             stack.callback(self._gripper_recovery.join)
@@ -946,7 +955,12 @@ class RobotNode:
                 out[f"{name}_reconnects"] = float(rec.recoveries)
         if self._first_seq is not None:
             out["frames_captured"] = float(self._last_seq - self._first_seq + 1)
-        out.update(self._arm_state)  # the arm worker's latest reading, for the dashboard
+        # the arm worker's latest reading, for the dashboard; while the arm reconnects what the
+        # controller last said is no longer true (a speed, a pose): only the envelope is sent
+        arm_state = self._arm_state
+        if not self._arm_recovery.available:
+            arm_state = {k: v for k, v in arm_state.items() if k.startswith(ARM_ENVELOPE_KEYS)}
+        out.update(arm_state)
         out["arm_stop_latched"] = float(self.stop_latch.latched)
         if self._gripper_ack is not None:
             out["gripper_command_seq"], out["gripper_command_session"] = self._gripper_ack

@@ -83,8 +83,8 @@ class DeviceRecovery:
                     log.debug("%s: disconnect before reconnect failed", self.name, exc_info=True)
                 self.device.connect()
             except Exception as e:  # any failure: try again later
-                log.warning("%s: reconnect failed (%s); next try in %.1f s", self.name, e, backoff)
                 backoff = min(self._max, backoff * 2)
+                log.warning("%s: reconnect failed (%s); next try in %.1f s", self.name, e, backoff)
                 continue
             self.recoveries += 1
             log.info("%s: reconnected", self.name)

@@ -24,6 +24,7 @@ import numpy as np
 import zmq
 
 from common.clock import now_ns
+from common.errors import DeviceError
 from common.messages import Heartbeat, Stimulus
 from common.transport import Subscriber, free_loopback_ports
 
@@ -92,7 +93,11 @@ class Telemetry:
 
 
 class ArmWatch:
-    """Samples the simulated controller's TCP speed (not the node's view of it) at ~100 Hz."""
+    """Samples the simulated controller's TCP speed (not the node's view of it) at ~100 Hz.
+
+    ``sim`` may be replaced by a new simulator (the controller restarted); while
+    none answers there are no samples, never a made-up still arm.
+    """
 
     def __init__(self, sim: Any) -> None:
         self.sim = sim
@@ -103,7 +108,10 @@ class ArmWatch:
 
     def _run(self) -> None:
         while not self._stop.wait(0.01):
-            speed = float(np.linalg.norm(self.sim.tcp_speed()))
+            try:
+                speed = float(np.linalg.norm(self.sim.tcp_speed()))
+            except (DeviceError, OSError, ValueError):  # the controller is gone: a gap
+                continue
             self.samples.append((now_ns(), speed))
 
     def moving_between(self, t0: int, t1: int, above: float = 1e-4) -> list[int]:
@@ -179,6 +187,25 @@ class RobotUnderCommands:
                 self.proc.wait()
         self.gripper_sim.stop()
         self.arm_sim.stop()
+
+    def arm_controller_gone(self, kill: bool) -> str:
+        """The UR controller vanishes: ``kill -9`` of its process, or its servers closed cleanly.
+
+        Returns its address, where :meth:`arm_controller_back` starts it again.
+        """
+        host = self.arm_sim.host
+        if kill:
+            self.arm_sim.kill()
+        else:
+            self.arm_sim.stop()
+        return host
+
+    def arm_controller_back(self, host: str) -> None:
+        """A fresh controller on the same address (rebooted, or its cable plugged back)."""
+        from robot_side.arm.sim import URSimConfig, URSimProcess
+
+        self.arm_sim = URSimProcess(URSimConfig(host=host)).start()
+        self.arm.sim = self.arm_sim
 
     def stimulus_rate(self, t0: int, t1: int) -> float:
         return len(self.telemetry.times(Stimulus, t0, t1)) / ((t1 - t0) / 1e9)

@@ -46,6 +46,9 @@ ARM_STILL_BUDGET_S = 0.4
 STILL_M_S = 0.002  # below this the arm counts as still
 STILL_FOR_S = 0.15  # ... for this long (a jog reversing passes zero for a few ms)
 MOVING_M_S = 0.01
+#: no reading of the arm for this long in a UR controller cell: the controller is away
+#: (killed, frozen, restarting); far longer than the probe's own stalls on a loaded machine
+ARM_UNREADABLE_S = 0.8
 JOG_M_S = 0.02
 FLIP_S = 2.0
 #: the operator's stale_after_ms (150), the renderer's travel to the retract pose at
@@ -96,6 +99,8 @@ class CellResult:
     restarted_by: str
     arm_speed_at_fault_m_s: float | None  # the arm must be cruising when the fault comes
     arm_still_s: float | None  # the arm still after the fault (None: it kept following the jog)
+    #: its controller stopped answering (None: it always answered); the arm was not following
+    arm_unreadable_s: float | None
     arm_back_s: float | None  # a jog moves it again
     palm_off_s: float | None  # every linkage off the palm
     palm_back_s: float | None  # stimuli press the palm again
@@ -161,6 +166,18 @@ def first_still(samples: list[Sample], after: float) -> float | None:
         else:
             start = None
     return None
+
+
+def first_unreadable(samples: list[Sample], after: float, until: float) -> float | None:
+    """The last reading before the first silence of ARM_UNREADABLE_S after ``after``."""
+    last = after
+    for s in samples:
+        if s.t_s < after:
+            continue
+        if s.t_s - last >= ARM_UNREADABLE_S:
+            return last
+        last = s.t_s
+    return last if until - last >= ARM_UNREADABLE_S else None
 
 
 @dataclass
@@ -250,8 +267,11 @@ class CellRun:
         arm = self.arm.between(tl.t_fault, tl.t_release)
         palm = self.palm.between(tl.t_fault, tl.t_release)
         arm_still = first_still(arm, tl.t_fault)
-        arm_back = (
-            _first(arm, max(arm_still, tl.t_end), lambda v: v > MOVING_M_S)
+        unreadable = self._controller_away(arm, tl, min(tl.t_release, time.monotonic()))
+        if unreadable is not None and (arm_still is None or unreadable < arm_still):
+            arm_still = unreadable  # a controller that is away is not following the jog
+        arm_back = (  # after the reading that broke (the last one before a silence moved)
+            _first(arm, max(arm_still + 1e-6, tl.t_end), lambda v: v > MOVING_M_S)
             if arm_still is not None
             else None
         )
@@ -262,6 +282,13 @@ class CellRun:
             else None
         )
         return arm_still, arm_back, palm_off, palm_back
+
+    def _controller_away(self, arm: list[Sample], tl: _Timeline, until: float) -> float | None:
+        """When the UR controller stopped answering, in its own cells only: elsewhere a
+        silence is the probe's stall, and must never pass for an arm that stopped in time."""
+        if self.cell.target != "ur":
+            return None
+        return first_unreadable(arm, tl.t_fault, until)
 
     def _settled(self, tl: _Timeline) -> bool:
         arm_still, arm_back, palm_off, palm_back = self._broken_and_back(tl)
@@ -309,6 +336,9 @@ class CellRun:
             restarted_by=restarted_by(self.cell, unit.policy if unit else None),
             arm_speed_at_fault_m_s=round(at_fault[-1].value, 4) if at_fault else None,
             arm_still_s=since(arm_still),
+            arm_unreadable_s=since(
+                self._controller_away(self.arm.between(tl.t_fault), tl, tl.t_release)
+            ),
             arm_back_s=since(arm_back),
             palm_off_s=since(palm_off),
             palm_back_s=since(palm_back),

@@ -41,6 +41,7 @@ stop budget.
 from __future__ import annotations
 
 import concurrent.futures
+import ctypes
 import gc
 import logging
 import queue
@@ -63,7 +64,7 @@ from common.errors import (
     StaleDataError,
 )
 from common.messages import ARM_SAFETY_MODES
-from common.preflight import Finding, PreflightContext, tcp_findings
+from common.preflight import Finding, PreflightContext, tcp_findings, tcp_probe
 from robot_side.arm.base import Arm, ArmLimits
 
 log = logging.getLogger(__name__)
@@ -87,6 +88,9 @@ CONTROLLER_PORTS = {30004: "RTDE", 29999: "dashboard", 30003: "script"}
 
 #: Control interfaces with a call stuck inside (see ``_control``), kept so no destructor runs.
 _ABANDONED: list[Any] = []
+
+#: how long connect() waits for each controller port to accept before calling ur-rtde
+PORT_PROBE_TIMEOUT_S = 1.0
 
 #: A dead node's arm is still within this (docs/arm.md): two watchdog windows (a controller
 #: was reported to trip that late, on URSim) must leave time to decelerate inside it.
@@ -130,6 +134,24 @@ class _Worker:
                 future.set_result(fn(*args))
             except BaseException as e:  # handed to the caller through the future
                 future.set_exception(e)
+
+
+def _retire(interface: Any) -> None:
+    """Close an ur-rtde interface and never run its destructor.
+
+    ``disconnect()`` releases the GIL while it sleeps its 0.5 s; the
+    destructor sleeps another 0.5 s *holding* it (measured: every other
+    thread of the process stops, so a reconnect froze the node's frame loop
+    for a second). The object keeps one reference forever: it is never
+    destroyed, not even at interpreter exit (where a list of them would cost
+    0.5 s each). Closed, it holds no socket and no thread; its memory did not
+    show in the process's peak RSS over repeated reconnects.
+    """
+    try:
+        interface.disconnect()
+    except RuntimeError as e:  # already gone: nothing left to close
+        log.debug("URArm: disconnect of a retired interface: %s", e)
+    ctypes.pythonapi.Py_IncRef(ctypes.py_object(interface))
 
 
 class ArmCommandRefusedError(DeviceError):
@@ -241,8 +263,20 @@ class URArm(Arm):
 
     @property
     def needs_reconnect(self) -> bool:
-        """The control interface was abandoned, or the control script stopped under us."""
-        return self._ctrl_broken is not None or self._program_lost is not None
+        """Either interface lost the controller, the control interface was abandoned, or the
+        control script stopped under us.
+
+        ur-rtde never brings a lost receive interface back, and its control interface's own
+        reconnect gives up after one try while the controller is away, so a controller that
+        rebooted or got its cable back is only used again through ``disconnect()`` and
+        ``connect()`` (the node's ``DeviceRecovery`` does that off the frame loop).
+        """
+        if self._ctrl_broken is not None or self._program_lost is not None:
+            return True
+        recv, ctrl = self._recv, self._ctrl
+        if recv is None or ctrl is None:
+            return False
+        return not (recv.isConnected() and ctrl.isConnected())
 
     def connect(self) -> None:
         if self.is_connected:
@@ -255,6 +289,7 @@ class URArm(Arm):
             f"check that the UR controller at {host} is on, reachable (ping it), in remote "
             "control, and that no other program holds its RTDE inputs"
         )
+        self._require_ports_open(hint)
         try:
             recv = rtde_receive.RTDEReceiveInterface(
                 host, self.config.frequency_hz, RECEIVE_VARIABLES
@@ -278,7 +313,7 @@ class URArm(Arm):
                         gc.collect()
                     time.sleep(CONTROL_CONNECT_RETRY_S)
                     continue
-                recv.disconnect()
+                _retire(recv)
                 msg = f"URArm: RTDE control to {host} failed ({e}); {hint}"
                 raise DeviceNotConnectedError(msg) from e
         self._recv, self._ctrl = recv, ctrl
@@ -292,6 +327,20 @@ class URArm(Arm):
         log.info(
             "URArm connected to %s (watchdog %.0f ms)", host, self.config.watchdog_window_s * 1000
         )
+
+    def _require_ports_open(self, hint: str) -> None:
+        """Refuse at once when a controller port does not accept a connection.
+
+        ur-rtde's constructors hold the GIL while they connect: against a
+        controller that is still booting, or behind a pulled cable (no answer at
+        all), every thread of the node would stop until their timeouts. A plain
+        socket waits without the GIL, so a reconnect that cannot work yet costs
+        the frame loop nothing.
+        """
+        for port in CONTROLLER_PORTS:
+            problem = tcp_probe(self.config.host, port, PORT_PROBE_TIMEOUT_S)
+            if problem is not None:
+                raise DeviceNotConnectedError(f"URArm: {problem}; {hint}")
 
     def _arm_watchdog(self) -> None:
         """From here on the controller stops the arm whenever this process falls silent."""
@@ -330,16 +379,16 @@ class URArm(Arm):
         finally:
             self._watchdog_armed_ts = None
             self._recv = self._ctrl = None
+            if self._worker is not None:
+                self._worker.shutdown()
+                self._worker = None
             if self._ctrl_broken is not None:
                 # a call is stuck inside it; destroying it now would block on that call
                 log.warning("URArm: control interface abandoned: %s", self._ctrl_broken)
                 _ABANDONED.append(ctrl)
-            if self._worker is not None:
-                self._worker.shutdown()
-                self._worker = None
-            # ur-rtde's destructors disconnect (each sleeps 0.5 s with the GIL held);
-            # an explicit disconnect() first would only add another 0.5 s.
-            del recv, ctrl
+            else:
+                _retire(ctrl)
+            _retire(recv)
             log.info("URArm disconnected from %s", self.config.host)
 
     # -- receive side --------------------------------------------------------
@@ -481,6 +530,9 @@ class URArm(Arm):
             return
         self._notice_program_stop(recv)
         if self._program_lost is not None or now_s() - self._last_sent < KICK_AFTER_COMMAND_S:
+            return
+        if not ctrl.isConnected():
+            # kickWatchdog would start ur-rtde's own reconnect; the node's recovery reconnects
             return
         if not self._wire.acquire(blocking=False):
             return

@@ -15,6 +15,8 @@ import pytest
 
 from common.codec import encode
 from common.messages import Heartbeat
+from deploy.faults.matrix import ARM_UNREADABLE_S, first_unreadable
+from deploy.faults.probes import Sample
 from deploy.unit_policy import policy
 from operator_side.record_cli import _RECORD, read_records
 from robot_side.gripper.sim import GripperSimServer
@@ -90,3 +92,18 @@ def test_a_simulator_shows_its_front_panel_and_unplugs_on_a_signal(tmp_path):
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_a_controller_that_stops_answering_is_away_from_its_last_reading():
+    """A killed UR simulator gives no readings: that is the controller away, from the last one.
+
+    Read as samples alone, the gap had passed for an arm that kept following the jog.
+    """
+    moving = [Sample(i * 0.01, 0.02) for i in range(100)]  # to 0.99 s
+    back = [Sample(3.0 + i * 0.01, 0.0) for i in range(50)]  # a new controller from 3 s
+    assert first_unreadable(moving + back, 0.5, 3.5) == pytest.approx(0.99)
+    assert first_unreadable(moving, 0.5, 0.99 + ARM_UNREADABLE_S / 2) is None  # not yet
+    assert first_unreadable(moving, 0.5, 0.99 + ARM_UNREADABLE_S) == pytest.approx(0.99)
+    assert first_unreadable(back, 0.5, 3.5) == 0.5  # nothing at all since the fault
+    steady = [Sample(i * 0.01, 0.02) for i in range(400)]
+    assert first_unreadable(steady, 0.5, 3.99) is None

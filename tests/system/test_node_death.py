@@ -203,7 +203,7 @@ def test_sigstop_mid_jog_the_controller_stops_the_arm_and_sigcont_recovers(rig, 
             assert rig.reader.moved_during(0.5) == 0.0, f"trial {trial}: moved after SIGCONT"
             # the node reconnects by itself (a fresh control script) and jogs again
             _jog_until_moving(rig, operator, -direction)
-            operator.command("arm_stop")
+            operator.command("arm_jog_end")  # a released key: an arm_stop would latch the arm
             assert rig.reader.still_after(time.monotonic()) < STOP_BUDGET_S
     finally:
         log.close()

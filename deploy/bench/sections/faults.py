@@ -84,9 +84,11 @@ def _late(row: dict[str, Any]) -> bool:
 def _arm(row: dict[str, Any]) -> str:
     if not _cruising(row):
         return "(not moving at the fault: the machine's load had stalled the jog)"
-    still = row["arm_still_s"]
+    still, away = row["arm_still_s"], row.get("arm_unreadable_s")
     if still is None:
         return "**kept moving**" if _late(row) else "kept following the jog"
+    if away is not None and away <= still:
+        return f"controller unreadable from {_s(away)} (an interruption)"
     if row["target"] not in CUTS_THE_JOG:
         return f"stopped at {_s(still)} (an interruption)"
     return f"{_s(still)}" + (" **over budget**" if _late(row) else "")

@@ -1,0 +1,105 @@
+"""The UR controller rebooted or its cable pulled under a running robot node, seen from outside.
+
+The robot node runs as its own process with its real ur-rtde driver; the UR
+simulator, a process of its own, is killed (or closes its servers cleanly)
+and started again on the same address, as a controller that rebooted. An
+operator on raw sockets keeps holding a jog throughout. Read from the new
+simulator: a jog moves the arm again within seconds, with nobody reconnecting
+anything; read from the wire: the palm's stimuli never stopped meanwhile, and
+the robot's heartbeat said the arm was unavailable while it was.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+from tests_support import ProtocolOperator
+
+from common.clock import now_ns
+from common.messages import Heartbeat, Stimulus
+from common.transport import Publisher, Subscriber
+from deploy.bench.command_path import RobotUnderCommands
+
+pytestmark = pytest.mark.usefixtures("quiet_gc")
+
+JOG = (0.02, 0.0, 0.0, 0.0, 0.0, 0.0)
+DOWN_S = 1.0  # the controller away this long, then a new one starts on the same address
+#: from the controller's return to the arm following the jog again: the driver's reconnect
+#: (0.5 s back-off, about 1 s to close the old interfaces, tries at most 2 s apart) plus load
+BACK_WITHIN_S = 10.0
+#: the frame loop never waits on a device: no stimulus gap over this (or 4x the idle one)
+STALL_LIMIT_S = 0.5
+
+
+def _hold_jog(op: ProtocolOperator, rig: RobotUnderCommands, seconds: float) -> int | None:
+    """Renew the jog every 50 ms for ``seconds``; when the controller first saw it move."""
+    t0 = now_ns()
+    while now_ns() - t0 < seconds * 1e9:
+        op.command("arm_jog", velocity=JOG)
+        op.pump(0.05)
+        moving = rig.arm.moving_between(t0, now_ns(), above=0.01)
+        if moving:
+            return moving[0]
+    return None
+
+
+def _largest_gap_s(times: list[int]) -> float:
+    return float(max(np.diff(sorted(times)))) / 1e9 if len(times) > 1 else float("inf")
+
+
+@pytest.mark.parametrize("kill", [True, False], ids=["kill-9", "clean-restart"])
+def test_the_arm_moves_again_after_its_controller_comes_back(tmp_path: Path, kill: bool):
+    with RobotUnderCommands(tmp_path) as rig:
+        ctx = zmq.Context()
+        op = ProtocolOperator(
+            Subscriber(ctx, rig.telemetry_endpoint, bind=False),
+            Publisher(ctx, rig.command_endpoint, bind=False),
+            session=31,
+        )
+        try:
+            op.sync()
+            i0 = now_ns()
+            op.pump(1.5)
+            idle_gap = _largest_gap_s(rig.telemetry.sent_times(Stimulus, i0, now_ns()))
+            assert _hold_jog(op, rig, 10.0) is not None, "the jog never moved the arm"
+
+            t_fault = now_ns()
+            host = rig.arm_controller_gone(kill)
+            _hold_jog(op, rig, DOWN_S)  # the operator keeps holding the key
+            rig.arm_controller_back(host)
+            t_back = now_ns()
+            moved = _hold_jog(op, rig, BACK_WITHIN_S)
+            t_end = now_ns()
+            op.pump(0.3)
+        finally:
+            op.sub.close()
+            op.pub.close()
+            ctx.term()
+        log = rig.log.read_text()
+        assert moved is not None, (
+            f"no jog moved the arm within {BACK_WITHIN_S:.0f} s of its controller's return "
+            f"(robot log tail):\n{log[-3000:]}"
+        )
+        beats = [m for t, m in rig.telemetry.messages if isinstance(m, Heartbeat) and t >= t_fault]
+        assert any(b.stats.get("arm_available") == 0.0 for b in beats), (
+            "the robot's heartbeat never said the arm was unavailable while its controller was away"
+        )
+        after = [b for b in beats if b.t_send_ns >= moved]
+        assert after and after[-1].stats.get("arm_available") == 1.0
+        assert after[-1].stats.get("arm_reconnects", 0) >= 1
+        gap = _largest_gap_s(rig.telemetry.sent_times(Stimulus, t_fault, t_end))
+        limit = max(STALL_LIMIT_S, 4 * idle_gap)
+        assert gap < limit, (
+            f"the robot sent no stimulus for {gap * 1000:.0f} ms while its arm reconnected "
+            f"(limit {limit * 1000:.0f} ms; idle, the machine's own largest gap was "
+            f"{idle_gap * 1000:.0f} ms): the frame loop waited on the arm, a product defect"
+        )
+        print(
+            f"\narm controller {'killed' if kill else 'restarted'}: moved again "
+            f"{(moved - t_back) / 1e9:.2f} s after its return ({(moved - t_fault) / 1e9:.2f} s "
+            f"after the fault); largest stimulus gap {gap * 1000:.0f} ms "
+            f"(idle {idle_gap * 1000:.0f} ms)"
+        )
