@@ -4,7 +4,6 @@ recorder's file cut by a kill, a simulator's front panel and cable signals."""
 from __future__ import annotations
 
 import contextlib
-
 import json
 import os
 import signal
