@@ -33,6 +33,7 @@ from common.transport import free_loopback_ports
 from deploy import live_view
 from deploy.scene import Scene, load_scene_dict
 from deploy.supervisor import DEFAULT_RESTART_S, Child, Supervisor, unit_restart_s
+from deploy.unit_policy import set_niceness, unit_nice
 from operator_side.dashboard.config import VIDEO_OVER_LINK
 from operator_side.node import build_operator_node
 
@@ -81,14 +82,21 @@ def die_with_parent() -> None:
         pass
 
 
-def spawn_cli(args: list[str], log_path: Path) -> subprocess.Popen:
+def spawn_cli(args: list[str], log_path: Path, unit: str | None = None) -> subprocess.Popen:
+    """``deepxpalm ARGS`` as a child of the demo; at the priority of its systemd ``unit``."""
     out = log_path.open("ab")  # a restarted child's log follows its crash
+    nice = unit_nice(unit)
+
+    def in_child() -> None:
+        die_with_parent()
+        set_niceness(nice)
+
     return subprocess.Popen(
         [sys.executable, "-m", "deploy.cli", *args],
         stdout=out,
         stderr=subprocess.STDOUT,
         start_new_session=True,  # Ctrl-C reaches the demo only; it stops the children in order
-        preexec_fn=die_with_parent,
+        preexec_fn=in_child,
     )
 
 
@@ -289,7 +297,7 @@ def run(args: argparse.Namespace) -> int:
 
     def cli_child(name: str, argv: Callable[[int], list[str]], **kw: Any) -> None:
         log_path = workdir / f"{name}.log"
-        children.add(Child(name, lambda n: spawn_cli(argv(n), log_path), log_path, **kw))
+        children.add(Child(name, lambda n: spawn_cli(argv(n), log_path, name), log_path, **kw))
 
     cli_child("robot", robot_args, restart_delay_s=unit_restart_s("robot"))
     if use_netsim:

@@ -27,6 +27,7 @@ import zmq.auth
 from common.signing import generate_key_files, load_public_key
 from common.transport import free_loopback_ports
 from deploy.keys_cli import generate
+from deploy.unit_policy import set_niceness, unit_nice
 
 log = logging.getLogger(__name__)
 
@@ -214,8 +215,10 @@ class Fleet:
 
     # ------------------------------------------------------------ processes
     def _start(self, name: str, args: list[str], stdin: bool = False) -> Proc:
+        """``deepxpalm ARGS`` at the priority its systemd unit gives it (``args[1]``: the unit)."""
         log_path = self.workdir / f"{name}.log"
         stats_path = self.workdir / f"{name}-stats.json"
+        nice = unit_nice(args[1])
         with log_path.open("w") as out:
             popen = subprocess.Popen(
                 [sys.executable, "-m", "deploy.cli", *args, "--stats-file", str(stats_path)],
@@ -224,6 +227,7 @@ class Fleet:
                 stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
                 env=self.env,
                 text=True,
+                preexec_fn=lambda: set_niceness(nice),
             )
         proc = Proc(name, popen, log_path, stats_path, popen.stdin if stdin else None)
         self.procs[name] = proc

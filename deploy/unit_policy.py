@@ -7,6 +7,8 @@ in the table as in the field.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
 import signal
 from dataclasses import dataclass
@@ -20,12 +22,13 @@ _CLEAN_SIGNALS = {signal.SIGHUP, signal.SIGINT, signal.SIGTERM, signal.SIGPIPE}
 
 @dataclass(frozen=True)
 class RestartPolicy:
-    """A unit's Restart=, RestartSec= and WatchdogSec= (0: none)."""
+    """A unit's Restart=, RestartSec=, WatchdogSec= (0: none) and Nice= (None: none)."""
 
     unit: str
     restart: str
     restart_sec: float
     watchdog_sec: float
+    nice: int | None = None
 
     def restarts_after(self, returncode: int) -> bool:
         """Whether systemd starts the process again after it ended with ``returncode``."""
@@ -61,4 +64,25 @@ def policy(unit: str, units_dir: Path = UNITS_DIR) -> RestartPolicy | None:
         restart=keys.get("Restart", "no"),
         restart_sec=_seconds(keys.get("RestartSec", "100ms")),
         watchdog_sec=_seconds(keys.get("WatchdogSec", "0")),
+        nice=int(keys["Nice"]) if "Nice" in keys else None,
     )
+
+
+def unit_nice(unit: str | None) -> int | None:
+    """``Nice=`` of ``deepxpalm-<unit>.service``; None without a unit or a setting."""
+    found = policy(unit) if unit else None
+    return None if found is None else found.nice
+
+
+def set_niceness(nice: int | None) -> None:
+    """In a child before exec: run at ``nice``, as systemd runs the unit.
+
+    The nodes' units ask for a higher priority than other work (the robot
+    and operator nodes ``Nice=-10``): on a busy machine their loops keep
+    their rate. Where the process may not raise its priority (not root, no
+    CAP_SYS_NICE) it keeps the one it has: the same programs, less margin.
+    """
+    if nice is None:
+        return  # no unit says: the parent's priority
+    with contextlib.suppress(OSError):
+        os.nice(nice - os.nice(0))

@@ -27,6 +27,7 @@ from common.clock import now_ns
 from common.errors import DeviceError
 from common.messages import Heartbeat, Stimulus
 from common.transport import Subscriber, free_loopback_ports
+from deploy.unit_policy import set_niceness, unit_nice
 
 PUBLISH_HZ = 60.0
 FLOOD_VELOCITY = [0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
@@ -163,11 +164,13 @@ class RobotUnderCommands:
     def start_node(self, timeout_s: float = 60.0) -> None:
         """Start the robot node process; returns once it publishes (again, after a restart)."""
         t0 = now_ns()
+        nice = unit_nice("robot")
         with self.log.open("a") as out:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "deploy.cli", "robot", "--config", str(self.config)],
                 stdout=out,
                 stderr=subprocess.STDOUT,
+                preexec_fn=lambda: set_niceness(nice),  # as its unit runs it
             )
         deadline = time.monotonic() + timeout_s
         while not self.telemetry.times(Stimulus, t0):
