@@ -80,8 +80,15 @@ def full_matrix() -> list[Cell]:
 
 
 def quick_matrix() -> list[Cell]:
-    """The cells the tests hold too: the robot node killed and frozen, the relay, the link."""
-    return [Cell("robot", KILL), Cell("robot", STOP), Cell("relay", KILL), Cell("link", OUTAGE)]
+    """The cells the tests hold too: the robot node killed and frozen, the relay, netsim's clean
+    restart (it once ignored SIGTERM and relayed on), the link."""
+    return [
+        Cell("robot", KILL),
+        Cell("robot", STOP),
+        Cell("relay", KILL),
+        Cell("netsim", RESTART),
+        Cell("link", OUTAGE),
+    ]
 
 
 MATRICES = {"full": full_matrix, "quick": quick_matrix, "smallest": lambda: [Cell("robot", KILL)]}

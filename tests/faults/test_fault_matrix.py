@@ -18,25 +18,16 @@ import pytest
 from deploy.faults.deployment import DeploymentError
 from deploy.faults.matrix import (
     ARM_STILL_BUDGET_S,
-    KILL,
-    OUTAGE,
     PALM_LIFT_BUDGET_S,
-    RESTART,
-    STOP,
     Cell,
     CellRun,
+    quick_matrix,
 )
 
 #: how much a loaded machine may add to a budget before the test calls it the product's fault
 LOAD_SLACK_S = 0.6
 
-CELLS = [
-    Cell("robot", KILL),
-    Cell("robot", STOP),
-    Cell("relay", KILL),
-    Cell("netsim", RESTART),
-    Cell("link", OUTAGE),
-]
+CELLS = quick_matrix()
 
 
 @pytest.fixture(scope="module")
