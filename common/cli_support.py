@@ -14,6 +14,7 @@ from typing import Any, Protocol, TypeVar
 from common.config import config_toml, defaults_toml, from_dict, load_toml
 from common.overrides import apply_overrides
 from common.sd_notify import watch_node
+from common.signals import on_signal, stop_on_signals
 
 T = TypeVar("T")
 
@@ -68,22 +69,10 @@ def print_config(config: Any, section: str) -> None:
     print(config_toml(config, section), end="")
 
 
-def stop_on_signals() -> threading.Event:
-    """SIGINT and SIGTERM (systemd's stop) set the returned event for a clean shutdown."""
-    stop = threading.Event()
-
-    def handler(signum: int, _frame: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
-    return stop
-
-
 def reload_on_hangup(reload: threading.Event) -> None:
     """SIGHUP (systemd's ``ExecReload``) sets ``reload``; the process's loop acts on it."""
     if hasattr(signal, "SIGHUP"):
-        signal.signal(signal.SIGHUP, lambda _signum, _frame: reload.set())
+        on_signal(signal.SIGHUP, reload.set)
 
 
 def write_stats(path: Path | None, stats: dict[str, Any]) -> None:

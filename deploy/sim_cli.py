@@ -25,8 +25,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import stop_on_signals, write_stats
+from common.cli_support import write_stats
 from common.config import from_dict, load_toml
+from common.signals import on_signal, stop_on_signals
 
 SIMULATORS = {
     "tactile": ("robot_side.tactile.board_sim", "TactileBoardSimulator", "TactileBoardSimConfig"),
@@ -69,8 +70,8 @@ def front_panel(sim: Any) -> dict[str, Any]:
 def _cable_on_signals(sim: Any) -> None:
     """SIGUSR1 unplugs, SIGUSR2 plugs back in, for simulators that have a cable."""
     if callable(getattr(sim, "unplug", None)):
-        signal.signal(signal.SIGUSR1, lambda _s, _f: sim.unplug())
-        signal.signal(signal.SIGUSR2, lambda _s, _f: sim.replug())
+        on_signal(signal.SIGUSR1, sim.unplug)
+        on_signal(signal.SIGUSR2, sim.replug)
 
 
 def _publish_status(sim: Any, path: Path, stop: threading.Event) -> None:

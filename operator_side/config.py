@@ -24,6 +24,11 @@ class OperatorLinkConfig:
         150.0,
         "a stimulus older than this is not rendered; with none fresher, every linkage lifts off",
     )
+    jog_blind_after_ms: float = param(
+        150.0,
+        "nothing from the robot sent within this long (its send time on our clock): jogs are "
+        "held, since we no longer see what we steer; the robot's deadman then stops the arm",
+    )
     heartbeat_rate_hz: float = param(20.0, "heartbeats keep the robot's deadman satisfied")
     heartbeat_early_ms: float = param(
         20.0, "a heartbeat due within this long goes out on a wake-up already happening"

@@ -145,6 +145,9 @@ class OperatorNode:
         self.sub: Receiver | None = link.sub if link is not None else None
         self._sockets_opened_ns = 0
         self._last_rx_ns = 0
+        #: the send time of the robot's newest stimulus or heartbeat, on our clock
+        self._robot_heard_ns: int | None = None
+        self._blind_log = BurstLog(log, "jog held: no fresh telemetry, we cannot see the arm")
         self._rejected_before = 0  # rejections counted by sockets since reopened
         link_cfg = config.link
         try:
@@ -374,8 +377,20 @@ class OperatorNode:
         self.counters["decode_errors"] = self._rejected_before + self.sub.rejected_total
         return new
 
+    def _heard_robot(self, t_send_ns: int, t_recv: int) -> None:
+        """The robot was alive at ``t_send_ns``: a backlog delivered late does not count as now."""
+        local = self._to_local(t_send_ns, t_recv)
+        if self._robot_heard_ns is None or local > self._robot_heard_ns:
+            self._robot_heard_ns = local
+
+    def sees_robot(self, now: int) -> bool:
+        """Whether the robot's telemetry is fresh enough to steer by (``jog_blind_after_ms``)."""
+        heard = self._robot_heard_ns
+        return heard is not None and (now - heard) / 1e6 <= self.config.link.jog_blind_after_ms
+
     def _on_stimulus(self, msg: Stimulus, t_recv: int) -> bool:
         self.link.on_message(msg.seq, msg.t_send_ns, t_recv)
+        self._heard_robot(msg.t_send_ns, t_recv)
         last = self._stim
         if last is not None and last.seq - RESTART_SEQ_GAP < msg.seq <= last.seq:
             self.counters["stimuli_out_of_order"] += 1
@@ -425,6 +440,7 @@ class OperatorNode:
         ):
             echo_send = echo_recv = None  # it answers another operator's heartbeat
         self.clock.on_heartbeat(msg.t_send_ns, echo_send, echo_recv, t_recv)
+        self._heard_robot(msg.t_send_ns, t_recv)
         was = self.is_controller
         self.lease_holder = msg.controller
         self.lease_pending = msg.lease_pending
@@ -554,6 +570,11 @@ class OperatorNode:
     def flush_commands(self, now: int) -> None:
         """Send what ``send_command`` queued; resend a gripper command nobody confirmed.
 
+        A jog goes out only while the robot's telemetry is fresh (``sees_robot``):
+        with it stale we cannot see what we steer, whichever half of the link
+        failed, so the jog is dropped and the robot's deadman stops the arm.
+        Stops, gripper and lease commands always go.
+
         A gripper command is one-shot: lost, or refused as stale after a stall
         on the link, the gripper would silently not move. The robot's heartbeat
         names the newest gripper command it acted on (``gripper_command_seq``,
@@ -571,6 +592,10 @@ class OperatorNode:
                 cmd.seq, cmd.t_send_ns = self._vsig_seq, self.now()
                 self.pub.send(cmd)
                 self.counters[f"video_{cmd.kind}s_sent"] += 1
+                continue
+            if cmd.action == "arm_jog" and not self.sees_robot(now):
+                self.counters["jogs_held_blind"] += 1
+                self._blind_log("arm_jog")
                 continue
             self._send_command(cmd, now, resends=0)
         pending = self._gripper_pending

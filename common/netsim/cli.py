@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
-import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -25,6 +24,7 @@ from common.netsim.impairments import DIRECTIONS, Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
 from common.netsim.relay import StreamRelay
 from common.netsim.scenario import builtin_scenarios, load_scenario
+from common.signals import stop_on_signals
 
 log = logging.getLogger(__name__)
 
@@ -109,12 +109,8 @@ def run(args: argparse.Namespace) -> int:
         print_config(config, "netsim")
         return 0
     scenario = scenario_from_args(config, args)
-    done = threading.Event()
-
-    def _on_signal(signum: int, frame: object) -> None:
-        done.set()
-
-    old = signal.signal(signal.SIGTERM, _on_signal)
+    old = signal.getsignal(signal.SIGTERM)
+    done = stop_on_signals((signal.SIGTERM,))  # Ctrl-C stays a KeyboardInterrupt
     sim = build_simulator(config, scenario)
     try:
         sim.start()

@@ -110,6 +110,8 @@ class Unit:
     starts: int = 0
     #: monotonic times at which the supervisor (or a clean restart) started it again
     restarted_at: list[float] = field(default_factory=list)
+    #: each clean restart: seconds from SIGTERM to the end, and whether it had to be killed
+    stops: list[tuple[float, bool]] = field(default_factory=list)
 
     def launch(self) -> Proc:
         self.proc = self.start()
@@ -302,12 +304,17 @@ class Deployment:
         self.supervisor.hold(name)
         try:
             popen = unit.proc.popen
+            t_term = time.monotonic()
             popen.send_signal(signal.SIGTERM)
+            killed = False
             try:
                 popen.wait(timeout_s)
             except subprocess.TimeoutExpired:  # systemd's TimeoutStopSec=, then SIGKILL
+                log.warning("%s still running %.0f s after SIGTERM: killed", name, timeout_s)
                 popen.kill()
                 popen.wait()
+                killed = True
+            unit.stops.append((time.monotonic() - t_term, killed))
             unit.launch()
             unit.restarted_at.append(time.monotonic())
         finally:

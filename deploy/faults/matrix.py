@@ -83,8 +83,15 @@ def full_matrix() -> list[Cell]:
 
 
 def quick_matrix() -> list[Cell]:
-    """The cells the tests hold too: the robot node killed and frozen, the relay, the link."""
-    return [Cell("robot", KILL), Cell("robot", STOP), Cell("relay", KILL), Cell("link", OUTAGE)]
+    """The cells the tests hold too: the robot node killed and frozen, the relay, netsim's clean
+    restart (it once ignored SIGTERM and relayed on), the link."""
+    return [
+        Cell("robot", KILL),
+        Cell("robot", STOP),
+        Cell("relay", KILL),
+        Cell("netsim", RESTART),
+        Cell("link", OUTAGE),
+    ]
 
 
 MATRICES = {"full": full_matrix, "quick": quick_matrix, "smallest": lambda: [Cell("robot", KILL)]}
@@ -112,6 +119,7 @@ class CellResult:
     recording_gap_s: float | None  # last record before the fault, seconds before it
     recording_records: int
     notes: str
+    stop_s: float | None = None  # a clean restart: SIGTERM to the end of the process
     error: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
@@ -330,10 +338,15 @@ class CellRun:
         held, min_pos = self._gripper_held(tl)
         rec_ok, rec_gap, rec_n = self._recording(tl)
         unit = self.d.units.get(self.cell.target)
+        by = restarted_by(self.cell, unit.policy if unit else None)
+        if unit is not None and unit.stops:
+            took, killed = unit.stops[-1]
+            if killed:
+                by += f"; ignored SIGTERM, killed after {took:.0f} s"
         return CellResult(
             target=self.cell.target,
             fault=self.cell.fault,
-            restarted_by=restarted_by(self.cell, unit.policy if unit else None),
+            restarted_by=by,
             arm_speed_at_fault_m_s=round(at_fault[-1].value, 4) if at_fault else None,
             arm_still_s=since(arm_still),
             arm_unreadable_s=since(
@@ -352,6 +365,7 @@ class CellRun:
             recording_gap_s=rec_gap,
             recording_records=rec_n,
             notes="",
+            stop_s=round(unit.stops[-1][0], 3) if unit is not None and unit.stops else None,
         )
 
     def _gripper_held(self, tl: _Timeline) -> tuple[bool | None, float | None]:

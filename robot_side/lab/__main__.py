@@ -9,12 +9,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import signal
 import sys
-import threading
 from pathlib import Path
 
 from common.config import from_dict, load_toml
+from common.signals import stop_on_signals
 from robot_side.lab.config import LabWorldConfig
 
 
@@ -58,9 +57,7 @@ def main(argv: list[str] | None = None) -> None:
         partial = args.addresses_file.with_suffix(".partial")
         partial.write_text(json.dumps(server.addresses()))
         partial.replace(args.addresses_file)
-    done = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: done.set())
-    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    done = stop_on_signals()
     print(
         json.dumps(
             {

@@ -18,18 +18,16 @@ import pytest
 from deploy.faults.deployment import DeploymentError
 from deploy.faults.matrix import (
     ARM_STILL_BUDGET_S,
-    KILL,
-    OUTAGE,
     PALM_LIFT_BUDGET_S,
-    STOP,
     Cell,
     CellRun,
+    quick_matrix,
 )
 
 #: how much a loaded machine may add to a budget before the test calls it the product's fault
 LOAD_SLACK_S = 0.6
 
-CELLS = [Cell("robot", KILL), Cell("robot", STOP), Cell("relay", KILL), Cell("link", OUTAGE)]
+CELLS = quick_matrix()
 
 
 @pytest.fixture(scope="module")
@@ -47,6 +45,10 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
         row = CellRun(cell, retract_goals).run()
     except DeploymentError as e:
         pytest.fail(f"the deployment never got ready (load, or a start-up failure): {e}")
+    assert row.stop_s is None or "killed" not in row.restarted_by, (
+        f"{cell.label}: the process ignored SIGTERM for {row.stop_s:.0f} s and had to be killed "
+        "(product: a clean stop must stop it; it kept running meanwhile)"
+    )
     baseline = row.released_still_s
     assert baseline is not None, (
         f"{cell.label}: the arm was still moving 1.5 s after the operator let go at the end "

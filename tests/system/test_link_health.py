@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
@@ -14,6 +15,7 @@ from common.netsim.scenario import scenario_from_dict
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus
+from robot_side.arm.memory import MemoryArm
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.tactile.script import GraspScript, GraspStep
@@ -24,8 +26,9 @@ CYCLE_MS = 1000 / 60
 SLACK_MS = 10  # thread wake-up on a shared 2-core VM
 
 
-@pytest.fixture
-def loop():
+@contextlib.contextmanager
+def _running(scenario: dict, arm):
+    """Robot node, netsim (message mode) with ``scenario``, operator node: all on threads."""
     tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_ports(2))
     rc = RobotConfig()
     rc.render.mode = "mask_ground_truth"
@@ -35,17 +38,13 @@ def loop():
         loop=False,
         start_delay_s=0.2,
     )
-    arm = RecordingArm()
     robot = RobotNode(rc, ScriptedTactileSensor(ScriptedTactileConfig(script=hold)), arm=arm)
-    scenario = scenario_from_dict(
-        {"name": "cut", "both": {"delivery": "datagram", "outages": [list(OUTAGE)]}}
-    )
     stop = threading.Event()
     threads = [threading.Thread(target=robot.run, args=(stop,), daemon=True)]
     threads[0].start()
     time.sleep(0.2)
     sim = LinkSimulator(
-        scenario,
+        scenario_from_dict(scenario),
         endpoints=Endpoints(
             robot_telemetry=tel,
             robot_commands=cmd,
@@ -61,11 +60,20 @@ def loop():
     operator = OperatorNode(oc, bus)
     threads.append(threading.Thread(target=operator.run, args=(stop,), daemon=True))
     threads[1].start()
-    yield robot, operator, arm, bus, sim, stop
-    stop.set()
-    for t in threads:
-        t.join(timeout=5)
-    sim.stop()
+    try:
+        yield robot, operator, arm, bus, sim, stop
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(timeout=5)
+        sim.stop()
+
+
+@pytest.fixture
+def loop():
+    scenario = {"name": "cut", "both": {"delivery": "datagram", "outages": [list(OUTAGE)]}}
+    with _running(scenario, RecordingArm()) as parts:
+        yield parts
 
 
 def _first_change(changes, state, after_ns):
@@ -111,3 +119,41 @@ def test_a_cut_link_lifts_the_palm_and_stops_the_arm_then_recovers(loop):
     assert any(t > back for t in arm.jog_times), "jogging did not resume after the outage"
     after = [r for r in bus.records if r.t_ns > ok_again]
     assert after and np.any(np.array([after[-1].goals[i] for i in range(1, 7)]) != retract)
+
+
+def test_telemetry_cut_while_commands_still_pass_stops_the_operators_jogs_and_the_arm():
+    """Half a link: the robot hears the operator, the operator hears nothing back.
+
+    The robot's deadman is satisfied (heartbeats and jogs keep arriving), so
+    only the operator can end this: it no longer sees what it steers, and
+    holds its jogs; the arm's own jog lifetime then stops it.
+    """
+    scenario = {
+        "name": "telemetry cut",
+        "both": {"delivery": "datagram"},
+        "to_operator": {"outages": [list(OUTAGE)]},
+    }
+    arm = MemoryArm()
+    with _running(scenario, arm) as (robot, operator, _, _bus, sim, _stop):
+        cut, back = (sim.start_ns + round(s * 1e9) for s in OUTAGE)
+        while time.monotonic_ns() < back + round(1.5e9):
+            operator.send_command("arm_jog", velocity=(0.01, 0.0, 0.0, 0.0, 0.0, 0.0))
+            time.sleep(0.05)
+        assert robot.link_state == "ok", "the robot heard the operator throughout (half a link)"
+        jogs = arm.jog_times_ns
+        assert any(t < cut for t in jogs), "the arm was never jogged before the cut"
+        blind_ms = operator.config.link.jog_blind_after_ms
+        # a jog sent just before the operator went blind may still be on its way
+        late = [t for t in jogs if cut + round((blind_ms + 100) * 1e6) < t < back]
+        assert not late, (
+            f"{len(late)} jogs reached the arm during the telemetry outage, the last "
+            f"{(late[-1] - cut) / 1e6:.0f} ms after the cut (product: the operator steered blind)"
+        )
+        stops = [t for t in arm.stop_times_ns if cut <= t < back]
+        limit_ms = blind_ms + arm.limits.jog_timeout_s * 1e3 + 100 + SLACK_MS
+        assert stops and (stops[0] - cut) / 1e6 <= limit_ms, (
+            f"the arm stopped {(stops[0] - cut) / 1e6 if stops else None} ms after the cut, "
+            f"limit {limit_ms:.0f} ms (jogs held after {blind_ms:.0f} ms, then the jog lifetime)"
+        )
+        assert operator.counters["jogs_held_blind"] > 0
+        assert any(t > back for t in jogs), "jogging did not resume once telemetry returned"

@@ -11,11 +11,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import signal
 import sys
-import threading
 
 from common.config import from_dict
+from common.signals import stop_on_signals
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 
 
@@ -51,9 +50,7 @@ def main(argv: list[str] | None = None) -> None:
 
         serve_stdio(sim, sys.stdin, sys.stdout)
         return
-    done = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: done.set())
-    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    done = stop_on_signals()
     logging.getLogger(__name__).info("serving on %s; Ctrl-C to stop", sim.host)
     done.wait()
     sim.stop()
