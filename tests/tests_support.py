@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 
 from common.transport import free_loopback_ports
 
@@ -204,3 +205,13 @@ def child_processes(parent_pid: int) -> dict[str, int]:
             if role in words:
                 found[role] = int(entry)
     return found
+
+
+def wait_until(cond: Callable[[], bool], timeout_s: float, period_s: float = 0.002) -> bool:
+    """Poll ``cond`` until it holds or ``timeout_s`` passes; its last answer."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(period_s)
+    return cond()

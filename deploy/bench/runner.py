@@ -23,7 +23,7 @@ from deploy.bench.sizes import Sizes
 log = logging.getLogger(__name__)
 
 
-def _git_commit() -> str | None:
+def git_commit() -> str | None:
     try:
         out = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5
@@ -79,7 +79,7 @@ def run_bench(
     from deploy.bench import timing
 
     load_before = timing.machine_load()
-    commit = _git_commit()  # before: others may commit while the bench runs
+    commit = git_commit()  # before: others may commit while the bench runs
     with timing.one_core(cpu) as core:
         results = _measure(sizes, preset, skip, core, models, progress)
     results["git_commit"] = commit
@@ -117,7 +117,7 @@ def _measure(
         "preset": preset,
         "sizes": sizes.flat(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "git_commit": _git_commit(),
+        "git_commit": git_commit(),
         "machine": {
             "cpu": _cpu_model(),
             "cores": os.cpu_count(),

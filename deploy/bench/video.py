@@ -27,7 +27,7 @@ STALL_MS = 500.0
 
 
 @contextlib.contextmanager
-def _all_cores() -> Iterator[None]:
+def all_cores() -> Iterator[None]:
     """The browser and the encoder are processes and threads of their own: unpin them."""
     from deploy.bench.timing import original_affinity
 
@@ -57,7 +57,7 @@ def glass_to_glass(
     node = OperatorNode(OperatorConfig(), RecordingServoBus())  # the page needs a node; idle
     want = frames + WARMUP_FRAMES
     timeout_s = 30 + 3 * want / fps
-    with _all_cores(), VideoServer(source, VideoConfig(port=0)) as server:
+    with all_cores(), VideoServer(source, VideoConfig(port=0)) as server:
         dashboard = Dashboard(node, DashboardConfig(port=0, video_url=server.url))
         dashboard.start()
         try:

@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import pytest
+from tests_support import wait_until
 
 from common.config import from_dict
 from common.devices import build_device
@@ -39,22 +40,6 @@ LIMITS = ArmLimits(
     linear_acceleration_m_s2=1.0,
     jog_timeout_s=0.2,
 )
-
-
-def wait_until(cond, timeout_s: float, period_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(period_s)
-    return cond()
-
-
-@pytest.fixture(scope="module")
-def sim():
-    s = URSimProcess().start()
-    yield s
-    s.stop()
 
 
 #: The robot's 0.1 s staleness limit is for a controller streaming at 500 Hz; a simulator

@@ -14,31 +14,15 @@ import time
 
 import numpy as np
 import pytest
+from tests_support import wait_until
 
 from common.errors import ConfigError, DeviceError
 from robot_side.arm.base import ArmLimits
-from robot_side.arm.sim import URSimProcess
 from robot_side.arm.ur_rtde import URArm, URArmConfig
 
 pytestmark = pytest.mark.timeout(60)
 
 JOG = [0.03, 0.0, 0.0, 0.0, 0.0, 0.0]
-
-
-def wait_until(cond, timeout_s: float, period_s: float = 0.002) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(period_s)
-    return cond()
-
-
-@pytest.fixture(scope="module")
-def sim():
-    s = URSimProcess().start()
-    yield s
-    s.stop()
 
 
 @pytest.fixture(scope="module")

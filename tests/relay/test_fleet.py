@@ -103,9 +103,9 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
                     break
                 time.sleep(0.005)
             assert stopped_at is not None, "cell2 kept moving after its controller died"
-            # the deadman (250 ms) plus the stop's deceleration (0.03 m/s at 2 m/s^2: 15 ms)
-            # and the simulator's poll
-            assert (stopped_at - t_kill) / 1e6 < 250 + 15 + 60
+            # the deadman (250 ms) plus the stop's deceleration (0.03 m/s at 2 m/s^2: 15 ms),
+            # the simulator's poll and the relay hop: inside the 400 ms stop budget
+            assert (stopped_at - t_kill) / 1e6 < 400
             print(f"cell2 stopped {(stopped_at - t_kill) / 1e6:.0f} ms after its controller died")
         finally:
             monitor.close()

@@ -33,6 +33,10 @@ def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leav
     with fleet:
         fleet.start_relay()
         video, video_url = fleet.start_video()
+        # up before the first offer: an offer to a server not yet listening is answered
+        # "closed" (the robot tells a viewer the camera is not there, it does not wait)
+        serving = lambda: "video signalling at" in video.log_text()  # noqa: E731
+        fleet.wait_for(serving, 30, "the video server")
         fleet.start_robot("cell1", None, video_url=video_url)
         dashboard = [
             "--set",

@@ -40,7 +40,8 @@ def _flood_once(rig) -> tuple[float, float, dict]:
     t0 = now_ns()
     time.sleep(2.0)
     normal = rig.stimulus_rate(t0, now_ns())
-    assert normal > 0.8 * PUBLISH_HZ, f"the scripted grasp gave only {normal:.0f} stimuli/s"
+    # the rig works at all (the flood's verdict below is relative to this rate)
+    assert normal > 0.5 * PUBLISH_HZ, f"the scripted grasp gave only {normal:.0f} stimuli/s"
     report = rig.flood(N_FLOOD)
     t_first, t_last = report["t_first_ns"], report["t_last_ns"]
     time.sleep(2.5)  # let the backlog in the kernel's and ZeroMQ's queues age out

@@ -35,7 +35,7 @@ SIZES = {
 
 def measure(ctx: Context, sizes: FaultsSizes) -> dict[str, Any]:
     """Every cell, with the bench's pin to one core lifted: these are whole deployments."""
-    from deploy.bench.runner import _git_commit
+    from deploy.bench.runner import git_commit
     from deploy.bench.timing import machine_load, original_affinity
     from deploy.faults.matrix import MATRICES, run_cells
 
@@ -50,7 +50,7 @@ def measure(ctx: Context, sizes: FaultsSizes) -> dict[str, Any]:
         os.sched_setaffinity(0, pinned)
     return {
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "commit": _git_commit(),
+        "commit": git_commit(),
         "load_before": load_before,
         "load_after": load_after,
         "cells": rows,

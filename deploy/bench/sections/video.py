@@ -30,11 +30,11 @@ VIEWERS = 4
 
 
 def measure(ctx: Context, sizes: VideoSizes) -> dict[str, Any]:
-    from deploy.bench.video import _all_cores, glass_to_glass
+    from deploy.bench.video import all_cores, glass_to_glass
     from deploy.bench.video_viewers import many_viewers
 
     out = glass_to_glass(sizes.video_frames)
-    with _all_cores():
+    with all_cores():
         out["many_viewers"] = many_viewers(VIEWERS, sizes.viewers_s)
     return out
 
