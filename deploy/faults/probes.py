@@ -9,6 +9,7 @@ and coming back: it reconnects and records the gap as missing samples.
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import json
 import logging
@@ -28,7 +29,7 @@ class Sample:
     value: float  # what the probe measures (m/s, finger counts, ...)
 
 
-class _Probe:
+class _Probe(abc.ABC):
     period_s = 0.01
 
     def __init__(self, name: str) -> None:
@@ -57,10 +58,11 @@ class _Probe:
                 self.samples.append(Sample(time.monotonic(), value))
             self._stop.wait(self.period_s)
 
+    @abc.abstractmethod
     def read(self) -> float | None:
-        raise NotImplementedError
+        """One reading from outside the failing process; None: nothing to read now."""
 
-    def reset(self) -> None:
+    def reset(self) -> None:  # noqa: B027 (a probe without a connection has nothing to drop)
         """Drop the connection after an error; the next read opens a new one."""
 
     def between(self, t0: float, t1: float = math.inf) -> list[Sample]:

@@ -326,12 +326,7 @@ class GripperSimServer:
     def stop(self) -> None:
         """Close every socket: to a client, the gripper has vanished."""
         self._quit.set()
-        if self._listener is not None:
-            with contextlib.suppress(OSError):
-                self._listener.shutdown(socket.SHUT_RDWR)
-            self._listener.close()
-            self._listener = None
-        self.drop_connections()
+        self.unplug()
         for t in self._threads:
             t.join(timeout=2.0)
         self._threads.clear()
@@ -357,7 +352,8 @@ class GripperSimServer:
             self._listener.close()
             self._listener = None
         self.drop_connections()
-        log.info("gripper simulator unplugged")
+        if not self._quit.is_set():
+            log.info("gripper simulator unplugged")
 
     def replug(self) -> None:
         """Listen again on the address it had: the driver's reconnect finds the same gripper."""
