@@ -141,7 +141,8 @@ def netsim_args(scene: Scene, endpoints: tuple[str, str, str, str]) -> list[str]
 
 
 def fit_command_timing(scene: Scene) -> None:
-    """Widen the robot's command age, deadman and jog time to the scenario's command delay.
+    """Widen the robot's command age, deadman and jog time to the scenario's command delay,
+    and the operator's blind-jog limit to its telemetry delay.
 
     The robot judges commands by the operator's send time, so on a link slower
     than ``max_command_age_ms`` (a GEO satellite) nothing would ever be fresh
@@ -150,7 +151,13 @@ def fit_command_timing(scene: Scene) -> None:
     """
     from common.netsim.scenario import load_scenario
 
-    to_robot = load_scenario(scene.network.scenario).direction("to_robot")
+    scenario = load_scenario(scene.network.scenario)
+    to_operator = scenario.direction("to_operator")
+    # the operator holds its jogs when the robot's telemetry is older than this (by send time)
+    seen_ms = to_operator.delay_ms + 4 * to_operator.jitter_ms + 100.0
+    op_link = scene.operator.link
+    op_link.jog_blind_after_ms = max(op_link.jog_blind_after_ms, seen_ms)
+    to_robot = scenario.direction("to_robot")
     needed_ms = to_robot.delay_ms + 4 * to_robot.jitter_ms + 100.0  # + heartbeat period, slack
     link = scene.robot.link
     if needed_ms <= link.max_command_age_ms:
