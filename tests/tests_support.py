@@ -60,6 +60,8 @@ class ProtocolOperator:
         self.received: list = []  # (local receive ns, message)
         self._echo: tuple[int | None, int | None] = (None, None)
         self._next_hb_ns = 0
+        self._echoing_sent: set[int] = set()  # our heartbeats that carried an echo
+        self.robot_has_clock = False  # the robot answered one of those: it knows our offset
 
     def pump(self, duration_s: float = 0.0) -> None:
         """Read telemetry and keep heartbeats going (20 Hz) for ``duration_s``."""
@@ -72,6 +74,8 @@ class ProtocolOperator:
                 self.received.append((t_recv, msg))
                 if isinstance(msg, Heartbeat):
                     self._echo = (msg.t_send_ns, t_recv)
+                    if msg.echo_t_send_ns in self._echoing_sent:
+                        self.robot_has_clock = True
             now = now_ns()
             if now >= self._next_hb_ns:
                 self.hb_seq += 1
@@ -85,14 +89,26 @@ class ProtocolOperator:
                         echo_t_recv_ns=self._echo[1],
                     )
                 )
+                if self._echo[0] is not None:
+                    self._echoing_sent.add(now)
                 self._next_hb_ns = now + 50_000_000
             if now >= end:
                 return
             self.sub.poll(min(0.01, (end - now) / 1e9))
 
-    def sync(self) -> None:
-        """Long enough for the robot to take a clock sample from our echoes (3 round trips)."""
+    def sync(self, timeout_s: float = 15.0) -> None:
+        """Until the robot has taken a clock sample from our echoes (it echoed one back).
+
+        A fixed wait was enough on a quiet machine; on a busy one the first
+        commands then arrived unsynced and were refused.
+        """
+        deadline = time.monotonic() + timeout_s
         self.pump(0.35)
+        while not self.robot_has_clock:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the robot never echoed our heartbeats in {timeout_s:.0f} s")
+            self.pump(0.05)
+        self.pump(0.1)  # a few more samples for its offset filter
 
     def command(self, action: str, **fields):
         from common.clock import now_ns

@@ -15,7 +15,9 @@ def _python(code: str):
     return lambda n: subprocess.Popen([sys.executable, "-c", code])
 
 
-SLEEPER = _python("import time; time.sleep(60)")
+# not a Python child: a Ctrl-C that lands while an interpreter starts up exits 1, which
+# stop_child rightly reports (seen on a loaded machine); sleep(1) dies by SIGINT whenever
+SLEEPER = lambda n: subprocess.Popen(["sleep", "60"])  # noqa: E731
 FAILER = _python("raise SystemExit(3)")
 
 

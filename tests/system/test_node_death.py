@@ -111,11 +111,14 @@ def operator(rig):
 
 def _holding(rig, op: ProtocolOperator) -> dict[str, int]:
     """Close the gripper on the pipette through the node; its registers once it holds."""
-    op.command("gripper_close", grip_level=GRIP_LEVEL)
     deadline = time.monotonic() + 10
     model = rig.gripper_sim.model
+    resend = 0.0
     while not (model.read()["OBJ"] in (2, 3) and model.read()["PRE"] > 0):
         assert time.monotonic() < deadline, f"the gripper never closed: {model.read()}"
+        if time.monotonic() >= resend:  # as the operator node resends an unconfirmed close
+            op.command("gripper_close", grip_level=GRIP_LEVEL)
+            resend = time.monotonic() + 1.0
         op.pump(0.05)
     return model.read()
 
