@@ -249,21 +249,19 @@ def test_a_stop_on_one_page_or_a_gamepad_holds_the_jog_of_another_until_a_resume
         b.evaluate("window.__pad.buttons[1] = { pressed: false, touched: false, value: 0 }")
         return pressed / 1000
 
+    def rounds(what: str, press, resumer) -> None:
+        """``ROUNDS`` measured stops (a few more tries on a loaded machine), each resumed."""
+        for n in range(3 * ROUNDS):
+            run.stop(what, press, check_hold=n == 0)
+            run.resume(resumer, check_hold=n == 0)
+            if len(run.stops.get(what, [])) >= ROUNDS:
+                break
+
     # STOP ARM clicked on page B while page A holds its key; B resumes
-    what = "STOP ARM clicked on page B"
-    for n in range(3 * ROUNDS):
-        run.stop(what, click, check_hold=n == 0)
-        run.resume(b, check_hold=n == 0)
-        if len(run.stops.get(what, [])) >= ROUNDS:
-            break
+    rounds("STOP ARM clicked on page B", click, b)
     # the gamepad's stop button (the standard mapping's B) on page B; A resumes (it may too)
     b.evaluate(PAD)
-    what = "the gamepad's stop button on page B"
-    for n in range(3 * ROUNDS):
-        run.stop(what, pad_button, check_hold=n == 0)
-        run.resume(a, check_hold=n == 0)
-        if len(run.stops.get(what, [])) >= ROUNDS:
-            break
+    rounds("the gamepad's stop button on page B", pad_button, a)
 
     robot_stats = dashboard.node.snapshot().robot_stats
     assert robot_stats["arm_stops_latched"] >= 2 * ROUNDS, robot_stats
