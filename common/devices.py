@@ -142,3 +142,17 @@ class OnItsSimulator(abc.ABC):
             super().disconnect()  # type: ignore[misc]
         finally:
             self._stop_simulator()
+
+    def reconnect_driver(self) -> None:
+        """Drop and reopen the driver's connection; the simulator keeps running.
+
+        A real controller, gripper or bus stays up while its driver recovers,
+        and so does its simulator: restarting it would reset the arm's pose
+        and cost a process start-up (seconds on a loaded machine) inside the
+        recovery. A simulator that died meanwhile is started again.
+        """
+        try:
+            super().disconnect()  # type: ignore[misc]
+        except Exception:  # a half-dead driver may fail to close; connect decides
+            log.debug("%s: disconnect before reconnect failed", type(self).__name__, exc_info=True)
+        self.connect()

@@ -8,8 +8,10 @@ operator`` never pays for (or depends on) what the robot needs.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import logging
+import signal
 import sys
 
 from common.errors import DeepXPalmError
@@ -63,6 +65,18 @@ def _build_parser(chosen: str | None) -> argparse.ArgumentParser:
     return parser
 
 
+def _dump_stacks_on_request(on_usr1: bool) -> None:
+    """``kill -USR1 <pid>`` writes every thread's stack to stderr (the unit's journal).
+
+    The one way to see where a frozen node is stuck without stopping it; a
+    crash in a native library (SIGSEGV, SIGABRT) dumps the same. faulthandler
+    writes from the signal handler, so it works even while a thread holds the GIL.
+    """
+    faulthandler.enable()
+    if on_usr1 and hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     chosen = next((a for a in argv if not a.startswith("-")), None)
@@ -77,6 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    _dump_stacks_on_request(args.command != "sim")  # simulators use SIGUSR1 as "unplug"
     module = importlib.import_module(SUBCOMMANDS[args.command][0])
     try:
         return int(module.run(args) or 0)

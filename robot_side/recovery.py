@@ -77,11 +77,7 @@ class DeviceRecovery:
         backoff = self._first
         while not self._stop.wait(backoff):
             try:
-                try:
-                    self.device.disconnect()
-                except Exception:  # a half-dead driver may fail to close; connect decides
-                    log.debug("%s: disconnect before reconnect failed", self.name, exc_info=True)
-                self.device.connect()
+                self._reconnect()
             except Exception as e:  # any failure: try again later
                 backoff = min(self._max, backoff * 2)
                 log.warning("%s: reconnect failed (%s); next try in %.1f s", self.name, e, backoff)
@@ -90,6 +86,17 @@ class DeviceRecovery:
             log.info("%s: reconnected", self.name)
             self._available.set()
             return
+
+    def _reconnect(self) -> None:
+        reconnect_driver = getattr(self.device, "reconnect_driver", None)
+        if reconnect_driver is not None:  # a simulated device: its simulator stays up
+            reconnect_driver()
+            return
+        try:
+            self.device.disconnect()
+        except Exception:  # a half-dead driver may fail to close; connect decides
+            log.debug("%s: disconnect before reconnect failed", self.name, exc_info=True)
+        self.device.connect()
 
     def join(self, timeout_s: float = 5.0) -> None:
         if self._thread is not None:

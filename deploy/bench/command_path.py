@@ -167,7 +167,7 @@ class RobotUnderCommands:
         nice = unit_nice("robot")
         with self.log.open("a") as out:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "deploy.cli", "robot", "--config", str(self.config)],
+                [sys.executable, "-m", "deploy.cli", "-v", "robot", "--config", str(self.config)],
                 stdout=out,
                 stderr=subprocess.STDOUT,
                 preexec_fn=lambda: set_niceness(nice),  # as its unit runs it
@@ -177,6 +177,13 @@ class RobotUnderCommands:
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"the robot node never published:\n{self.log.read_text()}")
             time.sleep(0.02)
+
+    def log_with_stacks(self) -> str:
+        """The node's log, ending with every thread's stack (``kill -USR1``) if it still runs."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGUSR1)
+            time.sleep(0.5)
+        return self.log.read_text()
 
     def __exit__(self, *exc: object) -> None:
         self.arm.close()

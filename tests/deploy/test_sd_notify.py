@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import threading
@@ -145,7 +146,10 @@ def test_watch_follows_a_real_operator_node(systemd, operator_in_thread):
 
 
 def test_robot_process_tells_systemd_it_is_ready_and_alive(systemd, tmp_path):
-    """The unit's Type=notify + WatchdogSec, seen from the process: READY=1, then pings."""
+    """The unit's Type=notify + WatchdogSec, seen from the process: READY=1, then pings.
+
+    ``kill -USR1`` then writes every thread's stack to the journal and the node runs on.
+    """
     tel, cmd = free_ports(2)
     proc = subprocess.Popen(
         cli(
@@ -172,8 +176,13 @@ def test_robot_process_tells_systemd_it_is_ready_and_alive(systemd, tmp_path):
     try:
         seen = systemd.wait_for("WATCHDOG=1", 20.0)
         assert any(m.startswith("READY=1") for m in seen)
+        proc.send_signal(signal.SIGUSR1)
+        systemd.wait_for("WATCHDOG=1", 5.0)  # still alive and publishing after the dump
+        assert proc.poll() is None
     finally:
         proc.terminate()
         _, err = proc.communicate(timeout=15)
     assert proc.returncode == 0, err.decode()
+    dump = err.decode()
+    assert "most recent call first" in dump and "in run" in dump, dump[-2000:]
     assert Path(systemd.env_value).exists()

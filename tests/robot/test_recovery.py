@@ -79,3 +79,28 @@ def test_stopping_the_node_ends_a_recovery_that_cannot_succeed():
     stop.set()
     rec.join(1.0)
     assert not rec.available and arm.connects > 1
+
+
+def test_a_simulated_arm_recovers_on_the_same_running_simulator():
+    """As a real controller stays up while its driver reconnects, the simulator is not restarted.
+
+    Restarting it would put the arm back at home and cost a process start inside the recovery.
+    """
+    from robot_side.arm.sim import SimulatedArm
+
+    arm, stop = SimulatedArm(), threading.Event()
+    arm.connect()
+    try:
+        sim_before = arm.sim
+        host = arm.config.host
+        rec = DeviceRecovery(arm, "arm", stop, first_backoff_s=0.05)
+        rec.failed()
+        deadline = time.monotonic() + 30
+        while not rec.available and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert rec.available and rec.recoveries == 1
+        assert arm.sim is sim_before and arm.sim.running and arm.config.host == host
+        assert arm.is_connected and not arm.needs_reconnect
+    finally:
+        stop.set()
+        arm.disconnect()

@@ -78,10 +78,9 @@ def test_the_arm_moves_again_after_its_controller_comes_back(tmp_path: Path, kil
             op.sub.close()
             op.pub.close()
             ctx.term()
-        log = rig.log.read_text()
         assert moved is not None, (
             f"no jog moved the arm within {BACK_WITHIN_S:.0f} s of its controller's return "
-            f"(robot log tail):\n{log[-3000:]}"
+            f"(robot log tail, then its threads' stacks):\n{rig.log_with_stacks()[-8000:]}"
         )
         beats = [m for t, m in rig.telemetry.messages if isinstance(m, Heartbeat) and t >= t_fault]
         assert any(b.stats.get("arm_available") == 0.0 for b in beats), (
