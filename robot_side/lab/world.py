@@ -90,6 +90,9 @@ class LabWorld:
         self._finger_dof = [int(m.jnt_dofadr[j]) for j in fingers]
         self._renderers: dict[tuple[int, int], object] = {}
         self.q = np.zeros(6)
+        #: the flange target's last place and its new one, glided between by the next step
+        self._flange_from: tuple[np.ndarray, np.ndarray] | None = None
+        self._flange_to: tuple[np.ndarray, np.ndarray] | None = None
         self.frames_rendered = 0
         self.steps = 0
         self.step_time_s = 0.0
@@ -101,7 +104,14 @@ class LabWorld:
     # -- the arm: placed, not integrated ---------------------------------------------
 
     def set_arm(self, q: np.ndarray) -> None:
-        """Place the links and the gripper for joint angles ``q`` (the controller's)."""
+        """Place the links and the gripper for joint angles ``q`` (the controller's).
+
+        The gripper's flange target is not moved at once: the next :meth:`step`
+        glides it there across its steps. Placed once per batch, a world that
+        owed several steps jerked the welded gripper in jumps and the pipette
+        slid in the pads (2.7 mm per 40 mm lift placed every 8 steps, 12 mm
+        every 25, against 0.04 mm every step).
+        """
         links, flange = link_poses(q)
         quat = np.empty(4)
         with self.lock:
@@ -111,9 +121,22 @@ class LabWorld:
                 d.mocap_pos[mocap] = t[:3, 3]
                 self.mj.mju_mat2Quat(quat, t[:3, :3].ravel())
                 d.mocap_quat[mocap] = quat
-            d.mocap_pos[self._gripper_mocap] = flange[:3, 3]
             self.mj.mju_mat2Quat(quat, flange[:3, :3].ravel())
-            d.mocap_quat[self._gripper_mocap] = quat
+            g = self._gripper_mocap
+            self._flange_from = (d.mocap_pos[g].copy(), d.mocap_quat[g].copy())
+            self._flange_to = (flange[:3, 3].copy(), quat.copy())
+            d.mocap_pos[g], d.mocap_quat[g] = self._flange_to
+
+    def _glide_flange(self, fraction: float) -> None:
+        """The flange target ``fraction`` of the way from its last place to its new one."""
+        assert self._flange_from is not None and self._flange_to is not None
+        (p0, q0), (p1, q1) = self._flange_from, self._flange_to
+        if float(np.dot(q0, q1)) < 0.0:  # the shorter way round
+            q1 = -q1
+        quat = q0 + fraction * (q1 - q0)
+        g = self._gripper_mocap
+        self.data.mocap_pos[g] = p0 + fraction * (p1 - p0)
+        self.data.mocap_quat[g] = quat / np.linalg.norm(quat)
 
     def gripper_to_flange(self) -> None:
         """Put the welded gripper at rest where its flange target is (no yank from the weld)."""
@@ -171,13 +194,20 @@ class LabWorld:
     # -- stepping ------------------------------------------------------------------------
 
     def step(self, n: int = 1) -> None:
-        """``n`` physics steps, the lock taken per step so readers never wait for a batch."""
-        for _ in range(n):
+        """``n`` physics steps, the lock taken per step so readers never wait for a batch.
+
+        The flange glides to where :meth:`set_arm` last put it, a share per step.
+        """
+        glide = self._flange_from is not None and n > 1
+        for k in range(n):
             with self.lock:
+                if glide:
+                    self._glide_flange((k + 1) / n)
                 t0 = time.perf_counter()
                 self.mj.mj_step(self.model, self.data)
                 self.step_time_s += time.perf_counter() - t0
                 self.steps += 1
+        self._flange_from = None
 
     @property
     def sim_time_s(self) -> float:
