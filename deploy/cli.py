@@ -10,11 +10,14 @@ from __future__ import annotations
 import argparse
 import faulthandler
 import importlib
+import io
 import logging
 import signal
 import sys
 
 from common.errors import DeepXPalmError
+
+log = logging.getLogger(__name__)
 
 #: subcommand -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -72,9 +75,12 @@ def _dump_stacks_on_request(on_usr1: bool) -> None:
     crash in a native library (SIGSEGV, SIGABRT) dumps the same. faulthandler
     writes from the signal handler, so it works even while a thread holds the GIL.
     """
-    faulthandler.enable()
-    if on_usr1 and hasattr(signal, "SIGUSR1"):
-        faulthandler.register(signal.SIGUSR1, all_threads=True)
+    try:
+        faulthandler.enable()
+        if on_usr1 and hasattr(signal, "SIGUSR1"):
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
+    except (io.UnsupportedOperation, ValueError):  # stderr is no file (main() called in-process)
+        log.debug("no stack dumps: stderr has no file descriptor")
 
 
 def main(argv: list[str] | None = None) -> int:

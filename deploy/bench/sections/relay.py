@@ -42,7 +42,7 @@ class RelaySizes:
 SIZES = {
     "full": RelaySizes(15.0, 100.0, (1, 4, 16), 3.0, 15.0, 20.0, 250.0),
     "quick": RelaySizes(6.0, 100.0, (1, 4, 16), 2.0, 5.0, 8.0, 250.0),
-    "smallest": RelaySizes(1.5, 100.0, (1, 4, 16), 0.5, 1.0, 1.5, 100.0),
+    "smallest": RelaySizes(1.5, 100.0, (1, 4), 0.5, 1.0, 1.5, 100.0),
 }
 
 
