@@ -137,10 +137,15 @@ class DashboardDemo:
         self.argv += ["--set", f"operator.dashboard.port={self.port}"]
         self.ready_timeout_s = ready_timeout_s
         self.proc: subprocess.Popen | None = None
+        #: the page's address with its token, as the demo printed it
+        self.url = f"http://127.0.0.1:{self.port}/"
 
     @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}/"
+    def ws_url(self) -> str:
+        """The page's WebSocket, with the token the demo's URL carries."""
+        from common.web_token import from_query, with_token
+
+        return with_token(f"ws://127.0.0.1:{self.port}/ws", from_query(self.url) or "")
 
     def __enter__(self) -> DashboardDemo:
         self.proc = subprocess.Popen(
@@ -148,7 +153,10 @@ class DashboardDemo:
         )
         deadline = time.monotonic() + self.ready_timeout_s
         for line in self.proc.stderr:  # the demo names its dashboard once the robot answered
-            if "dashboard http" in line or time.monotonic() > deadline:
+            if line.startswith("dashboard http"):
+                self.url = line.split()[1]
+                break
+            if time.monotonic() > deadline:
                 break
         return self
 
