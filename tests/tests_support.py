@@ -183,18 +183,18 @@ class VideoServerProcess:
             self.argv += ["--set", s]
         self.proc: subprocess.Popen | None = None
 
-    @property
-    def url(self) -> str:
-        return f"ws://127.0.0.1:{self.port}/"
+        #: its signalling URL with the token, as it printed it
+        self.url = f"ws://127.0.0.1:{self.port}/"
 
     def __enter__(self) -> VideoServerProcess:
         self.proc = subprocess.Popen(
             self.argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
-        line = self.proc.stdout.readline()  # "video: ws://... (source ...)" once it serves
+        line = self.proc.stdout.readline()  # "video: ws://...?token=... (source ...)"
         if not line.startswith("video: ws://"):
             self.proc.kill()
             raise RuntimeError(f"the video server did not start: {self.proc.stderr.read()[-2000:]}")
+        self.url = line.split()[1]
         return self
 
     def __exit__(self, *exc: object) -> None:

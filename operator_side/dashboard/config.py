@@ -42,7 +42,8 @@ class DashboardConfig:
         "",
         "where the robot's video is offered: 'link' = through this node's link to the robot "
         "(and its relay; the robot sets link.video_url), or the video server's WebSocket, "
-        "e.g. ws://127.0.0.1:8890/; empty: no video panel",
+        "e.g. ws://127.0.0.1:8890/?token=... (the URL deepxpalm video prints, token included); "
+        "empty: no video panel",
     )
     ice: IceConfig = param(
         IceConfig(),

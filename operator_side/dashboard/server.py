@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from websockets.asyncio.server import ServerConnection
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from common import web_token
 from common.errors import ConfigError
@@ -307,8 +307,8 @@ class Dashboard:
             reason = "the robot's video server closed the session"
         except asyncio.CancelledError:
             raise
-        except (OSError, TimeoutError, ConnectionClosed, ValueError) as e:
-            reason = f"no video from {url}: {e}"
+        except (OSError, TimeoutError, ConnectionClosed, ValueError, InvalidStatus) as e:
+            reason = f"no video from {web_token.without_token(url)}: {e}"
             log.warning("dashboard: %s", reason)
         with contextlib.suppress(ConnectionClosed):
             await conn.send(json.dumps({"type": "video_closed", "reason": reason}))
