@@ -231,6 +231,40 @@ def child_processes(parent_pid: int) -> dict[str, int]:
     return found
 
 
+def listening_sockets(pid: int) -> list[tuple[str, str, int]]:
+    """(protocol, address, port) of every socket process ``pid`` listens on, as ``ss -lnpt``
+    and ``ss -lnpu`` list them: TCP in LISTEN, UDP unconnected; read from /proc."""
+    import ipaddress
+    import os
+    import socket
+    import struct
+
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = []
+    for proto, listening in (("tcp", "0A"), ("tcp6", "0A"), ("udp", "07"), ("udp6", "07")):
+        with open(f"/proc/{pid}/net/{proto}") as f:
+            rows = [line.split() for line in f.readlines()[1:]]
+        for row in rows:
+            if row[9] not in inodes or row[3] != listening:
+                continue
+            hex_addr, hex_port = row[1].split(":")
+            raw = bytes.fromhex(hex_addr)
+            # /proc prints each 32-bit word in host order
+            words = struct.unpack(f"<{len(raw) // 4}I", raw)
+            packed = struct.pack(f">{len(words)}I", *words)
+            family = socket.AF_INET if len(packed) == 4 else socket.AF_INET6
+            address = str(ipaddress.ip_address(socket.inet_ntop(family, packed)))
+            found.append((proto, address, int(hex_port, 16)))
+    return found
+
+
 def wait_until(cond: Callable[[], bool], timeout_s: float, period_s: float = 0.002) -> bool:
     """Poll ``cond`` until it holds or ``timeout_s`` passes; its last answer."""
     deadline = time.monotonic() + timeout_s
