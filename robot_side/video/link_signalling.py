@@ -177,7 +177,7 @@ class LinkSignalling:
     def _emit(self, viewer: int, kind: str, **fields: object) -> None:
         self.outgoing.append(VideoSignal(seq=0, t_send_ns=0, kind=kind, viewer=viewer, **fields))
 
-    def _url(self) -> str:
+    def url(self) -> str:
         """The video server's URL with its token, read each time (a restart may renew it)."""
         if self.token_file is None:
             return self.video_url
@@ -191,7 +191,7 @@ class LinkSignalling:
 
         reason = "the video server ended the session"
         try:
-            async with connect(self._url(), open_timeout=5, max_size=256 * 1024) as ws:
+            async with connect(self.url(), open_timeout=5, max_size=256 * 1024) as ws:
                 await ws.send(json.dumps({"type": "offer", "sdp": sdp}))
                 answer = json.loads(await asyncio.wait_for(ws.recv(), ANSWER_TIMEOUT_S))
                 self._emit(
