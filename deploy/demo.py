@@ -238,10 +238,14 @@ def video_wanted(args: argparse.Namespace, scene: Scene) -> bool:
     return True
 
 
-def video_args(world_addresses: Path | None) -> tuple[list[str], str]:
-    """``deepxpalm video`` on a free loopback port: the lab's camera, or the test pattern."""
+def video_args(world_addresses: Path | None, token_file: Path) -> tuple[list[str], str]:
+    """``deepxpalm video`` on a free loopback port: the lab's camera, or the test pattern.
+
+    Its signalling secret is in ``token_file`` (the robot node reads it there, so the
+    secret never appears on a command line); its media stays on loopback.
+    """
     port = free_loopback_ports(1)[0]
-    settings = [f"port={port}"]
+    settings = [f"port={port}", f'token_file="{token_file}"', 'media_interfaces=["lo"]']
     if world_addresses is not None:
         settings += ['source="lab"', f'lab.addresses_file="{world_addresses}"']
     else:
@@ -269,8 +273,10 @@ def run(args: argparse.Namespace) -> int:
     world = start_lab_world(scene, workdir)
     video = None
     if video_wanted(args, scene):
-        video, video_url = video_args(world[1] if world is not None else None)
+        token_file = workdir / "video.token"
+        video, video_url = video_args(world[1] if world is not None else None, token_file)
         scene.robot.link.video_url = video_url  # offers reach it through the robot's link
+        scene.robot.link.video_token_file = token_file
         scene.operator.dashboard.video_url = VIDEO_OVER_LINK
     if world is not None:
         world_proc, addresses, world_config = world

@@ -24,6 +24,7 @@ from typing import IO, Any
 
 import zmq.auth
 
+from common import web_token
 from common.signing import generate_key_files, load_public_key
 from common.transport import free_loopback_ports
 from deploy.keys_cli import generate
@@ -303,14 +304,22 @@ class Fleet:
     def start_video(
         self, name: str = "video", fps: float = 15.0, port: int | None = None
     ) -> tuple[Proc, str]:
-        """A video server (the stamped test pattern, 320x240) on loopback; (process, its URL).
+        """A video server (the stamped test pattern, 320x240) on loopback; (process, its URL,
+        token included: a robot's link.video_url).
 
-        ``port``: the one it had before a restart (default: a free one)."""
+        ``port``: the one it had before a restart (default: a free one). Its token file
+        stays in the workdir, so a restarted server keeps its token."""
         port = port or free_loopback_ports(1)[0]
+        url = self.video_url(name, port)
         settings = [f"port={port}", "test_pattern.width=320", "test_pattern.height=240"]
-        settings.append(f"test_pattern.fps={fps}")
+        settings += [f"test_pattern.fps={fps}", f'token_file="{self.workdir / name}.token"']
         args = ["-v", "video", *(a for s in settings for a in ("--set", s))]
-        return self._start(name, args), f"ws://127.0.0.1:{port}/"
+        return self._start(name, args), url
+
+    def video_url(self, name: str, port: int) -> str:
+        """Video server ``name``'s URL on ``port``, with the token of its file in the workdir."""
+        token = web_token.token_file(self.workdir / f"{name}.token", "video token_file")
+        return web_token.with_token(f"ws://127.0.0.1:{port}/", token)
 
     def start_operator(
         self,

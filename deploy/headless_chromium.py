@@ -60,7 +60,14 @@ class BrowserError(RuntimeError):
 class Chromium:
     """One headless chromium with one page; a context manager."""
 
-    def __init__(self, width: int = 1280, height: int = 900, timeout_s: float = 15.0) -> None:
+    def __init__(
+        self,
+        width: int = 1280,
+        height: int = 900,
+        timeout_s: float = 15.0,
+        flags: tuple[str, ...] = (),
+    ) -> None:
+        """``flags``: more command-line switches (``--host-resolver-rules=...``)."""
         exe = chromium_path()
         if exe is None:
             raise BrowserError(
@@ -73,6 +80,7 @@ class Chromium:
             [
                 exe,
                 *FLAGS,
+                *flags,
                 f"--user-data-dir={self.profile}",
                 f"--window-size={width},{height}",
                 "about:blank",

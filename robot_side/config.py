@@ -108,6 +108,11 @@ class RobotLinkConfig:
         "the video server on this PC (deepxpalm video, e.g. ws://127.0.0.1:8890/): viewers' "
         "offers reach it through this link, so video opens no port; empty = no video here",
     )
+    video_token_file: Path | None = param(
+        None,
+        "the video server's token_file (its signalling secret; deepxpalm video creates it); "
+        "unset: video_url must carry the token (?token=), as deepxpalm video prints it",
+    )
     video_viewer_timeout_s: float = param(
         5.0, "a viewer whose node has not been heard for this long loses its video session"
     )

@@ -163,7 +163,9 @@ class RobotNode:
                     "robot link.video_url is set but websockets is not installed: "
                     "pip install 'deepxpalm[video]' on the robot PC"
                 )
-            self.video = LinkSignalling(config.link.video_url)
+            self.video = LinkSignalling(
+                config.link.video_url, token_file=config.link.video_token_file
+            )
         self._video_heard_ns: int = 0  # direct link: when the operator was last heard
         self._next_video_expiry_ns = 0
         self._vsig_seq = 0

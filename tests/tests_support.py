@@ -137,10 +137,15 @@ class DashboardDemo:
         self.argv += ["--set", f"operator.dashboard.port={self.port}"]
         self.ready_timeout_s = ready_timeout_s
         self.proc: subprocess.Popen | None = None
+        #: the page's address with its token, as the demo printed it
+        self.url = f"http://127.0.0.1:{self.port}/"
 
     @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}/"
+    def ws_url(self) -> str:
+        """The page's WebSocket, with the token the demo's URL carries."""
+        from common.web_token import from_query, with_token
+
+        return with_token(f"ws://127.0.0.1:{self.port}/ws", from_query(self.url) or "")
 
     def __enter__(self) -> DashboardDemo:
         self.proc = subprocess.Popen(
@@ -148,7 +153,10 @@ class DashboardDemo:
         )
         deadline = time.monotonic() + self.ready_timeout_s
         for line in self.proc.stderr:  # the demo names its dashboard once the robot answered
-            if "dashboard http" in line or time.monotonic() > deadline:
+            if line.startswith("dashboard http"):
+                self.url = line.split()[1]
+                break
+            if time.monotonic() > deadline:
                 break
         return self
 
@@ -175,18 +183,18 @@ class VideoServerProcess:
             self.argv += ["--set", s]
         self.proc: subprocess.Popen | None = None
 
-    @property
-    def url(self) -> str:
-        return f"ws://127.0.0.1:{self.port}/"
+        #: its signalling URL with the token, as it printed it
+        self.url = f"ws://127.0.0.1:{self.port}/"
 
     def __enter__(self) -> VideoServerProcess:
         self.proc = subprocess.Popen(
             self.argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
-        line = self.proc.stdout.readline()  # "video: ws://... (source ...)" once it serves
+        line = self.proc.stdout.readline()  # "video: ws://...?token=... (source ...)"
         if not line.startswith("video: ws://"):
             self.proc.kill()
             raise RuntimeError(f"the video server did not start: {self.proc.stderr.read()[-2000:]}")
+        self.url = line.split()[1]
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -220,6 +228,40 @@ def child_processes(parent_pid: int) -> dict[str, int]:
         for role in ("robot", "netsim", "video"):
             if role in words:
                 found[role] = int(entry)
+    return found
+
+
+def listening_sockets(pid: int) -> list[tuple[str, str, int]]:
+    """(protocol, address, port) of every socket process ``pid`` listens on, as ``ss -lnpt``
+    and ``ss -lnpu`` list them: TCP in LISTEN, UDP unconnected; read from /proc."""
+    import ipaddress
+    import os
+    import socket
+    import struct
+
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = []
+    for proto, listening in (("tcp", "0A"), ("tcp6", "0A"), ("udp", "07"), ("udp6", "07")):
+        with open(f"/proc/{pid}/net/{proto}") as f:
+            rows = [line.split() for line in f.readlines()[1:]]
+        for row in rows:
+            if row[9] not in inodes or row[3] != listening:
+                continue
+            hex_addr, hex_port = row[1].split(":")
+            raw = bytes.fromhex(hex_addr)
+            # /proc prints each 32-bit word in host order
+            words = struct.unpack(f"<{len(raw) // 4}I", raw)
+            packed = struct.pack(f">{len(words)}I", *words)
+            family = socket.AF_INET if len(packed) == 4 else socket.AF_INET6
+            address = str(ipaddress.ip_address(socket.inet_ntop(family, packed)))
+            found.append((proto, address, int(hex_port, 16)))
     return found
 
 

@@ -264,7 +264,7 @@ class Deployment:
         servos = self._add("servos", lambda: self._sim("servos", bus, status))
         self.servo_port = _announcement(servos.proc)["port"]
         video_port = free_loopback_ports(1)[0]
-        self.video_url = f"ws://127.0.0.1:{video_port}/"
+        self.video_url = fleet.video_url("video", video_port)
         self._add("video", lambda: fleet.start_video(port=video_port)[0], "video")
         devices = _ROBOT_DEVICES.format(
             tactile_port=self.tactile_port, gripper_host=g["host"], gripper_port=g["port"]

@@ -8,10 +8,13 @@ from dataclasses import dataclass
 
 from common.config import param
 from common.ice import IceConfig
+from common.web_token import check_token
 from operator_side.dashboard.jog_config import JogConfig
 
 #: ``video_url`` value: signalling rides the operator node's link to the robot
 VIDEO_OVER_LINK = "link"
+#: a fixed page token for scripted setups, when the config sets none
+TOKEN_ENV = "DEEPXPALM_DASHBOARD_TOKEN"
 
 
 @dataclass
@@ -21,6 +24,17 @@ class DashboardConfig:
         "127.0.0.1", "address to bind: loopback keeps it private (reach it through an SSH tunnel)"
     )
     port: int = param(8765, "HTTP and WebSocket port (one port, so one tunnel suffices)")
+    token: str = param(
+        "",
+        "the secret every request of the page must carry (the printed URL's ?token=, then a "
+        f"cookie); empty: ${TOKEN_ENV}, else a fresh random one each run. Any local process "
+        "could otherwise steer the arm",
+    )
+    allowed_hosts: list[str] = param(
+        [],
+        "names the page may be opened under besides the bound address, 127.0.0.1, localhost "
+        "and [::1] (e.g. a VPN name); any other Host is refused (DNS rebinding)",
+    )
     max_rate_hz: float = param(
         60.0, "snapshots sampled and pushed per second at most; the stimulus rate is 60 Hz"
     )
@@ -28,7 +42,8 @@ class DashboardConfig:
         "",
         "where the robot's video is offered: 'link' = through this node's link to the robot "
         "(and its relay; the robot sets link.video_url), or the video server's WebSocket, "
-        "e.g. ws://127.0.0.1:8890/; empty: no video panel",
+        "e.g. ws://127.0.0.1:8890/?token=... (the URL deepxpalm video prints, token included); "
+        "empty: no video panel",
     )
     ice: IceConfig = param(
         IceConfig(),
@@ -47,5 +62,7 @@ class DashboardConfig:
             raise ValueError(
                 f"video_url must be 'link' or a ws:// or wss:// URL, not {self.video_url!r}"
             )
+        if self.token:
+            check_token(self.token, "dashboard.token")
         if not (math.isfinite(self.max_rate_hz) and 0 < self.max_rate_hz <= 240):
             raise ValueError(f"max_rate_hz must be in (0, 240], not {self.max_rate_hz}")

@@ -22,12 +22,14 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from websockets.asyncio.server import ServerConnection
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 
+from common import web_token
 from common.errors import ConfigError
 from common.messages import MAX_SDP_CHARS, VideoSignal
 from common.tactile import GRIP_LEVELS
-from operator_side.dashboard.config import VIDEO_OVER_LINK, DashboardConfig
+from operator_side.dashboard.config import TOKEN_ENV, VIDEO_OVER_LINK, DashboardConfig
+from operator_side.dashboard.page_auth import PageAuth
 from operator_side.dashboard.view import CONTENT_KEYS, LinkHistory, hello_view, snapshot_view
 from operator_side.dashboard.web import WebServer, package_files
 from operator_side.node import Snapshot
@@ -104,6 +106,11 @@ class Dashboard:
             self._client,
             name="dashboard",
             background=[self._sample_loop],
+            auth=PageAuth(
+                web_token.configured_token(self.config.token, TOKEN_ENV, "dashboard.token"),
+                self.config.allowed_hosts,
+                name="dashboard",
+            ),
         )
         self.samples = 0
         self.pushes = 0
@@ -122,7 +129,12 @@ class Dashboard:
 
     @property
     def url(self) -> str:
+        """The page's address with its token: what the operator opens."""
         return self.server.url
+
+    @property
+    def ws_url(self) -> str:
+        return self.server.ws_url
 
     def start(self) -> None:
         self.server.start()
@@ -295,8 +307,8 @@ class Dashboard:
             reason = "the robot's video server closed the session"
         except asyncio.CancelledError:
             raise
-        except (OSError, TimeoutError, ConnectionClosed, ValueError) as e:
-            reason = f"no video from {url}: {e}"
+        except (OSError, TimeoutError, ConnectionClosed, ValueError, InvalidStatus) as e:
+            reason = f"no video from {web_token.without_token(url)}: {e}"
             log.warning("dashboard: %s", reason)
         with contextlib.suppress(ConnectionClosed):
             await conn.send(json.dumps({"type": "video_closed", "reason": reason}))

@@ -7,7 +7,9 @@ browser, and a slow browser never holds up anything but its own updates.
 
 Pages come only from files in the package (no CDN, nothing external), and a
 Content-Security-Policy header tells the browser to load nothing from
-anywhere else either.
+anywhere else either. Every request, the WebSocket's too, must carry the
+run's token and name an allowed host (``page_auth.py``); ``url`` is the
+address to open, with the token in it.
 """
 
 from __future__ import annotations
@@ -26,7 +28,9 @@ from websockets.asyncio.server import ServerConnection, broadcast, serve
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
+from common import web_token
 from common.errors import ConfigError
+from operator_side.dashboard.page_auth import PageAuth, Refusal
 
 log = logging.getLogger(__name__)
 # websockets logs every HTTP request at INFO; a page load is five of them.
@@ -90,6 +94,7 @@ class WebServer:
         name: str = "web",
         background: Iterable[Callable[[], Awaitable[None]]] = (),
         ws_path: str = "/ws",
+        auth: PageAuth | None = None,
     ) -> None:
         self.host = host
         self.port = port
@@ -100,6 +105,7 @@ class WebServer:
         self.name = name
         self.background = list(background)
         self.ws_path = ws_path
+        self.auth = auth or PageAuth(name=name)
         self.loop: asyncio.AbstractEventLoop | None = None
         self.connections: set[ServerConnection] = set()
         self._thread: threading.Thread | None = None
@@ -108,9 +114,23 @@ class WebServer:
         self._error: BaseException | None = None
 
     @property
-    def url(self) -> str:
+    def base_url(self) -> str:
+        """The server's address without the token: what a log line may show."""
         host = f"[{self.host}]" if ":" in self.host else self.host
+        if host in ("0.0.0.0", "[::]", ""):
+            host = "127.0.0.1"
         return f"http://{host}:{self.port}/"
+
+    @property
+    def url(self) -> str:
+        """The address to open in a browser: it carries the token (keep it to yourself)."""
+        return web_token.with_token(self.base_url, self.auth.token)
+
+    @property
+    def ws_url(self) -> str:
+        """The WebSocket's address, token included (what a script connects to)."""
+        ws = self.base_url.replace("http://", "ws://", 1) + self.ws_path.lstrip("/")
+        return web_token.with_token(ws, self.auth.token)
 
     def start(self, timeout_s: float = 5.0) -> None:
         if self._thread is not None:
@@ -126,7 +146,7 @@ class WebServer:
                 f"{self.name}: cannot serve on {self.host}:{self.port}: {self._error} "
                 "(is another program using the port? choose another one)"
             ) from None
-        log.info("%s server at %s", self.name, self.url)
+        log.info("%s server at %s (token-protected)", self.name, self.base_url)
 
     def stop(self, timeout_s: float = 5.0) -> None:
         thread, self._thread = self._thread, None
@@ -172,6 +192,7 @@ class WebServer:
             logger=_wire_log,
         ) as server:
             self.port = server.sockets[0].getsockname()[1]
+            self.auth.bind(self.host, self.port)
             tasks = [asyncio.create_task(fn()) for fn in self.background]
             self._started.set()
             try:
@@ -192,14 +213,15 @@ class WebServer:
 
     def _process_request(self, conn: ServerConnection, request: Request) -> Response | None:
         path = urlsplit(request.path).path
+        headers = _single_headers(request.headers)
+        if headers is None:
+            return _response(http.HTTPStatus.BAD_REQUEST, b"repeated header\n", "text/plain")
+        # A browser always sends Origin on a WebSocket; one from another site is a
+        # page trying to drive the gripper through the operator's browser.
+        refusal = self.auth.check(request.path, headers, websocket=path == self.ws_path)
+        if refusal is not None:
+            return _refusal(refusal)
         if path == self.ws_path:
-            origin = request.headers.get("Origin")
-            host = request.headers.get("Host")
-            # A browser always sends Origin; one from another site is a page
-            # trying to drive the gripper through the operator's browser.
-            if origin is not None and urlsplit(origin).netloc != host:
-                log.warning("%s: refused a WebSocket from origin %s", self.name, origin)
-                return _response(http.HTTPStatus.FORBIDDEN, b"cross-origin\n", "text/plain")
             return None
         static = self.files.get(path)
         if static is None:
@@ -219,6 +241,28 @@ class WebServer:
         return True
 
 
+AUTH_HEADERS = ("Host", "Origin", "Cookie", "Authorization")
+
+
+def _single_headers(headers: Headers) -> dict[str, str] | None:
+    """The headers the page's checks read; None when one is repeated (which one would count?)."""
+    out = {}
+    for name in AUTH_HEADERS:
+        values = headers.get_all(name)
+        if len(values) > 1:
+            return None
+        if values:
+            out[name] = values[0]
+    return out
+
+
+def _refusal(refusal: Refusal) -> Response:
+    response = _response(refusal.status, refusal.body, "text/plain; charset=utf-8")
+    for name, value in refusal.headers:
+        response.headers[name] = value
+    return response
+
+
 def _response(status: http.HTTPStatus, body: bytes, content_type: str) -> Response:
     headers = Headers(
         [
@@ -227,6 +271,7 @@ def _response(status: http.HTTPStatus, body: bytes, content_type: str) -> Respon
             ("Cache-Control", "no-store"),
             ("X-Content-Type-Options", "nosniff"),
             ("Content-Security-Policy", CSP),
+            ("Referrer-Policy", "no-referrer"),  # the first URL carries the token
             ("Connection", "close"),
         ]
     )

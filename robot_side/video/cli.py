@@ -37,7 +37,11 @@ def run(args: argparse.Namespace) -> int:
     stop = stop_on_signals()
     server = VideoServer(build_source(config), config).start()
     try:
-        print(f"video: {server.url} (source {config.source})", flush=True)
+        if config.token_file is None:  # this run's secret: the URL is how a viewer gets it
+            print(f"video: {server.url} (source {config.source})", flush=True)
+        else:
+            shown = f"{server.base_url} (token in {config.token_file}, source {config.source})"
+            print(f"video: {shown}", flush=True)
         stop.wait(args.duration)
     finally:
         clean = server.stop()

@@ -34,7 +34,9 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
+from common import web_token
 from common.messages import VideoSignal
 
 log = logging.getLogger(__name__)
@@ -52,8 +54,13 @@ class _Session:
 class LinkSignalling:
     """Carries viewers' offers to the local video server and its answers back."""
 
-    def __init__(self, video_url: str, *, max_sessions: int = 8) -> None:
+    def __init__(
+        self, video_url: str, *, token_file: Path | None = None, max_sessions: int = 8
+    ) -> None:
         self.video_url = video_url
+        #: the video server's token_file; None: ``video_url`` carries the token
+        self.token_file = token_file
+        self._shown_url = web_token.without_token(video_url)  # for logs and viewers
         self.max_sessions = max_sessions
         #: signals for the node to publish, appended by the sessions' thread
         self.outgoing: collections.deque[VideoSignal] = collections.deque()
@@ -170,13 +177,21 @@ class LinkSignalling:
     def _emit(self, viewer: int, kind: str, **fields: object) -> None:
         self.outgoing.append(VideoSignal(seq=0, t_send_ns=0, kind=kind, viewer=viewer, **fields))
 
+    def url(self) -> str:
+        """The video server's URL with its token, read each time (a restart may renew it)."""
+        if self.token_file is None:
+            return self.video_url
+        return web_token.with_token(
+            self.video_url, web_token.token_file(self.token_file, "link.video_token_file")
+        )
+
     async def _session(self, viewer: int, sdp: str, session: _Session) -> None:
         from websockets.asyncio.client import connect
-        from websockets.exceptions import ConnectionClosed
+        from websockets.exceptions import ConnectionClosed, InvalidStatus
 
         reason = "the video server ended the session"
         try:
-            async with connect(self.video_url, open_timeout=5, max_size=256 * 1024) as ws:
+            async with connect(self.url(), open_timeout=5, max_size=256 * 1024) as ws:
                 await ws.send(json.dumps({"type": "offer", "sdp": sdp}))
                 answer = json.loads(await asyncio.wait_for(ws.recv(), ANSWER_TIMEOUT_S))
                 self._emit(
@@ -200,11 +215,17 @@ class LinkSignalling:
             raise
         except ConnectionClosed as e:
             reason = f"the video server refused: {e.rcvd.reason if e.rcvd else e}"
+        except InvalidStatus as e:
+            reason = (
+                f"the video server at {self._shown_url} refused the signalling "
+                f"(HTTP {e.response.status_code}): link.video_token_file must name its token_file"
+            )
+            log.warning("video: %s", reason)
         except ConnectionRefusedError:
-            reason = f"no video server is running at {self.video_url} (restarting?)"
+            reason = f"no video server is running at {self._shown_url} (restarting?)"
             log.warning("video: %s", reason)
         except (OSError, TimeoutError, ValueError, KeyError, TypeError) as e:
-            reason = f"no video server at {self.video_url}: {e}"
+            reason = f"no video server at {self._shown_url}: {e}"
             log.warning("video: %s", reason)
         if self._sessions.get(viewer) is session:
             del self._sessions[viewer]

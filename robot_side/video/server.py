@@ -17,6 +17,13 @@ other format on its own thread, and PyAV's ``reformat`` of one frame from
 two threads at once crashes the process or hangs it
 (docs/dashboard.md, Video). A ``yuv420p`` frame is passed through untouched.
 
+Signalling needs the server's token (``?token=`` or ``Authorization:
+Bearer``): a loopback port is open to every process of the PC, and any of
+them could otherwise watch the lab. A request with an ``Origin`` (a
+browser's) is refused outright: only the robot node and a dashboard server
+speak to this socket, never a page. Media sockets bind only to
+``media_interfaces`` (``media_binding.py``).
+
 ``stop()`` (SIGTERM, Ctrl-C) closes every viewer's peer connection and
 returns within its timeout even when an encoder thread is stuck in native
 code; it says whether the server stopped cleanly, so the process can exit
@@ -34,11 +41,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
+from pathlib import Path
 from typing import Any
 
+from common import web_token
 from common.config import param
 from common.errors import ConfigError
 from common.ice import IceConfig
+from robot_side.video import media_binding
 from robot_side.video.lab_camera import LabCameraConfig, LabCameraSource
 from robot_side.video.source import CapturedFrame, VideoSource
 from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
@@ -60,6 +70,17 @@ class VideoConfig:
         "(its link.video_url); another only for dashboards connecting straight here",
     )
     port: int = param(8890, "signalling WebSocket port (media uses UDP ports ICE picks)")
+    token_file: Path | None = param(
+        None,
+        "the file holding the secret a viewer's signalling must present (created, mode 0600, "
+        "when missing; the robot node's link.video_token_file names the same file); "
+        "unset: a fresh secret each run, in the URL printed at start",
+    )
+    media_interfaces: tuple[str, ...] = param(
+        ("lo",),
+        "network interfaces (e.g. eth0) or addresses the media's UDP sockets bind to: the one "
+        "the operators' browsers reach this PC on; lo (loopback) only by default",
+    )
     source: str = param(
         "test_pattern", "which camera: test_pattern, v4l2, lab (a simulated one), or one registered"
     )
@@ -76,6 +97,8 @@ class VideoConfig:
             raise ValueError(f"video port must be 0..65535, not {self.port}")
         if self.max_viewers < 1:
             raise ValueError("video max_viewers must be at least 1")
+        if not self.media_interfaces:
+            raise ValueError("video media_interfaces must name at least one interface (e.g. lo)")
 
 
 #: source kind -> factory from the video config; a simulated lab registers its camera here
@@ -184,10 +207,22 @@ class VideoServer:
         self._error: BaseException | None = None
         self._peers: set[Any] = set()  # the viewers' RTCPeerConnections (the loop's thread)
         self._encoder_prefix = f"video-encode-{id(self):x}"
+        if self.config.token_file is not None:
+            self.token = web_token.token_file(self.config.token_file, "video token_file")
+        else:
+            self.token = web_token.new_token()
+        #: the addresses media sockets may bind to (checked here: a wrong name fails at start)
+        self.media_addresses = media_binding.addresses(self.config.media_interfaces)
+
+    @property
+    def base_url(self) -> str:
+        """The signalling address without the token: what a log line may show."""
+        return f"ws://{self.config.host}:{self.port}/"
 
     @property
     def url(self) -> str:
-        return f"ws://{self.config.host}:{self.port}/"
+        """The signalling address with the token: what a viewer connects to."""
+        return web_token.with_token(self.base_url, self.token)
 
     def start(self, timeout_s: float = 10.0) -> VideoServer:
         self._thread = threading.Thread(target=self._run, name="video-server", daemon=True)
@@ -197,7 +232,12 @@ class VideoServer:
                 f"video: cannot serve on {self.config.host}:{self.config.port}: {self._error} "
                 "(is another program using the port?)"
             )
-        log.info("video signalling at %s, source %s", self.url, self.source.name)
+        log.info(
+            "video signalling at %s (token-protected), source %s, media on %s",
+            self.base_url,
+            self.source.name,
+            ", ".join(self.media_addresses),
+        )
         return self
 
     def stop(self, timeout_s: float = 5.0) -> bool:
@@ -272,8 +312,13 @@ class VideoServer:
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         self._relay = MediaRelay()
+        media_binding.restrict(self.media_addresses)  # for the peer connections of this loop
         async with serve(
-            self._session, self.config.host, self.config.port, max_size=256 * 1024
+            self._session,
+            self.config.host,
+            self.config.port,
+            max_size=256 * 1024,
+            process_request=self._authorise,
         ) as server:
             self.port = server.sockets[0].getsockname()[1]
             self._started.set()
@@ -293,6 +338,19 @@ class VideoServer:
         if self._track is not None:
             self._track.stop()
             self._track = None
+
+    def _authorise(self, conn: Any, request: Any) -> Any:
+        """None for a viewer holding the token; else the refusal (no socket, no stream)."""
+        import http
+
+        if request.headers.get_all("Origin"):
+            log.warning("video: refused a signalling request from a browser page (Origin set)")
+            return conn.respond(http.HTTPStatus.FORBIDDEN, "no browser pages here\n")
+        given = [web_token.from_query(request.path), web_token.from_bearer(request.headers)]
+        if any(web_token.matches(t, self.token) for t in given):
+            return None
+        log.warning("video: refused a signalling request without the token")
+        return conn.respond(http.HTTPStatus.UNAUTHORIZED, "the video server's token is needed\n")
 
     async def _session(self, conn: Any) -> None:
         from aiortc import RTCPeerConnection, RTCSessionDescription
@@ -329,6 +387,9 @@ class VideoServer:
             if self._track is None:
                 self._track = _source_track(self.source)
             pc.addTrack(self._relay.subscribe(self._track, buffered=False))
+            # mDNS (.local) candidates would open a listener on 0.0.0.0:5353: dropped,
+            # the browser's checks reach our candidates and ICE learns its address
+            sdp = media_binding.without_mdns_candidates(sdp)
             await pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="offer"))
             await pc.setLocalDescription(await pc.createAnswer())
             await conn.send(

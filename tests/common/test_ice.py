@@ -64,7 +64,7 @@ def test_the_page_is_told_the_dashboards_ice_servers():
     d = Dashboard(_Node(), config)
     d.start()
     try:
-        with connect(d.url.replace("http://", "ws://") + "ws") as ws:
+        with connect(d.ws_url) as ws:
             deadline = time.monotonic() + 5
             while True:
                 msg = json.loads(ws.recv(timeout=max(0.01, deadline - time.monotonic())))

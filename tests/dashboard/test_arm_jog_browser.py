@@ -245,3 +245,77 @@ def test_closing_the_tab_stops_the_arm(station):
         t_close = time.monotonic()
         wait_still(arm)
         assert time.monotonic() - t_close < STOP_WITHIN_S
+
+
+JOG_X = json.dumps({"type": "command", "action": "arm_jog", "velocity": [0.05, 0, 0, 0, 0, 0]})
+# A page's script jogging +x over a WebSocket at the page's rate for about a second.
+SOCKET_JOG = """
+(async (url, jog) => {
+  const ws = new WebSocket(url);
+  const opened = await new Promise((done) => {
+    ws.onopen = () => done(true);
+    ws.onerror = ws.onclose = () => done(false);
+    setTimeout(() => done(false), 3000);
+  });
+  if (!opened) return false;
+  for (let i = 0; i < 30; i++) {
+    ws.send(jog);
+    await new Promise((r) => setTimeout(r, 33));
+  }
+  ws.close();
+  return true;
+})
+"""
+
+
+def jog_from_page(browser: Chromium, arm: SimulatedArm, ws_url: str) -> tuple[bool, float]:
+    """(whether the page's socket opened, how far the simulator's TCP moved) for one attempt."""
+    wait_still(arm)
+    start = arm.sim.tcp_pose()
+    opened = browser.evaluate(
+        f"{SOCKET_JOG}({json.dumps(ws_url)}, {json.dumps(JOG_X)})", timeout_s=10
+    )
+    time.sleep(0.3)
+    return opened, float(np.linalg.norm(arm.sim.tcp_pose()[:3] - start[:3]))
+
+
+def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station):
+    """From outside the dashboard: a local client without the token, then chromium opening the
+    page under a name that resolves to 127.0.0.1 (DNS rebinding; given even the token), jog for
+    a second each; the simulator's arm stays put. The page's own origin, same script, moves it."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    from common.web_token import with_token
+
+    arm, dashboard = station
+    port, token = dashboard.server.port, dashboard.server.auth.token
+    with excused_by_a_watchdog_trip(arm):
+        wait_still(arm)
+        start = arm.sim.tcp_pose()
+        with (
+            pytest.raises(InvalidStatus) as e,
+            connect(f"ws://127.0.0.1:{port}/ws", open_timeout=2) as ws,
+        ):
+            for _ in range(30):
+                ws.send(JOG_X)
+                time.sleep(0.033)
+        assert e.value.response.status_code == 401
+        assert np.linalg.norm(arm.sim.tcp_pose()[:3] - start[:3]) < 1e-4
+
+        rules = "--host-resolver-rules=MAP evil.example 127.0.0.1"
+        with Chromium(width=800, height=600, flags=(rules,)) as browser:
+            browser.navigate(f"http://evil.example:{port}/?token={token}")
+            shown = browser.evaluate("document.body.innerText")
+            assert "is not one this page is served under" in shown, shown
+            assert browser.evaluate("typeof dxp") == "undefined"  # no page, no script
+            opened, moved = jog_from_page(
+                browser, arm, with_token(f"ws://evil.example:{port}/ws", token)
+            )
+            assert not opened and moved < 1e-4, (opened, moved)
+
+            # the control: the same script from the page's own origin does move the arm
+            browser.navigate(dashboard.url)
+            browser.wait_for("dxp.state.arm && dxp.state.arm.available", 20)
+            opened, moved = jog_from_page(browser, arm, f"ws://127.0.0.1:{port}/ws")
+            assert opened and moved > 0.01, (opened, moved)

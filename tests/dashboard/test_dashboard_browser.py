@@ -230,6 +230,8 @@ def test_the_page_follows_the_stimulus_and_its_buttons_command_the_gripper(stati
 
         # The link chart has data, and the page loaded nothing from anywhere else.
         browser.wait_for("dxp.draws.chart > 0 && dxp.state.history.latency_ms.length > 0", 3)
-        external = [u for u in browser.requested_urls() if not u.startswith(dashboard.url)]
+        external = [
+            u for u in browser.requested_urls() if not u.startswith(dashboard.server.base_url)
+        ]
         assert external == []
         assert browser.page_errors() == []

@@ -10,7 +10,7 @@ import time
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_dashboard_server import FakeNode, _next, _ws_url
+from test_dashboard_server import FakeNode, _next
 from websockets.sync.client import connect
 
 from common.config import from_dict
@@ -53,7 +53,7 @@ def _jog(ws, velocity) -> None:
 
 def test_jogs_are_capped_and_forwarded_and_bad_ones_refused(dashboard):
     node, d = dashboard
-    with connect(_ws_url(d)) as ws:
+    with connect(d.ws_url) as ws:
         hello = _next(ws, "hello")
         assert hello["jog"]["gamepad"]["enable_button"] == 5
         _jog(ws, [1.0, 0, 0, 0, 0, 3.0])  # far over the caps
@@ -75,7 +75,7 @@ def test_jogs_are_capped_and_forwarded_and_bad_ones_refused(dashboard):
 
 def test_a_closed_page_that_was_jogging_stops_the_arm(dashboard):
     node, d = dashboard
-    with connect(_ws_url(d)) as ws:
+    with connect(d.ws_url) as ws:
         _next(ws, "hello")
         _jog(ws, [0.02, 0, 0, 0, 0, 0])
         time.sleep(0.05)
@@ -91,7 +91,7 @@ def test_a_closed_page_that_was_jogging_stops_the_arm(dashboard):
 
 def test_a_page_that_stops_sending_jogs_is_stopped_by_the_watchdog(dashboard):
     node, d = dashboard
-    with connect(_ws_url(d)) as ws:
+    with connect(d.ws_url) as ws:
         _next(ws, "hello")
         _jog(ws, [0.02, 0, 0, 0, 0, 0])
         t_last = time.monotonic()
@@ -106,7 +106,7 @@ def test_a_page_that_stops_sending_jogs_is_stopped_by_the_watchdog(dashboard):
 
 def test_jog_rate_is_limited_but_stop_never_is(dashboard):
     node, d = dashboard
-    with connect(_ws_url(d)) as ws:
+    with connect(d.ws_url) as ws:
         _next(ws, "hello")
         for _ in range(100):
             _jog(ws, [0.01, 0, 0, 0, 0, 0])
@@ -138,7 +138,7 @@ def test_resume_goes_to_the_robot_from_the_holder_and_is_refused_with_a_reason_o
     dashboard,
 ):
     node, d = dashboard
-    with connect(_ws_url(d)) as ws:
+    with connect(d.ws_url) as ws:
         _next(ws, "hello")
         ws.send(json.dumps({"type": "command", "action": "arm_resume"}))
         assert _next(ws, "ack")["ok"], "unsigned: the one operator holds the arm"

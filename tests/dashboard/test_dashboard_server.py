@@ -7,6 +7,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from http.cookiejar import CookieJar
 
 import numpy as np
 import pytest
@@ -85,10 +86,6 @@ def dashboard():
         d.stop()
 
 
-def _ws_url(d: Dashboard) -> str:
-    return d.url.replace("http://", "ws://") + "ws"
-
-
 def _next(ws, kind: str, timeout_s: float = 2.0) -> dict:
     deadline = time.monotonic() + timeout_s
     while True:
@@ -99,7 +96,7 @@ def _next(ws, kind: str, timeout_s: float = 2.0) -> dict:
 
 def test_pushes_only_when_something_changed_and_refreshes_slowly_otherwise(dashboard):
     node, d = dashboard
-    with connect(_ws_url(d)) as ws:
+    with connect(d.ws_url) as ws:
         hello = _next(ws, "hello")
         assert hello["geometry"]["l1"] == 20.0 and len(hello["patterns"]) == 12
         assert hello["patterns"][5]["cells"] == [[1, 2], [2, 1]]
@@ -126,7 +123,7 @@ def test_pushes_only_when_something_changed_and_refreshes_slowly_otherwise(dashb
 
 def test_commands_are_checked_before_they_reach_the_node(dashboard):
     node, d = dashboard
-    with connect(_ws_url(d)) as ws:
+    with connect(d.ws_url) as ws:
         _next(ws, "hello")
         for msg, ok in [
             ({"type": "command", "action": "gripper_close", "grip_level": 31}, True),
@@ -153,26 +150,32 @@ def test_another_sites_page_cannot_open_the_socket(dashboard):
     _, d = dashboard
     with (
         pytest.raises(InvalidStatus) as e,
-        connect(_ws_url(d), origin="http://evil.example"),
+        connect(d.ws_url, origin="http://evil.example"),
     ):
         pass
     assert e.value.response.status_code == 403
     host = d.url.removeprefix("http://").rstrip("/")
-    with connect(_ws_url(d), origin=f"http://{host}") as ws:
+    with connect(d.ws_url, origin=f"http://{host}") as ws:
         assert _next(ws, "hello")
+
+
+def browser_like_opener() -> urllib.request.OpenerDirector:
+    """Follows redirects and keeps cookies, as a browser does."""
+    return urllib.request.build_opener(urllib.request.HTTPCookieProcessor(CookieJar()))
 
 
 def test_serves_its_own_files_with_a_same_origin_policy(dashboard):
     _, d = dashboard
-    with urllib.request.urlopen(d.url, timeout=2) as r:
+    browser = browser_like_opener()
+    with browser.open(d.url, timeout=2) as r:
         page = r.read().decode()
         assert "default-src 'self'" in r.headers["Content-Security-Policy"]
     assert '<script src="/app.js">' in page and "http" not in page.split("<body>")[1]
     for name in ("app.js", "patterns.js", "style.css"):
-        with urllib.request.urlopen(d.url + name, timeout=2) as r:
+        with browser.open(d.server.base_url + name, timeout=2) as r:
             assert r.status == 200
     with pytest.raises(urllib.error.HTTPError) as e:
-        urllib.request.urlopen(d.url + "../operator_side/node.py", timeout=2)
+        browser.open(d.server.base_url + "../operator_side/node.py", timeout=2)
     assert e.value.code == 404
     e.value.close()
 
@@ -249,7 +252,7 @@ def test_the_control_lease_buttons_reach_the_node_and_the_lease_is_shown(dashboa
         return snap
 
     node.snapshot = with_control
-    with connect(_ws_url(d)) as ws:
+    with connect(d.ws_url) as ws:
         _next(ws, "hello")
         # the first state may come from a snapshot taken before the patch; a change is pushed
         deadline = time.monotonic() + 3.0

@@ -14,11 +14,12 @@ import json
 import os
 import signal
 import time
+from ipaddress import ip_address
 from pathlib import Path
 
 import pytest
 from headless_chromium import Chromium, needs_chromium, play_video
-from tests_support import DashboardDemo, child_processes
+from tests_support import DashboardDemo, child_processes, listening_sockets
 
 from deploy.bench.video_viewers import cpu_times, idle_share
 from robot_side.video.stamp import MS_MODULO
@@ -32,10 +33,19 @@ def test_the_demo_page_plays_the_robots_video_offered_through_the_link():
     with DashboardDemo(ready_timeout_s=60) as demo:
         with Chromium(width=1280, height=900) as browser:
             summary, errors = play_video(browser, demo.url, frames=30)
+            # a viewer is connected: what the page's process and the video server listen on
+            pids = {"page": demo.proc.pid, "video": child_processes(demo.proc.pid)["video"]}
+            sockets = {role: listening_sockets(pid) for role, pid in pids.items()}
         time.sleep(1.0)  # the tab is gone: the page's bye (or the dead peer) closes the camera
         code, out, stderr = demo.finish()
     assert errors == [], errors
     assert summary["unreadable"] == 0, summary  # the stamped frames decoded in the page
+    # nothing listens beyond loopback (the demo's interfaces): not the page, not the media,
+    # not an mDNS listener on 0.0.0.0:5353
+    outside = [s for socks in sockets.values() for s in socks if not ip_address(s[1]).is_loopback]
+    assert outside == [], sockets
+    assert any(proto.startswith("udp") for proto, _, _ in sockets["video"]), sockets  # media
+    assert any(proto.startswith("tcp") for proto, _, _ in sockets["page"]), sockets
     assert code == 0, stderr[-3000:]
     assert out["errors"] == []
     logs = Path(out["logs"])

@@ -383,6 +383,10 @@ def test_the_robots_video_server_is_checked_where_viewers_will_reach_it():
     assert "deepxpalm video" in check.fix
     source = TestPatternSource(TestPatternConfig(width=320, height=240))
     with VideoServer(source, VideoConfig(port=0)) as server:
+        robot["link"]["video_url"] = server.base_url  # no token: refused, and said so
+        check = diagnose("robot", robot, "t", NO_PEER).find("video server")
+        assert check.status == FAIL and "token" in check.detail and "video_token_file" in check.fix
         robot["link"]["video_url"] = server.url
-        assert diagnose("robot", robot, "t", NO_PEER).find("video server").status == PASS
+        check = diagnose("robot", robot, "t", NO_PEER).find("video server")
+        assert check.status == PASS and server.token not in check.detail
         assert server.frames_encoded == 0  # a knock on the door, no viewer: nothing encoded

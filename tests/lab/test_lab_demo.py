@@ -25,7 +25,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(150)]
 
 def test_the_lab_demo_shows_the_lab_camera_through_the_link():
     with DashboardDemo("--scene", "lab") as demo:
-        out = asyncio.run(watch_video(f"ws://127.0.0.1:{demo.port}/ws", frames=4))
+        out = asyncio.run(watch_video(demo.ws_url, frames=4))
         assert "closed" not in out, out
         assert out["answer"]["source"] == "lab overview"
         assert (out["answer"]["width"], out["answer"]["height"]) == (320, 240)

@@ -11,6 +11,7 @@ from the video server's own log.
 from __future__ import annotations
 
 import asyncio
+import re
 import time
 
 import pytest
@@ -20,6 +21,7 @@ pytest.importorskip("aiortc")
 from video_page import watch_video
 
 from common.transport import free_loopback_ports
+from common.web_token import from_query, with_token
 from deploy.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
@@ -50,7 +52,10 @@ def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leav
         operator_log = fleet.procs["obs1@cell1"].log_text
         fleet.wait_for(lambda: "operator node up" in operator_log(), 30, "the operator node")
         time.sleep(1.0)  # the subscriptions cross the relay
-        out = asyncio.run(watch_video(f"ws://127.0.0.1:{page_port}/ws", frames=30))
+        # the page's URL as the node printed it, with its token
+        token = from_query(re.search(r"dashboard: (\S+)", operator_log())[1])
+        page_ws = with_token(f"ws://127.0.0.1:{page_port}/ws", token)
+        out = asyncio.run(watch_video(page_ws, frames=30))
         assert "closed" not in out, out
         answer = out["answer"]
         assert (answer["width"], answer["height"]) == (320, 240)

@@ -131,7 +131,7 @@ def test_a_whole_masked_session_on_the_page_then_its_analysis(tmp_path):
     results = ResultsFile(path, "S01", "masked", 11)
     display.connect()
     responder.open()
-    page = ScriptedPage(responder.url.replace("http://", "ws://") + "ws", bus, display)
+    page = ScriptedPage(responder.server.ws_url, bus, display)
     page.start()
     try:
         summary = Session(config, "S01", 11, display, responder, results).run()

@@ -128,14 +128,17 @@ def test_a_robot_without_video_answers_an_offer_with_the_reason():
     assert "link.video_url" in sent[0].reason
 
 
-def test_a_video_server_that_died_and_came_back_serves_the_next_offer():
+def test_a_video_server_that_died_and_came_back_serves_the_next_offer(tmp_path):
     """kill -9 of the video server: the session it held ends with "closed", an offer while it
-    is down is answered "closed" with the reason, and an offer once it is back is answered."""
+    is down is answered "closed" with the reason, and an offer once it is back is answered
+    (the token is read from the server's token file again: the restarted server has it)."""
     from tests_support import VideoServerProcess
 
+    token_file = tmp_path / "video.token"
     settings = ("test_pattern.width=320", "test_pattern.height=240", "test_pattern.fps=15")
+    settings += (f'token_file="{token_file}"',)
     first = VideoServerProcess(None, *settings)
-    bridge = LinkSignalling(first.url)
+    bridge = LinkSignalling(f"ws://127.0.0.1:{first.port}/", token_file=token_file)
     try:
         with first:
             bridge.on_signal(_signal("offer", 1, _offer_sdp()), ALICE)
