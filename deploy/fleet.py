@@ -89,6 +89,7 @@ robots_command_endpoint = "tcp://127.0.0.1:{p1}"
 operators_telemetry_endpoint = "tcp://127.0.0.1:{p2}"
 operators_command_endpoint = "tcp://127.0.0.1:{p3}"
 roster_file = "{roster}"
+roster_status_file = "{status}"
 stats_interval_s = 0
 [relay.security]
 mode = "curve"
@@ -250,6 +251,7 @@ class Fleet:
                 p2=p[2],
                 p3=p[3],
                 roster=self.relay_roster,
+                status=self.workdir / f"{name}-roster-status.json",
                 secret=self.members["relay"].curve_secret,
             )
         )
