@@ -211,3 +211,27 @@ def parse_roster(text: str, path: Path | str) -> Roster:
     if not isinstance(lockout, bool):
         raise ConfigError(f"roster {path}: allow_lockout must be true or false")
     return Roster(tuple(operators), tuple(robots), lockout)
+
+
+def operator_entry(name: str, role: str, curve_key: bytes, signing_key: bytes) -> str:
+    """An ``[[operator]]`` entry as TOML (``curve_key`` z85, ``signing_key`` raw 32 bytes)."""
+    if role not in ROLES:
+        raise ConfigError(f"role {role!r} is not one of {list(ROLES)}")
+    return (
+        f'[[operator]]\nname = "{name}"\nrole = "{role}"\n'
+        f'curve_key = "{curve_key.decode()}"\nsigning_key = "{signing_key.hex()}"\n'
+    )
+
+
+def robot_entry(name: str, curve_key: bytes, names: tuple[str, ...] = ()) -> str:
+    """A ``[[robot]]`` entry as TOML: the key, and every robot name it may use."""
+    for n in (name, *names):
+        try:
+            check_robot_name(n)
+        except DecodeError as e:
+            raise ConfigError(str(e)) from None
+    entry = f'[[robot]]\nname = "{name}"\ncurve_key = "{curve_key.decode()}"\n'
+    more = [n for n in dict.fromkeys(names) if n != name]
+    if more:
+        entry += "names = [" + ", ".join(f'"{n}"' for n in [name, *more]) + "]\n"
+    return entry

@@ -24,6 +24,7 @@ from typing import IO, Any
 
 import zmq.auth
 
+from common.roster import operator_entry, robot_entry
 from common.signing import generate_key_files, load_public_key
 from common.transport import free_loopback_ports
 from deploy.keys_cli import generate
@@ -184,23 +185,16 @@ class Fleet:
         tmp.replace(self.roster)  # atomic: a reload never reads half a file
 
     def _write_roster(self, filename: str, roles: dict[str, str]) -> Path:
-        lines = []
+        entries = []
         for name, role in roles.items():
             m = self.members[name]
             curve, _ = zmq.auth.load_certificate(m.curve_public)
-            lines += [
-                "[[operator]]",
-                f'name = "{name}"',
-                f'role = "{role}"',
-                f'curve_key = "{curve.decode()}"',
-                f'signing_key = "{m.signing_public.hex()}"',
-                "",
-            ]
-        for name in self.robots:
+            entries.append(operator_entry(name, role, curve, m.signing_public))
+        for name in self.robots:  # last, as docs/deploy.md says: a cut file loses every robot
             curve, _ = zmq.auth.load_certificate(self.members[name].curve_public)
-            lines += ["[[robot]]", f'name = "{name}"', f'curve_key = "{curve.decode()}"', ""]
+            entries.append(robot_entry(name, curve))
         path = self.workdir / filename
-        path.write_text("\n".join(lines))
+        path.write_text("\n".join(entries))
         return path
 
     def client_security(self, name: str) -> dict[str, str]:

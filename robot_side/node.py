@@ -153,6 +153,15 @@ class RobotNode:
             )
         #: signs everything we send when set: operators holding our key drop what is not ours
         self.signer = None
+        link_cfg = config.link
+        if link_cfg.mode == "relay" and link_cfg.signing_key_file is None:
+            if not link_cfg.unsigned_stream:
+                raise ConfigError(
+                    "robot link.mode = 'relay' signs its stream: set link.signing_key_file "
+                    "(`deepxpalm keys robot --name NAME` makes it), or link.unsigned_stream = "
+                    "true to let a compromised relay forge what palms feel (docs/security.md)"
+                )
+            log.warning("link.unsigned_stream: this robot's stream is not signed")
         if config.link.signing_key_file is not None:
             from common.signing import load_signer  # cryptography only when signing
 

@@ -230,11 +230,15 @@ def _check_stream_signing(report: Report, role: str, link: Any) -> None:
     path = link.signing_key_file if role == "robot" else link.robot_key_file
     setting = "link.signing_key_file" if role == "robot" else "link.robot_key_file"
     if path is None:
+        opted_out = getattr(link, "unsigned_stream", False)
         report.add(
             "signed stream",
-            WARN,
-            f"{setting} is not set: a compromised relay could forge what a palm feels",
-            "give the robot a signing key and its operators its public NAME.sign "
+            WARN if opted_out else FAIL,
+            f"{setting} is not set"
+            + (" (link.unsigned_stream)" if opted_out else ", so the node will not start")
+            + ": a compromised relay could forge what a palm feels",
+            "`deepxpalm keys robot --name NAME` on the robot PC; its NAME.sign_secret is the "
+            "robot's link.signing_key_file, its NAME.sign the operators' link.robot_key_file "
             "(docs/deploy.md: A signed stream)",
         )
         return

@@ -93,7 +93,10 @@ def test_the_doctor_says_whether_the_robots_stream_is_signed_and_checked(tmp_pat
     assert signed.status == PASS and fleet.signing_key("cell1").hex() in signed.detail
     del robot["link"]["signing_key_file"]
     unsigned = diagnose("robot", robot, str(toml), OPTIONS).find("signed stream")
-    assert unsigned.status == WARN and "forge" in unsigned.detail
+    assert unsigned.status == FAIL and "will not start" in unsigned.detail
+    robot["link"]["unsigned_stream"] = True
+    opted_out = diagnose("robot", robot, str(toml), OPTIONS).find("signed stream")
+    assert opted_out.status == WARN and "forge" in opted_out.detail
     operator = {
         "link": {
             "robot_name": "cell1",
