@@ -339,6 +339,8 @@ class Relay:
         if c.roster_file is not None:
             self.roster, self._roster_digest = _read_roster(Path(c.roster_file))
             log.info("roster %s in force: %s", c.roster_file, self.roster.summary())
+            if not self.roster.robots or not self.roster.controllers():
+                log.warning("roster %s lets no robot or no controller in", c.roster_file)
             self._write_roster_status()
         curve = c.security.mode == "curve"
         if curve and self.roster is None:
