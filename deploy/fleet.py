@@ -25,6 +25,7 @@ from typing import IO, Any
 import zmq.auth
 
 from common import web_token
+from common.roster import operator_entry, robot_entry
 from common.signing import generate_key_files, load_public_key
 from common.transport import free_loopback_ports
 from deploy.keys_cli import generate
@@ -90,6 +91,7 @@ robots_command_endpoint = "tcp://127.0.0.1:{p1}"
 operators_telemetry_endpoint = "tcp://127.0.0.1:{p2}"
 operators_command_endpoint = "tcp://127.0.0.1:{p3}"
 roster_file = "{roster}"
+roster_status_file = "{status}"
 stats_interval_s = 0
 [relay.security]
 mode = "curve"
@@ -184,23 +186,16 @@ class Fleet:
         tmp.replace(self.roster)  # atomic: a reload never reads half a file
 
     def _write_roster(self, filename: str, roles: dict[str, str]) -> Path:
-        lines = []
+        entries = []
         for name, role in roles.items():
             m = self.members[name]
             curve, _ = zmq.auth.load_certificate(m.curve_public)
-            lines += [
-                "[[operator]]",
-                f'name = "{name}"',
-                f'role = "{role}"',
-                f'curve_key = "{curve.decode()}"',
-                f'signing_key = "{m.signing_public.hex()}"',
-                "",
-            ]
-        for name in self.robots:
+            entries.append(operator_entry(name, role, curve, m.signing_public))
+        for name in self.robots:  # last, as docs/deploy.md says: a cut file loses every robot
             curve, _ = zmq.auth.load_certificate(self.members[name].curve_public)
-            lines += ["[[robot]]", f'name = "{name}"', f'curve_key = "{curve.decode()}"', ""]
+            entries.append(robot_entry(name, curve))
         path = self.workdir / filename
-        path.write_text("\n".join(lines))
+        path.write_text("\n".join(entries))
         return path
 
     def client_security(self, name: str) -> dict[str, str]:
@@ -251,6 +246,7 @@ class Fleet:
                 p2=p[2],
                 p3=p[3],
                 roster=self.relay_roster,
+                status=self.workdir / f"{name}-roster-status.json",
                 secret=self.members["relay"].curve_secret,
             )
         )

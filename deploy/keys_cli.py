@@ -1,10 +1,16 @@
-"""``deepxpalm keys``: make CURVE key pairs and allow an operator on the robot.
+"""``deepxpalm keys``: make key pairs, allow an operator on the robot, write roster entries.
 
     deepxpalm keys generate --dir keys --name robot       # on the robot PC
     deepxpalm keys generate --dir keys --name operator    # on the operator PC
     deepxpalm keys allow keys/operator.key --authorized /etc/deepxpalm/operators
 
     deepxpalm keys generate-signing --dir keys --name operator-alice   # Ed25519, signs commands
+
+With a relay, one command per machine makes both pairs (or keeps the ones
+there) and prints the machine's roster entry, to paste into roster.toml:
+
+    deepxpalm keys robot --dir /etc/deepxpalm/keys --name cell1        # on robot PC cell1
+    deepxpalm keys operator --dir /etc/deepxpalm/keys --name alice --role controller
 
 Copy only public ``.key`` and ``.sign`` files between machines; ``.key_secret`` files
 never leave the machine they were made on (they are written mode 0600).
@@ -20,6 +26,7 @@ from pathlib import Path
 import zmq.auth
 
 from common.errors import ConfigError
+from common.messages import ROLES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,6 +49,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sign.add_argument("--dir", type=Path, required=True, help="where to write the files")
     sign.add_argument("--name", required=True, help="e.g. operator-alice")
     sign.add_argument("--force", action="store_true", help="overwrite an existing pair")
+    robot = sub.add_parser(
+        "robot",
+        help="a robot PC's CURVE and stream-signing pairs (kept if there) and its [[robot]] entry",
+    )
+    robot.add_argument("--dir", type=Path, required=True, help="where the key files are")
+    robot.add_argument("--name", required=True, help="the robot's name (link.robot_name)")
+    robot.add_argument(
+        "--names",
+        nargs="+",
+        default=(),
+        help="more robot names this PC's key may publish and receive under (default: --name)",
+    )
+    operator = sub.add_parser(
+        "operator",
+        help="an operator PC's CURVE and signing pairs (kept if there) and its [[operator]] entry",
+    )
+    operator.add_argument("--dir", type=Path, required=True, help="where the key files are")
+    operator.add_argument("--name", required=True, help="the operator's name in the roster")
+    operator.add_argument("--role", required=True, choices=ROLES)
     show = sub.add_parser("show", help="print a key file's public key (Z85)")
     show.add_argument("key_file", type=Path)
 
@@ -69,6 +95,31 @@ def allow(public_key: Path, authorized: Path) -> Path:
     return target
 
 
+def machine_keys(directory: Path, name: str) -> dict[str, Path]:
+    """A machine's CURVE pair and Ed25519 pair under ``directory``, made only where missing.
+
+    Never replaces an existing pair (other machines hold its public half);
+    half a pair on disk is an error to resolve by hand.
+    """
+    from common.signing import generate_key_files
+
+    files = {
+        "curve_public": directory / f"{name}.key",
+        "curve_secret": directory / f"{name}.key_secret",
+        "signing_public": directory / f"{name}.sign",
+        "signing_secret": directory / f"{name}.sign_secret",
+    }
+    for make, public, secret in (
+        (generate, files["curve_public"], files["curve_secret"]),
+        (generate_key_files, files["signing_public"], files["signing_secret"]),
+    ):
+        if public.exists() != secret.exists():
+            raise ConfigError(f"only one of {public} and {secret} exists: restore or remove it")
+        if not public.exists():
+            make(directory, name)
+    return files
+
+
 def run(args: argparse.Namespace) -> int:
     if args.keys_command == "generate":
         public, secret = generate(args.dir, args.name, args.force)
@@ -80,6 +131,26 @@ def run(args: argparse.Namespace) -> int:
         public, secret = generate_key_files(args.dir, args.name, args.force)
         print(f"public key: {public}  (its hex goes into the rosters as signing_key)")
         print(f"secret key: {secret}  (keep it here; mode 0600)")
+    elif args.keys_command in ("robot", "operator"):
+        from common.roster import operator_entry, robot_entry
+        from common.signing import load_public_key
+
+        files = machine_keys(args.dir.resolve(), args.name)
+        curve, _ = zmq.auth.load_certificate(files["curve_public"])
+        if args.keys_command == "robot":
+            entry = robot_entry(args.name, curve, tuple(args.names))
+            print(f'# robot.toml here: [robot.link] signing_key_file = "{files["signing_secret"]}"')
+            print(f'#   and [robot.link.security] secret_key_file = "{files["curve_secret"]}"')
+            print(f"# each operator following {args.name}: a copy of {files['signing_public']}")
+            print("#   as its [operator.link] robot_key_file (its stream is signed)")
+        else:
+            signing = load_public_key(files["signing_public"])
+            entry = operator_entry(args.name, args.role, curve, signing)
+            print("# operator.toml here: [operator.link] signing_key_file = ", end="")
+            print(f'"{files["signing_secret"]}"')
+            print(f'#   and [operator.link.security] secret_key_file = "{files["curve_secret"]}"')
+        print("# the roster (relay host and every robot PC; robots last) gets this entry:")
+        print(entry, end="")
     elif args.keys_command == "allow":
         target = allow(args.public_key, args.authorized)
         print(f"allowed: {target}; restart the robot node to take it in")

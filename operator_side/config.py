@@ -51,7 +51,13 @@ class OperatorLinkConfig:
     robot_key_file: Path | None = param(
         None,
         "the robot's public signing key (its NAME.sign): telemetry not signed by it is "
-        "dropped (a relay cannot forge what the palm feels); unset = unsigned telemetry accepted",
+        "dropped (a relay cannot forge what the palm feels); needed with robot_name (through "
+        "a relay) unless unsigned_stream",
+    )
+    unsigned_stream: bool = param(
+        False,
+        "with robot_name, run without robot_key_file and take the robot's telemetry unsigned: "
+        "a compromised relay can then make the palm feel what did not happen",
     )
     want_frames: bool = param(
         True, "subscribe to raw frames (heatmaps); false = the robot skips them if nobody wants"

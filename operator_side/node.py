@@ -161,6 +161,12 @@ class OperatorNode:
             self.signer = load_signer(link_cfg.signing_key_file)
         #: the robot's public key: telemetry signed by anyone else (or unsigned) is dropped
         self.robot_key: bytes | None = None
+        if self.robot_name and link_cfg.robot_key_file is None and not link_cfg.unsigned_stream:
+            raise ConfigError(
+                "operator link.robot_name is set (through a relay), so the robot's stream must "
+                "be signed: set link.robot_key_file to the robot's NAME.sign (`deepxpalm keys "
+                "robot`), or link.unsigned_stream = true to accept what a relay could forge"
+            )
         if link_cfg.robot_key_file is not None:
             from common.signing import load_public_key
 

@@ -1,1 +1,1 @@
-"""The relay: robots and operators connect out to it; ZeroMQ's proxy fans the stream out."""
+"""The relay: robots and operators connect out to it; its XPUBs fan the stream out."""

@@ -38,9 +38,16 @@ class RelayConfig:
     )
     roster_file: Path | None = param(
         None,
-        "who may connect and with which role (common/roster.py); needed with curve. Commands "
-        "from keys whose role is not controller are dropped here (and again at the robot). "
-        "SIGHUP (systemctl reload) reads it again",
+        "who may connect, each operator's role and each robot key's names (common/roster.py); "
+        "needed with curve. Commands from keys whose role is not controller are dropped here "
+        "(and again at the robot), and a robot key may publish and receive under its own names "
+        "only. SIGHUP (systemctl reload) reads it again; a file that would remove every robot "
+        "or every controller is refused unless it says allow_lockout = true",
+    )
+    roster_status_file: Path | None = param(
+        None,
+        "the relay writes the roster in force here (who, since when, and the last reload it "
+        "refused), for `deepxpalm doctor --role relay`; unset = not written",
     )
     subscriber_queue: int = param(
         100,

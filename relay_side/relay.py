@@ -1,24 +1,31 @@
-"""The relay: ZeroMQ's own proxy between sites that both connect out to it.
+"""The relay: ZeroMQ's XSUB -> XPUB forwarding between sites that both connect out to it.
 
 Robot nodes and operator nodes connect *out* to the relay, so neither site
-opens an inbound port. Two paths:
+opens an inbound port. Two paths, each an XSUB (publishers connect) and an
+XPUB (subscribers connect) joined by a small loop that also carries the
+subscriptions back upstream:
 
-- **telemetry** (robots -> operators): ``zmq.proxy_steerable`` from an XSUB
-  (robots connect their XPUB) to an XPUB (operators connect their SUB). The
-  relay never decodes it. Routing is ZeroMQ's prefix subscription on the
-  topic and robot name (docs/protocol.md, Robot names); the subscriptions flow
-  back through the proxy, so a robot sees what anyone asks for and skips raw
-  frames nobody wants. A subscriber that stops reading fills only its own
-  queue (``SNDHWM`` plus the kernel buffer) and is then dropped from: an XPUB
-  never blocks on one peer (``XPUB_NODROP`` off).
-- **commands** (operators -> robots): the same XSUB -> XPUB pair, but carried
-  by a small loop instead of the proxy, because the relay enforces roles
-  here: with CURVE each message arrives with its sender's key (ZAP
-  ``User-Id``) and a ``CMND`` from a key whose roster role is not
-  ``controller`` is dropped and counted, except an ``arm_stop`` from a role
-  that may stop (``STOP_ROLES``: an observer may press STOP; the robot
-  checks the signer's role again). Commands are low-rate (tens a second),
-  so a Python loop costs nothing measurable.
+- **telemetry** (robots -> operators). Routing is ZeroMQ's prefix
+  subscription on the topic and robot name (docs/protocol.md, Robot names),
+  so a robot sees what anyone asks for and skips raw frames nobody wants. A
+  subscriber that stops reading fills only its own queue (``SNDHWM`` plus
+  the kernel buffer) and is then dropped from: an XPUB never blocks on one
+  peer (``XPUB_NODROP`` off). With CURVE each message arrives with its
+  sender's key (ZAP ``User-Id``), and one whose robot name is not among
+  that key's roster names is dropped and counted (``telemetry_dropped_name``):
+  one robot's PC cannot pose as another robot.
+- **commands** (operators -> robots). A ``CMND`` from a key whose roster
+  role is not ``controller`` is dropped and counted, except an ``arm_stop``
+  from a role that may stop (``STOP_ROLES``: an observer may press STOP;
+  the robot checks the signer's role again). The robots' XPUB takes
+  subscriptions by hand (``XPUB_MANUAL``): a robot key's subscription is
+  applied only for its own names, so it cannot read another robot's
+  commands (``commands_subscriptions_refused_name``).
+
+The relay reads only the topic and name of a message (and a command's
+action); it never verifies a signature. Both paths run at tens to hundreds
+of messages a second, which a Python loop carries in microseconds each
+(docs/benchmarks.md, Relay).
 
 The relay holds no key that can command a robot: commands are signed by the
 operator (common/signing.py) and the robot checks them against its own
@@ -28,8 +35,9 @@ roster, so a compromised relay can delay or drop, never command
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
-import struct
 import threading
 import time
 from collections import Counter
@@ -42,8 +50,8 @@ import zmq
 from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, TOPIC_LEN, DecodeError, split_name
 from common.errors import ConfigError
 from common.logs import BurstLog
-from common.messages import STOP_ROLES
-from common.roster import Roster, load_roster
+from common.messages import ROLES, STOP_ROLES
+from common.roster import Roster, RosterLockoutError, check_replacement, parse_roster
 from common.security import SecurityConfig, check_endpoint, server_options
 from relay_side.config import RelayConfig
 
@@ -51,20 +59,35 @@ log = logging.getLogger(__name__)
 
 #: ZAP domains: a robot key cannot pose as an operator, nor the reverse
 ROBOTS_DOMAIN, OPERATORS_DOMAIN = "robots", "operators"
-#: the counters libzmq's steerable proxy reports, in its order
-PROXY_STAT_NAMES = (
-    "frontend_msgs_in",
-    "frontend_bytes_in",
-    "frontend_msgs_out",
-    "frontend_bytes_out",
-    "backend_msgs_in",
-    "backend_bytes_in",
-    "backend_msgs_out",
-    "backend_bytes_out",
-)
 _CMND = b"CMND"
 #: a message from a robot or operator may carry a robot name after the topic
 _MAX_FRAME = MAX_MESSAGE_BYTES + 1 + MAX_NAME_LEN
+
+
+def _read_roster(path: Path) -> tuple[Roster, str]:
+    """The roster in ``path`` and the SHA-256 of its text (what the doctor compares)."""
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ConfigError(f"cannot read roster {path}: {e}") from None
+    return parse_roster(text, path), hashlib.sha256(text.encode()).hexdigest()
+
+
+def roster_status(roster: Roster, digest: str, path: Path | None, since: str) -> dict[str, Any]:
+    """The relay's roster in force, as it writes it for the doctor."""
+    by_role = {role: [op.name for op in roster.operators if op.role == role] for role in ROLES}
+    return {
+        "roster_file": str(path),
+        "sha256": digest,
+        "since": since,
+        "summary": roster.summary(),
+        "robots": {r.name: sorted({r.name, *r.names}) for r in roster.robots},
+        **{f"{role}s": names for role, names in by_role.items()},
+    }
+
+
+def _now_text() -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S %z")
 
 
 def _allowed_keys(roster: Roster) -> dict[str, frozenset[bytes]]:
@@ -97,73 +120,32 @@ class KeyAllowlist:
         return False
 
 
-class _TelemetryProxy:
-    """``zmq.proxy_steerable`` on its own thread, stopped and queried through its control socket."""
-
-    def __init__(self, ctx: zmq.Context, frontend: zmq.Socket, backend: zmq.Socket) -> None:
-        self._control = ctx.socket(zmq.PAIR)
-        self._control.setsockopt(zmq.LINGER, 0)
-        address = f"inproc://relay-telemetry-control-{id(self)}"
-        self._control.bind(address)
-        peer = ctx.socket(zmq.PAIR)
-        peer.setsockopt(zmq.LINGER, 0)
-        peer.connect(address)
-        self._lock = threading.Lock()
-        self._thread = threading.Thread(
-            target=self._run, args=(frontend, backend, peer), name="relay-telemetry", daemon=True
-        )
-        self._thread.start()
-
-    @staticmethod
-    def _run(frontend: zmq.Socket, backend: zmq.Socket, control: zmq.Socket) -> None:
-        try:
-            zmq.proxy_steerable(frontend, backend, None, control)
-        except zmq.ContextTerminated:
-            pass
-        except zmq.ZMQError as e:
-            log.error("telemetry proxy ended: %s", e)
-        finally:
-            for sock in (frontend, backend, control):
-                sock.close(0)
-
-    def statistics(self, timeout_s: float = 1.0) -> dict[str, int]:
-        """libzmq's counters: messages and bytes each way (frontend = the robots' side)."""
-        with self._lock:
-            if not self._thread.is_alive():
-                return {}
-            self._control.send(b"STATISTICS")
-            if not self._control.poll(round(timeout_s * 1000)):
-                return {}
-            frames = self._control.recv_multipart()
-        return {
-            name: struct.unpack("=Q", frame)[0]
-            for name, frame in zip(PROXY_STAT_NAMES, frames, strict=False)
-        }
-
-    def stop(self) -> None:
-        with self._lock:
-            if self._thread.is_alive():
-                self._control.send(b"TERMINATE")
-                self._thread.join(5)
-            self._control.close(0)
+#: a path's loop is stuck when it has not turned for this long (its poll waits 100 ms)
+_STUCK_S = 2.0
 
 
-class _CommandPath:
-    """Operators' XSUB -> robots' XPUB, dropping commands from keys that may not command."""
+class _Path:
+    """Publishers' XSUB -> subscribers' XPUB on its own thread, subscriptions carried back.
+
+    ``names``: each robot CURVE key (z85) and the wire names it may use; None
+    (no CURVE) checks nothing. Replaced whole on a roster reload (one
+    attribute, read once per message).
+    """
+
+    what = "path"
 
     def __init__(
         self,
-        ctx: zmq.Context,
         frontend: zmq.Socket,
         backend: zmq.Socket,
-        roles: dict[bytes, str] | None,
+        names: dict[bytes, frozenset[bytes]] | None,
     ) -> None:
         self.frontend, self.backend = frontend, backend
-        self.roles = roles  # z85 CURVE key -> role; None = no CURVE, nothing to check against
+        self.names = names
         self.counters: Counter[str] = Counter()
+        self.turned = time.monotonic()
         self._stop = threading.Event()
-        self._dropped = BurstLog(log, "command dropped at the relay")
-        self._thread = threading.Thread(target=self._run, name="relay-commands", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"relay-{self.what}", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
@@ -174,9 +156,10 @@ class _CommandPath:
         try:
             while not self._stop.is_set():
                 ready = dict(poller.poll(100))
-                if back in ready:  # robots' subscriptions, upstream to the operators' PUBs
+                self.turned = time.monotonic()
+                if back in ready:  # subscriptions, upstream to the publishers
                     while back.get(zmq.EVENTS) & zmq.POLLIN:
-                        front.send(back.recv(zmq.NOBLOCK))
+                        self._subscription(back.recv(zmq.NOBLOCK, copy=False))
                 if front in ready:
                     for _ in range(256):
                         if not front.get(zmq.EVENTS) & zmq.POLLIN:
@@ -184,9 +167,14 @@ class _CommandPath:
                         self._forward(front.recv(zmq.NOBLOCK, copy=False))
         except zmq.ContextTerminated:
             pass
+        except zmq.ZMQError as e:
+            log.error("relay %s path ended: %s", self.what, e)
         finally:
             front.close(0)
             back.close(0)
+
+    def _subscription(self, frame: zmq.Frame) -> None:
+        self.frontend.send(frame)
 
     def _forward(self, frame: zmq.Frame) -> None:
         if frame.more:  # the protocol is single-frame: drop the rest too
@@ -195,25 +183,119 @@ class _CommandPath:
                 self.frontend.recv(zmq.NOBLOCK, copy=False)
             return
         self.counters["msgs_in"] += 1
+        if not self._admit(frame):
+            return
+        self.backend.send(frame, zmq.NOBLOCK, copy=False)
+        self.counters["msgs_out"] += 1
+
+    def _admit(self, frame: zmq.Frame) -> bool:
+        return True
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive() and time.monotonic() - self.turned < _STUCK_S
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+
+def _claimed_name(data: memoryview | bytes) -> bytes:
+    """The robot name a frame (or a subscription prefix) carries after its topic; b"" if none."""
+    n = data[TOPIC_LEN] if len(data) > TOPIC_LEN else 0
+    if not 1 <= n <= MAX_NAME_LEN or len(data) < TOPIC_LEN + 1 + n:
+        return b""
+    return bytes(data[TOPIC_LEN + 1 : TOPIC_LEN + 1 + n])
+
+
+def _sender(frame: zmq.Frame) -> bytes:
+    """The CURVE key (z85) the frame's connection authenticated with; b"" if none."""
+    try:
+        return frame.get("User-Id").encode("ascii", "replace")
+    except (zmq.ZMQError, AttributeError):  # no metadata: a subscription of a closed pipe
+        return b""
+
+
+def _names_text(names: frozenset[bytes] | None) -> str:
+    return ", ".join(sorted(n.decode() for n in names)) if names else "none (not a roster robot)"
+
+
+class _TelemetryPath(_Path):
+    """Robots' XSUB -> operators' XPUB, dropping what a robot key sends under another's name."""
+
+    what = "telemetry"
+
+    def __init__(self, *args: Any) -> None:
+        self._posing = BurstLog(log, "telemetry dropped at the relay: a robot key posing")
+        super().__init__(*args)
+
+    def _admit(self, frame: zmq.Frame) -> bool:
+        names = self.names
+        if names is None:
+            return True
+        key = _sender(frame)
+        mine = names.get(key)
+        data = frame.buffer
+        claimed = _claimed_name(data)
+        if mine is not None and claimed in mine:
+            return True
+        self.counters["dropped_name"] += 1
+        self._posing(
+            f"key {key.decode()} sent {bytes(data[:TOPIC_LEN])!r} as robot "
+            f"{claimed.decode() or '(no name)'}; it may use {_names_text(mine)}"
+        )
+        return False
+
+
+class _CommandPath(_Path):
+    """Operators' XSUB -> robots' XPUB: commands only from controllers (a STOP from any who may
+    press one), and each robot key subscribed to its own names' commands only."""
+
+    what = "commands"
+
+    def __init__(
+        self,
+        frontend: zmq.Socket,
+        backend: zmq.Socket,
+        names: dict[bytes, frozenset[bytes]] | None,
+        roles: dict[bytes, str] | None,
+    ) -> None:
+        self.roles = roles  # z85 CURVE key -> role; None = no CURVE, nothing to check against
+        self._dropped = BurstLog(log, "command dropped at the relay")
+        self._refused = BurstLog(log, "subscription refused at the relay: a robot key posing")
+        super().__init__(frontend, backend, names)
+
+    def _subscription(self, frame: zmq.Frame) -> None:
+        data = frame.bytes
+        if self.names is not None and data:  # XPUB_MANUAL: we apply what we allow
+            prefix = data[1:]
+            if data[0] == 1:
+                key = _sender(frame)
+                mine = self.names.get(key)
+                if mine is None or _claimed_name(prefix) not in mine:
+                    self.counters["subscriptions_refused_name"] += 1
+                    self._refused(
+                        f"key {key.decode()} asked for {prefix[:TOPIC_LEN]!r} of robot "
+                        f"{_claimed_name(prefix).decode() or '(every robot)'}; it may use "
+                        f"{_names_text(mine)}"
+                    )
+                    return
+                self.backend.setsockopt(zmq.SUBSCRIBE, prefix)
+            else:  # narrowing is always allowed (a closed peer's: libzmq ignores it)
+                self.backend.setsockopt(zmq.UNSUBSCRIBE, prefix)
+        self.frontend.send(frame)
+
+    def _admit(self, frame: zmq.Frame) -> bool:
         if self.roles is not None and frame.bytes[:TOPIC_LEN] == _CMND:
-            key = frame.get("User-Id").encode("ascii", "replace")
+            key = _sender(frame)
             role = self.roles.get(key)
             if role in STOP_ROLES and role != "controller" and _is_arm_stop(frame.bytes):
                 self.counters["stops_passed_role"] += 1
             elif role != "controller":
                 self.counters["commands_dropped_role"] += 1
                 self._dropped(f"key {key.decode()} has role {role}, not controller")
-                return
-        self.backend.send(frame, zmq.NOBLOCK, copy=False)
-        self.counters["msgs_out"] += 1
-
-    @property
-    def running(self) -> bool:
-        return self._thread.is_alive()
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
+                return False
+        return True
 
 
 def _is_arm_stop(data: bytes) -> bool:
@@ -235,7 +317,7 @@ class Relay:
         self.ctx = ctx or zmq.Context()
         self.endpoints: dict[str, str] = {}
         self.roster: Roster | None = None
-        self._telemetry: _TelemetryProxy | None = None
+        self._telemetry: _TelemetryPath | None = None
         self._commands: _CommandPath | None = None
         self._auth: Any = None
         self._allowlists: dict[str, KeyAllowlist] = {}
@@ -244,6 +326,9 @@ class Relay:
         self.roster_reload = threading.Event()
         self.roster_reloads = 0
         self.roster_reloads_failed = 0
+        self.roster_reloads_refused = 0
+        self._roster_digest = ""
+        self._roster_since = ""
         self.reopens = 0
         #: the counters of paths closed by a reopen, so ``stats`` stays cumulative
         self._telemetry_before: Counter[str] = Counter()
@@ -252,7 +337,11 @@ class Relay:
     def start(self) -> Relay:
         c = self.config
         if c.roster_file is not None:
-            self.roster = load_roster(Path(c.roster_file))
+            self.roster, self._roster_digest = _read_roster(Path(c.roster_file))
+            log.info("roster %s in force: %s", c.roster_file, self.roster.summary())
+            if not self.roster.robots or not self.roster.controllers():
+                log.warning("roster %s lets no robot or no controller in", c.roster_file)
+            self._write_roster_status()
         curve = c.security.mode == "curve"
         if curve and self.roster is None:
             raise ConfigError("relay security.mode = 'curve' needs roster_file (who may connect)")
@@ -269,17 +358,23 @@ class Relay:
         tel_in = self._socket(zmq.XSUB, "robots_telemetry_endpoint", ROBOTS_DOMAIN, rebind_s)
         tel_out = self._socket(zmq.XPUB, "operators_telemetry_endpoint", OPERATORS_DOMAIN, rebind_s)
         cmd_in = self._socket(zmq.XSUB, "operators_command_endpoint", OPERATORS_DOMAIN, rebind_s)
-        cmd_out = self._socket(zmq.XPUB, "robots_command_endpoint", ROBOTS_DOMAIN, rebind_s)
+        curve = self.config.security.mode == "curve"
+        # with CURVE, a robot's subscription is applied only for its own names (_CommandPath)
+        cmd_out = self._socket(
+            zmq.XPUB, "robots_command_endpoint", ROBOTS_DOMAIN, rebind_s, manual=curve
+        )
         cmd_in.send(b"\x01")  # nothing is filtered by topic: roles decide, below
-        self._telemetry = _TelemetryProxy(self.ctx, tel_in, tel_out)
-        roles = _roles(self.roster) if self.config.security.mode == "curve" else None
-        self._commands = _CommandPath(self.ctx, cmd_in, cmd_out, roles)
+        names = self.roster.robot_names_by_curve_key() if curve else None
+        self._telemetry = _TelemetryPath(tel_in, tel_out, names)
+        self._commands = _CommandPath(
+            cmd_in, cmd_out, names, _roles(self.roster) if curve else None
+        )
 
     def _close_paths(self) -> None:
         """Stop both paths, keeping their counters for ``stats``; the sockets close with them."""
         if self._telemetry is not None:
-            self._telemetry_before.update(self._telemetry.statistics())
             self._telemetry.stop()
+            self._telemetry_before.update(self._telemetry.counters)
             self._telemetry = None
         if self._commands is not None:
             self._commands.stop()
@@ -306,10 +401,14 @@ class Relay:
             "operators_command_endpoint": c.operators_command_endpoint,
         }
 
-    def _socket(self, kind: int, key: str, domain: str, rebind_s: float = 0.0) -> zmq.Socket:
+    def _socket(
+        self, kind: int, key: str, domain: str, rebind_s: float = 0.0, manual: bool = False
+    ) -> zmq.Socket:
         c = self.config
         sock = self.ctx.socket(kind)
         sock.setsockopt(zmq.LINGER, 0)
+        if manual:  # before bind: no peer's subscription may be applied by libzmq itself
+            sock.setsockopt(zmq.XPUB_MANUAL, 1)
         if kind == zmq.XPUB:
             sock.setsockopt(zmq.SNDHWM, c.subscriber_queue)
             sock.setsockopt(zmq.SNDBUF, c.subscriber_sndbuf_bytes)
@@ -356,58 +455,98 @@ class Relay:
             self._auth.configure_curve_callback(domain=domain, credentials_provider=allowlist)
 
     def reload_roster(self) -> bool:
-        """Read ``roster_file`` again; a broken file keeps the roster in force.
+        """Read ``roster_file`` again; a broken file, or one that would lock the fleet out,
+        keeps the roster in force.
 
         From the next handshake an added key gets in and a removed one is
         refused; from the next message a key no longer a controller has its
-        commands dropped. When a key left the roster, every connection is
-        closed and bound again (``_reopen_paths``), so its open connection ends
-        and its reconnect is refused; the others are back in a moment.
+        commands dropped and a robot key's telemetry is checked against its new
+        names. When a key left the roster or a robot key lost a name, every
+        connection is closed and bound again (``_reopen_paths``), so its open
+        connection (and its subscriptions) end; the others are back in a moment.
+        A roster that would leave no robot or no controller where there were
+        some (an empty or truncated file) is refused unless it says
+        ``allow_lockout = true`` (common/roster.py).
         """
         path = self.config.roster_file
         if path is None:
             log.warning("roster reload asked, but this relay has no roster_file")
             return False
+        old = self.roster
         try:
-            roster = load_roster(Path(path))
+            roster, digest = _read_roster(Path(path))
+            if old is not None:
+                check_replacement(old, roster, path)
         except ConfigError as e:
             self.roster_reloads_failed += 1
+            if isinstance(e, RosterLockoutError):
+                self.roster_reloads_refused += 1
             log.error("roster reload failed, the roster in force stays: %s", e)
+            self._write_roster_status(refused=str(e))
             return False
-        old = self.roster
-        self.roster = roster
+        self.roster, self._roster_digest = roster, digest
         allowed = _allowed_keys(roster)
         gone: set[bytes] = set()
         if old is not None:
             for domain, keys in _allowed_keys(old).items():
                 gone |= keys - allowed[domain]
+            new_names = roster.robot_names_by_curve_key()
+            for key, names in old.robot_names_by_curve_key().items():
+                if names - new_names.get(key, frozenset()):
+                    gone.add(key)  # it keeps its key but lost a name (and its subscriptions)
         for domain, allowlist in self._allowlists.items():
             allowlist.keys = allowed[domain]  # one attribute: the handshake thread reads either
-        if self._commands is not None and self._commands.roles is not None:
-            self._commands.roles = _roles(roster)
+        if self._allowlists:
+            names = roster.robot_names_by_curve_key()
+            for path_ in (self._telemetry, self._commands):
+                if path_ is not None:
+                    path_.names = names
+            if self._commands is not None:
+                self._commands.roles = _roles(roster)
         self.roster_reloads += 1
         log.info(
-            "roster %s reloaded: %d operators, %d robots; %d keys removed",
+            "roster %s reloaded: %s; %d keys removed or narrowed",
             path,
-            len(roster.operators),
-            len(roster.robots),
+            roster.summary(),
             len(gone),
         )
+        self._write_roster_status()
         if gone and self._allowlists and self._telemetry is not None:
             log.warning("closing every connection so the %d removed keys lose theirs", len(gone))
             self._reopen_paths()
             self.reopens += 1
         return True
 
+    def _write_roster_status(self, refused: str | None = None) -> None:
+        """What roster is in force, for ``deepxpalm doctor`` (``roster_status_file``)."""
+        target, roster = self.config.roster_status_file, self.roster
+        if target is None or roster is None:
+            return
+        if refused is None:
+            self._roster_since = _now_text()
+        status = roster_status(
+            roster, self._roster_digest, self.config.roster_file, self._roster_since
+        )
+        if refused is not None:
+            status["refused"] = {"at": _now_text(), "reason": refused}
+        try:
+            tmp = Path(target).with_suffix(".tmp")
+            tmp.write_text(json.dumps(status, indent=2))
+            tmp.replace(target)
+        except OSError as e:
+            log.warning("cannot write roster_status_file %s: %s", target, e)
+
     def stats(self) -> dict[str, float]:
         out: dict[str, float] = {"roster_reloads": float(self.roster_reloads)}
         if self.roster_reloads_failed:
             out["roster_reloads_failed"] = float(self.roster_reloads_failed)
+        if self.roster_reloads_refused:
+            out["roster_reloads_refused"] = float(self.roster_reloads_refused)
         if self.reopens:
             out["reopens"] = float(self.reopens)
         telemetry = Counter(self._telemetry_before)
         if self._telemetry is not None:
-            telemetry.update(self._telemetry.statistics())
+            telemetry.update(self._telemetry.counters)
         for key, value in telemetry.items():
             out[f"telemetry_{key}"] = float(value)
         commands = Counter(self._commands_before)
@@ -420,17 +559,15 @@ class Relay:
         return out
 
     def alive(self) -> bool:
-        """Both paths forwarding: the proxy answers its control socket, the command loop runs."""
+        """Both paths' loops running and turning (each wakes at least every 100 ms)."""
         telemetry, commands = self._telemetry, self._commands
-        if telemetry is None or commands is None or not commands.running:
-            return False
-        return bool(telemetry.statistics(timeout_s=0.5))
+        return bool(telemetry and commands and telemetry.running and commands.running)
 
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
         """Forward until ``stop`` (or ``duration_s``), logging the counters now and then.
 
         Under systemd (``Type=notify``) it says READY once bound and pings the
-        watchdog only while both paths answer, so a wedged proxy is restarted.
+        watchdog only while both paths' loops turn, so a wedged one is restarted.
         """
         from common.sd_notify import Notifier
 

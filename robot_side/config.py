@@ -101,7 +101,13 @@ class RobotLinkConfig:
         None,
         "our Ed25519 key (NAME.sign_secret, `deepxpalm keys generate-signing`): everything we "
         "send is signed, and operators holding our public key drop telemetry that is not, so "
-        "a relay cannot forge what a palm feels; unset = unsigned",
+        "a relay cannot forge what a palm feels; needed with mode relay unless "
+        "unsigned_stream; unset = unsigned",
+    )
+    unsigned_stream: bool = param(
+        False,
+        "with mode relay, run without signing_key_file: anyone who can inject into the relay "
+        "(a compromised relay host) can then make operators' palms feel what did not happen",
     )
     video_url: str = param(
         "",

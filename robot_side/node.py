@@ -39,7 +39,7 @@ from common.messages import (
     VideoSignal,
 )
 from common.recording import NullRecorder, Recorder
-from common.roster import load_roster
+from common.roster import Roster, check_replacement, load_roster
 from common.security import Authenticator, check_endpoint, client_options, server_options
 from common.transport import Link, Publisher, Receiver, Sender, Subscriber, make_context
 from robot_side.command_gate import CommandGate
@@ -136,8 +136,10 @@ class RobotNode:
         self.stop_latch = StopLatch()
         #: set it (SIGHUP: ``systemctl reload``) to read the roster again at the next loop turn
         self.roster_reload = threading.Event()
+        #: the roster in force (a reload that would lock everyone out keeps it)
+        self.roster: Roster | None = None
         if config.link.roster_file is not None:
-            roster = load_roster(config.link.roster_file)
+            roster = self.roster = load_roster(config.link.roster_file)
             self.lease = ControlLease(
                 roster.by_signing_key(),
                 round(config.link.max_command_age_ms * 1e6),
@@ -151,6 +153,15 @@ class RobotNode:
             )
         #: signs everything we send when set: operators holding our key drop what is not ours
         self.signer = None
+        link_cfg = config.link
+        if link_cfg.mode == "relay" and link_cfg.signing_key_file is None:
+            if not link_cfg.unsigned_stream:
+                raise ConfigError(
+                    "robot link.mode = 'relay' signs its stream: set link.signing_key_file "
+                    "(`deepxpalm keys robot --name NAME` makes it), or link.unsigned_stream = "
+                    "true to let a compromised relay forge what palms feel (docs/security.md)"
+                )
+            log.warning("link.unsigned_stream: this robot's stream is not signed")
         if config.link.signing_key_file is not None:
             from common.signing import load_signer  # cryptography only when signing
 
@@ -708,7 +719,8 @@ class RobotNode:
         return True
 
     def reload_roster(self, now: int) -> bool:
-        """Read ``link.roster_file`` again; a broken file keeps the roster in force.
+        """Read ``link.roster_file`` again; a broken file keeps the roster in force, and so
+        does one that would remove every controller or every robot (``check_replacement``).
 
         A key added may act from its next message; a key removed is ignored
         from now on, and if it held the lease the arm stops (as at any change
@@ -720,10 +732,13 @@ class RobotNode:
             return False
         try:
             roster = load_roster(path)
+            if self.roster is not None:
+                check_replacement(self.roster, roster, path)
         except ConfigError as e:
             self.counters["roster_reloads_failed"] += 1
             log.error("roster reload failed, the roster in force stays: %s", e)
             return False
+        self.roster = roster
         changes = self.lease.replace_roster(roster.by_signing_key())
         self.counters["roster_reloads"] += 1
         log.info(

@@ -58,11 +58,7 @@ def check_roster(report: Report, path: Any, *, need_signing: bool) -> Any | None
         report.add("roster", FAIL, str(e), "correct that entry (common/roster.py shows the format)")
         return None
     roles = [op.role for op in roster.operators]
-    detail = (
-        f"{path}: {len(roster.operators)} operators "
-        f"({', '.join(f'{roles.count(r)} {r}' for r in sorted(set(roles)))}), "
-        f"{len(roster.robots)} robots"
-    )
+    detail = f"{path}: {roster.summary()}"
     if need_signing and not roster.by_signing_key():
         report.add(
             "roster",
@@ -74,9 +70,55 @@ def check_roster(report: Report, path: Any, *, need_signing: bool) -> Any | None
         report.add(
             "roster", WARN, detail + "; no controller: nobody can command", "give one the role"
         )
+    elif not need_signing and not roster.robots:  # the relay host: robots get in by it
+        report.add("roster", WARN, detail + "; no robot: the relay lets none in", "add them")
     else:
         report.add("roster", PASS, detail)
     return roster
+
+
+def _roster_in_force(report: Report, config: Any) -> None:
+    """What the running relay holds (its ``roster_status_file``), against the file on disk."""
+    import hashlib
+    import json
+
+    status_path = config.roster_status_file
+    if status_path is None:
+        report.add(
+            "roster in force",
+            SKIP,
+            "roster_status_file is not set: the relay does not say what it holds",
+            'set roster_status_file = "/var/lib/deepxpalm/relay-roster.json"',
+        )
+        return
+    try:
+        status = json.loads(Path(status_path).read_text())
+    except (OSError, ValueError) as e:
+        report.add("roster in force", SKIP, f"no status from a relay yet ({e})")
+        return
+    held = f"since {status.get('since')}: {status.get('summary')}"
+    refused = status.get("refused")
+    try:
+        on_disk = hashlib.sha256(Path(config.roster_file).read_bytes()).hexdigest()
+    except OSError:
+        on_disk = None
+    if on_disk == status.get("sha256"):
+        report.add("roster in force", PASS, f"the file on disk, {held}")
+    elif refused:
+        report.add(
+            "roster in force",
+            WARN,
+            f"the relay refused the file on disk at {refused.get('at')} "
+            f"({refused.get('reason')}); it keeps the roster it had {held}",
+            "correct the file and reload (`sudo systemctl reload deepxpalm-relay`)",
+        )
+    else:
+        report.add(
+            "roster in force",
+            WARN,
+            f"the file on disk changed since the relay read it; it holds the roster {held}",
+            "`sudo systemctl reload deepxpalm-relay` to take it in",
+        )
 
 
 def _secret_key(report: Report, path: Any) -> None:
@@ -125,6 +167,7 @@ def diagnose_relay(report: Report, data: dict[str, Any], options: DoctorOptions)
     curve = config.security.mode == "curve"
     if curve or config.roster_file is not None:
         check_roster(report, config.roster_file, need_signing=False)
+        _roster_in_force(report, config)
     if curve:
         _secret_key(report, config.security.secret_key_file)
     else:
@@ -230,11 +273,15 @@ def _check_stream_signing(report: Report, role: str, link: Any) -> None:
     path = link.signing_key_file if role == "robot" else link.robot_key_file
     setting = "link.signing_key_file" if role == "robot" else "link.robot_key_file"
     if path is None:
+        opted_out = getattr(link, "unsigned_stream", False)
         report.add(
             "signed stream",
-            WARN,
-            f"{setting} is not set: a compromised relay could forge what a palm feels",
-            "give the robot a signing key and its operators its public NAME.sign "
+            WARN if opted_out else FAIL,
+            f"{setting} is not set"
+            + (" (link.unsigned_stream)" if opted_out else ", so the node will not start")
+            + ": a compromised relay could forge what a palm feels",
+            "`deepxpalm keys robot --name NAME` on the robot PC; its NAME.sign_secret is the "
+            "robot's link.signing_key_file, its NAME.sign the operators' link.robot_key_file "
             "(docs/deploy.md: A signed stream)",
         )
         return

@@ -93,7 +93,10 @@ def test_the_doctor_says_whether_the_robots_stream_is_signed_and_checked(tmp_pat
     assert signed.status == PASS and fleet.signing_key("cell1").hex() in signed.detail
     del robot["link"]["signing_key_file"]
     unsigned = diagnose("robot", robot, str(toml), OPTIONS).find("signed stream")
-    assert unsigned.status == WARN and "forge" in unsigned.detail
+    assert unsigned.status == FAIL and "will not start" in unsigned.detail
+    robot["link"]["unsigned_stream"] = True
+    opted_out = diagnose("robot", robot, str(toml), OPTIONS).find("signed stream")
+    assert opted_out.status == WARN and "forge" in opted_out.detail
     operator = {
         "link": {
             "robot_name": "cell1",
@@ -105,3 +108,27 @@ def test_the_doctor_says_whether_the_robots_stream_is_signed_and_checked(tmp_pat
     }
     wrong = diagnose("operator", operator, "operator.toml", OPTIONS).find("signed stream")
     assert wrong.status == FAIL and "missing.sign" in wrong.detail
+
+
+def test_the_doctor_says_which_roster_the_relay_holds_and_why_it_refused_a_file(tmp_path):
+    fleet = _fleet(tmp_path)
+    table = _relay_table(fleet)
+    table["roster_status_file"] = str(tmp_path / "relay-roster.json")
+    listed = diagnose("relay", table, "relay.toml", OPTIONS).find("roster")
+    assert "1 robots (cell1), 1 controllers (alice), 0 observers" in listed.detail
+    config = RelayConfig(
+        **{k: v for k, v in table.items() if k not in ("security", "roster_file")},
+        roster_file=fleet.roster,
+        security=RelaySecurityConfig(
+            mode="curve", secret_key_file=fleet.members["relay"].curve_secret
+        ),
+    )
+    with Relay(config) as relay:
+        held = diagnose("relay", table, "relay.toml", OPTIONS).find("roster in force")
+        assert held.status == PASS and "1 robots (cell1)" in held.detail, held
+        good = fleet.roster.read_text()
+        fleet.roster.write_text(good[: good.index("[[robot]]")])  # cut: no robot left
+        assert not relay.reload_roster()
+        refused = diagnose("relay", table, "relay.toml", OPTIONS).find("roster in force")
+        assert refused.status == WARN, refused
+        assert "would remove every robot" in refused.detail and "(cell1)" in refused.detail

@@ -78,6 +78,20 @@ def test_a_key_added_may_take_control_and_a_key_removed_loses_it_and_stops_the_a
             jog_for(late, JOG_X, 0.5)
             assert arm_sim.tcp_pose()[0] - start[0] > 0.005, "still the holder"
 
+            # nor does an empty one (it would remove every controller): refused, not obeyed
+            good = fleet.roster.read_text()
+            fleet.roster.write_text("")
+            _hang_up(fleet, "cell1")
+            fleet.wait_for(
+                lambda: "would remove every robot (1) and every controller" in robot.log_text(),
+                10,
+                "the refused reload",
+            )
+            fleet.roster.write_text(good)
+            start = arm_sim.tcp_pose()[:3].copy()
+            jog_for(late, JOG_X, 0.5)
+            assert arm_sim.tcp_pose()[0] - start[0] > 0.005, "still the holder after it"
+
             # late and obs removed, late while jogging: the lease goes, the arm stops, and
             # the relay cuts obs's open connection (everyone reconnects; obs is refused)
             jogging = threading.Thread(target=jog_for, args=(late, JOG_X, 4.0))
@@ -105,7 +119,7 @@ def test_a_key_added_may_take_control_and_a_key_removed_loses_it_and_stops_the_a
             monitor.close()
     stats = {name: p.stats() for name, p in fleet.procs.items()}
     assert stats["cell1"]["roster_reloads"] == 2, stats["cell1"]
-    assert stats["cell1"]["roster_reloads_failed"] == 1, stats["cell1"]
+    assert stats["cell1"]["roster_reloads_failed"] == 2, stats["cell1"]
     assert stats["cell1"]["messages_unknown_signer"] > 0, "late's messages after removal"
     assert stats["relay"]["roster_reloads"] == 2, stats["relay"]
     assert stats["relay"]["reopens"] == 1, stats["relay"]
