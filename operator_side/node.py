@@ -48,6 +48,7 @@ from operator_side.config import OperatorConfig
 from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
+from operator_side.telemetry_gate import REFUSALS as TELEMETRY_REFUSALS
 from operator_side.telemetry_gate import UNPROVEN, TelemetryGate
 
 log = logging.getLogger(__name__)
@@ -181,7 +182,11 @@ class OperatorNode:
         self._hb_turn = 0
         self._next_lease_request_ns = 0
         self._forged_log = BurstLog(log, "telemetry dropped: not signed by the robot's key")
-        self._replay_log = BurstLog(log, "signed telemetry refused (replay window)")
+        #: one per reason, so a replay's first example is not hidden behind another reason's
+        self._refusal_logs = {
+            reason: BurstLog(log, "signed telemetry refused (replay window)")
+            for reason in TELEMETRY_REFUSALS
+        }
 
     def _use_calibration(self, calibration: LinkGlideCalibration) -> None:
         self.calibration = calibration
@@ -410,7 +415,7 @@ class OperatorNode:
             return False  # they come at every start, until the robot answers us
         session = getattr(msg, "session", None)
         if session is None:
-            self._replay_log(
+            self._refusal_logs[refusal](
                 f"{type(msg).__name__} seq {msg.seq} signed without a session: the robot node "
                 "predates the replay window (docs/protocol.md); update it"
             )
@@ -419,7 +424,9 @@ class OperatorNode:
         age = (
             "" if offset is None else f", sent {(t_recv + offset - msg.t_send_ns) / 1e6:.0f} ms ago"
         )
-        self._replay_log(f"{type(msg).__name__} {refusal}: run {session:016x}, seq {msg.seq}{age}")
+        self._refusal_logs[refusal](
+            f"{type(msg).__name__} {refusal}: run {session:016x}, seq {msg.seq}{age}"
+        )
         return False
 
     def _heard_robot(self, t_send_ns: int, t_recv: int) -> None:
