@@ -91,6 +91,13 @@ class ClockSync:
         self.accepted = 0
         self.rejected = 0
 
+    def reset(self) -> None:
+        """Forget every sample: the peer restarted, maybe on another clock (a new boot id)."""
+        self._samples.clear()
+        self._cached_offset_ns = None
+        self._peer_t_send_ns = self._peer_t_recv_ns = None
+        self._last_key = None
+
     # ------------------------------------------------------------ input
     def on_heartbeat(
         self,

@@ -224,6 +224,7 @@ def _bin(size: int) -> Check:
 
 
 _KEY = _bin(32)  # an Ed25519 public key
+_SESSION = _int_range(1, _U63)  # random per sender run: the replay window's key
 
 # (field, check, required). Optional fields may be absent or nil.
 _COMMON = [("seq", _uint, True), ("t_send_ns", _uint, True)]
@@ -240,6 +241,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("grip_level", _int_range(1, N_GRIP_LEVELS), False),
         ("keyframe", _bool, False),
         ("sim_truth_pattern", _int_range(0, N_PATTERNS - 1), False),
+        ("session", _SESSION, False),
         ("signer", _KEY, False),
     ],
     TactileFrame: [
@@ -247,6 +249,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("t_capture_ns", _uint, True),
         ("frame_seq", _uint, True),
         ("frame", _f32_array(FRAME_SHAPE, 0.0, SATURATION_N), True),
+        ("session", _SESSION, False),
         ("signer", _KEY, False),
     ],
     Heartbeat: [
@@ -258,6 +261,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("stimulus_seq", _uint, False),
         ("t_capture_ns", _uint, False),
         ("stats", _stats, False),
+        ("session", _SESSION, False),
         ("signer", _KEY, False),
         ("echo_signer", _KEY, False),
         ("controller", _KEY, False),
@@ -268,7 +272,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("action", _enum(COMMAND_ACTIONS), True),
         ("grip_level", _int_range(1, N_GRIP_LEVELS), False),
         ("velocity", _velocity, False),
-        ("session", _int_range(1, _U63), False),
+        ("session", _SESSION, False),
         ("grantee", _KEY, False),
         ("signer", _KEY, False),
     ],
@@ -282,6 +286,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("width", _int_range(1, 8192), False),
         ("height", _int_range(1, 8192), False),
         ("fps", _float_range(0.0, 1000.0), False),
+        ("session", _SESSION, False),
         ("signer", _KEY, False),
     ],
 }

@@ -66,6 +66,7 @@ class Stimulus:
     keyframe: bool = False  # resent unchanged so a lost change cannot persist
     sim_truth_pattern: int | None = None  # simulation only: the pattern actually shown
 
+    session: int | None = None  # random per robot node run (boot id): the replay window's key
     signer: bytes | None = None  # robot: its Ed25519 public key (a signed stream)
 
     TOPIC = b"STIM"
@@ -82,6 +83,7 @@ class TactileFrame:
     frame_seq: int
     frame: np.ndarray  # (2, 10, 10) float32 newtons, common view
 
+    session: int | None = None  # random per robot node run (boot id)
     signer: bytes | None = None  # robot: its Ed25519 public key (a signed stream)
 
     TOPIC = b"FRAM"
@@ -121,6 +123,7 @@ class Heartbeat:
     stimulus_seq: int | None = None  # robot: the stimulus that is still current
     t_capture_ns: int | None = None  # robot: newest frame that confirmed it
     stats: dict[str, float] = field(default_factory=dict)
+    session: int | None = None  # robot: random per node run (boot id)
     signer: bytes | None = None  # the sender's Ed25519 public key (signed messages)
     echo_signer: bytes | None = None  # robot: whose heartbeat the echo fields answer
     controller: bytes | None = None  # robot: the key holding the control lease
@@ -167,6 +170,7 @@ class VideoSignal:
     width: int | None = None  # answer
     height: int | None = None  # answer
     fps: float | None = None  # answer
+    session: int | None = None  # robot: random per node run (boot id)
     signer: bytes | None = None  # the sender's Ed25519 public key (signed messages)
 
     TOPIC = b"VSIG"

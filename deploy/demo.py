@@ -142,7 +142,7 @@ def netsim_args(scene: Scene, endpoints: tuple[str, str, str, str]) -> list[str]
 
 def fit_command_timing(scene: Scene) -> None:
     """Widen the robot's command age, deadman and jog time to the scenario's command delay,
-    and the operator's blind-jog limit to its telemetry delay.
+    and the operator's blind-jog and signed-telemetry age limits to its telemetry delay.
 
     The robot judges commands by the operator's send time, so on a link slower
     than ``max_command_age_ms`` (a GEO satellite) nothing would ever be fresh
@@ -158,6 +158,11 @@ def fit_command_timing(scene: Scene) -> None:
     op_link = scene.operator.link
     op_link.jog_blind_after_ms = max(op_link.jog_blind_after_ms, seen_ms)
     to_robot = scenario.direction("to_robot")
+    # signed telemetry: a restarted robot is believed by a heartbeat answering ours (a round trip)
+    round_trip_ms = (
+        to_operator.delay_ms + to_robot.delay_ms + 4 * (to_operator.jitter_ms + to_robot.jitter_ms)
+    )
+    op_link.max_telemetry_age_ms = max(op_link.max_telemetry_age_ms, round_trip_ms + 100.0)
     needed_ms = to_robot.delay_ms + 4 * to_robot.jitter_ms + 100.0  # + heartbeat period, slack
     link = scene.robot.link
     if needed_ms <= link.max_command_age_ms:

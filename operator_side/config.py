@@ -59,6 +59,12 @@ class OperatorLinkConfig:
         "with robot_name, run without robot_key_file and take the robot's telemetry unsigned: "
         "a compromised relay can then make the palm feel what did not happen",
     )
+    max_telemetry_age_ms: float = param(
+        500.0,
+        "with robot_key_file: signed telemetry sent longer ago than this (its send time on our "
+        "clock) is refused, and a restarted robot is believed once a heartbeat of its new run "
+        "answers one of ours; must exceed the link's round trip (docs/protocol.md)",
+    )
     want_frames: bool = param(
         True, "subscribe to raw frames (heatmaps); false = the robot skips them if nobody wants"
     )

@@ -48,6 +48,8 @@ from operator_side.config import OperatorConfig
 from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
+from operator_side.telemetry_gate import REFUSALS as TELEMETRY_REFUSALS
+from operator_side.telemetry_gate import UNPROVEN, TelemetryGate
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +173,14 @@ class OperatorNode:
             from common.signing import load_public_key
 
             self.robot_key = load_public_key(link_cfg.robot_key_file)
+        #: with the robot's key: its signed telemetry is believed once, fresh, from its run
+        self.telemetry_gate: TelemetryGate | None = None
+        if self.robot_key is not None:
+            self.telemetry_gate = TelemetryGate(
+                self.clock,
+                round(link_cfg.max_telemetry_age_ms * 1e6),
+                self.signer.public if self.signer is not None else None,
+            )
         #: the key holding the robot's control lease, as its newest heartbeat says
         self.lease_holder: bytes | None = None
         #: the key waiting for the lease, as the robot's newest heartbeat says
@@ -178,6 +188,11 @@ class OperatorNode:
         self._hb_turn = 0
         self._next_lease_request_ns = 0
         self._forged_log = BurstLog(log, "telemetry dropped: not signed by the robot's key")
+        #: one per reason, so a replay's first example is not hidden behind another reason's
+        self._refusal_logs = {
+            reason: BurstLog(log, "signed telemetry refused (replay window)")
+            for reason in TELEMETRY_REFUSALS
+        }
 
     def _use_calibration(self, calibration: LinkGlideCalibration) -> None:
         self.calibration = calibration
@@ -359,7 +374,7 @@ class OperatorNode:
     def receive(self) -> bool:
         """Drain the socket; True when a new stimulus arrived."""
         new = False
-        robot_key = self.robot_key
+        robot_key, gate = self.robot_key, self.telemetry_gate
         for msg, t_recv in self.sub.drain():
             if robot_key is not None and msg.signer != robot_key:
                 # not from our robot: a relay (or anyone on the path) cannot make the palm move
@@ -367,6 +382,8 @@ class OperatorNode:
                 self.counters[what] += 1
                 self._forged_log(f"{type(msg).__name__}: {what}")
                 continue
+            if gate is not None and not self._admitted(gate, msg, t_recv):
+                continue  # ours, but not now: a replay, an old run, or too old to act on
             self._last_rx_ns = t_recv
             if isinstance(msg, Stimulus):
                 new |= self._on_stimulus(msg, t_recv)
@@ -383,6 +400,41 @@ class OperatorNode:
         self.counters["decode_errors"] = self._rejected_before + self.sub.rejected_total
         return new
 
+    def _admitted(self, gate: TelemetryGate, msg: Any, t_recv: int) -> bool:
+        """Whether the telemetry gate lets the robot's signed message through; counted if not."""
+        believed = gate.session
+        refusal = gate.admit(msg, t_recv)
+        if refusal is None:
+            if gate.session != believed:
+                self.counters["telemetry_sessions"] += 1
+                retired = "" if believed is None else f", its run {believed:016x} retired"
+                log.info(
+                    "robot run %016x believed: a heartbeat answered ours%s (%d refused so far "
+                    "as unproven)",
+                    gate.session,
+                    retired,
+                    self.counters[UNPROVEN],
+                )
+            return True
+        self.counters[refusal] += 1
+        if refusal == UNPROVEN:
+            return False  # they come at every start, until the robot answers us
+        session = getattr(msg, "session", None)
+        if session is None:
+            self._refusal_logs[refusal](
+                f"{type(msg).__name__} seq {msg.seq} signed without a session: the robot node "
+                "predates the replay window (docs/protocol.md); update it"
+            )
+            return False
+        offset = self.clock.offset_ns
+        age = (
+            "" if offset is None else f", sent {(t_recv + offset - msg.t_send_ns) / 1e6:.0f} ms ago"
+        )
+        self._refusal_logs[refusal](
+            f"{type(msg).__name__} {refusal}: run {session:016x}, seq {msg.seq}{age}"
+        )
+        return False
+
     def _heard_robot(self, t_send_ns: int, t_recv: int) -> None:
         """The robot was alive at ``t_send_ns``: a backlog delivered late does not count as now."""
         local = self._to_local(t_send_ns, t_recv)
@@ -398,7 +450,11 @@ class OperatorNode:
         self.link.on_message(msg.seq, msg.t_send_ns, t_recv)
         self._heard_robot(msg.t_send_ns, t_recv)
         last = self._stim
-        if last is not None and last.seq - RESTART_SEQ_GAP < msg.seq <= last.seq:
+        if (
+            last is not None
+            and last.session == msg.session  # a new run numbers from 1 again
+            and last.seq - RESTART_SEQ_GAP < msg.seq <= last.seq
+        ):
             self.counters["stimuli_out_of_order"] += 1
             return False
         self.counters["stimuli_received"] += 1
@@ -558,10 +614,13 @@ class OperatorNode:
                 },
             )
         echo_send, echo_recv = self.clock.echo_fields()
+        t_send = self.now()
+        if self.telemetry_gate is not None:
+            self.telemetry_gate.heartbeat_sent(t_send)
         self.pub.send(
             Heartbeat(
                 seq=self._hb_seq,
-                t_send_ns=self.now(),
+                t_send_ns=t_send,
                 node="operator",
                 state=self.link_state,
                 echo_t_send_ns=echo_send,

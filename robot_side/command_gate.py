@@ -14,9 +14,11 @@ the robot got round to reading it:
   messages cannot extend it; a timestamp from the future cannot either.
 - **once, in order**: within one operator session (the ``session`` field,
   random per operator run), ``seq`` and ``t_send_ns`` must both increase. A
-  replayed or reordered command is refused. CURVE already stops a stranger
-  on the network from replaying anything; this stops a replay by anyone who
-  can reach the socket (a key holder, or anyone on a plain loopback link).
+  replayed or reordered command is refused (``common.replay_window``, the
+  window signed telemetry uses too, here with no room for reordering). CURVE
+  already stops a stranger on the network from replaying anything; this
+  stops a replay by anyone who can reach the socket (a key holder, or anyone
+  on a plain loopback link).
 - **before the clock offset is known** (the first heartbeat round trip,
   about 100 ms after an operator connects) no send time can be judged, so
   only commands that cannot start motion are acted on.
@@ -29,11 +31,9 @@ is the opposite (it lets the arm move again): it must be fresh like a jog.
 
 from __future__ import annotations
 
-from collections import OrderedDict
-from dataclasses import dataclass
-
 from common.clock_sync import ClockSync
 from common.messages import Command
+from common.replay_window import ReplayWindow
 
 #: Commands that can only end motion: safe to act on when late or before the clock is known.
 SAFE_WHEN_LATE = frozenset({"arm_stop", "arm_jog_end", "gripper_hold"})
@@ -43,12 +43,6 @@ UNSYNCED = "commands_unsynced"
 FROM_FUTURE = "commands_from_future"
 REPLAYED = "commands_replayed"
 STALE = "commands_stale"
-
-
-@dataclass(slots=True)
-class _Session:
-    seq: int
-    t_send_ns: int
 
 
 class CommandGate:
@@ -61,7 +55,8 @@ class CommandGate:
             raise ValueError(f"max_age_ns must be positive, not {max_age_ns}")
         self.clock = clock
         self.max_age_ns = max_age_ns
-        self._sessions: OrderedDict[int, _Session] = OrderedDict()
+        #: per operator session: seq and send time must both increase (no reordering)
+        self.window = ReplayWindow(width=0, max_sessions=self.MAX_SESSIONS)
         #: send time (our clock) of the newest fresh message from the operator, or None
         self.last_fresh_ns: int | None = None
 
@@ -95,19 +90,12 @@ class CommandGate:
         mapped = cmd.t_send_ns - offset
         if mapped - t_recv_ns > self.max_age_ns:  # clock error is far smaller than this
             return FROM_FUTURE, None
-        key = cmd.session or 0
-        session = self._sessions.get(key)
-        if session is not None and (cmd.seq <= session.seq or cmd.t_send_ns <= session.t_send_ns):
+        session = cmd.session or 0
+        if self.window.replayed(session, Command.TOPIC, cmd.seq, cmd.t_send_ns):
             return REPLAYED, None
         sent = min(mapped, t_recv_ns)
         if now_ns - sent > self.max_age_ns and cmd.action not in SAFE_WHEN_LATE:
             return STALE, sent
-        if session is None:
-            session = self._sessions[key] = _Session(cmd.seq, cmd.t_send_ns)
-            while len(self._sessions) > self.MAX_SESSIONS:
-                self._sessions.popitem(last=False)
-        else:
-            session.seq, session.t_send_ns = cmd.seq, cmd.t_send_ns
-            self._sessions.move_to_end(key)
+        self.window.accept(session, Command.TOPIC, cmd.seq, cmd.t_send_ns)
         self.heard(cmd.t_send_ns, t_recv_ns, now_ns)
         return None, sent

@@ -15,6 +15,7 @@ import contextlib
 import importlib.util
 import logging
 import math
+import secrets
 import threading
 from collections import Counter
 from collections.abc import Callable
@@ -115,6 +116,9 @@ class RobotNode:
         self.link_state = "down"
         #: (monotonic ns, new state) of the latest link state changes
         self.link_changes: collections.deque[tuple[int, str]] = collections.deque(maxlen=256)
+        #: this run's boot id, on everything we send: seqs restart with it, so an operator
+        #: tells a restart from a replay and refuses what an older run sent (replay_window.py)
+        self.session = secrets.randbits(63) or 1
         self._stim_seq = 0
         self._hb_seq = 0
         self._frame_msg_seq = 0
@@ -531,6 +535,7 @@ class RobotNode:
             grip_level=self._grip_level,
             keyframe=keyframe,
             sim_truth_pattern=truth,
+            session=self.session,
         )
         data = self.pub.send(msg)
         if self._recording:
@@ -555,6 +560,7 @@ class RobotNode:
                 t_capture_ns=sample.t_capture_ns,
                 frame_seq=sample.seq,
                 frame=frame,
+                session=self.session,
             )
         )
 
@@ -864,7 +870,7 @@ class RobotNode:
 
     def _publish_video(self, msg: VideoSignal) -> None:
         self._vsig_seq += 1
-        msg.seq, msg.t_send_ns = self._vsig_seq, self.now()
+        msg.seq, msg.t_send_ns, msg.session = self._vsig_seq, self.now(), self.session
         self.pub.send(msg)
         self.counters[f"video_{msg.kind}s_sent"] += 1
 
@@ -927,6 +933,7 @@ class RobotNode:
                 echo_signer=echo_signer,
                 controller=controller,
                 lease_pending=pending,
+                session=self.session,
             )
         )
 

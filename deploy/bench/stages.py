@@ -73,9 +73,12 @@ STAGES: dict[str, str] = {
     "stimuli",
     "decode_verified": "instead of decode, with the operator's link.robot_key_file: the "
     "signed bytes decoded and their signature verified; the same pass",
+    "replay_window": "after decode_verified: the operator's telemetry gate "
+    "(TelemetryGate.admit: the robot run, send time against the clock estimate, the "
+    "seq window) on the verified stimulus; the same pass",
 }
-#: stages that replace encode and decode when the robot signs its stream: not in the sum
-SIGNED_STAGES = ("encode_signed", "decode_verified")
+#: stages a signed stream adds or puts in place of encode and decode: not in the sum
+SIGNED_STAGES = ("encode_signed", "decode_verified", "replay_window")
 #: the plain path's stages, which the compiled frame step replaces
 PLAIN_STAGES = ("sanitize_contact", "classification", "render")
 
@@ -140,6 +143,7 @@ def stage_budget(
     from common.signing import Signer
 
     signer = Signer.generate()
+    gate = _believing_gate()
     built: list[Stimulus] = []  # the node path's stimuli, signed in a pass of their own
     times: dict[str, list[int]] = {name: [] for name in STAGES}
     total: list[int] = []  # frames through the node's path
@@ -230,16 +234,22 @@ def stage_budget(
             for name, dt in spans.items():
                 times[name].append(dt)
             (total if compiled or step is None else total_plain).append(t11 - t0)
-        # A signed stream's two stages in a pass of their own over the same stimuli, so
+        # A signed stream's stages in a pass of their own over the same stimuli, so
         # their 300 us of crypto per frame do not cool the caches the node path meets.
         for stimulus in built:
+            stimulus.session, stimulus.t_send_ns = gate.session, now_ns()  # sent now, this run
             t12 = clock()
             signed = encode(stimulus, b"", signer)
             t13 = clock()
-            decode(signed)
+            verified = decode(signed)
             t14 = clock()
+            refusal = gate.admit(verified, now_ns())
+            t15 = clock()
+            if refusal is not None:
+                raise RuntimeError(f"the telemetry gate refused a fresh stimulus: {refusal}")
             times["encode_signed"].append(t13 - t12)
             times["decode_verified"].append(t14 - t13)
+            times["replay_window"].append(t15 - t14)
             if rate is not None:
                 rate.sleep()
     finally:
@@ -267,6 +277,26 @@ def stage_budget(
         "instrumented_total_plain": summarize_ns(total_plain).as_dict() if total_plain else None,
         "transit": transit,
     }
+
+
+def _believing_gate() -> Any:
+    """An operator's telemetry gate that believes one robot run, its clock offset known."""
+    from common.clock_sync import ClockSync
+    from common.messages import Heartbeat
+    from operator_side.telemetry_gate import TelemetryGate
+
+    clock = ClockSync()
+    age_ns = round(OperatorConfig().link.max_telemetry_age_ms * 1e6)
+    gate = TelemetryGate(clock, age_ns)
+    t = now_ns()
+    gate.heartbeat_sent(t)
+    answer = Heartbeat(
+        seq=1, t_send_ns=t + 1, node="robot", state="ok", echo_t_send_ns=t, session=0x5EED
+    )
+    if gate.admit(answer, t + 2) is not None:
+        raise RuntimeError("the telemetry gate did not believe a run answering its heartbeat")
+    clock.add_sample(t, t + 1, t + 1, t + 2)  # as the node feeds the clock that heartbeat
+    return gate
 
 
 def transit_times(n: int) -> dict[str, Any]:

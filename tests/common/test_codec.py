@@ -55,6 +55,7 @@ def rebuild(topic: bytes, body: dict) -> bytes:
 def test_every_message_round_trips():
     msgs = [
         stimulus(),
+        stimulus(session=2**63 - 1),  # a robot run's boot id (docs/protocol.md)
         stimulus(
             pattern=None,
             confidence=None,
@@ -80,6 +81,7 @@ def test_every_message_round_trips():
             stimulus_seq=7,
             t_capture_ns=9,
             stats={"frames": 12.0},
+            session=99,
         ),
         Command(seq=3, t_send_ns=11, action="arm_jog", velocity=(0.01, 0, 0, 0, 0, 0.1)),
         Command(seq=4, t_send_ns=12, action="gripper_close", grip_level=31),
@@ -111,6 +113,8 @@ def test_every_message_round_trips():
         (lambda b: b.update(confidence=1.5), OutOfRangeError),
         (lambda b: b.update(pattern=12), OutOfRangeError),
         (lambda b: b.update(grip_level=0), OutOfRangeError),
+        (lambda b: b.update(session=0), OutOfRangeError),
+        (lambda b: b.update(session=b"boot"), FieldTypeError),
         (lambda b: b.update(mode="fancy"), OutOfRangeError),
         (lambda b: b.update(stimulus=b"\x00" * 35), FieldTypeError),
         (lambda b: b.update(stimulus=[0.0] * 9), FieldTypeError),

@@ -132,8 +132,16 @@ def test_with_the_robots_key_only_its_signed_telemetry_reaches_the_palm(tmp_path
     node.control_step(clock(), period)
     assert node.last_stimulus is None
     assert node.written_goals in (None, node.renderer.retract_goals)  # the palm stays free
-    # the robot's own
-    wire = encode(_stimulus(3, clock()), b"cell1", robot)
+    # the robot's own, once a heartbeat of its run answered ours (test_telemetry_gate.py)
+    node._send_heartbeat()
+    echo = [m for m in link.messages if isinstance(m, Heartbeat)][-1].t_send_ns
+    answer = Heartbeat(
+        seq=1, t_send_ns=clock(), node="robot", state="ok", echo_t_send_ns=echo, session=7
+    )
+    link.deliver(decode(encode(answer, b"cell1", robot)), clock())
+    stimulus = _stimulus(3, clock())
+    stimulus.session = 7
+    wire = encode(stimulus, b"cell1", robot)
     link.deliver(decode(wire), clock())
     assert node.receive() and node.last_stimulus.seq == 3
     node.control_step(clock(), period)
