@@ -204,12 +204,27 @@ class Chromium:
             time.sleep(poll_s)
         raise BrowserError(f"timed out after {timeout_s} s waiting on {expression!r} ({value!r})")
 
-    def click(self, selector: str) -> None:
-        """A real mouse click at the element's centre, as a person would."""
-        box = self.evaluate(
-            f"(() => {{ const r = document.querySelector({json.dumps(selector)})"
-            ".getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; })()"
+    def click(self, selector: str, timeout_s: float = 5.0) -> None:
+        """A real mouse click at the element's centre, as a person would: scrolled into view,
+        and only once nothing else (a banner that just appeared, a moving layout) covers it.
+        """
+        js = (
+            f"(() => {{ const el = document.querySelector({json.dumps(selector)});"
+            " if (!el) return null; el.scrollIntoView({block: 'center', inline: 'center'});"
+            " const r = el.getBoundingClientRect();"
+            " const x = r.x + r.width / 2, y = r.y + r.height / 2;"
+            " const hit = document.elementFromPoint(x, y);"
+            " return [x, y, hit !== null && (hit === el || el.contains(hit))]; })()"
         )
+        deadline = time.monotonic() + timeout_s
+        while True:
+            box = self.evaluate(js)
+            if box is not None and box[2]:
+                break
+            if time.monotonic() > deadline:
+                what = "not on the page" if box is None else "covered by another element"
+                raise BrowserError(f"cannot click {selector}: {what} for {timeout_s} s")
+            time.sleep(0.05)
         for kind in ("mousePressed", "mouseReleased"):
             self.call(
                 "Input.dispatchMouseEvent",

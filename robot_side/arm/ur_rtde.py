@@ -322,8 +322,10 @@ class URArm(Arm):
         self._worker = _Worker(f"urarm-ctrl-{host}")
         self._last_ts = recv.getTimestamp()
         self._last_ts_change = now_s()
-        self._arm_watchdog()
+        # the kicking thread first: started after the watchdog, its start-up in a busy
+        # process was once longer than the window ("0 kicks", a trip at every connect)
         self._start_deadman()
+        self._arm_watchdog()
         log.info(
             "URArm connected to %s (watchdog %.0f ms)", host, self.config.watchdog_window_s * 1000
         )
