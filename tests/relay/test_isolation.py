@@ -35,7 +35,7 @@ def test_a_stalled_and_a_slow_subscriber_move_no_other_subscribers_p99(tmp_path,
     """
     trials = []
     for swap in (False, True):
-        r = run_isolation(duration_s=12.0, rate_hz=250.0, workdir=tmp_path / str(swap), swap=swap)
+        r = run_isolation(duration_s=8.0, rate_hz=250.0, workdir=tmp_path / str(swap), swap=swap)
         trials.append(_check(r))
         print(
             "p99 with / without the stalled and slow subscribers:",
