@@ -162,6 +162,16 @@ def _first(samples: list[Sample], after: float, pred: Callable[[float], bool]) -
     return None
 
 
+def back_before_a_stop_was_due(arm_still_s: float | None, recovered_s: float | None) -> bool:
+    """The link was whole again before the arm's deadman could bring it to rest.
+
+    A restart faster than the jog deadman (250 ms) plus a still stretch: the
+    arm slowed, never rested, and follows the operator's held jog again, as
+    it should; a stop is not the verdict of such a cell.
+    """
+    return arm_still_s is None and recovered_s is not None and recovered_s <= ARM_STILL_BUDGET_S
+
+
 def first_still(samples: list[Sample], after: float) -> float | None:
     """Start of the first stretch of STILL_FOR_S with every sample below STILL_M_S."""
     start: float | None = None

@@ -16,14 +16,15 @@ from deploy.bench.report import write_outputs
 from deploy.bench.runner import run_bench
 from deploy.bench.sizes import PRESETS, SECTIONS
 
-# The sections that start processes run in the slow test below, but four whose
+# The sections that start processes run in the slow test below, but five whose
 # measurements other tests run: the task's ``run_cell`` (tests/lab/test_task.py), the
 # fault matrix's ``run_cells`` (tests/faults), the command path's flood rig
-# (tests/system/test_command_path.py) and the video's viewers (tests/video); their tables
-# are rendered from the committed report by tests/bench/test_sections.py. Run here too
-# they cost a minute and a half of the suite's budget.
-PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim", "relay"}
-COVERED_ELSEWHERE = {"task", "faults", "command_path", "video"}
+# (tests/system/test_command_path.py), the video's viewers (tests/video) and the relay's
+# isolation rig (tests/relay/test_isolation.py); their tables are rendered from the
+# committed report by tests/bench/test_sections.py. Run here too they cost two minutes
+# of the suite's 15.
+PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim"}
+COVERED_ELSEWHERE = {"task", "faults", "command_path", "video", "relay"}
 NOT_IN_PROCESS = PROCESS_SECTIONS | COVERED_ELSEWHERE
 
 
@@ -147,7 +148,7 @@ def test_fused_downsizing_is_an_exact_rewrite(smallest):
 
 @pytest.mark.slow
 def test_process_sections_run(tmp_path):
-    """The two-process TCP loop, node CPU, link simulator and relay, at the smallest sizes."""
+    """The two-process TCP loop, node CPU and link simulator, at the smallest sizes."""
     results = run_bench(PRESETS["smallest"], "smallest", set(SECTIONS) - PROCESS_SECTIONS, None, [])
     for name in PROCESS_SECTIONS:
         assert "error" not in results["sections"][name], results["sections"][name].get("error")
@@ -164,5 +165,5 @@ def test_process_sections_run(tmp_path):
     assert netsim["runs"][0]["n_via"] > 0
     write_outputs(results, tmp_path, figures=False)
     md = (tmp_path / "benchmarks.md").read_text()
-    for heading in ("## Node CPU", "## Link simulator fidelity", "## Relay"):
+    for heading in ("## Node CPU", "## Link simulator fidelity"):
         assert heading in md, heading

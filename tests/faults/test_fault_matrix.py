@@ -21,6 +21,7 @@ from deploy.faults.matrix import (
     PALM_LIFT_BUDGET_S,
     Cell,
     CellRun,
+    back_before_a_stop_was_due,
     quick_matrix,
 )
 
@@ -57,16 +58,19 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
         f"{cell.label}: the arm was still moving 1.5 s after the operator let go at the end "
         "(product: nothing stopped it)"
     )
-    assert row.arm_still_s is not None, (
-        f"{cell.label}: the arm never stopped while the path of its commands was broken "
-        f"(product: nothing outside the failed process stops it); {row}"
-    )
-    assert row.arm_still_s <= ARM_STILL_BUDGET_S + LOAD_SLACK_S, (
-        f"{cell.label}: the arm was still {row.arm_still_s * 1e3:.0f} ms after the fault, budget "
-        f"{ARM_STILL_BUDGET_S * 1e3:.0f} ms; the node's own deadman stop in the same cell took "
-        f"{baseline * 1e3:.0f} ms (if that is late too, the machine is loaded; if not, the "
-        "product is slow to stop)"
-    )
+    if back_before_a_stop_was_due(row.arm_still_s, row.recovered_s):
+        print(f"{cell.label}: the link was back in {row.recovered_s:.2f} s, before a stop was due")
+    else:
+        assert row.arm_still_s is not None, (
+            f"{cell.label}: the arm never stopped while the path of its commands was broken "
+            f"(product: nothing outside the failed process stops it); {row}"
+        )
+        assert row.arm_still_s <= ARM_STILL_BUDGET_S + LOAD_SLACK_S, (
+            f"{cell.label}: the arm was still {row.arm_still_s * 1e3:.0f} ms after the fault, "
+            f"budget {ARM_STILL_BUDGET_S * 1e3:.0f} ms; the node's own deadman stop in the same "
+            f"cell took {baseline * 1e3:.0f} ms (if that is late too, the machine is loaded; if "
+            "not, the product is slow to stop)"
+        )
     assert row.gripper_held, (
         f"{cell.label}: the gripper opened to {row.gripper_min_pos} during the fault (product: "
         "the pipette must never drop because a process died)"

@@ -75,18 +75,26 @@ def _cruising(row: dict[str, Any]) -> bool:
 
 
 def _late(row: dict[str, Any]) -> bool:
-    from deploy.faults.matrix import ARM_STILL_BUDGET_S
+    from deploy.faults.matrix import ARM_STILL_BUDGET_S, back_before_a_stop_was_due
 
     still = row["arm_still_s"]
+    if back_before_a_stop_was_due(still, row["recovered_s"]):
+        return False
     return row["target"] in CUTS_THE_JOG and (still is None or still > ARM_STILL_BUDGET_S)
 
 
 def _arm(row: dict[str, Any]) -> str:
+    from deploy.faults.matrix import back_before_a_stop_was_due
+
     if not _cruising(row):
         return "(not moving at the fault: the machine's load had stalled the jog)"
     still, away = row["arm_still_s"], row.get("arm_unreadable_s")
     if still is None:
-        return "**kept moving**" if _late(row) else "kept following the jog"
+        if _late(row):
+            return "**kept moving**"
+        if back_before_a_stop_was_due(still, row["recovered_s"]):
+            return "slowed; the link was back before a stop was due"
+        return "kept following the jog"
     if away is not None and away <= still:
         return f"controller unreadable from {_s(away)} (an interruption)"
     if row["target"] not in CUTS_THE_JOG:
