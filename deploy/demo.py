@@ -114,15 +114,22 @@ def wait_for_robot(node: Any, procs: list, stop: threading.Event, errors: list[s
 
 
 def stop_child(proc: subprocess.Popen, name: str, errors: list[str], log_path: Path) -> None:
+    """SIGTERM, as systemd stops a unit, then SIGKILL after 10 s (reported as an error).
+
+    Not SIGINT: a shell without job control starts background commands with
+    SIGINT ignored, and its children inherit that (Python then installs no
+    KeyboardInterrupt handler); a demo or test run launched that way left
+    every child deaf to Ctrl-C and killed after 10 s. No shell ignores SIGTERM.
+    """
     if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signal.SIGTERM)
         try:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
             errors.append(f"{name} did not stop within 10 s and was killed")
-    if proc.returncode not in (0, -signal.SIGINT, 130):
+    if proc.returncode not in (0, -signal.SIGINT, 130, -signal.SIGTERM, 143):
         tail = log_path.read_text(errors="replace").strip().splitlines()[-5:]
         errors.append(f"{name} exited with {proc.returncode}: " + " | ".join(tail))
 

@@ -208,10 +208,13 @@ class Supervisor:
 
 
 def stop_process(proc: subprocess.Popen | None, timeout_s: float = 10.0) -> None:
-    """Ctrl-C, then SIGKILL after ``timeout_s``: a child restarted with another."""
+    """SIGTERM, then SIGKILL after ``timeout_s``: a child restarted with another.
+
+    SIGTERM, not SIGINT, which a child of a shell without job control inherits ignored.
+    """
     if proc is None or proc.poll() is not None:
         return
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(signal.SIGTERM)
     try:
         proc.wait(timeout=timeout_s)
     except subprocess.TimeoutExpired:

@@ -15,6 +15,7 @@ import contextlib
 import json
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -140,6 +141,26 @@ def wait_still(arm: SimulatedArm, timeout_s: float = 3.0) -> float:
     return took
 
 
+def move_until(
+    arm: SimulatedArm, reached: Callable[[np.ndarray], bool], timeout_s: float = 5.0
+) -> tuple[np.ndarray, float]:
+    """(pose change, top linear speed) once ``reached(change)`` holds, or at ``timeout_s``.
+
+    A second of jogging covers 30 mm on a quiet machine; on a saturated one the nodes in
+    this process send and admit fewer jogs and the deadman stops the arm between them, so
+    the distance is waited for (the speed checks that follow stay exact).
+    """
+    start = arm.sim.tcp_pose()
+    top = 0.0
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        top = max(top, speed(arm))
+        if reached(arm.sim.tcp_pose() - start):
+            break
+        time.sleep(0.02)
+    return arm.sim.tcp_pose() - start, top
+
+
 def move_for(arm: SimulatedArm, seconds: float) -> tuple[np.ndarray, float]:
     """(pose change, top linear speed) over ``seconds`` of an already commanded jog."""
     start = arm.sim.tcp_pose()
@@ -167,7 +188,7 @@ def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, arm: Sim
     # enable held: +x at the speed scale, nothing else
     browser.evaluate("window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }")
     browser.wait_until("dxp.jog.moving", bool)
-    delta, top = move_for(arm, 1.0)
+    delta, top = move_until(arm, lambda d: d[0] > 0.03)
     assert delta[0] > 0.015, delta
     assert abs(delta[1]) < 0.1 * delta[0] and abs(delta[2]) < 0.1 * delta[0], delta
     assert top <= SPEED_SCALE * 0.10 * 1.02, top  # within the scaled cap
@@ -185,8 +206,10 @@ def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, arm: Sim
     browser.evaluate("window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }")
     browser.wait_until("dxp.jog.moving", bool)
     top_w, top_v = 0.0, 0.0
-    t_end = time.monotonic() + 0.6
-    while time.monotonic() < t_end:
+    t0 = time.monotonic()  # 0.6 s at least; up to 5 s for a starved process to reach speed
+    while time.monotonic() - t0 < 0.6 or (
+        top_w <= SPEED_SCALE * 0.5 * 0.8 and time.monotonic() - t0 < 5.0
+    ):
         w = arm.sim.tcp_speed()
         top_w, top_v = max(top_w, w[5]), max(top_v, float(np.linalg.norm(w[:3])))
         time.sleep(0.02)
@@ -212,7 +235,7 @@ def _spacemouse_moves_the_arm(browser: Chromium, arm: SimulatedArm):
     assert top < STILL_M_S, "moved without the enable button"
     browser.evaluate(hid(3, [1], "<B"))  # left button down
     browser.wait_until("dxp.jog.moving", bool)
-    delta, top = move_for(arm, 1.0)
+    delta, top = move_until(arm, lambda d: d[0] > 0.02 and d[2] > 0.02)
     assert delta[0] > 0.01 and delta[2] > 0.01, delta  # +x and +z
     assert abs(delta[1]) < 0.1 * delta[0], delta
     assert top <= SPEED_SCALE * 0.10 * 1.02, top  # the scale caps the combined speed

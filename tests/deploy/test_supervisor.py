@@ -15,8 +15,8 @@ def _python(code: str):
     return lambda n: subprocess.Popen([sys.executable, "-c", code])
 
 
-# not a Python child: a Ctrl-C that lands while an interpreter starts up exits 1, which
-# stop_child rightly reports (seen on a loaded machine); sleep(1) dies by SIGINT whenever
+# not a Python child: a stop that lands while an interpreter starts up exits 1, which
+# stop_child rightly reports (seen on a loaded machine); sleep(1) dies by SIGTERM whenever
 SLEEPER = lambda n: subprocess.Popen(["sleep", "60"])  # noqa: E731
 FAILER = _python("raise SystemExit(3)")
 
