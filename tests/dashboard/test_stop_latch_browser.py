@@ -193,7 +193,7 @@ class Stops:
         hold_until_moving(self.a, self.log)
         self.releases.append(release_ms(self.a, self.log))
 
-    def check_budget(self, what: str) -> None:
+    def check_budget(self, what: str, sampled_every_ms: float = 0.0) -> None:
         """Median within 100 ms of the press; over it only if the machine was slow, not the product.
 
         The robot's part (the stop's arrival to rest) must be within budget
@@ -215,10 +215,12 @@ class Stops:
         )
         if total <= STOP_BUDGET_MS:
             return
-        assert total <= 1.5 * release + 20, (
+        # a key is an event; a gamepad is read every tick, which a loaded page also delays
+        assert total <= 1.5 * (release + sampled_every_ms) + 20, (
             f"product: {what} took {total:.0f} ms (median) from the press to rest, budget "
             f"{STOP_BUDGET_MS}, while letting go of a held key took {release:.0f} ms (median) "
-            "through the same page, server and node in this run: not the machine's load"
+            f"through the same page, server and node in this run (plus {sampled_every_ms:.0f} ms "
+            "between two readings of the input): not the machine's load"
         )
         print(f"load: {what} over {STOP_BUDGET_MS} ms, and so was a plain release in this run")
 
@@ -267,4 +269,5 @@ def test_a_stop_on_one_page_or_a_gamepad_holds_the_jog_of_another_until_a_resume
     assert robot_stats["arm_stops_latched"] >= 2 * ROUNDS, robot_stats
     assert robot_stats["arm_resumes"] >= 2 * ROUNDS and robot_stats["arm_stop_latched"] == 0.0
     run.check_budget("STOP ARM clicked on page B")
-    run.check_budget("the gamepad's stop button on page B")
+    # the page reads the pad at the jog send rate (30 Hz, operator.dashboard.jog.send_rate_hz)
+    run.check_budget("the gamepad's stop button on page B", sampled_every_ms=1000 / 30)
