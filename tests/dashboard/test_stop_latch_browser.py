@@ -26,7 +26,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
-from headless_chromium import Chromium, needs_chromium
+from headless_chromium import BrowserError, Chromium, needs_chromium
 from test_arm_jog_browser import PAD, SPEED_SCALE, STILL_M_S, station  # noqa: F401 (fixture)
 
 pytestmark = [pytest.mark.timeout(240), pytest.mark.slow, needs_chromium]
@@ -185,7 +185,11 @@ class Stops:
         """RESUME; A's still-held key moves nothing until let go and pressed again."""
         resumer.click("#arm-resume")
         for page in (self.a, self.b):
-            shows_latch(page, False)
+            try:
+                shows_latch(page, False)
+            except BrowserError as e:  # what the page told its user about the resume
+                note = resumer.evaluate("document.getElementById('latch-note').textContent")
+                raise AssertionError(f"the resume did not release the stop; page: {note!r}") from e
         if check_hold:
             stays_still_while_held(self.log, "the resume (A never let go)")
         key(self.a, "keyUp")
