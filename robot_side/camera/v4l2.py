@@ -17,30 +17,30 @@ machine without a camera.
 from __future__ import annotations
 
 import logging
+import os
+import stat
 import time
-from dataclasses import dataclass
 from typing import Any
 
-from common.config import param
 from common.errors import DeviceError, DeviceNotConnectedError
-from robot_side.video.source import CapturedFrame, VideoSource
+from common.preflight import (
+    FAIL,
+    WARN,
+    Finding,
+    PreflightContext,
+    current_user_name,
+    owner_text,
+    processes_holding,
+    service_user_can,
+)
+from robot_side.camera.base import Camera, CapturedFrame
+from robot_side.camera.config import V4L2Config
 
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class V4L2Config:
-    device: str = param("/dev/video0", "the camera's device node (v4l2-ctl --list-devices)")
-    width: int = param(640, "requested width; the camera may choose the nearest it has")
-    height: int = param(480, "requested height")
-    fps: float = param(30.0, "requested frame rate")
-    input_format: str = param(
-        "mjpeg", "the camera's wire format: mjpeg (most 640x480@30 cameras) or yuyv422"
-    )
-    format: str = param("v4l2", "FFmpeg input format; v4l2 for a camera")
-
-
-class V4L2Source(VideoSource):
+class V4L2Camera(Camera):
+    Config = V4L2Config
     name = "v4l2"
 
     def __init__(self, config: V4L2Config | None = None) -> None:
@@ -49,7 +49,11 @@ class V4L2Source(VideoSource):
         self._container: Any = None
         self._frames: Any = None
 
-    def open(self) -> None:
+    @property
+    def is_connected(self) -> bool:
+        return self._frames is not None
+
+    def connect(self) -> None:
         import av
 
         c = self.config
@@ -76,7 +80,7 @@ class V4L2Source(VideoSource):
 
     def capture(self) -> CapturedFrame:
         if self._frames is None:
-            raise DeviceNotConnectedError("camera is not open: open() first")
+            raise DeviceNotConnectedError("camera is not connected: connect() first")
         try:
             frame = next(self._frames)
         except StopIteration:
@@ -84,8 +88,67 @@ class V4L2Source(VideoSource):
         t = time.time_ns()
         return CapturedFrame(frame.to_ndarray(format="rgb24"), t)
 
-    def close(self) -> None:
+    def disconnect(self) -> None:
         container, self._container, self._frames = self._container, None, None
         if container is not None:
             container.close()
             log.info("camera %s closed", self.config.device)
+
+    def _location(self) -> str:
+        return f"on {self.config.device}"
+
+    def _preflight(self, context: PreflightContext) -> list[Finding]:
+        """Is the device node there, a device, ours and the service's to open, and free?"""
+        c = self.config
+        if c.format != "v4l2":  # an FFmpeg input (a file in tests): FFmpeg says what is wrong
+            return []
+        try:
+            st = os.stat(c.device)
+        except FileNotFoundError:
+            return [
+                Finding(
+                    FAIL,
+                    f"camera {c.device} does not exist",
+                    "plug the camera in; `v4l2-ctl --list-devices` lists what is connected; "
+                    f"set {context.where}.device to its /dev/video* or /dev/v4l/by-id/ name",
+                )
+            ]
+        if not stat.S_ISCHR(st.st_mode):
+            return [
+                Finding(
+                    FAIL,
+                    f"{c.device} is not a character device",
+                    f"set {context.where}.device to the camera",
+                )
+            ]
+        if not os.access(c.device, os.R_OK | os.W_OK):
+            return [
+                Finding(
+                    FAIL,
+                    f"no permission to open {c.device} ({owner_text(st)}) as {current_user_name()}",
+                    "add the user to video (`sudo usermod -aG video $USER`, then log in again)",
+                )
+            ]
+        allowed, _service = service_user_can(st, context, os.R_OK | os.W_OK)
+        if not allowed:
+            return [
+                Finding(
+                    FAIL,
+                    f"the service user {context.service_user} cannot open {c.device} "
+                    f"({owner_text(st)})",
+                    "deepxpalm-video.service runs with SupplementaryGroups=video: the camera "
+                    "needs GROUP=video (the distribution's default udev rule)",
+                )
+            ]
+        users = processes_holding({os.path.realpath(c.device)})
+        if users:
+            pid, cmd = users[0]
+            return [
+                Finding(
+                    WARN,
+                    f"{c.device} is open in pid {pid} ({cmd[:80]})",
+                    "a camera streams to one program at a time: stop that one "
+                    "(`systemctl stop deepxpalm-video` if it is the video server)",
+                )
+            ]
+        return []
