@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from common.patterns import MASKS, matches_pattern
+from common.tactile import MASKS, matches_pattern
 from deploy.bench.downsizing import downsize, peak_per_row
 from robot_side.rendering import (
     antialiased_bicubic_weights,
