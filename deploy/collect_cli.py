@@ -10,6 +10,9 @@ and shifts it along them, from the pose the arm is in at the start: above
 the pipette, the fingers open around it. Every pose is checked against the
 scene's [robot.arm.limits] box before the first move. ``--present`` leaves
 the arm alone and asks a person to present the pipette for each pattern.
+
+A deploy command because a scene (``deploy.scene``) says which devices to
+build; the collecting itself is ``robot_side.perception.collect``.
 """
 
 from __future__ import annotations
