@@ -121,7 +121,7 @@ class DatagramRelay(ForwardingThread):
     def start(self) -> None:
         if self._thread is not None:
             raise LinkError("DatagramRelay.start() called twice")
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock = socket.socket(_family(self.listen[0]), socket.SOCK_DGRAM)
         try:
             sock.bind(self.listen)
         except OSError as e:
@@ -131,7 +131,7 @@ class DatagramRelay(ForwardingThread):
             ) from None
         _prepare(sock)
         self._sock = sock
-        self.address = sock.getsockname()
+        self.address = sock.getsockname()[:2]
         if self.start_ns is None:
             self.start_ns = time.monotonic_ns()
         self._engines = {
@@ -184,7 +184,7 @@ class DatagramRelay(ForwardingThread):
             _, old = self._flows.popitem(last=False)
             del self._by_upstream[old.upstream]
             old.upstream.close()
-        up = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        up = socket.socket(_family(self.target[0]), socket.SOCK_DGRAM)
         up.bind((self.listen[0], 0))
         up.connect(self.target)
         _prepare(up)
@@ -210,7 +210,7 @@ class DatagramRelay(ForwardingThread):
             arrival = _arrival_ns(anc, t_read, real_minus_mono)
             counters.received += 1
             counters.bytes_in += len(data)
-            out_flow = flow if flow is not None else self._flow_for(sender)
+            out_flow = flow if flow is not None else self._flow_for(sender[:2])
             deliveries = engine.process(arrival, data)
             if not deliveries:
                 counters.dropped += 1
@@ -283,6 +283,10 @@ class DatagramRelay(ForwardingThread):
         except BaseException as e:  # report, never die silently
             self._error = e
             log.exception("netsim datagram relay stopped")
+
+
+def _family(host: str) -> socket.AddressFamily:
+    return socket.AF_INET6 if ":" in host else socket.AF_INET
 
 
 def _prepare(sock: socket.socket) -> None:

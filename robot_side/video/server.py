@@ -50,6 +50,7 @@ from common.errors import ConfigError
 from common.ice import IceConfig
 from robot_side.video import media_binding
 from robot_side.video.lab_camera import LabCameraConfig, LabCameraSource
+from robot_side.video.simulated_link import SimulatedMediaPath, scenario_for, without_candidates
 from robot_side.video.source import CapturedFrame, VideoSource
 from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 from robot_side.video.v4l2 import V4L2Config, V4L2Source
@@ -88,6 +89,12 @@ class VideoConfig:
     ice: IceConfig = param(
         IceConfig(), "STUN/TURN servers; the operator's dashboard needs the same"
     )
+    link_scenario: str = param(
+        "",
+        "a netsim scenario (name or .toml) each viewer's media crosses, through a datagram "
+        "relay of its own (deepxpalm demo --scenario sets it); empty = straight to the viewer",
+    )
+    link_seed: int = param(0, "the media's impairment seed (with link_scenario)")
     test_pattern: TestPatternConfig = param(TestPatternConfig(), "the stamped test picture")
     v4l2: V4L2Config = param(V4L2Config(), "a USB camera on the robot PC")
     lab: LabCameraConfig = param(LabCameraConfig(), "a camera of a running simulated lab")
@@ -213,6 +220,11 @@ class VideoServer:
             self.token = web_token.new_token()
         #: the addresses media sockets may bind to (checked here: a wrong name fails at start)
         self.media_addresses = media_binding.addresses(self.config.media_interfaces)
+        #: the scenario every viewer's media crosses (None: direct), and its outages' origin
+        self.link_scenario = scenario_for(self.config.link_scenario)
+        self.link_start_ns: int | None = None
+        #: the simulated paths of the viewers connected now
+        self.media_paths: list[SimulatedMediaPath] = []
 
     @property
     def base_url(self) -> str:
@@ -225,6 +237,7 @@ class VideoServer:
         return web_token.with_token(self.base_url, self.token)
 
     def start(self, timeout_s: float = 10.0) -> VideoServer:
+        self.link_start_ns = time.monotonic_ns()
         self._thread = threading.Thread(target=self._run, name="video-server", daemon=True)
         self._thread.start()
         if not self._started.wait(timeout_s) or self._error is not None:
@@ -380,6 +393,7 @@ class VideoServer:
             if pc.connectionState in ("failed", "closed"):
                 closed.set()
 
+        path: SimulatedMediaPath | None = None
         self.viewers += 1
         self.sessions += 1
         self._peers.add(pc)
@@ -390,13 +404,23 @@ class VideoServer:
             # mDNS (.local) candidates would open a listener on 0.0.0.0:5353: dropped,
             # the browser's checks reach our candidates and ICE learns its address
             sdp = media_binding.without_mdns_candidates(sdp)
+            if self.link_scenario is not None:
+                sdp = without_candidates(sdp)  # reached only through the simulator
             await pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="offer"))
             await pc.setLocalDescription(await pc.createAnswer())
+            answer = pc.localDescription.sdp
+            if self.link_scenario is not None:
+                assert self.link_start_ns is not None
+                path = SimulatedMediaPath(
+                    self.link_scenario, seed=self.config.link_seed, start_ns=self.link_start_ns
+                )
+                self.media_paths.append(path)
+                answer = path.route(answer)
             await conn.send(
                 json.dumps(
                     {
                         "type": "answer",
-                        "sdp": pc.localDescription.sdp,
+                        "sdp": answer,
                         "source": self.source.name,
                         "width": self.source.width,
                         "height": self.source.height,
@@ -412,6 +436,9 @@ class VideoServer:
         finally:
             self._peers.discard(pc)
             await pc.close()
+            if path is not None:
+                self.media_paths.remove(path)
+                await asyncio.get_running_loop().run_in_executor(None, path.stop)
             self.viewers -= 1
             if self.viewers == 0 and self._track is not None:
                 self._track.stop()
