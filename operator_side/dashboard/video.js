@@ -61,6 +61,7 @@ const VIDEO = (() => {
       this.pc = null;
       this.source = null;
       this.latencies = []; // glass-to-glass, ms, one per presented stamped frame
+      this.timeline = []; // [presented at, captured at] wall-clock ms, per stamped frame
       this.presented = []; // wall-clock ms of each presented frame
       this.unreadable = 0;
       this.lastCounter = null;
@@ -262,6 +263,8 @@ const VIDEO = (() => {
       const latency = (now - stamp.ms + MS_MODULO) % MS_MODULO;
       this.latencies.push(latency);
       if (this.latencies.length > 20000) this.latencies.splice(0, 10000);
+      this.timeline.push([now, now - latency]);
+      if (this.timeline.length > 20000) this.timeline.splice(0, 10000);
     }
 
     summary() {
