@@ -45,11 +45,11 @@ TITLE = "Video through the link simulator"
 
 @dataclass(frozen=True)
 class VideoNetsimSizes:
-    scenarios: tuple[str, ...]
-    limited: bool  # the 1 Mbit/s row
-    width: int
-    height: int
-    fps: float
+    video_netsim_scenarios: tuple[str, ...]
+    video_netsim_limited: bool  # the 1 Mbit/s row
+    video_netsim_width: int
+    video_netsim_height: int
+    video_netsim_fps: float
 
 
 SIZES = {
@@ -96,6 +96,7 @@ def play(scenario: Any, width: int, height: int, fps: float, seconds: float = RU
     server = VideoServer(source, VideoConfig(port=0))
     server.link_scenario = scenario
     sent: list[tuple[float, int]] = []  # (s after start, bytes the encoder handed the link)
+    by_path: dict[Any, int] = {}  # each session's bytes so far (a reconnect starts another)
     with all_cores(), server:
         dashboard = Dashboard(node, DashboardConfig(port=0, video_url=server.url))
         dashboard.start()
@@ -104,12 +105,11 @@ def play(scenario: Any, width: int, height: int, fps: float, seconds: float = RU
                 browser.navigate(dashboard.url)
                 start = server.link_start_ns / 1e9
                 while (t := time.monotonic() - start) < seconds:
-                    total = sum(
-                        c["to_operator"]["bytes_in"]
-                        for path in list(server.media_paths)
-                        for c in path.counters().values()
-                    )
-                    sent.append((t, total))
+                    for path in list(server.media_paths):
+                        by_path[path] = sum(
+                            c["to_operator"]["bytes_in"] for c in path.counters().values()
+                        )
+                    sent.append((t, sum(by_path.values())))
                     time.sleep(0.5)
                 timeline = browser.evaluate("dxp.video ? dxp.video.timeline : []")
                 reconnects = browser.evaluate("dxp.video ? dxp.video.reconnects : 0")
@@ -153,13 +153,17 @@ def summarise(
     lat = (tl[keep, 0] - tl[keep, 1]) if shown.size else np.zeros(0)
     gaps_s = np.diff(shown[keep]) if keep.sum() > 1 else np.zeros(0)
     starts = shown[keep][:-1] if keep.sum() > 1 else np.zeros(0)
-    in_outage = (starts + gaps_s > t1) & (starts < t2 + 2.0) if t1 is not None else False
+    in_outage = np.zeros(gaps_s.shape, dtype=bool)
+    if t1 is not None:  # the outage's gap, and those while the picture comes back
+        in_outage = (starts + gaps_s > t1) & (starts < t2 + 2.0)
     stalls = int(np.sum((gaps_s * 1e3 > STALL_MS) & ~in_outage))
     recover = None
     if t2 is not None:
         after = shown[captured >= t2]
         recover = round(float(after[0] - t2), 2) if after.size else None
     window = shown[keep]
+    late_shown = shown[shown >= shown[0] + 5.0] if shown.size else shown
+    gap_after_5s = float(np.diff(late_shown).max() * 1e3) if late_shown.size > 1 else None
     span = float(window[-1] - window[0]) if window.size > 1 else float("nan")
     s = np.asarray(sent, dtype=np.float64).reshape(-1, 2)
     late = s[s[:, 0] >= seconds - SETTLE_S] if s.size else s
@@ -180,6 +184,7 @@ def summarise(
         "fps_shown": round((window.size - 1) / span, 1) if span > 0 else None,
         "stalls_over_500ms": stalls,
         "longest_gap_ms": round(float(gaps_s.max() * 1e3), 0) if gaps_s.size else None,
+        "longest_gap_after_5s_ms": None if gap_after_5s is None else round(gap_after_5s, 0),
         "outage_s": [t1, t2] if t1 is not None else None,
         "recovered_s": recover,
         "encoder_kbit_s": kbit,
@@ -192,13 +197,13 @@ def measure_rows(sizes: VideoNetsimSizes) -> dict[str, Any]:
     from common.netsim.scenario import load_scenario
     from deploy.bench.runner import git_commit
 
+    picture = (sizes.video_netsim_width, sizes.video_netsim_height, sizes.video_netsim_fps)
     rows = []
-    for name in sizes.scenarios:
-        rows.append(play(with_outage(load_scenario(name)), sizes.width, sizes.height, sizes.fps))
-    if sizes.limited:
+    for name in sizes.video_netsim_scenarios:
+        rows.append(play(with_outage(load_scenario(name)), *picture))
+    if sizes.video_netsim_limited:
         name, kbit, queue = LIMITED
-        limited = with_limit(load_scenario(name), kbit, queue)
-        rows.append(play(with_outage(limited), sizes.width, sizes.height, sizes.fps))
+        rows.append(play(with_outage(with_limit(load_scenario(name), kbit, queue)), *picture))
     return {"rows": rows, "commit": git_commit(), "date": time.strftime("%Y-%m-%d %H:%M %Z")}
 
 
@@ -227,8 +232,8 @@ def table(section: dict[str, Any] | None) -> list[str]:
         "",
         "| scenario | one way ms | glass to glass p50 / p90 / p99 ms | frames shown / s "
         "| stalls > 500 ms (outside the outage) | played again after the 2 s outage, s "
-        "| encoder kbit/s (last 10 s) |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| encoder kbit/s (last 10 s) | page reconnects |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in section["rows"]:
         outage = r["outage_s"]
@@ -237,7 +242,7 @@ def table(section: dict[str, Any] | None) -> list[str]:
             f"| {r['scenario']}{where} | {r['one_way_ms']:g} | {_cell(r['p50_ms'])} / "
             f"{_cell(r['p90_ms'])} / {_cell(r['p99_ms'])} | {_cell(r['fps_shown'])} | "
             f"{r['stalls_over_500ms']} | {_cell(r['recovered_s'])} | "
-            f"{_cell(r['encoder_kbit_s'], '{:.0f}')} |"
+            f"{_cell(r['encoder_kbit_s'], '{:.0f}')} | {r['reconnects']} |"
         )
     return out
 
@@ -295,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     sizes = SIZES[args.preset]
     if args.scenario:
-        sizes = dataclasses.replace(sizes, scenarios=tuple(args.scenario))
+        sizes = dataclasses.replace(sizes, video_netsim_scenarios=tuple(args.scenario))
     section = measure_rows(sizes)
     if args.update:
         update_doc(args.update, section)

@@ -6,7 +6,8 @@ and gets ``{"type": "answer", "sdp": ..., "source": ..., "width": ...,
 "height": ...}`` back; the peer connection lives as long as that WebSocket,
 so a closed tab or a lost dashboard ends it. Media then flows straight from
 this process to the browser (SRTP over UDP, VP8, congestion-controlled by
-the browser's REMB feedback).
+the browser's REMB feedback), or, with ``link_scenario``, through a
+datagram relay of the link simulator per viewer (``simulated_link.py``).
 
 The source is shared through a relay: it is opened when the first viewer's
 encoder asks for a frame and closed when the last viewer leaves, so
@@ -220,7 +221,8 @@ class VideoServer:
             self.token = web_token.new_token()
         #: the addresses media sockets may bind to (checked here: a wrong name fails at start)
         self.media_addresses = media_binding.addresses(self.config.media_interfaces)
-        #: the scenario every viewer's media crosses (None: direct), and its outages' origin
+        #: the scenario every viewer's media crosses (None: direct), and its outages' origin;
+        #: a ``Scenario`` built in code may replace it before the first viewer
         self.link_scenario = scenario_for(self.config.link_scenario)
         self.link_start_ns: int | None = None
         #: the simulated paths of the viewers connected now

@@ -11,6 +11,9 @@ the FRESH/STALE badge) is what the operator would see.
 - bad_day: the scenario's 2 s outage (20 s after the video server starts)
   turns the badge STALE and greys the picture, and the page plays again
   within 2 s of the outage's end.
+- metro with a 1 Mbit/s bottleneck towards the page: no gap over 1 s after
+  the first 5 s, and the encoder's bitrate over the last 10 s under 1 Mbit/s
+  (the browser's REMB feedback lowering aiortc's VP8 target).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(150), needs_chromium]
 WARMUP = 15  # frames: ICE, the first keyframe, the jitter buffer settling
 FRAMES = 45
 SPARE_IDLE = 0.15  # under this share of idle CPU, the machine sets the pace, not the product
+LIMIT_KBIT = 1000.0
 
 
 @contextlib.contextmanager
@@ -142,3 +146,24 @@ def test_on_bad_day_the_page_shows_stale_during_the_outage_and_plays_within_2_s_
     assert back_at is not None and back_at <= 2.0, (
         f"product: not playing again within 2 s of the outage's end: {seen[-10:]}"
     )
+
+
+def test_under_a_1_mbit_bottleneck_the_picture_keeps_playing_and_the_encoder_settles_under_it():
+    from deploy.bench.video_netsim import play, with_limit
+
+    limited = with_limit(load_scenario("metro"), LIMIT_KBIT, 40)
+    cpu0 = cpu_times()
+    row = play(limited, 640, 480, 30.0, seconds=25.0)
+    idle = idle_share(cpu0, cpu_times())
+    assert row["page_errors"] == [], row["page_errors"]
+    gaps = row["longest_gap_after_5s_ms"]
+    print(
+        f"1 Mbit/s: encoder {row['encoder_kbit_s']} kbit/s, longest gap {gaps} ms, {idle:.0%} idle"
+    )
+    assert row["encoder_kbit_s"] is not None and row["encoder_kbit_s"] < LIMIT_KBIT, (
+        f"product: the encoder sent {row['encoder_kbit_s']} kbit/s over the last 10 s "
+        f"into a {LIMIT_KBIT:g} kbit/s bottleneck: {row}"
+    )
+    if gaps > 1000 and idle < SPARE_IDLE:
+        pytest.skip(f"load, not product: a {gaps:.0f} ms gap with {idle:.0%} of the CPU idle")
+    assert gaps <= 1000, f"product: the picture stopped for {gaps:.0f} ms after 5 s: {row}"
