@@ -37,7 +37,7 @@ LIMITED = ("metro", 1000.0, 40)  # scenario, kbit/s, queue (packets: 0.5 s at 1 
 OUTAGE_S = (20.0, 22.0)  # added where a scenario has none
 RUN_S = 28.0  # the outage and 6 s after it
 WARMUP_S = 3.0  # ICE, the first keyframe, the receiver's buffer settling
-SETTLE_S = 10.0  # the bitrate is read over the last this many seconds
+SETTLE_S = 10.0  # the bitrate is read over this many seconds before the outage (or the end)
 STALL_MS = 500.0
 BEGIN, END = "<!-- video-netsim:begin -->", "<!-- video-netsim:end -->"
 TITLE = "Video through the link simulator"
@@ -166,7 +166,9 @@ def summarise(
     gap_after_5s = float(np.diff(late_shown).max() * 1e3) if late_shown.size > 1 else None
     span = float(window[-1] - window[0]) if window.size > 1 else float("nan")
     s = np.asarray(sent, dtype=np.float64).reshape(-1, 2)
-    late = s[s[:, 0] >= seconds - SETTLE_S] if s.size else s
+    # settled: the 10 s before the outage (after it, keyframes and retransmissions burst)
+    until = t1 if t1 is not None else seconds
+    late = s[(s[:, 0] >= until - SETTLE_S) & (s[:, 0] <= until)] if s.size else s
     kbit = (
         round(float((late[-1, 1] - late[0, 1]) * 8 / (late[-1, 0] - late[0, 0]) / 1000), 0)
         if len(late) > 1 and late[-1, 0] > late[0, 0]
@@ -232,7 +234,7 @@ def table(section: dict[str, Any] | None) -> list[str]:
         "",
         "| scenario | one way ms | glass to glass p50 / p90 / p99 ms | frames shown / s "
         "| stalls > 500 ms (outside the outage) | played again after the 2 s outage, s "
-        "| encoder kbit/s (last 10 s) | page reconnects |",
+        "| encoder kbit/s (10 s before the outage) | page reconnects |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in section["rows"]:
