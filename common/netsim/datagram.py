@@ -51,6 +51,9 @@ _RECV_BYTES = 1 << 16
 _MAX_BATCH = 64
 _COST_WINDOW = 128
 _COST_START_NS = 30_000
+#: The most a release is started early. On a loaded machine a release waits for a core
+#: for milliseconds; that is lateness, not a cost to learn, or the datagrams leave early.
+_COST_MAX_NS = 300_000
 #: Sender addresses mapped at once; the longest idle one is forgotten beyond this.
 MAX_FLOWS = 64
 
@@ -254,7 +257,7 @@ class DatagramRelay(ForwardingThread):
         if target > arrival:  # a scheduled release: learn how long one takes
             self._costs.append(t1 - target)
             if len(self._costs) % 16 == 0:
-                self._cost_ns = round(statistics.median(self._costs))
+                self._cost_ns = min(_COST_MAX_NS, round(statistics.median(self._costs)))
 
     def _run(self) -> None:
         set_timer_slack_ns(1_000)

@@ -80,6 +80,8 @@ def test_delay_is_the_configured_one_plus_the_direct_path():
         through = [d for _, d in _run(relay.address, rx, 200, 0.005)]
     rx.close()
     assert len(through) == 200, f"nothing is lost on a clean path: {len(through)} of 200"
+    # started early by at most its learnt release cost (0.3 ms), whatever the machine's load
+    assert min(through) > 19.6, f"a datagram left {20.0 - min(through):.2f} ms before its time"
     p50 = statistics.median(through)
     extra = p50 - 20.0 - direct
     assert -0.1 < extra < 1.5, (
