@@ -250,14 +250,19 @@ def video_wanted(args: argparse.Namespace, scene: Scene) -> bool:
     return True
 
 
-def video_args(world_addresses: Path | None, token_file: Path) -> tuple[list[str], str]:
+def video_args(
+    world_addresses: Path | None, token_file: Path, scenario: str = "", seed: int = 0
+) -> tuple[list[str], str]:
     """``deepxpalm video`` on a free loopback port: the lab's camera, or the test pattern.
 
     Its signalling secret is in ``token_file`` (the robot node reads it there, so the
-    secret never appears on a command line); its media stays on loopback.
+    secret never appears on a command line); its media stays on loopback, and crosses
+    the link simulator's datagram mode under ``scenario`` when there is one.
     """
     port = free_loopback_ports(1)[0]
     settings = [f"port={port}", f'token_file="{token_file}"', 'media_interfaces=["lo"]']
+    if scenario:
+        settings += [f'link_scenario="{scenario}"', f"link_seed={seed}"]
     if world_addresses is not None:
         settings += ['source="lab"', f'lab.addresses_file="{world_addresses}"']
     else:
@@ -286,7 +291,12 @@ def run(args: argparse.Namespace) -> int:
     video = None
     if video_wanted(args, scene):
         token_file = workdir / "video.token"
-        video, video_url = video_args(world[1] if world is not None else None, token_file)
+        video, video_url = video_args(
+            world[1] if world is not None else None,
+            token_file,
+            scene.network.scenario if use_netsim else "",
+            scene.network.seed,
+        )
         scene.robot.link.video_url = video_url  # offers reach it through the robot's link
         scene.robot.link.video_token_file = token_file
         scene.operator.dashboard.video_url = VIDEO_OVER_LINK

@@ -148,6 +148,11 @@ class DirectionConfig:
         0.0, "datagram only: share sent at once, skipping delay_ms (netem reorder)"
     )
     reorder_correlation: float = param(0.0, "0..1")
+    jitter_reorders: bool = param(
+        True,
+        "datagram: a packet drawn a shorter delay than the one before it overtakes it, as on "
+        "a real path; false: jitter never reorders (netem with a FIFO queue behind it)",
+    )
     corrupt_percent: float = param(0.0, "share of messages damaged so the decoder must reject them")
     corrupt_correlation: float = param(0.0, "0..1")
     corrupt_mode: CorruptMode = param(
@@ -395,7 +400,7 @@ class ImpairmentCounts:
     queue_dropped: int = 0  # tail-dropped at the bottleneck queue
     gave_up: int = 0  # stream: still lost after MAX_RETRANSMISSIONS
     retransmitted: int = 0  # stream: messages that needed at least one retransmission
-    held_back: int = 0  # stream: delivered later than their own delay (head-of-line)
+    held_back: int = 0  # delivered later than their own delay to keep order (stream, FIFO datagram)
     duplicated: int = 0
     reordered: int = 0
     corrupted: int = 0
@@ -527,7 +532,7 @@ class DirectionImpairment:
             due = t
         else:
             due = t + round(delay_ms * NS_PER_MS)
-        if self._stream:
+        if self._stream or not (c.jitter_reorders or reorder):
             if due < self._last_due_ns:
                 due = self._last_due_ns
                 counts.held_back += 1

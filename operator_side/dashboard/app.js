@@ -495,12 +495,29 @@ function onResumeAck(msg) {
   }, 1500);
 }
 
+// The video's badge, as the palm's: FRESH while the picture on screen is recent,
+// STALE (and the picture greyed) once it is older than video_stale_ms.
+const VIDEO_FRESH = {
+  fresh: ["FRESH", "ok"],
+  stale: ["STALE", "stale"],
+  none: ["NO VIDEO", "down"],
+};
+
+function drawVideoFreshness(f) {
+  const [label, cls] = VIDEO_FRESH[f.state];
+  $("video-fresh").className = "badge " + cls;
+  $("video-fresh-label").textContent = label;
+  $("video-fresh-detail").textContent = f.age_ms == null ? "" : ` · ${f.age_ms.toFixed(0)} ms old`;
+  $("video").classList.toggle("stale", f.state !== "fresh");
+}
+
 function startVideo() {
   $("video-panel").hidden = false;
   const status = (text) => ($("video-status").textContent = text);
   if (!dxp.video) {
     dxp.video = new VIDEO.Receiver($("video"), sendArm, status, dxp.hello.ice_servers || [],
       dxp.hello.ice_transport_policy || "all");
+    dxp.video.watchFreshness(dxp.hello.video_stale_ms || 500, drawVideoFreshness);
     setInterval(() => {
       const v = dxp.video;
       if (v.source !== "test_pattern" || !v.latencies.length) return;

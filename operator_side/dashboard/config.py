@@ -49,6 +49,11 @@ class DashboardConfig:
         IceConfig(),
         "STUN/TURN servers for the page's video; the robot's video server uses the same",
     )
+    video_stale_ms: float = param(
+        500.0,
+        "the video badge turns STALE, and the picture is greyed, once the picture on screen "
+        "is older than this (from its capture stamp; unstamped sources: since the last frame)",
+    )
     jog: JogConfig = param(
         JogConfig(), "jogging the arm from the page: keyboard, gamepad, 3D mouse"
     )
@@ -64,5 +69,7 @@ class DashboardConfig:
             )
         if self.token:
             check_token(self.token, "dashboard.token")
+        if not (math.isfinite(self.video_stale_ms) and self.video_stale_ms > 0):
+            raise ValueError(f"video_stale_ms must be > 0, not {self.video_stale_ms}")
         if not (math.isfinite(self.max_rate_hz) and 0 < self.max_rate_hz <= 240):
             raise ValueError(f"max_rate_hz must be in (0, 240], not {self.max_rate_hz}")

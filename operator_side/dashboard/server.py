@@ -91,6 +91,7 @@ class Dashboard:
         hello["video"] = bool(self.config.video_url)
         hello["ice_servers"] = self.config.ice.as_dicts() if self.config.video_url else []
         hello["ice_transport_policy"] = self.config.ice.transport_policy
+        hello["video_stale_ms"] = self.config.video_stale_ms
         self.hello = json.dumps(hello, separators=(",", ":"))
         self.history = LinkHistory()
         #: video sessions over the link awaiting the robot's word, by viewer number

@@ -21,6 +21,7 @@ const VIDEO = (() => {
   const FIRST_FRAME_MS = 6000; // after the answer: ICE, DTLS, the first keyframe
   const STALL_MS = 3000; // no frame decoded for this long: reconnect
   const WATCH_MS = 500;
+  const FRESHNESS_MS = 100; // how often the picture's age is looked at, frames or not
 
   // (capture ms modulo 2^32, counter) from the stamp rows of an RGBA band, or null
   function readStamp(data, width) {
@@ -60,6 +61,7 @@ const VIDEO = (() => {
       this.pc = null;
       this.source = null;
       this.latencies = []; // glass-to-glass, ms, one per presented stamped frame
+      this.timeline = []; // [presented at, captured at] wall-clock ms, per stamped frame
       this.presented = []; // wall-clock ms of each presented frame
       this.unreadable = 0;
       this.lastCounter = null;
@@ -74,6 +76,10 @@ const VIDEO = (() => {
       this.answeredAt = null; // when this session's answer was applied (ms)
       this.decodedAt = null; // when framesDecoded last grew (ms)
       this.framesDecoded = 0;
+      this.presentedAt = null; // Date.now() when the latest frame reached the screen
+      this.stampedAt = null; // Date.now() when lastStamp was read
+      this.freshness = { state: "none", age_ms: null };
+      this.freshnessChanges = []; // {state, t: Date.now()} each time the state changed
       this.watch = setInterval(() => this.checkFlow(), WATCH_MS);
     }
 
@@ -189,12 +195,43 @@ const VIDEO = (() => {
       return out;
     }
 
+    // The age of the picture on screen, checked on a timer: a frozen picture has no
+    // frame callback to say so. Stamped: now minus its capture time (the robot's clock);
+    // otherwise the time since a frame last reached the screen.
+    watchFreshness(staleMs, draw) {
+      this.staleMs = staleMs;
+      const look = () => {
+        const f = this.ageNow();
+        if (f.state !== this.freshness.state) {
+          this.freshnessChanges.push({ state: f.state, t: Date.now() });
+          if (this.freshnessChanges.length > 1000) this.freshnessChanges.splice(0, 500);
+        }
+        this.freshness = f;
+        draw(f);
+      };
+      look();
+      this.freshnessTimer = setInterval(look, FRESHNESS_MS);
+    }
+
+    ageNow() {
+      const now = Date.now();
+      let age = null;
+      if (this.presentedAt === null) return { state: "none", age_ms: null };
+      if (this.stampedAt !== null && this.stampedAt >= this.presentedAt - 1) {
+        age = (now - this.lastStamp + MS_MODULO) % MS_MODULO;
+      } else {
+        age = now - this.presentedAt; // an unstamped source, or this frame's stamp unreadable
+      }
+      return { state: age > this.staleMs ? "stale" : "fresh", age_ms: age };
+    }
+
     onClosed(msg) {
       this.reconnect(msg.reason || "video closed");
     }
 
     onFrame(meta) {
       const now = Date.now();
+      this.presentedAt = now;
       this.presented.push(now);
       if (this.source === "test_pattern") this.measure(now, meta);
       if (this.presented.length > 20000) this.presented.splice(0, 10000);
@@ -222,9 +259,12 @@ const VIDEO = (() => {
       }
       this.lastCounter = stamp.counter;
       this.lastStamp = stamp.ms;
+      this.stampedAt = now;
       const latency = (now - stamp.ms + MS_MODULO) % MS_MODULO;
       this.latencies.push(latency);
       if (this.latencies.length > 20000) this.latencies.splice(0, 10000);
+      this.timeline.push([now, now - latency]);
+      if (this.timeline.length > 20000) this.timeline.splice(0, 10000);
     }
 
     summary() {

@@ -6,7 +6,8 @@ and gets ``{"type": "answer", "sdp": ..., "source": ..., "width": ...,
 "height": ...}`` back; the peer connection lives as long as that WebSocket,
 so a closed tab or a lost dashboard ends it. Media then flows straight from
 this process to the browser (SRTP over UDP, VP8, congestion-controlled by
-the browser's REMB feedback).
+the browser's REMB feedback), or, with ``link_scenario``, through a
+datagram relay of the link simulator per viewer (``simulated_link.py``).
 
 The source (a ``robot_side.camera`` device) is shared through a relay: it is
 connected when the first viewer's encoder asks for a frame and disconnected
@@ -52,6 +53,7 @@ from robot_side.camera import KINDS as CAMERA_KINDS
 from robot_side.camera.base import Camera, CapturedFrame, build_camera
 from robot_side.camera.config import LabCameraConfig, TestPatternConfig, V4L2Config
 from robot_side.video import media_binding
+from robot_side.video.simulated_link import SimulatedMediaPath, scenario_for, without_candidates
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +90,12 @@ class VideoConfig:
     ice: IceConfig = param(
         IceConfig(), "STUN/TURN servers; the operator's dashboard needs the same"
     )
+    link_scenario: str = param(
+        "",
+        "a netsim scenario (name or .toml) each viewer's media crosses, through a datagram "
+        "relay of its own (deepxpalm demo --scenario sets it); empty = straight to the viewer",
+    )
+    link_seed: int = param(0, "the media's impairment seed (with link_scenario)")
     test_pattern: TestPatternConfig = param(TestPatternConfig(), "the stamped test picture")
     v4l2: V4L2Config = param(V4L2Config(), "a USB camera on the robot PC")
     lab: LabCameraConfig = param(LabCameraConfig(), "a camera of a running simulated lab")
@@ -195,6 +203,12 @@ class VideoServer:
             self.token = web_token.new_token()
         #: the addresses media sockets may bind to (checked here: a wrong name fails at start)
         self.media_addresses = media_binding.addresses(self.config.media_interfaces)
+        #: the scenario every viewer's media crosses (None: direct), and its outages' origin;
+        #: a ``Scenario`` built in code may replace it before the first viewer
+        self.link_scenario = scenario_for(self.config.link_scenario)
+        self.link_start_ns: int | None = None
+        #: the simulated paths of the viewers connected now
+        self.media_paths: list[SimulatedMediaPath] = []
 
     @property
     def base_url(self) -> str:
@@ -207,6 +221,7 @@ class VideoServer:
         return web_token.with_token(self.base_url, self.token)
 
     def start(self, timeout_s: float = 10.0) -> VideoServer:
+        self.link_start_ns = time.monotonic_ns()
         self._thread = threading.Thread(target=self._run, name="video-server", daemon=True)
         self._thread.start()
         if not self._started.wait(timeout_s) or self._error is not None:
@@ -362,6 +377,7 @@ class VideoServer:
             if pc.connectionState in ("failed", "closed"):
                 closed.set()
 
+        path: SimulatedMediaPath | None = None
         self.viewers += 1
         self.sessions += 1
         self._peers.add(pc)
@@ -372,13 +388,23 @@ class VideoServer:
             # mDNS (.local) candidates would open a listener on 0.0.0.0:5353: dropped,
             # the browser's checks reach our candidates and ICE learns its address
             sdp = media_binding.without_mdns_candidates(sdp)
+            if self.link_scenario is not None:
+                sdp = without_candidates(sdp)  # reached only through the simulator
             await pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="offer"))
             await pc.setLocalDescription(await pc.createAnswer())
+            answer = pc.localDescription.sdp
+            if self.link_scenario is not None:
+                assert self.link_start_ns is not None
+                path = SimulatedMediaPath(
+                    self.link_scenario, seed=self.config.link_seed, start_ns=self.link_start_ns
+                )
+                self.media_paths.append(path)
+                answer = path.route(answer)
             await conn.send(
                 json.dumps(
                     {
                         "type": "answer",
-                        "sdp": pc.localDescription.sdp,
+                        "sdp": answer,
                         "source": self.source.name,
                         "width": self.source.width,
                         "height": self.source.height,
@@ -394,6 +420,9 @@ class VideoServer:
         finally:
             self._peers.discard(pc)
             await pc.close()
+            if path is not None:
+                self.media_paths.remove(path)
+                await asyncio.get_running_loop().run_in_executor(None, path.stop)
             self.viewers -= 1
             if self.viewers == 0 and self._track is not None:
                 self._track.stop()

@@ -16,15 +16,16 @@ from deploy.bench.report import write_outputs
 from deploy.bench.runner import run_bench
 from deploy.bench.sizes import PRESETS, SECTIONS
 
-# The sections that start processes run in the slow test below, but five whose
+# The sections that start processes run in the slow test below, but six whose
 # measurements other tests run: the task's ``run_cell`` (tests/lab/test_task.py), the
 # fault matrix's ``run_cells`` (tests/faults), the command path's flood rig
 # (tests/system/test_command_path.py), the video's viewers (tests/video) and the relay's
-# isolation rig (tests/relay/test_isolation.py); their tables are rendered from the
-# committed report by tests/bench/test_sections.py. Run here too they cost two minutes
-# of the suite's 15.
+# isolation rig (tests/relay/test_isolation.py), and the video through netsim's page
+# (tests/dashboard/test_video_netsim_browser.py, which calls its ``play``); their tables
+# are rendered from the committed report by tests/bench/test_sections.py. Run here too
+# they cost two minutes of the suite's 15.
 PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim"}
-COVERED_ELSEWHERE = {"task", "faults", "command_path", "video", "relay"}
+COVERED_ELSEWHERE = {"task", "faults", "command_path", "video", "relay", "video_netsim"}
 NOT_IN_PROCESS = PROCESS_SECTIONS | COVERED_ELSEWHERE
 
 

@@ -7,6 +7,7 @@ below.
 
 from __future__ import annotations
 
+from deploy.bench import video_netsim
 from deploy.bench.section import Section
 from deploy.bench.sections import (
     classifier,
@@ -41,6 +42,7 @@ SECTIONS: tuple[Section, ...] = (
     command_path.SECTION,
     video.SECTION,
     netsim.SECTION,
+    video_netsim.SECTION,
     relay.SECTION,
     task.SECTION,
     faults.SECTION,

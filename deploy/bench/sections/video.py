@@ -85,9 +85,9 @@ def markdown(results: Results) -> list[str]:
         f"{section.get('server_cpu_share', float('nan')):.2f} |",
         *_many_viewers(section.get("many_viewers")),
         "",
-        "Not measured here: the link simulator scenarios (it relays the ZeroMQ sockets; "
-        "WebRTC media is UDP and does not pass through it), and a real camera's exposure "
-        "and USB transfer, which come before the stamp.",
+        "Not measured here: the link simulator scenarios (the `video_netsim` section plays "
+        "the same page through them), and a real camera's exposure and USB transfer, which "
+        "come before the stamp.",
     ]
 
 

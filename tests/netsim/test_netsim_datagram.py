@@ -1,0 +1,242 @@
+"""The datagram relay measured from outside: real UDP sockets on loopback, as WebRTC uses it.
+
+A sender stamps each datagram with its sequence number and send time; a
+receiver bound where the relay forwards reads them. Delay, loss, bursts,
+reordering, duplication, the bottleneck rate and outages are what those
+two sockets see, set beside the scenario (and, for the delay, beside the
+same sockets' direct path measured in the same test).
+"""
+
+from __future__ import annotations
+
+import socket
+import statistics
+import struct
+import time
+
+import pytest
+
+from common.netsim.datagram import DatagramRelay
+from common.netsim.scenario import load_scenario, scenario_from_dict
+
+STAMP = struct.Struct("!Iq")  # sequence number, monotonic send time (ns)
+
+
+def _receiver() -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+    s.settimeout(0.5)
+    return s
+
+
+def _relay(both: dict, **kw) -> DatagramRelay:
+    return DatagramRelay(
+        scenario_from_dict({"name": "t", "both": both}), target=kw.pop("target"), seed=3, **kw
+    )
+
+
+def _run(
+    to: tuple[str, int],
+    rx: socket.socket,
+    n: int,
+    period_s: float,
+    size: int = 64,
+    settle_s: float = 0.5,
+) -> list[tuple[int, float]]:
+    """Send ``n`` stamped datagrams to ``to``; (seq, one-way ms) of each arrival at ``rx``."""
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    got: list[tuple[int, float]] = []
+    rx.setblocking(False)
+
+    def drain() -> None:
+        while True:
+            try:
+                data = rx.recv(65536)
+            except BlockingIOError:
+                return
+            seq, t_ns = STAMP.unpack_from(data)
+            got.append((seq, (time.monotonic_ns() - t_ns) / 1e6))
+
+    pad = b"x" * max(0, size - STAMP.size)
+    t0 = time.monotonic()
+    for i in range(n):
+        while time.monotonic() < t0 + i * period_s:
+            drain()
+            time.sleep(min(0.0005, period_s / 4))
+        tx.sendto(STAMP.pack(i, time.monotonic_ns()) + pad, to)
+    t_end = time.monotonic() + settle_s
+    while time.monotonic() < t_end:
+        drain()
+        time.sleep(0.001)
+    tx.close()
+    return got
+
+
+def test_delay_is_the_configured_one_plus_the_direct_path():
+    rx = _receiver()
+    direct = statistics.median(d for _, d in _run(rx.getsockname(), rx, 200, 0.005))
+    with _relay({"delay_ms": 20.0}, target=rx.getsockname()) as relay:
+        through = [d for _, d in _run(relay.address, rx, 200, 0.005)]
+    rx.close()
+    assert len(through) == 200, f"nothing is lost on a clean path: {len(through)} of 200"
+    # started early by at most its learnt release cost (0.3 ms), whatever the machine's load
+    assert min(through) > 19.6, f"a datagram left {20.0 - min(through):.2f} ms before its time"
+    p50 = statistics.median(through)
+    extra = p50 - 20.0 - direct
+    assert -0.1 < extra < 1.5, (
+        f"through the relay p50 {p50:.2f} ms = configured 20 + direct {direct:.2f} + {extra:.2f} "
+        "(load, if the direct figure is large too)"
+    )
+
+
+def test_replies_come_back_through_the_relay_to_the_sender_with_their_own_delay():
+    robot = _receiver()
+    scenario = scenario_from_dict(
+        {"to_robot": {"delay_ms": 10.0}, "to_operator": {"delay_ms": 30.0}}
+    )
+    with DatagramRelay(scenario, target=robot.getsockname()) as relay:
+        viewers = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+        rtts = []
+        for i, viewer in enumerate(viewers):
+            viewer.settimeout(2)
+            t0 = time.monotonic()
+            viewer.sendto(b"ping %d" % i, relay.address)
+            robot.settimeout(2)
+            data, back_to = robot.recvfrom(100)
+            robot.sendto(b"pong " + data, back_to)
+            reply = viewer.recv(100)
+            rtts.append((time.monotonic() - t0) * 1000)
+            assert reply == b"pong ping %d" % i  # to the viewer that asked, not the other
+        flows = relay.counters()["relay"]["flows"]
+    for s in (robot, *viewers):
+        s.close()
+    assert flows == 2, "each sender gets its own socket towards the robot"
+    assert all(40 <= r < 60 for r in rtts), f"round trips {rtts} ms, configured 10 + 30"
+
+
+def test_random_loss_and_gilbert_elliott_bursts_are_what_the_receiver_misses():
+    rx = _receiver()
+    n = 3000
+    with _relay({"loss_percent": 10.0}, target=rx.getsockname()) as relay:
+        got = {seq for seq, _ in _run(relay.address, rx, n, 0.0002)}
+        lost_count = relay.counters()["to_robot"]["lost"]
+    loss = 1 - len(got) / n
+    assert 0.08 < loss < 0.12, f"random loss measured {loss:.1%}, configured 10%"
+    assert n - len(got) == lost_count, "every missing datagram is one the engine dropped"
+
+    bursty = {
+        "loss_model": "gilbert_elliott",
+        "ge_p_percent": 2.0,
+        "ge_r_percent": 25.0,
+        "ge_loss_bad_percent": 100.0,
+        "ge_loss_good_percent": 0.0,
+    }
+    with _relay(bursty, target=rx.getsockname()) as relay:
+        got = {seq for seq, _ in _run(relay.address, rx, n, 0.0002)}
+        expected = relay.scenario.to_robot.mean_loss_burst()
+    rx.close()
+    bursts = _runs(sorted(set(range(n)) - got))
+    mean_burst = statistics.mean(bursts)
+    assert mean_burst > 2.5, (
+        f"bursts of {mean_burst:.1f} missing in a row, configured {expected:.1f}"
+    )
+    assert 0.04 < 1 - len(got) / n < 0.11, f"burst loss {1 - len(got) / n:.1%}, configured 7.4%"
+
+
+def _runs(missing: list[int]) -> list[int]:
+    """Lengths of the runs of consecutive sequence numbers in ``missing``."""
+    out: list[int] = []
+    for k, seq in enumerate(missing):
+        if k and seq == missing[k - 1] + 1:
+            out[-1] += 1
+        else:
+            out.append(1)
+    return out
+
+
+def _late(seqs: list[int]) -> int:
+    """Arrivals below the highest sequence number already seen (RFC 4737)."""
+    top, late = -1, 0
+    for seq in seqs:
+        if seq < top:
+            late += 1
+        top = max(top, seq)
+    return late
+
+
+def test_jitter_reorders_datagrams_unless_the_scenario_keeps_them_in_order():
+    rx = _receiver()
+    jitter = {"delay_ms": 10.0, "jitter_ms": 5.0}
+    with _relay(jitter, target=rx.getsockname()) as relay:
+        got = _run(relay.address, rx, 500, 0.001)
+    with _relay({**jitter, "jitter_reorders": False}, target=rx.getsockname()) as relay:
+        fifo = _run(relay.address, rx, 500, 0.001)
+    rx.close()
+    assert len(got) == len(fifo) == 500
+    late = _late([seq for seq, _ in got])
+    assert late > 100, f"5 ms of jitter on datagrams 1 ms apart reordered only {late} of 500"
+    assert _late([seq for seq, _ in fifo]) == 0, "jitter_reorders = false kept no order"
+    spread = statistics.quantiles([d for _, d in fifo], n=20)
+    assert spread[-1] - spread[0] > 3.0, f"in order, the delays still vary: {spread}"
+
+
+def test_duplication_and_netem_reordering_reach_the_receiver():
+    rx = _receiver()
+    with _relay(
+        {
+            "delivery": "datagram",  # a stream scenario refuses them; the relay takes either
+            "delay_ms": 20.0,
+            "duplicate_percent": 10.0,
+            "reorder_percent": 10.0,
+        },
+        target=rx.getsockname(),
+    ) as relay:
+        got = _run(relay.address, rx, 1000, 0.001)
+        counts = relay.counters()["to_robot"]
+    rx.close()
+    seqs = [seq for seq, _ in got]
+    dups = len(seqs) - len(set(seqs))
+    assert 70 < dups < 130 and dups == counts["duplicated"], (dups, counts)
+    quick = sum(1 for _, d in got if d < 10.0)  # sent at once, skipping the 20 ms
+    assert 70 < quick < 140 and _late(seqs) > quick, (quick, counts)
+
+
+def test_the_bottleneck_carries_its_rate_and_tail_drops_beyond_its_queue():
+    rx = _receiver()
+    # 2 Mbit/s offered (1250-byte datagrams every 5 ms) for 2 s into a 1 Mbit/s link
+    with _relay({"rate_kbit": 1000.0, "queue_limit": 20}, target=rx.getsockname()) as relay:
+        got = _run(relay.address, rx, 400, 0.005, size=1250, settle_s=1.0)
+        counts = relay.counters()["to_robot"]
+    rx.close()
+    arrivals = sorted(d for _, d in got)
+    kbit = len(got) * 1250 * 8 / 2.0 / 1000
+    assert 850 < kbit < 1100, f"{kbit:.0f} kbit/s delivered through a 1000 kbit/s bottleneck"
+    assert counts["queue_dropped"] == 400 - len(got) > 150, counts
+    # a full queue of 20 at 10 ms each: the queueing delay settles near 200 ms
+    assert 150 < arrivals[len(arrivals) // 2] < 260, arrivals[len(arrivals) // 2]
+
+
+def test_an_outage_drops_what_is_sent_during_it_and_the_link_comes_back():
+    rx = _receiver()
+    start = time.monotonic_ns()
+    with _relay({"outages": [[0.3, 0.6]]}, target=rx.getsockname(), start_ns=start) as relay:
+        got = {seq for seq, _ in _run(relay.address, rx, 100, 0.01)}
+    rx.close()
+    missing = sorted(set(range(100)) - got)
+    assert missing and 25 <= len(missing) <= 35, missing  # sent 0.3-0.6 s: about 30
+    assert 27 <= missing[0] <= 33 and 57 <= missing[-1] <= 63, missing
+    assert max(got) == 99, "the link came back after the outage"
+
+
+@pytest.mark.parametrize("name", ["metro", "loopback_trace"])
+def test_the_stream_modes_scenario_files_and_traces_run_as_datagrams(name):
+    scenario = load_scenario(name)
+    rx = _receiver()
+    with DatagramRelay(scenario, target=rx.getsockname(), seed=1) as relay:
+        got = [d for _, d in _run(relay.address, rx, 300, 0.002)]
+    rx.close()
+    configured = scenario.to_robot.delay_quantile_ms(0.5)
+    assert len(got) >= 297
+    p50 = statistics.median(got)
+    assert configured - 0.3 < p50 < configured + 1.5, f"{name}: p50 {p50:.2f} ms, {configured}"

@@ -1,0 +1,90 @@
+"""The robot's video media through the link simulator's datagram mode, seen from a viewer.
+
+An aiortc viewer in this process speaks the video server's own signalling;
+the server runs with ``link_scenario`` as ``deepxpalm demo --scenario`` sets
+it. The viewer is told only the simulator's port, so every frame it decodes
+crossed the simulator, which counts them; the scenario's delay shows in the
+glass-to-glass time next to a direct viewer of the same server's picture.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import re
+
+import numpy as np
+import pytest
+
+pytest.importorskip("aiortc")
+
+from deploy.bench.video_viewers import ViewerRun, view
+from robot_side.video.server import VideoConfig, VideoServer
+from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
+
+pytestmark = [pytest.mark.timeout(90)]
+
+
+def _watch(scenario: str, seconds: float) -> tuple[ViewerRun, dict, list[str]]:
+    """A viewer of a server whose media crosses ``scenario`` ("" = direct)."""
+    source = TestPatternSource(TestPatternConfig(width=320, height=240, fps=15))
+    config = VideoConfig(port=0, link_scenario=scenario)
+    answers: list[str] = []
+    with VideoServer(source, config) as server:
+        run = ViewerRun()
+        counters: dict = {}
+
+        async def watch() -> None:
+            task = asyncio.ensure_future(view(server.url, seconds, run))
+            while not task.done():
+                await asyncio.sleep(0.2)
+                for path in list(server.media_paths):  # while the viewer is connected
+                    counters.update(path.counters())
+                    answers[:] = [f"{r.address[1]}" for r in path.relays.values()]
+            await task
+
+        asyncio.run(watch())
+    return run, counters, answers
+
+
+def test_every_frame_the_viewer_decodes_crossed_the_simulator_with_its_delay():
+    direct, none_counters, _ = _watch("", 4.0)
+    run, counters, relay_ports = _watch("metro", 4.0)
+    assert none_counters == {}, "no scenario: no simulator"
+    assert run.ended is None and len(run.latencies_ms) > 30, run.summary()
+    assert relay_ports, "the answer named the simulator's ports"
+    to_viewer = sum(c["to_operator"]["sent"] for c in counters.values())
+    to_server = sum(c["to_robot"]["sent"] for c in counters.values())
+    # at least a packet a frame reached the viewer through the simulator, and its RTCP and
+    # DTLS/STUN came back through it too
+    assert to_viewer >= len(run.latencies_ms) and to_server > 3, counters
+    through, straight = np.median(run.latencies_ms), np.median(direct.latencies_ms)
+    assert 0.0 < through - straight < 25.0, (
+        f"metro adds 4 ms one way: p50 {through:.1f} ms through it, {straight:.1f} ms direct "
+        "(a machine under load moves both by tens of ms)"
+    )
+
+
+def test_the_answer_names_only_the_simulator_and_the_offer_reaches_nobody_directly():
+    from common.netsim.scenario import load_scenario
+    from robot_side.video.simulated_link import SimulatedMediaPath, without_candidates
+
+    offer = (
+        "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 97\r\n"
+        "a=candidate:1 1 udp 2122260223 192.0.2.7 50000 typ host\r\n"
+        "a=end-of-candidates\r\na=mid:0\r\n"
+    )
+    assert without_candidates(offer) == "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 97\r\na=mid:0\r\n"
+    answer = (
+        "v=0\r\nm=video 40001 UDP/TLS/RTP/SAVPF 97\r\nc=IN IP4 127.0.0.1\r\n"
+        "a=candidate:f 1 udp 2130706431 127.0.0.1 40001 typ host\r\na=end-of-candidates\r\n"
+    )
+    path = SimulatedMediaPath(load_scenario("metro"), seed=0, start_ns=0)
+    try:
+        routed = path.route(answer)
+        (relay,) = path.relays.values()
+        port = relay.address[1]
+        assert relay.target == ("127.0.0.1", 40001)
+        assert re.findall(r"127\.0\.0\.1 (\d+) typ host", routed) == [str(port)]
+        assert f"m=video {port} " in routed and "40001" not in routed
+    finally:
+        path.stop()
