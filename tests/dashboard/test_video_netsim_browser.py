@@ -47,10 +47,11 @@ def _page_server(scenario: str) -> Iterator[tuple]:
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
     from operator_side.servos.recording import RecordingServoBus
+    from robot_side.camera.config import TestPatternConfig
+    from robot_side.camera.test_pattern import TestPatternCamera
     from robot_side.video.server import VideoConfig, VideoServer
-    from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 
-    source = TestPatternSource(TestPatternConfig(width=320, height=240, fps=15))
+    source = TestPatternCamera(TestPatternConfig(width=320, height=240, fps=15))
     node = OperatorNode(OperatorConfig(), RecordingServoBus())  # the page needs a node; idle
     with VideoServer(source, VideoConfig(port=0, link_scenario=scenario)) as server:
         dashboard = Dashboard(node, DashboardConfig(port=0, video_url=server.url))

@@ -15,6 +15,7 @@ import struct
 import time
 
 import pytest
+from tests_support import late_unless_loaded
 
 from common.netsim.datagram import DatagramRelay
 from common.netsim.scenario import load_scenario, scenario_from_dict
@@ -43,8 +44,11 @@ def _run(
     period_s: float,
     size: int = 64,
     settle_s: float = 0.5,
+    sent_ns: dict[int, int] | None = None,
 ) -> list[tuple[int, float]]:
-    """Send ``n`` stamped datagrams to ``to``; (seq, one-way ms) of each arrival at ``rx``."""
+    """Send ``n`` stamped datagrams to ``to``; (seq, one-way ms) of each arrival at ``rx``.
+
+    ``sent_ns``, when given, gets each datagram's send time (monotonic ns)."""
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     got: list[tuple[int, float]] = []
     rx.setblocking(False)
@@ -64,7 +68,10 @@ def _run(
         while time.monotonic() < t0 + i * period_s:
             drain()
             time.sleep(min(0.0005, period_s / 4))
-        tx.sendto(STAMP.pack(i, time.monotonic_ns()) + pad, to)
+        t_ns = time.monotonic_ns()
+        tx.sendto(STAMP.pack(i, t_ns) + pad, to)
+        if sent_ns is not None:
+            sent_ns[i] = t_ns
     t_end = time.monotonic() + settle_s
     while time.monotonic() < t_end:
         drain()
@@ -84,9 +91,10 @@ def test_delay_is_the_configured_one_plus_the_direct_path():
     assert min(through) > 19.6, f"a datagram left {20.0 - min(through):.2f} ms before its time"
     p50 = statistics.median(through)
     extra = p50 - 20.0 - direct
-    assert -0.1 < extra < 1.5, (
-        f"through the relay p50 {p50:.2f} ms = configured 20 + direct {direct:.2f} + {extra:.2f} "
-        "(load, if the direct figure is large too)"
+    assert extra > -0.1, f"p50 {p50:.2f} ms, under configured 20 + direct {direct:.2f}"
+    late_unless_loaded(
+        extra < 1.5,
+        f"through the relay p50 {p50:.2f} ms = configured 20 + direct {direct:.2f} + {extra:.2f}",
     )
 
 
@@ -112,7 +120,8 @@ def test_replies_come_back_through_the_relay_to_the_sender_with_their_own_delay(
     for s in (robot, *viewers):
         s.close()
     assert flows == 2, "each sender gets its own socket towards the robot"
-    assert all(40 <= r < 60 for r in rtts), f"round trips {rtts} ms, configured 10 + 30"
+    assert all(r >= 40 for r in rtts), f"round trips {rtts} ms, configured 10 + 30"
+    late_unless_loaded(all(r < 60 for r in rtts), f"round trips {rtts} ms, configured 10 + 30")
 
 
 def test_random_loss_and_gilbert_elliott_bursts_are_what_the_receiver_misses():
@@ -221,11 +230,17 @@ def test_an_outage_drops_what_is_sent_during_it_and_the_link_comes_back():
     rx = _receiver()
     start = time.monotonic_ns()
     with _relay({"outages": [[0.3, 0.6]]}, target=rx.getsockname(), start_ns=start) as relay:
-        got = {seq for seq, _ in _run(relay.address, rx, 100, 0.01)}
+        sent: dict[int, int] = {}
+        got = {seq for seq, _ in _run(relay.address, rx, 100, 0.01, sent_ns=sent)}
     rx.close()
+    at_s = {seq: (t - start) / 1e9 for seq, t in sent.items()}
     missing = sorted(set(range(100)) - got)
-    assert missing and 25 <= len(missing) <= 35, missing  # sent 0.3-0.6 s: about 30
-    assert 27 <= missing[0] <= 33 and 57 <= missing[-1] <= 63, missing
+    # judged by when each was sent, not by its number: a starved sender falls behind its
+    # 10 ms schedule. 50 ms either side of the edges for the relay's own lag in reading it
+    inside = [seq for seq, t in at_s.items() if 0.35 <= t <= 0.55]
+    outside = [seq for seq, t in at_s.items() if t < 0.25 or t > 0.65]
+    assert inside and set(inside) <= set(missing), (missing, at_s)
+    assert not set(outside) & set(missing), (missing, at_s)
     assert max(got) == 99, "the link came back after the outage"
 
 
@@ -239,4 +254,5 @@ def test_the_stream_modes_scenario_files_and_traces_run_as_datagrams(name):
     configured = scenario.to_robot.delay_quantile_ms(0.5)
     assert len(got) >= 297
     p50 = statistics.median(got)
-    assert configured - 0.3 < p50 < configured + 1.5, f"{name}: p50 {p50:.2f} ms, {configured}"
+    assert p50 > configured - 0.3, f"{name}: p50 {p50:.2f} ms, configured {configured}"
+    late_unless_loaded(p50 < configured + 1.5, f"{name}: p50 {p50:.2f} ms, configured {configured}")

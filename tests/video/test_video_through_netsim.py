@@ -17,16 +17,19 @@ import pytest
 
 pytest.importorskip("aiortc")
 
+from tests_support import late_unless_loaded
+
 from deploy.bench.video_viewers import ViewerRun, view
+from robot_side.camera.config import TestPatternConfig
+from robot_side.camera.test_pattern import TestPatternCamera
 from robot_side.video.server import VideoConfig, VideoServer
-from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 
 pytestmark = [pytest.mark.timeout(90)]
 
 
 def _watch(scenario: str, seconds: float) -> tuple[ViewerRun, dict, list[str]]:
     """A viewer of a server whose media crosses ``scenario`` ("" = direct)."""
-    source = TestPatternSource(TestPatternConfig(width=320, height=240, fps=15))
+    source = TestPatternCamera(TestPatternConfig(width=320, height=240, fps=15))
     config = VideoConfig(port=0, link_scenario=scenario)
     answers: list[str] = []
     with VideoServer(source, config) as server:
@@ -58,9 +61,9 @@ def test_every_frame_the_viewer_decodes_crossed_the_simulator_with_its_delay():
     # DTLS/STUN came back through it too
     assert to_viewer >= len(run.latencies_ms) and to_server > 3, counters
     through, straight = np.median(run.latencies_ms), np.median(direct.latencies_ms)
-    assert 0.0 < through - straight < 25.0, (
-        f"metro adds 4 ms one way: p50 {through:.1f} ms through it, {straight:.1f} ms direct "
-        "(a machine under load moves both by tens of ms)"
+    late_unless_loaded(
+        0.0 < through - straight < 25.0,
+        f"metro adds 4 ms one way: p50 {through:.1f} ms through it, {straight:.1f} ms direct",
     )
 
 
