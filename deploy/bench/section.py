@@ -2,8 +2,8 @@
 
 A section owns everything about one measurement: how much it measures per
 preset, the measuring call, its part of the report, its figure and the
-verdicts it can pass or fail. Adding one is a module under
-``deploy/bench/sections/`` and a line in that package's table.
+verdicts it can pass or fail. Adding one is a module ``deploy/bench/<name>.py``
+and a line in the table of ``deploy/bench/sections.py``.
 """
 
 from __future__ import annotations
