@@ -30,7 +30,7 @@ BEGIN, END = "<!-- netsim-fidelity:begin -->", "<!-- netsim-fidelity:end -->"
 
 
 def fidelity(seconds: float, scenarios: tuple[str, ...] = SCENARIOS) -> dict[str, Any]:
-    """One rig run per scenario; the relay gets every core the bench had before pinning."""
+    """One rig run per scenario; the simulator gets every core the bench had before pinning."""
     from common.netsim.fidelity import measure as run_rig
 
     try:
@@ -90,7 +90,7 @@ def fidelity_table(section: dict[str, Any] | None) -> list[str]:
     out += [
         "",
         "netsim's own time runs from the kernel's receive timestamp of a chunk to its send "
-        "returning, minus the scheduled delay: what the relay adds beyond the scenario. "
+        "returning, minus the scheduled delay: what the forwarder adds beyond the scenario. "
         "`lan` (0.1 ms) and `loopback_trace` (0.07 ms median) are below what an extra "
         "loopback hop costs here, so they come out at about the `none` row.",
         "",

@@ -22,8 +22,8 @@ import zmq
 from tests_support import RecordingArm, free_ports
 
 from common.netsim.proxy import Endpoints
-from common.netsim.relay import StreamRelay
 from common.netsim.scenario import load_scenario
+from common.netsim.stream import StreamForwarder
 from common.security import SecurityConfig, client_options
 from common.transport import Subscriber
 from operator_side.config import OperatorConfig
@@ -61,7 +61,7 @@ def _run_secured(keys, scenario_name: str, seconds: float):
     robot = RobotNode(
         rc, ScriptedTactileSensor(ScriptedTactileConfig(script=hold)), arm=RecordingArm()
     )
-    relay = StreamRelay(
+    relay = StreamForwarder(
         _scenario(scenario_name),
         endpoints=Endpoints(
             robot_telemetry=tel,
