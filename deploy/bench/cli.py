@@ -1,7 +1,8 @@
 """``deepxpalm bench``: measure the loop, write benchmarks.md, .json and the figures.
 
     deepxpalm bench                  # the full run (about 12 minutes; on a quiet machine)
-    deepxpalm bench --quick          # a few minutes, smaller samples, modelled scale
+    deepxpalm bench --quick          # under 90 s: the in-process sections, smaller samples
+    deepxpalm bench --quick --only netsim         # one left-out section at its quick size
     deepxpalm bench --update-docs    # the full run, written over docs/ (the committed report)
     deepxpalm bench --only netsim --update-docs   # re-measure one section into docs/
     deepxpalm bench --out /tmp/bench --skip node_cpu
@@ -31,16 +32,26 @@ import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from deploy.bench.sections import SECTION_NAMES as SECTIONS  # noqa: E402
+from deploy.bench.sections import SECTIONS as SECTION_TABLE  # noqa: E402
 from deploy.bench.sizes import PRESETS  # noqa: E402
 
 log = logging.getLogger(__name__)
+
+#: the sections --quick measures only when named with --only
+QUICK_LEAVES_OUT = tuple(s.name for s in SECTION_TABLE if not s.quick)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.description = __doc__
     size = parser.add_mutually_exclusive_group()
-    size.add_argument("--quick", action="store_true", help="about a minute: smaller samples")
+    size.add_argument(
+        "--quick",
+        action="store_true",
+        help="under 90 s: smaller samples, scale modelled only, and leaves out the sections "
+        f"that start processes, a browser or trials ({', '.join(QUICK_LEAVES_OUT)}; "
+        "name one with --only to measure it at its quick size); docs/benchmarks.md",
+    )
     size.add_argument(
         "--size", choices=sorted(PRESETS), help="a named preset (smallest is for the tests)"
     )
@@ -112,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
     preset = "quick" if args.quick else (args.size or "full")
     sizes = PRESETS[preset]
     skip = set(SECTIONS) - set(args.only) if args.only else set(args.skip)
+    if preset == "quick" and not args.only:
+        skip |= set(QUICK_LEAVES_OUT)
     models = args.models
     if models is None:
         default_sweep = Path("runs/width-sweep")

@@ -531,4 +531,5 @@ SECTION = Section(
     measure=measure,
     markdown=markdown,
     verdicts=verdicts,
+    quick=False,
 )

@@ -404,6 +404,7 @@ SECTION = Section(
     measure=measure,
     markdown=markdown,
     verdicts=verdicts,
+    quick=False,
 )
 
 

@@ -466,4 +466,5 @@ SECTION = Section(
     measure=measure,
     markdown=markdown,
     verdicts=verdicts,
+    quick=False,
 )

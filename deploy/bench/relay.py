@@ -713,4 +713,5 @@ SECTION = Section(
     measure=measure,
     markdown=markdown,
     verdicts=verdicts,
+    quick=False,
 )

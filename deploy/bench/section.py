@@ -96,3 +96,6 @@ class Section:
     default_checks: Callable[[Results], list[DefaultCheck]] = _no_checks
     #: other pages in the report's folder that carry this section's numbers, brought up to date
     update_other_docs: Callable[[dict[str, Any], Path], list[Path]] = _no_other_docs
+    #: measured by ``--quick``; False for a section whose processes, browser or trials cost
+    #: more than the quick run's 90 s allow (``--quick --only NAME`` still measures it)
+    quick: bool = True

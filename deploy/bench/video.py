@@ -355,4 +355,5 @@ SECTION = Section(
     measure=measure,
     markdown=markdown,
     verdicts=verdicts,
+    quick=False,
 )
