@@ -109,6 +109,20 @@ def output_folder(args: argparse.Namespace) -> Path:
     return Path("runs/bench") / time.strftime("%Y%m%d-%H%M%S")
 
 
+def preset_of(args: argparse.Namespace) -> str:
+    return "quick" if args.quick else (args.size or "full")
+
+
+def sections_to_skip(args: argparse.Namespace) -> set[str]:
+    """--only's complement, or --skip's, and what --quick leaves out unless --only names it."""
+    if args.only:
+        return set(SECTIONS) - set(args.only)
+    skip = set(args.skip)
+    if preset_of(args) == "quick":
+        skip |= set(QUICK_LEAVES_OUT)
+    return skip
+
+
 def run(args: argparse.Namespace) -> int:
     args.out = output_folder(args)
     if args.from_json is not None:
@@ -120,11 +134,9 @@ def run(args: argparse.Namespace) -> int:
         for p in write_outputs(results, args.out, figures=not args.no_figures):
             print(f"wrote {p}")
         return 0
-    preset = "quick" if args.quick else (args.size or "full")
+    preset = preset_of(args)
     sizes = PRESETS[preset]
-    skip = set(SECTIONS) - set(args.only) if args.only else set(args.skip)
-    if preset == "quick" and not args.only:
-        skip |= set(QUICK_LEAVES_OUT)
+    skip = sections_to_skip(args)
     models = args.models
     if models is None:
         default_sweep = Path("runs/width-sweep")
