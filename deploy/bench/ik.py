@@ -404,9 +404,9 @@ SIZES = {
     ),
     "quick": IkSizes(
         ik_grid_mm=0.5,
-        ik_shell_points=2000,
-        ik_numeric_points=100,
-        ik_calls=1000,
+        ik_shell_points=1000,
+        ik_numeric_points=50,
+        ik_calls=500,
         ik_least_squares=True,
     ),
     "smallest": IkSizes(
