@@ -34,6 +34,8 @@ from robot_side.node import RobotNode
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 
+pytestmark = pytest.mark.slow
+
 #: bad_day's 2-s outage, moved from 20 s to early in the run to keep the test short.
 OUTAGE = (3.0, 5.0)
 

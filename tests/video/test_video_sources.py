@@ -22,7 +22,7 @@ from robot_side.video.stamp import MS_MODULO, draw_stamp, read_stamp
 from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 from robot_side.video.v4l2 import V4L2Config, V4L2Source
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
 
 
 @given(st.integers(0, MS_MODULO - 1), st.integers(0, 255), st.sampled_from([160, 320, 640, 1280]))
