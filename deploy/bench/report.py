@@ -5,7 +5,7 @@ then the verdicts against the issue's targets, then whether each default in
 the code is the one the measurements favour, then every table. Numbers
 come only from the results dictionary, which is also the JSON file, so the
 two cannot disagree. Everything after the conditions is the sections'
-own (deploy/bench/sections), in the table's order.
+own (the table in deploy/bench/sections.py), in its order, then the presets.
 """
 
 from __future__ import annotations
