@@ -206,8 +206,8 @@ SIZES = {
         pace_hz=120.0,
     ),
     "quick": ClassifierSizes(
-        clf_calls=500,
-        clf_paced_calls=120,
+        clf_calls=300,
+        clf_paced_calls=60,
         clf_eval_repeats=1,
         clf_randomized_repeats=1,
         clf_backends_default=("numba", "numpy", "onnxruntime"),  # torch costs 10 s to load

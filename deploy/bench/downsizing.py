@@ -301,7 +301,7 @@ class DownsizingSizes:
 
 SIZES = {
     "full": DownsizingSizes(ds_repeats=8, ds_calls=20000),
-    "quick": DownsizingSizes(ds_repeats=2, ds_calls=2000),
+    "quick": DownsizingSizes(ds_repeats=1, ds_calls=1000),
     "smallest": DownsizingSizes(ds_repeats=1, ds_calls=100),
 }
 

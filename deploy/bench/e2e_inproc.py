@@ -149,7 +149,7 @@ class InprocSizes:
 
 SIZES = {
     "full": InprocSizes(e2e_frames=20000, e2e_paced_frames=2400, pace_hz=120.0),
-    "quick": InprocSizes(e2e_frames=1000, e2e_paced_frames=240, pace_hz=120.0),
+    "quick": InprocSizes(e2e_frames=600, e2e_paced_frames=120, pace_hz=120.0),
     "smallest": InprocSizes(e2e_frames=100, e2e_paced_frames=30, pace_hz=500.0),
 }
 

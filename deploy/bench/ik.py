@@ -403,10 +403,10 @@ SIZES = {
         ik_least_squares=True,
     ),
     "quick": IkSizes(
-        ik_grid_mm=0.5,
-        ik_shell_points=1000,
-        ik_numeric_points=50,
-        ik_calls=500,
+        ik_grid_mm=1.0,
+        ik_shell_points=500,
+        ik_numeric_points=30,
+        ik_calls=300,
         ik_least_squares=True,
     ),
     "smallest": IkSizes(

@@ -283,7 +283,7 @@ class SkippingSizes:
 
 SIZES = {
     "full": SkippingSizes(skip_cycles=2.0),
-    "quick": SkippingSizes(skip_cycles=0.3),
+    "quick": SkippingSizes(skip_cycles=0.2),
     "smallest": SkippingSizes(skip_cycles=0.05),
 }
 

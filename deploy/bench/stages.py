@@ -346,7 +346,7 @@ class StagesSizes:
 
 SIZES = {
     "full": StagesSizes(stage_frames=20000, stage_paced_frames=1800, pace_hz=120.0),
-    "quick": StagesSizes(stage_frames=1000, stage_paced_frames=240, pace_hz=120.0),
+    "quick": StagesSizes(stage_frames=600, stage_paced_frames=120, pace_hz=120.0),
     "smallest": StagesSizes(stage_frames=100, stage_paced_frames=30, pace_hz=500.0),
 }
 

@@ -288,7 +288,7 @@ SIZES = {
         stress_random_frames=500,
     ),
     "quick": StressSizes(
-        stress_grid_mm=0.5, stress_shell_points=1000, stress_stimuli=10000, stress_random_frames=20
+        stress_grid_mm=1.0, stress_shell_points=500, stress_stimuli=5000, stress_random_frames=10
     ),
     "smallest": StressSizes(
         stress_grid_mm=2.0, stress_shell_points=200, stress_stimuli=500, stress_random_frames=3
