@@ -1,6 +1,7 @@
 # Two commands set up and run everything on a fresh machine (Python 3.11):
 #   make demo    - both nodes, simulated devices, the link simulator, a live view
 #   make test    - the whole test suite (what CI runs)
+#   make test-fast - the suite without the tests marked slow (under 3 minutes; README.md)
 # Extra arguments: make demo ARGS="--duration 10 --json"
 
 PYTHON ?= python3
@@ -10,7 +11,7 @@ BIN := $(VENV)/bin
 TORCH ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench setup clean
+.PHONY: demo test test-fast lint bench setup clean
 
 setup: $(STAMP)
 
@@ -30,6 +31,11 @@ test: $(STAMP)
 	@# LeRobot's own dataset class in an environment of its own (cached), to load exports with
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
 	$(BIN)/python -m pytest $(ARGS)
+
+# The fast lane: every test not marked slow, without the system packages the browser and
+# TURN tests need (those tests are slow ones). The whole suite stays `make test`.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -m "not slow" $(ARGS)
 
 bench: $(STAMP)
 	$(BIN)/deepxpalm bench $(ARGS)

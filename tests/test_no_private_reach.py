@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("robot_side", "operator_side", "relay_side", "common", "deploy")
 #: underscore names that are public API elsewhere (namedtuple's, the interpreter's)

@@ -2,6 +2,6 @@
 
 Linux netem needs root and a kernel module; this runs anywhere, as a thread
 in a test or as ``deepxpalm netsim``, and impairs each direction of the
-link independently: as a TCP byte relay (stream mode, CURVE passes) or as
+link independently: as a TCP byte forwarder (stream mode, CURVE passes) or as
 a ZeroMQ re-publisher (message mode). See docs/netsim.md.
 """

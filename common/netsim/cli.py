@@ -2,7 +2,7 @@
 
 Start the robot, then this, then point the operator at the simulator's bound
 endpoints (by default ports 5565/5566 instead of 5555/5556). The stream
-mode relays TCP bytes (CURVE passes), the message mode re-publishes ZeroMQ
+mode forwards TCP bytes (CURVE passes), the message mode re-publishes ZeroMQ
 messages; the scenario says which, ``--mode`` overrides. Settings come
 from the defaults, then ``--config FILE`` (keys at the top level or under
 ``[netsim]``), then ``--set netsim.key=value``, then the explicit options.
@@ -22,8 +22,8 @@ from common.config import param
 from common.errors import ConfigError
 from common.netsim.impairments import DIRECTIONS, Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
-from common.netsim.relay import StreamRelay
 from common.netsim.scenario import builtin_scenarios, load_scenario
+from common.netsim.stream import StreamForwarder
 from common.signals import stop_on_signals
 
 log = logging.getLogger(__name__)
@@ -35,7 +35,7 @@ class NetsimConfig:
 
     scenario: str = param("lan", "built-in scenario name, or a path to a scenario .toml")
     mode: str = param(
-        "", "stream (TCP byte relay, CURVE passes) or message (ZeroMQ); empty = the scenario's"
+        "", "stream (TCP byte forwarder, CURVE passes) or message (ZeroMQ); empty = the scenario's"
     )
     seed: int = param(0, "same seed and scenario give the same impairment sequence")
     hwm: int = param(1000, "message mode: ZeroMQ high-water mark of each socket, in messages")
@@ -159,10 +159,10 @@ def mode_of(config: NetsimConfig, scenario: Scenario) -> str:
     return mode
 
 
-def build_simulator(config: NetsimConfig, scenario: Scenario) -> LinkSimulator | StreamRelay:
-    """The byte-stream relay or the message-level simulator, as the mode says."""
+def build_simulator(config: NetsimConfig, scenario: Scenario) -> LinkSimulator | StreamForwarder:
+    """The byte-stream forwarder or the message-level simulator, as the mode says."""
     if mode_of(config, scenario) == "stream":
-        return StreamRelay(
+        return StreamForwarder(
             scenario,
             endpoints=config.endpoints,
             seed=config.seed,
@@ -177,15 +177,17 @@ def build_simulator(config: NetsimConfig, scenario: Scenario) -> LinkSimulator |
     )
 
 
-def final_stats(sim: LinkSimulator | StreamRelay) -> dict[str, Any]:
+def final_stats(sim: LinkSimulator | StreamForwarder) -> dict[str, Any]:
     """Counters per direction and the simulator's own per-send cost, JSON-able."""
     own = sorted(sim.own_latency_ns())
     out: dict[str, Any] = {
         "scenario": sim.scenario.name,
-        "mode": "stream" if isinstance(sim, StreamRelay) else "message",
+        "mode": "stream" if isinstance(sim, StreamForwarder) else "message",
         "seed": sim.seed,
         "directions": sim.counters(),
     }
+    if isinstance(sim, StreamForwarder):
+        out["connections"] = sim.connection_counts()
     if own:
         out["own_latency_us"] = {
             "p50": own[len(own) // 2] / 1e3,

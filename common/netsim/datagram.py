@@ -36,8 +36,8 @@ from typing import Any
 
 from common.errors import ConfigError, LinkError
 from common.netsim.impairments import DIRECTIONS, DirectionConfig, DirectionImpairment, Scenario
+from common.netsim.kernel_stamps import ANC_BYTES, SO_TIMESTAMPNS, arrival_ns
 from common.netsim.proxy import DirectionCounters, ForwardingThread, set_timer_slack_ns
-from common.netsim.relay import _ANC_BYTES, _SO_TIMESTAMPNS, _arrival_ns
 
 log = logging.getLogger(__name__)
 
@@ -204,13 +204,13 @@ class DatagramRelay(ForwardingThread):
         engine = self._engines[direction]
         for _ in range(_MAX_BATCH):
             try:
-                data, anc, _, sender = sock.recvmsg(_RECV_BYTES, _ANC_BYTES)
+                data, anc, _, sender = sock.recvmsg(_RECV_BYTES, ANC_BYTES)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:  # ICMP unreachable from an earlier send: nothing to read
                 continue
             t_read = time.monotonic_ns()
-            arrival = _arrival_ns(anc, t_read, real_minus_mono)
+            arrival = arrival_ns(anc, t_read, real_minus_mono)
             counters.received += 1
             counters.bytes_in += len(data)
             out_flow = flow if flow is not None else self._flow_for(sender[:2])
@@ -295,6 +295,6 @@ def _family(host: str) -> socket.AddressFamily:
 def _prepare(sock: socket.socket) -> None:
     sock.setblocking(False)
     with contextlib.suppress(OSError):  # without it, datagrams are timed when read
-        sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
     with contextlib.suppress(OSError):  # room for a burst of video packets
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)

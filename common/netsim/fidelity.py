@@ -5,7 +5,7 @@ two SUBs on loopback: one connected directly, one through ``deepxpalm
 netsim`` running as its own process (the deployed arrangement, with no
 interpreter lock shared with the rig). The two paths alternate half a
 period apart, so both see the same machine in the same run. What the
-scenario configures is then compared with what the relayed SUB saw minus
+scenario configures is then compared with what the SUB behind the simulator saw minus
 what the direct one saw.
 """
 
@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 #: Percentiles compared, as fractions.
 QUANTILES = (0.05, 0.5, 0.95, 0.99)
-#: The direct path's p50/p99 may grow by at most this through a zero-delay relay, ms.
+#: The direct path's p50/p99 may grow by at most this through a zero-delay simulator, ms.
 TRANSPARENT_P50_MS = 0.15
 TRANSPARENT_P99_MS = 0.5
 #: A delayed path's p5/p50/p95 must be within this many ms, or this share, of the target.
@@ -102,7 +102,7 @@ class FidelityRun:
             "verdicts": self.verdicts(),
             "ok": self.ok(),
             "netsim_own_latency_us": self.netsim_stats.get("own_latency_us"),
-            "netsim_relay": self.netsim_stats.get("directions", {}).get("relay"),
+            "netsim_connections": self.netsim_stats.get("connections"),
         }
 
 
@@ -134,7 +134,7 @@ def measure(
     config = load_scenario(scenario).to_operator
     run = FidelityRun(scenario, mode, seconds, rate_hz, configured=configured_quantiles(config))
     ports = free_loopback_ports(6)
-    direct_at, relay_robot_at, robot_cmd_at, op_tel_at, op_cmd_at, _ = (
+    direct_at, via_robot_at, robot_cmd_at, op_tel_at, op_cmd_at, _ = (
         f"tcp://127.0.0.1:{p}" for p in ports
     )
     stats_path = os.path.join(
@@ -152,7 +152,7 @@ def measure(
         "--seed",
         str(seed),
         "--robot-telemetry",
-        relay_robot_at,
+        via_robot_at,
         "--robot-commands",
         robot_cmd_at,
         "--operator-telemetry",
@@ -172,7 +172,7 @@ def measure(
     try:
         pub_direct = ctx.socket(zmq.PUB)
         pub_via = ctx.socket(zmq.PUB)
-        for s, at in ((pub_direct, direct_at), (pub_via, relay_robot_at)):
+        for s, at in ((pub_direct, direct_at), (pub_via, via_robot_at)):
             s.setsockopt(zmq.LINGER, 0)
             s.bind(at)
         sub_direct = _sub(ctx, direct_at)
@@ -193,12 +193,12 @@ def measure(
 
         thread = threading.Thread(target=receive, name="fidelity-rx", daemon=True)
         thread.start()
-        # Until the relayed path delivers (the netsim process starts in about a second).
+        # Until the simulated path delivers (the netsim process starts in about a second).
         deadline = time.monotonic() + 15
         while not got["v"]:
             if time.monotonic() > deadline or proc.poll() is not None:
                 err = proc.stderr.read().decode(errors="replace") if proc.poll() is not None else ""
-                raise LinkError(f"the relayed path never delivered: {err[-500:]}")
+                raise LinkError(f"the simulated path never delivered: {err[-500:]}")
             pub_via.send(b"w" + time.monotonic_ns().to_bytes(8, "little"))
             pub_direct.send(b"w" + time.monotonic_ns().to_bytes(8, "little"))
             time.sleep(0.05)

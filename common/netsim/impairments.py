@@ -281,7 +281,7 @@ class Scenario:
     description: str = param("no impairment", "one line on what the link stands for")
     mode: Mode = param(
         "stream",
-        "stream: relay TCP bytes unchanged (CURVE passes); message: re-publish ZeroMQ "
+        "stream: forward TCP bytes unchanged (CURVE passes); message: re-publish ZeroMQ "
         "messages (per-message loss, duplication, reordering, corruption; no CURVE)",
     )
     to_operator: DirectionConfig = param(DirectionConfig(), "robot -> operator (telemetry)")

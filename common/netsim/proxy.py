@@ -100,7 +100,7 @@ class _Direction:
 
 
 class ForwardingThread(ABC):
-    """One background thread that forwards until stopped: the netsim proxy's and relay's life.
+    """One background thread that forwards until stopped: either mode's life.
 
     A subclass sets up its sockets in ``start`` and then calls :meth:`_launch`;
     ``_run`` stores what ended it in ``_error``; :meth:`_after_stop` runs once

@@ -1,7 +1,8 @@
 """``deepxpalm bench``: measure the loop, write benchmarks.md, .json and the figures.
 
     deepxpalm bench                  # the full run (about 12 minutes; on a quiet machine)
-    deepxpalm bench --quick          # a few minutes, smaller samples, modelled scale
+    deepxpalm bench --quick          # under 90 s: the in-process sections, smaller samples
+    deepxpalm bench --quick --only netsim         # one left-out section at its quick size
     deepxpalm bench --update-docs    # the full run, written over docs/ (the committed report)
     deepxpalm bench --only netsim --update-docs   # re-measure one section into docs/
     deepxpalm bench --out /tmp/bench --skip node_cpu
@@ -31,16 +32,26 @@ import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from deploy.bench.sections import SECTION_NAMES as SECTIONS  # noqa: E402
+from deploy.bench.sections import SECTIONS as SECTION_TABLE  # noqa: E402
 from deploy.bench.sizes import PRESETS  # noqa: E402
 
 log = logging.getLogger(__name__)
+
+#: the sections --quick measures only when named with --only
+QUICK_LEAVES_OUT = tuple(s.name for s in SECTION_TABLE if not s.quick)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.description = __doc__
     size = parser.add_mutually_exclusive_group()
-    size.add_argument("--quick", action="store_true", help="about a minute: smaller samples")
+    size.add_argument(
+        "--quick",
+        action="store_true",
+        help="under 90 s: smaller samples, scale modelled only, and leaves out the sections "
+        f"that start processes, a browser or trials ({', '.join(QUICK_LEAVES_OUT)}; "
+        "name one with --only to measure it at its quick size); docs/benchmarks.md",
+    )
     size.add_argument(
         "--size", choices=sorted(PRESETS), help="a named preset (smallest is for the tests)"
     )
@@ -98,6 +109,20 @@ def output_folder(args: argparse.Namespace) -> Path:
     return Path("runs/bench") / time.strftime("%Y%m%d-%H%M%S")
 
 
+def preset_of(args: argparse.Namespace) -> str:
+    return "quick" if args.quick else (args.size or "full")
+
+
+def sections_to_skip(args: argparse.Namespace) -> set[str]:
+    """--only's complement, or --skip's, and what --quick leaves out unless --only names it."""
+    if args.only:
+        return set(SECTIONS) - set(args.only)
+    skip = set(args.skip)
+    if preset_of(args) == "quick":
+        skip |= set(QUICK_LEAVES_OUT)
+    return skip
+
+
 def run(args: argparse.Namespace) -> int:
     args.out = output_folder(args)
     if args.from_json is not None:
@@ -109,9 +134,9 @@ def run(args: argparse.Namespace) -> int:
         for p in write_outputs(results, args.out, figures=not args.no_figures):
             print(f"wrote {p}")
         return 0
-    preset = "quick" if args.quick else (args.size or "full")
+    preset = preset_of(args)
     sizes = PRESETS[preset]
-    skip = set(SECTIONS) - set(args.only) if args.only else set(args.skip)
+    skip = sections_to_skip(args)
     models = args.models
     if models is None:
         default_sweep = Path("runs/width-sweep")

@@ -5,7 +5,7 @@ then the verdicts against the issue's targets, then whether each default in
 the code is the one the measurements favour, then every table. Numbers
 come only from the results dictionary, which is also the JSON file, so the
 two cannot disagree. Everything after the conditions is the sections'
-own (deploy/bench/sections), in the table's order.
+own (the table in deploy/bench/sections.py), in its order, then the presets.
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ def markdown(results: dict[str, Any]) -> str:
         "",
         f"Regenerate with `{results['generated_by']} --update-docs` from the repository root "
         "(without `--update-docs` a run writes to runs/bench/<date-time>/; `deepxpalm bench "
-        "--quick` is a shorter run). Written by `deploy/bench`; every number below is also in "
-        "[benchmarks.json](benchmarks.json).",
+        "--quick` runs in under 90 s, see [Presets](#presets-what---quick-measures)). Written "
+        "by `deploy/bench`; every number below is also in [benchmarks.json](benchmarks.json).",
         "",
         "## Conditions",
         "",
@@ -88,6 +88,7 @@ def markdown(results: dict[str, Any]) -> str:
     for s in SECTIONS:
         out += s.markdown(results)
     out += _failures_md(results)
+    out += _presets_md()
     out += _limits_md()
     return "\n".join(out) + "\n"
 
@@ -130,17 +131,56 @@ def _cold_line(results: dict[str, Any]) -> str:
     )
 
 
+_WHY_SKIPPED = {"skip": "`--skip`", "quick": "left out of `--quick`"}
+
+
 def _failures_md(results: dict[str, Any]) -> list[str]:
     bad = {k: v for k, v in results["sections"].items() if isinstance(v, dict) and "error" in v}
-    skipped = [
-        k for k, v in results["sections"].items() if isinstance(v, dict) and v.get("skipped")
-    ]
+    skipped = {
+        k: v for k, v in results["sections"].items() if isinstance(v, dict) and v.get("skipped")
+    }
     out: list[str] = []
     if bad or skipped:
         out += ["", "## Sections not measured", ""]
         out += [f"- `{k}` failed: {v['error']}" for k, v in bad.items()]
-        out += [f"- `{k}` skipped (`--skip`)" for k in skipped]
+        out += [
+            f"- `{k}` skipped ({_WHY_SKIPPED[v.get('why', 'skip')]})" for k, v in skipped.items()
+        ]
     return out
+
+
+def _presets_md() -> list[str]:
+    """What ``--quick`` measures of each section, from the sections' own sizes."""
+    from dataclasses import asdict
+
+    from deploy.bench.sections import SECTIONS
+
+    def sizes(s: Any) -> str:
+        return ", ".join(
+            f"{k} {'/'.join(map(str, v)) if isinstance(v, tuple) else v}"
+            for k, v in asdict(s).items()
+        )
+
+    rows = [
+        [
+            f"`{s.name}`",
+            sizes(s.sizes["quick"]) if s.quick else "left out (`--only` runs it at its quick size)",
+            sizes(s.sizes["full"]),
+        ]
+        for s in SECTIONS
+    ]
+    return [
+        "",
+        "## Presets: what `--quick` measures",
+        "",
+        "`deepxpalm bench --quick` is meant to finish in under 90 s on two shared cores: it "
+        "keeps the sections that run in the bench's own process, at smaller sizes, and leaves "
+        "out those that start node processes, a browser or task trials, whose start-up alone "
+        "costs tens of seconds on a loaded machine. Sizes per section (the full run's beside "
+        "them):",
+        "",
+        *table(["section", "--quick", "full run"], rows, "|---|---|---|"),
+    ]
 
 
 def _limits_md() -> list[str]:

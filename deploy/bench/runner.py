@@ -109,7 +109,9 @@ def _measure(
     sections: dict[str, Any] = {}
     for section in SECTIONS:
         if section.name in skip:
-            sections[section.name] = {"skipped": True}
+            # asked to skip it (--skip, --only), or a section --quick leaves out
+            why = "quick" if preset == "quick" and not section.quick else "skip"
+            sections[section.name] = {"skipped": True, "why": why}
             continue
         sections[section.name] = _run_section(section, ctx, sizes[section.name], progress)
     return {

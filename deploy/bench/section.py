@@ -2,8 +2,8 @@
 
 A section owns everything about one measurement: how much it measures per
 preset, the measuring call, its part of the report, its figure and the
-verdicts it can pass or fail. Adding one is a module under
-``deploy/bench/sections/`` and a line in that package's table.
+verdicts it can pass or fail. Adding one is a module ``deploy/bench/<name>.py``
+and a line in the table of ``deploy/bench/sections.py``.
 """
 
 from __future__ import annotations
@@ -96,3 +96,6 @@ class Section:
     default_checks: Callable[[Results], list[DefaultCheck]] = _no_checks
     #: other pages in the report's folder that carry this section's numbers, brought up to date
     update_other_docs: Callable[[dict[str, Any], Path], list[Path]] = _no_other_docs
+    #: measured by ``--quick``; False for a section whose processes, browser or trials cost
+    #: more than the quick run's 90 s allow (``--quick --only NAME`` still measures it)
+    quick: bool = True

@@ -1,7 +1,8 @@
 """How much each section measures: the presets behind ``--quick`` and ``--size``.
 
 ``full`` is for the committed report on a quiet machine; ``quick`` is a
-one-minute look; ``smallest`` exists so a test can run every section in
+look in under 90 s (``deepxpalm bench --quick`` also leaves out the sections
+marked ``quick=False``); ``smallest`` exists so a test can run every section in
 seconds and keep the code from rotting (its numbers mean nothing). Each
 section keeps its own sizes per preset; a preset here gathers them.
 """

@@ -1,4 +1,4 @@
-"""The latency budget: each stage of the loop, and the loop end to end in one process.
+"""The latency budget: each stage of the loop, one frame at a time.
 
 Stages are timed inline, one frame at a time through the whole chain, so
 each stage runs with the caches the previous one left (as in the nodes),
@@ -7,9 +7,7 @@ the serial driver's parser and frame code, the classifier, the rendering
 functions, the codec, ZeroMQ, the LinkGlide renderer and scservo_sdk's
 sync-write builder.
 
-End to end runs the nodes' own methods (``RobotNode.process`` and
-``OperatorNode.receive`` / ``control_step``) over ZeroMQ's inproc transport,
-from the bytes of a scan to the bytes of the servo packet.
+As a bench section: the latency budget, stage by stage, back to back and paced at the sensor's rate.
 """
 
 from __future__ import annotations
@@ -18,6 +16,8 @@ import contextlib
 import logging
 import os
 import time
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,21 +27,19 @@ from common.clock import Rate, now_ns
 from common.codec import decode, encode
 from common.messages import Stimulus
 from common.tactile import N_ANGLES, pattern_of
-from common.transport import Link, Publisher, Subscriber
 from deploy.bench.fixtures import (
     PacketBuilder,
-    PacketServoBus,
     frame_set_of_at_least,
     scan_bytes,
     serial_sensor,
 )
+from deploy.bench.fmt import IMG_DIR, num, pyplot, results_of, save_figure, table
+from deploy.bench.section import Context, Results, Section
 from deploy.bench.timing import summarize_ns
 from operator_side.config import OperatorConfig
-from operator_side.node import OperatorNode
 from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 from robot_side.config import RobotConfig
-from robot_side.node import RobotNode
 from robot_side.rendering import is_contact, render_cells, sanitize_frame
 
 log = logging.getLogger(__name__)
@@ -337,108 +335,171 @@ def transit_times(n: int) -> dict[str, Any]:
     return out
 
 
-class InprocLoop:
-    """Both nodes in one process on ZeroMQ's inproc transport, driven frame by frame.
+TITLE = "Latency budget per stage"
 
-    Each frame is forced all the way to a servo packet (the robot forgets
-    its last stimulus, the operator its last write), so every sample is the
-    path of a frame that changes what the palm feels; frames whose output
-    does not change stop earlier and cost less (see the skipping section).
-    """
 
-    def __init__(self, classifier: Any, endpoint: str = "inproc://bench-e2e") -> None:
-        self.ctx = zmq.Context()
-        self.sensor = serial_sensor()
-        self.robot = RobotNode(
-            RobotConfig(),
-            self.sensor,
-            classifier=classifier,
-            ctx=self.ctx,
-            link=Link(pub=Publisher(self.ctx, endpoint, bind=True)),
+@dataclass(frozen=True)
+class StagesSizes:
+    stage_frames: int  # back to back
+    stage_paced_frames: int
+    pace_hz: float  # the sensor's rate the paced runs wait for
+
+
+SIZES = {
+    "full": StagesSizes(stage_frames=20000, stage_paced_frames=1800, pace_hz=120.0),
+    "quick": StagesSizes(stage_frames=600, stage_paced_frames=120, pace_hz=120.0),
+    "smallest": StagesSizes(stage_frames=100, stage_paced_frames=30, pace_hz=500.0),
+}
+
+
+def measure(ctx: Context, sizes: StagesSizes) -> dict[str, Any]:
+    """Both runs; the paced medians and the loopback transit go to the context for others."""
+    out = stage_budget(sizes.stage_frames, ctx.classifier)
+    out["paced"] = stage_budget(sizes.stage_paced_frames, ctx.classifier, pace_hz=sizes.pace_hz)
+    # the costs a frame pays in the field (paced), for the savings and the scale model
+    ctx.stage_medians_us = {k: v["median_us"] for k, v in out["paced"]["stages"].items()}
+    ctx.tcp_transit_us = out.get("transit", {}).get("tcp_loopback", {}).get("median_us", 0.0)
+    return out
+
+
+def markdown(results: Results) -> list[str]:
+    s = results_of(results, "stages")
+    if s is None:
+        return ["", f"## {TITLE}", "", "Not run."]
+    paced = s.get("paced") or {}
+    pst = paced.get("stages", {})
+    rate = paced.get("pace_hz")
+    out = [
+        "",
+        f"## {TITLE}",
+        "",
+        f"Every frame is taken through the whole chain one at a time, so each stage meets "
+        f"the caches the one before left. **Back to back**: {s['frames']:,} frames with no "
+        f"pause. **Paced**: {num(paced.get('frames'))} frames at {num(rate, 0)} Hz, waiting "
+        "between frames as the node waits for the sensor. Classifier backend "
+        f"`{s['classifier_backend']}`, `{s['method']}` downsizing, `{s['order']}`. "
+        "Microseconds, one core.",
+        "",
+    ]
+    if s.get("compiled_step"):
+        out += [
+            "The node runs `frame_step` (one compiled call) where the plain path runs "
+            "`sanitize_contact`, `classification` and `render`; frames alternate between the "
+            "two, so each row has half the frames and both paths meet the same conditions. The "
+            "plain rows are what `render.compiled_step = false` (or another classifier "
+            "backend) costs; sums and totals below are the node's path.",
+            "",
+        ]
+    out += table(
+        [
+            "stage",
+            "back to back: median",
+            "p99",
+            f"paced at {num(rate, 0)} Hz: median",
+            "p99",
+            "what",
+        ],
+        [
+            [
+                f"`{k}`",
+                num(v["median_us"]),
+                num(v["p99_us"]),
+                num(pst.get(k, {}).get("median_us")),
+                num(pst.get(k, {}).get("p99_us")),
+                v["what"],
+            ]
+            for k, v in s["stages"].items()
+        ],
+        "|---|---:|---:|---:|---:|---|",
+    )
+    tot = s["instrumented_total"]
+    ptot = paced.get("instrumented_total", {})
+    plain, pplain = s.get("instrumented_total_plain"), paced.get("instrumented_total_plain")
+    plain_note = ""
+    if plain and pplain:
+        plain_note = (
+            f" (the plain path's frames: median {num(plain['median_us'])} / p99 "
+            f"{num(plain['p99_us'])} us back to back, median {num(pplain['median_us'])} / p99 "
+            f"{num(pplain['p99_us'])} us paced)"
         )
-        self.bus = PacketServoBus()
-        self.bus.connect()
-        self.operator = OperatorNode(
-            OperatorConfig(),
-            self.bus,
-            ctx=self.ctx,
-            link=Link(sub=Subscriber(self.ctx, endpoint, bind=False, name="bench operator")),
+    out += [
+        "",
+        f"Sum of the stage medians: {num(s['sum_of_stage_medians_us'])} us back to back, "
+        f"{num(paced.get('sum_of_stage_medians_us'))} us paced; the instrumented chain end to "
+        f"end: median {num(tot['median_us'])} / p99 {num(tot['p99_us'])} us back to back, "
+        f"median {num(ptot.get('median_us'))} / p99 {num(ptot.get('p99_us'))} us paced"
+        f"{plain_note}.",
+        "",
+        "**The same code costs several times more when frames are paced.** Between two "
+        "frames the core runs other code (here other processes; on the robot PC the node's "
+        "own threads), which evicts the caches and retrains the branch predictors an "
+        "interpreter leans on (see Conditions: the first IK call after a frame period's gap "
+        "costs many times a warm one, even when the gap spins on the same core). Back-to-back "
+        "numbers are what a micro-benchmark shows; paced numbers are what a frame costs in "
+        "the field, so the verdicts, the savings and the scale model below use them.",
+        "",
+        "One-way PUB to SUB in one process (a 204-byte message, back to back):",
+        "",
+    ]
+    rows = []
+    for name, t in (s.get("transit") or {}).items():
+        if "error" in t:
+            rows.append([name, "n/a", "n/a"])
+        else:
+            rows.append([name, num(t["median_us"]), num(t["p99_us"])])
+    out += table(["transport", "median (us)", "p99 (us)"], rows, "|---|---:|---:|")
+    out += ["", f"![stage budget]({IMG_DIR}/bench_stages.png)"]
+    return out
+
+
+def figure(result: dict[str, Any], path: Path) -> Path:
+    plt = pyplot()
+    names = list(result["stages"])
+    paced = (result.get("paced") or {}).get("stages", {})
+    series = [
+        ("back to back, median", [result["stages"][n]["median_us"] for n in names], "#4c72b0"),
+    ]
+    if paced:
+        rate = result["paced"]["pace_hz"]
+        series.append(
+            (
+                f"paced {rate:g} Hz, median",
+                [paced.get(n, {}).get("median_us", float("nan")) for n in names],
+                "#dd8452",
+            )
         )
-        self.period_ns = round(1e9 / OperatorConfig().renderer.control_rate_hz)
-        self._join()
-
-    def _join(self) -> None:
-        sock = self.operator.sub.sock
-        deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline:
-            self.robot.pub.send_raw(b"HBRT")  # rejected by the codec: harmless, counted
-            if sock.poll(10):
-                break
-        while sock.poll(10):
-            sock.recv()
-
-    def step(self, scan: bytes) -> tuple[int, int]:
-        """One scan through both nodes: (wall ns from bytes to packet, CPU ns), or (-1, -1).
-
-        The CPU time is this thread's (inproc moves messages without ZeroMQ's I/O
-        thread, so it is all the work): wall time above it is time the thread
-        waited for the core, which on a shared machine is other processes' doing.
-        """
-        robot, op = self.robot, self.operator
-        robot.resend_next()
-        op.rewrite_next()
-        writes = self.bus.writes
-        c0 = time.thread_time_ns()
-        t0 = now_ns()
-        self.sensor.feed(scan, t0)
-        robot.process(self.sensor.latest())
-        op.receive()
-        op.control_step(now_ns(), self.period_ns)
-        c1 = time.thread_time_ns()
-        if self.bus.writes == writes:
-            return -1, -1
-        return self.bus.last_write_ns - t0, c1 - c0
-
-    def close(self) -> None:
-        self.robot.pub.close()
-        self.operator.sub.close()
-        self.ctx.term()
+        series.append(
+            (
+                f"paced {rate:g} Hz, p99",
+                [paced.get(n, {}).get("p99_us", float("nan")) for n in names],
+                "#f2c8a8",
+            )
+        )
+    fig, ax = plt.subplots(figsize=(8.5, 5))
+    h = 0.8 / len(series)
+    for k, (label, values, color) in enumerate(series):
+        ax.barh(
+            [i - 0.4 + h * (k + 0.5) for i in range(len(names))],
+            values,
+            height=h,
+            label=label,
+            color=color,
+        )
+    ax.set_yticks(list(range(len(names))), names)
+    ax.invert_yaxis()
+    ax.set_xscale("log")
+    ax.set_xlabel("microseconds (one core)")
+    ax.set_title("latency budget per stage")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, axis="x", which="both")
+    return save_figure(fig, path)
 
 
-def end_to_end_inproc(
-    n_frames: int, classifier: Any, seed: int = 2, pace_hz: float | None = None
-) -> dict[str, Any]:
-    """Frame bytes to servo packet through both nodes' code in one process.
-
-    ``pace_hz``: wait between frames as a sensor paces them (see stage_budget).
-    """
-    rate = Rate(pace_hz) if pace_hz else None
-    fs = frame_set_of_at_least(n_frames, seed=seed)
-    n = min(n_frames, len(fs))
-    order = np.random.default_rng(seed).permutation(len(fs))[:n]
-    warm = min(50 if rate is not None else 200, n)
-    scans = [scan_bytes(fs.frames[k], seq) for seq, k in enumerate(np.r_[order[:warm], order])]
-    loop = InprocLoop(classifier)
-    samples, cpu = [], []
-    missing = 0
-    try:
-        for i, scan in enumerate(scans):
-            dt, dc = loop.step(scan)
-            if rate is not None:
-                rate.sleep()
-            if i < warm:
-                continue
-            if dt < 0:
-                missing += 1
-            else:
-                samples.append(dt)
-                cpu.append(dc)
-    finally:
-        loop.close()
-    s = summarize_ns(samples).as_dict()
-    s["frames_without_packet"] = missing
-    s["transport"] = "inproc"
-    s["pace_hz"] = pace_hz
-    s["cpu"] = summarize_ns(cpu).as_dict()
-    s["cpu"]["what"] = "the thread's CPU time per frame (thread_time_ns), same frames"
-    return s
+SECTION = Section(
+    name="stages",
+    title=TITLE,
+    sizes=SIZES,
+    measure=measure,
+    markdown=markdown,
+    figure=figure,
+)

@@ -292,6 +292,7 @@ SECTION = Section(
     measure=measure,
     markdown=markdown,
     update_other_docs=update_netsim_doc,
+    quick=False,  # a browser per scenario
 )
 
 

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from deploy.bench.cli import add_arguments, output_folder
+from deploy.bench.cli import QUICK_LEAVES_OUT, add_arguments, output_folder, sections_to_skip
 from deploy.bench.report import merge_sections
 
 
@@ -22,6 +22,15 @@ def test_a_plain_run_never_writes_over_the_committed_report():
     assert output_folder(parse("--quick")).parts[:2] == ("runs", "bench")
     assert output_folder(parse("--update-docs")) == Path("docs")
     assert output_folder(parse("--out", "/tmp/x")) == Path("/tmp/x")
+
+
+def test_quick_leaves_out_the_process_sections_unless_only_names_one():
+    assert {"task", "faults", "relay", "netsim", "video"} <= set(QUICK_LEAVES_OUT)
+    assert "stages" not in QUICK_LEAVES_OUT
+    assert sections_to_skip(parse("--quick")) == set(QUICK_LEAVES_OUT)
+    assert sections_to_skip(parse("--quick", "--skip", "ik")) == {"ik", *QUICK_LEAVES_OUT}
+    assert "netsim" not in sections_to_skip(parse("--quick", "--only", "netsim"))
+    assert sections_to_skip(parse()) == set()  # the full run measures every section
 
 
 def _results(sections: dict, date: str, commit: str, load: float) -> dict:

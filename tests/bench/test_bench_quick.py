@@ -16,6 +16,8 @@ from deploy.bench.report import write_outputs
 from deploy.bench.runner import run_bench
 from deploy.bench.sizes import PRESETS, SECTIONS
 
+pytestmark = pytest.mark.slow
+
 # The sections that start processes run in the slow test below, but six whose
 # measurements other tests run: the task's ``run_cell`` (tests/lab/test_task.py), the
 # fault matrix's ``run_cells`` (tests/faults), the command path's flood rig

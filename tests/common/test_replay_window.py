@@ -8,6 +8,8 @@ from hypothesis import strategies as st
 
 from common.replay_window import ReplayWindow
 
+pytestmark = pytest.mark.slow
+
 
 def _offer(w: ReplayWindow, session: int, stream: bytes, seq: int, t: int) -> bool:
     """What a receiver does: accepted (and recorded) unless the window calls it a replay."""

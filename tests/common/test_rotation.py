@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -49,6 +50,7 @@ def test_the_tool_down_pose_round_trips_exactly() -> None:
         assert round_trip_error(found / np.linalg.norm(found) * theta) < TOLERANCE_RAD
 
 
+@pytest.mark.slow
 def test_hundred_thousand_vectors_at_near_and_across_pi() -> None:
     rng = np.random.default_rng(2026)
     n = 100_000

@@ -32,6 +32,7 @@ from robot_side.node import RobotNode
 from robot_side.tactile.scripted import ScriptedTactileSensor
 
 pytestmark = [
+    pytest.mark.slow,
     pytest.mark.timeout(120),
     needs_chromium,
 ]

@@ -28,6 +28,7 @@ from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus
 
 pytestmark = [
+    pytest.mark.slow,
     pytest.mark.timeout(60),
     needs_chromium,
 ]

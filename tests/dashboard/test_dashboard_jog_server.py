@@ -155,6 +155,7 @@ def test_resume_goes_to_the_robot_from_the_holder_and_is_refused_with_a_reason_o
     assert node.actions() == ["arm_resume"], "a resume the robot would refuse is not sent"
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.floats(-10, 10), min_size=6, max_size=6))
 def test_cap_twist_keeps_direction_and_never_exceeds_the_caps(v):

@@ -94,6 +94,7 @@ def _next(ws, kind: str, timeout_s: float = 2.0) -> dict:
             return msg
 
 
+@pytest.mark.slow
 def test_pushes_only_when_something_changed_and_refreshes_slowly_otherwise(dashboard):
     node, d = dashboard
     with connect(d.ws_url) as ws:

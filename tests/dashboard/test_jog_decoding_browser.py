@@ -22,6 +22,7 @@ from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.dashboard.jog_config import JogConfig
 
 pytestmark = [
+    pytest.mark.slow,
     pytest.mark.timeout(60),
     needs_chromium,
 ]

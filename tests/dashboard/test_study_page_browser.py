@@ -19,6 +19,7 @@ from operator_side.study.responders import WebResponder
 from operator_side.study.runner import Session
 
 pytestmark = [
+    pytest.mark.slow,
     pytest.mark.timeout(90),
     needs_chromium,
 ]

@@ -16,6 +16,7 @@ pytest.importorskip("aiortc")
 from deploy.bench.video import glass_to_glass
 
 pytestmark = [
+    pytest.mark.slow,
     pytest.mark.timeout(90),
     needs_chromium,
 ]

@@ -29,7 +29,7 @@ from headless_chromium import Chromium, needs_chromium
 pytest.importorskip("aiortc", reason="the video needs the 'video' extra")
 
 from common.netsim.scenario import load_scenario
-from deploy.bench.video_viewers import cpu_times, idle_share
+from deploy.bench.video import cpu_times, idle_share
 from robot_side.video.stamp import MS_MODULO
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(150), needs_chromium]

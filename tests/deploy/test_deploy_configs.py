@@ -96,6 +96,7 @@ def test_netsim_scene_simulates_every_device_and_names_a_real_scenario():
     assert documented == shipped, "netsim.toml should describe every shipped scenario"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("role", ["robot", "operator"])
 def test_example_config_prints_through_the_node_cli(role):
     out = subprocess.run(

@@ -61,6 +61,7 @@ def _statuses(report) -> dict[str, str]:
 
 
 # ------------------------------------------------------------------ demo scene
+@pytest.mark.slow
 def test_demo_scene_passes_for_the_robot_through_the_cli():
     """The whole command on the shipped demo scene: its wire-level simulators answer."""
     tel, cmd = free_ports(2)
@@ -156,6 +157,7 @@ def test_a_stale_udev_link_is_called_one(tmp_path):
     assert "does not exist (the udev link is there but its device is gone)" in check.detail
 
 
+@pytest.mark.slow
 def test_serial_board_answers_at_its_baud_and_not_at_another():
     """The real driver against the pty board simulator, through the doctor."""
     from robot_side.tactile.board_sim import TactileBoardSimulator
@@ -183,6 +185,7 @@ def test_unreachable_network_device_fails_before_its_driver_runs():
 
 
 # ------------------------------------------------------------------ wrong keys
+@pytest.mark.slow
 def test_wrong_robot_key_on_the_operator_fails_the_handshake(keys, robot_in_thread, tmp_path):
     tel, cmd = free_ports(2)
     robot_in_thread(tel, cmd, security=_curve_robot(keys))
@@ -199,6 +202,7 @@ def test_wrong_robot_key_on_the_operator_fails_the_handshake(keys, robot_in_thre
     assert diagnose("operator", data, "t", OPTS).find("peer robot").status == PASS
 
 
+@pytest.mark.slow
 def test_operator_key_not_on_the_robots_allowlist_is_refused(keys, robot_in_thread, tmp_path):
     tel, cmd = free_ports(2)
     robot_in_thread(tel, cmd, security=_curve_robot(keys))
@@ -210,6 +214,7 @@ def test_operator_key_not_on_the_robots_allowlist_is_refused(keys, robot_in_thre
     assert "deepxpalm keys allow" in check.fix
 
 
+@pytest.mark.slow
 def test_robot_names_the_operator_key_it_refused(keys, operator_in_thread, tmp_path):
     tel, cmd = free_ports(2)
     bob_public, bob_secret = generate(tmp_path / "other", "operator-bob")
@@ -291,6 +296,7 @@ def test_a_stranger_on_the_robots_port_is_named():
 
 
 # ------------------------------------------------------------------- the CLI
+@pytest.mark.slow
 def test_cli_exits_1_with_a_json_list_of_failures(tmp_path):
     config = tmp_path / "operator.toml"
     config.write_text(
@@ -311,6 +317,7 @@ def test_cli_exits_1_with_a_json_list_of_failures(tmp_path):
     assert failed[0]["fix"]
 
 
+@pytest.mark.slow
 def test_cli_text_report_shows_the_fix_under_each_failure(tmp_path):
     config = tmp_path / "robot.toml"
     config.write_text('[robot.render]\nmode = "sideways"\n')
@@ -324,6 +331,7 @@ def test_cli_text_report_shows_the_fix_under_each_failure(tmp_path):
     assert "NOT ready" in out.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("role", ["robot", "operator"])
 def test_a_scene_for_both_machines_needs_a_role(role):
     out = subprocess.run(
@@ -370,6 +378,7 @@ def test_doctor_reports_a_kinds_own_preflight_findings(monkeypatch):
 
 
 # ----------------------------------------------------------------- video
+@pytest.mark.slow
 def test_the_robots_video_server_is_checked_where_viewers_will_reach_it():
     pytest.importorskip("aiortc")
     from robot_side.camera.config import TestPatternConfig

@@ -108,6 +108,7 @@ class FakeNode:
         self.link_state = "down"
 
 
+@pytest.mark.slow
 def test_watch_pings_only_while_the_node_publishes(systemd):
     node, stop = FakeNode(), threading.Event()
     notifier = Notifier({"NOTIFY_SOCKET": systemd.env_value, "WATCHDOG_USEC": "400000"})
@@ -145,6 +146,7 @@ def test_watch_follows_a_real_operator_node(systemd, operator_in_thread):
         watch.stop()
 
 
+@pytest.mark.slow
 def test_robot_process_tells_systemd_it_is_ready_and_alive(systemd, tmp_path):
     """The unit's Type=notify + WatchdogSec, seen from the process: READY=1, then pings.
 

@@ -56,6 +56,7 @@ def _deepxpalm_here() -> str:
     return found
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="no systemd-analyze here")
 @pytest.mark.parametrize("role", UNITS_SHIPPED)
 def test_unit_passes_systemd_analyze_verify(role, tmp_path):
@@ -126,6 +127,7 @@ def _config_the_unit_starts(unit: dict, role: str, tmp_path: Path) -> str:
     return out.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("role", ROLES)
 def test_execstart_is_a_command_line_the_node_accepts(role, tmp_path):
     # The same arguments, with the example config standing in for /etc, parse and load.
@@ -204,6 +206,7 @@ def test_the_relay_unit_is_watched_and_starts_a_relay_the_cli_accepts(tmp_path):
     assert "[relay]" in printed and 'mode = "curve"' in printed
 
 
+@pytest.mark.slow
 def test_the_video_unit_starts_a_video_server_the_cli_accepts(tmp_path):
     unit = _parse(_unit("video"))
     assert _get(unit, "Service", "User") == ["deepxpalm"]

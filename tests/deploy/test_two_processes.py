@@ -18,9 +18,12 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
 import zmq
 from deploy_support import ENV, EXAMPLES, cli, loopback
 from tests_support import free_ports
+
+pytestmark = pytest.mark.slow
 
 LINK_UP = "operator link down -> ok"
 

@@ -337,6 +337,7 @@ def test_cli_defaults_and_set(tmp_path, capsys) -> None:
     assert "  4 " in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_cli_captures_zero_and_limits_from_the_bus(fake, tmp_path) -> None:
     path = tmp_path / "cal.toml"
     save_calibration(LinkGlideCalibration(), path)

@@ -66,6 +66,7 @@ def test_packet_layout_is_what_the_doc_says() -> None:
     assert struct.unpack("<H", p[210:212])[0] == crc16_ccitt(p[2:210])
 
 
+@pytest.mark.slow
 @given(pad=st.integers(0, 1), seq=st.integers(0, 2**32 - 1), counts=counts_st)
 def test_codec_round_trip(pad: int, seq: int, counts: np.ndarray) -> None:
     got = decode(encode(pad, seq, counts))
@@ -202,6 +203,7 @@ def _assert_same_newtons(driver_frame: np.ndarray, sim_frame: np.ndarray) -> Non
     assert np.all((diff < 0.03) | at_floor), float(diff[~at_floor].max())
 
 
+@pytest.mark.slow
 def test_calibration_and_mirroring_reproduce_the_boards_newtons(board) -> None:
     with _driver(board.port) as sensor:
         sensor.set_calibration(board.calibration)
@@ -223,6 +225,7 @@ def test_calibration_and_mirroring_reproduce_the_boards_newtons(board) -> None:
         assert nz.min() >= 1.0  # the floor
 
 
+@pytest.mark.slow
 def test_without_mirroring_finger2_comes_out_in_its_own_view(board) -> None:
     with _driver(board.port, mirror_finger2=False) as sensor:
         sensor.set_calibration(board.calibration)
@@ -241,6 +244,7 @@ def test_without_mirroring_finger2_comes_out_in_its_own_view(board) -> None:
     floor=st.floats(0, 2),
     saturation=st.floats(2.5, 20),
 )
+@pytest.mark.slow
 def test_compiled_conversion_is_bit_identical_to_numpy(
     counts: list[int], zero: float, gain: float, mirror: bool, floor: float, saturation: float
 ) -> None:

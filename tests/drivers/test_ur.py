@@ -114,6 +114,7 @@ def test_move_outside_the_workspace_is_refused_before_anything_is_sent(still_arm
     assert len(commands()) == seen
 
 
+@pytest.mark.slow
 def test_move_speed_above_the_limit_is_clipped(still_arm, sim):
     start = still_arm.tcp_pose()
     target = start.copy()
@@ -200,6 +201,7 @@ def test_no_controller_at_the_address_is_a_clear_error():
     assert not arm.is_connected
 
 
+@pytest.mark.slow
 def test_stale_stream_is_an_error_not_a_repeat():
     with URSimProcess() as sim:
         arm = URArm(URArmConfig(host=sim.host, limits=LIMITS, stale_after_s=0.3))
@@ -230,6 +232,7 @@ def _reads(arm: URArm) -> bool:
     return True
 
 
+@pytest.mark.slow
 def test_protective_stop_refuses_jogs_with_the_reason():
     with URSimProcess() as sim:
         arm = URArm(URArmConfig(host=sim.host, limits=LIMITS, stale_after_s=STALE_S))
@@ -254,6 +257,7 @@ def test_protective_stop_refuses_jogs_with_the_reason():
             arm.disconnect()
 
 
+@pytest.mark.slow
 def test_simulated_kind_runs_the_real_driver_and_survives_a_vanished_controller():
     section = {"kind": "simulated", "stale_after_s": STALE_S, "limits": {"jog_timeout_s": 0.3}}
     arm = build_device(KINDS, section, "arm")
@@ -327,6 +331,7 @@ def test_simulator_speaks_rtde_like_a_controller():
         sim.stop()
 
 
+@pytest.mark.slow
 def test_raw_ur_rtde_servol_and_movej_against_the_simulator():
     """The calls URArm does not use, straight from ur-rtde: the simulator is general."""
     import rtde_control

@@ -10,10 +10,13 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from robot_side.arm.sim.kinematics import HOME_Q, KinematicArm, forward
+
+pytestmark = pytest.mark.slow
 
 TICK = 0.002
 

@@ -33,6 +33,7 @@ def test_restart_policy_is_the_shipped_units():
     assert policy("recorder") is None  # no unit ships: nobody restarts it
 
 
+@pytest.mark.slow
 def test_an_unplugged_gripper_refuses_and_comes_back_holding():
     with GripperSimServer() as sim:
         sim.model.write(ACT=1)

@@ -82,6 +82,7 @@ def test_random_bytes(data):
     _check(data)
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(st.sampled_from(TOPICS), st.binary(max_size=300))
 def test_random_bytes_behind_a_real_topic(topic, data):
@@ -102,12 +103,14 @@ def maps(draw) -> bytes:
         return TOPICS[topic_i] + b"\x80"
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(maps())
 def test_maps_of_protocol_fields_with_any_values(data):
     _check(data)
 
 
+@pytest.mark.slow
 @settings(max_examples=100, deadline=None)
 @given(st.randoms(use_true_random=False))
 def test_valid_messages_round_trip(rnd):
@@ -118,6 +121,7 @@ def test_valid_messages_round_trip(rnd):
     assert type(back) is type(msg) and spec_violations(back) == []
 
 
+@pytest.mark.slow
 def test_ten_thousand_structure_aware_mutants():
     mut = Mutator(seed=31)
     decoded = 0

@@ -22,6 +22,7 @@ from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
 from common.messages import Heartbeat
 
 
+@pytest.mark.slow
 def test_operator_reconnects_after_an_oversized_telemetry_frame():
     rig = OperatorRig()
     rig.start()

@@ -21,6 +21,8 @@ from hypothesis import strategies as st
 
 from common.codec import DecodeError, decode
 
+pytestmark = pytest.mark.slow
+
 N_MALFORMED = int(os.environ.get("DEEPXPALM_FUZZ_N", "100000"))
 PATTERNS = [6, 3, 9, None, 0, 7, 11, 4]
 CHECKPOINT_TIMEOUT_S = 10.0  # generous: a shared CI machine can starve any thread

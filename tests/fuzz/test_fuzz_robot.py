@@ -24,6 +24,8 @@ from hypothesis import strategies as st
 from common.codec import DecodeError, decode
 from common.messages import Command
 
+pytestmark = pytest.mark.slow
+
 N_MALFORMED = int(os.environ.get("DEEPXPALM_FUZZ_N", "100000"))
 KINDS = ["command", "command", "command", "heartbeat", "heartbeat", "stimulus"]
 CHECK_EVERY_BATCHES = 10

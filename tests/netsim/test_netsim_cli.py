@@ -106,10 +106,10 @@ def test_config_file_then_set_then_options(tmp_path) -> None:
 
 def test_scenarios_run_as_a_byte_stream_unless_the_message_mode_is_asked_for() -> None:
     from common.netsim.proxy import LinkSimulator
-    from common.netsim.relay import StreamRelay
+    from common.netsim.stream import StreamForwarder
 
     for argv, kind in (
-        (["--scenario", "bad_day"], StreamRelay),
+        (["--scenario", "bad_day"], StreamForwarder),
         (["--scenario", "bad_day", "--mode", "message"], LinkSimulator),
     ):
         config = cli.config_from_args(_parser().parse_args(argv))

@@ -16,7 +16,7 @@ import pytest
 
 from common.netsim.fidelity import measure
 
-pytestmark = pytest.mark.usefixtures("quiet_gc")
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc")]
 
 SECONDS = 6.0
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import statistics
 import time
 
+import pytest
+
 from common.netsim.impairments import DirectionConfig, Scenario
 
 
@@ -47,6 +49,7 @@ def test_fixed_delay_per_direction(make_link) -> None:
     assert min(up) >= 5.0 and statistics.median(up) < 10.0
 
 
+@pytest.mark.slow
 def test_stop_is_prompt_and_idempotent(make_link) -> None:
     link = make_link(_fixed(500.0, 500.0))
     link.robot_pub.send(b"STIM\x80")  # still in flight when we stop
@@ -57,6 +60,7 @@ def test_stop_is_prompt_and_idempotent(make_link) -> None:
     assert not link.sim.is_running
 
 
+@pytest.mark.slow
 def test_outage_on_real_sockets(make_link) -> None:
     from common.netsim.scenario import scenario_from_dict
 

@@ -10,8 +10,8 @@ import pytest
 
 from common.errors import ConfigError
 from common.netsim.proxy import Endpoints
-from common.netsim.relay import StreamRelay
 from common.netsim.scenario import scenario_from_dict
+from common.netsim.stream import StreamForwarder
 
 
 def _robot_listener() -> tuple[socket.socket, str]:
@@ -20,8 +20,8 @@ def _robot_listener() -> tuple[socket.socket, str]:
     return server, f"tcp://127.0.0.1:{server.getsockname()[1]}"
 
 
-def _relay(scenario, robot_at: str) -> StreamRelay:
-    return StreamRelay(
+def _relay(scenario, robot_at: str) -> StreamForwarder:
+    return StreamForwarder(
         scenario,
         endpoints=Endpoints(
             robot_telemetry=robot_at,
@@ -100,4 +100,4 @@ def test_a_close_on_one_side_reaches_the_other():
 
 def test_datagram_scenarios_need_the_message_mode():
     with pytest.raises(ConfigError, match="message"):
-        StreamRelay(scenario_from_dict({"both": {"delivery": "datagram"}}))
+        StreamForwarder(scenario_from_dict({"both": {"delivery": "datagram"}}))

@@ -81,6 +81,7 @@ def test_a_bad_trace_is_refused_with_its_line(tmp_path):
         load_delay_trace(path)
 
 
+@pytest.mark.slow
 def test_a_trace_scenario_through_the_relay_reproduces_its_percentiles(tmp_path, assert_faithful):
     """Over real sockets via ``deepxpalm netsim``: the trace's p5/p50/p95 plus the direct path's.
 

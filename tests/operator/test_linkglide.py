@@ -48,6 +48,7 @@ def test_known_pose_matches_geometry():
     assert (10.0 - 20) * dy - 58.0 * (dx - 20) < 0
 
 
+@pytest.mark.slow
 def test_whole_workspace_grid_round_trips():
     xs, ys = np.meshgrid(np.linspace(-80, 100, 721), np.linspace(-80, 100, 721))
     pts = np.stack([xs, ys], -1).reshape(-1, 2)
@@ -60,6 +61,7 @@ def test_whole_workspace_grid_round_trips():
     assert np.abs(back - pts[mask]).max() < 1e-9
 
 
+@pytest.mark.slow
 @settings(suppress_health_check=[HealthCheck.filter_too_much])
 @given(st.floats(-55, 75), st.floats(-20, 75))
 def test_round_trip_property(x, y):
@@ -72,6 +74,7 @@ def test_round_trip_property(x, y):
     assert abs(fast[0] - angles[0]) < 1e-12 and abs(fast[1] - angles[1]) < 1e-12
 
 
+@pytest.mark.slow
 @given(st.floats(0, 2 * math.pi), st.one_of(st.just(0.0), st.floats(-1e-6, 1e-6)))
 def test_round_trip_at_the_outer_edge(theta, eps):
     # |C - A| = l2 + l3: the A side fully stretched.

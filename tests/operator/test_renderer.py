@@ -72,6 +72,7 @@ stimuli = hnp.arrays(
 )
 
 
+@pytest.mark.slow
 @given(stimuli, st.floats(-5, 5, allow_nan=False))
 def test_any_stimulus_gives_safe_counts(stim, fraction):
     cal = LinkGlideCalibration(

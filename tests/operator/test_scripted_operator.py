@@ -107,6 +107,7 @@ def run_trial(tilt_deg: float, offset_mm: float, feedback: bool = True):
     return outcome, at_lift, world
 
 
+@pytest.mark.slow
 @settings(max_examples=15, deadline=None)  # a second a trial; the task bench runs hundreds
 @given(st.floats(-35.0, 35.0), st.floats(-4.0, 4.0))
 def test_with_a_truthful_palm_every_rack_placement_ends_in_a_correct_grasp(tilt, offset):
@@ -123,6 +124,7 @@ def test_without_feedback_it_closes_once_and_lifts_whatever_it_holds():
     assert world.commands.count("gripper_close") == 1
 
 
+@pytest.mark.slow
 def test_a_lean_is_turned_out_and_an_offset_shifted_out():
     outcome, at_lift, _ = run_trial(30.0, 0.0)
     felt = [a.felt_pattern for a in outcome.attempts]

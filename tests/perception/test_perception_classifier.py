@@ -47,6 +47,7 @@ def test_shipped_files_are_in_the_package_and_small() -> None:
     assert total < 4 * 2**20
 
 
+@pytest.mark.slow
 def test_shipped_model_meets_the_bar_on_fresh_synthetic_frames(
     numpy_classifier: TiltClassifier, fresh: ds.TactileDataset
 ) -> None:
@@ -69,6 +70,7 @@ def test_shipped_model_carries_over_to_an_independent_generator(
     assert (pp == position).mean() >= 0.93
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", [b for b in BACKENDS if b != "torch"])
 def test_backends_match_eager_torch(
     backend: str, reference: TiltClassifier, fresh: ds.TactileDataset
@@ -101,6 +103,7 @@ def test_backends_match_eager_torch(
         assert clf.predict(one)[0][0] == ta[i] and clf.predict(frames[i])[1][0] == tp[i]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_one_frame_at_a_time_agrees_with_the_batch_path(
     backend: str, fresh: ds.TactileDataset
@@ -141,6 +144,7 @@ def test_wrong_frame_shapes_are_refused(numpy_classifier: TiltClassifier) -> Non
         numpy_classifier.predict(np.zeros((1, 10, 10, 2), np.float32))
 
 
+@pytest.mark.slow
 def test_non_torch_backends_do_not_import_torch() -> None:
     code = (
         "import sys, numpy as np\n"

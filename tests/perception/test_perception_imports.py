@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGE = ROOT / "robot_side" / "perception"
 MODULES = sorted(f"robot_side.perception.{p.stem}" for p in PACKAGE.glob("*.py"))

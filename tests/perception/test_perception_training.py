@@ -15,6 +15,8 @@ from robot_side.perception import dataset as ds  # noqa: E402
 from robot_side.perception import load_classifier  # noqa: E402
 from robot_side.perception.model import PAPER_CONV, PAPER_HIDDEN, ModelConfig, TiltNet  # noqa: E402
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:

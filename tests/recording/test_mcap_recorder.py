@@ -111,6 +111,7 @@ def test_the_caller_may_reuse_its_array_after_write(tmp_path):
     assert not record["frame"].any()
 
 
+@pytest.mark.slow
 def test_writes_from_many_threads_all_arrive_in_order(tmp_path):
     path = tmp_path / "r.mcap"
     n_threads, n = 4, 3000
@@ -151,6 +152,7 @@ def test_writes_after_close_are_dropped_not_raised(tmp_path):
     assert rec.records_dropped == 1
 
 
+@pytest.mark.slow
 def test_a_file_cut_at_any_byte_reads_back_every_whole_chunk(tmp_path):
     """A cut inside chunk k yields exactly the records of chunks 0..k-1, never an error."""
     path = tmp_path / "r.mcap"

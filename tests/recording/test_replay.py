@@ -21,6 +21,8 @@ from robot_side.node import RobotNode
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 
+pytestmark = pytest.mark.slow
+
 
 def _script() -> GraspScript:
     return GraspScript(

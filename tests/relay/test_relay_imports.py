@@ -5,6 +5,10 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
+pytestmark = pytest.mark.slow
+
 
 def test_the_relay_loads_neither_node_nor_torch_nor_a_signing_library():
     probe = (

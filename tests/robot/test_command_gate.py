@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -87,6 +88,7 @@ def test_a_timestamp_from_the_future_neither_passes_nor_extends_the_deadman():
         max_size=40,
     )
 )
+@pytest.mark.slow
 def test_whatever_arrives_admitted_motion_is_fresh_ordered_and_the_deadman_never_leads(events):
     gate = _gate()
     last: tuple[int, int] | None = None

@@ -21,6 +21,8 @@ from robot_side.rendering import render_cells, sanitize_with_peak
 from robot_side.tactile.base import TactileSample
 from robot_side.tactile.scripted import ScriptedTactileSensor
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def classifier():

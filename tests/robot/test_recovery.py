@@ -81,6 +81,7 @@ def test_stopping_the_node_ends_a_recovery_that_cannot_succeed():
     assert not rec.available and arm.connects > 1
 
 
+@pytest.mark.slow
 def test_a_simulated_arm_recovers_on_the_same_running_simulator():
     """As a real controller stays up while its driver reconnects, the simulator is not restarted.
 

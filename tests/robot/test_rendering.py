@@ -43,6 +43,7 @@ def test_antialiased_sees_a_band_that_plain_bicubic_misses():
     assert (direct.max(axis=1) > 0.5).all()
 
 
+@pytest.mark.slow
 def test_matches_torch_antialiased_bicubic():
     torch = pytest.importorskip("torch")
     rng = np.random.default_rng(0)
@@ -109,6 +110,7 @@ frames = hnp.arrays(
     st.one_of(st.none(), st.integers(0, 11)),
     st.sampled_from(["antialiased", "plain", "area"]),
 )
+@pytest.mark.slow
 def test_any_frame_gives_a_finite_non_negative_bounded_stimulus(frame, pattern, method):
     stim = render_stimulus(frame, pattern, method=method)
     assert stim.shape == (3, 3) and stim.dtype == np.float32
@@ -117,12 +119,14 @@ def test_any_frame_gives_a_finite_non_negative_bounded_stimulus(frame, pattern, 
     assert ((stim > 0).sum(axis=1) <= 1).all()
 
 
+@pytest.mark.slow
 @given(hnp.arrays(np.float32, (10, 10), elements=st.floats(0, 9, width=32)))
 def test_cubic_overshoot_never_goes_negative(x):
     out = downsize(x)
     assert out.min() >= 0 and out.max() <= 9.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["antialiased", "plain", "area"])
 @pytest.mark.parametrize("order", ["mask_then_peak", "peak_then_mask"])
 def test_the_fused_path_renders_what_the_separable_oracle_renders(method, order):

@@ -17,7 +17,8 @@ from operator_side.study.analysis import (
     write_report,
 )
 
-pytestmark = pytest.mark.timeout(120)  # pingouin's first import is slow on a cold disk
+# the timeout: pingouin's first import is slow on a cold disk
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 TABLE_I = Path(__file__).parent / "data" / "paper_table1.csv"
 

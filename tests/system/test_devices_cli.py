@@ -7,6 +7,10 @@ import os
 import subprocess
 import sys
 
+import pytest
+
+pytestmark = pytest.mark.slow
+
 
 def devices(*sets: str, role: str = "both") -> tuple[int, list[dict]]:
     args = [sys.executable, "-m", "deploy.cli", "devices", "--json", "--role", role]

@@ -21,6 +21,8 @@ from robot_side.node import RobotNode
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 
+pytestmark = pytest.mark.slow
+
 OUTAGE = (2.0, 3.5)  # seconds after the simulator starts
 CYCLE_MS = 1000 / 60
 SLACK_MS = 10  # thread wake-up on a shared 2-core VM

@@ -22,8 +22,8 @@ import zmq
 from tests_support import RecordingArm, free_ports
 
 from common.netsim.proxy import Endpoints
-from common.netsim.relay import StreamRelay
 from common.netsim.scenario import load_scenario
+from common.netsim.stream import StreamForwarder
 from common.security import SecurityConfig, client_options
 from common.transport import Subscriber
 from operator_side.config import OperatorConfig
@@ -33,6 +33,8 @@ from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
+
+pytestmark = pytest.mark.slow
 
 #: bad_day's 2-s outage, moved from 20 s to early in the run to keep the test short.
 OUTAGE = (3.0, 5.0)
@@ -61,7 +63,7 @@ def _run_secured(keys, scenario_name: str, seconds: float):
     robot = RobotNode(
         rc, ScriptedTactileSensor(ScriptedTactileConfig(script=hold)), arm=RecordingArm()
     )
-    relay = StreamRelay(
+    relay = StreamForwarder(
         _scenario(scenario_name),
         endpoints=Endpoints(
             robot_telemetry=tel,

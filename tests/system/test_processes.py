@@ -11,7 +11,10 @@ import sys
 import time
 
 import msgpack
+import pytest
 import zmq
+
+pytestmark = pytest.mark.slow
 
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
 

@@ -19,6 +19,8 @@ from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.tactile.scripted import ScriptedTactileSensor
 
+pytestmark = pytest.mark.slow
+
 
 class Relay:
     """A TCP relay that keeps every byte it forwards: what a wiretap would see."""

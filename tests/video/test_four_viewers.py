@@ -25,7 +25,7 @@ pytest.importorskip("aiortc")
 
 from tests_support import VideoServerProcess
 
-from deploy.bench.video_viewers import cpu_times, idle_share, watch
+from deploy.bench.video import cpu_times, idle_share, watch
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 

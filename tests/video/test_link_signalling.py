@@ -129,6 +129,7 @@ def test_a_robot_without_video_answers_an_offer_with_the_reason():
     assert "link.video_url" in sent[0].reason
 
 
+@pytest.mark.slow
 def test_a_video_server_that_died_and_came_back_serves_the_next_offer(tmp_path):
     """kill -9 of the video server: the session it held ends with "closed", an offer while it
     is down is answered "closed" with the reason, and an offer once it is back is answered

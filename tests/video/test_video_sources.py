@@ -23,7 +23,7 @@ from robot_side.camera.v4l2 import V4L2Camera
 from robot_side.video.server import VideoConfig, VideoServer, build_source
 from robot_side.video.stamp import MS_MODULO, draw_stamp, read_stamp
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
 
 
 @given(st.integers(0, MS_MODULO - 1), st.integers(0, 255), st.sampled_from([160, 320, 640, 1280]))
@@ -150,7 +150,7 @@ def test_sigterm_ends_a_server_with_two_viewers_promptly():
 
     from tests_support import VideoServerProcess
 
-    from deploy.bench.video_viewers import watch
+    from deploy.bench.video import watch
 
     async def watch_then_term(server) -> tuple[list, float]:
         viewers = asyncio.ensure_future(watch(server.url, 2, 30.0))

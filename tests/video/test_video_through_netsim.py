@@ -19,7 +19,7 @@ pytest.importorskip("aiortc")
 
 from tests_support import late_unless_loaded
 
-from deploy.bench.video_viewers import ViewerRun, view
+from deploy.bench.video import ViewerRun, view
 from robot_side.camera.config import TestPatternConfig
 from robot_side.camera.test_pattern import TestPatternCamera
 from robot_side.video.server import VideoConfig, VideoServer

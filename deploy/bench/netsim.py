@@ -6,7 +6,9 @@ the transparent case and the delayed scenarios, and renders the table that
 docs/benchmarks.md and docs/netsim.md both carry. The section also runs on
 its own and rewrites the block in docs/netsim.md:
 
-    python -m deploy.bench.netsim_fidelity --seconds 20 --update docs/netsim.md
+    python -m deploy.bench.netsim --seconds 20 --update docs/netsim.md
+
+As a bench section: the link simulator measured from outside, against its scenarios.
 """
 
 from __future__ import annotations
@@ -16,15 +18,19 @@ import os
 import re
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from deploy.bench.fmt import results_of
+from deploy.bench.section import Context, Results, Section
 
 SCENARIOS = ("none", "lan", "metro", "intercontinental", "loopback_trace")  # as the full preset
 BEGIN, END = "<!-- netsim-fidelity:begin -->", "<!-- netsim-fidelity:end -->"
 
 
-def measure(seconds: float, scenarios: tuple[str, ...] = SCENARIOS) -> dict[str, Any]:
-    """One rig run per scenario; the relay gets every core the bench had before pinning."""
+def fidelity(seconds: float, scenarios: tuple[str, ...] = SCENARIOS) -> dict[str, Any]:
+    """One rig run per scenario; the simulator gets every core the bench had before pinning."""
     from common.netsim.fidelity import measure as run_rig
 
     try:
@@ -50,7 +56,7 @@ def _us(x: float | None) -> str:
     return "n/a" if x is None else str(round(x))
 
 
-def markdown(section: dict[str, Any] | None) -> list[str]:
+def fidelity_table(section: dict[str, Any] | None) -> list[str]:
     """The fidelity table (empty when the section was skipped or failed)."""
     if not section or "runs" not in section:
         return []
@@ -84,7 +90,7 @@ def markdown(section: dict[str, Any] | None) -> list[str]:
     out += [
         "",
         "netsim's own time runs from the kernel's receive timestamp of a chunk to its send "
-        "returning, minus the scheduled delay: what the relay adds beyond the scenario. "
+        "returning, minus the scheduled delay: what the forwarder adds beyond the scenario. "
         "`lan` (0.1 ms) and `loopback_trace` (0.07 ms median) are below what an extra "
         "loopback hop costs here, so they come out at about the `none` row.",
         "",
@@ -100,9 +106,9 @@ def update_doc(path: Path, section: dict[str, Any]) -> None:
             BEGIN,
             f"Measured {time.strftime('%Y-%m-%d')}; regenerate with "
             "`deepxpalm bench --only netsim --update-docs` or "
-            "`python -m deploy.bench.netsim_fidelity --update docs/netsim.md`.",
+            "`python -m deploy.bench.netsim --update docs/netsim.md`.",
             "",
-            *markdown(section)[2:],
+            *fidelity_table(section)[2:],
             END,
         ]
     )
@@ -117,11 +123,54 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=20.0, help="per scenario")
     parser.add_argument("--update", type=Path, help="rewrite the block in this markdown file")
     args = parser.parse_args(argv)
-    section = measure(args.seconds)
+    section = fidelity(args.seconds)
     if args.update:
         update_doc(args.update, section)
-    print("\n".join(markdown(section)))
+    print("\n".join(fidelity_table(section)))
     return 0
+
+
+@dataclass(frozen=True)
+class NetsimSizes:
+    netsim_seconds: float  # per scenario, 100 messages a second
+    netsim_scenarios: tuple[str, ...]
+
+
+SIZES = {
+    "full": NetsimSizes(netsim_seconds=20.0, netsim_scenarios=SCENARIOS),
+    "quick": NetsimSizes(netsim_seconds=5.0, netsim_scenarios=SCENARIOS),
+    "smallest": NetsimSizes(netsim_seconds=1.0, netsim_scenarios=("none",)),
+}
+
+
+def measure(ctx: Context, sizes: NetsimSizes) -> dict[str, Any]:
+    return fidelity(sizes.netsim_seconds, sizes.netsim_scenarios)
+
+
+def markdown(results: Results) -> list[str]:
+    """The fidelity table docs/netsim.md carries too; nothing when the section did not run."""
+    lines = fidelity_table(results_of(results, "netsim"))
+    return ["", *lines] if lines else []
+
+
+def update_netsim_doc(section: dict[str, Any], out_dir: Path) -> list[Path]:
+    """docs/netsim.md carries the same table between its markers, when the folder has it."""
+    page = out_dir / "netsim.md"
+    if not page.exists():
+        return []
+    update_doc(page, section)
+    return [page]
+
+
+SECTION = Section(
+    name="netsim",
+    title="Link simulator fidelity",
+    sizes=SIZES,
+    measure=measure,
+    markdown=markdown,
+    update_other_docs=update_netsim_doc,
+    quick=False,
+)
 
 
 if __name__ == "__main__":

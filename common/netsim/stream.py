@@ -1,13 +1,13 @@
-"""The simulator as a TCP relay: each direction's byte stream forwarded unchanged.
+"""The stream mode: each direction's TCP byte stream forwarded unchanged.
 
 ZeroMQ's wire protocol (ZMTP), CURVE's handshake and its encrypted frames
 pass through untouched, so the deployed configuration (encrypted,
-allowlisted) runs under impairments. The relay never parses a byte; it
+allowlisted) runs under impairments. The forwarder never parses a byte; it
 only decides when each chunk it reads leaves, with the same engine as the
 message mode (``DirectionImpairment`` in the stream delivery model): delay
 with its distribution and correlation, the bottleneck rate, outages and
 losses as the retransmission stalls TCP would show. A chunk is what one
-``recv`` returned, the relay's stand-in for a packet.
+``recv`` returned, the forwarder's stand-in for a packet.
 
 Its own cost is kept out of the delays: every chunk is timed from the
 kernel's receive timestamp (``SO_TIMESTAMPNS``), so the thread's wake-up
@@ -27,7 +27,6 @@ import math
 import select
 import socket
 import statistics
-import struct
 import time
 from collections import deque
 from typing import Any
@@ -35,6 +34,7 @@ from urllib.parse import urlsplit
 
 from common.errors import ConfigError, LinkError
 from common.netsim.impairments import DIRECTIONS, DirectionConfig, DirectionImpairment, Scenario
+from common.netsim.kernel_stamps import ANC_BYTES, SO_TIMESTAMPNS, arrival_ns
 from common.netsim.proxy import (
     DirectionCounters,
     Endpoints,
@@ -47,16 +47,12 @@ log = logging.getLogger(__name__)
 #: Longest the thread sleeps before checking for ``stop()``.
 _MAX_WAIT_S = 0.02
 _RECV_BYTES = 1 << 16
-#: Bytes waiting for a slow receiver before the relay stops reading its source.
+#: Bytes waiting for a slow receiver before the forwarder stops reading its source.
 _BACKPRESSURE_BYTES = 1 << 22
-#: Linux's SO_TIMESTAMPNS (and SCM_TIMESTAMPNS); Python's socket module lacks it.
-_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
-_TIMESPEC = struct.Struct("qq")
-_ANC_BYTES = socket.CMSG_SPACE(_TIMESPEC.size)
 #: Recent release costs kept for the median the schedule subtracts.
 _COST_WINDOW = 128
 _COST_START_NS = 40_000
-#: A connection to the robot must be up within this (connects block the relay thread).
+#: A connection to the robot must be up within this (connects block the forwarder's thread).
 _CONNECT_TIMEOUT_S = 1.0
 
 
@@ -64,7 +60,7 @@ def _host_port(endpoint: str) -> tuple[str, int]:
     """``tcp://host:port`` (port ``*`` = any free one) as a socket address."""
     parts = urlsplit(endpoint)
     if parts.scheme != "tcp" or not parts.hostname:
-        raise ConfigError(f"the stream relay needs tcp://HOST:PORT endpoints, not {endpoint!r}")
+        raise ConfigError(f"the stream forwarder needs tcp://HOST:PORT endpoints, not {endpoint!r}")
     port_text = parts.netloc.rsplit(":", 1)[-1]
     if port_text == "*":
         return parts.hostname, 0
@@ -77,7 +73,7 @@ def _host_port(endpoint: str) -> tuple[str, int]:
 def stream_config(config: DirectionConfig) -> DirectionConfig:
     """A direction's impairments as a byte stream can carry them.
 
-    A relay cannot drop or damage bytes without breaking the TCP stream it
+    A forwarder cannot drop or damage bytes without breaking the TCP stream it
     stands for (TCP's checksum and flow control prevent both), so datagram
     delivery is refused, corruption is left to the message mode, and a full
     bottleneck queue holds the sender back instead of dropping.
@@ -85,7 +81,7 @@ def stream_config(config: DirectionConfig) -> DirectionConfig:
     if config.delivery != "stream":
         raise ConfigError(
             "delivery = 'datagram' needs the message mode (mode = 'message'): a byte-stream "
-            "relay cannot lose, duplicate or reorder what TCP delivers"
+            "forwarder cannot lose, duplicate or reorder what TCP delivers"
         )
     return dataclasses.replace(config, corrupt_percent=0.0, queue_limit=1 << 30)
 
@@ -104,7 +100,7 @@ def _is_passthrough(config: DirectionConfig) -> bool:
 
 
 class _Pipe:
-    """One direction of one relayed connection."""
+    """One direction of one forwarded connection."""
 
     __slots__ = (
         "closed",
@@ -136,8 +132,8 @@ class _Pipe:
         self.closed = False
 
 
-class StreamRelay(ForwardingThread):
-    """Relays the robot's two TCP links, each direction impaired by ``scenario``.
+class StreamForwarder(ForwardingThread):
+    """Forwards the robot's two TCP links, each direction impaired by ``scenario``.
 
     The operator connects to ``operator_telemetry_endpoint`` and
     ``operator_commands_endpoint`` (resolved after ``start()``); each
@@ -147,7 +143,7 @@ class StreamRelay(ForwardingThread):
     subscriptions). Same interface as ``LinkSimulator``.
     """
 
-    thread_name = "netsim-relay"
+    thread_name = "netsim-stream"
 
     def __init__(
         self,
@@ -187,9 +183,9 @@ class StreamRelay(ForwardingThread):
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        """Bind the operator-side listeners and start relaying."""
+        """Bind the operator-side listeners and start forwarding."""
         if self._thread is not None:
-            raise LinkError("StreamRelay.start() called twice")
+            raise LinkError("StreamForwarder.start() called twice")
         ep = self.endpoints
         links = (
             ("telemetry", ep.operator_telemetry, ep.robot_telemetry),
@@ -221,7 +217,7 @@ class StreamRelay(ForwardingThread):
 
     # ------------------------------------------------------------ state
     def counters(self) -> dict[str, dict[str, Any]]:
-        """Per direction: chunks and bytes relayed, and the impairments' counts by cause."""
+        """Per direction: chunks and bytes forwarded, and the impairments' counts by cause."""
         out: dict[str, dict[str, Any]] = {}
         for name in DIRECTIONS:
             row: dict[str, Any] = self._counters[name].as_dict()
@@ -232,11 +228,14 @@ class StreamRelay(ForwardingThread):
                     for key, value in engine.counts.as_dict().items():
                         row[key] = row.get(key, 0) + value
             out[name] = row
-        out["relay"] = {"connections": self._connections, "reads_while_spinning": self._spun}
         return out
 
+    def connection_counts(self) -> dict[str, int]:
+        """Connections forwarded so far, and reads found while spinning before a release."""
+        return {"connections": self._connections, "reads_while_spinning": self._spun}
+
     def own_latency_ns(self) -> list[int]:
-        """Recent per-chunk costs of the relay: sent minus the later of arrival and due time."""
+        """Recent per-chunk costs of the forwarder: sent minus the later of arrival and due time."""
         return list(self._own_ns)
 
     def release_cost_ns(self) -> int:
@@ -265,7 +264,7 @@ class StreamRelay(ForwardingThread):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             # Without receive timestamps, chunks are timed when read.
             with contextlib.suppress(OSError):
-                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         for src, dst, direction in (
             (upstream, client, "to_operator"),
             (client, upstream, "to_robot"),
@@ -282,7 +281,7 @@ class StreamRelay(ForwardingThread):
                 self._engines.append(engine)
             self._pipes.append(_Pipe(src, dst, direction, engine, self._counters[direction]))
         self._dirty = True
-        log.debug("netsim: %s connection %d relayed to %s:%d", link, n, *target)
+        log.debug("netsim: %s connection %d forwarded to %s:%d", link, n, *target)
 
     def _close_pair(self, pipe: _Pipe) -> None:
         """Close both directions of the connection ``pipe`` belongs to (as a reset would)."""
@@ -308,7 +307,7 @@ class StreamRelay(ForwardingThread):
     # ------------------------------------------------------------ the loop
     def _read(self, pipe: _Pipe, real_minus_mono: int) -> None:
         try:
-            data, anc, _, _ = pipe.src.recvmsg(_RECV_BYTES, _ANC_BYTES)
+            data, anc, _, _ = pipe.src.recvmsg(_RECV_BYTES, ANC_BYTES)
         except (BlockingIOError, InterruptedError):
             return
         except OSError:
@@ -326,7 +325,7 @@ class StreamRelay(ForwardingThread):
             if sent < len(data):
                 pipe.pending += data[sent:]
                 self._dirty = True
-            arrival = _arrival_ns(anc, t_sent, real_minus_mono)
+            arrival = arrival_ns(anc, t_sent, real_minus_mono)
             c = pipe.counters
             c.received += 1
             c.sent += 1
@@ -338,7 +337,7 @@ class StreamRelay(ForwardingThread):
         if not data:  # the peer closed (or reset): pass the close on
             self._close_pair(pipe)
             return
-        arrival = _arrival_ns(anc, t_read, real_minus_mono)
+        arrival = arrival_ns(anc, t_read, real_minus_mono)
         c = pipe.counters
         c.received += 1
         c.bytes_in += len(data)
@@ -455,24 +454,13 @@ class StreamRelay(ForwardingThread):
                             self._flush(pipe)
         except BaseException as e:  # report, never die silently
             self._error = e
-            log.exception("netsim relay stopped")
+            log.exception("netsim stream forwarder stopped")
         finally:
             for pipe in self._pipes:
                 for s in (pipe.src, pipe.dst):
                     s.close()
             self._pipes = []
             self._close_listeners()
-
-
-def _arrival_ns(anc: list[tuple[int, int, bytes]], t_read: int, real_minus_mono: int) -> int:
-    """When the chunk reached the kernel (its receive timestamp), on the monotonic clock."""
-    for level, kind, payload in anc:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
-            sec, nsec = _TIMESPEC.unpack_from(payload)
-            at = sec * 1_000_000_000 + nsec - real_minus_mono
-            if t_read - 1_000_000_000 < at <= t_read:  # ignore a wall-clock step
-                return at
-    return t_read
 
 
 def _wait(readers: list[Any], writers: list[Any], wait_s: float) -> tuple[list[Any], list[Any]]:

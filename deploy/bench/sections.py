@@ -1,15 +1,14 @@
 """The bench's sections, in report order: the one table the runner, the report and the CLI read.
 
-Adding a section: a module here with its sizes, ``measure``, ``markdown``,
-optional ``figure`` and ``verdicts``, ending in a ``SECTION``; then a line
+Each section is one module of ``deploy/bench`` named as the section: its
+sizes, the measuring code, ``measure``, ``markdown``, optional ``figure`` and
+``verdicts``, ending in a ``SECTION``. Adding one is such a module and a line
 below.
 """
 
 from __future__ import annotations
 
-from deploy.bench import video_netsim
-from deploy.bench.section import Section
-from deploy.bench.sections import (
+from deploy.bench import (
     classifier,
     command_path,
     downsizing,
@@ -26,7 +25,9 @@ from deploy.bench.sections import (
     stress,
     task,
     video,
+    video_netsim,
 )
+from deploy.bench.section import Section
 
 SECTIONS: tuple[Section, ...] = (
     stages.SECTION,

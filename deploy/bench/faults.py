@@ -222,4 +222,5 @@ SECTION = Section(
     markdown=markdown,
     verdicts=verdicts,
     update_other_docs=update_robustness_doc,
+    quick=False,
 )
