@@ -130,6 +130,8 @@ def export(
     }
     info = writer.finish(provenance)
     seconds = time.monotonic() - t_start
+    # every record of the robot files: the cost's unit (each file is read twice, scan and rows)
+    in_files = sum(s.metadata["robot_records"] for s in sessions)
     damage = [
         {"session": s.name, "file": str(s.robot), **d}
         for s in sessions
@@ -141,6 +143,8 @@ def export(
         "episodes": info["total_episodes"],
         "frames": info["total_frames"],
         "records_read": records,
+        "records_in_files": in_files,
+        "ms_per_record": round(1000 * seconds / max(in_files, 1), 3),
         "recorded_s": round(total_s, 1),
         "export_s": round(seconds, 2),
         "peak_rss_mb": round(_peak_rss_mb(), 1),

@@ -116,7 +116,9 @@ def scan(session: Session) -> Session:
     channels: set[str] = set()
     first_frame_ns = last_ns = None
     robot_link: dict[str, Any] = {}
+    n_records = 0
     for channel, t_ns, record in robot_reader:
+        n_records += 1
         channels.add(channel)
         if channel == "robot/frame" and first_frame_ns is None:
             first_frame_ns = t_ns
@@ -142,6 +144,7 @@ def scan(session: Session) -> Session:
     meta: dict[str, Any] = {
         "session": session.name,
         "robot_recording": str(session.robot),
+        "robot_records": n_records,
         "robot_closed_cleanly": robot_reader.complete,
         "robot_cut_short": robot_reader.truncated,
         "damage": [_damage_summary(d, first_frame_ns) for d in robot_reader.damage],
