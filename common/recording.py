@@ -15,7 +15,8 @@ CHANNELS: dict[str, str] = {
     "robot/frame": "tactile frame as processed: frame (2,10,10) N, frame_seq, t_capture_ns",
     "robot/prediction": "classifier output: angle/position probabilities, pattern, confidence",
     "robot/stimulus": "stimulus sent: the wire bytes (topic + msgpack) and seq",
-    "robot/command": "operator command received and what was done with it",
+    "robot/command": "operator command received and what was done with it: outcome, the "
+    "velocity the arm was sent (sent_velocity) and the operator's send time (t_sent_ns)",
     "robot/link": "robot link state and counters, at the heartbeat rate",
     "robot/arm": "arm state at the heartbeat rate: tcp_pose (6) m and rad, joints (6) rad",
     "robot/gripper": "gripper state at the heartbeat rate: position (0..255), object_status",

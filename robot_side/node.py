@@ -794,10 +794,10 @@ class RobotNode:
             call, args = self.arm.jog, (cmd.velocity, issued_s)
         else:
             call, args = self.arm.stop, ()
-        on_done = self._make_on_done(cmd)
+        on_done = self._make_on_done(cmd, sent_ns)
         worker.post(DeviceRequest(cmd.action, call, args, on_done))
 
-    def _make_on_done(self, cmd: Command) -> Callable[..., None]:
+    def _make_on_done(self, cmd: Command, sent_ns: int | None) -> Callable[..., None]:
         def on_done(request: DeviceRequest, result: Any, error: BaseException | None) -> None:
             if error is None:
                 outcome = "applied"
@@ -808,11 +808,15 @@ class RobotNode:
                 log.error("command %s failed: %r", cmd.action, error)
                 outcome = f"failed: {error!r}"
             sent = result if cmd.action == "arm_jog" and error is None else None
-            self._record_command(cmd, outcome, sent)
+            self._record_command(cmd, outcome, sent, sent_ns)
 
         return on_done
 
-    def _record_command(self, cmd: Command, outcome: str, sent: Any = None) -> None:
+    def _record_command(
+        self, cmd: Command, outcome: str, sent: Any = None, sent_ns: int | None = None
+    ) -> None:
+        """``t_sent_ns`` (the operator's send time on our clock) is when the arm's jog
+        deadline started counting, which an exporter needs to end the jog where the arm did."""
         if not self._recording:
             return
         self.recorder.write(
@@ -824,6 +828,7 @@ class RobotNode:
                 "grip_level": cmd.grip_level,
                 "velocity": list(cmd.velocity) if cmd.velocity else None,
                 "sent_velocity": None if sent is None else [float(v) for v in sent],
+                "t_sent_ns": sent_ns,
                 "outcome": outcome,
             },
         )

@@ -21,6 +21,10 @@ from common.config import from_dict, load_toml
 
 log = logging.getLogger(__name__)
 
+#: exit status when a recording was damaged: the dataset holds every intact chunk and the
+#: summary lists what was lost; ``--accept-damage`` makes it 0
+EXIT_DAMAGED = 3
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from deploy.export.resample import ExportConfig
@@ -43,6 +47,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", help=f"task string of every episode (default {d.task!r})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    parser.add_argument(
+        "--accept-damage",
+        action="store_true",
+        help=f"exit 0 when a recording was damaged (default: exit {EXIT_DAMAGED}); the summary "
+        "lists what was lost either way",
+    )
 
 
 def export(
@@ -52,10 +62,11 @@ def export(
     from deploy.export.lerobot_v3 import LeRobotV3Writer
     from deploy.export.resample import EpisodeCutter, ExportConfig, SessionResampler
     from deploy.export.schema import features_for
-    from deploy.export.session import ExportError, find_sessions, robot_records, scan
+    from deploy.export.session import GAP, ExportError, find_sessions, robot_records, scan
 
     config = config or ExportConfig()
-    t_start = time.monotonic()
+    t_start, cpu_start = time.monotonic(), time.process_time()
+    _check_out(out)
     sessions = [scan(s) for s in find_sessions(paths)]
     groups = {"core"}
     for group, channel in (("arm", "robot/arm"), ("gripper", "robot/gripper")):
@@ -64,6 +75,8 @@ def export(
             groups.add(group)
         elif any(have):
             log.warning("only some sessions recorded %s: its features are left out", channel)
+    if {"arm", "gripper"} <= groups:
+        groups.add("state")
     features = features_for(groups)
     writer = LeRobotV3Writer(out, features, config.fps)
     total_s = sum(s.metadata["duration_s"] for s in sessions)
@@ -90,6 +103,11 @@ def export(
         cutter = EpisodeCutter(config, begin, add, writer.end_episode)
         last_t = None
         for channel, t_ns, record in robot_records(session):
+            if channel == GAP:  # nothing is known across it: end the episode, start afresh
+                cutter.finish()
+                resampler = SessionResampler(config.fps, session.robot_config, groups)
+                cutter = EpisodeCutter(config, begin, add, writer.end_episode)
+                continue
             records += 1
             for row in resampler.feed(channel, t_ns, record):
                 cutter.add(row)
@@ -112,17 +130,45 @@ def export(
     }
     info = writer.finish(provenance)
     seconds = time.monotonic() - t_start
+    cpu_s = time.process_time() - cpu_start  # what the export itself cost, whatever the load
+    # every record of the robot files: the cost's unit (each file is read twice, scan and rows)
+    in_files = sum(s.metadata["robot_records"] for s in sessions)
+    damage = [
+        {"session": s.name, "file": str(s.robot), **d}
+        for s in sessions
+        for d in s.metadata["damage"]
+    ]
     return {
         "out": str(out),
         "sessions": len(sessions),
         "episodes": info["total_episodes"],
         "frames": info["total_frames"],
         "records_read": records,
+        "records_in_files": in_files,
+        "ms_per_record": round(1000 * seconds / max(in_files, 1), 3),
+        "cpu_s": round(cpu_s, 2),
+        "cpu_ms_per_record": round(1000 * cpu_s / max(in_files, 1), 3),
         "recorded_s": round(total_s, 1),
         "export_s": round(seconds, 2),
         "peak_rss_mb": round(_peak_rss_mb(), 1),
         "features": [f.name for f in features],
+        "damage": damage,
+        "cut_short": [s.name for s in sessions if s.metadata["robot_cut_short"]],
     }
+
+
+def _check_out(out: Path) -> None:
+    """``--out`` is a new folder or an empty one: an export never mixes its files into others."""
+    from deploy.export.session import ExportError
+
+    if out.exists() and not out.is_dir():
+        raise ExportError(f"--out {out} is a file; give a new folder for the dataset")
+    if out.is_dir() and any(out.iterdir()):
+        if (out / "meta" / "info.json").exists():
+            raise ExportError(f"{out} already holds a dataset; choose a new --out folder")
+        raise ExportError(
+            f"--out {out} is not empty and holds no dataset; give a new or empty folder"
+        )
 
 
 def _peak_rss_mb() -> float:
@@ -163,4 +209,17 @@ def run(args: argparse.Namespace) -> int:
             f"{summary['sessions']} sessions ({summary['recorded_s']} s recorded) in "
             f"{summary['export_s']} s"
         )
+        for d in summary["damage"]:
+            print(
+                f"  damaged: {d['file']} bytes {d['bytes'][0]}..{d['bytes'][1]} unreadable: "
+                f"{d['frames_lost']} frames lost, nothing recorded between "
+                f"{d['lost_from_s']} s and {d['lost_to_s']} s of the session was exported"
+            )
+    if summary["damage"] and not args.accept_damage:
+        print(
+            f"deepxpalm export: {len(summary['damage'])} damaged stretch(es) skipped (exit "
+            f"{EXIT_DAMAGED}; --accept-damage to exit 0)",
+            file=sys.stderr,
+        )
+        return EXIT_DAMAGED
     return 0

@@ -97,10 +97,6 @@ class LeRobotV3Writer:
         file_size_mb: float = 100.0,
     ) -> None:
         self.root = Path(root)
-        if (self.root / "meta" / "info.json").exists():
-            from deploy.export.session import ExportError
-
-            raise ExportError(f"{self.root} already holds a dataset; choose a new --out folder")
         self.features = features
         self.fps = fps
         self.batch_rows = batch_rows

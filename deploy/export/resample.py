@@ -4,11 +4,13 @@ Resampling rule (docs/datasets.md): row k of a session stands at time
 ``t0 + k / fps`` on the robot's clock, where ``t0`` is the first moment
 every exported channel has a record. Each observation in the row is the
 newest record at or before that time (sample and hold: nothing from the
-future leaks into a row). The action is the command state in force at that
-time: the last applied jog velocity, clipped as the arm clips it, until an
-``arm_stop``, another arm command or the arm's jog timeout after that jog;
-and the gripper target of the last applied gripper command. Rejected
-commands change nothing, as they changed nothing on the robot.
+future leaks into a row). The action is what the devices were sent at that
+time: the velocity the arm sent for the last applied jog (``sent_velocity``)
+until an ``arm_stop``, another arm command, the robot's link deadman, or
+the arm's own jog deadline, which counts from the operator's send time
+(``t_sent_ns``), not from when the robot recorded the command; and the
+gripper target of the last applied gripper command. Rejected commands
+change nothing, as they changed nothing on the robot.
 """
 
 from __future__ import annotations
@@ -126,10 +128,10 @@ class SessionResampler:
         }
         if "arm" in self.groups:
             row["observation.arm.joints"] = self.joints
-            row["observation.arm.tcp_pose"] = self.pose
         if "gripper" in self.groups:
-            row["observation.gripper.position"] = self.gripper_position
             row["observation.gripper.object_status"] = self.object_status
+        if "state" in self.groups:
+            row["observation.state"] = np.append(self.pose, self.gripper_position)
         return row
 
     def _apply(self, channel: str, t_ns: int, r: dict[str, Any]) -> None:
@@ -156,6 +158,8 @@ class SessionResampler:
                 self.grip_target = float(r["requested_position"])
         elif channel == "robot/command" and r.get("outcome") == "applied":
             self._command(t_ns, r)
+        elif channel == "robot/link" and r.get("state") == "down":
+            self._stop_jog()  # the link deadman stopped the arm (at or before this heartbeat)
 
     def _command(self, t_ns: int, r: dict[str, Any]) -> None:
         action = r.get("action", "")
@@ -168,11 +172,20 @@ class SessionResampler:
             if self.gripper_position is not None:
                 self.grip_target = self.gripper_position
         elif action == "arm_jog" and r.get("velocity"):
-            self.jog = clip_jog_velocity(self.arm_limits, r["velocity"], self.pose)
-            self.jog_until = t_ns + round(self.arm_limits.jog_timeout_s * 1e9)
+            sent = r.get("sent_velocity")
+            if sent is not None:
+                self.jog = np.asarray(sent, np.float64)
+            else:  # recorded before sent_velocity was: clip as the arm clips
+                self.jog = clip_jog_velocity(self.arm_limits, r["velocity"], self.pose)
+            t_sent = r.get("t_sent_ns")
+            start = t_ns if t_sent is None else min(int(t_sent), t_ns)
+            self.jog_until = start + round(self.arm_limits.jog_timeout_s * 1e9)
         elif action.startswith("arm"):
-            self.jog = np.zeros(6)
-            self.jog_until = 0
+            self._stop_jog()
+
+    def _stop_jog(self) -> None:
+        self.jog = np.zeros(6)
+        self.jog_until = 0
 
 
 class EpisodeCutter:

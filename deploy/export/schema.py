@@ -24,15 +24,19 @@ class Feature:
     unit: str
     frame: str
     what: str
-    group: str  # "core", "arm" or "gripper": arm/gripper only when every session recorded them
+    #: "core"; "arm", "gripper": only when every session recorded robot/arm, robot/gripper;
+    #: "state": only when every session recorded both
+    group: str
 
     def info(self) -> dict:
         return {"dtype": self.dtype, "shape": list(self.shape), "names": self.names}
 
 
 JOINTS = ["shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3"]
-POSE = ["x", "y", "z", "rx", "ry", "rz"]
-ACTION_NAMES = ["vx", "vy", "vz", "wx", "wy", "wz", "gripper_target"]
+#: LeRobot's names for an end effector (``ee.x`` .. ``ee.wz``, its kinematic processors)
+#: and for a position-controlled motor (``gripper.pos``)
+STATE_NAMES = ["ee.x", "ee.y", "ee.z", "ee.wx", "ee.wy", "ee.wz", "gripper.pos"]
+ACTION_NAMES = ["ee.vx", "ee.vy", "ee.vz", "ee.vwx", "ee.vwy", "ee.vwz", "gripper.pos"]
 
 FEATURES: list[Feature] = [
     Feature(
@@ -106,24 +110,16 @@ FEATURES: list[Feature] = [
         "arm",
     ),
     Feature(
-        "observation.arm.tcp_pose",
+        "observation.state",
         "float32",
-        (6,),
-        POSE,
-        "m, rad",
+        (7,),
+        STATE_NAMES,
+        "m, rad, counts 0..255",
         "base",
-        "TCP pose: position and rotation vector (robot/arm, 20 Hz)",
-        "arm",
-    ),
-    Feature(
-        "observation.gripper.position",
-        "float32",
-        (1,),
-        None,
-        "counts 0..255",
-        "gripper",
-        "Robotiq finger position gPO, 0 open .. 255 closed (robot/gripper, 20 Hz)",
-        "gripper",
+        "the policy's state (LeRobot looks it up by this name): the TCP pose, position and "
+        "rotation vector (robot/arm), then the Robotiq finger position gPO, 0 open .. 255 "
+        "closed (robot/gripper); both 20 Hz",
+        "state",
     ),
     Feature(
         "observation.gripper.object_status",
@@ -142,8 +138,9 @@ FEATURES: list[Feature] = [
         ACTION_NAMES,
         "m/s, rad/s, counts 0..255",
         "base",
-        "operator commands as the robot applied them: jog velocity after clipping (0 when "
-        "stopped or past the jog timeout) and the gripper's target position",
+        "what the arm and gripper were sent: the jog velocity the arm sent (robot/command "
+        "sent_velocity), 0 once stopped or past the arm's jog deadline (the operator's send "
+        "time plus jog_timeout_s); and the gripper's target finger position",
         "core",
     ),
     Feature(

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from common.errors import ConfigError
-from common.mcap_recorder import RecordingReader
+from common.mcap_recorder import Damage, RecordingReader
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +35,7 @@ ROBOT_CHANNELS = (
     "robot/command",
     "robot/arm",
     "robot/gripper",
+    "robot/link",  # its state: the link deadman stops a jog
 )
 
 
@@ -71,17 +72,30 @@ def find_sessions(paths: list[Path]) -> list[Session]:
     return out
 
 
+#: the channel of the marker ``robot_records`` yields where a damaged stretch was skipped
+GAP = "export/gap"
+
+
 def robot_records(session: Session) -> Iterator[tuple[str, int, dict[str, Any]]]:
     """The session's robot records that make a dataset, in time order (bounded memory).
 
     The recorder writes records in queue order, which is time order up to
     one loop iteration; a heap holding ``REORDER_WINDOW_NS`` of records
-    restores the order exactly.
+    restores the order exactly. Where the reader skipped a damaged stretch,
+    everything before it comes out first, then a ``GAP`` marker: nothing
+    recorded in the stretch is known, so no row may hold a value across it.
     """
     heap: list[tuple[int, int, str, dict[str, Any]]] = []
     n = 0
     reader = RecordingReader(session.robot)
+    damages = 0
     for channel, t_ns, record in reader:
+        if len(reader.damage) != damages:
+            damages = len(reader.damage)
+            while heap:
+                t, _, ch, rec = heapq.heappop(heap)
+                yield ch, t, rec
+            yield GAP, t_ns, {"damage": reader.damage[-1]}
         if channel not in ROBOT_CHANNELS:
             continue
         n += 1
@@ -102,13 +116,20 @@ def scan(session: Session) -> Session:
     channels: set[str] = set()
     first_frame_ns = last_ns = None
     robot_link: dict[str, Any] = {}
+    n_records = 0
     for channel, t_ns, record in robot_reader:
+        n_records += 1
         channels.add(channel)
         if channel == "robot/frame" and first_frame_ns is None:
             first_frame_ns = t_ns
         if channel == "robot/link":
             robot_link = record
         last_ns = t_ns
+    if last_ns is None and robot_reader.truncated:
+        raise ExportError(
+            f"{session.robot} holds no records: it is empty ({session.robot.stat().st_size} "
+            "bytes) or was cut before its first chunk"
+        )
     node = robot_reader.metadata.get("deepxpalm.node", {})
     if node.get("node", "robot") != "robot":
         raise ExportError(
@@ -123,7 +144,10 @@ def scan(session: Session) -> Session:
     meta: dict[str, Any] = {
         "session": session.name,
         "robot_recording": str(session.robot),
+        "robot_records": n_records,
         "robot_closed_cleanly": robot_reader.complete,
+        "robot_cut_short": robot_reader.truncated,
+        "damage": [_damage_summary(d, first_frame_ns) for d in robot_reader.damage],
         "duration_s": round((last_ns - first_frame_ns) / 1e9, 3) if last_ns else 0.0,
         "render_mode": config.get("render", {}).get("mode"),
         "model": _model_version(config.get("classifier", {})),
@@ -139,6 +163,24 @@ def scan(session: Session) -> Session:
     meta["network_scenario"] = session_meta.get("network_scenario")
     session.metadata = meta
     return session
+
+
+def _damage_summary(d: Damage, t0_ns: int | None) -> dict[str, Any]:
+    """A skipped stretch as the export reports it: seconds from the session's first frame."""
+
+    def s(t: int | None) -> float | None:
+        return None if t is None or t0_ns is None else round((t - t0_ns) / 1e9, 3)
+
+    return {
+        "bytes": [d.byte_start, d.byte_end],
+        "lost_from_s": s(d.t_before_ns),
+        "lost_to_s": s(d.t_after_ns),
+        "lost_from_ns": d.t_before_ns,
+        "lost_to_ns": d.t_after_ns,
+        "frames_lost": d.records_lost.get("robot/frame", 0),
+        "records_lost": dict(d.records_lost),
+        "error": d.error,
+    }
 
 
 def _operator_summary(path: Path) -> dict[str, Any]:

@@ -11,6 +11,7 @@ project's CPU build, installed first so nothing pulls CUDA libraries.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -22,6 +23,22 @@ TORCH = os.environ.get("TORCH", "torch==2.13.0")
 TORCHVISION = "torchvision==0.28.0"  # the release built against torch 2.13
 KEY = f"{LEROBOT_DATASET}-{TORCH}-{TORCHVISION}-py{sys.version_info[0]}{sys.version_info[1]}"
 LOADER = Path(__file__).with_name("load_with_lerobot.py")
+POLICY_FEATURES = Path(__file__).with_name("policy_features.py")
+#: ``lerobot`` itself, for its policies' configs, on top of the same environment: without
+#: its dependencies (they pin torch<2.11, which would pull CUDA), plus what importing
+#: ``LeRobotDataset``, ``ACTConfig`` and ``DiffusionConfig`` needs, measured by importing them
+LEROBOT_POLICIES = [
+    "lerobot==0.4.4",
+    "draccus==0.10.0",
+    "accelerate==1.15.0",
+    "safetensors==0.8.0",
+    "typing-inspect==0.9.0",
+    "mypy-extensions==1.2.0",
+    "mergedeep==1.3.4",
+    "diffusers==0.35.2",
+    "pyserial==3.5",
+    "einops==0.8.2",
+]
 
 
 def env_dir() -> Path:
@@ -44,6 +61,19 @@ def ensure_env() -> Path:
     return python
 
 
+def ensure_policy_env() -> Path:
+    """The same environment with ``lerobot`` added (its policies' configs); built once."""
+    python = ensure_env()
+    stamp = env_dir() / ".installed-policies"
+    key = " ".join(LEROBOT_POLICIES) + "\n"
+    if stamp.exists() and stamp.read_text() == key:
+        return python
+    pip = [str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check", "--no-deps"]
+    subprocess.run([*pip, *LEROBOT_POLICIES], check=True, timeout=1800)
+    stamp.write_text(key)
+    return python
+
+
 def load_with_lerobot(root: Path, out_npz: Path, timeout_s: float = 300) -> None:
     """Load the dataset at ``root`` with ``LeRobotDataset``; every item goes to ``out_npz``."""
     python = ensure_env()
@@ -60,5 +90,22 @@ def load_with_lerobot(root: Path, out_npz: Path, timeout_s: float = 300) -> None
         raise AssertionError(f"LeRobotDataset could not load {root}:\n{proc.stderr[-4000:]}")
 
 
+def policy_features(root: Path, work: Path, timeout_s: float = 300) -> dict:
+    """What LeRobot's ACT and Diffusion configs make of the dataset at ``root``."""
+    python = ensure_policy_env()
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"}
+    env["HF_HOME"] = str(work / "hf-home")
+    proc = subprocess.run(
+        [str(python), str(POLICY_FEATURES), str(root)],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env=env,
+    )
+    if proc.returncode != 0:
+        raise AssertionError(f"LeRobot could not derive policy features:\n{proc.stderr[-4000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 if __name__ == "__main__":  # `make test` builds it before pytest, so tests time only themselves
-    print(ensure_env())
+    print(ensure_policy_env())

@@ -14,7 +14,7 @@ import sys
 
 import numpy as np
 import pytest
-from lerobot_env import load_with_lerobot
+from lerobot_env import load_with_lerobot, policy_features
 
 from common.mcap_recorder import read_recording
 from deploy.export.cli import export
@@ -109,11 +109,11 @@ def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_p
             np.testing.assert_array_equal(
                 a["observation.arm.joints"][i], arm["joints"].astype(np.float32)
             )
-            np.testing.assert_array_equal(
-                a["observation.arm.tcp_pose"][i], arm["tcp_pose"].astype(np.float32)
-            )
             grip = _held(records["robot/gripper"], t_row)[1]
-            assert a["observation.gripper.position"][i] == grip["position"]
+            np.testing.assert_array_equal(
+                a["observation.state"][i],
+                np.append(arm["tcp_pose"], grip["position"]).astype(np.float32),
+            )
             assert a["observation.gripper.object_status"][i] == grip["object_status"]
             # no operator commands in the demo: the arm holds still, the target stays the first
             assert not a["action"][i][:6].any()
@@ -130,6 +130,33 @@ def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_p
         f"{old:.1%} of rows hold a frame older than a period, but the recording spends only "
         f"{in_gaps:.1%} of its time in gaps that long (largest gap {gaps.max() / 1e6:.0f} ms)"
     )
+
+
+def test_lerobot_policies_find_the_state_and_the_action(session, tmp_path):
+    """LeRobot's own dataset_to_policy_features, ACTConfig and DiffusionConfig on an export.
+
+    Both policies need an image or an environment state beside the robot
+    state; the camera feature is what gives them one. Until a recording has
+    a camera they must refuse for that reason alone: with a camera's feature
+    added, the same features pass.
+    """
+    root = tmp_path / "ds"
+    export([session], root, ExportConfig(fps=FPS, episodes="session"))
+    report = policy_features(root, tmp_path)
+    features = report["features"]
+    assert features["observation.state"] == ["STATE", [7]]
+    assert features["action"] == ["ACTION", [7]]
+    assert features["observation.tactile.frames"] == ["STATE", [2, 10, 10]]
+    assert report["state_names"][:3] == ["ee.x", "ee.y", "ee.z"]
+    assert report["state_names"][-1] == "gripper.pos"
+    has_camera = any(k.startswith("observation.images.") for k in features)
+    for name, policy in report["policies"].items():
+        assert policy["robot_state"] == [7] and policy["action"] == [7], name
+        if has_camera:
+            assert policy["accepted"] is True, (name, policy)
+        else:
+            assert not policy["accepted"] and "at least one image" in policy["refusal"], name
+        assert policy["accepted_with_a_camera"] is True, (name, policy)
 
 
 def test_one_episode_per_session_covers_the_recording(session, records, tmp_path):

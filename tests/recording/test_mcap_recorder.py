@@ -16,6 +16,7 @@ import pytest
 from common.codec import encode
 from common.mcap_recorder import (
     McapRecorder,
+    RecordingError,
     RecordingReader,
     read_metadata,
     read_recording,
@@ -176,6 +177,46 @@ def test_a_file_cut_at_any_byte_reads_back_every_whole_chunk(tmp_path):
         assert reader.truncated
         counts.add(len(got))
     assert counts == {per_chunk * k for k in range(chunks + 1)}
+
+
+def test_damage_inside_a_closed_file_skips_the_bad_chunk_and_counts_its_records(tmp_path):
+    """64 bytes flipped anywhere: every other chunk reads back, the loss is counted exactly."""
+    path = tmp_path / "r.mcap"
+    per_chunk, chunks = 30, 12
+    with McapRecorder(path, flush_interval_s=3600, fsync=False) as rec:
+        for i in range(per_chunk * chunks):
+            rec.write("robot/frame", (i + 1) * 33_000_000, {"i": i, "x": np.random.rand(50)})
+            if i % per_chunk == per_chunk - 1:
+                assert rec.flush()
+    data = path.read_bytes()
+    bad = tmp_path / "bad.mcap"
+    damaged = 0
+    for at in range(20, len(data) - 64, len(data) // 23):
+        flipped = bytearray(data)
+        flipped[at : at + 64] = bytes(b ^ 0xFF for b in flipped[at : at + 64])
+        bad.write_bytes(flipped)
+        reader = RecordingReader(bad)
+        got = [r["i"] for _, _, r in reader]
+        lost = sum(n for d in reader.damage for n in d.records_lost.values())
+        assert reader.complete and not reader.truncated, at  # it was closed cleanly
+        assert got == sorted(got) and len(got) + lost == per_chunk * chunks, at
+        missing = sorted(set(range(per_chunk * chunks)) - set(got))
+        assert len(missing) % per_chunk == 0, at  # whole chunks (none: an index was hit)
+        if not missing:
+            continue
+        damaged += 1
+        damage = reader.damage[0]
+        assert damage.t_before_ns is None or damage.t_before_ns < (missing[0] + 1) * 33_000_000
+        if damage.t_after_ns is not None:
+            assert damage.t_after_ns > (missing[-1] + 1) * 33_000_000
+    assert damaged > 15  # most flips hit a chunk: they are most of the file
+
+
+def test_a_file_that_is_not_mcap_is_named_so(tmp_path):
+    path = tmp_path / "notes.mcap"
+    path.write_bytes(b"this is not a recording at all\n")
+    with pytest.raises(RecordingError, match="not an MCAP file"):
+        list(RecordingReader(path))
 
 
 @pytest.mark.slow
