@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from common.stimulus import SENSOR_MAX_N, downsizing_matrix, mask_columns
 from robot_side.jit import njit
 from robot_side.perception.numba_forward import classify_frame
-from robot_side.rendering import SENSOR_MAX_N, downsizing_matrix, mask_columns
 
 #: ``step``'s first value
 NO_CONTACT, IDENTICAL, RENDERED = 0, 1, 2

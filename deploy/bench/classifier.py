@@ -20,12 +20,12 @@ from typing import Any
 import numpy as np
 
 from common.patterns import matches_pattern
+from common.stimulus import render_stimulus
 from deploy.bench.fixtures import FrameSet
 from deploy.bench.timing import summarize_ns, time_interleaved
 from robot_side.config import RobotConfig
 from robot_side.perception import BACKENDS, DEFAULT_MODEL, load_classifier
 from robot_side.perception.weights import read_weights
-from robot_side.rendering import render_stimulus
 
 log = logging.getLogger(__name__)
 

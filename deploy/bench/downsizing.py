@@ -30,9 +30,7 @@ from typing import Any
 import numpy as np
 
 from common.patterns import MASKS, MASKS_F32, matches_pattern
-from deploy.bench.fixtures import FrameSet
-from deploy.bench.timing import summarize_ns, time_interleaved
-from robot_side.rendering import (
+from common.stimulus import (
     METHODS,
     ORDERS,
     SENSOR_MAX_N,
@@ -43,6 +41,8 @@ from robot_side.rendering import (
     render_stimulus,
     sanitize_frame,
 )
+from deploy.bench.fixtures import FrameSet
+from deploy.bench.timing import summarize_ns, time_interleaved
 
 log = logging.getLogger(__name__)
 

@@ -26,6 +26,7 @@ import zmq
 from common.clock import Rate, now_ns
 from common.codec import decode, encode
 from common.messages import Stimulus
+from common.stimulus import is_contact, render_cells, sanitize_frame
 from common.transport import Link, Publisher, Subscriber
 from deploy.bench.fixtures import (
     PacketBuilder,
@@ -41,7 +42,6 @@ from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
-from robot_side.rendering import is_contact, render_cells, sanitize_frame
 
 log = logging.getLogger(__name__)
 

@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 
 from common.config import from_dict, param
+from common.stimulus import CONTACT_THRESHOLD_N
 from robot_side.arm.base import ArmLimits, clip_jog_velocity
 from robot_side.gripper.base import POSITION_OPEN, GripLevels
-from robot_side.rendering import CONTACT_THRESHOLD_N
 
 log = logging.getLogger(__name__)
 
