@@ -21,6 +21,7 @@ from collections import Counter
 import zmq
 
 from common.clock import Clock, Periodic, now_ns
+from common.clock_sync import ClockSync
 from common.messages import Stimulus, VideoSignal
 from common.recording import NullRecorder, Recorder
 from common.security import Authenticator
@@ -33,7 +34,7 @@ from robot_side.node.deadman import NEVER_NS, Deadman
 from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.frame_rule import Classifier
 from robot_side.node.link_setup import open_link, stream_signer, wire_name
-from robot_side.node.telemetry import Telemetry
+from robot_side.node.telemetry import Telemetry, node_stats
 from robot_side.node.video_desk import VideoDesk, video_signalling
 from robot_side.node.workers import DeviceWorkers
 from robot_side.stop_latch import StopLatch
@@ -146,6 +147,11 @@ class RobotNode:
     def link_changes(self) -> collections.deque[tuple[int, str]]:
         """(monotonic ns, new state) of the latest operator link state changes."""
         return self.deadman.link_changes
+
+    @property
+    def clock(self) -> ClockSync:
+        """The clock offset to the operator of an unsigned link (each roster key has its own)."""
+        return self.desk.clock
 
     @property
     def stop_latch(self) -> StopLatch:
@@ -305,21 +311,6 @@ class RobotNode:
         )
 
     def stats(self) -> dict[str, float]:
-        out = {k: float(v) for k, v in self.counters.items()}
-        for k, v in self.workers.stats().items():  # counted on the workers' own threads
-            out[k] = out.get(k, 0.0) + v
-        signalling = self.video.video
-        if signalling is not None:
-            out.update((k, float(v)) for k, v in signalling.counters.items())
-        if self._auth is not None and self._auth.refused:
-            out["curve_refused"] = float(self._auth.refused)
-        out.update(self.workers.availability())
-        pipeline = self.pipeline
-        if pipeline.first_seq is not None:
-            out["frames_captured"] = float(pipeline.last_seq - pipeline.first_seq + 1)
-        # the arm worker's latest reading, for the dashboard
-        out.update(self.workers.arm_readings())
-        out["arm_stop_latched"] = float(self.desk.stop_latch.latched)
-        if self.desk.gripper_ack is not None:
-            out["gripper_command_seq"], out["gripper_command_session"] = self.desk.gripper_ack
-        return out
+        """The counters, the workers', video's and CURVE's, and the devices' state."""
+        return node_stats(self.counters, self.workers, self.video.video, self._auth,
+                          self.pipeline, self.desk)  # fmt: skip

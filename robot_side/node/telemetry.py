@@ -1,4 +1,4 @@
-"""What the robot says besides stimuli: heartbeats (with its stats) and raw frames for display.
+"""What the robot says besides stimuli: heartbeats, its stats, and raw frames for display.
 
 A heartbeat carries the link state, the clock echo the operator's offset
 filter needs (round robin over the roster's operators heard lately), the
@@ -9,15 +9,20 @@ the node's stats, cut to what the protocol allows.
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from collections.abc import Callable
 
 from common.codec import MAX_STATS, name_prefix
 from common.logs import BurstLog
 from common.messages import Heartbeat, Stimulus, TactileFrame
+from common.security import Authenticator
 from common.stimulus import sanitize_frame
 from common.transport import Sender
 from robot_side.node.command_desk import CommandDesk
+from robot_side.node.frame_pipeline import FramePipeline
+from robot_side.node.workers import DeviceWorkers
 from robot_side.tactile.base import TactileSample
+from robot_side.video.link_signalling import LinkSignalling
 
 log = logging.getLogger(__name__)
 
@@ -121,3 +126,29 @@ class Telemetry:
                 session=self.session,
             )
         )
+
+
+def node_stats(
+    counters: Counter[str],
+    workers: DeviceWorkers,
+    video: LinkSignalling | None,
+    auth: Authenticator | None,
+    pipeline: FramePipeline,
+    desk: CommandDesk,
+) -> dict[str, float]:
+    """What the heartbeat's stats and ``RobotNode.stats()`` say: every part's counters."""
+    out = {k: float(v) for k, v in counters.items()}
+    for k, v in workers.stats().items():  # counted on the workers' own threads
+        out[k] = out.get(k, 0.0) + v
+    if video is not None:
+        out.update((k, float(v)) for k, v in video.counters.items())
+    if auth is not None and auth.refused:
+        out["curve_refused"] = float(auth.refused)
+    out.update(workers.availability())
+    if pipeline.first_seq is not None:
+        out["frames_captured"] = float(pipeline.last_seq - pipeline.first_seq + 1)
+    out.update(workers.arm_readings())  # the arm worker's latest reading, for the dashboard
+    out["arm_stop_latched"] = float(desk.stop_latch.latched)
+    if desk.gripper_ack is not None:
+        out["gripper_command_seq"], out["gripper_command_session"] = desk.gripper_ack
+    return out
