@@ -27,10 +27,18 @@ from typing import Any
 from common.clock_sync import ClockSync
 from common.codec import DecodeError
 from common.errors import ConfigError, DeviceError
-from common.messages import LEASE_ACTIONS, SESSION_LOW_MASK, Command, Heartbeat, VideoSignal
+from common.messages import (
+    LEASE_ACTIONS,
+    SESSION_LOW_MASK,
+    Command,
+    Heartbeat,
+    Message,
+    VideoSignal,
+)
 from common.recording import Recorder
 from common.roster import Roster, check_replacement, load_roster
 from robot_side.command_gate import CommandGate
+from robot_side.config import RobotLinkConfig
 from robot_side.device_worker import DeviceRequest
 from robot_side.lease import ControlLease
 from robot_side.node.device_calls import DEVICE_CALLS
@@ -49,7 +57,7 @@ class CommandDesk:
 
     def __init__(
         self,
-        link: Any,
+        link: RobotLinkConfig,
         workers: DeviceWorkers,
         *,
         counters: Counter[str],
@@ -58,7 +66,7 @@ class CommandDesk:
         on_video: Callable[[VideoSignal, bytes | None], None],
         announce: Callable[[], None],
     ) -> None:
-        """``link``: the robot's ``RobotLinkConfig``; ``recorder`` None records nothing;
+        """``recorder`` None records nothing;
         ``announce`` asks for a heartbeat at once (a lease or latch change)."""
         self.link = link
         self.workers = workers
@@ -97,7 +105,7 @@ class CommandDesk:
         """The gate whose newest fresh message the deadman counts from (the holder's)."""
         return self.peers.holder_gate
 
-    def take(self, batch: list[tuple[Any, int]], now: int) -> None:
+    def take(self, batch: list[tuple[Message, int]], now: int) -> None:
         """Admit a batch; hand the newest admitted command of each device to its worker."""
         newest: Newest = {}
         for msg, t_recv in batch:
@@ -110,7 +118,7 @@ class CommandDesk:
         for device, (cmd, sent) in newest.items():
             self._dispatch(device, cmd, sent)
 
-    def admit(self, msg: Any, t_recv: int, now: int, newest: Newest) -> None:
+    def admit(self, msg: Message, t_recv: int, now: int, newest: Newest) -> None:
         """The one admission of an operator message, signed or not (the module's steps 1-6)."""
         found = self.peers.find(msg)
         if isinstance(found, str):

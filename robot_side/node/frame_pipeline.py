@@ -22,12 +22,12 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
 from common.messages import Stimulus
 from common.recording import Recorder
+from robot_side.config import RobotConfig
 from robot_side.node.frame_rule import Classifier, FrameRenderer
 from robot_side.tactile.base import TactileSample
 
@@ -37,7 +37,7 @@ class FramePipeline:
 
     def __init__(
         self,
-        config: Any,
+        config: RobotConfig,
         classifier: Classifier | None,
         send: Callable[[Stimulus], bytes],
         *,
@@ -47,8 +47,8 @@ class FramePipeline:
         recorder: Recorder | None = None,
         grip_level: Callable[[], int | None] = lambda: None,
     ) -> None:
-        """``config``: the robot's ``RobotConfig`` (its ``render``, ``publish_rate_hz`` and
-        ``max_frame_age_ms``); ``recorder`` None records nothing."""
+        """``config``: its ``render``, ``publish_rate_hz`` and ``max_frame_age_ms``;
+        ``recorder`` None records nothing."""
         self.render = config.render
         self.max_frame_age_ns = config.max_frame_age_ms * 1e6
         #: the rate cap: a frame is rendered at least this long after the last one

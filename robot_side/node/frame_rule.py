@@ -18,6 +18,7 @@ import numpy as np
 from common.recording import Recorder
 from common.stimulus import NO_CELLS, Method, Order, render_cells, sanitize_with_peak
 from common.tactile import pattern_of
+from robot_side.config import RenderConfig
 from robot_side.tactile.base import TactileSample
 
 log = logging.getLogger(__name__)
@@ -75,7 +76,7 @@ def render_frame(
     return render_cells(frame, pattern, method=render.method, order=render.order), pattern
 
 
-def compiled_step_for(classifier: Any, render: Any) -> Any:
+def compiled_step_for(classifier: Classifier | None, render: RenderConfig) -> Any:
     """``compiled_step.CompiledFrameStep`` where it applies (numba classifier, mask mode), or None.
 
     Here rather than in compiled_step.py: that module imports numba, which a
@@ -97,7 +98,7 @@ class FrameRenderer:
 
     def __init__(
         self,
-        render: Any,
+        render: RenderConfig,
         classifier: Classifier | None,
         counters: Counter[str],
         recorder: Recorder | None,

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from typing import Any
+from typing import TYPE_CHECKING
 
 import zmq
 
@@ -17,6 +17,10 @@ from common.errors import ConfigError
 from common.messages import Command, Heartbeat, VideoSignal
 from common.security import Authenticator, check_endpoint, client_options, server_options
 from common.transport import Publisher, Subscriber
+from robot_side.config import RobotLinkConfig
+
+if TYPE_CHECKING:  # cryptography only when signing
+    from common.signing import Signer
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +35,7 @@ def wire_name(name: str) -> bytes:
         raise ConfigError(f"robot link.robot_name: {e}") from None
 
 
-def stream_signer(link: Any) -> Any:
+def stream_signer(link: RobotLinkConfig) -> Signer | None:
     """What signs everything we send (None: unsigned); operators holding our key drop the rest.
 
     Through a relay the stream is signed unless ``link.unsigned_stream`` says otherwise.
@@ -54,10 +58,10 @@ def stream_signer(link: Any) -> Any:
 def open_link(
     stack: contextlib.ExitStack,
     ctx: zmq.Context,
-    link: Any,
+    link: RobotLinkConfig,
     *,
     name: bytes,
-    signer: Any,
+    signer: Signer | None,
     serves_video: bool,
 ) -> tuple[Publisher, Subscriber, Authenticator | None]:
     """(the stream we publish, the operators' messages we read, the CURVE allowlist if bound).

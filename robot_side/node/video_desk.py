@@ -11,15 +11,15 @@ from __future__ import annotations
 import importlib.util
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
 
 from common.errors import ConfigError
 from common.messages import VideoSignal
 from common.transport import Sender
+from robot_side.config import RobotLinkConfig
 from robot_side.video.link_signalling import LinkSignalling
 
 
-def video_signalling(link: Any) -> LinkSignalling | None:
+def video_signalling(link: RobotLinkConfig) -> LinkSignalling | None:
     """The signalling bridge ``link.video_url`` names (None: no video on this robot)."""
     if not link.video_url:
         return None
