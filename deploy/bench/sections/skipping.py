@@ -39,7 +39,8 @@ def markdown(results: Results) -> list[str]:
     out += [
         f"The `{s['scene']}` scene's scripted grasps replayed for {s['duration_s']:.1f} s of "
         f"virtual time ({s['frames']:,} frames at {s['rate_hz']:g} Hz) through "
-        "`RobotNode.process` with the node's clock made virtual, beside a shadow that "
+        "the node's `FramePipeline.offer` (rate cap included) with the node's clock made "
+        "virtual, beside a shadow that "
         "classifies and renders every frame. CPU saved per skipped frame is the sum of the "
         "paced stage medians (what a frame costs in the field) it leaves out, counted on the "
         "plain path's stages (the compiled frame step leaves out the same work inside its "
