@@ -190,7 +190,7 @@ class RobotNode:
                     device.connect()
                     stack.callback(device.disconnect)
             self.workers.start(stack)
-            signalling = self.video.video
+            signalling = self.video.signalling
             pub, sub, self._auth = open_link(
                 stack,
                 self.ctx,
@@ -312,5 +312,5 @@ class RobotNode:
 
     def stats(self) -> dict[str, float]:
         """The counters, the workers', video's and CURVE's, and the devices' state."""
-        return node_stats(self.counters, self.workers, self.video.video, self._auth,
+        return node_stats(self.counters, self.workers, self.video.signalling, self._auth,
                           self.pipeline, self.desk)  # fmt: skip

@@ -45,7 +45,8 @@ class VideoDesk:
         last_heard_ns: Callable[[bytes | None], int],
     ) -> None:
         """``last_heard_ns(signer)``: when the viewer's key was last heard (peers.py)."""
-        self.video = video
+        #: the bridge to the local video server (None: this robot serves no video)
+        self.signalling = video
         self.timeout_ns = round(viewer_timeout_s * 1e9)
         self.counters = counters
         self.now = now
@@ -57,7 +58,7 @@ class VideoDesk:
 
     def on_signal(self, msg: VideoSignal, signer: bytes | None) -> None:
         self.counters["video_signals_received"] += 1
-        if self.video is None:
+        if self.signalling is None:
             self.counters["video_signals_unserved"] += 1
             if msg.kind == "offer":
                 self._publish(
@@ -70,11 +71,11 @@ class VideoDesk:
                     )
                 )
             return
-        self.video.on_signal(msg, signer)
+        self.signalling.on_signal(msg, signer)
 
     def serve(self, now: int) -> None:
         """Publish the answers the video sessions produced; end the sessions of quiet viewers."""
-        video = self.video
+        video = self.signalling
         if video is None:
             return
         if video.outgoing:
