@@ -21,9 +21,13 @@ from typing import Literal
 
 import numpy as np
 
-from common.tactile import CONTACT_FLOOR_N as CONTACT_THRESHOLD_N
-from common.tactile import FRAME_SHAPE, MASKS_F32
-from common.tactile import SATURATION_N as SENSOR_MAX_N
+from common.tactile import CONTACT_FLOOR_N, FRAME_SHAPE, MASKS_F32, SATURATION_N, STIMULUS_SHAPE
+
+#: the contract's names under the names ``robot_side/rendering.py`` still re-exports; nothing
+#: else may use them (they go when rendering.py stops re-exporting this module)
+CONTACT_THRESHOLD_N = CONTACT_FLOOR_N
+SENSOR_MAX_N = SATURATION_N
+_ROWS, _COLS = STIMULUS_SHAPE
 
 Method = Literal["antialiased", "plain", "area"]
 Order = Literal["peak_then_mask", "mask_then_peak"]
@@ -145,15 +149,15 @@ def sanitize_with_peak(frame: np.ndarray) -> tuple[np.ndarray, float]:
     if frame.shape != FRAME_SHAPE:
         raise ValueError(f"a frame has shape {FRAME_SHAPE}, not {frame.shape}")
     lo, hi = float(frame.min()), float(frame.max())
-    if lo >= 0.0 and hi <= SENSOR_MAX_N:
+    if lo >= 0.0 and hi <= SATURATION_N:
         return frame, hi
     if not np.isfinite(frame).all():
         frame = np.nan_to_num(frame, nan=0.0, posinf=0.0, neginf=0.0)
-    frame = np.clip(frame, 0.0, SENSOR_MAX_N)
+    frame = np.clip(frame, 0.0, SATURATION_N)
     return frame, float(frame.max())
 
 
-def is_contact(frame: np.ndarray, threshold_n: float = CONTACT_THRESHOLD_N) -> bool:
+def is_contact(frame: np.ndarray, threshold_n: float = CONTACT_FLOOR_N) -> bool:
     """A frame whose largest taxel reaches the threshold holds a grasp."""
     return bool(frame.max() >= threshold_n)
 
@@ -164,7 +168,7 @@ def render_stimulus(
     *,
     method: Method = "antialiased",
     order: Order = "mask_then_peak",
-    contact_threshold_n: float = CONTACT_THRESHOLD_N,
+    contact_threshold_n: float = CONTACT_FLOOR_N,
 ) -> np.ndarray:
     """The 3x3 float32 stimulus for a (2, 10, 10) frame in newtons.
 
@@ -207,8 +211,8 @@ def render_cells(
     values = (_FUSED[method] @ frame.reshape(200)).tolist()
     out = [0.0] * 9
     cols = None if pattern is None else _MASK_COLS[pattern]
-    for r in range(3):
-        row = [min(max(v, 0.0), SENSOR_MAX_N) for v in values[3 * r : 3 * r + 3]]
+    for r in range(_ROWS):
+        row = [min(max(v, 0.0), SATURATION_N) for v in values[_COLS * r : _COLS * (r + 1)]]
         if cols is None:
             c = row.index(max(row))
         elif cols[r] is None:
@@ -219,5 +223,5 @@ def render_cells(
             c = row.index(max(row))
             if c != cols[r]:
                 continue  # the paper's order: a peak off the mask's cell is lost
-        out[3 * r + c] = row[c]
+        out[_COLS * r + c] = row[c]
     return out

@@ -5,8 +5,7 @@ share one idea of what a real grasp looks like, including what makes real
 frames hard: a light grip that barely crosses the sensor's 1 N floor, a
 squeezed tube whose band is wide and uneven, two pads that do not agree, and
 taxels that are dead, stuck, noisy or mis-calibrated. It is NumPy only and
-in ``common`` because the operator's perception study simulates grasps too;
-``robot_side.tactile.synthetic`` is the robot side's name for it.
+in ``common`` because the operator's perception study simulates grasps too.
 
 Conventions (the project's tactile contract, declared in ``common.tactile``):
 

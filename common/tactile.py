@@ -15,6 +15,8 @@ and docs/architecture.md, "The tactile contract").
 - ``pattern = 3 * angle_class + position_class``: angle classes 0..3 are 0,
   45, 90 and 135 degrees; position classes 0..2 are centre, left (up for
   0 deg) and right (down for 0 deg). ``MASKS`` holds each pattern's cells.
+  ``pattern_of`` / ``patterns_of`` encode and ``classes_of`` decodes: no
+  other module spells the encoding out (tests/common/test_tactile_contract.py).
 - Grip levels run 1 (lightest touch) to ``N_GRIP_LEVELS`` = 31 (strongest
   squeeze): the paper's 31 gripper positions.
 
@@ -72,11 +74,18 @@ MASKS_F32.setflags(write=False)
 
 
 def pattern_of(angle_class: int, position_class: int) -> int:
-    return 3 * int(angle_class) + int(position_class)
+    """The pattern an angle class and a position class name: the one encoding there is."""
+    return N_POSITIONS * int(angle_class) + int(position_class)
+
+
+def patterns_of(angle_classes: np.ndarray, position_classes: np.ndarray) -> np.ndarray:
+    """``pattern_of`` element by element, for arrays of classes (a data set, a batch)."""
+    return N_POSITIONS * np.asarray(angle_classes) + np.asarray(position_classes)
 
 
 def classes_of(pattern: int) -> tuple[int, int]:
-    return divmod(int(pattern), 3)
+    """(angle class, position class) of a pattern: ``pattern_of`` undone."""
+    return divmod(int(pattern), N_POSITIONS)
 
 
 def pattern_name(pattern: int) -> str:

@@ -33,7 +33,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
     "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
     "collect": (
-        "robot_side.perception.collect_cli",
+        "deploy.collect_cli",
         "collect labelled frames of every pattern and grip level (lab world or robot)",
     ),
     "devices": ("deploy.devices_cli", "list, connect to and report a scene's devices"),

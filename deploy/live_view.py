@@ -7,14 +7,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from common.patterns import pattern_name
+from common.tactile import SATURATION_N, pattern_name
 from operator_side.node import Snapshot
 
 _SHADES = " .:-=+*#%@"
 _RESET = "\x1b[0m"
 
 
-def _heat(v: float, vmax: float = 9.0) -> str:
+def _heat(v: float, vmax: float = SATURATION_N) -> str:
     """Two characters on a 256-colour background ramp, from dark blue to yellow."""
     t = min(max(v / vmax, 0.0), 1.0)
     ramp = (17, 18, 19, 25, 31, 37, 71, 107, 143, 179, 215, 221, 227)

@@ -37,6 +37,7 @@ from common.codec import DecodeError, decode, encode
 from common.config import from_dict
 from common.errors import ConfigError
 from common.messages import Heartbeat, Stimulus, TactileFrame
+from common.tactile import SATURATION_N
 
 log = logging.getLogger(__name__)
 
@@ -585,7 +586,8 @@ def publish(
                 sent["stimuli"] += 1
             elif frame_period is not None and now >= next_frame:
                 frame_msg_seq += 1
-                frame = np.clip(np.nan_to_num(record["frame"]), 0.0, 9.0).astype(np.float32)
+                raw = np.nan_to_num(record["frame"])
+                frame = np.clip(raw, 0.0, SATURATION_N).astype(np.float32)
                 msg = TactileFrame(
                     seq=frame_msg_seq,
                     t_send_ns=now,

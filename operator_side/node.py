@@ -40,9 +40,9 @@ from common.messages import (
     TactileFrame,
     VideoSignal,
 )
-from common.patterns import matches_pattern
 from common.recording import NullRecorder, Recorder
 from common.security import check_endpoint, client_options
+from common.tactile import matches_pattern
 from common.transport import Link, Publisher, Receiver, Sender, Subscriber, make_context
 from operator_side.config import OperatorConfig
 from operator_side.renderer import LinkGlideRenderer

@@ -23,7 +23,15 @@ from typing import Any
 
 import numpy as np
 
-from common.stimulus import SENSOR_MAX_N, downsizing_matrix, mask_columns
+from common.stimulus import downsizing_matrix, mask_columns
+from common.tactile import (
+    FRAME_SHAPE,
+    N_ANGLES,
+    N_POSITIONS,
+    SATURATION_N,
+    STIMULUS_SHAPE,
+    pattern_of,
+)
 from robot_side.jit import njit
 from robot_side.perception.numba_forward import classify_frame
 
@@ -32,6 +40,7 @@ NO_CONTACT, IDENTICAL, RENDERED = 0, 1, 2
 #: where ``step``'s values sit: status, peak, angle, position, 4 + 3 probabilities, 9 cells
 PEAK, ANGLE, POSITION, PROBS, CELLS = 1, 2, 3, 4, 11
 _N_RESULT = CELLS + 9
+_COLS = STIMULUS_SHAPE[1]  # cell (r, c) of the stimulus is cells[_COLS * r + c]
 
 
 @njit()
@@ -98,7 +107,7 @@ def _frame_step(
     result[POSITION] = probs[1]
     for k in range(2, probs.shape[0]):
         result[PROBS + k - 2] = probs[k]
-    pattern = 3 * int(probs[0]) + int(probs[1])
+    angle, position = int(probs[0]), int(probs[1])
     flat = clean.reshape(200)
     cells = np.zeros(9)
     for k in range(9):
@@ -109,18 +118,18 @@ def _frame_step(
     for k in range(9):
         result[CELLS + k] = 0.0
     for r in range(3):
-        col = mask_cols[pattern, r]
+        col = mask_cols[angle, position, r]
         if col < 0:
             continue
         best = col
         if not mask_first:  # the paper's order: the row's peak, kept only on the mask's cell
             best = 0
             for c in range(1, 3):
-                if cells[3 * r + c] > cells[3 * r + best]:
+                if cells[_COLS * r + c] > cells[_COLS * r + best]:
                     best = c
             if best != col:
                 continue
-        result[CELLS + 3 * r + best] = cells[3 * r + best]
+        result[CELLS + _COLS * r + best] = cells[_COLS * r + best]
     result[0] = RENDERED
 
 
@@ -142,16 +151,23 @@ class CompiledFrameStep:
         self._logits = np.zeros(forward.n_logits, np.float32)
         self._probs = np.zeros(2 + forward.n_logits, np.float64)
         self._matrix = np.ascontiguousarray(downsizing_matrix(method), np.float32)
-        self._mask_cols = np.array(
-            [[-1 if c is None else c for c in mask_columns(p)] for p in range(12)], np.int64
+        self._mask_cols = np.array(  # by (angle class, position class): no encoding here
+            [
+                [
+                    [-1 if c is None else c for c in mask_columns(pattern_of(a, p))]
+                    for p in range(N_POSITIONS)
+                ]
+                for a in range(N_ANGLES)
+            ],
+            np.int64,
         )
         self._mask_first = order == "mask_then_peak"
         self._threshold = float(contact_threshold_n)
-        self.sanitized = np.zeros((2, 10, 10), np.float32)
-        self._last = np.zeros((2, 10, 10), np.float32)
+        self.sanitized = np.zeros(FRAME_SHAPE, np.float32)
+        self._last = np.zeros(FRAME_SHAPE, np.float32)
         self._state = np.zeros(1, np.int64)
         self._result = np.zeros(_N_RESULT, np.float64)
-        self.step(np.zeros((2, 10, 10), np.float32))  # compile or load the cache now
+        self.step(np.zeros(FRAME_SHAPE, np.float32))  # compile or load the cache now
         self.forget()
 
     @classmethod
@@ -177,16 +193,16 @@ class CompiledFrameStep:
         if (
             type(x) is not np.ndarray
             or x.dtype != np.float32
-            or x.shape != (2, 10, 10)
+            or x.shape != FRAME_SHAPE
             or not (x.flags.c_contiguous and x.flags.writeable)
         ):  # one argument type only: anything else would compile a new signature
             x = np.array(frame, dtype=np.float32)
-            if x.shape != (2, 10, 10):
-                raise ValueError(f"a frame has shape (2, 10, 10), not {x.shape}")
+            if x.shape != FRAME_SHAPE:
+                raise ValueError(f"a frame has shape {FRAME_SHAPE}, not {x.shape}")
         _frame_step(
             x, self.sanitized, self._last, self._state, self._net, self._logits,
             self._n_angle, self._probs, self._matrix, self._mask_cols, self._mask_first,
-            self._threshold, SENSOR_MAX_N, self._result,
+            self._threshold, SATURATION_N, self._result,
         )  # fmt: skip
         return self._result.tolist()
 

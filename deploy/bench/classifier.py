@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from common.patterns import matches_pattern
 from common.stimulus import render_stimulus
+from common.tactile import matches_pattern, patterns_of
 from deploy.bench.fixtures import FrameSet
 from deploy.bench.timing import summarize_ns, time_interleaved
 from robot_side.config import RobotConfig
@@ -85,7 +85,7 @@ def randomized_eval_set(repeats: int) -> FrameSet:
 
 def _accuracy(clf: Any, fs: FrameSet) -> tuple[float, np.ndarray]:
     a, p = clf.predict(fs.frames)
-    pred = 3 * a + p
+    pred = patterns_of(a, p)
     return float(np.mean(pred == fs.pattern)), pred
 
 

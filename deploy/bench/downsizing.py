@@ -1,7 +1,7 @@
 """Downsizing and rendering order: run time against the share of stimuli that match.
 
 A stimulus matches when it presses exactly the true pattern's cells
-(``common.patterns.matches_pattern``): that is what the operator feels.
+(``common.tactile.matches_pattern``): that is what the operator feels.
 Each downsizing method is crossed with both rendering orders and three
 sources of the mask: the true pattern (the renderer alone), the
 classifier's prediction (what the robot node does) and none (direct
@@ -29,11 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from common.patterns import MASKS, MASKS_F32, matches_pattern
 from common.stimulus import (
     METHODS,
     ORDERS,
-    SENSOR_MAX_N,
     Method,
     downsizing_matrix,
     downsizing_weights,
@@ -41,6 +39,7 @@ from common.stimulus import (
     render_stimulus,
     sanitize_frame,
 )
+from common.tactile import MASKS, MASKS_F32, SATURATION_N, matches_pattern
 from deploy.bench.fixtures import FrameSet
 from deploy.bench.timing import summarize_ns, time_interleaved
 
@@ -70,7 +69,7 @@ def downsize(cmap: np.ndarray, method: Method = "antialiased") -> np.ndarray:
     """(10, 10) -> (3, 3) float32: ``Wy @ X @ Wx.T``, clipped to [0, 9] N (cubic overshoot)."""
     wy, wxt = _SEPARABLE[method]
     out = wy @ cmap @ wxt
-    np.clip(out, 0.0, SENSOR_MAX_N, out=out)
+    np.clip(out, 0.0, SATURATION_N, out=out)
     return out
 
 
@@ -105,13 +104,13 @@ class FusedRenderer:
 
     def downsize(self, frame: np.ndarray) -> np.ndarray:
         out = (self.m @ frame.reshape(200)).reshape(3, 3)
-        np.clip(out, 0.0, SENSOR_MAX_N, out=out)
+        np.clip(out, 0.0, SATURATION_N, out=out)
         return out
 
     def masked(self, frame: np.ndarray, pattern: int) -> np.ndarray:
         """mask_then_peak for a mask with at most one cell per row: just those cells."""
         vals = self.rows[pattern] @ frame.reshape(200)
-        np.clip(vals, 0.0, SENSOR_MAX_N, out=vals)
+        np.clip(vals, 0.0, SATURATION_N, out=vals)
         out = np.zeros(9, np.float32)
         out[self.cells[pattern]] = vals
         return out.reshape(3, 3)

@@ -16,18 +16,13 @@ import numpy as np
 
 from common.clock import now_ns
 from common.devices import Device
+from common.synthetic_tactile import GeneratorParams, SyntheticTactileModel, mirror_finger2
+from common.tactile import N_GRIP_LEVELS, N_PATTERNS
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
 from operator_side.servos.limits import check_goals
 from operator_side.servos.sync_write import SyncWritePacket
 from robot_side.tactile.serial_board import SerialTactileConfig, SerialTactileSensor
-from robot_side.tactile.synthetic import (
-    N_GRIP_LEVELS,
-    N_PATTERNS,
-    GeneratorParams,
-    SyntheticTactileModel,
-    mirror_finger2,
-)
 from robot_side.tactile.wire import encode
 
 log = logging.getLogger(__name__)

@@ -28,6 +28,7 @@ from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, DecodeError, decode_na
 from common.messages import Heartbeat, Stimulus, TactileFrame
 from common.security import SecurityConfig, client_options, server_options
 from common.signing import load_signer
+from common.tactile import FRAME_SHAPE
 from common.transport import free_loopback_ports
 
 
@@ -214,7 +215,7 @@ def publish(
     name = robot.encode()
     cells = np.zeros((3, 3), np.float32)
     cells[1, 1] = 3.0
-    frame = np.full((2, 10, 10), 1.5, np.float32)
+    frame = np.full(FRAME_SHAPE, 1.5, np.float32)
     time.sleep(1.0)  # subscriptions reach the relays and come back to us
     period = 1.0 / rate_hz
     t_next = time.monotonic()

@@ -25,6 +25,7 @@ import numpy as np
 
 from common.clock import VirtualClock
 from common.devices import build_device
+from common.tactile import FRAME_SHAPE
 from common.transport import CaptureLink
 from deploy.bench.fixtures import serial_sensor
 from deploy.scene import load_scene
@@ -65,7 +66,7 @@ def _board_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list[An
     board's own calibration. Only the simulator's ADC noise (1 count, about
     0.003 N) is left out.
     """
-    from robot_side.tactile.synthetic import mirror_finger2
+    from common.synthetic_tactile import mirror_finger2
     from robot_side.tactile.wire import SEQ_MODULO, encode
 
     sim = device.simulator
@@ -93,7 +94,7 @@ def _scripted_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list
     cfg = device.config
     model = device.model
     rng = np.random.default_rng(cfg.seed + 1)  # as ScriptedTactileSensor._run
-    zero = np.zeros((2, 10, 10), np.float32)
+    zero = np.zeros(FRAME_SHAPE, np.float32)
     if cfg.tare_frames > 0:
         zero = np.mean([model.frame(None, 1, rng) for _ in range(cfg.tare_frames)], axis=0).astype(
             np.float32

@@ -27,6 +27,7 @@ from common.clock import Rate, now_ns
 from common.codec import decode, encode
 from common.messages import Stimulus
 from common.stimulus import is_contact, render_cells, sanitize_frame
+from common.tactile import N_ANGLES, pattern_of
 from common.transport import Link, Publisher, Subscriber
 from deploy.bench.fixtures import (
     PacketBuilder,
@@ -168,11 +169,11 @@ def stage_budget(
                 step.forget()
                 r = step.step(sample.frame)
                 contact = r[0] != step.NO_CONTACT
-                pattern = 3 * int(r[step.ANGLE]) + int(r[step.POSITION])
+                pattern = pattern_of(r[step.ANGLE], r[step.POSITION])
                 at = step.PROBS
-                confidence = min(
-                    max(r[at + int(r[step.ANGLE])] * r[at + 4 + int(r[step.POSITION])], 0.0), 1.0
-                )
+                p_angle = r[at + int(r[step.ANGLE])]
+                p_position = r[at + N_ANGLES + int(r[step.POSITION])]
+                confidence = min(max(p_angle * p_position, 0.0), 1.0)
                 cells = r[step.CELLS :]
                 t3 = t4 = t5 = clock()
             else:

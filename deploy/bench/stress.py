@@ -26,7 +26,7 @@ import numpy as np
 from common.codec import DecodeError, decode, encode
 from common.messages import Stimulus
 from common.stimulus import METHODS, ORDERS, render_stimulus
-from common.tactile import SATURATION_N
+from common.tactile import FRAME_SHAPE, N_PATTERNS, SATURATION_N
 from deploy.bench.ik import edge_shell, reachable_mask, round_trip_mm, workspace_grid
 from operator_side.linkglide import DEFAULT_GEOMETRY, inverse_kinematics, inverse_kinematics_one
 from operator_side.renderer import LinkGlideRenderer, RendererConfig
@@ -143,7 +143,7 @@ def renderer_stress(n: int, seed: int = 7) -> dict[str, Any]:
 
 
 def _stress_frames(rng: np.random.Generator, n_random: int) -> dict[str, np.ndarray]:
-    shape = (2, 10, 10)
+    shape = FRAME_SHAPE
     frames: dict[str, np.ndarray] = {
         "zeros": np.zeros(shape),
         "just_below_floor": np.full(shape, 0.999),
@@ -183,7 +183,7 @@ def rendering_stress(classifier: Any, n_random: int, seed: int = 8) -> dict[str,
         f32 = frame.astype(np.float32)
         for method in METHODS:
             for order in ORDERS:
-                for pattern in (None, *range(12)):
+                for pattern in (None, *range(N_PATTERNS)):
                     checked += 1
                     try:
                         with np.errstate(invalid="ignore", over="ignore"):

@@ -49,11 +49,12 @@ def glass_to_glass(
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
     from operator_side.servos.recording import RecordingServoBus
+    from robot_side.camera.config import TestPatternConfig
+    from robot_side.camera.test_pattern import TestPatternCamera
     from robot_side.video.server import VideoConfig, VideoServer
-    from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 
     load_before = machine_load()
-    source = TestPatternSource(TestPatternConfig(width=width, height=height, fps=fps))
+    source = TestPatternCamera(TestPatternConfig(width=width, height=height, fps=fps))
     node = OperatorNode(OperatorConfig(), RecordingServoBus())  # the page needs a node; idle
     want = frames + WARMUP_FRAMES
     timeout_s = 30 + 3 * want / fps

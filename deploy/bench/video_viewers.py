@@ -111,10 +111,11 @@ def many_viewers(
     viewers: int, seconds: float, width: int = 640, height: int = 480, fps: float = 30.0
 ) -> dict[str, Any]:
     """``viewers`` viewers at once on a video server in this process, for the bench."""
+    from robot_side.camera.config import TestPatternConfig
+    from robot_side.camera.test_pattern import TestPatternCamera
     from robot_side.video.server import VideoConfig, VideoServer
-    from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 
-    source = TestPatternSource(TestPatternConfig(width=width, height=height, fps=fps))
+    source = TestPatternCamera(TestPatternConfig(width=width, height=height, fps=fps))
     cpu0 = cpu_times()
     with VideoServer(source, VideoConfig(port=0, max_viewers=viewers)) as server:
         runs = asyncio.run(watch(server.url, viewers, seconds))

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from common.config import from_dict, param
-from common.stimulus import CONTACT_THRESHOLD_N
+from common.tactile import CONTACT_FLOOR_N
 from robot_side.arm.base import ArmLimits, clip_jog_velocity
 from robot_side.gripper.base import POSITION_OPEN, GripLevels
 
@@ -66,7 +66,7 @@ class SessionResampler:
         gripper = robot_config.get("gripper", {})
         self.levels = from_dict(GripLevels, gripper.get("levels", {}), where="robot.gripper.levels")
         render = robot_config.get("render", {})
-        self.contact_threshold_n = float(render.get("contact_threshold_n", CONTACT_THRESHOLD_N))
+        self.contact_threshold_n = float(render.get("contact_threshold_n", CONTACT_FLOOR_N))
         self.t0: int | None = None
         self.k = 0
         # held observations

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from common.tactile import FRAME_SHAPE
+
 
 @dataclass(frozen=True)
 class Feature:
@@ -36,7 +38,7 @@ FEATURES: list[Feature] = [
     Feature(
         "observation.tactile.frames",
         "float32",
-        (2, 10, 10),
+        FRAME_SHAPE,
         ["pad", "row", "col"],
         "N",
         "common view (finger 2 mirrored), pad 0 = finger 1",

@@ -24,7 +24,7 @@ from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
 from common.clock import now_ns
-from common.tactile import MASKS, N_PATTERNS, pattern_name
+from common.tactile import MASKS, N_ANGLES, N_PATTERNS, N_POSITIONS, pattern_name, pattern_of
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +81,8 @@ def ascii_picture(pattern: int) -> list[str]:
 def legend() -> str:
     """The 12 patterns as numbered pictures, four rows of three (angle by position)."""
     lines = []
-    for angle in range(4):
-        trio = [3 * angle + k for k in range(3)]
+    for angle in range(N_ANGLES):
+        trio = [pattern_of(angle, k) for k in range(N_POSITIONS)]
         lines.append("   ".join(f"{p:>2}: {pattern_name(p):<16}" for p in trio))
         pics = [ascii_picture(p) for p in trio]
         for r in range(3):

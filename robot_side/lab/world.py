@@ -17,6 +17,8 @@ import time
 
 import numpy as np
 
+from common.synthetic_tactile import offset_direction
+from common.tactile import N_ANGLES, pattern_of
 from robot_side.lab.config import LabWorldConfig, PipetteConfig
 from robot_side.lab.model import (
     N_COLS,
@@ -29,7 +31,6 @@ from robot_side.lab.model import (
     pipette_placement,
     pipette_placements,
 )
-from robot_side.tactile.synthetic import offset_direction
 
 log = logging.getLogger(__name__)
 
@@ -300,24 +301,24 @@ class LabWorld:
         theta = math.degrees(math.atan2(u[1], u[0])) % 180.0
         rel = np.array([top[0], top[2] - PAD_CENTRE_Z_M])
         w = rel - float(rel @ u) * u  # pad centre -> the axis line, across it
-        angle_class = round(theta / 45.0) % 4
+        angle_class = round(theta / 45.0) % N_ANGLES
         dx, dy = offset_direction(angle_class)
         return theta, float(w[0] * dx + w[1] * dy) * 1000.0
 
     def grasp_pattern(self) -> int | None:
-        """The tactile contract's pattern (3 * angle + position) being felt, or None."""
+        """The tactile contract's pattern being felt, or None."""
         i = self.touching_pipette()
         if i is None:
             return None
         theta, offset_mm = self.grasp_geometry(i)
-        angle_class = round(theta / 45.0) % 4
+        angle_class = round(theta / 45.0) % N_ANGLES
         if offset_mm > SIDE_THRESHOLD_MM:
             position = 1
         elif offset_mm < -SIDE_THRESHOLD_MM:
             position = 2
         else:
             position = 0
-        return 3 * angle_class + position
+        return pattern_of(angle_class, position)
 
     # -- cameras, on demand ---------------------------------------------------------------------
 

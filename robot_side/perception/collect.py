@@ -22,13 +22,13 @@ import numpy as np
 
 from common.config import param
 from common.errors import ConfigError, DeviceError
+from common.synthetic_tactile import offset_direction
+from common.tactile import ANGLES_DEG, N_GRIP_LEVELS, N_PATTERNS, classes_of
 from robot_side.arm.base import Arm, WorkspaceLimitError
 from robot_side.arm.sim.kinematics import matrix_to_rotvec, rotvec_to_matrix
 from robot_side.gripper.base import Gripper
 from robot_side.perception.dataset import TactileDataset
 from robot_side.tactile.base import TactileSensor
-from robot_side.tactile.script import N_GRIP_LEVELS, N_PATTERNS
-from robot_side.tactile.synthetic import ANGLES_DEG, offset_direction
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ def grasp_pose(start: np.ndarray, pattern: int, config: CollectConfig) -> np.nda
     turns the band on the pads by as much; moving the pad by -d along the
     offset's direction puts the band d off centre.
     """
-    angle, position = divmod(pattern, 3)
+    angle, position = classes_of(pattern)
     r0 = rotvec_to_matrix(start[3:])
     turn = math.radians(ANGLES_DEG[angle] - config.start_angle_deg)
     r = rotvec_to_matrix(r0 @ np.array([0.0, turn, 0.0])) @ r0

@@ -38,13 +38,9 @@ from typing import Any
 import numpy as np
 
 from common.config import param, to_dict
+from common.synthetic_tactile import GeneratorParams, SyntheticTactileModel
+from common.tactile import FRAME_SHAPE, N_GRIP_LEVELS, N_PATTERNS, patterns_of
 from robot_side.perception.errors import DatasetError
-from robot_side.tactile.synthetic import (
-    N_GRIP_LEVELS,
-    N_PATTERNS,
-    GeneratorParams,
-    SyntheticTactileModel,
-)
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +136,7 @@ class TactileDataset:
 
     @property
     def pattern(self) -> np.ndarray:
-        return 3 * self.angle + self.position
+        return patterns_of(self.angle, self.position)
 
     def subset(self, index: np.ndarray) -> TactileDataset:
         return TactileDataset(
@@ -187,7 +183,7 @@ def generate(
     pairs = np.repeat(pairs, config.repeats, axis=0)
     pairs = pairs[rng.permutation(len(pairs))]
     n = len(pairs)
-    frames = np.empty((n, 2, 10, 10), dtype=np.float32)
+    frames = np.empty((n, *FRAME_SHAPE), dtype=np.float32)
     sensor = np.empty(n, dtype=np.int64)
     model = None
     for i, (pattern, level) in enumerate(pairs):
@@ -308,7 +304,7 @@ def from_arrays(arrays: Mapping[str, np.ndarray], where: str = "data set") -> Ta
     if "frames" not in arrays:
         raise DatasetError(f"{where} has no 'frames' array; keys are {sorted(arrays)}")
     frames = np.asarray(arrays["frames"])
-    if frames.ndim != 4 or frames.shape[1:] != (2, 10, 10):
+    if frames.ndim != 4 or frames.shape[1:] != FRAME_SHAPE:
         raise DatasetError(f"{where}: frames must have shape (N, 2, 10, 10), not {frames.shape}")
     if not np.issubdtype(frames.dtype, np.floating):
         raise DatasetError(f"{where}: frames must be floating-point newtons, not {frames.dtype}")

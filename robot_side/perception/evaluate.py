@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from common.tactile import N_GRIP_LEVELS, N_PATTERNS, patterns_of
 from robot_side.perception import dataset
 from robot_side.perception.inference import load_classifier
-from robot_side.tactile.script import N_GRIP_LEVELS, N_PATTERNS
 
 POSITIONS = ("centre", "left", "right")
 
@@ -36,7 +36,7 @@ def evaluate(paths: list[Path], model: Path | None = None) -> Accuracy:
     level = np.concatenate([d.grip_level for d in sets])
     a, p = load_classifier(model).predict(frames)
     ok_a, ok_p = a == angle, p == position
-    pattern = 3 * angle + position
+    pattern = patterns_of(angle, position)
 
     def rows(keys: np.ndarray, values: range) -> dict[int, tuple[int, float, float]]:
         out = {}

@@ -35,7 +35,14 @@ from typing import Any
 
 import numpy as np
 
-from common.tactile import CONTACT_FLOOR_N, FRAME_SHAPE, N_ANGLES, N_POSITIONS, SATURATION_N
+from common.tactile import (
+    CONTACT_FLOOR_N,
+    FRAME_SHAPE,
+    N_ANGLES,
+    N_POSITIONS,
+    SATURATION_N,
+    pattern_of,
+)
 from robot_side.perception.errors import ModelLoadError
 from robot_side.perception.folding import block_diag, fold_batch_norm
 from robot_side.perception.weights import DEFAULT_MODEL, read_weights
@@ -59,7 +66,7 @@ class Prediction:
 
     @property
     def pattern(self) -> int:
-        return 3 * self.angle + self.position
+        return pattern_of(self.angle, self.position)
 
     @property
     def confidence(self) -> float:
@@ -443,7 +450,7 @@ def _onnx_logits(
 
     # Batch 1 through an IOBinding: no per-call input checks or output
     # allocation, about 170 us less per frame on a cold core (docs/benchmarks.md).
-    x1 = np.zeros((1, 2, 10, 10), np.float32)
+    x1 = np.zeros((1, *FRAME_SHAPE), np.float32)
     a1 = np.zeros((1, N_ANGLES), np.float32)
     p1 = np.zeros((1, N_POSITIONS), np.float32)
     binding = session.io_binding()

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from common.config import param, to_dict
+from common.synthetic_tactile import GeneratorParams
 from common.tactile import N_GRIP_LEVELS, N_PATTERNS
 from robot_side.perception import dataset as ds
 from robot_side.perception.model import (
@@ -38,7 +39,6 @@ from robot_side.perception.model import (
     save_weights,
 )
 from robot_side.perception.weights import read_weights
-from robot_side.tactile.synthetic import GeneratorParams
 
 log = logging.getLogger(__name__)
 

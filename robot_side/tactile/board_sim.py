@@ -39,11 +39,11 @@ from common.clock import Rate, now_ns
 from common.config import param
 from common.devices import OnItsSimulator
 from common.pty_link import PtyLink
+from common.synthetic_tactile import GeneratorParams, HeldGrasp, SyntheticTactileModel
 from robot_side.tactile.base import GraspTruth
 from robot_side.tactile.board_calibration import WIRE_SHAPE, BoardCalibration
 from robot_side.tactile.script import GraspScript
 from robot_side.tactile.serial_board import SerialTactileConfig, SerialTactileSensor
-from robot_side.tactile.synthetic import GeneratorParams, HeldGrasp, SyntheticTactileModel
 from robot_side.tactile.wire import DEFAULT_BAUD, PACKET_SIZE, SEQ_MODULO, encode
 
 log = logging.getLogger(__name__)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from common.tactile import FRAME_SHAPE
 from robot_side.jit import njit
 
 _ZERO = np.float32(0.0)
@@ -37,4 +38,4 @@ def convert_scan(payloads, order, zero, gain, floor, saturation):  # pragma: no 
         if newtons < floor:
             newtons = _ZERO
         out[k] = newtons
-    return out.reshape(2, 10, 10)
+    return out.reshape(FRAME_SHAPE)

@@ -17,9 +17,10 @@ import numpy as np
 from common.clock import Rate, now_ns
 from common.config import param
 from common.errors import DeviceAlreadyConnectedError
+from common.synthetic_tactile import GeneratorParams, HeldGrasp, SyntheticTactileModel
+from common.tactile import FRAME_SHAPE
 from robot_side.tactile.base import TactileSample, TactileSensor
 from robot_side.tactile.script import GraspScript
-from robot_side.tactile.synthetic import GeneratorParams, HeldGrasp, SyntheticTactileModel
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +75,7 @@ class ScriptedTactileSensor(TactileSensor):
     def _run(self) -> None:
         rng = np.random.default_rng(self.config.seed + 1)
         floor = self.config.generator.floor_n
-        zero = np.zeros((2, 10, 10), np.float32)
+        zero = np.zeros(FRAME_SHAPE, np.float32)
         if self.config.tare_frames > 0:
             zero = np.mean(
                 [self._model.frame(None, 1, rng) for _ in range(self.config.tare_frames)], axis=0

@@ -36,6 +36,7 @@ from common.errors import (
     StaleDataError,
 )
 from common.preflight import Finding, PreflightContext, serial_findings
+from common.tactile import SATURATION_N
 from robot_side.tactile.base import GraspTruth, TactileSample, TactileSensor
 from robot_side.tactile.board_calibration import (
     WIRE_SHAPE,
@@ -83,7 +84,7 @@ class SerialTactileConfig:
     zero_counts: float = param(0.0, "uniform zero offset in counts, when no calibration_file")
     gain_n_per_count: float = param(0.003, "uniform gain, newtons per count, when no file")
     floor_n: float = param(1.0, "the sensor's floor: a taxel below this reads 0 N")
-    saturation_n: float = param(9.0, "the sensor's ceiling: a taxel above this reads this")
+    saturation_n: float = param(SATURATION_N, "the sensor's ceiling: a taxel above this reads this")
     mirror_finger2: bool = param(True, "finger 2 faces finger 1: reverse its columns")
     zero_on_connect_frames: int = param(
         0, "capture the zero from this many frames at connect (only if nothing is grasped then)"

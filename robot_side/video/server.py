@@ -8,8 +8,9 @@ so a closed tab or a lost dashboard ends it. Media then flows straight from
 this process to the browser (SRTP over UDP, VP8, congestion-controlled by
 the browser's REMB feedback).
 
-The source is shared through a relay: it is opened when the first viewer's
-encoder asks for a frame and closed when the last viewer leaves, so
+The source (a ``robot_side.camera`` device) is shared through a relay: it is
+connected when the first viewer's encoder asks for a frame and disconnected
+when the last viewer leaves, so
 nothing is captured or encoded for nobody. Each frame is converted to
 ``yuv420p`` once, on the capture thread, before the relay hands the same
 frame object to every viewer's encoder: aiortc's VP8 encoder reformats any
@@ -38,7 +39,6 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -48,11 +48,10 @@ from common import web_token
 from common.config import param
 from common.errors import ConfigError
 from common.ice import IceConfig
+from robot_side.camera import KINDS as CAMERA_KINDS
+from robot_side.camera.base import Camera, CapturedFrame, build_camera
+from robot_side.camera.config import LabCameraConfig, TestPatternConfig, V4L2Config
 from robot_side.video import media_binding
-from robot_side.video.lab_camera import LabCameraConfig, LabCameraSource
-from robot_side.video.source import CapturedFrame, VideoSource
-from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
-from robot_side.video.v4l2 import V4L2Config, V4L2Source
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +81,8 @@ class VideoConfig:
         "the operators' browsers reach this PC on; lo (loopback) only by default",
     )
     source: str = param(
-        "test_pattern", "which camera: test_pattern, v4l2, lab (a simulated one), or one registered"
+        "test_pattern",
+        f"which camera: one of {', '.join(CAMERA_KINDS)} (lab: a simulated lab's camera)",
     )
     max_viewers: int = param(4, "peer connections at once; each costs an encoder")
     ice: IceConfig = param(
@@ -101,30 +101,12 @@ class VideoConfig:
             raise ValueError("video media_interfaces must name at least one interface (e.g. lo)")
 
 
-#: source kind -> factory from the video config; a simulated lab registers its camera here
-SOURCE_KINDS: dict[str, Callable[[VideoConfig], VideoSource]] = {
-    "test_pattern": lambda c: TestPatternSource(c.test_pattern),
-    "v4l2": lambda c: V4L2Source(c.v4l2),
-    "lab": lambda c: LabCameraSource(c.lab),
-}
+def build_source(config: VideoConfig) -> Camera:
+    """The camera ``config.source`` names, from its own section (``[video.<kind>]``)."""
+    return build_camera(config.source, getattr(config, config.source, None))
 
 
-def register_source(kind: str, factory: Callable[[VideoConfig], VideoSource]) -> None:
-    """Make ``source = kind`` available in the video config (a simulated lab's camera)."""
-    SOURCE_KINDS[kind] = factory
-
-
-def build_source(config: VideoConfig) -> VideoSource:
-    try:
-        factory = SOURCE_KINDS[config.source]
-    except KeyError:
-        raise ConfigError(
-            f"video source {config.source!r} is not one of {sorted(SOURCE_KINDS)}"
-        ) from None
-    return factory(config)
-
-
-def _capture_shareable(source: VideoSource) -> tuple[CapturedFrame, Any]:
+def _capture_shareable(source: Camera) -> tuple[CapturedFrame, Any]:
     """The next frame, and it as a ``yuv420p`` VideoFrame every viewer's encoder may share."""
     import av
 
@@ -133,7 +115,7 @@ def _capture_shareable(source: VideoSource) -> tuple[CapturedFrame, Any]:
     return frame, rgb.reformat(format=SHARED_FORMAT)
 
 
-def _source_track(source: VideoSource) -> Any:
+def _source_track(source: Camera) -> Any:
     """An aiortc track that opens ``source`` on its first frame and closes it on ``stop``."""
     import av
     from aiortc import MediaStreamTrack
@@ -155,7 +137,7 @@ def _source_track(source: VideoSource) -> Any:
             loop = asyncio.get_running_loop()
             try:
                 if not self._open:
-                    await loop.run_in_executor(self._pool, source.open)
+                    await loop.run_in_executor(self._pool, source.connect)
                     self._open = True
                     log.info("video: %s opened for a viewer", source.name)
                 frame, out = await loop.run_in_executor(self._pool, _capture_shareable, source)
@@ -172,7 +154,7 @@ def _source_track(source: VideoSource) -> Any:
             super().stop()
             if self._open:
                 self._open = False
-                self._pool.submit(source.close)
+                self._pool.submit(source.disconnect)
                 log.info("video: %s closed (no viewers)", source.name)
             self._pool.shutdown(wait=False)
 
@@ -192,7 +174,7 @@ def rtc_configuration(ice: IceConfig) -> Any:
 class VideoServer:
     """Answers WebRTC offers on a WebSocket and streams ``source``; ``start()`` / ``stop()``."""
 
-    def __init__(self, source: VideoSource, config: VideoConfig | None = None) -> None:
+    def __init__(self, source: Camera, config: VideoConfig | None = None) -> None:
         self.source = source
         self.config = config or VideoConfig()
         self.port = self.config.port

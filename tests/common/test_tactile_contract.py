@@ -10,7 +10,7 @@ import numpy as np
 from common import tactile
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("common", "robot_side", "operator_side", "deploy")
+PACKAGES = ("common", "robot_side", "operator_side", "relay_side", "deploy")
 #: names that once had a literal copy in several modules
 CONTRACT_NAMES = {
     "ANGLES_DEG",
@@ -105,17 +105,109 @@ def test_no_module_declares_its_own_copy():
     assert not copies, f"declare these in common/tactile.py and import them: {copies}"
 
 
+def _spelled_out(tree: ast.AST) -> list[tuple[int, str]]:
+    """(line, what) for every place ``tree`` spells the contract out instead of naming it.
+
+    A pattern encoded by hand (``3 * angle + position``, also with
+    ``N_POSITIONS`` for the 3) or decoded (``divmod(p, 3)``), the frame's
+    shape as numbers (``(2, 10, 10)``, ``reshape(2, 10, 10)``, ``(n, 2, 10, 10)``),
+    and the patterns counted as ``range(12)``.
+    """
+    found = []
+
+    def number(node: ast.AST, value: int) -> bool:
+        return isinstance(node, ast.Constant) and type(node.value) is int and node.value == value
+
+    def three(node: ast.AST) -> bool:
+        return number(node, 3) or (isinstance(node, ast.Name) and node.id == "N_POSITIONS")
+
+    def terms(node: ast.AST) -> list[ast.AST]:
+        if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
+            return terms(node.left) + terms(node.right)
+        return [node]
+
+    def shape(values: list[ast.AST]) -> bool:
+        tail = values[-3:]
+        return len(tail) == 3 and all(number(v, n) for v, n in zip(tail, (2, 10, 10), strict=True))
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
+            parts = terms(node)
+            scaled = [
+                t
+                for t in parts
+                if isinstance(t, ast.BinOp)
+                and isinstance(t.op, ast.Mult)
+                and (three(t.left) or three(t.right))
+            ]
+            rest = [t for t in parts if t not in scaled and not isinstance(t, ast.Constant)]
+            if scaled and rest:
+                found.append((node.lineno, "a pattern encoded by hand: use pattern_of"))
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
+            name, args = node.func.id, node.args
+            if name == "divmod" and len(args) == 2 and three(args[1]):
+                found.append((node.lineno, "a pattern decoded by hand: use classes_of"))
+            elif name == "range" and len(args) == 1 and number(args[0], 12):
+                found.append((node.lineno, "range(12): use range(N_PATTERNS)"))
+        as_tuple = isinstance(node, ast.Tuple) and shape(node.elts)
+        as_arguments = isinstance(node, ast.Call) and len(node.args) == 3 and shape(node.args)
+        if as_tuple or as_arguments:
+            found.append((node.lineno, "the frame's shape as numbers: use FRAME_SHAPE"))
+    # an encoding inside another (CELLS + 3 * r + c) is reported once per line
+    return sorted(set(found))
+
+
+def test_the_scan_finds_each_spelled_out_form():
+    """The scan below is only as good as what it recognises: each form, and the look-alikes."""
+    caught = """
+pattern = 3 * angle + position
+pattern = position + 3 * int(angle)
+pattern = angle * N_POSITIONS + position
+cells[CELLS + 3 * r + c] = 1
+angle, position = divmod(pattern, 3)
+for p in range(12): pass
+zero = np.zeros((2, 10, 10), np.float32)
+batch = np.zeros((n, 2, 10, 10))
+frame = out.reshape(2, 10, 10)
+"""
+    for line in caught.strip().splitlines():
+        assert _spelled_out(ast.parse(line)), line
+    passed = """
+length = 3 * n + 4
+offset = 8 + 3 * k
+timeout = 1.0 + 3 * frames / 120
+loop, rest = divmod(t, period)
+pattern = pattern_of(angle, position)
+for p in range(N_PATTERNS): pass
+cells[_COLS * r + c] = 1
+shape = (3, 10, 10)
+"""
+    for line in passed.strip().splitlines():
+        assert not _spelled_out(ast.parse(line)), line
+
+
+def test_no_module_spells_the_contract_out():
+    """``grep`` for the encoding finds it in common/tactile.py only (and in the tests)."""
+    spelled = []
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            if path == ROOT / "common" / "tactile.py":
+                continue
+            tree = ast.parse(path.read_text(), str(path))
+            spelled += [f"{path.relative_to(ROOT)}:{n}: {what}" for n, what in _spelled_out(tree)]
+    assert not spelled, "name the contract (common/tactile.py) instead:\n" + "\n".join(spelled)
+
+
 def test_importers_share_the_contracts_objects():
     from common import codec
     from operator_side.dashboard import server
     from robot_side.gripper import base
     from robot_side.perception import inference, numba_forward
-    from robot_side.tactile import script, synthetic
+    from robot_side.tactile import script
 
     assert codec.N_PATTERNS is tactile.N_PATTERNS
     assert server.GRIP_LEVELS is tactile.GRIP_LEVELS
-    assert base.N_GRIP_LEVELS == script.N_GRIP_LEVELS == synthetic.N_GRIP_LEVELS == 31
-    assert synthetic.FRAME_SHAPE is tactile.FRAME_SHAPE
+    assert base.N_GRIP_LEVELS == script.N_GRIP_LEVELS == 31
     assert inference.SATURATION_N is tactile.SATURATION_N
     assert float(numba_forward._NINTH) == float(np.float32(1.0 / 9.0))
     assert float(numba_forward._PEAK_FLOOR) == 1.0

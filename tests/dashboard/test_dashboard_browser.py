@@ -19,7 +19,7 @@ from headless_chromium import Chromium, needs_chromium
 
 from common.clock import now_ns
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
-from common.patterns import MASKS
+from common.tactile import MASKS
 from common.transport import Publisher, Subscriber
 from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig

@@ -372,8 +372,9 @@ def test_doctor_reports_a_kinds_own_preflight_findings(monkeypatch):
 # ----------------------------------------------------------------- video
 def test_the_robots_video_server_is_checked_where_viewers_will_reach_it():
     pytest.importorskip("aiortc")
+    from robot_side.camera.config import TestPatternConfig
+    from robot_side.camera.test_pattern import TestPatternCamera
     from robot_side.video.server import VideoConfig, VideoServer
-    from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 
     tel, cmd, dead = free_ports(3)
     robot = _light_robot(tel, cmd)
@@ -381,7 +382,7 @@ def test_the_robots_video_server_is_checked_where_viewers_will_reach_it():
     check = diagnose("robot", robot, "t", NO_PEER).find("video server")
     assert check.status == FAIL and f"127.0.0.1:{dead}" in check.detail
     assert "deepxpalm video" in check.fix
-    source = TestPatternSource(TestPatternConfig(width=320, height=240))
+    source = TestPatternCamera(TestPatternConfig(width=320, height=240))
     with VideoServer(source, VideoConfig(port=0)) as server:
         robot["link"]["video_url"] = server.base_url  # no token: refused, and said so
         check = diagnose("robot", robot, "t", NO_PEER).find("video server")

@@ -21,6 +21,7 @@ from common.errors import (
     ProtocolError,
     StaleDataError,
 )
+from common.synthetic_tactile import GeneratorParams
 from robot_side.tactile import KINDS
 from robot_side.tactile.board_calibration import (
     BoardCalibration,
@@ -34,7 +35,6 @@ from robot_side.tactile.board_sim import (
 )
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.serial_board import SerialTactileConfig, SerialTactileSensor
-from robot_side.tactile.synthetic import GeneratorParams
 from robot_side.tactile.wire import (
     PACKET_SIZE,
     StreamParser,

@@ -113,7 +113,7 @@ def gripper_violations(gripper: MemoryGripper) -> list[str]:
 
 # ---------------------------------------------------------------- operator
 def stimulus_for(pattern: int, value: float = 4.0) -> np.ndarray:
-    from common.patterns import MASKS_F32
+    from common.tactile import MASKS_F32
 
     return (MASKS_F32[pattern] * np.float32(value)).astype(np.float32)
 

@@ -239,14 +239,15 @@ def test_the_arm_stops_at_the_table(lab):
 def test_a_video_source_gets_the_worlds_camera_only_while_it_asks(lab, tmp_path):
     import json
 
-    from robot_side.video.lab_camera import LabCameraConfig, LabCameraSource
+    from robot_side.camera.config import LabCameraConfig
+    from robot_side.camera.lab import LabCamera
 
     arm, _gripper, _pads, _home = lab
     addresses = tmp_path / "world.json"
     addresses.write_text(json.dumps(arm.world.addresses))
-    source = LabCameraSource(LabCameraConfig(addresses_file=addresses, fps=10.0))
+    source = LabCamera(LabCameraConfig(addresses_file=addresses, fps=10.0))
     before = arm.world.stats()["camera_frames_rendered"]
-    source.open()
+    source.connect()
     try:
         t0 = time.monotonic()
         try:
@@ -255,15 +256,15 @@ def test_a_video_source_gets_the_worlds_camera_only_while_it_asks(lab, tmp_path)
             pytest.skip(f"no OpenGL for MuJoCo's offscreen renderer here (Mesa EGL): {e}")
         assert time.monotonic() - t0 >= 0.19  # paced at 10 fps, not as fast as it renders
     finally:
-        source.close()
+        source.disconnect()
     for f in frames:
         assert f.rgb.shape == (240, 320, 3) and f.rgb.std() > 5
     time.sleep(0.3)
     assert arm.world.stats()["camera_frames_rendered"] - before == 3  # closed: no more
-    wrong = LabCameraSource(LabCameraConfig(addresses_file=addresses, camera="ceiling"))
-    wrong.open()
+    wrong = LabCamera(LabCameraConfig(addresses_file=addresses, camera="ceiling"))
+    wrong.connect()
     try:
         with pytest.raises(DeviceError, match="no camera 'ceiling'"):
             wrong.capture()
     finally:
-        wrong.close()
+        wrong.disconnect()

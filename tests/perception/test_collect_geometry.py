@@ -8,9 +8,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from common.synthetic_tactile import offset_direction
 from robot_side.arm.sim.kinematics import rotvec_to_matrix
 from robot_side.perception.collect import CollectConfig, grasp_pose
-from robot_side.tactile.synthetic import offset_direction
 
 rotvecs = st.tuples(*[st.floats(-2.5, 2.5)] * 3).map(np.array)
 

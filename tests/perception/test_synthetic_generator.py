@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from common.config import from_dict
 from common.errors import ConfigError
-from robot_side.tactile.synthetic import (
+from common.synthetic_tactile import (
     GeneratorParams,
     SyntheticTactileModel,
     mirror_finger2,

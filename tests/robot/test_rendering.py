@@ -8,13 +8,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from common.patterns import MASKS, matches_pattern
 from common.stimulus import (
     antialiased_bicubic_weights,
     area_weights,
     plain_bicubic_weights,
     render_stimulus,
 )
+from common.tactile import MASKS, matches_pattern
 from deploy.bench.downsizing import downsize, peak_per_row
 
 

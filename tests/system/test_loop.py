@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from common.patterns import MASKS
+from common.tactile import MASKS
 from common.transport import free_loopback_ports
 from operator_side.config import OperatorConfig
 from operator_side.linkglide import forward_kinematics

@@ -16,11 +16,12 @@ pytest.importorskip("aiortc")
 
 from common.messages import VideoSignal
 from common.transport import CaptureLink
+from robot_side.camera.config import TestPatternConfig
+from robot_side.camera.test_pattern import TestPatternCamera
 from robot_side.config import RenderConfig, RobotConfig, RobotLinkConfig
 from robot_side.node import RobotNode
 from robot_side.video.link_signalling import LinkSignalling
 from robot_side.video.server import VideoConfig, VideoServer
-from robot_side.video.test_pattern import TestPatternConfig, TestPatternSource
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -61,7 +62,7 @@ def _until(cond, timeout_s: float = 5.0) -> None:
 
 @pytest.fixture
 def server():
-    source = TestPatternSource(TestPatternConfig(width=320, height=240, fps=15))
+    source = TestPatternCamera(TestPatternConfig(width=320, height=240, fps=15))
     with VideoServer(source, VideoConfig(port=0, max_viewers=1)) as s:
         yield s
 

@@ -36,12 +36,13 @@ SIZES = {
 
 
 def measure(ctx: Context, sizes: DownsizingSizes) -> dict[str, Any]:
+    from common.tactile import patterns_of
     from deploy.bench.downsizing import downsizing_tradeoff
     from deploy.bench.fixtures import frame_set
 
     fs = frame_set(sizes.ds_repeats, seed=0)
     a, p = ctx.classifier.predict(fs.frames)
-    return downsizing_tradeoff(fs, 3 * a + p, sizes.ds_calls)
+    return downsizing_tradeoff(fs, patterns_of(a, p), sizes.ds_calls)
 
 
 def default_checks(results: Results) -> list[DefaultCheck]:
@@ -118,7 +119,7 @@ def markdown(results: Results) -> list[str]:
         "back to back, the variants taking turns call by call); antialiased, plain and area "
         "through the node's `render_contact`. "
         "Match: the share of stimuli pressing exactly the true pattern's cells "
-        "(`common.patterns.matches_pattern`) with the true pattern's mask, with the "
+        "(`common.tactile.matches_pattern`) with the true pattern's mask, with the "
         "classifier's predicted pattern (the node's path), and with no mask (direct).",
         "",
     ]
@@ -162,7 +163,7 @@ def markdown(results: Results) -> list[str]:
         "Where the paper's order loses (true mask, antialiased), per pattern:",
         "",
     ]
-    from common.patterns import pattern_name
+    from common.tactile import pattern_name
 
     pp = s["per_pattern_antialiased_true"]
     out += table(

@@ -10,6 +10,9 @@ and shifts it along them, from the pose the arm is in at the start: above
 the pipette, the fingers open around it. Every pose is checked against the
 scene's [robot.arm.limits] box before the first move. ``--present`` leaves
 the arm alone and asks a person to present the pipette for each pattern.
+
+A deploy command because a scene (``deploy.scene``) says which devices to
+build; the collecting itself is ``robot_side.perception.collect``.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from pathlib import Path
 from common.cli_support import add_overrides_argument
 from common.config import from_dict
 from common.devices import build_device
+from common.tactile import ANGLES_DEG, classes_of
 from robot_side.perception.collect import POSITION_NAMES, CollectConfig, collect
 
 log = logging.getLogger(__name__)
@@ -63,9 +67,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _prompt(pattern: int) -> None:
-    angle, position = divmod(pattern, 3)
+    angle, position = classes_of(pattern)
     input(
-        f"pattern {pattern}: hold the pipette at {angle * 45} deg, {POSITION_NAMES[position]}, "
+        f"pattern {pattern}: hold the pipette at {ANGLES_DEG[angle]} deg, "
+        f"{POSITION_NAMES[position]}, "
         "between the open fingers, then press Enter "
     )
 

@@ -8,12 +8,11 @@ nothing and would flatter the latency). Paced on its own clock at ``fps``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
-from common.config import param
-from robot_side.video.source import CapturedFrame, VideoSource
+from robot_side.camera.base import Camera, CapturedFrame
+from robot_side.camera.config import TestPatternConfig
 from robot_side.video.stamp import draw_stamp
 
 BARS = np.array(
@@ -31,24 +30,12 @@ BARS = np.array(
 )
 
 
-@dataclass
-class TestPatternConfig:
-    __test__ = False  # not a pytest class, whatever its name says
-    width: int = param(640, "pixels; at least 160 (the time stamp needs 40 cells of 4 px)")
-    height: int = param(480, "pixels")
-    fps: float = param(30.0, "frames per second")
-
-    def __post_init__(self) -> None:
-        if self.width < 160 or self.height < 32 or self.width % 2 or self.height % 2:
-            raise ValueError("test pattern needs an even size of at least 160 x 32")
-        if not 1 <= self.fps <= 120:
-            raise ValueError(f"test pattern fps must be 1..120, not {self.fps}")
-
-
-class TestPatternSource(VideoSource):
+class TestPatternCamera(Camera):
     """Frames stamped with ``time.time_ns()`` at the moment they are made."""
 
     __test__ = False  # not a pytest class, whatever its name says
+    Config = TestPatternConfig
+    simulated = True  # no hardware: the picture is made here
     name = "test_pattern"
 
     def __init__(self, config: TestPatternConfig | None = None) -> None:
@@ -60,13 +47,20 @@ class TestPatternSource(VideoSource):
         )
         self._next = 0.0
         self._count = 0
-        self.opened = 0  # times opened: a test can see that nothing runs without a viewer
+        self._connected = False
+        self.opened = 0  # times connected: a test can see that nothing runs without a viewer
 
-    def open(self) -> None:
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def connect(self) -> None:
         self._next = time.monotonic()
+        self._connected = True
         self.opened += 1
 
     def capture(self) -> CapturedFrame:
+        self.require_connected()
         self._next += 1.0 / self.fps
         delay = self._next - time.monotonic()
         if delay > 0:
@@ -85,5 +79,5 @@ class TestPatternSource(VideoSource):
         draw_stamp(rgb, t // 1_000_000, n)
         return CapturedFrame(rgb, t)
 
-    def close(self) -> None:
-        pass
+    def disconnect(self) -> None:
+        self._connected = False

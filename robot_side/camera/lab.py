@@ -1,9 +1,9 @@
-"""A simulated lab's camera as a video source: frames the world renders when asked.
+"""A simulated lab's camera: frames the world renders when asked.
 
 The world process (``python -m robot_side.lab --addresses-file F``, or the
 demo's) serves its cameras on a loopback socket (``robot_side/lab/
-camera_server.py``); its port is in the addresses file. This source asks for
-one frame per period while it is open, so the world renders only while
+camera_server.py``); its port is in the addresses file. This camera asks for
+one frame per period while it is connected, so the world renders only while
 someone watches. No MuJoCo here: the video process speaks to the socket.
 """
 
@@ -13,39 +13,22 @@ import json
 import logging
 import socket
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from common.config import param
-from common.errors import ConfigError, DeviceError
-from robot_side.video.source import CapturedFrame, VideoSource
+from common.errors import ConfigError, DeviceError, DeviceNotConnectedError
+from robot_side.camera.base import Camera, CapturedFrame
+from robot_side.camera.config import LabCameraConfig
 
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class LabCameraConfig:
-    addresses_file: Path | None = param(
-        None, "the running world's addresses (python -m robot_side.lab --addresses-file)"
-    )
-    camera: str = param("overview", "which of the world's cameras: overview or wrist")
-    width: int = param(320, "pixels")
-    height: int = param(240, "pixels")
-    fps: float = param(
-        5.0, "frames per second; each costs the world a render (tens of ms on a CPU)"
-    )
+class LabCamera(Camera):
+    """Frames from a running world's camera socket, at ``fps``, while connected."""
 
-    def __post_init__(self) -> None:
-        if not 0.5 <= self.fps <= 30:
-            raise ValueError(f"lab camera fps must be 0.5..30, not {self.fps}")
-        if self.width % 2 or self.height % 2 or min(self.width, self.height) < 32:
-            raise ValueError("lab camera needs an even size of at least 32 x 32")
-
-
-class LabCameraSource(VideoSource):
-    """Frames from a running world's camera socket, at ``fps``, while open."""
+    Config = LabCameraConfig
+    simulated = True  # the world renders it
 
     def __init__(self, config: LabCameraConfig) -> None:
         if config.addresses_file is None:
@@ -58,7 +41,11 @@ class LabCameraSource(VideoSource):
         self._next_s = 0.0
         self.render_ms: list[float] = []
 
-    def open(self) -> None:
+    @property
+    def is_connected(self) -> bool:
+        return self._sock is not None
+
+    def connect(self) -> None:
         path = self.config.addresses_file
         try:
             port = int(json.loads(Path(path).read_text())["camera_port"])
@@ -73,7 +60,7 @@ class LabCameraSource(VideoSource):
 
     def capture(self) -> CapturedFrame:
         if self._sock is None:
-            raise DeviceError("lab camera is not open")
+            raise DeviceNotConnectedError("lab camera is not connected: connect() first")
         delay = self._next_s - time.monotonic()
         if delay > 0:
             time.sleep(delay)
@@ -96,7 +83,7 @@ class LabCameraSource(VideoSource):
         rgb = np.frombuffer(payload, np.uint8).reshape(header["height"], header["width"], 3)
         return CapturedFrame(rgb=rgb, capture_ns=taken_ns)
 
-    def close(self) -> None:
+    def disconnect(self) -> None:
         for closable in (self._reader, self._sock):
             if closable is not None:
                 closable.close()
