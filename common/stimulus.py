@@ -6,7 +6,7 @@ and both downsizing weight matrices are one precomputed (9, 200) matrix, so
 a frame costs one matrix-vector product (``downsizing_matrix``).
 
 NumPy only and in ``common`` because both nodes render: the robot node every
-frame (``robot_side.rendering`` is its name for this module), the operator's
+frame (``robot_side.node.frame_pipeline``), the operator's
 perception study each trial, exactly as the robot would.
 
 The default is antialiased bicubic (the kernel widened by the scale factor,

@@ -164,14 +164,17 @@ class RecordedPredictions:
 
 
 class RobotReplay:
-    """Recorded frames through the robot node's own ``process``, compared with what it sent.
+    """Recorded frames through the robot node's own ``FramePipeline``, compared with what it sent.
 
     The node is built from the recorded config and handed a virtual clock and
-    a capture link, so the frame rule, the identical-frame skip, the dead band
-    and the keyframes are checked by the code that made them. Each frame is
-    replayed at its recorded time, or at its stimulus's send time when one
-    was sent for it: the node decided on a keyframe between the two, so a
-    keyframe is due at the second exactly when it was due then.
+    a capture link, so the frame rule, the rate cap, the identical-frame skip,
+    the dead band and the keyframes are checked by the code that made them.
+    Each frame is offered at its recorded time (when the node rendered it: the
+    rate cap and the age judge it then), with the clock at its stimulus's
+    send time when one was sent for it: the node decided on a keyframe
+    between the two, so a keyframe is due at the second exactly when it was
+    due then. Only rendered frames are recorded, so a recorded frame the rate
+    cap would have skipped is a mismatch.
     """
 
     def __init__(self, config: Any, atol: float, use_classifier: bool, report: Report) -> None:
@@ -254,13 +257,20 @@ class RobotReplay:
         self.prediction = None
         self.clock.t_ns = sent.t_send_ns if sent is not None else self.frame_t_ns
         n = len(self.link.messages)
-        self.node.process(
+        pipeline = self.node.pipeline
+        # the frame is judged at its recorded time (rate cap, age), as the node judged it
+        if pipeline.rate_capped(self.frame_t_ns):
+            self.report.mismatch(
+                "rate_cap", f"frame {seq}: rendered sooner after the last than the rate cap allows"
+            )
+        pipeline.offer(
             TactileSample(
                 frame=np.asarray(record["frame"], dtype=np.float32),
                 seq=seq,
                 t_capture_ns=int(record["t_capture_ns"]),
                 truth=GraspTruth(pattern=truth, grip_level=None),
-            )
+            ),
+            self.frame_t_ns,
         )
         replayed = self.link.messages[n] if len(self.link.messages) > n else None
         self.report.ok("frames_replayed")

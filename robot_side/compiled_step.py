@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from common.stimulus import downsizing_matrix, mask_columns
 from common.tactile import (
     FRAME_SHAPE,
     N_ANGLES,
@@ -33,7 +34,6 @@ from common.tactile import (
 )
 from robot_side.jit import njit
 from robot_side.perception.numba_forward import classify_frame
-from robot_side.rendering import downsizing_matrix, mask_columns
 
 #: ``step``'s first value
 NO_CONTACT, IDENTICAL, RENDERED = 0, 1, 2

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from common.stimulus import render_stimulus
 from common.tactile import matches_pattern, patterns_of
 from deploy.bench.fixtures import FrameSet
 from deploy.bench.fmt import IMG_DIR, TIE_FRACTION, num, pct, pyplot, results_of, save_figure, table
@@ -30,7 +31,6 @@ from deploy.bench.timing import summarize_ns, time_interleaved
 from robot_side.config import RobotConfig
 from robot_side.perception import BACKENDS, DEFAULT_MODEL, load_classifier
 from robot_side.perception.weights import read_weights
-from robot_side.rendering import render_stimulus
 
 log = logging.getLogger(__name__)
 

@@ -33,6 +33,16 @@ from typing import Any
 
 import numpy as np
 
+from common.stimulus import (
+    METHODS,
+    ORDERS,
+    Method,
+    downsizing_matrix,
+    downsizing_weights,
+    render_contact,
+    render_stimulus,
+    sanitize_frame,
+)
 from common.tactile import MASKS, MASKS_F32, SATURATION_N, matches_pattern
 from deploy.bench.fixtures import FrameSet
 from deploy.bench.fmt import (
@@ -48,16 +58,6 @@ from deploy.bench.fmt import (
 )
 from deploy.bench.section import Context, DefaultCheck, Results, Section
 from deploy.bench.timing import summarize_ns, time_interleaved
-from robot_side.rendering import (
-    METHODS,
-    ORDERS,
-    Method,
-    downsizing_matrix,
-    downsizing_weights,
-    render_contact,
-    render_stimulus,
-    sanitize_frame,
-)
 
 log = logging.getLogger(__name__)
 

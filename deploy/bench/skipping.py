@@ -2,17 +2,18 @@
 
 The demo's scripted sensor is replayed frame by frame in virtual time (the
 same pad model, seed, tare and grasp script as ``ScriptedTactileSensor``),
-through ``RobotNode.process`` itself, handed a virtual clock and a capture
-link, so the rate cap, the no-contact and identical-frame skips, the
-dead band and the keyframes behave as in the live node, and a 27 s scene
-costs a second or two.
+through the node's own ``FramePipeline.offer`` (as its loop offers each
+frame), the node handed a virtual clock and a capture link, so the rate
+cap, the no-contact and identical-frame skips, the dead band and the
+keyframes behave as in the live node, and a 27 s scene costs a second or two.
 
 Beside the node runs a shadow that never skips: every frame classified and
-rendered. After each frame, what the operator is rendering (the last
-stimulus sent) is compared with what the shadow would have sent: in
-newtons, in which cells press, and in servo counts after IK. Zero
-difference is the goal for the skips; the rate cap's difference is the
-price of rendering 60 of the 120 frames per second.
+rendered by a second ``FramePipeline`` that forgets each frame before the
+next. After each frame, what the operator is rendering (the last stimulus
+sent) is compared with what the shadow would have sent: in newtons, in
+which cells press, and in servo counts after IK. Zero difference is the
+goal for the skips; the rate cap's difference is the price of rendering 60
+of the 120 frames per second.
 
 As a bench section: skipping work (no contact, identical frames, dead band,
 rate cap) against its error.
@@ -37,8 +38,7 @@ from deploy.bench.section import Context, Results, Section
 from deploy.scene import load_scene
 from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
-from robot_side.node import RobotNode
-from robot_side.rendering import render_frame, sanitize_with_peak
+from robot_side.node import FramePipeline, RobotNode
 from robot_side.tactile import KINDS as TACTILE_KINDS
 
 log = logging.getLogger(__name__)
@@ -117,63 +117,82 @@ def _scripted_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list
     return frames, truths, cfg.rate_hz
 
 
-def shadow_stimulus(
-    frame: np.ndarray, truth: Any, classifier: Any, render: Any, compiled: Any = None
-) -> np.ndarray:
-    """What the node would send for this frame if it never skipped anything.
+class Shadow:
+    """What the node would send for each frame if it never skipped anything.
 
-    ``compiled``: the node's compiled frame step (a second instance), so the
-    reference renders with the node's own arithmetic (its downsizing product
-    sums in float64, NumPy's in float32: a few 1e-7 N that are not a skip's cost).
-    Otherwise the node's own frame rule (``render_frame``), every frame.
+    The node's own ``FramePipeline`` (so the compiled frame step where the
+    node has one, with the node's arithmetic: its downsizing product sums in
+    float64, NumPy's in float32, a few 1e-7 N that are not a skip's cost),
+    told to forget the last frame and the last stimulus before each one.
     """
-    if compiled is not None:
-        compiled.forget()  # never the identical-frame skip
-        r = compiled.step(frame)
-        if r[0] == compiled.NO_CONTACT:
-            return np.zeros((3, 3), np.float32)
-        return np.array(r[compiled.CELLS :], np.float32).reshape(3, 3)
-    f, peak = sanitize_with_peak(frame)
-    cells, _ = render_frame(
-        f,
-        peak >= render.contact_threshold_n,
-        render,
-        classify=lambda x: classifier.predict_one(x).pattern,
-        truth=None if truth is None else truth.pattern,
-    )
-    return np.array(cells, np.float32).reshape(3, 3)
+
+    def __init__(self, config: Any, classifier: Any) -> None:
+        self.clock = VirtualClock()
+        self.pipeline = FramePipeline(
+            config, classifier, lambda msg: b"", now=self.clock, session=1
+        )
+
+    def stimulus(self, frame: np.ndarray, truth: Any) -> np.ndarray:
+        from robot_side.tactile.base import TactileSample
+
+        self.pipeline.resend_next()
+        self.clock.advance(1)
+        seq = self.clock.t_ns  # one per frame
+        sample = TactileSample(frame=frame, seq=seq, t_capture_ns=self.clock.t_ns, truth=truth)
+        return self.pipeline.process(sample).stimulus
+
+
+#: what a frame's counters say the node did with it
+_KIND_OF_COUNTER = (
+    ("frames_skipped_rate", "rate_cap"),
+    ("frames_no_contact", "no_contact"),
+    ("frames_identical", "identical_frame"),
+    ("stimuli_unchanged", "unchanged_stimulus"),
+    ("stimuli_published", "published"),
+)
+
+
+def through_node(
+    config: Any, classifier: Any, frames: list[np.ndarray], truths: list[Any], rate_hz: float
+) -> tuple[RobotNode, CaptureLink, list[tuple[list[str], np.ndarray, np.ndarray]]]:
+    """The frames at ``rate_hz`` in virtual time through the node's ``FramePipeline.offer``,
+    as the node's loop offers them (rate cap included).
+
+    Returns the node, its capture link, and per frame (what the node did with
+    it, the stimulus the operator renders after it, what the shadow renders).
+    """
+    from robot_side.tactile.base import TactileSample
+
+    clock = VirtualClock()
+    link = CaptureLink()
+    node = RobotNode(config, tactile=None, classifier=classifier, now=clock, link=link)
+    shadow = Shadow(config, classifier)
+    period = round(1e9 / rate_hz)
+    out = []
+    for i, (frame, truth) in enumerate(zip(frames, truths, strict=True)):
+        clock.advance(period)
+        before = dict(node.counters)
+        sample = TactileSample(frame=frame, seq=i + 1, t_capture_ns=clock.t_ns, truth=truth)
+        node.pipeline.offer(sample, clock.t_ns)
+        after = node.counters
+        kinds = [kind for c, kind in _KIND_OF_COUNTER if after[c] > before.get(c, 0)]
+        msg = node.last_stimulus
+        current = msg.stimulus if msg is not None else np.zeros((3, 3), np.float32)
+        out.append((kinds, current, shadow.stimulus(frame, truth)))
+    return node, link, out
 
 
 def skipping(
     classifier: Any, stage_medians_us: dict[str, float], cycles: float, scene_name: str = "demo"
 ) -> dict[str, Any]:
     """Counts, frames per second and CPU saved per skip, and the output difference each causes."""
-    from robot_side.tactile.base import TactileSample
-
     scene = load_scene(scene_name)
     config = scene.robot
     frames, truths, rate_hz = demo_frames(scene_name, cycles)
     renderer = LinkGlideRenderer(scene.operator.renderer, LinkGlideCalibration())
-    clock = VirtualClock()
-    link = CaptureLink()
-    node = RobotNode(
-        config,
-        tactile=None,
-        classifier=classifier,
-        now=clock,
-        link=link,
-    )
     render = config.render
-    shadow_step = None
-    if node.uses_compiled_step:
-        from robot_side.compiled_step import CompiledFrameStep
-
-        shadow_step = CompiledFrameStep.for_node(classifier, render)
-    min_interval = round(0.9e9 / config.publish_rate_hz)
-    period = round(1e9 / rate_hz)
     kinds = ("rate_cap", "no_contact", "identical_frame", "unchanged_stimulus", "published")
     diff = {k: {"frames": 0, "max_abs_n": 0.0, "cells_differ": 0, "max_counts": 0} for k in kinds}
-    last_process = -(10**18)
     counts_cache: dict[bytes, np.ndarray] = {}
 
     def counts_of(stim: np.ndarray) -> np.ndarray:
@@ -182,28 +201,8 @@ def skipping(
             counts_cache[key] = renderer.target_counts(stim)
         return counts_cache[key]
 
-    for i, (frame, truth) in enumerate(zip(frames, truths, strict=True)):
-        clock.advance(period)
-        before = dict(node.counters)
-        sample = TactileSample(frame=frame, seq=i + 1, t_capture_ns=clock.t_ns, truth=truth)
-        kinds_here: list[str] = []
-        if clock.t_ns - last_process >= min_interval:
-            last_process = clock.t_ns
-            node.process(sample)
-            after = node.counters
-            for counter, kind in (
-                ("frames_no_contact", "no_contact"),
-                ("frames_identical", "identical_frame"),
-                ("stimuli_unchanged", "unchanged_stimulus"),
-                ("stimuli_published", "published"),
-            ):
-                if after[counter] > before.get(counter, 0):
-                    kinds_here.append(kind)
-        else:
-            kinds_here.append("rate_cap")
-        full = shadow_stimulus(frame, truth, classifier, render, shadow_step)
-        msg = node.last_stimulus
-        current = msg.stimulus if msg is not None else np.zeros((3, 3), np.float32)
+    node, link, per_frame = through_node(config, classifier, frames, truths, rate_hz)
+    for kinds_here, current, full in per_frame:
         for kind in kinds_here:
             # the no-contact skip leaves out the classifier: compare what the node
             # computed (all zeros) with what classifying would have rendered
@@ -302,7 +301,8 @@ def markdown(results: Results) -> list[str]:
     out += [
         f"The `{s['scene']}` scene's scripted grasps replayed for {s['duration_s']:.1f} s of "
         f"virtual time ({s['frames']:,} frames at {s['rate_hz']:g} Hz) through "
-        "`RobotNode.process` with the node's clock made virtual, beside a shadow that "
+        "the node's `FramePipeline.offer` (rate cap included) with the node's clock made "
+        "virtual, beside a shadow that "
         "classifies and renders every frame. CPU saved per skipped frame is the sum of the "
         "paced stage medians (what a frame costs in the field) it leaves out, counted on the "
         "plain path's stages (the compiled frame step leaves out the same work inside its "

@@ -26,6 +26,7 @@ import zmq
 from common.clock import Rate, now_ns
 from common.codec import decode, encode
 from common.messages import Stimulus
+from common.stimulus import is_contact, render_cells, sanitize_frame
 from common.tactile import N_ANGLES, pattern_of
 from deploy.bench.fixtures import (
     PacketBuilder,
@@ -40,7 +41,6 @@ from operator_side.config import OperatorConfig
 from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 from robot_side.config import RobotConfig
-from robot_side.rendering import is_contact, render_cells, sanitize_frame
 
 log = logging.getLogger(__name__)
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from common.codec import DecodeError, decode, encode
 from common.messages import Stimulus
+from common.stimulus import METHODS, ORDERS, render_stimulus
 from common.tactile import FRAME_SHAPE, N_PATTERNS, SATURATION_N
 from deploy.bench.fmt import num, results_of, sci, table
 from deploy.bench.ik import edge_shell, reachable_mask, round_trip_mm, workspace_grid
@@ -35,7 +36,6 @@ from deploy.bench.section import Context, Results, Section, Verdict
 from operator_side.linkglide import DEFAULT_GEOMETRY, inverse_kinematics, inverse_kinematics_one
 from operator_side.renderer import LinkGlideRenderer, RendererConfig
 from operator_side.servos.calibration import COUNTS_PER_RAD, LinkGlideCalibration
-from robot_side.rendering import METHODS, ORDERS, render_stimulus
 
 log = logging.getLogger(__name__)
 
@@ -217,7 +217,7 @@ def rendering_stress(classifier: Any, n_random: int, seed: int = 8) -> dict[str,
                     except DecodeError:
                         codec_refused += 1
         if classifier is not None:
-            from robot_side.rendering import sanitize_frame
+            from common.stimulus import sanitize_frame
 
             try:
                 one = classifier.predict_one(sanitize_frame(f32))  # the node's call

@@ -1,4 +1,9 @@
-"""The node, replay and the skipping bench apply one frame rule, so they agree frame by frame."""
+"""The node, replay and the skipping bench apply one frame rule, so they agree frame by frame.
+
+Every frame is rendered here (no rate cap: ``process``);
+tests/robot/test_frame_pipeline_agreement.py offers frames as the node's
+loop does, rate cap included.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +15,7 @@ from common.mcap_recorder import node_recorder
 from common.transport import CaptureLink
 from deploy import replay
 from deploy.bench.fixtures import frame_set
-from deploy.bench.skipping import shadow_stimulus
+from deploy.bench.skipping import Shadow
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.perception import load_classifier
@@ -51,6 +56,7 @@ def test_node_replay_and_bench_agree_on_every_frame(tmp_path, classifier, mode: 
     config = RobotConfig()
     config.render.mode = mode
     config.render.keyframe_interval_ms = 30.0  # a held grasp sends keyframes
+    config.publish_rate_hz = 1000.0  # every 120 Hz frame is rendered: replay's cap agrees
     path = tmp_path / "robot.mcap"
     recorder = node_recorder(path, config, "robot")
     clock = VirtualClock()
@@ -58,18 +64,19 @@ def test_node_replay_and_bench_agree_on_every_frame(tmp_path, classifier, mode: 
     node = RobotNode(config, None, classifier=classifier, recorder=recorder, now=clock, link=link)
     assert not node.uses_compiled_step
     frames, truths = _frames()
+    shadow = Shadow(config, classifier)
     for seq, (frame, truth) in enumerate(zip(frames, truths, strict=True), start=1):
         clock.advance(PERIOD_NS)
         node.process(TactileSample(frame=frame, seq=seq, t_capture_ns=clock(), truth=truth))
         # the bench's shadow renders every frame afresh; the node's current stimulus is
         # the same within the dead band (exactly the same for a frame it just sent)
-        shadow = shadow_stimulus(frame, truth, classifier, config.render)
+        full = shadow.stimulus(frame, truth)
         current = node.last_stimulus
         assert current is not None
         if current.frame_seq == seq and not current.keyframe:
-            np.testing.assert_array_equal(current.stimulus, shadow)
+            np.testing.assert_array_equal(current.stimulus, full)
         else:
-            assert np.abs(current.stimulus - shadow).max() <= config.render.deadband_n
+            assert np.abs(current.stimulus - full).max() <= config.render.deadband_n
     recorder.close()
     sent = [m for m in link.messages if not m.keyframe]
     keyframes = len(link.messages) - len(sent)
@@ -91,6 +98,7 @@ def test_replay_reports_a_stimulus_the_dead_band_would_have_held_back(tmp_path) 
     config = RobotConfig()
     config.render.mode = "direct"
     config.render.deadband_n = 0.0
+    config.publish_rate_hz = 1000.0  # both frames rendered, 8 ms apart
     path = tmp_path / "robot.mcap"
     recorder = node_recorder(path, config, "robot")
     clock = VirtualClock()

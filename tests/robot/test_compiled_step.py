@@ -11,13 +11,13 @@ from hypothesis.extra.numpy import arrays
 pytest.importorskip("numba")
 
 from common.clock import VirtualClock
+from common.stimulus import render_cells, sanitize_with_peak
 from common.transport import CaptureLink
 from deploy.bench.fixtures import frame_set
 from robot_side.compiled_step import CompiledFrameStep
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.perception import load_classifier
-from robot_side.rendering import render_cells, sanitize_with_peak
 from robot_side.tactile.base import TactileSample
 from robot_side.tactile.scripted import ScriptedTactileSensor
 

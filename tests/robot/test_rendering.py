@@ -8,14 +8,14 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from common.tactile import MASKS, matches_pattern
-from deploy.bench.downsizing import downsize, peak_per_row
-from robot_side.rendering import (
+from common.stimulus import (
     antialiased_bicubic_weights,
     area_weights,
     plain_bicubic_weights,
     render_stimulus,
 )
+from common.tactile import MASKS, matches_pattern
+from deploy.bench.downsizing import downsize, peak_per_row
 
 
 def band_frame(cells: list[tuple[int, int]], force: float = 6.0) -> np.ndarray:
@@ -131,8 +131,8 @@ def test_cubic_overshoot_never_goes_negative(x):
 @pytest.mark.parametrize("order", ["mask_then_peak", "peak_then_mask"])
 def test_the_fused_path_renders_what_the_separable_oracle_renders(method, order):
     """One (9, 200) product per frame against contact map, ``Wy @ X @ Wx.T``, peak, mask."""
+    from common.stimulus import render_cells, sanitize_frame
     from deploy.bench.downsizing import separable_stimulus
-    from robot_side.rendering import render_cells, sanitize_frame
 
     rng = np.random.default_rng(7)
     for _ in range(50):

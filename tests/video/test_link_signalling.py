@@ -123,7 +123,7 @@ def test_a_robot_without_video_answers_an_offer_with_the_reason():
     config = RobotConfig(render=RenderConfig(mode="direct"), link=RobotLinkConfig())
     node = RobotNode(config, None, link=link)
     link.deliver(_signal("offer", 5, "v=0"), 1)
-    node._handle_commands(1)
+    node.receive(1)
     sent = [m for m in link.messages if isinstance(m, VideoSignal)]
     assert len(sent) == 1 and sent[0].kind == "closed" and sent[0].viewer == 5
     assert "link.video_url" in sent[0].reason

@@ -1,0 +1,290 @@
+"""Every operator message the robot reads, admitted in one place and acted on through a table.
+
+``CommandDesk.admit`` is the one admission path, signed or not (peers.py:
+an unsigned link is a roster of one operator who always holds control):
+
+1. whose message is it: a key of the roster, or the one operator;
+2. a heartbeat syncs that sender's clock and keeps its deadman alive; a
+   video signal goes to the video desk; a command goes on:
+3. fresh, in order and not replayed, by the sender's own clock (command_gate.py);
+4. a lease action changes who holds control (lease.py), and stops there;
+5. the stop latch's word (stop_latch.py): only the holder moves the arm,
+   and nothing moves it while a stop is latched;
+6. the newest admitted command of each device wins the batch; it goes to
+   its device's worker through ``DEVICE_CALLS`` (device_calls.py).
+
+Whatever arrives, from a dashboard page, a gamepad, a script or the API,
+passes the same clipping (the arm driver's), deadman and stop latch.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable
+from typing import Any
+
+from common.clock_sync import ClockSync
+from common.codec import DecodeError
+from common.errors import ConfigError, DeviceError
+from common.messages import (
+    LEASE_ACTIONS,
+    SESSION_LOW_MASK,
+    Command,
+    Heartbeat,
+    Message,
+    VideoSignal,
+)
+from common.recording import Recorder
+from common.roster import Roster, check_replacement, load_roster
+from robot_side.command_gate import CommandGate
+from robot_side.config import RobotLinkConfig
+from robot_side.device_worker import DeviceRequest
+from robot_side.lease import ControlLease
+from robot_side.node.device_calls import DEVICE_CALLS
+from robot_side.node.peers import OnePeer, RosterPeers
+from robot_side.node.workers import DeviceWorkers
+from robot_side.stop_latch import REFUSALS, StopLatch
+
+log = logging.getLogger(__name__)
+
+#: the newest admitted command of each device in a batch, with its send time on our clock
+Newest = dict[str, tuple[Command, int | None]]
+
+
+class CommandDesk:
+    """Admission, the lease and the stop latch, and the hand-over to the device workers."""
+
+    def __init__(
+        self,
+        link: RobotLinkConfig,
+        workers: DeviceWorkers,
+        *,
+        counters: Counter[str],
+        now: Callable[[], int],
+        recorder: Recorder | None,
+        on_video: Callable[[VideoSignal, bytes | None], None],
+        announce: Callable[[], None],
+    ) -> None:
+        """``recorder`` None records nothing;
+        ``announce`` asks for a heartbeat at once (a lease or latch change)."""
+        self.link = link
+        self.workers = workers
+        self.counters = counters
+        self.now = now
+        self.recorder = recorder
+        self.on_video = on_video
+        self.announce = announce
+        max_age_ns = round(link.max_command_age_ms * 1e6)
+        #: the one operator's clock on an unsigned link (each roster key has its own)
+        self.clock = ClockSync()
+        #: an operator's arm_stop holds the arm until the holder's arm_resume (stop_latch.py)
+        self.stop_latch = StopLatch()
+        #: the roster in force (a reload that would lock everyone out keeps it)
+        self.roster: Roster | None = None
+        #: with a roster: signed commands, obeyed only from the lease holder (lease.py)
+        self.lease: ControlLease | None = None
+        self.peers: OnePeer | RosterPeers = OnePeer(self.clock, max_age_ns)
+        if link.roster_file is not None:
+            roster = self.roster = load_roster(link.roster_file)
+            self.lease = ControlLease(
+                roster.by_signing_key(), max_age_ns, round(link.lease_request_timeout_ms * 1e6)
+            )
+            self.peers = RosterPeers(self.lease)
+        elif link.mode == "relay":
+            raise ConfigError(
+                "robot link.mode = 'relay' needs link.roster_file: through a relay only "
+                "signed commands from the lease holder may move the arm (docs/security.md)"
+            )
+        self._lease_changes_seen = 0
+        #: (seq, low 32 bits of the session) of the newest gripper command handed to the gripper
+        self.gripper_ack: tuple[float, float] | None = None
+
+    @property
+    def gate(self) -> CommandGate:
+        """The gate whose newest fresh message the deadman counts from (the holder's)."""
+        return self.peers.holder_gate
+
+    def take(self, batch: list[tuple[Message, int]], now: int) -> None:
+        """Admit a batch; hand the newest admitted command of each device to its worker."""
+        newest: Newest = {}
+        for msg, t_recv in batch:
+            self.admit(msg, t_recv, now, newest)
+        if self.lease is not None:
+            timed_out = self.lease.tick(now)
+            if timed_out is not None:
+                self.counters[timed_out] += 1
+            self._follow_lease(now, newest)
+        for device, (cmd, sent) in newest.items():
+            self._dispatch(device, cmd, sent)
+
+    def admit(self, msg: Message, t_recv: int, now: int, newest: Newest) -> None:
+        """The one admission of an operator message, signed or not (the module's steps 1-6)."""
+        found = self.peers.find(msg)
+        if isinstance(found, str):
+            self.counters[found] += 1
+            return
+        key, peer = found
+        peer.last_heard_ns = now
+        if isinstance(msg, Heartbeat):
+            peer.clock.on_heartbeat(msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv)
+            peer.gate.heard(msg.t_send_ns, t_recv, now)
+            return
+        if isinstance(msg, VideoSignal):  # any role may watch: the roster vouched for it
+            self.on_video(msg, key)
+            return
+        if not isinstance(msg, Command):
+            self.counters["messages_unexpected"] += 1
+            return
+        self.counters["commands_received"] += 1
+        refusal, sent = peer.gate.admit(msg, t_recv, now)
+        if refusal is not None:
+            self.counters[refusal] += 1
+            self._record(msg, f"refused: {refusal}")
+            return
+        if msg.action in LEASE_ACTIONS:
+            outcome = self.peers.lease_action(key, msg, now)
+            self.counters[outcome] += 1
+            self._record(msg, outcome)
+            return
+        holder, who = self.peers.holds(key), peer.entry
+        if not self._latch_lets(msg, holder, who.role, who.name, now):
+            return
+        call = DEVICE_CALLS.get(msg.action)
+        if call is None:  # the codec admits no other action; should one be added, say so
+            self.counters["messages_unexpected"] += 1
+            return
+        older = newest.get(call.device)
+        if older is not None:  # newest only: an older wish is never acted on
+            self.counters["commands_superseded"] += 1
+            self._record(older[0], "superseded")
+        newest[call.device] = (msg, sent)
+
+    def _latch_lets(self, msg: Command, holder: bool, role: str, who: str, now: int) -> bool:
+        """The stop latch's word on an admitted command: True to act on it on the device.
+
+        A refusal is counted and recorded with its reason; an ``arm_resume``
+        is used up here (it moves nothing), an ``arm_stop`` latches and goes
+        on to stop the arm.
+        """
+        latch = self.stop_latch
+        refusal = latch.judge(msg.action, holder, role)
+        if refusal is not None:
+            self.counters[refusal] += 1
+            self._record(msg, f"refused: {REFUSALS[refusal]}")
+            return False
+        if msg.action in ("arm_stop", "arm_resume"):
+            if latch.apply(msg.action, who, now):
+                self.announce()  # every operator sees the latch change at once
+            self.counters["arm_stops_latched" if msg.action == "arm_stop" else "arm_resumes"] += 1
+        if msg.action == "arm_resume":
+            self._record(msg, "applied")
+            return False
+        return True
+
+    # -------------------------------------------------------------- the lease
+    def holder_silent(self, now: int) -> None:
+        """The deadman tripped: the holder's lease expires (a waiting requester takes over)."""
+        lease = self.lease
+        if lease is not None and lease.holder is not None:
+            self.counters["lease_expired"] += 1
+            lease.expire(now)
+            self._follow_lease(now, {})
+
+    def reload_roster(self, now: int) -> bool:
+        """Read ``link.roster_file`` again; a broken file keeps the roster in force, and so
+        does one that would remove every controller or every robot (``check_replacement``).
+
+        A key added may act from its next message; a key removed is ignored
+        from now on, and if it held the lease the arm stops (as at any change
+        of holder).
+        """
+        path = self.link.roster_file
+        if self.lease is None or path is None:
+            log.warning("roster reload asked, but this robot has no link.roster_file")
+            return False
+        try:
+            roster = load_roster(path)
+            if self.roster is not None:
+                check_replacement(self.roster, roster, path)
+        except ConfigError as e:
+            self.counters["roster_reloads_failed"] += 1
+            log.error("roster reload failed, the roster in force stays: %s", e)
+            return False
+        self.roster = roster
+        changes = self.lease.replace_roster(roster.by_signing_key())
+        self.counters["roster_reloads"] += 1
+        log.info(
+            "roster %s reloaded: %d operator keys; %s",
+            path,
+            len(self.lease.operators),
+            "; ".join(changes) or "nothing changed",
+        )
+        self._follow_lease(now, {})
+        return True
+
+    def _follow_lease(self, now: int, newest: Newest) -> None:
+        """After the holder changed: the deadman follows the new holder, the arm stops once.
+
+        Stopping at a hand-over means the new holder starts from rest, never
+        from the old holder's last jog; its own commands in this batch still go.
+        """
+        lease = self.lease
+        if lease.changes == self._lease_changes_seen:
+            return
+        self._lease_changes_seen = lease.changes
+        self.announce()
+        if not any(cmd.action == "arm_jog" for cmd, _ in newest.values()):
+            self.workers.stop_devices(f"control lease now {lease.holder_name() or 'nobody'}'s")
+
+    # ---------------------------------------------------------- the devices
+    def _dispatch(self, device: str, cmd: Command, sent_ns: int | None) -> None:
+        """Hand the command to its device's worker; a missing device refuses at once."""
+        if device not in self.workers.workers:
+            self.counters["commands_rejected"] += 1
+            log.warning("command %s rejected: this scene has no %s", cmd.action, device)
+            self._record(cmd, f"rejected: this scene has no {device}")
+            return
+        if device == "gripper":
+            # the heartbeat names it, so the operator can resend a gripper command we never saw
+            self.gripper_ack = (float(cmd.seq), float((cmd.session or 0) & SESSION_LOW_MASK))
+        call, args = DEVICE_CALLS[cmd.action].make(self.workers.device(device), cmd, sent_ns)
+        self.workers.post(
+            device, DeviceRequest(cmd.action, call, args, self._on_done(cmd, sent_ns))
+        )
+
+    def _on_done(self, cmd: Command, sent_ns: int | None) -> Callable[..., None]:
+        def on_done(request: DeviceRequest, result: Any, error: BaseException | None) -> None:
+            if error is None:
+                outcome = "applied"
+            elif isinstance(error, (DeviceError, ValueError, DecodeError)):
+                log.warning("command %s rejected: %s", cmd.action, error)
+                outcome = f"rejected: {error}"
+            else:
+                log.error("command %s failed: %r", cmd.action, error)
+                outcome = f"failed: {error!r}"
+            sent = result if cmd.action == "arm_jog" and error is None else None
+            self._record(cmd, outcome, sent, sent_ns)
+
+        return on_done
+
+    def _record(
+        self, cmd: Command, outcome: str, sent: Any = None, sent_ns: int | None = None
+    ) -> None:
+        """``t_sent_ns`` (the operator's send time on our clock) is when the arm's jog
+        deadline started counting, which an exporter needs to end the jog where the arm did."""
+        if self.recorder is None:
+            return
+        self.recorder.write(
+            "robot/command",
+            self.now(),
+            {
+                "seq": cmd.seq,
+                "action": cmd.action,
+                "grip_level": cmd.grip_level,
+                "velocity": list(cmd.velocity) if cmd.velocity else None,
+                "sent_velocity": None if sent is None else [float(v) for v in sent],
+                "t_sent_ns": sent_ns,
+                "outcome": outcome,
+            },
+        )

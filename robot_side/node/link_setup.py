@@ -1,0 +1,108 @@
+"""The robot's side of the operator link: its name, its signing key, its two sockets.
+
+Checked when the node is built, so a config the link cannot honour fails
+before any device moves, with the setting to change.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from typing import TYPE_CHECKING
+
+import zmq
+
+from common.codec import DecodeError, check_robot_name, name_prefix
+from common.errors import ConfigError
+from common.messages import Command, Heartbeat, VideoSignal
+from common.security import Authenticator, check_endpoint, client_options, server_options
+from common.transport import Publisher, Subscriber
+from robot_side.config import RobotLinkConfig
+
+if TYPE_CHECKING:  # cryptography only when signing
+    from common.signing import Signer
+
+log = logging.getLogger(__name__)
+
+
+def wire_name(name: str) -> bytes:
+    """Our name on the wire (b"" = unnamed); ConfigError for a name the protocol forbids."""
+    if not name:
+        return b""
+    try:
+        return check_robot_name(name)
+    except DecodeError as e:
+        raise ConfigError(f"robot link.robot_name: {e}") from None
+
+
+def stream_signer(link: RobotLinkConfig) -> Signer | None:
+    """What signs everything we send (None: unsigned); operators holding our key drop the rest.
+
+    Through a relay the stream is signed unless ``link.unsigned_stream`` says otherwise.
+    """
+    if link.mode == "relay" and link.signing_key_file is None:
+        if not link.unsigned_stream:
+            raise ConfigError(
+                "robot link.mode = 'relay' signs its stream: set link.signing_key_file "
+                "(`deepxpalm keys robot --name NAME` makes it), or link.unsigned_stream = "
+                "true to let a compromised relay forge what palms feel (docs/security.md)"
+            )
+        log.warning("link.unsigned_stream: this robot's stream is not signed")
+    if link.signing_key_file is None:
+        return None
+    from common.signing import load_signer  # cryptography only when signing
+
+    return load_signer(link.signing_key_file)
+
+
+def open_link(
+    stack: contextlib.ExitStack,
+    ctx: zmq.Context,
+    link: RobotLinkConfig,
+    *,
+    name: bytes,
+    signer: Signer | None,
+    serves_video: bool,
+) -> tuple[Publisher, Subscriber, Authenticator | None]:
+    """(the stream we publish, the operators' messages we read, the CURVE allowlist if bound).
+
+    Bound: we are the CURVE server. Through a relay the relay is, and its
+    allowlist and ours (the roster) both apply.
+    """
+    for endpoint in (link.telemetry_endpoint, link.command_endpoint):
+        check_endpoint(endpoint, link.security)
+    bind = link.mode == "bind"
+    auth = None
+    if bind:
+        auth = Authenticator(ctx, link.security)
+        stack.callback(auth.stop)
+        opts = server_options(link.security)
+    else:
+        opts = client_options(link.security)
+    pub = Publisher(
+        ctx,
+        link.telemetry_endpoint,
+        bind=bind,
+        sock_opts=opts,
+        name=name,
+        signer=signer,
+        watch_subscriptions=not bind,  # the relay tells us what anyone subscribed to
+    )
+    stack.callback(pub.close)
+    topics: tuple[bytes, ...] = (b"",)
+    if name:
+        wanted = [Command.TOPIC, Heartbeat.TOPIC]
+        if serves_video:  # viewers' offers, only where a camera is served
+            wanted.append(VideoSignal.TOPIC)
+        topics = tuple(name_prefix(topic, name) for topic in wanted)
+    sub = Subscriber(
+        ctx,
+        link.command_endpoint,
+        bind=bind,
+        sock_opts=opts,
+        name="robot commands",
+        topics=topics,
+        expect_name=name,
+    )
+    stack.callback(sub.close)
+    return pub, sub, auth

@@ -1,0 +1,154 @@
+"""What the robot says besides stimuli: heartbeats, its stats, and raw frames for display.
+
+A heartbeat carries the link state, the clock echo the operator's offset
+filter needs (round robin over the roster's operators heard lately), the
+last stimulus's seq (so a lost change is noticed), the lease holder and
+the node's stats, cut to what the protocol allows.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable
+
+from common.codec import MAX_STATS, name_prefix
+from common.logs import BurstLog
+from common.messages import Heartbeat, Stimulus, TactileFrame
+from common.security import Authenticator
+from common.stimulus import sanitize_frame
+from common.transport import Sender
+from robot_side.node.command_desk import CommandDesk
+from robot_side.node.frame_pipeline import FramePipeline
+from robot_side.node.workers import DeviceWorkers
+from robot_side.tactile.base import TactileSample
+from robot_side.video.link_signalling import LinkSignalling
+
+log = logging.getLogger(__name__)
+
+
+class Telemetry:
+    """Heartbeats and display frames on the robot's stream."""
+
+    def __init__(
+        self,
+        desk: CommandDesk,
+        *,
+        name: bytes,
+        session: int,
+        now: Callable[[], int],
+        stats: Callable[[], dict[str, float]],
+        counters: dict[str, int],
+    ) -> None:
+        self.desk = desk
+        self.name = name
+        self.session = session
+        self.now = now
+        self.stats = stats
+        self.counters = counters
+        self.pub: Sender | None = None  # set by the node once its link is open
+        self.now_wanted = False  # a lease or latch change is announced at once, not in 50 ms
+        self._hb_seq = 0
+        self._frame_seq = 0
+        self._echo_turn = 0  # round robin over the operators whose heartbeats we echo
+        self._stats_cut = BurstLog(log, "heartbeat stats over the protocol's limit")
+
+    def announce(self) -> None:
+        """Send a heartbeat at the next loop turn."""
+        self.now_wanted = True
+
+    def send_heartbeat(
+        self, state: str, last: Stimulus | None, last_capture_ns: int | None
+    ) -> None:
+        self.now_wanted = False
+        self._hb_seq += 1
+        desk, lease = self.desk, self.desk.lease
+        echo_send, echo_recv = desk.clock.echo_fields()
+        echo_signer = controller = pending = None
+        if lease is not None:
+            echo_signer, echo_send, echo_recv = self._next_echo()
+            controller, pending = lease.holder, lease.pending
+        self.pub.send(
+            Heartbeat(
+                seq=self._hb_seq,
+                t_send_ns=self.now(),
+                node="robot",
+                state=state,
+                echo_t_send_ns=echo_send,
+                echo_t_recv_ns=echo_recv,
+                stimulus_seq=last.seq if last else None,
+                t_capture_ns=last_capture_ns if last else None,
+                stats=self._heartbeat_stats(),
+                echo_signer=echo_signer,
+                controller=controller,
+                lease_pending=pending,
+                session=self.session,
+            )
+        )
+
+    def _next_echo(self) -> tuple[bytes | None, int | None, int | None]:
+        """(key, echo fields) of the next operator heard in the last second, round robin.
+
+        One heartbeat echoes one operator; taking turns gives each of five
+        operators four clock samples a second, which its offset filter needs.
+        """
+        now = self.now()
+        peers = self.desk.lease.peers
+        recent = [k for k, p in peers.items() if now - p.last_heard_ns < 1_000_000_000]
+        if not recent:
+            return None, None, None
+        self._echo_turn = (self._echo_turn + 1) % len(recent)
+        key = recent[self._echo_turn]
+        echo_send, echo_recv = peers[key].clock.echo_fields()
+        return key, echo_send, echo_recv
+
+    def _heartbeat_stats(self) -> dict[str, float]:
+        """``stats()``, cut to what a heartbeat may carry: the operator refuses a longer map."""
+        stats = self.stats()
+        if len(stats) > MAX_STATS:
+            self._stats_cut(f"{len(stats)} counters, {MAX_STATS} sent: {sorted(stats)[MAX_STATS:]}")
+            stats = dict(sorted(stats.items())[:MAX_STATS])
+        return stats
+
+    def send_frame(self, sample: TactileSample) -> None:
+        """The raw frame, for the dashboard's display; not even encoded when nobody wants it."""
+        if not self.pub.wanted(name_prefix(TactileFrame.TOPIC, self.name)):
+            self.counters["frames_unwanted"] += 1
+            return
+        self._frame_seq += 1
+        self.pub.send(
+            TactileFrame(
+                seq=self._frame_seq,
+                t_send_ns=self.now(),
+                t_capture_ns=sample.t_capture_ns,
+                frame_seq=sample.seq,
+                frame=sanitize_frame(sample.frame),
+                session=self.session,
+            )
+        )
+
+
+def node_stats(
+    counters: Counter[str],
+    workers: DeviceWorkers,
+    video: LinkSignalling | None,
+    auth: Authenticator | None,
+    pipeline: FramePipeline,
+    desk: CommandDesk,
+) -> dict[str, float]:
+    """What the heartbeat's stats and ``RobotNode.stats()`` say: every part's counters."""
+    out = {k: float(v) for k, v in counters.items()}
+    for k, v in workers.stats().items():  # counted on the workers' own threads
+        out[k] = out.get(k, 0.0) + v
+    if video is not None:
+        out.update((k, float(v)) for k, v in video.counters.items())
+    if auth is not None and auth.refused:
+        out["curve_refused"] = float(auth.refused)
+    out.update(workers.availability())
+    if pipeline.first_seq is not None:
+        out["frames_captured"] = float(pipeline.last_seq - pipeline.first_seq + 1)
+    out.update(workers.arm_readings())  # the arm worker's latest reading, for the dashboard
+    out["arm_stop_latched"] = float(desk.stop_latch.latched)
+    if desk.gripper_ack is not None:
+        out["gripper_command_seq"], out["gripper_command_session"] = desk.gripper_ack
+    return out
