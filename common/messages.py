@@ -26,6 +26,7 @@ CommandAction = Literal[
     "arm_jog_end",
     "arm_stop",
     "arm_resume",
+    "arm_assist",
     "lease_request",
     "lease_grant",
     "lease_release",

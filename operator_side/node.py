@@ -658,9 +658,9 @@ class OperatorNode:
                 self.pub.send(cmd)
                 self.counters[f"video_{cmd.kind}s_sent"] += 1
                 continue
-            if cmd.action == "arm_jog" and not self.sees_robot(now):
-                self.counters["jogs_held_blind"] += 1
-                self._blind_log("arm_jog")
+            if cmd.action in ("arm_jog", "arm_assist") and not self.sees_robot(now):
+                self.counters["jogs_held_blind"] += 1  # the assist is held like a jog
+                self._blind_log(cmd.action)
                 continue
             self._send_command(cmd, now, resends=0)
         pending = self._gripper_pending

@@ -136,6 +136,30 @@ class RobotLinkConfig:
 
 
 @dataclass
+class AssistConfig:
+    """The assist (robot_side/node/assist.py): how it moves, slower than the arm's caps."""
+
+    turn_speed_rad_s: float = param(0.3, "the wrist's top speed while turning (about 17 deg/s)")
+    shift_speed_m_s: float = param(0.01, "the TCP's top speed while shifting")
+    gain_per_s: float = param(3.0, "velocity per unit of error left (the approach slows near it)")
+    side_offset_mm: float = param(6.0, "how far a side class lies from centre (docs/tactile.md)")
+    angle_tolerance_deg: float = param(1.5, "a turn this close to its target is done")
+    position_tolerance_mm: float = param(0.3, "a shift this close to its target is done")
+    release_ms: float = param(300.0, "the gripper opens at least this long before the arm moves")
+    settle_ms: float = param(400.0, "contact held this long before a pattern is judged")
+    phase_timeout_s: float = param(8.0, "a phase not finished by then: the assist gives up")
+    max_regrasps: int = param(3, "re-grasps before giving up")
+    box_margin_m: float = param(0.002, "its targets are kept this far inside the workspace box")
+
+    def __post_init__(self) -> None:
+        for name in ("turn_speed_rad_s", "shift_speed_m_s", "gain_per_s", "phase_timeout_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"assist.{name} must be positive")
+        if self.max_regrasps < 1:
+            raise ValueError("assist.max_regrasps must be at least 1")
+
+
+@dataclass
 class RobotConfig:
     publish_rate_hz: float = param(
         60.0, "at most this many stimuli per second (frames come at 120 Hz)"
@@ -144,6 +168,9 @@ class RobotConfig:
     render: RenderConfig = param(RenderConfig(), "how frames become stimuli")
     classifier: ClassifierConfig = param(ClassifierConfig(), "the tilt/position CNN (mask mode)")
     link: RobotLinkConfig = param(RobotLinkConfig(), "sockets and link health")
+    assist: AssistConfig = param(
+        AssistConfig(), "the assist an operator holds (arm_assist): turn, shift, re-grasp"
+    )
     tactile: dict[str, Any] = param(
         {"kind": "scripted"}, "tactile pads: kind + that kind's settings"
     )

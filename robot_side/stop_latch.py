@@ -32,7 +32,7 @@ from common.messages import STOP_ROLES
 log = logging.getLogger(__name__)
 
 #: commands that can set the arm moving: refused while the stop is latched
-MOVES_ARM = frozenset({"arm_jog"})
+MOVES_ARM = frozenset({"arm_jog", "arm_assist"})
 
 #: Refusal reasons, each the name of the counter it increments.
 STOP_LATCHED = "commands_stop_latched"

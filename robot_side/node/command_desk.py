@@ -10,8 +10,13 @@ an unsigned link is a roster of one operator who always holds control):
 4. a lease action changes who holds control (lease.py), and stops there;
 5. the stop latch's word (stop_latch.py): only the holder moves the arm,
    and nothing moves it while a stop is latched;
-6. the newest admitted command of each device wins the batch; it goes to
+6. an ``arm_assist`` (the holder's enable) goes to the assist (assist.py),
+   and any other command from the holder ends an assist in progress;
+7. the newest admitted command of each device wins the batch; it goes to
    its device's worker through ``DEVICE_CALLS`` (device_calls.py).
+
+The assist's own commands (``act_for_holder``) take steps 5 and 7: the same
+stop latch, device calls, clipping and recording as the holder's.
 
 Whatever arrives, from a dashboard page, a gamepad, a script or the API,
 passes the same clipping (the arm driver's), deadman and stop latch.
@@ -22,7 +27,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from common.clock_sync import ClockSync
 from common.codec import DecodeError
@@ -45,6 +50,9 @@ from robot_side.node.device_calls import DEVICE_CALLS
 from robot_side.node.peers import OnePeer, RosterPeers
 from robot_side.node.workers import DeviceWorkers
 from robot_side.stop_latch import REFUSALS, StopLatch
+
+if TYPE_CHECKING:
+    from robot_side.node.assist import Assist
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +107,8 @@ class CommandDesk:
         self._lease_changes_seen = 0
         #: (seq, low 32 bits of the session) of the newest gripper command handed to the gripper
         self.gripper_ack: tuple[float, float] | None = None
+        #: the robot-side reflex an ``arm_assist`` holds (set by the node; None: refused)
+        self.assist: Assist | None = None
 
     @property
     def gate(self) -> CommandGate:
@@ -148,8 +158,15 @@ class CommandDesk:
             self._record(msg, outcome)
             return
         holder, who = self.peers.holds(key), peer.entry
+        if self.assist is not None and msg.action == "arm_stop":
+            self.assist.end(f"arm_stop from {who.name}")  # anyone's stop the latch obeys
         if not self._latch_lets(msg, holder, who.role, who.name, now):
             return
+        if msg.action == "arm_assist":
+            self._hold_assist(msg, sent if sent is not None else t_recv, now)
+            return
+        if self.assist is not None:
+            self.assist.end(f"the holder's own {msg.action}")
         call = DEVICE_CALLS.get(msg.action)
         if call is None:  # the codec admits no other action; should one be added, say so
             self.counters["messages_unexpected"] += 1
@@ -159,6 +176,33 @@ class CommandDesk:
             self.counters["commands_superseded"] += 1
             self._record(older[0], "superseded")
         newest[call.device] = (msg, sent)
+
+    def _hold_assist(self, msg: Command, enable_ns: int, now: int) -> None:
+        refusal = "assist_refused_none" if self.assist is None else self.assist.hold(enable_ns, now)
+        if refusal is not None:
+            self.counters[refusal] += 1
+            self._record(msg, f"refused: {refusal}")
+            return
+        self.counters["assist_enables"] += 1
+
+    def act_for_holder(self, cmd: Command, sent_ns: int | None) -> bool:
+        """A command the robot makes for the lease holder (the assist), on the holder's path.
+
+        The stop latch judges it as the holder's own, ``DEVICE_CALLS`` carries
+        it out (an arm velocity passes the arm driver's caps and box clipping,
+        and ``sent_ns``, the holder's enable, starts the arm's jog deadman) and
+        it is recorded in ``robot/command``. It never names itself in the
+        heartbeat's gripper acknowledgement, which is the operator's own.
+        False when refused.
+        """
+        refusal = self.stop_latch.judge(cmd.action, True)
+        if refusal is not None:
+            self.counters[refusal] += 1
+            self._record(cmd, f"refused: {REFUSALS[refusal]}", by_assist=True)
+            return False
+        self.counters["assist_commands"] += 1
+        self._dispatch(DEVICE_CALLS[cmd.action].device, cmd, sent_ns, by_assist=True)
+        return True
 
     def _latch_lets(self, msg: Command, holder: bool, role: str, who: str, now: int) -> bool:
         """The stop latch's word on an admitted command: True to act on it on the device.
@@ -190,6 +234,8 @@ class CommandDesk:
             self.counters["lease_expired"] += 1
             lease.expire(now)
             self._follow_lease(now, {})
+        if self.assist is not None:
+            self.assist.end("operator silent")
 
     def reload_roster(self, now: int) -> bool:
         """Read ``link.roster_file`` again; a broken file keeps the roster in force, and so
@@ -234,26 +280,32 @@ class CommandDesk:
             return
         self._lease_changes_seen = lease.changes
         self.announce()
+        if self.assist is not None:
+            self.assist.end(f"control lease now {lease.holder_name() or 'nobody'}'s")
         if not any(cmd.action == "arm_jog" for cmd, _ in newest.values()):
             self.workers.stop_devices(f"control lease now {lease.holder_name() or 'nobody'}'s")
 
     # ---------------------------------------------------------- the devices
-    def _dispatch(self, device: str, cmd: Command, sent_ns: int | None) -> None:
+    def _dispatch(
+        self, device: str, cmd: Command, sent_ns: int | None, *, by_assist: bool = False
+    ) -> None:
         """Hand the command to its device's worker; a missing device refuses at once."""
         if device not in self.workers.workers:
             self.counters["commands_rejected"] += 1
             log.warning("command %s rejected: this scene has no %s", cmd.action, device)
-            self._record(cmd, f"rejected: this scene has no {device}")
+            self._record(cmd, f"rejected: this scene has no {device}", by_assist=by_assist)
             return
-        if device == "gripper":
+        if device == "gripper" and not by_assist:
             # the heartbeat names it, so the operator can resend a gripper command we never saw
             self.gripper_ack = (float(cmd.seq), float((cmd.session or 0) & SESSION_LOW_MASK))
         call, args = DEVICE_CALLS[cmd.action].make(self.workers.device(device), cmd, sent_ns)
         self.workers.post(
-            device, DeviceRequest(cmd.action, call, args, self._on_done(cmd, sent_ns))
+            device, DeviceRequest(cmd.action, call, args, self._on_done(cmd, sent_ns, by_assist))
         )
 
-    def _on_done(self, cmd: Command, sent_ns: int | None) -> Callable[..., None]:
+    def _on_done(
+        self, cmd: Command, sent_ns: int | None, by_assist: bool = False
+    ) -> Callable[..., None]:
         def on_done(request: DeviceRequest, result: Any, error: BaseException | None) -> None:
             if error is None:
                 outcome = "applied"
@@ -264,21 +316,29 @@ class CommandDesk:
                 log.error("command %s failed: %r", cmd.action, error)
                 outcome = f"failed: {error!r}"
             sent = result if cmd.action == "arm_jog" and error is None else None
-            self._record(cmd, outcome, sent, sent_ns)
+            self._record(cmd, outcome, sent, sent_ns, by_assist=by_assist)
 
         return on_done
 
     def _record(
-        self, cmd: Command, outcome: str, sent: Any = None, sent_ns: int | None = None
+        self,
+        cmd: Command,
+        outcome: str,
+        sent: Any = None,
+        sent_ns: int | None = None,
+        *,
+        by_assist: bool = False,
     ) -> None:
         """``t_sent_ns`` (the operator's send time on our clock) is when the arm's jog
-        deadline started counting, which an exporter needs to end the jog where the arm did."""
+        deadline started counting, which an exporter needs to end the jog where the arm did.
+        The assist's commands say so (``by``: its seqs are its own, not an operator's)."""
         if self.recorder is None:
             return
         self.recorder.write(
             "robot/command",
             self.now(),
-            {
+            ({"by": "assist"} if by_assist else {})
+            | {
                 "seq": cmd.seq,
                 "action": cmd.action,
                 "grip_level": cmd.grip_level,

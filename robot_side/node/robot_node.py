@@ -29,6 +29,7 @@ from common.transport import Link, Receiver, Sender, make_context
 from robot_side.arm.base import Arm
 from robot_side.config import RobotConfig
 from robot_side.gripper.base import Gripper
+from robot_side.node.assist import Assist
 from robot_side.node.command_desk import CommandDesk
 from robot_side.node.deadman import NEVER_NS, Deadman
 from robot_side.node.frame_pipeline import FramePipeline
@@ -112,6 +113,17 @@ class RobotNode:
             counters=self.counters,
             recorder=recording,
             grip_level=lambda: self.workers.grip_level,
+        )
+        #: the robot-side reflex the holder's arm_assist enables (off until held)
+        self.assist = self.desk.assist = Assist(
+            config.assist,
+            self.desk,
+            self.pipeline,
+            self.workers,
+            limits=None if arm is None else arm.limits,
+            now=now,
+            recorder=recording,
+            announce=self._announce,
         )
         self.deadman = Deadman(link_cfg.deadman_ms, self.counters)
         self.telemetry = Telemetry(
@@ -250,6 +262,8 @@ class RobotNode:
                 if frame_msgs is not None and frame_msgs.due(now):
                     self.telemetry.send_frame(sample)
                     frame_msgs.done(now)
+            # the assist acts on the pattern just recognised, locally, with no round trip
+            self.assist.step(self.now())
             # write: heartbeats and video answers
             if heartbeat.due(now) or self.telemetry.now_wanted:
                 self._send_heartbeat()

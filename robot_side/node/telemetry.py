@@ -149,6 +149,8 @@ def node_stats(
         out["frames_captured"] = float(pipeline.last_seq - pipeline.first_seq + 1)
     out.update(workers.arm_readings())  # the arm worker's latest reading, for the dashboard
     out["arm_stop_latched"] = float(desk.stop_latch.latched)
+    if desk.assist is not None:
+        out.update(desk.assist.stats())
     if desk.gripper_ack is not None:
         out["gripper_command_seq"], out["gripper_command_session"] = desk.gripper_ack
     return out
