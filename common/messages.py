@@ -106,6 +106,21 @@ ARM_SAFETY_MODES = {
 }
 
 
+#: The assist's phases, as a robot heartbeat's ``assist_phase`` numbers them (the index):
+#: the robot's assist (robot_side/node/assist.py) and the dashboard both name them.
+ASSIST_PHASES = (
+    "off",  # not held
+    "waiting",  # held, no recognised pattern with contact yet
+    "release",  # the gripper opens
+    "shift",  # the pad centre moves onto the pipette's axis
+    "turn",  # the wrist turns about the closing axis toward 90 deg
+    "close",  # the gripper closes at the grip level it held
+    "aligned",  # 90 deg centre recognised: stopped, the operator decides to lift
+    "gave_up",  # not aligned after the re-grasps allowed: stopped
+    "ended",  # a stop, the deadman, a lease change or the operator's own command
+)
+
+
 #: a heartbeat's stats are floats, exact to 2^53: a session is named by its low 32 bits
 #: (the robot's ``gripper_command_session``)
 SESSION_LOW_MASK = 0xFFFFFFFF

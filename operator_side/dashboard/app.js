@@ -458,6 +458,8 @@ function drawArm(arm) {
   $("arm-program").textContent = arm.program_running == null ? "–" : arm.program_running ? "running" : "stopped";
   $("arm-deadman").textContent =
     `${arm.jogging ? "jogging" : "still"} · deadman stops ${arm.deadman_stops} · link trips ${arm.link_deadman_trips}`;
+  const a = arm.assist;
+  $("assist-phase").textContent = !a ? "–" : `${a.phase} · re-grasps ${a.regrasps} · steps ${a.steps}`;
 }
 
 // The robot's stop latch (its heartbeat): the same on every page of every operator.
@@ -536,7 +538,8 @@ function startJogger(cfg) {
   $("speed").value = pct;
   $("speed-out").textContent = `${pct}%`;
   const keys = Object.entries(cfg.keyboard).map(([k, t]) => `${k} ${t}`).join(" · ");
-  $("key-help").textContent = `keys (hold): ${keys}; Esc or Space: STOP (held until RESUME)`;
+  $("key-help").textContent =
+    `keys (hold): ${keys}; ${cfg.assist_key}: assist; Esc or Space: STOP (held until RESUME)`;
   setInterval(showJogState, 200);
 }
 
@@ -551,10 +554,12 @@ function showJogState() {
     ? "STOPPED on the robot: RESUME, then release and hold again"
     : j.latched
       ? "stopped: release all inputs"
-      : j.last.enabled
-        ? `${j.last.source}: ${(Math.hypot(v[0], v[1], v[2]) * 1000).toFixed(0)} mm/s`
-        : "none (hold to move)";
-  for (const b of document.querySelectorAll(".jog-grid button")) {
+      : j.last.assist
+        ? `${j.last.source}: assist held`
+        : j.last.enabled
+          ? `${j.last.source}: ${(Math.hypot(v[0], v[1], v[2]) * 1000).toFixed(0)} mm/s`
+          : "none (hold to move)";
+  for (const b of document.querySelectorAll(".jog-pad button[data-twist]")) {
     b.classList.toggle("held", j.buttons.has(b.dataset.twist));
   }
 }
@@ -575,7 +580,7 @@ $("speed").addEventListener("input", () => {
   $("speed-out").textContent = `${$("speed").value}%`;
   if (dxp.jog) dxp.jog.speedScale = Number($("speed").value) / 100;
 });
-for (const b of document.querySelectorAll(".jog-grid button")) {
+for (const b of document.querySelectorAll(".jog-pad button[data-twist]")) {
   const release = () => {
     if (!dxp.jog) return;
     dxp.jog.buttons.delete(b.dataset.twist);
@@ -596,7 +601,8 @@ window.addEventListener("keydown", (e) => {
     return;
   }
   const key = e.key.toLowerCase();
-  if (key in dxp.jog.cfg.keyboard && !e.ctrlKey && !e.metaKey && !e.altKey) dxp.jog.keys.add(key);
+  const held = key in dxp.jog.cfg.keyboard || key === dxp.jog.cfg.assist_key;
+  if (held && !e.ctrlKey && !e.metaKey && !e.altKey) dxp.jog.keys.add(key);
 });
 window.addEventListener("keyup", (e) => {
   if (!dxp.jog) return;

@@ -12,6 +12,11 @@
 // latch this page sends no jog either, and after a resume it waits until
 // every input is released, so a resume never restarts a held jog.
 //
+// The assist (a held key, the gamepad's assist button, the page's hold-to-assist
+// button) is held like a jog: while held and no jog is, arm_assist goes out at
+// send_rate_hz and the robot aligns its grasp to what it feels; let go, one
+// arm_jog_end ends it. A jog held beside it wins (and ends it on the robot).
+//
 // The decoding and shaping functions are pure and exported on JOG so a test
 // can run them on recorded raw input in a real browser.
 "use strict";
@@ -94,7 +99,8 @@ const JOG = (() => {
     const read = (t) => (t.name === "axis" ? pad.axes[t.index] ?? 0 : btn(t.index));
     const twist = mapTwist(cfg.mapping, read, cfg.dead_zone, cfg.curve_exponent);
     const stop = cfg.stop_button >= 0 && btn(cfg.stop_button) > 0.5;
-    return { enabled, stop, twist: enabled ? twist : [0, 0, 0, 0, 0, 0] };
+    const assist = cfg.assist_button >= 0 && btn(cfg.assist_button) > 0.5;
+    return { enabled, stop, assist, twist: enabled ? twist : [0, 0, 0, 0, 0, 0] };
   }
 
   // ----------------------------------------------------------------- keyboard
@@ -132,7 +138,7 @@ const JOG = (() => {
       this.onStop = onStop || (() => this.stop(true));
       this.speedScale = cfg.default_speed_scale;
       this.keys = new Set();
-      this.buttons = new Set(); // on-screen buttons held, as "+vx" etc.
+      this.buttons = new Set(); // on-screen buttons held, as "+vx" etc., and "assist"
       this.spacemouse = null; // decoded state of the connected SpaceMouse, if any
       this.hidDevice = null;
       this.moving = false;
@@ -140,7 +146,7 @@ const JOG = (() => {
       this.robotLatched = false; // the robot's own latch, from its heartbeat: nothing moves
       this.padStops = new Set(); // gamepads whose stop button is down (a press stops once)
       this.last = { source: "none", velocity: [0, 0, 0, 0, 0, 0], enabled: false };
-      this.sent = { jogs: 0, stops: 0 };
+      this.sent = { jogs: 0, stops: 0, assists: 0 };
       this.timer = setInterval(() => this.tick(), 1000 / cfg.send_rate_hz);
     }
 
@@ -153,16 +159,18 @@ const JOG = (() => {
       }
       if (this.spacemouse) out.push({ source: "spacemouse", ...spaceMouseTwist(this.spacemouse, this.cfg.spacemouse) });
       const held = keyboardTwist(this.keys, this.cfg.keyboard);
-      const onScreen = keyboardTwist(this.buttons, Object.fromEntries([...this.buttons].map((b) => [b, b])));
-      out.push({ source: "keyboard", enabled: this.keys.size > 0, twist: held });
-      out.push({ source: "screen", enabled: this.buttons.size > 0, twist: onScreen });
+      const twists = [...this.buttons].filter((b) => b !== "assist");
+      const onScreen = keyboardTwist(twists, Object.fromEntries(twists.map((b) => [b, b])));
+      const assistKey = this.keys.has(this.cfg.assist_key);
+      out.push({ source: "keyboard", enabled: this.keys.size > 0, assist: assistKey, twist: held });
+      out.push({ source: "screen", enabled: twists.length > 0, assist: this.buttons.has("assist"), twist: onScreen });
       return out;
     }
 
     // An input was let go (keyup, pointerup): with nothing left held, the page's own
     // latch clears now rather than at the next tick, so a quick release-and-press moves.
     released() {
-      const wants = this.sources().some((x) => x.enabled && x.twist.some((v) => v !== 0));
+      const wants = this.sources().some((x) => x.assist || (x.enabled && x.twist.some((v) => v !== 0)));
       if (!wants && !this.robotLatched) this.latched = false;
     }
 
@@ -180,12 +188,20 @@ const JOG = (() => {
       const clipped = unit.map((v) => Math.max(-1, Math.min(1, v)));
       const velocity = scaleTwist(clipped, this.cfg, this.speedScale);
       const wants = velocity.some((v) => v !== 0);
-      if (!wants && !this.robotLatched) this.latched = false;
-      this.last = { source: active.map((s) => s.source).join("+") || "none", velocity, enabled: active.length > 0 };
+      const assisting = sources.filter((s) => s.assist);
+      const assist = !wants && assisting.length > 0;
+      if (!wants && !assist && !this.robotLatched) this.latched = false;
+      const by = (assist ? assisting : active).map((s) => s.source).join("+") || "none";
+      this.last = { source: by, velocity, enabled: active.length > 0, assist };
       if (wants && !this.latched) {
         if (this.send({ type: "command", action: "arm_jog", velocity })) {
           this.moving = true;
           this.sent.jogs++;
+        }
+      } else if (assist && !this.latched) {
+        if (this.send({ type: "command", action: "arm_assist" })) {
+          this.moving = true;
+          this.sent.assists++;
         }
       } else if (this.moving) {
         this.stop();

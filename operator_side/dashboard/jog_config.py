@@ -73,6 +73,11 @@ class GamepadConfig:
         1,
         "pressing it is STOP ARM: latched on the robot until a resume (1: B / circle); -1: none",
     )
+    assist_button: int = param(
+        0,
+        "hold it for the assist (arm_assist): the robot aligns its grasp to what it feels "
+        "(0: A / cross); -1: none",
+    )
 
     def __post_init__(self) -> None:
         _check_shaping(self.dead_zone, self.curve_exponent, "gamepad")
@@ -91,6 +96,16 @@ class GamepadConfig:
             raise ValueError(
                 f"gamepad stop_button {self.stop_button} is already the enable button or in "
                 "the mapping: a stop must do nothing else"
+            )
+        if not -1 <= self.assist_button < 32:
+            raise ValueError(f"gamepad assist_button must be 0..31 or -1, not {self.assist_button}")
+        if self.assist_button >= 0 and self.assist_button in used | {
+            self.enable_button,
+            self.stop_button,
+        }:
+            raise ValueError(
+                f"gamepad assist_button {self.assist_button} is already the enable or stop "
+                "button or in the mapping: holding the assist must do nothing else"
             )
 
 
@@ -140,6 +155,11 @@ class JogConfig:
         },
         "held key -> twist component at full speed (hold-to-move: releasing stops)",
     )
+    assist_key: str = param(
+        "g",
+        "held key for the assist (arm_assist): the robot aligns its grasp to what it feels "
+        "(hold-to-assist: releasing stops it)",
+    )
     gamepad: GamepadConfig = param(GamepadConfig(), "browser Gamepad API, standard mapping")
     spacemouse: SpaceMouseConfig = param(SpaceMouseConfig(), "3Dconnexion SpaceMouse via WebHID")
 
@@ -152,6 +172,10 @@ class JogConfig:
             raise ValueError("jog send_rate_hz must be 4..60 (the deadman needs >= 4 per second)")
         if not 0 < self.default_speed_scale <= 1:
             raise ValueError("jog default_speed_scale must be in (0, 1]")
+        if len(self.assist_key) != 1 or self.assist_key in self.keyboard:
+            raise ValueError(
+                f"jog assist_key {self.assist_key!r} must be one key that moves nothing else"
+            )
         for key, target in self.keyboard.items():
             if len(target) < 3 or target[0] not in "+-" or target[1:] not in TWIST:
                 raise ValueError(f"keyboard {key!r}: {target!r} must be +/- and one of {TWIST}")

@@ -125,6 +125,7 @@ class Dashboard:
         self._jog_watchdog_s = max(JOG_WATCHDOG_PERIODS / jog.send_rate_hz, 0.1)
         self._jogs_per_s = 2 * jog.send_rate_hz  # twice the page's rate: slack for bursts
         self.jogs_forwarded = 0
+        self.assists_forwarded = 0  # arm_assist enables sent for a page holding the assist
         self.jog_ends = 0
         self.arm_stops = 0
 
@@ -363,6 +364,8 @@ class Dashboard:
             return {"type": "ack", "ok": True, "action": action}
         if action == "arm_jog":
             return self._on_jog(msg, page, now)
+        if action == "arm_assist":
+            return self._on_assist(page, now)
         sent_at = page.sent_at
         sent_at[:] = [t for t in sent_at if now - t < 1.0]
         if len(sent_at) >= COMMANDS_PER_S:
@@ -395,6 +398,21 @@ class Dashboard:
         sent_at.append(now)
         log.info("dashboard: %s%s", action, "" if level is None else f" (grip level {level})")
         return {"type": "ack", "ok": True, "action": action, "grip_level": level}
+
+    def _on_assist(self, page: _Page, now: float) -> dict[str, Any] | None:
+        """The assist held on the page: an enable, rate-limited and watched as a jog is.
+
+        Let go, the page sends ``arm_jog_end`` (which ends the assist on the
+        robot); a page that goes quiet is ended by the jog watchdog.
+        """
+        page.jog_at[:] = [t for t in page.jog_at if now - t < 1.0]
+        if len(page.jog_at) >= self._jogs_per_s:
+            return {"type": "ack", "ok": False, "action": "arm_assist", "error": "too many jogs"}
+        page.jog_at.append(now)
+        self.node.send_command("arm_assist")
+        page.jogging, page.last_jog = True, now
+        self.assists_forwarded += 1
+        return None
 
     def _on_jog(self, msg: dict[str, Any], page: _Page, now: float) -> dict[str, Any] | None:
         velocity = msg.get("velocity")

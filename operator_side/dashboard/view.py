@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from common.config import to_dict
-from common.messages import ARM_SAFETY_MODES
+from common.messages import ARM_SAFETY_MODES, ASSIST_PHASES
 from common.tactile import MASKS, N_PATTERNS, pattern_name
 from operator_side.dashboard.jog_config import JogConfig
 from operator_side.node import Snapshot
@@ -114,6 +114,14 @@ def arm_view(robot_stats: dict[str, float]) -> dict[str, Any] | None:
         "stop_latched": bool(r.get("arm_stop_latched", 0)),
         "deadman_stops": int(r.get("arm_deadman_stops", 0)),
         "link_deadman_trips": int(r.get("deadman_trips", 0)),
+        # the assist an operator holds: its phase, re-grasps, and commands it issued
+        "assist": None
+        if "assist_phase" not in r
+        else {
+            "phase": _name(ASSIST_PHASES, r["assist_phase"]),
+            "regrasps": int(r.get("assist_regrasps", 0)),
+            "steps": int(r.get("assist_steps", 0)),
+        },
         "available": bool(r.get("arm_available", 1)),
         "workspace_mm": [
             [round(r[f"arm_ws_min_{a}"] * 1000, 1) for a in "xyz"],
@@ -265,3 +273,8 @@ class LinkHistory:
                 "lost": round(sum(lost)),
             },
         }
+
+
+def _name(names: tuple[str, ...], code: float) -> str:
+    i = int(code)
+    return names[i] if 0 <= i < len(names) else f"phase {i}"

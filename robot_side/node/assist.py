@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from common.messages import Command
+from common.messages import ASSIST_PHASES, Command
 from common.recording import Recorder
 from common.rotation import matrix_to_rotvec, rotvec_to_matrix
 from common.synthetic_tactile import offset_direction
@@ -58,18 +58,7 @@ log = logging.getLogger(__name__)
 #: the grasp the assist aims for: 90 deg centre, the pipette along the fingers
 ALIGNED_PATTERN = pattern_of(2, 0)
 
-#: every phase, numbered for the heartbeat's ``assist_phase`` (the dashboard names them)
-PHASES = (
-    "off",  # not held
-    "waiting",  # held, no recognised pattern with contact yet
-    "release",  # the gripper opens
-    "shift",  # the pad centre moves onto the pipette's axis
-    "turn",  # the wrist turns about the closing axis toward 90 deg
-    "close",  # the gripper closes at the grip level it held
-    "aligned",  # 90 deg centre recognised: stopped, the operator decides to lift
-    "gave_up",  # not aligned after max_regrasps: stopped
-    "ended",  # a stop, the deadman, a lease change or the operator's own command
-)
+PHASES = ASSIST_PHASES
 PHASE_CODES = {name: i for i, name in enumerate(PHASES)}
 #: phases in which the assist is moving something
 MOVING = frozenset({"release", "shift", "turn", "close"})

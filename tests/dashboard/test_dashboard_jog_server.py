@@ -218,3 +218,27 @@ def test_arm_view_turns_heartbeat_stats_into_what_the_panel_shows():
     assert view["workspace_mm"] == [[-400.0] * 3, [400.0] * 3]
     assert view["stop_latched"] is False
     assert arm_view({**stats, "arm_stop_latched": 1.0})["stop_latched"] is True
+
+
+def test_the_assist_is_held_like_a_jog_forwarded_and_ended_by_the_watchdog(dashboard):
+    """A page holding the assist sends enables; gone quiet, the watchdog ends it as a jog."""
+    node, d = dashboard
+    with connect(d.ws_url) as ws:
+        hello = _next(ws, "hello")
+        assert hello["jog"]["assist_key"] == "g" and hello["jog"]["gamepad"]["assist_button"] == 0
+        for _ in range(3):
+            ws.send(json.dumps({"type": "command", "action": "arm_assist"}))
+        t_last = time.monotonic()
+        deadline = t_last + 2
+        while "arm_jog_end" not in node.actions():  # the socket stays open, the page is silent
+            assert time.monotonic() < deadline, node.actions()
+            time.sleep(0.01)
+    assert node.actions()[:4] == ["arm_assist"] * 3 + ["arm_jog_end"]
+    assert d.assists_forwarded == 3
+
+
+def test_the_assist_key_and_button_must_move_nothing_else():
+    with pytest.raises(ValueError, match="assist_key"):
+        JogConfig(assist_key="w")
+    with pytest.raises(ValueError, match="assist_button"):
+        from_dict(JogConfig, {"gamepad": {"assist_button": 5}}, where="jog")

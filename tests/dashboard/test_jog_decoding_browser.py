@@ -134,3 +134,22 @@ def test_response_curve_properties_on_random_inputs(browser):
                 assert y == pytest.approx(want if x > 0 else -want)
         pairs = sorted(zip(xs, ys, strict=True))
         assert all(a[1] <= b[1] + 1e-12 for a, b in itertools.pairwise(pairs))  # monotonic
+
+
+def test_holding_the_assist_sends_enables_and_letting_go_ends_it(browser):
+    """Key g or the gamepad's A: arm_assist each tick while held, one arm_jog_end after."""
+    pad = {"axes": [0, 0, 0, 0], "buttons": [{"pressed": True, "value": 1}]}
+    assert js(browser, f"JOG.gamepadTwist({json.dumps(pad)}, CFG.gamepad)")["assist"] is True
+    sent = js(
+        browser,
+        """(() => {
+          const sent = [];
+          const j = new JOG.Jogger(CFG, (m) => { sent.push(m.action); return true; });
+          clearInterval(j.timer);
+          j.keys.add(CFG.assist_key); j.tick(); j.tick();
+          j.keys.add('w'); j.tick();  // a jog held beside it wins
+          j.keys.clear(); j.tick(); j.tick();
+          return sent;
+        })()""",
+    )
+    assert sent == ["arm_assist", "arm_assist", "arm_jog", "arm_jog_end"]
