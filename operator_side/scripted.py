@@ -32,6 +32,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from common.config import param
+from common.messages import ASSIST_PHASES
 from common.rotation import matrix_to_rotvec, rotvec_to_matrix
 from common.tactile import MASKS, N_PATTERNS, classes_of, pattern_of
 
@@ -90,6 +91,9 @@ class ScriptedOperatorConfig:
     blind_close_s: float = param(1.5, "without feedback: how long a close is given to finish")
     release_s: float = param(0.6, "an open is given this long (and, with feedback, an empty palm)")
     move_timeout_s: float = param(15.0, "a move that has not arrived by then has failed")
+    assist_timeout_s: float = param(
+        30.0, "with the assist: held at most this long before letting go and correcting by hand"
+    )
 
 
 @dataclass
@@ -187,12 +191,16 @@ class ScriptedOperator:
         config: ScriptedOperatorConfig | None = None,
         *,
         feedback: bool = True,
+        assist: bool = False,
         clock: Callable[[], float] = time.monotonic,
         stop: threading.Event | None = None,
     ) -> None:
+        """``assist``: after a wrong first grasp, hold the robot's assist (arm_assist) until it
+        stops, then feel again; correct by hand only if it did not align the grasp."""
         self.node = node
         self.config = config or ScriptedOperatorConfig()
         self.feedback = feedback
+        self.assist = assist and feedback
         self.clock = clock
         self.stop = stop or threading.Event()
 
@@ -317,6 +325,13 @@ class ScriptedOperator:
             outcome.attempts.append(Attempt(turn_deg, shift_m, felt, self.clock() - t0, truth))
             if lift:
                 return self._lift(grasp, t0, outcome, on_lift)
+            if self.assist and felt is not None and len(outcome.attempts) == 1:
+                self.hold_assist()
+                felt, lift, stimulus = self.feel(cfg.feel_timeout_s)
+                truth = observe() if observe is not None else None
+                outcome.attempts.append(Attempt(turn_deg, shift_m, felt, self.clock() - t0, truth))
+                if lift:  # lifted from where the assist left the arm
+                    return self._lift(self.pose(), t0, outcome, on_lift)
             self.release()
             if felt is None:
                 if searches >= len(cfg.search_steps_m):
@@ -355,6 +370,28 @@ class ScriptedOperator:
             turn_deg = new_turn
         outcome.gave_up = f"no 90 deg centre grasp in {cfg.max_attempts} attempts"
         return outcome
+
+    def hold_assist(self) -> str | None:
+        """Hold the assist (an enable every jog period) until the robot says it stopped.
+
+        The robot turns, shifts and re-grasps on its own (robot_side/node/assist.py);
+        the heartbeat's ``assist_phase`` says when it is done. Returns the phase it
+        ended in (None: not within ``assist_timeout_s``); the enable is let go either way.
+        """
+        cfg = self.config
+        end = self.clock() + cfg.assist_timeout_s
+        done = {ASSIST_PHASES.index(p) for p in ("aligned", "gave_up", "ended")}
+        phase = None
+        while self.clock() < end and not self.stop.is_set():
+            self.node.send_command("arm_assist")
+            code = self.node.snapshot().robot_stats.get("assist_phase")
+            if code is not None and int(code) in done:
+                phase = ASSIST_PHASES[int(code)]
+                break
+            self.stop.wait(cfg.jog_period_s)
+        self.node.send_command("arm_jog_end")  # let go: the robot's assist ends at once
+        log.info("assist held: %s", phase or "no end within the timeout")
+        return phase
 
     def _grasp_pose(
         self, start: np.ndarray, r_start: np.ndarray, turn_deg: float, shift_m: float

@@ -142,7 +142,14 @@ class AssistConfig:
     turn_speed_rad_s: float = param(0.3, "the wrist's top speed while turning (about 17 deg/s)")
     shift_speed_m_s: float = param(0.01, "the TCP's top speed while shifting")
     gain_per_s: float = param(3.0, "velocity per unit of error left (the approach slows near it)")
-    side_offset_mm: float = param(6.0, "how far a side class lies from centre (docs/tactile.md)")
+    side_offset_mm: float = param(
+        5.0,
+        "one shift toward centre (mm): a side class is 3 mm or more off centre (the lab's "
+        "threshold), so 5 mm centres anything 3-8 mm off and re-grasps judge the rest",
+    )
+    max_turn_deg: float = param(
+        50.0, "the wrist never turns further from where the assist began (a singularity nears)"
+    )
     angle_tolerance_deg: float = param(1.5, "a turn this close to its target is done")
     position_tolerance_mm: float = param(0.3, "a shift this close to its target is done")
     release_ms: float = param(300.0, "the gripper opens at least this long before the arm moves")

@@ -15,7 +15,8 @@ truth is 90 deg centre and the lift draws the pipette out of its hole.
 
 Feedback conditions: ``mask`` (the robot's CNN picks the pattern and the
 stimulus is its mask), ``direct`` (the frame downsized, no CNN), ``none``
-(the operator ignores the palm).
+(the operator ignores the palm), ``mask_assist`` (mask; after a wrong first
+grasp the operator holds the robot's assist instead of correcting by hand).
 
 As a bench section: the task benchmark, does the palm help an operator grasp a pipette right?
 """
@@ -49,7 +50,7 @@ from deploy.scene import Scene, load_scene_dict
 
 log = logging.getLogger(__name__)
 
-FEEDBACKS = ("mask", "direct", "none")
+FEEDBACKS = ("mask", "direct", "none", "mask_assist")
 SCENARIOS = ("lan", "intercontinental", "bad_day")
 #: the rack's pipette, per trial: tilt uniform in +-this (deg) ...
 TILT_RANGE_DEG = 35.0
@@ -140,7 +141,9 @@ def run_cell(
         wait_for_robot(node, procs, stop, errors)
         if errors:
             raise RuntimeError("; ".join(errors))
-        hands = ScriptedOperator(node, feedback=feedback != "none", stop=stop)
+        hands = ScriptedOperator(
+            node, feedback=feedback != "none", assist=feedback == "mask_assist", stop=stop
+        )
         hands.wait_for_pose(timeout_s=30.0)
         for setup in setups:
             trials.append(_trial(world, hands, setup))

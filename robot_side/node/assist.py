@@ -99,6 +99,7 @@ class Assist:
         self._start: np.ndarray | None = None  # the TCP pose when the phase began
         self._target: float | np.ndarray = 0.0  # a turn's angle (rad) or a shift's position
         self._arm_moving = False
+        self._turned_deg = 0.0
 
     # ------------------------------------------------------ the operator's side
     @property
@@ -114,6 +115,7 @@ class Assist:
         self._enable_ns = enable_ns
         if self.phase == "off":
             self.regrasps = 0
+            self._turned_deg = 0.0  # planned turns since the enable was pressed
             self._enter("waiting", now, "enable held")
         return None
 
@@ -168,7 +170,11 @@ class Assist:
         side = {0: 0.0, 1: 1.0, 2: -1.0}[position] * self.config.side_offset_mm / 1000
         shift = rot @ np.array([dx * side, 0.0, dz * side])
         self._shift_to = self._inside_box(pose[:3] + shift)
-        turn = 90 - ANGLES_DEG[angle_class]  # 0 deg: a quarter turn, either way would do
+        # 0 deg: far off either way; an eighth turn makes it 45 or 135, which the next says
+        wanted = 90 - ANGLES_DEG[angle_class] if angle_class else 45
+        limit = self.config.max_turn_deg
+        turn = max(-limit, min(limit, self._turned_deg + wanted)) - self._turned_deg
+        self._turned_deg += turn
         self._turn_by = math.radians(turn)
         shift_mm = np.round(shift * 1000, 1).tolist()
         self._issue(Command(seq=0, t_send_ns=0, action="gripper_open"))
