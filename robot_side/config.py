@@ -139,8 +139,10 @@ class RobotLinkConfig:
 class AssistConfig:
     """The assist (robot_side/node/assist.py): how it moves, slower than the arm's caps."""
 
-    turn_speed_rad_s: float = param(0.3, "the wrist's top speed while turning (about 17 deg/s)")
-    shift_speed_m_s: float = param(0.01, "the TCP's top speed while shifting")
+    turn_speed_rad_s: float = param(
+        0.45, "the wrist's top speed while turning (about 26 deg/s; the gripper is open)"
+    )
+    shift_speed_m_s: float = param(0.02, "the TCP's top speed while shifting")
     gain_per_s: float = param(3.0, "velocity per unit of error left (the approach slows near it)")
     side_offset_mm: float = param(
         5.0,
@@ -154,7 +156,9 @@ class AssistConfig:
     position_tolerance_mm: float = param(0.3, "a shift this close to its target is done")
     release_ms: float = param(300.0, "the gripper opens at least this long before the arm moves")
     settle_ms: float = param(400.0, "contact held this long before a pattern is judged")
-    phase_timeout_s: float = param(8.0, "a phase not finished by then: the assist gives up")
+    phase_timeout_s: float = param(
+        8.0, "a phase not finished by then (or nothing felt): the assist gives up"
+    )
     max_regrasps: int = param(3, "re-grasps before giving up")
     box_margin_m: float = param(0.002, "its targets are kept this far inside the workspace box")
 

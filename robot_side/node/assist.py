@@ -60,8 +60,8 @@ ALIGNED_PATTERN = pattern_of(2, 0)
 
 PHASES = ASSIST_PHASES
 PHASE_CODES = {name: i for i, name in enumerate(PHASES)}
-#: phases in which the assist is moving something
-MOVING = frozenset({"release", "shift", "turn", "close"})
+#: phases in which the assist is moving something, or waits for a grasp to feel
+TIMED = frozenset({"waiting", "release", "shift", "turn", "close"})
 
 
 class Assist:
@@ -141,7 +141,7 @@ class Assist:
             self.end("stop latched")
             return
         phase = self.phase
-        if phase in MOVING and now - self._phase_since > self.config.phase_timeout_s * 1e9:
+        if phase in TIMED and now - self._phase_since > self.config.phase_timeout_s * 1e9:
             self._stop_moving("phase timed out")
             self._enter("gave_up", now, f"{phase} unfinished in {self.config.phase_timeout_s} s")
             return
@@ -154,7 +154,7 @@ class Assist:
         if pattern == ALIGNED_PATTERN:
             self._enter("aligned", now, "90 deg centre recognised")
             return
-        grip = self.workers.grip_level
+        grip = self.desk.grip_level_commanded  # the operator's close, not where it stalled
         self._level = grip if grip is not None else DEFAULT_CLOSE_LEVEL
         self._regrasp(pattern, now)
 

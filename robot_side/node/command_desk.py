@@ -46,7 +46,7 @@ from robot_side.command_gate import CommandGate
 from robot_side.config import RobotLinkConfig
 from robot_side.device_worker import DeviceRequest
 from robot_side.lease import ControlLease
-from robot_side.node.device_calls import DEVICE_CALLS
+from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL, DEVICE_CALLS
 from robot_side.node.peers import OnePeer, RosterPeers
 from robot_side.node.workers import DeviceWorkers
 from robot_side.stop_latch import REFUSALS, StopLatch
@@ -107,6 +107,9 @@ class CommandDesk:
         self._lease_changes_seen = 0
         #: (seq, low 32 bits of the session) of the newest gripper command handed to the gripper
         self.gripper_ack: tuple[float, float] | None = None
+        #: the grip level of the newest gripper_close handed to the gripper (the assist's
+        #: re-grasp closes at it: the level the fingers read is where they met the pipette)
+        self.grip_level_commanded: int | None = None
         #: the robot-side reflex an ``arm_assist`` holds (set by the node; None: refused)
         self.assist: Assist | None = None
 
@@ -298,6 +301,8 @@ class CommandDesk:
         if device == "gripper" and not by_assist:
             # the heartbeat names it, so the operator can resend a gripper command we never saw
             self.gripper_ack = (float(cmd.seq), float((cmd.session or 0) & SESSION_LOW_MASK))
+            if cmd.action == "gripper_close":
+                self.grip_level_commanded = cmd.grip_level or DEFAULT_CLOSE_LEVEL
         call, args = DEVICE_CALLS[cmd.action].make(self.workers.device(device), cmd, sent_ns)
         self.workers.post(
             device, DeviceRequest(cmd.action, call, args, self._on_done(cmd, sent_ns, by_assist))

@@ -37,3 +37,17 @@ def test_without_feedback_the_same_grasp_is_lifted_off_centre(tmp_path):
     assert not cell["errors"], cell["errors"]
     (trial,) = cell["trials"]
     assert not trial["success"] and trial["truth"] == "90 deg left", trial
+
+
+TILTED = TrialSetup(index=0, tilt_deg=-30.0, offset_m=0.0)
+
+
+def test_the_assist_turns_a_45_degree_grasp_to_90_degrees_on_the_robot(tmp_path):
+    """The operator feels 45 deg, holds the assist; the robot re-grasps; the palm says 90."""
+    cell = run_cell("lan", "mask_assist", [TILTED], workdir=tmp_path / "mask_assist")
+    assert not cell["errors"], cell["errors"]
+    (trial,) = cell["trials"]
+    first, after = trial["felt"][0], trial["felt"][1]
+    assert first // 3 == 1 and trial["felt_truth"][0] // 3 == 1, f"felt 45 deg first: {trial}"
+    assert after == pattern_of(2, 0) and trial["attempts"] == 2, f"then 90 centre: {trial}"
+    assert trial["success"] and trial["truth"] == "90 deg centre", trial
