@@ -43,7 +43,7 @@ from common.messages import ASSIST_PHASES, Command
 from common.recording import Recorder
 from common.rotation import matrix_to_rotvec, rotvec_to_matrix
 from common.synthetic_tactile import offset_direction
-from common.tactile import ANGLES_DEG, N_POSITIONS, pattern_of
+from common.tactile import ANGLES_DEG, classes_of, pattern_of
 from robot_side.arm.base import TELEMETRY_POSE_KEYS, ArmLimits
 from robot_side.config import AssistConfig
 from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL
@@ -160,7 +160,7 @@ class Assist:
 
     def _regrasp(self, pattern: int, now: int) -> None:
         """Plan the shift and the turn from ``pattern``; open the gripper."""
-        angle_class, position = divmod(pattern, N_POSITIONS)
+        angle_class, position = classes_of(pattern)
         pose = self._pose()
         if pose is None:
             return  # the arm's first reading is still to come

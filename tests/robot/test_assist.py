@@ -21,6 +21,7 @@ from tests_support import free_ports
 from common.rotation import rotvec_to_matrix
 from common.signing import generate_key_files
 from common.synthetic_tactile import offset_direction
+from common.tactile import classes_of
 from deploy.faults.matrix import ARM_STILL_BUDGET_S, STILL_M_S
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
@@ -112,7 +113,7 @@ def _cell(tmp_path, pattern: int, box_face_mm: float | None):
     pose = arm.tcp_pose()
     lo, hi = pose[:3] - 0.05, pose[:3] + 0.05
     if box_face_mm is not None:  # the face the pattern's shift points at, this close
-        angle_class, _ = divmod(pattern, 3)
+        angle_class, _ = classes_of(pattern)
         dx, dz = offset_direction(angle_class)
         toward = rotvec_to_matrix(pose[3:]) @ np.array([dx, 0.0, dz])  # class 1: +offset
         axis = int(np.argmax(np.abs(toward)))
