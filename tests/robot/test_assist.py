@@ -85,6 +85,22 @@ def holding(node: OperatorNode):
         t.join(2)
 
 
+class ListRecorder:
+    """What the node records, kept in order (the node writes from its loop and its workers)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.records: list[tuple[str, dict]] = []
+
+    def write(self, channel: str, t_ns: int, record: dict) -> None:
+        with self.lock:
+            self.records.append((channel, dict(record)))
+
+    def channel(self, name: str) -> list[dict]:
+        with self.lock:
+            return [r for c, r in self.records if c == name]
+
+
 def _cell(tmp_path, pattern: int, box_face_mm: float | None):
     """(robot, arm, {"a": ..., "b": ...}, stop event, threads); the arm started, a holding."""
     tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_ports(2))
@@ -122,7 +138,7 @@ def _cell(tmp_path, pattern: int, box_face_mm: float | None):
         else:
             lo[axis] = pose[axis] - box_face_mm / 1000
     arm.limits.workspace_min, arm.limits.workspace_max = tuple(lo), tuple(hi)
-    robot = RobotNode(rc, tactile, arm=arm)
+    robot = RobotNode(rc, tactile, arm=arm, recorder=ListRecorder())
     operators = {}
     for name in ("a", "b"):
         oc = OperatorConfig()
@@ -180,6 +196,17 @@ def test_the_assist_never_leaves_the_box_however_its_pattern_pushes(make_cell):
     assert stats["assist_regrasps"] == robot.config.assist.max_regrasps
     assert moved > 0.0025, f"the assist moved the TCP only {moved * 1000:.2f} mm toward the face"
     assert worst <= 0.0001, f"the TCP went {worst * 1000:.2f} mm beyond the workspace box"
+    # every step is in the recording: its phases, and each command with what the arm was sent
+    phases = [r["phase"] for r in robot.recorder.channel("robot/assist")]
+    assert phases[:4] == ["waiting", "release", "shift", "turn"], phases
+    assert phases.count("release") == robot.config.assist.max_regrasps and "gave_up" in phases
+    jogs = [
+        r for r in robot.recorder.channel("robot/command")
+        if r.get("by") == "assist" and r["action"] == "arm_jog" and r["outcome"] == "applied"
+    ]  # fmt: skip
+    assert len(jogs) >= 10, "the assist's jogs are recorded"
+    cap = robot.config.assist.shift_speed_m_s + 1e-9
+    assert all(np.linalg.norm(r["sent_velocity"][:3]) <= cap for r in jogs)
 
 
 def test_a_stop_ends_the_assist_within_the_arms_stop_budget_and_a_non_holder_is_refused(
