@@ -97,15 +97,12 @@ class Assist:
         self._level = DEFAULT_CLOSE_LEVEL
         self._contact_since: int | None = None
         self._start: np.ndarray | None = None  # the TCP pose when the phase began
-        self._target: float | np.ndarray = 0.0  # a turn's angle (rad) or a shift's position
+        self._shift_to = np.zeros(3)  # where the re-grasp's shift takes the TCP (base frame)
+        self._turn_by = 0.0  # the re-grasp's turn about the tool's y (rad)
         self._arm_moving = False
         self._turned_deg = 0.0
 
     # ------------------------------------------------------ the operator's side
-    @property
-    def active(self) -> bool:
-        return self.phase != "off"
-
     def hold(self, enable_ns: int, now: int) -> str | None:
         """An admitted enable from the holder; a refusal reason (counter) or None."""
         if self.limits is None or "arm" not in self.workers.workers:
