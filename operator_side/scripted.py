@@ -223,13 +223,17 @@ class ScriptedOperator:
             self.stop.wait(0.05)
         raise ScriptedOperatorError(f"no arm pose from the robot within {timeout_s:g} s")
 
-    def feel(self, timeout_s: float) -> tuple[int | None, bool, np.ndarray | None]:
+    def feel(
+        self, timeout_s: float, closing: bool = True
+    ) -> tuple[int | None, bool, np.ndarray | None]:
         """(pattern, "lift", the stimulus) once the palm has held still ``settle_s``.
 
-        (None, False, None) when nothing is felt within ``timeout_s``.
+        (None, False, None) when nothing is felt within ``timeout_s``. ``closing``: the
+        fingers were just told to close (not after the assist, which closed and settled).
         """
         cfg = self.config
-        self.stop.wait(cfg.close_wait_s)  # the fingers are still closing: not yet a grasp
+        if closing:
+            self.stop.wait(cfg.close_wait_s)  # the fingers are still closing: not yet a grasp
         end = self.clock() + timeout_s
         held, since = None, 0.0
         while self.clock() < end and not self.stop.is_set():
@@ -327,7 +331,7 @@ class ScriptedOperator:
                 return self._lift(grasp, t0, outcome, on_lift)
             if self.assist and felt is not None and len(outcome.attempts) == 1:
                 self.hold_assist()
-                felt, lift, stimulus = self.feel(cfg.feel_timeout_s)
+                felt, lift, stimulus = self.feel(cfg.feel_timeout_s, closing=False)
                 truth = observe() if observe is not None else None
                 outcome.attempts.append(Attempt(turn_deg, shift_m, felt, self.clock() - t0, truth))
                 if lift:  # lifted from where the assist left the arm

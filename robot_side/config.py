@@ -142,8 +142,10 @@ class AssistConfig:
     turn_speed_rad_s: float = param(
         0.45, "the wrist's top speed while turning (about 26 deg/s; the gripper is open)"
     )
-    shift_speed_m_s: float = param(0.02, "the TCP's top speed while shifting")
-    gain_per_s: float = param(3.0, "velocity per unit of error left (the approach slows near it)")
+    shift_speed_m_s: float = param(0.03, "the TCP's top speed while shifting")
+    gain_per_s: float = param(
+        6.0, "velocity per unit of error left (the approach slows near it; the pose is 50 ms old)"
+    )
     side_offset_mm: float = param(
         5.0,
         "one shift toward centre (mm): a side class is 3 mm or more off centre (the lab's "
@@ -154,8 +156,10 @@ class AssistConfig:
     )
     angle_tolerance_deg: float = param(1.5, "a turn this close to its target is done")
     position_tolerance_mm: float = param(0.3, "a shift this close to its target is done")
-    release_ms: float = param(300.0, "the gripper opens at least this long before the arm moves")
-    settle_ms: float = param(400.0, "contact held this long before a pattern is judged")
+    release_ms: float = param(
+        150.0, "the gripper opens at least this long, and until nothing is felt, before moving"
+    )
+    settle_ms: float = param(400.0, "after a re-grasp: contact held this long before judging")
     phase_timeout_s: float = param(
         8.0, "a phase not finished by then (or nothing felt): the assist gives up"
     )

@@ -145,7 +145,8 @@ class Assist:
         getattr(self, f"_step_{phase}", lambda now: None)(now)
 
     def _step_waiting(self, now: int) -> None:
-        pattern = self._felt(now, since=self._phase_since)
+        # the pattern the operator felt and answered by holding the assist: no settling
+        pattern = self._felt(now, since=self._phase_since, settle_ms=0.0)
         if pattern is None:
             return
         if pattern == ALIGNED_PATTERN:
@@ -231,8 +232,10 @@ class Assist:
             self._regrasp(pattern, now)
 
     # ------------------------------------------------------------ helpers
-    def _felt(self, now: int, since: int) -> int | None:
-        """The pattern recognised with contact held ``settle_ms`` on frames after ``since``."""
+    def _felt(self, now: int, since: int, settle_ms: float | None = None) -> int | None:
+        """The pattern recognised with contact held ``settle_ms`` (default: the config's)
+        on frames captured after ``since``."""
+        settle = self.config.settle_ms if settle_ms is None else settle_ms
         stim = self.pipeline.last_stimulus
         captured = self.pipeline.last_capture_ns
         if stim is None or not stim.contact or stim.pattern is None or captured is None:
@@ -242,7 +245,7 @@ class Assist:
             return None
         if self._contact_since is None:
             self._contact_since = captured
-        if captured - self._contact_since < self.config.settle_ms * 1e6:
+        if captured - self._contact_since < settle * 1e6:
             return None
         return stim.pattern
 
