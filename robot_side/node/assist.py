@@ -292,12 +292,13 @@ class Assist:
             )
 
     def stats(self) -> dict[str, Any]:
-        """For the heartbeat: the phase (``PHASES``), re-grasps and commands issued."""
-        return {
-            "assist_phase": float(PHASE_CODES[self.phase]),
-            "assist_regrasps": float(self.regrasps),
-            "assist_steps": float(self.steps),
-        }
+        """For the heartbeat: the phase (``PHASES``); re-grasps and commands issued once
+        there are any (a heartbeat carries at most 64 stats)."""
+        out = {"assist_phase": float(PHASE_CODES[self.phase])}
+        if self.steps:
+            out["assist_regrasps"] = float(self.regrasps)
+            out["assist_steps"] = float(self.steps)
+        return out
 
 
 def _capped(v: np.ndarray, cap: float) -> np.ndarray:
