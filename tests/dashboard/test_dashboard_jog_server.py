@@ -218,6 +218,9 @@ def test_arm_view_turns_heartbeat_stats_into_what_the_panel_shows():
     assert view["workspace_mm"] == [[-400.0] * 3, [400.0] * 3]
     assert view["stop_latched"] is False
     assert arm_view({**stats, "arm_stop_latched": 1.0})["stop_latched"] is True
+    assert view["assist"] is None  # a robot without the assist says nothing of it
+    turning = {**stats, "assist_phase": 4.0, "assist_regrasps": 1.0, "assist_steps": 9.0}
+    assert arm_view(turning)["assist"] == {"phase": "turn", "regrasps": 1, "steps": 9}
 
 
 def test_the_assist_is_held_like_a_jog_forwarded_and_ended_by_the_watchdog(dashboard):
