@@ -407,11 +407,15 @@ def markdown(results: Results) -> list[str]:
         )
     lines += [
         "",
-        "`mask_assist`: `mask`, and after a wrong first grasp the operator holds the robot's "
-        "assist (robot_side/node/assist.py: the robot turns, shifts and re-grasps on its own "
-        "recognised pattern) instead of correcting by hand, then feels again and lifts or "
-        "corrects by hand; "
-        "`mask`: the robot's CNN picks the pattern and the palm presents its mask over the "
+        (
+            "`mask_assist`: `mask`, and after a wrong first grasp the operator holds the "
+            "robot's assist (robot_side/node/assist.py: the robot turns, shifts and re-grasps "
+            "on its own recognised pattern) instead of correcting by hand, then feels again "
+            "and lifts or corrects by hand; "
+            if any(c["feedback"] == "mask_assist" for c in s["cells"])
+            else ""
+        )
+        + "`mask`: the robot's CNN picks the pattern and the palm presents its mask over the "
         "downsized frame (the paper's method); `direct`: the frame downsized, no CNN; `none`: "
         "the operator ignores the palm. The operator names what it feels by the nearest of "
         "the twelve masks (a partial band is assumed upright), so `direct` feedback is read "
