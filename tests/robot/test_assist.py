@@ -254,3 +254,24 @@ def test_letting_go_of_the_enable_stops_the_assist_as_a_jog_deadman(make_cell):
     wait(lambda: phase(a) == PHASE_CODES["off"], 3, "the heartbeat to say off")
     time.sleep(0.5)
     assert still(arm), "the arm moved again after the enable was let go"
+
+
+def test_a_lease_hand_over_ends_the_assist_and_stills_the_arm(make_cell):
+    robot, arm, ops, *_ = make_cell(SHIFT_AND_TURN)
+    a, b = ops["a"], ops["b"]
+    b.send_command("lease_request")
+    wait(lambda: b.lease_pending is not None, 3, "b's request")
+    with holding(a):
+        wait(lambda: phase(a) == PHASE_CODES["turn"], 10, "the assist to turn the wrist")
+        wait(lambda: moving(arm), 5, "the turn to move the wrist")
+        t_grant = time.monotonic()
+        a.send_command("lease_grant", grantee=b.signer.public)
+        wait(lambda: still(arm), 5, "the arm to stop at the hand-over")
+        took = time.monotonic() - t_grant
+        assert took <= ARM_STILL_BUDGET_S, f"still {took * 1000:.0f} ms after the hand-over"
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:  # a still holds the assist: refused, as its jogs would be
+            assert not moving(arm), "a's assist moved the arm after a handed the lease over"
+            time.sleep(0.01)
+        assert b.is_controller
+    assert robot.assist.why.startswith("control lease now"), robot.assist.why
