@@ -107,10 +107,12 @@ class LabWorld:
         """Place the links and the gripper for joint angles ``q`` (the controller's).
 
         The gripper's flange target is not moved at once: the next :meth:`step`
-        glides it there across its steps. Placed once per batch, a world that
-        owed several steps jerked the welded gripper in jumps and the pipette
-        slid in the pads (2.7 mm per 40 mm lift placed every 8 steps, 12 mm
-        every 25, against 0.04 mm every step).
+        glides it there across its steps. ``LabServer`` moves the arm by the
+        simulated time those steps take, so the glide is the arm's own motion,
+        step by step. Placed once per batch, a world that owed several steps
+        jerked the welded gripper in jumps and the pipette slid in the pads
+        (2.7 mm per 40 mm lift placed every 8 steps, 12 mm every 25, against
+        0.04 mm every step).
         """
         links, flange = link_poses(q)
         quat = np.empty(4)
