@@ -164,10 +164,10 @@ class LabServer:
             n = int(owed / dt)
             if n > 0:
                 # One clock: the arm moves by the simulated time these n steps take, and
-                # the flange glides there across them. The world lock keeps a trial's
-                # reset (which teleports the arm) from landing between the two.
+                # the flange glides there across them. The joints are read under the world
+                # lock, so a trial's reset (which teleports the arm home) is seen whole.
+                self.ursim.advance(n * dt)
                 with self.world.lock:
-                    self.ursim.advance(n * dt)
                     q = self.ursim.joint_positions()
                     self.world.set_arm(q)
                 self.world.step(n)
