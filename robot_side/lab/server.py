@@ -256,7 +256,7 @@ class LabServer:
         """
         with self.world.lock:
             self.ursim.teleport_home()
-            self.world.set_arm(self.ursim.joint_positions())
+            self.world.set_arm(self.ursim.joint_positions(), glide=False)
             self.world.gripper_to_flange()
             self.world.place_pipette(int(pipette), PipetteConfig(x_m=x_m, tilt_deg=tilt_deg))
             self.protective_stops.clear()
