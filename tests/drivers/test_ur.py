@@ -366,6 +366,14 @@ def test_an_external_motion_clock_moves_the_arm_only_by_the_time_its_owner_steps
             moved = _streamed_tcp_pose(s)[2] - start[2]
         # 0.05 m/s for 0.2 s (its 5 ms ramp inside the first step), not for the 0.5 s that passed
         assert moved == pytest.approx(0.05 * 0.2, abs=2e-4)
+        # the RTDE watchdog counts the same clock: 0.3 s of wall is no silence, 0.2 s of it is
+        with sim._lock:  # what setWatchdog(10 Hz) makes the running script do
+            sim.program_running, sim.watchdog_hz, sim._watchdog_silent_s = True, 10.0, 0.0
+        time.sleep(0.3)
+        assert sim.watchdog_trips == 0 and sim.program_running
+        for _ in range(20):
+            sim.advance(0.01)
+        assert sim.watchdog_trips == 1 and not sim.program_running
     finally:
         sim.stop()
 

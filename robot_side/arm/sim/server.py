@@ -531,7 +531,8 @@ class URSimulator:
             dt = min(elapsed, MAX_TICK_S)
             with self._lock:
                 try:
-                    self._judge_watchdog(min(elapsed, MAX_SILENCE_TICK_S))
+                    if self.config.motion_clock == "wall":
+                        self._judge_watchdog(min(elapsed, MAX_SILENCE_TICK_S))
                     self._script_cycle()
                 except Exception:
                     self._runtime_error()
@@ -559,12 +560,20 @@ class URSimulator:
         A physics world calls this with the simulated time it is about to
         step, so the arm and the physics share one clock: a world that falls
         behind real time slows the arm with it instead of seeing it jump.
+        The RTDE watchdog counts this time too: the arm a silent client
+        leaves moving covers the same distance before it stops, and a stop
+        the client waits on (its kicks queued behind it) takes as long on
+        this clock as the watchdog allows on it.
         """
         if self.config.motion_clock != "external":
             raise ConfigError("URSimulator.advance needs motion_clock = 'external'")
         with self._lock:
             while dt_s > 1e-12:
                 step = min(dt_s, MAX_TICK_S)
+                try:
+                    self._judge_watchdog(min(step, MAX_SILENCE_TICK_S))
+                except Exception:
+                    self._runtime_error()
                 self._step_arm(step)
                 dt_s -= step
 
