@@ -130,7 +130,8 @@ class URSimConfig:
         "wall",
         "what moves the arm: 'wall' (the controller's own cycle, real time) or 'external' "
         "(only advance(dt) does: a physics world's simulated time, so a world that falls "
-        "behind slows the arm alike; the wire, the script and the watchdog stay on real time)",
+        "behind slows the arm alike; the RTDE watchdog counts that time too, the wire and "
+        "the script's handshake stay on real time)",
     )
 
 
