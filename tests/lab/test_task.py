@@ -9,6 +9,8 @@ off-centre; with the palm it feels "90 deg left", shifts and lifts it centred.
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 
 pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (MuJoCo)")
@@ -26,6 +28,7 @@ def test_the_palm_turns_an_off_centre_grasp_into_a_correct_lift(tmp_path):
     cell = run_cell("lan", "mask", [OFF_CENTRE], workdir=tmp_path / "mask")
     assert not cell["errors"], cell["errors"]
     (trial,) = cell["trials"]
+    _report_clock(trial)
     assert trial["felt"][0] == pattern_of(2, 1), f"felt 90 deg left first: {trial}"
     assert trial["felt_truth"][0] == pattern_of(2, 1), "and the world agrees"
     assert trial["success"], trial
@@ -36,4 +39,13 @@ def test_without_feedback_the_same_grasp_is_lifted_off_centre(tmp_path):
     cell = run_cell("lan", "none", [OFF_CENTRE], workdir=tmp_path / "none")
     assert not cell["errors"], cell["errors"]
     (trial,) = cell["trials"]
+    _report_clock(trial)
     assert not trial["success"] and trial["truth"] == "90 deg left", trial
+
+
+def _report_clock(trial: dict) -> None:
+    """Every trial carries the world's sim/wall; one that fell behind (< 0.98) says so."""
+    assert 0 < trial["sim_wall"] <= 1.05 and trial["behind"] == (trial["sim_wall"] < 0.98), trial
+    print(f"trial sim/wall {trial['sim_wall']} (slowest 1 s {trial['sim_wall_lowest']})")
+    if trial["behind"]:
+        warnings.warn(f"the world fell behind real time in this trial: {trial}", stacklevel=2)
