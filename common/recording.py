@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
+from common.tactile import FRAME_SHAPE
+
 #: channel -> what it holds (the MCAP recorder uses these as topics)
 CHANNELS: dict[str, str] = {
-    "robot/frame": "tactile frame as processed: frame (2,10,10) N, frame_seq, t_capture_ns",
+    "robot/frame": f"tactile frame as processed: frame {FRAME_SHAPE} N, frame_seq, t_capture_ns",
     "robot/prediction": "classifier output: angle/position probabilities, pattern, confidence",
     "robot/stimulus": "stimulus sent: the wire bytes (topic + msgpack) and seq",
     "robot/command": "operator command received and what was done with it: outcome, the "

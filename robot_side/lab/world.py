@@ -237,7 +237,7 @@ class LabWorld:
         return g1, g2, force
 
     def taxel_forces(self) -> np.ndarray:
-        """(2, 10, 10) normal force on each taxel, newtons, in the common view."""
+        """``FRAME_SHAPE`` normal force on each taxel, newtons, in the common view."""
         out = np.zeros(2 * N_ROWS * N_COLS)
         with self.lock:
             g1, g2, force = self._contacts()
