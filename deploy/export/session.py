@@ -51,6 +51,10 @@ class Session:
     metadata: dict[str, Any] = field(default_factory=dict)
     channels: set[str] = field(default_factory=set)
     robot_config: dict[str, Any] = field(default_factory=dict)
+    #: the video server's recordings in the folder (camera*.mcap), and after ``scan``
+    #: camera key -> (its files, (width, height) of its first picture)
+    camera_files: list[Path] = field(default_factory=list)
+    cameras: dict[str, tuple[list[Path], tuple[int, int]]] = field(default_factory=dict)
 
 
 def find_sessions(paths: list[Path]) -> list[Session]:
@@ -61,7 +65,9 @@ def find_sessions(paths: list[Path]) -> list[Session]:
             out.append(Session(path.stem, path))
         elif (path / "robot.mcap").is_file():
             op = path / "operator.mcap"
-            out.append(Session(path.name, path / "robot.mcap", op if op.is_file() else None))
+            session = Session(path.name, path / "robot.mcap", op if op.is_file() else None)
+            session.camera_files = sorted(path.glob("camera*.mcap"))
+            out.append(session)
         elif path.is_dir():
             subs = sorted(p for p in path.iterdir() if (p / "robot.mcap").is_file())
             if not subs:
@@ -108,6 +114,44 @@ def robot_records(session: Session) -> Iterator[tuple[str, int, dict[str, Any]]]
         yield ch, t, rec
     if reader.truncated:
         log.warning("%s was cut short (%s): exported up to the cut", session.robot, reader.error)
+
+
+def camera_records(session: Session, key: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """The pictures of camera ``key`` in time order, as channel ``camera/<key>``.
+
+    A restarted video server's file (``camera.restart1.mcap``) follows the
+    first: each file is in time order, and the files are merged.
+    """
+    from robot_side.video.recording import CHANNEL
+
+    def one(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
+        reader = RecordingReader(path)
+        for channel, t_ns, record in reader:
+            if channel == CHANNEL:
+                yield f"camera/{key}", t_ns, record
+        if reader.damage:
+            log.warning("%s: %d damaged stretch(es) skipped", path, len(reader.damage))
+
+    yield from heapq.merge(*(one(p) for p in session.cameras[key][0]), key=lambda r: r[1])
+
+
+def _scan_cameras(session: Session) -> None:
+    """Which cameras the session's camera files hold, and each one's picture size."""
+    from robot_side.video.recording import CHANNEL
+
+    for path in session.camera_files:
+        reader = RecordingReader(path)
+        size = None
+        for channel, _, record in reader:
+            if channel == CHANNEL:
+                size = (int(record["width"]), int(record["height"]))
+                break
+        key = reader.metadata.get("deepxpalm.camera", {}).get("camera")
+        if key is None or size is None:
+            log.warning("%s holds no camera pictures: left out", path)
+            continue
+        files, first = session.cameras.get(key, ([], size))
+        session.cameras[key] = ([*files, path], first)
 
 
 def scan(session: Session) -> Session:
@@ -161,6 +205,11 @@ def scan(session: Session) -> Session:
     meta.pop("_session_meta", None)
     meta["scene"] = session_meta.get("scene")
     meta["network_scenario"] = session_meta.get("network_scenario")
+    _scan_cameras(session)
+    meta["cameras"] = {
+        key: {"files": [str(p) for p in files], "width": size[0], "height": size[1]}
+        for key, (files, size) in session.cameras.items()
+    }
     session.metadata = meta
     return session
 
