@@ -4,13 +4,15 @@ Resampling rule (docs/datasets.md): row k of a session stands at time
 ``t0 + k / fps`` on the robot's clock, where ``t0`` is the first moment
 every exported channel has a record. Each observation in the row is the
 newest record at or before that time (sample and hold: nothing from the
-future leaks into a row). The action is what the devices were sent at that
-time: the velocity the arm sent for the last applied jog (``sent_velocity``)
-until an ``arm_stop``, another arm command, the robot's link deadman, or
-the arm's own jog deadline, which counts from the operator's send time
-(``t_sent_ns``), not from when the robot recorded the command; and the
-gripper target of the last applied gripper command. Rejected commands
-change nothing, as they changed nothing on the robot.
+future leaks into a row); rows end one record period after a camera's last
+picture (the video server stopped before the robot). The action is what
+the devices were sent at that time: the velocity the arm sent for the last
+applied jog (``sent_velocity``) until an ``arm_stop``, another arm
+command, the robot's link deadman, or the arm's own jog deadline, which
+counts from the operator's send time (``t_sent_ns``), not from when the
+robot recorded the command; and the gripper target of the last applied
+gripper command. Rejected commands change nothing, as they changed nothing
+on the robot.
 """
 
 from __future__ import annotations
@@ -77,6 +79,7 @@ class SessionResampler:
         #: camera key -> the held picture's JPEG bytes (channel ``camera/<key>``)
         self.cameras = cameras
         self.images: dict[str, bytes] = {}
+        self.ended = False  # a camera stopped: rows would hold its last picture for ever
         arm = robot_config.get("arm", {})
         self.arm_limits = from_dict(ArmLimits, arm.get("limits", {}), where="robot.arm.limits")
         gripper = robot_config.get("gripper", {})
@@ -118,7 +121,7 @@ class SessionResampler:
         return not ("gripper" in self.groups and self.gripper_position is None)
 
     def _rows_before(self, t_ns: int) -> Iterator[Row]:
-        while True:
+        while not self.ended:
             t_k = self.t0 + round(self.k * self.period_ns)
             if t_k >= t_ns:
                 return
@@ -176,6 +179,8 @@ class SessionResampler:
             self._command(t_ns, r)
         elif channel.startswith("camera/"):
             self.images[channel.removeprefix("camera/")] = r["data"]
+        elif channel.startswith("camera-end/"):
+            self.ended = True
         elif channel == "robot/link" and r.get("state") == "down":
             self._stop_jog()  # the link deadman stopped the arm (at or before this heartbeat)
 

@@ -52,9 +52,9 @@ class Session:
     channels: set[str] = field(default_factory=set)
     robot_config: dict[str, Any] = field(default_factory=dict)
     #: the video server's recordings in the folder (camera*.mcap), and after ``scan``
-    #: camera key -> (its files, (width, height) of its first picture)
+    #: camera key -> (its files, (width, height) of its first picture, record period in ns)
     camera_files: list[Path] = field(default_factory=list)
-    cameras: dict[str, tuple[list[Path], tuple[int, int]]] = field(default_factory=dict)
+    cameras: dict[str, tuple[list[Path], tuple[int, int], int]] = field(default_factory=dict)
 
 
 def find_sessions(paths: list[Path]) -> list[Session]:
@@ -80,6 +80,9 @@ def find_sessions(paths: list[Path]) -> list[Session]:
 
 #: the channel of the marker ``robot_records`` yields where a damaged stretch was skipped
 GAP = "export/gap"
+#: the marker ``camera_records`` yields one record period after a camera's last picture
+#: (``camera-end/<key>``): no row after it, as none before the first picture
+CAMERA_END = "camera-end/"
 
 
 def robot_records(session: Session) -> Iterator[tuple[str, int, dict[str, Any]]]:
@@ -132,7 +135,12 @@ def camera_records(session: Session, key: str) -> Iterator[tuple[str, int, dict[
         if reader.damage:
             log.warning("%s: %d damaged stretch(es) skipped", path, len(reader.damage))
 
-    yield from heapq.merge(*(one(p) for p in session.cameras[key][0]), key=lambda r: r[1])
+    last = None
+    for item in heapq.merge(*(one(p) for p in session.cameras[key][0]), key=lambda r: r[1]):
+        last = item[1]
+        yield item
+    if last is not None:  # the last picture stands for one period, then the camera is gone
+        yield f"{CAMERA_END}{key}", last + session.cameras[key][2], {}
 
 
 def _scan_cameras(session: Session) -> None:
@@ -146,12 +154,14 @@ def _scan_cameras(session: Session) -> None:
             if channel == CHANNEL:
                 size = (int(record["width"]), int(record["height"]))
                 break
-        key = reader.metadata.get("deepxpalm.camera", {}).get("camera")
+        camera = reader.metadata.get("deepxpalm.camera", {})
+        key = camera.get("camera")
         if key is None or size is None:
             log.warning("%s holds no camera pictures: left out", path)
             continue
-        files, first = session.cameras.get(key, ([], size))
-        session.cameras[key] = ([*files, path], first)
+        period_ns = round(1e9 / float(camera.get("record_fps", 10)))
+        files, first, _ = session.cameras.get(key, ([], size, period_ns))
+        session.cameras[key] = ([*files, path], first, period_ns)
 
 
 def scan(session: Session) -> Session:
@@ -208,7 +218,7 @@ def scan(session: Session) -> Session:
     _scan_cameras(session)
     meta["cameras"] = {
         key: {"files": [str(p) for p in files], "width": size[0], "height": size[1]}
-        for key, (files, size) in session.cameras.items()
+        for key, (files, size, _) in session.cameras.items()
     }
     session.metadata = meta
     return session

@@ -90,9 +90,15 @@ class CameraRecording:
         )
 
     def _offer(self, frame: CapturedFrame) -> None:
-        """On the capture thread: keep one frame per period, on the monotonic clock."""
+        """On the capture thread: keep the frame nearest each period's tick (monotonic clock).
+
+        A frame half a camera period before the tick is nearer to it than the
+        next one: taking only frames at or after the tick would drift to the
+        camera's next multiple (7.5 fps from a 15 fps camera at 10).
+        """
         t_ns = frame.capture_ns - (time.time_ns() - time.monotonic_ns())
-        if self._next_due is not None and t_ns < self._next_due:
+        early_ns = 5e8 / self.feed.camera.fps
+        if self._next_due is not None and t_ns + early_ns < self._next_due:
             return
         # the next is due one period on; a stall restarts the schedule instead of bursting
         due = (self._next_due or t_ns) + self.period_ns
