@@ -82,7 +82,7 @@ class TactileFrame:
     t_send_ns: int
     t_capture_ns: int
     frame_seq: int
-    frame: np.ndarray  # (2, 10, 10) float32 newtons, common view
+    frame: np.ndarray  # FRAME_SHAPE float32 newtons, common view
 
     session: int | None = None  # random per robot node run (boot id)
     signer: bytes | None = None  # robot: its Ed25519 public key (a signed stream)

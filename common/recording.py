@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
+from common.tactile import FRAME_SHAPE
+
 #: channel -> what it holds (the MCAP recorder uses these as topics)
 CHANNELS: dict[str, str] = {
-    "robot/frame": "tactile frame as processed: frame (2,10,10) N, frame_seq, t_capture_ns",
+    "robot/frame": f"tactile frame as processed: frame {FRAME_SHAPE} N, frame_seq, t_capture_ns",
     "robot/prediction": "classifier output: angle/position probabilities, pattern, confidence",
     "robot/stimulus": "stimulus sent: the wire bytes (topic + msgpack) and seq",
     "robot/command": "operator command received and what was done with it: outcome, the "
@@ -24,6 +26,8 @@ CHANNELS: dict[str, str] = {
     "operator/servo_goals": "servo goal counts written (ids 1..6) and their angles",
     "operator/command": "command sent to the robot: the wire bytes",
     "operator/link": "operator link state, age, clock offset and counters",
+    "camera/image": "a camera picture (video server, camera.mcap): JPEG bytes in data, "
+    "t_capture_ns on the robot's monotonic clock, capture_wall_ns, width, height",
 }
 
 

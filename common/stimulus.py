@@ -129,7 +129,7 @@ def mask_columns(pattern: int) -> list[int | None]:
 
 
 def sanitize_frame(frame: np.ndarray) -> np.ndarray:
-    """A (2, 10, 10) float32 frame held to the sensor's range, whatever came in.
+    """A ``FRAME_SHAPE`` float32 frame held to the sensor's range, whatever came in.
 
     Non-finite taxels read 0 N and nothing exceeds saturation, so neither the
     downsizing nor the classifier ever sees garbage. A frame already in range
@@ -170,7 +170,7 @@ def render_stimulus(
     order: Order = "mask_then_peak",
     contact_threshold_n: float = CONTACT_FLOOR_N,
 ) -> np.ndarray:
-    """The 3x3 float32 stimulus for a (2, 10, 10) frame in newtons.
+    """The 3x3 float32 stimulus for a ``FRAME_SHAPE`` frame in newtons.
 
     ``pattern=None`` is direct rendering (no mask, the paper's baseline).
     Readings are held to the sensor's range first: non-finite taxels count as

@@ -9,7 +9,7 @@ in ``common`` because the operator's perception study simulates grasps too.
 
 Conventions (the project's tactile contract, declared in ``common.tactile``):
 
-- A frame is float32 newtons of shape (2, 10, 10): axis 0 the pad (0 = finger
+- A frame is float32 newtons of shape ``FRAME_SHAPE``: axis 0 the pad (0 = finger
   1, 1 = finger 2 already mirrored into finger 1's view), axis 1 the row (0 at
   the fingertip end, "up"), axis 2 the column (0 at the left).
 - The pads are 10 x 10 taxels at a 2.41 mm pitch (about 24.1 mm square).
@@ -358,7 +358,7 @@ class SyntheticTactileModel:
         return force * self._sample_area
 
     def frame(self, pattern: int | None, grip_level: int, rng: np.random.Generator) -> np.ndarray:
-        """A (2, 10, 10) float32 frame in newtons, as the pad pair would report it.
+        """A ``FRAME_SHAPE`` float32 frame in newtons, as the pad pair would report it.
 
         ``pattern`` None means nothing is grasped: only taxels stuck above the
         floor read anything. ``grip_level`` runs 1 (lightest) to 31. Each call

@@ -66,8 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-video",
         action="store_true",
-        help="no camera in the dashboard (default: the lab's camera, or the test pattern, "
-        "when the video extra is installed)",
+        help="no camera in the dashboard or the recording (default: the lab's camera, or the "
+        "test pattern, when the video extra is installed)",
     )
     add_overrides_argument(parser, "robot.render.mode=direct")
 
@@ -241,11 +241,11 @@ def spawn_lab_world(addresses: Path, config: str | None, log_path: Path) -> subp
 
 
 def video_wanted(args: argparse.Namespace, scene: Scene) -> bool:
-    """A camera for the dashboard: when there is a dashboard and the video extra is here."""
-    if args.no_video or not (args.dashboard or scene.operator.dashboard.enabled):
+    """A camera for the dashboard or the recording, when the video extra is here."""
+    if args.no_video or not (args.dashboard or scene.operator.dashboard.enabled or args.record):
         return False
     if importlib.util.find_spec("aiortc") is None:
-        log.info("no video in the dashboard: the video extra (aiortc) is not installed")
+        log.info("no camera: the video extra (aiortc) is not installed")
         return False
     return True
 
@@ -343,9 +343,17 @@ def run(args: argparse.Namespace) -> int:
         ]
         cli_child("netsim", lambda n: netsim, restart_delay_s=DEFAULT_RESTART_S)
     if video is not None:  # -v: it says when the camera opens and closes
+
+        def video_args_(n: int) -> list[str]:
+            if not args.record:
+                return ["-v", *video]
+            # the camera beside the robot's recording; a restarted server's file beside it
+            name = "camera.mcap" if n == 0 else f"camera.restart{n}.mcap"
+            return ["-v", *video, "--set", f'record="{args.record / name}"']
+
         cli_child(
             "video",
-            lambda n: ["-v", *video],
+            video_args_,
             restart_delay_s=unit_restart_s("video"),
             essential=False,  # the demo runs on without a camera
         )

@@ -310,6 +310,8 @@ def _report(
         from deploy.replay import check
 
         for p in sorted(rec_dir.glob("*.mcap")):
+            if p.name.startswith("camera"):  # the video server's pictures: nothing to replay
+                continue
             s = check(p)
             replays[p.stem] = {
                 k: s[k] for k in ("mismatches", "mismatch_kinds", "checked", "examples")

@@ -119,7 +119,7 @@ class StdioChild:
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
         )
         try:
-            msg = self._read(timeout_s, "start")
+            msg = self._read(self._proc, timeout_s, "start")
         except DeviceError:
             self.kill()
             raise
@@ -128,13 +128,19 @@ class StdioChild:
             raise DeviceError(f"{self.what} failed to start: {msg.get('error', msg)}")
         return msg["ready"]
 
-    def _read(self, timeout_s: float, what: str) -> dict[str, Any]:
-        proc = self._proc
-        assert proc is not None and proc.stdout is not None
-        ready, _, _ = select.select([proc.stdout], [], [], timeout_s)
-        if not ready:
-            raise DeviceTimeoutError(f"{self.what} did not answer {what} in {timeout_s:.0f} s")
-        line = proc.stdout.readline()
+    def _read(self, proc: subprocess.Popen, timeout_s: float, what: str) -> dict[str, Any]:
+        """One reply from ``proc``, the process the request went to.
+
+        ``kill()`` does not wait for a call under way (a kill is meant to be
+        at once): it may close this pipe mid-read, which is the child gone.
+        """
+        try:
+            ready, _, _ = select.select([proc.stdout], [], [], timeout_s)
+            if not ready:
+                raise DeviceTimeoutError(f"{self.what} did not answer {what} in {timeout_s:.0f} s")
+            line = proc.stdout.readline()
+        except (ValueError, OSError) as e:  # the pipe closed under us by kill()
+            raise DeviceError(f"{self.what} process was stopped during {what}: {e}") from e
         if not line:
             raise DeviceError(
                 f"{self.what} process exited during {what} (code {proc.poll()}); "
@@ -148,9 +154,12 @@ class StdioChild:
             if proc is None or proc.stdin is None or not self.running:
                 raise DeviceError(f"{self.what} process is not running: call start() first")
             request = {"method": method, "args": [jsonable(a) for a in args]}
-            proc.stdin.write(json.dumps(request) + "\n")
-            proc.stdin.flush()
-            msg = self._read(timeout_s, method)
+            try:
+                proc.stdin.write(json.dumps(request) + "\n")
+                proc.stdin.flush()
+            except (ValueError, OSError) as e:  # killed meanwhile: its pipe is closed
+                raise DeviceError(f"{self.what} process was stopped before {method}: {e}") from e
+            msg = self._read(proc, timeout_s, method)
         if "error" in msg:
             raise DeviceError(f"{self.what} {method}: {msg['error']}")
         return msg.get("ok")

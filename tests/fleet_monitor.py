@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 
@@ -36,6 +37,7 @@ class Monitor:
             topics=topics,
         )
         self.heartbeats: list[tuple[int, Heartbeat]] = []
+        self.stimulus_times: list[int] = []  # arrival here, our clock
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -46,6 +48,8 @@ class Monitor:
                 for msg, t in self.sub.drain():
                     if isinstance(msg, Heartbeat):
                         self.heartbeats.append((t, msg))
+                    elif isinstance(msg, Stimulus):
+                        self.stimulus_times.append(t)
 
     def holder_since(self, key: bytes, t0: int) -> int | None:
         """Arrival time of the first robot heartbeat after ``t0`` that names ``key`` as holder."""
@@ -53,6 +57,16 @@ class Monitor:
             if t >= t0 and hb.controller == key:
                 return t
         return None
+
+    def largest_stimulus_gap_ms(self) -> float:
+        """The longest the robots' stimulus stream went quiet, as this client saw it.
+
+        A pause over the operator's staleness limit lifts its palm, as it
+        should: a test that finds a lift-off can tell a stalled robot or
+        machine (this gap too) from a lift-off with the stream flowing.
+        """
+        times = sorted(self.stimulus_times)
+        return max((b - a for a, b in itertools.pairwise(times)), default=0) / 1e6
 
     def close(self) -> None:
         self._stop.set()

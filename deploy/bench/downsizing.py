@@ -77,7 +77,7 @@ _SEPARABLE = {
 
 
 def contact_map(frame: np.ndarray) -> np.ndarray:
-    """(2, 10, 10) frame -> (10, 10) mean of both pads."""
+    """``FRAME_SHAPE`` frame -> (10, 10) mean of both pads."""
     return (frame[0] + frame[1]) * np.float32(0.5)
 
 

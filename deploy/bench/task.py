@@ -187,6 +187,7 @@ def _trial(world: Any, hands: Any, setup: TrialSetup) -> dict[str, Any]:
 
     hands.release()
     world.reset_trial(0, setup.offset_m, setup.tilt_deg)
+    clock_at_start = world.stats()
     time.sleep(0.3)  # the next heartbeats carry the home pose
     truth_at_lift: dict[str, Any] = {}
     pose_at_lift: list[np.ndarray] = []
@@ -200,8 +201,10 @@ def _trial(world: Any, hands: Any, setup: TrialSetup) -> dict[str, Any]:
         outcome = hands.grasp_and_lift(at_lift, observe=lambda: world.grasp().get("pattern"))
     except ScriptedOperatorError as e:
         hands.node.send_command("arm_jog_end")  # a STOP (arm_stop) would latch the next trials
-        stops = world.stats()["protective_stops"]
+        stats = world.stats()
+        stops = stats["protective_stops"]
         row.update(success=False, correct_grasp=False, lifted_mm=0.0, error=str(e), stops=stops)
+        row.update(_trial_clock(clock_at_start, stats))
         log.warning("task trial %s failed: %s (protective stops: %s)", setup, e, stops)
         return row
     time.sleep(0.2)
@@ -230,8 +233,22 @@ def _trial(world: Any, hands: Any, setup: TrialSetup) -> dict[str, Any]:
         else round(truth_at_lift["tilt_deg"], 1),
         gave_up=outcome.gave_up,
     )
+    row.update(_trial_clock(clock_at_start, world.stats()))
     log.info("task trial %s", row)
     return row
+
+
+def _trial_clock(start: dict[str, Any], end: dict[str, Any]) -> dict[str, Any]:
+    """The world's sim/wall over the trial, its slowest 1 s window, and whether it fell behind."""
+    from robot_side.lab.clock import BEHIND_SIM_WALL, sim_wall_between
+
+    ratio = sim_wall_between(start, end)
+    lowest = end.get("sim_wall_lowest")
+    return {
+        "sim_wall": None if ratio is None else round(ratio, 3),
+        "sim_wall_lowest": None if lowest is None else round(lowest, 3),
+        "behind": ratio is not None and ratio < BEHIND_SIM_WALL,
+    }
 
 
 def summarise(trials: list[dict[str, Any]]) -> dict[str, Any]:
@@ -246,6 +263,7 @@ def summarise(trials: list[dict[str, Any]]) -> dict[str, Any]:
         if t["correct_grasp"] and t.get("tool_lift_mm") is not None
     ]
     lo, hi = wilson(wins, n)
+    clocks = [t["sim_wall"] for t in trials if t.get("sim_wall") is not None]
     return {
         "trials": n,
         "successes": wins,
@@ -258,6 +276,10 @@ def summarise(trials: list[dict[str, Any]]) -> dict[str, Any]:
         "attempts_mean": float(np.mean([t.get("attempts", 1) for t in trials])) if n else None,
         "slip_mm_p50": float(np.median(slips)) if slips else None,
         "slip_mm_max": float(np.max(slips)) if slips else None,
+        # the world's sim/wall per trial: a trial below 0.98 fell behind real time
+        "sim_wall_p50": float(np.median(clocks)) if clocks else None,
+        "sim_wall_min": float(np.min(clocks)) if clocks else None,
+        "trials_behind": sum(1 for t in trials if t.get("behind")),
     }
 
 

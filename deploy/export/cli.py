@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import heapq
 import json
 import logging
 import sys
@@ -61,8 +62,15 @@ def export(
     """Export the sessions under ``paths`` into a new dataset at ``out``; a summary."""
     from deploy.export.lerobot_v3 import LeRobotV3Writer
     from deploy.export.resample import EpisodeCutter, ExportConfig, SessionResampler
-    from deploy.export.schema import features_for
-    from deploy.export.session import GAP, ExportError, find_sessions, robot_records, scan
+    from deploy.export.schema import features_for, image_feature
+    from deploy.export.session import (
+        GAP,
+        ExportError,
+        camera_records,
+        find_sessions,
+        robot_records,
+        scan,
+    )
 
     config = config or ExportConfig()
     t_start, cpu_start = time.monotonic(), time.process_time()
@@ -77,13 +85,16 @@ def export(
             log.warning("only some sessions recorded %s: its features are left out", channel)
     if {"arm", "gripper"} <= groups:
         groups.add("state")
-    features = features_for(groups)
-    writer = LeRobotV3Writer(out, features, config.fps)
+    cameras = _common_cameras(sessions)
+    features = features_for(groups) + [
+        image_feature(key, *sessions[0].cameras[key][1]) for key in cameras
+    ]
+    writer = LeRobotV3Writer(out, features, config.fps, video_codec=config.video_codec)
     total_s = sum(s.metadata["duration_s"] for s in sessions)
     bar = _bar(total_s, progress)
     records = 0
     for session in sessions:
-        resampler = SessionResampler(config.fps, session.robot_config, groups)
+        resampler = SessionResampler(config.fps, session.robot_config, groups, cameras)
         meta_json = json.dumps(session.metadata, sort_keys=True, default=str)
         first_t: list[int] = []
 
@@ -102,13 +113,14 @@ def export(
 
         cutter = EpisodeCutter(config, begin, add, writer.end_episode)
         last_t = None
-        for channel, t_ns, record in robot_records(session):
+        streams = [robot_records(session), *(camera_records(session, k) for k in cameras)]
+        for channel, t_ns, record in heapq.merge(*streams, key=lambda r: r[1]):
             if channel == GAP:  # nothing is known across it: end the episode, start afresh
                 cutter.finish()
-                resampler = SessionResampler(config.fps, session.robot_config, groups)
+                resampler = SessionResampler(config.fps, session.robot_config, groups, cameras)
                 cutter = EpisodeCutter(config, begin, add, writer.end_episode)
                 continue
-            records += 1
+            records += channel.startswith("robot/")
             for row in resampler.feed(channel, t_ns, record):
                 cutter.add(row)
             if bar is not None and resampler.t0 is not None and t_ns - (last_t or 0) > 1e9:
@@ -155,6 +167,14 @@ def export(
         "damage": damage,
         "cut_short": [s.name for s in sessions if s.metadata["robot_cut_short"]],
     }
+
+
+def _common_cameras(sessions: list[Any]) -> tuple[str, ...]:
+    """The cameras every session recorded (a camera some lack is left out, and said so)."""
+    keys = set.intersection(*(set(s.cameras) for s in sessions)) if sessions else set()
+    for key in set().union(*(s.cameras for s in sessions)) - keys:
+        log.warning("only some sessions recorded camera %s: its feature is left out", key)
+    return tuple(sorted(keys))
 
 
 def _check_out(out: Path) -> None:

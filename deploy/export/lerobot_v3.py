@@ -28,6 +28,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from deploy.export.schema import DEFAULT_FEATURES, Feature
+from deploy.export.video import VIDEO_PATH, VideoFeatureWriter
 
 CODEBASE_VERSION = "v3.0"
 CHUNKS_SIZE = 1000  # files per chunk folder
@@ -95,6 +96,7 @@ class LeRobotV3Writer:
         *,
         batch_rows: int = 1024,
         file_size_mb: float = 100.0,
+        video_codec: str = "libsvtav1",
     ) -> None:
         self.root = Path(root)
         self.features = features
@@ -102,7 +104,13 @@ class LeRobotV3Writer:
         self.batch_rows = batch_rows
         self.file_size_bytes = file_size_mb * 1e6
         self.columns: dict[str, tuple[str, tuple[int, ...]]] = {
-            f.name: (f.dtype, f.shape) for f in features
+            f.name: (f.dtype, f.shape) for f in features if f.dtype != "video"
+        }
+        #: each camera's MP4 writer: its pictures are not parquet columns
+        self.videos = {
+            f.name: VideoFeatureWriter(root, f.name, f.shape[1], f.shape[0], fps, video_codec)
+            for f in features
+            if f.dtype == "video"
         }
         for name, ft in DEFAULT_FEATURES.items():
             self.columns[name] = (ft["dtype"], tuple(ft["shape"]))
@@ -146,6 +154,9 @@ class LeRobotV3Writer:
             **extra,
         }
         self.ep_stats = {name: RunningStats(shape) for name, (_, shape) in self.columns.items()}
+        for name, video in self.videos.items():
+            self.ep.update(video.begin_episode())
+            self.ep_stats[name] = RunningStats((3,))
         self.frame_index = 0
 
     def add(self, row: dict[str, Any]) -> None:
@@ -159,6 +170,8 @@ class LeRobotV3Writer:
         b["episode_index"][i] = self.ep["episode_index"]
         b["index"][i] = self.index
         b["task_index"][i] = self.ep["task_index"]
+        for name, video in self.videos.items():
+            self.ep_stats[name].update(video.add(row[name]))
         self.fill += 1
         self.frame_index += 1
         self.index += 1
@@ -168,12 +181,14 @@ class LeRobotV3Writer:
     def end_episode(self) -> None:
         self._flush()
         ep = self.ep
+        for video in self.videos.values():
+            ep.update(video.end_episode())
         ep["dataset_to_index"] = self.index
         ep["length"] = self.index - ep["dataset_from_index"]
         for name, st in self.ep_stats.items():
-            for stat, value in st.as_dict().items():
+            for stat, value in _stats_dict(name, st, self.videos).items():
                 ep[f"stats/{name}/{stat}"] = value
-            self.stats[name].merge(st)
+            self.stats.setdefault(name, RunningStats(st.sum.shape)).merge(st)
         del ep["task_index"]
         self.episodes.append(ep)
         self.ep = self.ep_stats = None
@@ -202,9 +217,13 @@ class LeRobotV3Writer:
         if self.writer is not None:
             self.writer.close()
             self.writer = None
+        for video in self.videos.values():
+            video.finish()
         meta = self.root / "meta"
         meta.mkdir(parents=True, exist_ok=True)
         features = {f.name: f.info() for f in self.features}
+        for name, video in self.videos.items():
+            features[name]["info"] = video.info()
         features.update(DEFAULT_FEATURES)
         total = self.index
         info = {
@@ -219,11 +238,12 @@ class LeRobotV3Writer:
             "fps": self.fps,
             "splits": {"train": f"0:{len(self.episodes)}"},
             "data_path": DATA_PATH,
-            "video_path": None,
+            "video_path": VIDEO_PATH if self.videos else None,
             "features": features,
         }
         _write_json(meta / "info.json", info)
-        _write_json(meta / "stats.json", {k: s.as_dict() for k, s in self.stats.items() if s.n})
+        stats = {k: _stats_dict(k, s, self.videos) for k, s in self.stats.items() if s.n}
+        _write_json(meta / "stats.json", stats)
         self._write_tasks(meta / "tasks.parquet")
         self._write_episodes()
         _write_json(meta / "deepxpalm.json", provenance)
@@ -272,6 +292,14 @@ class LeRobotV3Writer:
             pa.table(columns) if columns else pa.table({"episode_index": pa.array([], pa.int64())}),
             path,
         )
+
+
+def _stats_dict(name: str, st: RunningStats, videos: dict) -> dict[str, list]:
+    """A camera's per-channel stats in LeRobot's image shape (3, 1, 1); others as they are."""
+    out = st.as_dict()
+    if name in videos:
+        out = {k: v if k == "count" else [[[x]] for x in v] for k, v in out.items()}
+    return out
 
 
 def _write_json(path: Path, data: Any) -> None:

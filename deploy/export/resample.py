@@ -4,13 +4,15 @@ Resampling rule (docs/datasets.md): row k of a session stands at time
 ``t0 + k / fps`` on the robot's clock, where ``t0`` is the first moment
 every exported channel has a record. Each observation in the row is the
 newest record at or before that time (sample and hold: nothing from the
-future leaks into a row). The action is what the devices were sent at that
-time: the velocity the arm sent for the last applied jog (``sent_velocity``)
-until an ``arm_stop``, another arm command, the robot's link deadman, or
-the arm's own jog deadline, which counts from the operator's send time
-(``t_sent_ns``), not from when the robot recorded the command; and the
-gripper target of the last applied gripper command. Rejected commands
-change nothing, as they changed nothing on the robot.
+future leaks into a row); rows end one record period after a camera's last
+picture (the video server stopped before the robot). The action is what
+the devices were sent at that time: the velocity the arm sent for the last
+applied jog (``sent_velocity``) until an ``arm_stop``, another arm
+command, the robot's link deadman, or the arm's own jog deadline, which
+counts from the operator's send time (``t_sent_ns``), not from when the
+robot recorded the command; and the gripper target of the last applied
+gripper command. Rejected commands change nothing, as they changed nothing
+on the robot.
 """
 
 from __future__ import annotations
@@ -46,12 +48,17 @@ class ExportConfig:
     grasp_margin_s: float = param(
         0.25, "rows kept before a grasp's first and after its last contact (approach, release)"
     )
+    video_codec: str = param(
+        "libsvtav1", "camera features' codec: libsvtav1 (AV1, LeRobot's default) or libx264"
+    )
 
     def __post_init__(self) -> None:
         if not 1 <= self.fps <= 1000:
             raise ValueError(f"fps must be an integer 1..1000, not {self.fps}")
         if self.episodes not in ("grasp", "session"):
             raise ValueError(f"episodes must be 'grasp' or 'session', not {self.episodes!r}")
+        if self.video_codec not in ("libsvtav1", "libx264"):
+            raise ValueError(f"video_codec must be libsvtav1 or libx264, not {self.video_codec!r}")
         for name in ("grasp_gap_s", "min_grasp_s", "grasp_margin_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative")
@@ -60,9 +67,19 @@ class ExportConfig:
 class SessionResampler:
     """Feed records in time order; rows come out at the fixed rate."""
 
-    def __init__(self, fps: int, robot_config: dict[str, Any], groups: set[str]) -> None:
+    def __init__(
+        self,
+        fps: int,
+        robot_config: dict[str, Any],
+        groups: set[str],
+        cameras: tuple[str, ...] = (),
+    ) -> None:
         self.period_ns = 1e9 / fps
         self.groups = groups
+        #: camera key -> the held picture's JPEG bytes (channel ``camera/<key>``)
+        self.cameras = cameras
+        self.images: dict[str, bytes] = {}
+        self.ended = False  # a camera stopped: rows would hold its last picture for ever
         arm = robot_config.get("arm", {})
         self.arm_limits = from_dict(ArmLimits, arm.get("limits", {}), where="robot.arm.limits")
         gripper = robot_config.get("gripper", {})
@@ -97,14 +114,14 @@ class SessionResampler:
             self.t0 = t_ns
 
     def _ready(self) -> bool:
-        if self.frame is None:
+        if self.frame is None or len(self.images) < len(self.cameras):
             return False
         if "arm" in self.groups and self.joints is None:
             return False
         return not ("gripper" in self.groups and self.gripper_position is None)
 
     def _rows_before(self, t_ns: int) -> Iterator[Row]:
-        while True:
+        while not self.ended:
             t_k = self.t0 + round(self.k * self.period_ns)
             if t_k >= t_ns:
                 return
@@ -132,6 +149,8 @@ class SessionResampler:
             row["observation.gripper.object_status"] = self.object_status
         if "state" in self.groups:
             row["observation.state"] = np.append(self.pose, self.gripper_position)
+        for key in self.cameras:
+            row[f"observation.images.{key}"] = self.images[key]
         return row
 
     def _apply(self, channel: str, t_ns: int, r: dict[str, Any]) -> None:
@@ -158,6 +177,10 @@ class SessionResampler:
                 self.grip_target = float(r["requested_position"])
         elif channel == "robot/command" and r.get("outcome") == "applied":
             self._command(t_ns, r)
+        elif channel.startswith("camera/"):
+            self.images[channel.removeprefix("camera/")] = r["data"]
+        elif channel.startswith("camera-end/"):
+            self.ended = True
         elif channel == "robot/link" and r.get("state") == "down":
             self._stop_jog()  # the link deadman stopped the arm (at or before this heartbeat)
 

@@ -27,9 +27,14 @@ class Feature:
     #: "core"; "arm", "gripper": only when every session recorded robot/arm, robot/gripper;
     #: "state": only when every session recorded both
     group: str
+    #: a video feature's ``info`` (codec, fps, ...), filled by the writer; None otherwise
+    video_info: dict | None = None
 
     def info(self) -> dict:
-        return {"dtype": self.dtype, "shape": list(self.shape), "names": self.names}
+        out = {"dtype": self.dtype, "shape": list(self.shape), "names": self.names}
+        if self.video_info is not None:
+            out["info"] = self.video_info
+        return out
 
 
 JOINTS = ["shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3"]
@@ -168,3 +173,18 @@ DEFAULT_FEATURES: dict[str, dict] = {
 
 def features_for(groups: set[str]) -> list[Feature]:
     return [f for f in FEATURES if f.group in groups]
+
+
+def image_feature(camera: str, width: int, height: int) -> Feature:
+    """A camera's pictures, as LeRobot names them (``observation.images.<camera>``)."""
+    return Feature(
+        f"observation.images.{camera}",
+        "video",
+        (height, width, 3),
+        ["height", "width", "channels"],
+        "RGB 0..255 (LeRobot's loader: 0..1, channels first)",
+        f"the {camera} camera (robot PC, camera.mcap)",
+        "the newest camera picture at or before the row's time (recorded at the video "
+        "server's record_fps, held over the rows between pictures)",
+        "images",
+    )

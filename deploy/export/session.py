@@ -51,6 +51,10 @@ class Session:
     metadata: dict[str, Any] = field(default_factory=dict)
     channels: set[str] = field(default_factory=set)
     robot_config: dict[str, Any] = field(default_factory=dict)
+    #: the video server's recordings in the folder (camera*.mcap), and after ``scan``
+    #: camera key -> (its files, (width, height) of its first picture, record period in ns)
+    camera_files: list[Path] = field(default_factory=list)
+    cameras: dict[str, tuple[list[Path], tuple[int, int], int]] = field(default_factory=dict)
 
 
 def find_sessions(paths: list[Path]) -> list[Session]:
@@ -61,7 +65,9 @@ def find_sessions(paths: list[Path]) -> list[Session]:
             out.append(Session(path.stem, path))
         elif (path / "robot.mcap").is_file():
             op = path / "operator.mcap"
-            out.append(Session(path.name, path / "robot.mcap", op if op.is_file() else None))
+            session = Session(path.name, path / "robot.mcap", op if op.is_file() else None)
+            session.camera_files = sorted(path.glob("camera*.mcap"))
+            out.append(session)
         elif path.is_dir():
             subs = sorted(p for p in path.iterdir() if (p / "robot.mcap").is_file())
             if not subs:
@@ -74,6 +80,9 @@ def find_sessions(paths: list[Path]) -> list[Session]:
 
 #: the channel of the marker ``robot_records`` yields where a damaged stretch was skipped
 GAP = "export/gap"
+#: the marker ``camera_records`` yields one record period after a camera's last picture
+#: (``camera-end/<key>``): no row after it, as none before the first picture
+CAMERA_END = "camera-end/"
 
 
 def robot_records(session: Session) -> Iterator[tuple[str, int, dict[str, Any]]]:
@@ -108,6 +117,51 @@ def robot_records(session: Session) -> Iterator[tuple[str, int, dict[str, Any]]]
         yield ch, t, rec
     if reader.truncated:
         log.warning("%s was cut short (%s): exported up to the cut", session.robot, reader.error)
+
+
+def camera_records(session: Session, key: str) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """The pictures of camera ``key`` in time order, as channel ``camera/<key>``.
+
+    A restarted video server's file (``camera.restart1.mcap``) follows the
+    first: each file is in time order, and the files are merged.
+    """
+    from robot_side.video.recording import CHANNEL
+
+    def one(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
+        reader = RecordingReader(path)
+        for channel, t_ns, record in reader:
+            if channel == CHANNEL:
+                yield f"camera/{key}", t_ns, record
+        if reader.damage:
+            log.warning("%s: %d damaged stretch(es) skipped", path, len(reader.damage))
+
+    last = None
+    for item in heapq.merge(*(one(p) for p in session.cameras[key][0]), key=lambda r: r[1]):
+        last = item[1]
+        yield item
+    if last is not None:  # the last picture stands for one period, then the camera is gone
+        yield f"{CAMERA_END}{key}", last + session.cameras[key][2], {}
+
+
+def _scan_cameras(session: Session) -> None:
+    """Which cameras the session's camera files hold, and each one's picture size."""
+    from robot_side.video.recording import CHANNEL
+
+    for path in session.camera_files:
+        reader = RecordingReader(path)
+        size = None
+        for channel, _, record in reader:
+            if channel == CHANNEL:
+                size = (int(record["width"]), int(record["height"]))
+                break
+        camera = reader.metadata.get("deepxpalm.camera", {})
+        key = camera.get("camera")
+        if key is None or size is None:
+            log.warning("%s holds no camera pictures: left out", path)
+            continue
+        period_ns = round(1e9 / float(camera.get("record_fps", 10)))
+        files, first, _ = session.cameras.get(key, ([], size, period_ns))
+        session.cameras[key] = ([*files, path], first, period_ns)
 
 
 def scan(session: Session) -> Session:
@@ -161,6 +215,11 @@ def scan(session: Session) -> Session:
     meta.pop("_session_meta", None)
     meta["scene"] = session_meta.get("scene")
     meta["network_scenario"] = session_meta.get("network_scenario")
+    _scan_cameras(session)
+    meta["cameras"] = {
+        key: {"files": [str(p) for p in files], "width": size[0], "height": size[1]}
+        for key, (files, size, _) in session.cameras.items()
+    }
     session.metadata = meta
     return session
 

@@ -62,7 +62,7 @@ class LabWorldProcess(StdioChild):
         return self.call("stats")
 
     def taxel_forces(self) -> np.ndarray:
-        """The engine's true (2, 10, 10) taxel forces now, before the pad model."""
+        """The engine's true ``FRAME_SHAPE`` taxel forces now, before the pad model."""
         return np.asarray(self.call("taxel_forces"))
 
     def grasp(self) -> dict[str, Any]:

@@ -5,8 +5,10 @@ the UR controller (the world places the arm from its joints, and calls its
 protective stop when the robot touches the table or leaves its joint limits),
 the Robotiq URCap server (its fingers are the world's), and the tactile
 board on a pty (its taxel forces are the world's). One thread steps the
-physics in real time; the drivers in other processes talk to the simulators
-on their real wires.
+physics in real time and the arm with it, on one clock: the controller's
+motion advances by the simulated time each loop steps (``motion_clock =
+"external"``), so a world that falls behind slows the arm alike. The drivers
+in other processes talk to the simulators on their real wires, in real time.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.gripper.base import GripLevels
 from robot_side.gripper.sim import GripperModelConfig, GripperSimConfig, GripperSimServer
 from robot_side.lab.camera_server import CameraServer
+from robot_side.lab.clock import BEHIND_SIM_WALL, SimWallMeter
 from robot_side.lab.config import LabWorldConfig, PipetteConfig
 from robot_side.lab.model import TCP_OFFSET
 from robot_side.lab.world import LabWorld
@@ -43,6 +46,8 @@ JOINT_SPEED_LIMIT_RAD_S = (math.pi, math.pi, math.pi, 2 * math.pi, 2 * math.pi, 
 STALL_SPEED_M_S = 0.002
 #: the physics catches up at most this much wall time per loop (s): a stalled machine skips
 MAX_CATCH_UP_S = 0.05
+#: a world behind real time says so in its log at most this often (s)
+BEHIND_LOG_EVERY_S = 30.0
 
 
 class WorldFingers:
@@ -92,7 +97,7 @@ class LabServer:
     def __init__(self, config: LabWorldConfig | None = None) -> None:
         self.config = cfg = config or LabWorldConfig()
         self.world = LabWorld(cfg)
-        self.ursim = URSimulator(URSimConfig(tcp_offset=TCP_OFFSET))
+        self.ursim = URSimulator(URSimConfig(tcp_offset=TCP_OFFSET, motion_clock="external"))
         model = GripperModelConfig(object_present=False)
         self.gripper = GripperSimServer(GripperSimConfig(model=model))
         self.gripper.model.fingers = WorldFingers(self.world)
@@ -108,6 +113,8 @@ class LabServer:
         self.protective_stops: list[str] = []
         self.loops = 0
         self.wall_s = 0.0
+        self.sim_wall = SimWallMeter()
+        self._behind_logged_at: float | None = None
 
     def start(self) -> LabServer:
         self.ursim.start()
@@ -149,20 +156,42 @@ class LabServer:
         rate = Rate(1.0 / (4 * dt))  # a few steps per loop: 125 loops/s at 2 ms
         t_start = last = now_s()
         owed = 0.0
+        q = self.ursim.joint_positions()
         while not self._quit.is_set():
             t = now_s()
             owed = min(owed + t - last, MAX_CATCH_UP_S)
             last = t
-            q = self.ursim.joint_positions()
-            self.world.set_arm(q)
             n = int(owed / dt)
             if n > 0:
+                # One clock: the arm moves by the simulated time these n steps take, and
+                # the flange glides there across them. The joints are read under the world
+                # lock, so a trial's reset (which teleports the arm home) is seen whole.
+                self.ursim.advance(n * dt)
+                with self.world.lock:
+                    q = self.ursim.joint_positions()
+                    self.world.set_arm(q)
                 self.world.step(n)
                 owed -= n * dt
             self._guard(q)
             self.loops += 1
             self.wall_s = now_s() - t_start
+            self._clock_report(self.wall_s, self.world.steps * dt)
             rate.sleep()
+
+    def _clock_report(self, wall_s: float, sim_s: float) -> None:
+        """sim/wall per window; a world behind real time says so in its log."""
+        ratio = self.sim_wall.update(wall_s, sim_s)
+        if ratio is None or ratio >= BEHIND_SIM_WALL:
+            return
+        if self._behind_logged_at is None or wall_s - self._behind_logged_at > BEHIND_LOG_EVERY_S:
+            self._behind_logged_at = wall_s
+            log.warning(
+                "lab: the world runs behind real time, sim/wall %.3f over the last %.1f s "
+                "(the arm and the physics slow alike; the drivers, the operator and the "
+                "link do not): the machine is too busy for it",
+                ratio,
+                self.sim_wall.window_s,
+            )
 
     def _guard(self, q: np.ndarray) -> None:
         """Protective stop, as the controller's safety system would."""
@@ -190,6 +219,12 @@ class LabServer:
             "real_time_factor": (sim_s / w.step_time_s) if w.step_time_s else None,
             "sim_time_s": sim_s,
             "wall_time_s": self.wall_s,
+            # the world's clock against the wall: the last window, the slowest since the
+            # last trial reset, and how many windows since then fell behind
+            "sim_wall": self.sim_wall.last,
+            "sim_wall_lowest": self.sim_wall.lowest,
+            "sim_wall_window_s": self.sim_wall.window_s,
+            "sim_wall_windows_behind": self.sim_wall.windows_behind,
             "protective_stops": list(self.protective_stops),
             "camera_frames_rendered": w.frames_rendered,
             "safety_mode": self.ursim.safety_mode,
@@ -221,10 +256,11 @@ class LabServer:
         """
         with self.world.lock:
             self.ursim.teleport_home()
-            self.world.set_arm(self.ursim.joint_positions())
+            self.world.set_arm(self.ursim.joint_positions(), glide=False)
             self.world.gripper_to_flange()
             self.world.place_pipette(int(pipette), PipetteConfig(x_m=x_m, tilt_deg=tilt_deg))
             self.protective_stops.clear()
+            self.sim_wall.mark()
         return {"tcp_pose": self.tcp_pose(), "sim_time_s": self.world.sim_time_s}
 
     def pipette_lift_mm(self, pipette: int) -> float:

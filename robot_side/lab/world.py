@@ -104,14 +104,17 @@ class LabWorld:
 
     # -- the arm: placed, not integrated ---------------------------------------------
 
-    def set_arm(self, q: np.ndarray) -> None:
+    def set_arm(self, q: np.ndarray, glide: bool = True) -> None:
         """Place the links and the gripper for joint angles ``q`` (the controller's).
 
         The gripper's flange target is not moved at once: the next :meth:`step`
-        glides it there across its steps. Placed once per batch, a world that
-        owed several steps jerked the welded gripper in jumps and the pipette
-        slid in the pads (2.7 mm per 40 mm lift placed every 8 steps, 12 mm
-        every 25, against 0.04 mm every step).
+        glides it there across its steps. ``LabServer`` moves the arm by the
+        simulated time those steps take, so the glide is the arm's own motion,
+        step by step. Placed once per batch, a world that owed several steps
+        jerked the welded gripper in jumps and the pipette slid in the pads
+        (2.7 mm per 40 mm lift placed every 8 steps, 12 mm every 25, against
+        0.04 mm every step). ``glide=False`` puts it there for good, the steps
+        of a batch already under way included (a trial's reset: a teleport).
         """
         links, flange = link_poses(q)
         quat = np.empty(4)
@@ -124,8 +127,10 @@ class LabWorld:
                 d.mocap_quat[mocap] = quat
             self.mj.mju_mat2Quat(quat, flange[:3, :3].ravel())
             g = self._gripper_mocap
-            self._flange_from = (d.mocap_pos[g].copy(), d.mocap_quat[g].copy())
             self._flange_to = (flange[:3, 3].copy(), quat.copy())
+            self._flange_from = (
+                (d.mocap_pos[g].copy(), d.mocap_quat[g].copy()) if glide else self._flange_to
+            )
             d.mocap_pos[g], d.mocap_quat[g] = self._flange_to
 
     def _glide_flange(self, fraction: float) -> None:
@@ -199,10 +204,9 @@ class LabWorld:
 
         The flange glides to where :meth:`set_arm` last put it, a share per step.
         """
-        glide = self._flange_from is not None and n > 1
         for k in range(n):
             with self.lock:
-                if glide:
+                if n > 1 and self._flange_from is not None:
                     self._glide_flange((k + 1) / n)
                 t0 = time.perf_counter()
                 self.mj.mj_step(self.model, self.data)
@@ -233,7 +237,7 @@ class LabWorld:
         return g1, g2, force
 
     def taxel_forces(self) -> np.ndarray:
-        """(2, 10, 10) normal force on each taxel, newtons, in the common view."""
+        """``FRAME_SHAPE`` normal force on each taxel, newtons, in the common view."""
         out = np.zeros(2 * N_ROWS * N_COLS)
         with self.lock:
             g1, g2, force = self._contacts()

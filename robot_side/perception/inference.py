@@ -86,7 +86,7 @@ class TiltClassifier:
     """Angle and position classes of tactile frames.
 
     ``frames`` are float32 newtons of shape (N, 2, 10, 10) in the common view
-    (a single (2, 10, 10) frame is taken as N = 1). Angle classes 0..3 are 0,
+    (a single ``FRAME_SHAPE`` frame is taken as N = 1). Angle classes 0..3 are 0,
     45, 90 and 135 deg; position classes 0..2 are centre, left (up for 0 deg)
     and right (down for 0 deg).
     """
@@ -101,7 +101,7 @@ class TiltClassifier:
         classify_one: Callable[[np.ndarray], list[float]] | None = None,
     ):
         self._logits = logits_fn
-        # one (2, 10, 10) frame -> (4,) and (3,) logits, through preallocated buffers
+        # one ``FRAME_SHAPE`` frame -> (4,) and (3,) logits, through preallocated buffers
         self._logits_one = logits_one or (lambda x: tuple(z[0] for z in logits_fn(x[None])))
         # a backend that also takes argmax and softmax: [angle, position, *probabilities]
         self._classify_one = classify_one
@@ -141,7 +141,7 @@ class TiltClassifier:
             return _softmax(a), _softmax(p)
 
     def predict_one(self, frame: np.ndarray) -> Prediction:
-        """One (2, 10, 10) frame: the robot node's hot path.
+        """One ``FRAME_SHAPE`` frame: the robot node's hot path.
 
         The same classes as ``predict`` and probabilities within 1e-6 of
         ``predict_proba``. The frame goes straight into preallocated buffers

@@ -67,7 +67,7 @@ def _conv3x3(src, w, b, o, acc):  # pragma: no cover - compiled
 def _forward_one(
     x, w1, b1, w2, b2, heads, biases, pad1, pad2, acc, scratch, out
 ):  # pragma: no cover
-    """One (2, 10, 10) frame -> 7 logits in ``out``; every buffer is preallocated.
+    """One ``FRAME_SHAPE`` frame -> 7 logits in ``out``; every buffer is preallocated.
 
     ``pad1`` (4, 12, 12) and ``pad2`` (c1, 12, 12) keep zero borders, so the
     3x3 convolutions run without bounds tests. ``heads``/``biases`` are the
@@ -223,7 +223,7 @@ class NumbaForward:
         return result.tolist()
 
     def one(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(4,) and (3,) logits of one float32 (2, 10, 10) frame: views of reused buffers."""
+        """(4,) and (3,) logits of one float32 ``FRAME_SHAPE`` frame: views of reused buffers."""
         out, x = self._out, self._x
         np.copyto(x, frame)
         _forward_one(x, *self._args, out)

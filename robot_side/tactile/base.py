@@ -1,7 +1,7 @@
 """The tactile sensor interface every source implements.
 
 Frames follow the project's tactile convention (docs/tactile.md): float32
-newtons of shape (2, 10, 10); axis 0 the pad (0 = finger 1, 1 = finger 2,
+newtons of shape ``FRAME_SHAPE``; axis 0 the pad (0 = finger 1, 1 = finger 2,
 already mirrored into finger 1's view), axis 1 the row (0 at the fingertip
 end), axis 2 the column (0 at the left).
 """
@@ -36,7 +36,7 @@ class GraspTruth:
 
 @dataclass(frozen=True, slots=True)
 class TactileSample:
-    frame: np.ndarray  # (2, 10, 10) float32 newtons, common view
+    frame: np.ndarray  # FRAME_SHAPE float32 newtons, common view
     seq: int  # increases by one per frame the source produced (gaps = drops)
     t_capture_ns: int  # monotonic clock, when the frame was complete
     truth: GraspTruth | None = None

@@ -27,7 +27,7 @@ WIRE_SHAPE = (N_PADS, ROWS, COLS)
 
 @dataclass
 class BoardCalibration:
-    """Arrays of shape (2, 10, 10), float64, in the pads' own (wire) view."""
+    """Arrays of shape ``FRAME_SHAPE``, float64, in the pads' own (wire) view."""
 
     zero_counts: np.ndarray
     gain_n_per_count: np.ndarray

@@ -53,7 +53,7 @@ class ContactSource(Protocol):
     """Where the pads' true contact forces come from when a world feeds the board."""
 
     def contact_at(self, t_s: float) -> tuple[np.ndarray, GraspTruth]:
-        """(2, 10, 10) true normal force per taxel (N, common view) and what is grasped."""
+        """``FRAME_SHAPE`` true normal force per taxel (N, common view) and what is grasped."""
 
 
 @dataclass

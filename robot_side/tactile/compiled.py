@@ -22,7 +22,7 @@ _ZERO = np.float32(0.0)
 
 @njit()
 def convert_scan(payloads, order, zero, gain, floor, saturation):  # pragma: no cover - compiled
-    """Both pads' little-endian uint16 counts -> a new float32 (2, 10, 10) frame.
+    """Both pads' little-endian uint16 counts -> a new float32 ``FRAME_SHAPE`` frame.
 
     ``order[k]`` is the wire taxel shown at common-view taxel ``k`` (the
     mirror as a gather); ``zero`` and ``gain`` are already in the common view.

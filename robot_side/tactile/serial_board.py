@@ -160,7 +160,7 @@ class SerialTactileSensor(TactileSensor):
     def capture_zero(self, n_frames: int = 60, timeout_s: float | None = None) -> np.ndarray:
         """Average ``n_frames`` raw frames as the new zero; NOTHING may touch the pads.
 
-        Returns the zero (2, 10, 10) in counts, wire view. Keeps the gains.
+        Returns the zero ``FRAME_SHAPE`` frame in counts, wire view. Keeps the gains.
         """
         self.require_connected()
         if n_frames < 1:
@@ -524,7 +524,7 @@ class SerialTactileSensor(TactileSensor):
 
 
 class _Converter:
-    """Count bytes of one scan -> a (2, 10, 10) float32 frame in newtons, common view.
+    """Count bytes of one scan -> a ``FRAME_SHAPE`` float32 frame in newtons, common view.
 
     newtons = (counts - zero) * gain per taxel, above saturation clipped,
     below the floor 0; finger 2's columns reversed. The calibration arrays

@@ -53,6 +53,8 @@ from robot_side.camera import KINDS as CAMERA_KINDS
 from robot_side.camera.base import Camera, CapturedFrame, build_camera
 from robot_side.camera.config import LabCameraConfig, TestPatternConfig, V4L2Config
 from robot_side.video import media_binding
+from robot_side.video.feed import CameraFeed
+from robot_side.video.recording import CameraRecording
 from robot_side.video.simulated_link import SimulatedMediaPath, scenario_for, without_candidates
 
 log = logging.getLogger(__name__)
@@ -99,8 +101,18 @@ class VideoConfig:
     test_pattern: TestPatternConfig = param(TestPatternConfig(), "the stamped test picture")
     v4l2: V4L2Config = param(V4L2Config(), "a USB camera on the robot PC")
     lab: LabCameraConfig = param(LabCameraConfig(), "a camera of a running simulated lab")
+    record: Path | None = param(
+        None,
+        "record the camera into this MCAP file for as long as the server runs (beside the "
+        "robot's recording: DIR/camera.mcap; deepxpalm demo --record sets it); unset: no recording",
+    )
+    record_fps: float = param(
+        10.0, "frames a second recorded (at most the camera's own rate); JPEG, about 15-50 kB each"
+    )
 
     def __post_init__(self) -> None:
+        if not 0.1 <= self.record_fps <= 60:
+            raise ValueError(f"video record_fps must be 0.1..60, not {self.record_fps}")
         if not 0 <= self.port <= 65535:
             raise ValueError(f"video port must be 0..65535, not {self.port}")
         if self.max_viewers < 1:
@@ -109,22 +121,26 @@ class VideoConfig:
             raise ValueError("video media_interfaces must name at least one interface (e.g. lo)")
 
 
+def camera_key(config: VideoConfig) -> str:
+    """The camera's name in recordings and datasets (``observation.images.<key>``)."""
+    return config.lab.camera if config.source == "lab" else config.source
+
+
 def build_source(config: VideoConfig) -> Camera:
     """The camera ``config.source`` names, from its own section (``[video.<kind>]``)."""
     return build_camera(config.source, getattr(config, config.source, None))
 
 
-def _capture_shareable(source: Camera) -> tuple[CapturedFrame, Any]:
-    """The next frame, and it as a ``yuv420p`` VideoFrame every viewer's encoder may share."""
+def _shareable(frame: CapturedFrame) -> Any:
+    """``frame`` as a ``yuv420p`` VideoFrame every viewer's encoder may share."""
     import av
 
-    frame = source.capture()
     rgb = av.VideoFrame.from_ndarray(frame.rgb, format="rgb24")
-    return frame, rgb.reformat(format=SHARED_FORMAT)
+    return rgb.reformat(format=SHARED_FORMAT)
 
 
-def _source_track(source: Camera) -> Any:
-    """An aiortc track that opens ``source`` on its first frame and closes it on ``stop``."""
+def _source_track(feed: CameraFeed) -> Any:
+    """An aiortc track of ``feed``'s frames: subscribed on its first frame, until ``stop``."""
     import av
     from aiortc import MediaStreamTrack
     from aiortc.mediastreams import MediaStreamError
@@ -136,19 +152,27 @@ def _source_track(source: Camera) -> Any:
             super().__init__()
             self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="video-cap")
             self._open = False
+            self._seq = 0
             self._t0: int | None = None
             self.frames = 0
+
+        def _next(self) -> tuple[CapturedFrame, Any]:
+            while self.readyState == "live":
+                got = feed.next_frame(self._seq, timeout_s=0.5)
+                if got is not None:
+                    self._seq, frame = got
+                    return frame, _shareable(frame)
+            raise MediaStreamError
 
         async def recv(self) -> av.VideoFrame:
             if self.readyState != "live":
                 raise MediaStreamError  # the relay's reader ends quietly
             loop = asyncio.get_running_loop()
+            if not self._open:
+                feed.subscribe("viewer")
+                self._open = True
             try:
-                if not self._open:
-                    await loop.run_in_executor(self._pool, source.connect)
-                    self._open = True
-                    log.info("video: %s opened for a viewer", source.name)
-                frame, out = await loop.run_in_executor(self._pool, _capture_shareable, source)
+                frame, out = await loop.run_in_executor(self._pool, self._next)
             except RuntimeError:  # stopped meanwhile: the pool no longer takes work
                 raise MediaStreamError from None
             if self._t0 is None:
@@ -162,8 +186,7 @@ def _source_track(source: Camera) -> Any:
             super().stop()
             if self._open:
                 self._open = False
-                self._pool.submit(source.disconnect)
-                log.info("video: %s closed (no viewers)", source.name)
+                feed.unsubscribe("viewer")
             self._pool.shutdown(wait=False)
 
     return SourceTrack()
@@ -190,6 +213,8 @@ class VideoServer:
         self.sessions = 0
         self._track: Any = None
         self._relay: Any = None
+        self.feed: CameraFeed | None = None
+        self.recording: CameraRecording | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
         self._thread: threading.Thread | None = None
@@ -222,6 +247,7 @@ class VideoServer:
 
     def start(self, timeout_s: float = 10.0) -> VideoServer:
         self.link_start_ns = time.monotonic_ns()
+        self.feed = CameraFeed(self.source)
         self._thread = threading.Thread(target=self._run, name="video-server", daemon=True)
         self._thread.start()
         if not self._started.wait(timeout_s) or self._error is not None:
@@ -229,6 +255,17 @@ class VideoServer:
                 f"video: cannot serve on {self.config.host}:{self.config.port}: {self._error} "
                 "(is another program using the port?)"
             )
+        if self.config.record is not None:  # for as long as the server runs
+            from common.config import config_toml
+
+            node = {"node": "video", "config_toml": config_toml(self.config, "video")}
+            self.recording = CameraRecording(
+                self.feed,
+                self.config.record,
+                self.config.record_fps,
+                camera_key(self.config),
+                {"deepxpalm.node": node},
+            ).start()
         log.info(
             "video signalling at %s (token-protected), source %s, media on %s",
             self.base_url,
@@ -248,10 +285,15 @@ class VideoServer:
         thread, self._thread = self._thread, None
         if thread is None:
             return True
+        if self.recording is not None:
+            self.recording.stop()
+            self.recording = None
         deadline = time.monotonic() + timeout_s
         if self._loop is not None and self._stop is not None:
             self._loop.call_soon_threadsafe(self._stop.set)
         thread.join(timeout_s)
+        if self.feed is not None:
+            self.feed.close()
         stuck = [t for t in threading.enumerate() if t.name.startswith(self._encoder_prefix)]
         for t in stuck:
             t.join(max(0.0, deadline - time.monotonic()))
@@ -383,7 +425,7 @@ class VideoServer:
         self._peers.add(pc)
         try:
             if self._track is None:
-                self._track = _source_track(self.source)
+                self._track = _source_track(self.feed)
             pc.addTrack(self._relay.subscribe(self._track, buffered=False))
             # mDNS (.local) candidates would open a listener on 0.0.0.0:5353: dropped,
             # the browser's checks reach our candidates and ICE learns its address

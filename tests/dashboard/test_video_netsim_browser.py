@@ -62,7 +62,7 @@ def _page_server(scenario: str) -> Iterator[tuple]:
             dashboard.stop()
 
 
-def _p50_after_warmup(browser: Chromium, url: str) -> float:
+def _latencies_after_warmup(browser: Chromium, url: str) -> list[float]:
     browser.navigate(url)
     browser.wait_until(
         "dxp.video ? dxp.video.latencies.length : 0",
@@ -70,34 +70,49 @@ def _p50_after_warmup(browser: Chromium, url: str) -> float:
         timeout_s=60,
         poll_s=0.5,
     )
-    latencies = browser.evaluate("dxp.video.latencies")
-    return statistics.median(latencies[WARMUP:])
+    return browser.evaluate("dxp.video.latencies")[WARMUP:]
 
 
 def test_on_metro_the_page_plays_at_the_direct_latency_plus_the_configured_delay():
     one_way = load_scenario("metro").to_operator.delay_quantile_ms(0.5)
     cpu0 = cpu_times()
+    direct: list[list[float]] = []
+    through: list[list[float]] = []
     with Chromium(width=1280, height=900) as browser:
-        with _page_server("") as (_, dashboard):
-            direct = _p50_after_warmup(browser, dashboard.url)
-        with _page_server("metro") as (server, dashboard):
-            through = _p50_after_warmup(browser, dashboard.url)
-            fresh = browser.evaluate("dxp.video.freshness")
-            counters = [p.counters() for p in server.media_paths]
-            badge = browser.evaluate("document.getElementById('video-fresh-label').textContent")
+        # direct and metro taken in turns, twice each: one page session's p50 wanders by
+        # several ms from the next (the receiver's jitter buffer, the frame's phase against
+        # the page's paint), so the direct figure is two sessions and its spread is known
+        for _ in range(2):
+            with _page_server("") as (_, dashboard):
+                direct.append(_latencies_after_warmup(browser, dashboard.url))
+            with _page_server("metro") as (server, dashboard):
+                through.append(_latencies_after_warmup(browser, dashboard.url))
+                fresh = browser.evaluate("dxp.video.freshness")
+                counters = [p.counters() for p in server.media_paths]
+                badge = browser.evaluate("document.getElementById('video-fresh-label').textContent")
         errors = browser.page_errors()
     idle = idle_share(cpu0, cpu_times())
     assert errors == [], errors
     sent = sum(c["to_operator"]["sent"] for path in counters for c in path.values())
     assert sent > WARMUP + FRAMES, f"the frames did not cross the simulator: {counters}"
     assert fresh["state"] == "fresh" and badge == "FRESH", (fresh, badge)
-    off = through - (direct + one_way)
-    print(f"glass to glass p50: direct {direct:.1f} ms, metro {through:.1f} ms ({idle:.0%} idle)")
-    if abs(off) > 10.0 and idle < SPARE_IDLE:
-        pytest.skip(f"load, not product: {off:+.1f} ms off with {idle:.0%} of the CPU idle")
+    d_p50 = statistics.median([x for run in direct for x in run])
+    m_p50 = statistics.median([x for run in through for x in run])
+    d_spread = abs(statistics.median(direct[0]) - statistics.median(direct[1]))
+    off = m_p50 - (d_p50 + one_way)
+    print(
+        f"glass to glass p50: direct {d_p50:.1f} ms (sessions {d_spread:.1f} ms apart), "
+        f"metro {m_p50:.1f} ms ({idle:.0%} idle)"
+    )
+    if abs(off) > 10.0 and (idle < SPARE_IDLE or d_spread > 10.0):
+        pytest.skip(
+            f"not checkable here: {off:+.1f} ms off with {idle:.0%} of the CPU idle and the "
+            f"direct sessions {d_spread:.1f} ms apart"
+        )
     assert abs(off) <= 10.0, (
-        f"product: through metro p50 {through:.1f} ms, direct {direct:.1f} ms + {one_way} ms "
-        f"configured: {off:+.1f} ms off ({idle:.0%} idle)"
+        f"product: through metro p50 {m_p50:.1f} ms, direct {d_p50:.1f} ms + {one_way} ms "
+        f"configured: {off:+.1f} ms off ({idle:.0%} idle, direct sessions {d_spread:.1f} ms "
+        "apart)"
     )
 
 

@@ -331,6 +331,57 @@ def test_simulator_speaks_rtde_like_a_controller():
         sim.stop()
 
 
+def _streamed_tcp_pose(s: socket.socket) -> np.ndarray:
+    """The newest actual_TCP_pose a started raw client has been sent."""
+    s.setblocking(False)
+    try:  # drop what queued up while the test waited
+        while s.recv(65536):
+            pass
+    except BlockingIOError:
+        pass
+    s.setblocking(True)
+    while True:
+        size, rtype = w.HEADER.unpack(s.recv(3, socket.MSG_WAITALL))
+        body = s.recv(size - 3, socket.MSG_WAITALL)
+        if rtype == w.DATA_PACKAGE and len(body) == 1 + 6 * 8:
+            return np.array(struct.unpack(">6d", body[1:]))
+
+
+def test_an_external_motion_clock_moves_the_arm_only_by_the_time_its_owner_steps():
+    """The lab world's one clock: the wire streams in real time, the arm waits for advance()."""
+    with pytest.raises(ConfigError, match="motion_clock"):
+        URSimulator(URSimConfig(motion_clock="sim"))
+    sim = URSimulator(URSimConfig(host="auto", motion_clock="external")).start()
+    try:
+        with pytest.raises(ConfigError, match="external"):
+            URSimulator(URSimConfig()).advance(0.1)
+        with socket.create_connection((sim.host, 30004), timeout=2) as s:
+            _rtde(s, w.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2))
+            _rtde(s, w.SETUP_OUTPUTS, struct.pack(">d", 125.0) + b"actual_TCP_pose")
+            assert _rtde(s, w.START) == (ord("S"), b"\x01")
+            start = _streamed_tcp_pose(s)
+            with sim._lock:  # what a speedL makes the control script do
+                sim.arm.speed_l(np.array([0.0, 0.0, 0.05, 0.0, 0.0, 0.0]), 10.0)
+            time.sleep(0.3)
+            waited = _streamed_tcp_pose(s)
+            np.testing.assert_allclose(waited, start, atol=1e-9, err_msg="wall time moved it")
+            for _ in range(20):  # 0.2 s of the owner's time, in its 10 ms loops
+                sim.advance(0.01)
+            moved = _streamed_tcp_pose(s)[2] - start[2]
+        # 0.05 m/s for 0.2 s (its 5 ms ramp inside the first step), not for the 0.5 s that passed
+        assert moved == pytest.approx(0.05 * 0.2, abs=2e-4)
+        # the RTDE watchdog counts the same clock: 0.3 s of wall is no silence, 0.2 s of it is
+        with sim._lock:  # what setWatchdog(10 Hz) makes the running script do
+            sim.program_running, sim.watchdog_hz, sim._watchdog_silent_s = True, 10.0, 0.0
+        time.sleep(0.3)
+        assert sim.watchdog_trips == 0 and sim.program_running
+        for _ in range(20):
+            sim.advance(0.01)
+        assert sim.watchdog_trips == 1 and not sim.program_running
+    finally:
+        sim.stop()
+
+
 @pytest.mark.slow
 def test_raw_ur_rtde_servol_and_movej_against_the_simulator():
     """The calls URArm does not use, straight from ur-rtde: the simulator is general."""

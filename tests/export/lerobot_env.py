@@ -39,6 +39,12 @@ LEROBOT_POLICIES = [
     "pyserial==3.5",
     "einops==0.8.2",
 ]
+#: LeRobot's video decoder: its pyav path needs torchvision's VideoReader, which torchvision
+#: 0.28 no longer has, so torchcodec (the release built for torch 2.13) decodes the videos
+TORCHCODEC = "torchcodec==0.13.0"
+#: the FFmpeg libraries torchcodec opens by their usual names (libavcodec.so.61, ...); the
+#: environment has them as PyAV's bundled copies, renamed by auditwheel
+FFMPEG_LIBS = ("avcodec", "avdevice", "avfilter", "avformat", "avutil", "swresample", "swscale")
 
 
 def env_dir() -> Path:
@@ -74,10 +80,36 @@ def ensure_policy_env() -> Path:
     return python
 
 
+def ensure_video_decoder(python: Path) -> dict[str, str]:
+    """torchcodec in the environment, and the variables that let it find FFmpeg; built once.
+
+    No system FFmpeg is needed: PyAV (which ``lerobot-dataset`` installs) bundles one, under
+    hashed names; a folder of links gives its libraries the names torchcodec opens.
+    """
+    stamp = env_dir() / ".installed-video"
+    if not stamp.exists() or stamp.read_text() != TORCHCODEC + "\n":
+        pip = [str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
+        subprocess.run([*pip, "--no-deps", TORCHCODEC], check=True, timeout=1800)
+        stamp.write_text(TORCHCODEC + "\n")
+    bundled = next((env_dir() / "lib").glob("python3*/site-packages/av.libs"))
+    links = env_dir() / "ffmpeg-links"
+    links.mkdir(exist_ok=True)
+    for lib in bundled.iterdir():
+        name, _, version = lib.name.partition(".so.")
+        base = name.rsplit("-", 1)[0].removeprefix("lib")
+        if base in FFMPEG_LIBS:
+            link = links / f"lib{base}.so.{version.split('.')[0]}"
+            if not link.exists():
+                link.symlink_to(lib)
+    paths = [str(links), str(bundled), os.environ.get("LD_LIBRARY_PATH", "")]
+    return {"LD_LIBRARY_PATH": os.pathsep.join(p for p in paths if p)}
+
+
 def load_with_lerobot(root: Path, out_npz: Path, timeout_s: float = 300) -> None:
     """Load the dataset at ``root`` with ``LeRobotDataset``; every item goes to ``out_npz``."""
     python = ensure_env()
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"}
+    env.update(ensure_video_decoder(python))
     env["HF_HOME"] = str(out_npz.parent / "hf-home")  # its caches stay in the test's folder
     proc = subprocess.run(
         [str(python), str(LOADER), str(root), str(out_npz)],
@@ -94,6 +126,7 @@ def policy_features(root: Path, work: Path, timeout_s: float = 300) -> dict:
     """What LeRobot's ACT and Diffusion configs make of the dataset at ``root``."""
     python = ensure_policy_env()
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"}
+    env.update(ensure_video_decoder(python))
     env["HF_HOME"] = str(work / "hf-home")
     proc = subprocess.run(
         [str(python), str(POLICY_FEATURES), str(root)],
@@ -108,4 +141,6 @@ def policy_features(root: Path, work: Path, timeout_s: float = 300) -> dict:
 
 
 if __name__ == "__main__":  # `make test` builds it before pytest, so tests time only themselves
-    print(ensure_policy_env())
+    python = ensure_policy_env()
+    ensure_video_decoder(python)
+    print(python)

@@ -26,7 +26,10 @@ for i in range(len(ds)):
         if key == "task":
             tasks.append(value)
             continue
-        columns.setdefault(key, []).append(np.asarray(value))
+        value = np.asarray(value)
+        if key in ds.meta.video_keys:  # 0..1 floats, channels first: stored as 0..255 bytes
+            value = np.round(value * 255).astype(np.uint8)
+        columns.setdefault(key, []).append(value)
 arrays = {k: np.stack(v) for k, v in columns.items()}
 episodes = ds.meta.episodes
 meta = {
@@ -44,11 +47,14 @@ meta = {
                 "dataset_to_index",
                 "deepxpalm/session",
                 "deepxpalm/t_first_ns",
+                *(f"videos/{k}/from_timestamp" for k in ds.meta.video_keys),
             )
         }
         for i in range(len(episodes))
     ],
     "stats_keys": sorted(ds.meta.stats),
     "features": ds.meta.features,
+    "video_keys": ds.meta.video_keys,
+    "video_backend": ds.video_backend,
 }
 np.savez(out, **arrays, _meta=np.frombuffer(json.dumps(meta).encode(), np.uint8))

@@ -7,7 +7,8 @@ features with its ``dataset_to_policy_features`` and hands them to
 ``ACTConfig`` and ``DiffusionConfig`` as LeRobot's training script does
 (every action feature an output, every other one an input). Each policy is
 also asked with a camera's feature added (``observation.images.camera``,
-3x480x640): whether the rest of the features are all it still lacks.
+3x480x640) when the dataset has none: whether the rest of the features are
+all it still lacks.
 """
 
 import json
@@ -51,7 +52,11 @@ for name, cls in (("act", ACTConfig), ("diffusion", DiffusionConfig)):
     except ValueError as e:
         entry["accepted"] = False
         entry["refusal"] = str(e)
+    # a dataset without a camera gets one (Diffusion wants every image the same shape, so a
+    # dataset with its own camera is asked as it is)
     camera = {"observation.images.camera": PolicyFeature(FeatureType.VISUAL, (3, 480, 640))}
+    if cfg.image_features:
+        camera = {}
     with_camera = cls(input_features={**inputs, **camera}, output_features=outputs)
     try:
         with_camera.validate_features()

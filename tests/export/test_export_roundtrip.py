@@ -8,6 +8,7 @@ before its time, the held frame within one sample period of the row.
 from __future__ import annotations
 
 import bisect
+import importlib.util
 import json
 import subprocess
 import sys
@@ -132,13 +133,61 @@ def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_p
     )
 
 
+def test_the_camera_lerobot_decodes_is_the_rows_picture(session, records, tmp_path):
+    """The demo records its camera (the stamped test pattern) beside the robot; each row's
+    picture, as LeRobot's loader decodes it from the video, is the newest camera frame at or
+    before the row's time, and so within one camera period of the row's tactile frame."""
+    from robot_side.video.stamp import MS_MODULO, read_stamp
+
+    summary, a, meta = _loaded(session, tmp_path, "session")
+    key = "observation.images.test_pattern"
+    assert key in summary["features"] and meta["video_keys"] == [key]
+    assert meta["features"][key]["info"]["video.codec"] == "av1"
+    camera = [(t, r) for _, t, r in read_recording(session / "camera.mcap")]
+    by_ms = {r["capture_wall_ns"] // 1_000_000 % MS_MODULO: t for t, r in camera}
+    times = [t for t, _ in camera]
+    period_ns = 1e9 / float(camera_fps(session))
+    images = a[key]
+    assert images.shape == (len(a["index"]), 3, 240, 320) and images.dtype == np.uint8
+    t_first = meta["episodes"][0]["deepxpalm/t_first_ns"]
+    apart, stands_for = [], []
+    for i, picture in enumerate(images):
+        stamp = read_stamp(picture.transpose(1, 2, 0))
+        assert stamp is not None, f"row {i}: the decoded picture's stamp is unreadable"
+        t_row = t_first + round(i * 1e9 / FPS)
+        t_held, _ = _held(camera, t_row)
+        assert by_ms.get(stamp[0]) == t_held, f"row {i} shows another picture than it holds"
+        t_tactile, _ = _held(records["robot/frame"], t_row)
+        apart.append(abs(t_held - t_tactile))
+        j = times.index(t_held)  # the picture stands until the next one (one period, or a stall)
+        stands_for.append(times[j + 1] - t_held if j + 1 < len(times) else period_ns)
+    apart, stands_for = np.array(apart), np.array(stands_for)
+    # one period of the recorded pictures: 100 ms at 10 fps; from the demo's 15 fps camera the
+    # nearest frames to the 100 ms ticks are 67 or 133 ms apart; a stall (a loaded machine)
+    # holds a picture longer, and that row is judged against how long the picture stood
+    bound = np.maximum(stands_for, period_ns)
+    assert (apart <= bound).all(), (
+        f"{(apart > bound).sum()} rows' picture is further from their tactile frame than one "
+        f"camera period: up to {(apart - bound).max() / 1e6:.0f} ms beyond"
+    )
+    stalled = stands_for > 1.5 * period_ns
+    assert stalled.mean() < 0.5, f"the camera stalled for {stalled.mean():.0%} of the rows (load?)"
+
+
+def camera_fps(session) -> str:
+    from common.mcap_recorder import read_metadata
+
+    return read_metadata(session / "camera.mcap")["deepxpalm.camera"]["record_fps"]
+
+
 def test_lerobot_policies_find_the_state_and_the_action(session, tmp_path):
     """LeRobot's own dataset_to_policy_features, ACTConfig and DiffusionConfig on an export.
 
     Both policies need an image or an environment state beside the robot
-    state; the camera feature is what gives them one. Until a recording has
-    a camera they must refuse for that reason alone: with a camera's feature
-    added, the same features pass.
+    state; the camera feature is what gives them one. The demo records its
+    camera (the test pattern) when the video extra is installed, and both
+    accept the export as it is; without a camera they must refuse for that
+    reason alone: with a camera's feature added, the same features pass.
     """
     root = tmp_path / "ds"
     export([session], root, ExportConfig(fps=FPS, episodes="session"))
@@ -150,6 +199,8 @@ def test_lerobot_policies_find_the_state_and_the_action(session, tmp_path):
     assert report["state_names"][:3] == ["ee.x", "ee.y", "ee.z"]
     assert report["state_names"][-1] == "gripper.pos"
     has_camera = any(k.startswith("observation.images.") for k in features)
+    # the demo records its camera whenever the video extra is installed: then the export has it
+    assert has_camera == (importlib.util.find_spec("aiortc") is not None), features
     for name, policy in report["policies"].items():
         assert policy["robot_state"] == [7] and policy["action"] == [7], name
         if has_camera:

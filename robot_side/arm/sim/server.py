@@ -17,7 +17,9 @@ Three TCP servers on one host address, on the controller's fixed ports:
   register for 1/f s the program stops and the arm decelerates.
 
 Behind them a :class:`~robot_side.arm.sim.kinematics.KinematicArm` moves the
-TCP as moveL/moveJ/speedL/servoL/jog/stop say. Because ur-rtde's ports are
+TCP as moveL/moveJ/speedL/servoL/jog/stop say, on the controller's own
+500 Hz cycle, or (``motion_clock = "external"``) only as far as its owner's
+:meth:`URSimulator.advance` says: the lab world's simulated time. Because ur-rtde's ports are
 fixed, simulators that run side by side each take their own loopback
 address (127.0.0.x); ``host="auto"`` picks a free one.
 
@@ -85,6 +87,9 @@ WATCHDOG_VARIABLE = "input_int_register_0"
 #: client, whose answer to a command may be waiting on this very tick.
 MAX_SILENCE_TICK_S = 0.02
 
+#: what may move the arm (``URSimConfig.motion_clock``)
+MOTION_CLOCKS = ("wall", "external")
+
 STATUS_RECEIVED = 0
 STATUS_READY = 1
 STATUS_DONE = 2
@@ -120,6 +125,13 @@ class URSimConfig:
         10.0,
         "how hard the arm stops when the program ends (stopScript, the dashboard's stop, the "
         "RTDE watchdog, a runtime error); ur-rtde's own stop default, not a measured UR figure",
+    )
+    motion_clock: str = param(
+        "wall",
+        "what moves the arm: 'wall' (the controller's own cycle, real time) or 'external' "
+        "(only advance(dt) does: a physics world's simulated time, so a world that falls "
+        "behind slows the arm alike; the RTDE watchdog counts that time too, the wire and "
+        "the script's handshake stay on real time)",
     )
 
 
@@ -162,6 +174,11 @@ class URSimulator:
         self.config = config or URSimConfig()
         if self.config.tick_hz <= 0:
             raise ConfigError("URSimConfig.tick_hz must be positive")
+        if self.config.motion_clock not in MOTION_CLOCKS:
+            raise ConfigError(
+                f"URSimConfig.motion_clock must be one of {MOTION_CLOCKS}, "
+                f"not {self.config.motion_clock!r}"
+            )
         self.host = self.config.host
         self._lock = threading.RLock()
         self._threads: list[threading.Thread] = []
@@ -508,22 +525,20 @@ class URSimulator:
         last = now_s()
         while not self._quit.is_set():
             # step by the time that really passed: on a loaded machine ticks are missed,
-            # and the arm must still move in real time, as the robot would
+            # and the arm must still move in real time, as the robot would (unless a
+            # physics world owns the arm's clock: motion_clock "external", advance())
             t = now_s()
             elapsed, last = t - last, t
             dt = min(elapsed, MAX_TICK_S)
             with self._lock:
                 try:
-                    self._judge_watchdog(min(elapsed, MAX_SILENCE_TICK_S))
+                    if self.config.motion_clock == "wall":
+                        self._judge_watchdog(min(elapsed, MAX_SILENCE_TICK_S))
                     self._script_cycle()
-                    if dt > 0:
-                        self.arm.step(dt)
                 except Exception:
-                    # a controller stops the program on a runtime error and keeps serving
-                    log.exception("control script runtime error: program stopped")
-                    self._stop_program("runtime error")
-                    self.arm.velocity[:] = 0.0
-                    self.arm.mode = Mode.IDLE
+                    self._runtime_error()
+                if dt > 0 and self.config.motion_clock == "wall":
+                    self._step_arm(dt)
                 if self._pending_done and not self.arm.moving:
                     self._pending_done = False
                     self.out_int[0] = STATUS_DONE
@@ -539,6 +554,43 @@ class URSimulator:
                         continue
                     self._send_data(c, state)
             rate.sleep()
+
+    def advance(self, dt_s: float) -> None:
+        """Move the arm by ``dt_s`` of its owner's time (``motion_clock = "external"``).
+
+        A physics world calls this with the simulated time it is about to
+        step, so the arm and the physics share one clock: a world that falls
+        behind real time slows the arm with it instead of seeing it jump.
+        The RTDE watchdog counts this time too: the arm a silent client
+        leaves moving covers the same distance before it stops, and a stop
+        the client waits on (its kicks queued behind it) takes as long on
+        this clock as the watchdog allows on it.
+        """
+        if self.config.motion_clock != "external":
+            raise ConfigError("URSimulator.advance needs motion_clock = 'external'")
+        with self._lock:
+            while dt_s > 1e-12:
+                step = min(dt_s, MAX_TICK_S)
+                try:
+                    self._judge_watchdog(min(step, MAX_SILENCE_TICK_S))
+                except Exception:
+                    self._runtime_error()
+                self._step_arm(step)
+                dt_s -= step
+
+    def _step_arm(self, dt: float) -> None:
+        """One integration step of the arm; call with ``_lock`` held."""
+        try:
+            self.arm.step(dt)
+        except Exception:
+            self._runtime_error()
+
+    def _runtime_error(self) -> None:
+        """A controller stops the program on a runtime error and keeps serving."""
+        log.exception("control script runtime error: program stopped")
+        self._stop_program("runtime error")
+        self.arm.velocity[:] = 0.0
+        self.arm.mode = Mode.IDLE
 
     def _send_data(self, conn: _RTDEConnection, state: dict[str, Any]) -> None:
         assert conn.output is not None
