@@ -73,7 +73,7 @@ class _Flow:
         self.upstream = upstream
 
 
-class DatagramRelay(ForwardingThread):
+class DatagramForwarder(ForwardingThread):
     """Forwards UDP between senders to ``listen`` and the robot-side ``target``.
 
     ``start()`` binds; ``address`` is then the (host, port) the operator side
@@ -123,7 +123,7 @@ class DatagramRelay(ForwardingThread):
     # ------------------------------------------------------------ lifecycle
     def start(self) -> None:
         if self._thread is not None:
-            raise LinkError("DatagramRelay.start() called twice")
+            raise LinkError("DatagramForwarder.start() called twice")
         sock = socket.socket(_family(self.listen[0]), socket.SOCK_DGRAM)
         try:
             sock.bind(self.listen)

@@ -18,7 +18,7 @@ import logging
 import re
 
 from common.errors import ConfigError
-from common.netsim.datagram import DatagramRelay
+from common.netsim.datagram import DatagramForwarder
 from common.netsim.impairments import Scenario
 from common.netsim.scenario import load_scenario
 
@@ -57,7 +57,7 @@ class SimulatedMediaPath:
         self.scenario = scenario
         self.seed = seed
         self.start_ns = start_ns
-        self.relays: dict[tuple[str, int], DatagramRelay] = {}
+        self.relays: dict[tuple[str, int], DatagramForwarder] = {}
 
     def route(self, answer_sdp: str) -> str:
         """The answer with each host candidate's port replaced by its relay's."""
@@ -68,7 +68,7 @@ class SimulatedMediaPath:
                 host, port = m.group(2), int(m.group(3))
                 relay = self.relays.get((host, port))
                 if relay is None:
-                    relay = DatagramRelay(
+                    relay = DatagramForwarder(
                         self.scenario,
                         target=(host, port),
                         listen=(host, 0),

@@ -17,7 +17,7 @@ import time
 import pytest
 from tests_support import late_unless_loaded
 
-from common.netsim.datagram import DatagramRelay
+from common.netsim.datagram import DatagramForwarder
 from common.netsim.scenario import load_scenario, scenario_from_dict
 
 STAMP = struct.Struct("!Iq")  # sequence number, monotonic send time (ns)
@@ -31,8 +31,8 @@ def _receiver() -> socket.socket:
     return s
 
 
-def _relay(both: dict, **kw) -> DatagramRelay:
-    return DatagramRelay(
+def _relay(both: dict, **kw) -> DatagramForwarder:
+    return DatagramForwarder(
         scenario_from_dict({"name": "t", "both": both}), target=kw.pop("target"), seed=3, **kw
     )
 
@@ -103,7 +103,7 @@ def test_replies_come_back_through_the_relay_to_the_sender_with_their_own_delay(
     scenario = scenario_from_dict(
         {"to_robot": {"delay_ms": 10.0}, "to_operator": {"delay_ms": 30.0}}
     )
-    with DatagramRelay(scenario, target=robot.getsockname()) as relay:
+    with DatagramForwarder(scenario, target=robot.getsockname()) as relay:
         viewers = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
         rtts = []
         for i, viewer in enumerate(viewers):
@@ -248,7 +248,7 @@ def test_an_outage_drops_what_is_sent_during_it_and_the_link_comes_back():
 def test_the_stream_modes_scenario_files_and_traces_run_as_datagrams(name):
     scenario = load_scenario(name)
     rx = _receiver()
-    with DatagramRelay(scenario, target=rx.getsockname(), seed=1) as relay:
+    with DatagramForwarder(scenario, target=rx.getsockname(), seed=1) as relay:
         got = [d for _, d in _run(relay.address, rx, 300, 0.002)]
     rx.close()
     configured = scenario.to_robot.delay_quantile_ms(0.5)
