@@ -13,6 +13,7 @@ from collections.abc import Callable
 import pytest
 
 from common.transport import free_loopback_ports
+from robot_side.arm.base import ArmLimits
 
 
 def free_ports(n: int) -> list[int]:
@@ -20,9 +21,13 @@ def free_ports(n: int) -> list[int]:
 
 
 class RecordingArm:
-    """Stands in for the arm where a test only needs to know what it was told."""
+    """Stands in for the arm where a test only needs to know what it was told.
+
+    It has the interface's ``limits`` (the node reads them, for the assist's box).
+    """
 
     def __init__(self) -> None:
+        self.limits = ArmLimits()
         self.jogs: list[tuple[float, ...]] = []
         self.jog_times: list[int] = []
         self.stop_times: list[int] = []
