@@ -16,7 +16,7 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
-from tests_support import free_ports
+from tests_support import free_ports, wait_until
 
 from common.rotation import rotvec_to_matrix
 from common.signing import generate_key_files
@@ -44,10 +44,7 @@ SHIFT_ONLY, SHIFT_AND_TURN = 7, 4
 
 
 def wait(cond, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.01)
+    assert wait_until(cond, timeout_s, period_s=0.01), f"timed out waiting for {what}"
 
 
 def still(arm: SimulatedArm) -> bool:
