@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import os
+import select
 import termios
 import threading
 import time
@@ -126,21 +127,46 @@ class FeetechConfig:
                 raise ValueError(f"{name} = {v} is out of the register's range")
 
 
-class _ReplyWindowPort(sdk.PortHandler):
-    """The SDK's port with a reply window of our choosing.
+#: Longest one read waits for a reply's bytes before the SDK's loop looks at its clock again.
+_READ_WAIT_S = 0.005
 
-    The SDK derives it from a module constant (a 16 ms latency timer); an
-    adapter set slower, or servos simulated by a thread of a busy process,
-    answer after it closes.
+
+class _WaitingPort(sdk.PortHandler):
+    """The SDK's port, waiting for a reply in ``select`` instead of spinning on ``read``.
+
+    The SDK opens the line with ``timeout=0`` and loops on ``read`` until its
+    reply window closes: a core spent per transaction, the GIL held in 5 ms
+    turns, and every other thread of the process (the servo simulator's, in
+    the demo) starved meanwhile, so a reply can miss its window only because
+    its reader was spinning. Here each read first waits for bytes in
+    ``select`` (the GIL released), at most ``_READ_WAIT_S`` or what is left of
+    the window. The window runs on the monotonic clock (the SDK's uses
+    ``time.time``, which a clock step moves); ``reply_timeout_ms`` replaces
+    the SDK's 34 ms when set.
     """
 
-    def __init__(self, port_name: str, reply_timeout_ms: float) -> None:
+    def __init__(self, port_name: str, reply_timeout_ms: float | None = None) -> None:
         super().__init__(port_name)
         self.reply_timeout_ms = reply_timeout_ms
 
+    def getCurrentTime(self) -> float:  # the SDK calls it by this name; milliseconds
+        return time.monotonic() * 1e3
+
     def setPacketTimeout(self, packet_length: int) -> None:  # the SDK calls it by this name
+        if self.reply_timeout_ms is None:
+            super().setPacketTimeout(packet_length)
+            return
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = self.tx_time_per_byte * packet_length + self.reply_timeout_ms
+
+    def readPort(self, length: int) -> bytes:  # the SDK calls it by this name
+        ser = self.ser
+        if not ser.in_waiting and self.packet_timeout > 0:
+            left_ms = self.packet_timeout - (self.getCurrentTime() - self.packet_start_time)
+            wait_s = min(_READ_WAIT_S, left_ms / 1e3)
+            if wait_s > 0:
+                select.select([ser.fileno()], [], [], wait_s)
+        return ser.read(length)
 
 
 class FeetechServoBus(ServoBus):
@@ -304,11 +330,7 @@ class FeetechServoBus(ServoBus):
         cfg = self.config
         if not os.path.exists(cfg.port):
             raise DeviceError(f"servo bus port {cfg.port} does not exist: {_PORT_HINT}")
-        port = (
-            sdk.PortHandler(cfg.port)
-            if cfg.reply_timeout_ms is None
-            else _ReplyWindowPort(cfg.port, cfg.reply_timeout_ms)
-        )
+        port = _WaitingPort(cfg.port, cfg.reply_timeout_ms)
         port.baudrate = cfg.baudrate
         try:
             ok = port.setBaudRate(cfg.baudrate)
@@ -413,7 +435,9 @@ class FeetechServoBus(ServoBus):
     def _with_retries(self, call: Any) -> Any:
         """Run an SDK transaction, again after a corrupt or missing reply."""
         out = None
+        seen: list[str] = []  # each attempt's outcome and how long it took, for the error
         for attempt in range(self.config.retries + 1):
+            t0 = time.monotonic()
             with self._lock:
                 if attempt:
                     self._counters["retries"] += 1
@@ -424,22 +448,27 @@ class FeetechServoBus(ServoBus):
                     self._lost(e)
                 except IndexError:  # the SDK indexes past a short, garbled reply
                     out = None
+            took = f"{(time.monotonic() - t0) * 1e3:.0f} ms"
             if out is None:
                 self._counters["rx_corrupt"] += 1
+                seen.append(f"short reply ({took})")
                 continue
             result = out[1] if isinstance(out, tuple) else out
             if result == sdk.COMM_SUCCESS:
                 return out
             if result == sdk.COMM_RX_CORRUPT:
                 self._counters["rx_corrupt"] += 1
+                seen.append(f"corrupt ({took})")
             elif result == sdk.COMM_RX_TIMEOUT:
                 self._counters["rx_timeout"] += 1
+                seen.append(f"no reply ({took})")
             else:
                 return out  # busy/tx failure: retrying the same bytes will not help
         if out is None:
             raise ProtocolError(
                 f"servo bus {self.config.port}: replies stay garbled after "
-                f"{self.config.retries + 1} tries (noise on the line, or a wrong protocol_end?)"
+                f"{self.config.retries + 1} tries ({', '.join(seen)}): noise on the line, "
+                "or a wrong protocol_end?"
             )
         return out
 

@@ -301,6 +301,13 @@ class FakeStsBus:
                     continue
                 if not self._link.line_speed_is(self.config.baudrate):
                     # At the wrong rate a UART sees framing errors: nothing to answer.
+                    if not self.counters["wrong_baud_bytes"]:
+                        log.warning(
+                            "fake STS bus on %s: the driver's line is not at %d baud; "
+                            "the servos hear noise and answer nothing",
+                            self.port,
+                            self.config.baudrate,
+                        )
                     self.counters["wrong_baud_bytes"] += len(data)
                     continue
                 self._buf += data

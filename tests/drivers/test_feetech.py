@@ -223,6 +223,20 @@ def test_lost_reply_is_retried_after_the_configured_window(fake) -> None:
         assert bus.stats()["rx_timeout"] - before >= 1
 
 
+def test_waiting_out_a_reply_window_leaves_the_core_to_others(fake) -> None:
+    """The SDK's reader spins on a non-blocking read for the whole window; ours waits in
+    ``select``: a window waited out costs the calling thread a few percent of a core, so a
+    servo simulator in the same process (the demo's) still gets to answer."""
+    with _bus(fake.port, reply_timeout_ms=200.0, retries=0) as bus:
+        fake.drop_replies(1, sid=3)
+        wall, cpu = time.monotonic(), time.thread_time()
+        with pytest.raises(DeviceError):
+            bus.read_positions()  # one window of 200 ms waited out
+        wall, cpu = time.monotonic() - wall, time.thread_time() - cpu
+    assert wall >= 0.2
+    assert cpu < 0.1 * wall, f"{cpu * 1e3:.0f} ms of CPU in a {wall * 1e3:.0f} ms wait"
+
+
 def test_servo_that_does_not_answer_at_connect_is_named(fake) -> None:
     fake.set_silent(4)
     bus = _bus(fake.port, retries=1)  # each try of servo 4 waits out a whole window
