@@ -160,13 +160,23 @@ class DashboardDemo:
             self.argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
         deadline = time.monotonic() + self.ready_timeout_s
+        seen: list[str] = []
         for line in self.proc.stderr:  # the demo names its dashboard once the robot answered
             if line.startswith("dashboard http"):
                 self.url = line.split()[1]
-                break
+                return self
+            seen.append(line)
             if time.monotonic() > deadline:
                 break
-        return self
+        # never named its page: say why, with what it printed, instead of a refused socket later
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait()
+        rest = self.proc.stderr.read() if self.proc.stderr else ""
+        raise RuntimeError(
+            f"the demo never named its dashboard (exit {self.proc.returncode}, "
+            f"ready timeout {self.ready_timeout_s:.0f} s): " + ("".join(seen) + rest)[-4000:]
+        )
 
     def finish(self, timeout_s: float = 60.0) -> tuple[int, dict | None, str]:
         self.proc.send_signal(signal.SIGINT)  # Ctrl-C, as a user ends it
@@ -174,10 +184,24 @@ class DashboardDemo:
         summary = json.loads(stdout) if stdout.strip() else None
         return self.proc.returncode, summary, stderr
 
-    def __exit__(self, *exc: object) -> None:
-        if self.proc is not None and self.proc.poll() is None:
+    def __exit__(self, exc_type: object, exc: BaseException | None, tb: object) -> None:
+        if self.proc is None:
+            return
+        alive = self.proc.poll() is None
+        if alive:
             self.proc.kill()
-            self.proc.wait()
+        if exc is not None:
+            # the test failed: what the demo said is the only account of why
+            try:
+                stdout, stderr = self.proc.communicate(timeout=10)
+            except (subprocess.TimeoutExpired, ValueError):
+                stdout, stderr = "", ""
+            exc.add_note(
+                f"the demo {'was still running' if alive else 'had exited'} "
+                f"(exit {self.proc.returncode}); its stdout:\n{(stdout or '')[-3000:]}\n"
+                f"its stderr:\n{(stderr or '')[-3000:]}"
+            )
+        self.proc.wait()
 
 
 class VideoServerProcess:

@@ -42,7 +42,7 @@ def test_a_lab_session_exports_the_overview_camera_lerobot_decodes(tmp_path):
         text=True,
         timeout=300,
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-3000:]
     meta_camera = read_metadata(session / "camera.mcap")["deepxpalm.camera"]
     assert meta_camera["camera"] == "overview"
     root = tmp_path / "ds"
