@@ -78,7 +78,7 @@ def _late(row: dict[str, Any]) -> bool:
     from deploy.faults.matrix import ARM_STILL_BUDGET_S, back_before_a_stop_was_due
 
     still = row["arm_still_s"]
-    if back_before_a_stop_was_due(still, row["recovered_s"]):
+    if back_before_a_stop_was_due(still, row["recovered_s"], row.get("arm_rest_s")):
         return False
     return row["target"] in CUTS_THE_JOG and (still is None or still > ARM_STILL_BUDGET_S)
 
@@ -92,7 +92,7 @@ def _arm(row: dict[str, Any]) -> str:
     if still is None:
         if _late(row):
             return "**kept moving**"
-        if back_before_a_stop_was_due(still, row["recovered_s"]):
+        if back_before_a_stop_was_due(still, row["recovered_s"], row.get("arm_rest_s")):
             return "slowed; the link was back before a stop was due"
         return "kept following the jog"
     if away is not None and away <= still:

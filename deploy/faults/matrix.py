@@ -107,6 +107,8 @@ class CellResult:
     restarted_by: str
     arm_speed_at_fault_m_s: float | None  # the arm must be cruising when the fault comes
     arm_still_s: float | None  # the arm still after the fault (None: it kept following the jog)
+    #: the first still reading after the fault, before the link was back (None: never at rest)
+    arm_rest_s: float | None
     #: its controller stopped answering (None: it always answered); the arm was not following
     arm_unreadable_s: float | None
     arm_back_s: float | None  # a jog moves it again
@@ -162,14 +164,34 @@ def _first(samples: list[Sample], after: float, pred: Callable[[float], bool]) -
     return None
 
 
-def back_before_a_stop_was_due(arm_still_s: float | None, recovered_s: float | None) -> bool:
-    """The link was whole again before the arm's deadman could bring it to rest.
+def back_before_a_stop_was_due(
+    arm_still_s: float | None,
+    recovered_s: float | None,
+    arm_rest_s: float | None = None,
+    slack_s: float = 0.0,
+) -> bool:
+    """The link was whole again before a stop could be seen as a still stretch.
 
-    A restart faster than the jog deadman (250 ms) plus a still stretch: the
-    arm slowed, never rested, and follows the operator's held jog again, as
-    it should; a stop is not the verdict of such a cell.
+    A restart faster than the stop budget: the arm slowed, never rested, and
+    follows the operator's held jog again, as it should. A restart a little
+    slower, but within the budget plus the STILL_FOR_S a stop takes to show
+    as one: the jog resumed before the still stretch was complete, so the
+    arm must have reached rest (``arm_rest_s``, one still reading) within
+    the budget; without that reading it is a failure to stop. A stop is not
+    the verdict of such a cell.
     """
-    return arm_still_s is None and recovered_s is not None and recovered_s <= ARM_STILL_BUDGET_S
+    if arm_still_s is not None or recovered_s is None:
+        return False
+    budget = ARM_STILL_BUDGET_S + slack_s
+    if recovered_s <= budget:
+        return True
+    return recovered_s <= budget + STILL_FOR_S and arm_rest_s is not None and arm_rest_s <= budget
+
+
+def first_rest(samples: list[Sample], after: float, until: float) -> float | None:
+    """The first reading below STILL_M_S in ``[after, until]``: the arm reached rest, however
+    briefly (the jog's own reversals happen only while its commands arrive)."""
+    return next((s.t_s for s in samples if after <= s.t_s <= until and s.value < STILL_M_S), None)
 
 
 def first_still(samples: list[Sample], after: float) -> float | None:
@@ -360,6 +382,13 @@ class CellRun:
             restarted_by=by,
             arm_speed_at_fault_m_s=round(at_fault[-1].value, 4) if at_fault else None,
             arm_still_s=since(arm_still),
+            arm_rest_s=since(
+                first_rest(
+                    self.arm.samples,
+                    tl.t_fault,
+                    recovered if recovered is not None else tl.t_release,
+                )
+            ),
             arm_unreadable_s=since(
                 self._controller_away(self.arm.between(tl.t_fault), tl, tl.t_release)
             ),
