@@ -19,7 +19,7 @@ import time
 import numpy as np
 import pytest
 import zmq
-from tests_support import RecordingArm, free_ports
+from tests_support import RecordingArm, free_ports, late_unless_loaded
 
 from common.netsim.proxy import Endpoints
 from common.netsim.scenario import load_scenario
@@ -187,6 +187,13 @@ def test_the_secured_demo_through_the_simulator_shows_the_scenario():
     assert summary["stimuli_received"] > 50
     configured = summary["network_configured"]["to_operator_p50_ms"]
     link = summary["link"]
-    # LinkStats' percentiles come from 4 % histogram bins
-    assert link["latency_p50_ms"] == pytest.approx(configured, rel=0.06)
     assert abs(link["clock_offset_ms"]) < 2.0  # one machine: the truth is 0
+    # The operator's latency is t_recv - t_send + its offset estimate, whose truth here is 0:
+    # take the estimate's error out, and what is left is the path's delay. LinkStats'
+    # percentiles come from 4 % histogram bins; on top of the configured delay the path adds
+    # its own (two nodes, CURVE both ways, the forwarder), under a millisecond on a quiet
+    # machine. Nothing can arrive sooner than configured, whatever the load.
+    path_ms = link["latency_p50_ms"] - link["clock_offset_ms"]
+    figures = f"path p50 {path_ms:.2f} ms, configured {configured:.2f} ms, link {link}"
+    assert path_ms >= configured * 0.94, figures
+    late_unless_loaded(path_ms <= configured * 1.06 + 1.0, figures)
