@@ -16,6 +16,7 @@ bound), coded as JPEG by PyAV's ``mjpeg`` encoder, and written as bytes
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -77,9 +78,21 @@ class CameraRecording:
             return
         self.feed.unsubscribe("recording")
         self.feed.remove_listener(self._offer)
-        self._queue.put(None)
+        # the end mark must get in even when the encoder is behind and the queue full (a
+        # blocking put waited on it for ever, and systemd's stop then had to SIGKILL): the
+        # oldest queued frame makes room, counted as dropped
+        while True:
+            try:
+                self._queue.put_nowait(None)
+                break
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    if self._queue.get_nowait() is not None:
+                        self.frames_dropped += 1
         if self._thread is not None:
             self._thread.join(10.0)
+            if self._thread.is_alive():
+                log.error("video: the %s recording's encoder did not finish in 10 s", self.camera)
         self._recorder.close()
         self._recorder = None
         log.info(
