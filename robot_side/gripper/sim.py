@@ -346,11 +346,12 @@ class GripperSimServer:
         The fingers keep their command (a real 2F-85 holds its grip when its
         link drops); ``replug`` listens on the same address again.
         """
-        if self._listener is not None:
+        with self._lock:  # an accept in flight sees the cable gone (see _accept_loop)
+            listener, self._listener = self._listener, None
+        if listener is not None:
             with contextlib.suppress(OSError):
-                self._listener.shutdown(socket.SHUT_RDWR)
-            self._listener.close()
-            self._listener = None
+                listener.shutdown(socket.SHUT_RDWR)
+            listener.close()
         self.drop_connections()
         if not self._quit.is_set():
             log.info("gripper simulator unplugged")
@@ -363,7 +364,8 @@ class GripperSimServer:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         s.bind((self.host, self.port))
         s.listen(4)
-        self._listener = s
+        with self._lock:
+            self._listener = s
         t = threading.Thread(target=self._accept_loop, name="grippersim-accept", daemon=True)
         self._threads.append(t)
         t.start()
@@ -400,6 +402,11 @@ class GripperSimServer:
                 return
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             with self._lock:
+                if self._listener is not listener:
+                    # unplugged between accept() and here: drop_connections() could not see
+                    # this one, and it would have served on with the cable out
+                    conn.close()
+                    return
                 self._conns.append(conn)
             threading.Thread(
                 target=self._serve, args=(conn, peer), name="grippersim-conn", daemon=True
