@@ -72,8 +72,10 @@ class CameraRecording:
         )
         return self
 
-    def stop(self) -> None:
-        """Stop taking frames, write what is queued, close the file."""
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Stop taking frames, write what is queued, close the file.
+
+        Waits at most ``timeout_s`` for the encoder to finish what is queued."""
         if self._recorder is None:
             return
         self.feed.unsubscribe("recording")
@@ -90,9 +92,13 @@ class CameraRecording:
                     if self._queue.get_nowait() is not None:
                         self.frames_dropped += 1
         if self._thread is not None:
-            self._thread.join(10.0)
+            self._thread.join(timeout_s)
             if self._thread.is_alive():
-                log.error("video: the %s recording's encoder did not finish in 10 s", self.camera)
+                log.error(
+                    "video: the %s recording's encoder did not finish in %g s",
+                    self.camera,
+                    timeout_s,
+                )
         self._recorder.close()
         self._recorder = None
         log.info(
@@ -137,8 +143,10 @@ class CameraRecording:
             except Exception:  # one bad frame must not end the recording
                 log.exception("video: a frame of %s could not be coded", self.camera)
                 continue
-            assert self._recorder is not None
-            self._recorder.write(
+            recorder = self._recorder
+            if recorder is None:  # stop() gave up waiting for this frame and closed the file
+                return
+            recorder.write(
                 CHANNEL,
                 t_ns,
                 {
