@@ -436,12 +436,13 @@ class FeetechServoBus(ServoBus):
         """Run an SDK transaction, again after a corrupt or missing reply."""
         out = None
         seen: list[str] = []  # each attempt's outcome and how long it took, for the error
+        unanswered = False  # the last try's reply is missing, or was another request's
         for attempt in range(self.config.retries + 1):
             t0 = time.monotonic()
             with self._lock:
                 if attempt:
                     self._counters["retries"] += 1
-                    self._drain()
+                    self._drain(late_window_s=self._reply_window_s() if unanswered else 0.0)
                 try:
                     out = call()
                 except _IO_ERRORS as e:
@@ -449,6 +450,7 @@ class FeetechServoBus(ServoBus):
                 except IndexError:  # the SDK indexes past a short, garbled reply
                     out = None
             took = f"{(time.monotonic() - t0) * 1e3:.0f} ms"
+            unanswered = out is None or (isinstance(out, tuple) and out[1] == sdk.COMM_RX_TIMEOUT)
             if out is None:
                 self._counters["rx_corrupt"] += 1
                 seen.append(f"short reply ({took})")
@@ -472,20 +474,34 @@ class FeetechServoBus(ServoBus):
             )
         return out
 
-    def _drain(self) -> None:
-        """Wait for the line to go quiet, then drop what arrived (late or stale replies)."""
+    def _drain(self, late_window_s: float = 0.0) -> None:
+        """Wait for the line to go quiet, then drop what arrived (late or stale replies).
+
+        After a reply that never came (or came for another request), wait up
+        to ``late_window_s`` for it to turn up late: a reply arriving after
+        the next request went out would be taken as that request's (the SDK
+        matches replies by servo id only), and every try after it would read
+        the one before's reply.
+        """
         port = self._port
         assert port is not None
-        deadline = time.monotonic() + 0.02
-        quiet_since = time.monotonic()
-        while time.monotonic() < deadline:
+        start = time.monotonic()
+        deadline = start + max(0.02, late_window_s)
+        quiet_since = start
+        dropped = False
+        while (now := time.monotonic()) < deadline:
             if port.ser.in_waiting:
                 port.ser.reset_input_buffer()
-                quiet_since = time.monotonic()
-            elif time.monotonic() - quiet_since > 0.002:
+                quiet_since, dropped = now, True
+            elif now - quiet_since > 0.002 and (dropped or now - start >= late_window_s):
                 break
             time.sleep(0.0005)
         port.ser.reset_input_buffer()
+
+    def _reply_window_s(self) -> float:
+        """How long a reply may take: ``reply_timeout_ms``, or the SDK's 34 ms."""
+        ms = self.config.reply_timeout_ms
+        return (ms if ms is not None else 2.0 * sdk.port_handler.LATENCY_TIMER + 2.0) / 1e3
 
     def _lost(self, error: BaseException) -> NoReturn:
         self._raise_fault(

@@ -161,6 +161,7 @@ class FakeStsBus:
         self._last_ns = now_ns()
         self._drop: list[int | None] = []  # per pending fault: the servo id it targets, or any
         self._corrupt: list[int | None] = []
+        self._stalled_until_ns = 0
         self.goal_log: deque[tuple[int, int, int]] = deque(maxlen=cfg.goal_log_size)
         self.counters: dict[str, int] = {
             "packets": 0,
@@ -169,6 +170,7 @@ class FakeStsBus:
             "replies": 0,
             "dropped_replies": 0,
             "corrupted_replies": 0,
+            "stalls": 0,
             "unknown_instruction": 0,
             "wrong_baud_bytes": 0,
         }
@@ -216,6 +218,13 @@ class FakeStsBus:
         """The next ``n`` replies (from ``sid``, or any servo) never arrive."""
         with self._lock:
             self._drop.extend([sid] * n)
+
+    def stall(self, seconds: float) -> None:
+        """Hear nothing for ``seconds``, then answer everything sent meanwhile at once: the
+        simulator's process held up by its machine (or an adapter's USB latency spike)."""
+        with self._lock:
+            self._stalled_until_ns = now_ns() + round(seconds * 1e9)
+            self.counters["stalls"] += 1
 
     def corrupt_replies(self, n: int = 1, sid: int | None = None) -> None:
         """The next ``n`` replies arrive with a wrong checksum (line noise)."""
@@ -283,6 +292,10 @@ class FakeStsBus:
         while not self._stop.is_set():
             with self._lock:
                 master = self._link.master
+                stalled_s = (self._stalled_until_ns - now_ns()) / 1e9
+            if stalled_s > 0:  # bytes wait in the pty meanwhile
+                self._stop.wait(stalled_s)
+                continue
             if master is None:
                 self._stop.wait(0.01)
                 continue

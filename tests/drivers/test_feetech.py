@@ -237,6 +237,23 @@ def test_waiting_out_a_reply_window_leaves_the_core_to_others(fake) -> None:
     assert cpu < 0.1 * wall, f"{cpu * 1e3:.0f} ms of CPU in a {wall * 1e3:.0f} ms wait"
 
 
+def test_replies_that_come_after_their_window_do_not_answer_the_next_request(fake) -> None:
+    """Connect pings each servo, then reads its model number. When the bus answers late
+    (here: stalled past the window, then answering everything at once), the first ping's
+    reply used to be taken by the retry's ping, whose own reply then answered the model
+    read with no data: the retry failed as "garbled", and in the demo on a loaded machine
+    the operator node died at connect. The retry now waits out the late reply first."""
+    with _bus(
+        fake.port, reply_timeout_ms=100.0, retries=1, ids=(1,), torque_on_connect=False
+    ) as bus:
+        bus.disconnect()
+        fake.stall(0.16)  # past the 0.1 s window, shorter than two
+        bus.connect()
+        assert bus.is_connected
+        assert bus.stats()["retries"] == 1
+    assert fake.stats()["stalls"] == 1
+
+
 def test_servo_that_does_not_answer_at_connect_is_named(fake) -> None:
     fake.set_silent(4)
     bus = _bus(fake.port, retries=1)  # each try of servo 4 waits out a whole window
