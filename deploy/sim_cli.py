@@ -51,6 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 STATUS_PERIOD_S = 0.02
+#: how far back the front panel lists the goals written to the servos: many status periods,
+#: so an observer that misses a few panels (a loaded machine) still sees every goal
+GOAL_LOG_SPAN_NS = 500_000_000
 
 
 def front_panel(sim: Any) -> dict[str, Any]:
@@ -61,6 +64,10 @@ def front_panel(sim: Any) -> dict[str, Any]:
     if ids is not None and callable(getattr(sim, "goal", None)):
         panel["goals"] = {str(i): sim.goal(i) for i in ids}
         panel["torque"] = {str(i): sim.torque(i) for i in ids}
+    goal_log = getattr(sim, "goal_log", None)
+    if goal_log is not None:  # every goal that reached a servo lately, so a reader misses none
+        since = panel["t_ns"] - GOAL_LOG_SPAN_NS
+        panel["goal_log"] = [list(entry) for entry in list(goal_log) if entry[0] >= since]
     plugged = getattr(sim, "plugged_in", None)
     if isinstance(plugged, bool):
         panel["plugged_in"] = plugged

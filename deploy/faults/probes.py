@@ -10,6 +10,7 @@ and coming back: it reconnects and records the gap as missing samples.
 from __future__ import annotations
 
 import abc
+import bisect
 import contextlib
 import json
 import logging
@@ -23,7 +24,7 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, order=True)
 class Sample:
     t_s: float  # monotonic, this machine
     value: float  # what the probe measures (m/s, finger counts, ...)
@@ -163,6 +164,8 @@ class PalmProbe(_Probe):
         self.status_file = status_file
         self.retract = retract_goals
         self._last_t_ns: int | None = None
+        self._logged_ns: int | None = None  # the newest goal-log entry taken
+        self._log_goals: list[int] | None = None
 
     def read(self) -> float | None:
         panel = json.loads(self.status_file.read_text())
@@ -170,4 +173,29 @@ class PalmProbe(_Probe):
             return None  # the bus simulator is not running: no news
         self._last_t_ns = panel["t_ns"]
         goals = [panel["goals"][str(i + 1)] for i in range(len(self.retract))]
+        self._replay_goal_log(panel.get("goal_log", []), goals)
+        return self._distance(goals)
+
+    def _distance(self, goals: list[int]) -> float:
         return float(max(abs(g - r) for g, r in zip(goals, self.retract, strict=True)))
+
+    def _replay_goal_log(self, entries: list[list[int]], now_goals: list[int]) -> None:
+        """Every goal write since the last panel, as a sample at the bus's own time: a lift
+        shorter than the panel's period, or one a stalled probe slept through, still shows.
+
+        The goals before the first new write are the panel's present goals with the newer
+        writes undone, which needs the log's whole span; a first panel only seeds the state.
+        """
+        new = [e for e in entries if self._logged_ns is None or e[0] > self._logged_ns]
+        if not entries:
+            return
+        self._logged_ns = max(e[0] for e in entries)
+        if self._log_goals is None:
+            self._log_goals = list(now_goals)
+            return
+        goals = self._log_goals
+        for t_ns, sid, goal in sorted(new):
+            if 1 <= sid <= len(goals):
+                goals[sid - 1] = goal
+                bisect.insort(self.samples, Sample(t_ns / 1e9, self._distance(goals)))
+        self._log_goals = list(now_goals)  # the panel is the truth between logs
