@@ -53,6 +53,9 @@ from operator_side.telemetry_gate import UNPROVEN, TelemetryGate
 
 log = logging.getLogger(__name__)
 
+#: longest a video signal waits for the robot to show it hears us before it goes anyway
+VIDEO_HOLD_NS = 3_000_000_000
+
 RESTART_SEQ_GAP = 1000  # a sequence number this far back means the robot restarted
 
 
@@ -122,6 +125,8 @@ class OperatorNode:
         #: called on the node's thread with each video signal the robot sends (the dashboard)
         self.video_signal_handler: Callable[[VideoSignal], None] | None = None
         self._vsig_seq = 0
+        #: (queued at, signal): video signals held until the robot is known to hear us
+        self._held_signals: collections.deque[tuple[int, VideoSignal]] = collections.deque()
         self._wake_r, self._wake_w = os.pipe()  # send_command wakes a sleeping loop
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
@@ -647,16 +652,18 @@ class OperatorNode:
         a new command (fresh seq and send time) every ``gripper_confirm_ms``,
         ``gripper_resends`` times at most.
         """
+        self._release_held_signals(now)
         while True:
             try:
                 cmd = self._commands.get_nowait()
             except queue.Empty:
                 break
             if isinstance(cmd, VideoSignal):
-                self._vsig_seq += 1
-                cmd.seq, cmd.t_send_ns = self._vsig_seq, self.now()
-                self.pub.send(cmd)
-                self.counters[f"video_{cmd.kind}s_sent"] += 1
+                if self._held_signals or not self.clock.is_synced:
+                    self._held_signals.append((now, cmd))
+                    self._release_held_signals(now)
+                else:
+                    self._send_video_signal(cmd)
                 continue
             if cmd.action in ("arm_jog", "arm_assist") and not self.sees_robot(now):
                 self.counters["jogs_held_blind"] += 1  # the assist is held like a jog
@@ -680,6 +687,31 @@ class OperatorNode:
         self.counters["gripper_resent"] += 1
         again = Command(seq=0, t_send_ns=0, action=pending.action, grip_level=pending.grip_level)
         self._send_command(again, now, resends=pending.resends + 1)
+
+    def _release_held_signals(self, now: int) -> None:
+        """Send the held video signals, in order, once the robot is known to hear us.
+
+        An offer is sent once and answered once: one the link drops (the
+        command link's subscription not yet through, a robot still starting)
+        leaves the page waiting for its answer timeout. The robot echoing our
+        heartbeat (the clock has a sample) shows the command link carries; a
+        robot that never echoes gets the signals after ``VIDEO_HOLD_NS``.
+        """
+        held = self._held_signals
+        if not held:
+            return
+        if not self.clock.is_synced and now - held[0][0] < VIDEO_HOLD_NS:
+            return
+        if not self.clock.is_synced:
+            log.warning("video signals sent unconfirmed: the robot has not echoed a heartbeat")
+        while held:
+            self._send_video_signal(held.popleft()[1])
+
+    def _send_video_signal(self, cmd: VideoSignal) -> None:
+        self._vsig_seq += 1
+        cmd.seq, cmd.t_send_ns = self._vsig_seq, self.now()
+        self.pub.send(cmd)
+        self.counters[f"video_{cmd.kind}s_sent"] += 1
 
     def _send_command(self, cmd: Command, now: int, resends: int) -> None:
         self._cmd_seq += 1
