@@ -652,24 +652,20 @@ class OperatorNode:
         a new command (fresh seq and send time) every ``gripper_confirm_ms``,
         ``gripper_resends`` times at most.
         """
-        self._release_held_signals(now)
         while True:
             try:
                 cmd = self._commands.get_nowait()
             except queue.Empty:
                 break
-            if isinstance(cmd, VideoSignal):
-                if self._held_signals or not self.clock.is_synced:
-                    self._held_signals.append((now, cmd))
-                    self._release_held_signals(now)
-                else:
-                    self._send_video_signal(cmd)
+            if isinstance(cmd, VideoSignal):  # sent below, in order, once the robot hears us
+                self._held_signals.append((now, cmd))
                 continue
             if cmd.action in ("arm_jog", "arm_assist") and not self.sees_robot(now):
                 self.counters["jogs_held_blind"] += 1  # the assist is held like a jog
                 self._blind_log(cmd.action)
                 continue
             self._send_command(cmd, now, resends=0)
+        self._release_held_signals(now)
         pending = self._gripper_pending
         if pending is None or now < pending.deadline_ns:
             return

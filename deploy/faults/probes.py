@@ -183,12 +183,11 @@ class PalmProbe(_Probe):
         """Every goal write since the last panel, as a sample at the bus's own time: a lift
         shorter than the panel's period, or one a stalled probe slept through, still shows.
 
-        The goals before the first new write are the panel's present goals with the newer
-        writes undone, which needs the log's whole span; a first panel only seeds the state.
+        The writes are replayed onto the previous panel's goals; a first panel only seeds them.
         """
-        new = [e for e in entries if self._logged_ns is None or e[0] > self._logged_ns]
         if not entries:
             return
+        new = [e for e in entries if self._logged_ns is None or e[0] > self._logged_ns]
         self._logged_ns = max(e[0] for e in entries)
         if self._log_goals is None:
             self._log_goals = list(now_goals)
