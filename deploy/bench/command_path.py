@@ -21,6 +21,7 @@ as its own process.
 from __future__ import annotations
 
 import multiprocessing
+import secrets
 import signal
 import subprocess
 import sys
@@ -239,7 +240,8 @@ class RobotUnderCommands:
 
         mp = multiprocessing.get_context("spawn")
         parent, child = mp.Pipe(duplex=False)
-        args = (self.telemetry_endpoint, self.command_endpoint, n, FLOOD_VELOCITY, child)
+        session = secrets.randbits(63) | 1  # a fresh operator session per flood
+        args = (self.telemetry_endpoint, self.command_endpoint, n, FLOOD_VELOCITY, session, child)
         proc = mp.Process(target=run, args=args, daemon=True)
         t_start = now_ns()
         proc.start()
@@ -357,9 +359,6 @@ def flood(n_flood: int, baseline_s: float, n_cost: int) -> dict[str, Any]:
     return out
 
 
-SESSION = 31337
-
-
 def _heartbeat(seq: int, echo: tuple[int, int] | None) -> bytes:
     body = {"v": 1, "type": "heartbeat", "seq": seq, "t_send_ns": time.monotonic_ns()}
     body.update(node="operator", state="ok")
@@ -368,13 +367,15 @@ def _heartbeat(seq: int, echo: tuple[int, int] | None) -> bytes:
     return b"HBRT" + msgpack.packb(body)
 
 
-def _jog(seq: int, velocity: list[float]) -> bytes:
+def _jog(seq: int, velocity: list[float], session: int) -> bytes:
     body = {"v": 1, "type": "command", "seq": seq, "t_send_ns": time.monotonic_ns()}
-    body.update(action="arm_jog", velocity=velocity, session=SESSION)
+    body.update(action="arm_jog", velocity=velocity, session=session)
     return b"CMND" + msgpack.packb(body)
 
 
-def run(telemetry: str, commands: str, n: int, velocity: list[float], conn) -> None:
+def run(telemetry: str, commands: str, n: int, velocity: list[float], session: int, conn) -> None:
+    """A flooding operator; ``session`` is new per run, as a restarted operator's is (its seq
+    starts again at 1, which the robot refuses within one session as a replay)."""
     ctx = zmq.Context()
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)
@@ -412,13 +413,13 @@ def run(telemetry: str, commands: str, n: int, velocity: list[float], conn) -> N
     end = time.monotonic() + 0.6  # an operator jogging, renewed every 50 ms
     while time.monotonic() < end:
         seq += 1
-        pub.send(_jog(seq, velocity))
+        pub.send(_jog(seq, velocity, session))
         tend()
         time.sleep(0.05)
     t_first = time.monotonic_ns()
     for i in range(n):
         seq += 1
-        pub.send(_jog(seq, velocity))
+        pub.send(_jog(seq, velocity, session))
         if i % 256 == 0:
             tend()
     t_last = time.monotonic_ns()

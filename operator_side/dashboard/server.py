@@ -39,6 +39,8 @@ log = logging.getLogger(__name__)
 
 STATIC_FILES = ("index.html", "app.js", "jog.js", "video.js", "patterns.js", "style.css")
 VIDEO_ANSWER_TIMEOUT_S = 10.0
+#: how long a page's video session may take to close its socket to the video server
+VIDEO_CLOSE_WAIT_S = 1.0
 REFRESH_S = 0.25  # ages and counters move even when the stimulus does not
 FULL_STATE_S = 1.0  # a page that missed a push (it lagged) is whole again within this
 COMMANDS_PER_S = 10  # a stuck key or a buggy page cannot flood the robot's command link
@@ -223,10 +225,13 @@ class Dashboard:
             pass
         finally:
             watchdog.cancel()
-            if page.video is not None:
-                page.video.cancel()
             if page.jogging:  # a closed or crashed tab must not leave the arm moving
                 self._end_jog(page, "page disconnected while jogging")
+            if page.video is not None:
+                # cancelled and then waited for (briefly): its close handshake with the video
+                # server finishes here, not never (a loop that ends leaves the socket open)
+                page.video.cancel()
+                await asyncio.wait({page.video}, timeout=VIDEO_CLOSE_WAIT_S)
             log.info("dashboard: page from %s disconnected", peer)
 
     def _on_video_signal(self, msg: VideoSignal) -> None:
@@ -301,7 +306,9 @@ class Dashboard:
 
         url = self.config.video_url
         try:
-            async with connect(url, open_timeout=5, max_size=256 * 1024) as robot:
+            async with connect(
+                url, open_timeout=5, close_timeout=VIDEO_CLOSE_WAIT_S, max_size=256 * 1024
+            ) as robot:
                 await robot.send(json.dumps({"type": "offer", "sdp": offer.get("sdp")}))
                 answer = json.loads(await asyncio.wait_for(robot.recv(), VIDEO_ANSWER_TIMEOUT_S))
                 await conn.send(json.dumps({**answer, "type": "video_answer"}))

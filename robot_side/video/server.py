@@ -62,6 +62,10 @@ log = logging.getLogger(__name__)
 VIDEO_CLOCK = 90_000  # RTP's video clock rate
 OFFER_TIMEOUT_S = 10.0
 CLOSE_TIMEOUT_S = 3.0  # for every viewer's peer connection to close at stop
+#: how long a signalling socket's close waits for the other end's close frame: a viewer
+#: whose process froze or whose loop already ended never sends one, and websockets' own
+#: 10 s default then held up every stop by as long (the dashboard's server waits 1 s too)
+WS_CLOSE_TIMEOUT_S = 1.0
 SHARED_FORMAT = "yuv420p"  # what the VP8 encoder takes as it is (no reformat on its thread)
 
 
@@ -358,6 +362,7 @@ class VideoServer:
             self.config.port,
             max_size=256 * 1024,
             process_request=self._authorise,
+            close_timeout=WS_CLOSE_TIMEOUT_S,
         ) as server:
             self.port = server.sockets[0].getsockname()[1]
             self._started.set()

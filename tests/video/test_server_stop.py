@@ -1,0 +1,53 @@
+"""The video server stops promptly even when a viewer's end of the signalling never answers.
+
+A frozen operator process (SIGSTOP, a hung dashboard loop) keeps its TCP
+socket open but never sends the WebSocket close frame; the robot's stop
+(systemd's, or the demo's) must not wait websockets' default 10 s for it.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from urllib.parse import urlsplit
+
+import pytest
+
+pytest.importorskip("aiortc", reason="the video server needs the 'video' extra")
+
+from robot_side.camera.config import TestPatternConfig
+from robot_side.camera.test_pattern import TestPatternCamera
+from robot_side.video.server import WS_CLOSE_TIMEOUT_S, VideoConfig, VideoServer
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def _silent_viewer(url: str) -> socket.socket:
+    """A WebSocket opened by hand, then never read from or written to again."""
+    parts = urlsplit(url)
+    sock = socket.create_connection((parts.hostname, parts.port), timeout=5)
+    sock.sendall(
+        (
+            f"GET /?{parts.query} HTTP/1.1\r\nHost: {parts.netloc}\r\nUpgrade: websocket\r\n"
+            "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+            "Sec-WebSocket-Version: 13\r\n\r\n"
+        ).encode()
+    )
+    reply = sock.recv(4096)
+    assert reply.startswith(b"HTTP/1.1 101"), reply[:200]
+    return sock
+
+
+def test_a_viewer_that_never_answers_the_close_does_not_hold_up_the_stop():
+    source = TestPatternCamera(TestPatternConfig(width=160, height=120, fps=15))
+    server = VideoServer(source, VideoConfig(port=0)).start()
+    viewers = [_silent_viewer(server.url) for _ in range(2)]
+    try:
+        t0 = time.monotonic()
+        ended = server.stop(timeout_s=5.0)
+        took = time.monotonic() - t0
+    finally:
+        for v in viewers:
+            v.close()
+    assert ended, "the video server did not stop within 5 s"
+    assert took < WS_CLOSE_TIMEOUT_S + 2.0, f"stop took {took:.1f} s"
