@@ -92,7 +92,8 @@ def _arm(row: dict[str, Any]) -> str:
     if still is None:
         if _late(row):
             return "**kept moving**"
-        if back_before_a_stop_was_due(still, row["recovered_s"], row.get("arm_rest_s")):
+        cut = row["target"] in CUTS_THE_JOG  # a device or video fault leaves the jog whole
+        if cut and back_before_a_stop_was_due(still, row["recovered_s"], row.get("arm_rest_s")):
             return "slowed; the link was back before a stop was due"
         return "kept following the jog"
     if away is not None and away <= still:

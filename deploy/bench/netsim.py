@@ -43,6 +43,7 @@ def fidelity(seconds: float, scenarios: tuple[str, ...] = SCENARIOS) -> dict[str
     load = os.getloadavg()
     return {
         "seconds_per_scenario": seconds,  # the runner writes the section's total as "seconds"
+        "date": time.strftime("%Y-%m-%d"),
         "runs": runs,
         "loadavg_after": [round(x, 2) for x in load],
     }
@@ -101,10 +102,14 @@ def fidelity_table(section: dict[str, Any] | None) -> list[str]:
 def update_doc(path: Path, section: dict[str, Any]) -> None:
     """Replace the block between the markers in ``path`` with this run's table."""
     text = path.read_text()
+    # the date the table was measured: a docs refresh from stored results keeps it
+    # (results from before the section stored its date keep the one the page has)
+    kept = re.search(re.escape(BEGIN) + r"\s*Measured (\d{4}-\d{2}-\d{2})", text)
+    date = section.get("date") or (kept.group(1) if kept else "an unknown date")
     body = "\n".join(
         [
             BEGIN,
-            f"Measured {time.strftime('%Y-%m-%d')}; regenerate with "
+            f"Measured {date}; regenerate with "
             "`deepxpalm bench --only netsim --update-docs` or "
             "`python -m deploy.bench.netsim --update docs/netsim.md`.",
             "",

@@ -22,3 +22,18 @@ def test_a_link_down_long_enough_to_see_a_stop_is_judged_by_the_stop():
     assert not back_before_a_stop_was_due(None, late, arm_rest_s=0.1)
     assert not back_before_a_stop_was_due(0.3, 0.2)  # it stopped: judged as a stop
     assert not back_before_a_stop_was_due(None, None)  # never back
+
+
+def test_a_fault_that_never_cut_the_jog_is_not_called_a_link_that_came_back():
+    from deploy.bench.faults import _arm
+
+    row = {
+        "arm_speed_at_fault_m_s": 0.03,
+        "arm_still_s": None,
+        "arm_unreadable_s": None,
+        "recovered_s": 0.0,  # nothing was interrupted
+        "arm_rest_s": None,
+        "palm_off_s": None,
+    }
+    assert _arm({**row, "target": "video"}) == "kept following the jog"
+    assert _arm({**row, "target": "netsim", "recovered_s": 0.3}).startswith("slowed")
