@@ -321,13 +321,20 @@ class Deployment:
             self.supervisor.release(name)
         return unit.restarted_at[-1]
 
+    def netsim_started(self) -> list[float]:
+        """When each netsim process began forwarding (monotonic s, from its log), in order."""
+        return [
+            int(line.rsplit("schedule_start_ns=", 1)[1].split()[0]) / 1e9
+            for line in self.units["netsim"].proc.log_text().splitlines()
+            if "schedule_start_ns=" in line
+        ]
+
     def outage_window(self) -> tuple[float, float] | None:
         """The scheduled outage on the monotonic clock, from netsim's own start time."""
-        for line in self.units["netsim"].proc.log_text().splitlines():
-            if "schedule_start_ns=" in line:
-                start_s = int(line.rsplit("schedule_start_ns=", 1)[1].split()[0]) / 1e9
-                return start_s + self.outage_at_s, start_s + self.outage_at_s + self.outage_s
-        return None
+        starts = self.netsim_started()
+        if not starts:
+            return None
+        return starts[0] + self.outage_at_s, starts[0] + self.outage_at_s + self.outage_s
 
     def operator_send(self, command: dict) -> bool:
         """A JSON command to the operator node's stdin; False while it is down."""

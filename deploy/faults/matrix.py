@@ -124,6 +124,8 @@ class CellResult:
     notes: str
     stop_s: float | None = None  # a clean restart: SIGTERM to the end of the process
     error: str | None = None
+    #: netsim's own cells: its new process forwarding again, from the fault (None: not seen)
+    link_back_s: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -241,6 +243,7 @@ class CellRun:
         self.arm: ArmProbe | None = None
         self.gripper: GripperProbe | None = None
         self.palm: PalmProbe | None = None
+        self._link_back: float | None = None  # netsim's cells: when it forwarded again
 
     # ------------------------------------------------------------ phases
     def _wait(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
@@ -353,6 +356,7 @@ class CellRun:
                 while not self._settled(tl) and time.monotonic() < deadline:
                     time.sleep(0.1)
                 jogger.active.clear()
+                self._link_back = self._netsim_back(tl)
                 tl.t_release = t_release = time.monotonic()
                 time.sleep(1.5)
                 released_still = first_still(self.arm.samples, t_release)
@@ -361,6 +365,13 @@ class CellRun:
                 for probe in (self.arm, self.gripper, self.palm):
                     probe.close()
         return self._result(tl, released_still, t_release)
+
+    def _netsim_back(self, tl: _Timeline) -> float | None:
+        """When a restarted or killed netsim forwarded again: how long the link was away."""
+        if self.cell.target != "netsim" or self.cell.fault not in (KILL, RESTART):
+            return None
+        back = [t for t in self.d.netsim_started() if t >= tl.t_fault]
+        return round(back[0] - tl.t_fault, 3) if back else None
 
     def _result(self, tl: _Timeline, released_still: float | None, t_release: float) -> CellResult:
         arm_still, arm_back, palm_off, palm_back = self._broken_and_back(tl)
@@ -406,6 +417,7 @@ class CellRun:
             recording_records=rec_n,
             notes="",
             stop_s=round(unit.stops[-1][0], 3) if unit is not None and unit.stops else None,
+            link_back_s=self._link_back,
         )
 
     def _gripper_held(self, tl: _Timeline) -> tuple[bool | None, float | None]:

@@ -80,7 +80,8 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
     )
     assert row.palm_off_s is not None and row.palm_off_s <= PALM_LIFT_BUDGET_S + LOAD_SLACK_S, (
         f"{cell.label}: the palm lifted off {row.palm_off_s} s after the fault, budget "
-        f"{PALM_LIFT_BUDGET_S * 1e3:.0f} ms (None: never, the product's staleness limit failed)"
+        f"{PALM_LIFT_BUDGET_S * 1e3:.0f} ms (None: never, the product's staleness limit failed); "
+        f"netsim forwarding again {row.link_back_s} s after the fault; {row}"
     )
     assert row.recovered_s is not None, (
         f"{cell.label}: 30 s after the fault the palm or the arm still did not work again with no "
