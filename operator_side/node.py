@@ -696,9 +696,9 @@ class OperatorNode:
         held = self._held_signals
         if not held:
             return
-        if not self.clock.is_synced and now - held[0][0] < VIDEO_HOLD_NS:
-            return
         if not self.clock.is_synced:
+            if now - held[0][0] < VIDEO_HOLD_NS:
+                return
             log.warning("video signals sent unconfirmed: the robot has not echoed a heartbeat")
         while held:
             self._send_video_signal(held.popleft()[1])
