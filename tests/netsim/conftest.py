@@ -96,27 +96,8 @@ TAIL_VERDICTS = ("p95", "p99")
 
 
 def on_this_machine(run: FidelityRun) -> dict[str, bool]:
-    """The run's verdicts, the zero-delay ones scaled to what one hop costs on this machine.
-
-    At zero delay the forwarder's whole cost is one more process woken and one
-    more loopback hop: mostly the kernel's wake-up, which no forwarder can
-    undercut. The bench's absolute goals (0.15 ms at p50, 0.5 ms at p99, met
-    where the bench table was taken, its direct hop 0.07 ms) hold wherever a
-    direct hop costs less than that; on a machine whose direct hop itself
-    costs more (a CI runner's direct p50 was 0.30 ms, p99 2.5 ms), the extra
-    hop may cost what a direct one does there, and no more.
-    """
-    from common.netsim.fidelity import TRANSPARENT_P50_MS, TRANSPARENT_P99_MS
-
-    if not run.via_ms:
-        return {"p50": False}
-    if any(ms != 0 for ms in run.configured.values()):
-        return run.verdicts()
-    d, v = run.quantiles(run.direct_ms), run.quantiles(run.via_ms)
-    return {
-        "p50": v[0.5] - d[0.5] <= max(TRANSPARENT_P50_MS, d[0.5]),
-        "p99": v[0.99] - d[0.99] <= max(TRANSPARENT_P99_MS, d[0.99]),
-    }
+    """The run's verdicts scaled to what one hop costs here (``FidelityRun.scaled_verdicts``)."""
+    return run.scaled_verdicts()
 
 
 #: Measurements a fidelity test takes at most: another job on the machine can stall one.
