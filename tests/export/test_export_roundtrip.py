@@ -58,6 +58,12 @@ def _loaded(session, tmp_path, episodes: str):
     return summary, arrays, meta
 
 
+@pytest.fixture(scope="module")
+def one_episode(session, tmp_path_factory):
+    """The session exported as one episode and loaded by LeRobot, once for the tests reading it."""
+    return _loaded(session, tmp_path_factory.mktemp("one-episode"), "session")
+
+
 def _held(channel_records, t_row, before_first=None):
     """The newest record at or before ``t_row``; ``before_first`` if there is none yet."""
     times = [t for t, _ in channel_records]
@@ -133,13 +139,13 @@ def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_p
     )
 
 
-def test_the_camera_lerobot_decodes_is_the_rows_picture(session, records, tmp_path):
+def test_the_camera_lerobot_decodes_is_the_rows_picture(session, records, one_episode):
     """The demo records its camera (the stamped test pattern) beside the robot; each row's
     picture, as LeRobot's loader decodes it from the video, is the newest camera frame at or
     before the row's time, and so within one camera period of the row's tactile frame."""
     from robot_side.video.stamp import MS_MODULO, read_stamp
 
-    summary, a, meta = _loaded(session, tmp_path, "session")
+    summary, a, meta = one_episode
     key = "observation.images.test_pattern"
     assert key in summary["features"] and meta["video_keys"] == [key]
     assert meta["features"][key]["info"]["video.codec"] == "av1"
@@ -210,8 +216,8 @@ def test_lerobot_policies_find_the_state_and_the_action(session, tmp_path):
         assert policy["accepted_with_a_camera"] is True, (name, policy)
 
 
-def test_one_episode_per_session_covers_the_recording(session, records, tmp_path):
-    _, a, meta = _loaded(session, tmp_path, "session")
+def test_one_episode_per_session_covers_the_recording(records, one_episode):
+    _, a, meta = one_episode
     assert meta["num_episodes"] == 1
     frames = records["robot/frame"]
     span_s = (frames[-1][0] - frames[0][0]) / 1e9
