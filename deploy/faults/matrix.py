@@ -59,9 +59,11 @@ PALM_PRESSED = 50.0  # counts from the retract pose: a linkage on the palm
 GRASP_LEVEL = 20
 GRIP_SLACK = 5  # finger counts (of 255) the grip may relax and still hold
 READY_TIMEOUT_S = 90.0
-#: the outage starts this long after netsim does: after a slow start (ready took 5 s on
-#: a quiet machine, under 10 s beside other jobs), before a bored wait
-OUTAGE_AT_S = 20.0
+#: the outage starts this long after netsim does: after a start (ready took 5 s on a quiet
+#: machine, under 10 s beside other jobs), before a bored wait; a deployment that was ready
+#: too late for it is started again with the outage at ``OUTAGE_LATE_AT_S``
+OUTAGE_AT_S = 12.0
+OUTAGE_LATE_AT_S = 30.0
 RECOVER_TIMEOUT_S = 30.0
 UNAFFECTED_S = 3.0  # nothing broke this long after the fault ended: the cell is over
 
@@ -230,14 +232,29 @@ class _Timeline:
     t_release: float = math.inf  # the operator let go: what follows is not the fault's doing
 
 
+class ReadyTooLate(DeploymentError):
+    """The deployment came up after the outage it was scheduled for (a loaded machine)."""
+
+
+def run_cell(cell: Cell, retract_goals: list[int]) -> CellResult:
+    """One cell; an outage cell whose deployment was ready too late is run again, later."""
+    try:
+        return CellRun(cell, retract_goals).run()
+    except ReadyTooLate as e:
+        log.warning(
+            "%s: %s; running it again with the outage at %.0f s", cell.label, e, OUTAGE_LATE_AT_S
+        )
+        return CellRun(cell, retract_goals, outage_at_s=OUTAGE_LATE_AT_S).run()
+
+
 class CellRun:
     """The probes and the deployment of one cell, and the reading of what they saw."""
 
-    def __init__(self, cell: Cell, retract_goals: list[int]) -> None:
+    def __init__(
+        self, cell: Cell, retract_goals: list[int], outage_at_s: float = OUTAGE_AT_S
+    ) -> None:
         self.cell = cell
-        outage_at = None
-        if cell.fault == OUTAGE:
-            outage_at = OUTAGE_AT_S
+        outage_at = outage_at_s if cell.fault == OUTAGE else None
         self.d = Deployment(**({} if outage_at is None else {"outage_at_s": outage_at}))
         self.retract = retract_goals
         self.arm: ArmProbe | None = None
@@ -279,9 +296,13 @@ class CellRun:
             window = d.outage_window()
             if window is None:
                 raise DeploymentError("netsim did not log its schedule start")
-            if window[0] < time.monotonic():
-                raise DeploymentError("the deployment was ready only after the scheduled outage")
-            time.sleep(window[0] - time.monotonic())
+            slack = window[0] - time.monotonic()
+            if slack < 0:
+                raise ReadyTooLate(
+                    f"the deployment was ready {-slack:.1f} s after the scheduled outage began"
+                )
+            log.info("ready %.1f s before the scheduled outage", slack)
+            time.sleep(slack)
             return _Timeline(*window)
         self._wait(self._cruising, 10.0, "the arm never cruised at the jog's speed (load?)")
         t_fault = time.monotonic()
@@ -478,7 +499,7 @@ def run_cells(
     for cell in cells:
         t0 = time.monotonic()
         try:
-            row = CellRun(cell, retract).run().as_dict()
+            row = run_cell(cell, retract).as_dict()
         except DeploymentError as e:
             row = {"target": cell.target, "fault": cell.fault, "error": str(e)[:4000]}
         row["seconds"] = round(time.monotonic() - t0, 1)

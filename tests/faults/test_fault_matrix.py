@@ -20,9 +20,9 @@ from deploy.faults.matrix import (
     ARM_STILL_BUDGET_S,
     PALM_LIFT_BUDGET_S,
     Cell,
-    CellRun,
     back_before_a_stop_was_due,
     quick_matrix,
+    run_cell,
 )
 
 #: how much a loaded machine may add to a budget before the test calls it the product's fault
@@ -46,7 +46,7 @@ def retract_goals() -> list[int]:
 @pytest.mark.parametrize("cell", CELLS, ids=lambda c: c.label.replace(" ", "_"))
 def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int]) -> None:
     try:
-        row = CellRun(cell, retract_goals).run()
+        row = run_cell(cell, retract_goals)
     except DeploymentError as e:
         pytest.fail(f"the deployment never got ready (load, or a start-up failure): {e}")
     assert row.stop_s is None or "killed" not in row.restarted_by, (
