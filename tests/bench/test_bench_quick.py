@@ -18,7 +18,7 @@ from deploy.bench.sizes import PRESETS, SECTIONS
 
 pytestmark = pytest.mark.slow
 
-# The sections that start processes run in the slow test below, but six whose
+# Every section runs once, in the module's fixture (the processes' too), but six whose
 # measurements other tests run: the task's ``run_cell`` (tests/lab/test_task.py), the
 # fault matrix's ``run_cells`` (tests/faults), the command path's flood rig
 # (tests/system/test_command_path.py), the video's viewers (tests/video) and the relay's
@@ -28,12 +28,11 @@ pytestmark = pytest.mark.slow
 # they cost two minutes of the suite's 15.
 PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim"}
 COVERED_ELSEWHERE = {"task", "faults", "command_path", "video", "relay", "video_netsim"}
-NOT_IN_PROCESS = PROCESS_SECTIONS | COVERED_ELSEWHERE
 
 
 @pytest.fixture(scope="module")
 def smallest(tmp_path_factory):
-    results = run_bench(PRESETS["smallest"], "smallest", set(NOT_IN_PROCESS), None, [])
+    results = run_bench(PRESETS["smallest"], "smallest", set(COVERED_ELSEWHERE), None, [])
     out = tmp_path_factory.mktemp("bench")
     paths = write_outputs(results, out)
     return results, out, paths
@@ -44,7 +43,7 @@ def test_every_section_ran_or_was_skipped_on_request(smallest):
     assert set(results["sections"]) == set(SECTIONS)
     for name, section in results["sections"].items():
         assert "error" not in section, f"{name}: {section.get('error')}"
-        assert section.get("skipped", False) == (name in NOT_IN_PROCESS), name
+        assert section.get("skipped", False) == (name in COVERED_ELSEWHERE), name
 
 
 def test_report_files_and_structure(smallest):
@@ -150,9 +149,9 @@ def test_fused_downsizing_is_an_exact_rewrite(smallest):
 
 
 @pytest.mark.slow
-def test_process_sections_run(tmp_path):
+def test_process_sections_run(smallest):
     """The two-process TCP loop, node CPU and link simulator, at the smallest sizes."""
-    results = run_bench(PRESETS["smallest"], "smallest", set(SECTIONS) - PROCESS_SECTIONS, None, [])
+    results, out, _ = smallest
     for name in PROCESS_SECTIONS:
         assert "error" not in results["sections"][name], results["sections"][name].get("error")
     tcp = results["sections"]["e2e_tcp"]
@@ -166,7 +165,6 @@ def test_process_sections_run(tmp_path):
     netsim = results["sections"]["netsim"]
     assert "error" not in netsim, netsim.get("error")
     assert netsim["runs"][0]["n_via"] > 0
-    write_outputs(results, tmp_path, figures=False)
-    md = (tmp_path / "benchmarks.md").read_text()
+    md = (out / "benchmarks.md").read_text()
     for heading in ("## Node CPU", "## Link simulator fidelity"):
         assert heading in md, heading
