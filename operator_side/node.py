@@ -56,6 +56,10 @@ log = logging.getLogger(__name__)
 #: longest a video signal waits for the robot to show it hears us before it goes anyway
 VIDEO_HOLD_NS = 3_000_000_000
 
+#: the loop woke this much later than it was due: the machine starved it, and the palm's
+#: staleness could not act meanwhile (logged with when it was due and woke, on the monotonic
+#: clock, and counted in ``late_wakes``)
+LATE_WAKE_NS = 100_000_000
 RESTART_SEQ_GAP = 1000  # a sequence number this far back means the robot restarted
 
 
@@ -346,9 +350,20 @@ class OperatorNode:
         next_control = self.now()
         t_end = None if duration_s is None else self.now() + round(duration_s * 1e9)
         while not stop.is_set() and (t_end is None or self.now() < t_end):
-            wait_s = (min(next_control, heartbeat.deadline_ns) - self.now()) / 1e9
-            ready = self.sub.ready(wait_s)
+            due = min(next_control, heartbeat.deadline_ns)
+            ready = self.sub.ready((due - self.now()) / 1e9)
             self.counters["wakeups"] += 1
+            woke = self.now()
+            if woke - due > LATE_WAKE_NS:  # at most ten a second, by its definition
+                self.counters["late_wakes"] += 1
+                log.warning(
+                    "the loop woke %.0f ms late (a starved process: the palm cannot lift "
+                    "meanwhile, its staleness limit is %.0f ms); due_ns=%d woke_ns=%d",
+                    (woke - due) / 1e6,
+                    link.stale_after_ms,
+                    due,
+                    woke,
+                )
             changed = self.receive() if self.sub.sock in ready else False
             now = self.now()
             if changed or now >= next_control:

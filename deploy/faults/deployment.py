@@ -94,6 +94,18 @@ DEVICES = ("ur", "gripper", "tactile", "servos", "netsim")
 NO_OUTAGE_AT_S = 1e6
 
 
+def late_wakes_in(log_text: str) -> list[tuple[float, float]]:
+    """When an operator's loop was due and when it woke, each time it woke over 100 ms late
+    (monotonic s, from its log). A starved operator cannot lift the palm meanwhile."""
+    out = []
+    for line in log_text.splitlines():
+        if "woke_ns=" in line:
+            due = int(line.rsplit("due_ns=", 1)[1].split()[0])
+            woke = int(line.rsplit("woke_ns=", 1)[1].split()[0])
+            out.append((due / 1e9, woke / 1e9))
+    return out
+
+
 class DeploymentError(RuntimeError):
     """The deployment did not come up: a process ended or never got ready (its log says why)."""
 
@@ -328,6 +340,10 @@ class Deployment:
             for line in self.units["netsim"].proc.log_text().splitlines()
             if "schedule_start_ns=" in line
         ]
+
+    def operator_late_wakes(self) -> list[tuple[float, float]]:
+        """Each time the operator's loop woke over 100 ms late (``late_wakes_in`` its log)."""
+        return late_wakes_in(self.units["operator"].proc.log_text())
 
     def outage_window(self) -> tuple[float, float] | None:
         """The scheduled outage on the monotonic clock, from netsim's own start time."""

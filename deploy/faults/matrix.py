@@ -55,6 +55,8 @@ FLIP_S = 2.0
 #: 4 deg a cycle (about 100 ms from the held grasp) and 100 ms for the front panel and
 #: the last stimulus's flight
 PALM_LIFT_BUDGET_S = 0.35
+#: the linkages' travel from pressing the palm to off it (a lift at 0.15 s is off by 0.22 s)
+LIFT_TRAVEL_S = 0.1
 PALM_PRESSED = 50.0  # counts from the retract pose: a linkage on the palm
 GRASP_LEVEL = 20
 GRIP_SLACK = 5  # finger counts (of 255) the grip may relax and still hold
@@ -128,6 +130,10 @@ class CellResult:
     error: str | None = None
     #: netsim's own cells: its new process forwarding again, from the fault (None: not seen)
     link_back_s: float | None = None
+    #: the operator's loop woke this much later than due after the fault (None: never 100 ms)
+    operator_late_ms: float | None = None
+    #: ... and it slept through the link's gap: woke when the link was back, too late to lift
+    operator_starved_through_gap: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -261,6 +267,7 @@ class CellRun:
         self.gripper: GripperProbe | None = None
         self.palm: PalmProbe | None = None
         self._link_back: float | None = None  # netsim's cells: when it forwarded again
+        self._late_wakes: list[tuple[float, float]] = []  # the operator's, after the fault
 
     # ------------------------------------------------------------ phases
     def _wait(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
@@ -378,6 +385,7 @@ class CellRun:
                     time.sleep(0.1)
                 jogger.active.clear()
                 self._link_back = self._netsim_back(tl)
+                self._late_wakes = [w for w in self.d.operator_late_wakes() if w[1] >= tl.t_fault]
                 tl.t_release = t_release = time.monotonic()
                 time.sleep(1.5)
                 released_still = first_still(self.arm.samples, t_release)
@@ -439,7 +447,20 @@ class CellRun:
             notes="",
             stop_s=round(unit.stops[-1][0], 3) if unit is not None and unit.stops else None,
             link_back_s=self._link_back,
+            operator_late_ms=max(
+                (round((woke - due) * 1e3) for due, woke in self._late_wakes), default=None
+            ),
+            operator_starved_through_gap=self._starved_through_gap(tl),
         )
+
+    def _starved_through_gap(self, tl: _Timeline) -> bool:
+        """The operator's loop was due while the link was away and woke only about when it
+        was back (within a lift's travel): it never saw the link stale, through no fault of
+        its own logic (a machine that starved it)."""
+        if self._link_back is None:
+            return False
+        back = tl.t_fault + self._link_back
+        return any(due < back and woke > back - LIFT_TRAVEL_S for due, woke in self._late_wakes)
 
     def _gripper_held(self, tl: _Timeline) -> tuple[bool | None, float | None]:
         """Held: the fingers never opened from the pipette (a hold re-targets where they are,
