@@ -71,19 +71,34 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
                 key = fleet.signing_key(c)
                 held = lambda k=key: monitor.holder_since(k, 0) is not None  # noqa: E731
                 fleet.wait_for(held, 60, f"{c}'s lease")
-            start = [sim.tcp_pose()[:3].copy() for sim in arm_sims]
-            # The observers jog both robots along y; only cell1's controller jogs (along x).
-            jogging = [threading.Thread(target=jog_for, args=(o, JOG_Y, 1.5)) for o in observers]
-            for t in jogging:
-                t.start()
-            jog_for(c1, JOG_X, 1.0)
-            for t in jogging:
-                t.join()
-            time.sleep(0.5)
-            moved = [sim.tcp_pose()[:3] - s for sim, s in zip(arm_sims, start, strict=True)]
-            assert moved[0][0] > 0.015, f"cell1 did not follow its controller: {moved[0]}"
-            assert abs(moved[0][1]) < 1e-3, f"cell1 moved along an observer's y: {moved[0]}"
-            assert np.abs(moved[1]).max() < 1e-3, f"cell2 moved with no jog from c2: {moved[1]}"
+            for attempt in (1, 2):
+                trips = arm_sims[0].stats()["watchdog_trips"]
+                start = [sim.tcp_pose()[:3].copy() for sim in arm_sims]
+                # The observers jog both robots along y; only cell1's controller jogs (along x).
+                jogging = [
+                    threading.Thread(target=jog_for, args=(o, JOG_Y, 1.5)) for o in observers
+                ]
+                for t in jogging:
+                    t.start()
+                jog_for(c1, JOG_X, 1.0)
+                for t in jogging:
+                    t.join()
+                time.sleep(0.5)
+                moved = [sim.tcp_pose()[:3] - s for sim, s in zip(arm_sims, start, strict=True)]
+                assert abs(moved[0][1]) < 1e-3, f"cell1 moved along an observer's y: {moved[0]}"
+                assert np.abs(moved[1]).max() < 1e-3, f"cell2 moved with no jog from c2: {moved[1]}"
+                tripped = arm_sims[0].stats()["watchdog_trips"] - trips
+                if moved[0][0] > 0.015 or not tripped or attempt == 2:
+                    break
+                # load, not product: the robot node missed the controller's 150 ms watchdog
+                # (the simulator counted the trip), the arm stopped as it must and the driver
+                # reconnects; the routing is checked again once it has
+                print(f"cell1's controller watchdog tripped {tripped}x mid-jog; jogging again")
+                time.sleep(3.0)
+            assert moved[0][0] > 0.015, (
+                f"cell1 did not follow its controller: {moved[0]} "
+                f"(controller watchdog trips in the last try: {tripped})"
+            )
 
             # Killing cell2's controller mid-jog stops that arm within the deadman.
             jog = threading.Thread(target=jog_for, args=(c2, JOG_X, 4.0))
