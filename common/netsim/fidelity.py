@@ -68,27 +68,12 @@ class FidelityRun:
         s = sorted(values)
         return {q: percentile(s, q) for q in QUANTILES}
 
-    def verdicts(self) -> dict[str, bool]:
-        """Per checked percentile, whether it met the criterion."""
-        d, v = self.quantiles(self.direct_ms), self.quantiles(self.via_ms)
-        if all(ms == 0 for ms in self.configured.values()):
-            return {
-                "p50": v[0.5] - d[0.5] <= TRANSPARENT_P50_MS,
-                "p99": v[0.99] - d[0.99] <= TRANSPARENT_P99_MS,
-            }
-        out = {}
-        for q in (0.05, 0.5, 0.95):
-            target = self.configured[q] + d[q]
-            out[f"p{round(q * 100)}"] = abs(v[q] - target) <= max(
-                DELAYED_ABS_MS, DELAYED_REL * target
-            )
-        return out
+    def verdicts(self, scaled_to_hop: bool = False) -> dict[str, bool]:
+        """Per checked percentile, whether it met the criterion.
 
-    def scaled_verdicts(self) -> dict[str, bool]:
-        """The run's verdicts, scaled to what one hop costs on this machine.
-
-        At zero delay the forwarder's whole cost is one more process woken and one
-        more loopback hop: mostly the kernel's wake-up, which no forwarder can
+        ``scaled_to_hop``: judged on this machine's hop, as the tests do. At zero
+        delay the forwarder's whole cost is one more process woken and one more
+        loopback hop: mostly the kernel's wake-up, which no forwarder can
         undercut. The bench's absolute goals (0.15 ms at p50, 0.5 ms at p99, met
         where the bench table was taken, its direct hop 0.07 ms) hold wherever a
         direct hop costs less than that; on a machine whose direct hop itself
@@ -100,24 +85,29 @@ class FidelityRun:
         tolerance (0.5 ms or 5 %) absorbs the second hop where a hop costs what
         the bench assumes; where the direct hop costs more (a quiet clean-clone
         run measured a direct p50 of 0.93 ms, six times the usual, and the relay
-        path 1.5 ms above its target), the tolerance grows by that excess, and no
-        more: a simulator that adds its own milliseconds still fails.
+        path 1.5 ms above its target), scaled, the tolerance grows by that
+        excess, and no more: a simulator that adds its own milliseconds still fails.
         """
         if not self.via_ms:
             return {"p50": False}
         d, v = self.quantiles(self.direct_ms), self.quantiles(self.via_ms)
-        if any(ms != 0 for ms in self.configured.values()):
-            out = {}
-            for q in (0.05, 0.5, 0.95):
-                target = self.configured[q] + d[q]
-                hop_excess = max(0.0, d[q] - TRANSPARENT_P50_MS)
-                slack = max(DELAYED_ABS_MS, DELAYED_REL * target) + hop_excess
-                out[f"p{round(q * 100)}"] = abs(v[q] - target) <= slack
-            return out
-        return {
-            "p50": v[0.5] - d[0.5] <= max(TRANSPARENT_P50_MS, d[0.5]),
-            "p99": v[0.99] - d[0.99] <= max(TRANSPARENT_P99_MS, d[0.99]),
-        }
+        hop = d if scaled_to_hop else dict.fromkeys(d, 0.0)
+        if all(ms == 0 for ms in self.configured.values()):
+            return {
+                "p50": v[0.5] - d[0.5] <= max(TRANSPARENT_P50_MS, hop[0.5]),
+                "p99": v[0.99] - d[0.99] <= max(TRANSPARENT_P99_MS, hop[0.99]),
+            }
+        out = {}
+        for q in (0.05, 0.5, 0.95):
+            target = self.configured[q] + d[q]
+            slack = max(DELAYED_ABS_MS, DELAYED_REL * target)
+            slack += max(0.0, hop[q] - TRANSPARENT_P50_MS)
+            out[f"p{round(q * 100)}"] = abs(v[q] - target) <= slack
+        return out
+
+    def scaled_verdicts(self) -> dict[str, bool]:
+        """The verdicts judged on this machine's hop (``verdicts(scaled_to_hop=True)``)."""
+        return self.verdicts(scaled_to_hop=True)
 
     def ok(self) -> bool:
         return bool(self.via_ms) and all(self.verdicts().values())

@@ -94,16 +94,19 @@ DEVICES = ("ur", "gripper", "tactile", "servos", "netsim")
 NO_OUTAGE_AT_S = 1e6
 
 
+def _logged_s(line: str, key: str) -> float:
+    """A ``key=<ns>`` field of a log line, in seconds."""
+    return int(line.rsplit(f"{key}=", 1)[1].split()[0]) / 1e9
+
+
 def late_wakes_in(log_text: str) -> list[tuple[float, float]]:
     """When an operator's loop was due and when it woke, each time it woke over 100 ms late
     (monotonic s, from its log). A starved operator cannot lift the palm meanwhile."""
-    out = []
-    for line in log_text.splitlines():
-        if "woke_ns=" in line:
-            due = int(line.rsplit("due_ns=", 1)[1].split()[0])
-            woke = int(line.rsplit("woke_ns=", 1)[1].split()[0])
-            out.append((due / 1e9, woke / 1e9))
-    return out
+    return [
+        (_logged_s(line, "due_ns"), _logged_s(line, "woke_ns"))
+        for line in log_text.splitlines()
+        if "woke_ns=" in line
+    ]
 
 
 class DeploymentError(RuntimeError):
@@ -336,7 +339,7 @@ class Deployment:
     def netsim_started(self) -> list[float]:
         """When each netsim process began forwarding (monotonic s, from its log), in order."""
         return [
-            int(line.rsplit("schedule_start_ns=", 1)[1].split()[0]) / 1e9
+            _logged_s(line, "schedule_start_ns")
             for line in self.units["netsim"].proc.log_text().splitlines()
             if "schedule_start_ns=" in line
         ]
