@@ -17,6 +17,7 @@ const dxp = {
   latched: false, // the robot's stop latch, as its newest heartbeat says
   latchChanges: [], // {latched, t: performance.now()} each time this page saw it change
   stopSentAt: null, // Date.now() of this page's latest STOP
+  staleAtResume: null, // the robot's stale-command count when this page last sent RESUME
 };
 window.dxp = dxp;
 
@@ -481,7 +482,14 @@ function drawLatch(arm) {
 // once when it knows we are not, and a resume the robot ignored shows here too.
 function resumeArm() {
   $("latch-note").textContent = "resume sent…";
+  dxp.staleAtResume = staleCommands();
   sendCommand("arm_resume");
+}
+
+// Commands the robot refused as too old (its max_command_age_ms), by its heartbeat.
+function staleCommands() {
+  const arm = dxp.state && dxp.state.arm;
+  return arm ? arm.commands_stale : null;
 }
 
 function onResumeAck(msg) {
@@ -489,11 +497,14 @@ function onResumeAck(msg) {
     $("latch-note").textContent = `resume refused: ${msg.error}`;
     return;
   }
+  const staleBefore = dxp.staleAtResume;
   setTimeout(() => {
-    if (dxp.latched) {
-      $("latch-note").textContent =
-        "the robot kept its stop: a resume counts only from the lease holder, fresh (is the link up?)";
-    }
+    if (!dxp.latched) return;
+    const stale = staleCommands();
+    $("latch-note").textContent =
+      staleBefore != null && stale != null && stale > staleBefore
+        ? "the robot refused the resume as stale (the link or a machine is slow): press RESUME again"
+        : "the robot kept its stop: a resume counts only from the lease holder, fresh (is the link up?)";
   }, 1500);
 }
 

@@ -114,6 +114,9 @@ def arm_view(robot_stats: dict[str, float]) -> dict[str, Any] | None:
         "stop_latched": bool(r.get("arm_stop_latched", 0)),
         "deadman_stops": int(r.get("arm_deadman_stops", 0)),
         "link_deadman_trips": int(r.get("deadman_trips", 0)),
+        # commands the robot refused as older than its max_command_age_ms (a RESUME among them
+        # leaves the stop latched: the page says so, and a person presses RESUME again)
+        "commands_stale": int(r.get("commands_stale", 0)),
         # the assist an operator holds: its phase, re-grasps, and commands it issued
         "assist": None
         if "assist_phase" not in r

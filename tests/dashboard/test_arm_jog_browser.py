@@ -64,10 +64,19 @@ def hid(report_id: int, values: list[int], fmt: str = "<6h") -> str:
 
 @pytest.fixture(scope="module")
 def station():
+    with running_station() as both:
+        yield both
+
+
+@contextlib.contextmanager
+def running_station(max_command_age_ms: float | None = None):
+    """A robot node on the UR simulator, an operator node and its dashboard, on threads."""
     tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_ports(2))
     rc = RobotConfig()
     rc.render.mode = "mask_ground_truth"  # no classifier needed: this test is about the arm
     rc.link.telemetry_endpoint, rc.link.command_endpoint = tel, cmd
+    if max_command_age_ms is not None:
+        rc.link.max_command_age_ms = max_command_age_ms
     arm = SimulatedArm()
     robot = RobotNode(rc, ScriptedTactileSensor(), arm=arm)
     oc = OperatorConfig()
