@@ -48,3 +48,45 @@ def test_the_table_shows_corrections_and_sim_wall_and_reads_old_results():
     assert "3.0 / 3.0 (1)" in rows[0] and "0.950 (0.950)" in rows[0], rows[0]
     # results stored before the columns existed: a dash, not a crash
     assert rows[1].count("| - |") >= 2, rows[1]
+
+
+def _cell(scenario, feedback, trials):
+    return {"scenario": scenario, "feedback": feedback, "trials": trials,
+            "summary": summarise(trials), "cell_s": 1.0}  # fmt: skip
+
+
+def test_issue_28s_aims_for_the_assist_are_verdicts_met_or_not():
+    from deploy.bench.task import verdicts
+
+    fix = [_trial(attempts=2, first=2.0, decision=4.0)] * 19 + [_trial(success=False)]
+    slow_fix = [_trial(attempts=2, first=2.0, decision=8.0)] * 20
+    cells = [
+        _cell("bad_day", "mask_assist", fix),  # 19 of 20, corrections 2 s
+        _cell("bad_day", "mask", slow_fix),  # corrections 6 s
+        _cell("bad_day", "none", [_trial(success=False)] * 20),
+        _cell("lan", "mask_assist", fix[:18] + [_trial(success=False)] * 2),  # 18 of 20
+        _cell("lan", "mask", slow_fix),
+    ]
+    got = {v.what: v for v in verdicts({"sections": {"task": {"cells": cells}}})}
+    assert got["bad_day: mask + assist succeeds in at least 95 % of trials"].passed is True
+    assert got["lan: mask + assist succeeds in at least 95 % of trials"].passed is False
+    halved = [v for w, v in got.items() if w.startswith("bad_day: mask + assist corrects")]
+    assert [v.passed for v in halved] == [True] and halved[0].measured == "2.0 s against 6.0 s"
+    assert not any(w.startswith("lan: mask + assist corrects") for w in got)  # the aim: slow links
+
+
+def test_a_failed_cell_is_a_row_that_says_so_and_the_others_stay(monkeypatch):
+    import deploy.bench.task as task
+
+    def run_cell(scenario, feedback, setups):
+        if feedback == "direct":
+            raise RuntimeError("robot stopped during the trials; see robot.log")
+        return _cell(scenario, feedback, [_trial()])
+
+    monkeypatch.setattr(task, "run_cell", run_cell)
+    sizes = task.TaskSizes(1, ("lan",), ("mask", "direct", "none"))
+    section = task.measure(None, sizes)
+    assert [c["feedback"] for c in section["cells"]] == ["mask", "direct", "none"]
+    rows = [line for line in markdown({"sections": {"task": section}}) if line.startswith("| lan")]
+    assert "cell failed: RuntimeError: robot stopped" in rows[1], rows[1]
+    assert rows[0].count("|") == rows[1].count("|") == rows[2].count("|")
