@@ -75,16 +75,17 @@ def _cruising(row: dict[str, Any]) -> bool:
 
 
 def _late(row: dict[str, Any]) -> bool:
-    from deploy.faults.matrix import ARM_STILL_BUDGET_S, back_before_a_stop_was_due
+    from deploy.faults.matrix import ARM_STILL_BUDGET_S, back_before_a_stop_was_due, whole_again_s
 
     still = row["arm_still_s"]
-    if back_before_a_stop_was_due(still, row["recovered_s"], row.get("arm_rest_s")):
+    back = whole_again_s(row["recovered_s"], row.get("link_back_s"))
+    if back_before_a_stop_was_due(still, back, row.get("arm_rest_s")):
         return False
     return row["target"] in CUTS_THE_JOG and (still is None or still > ARM_STILL_BUDGET_S)
 
 
 def _arm(row: dict[str, Any]) -> str:
-    from deploy.faults.matrix import back_before_a_stop_was_due
+    from deploy.faults.matrix import back_before_a_stop_was_due, whole_again_s
 
     if not _cruising(row):
         return "(not moving at the fault: the machine's load had stalled the jog)"
@@ -93,7 +94,8 @@ def _arm(row: dict[str, Any]) -> str:
         if _late(row):
             return "**kept moving**"
         cut = row["target"] in CUTS_THE_JOG  # a device or video fault leaves the jog whole
-        if cut and back_before_a_stop_was_due(still, row["recovered_s"], row.get("arm_rest_s")):
+        back = whole_again_s(row["recovered_s"], row.get("link_back_s"))
+        if cut and back_before_a_stop_was_due(still, back, row.get("arm_rest_s")):
             return "slowed; the link was back before a stop was due"
         return "kept following the jog"
     if away is not None and away <= still:

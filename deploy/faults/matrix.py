@@ -57,6 +57,8 @@ FLIP_S = 2.0
 PALM_LIFT_BUDGET_S = 0.35
 #: the linkages' travel from pressing the palm to off it (a lift at 0.15 s is off by 0.22 s)
 LIFT_TRAVEL_S = 0.1
+#: the operator's staleness limit (``stale_after_ms``'s default): a shorter gap lifts nothing
+STALE_AFTER_S = 0.15
 PALM_PRESSED = 50.0  # counts from the retract pose: a linkage on the palm
 GRASP_LEVEL = 20
 GRIP_SLACK = 5  # finger counts (of 255) the grip may relax and still hold
@@ -135,6 +137,10 @@ class CellResult:
     #: ... and it slept through the link's gap: woke when the link was back, too late to lift
     operator_starved_through_gap: bool = False
 
+    @property
+    def whole_again_s(self) -> float | None:
+        return whole_again_s(self.recovered_s, self.link_back_s)
+
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
@@ -196,6 +202,25 @@ def back_before_a_stop_was_due(
     if recovered_s <= budget:
         return True
     return recovered_s <= budget + STILL_FOR_S and arm_rest_s is not None and arm_rest_s <= budget
+
+
+def whole_again_s(recovered_s: float | None, link_back_s: float | None) -> float | None:
+    """When the path of commands was whole again: what broke came back, and for netsim's
+    own cells its new process forwarding (nothing breaking is not a link back at once)."""
+    if recovered_s is None or link_back_s is None:
+        return recovered_s
+    return max(recovered_s, link_back_s)
+
+
+def back_before_a_lift_could_show(link_back_s: float | None) -> bool:
+    """netsim forwarded again before the palm could be seen off it.
+
+    A restarted link simulator that forwards again 0.18 s after the fault
+    leaves the operator's newest stimulus stale for 30 ms (its limit is
+    0.15 s): the linkages start to lift and are pressed again before their
+    travel is over. Not seeing them off is then no verdict on the palm.
+    """
+    return link_back_s is not None and link_back_s < STALE_AFTER_S + LIFT_TRAVEL_S
 
 
 def first_rest(samples: list[Sample], after: float, until: float) -> float | None:

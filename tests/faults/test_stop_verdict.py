@@ -37,3 +37,27 @@ def test_a_fault_that_never_cut_the_jog_is_not_called_a_link_that_came_back():
     }
     assert _arm({**row, "target": "video"}) == "kept following the jog"
     assert _arm({**row, "target": "netsim", "recovered_s": 0.3}).startswith("slowed")
+
+
+def test_a_link_simulator_back_before_a_lift_could_complete_needs_no_palm_off():
+    from deploy.faults.matrix import STALE_AFTER_S, back_before_a_lift_could_show
+    from operator_side.config import OperatorLinkConfig
+
+    assert OperatorLinkConfig().stale_after_ms / 1000 == STALE_AFTER_S  # one limit, not two
+    assert back_before_a_lift_could_show(0.18)  # the loaded CI run: stale for 30 ms
+    assert not back_before_a_lift_could_show(0.3)  # stale long enough to be off: judged
+    assert not back_before_a_lift_could_show(None)  # not netsim's cell, or never back
+
+
+def test_nothing_breaking_is_not_a_link_back_at_once_for_netsims_own_cells():
+    from deploy.faults.matrix import CellResult
+
+    row = CellResult(
+        "netsim", "restart", "a human (restart)", 0.02, None, None, None, None, None, None,
+        recovered_s=0.0, gripper_held=True, gripper_min_pos=204.0, released_still_s=0.25,
+        recording_ok=True, recording_gap_s=0.003, recording_records=589, notes="",
+        link_back_s=0.6,
+    )  # fmt: skip
+    assert row.whole_again_s == 0.6
+    # the arm never stopped although the link was away 0.6 s: no excuse, a failure
+    assert not back_before_a_stop_was_due(row.arm_still_s, row.whole_again_s, row.arm_rest_s)
