@@ -18,6 +18,7 @@ const dxp = {
   latchChanges: [], // {latched, t: performance.now()} each time this page saw it change
   stopSentAt: null, // Date.now() of this page's latest STOP
   staleAtResume: null, // the robot's stale-command count when this page last sent RESUME
+  resumeCheck: null, // the timer that says why a resume left the stop in place
 };
 window.dxp = dxp;
 
@@ -469,6 +470,8 @@ function drawLatch(arm) {
   if (latched !== dxp.latched) {
     dxp.latched = latched;
     dxp.latchChanges.push({ latched, t: performance.now() });
+    // a resume's verdict belongs to the latch it was sent against, never to the next one
+    clearTimeout(dxp.resumeCheck);
     if (!latched) $("latch-note").textContent = "";
   }
   $("latch").hidden = !latched;
@@ -498,7 +501,8 @@ function onResumeAck(msg) {
     return;
   }
   const staleBefore = dxp.staleAtResume;
-  setTimeout(() => {
+  clearTimeout(dxp.resumeCheck);
+  dxp.resumeCheck = setTimeout(() => {
     if (!dxp.latched) return;
     const stale = staleCommands();
     $("latch-note").textContent =

@@ -43,6 +43,7 @@ STALE_RESUMES = 2  # resumes the robot may refuse as stale (a starved machine) b
 ROUNDS = 3  # stops of each kind: their median is held to the budget, so one stall is not a verdict
 JOG_M_S = SPEED_SCALE * 0.10  # the page's default speed scale times the operator's cap
 KEY_W = {"key": "w", "code": "KeyW", "windowsVirtualKeyCode": 87}  # +x in the default keymap
+RESUME_ACKS = "dxp.acks.filter((a) => a.action === 'arm_resume').length"
 KEYUP_CLOCK = "window.addEventListener('keyup', () => (window.__keyupAt = Date.now()))"
 
 
@@ -170,8 +171,9 @@ class Stops:
     resume ends with a plain release of A's key, timed as the baseline.
     """
 
-    def __init__(self, a: Chromium, b: Chromium, log: SpeedLog, caplog) -> None:
+    def __init__(self, a: Chromium, b: Chromium, log: SpeedLog, caplog, dashboard) -> None:
         self.a, self.b, self.log, self.caplog = a, b, log, caplog
+        self.dashboard = dashboard
         self.stops: dict[str, list[tuple[float, float, float]]] = {}
         self.releases: list[float] = []
         self.stale_resumes = 0  # resumes the robot refused as stale, each pressed again
@@ -199,7 +201,14 @@ class Stops:
         Any other refusal fails.
         """
         for attempt in range(1, STALE_RESUMES + 2):
+            acked = resumer.evaluate(RESUME_ACKS)
             resumer.click("#arm-resume")
+            try:  # the server answered this click (a click that missed the button never is)
+                resumer.wait_until(RESUME_ACKS, lambda n, acked=acked: n > acked, timeout_s=5)
+            except BrowserError as e:
+                raise AssertionError(
+                    f"the click on RESUME never reached the server: {self.what_each_node_counted()}"
+                ) from e
             try:
                 for page in (self.a, self.b):
                     shows_latch(page, False)
@@ -208,7 +217,8 @@ class Stops:
                 note = resumer.evaluate("document.getElementById('latch-note').textContent")
                 if "refused the resume as stale" not in note or attempt > STALE_RESUMES:
                     raise AssertionError(
-                        f"the resume did not release the stop (try {attempt}); page: {note!r}"
+                        f"the resume did not release the stop (try {attempt}); page: {note!r}; "
+                        f"{self.what_each_node_counted()}"
                     ) from e
                 self.stale_resumes += 1
         if check_hold:
@@ -217,6 +227,13 @@ class Stops:
         self.a.wait_for("!dxp.jog.latched")  # what the page says: "none (hold to move)"
         hold_until_moving(self.a, self.log)
         self.releases.append(release_ms(self.a, self.log))
+
+    def what_each_node_counted(self) -> str:
+        """The robot's command counters (its newest heartbeat) and the operator's own."""
+        snap = self.dashboard.node.snapshot()
+        robot = {k: v for k, v in snap.robot_stats.items() if k.startswith(("command", "arm_"))}
+        ours = {k: v for k, v in snap.stats.items() if k.startswith(("command", "jog"))}
+        return f"robot: {robot}; operator: {ours}"
 
     def check_budget(self, what: str, sampled_every_ms: float = 0.0) -> None:
         """Median within 100 ms of the press; over it only if the machine was slow, not the product.
@@ -258,9 +275,10 @@ def test_a_stop_on_one_page_or_a_gamepad_holds_the_jog_of_another_until_a_resume
     _, dashboard = station
     a, b, log = pages
     caplog.set_level(logging.WARNING, logger="robot_side.stop_latch")
+    caplog.set_level(logging.INFO, logger="operator_side.dashboard.server")
     for page in (a, b):
         shows_latch(page, False)
-    run = Stops(a, b, log, caplog)
+    run = Stops(a, b, log, caplog, dashboard)
     hold_until_moving(a, log)
     run.releases.append(release_ms(a, log))
 
@@ -313,6 +331,12 @@ def test_a_resume_the_robot_refuses_as_stale_keeps_the_stop_and_the_page_says_wh
         page.wait_for("dxp.jog !== null && dxp.state.arm && dxp.state.arm.pose", 20)
         page.click("#arm-stop")
         shows_latch(page, True)
+        # from the header's right edge, where the button sits (a scrollbar coming moves both)
+        where = (
+            "(() => { const r = document.getElementById('arm-resume').getBoundingClientRect();"
+            " return [document.documentElement.clientWidth - r.right, r.top, r.width]; })()"
+        )
+        before = page.evaluate(where)
         page.click("#arm-resume")
         note = page.wait_until(
             "document.getElementById('latch-note').textContent",
@@ -320,6 +344,8 @@ def test_a_resume_the_robot_refuses_as_stale_keeps_the_stop_and_the_page_says_wh
             timeout_s=10,
         )
         assert "refused the resume as stale" in note, note
+        # the note wraps beside the button; the button stays under the pointer meanwhile
+        assert page.evaluate(where) == before
         shows_latch(page, True, timeout_s=1)
         assert page.evaluate("dxp.state.arm.commands_stale") >= 1
         assert page.page_errors() == []
