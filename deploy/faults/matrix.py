@@ -22,6 +22,7 @@ from typing import Any
 
 from deploy.faults.deployment import Deployment, DeploymentError
 from deploy.faults.probes import ArmProbe, GripperProbe, PalmProbe, Sample
+from operator_side.config import OperatorLinkConfig
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ PALM_LIFT_BUDGET_S = 0.35
 #: the linkages' travel from pressing the palm to off it (a lift at 0.15 s is off by 0.22 s)
 LIFT_TRAVEL_S = 0.1
 #: the operator's staleness limit (``stale_after_ms``'s default): a shorter gap lifts nothing
-STALE_AFTER_S = 0.15
+STALE_AFTER_S = OperatorLinkConfig().stale_after_ms / 1000
 PALM_PRESSED = 50.0  # counts from the retract pose: a linkage on the palm
 GRASP_LEVEL = 20
 GRIP_SLACK = 5  # finger counts (of 255) the grip may relax and still hold
