@@ -412,7 +412,7 @@ def verdicts(results: Results) -> list[Verdict]:
                     table=None,
                 )
             )
-    return out + _assist_verdicts(by)
+    return out + _assist_verdicts(by) + _world_verdicts(by)
 
 
 #: issue 28's aims for the assist: this share of trials succeed on every link ...
@@ -448,6 +448,40 @@ def _assist_verdicts(by: dict[tuple[str, str], dict[str, Any]]) -> list[Verdict]
                 "(p50, from the first grasp felt)",
                 f"{ours:.1f} s against {theirs:.1f} s",
                 ours <= ASSIST_CORRECTION_AIM * theirs,
+                table="target",
+            )
+        )
+    return out
+
+
+#: issue 28's aims for every cell: the pipette slips less than this in the pads (p50, mm) ...
+SLIP_AIM_MM = 2.0
+#: ... on a world that kept at least this share of real time (the cell's p50)
+SIM_WALL_AIM = 0.98
+
+
+def _world_verdicts(by: dict[tuple[str, str], dict[str, Any]]) -> list[Verdict]:
+    """The lift does not slip and the world kept time, in every cell (the worst one named)."""
+    slips = {k: c["slip_mm_p50"] for k, c in by.items() if c.get("slip_mm_p50") is not None}
+    clocks = {k: c["sim_wall_p50"] for k, c in by.items() if c.get("sim_wall_p50") is not None}
+    out = []
+    if slips:
+        worst = max(slips, key=lambda k: slips[k])
+        out.append(
+            Verdict(
+                f"the pipette slips under {SLIP_AIM_MM:g} mm in the pads in every cell (p50)",
+                f"{slips[worst]:.1f} mm at most ({worst[0]}, {worst[1]})",
+                all(v < SLIP_AIM_MM for v in slips.values()),
+                table="target",
+            )
+        )
+    if clocks:
+        worst = min(clocks, key=lambda k: clocks[k])
+        out.append(
+            Verdict(
+                f"the world keeps at least {SIM_WALL_AIM:g} of real time in every cell (p50)",
+                f"{clocks[worst]:.3f} at least ({worst[0]}, {worst[1]})",
+                all(v >= SIM_WALL_AIM for v in clocks.values()),
                 table="target",
             )
         )
@@ -492,7 +526,7 @@ def markdown(results: Results) -> list[str]:
         "",
         "| link | feedback | success (95 % CI) | correct grasps | time to correct p50 s "
         "| p90 s | a correction p50 / p90 s (n) | grasps per trial "
-        "| slip in the pads p50 / max mm | sim/wall p50 (min) | errors |",
+        "| slip in the pads p50 / max mm | sim/wall p50 (min), trials behind | errors |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for c in s["cells"]:
@@ -511,7 +545,7 @@ def markdown(results: Results) -> list[str]:
         clock = (
             "-"
             if m.get("sim_wall_p50") is None
-            else f"{m['sim_wall_p50']:.3f} ({m['sim_wall_min']:.3f})"
+            else f"{m['sim_wall_p50']:.3f} ({m['sim_wall_min']:.3f}), {m['trials_behind']}"
         )
         lines.append(
             f"| {c['scenario']} | {c['feedback']} | {_rate(m)} | {m['correct_grasps']} | "

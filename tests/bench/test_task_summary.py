@@ -90,3 +90,22 @@ def test_a_failed_cell_is_a_row_that_says_so_and_the_others_stay(monkeypatch):
     rows = [line for line in markdown({"sections": {"task": section}}) if line.startswith("| lan")]
     assert "cell failed: RuntimeError: robot stopped" in rows[1], rows[1]
     assert rows[0].count("|") == rows[1].count("|") == rows[2].count("|")
+
+
+def test_slip_and_the_worlds_clock_are_verdicts_over_every_cell_naming_the_worst():
+    from deploy.bench.task import verdicts
+
+    slipping = dict(_trial(), lifted_mm=37.0)  # the tool rose 40 mm, the pipette 37
+    cells = [
+        _cell("lan", "mask", [_trial()] * 5),
+        _cell("bad_day", "direct", [slipping] * 3 + [_trial(sim_wall=0.9)] * 2),
+        _cell("bad_day", "none", [_trial(sim_wall=0.95)] * 5),
+    ]
+    got = {v.what: v for v in verdicts({"sections": {"task": {"cells": cells}}})}
+    slip = got["the pipette slips under 2 mm in the pads in every cell (p50)"]
+    assert slip.passed is False and slip.measured == "3.0 mm at most (bad_day, direct)"
+    clock = got["the world keeps at least 0.98 of real time in every cell (p50)"]
+    assert clock.passed is False and clock.measured == "0.950 at least (bad_day, none)"
+    cells = [_cell("lan", "mask", [_trial()] * 5)]
+    got = {v.what: v for v in verdicts({"sections": {"task": {"cells": cells}}})}
+    assert all(v.passed for v in got.values() if v.table == "target")
