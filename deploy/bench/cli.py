@@ -6,6 +6,7 @@
     deepxpalm bench --update-docs    # the full run, written over docs/ (the committed report)
     deepxpalm bench --only netsim --update-docs   # re-measure one section into docs/
     deepxpalm bench --out /tmp/bench --skip node_cpu
+    deepxpalm bench --only task --task-cells runs/task --update-docs   # resumable, cell by cell
 
 A run writes to a folder of its own (runs/bench/<date-time>/) unless told
 --out or --update-docs, so trying it never dirties the committed report.
@@ -89,6 +90,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=SECTIONS,
         help="measure only this section (repeatable) and merge it into the folder's report",
     )
+    parser.add_argument(
+        "--task-cells",
+        type=Path,
+        metavar="DIR",
+        help="the task section saves each cell here as it ends and reads the cells already "
+        "here instead of running them again: a long table resumes, and deleting one cell's "
+        "file reruns that cell alone",
+    )
     parser.add_argument("--no-figures", action="store_true", help="skip the PNGs")
     parser.add_argument(
         "--from-json",
@@ -145,7 +154,13 @@ def run(args: argparse.Namespace) -> int:
     from deploy.bench.runner import run_bench
 
     results = run_bench(
-        sizes, preset, skip, args.cpu, models, progress=lambda line: print(line, flush=True)
+        sizes,
+        preset,
+        skip,
+        args.cpu,
+        models,
+        progress=lambda line: print(line, flush=True),
+        task_cells=args.task_cells,
     )
     if args.only:
         from deploy.bench.report import merge_sections

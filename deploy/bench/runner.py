@@ -71,6 +71,7 @@ def run_bench(
     cpu: int | None,
     models: list[Path],
     progress: Callable[[str], None] | None = None,
+    task_cells: Path | None = None,
 ) -> dict[str, Any]:
     """Every section not skipped; a section that fails is reported, not fatal.
 
@@ -81,7 +82,7 @@ def run_bench(
     load_before = timing.machine_load()
     commit = git_commit()  # before: others may commit while the bench runs
     with timing.one_core(cpu) as core:
-        results = _measure(sizes, preset, skip, core, models, progress)
+        results = _measure(sizes, preset, skip, core, models, progress, task_cells)
     results["git_commit"] = commit
     results["machine"]["load_before"] = load_before
     results["machine"]["load_after"] = timing.machine_load()
@@ -95,6 +96,7 @@ def _measure(
     core: int,
     models: list[Path],
     progress: Callable[[str], None] | None,
+    task_cells: Path | None = None,
 ) -> dict[str, Any]:
     from deploy.bench import timing
     from deploy.bench.sections import SECTIONS
@@ -102,7 +104,13 @@ def _measure(
     from robot_side.perception.inference import backend_installed
 
     # the node's default: shipped model, first installed backend
-    ctx = Context(preset=preset, core=core, models=models, classifier=load_classifier())
+    ctx = Context(
+        preset=preset,
+        core=core,
+        models=models,
+        classifier=load_classifier(),
+        task_cells=task_cells,
+    )
     timing.limit_torch_threads()
     default_backend = next(b for b in DEFAULT_BACKEND_ORDER if backend_installed(b))
     t_start = time.monotonic()

@@ -51,6 +51,9 @@ class Context:
     stage_medians_us: dict[str, float] = field(default_factory=dict)
     #: one-way PUB to SUB over loopback TCP in one process, filled in by the stages section
     tcp_transit_us: float = 0.0
+    #: where the task section saves each cell as it ends, and reads the cells already there
+    #: instead of running them again (``deepxpalm bench --task-cells``); None: keep nothing
+    task_cells: Path | None = None
     _demo_frames: list[Any] = field(default_factory=list, init=False, repr=False)
 
     def demo_frames(self) -> list[Any]:

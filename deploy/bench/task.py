@@ -345,7 +345,8 @@ def measure(ctx: Context, sizes: TaskSizes) -> dict[str, Any]:
     plan = [(scenario, feedback) for scenario in sizes.scenarios for feedback in sizes.feedbacks]
     t0 = time.monotonic()
     with ThreadPoolExecutor(max_workers=sizes.parallel_cells) as pool:
-        cells = list(pool.map(lambda cell: _cell_or_failure(*cell, setups), plan))
+        cells = list(pool.map(lambda cell: _saved_cell(ctx.task_cells, *cell, setups), plan))
+    resumed = sum(1 for c in cells if c.get("resumed"))
     return {
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "seed": TRIAL_SEED,
@@ -357,8 +358,43 @@ def measure(ctx: Context, sizes: TaskSizes) -> dict[str, Any]:
         "load_before": load_before,
         "load_after": machine_load(),
         "parallel_cells": sizes.parallel_cells,
-        "wall_s": round(time.monotonic() - t0, 1),
+        # read back cells ran in other runs: the table's time is then the cells' own
+        "wall_s": round(sum(c["cell_s"] for c in cells) if resumed else time.monotonic() - t0, 1),
+        "resumed_cells": resumed,
     }
+
+
+def _saved_cell(
+    folder: Path | None, scenario: str, feedback: str, setups: list[TrialSetup]
+) -> dict[str, Any]:
+    """A cell read back from ``folder`` when it ran there on these placements, else run and saved.
+
+    A whole table is about 90 minutes; with a folder, an interrupted one resumes and a cell
+    flagged (fell behind real time, a process died) is rerun alone by deleting its file. A
+    failed cell is never saved, so the next run tries it again.
+    """
+    if folder is None:
+        return _cell_or_failure(scenario, feedback, setups)
+    from deploy.bench.runner import git_commit
+    from deploy.bench.timing import machine_load
+
+    path = folder / f"{scenario}-{feedback}.json"
+    if path.exists():
+        saved = json.loads(path.read_text())
+        ran = [{k: t[k] for k in ("index", "tilt_deg", "offset_m")} for t in saved["trials"]]
+        if ran == [asdict(s) for s in setups]:
+            log.info("task cell %s/%s read back from %s", scenario, feedback, path)
+            return dict(saved, resumed=True)
+        log.warning("task cell %s/%s: %s ran other placements; running it again", scenario,
+                    feedback, path)  # fmt: skip
+    stamp = {"load_before": machine_load(), "git_commit": git_commit()}
+    cell = _cell_or_failure(scenario, feedback, setups)
+    if cell.get("failed"):
+        return cell
+    stamp.update(load_after=machine_load(), date=time.strftime("%Y-%m-%d %H:%M:%S %Z"))
+    folder.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(dict(cell, **stamp)))
+    return dict(cell, **stamp)
 
 
 def _cell_or_failure(scenario: str, feedback: str, setups: list[TrialSetup]) -> dict[str, Any]:
@@ -518,10 +554,8 @@ def markdown(results: Results) -> list[str]:
         "one); sim/wall is the simulated world's time against the wall over each trial (below "
         f"0.98 it fell behind real time). {s['trials_per_cell']} trials per cell, the same "
         "seeded placements (seed "
-        f"{s['seed']}) in every cell; 95 % Wilson intervals. Measured {s['date']}, load "
-        f"(1 min) {s['load_before']['loadavg_1m']} before and "
-        f"{s['load_after']['loadavg_1m']} after, on 2 shared cores; the run took "
-        f"{minutes:.0f} minutes"
+        f"{s['seed']}) in every cell; 95 % Wilson intervals. "
+        + _when(s, minutes)
         + (f", {side_by_side} cells side by side." if side_by_side > 1 else "."),
         "",
         "| link | feedback | success (95 % CI) | correct grasps | time to correct p50 s "
@@ -572,6 +606,26 @@ def markdown(results: Results) -> list[str]:
         "Rerun: `deepxpalm bench --only task`.",
     ]
     return lines
+
+
+def _when(s: dict[str, Any], minutes: float) -> str:
+    """When and on what the cells ran: one run, or cells saved by several (--task-cells)."""
+    stamped = [c for c in s["cells"] if c.get("date")]
+    if not s.get("resumed_cells") or not stamped:
+        return (
+            f"Measured {s['date']}, load (1 min) {s['load_before']['loadavg_1m']} before and "
+            f"{s['load_after']['loadavg_1m']} after, on 2 shared cores; the run took "
+            f"{minutes:.0f} minutes"
+        )
+    dates = sorted(c["date"] for c in stamped)
+    commits = ", ".join(dict.fromkeys(f"`{c.get('git_commit')}`" for c in stamped))
+    loads = [c[k]["loadavg_1m"] for c in stamped for k in ("load_before", "load_after")]
+    return (
+        f"Cells measured one at a time from {dates[0]} to {dates[-1]} (commit {commits}; "
+        f"`--task-cells`, {s['resumed_cells']} of {len(s['cells'])} read back), load (1 min) "
+        f"{min(loads)} to {max(loads)} at the cells' starts and ends, on 2 shared cores; "
+        f"the cells took {minutes:.0f} minutes"
+    )
 
 
 SECTION = Section(

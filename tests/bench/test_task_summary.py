@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from deploy.bench.section import Context
 from deploy.bench.task import markdown, summarise
 
 
@@ -85,7 +86,7 @@ def test_a_failed_cell_is_a_row_that_says_so_and_the_others_stay(monkeypatch):
 
     monkeypatch.setattr(task, "run_cell", run_cell)
     sizes = task.TaskSizes(1, ("lan",), ("mask", "direct", "none"))
-    section = task.measure(None, sizes)
+    section = task.measure(Context("full", 0, [], None), sizes)
     assert [c["feedback"] for c in section["cells"]] == ["mask", "direct", "none"]
     rows = [line for line in markdown({"sections": {"task": section}}) if line.startswith("| lan")]
     assert "cell failed: RuntimeError: robot stopped" in rows[1], rows[1]
@@ -109,3 +110,36 @@ def test_slip_and_the_worlds_clock_are_verdicts_over_every_cell_naming_the_worst
     cells = [_cell("lan", "mask", [_trial()] * 5)]
     got = {v.what: v for v in verdicts({"sections": {"task": {"cells": cells}}})}
     assert all(v.passed for v in got.values() if v.table == "target")
+
+
+def test_task_cells_are_saved_as_they_end_and_read_back_instead_of_run_again(monkeypatch, tmp_path):
+    """A 90-minute table resumes; deleting a flagged cell's file reruns that cell alone."""
+    import deploy.bench.task as task
+
+    ran = []
+
+    def run_cell(scenario, feedback, setups):
+        ran.append(feedback)
+        if feedback == "direct" and ran.count("direct") == 1:
+            raise RuntimeError("netsim stopped during the trials")
+        rows = [dict(_trial(), **task.asdict(s)) for s in setups]
+        return _cell(scenario, feedback, rows)
+
+    monkeypatch.setattr(task, "run_cell", run_cell)
+    ctx = Context("full", 0, [], None, task_cells=tmp_path / "cells")
+    sizes = task.TaskSizes(2, ("lan",), ("mask", "direct"))
+    first = task.measure(ctx, sizes)
+    assert ran == ["mask", "direct"] and first["cells"][1]["failed"]
+    assert sorted(p.name for p in ctx.task_cells.iterdir()) == ["lan-mask.json"]  # not failed
+
+    second = task.measure(ctx, sizes)  # the failed cell runs again, the other is read back
+    assert ran == ["mask", "direct", "direct"]
+    assert [c.get("resumed", False) for c in second["cells"]] == [True, False]
+    assert second["resumed_cells"] == 1 and second["wall_s"] == 2.0  # the cells' own time
+    (text,) = [
+        line for line in markdown({"sections": {"task": second}}) if "Cells measured" in line
+    ]
+    assert "1 of 2 read back" in text and "commit `" in text, text
+
+    task.measure(ctx, task.TaskSizes(3, ("lan",), ("mask",)))  # other placements: run again
+    assert ran[-1] == "mask" and len(ran) == 4
