@@ -60,7 +60,8 @@ class ArmLimits:
     stop_deceleration_m_s2: float = param(
         2.0,
         "deceleration of every stop (arm_stop, deadman, jog expiry): 50 ms and 2.5 mm from "
-        "the speed cap; ur_rtde's own speedStop default is 10",
+        "the speed cap; ur_rtde's own speedStop default is 10. A turning wrist stops harder "
+        "(URArm: within half its watchdog window)",
     )
     angular_acceleration_rad_s2: float = param(1.0, "rotational acceleration for jogs")
     default_move_speed_m_s: float = param(0.05, "move_to speed when the caller gives none")

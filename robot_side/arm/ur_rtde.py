@@ -100,6 +100,9 @@ STOP_BUDGET_S = 0.4
 #: 8 ms on a CB3) after a speedL it could overwrite the command before the script read it, so
 #: no kick follows a command sooner than this; that command updated the register itself.
 KICK_AFTER_COMMAND_S = 0.01
+#: a stop waits for the script's "done" with no kick (_keep_alive): it must end within this
+#: share of the watchdog window, however fast the wrist turned (see _stop_acceleration)
+STOP_WITHIN_WINDOW = 0.5
 
 #: How long a refused command waits for the receive stream to show the stopped script.
 REFUSAL_CATCH_UP_S = 0.05
@@ -672,13 +675,34 @@ class URArm(Arm):
         return True
 
     def _decel_time(self) -> float:
-        return self.limits.max_linear_speed_m_s / self.limits.stop_deceleration_m_s2
+        return max(
+            self.limits.max_linear_speed_m_s / self.limits.stop_deceleration_m_s2,
+            STOP_WITHIN_WINDOW * self.config.watchdog_window_s,
+        )
+
+    def _stop_acceleration(self) -> float:
+        """The stop's one acceleration: the limits' gentle one, or more if the wrist turns fast.
+
+        ur-rtde's stops take one acceleration, and the controller decelerates a rotation at
+        the same number in rad/s^2 (URScript ``stopl(a)``: ``aRot`` defaults to ``a``). From
+        the 0.5 rad/s cap at 2 rad/s^2 a stop took 250 ms, waiting unkicked on the script:
+        the watchdog (150 ms) tripped on every fast wrist turn's stop. A translation keeps its
+        gentle stop (a held pipette feels it); a turn stops within half the window.
+        """
+        try:
+            turning = float(np.linalg.norm(self._fresh().getActualTCPSpeed()[3:]))
+        except DeviceError:  # cannot see it: assume the cap
+            turning = self.limits.max_angular_speed_rad_s
+        if not np.isfinite(turning):
+            turning = self.limits.max_angular_speed_rad_s
+        within = STOP_WITHIN_WINDOW * self.config.watchdog_window_s
+        return max(self.limits.stop_deceleration_m_s2, turning / within)
 
     def _stop_speed(self) -> None:
         ok = self._control(
             "speedStop",
             self._ctrl.speedStop,
-            self.limits.stop_deceleration_m_s2,
+            self._stop_acceleration(),
             extra_s=self._decel_time(),
         )
         self._speeding = False
@@ -688,7 +712,7 @@ class URArm(Arm):
         self._control(
             "stopL",
             self._ctrl.stopL,
-            self.limits.stop_deceleration_m_s2,
+            self._stop_acceleration(),
             False,
             extra_s=self._decel_time(),
         )

@@ -199,3 +199,32 @@ def test_a_stop_on_the_dashboard_is_noticed_and_a_move_reconnects_first(arm, sim
 def test_a_watchdog_that_cannot_work_is_refused_at_construction(section, why):
     with pytest.raises(ConfigError, match=why):
         URArm(URArmConfig(**section))
+
+
+def test_a_stop_from_the_wrists_top_speed_ends_before_the_watchdog_window(sim, receive):
+    """A stop waits for the script and no kick may interrupt it: it must end inside the window.
+
+    The controller decelerates a rotation at the stop's one acceleration, in rad/s^2
+    (URScript's ``stopl(a)``: ``aRot`` defaults to ``a``). A stop from the angular cap that
+    outlasted the watchdog window tripped the watchdog on every fast wrist turn (the lab's
+    task trials lost the arm that way, a few times per 50 trials).
+    """
+    limits = ArmLimits()  # the defaults a lab runs with
+    arm = URArm(URArmConfig(host=sim.host, limits=limits, stale_after_s=0.5))
+    arm.connect()
+    try:
+        trips = sim.stats()["watchdog_trips"]
+        top = limits.max_angular_speed_rad_s
+        for _ in range(3):
+            deadline = time.monotonic() + 3.0
+            while abs(receive.getActualTCPSpeed()[4]) < 0.95 * top:  # held, as a jog is
+                assert time.monotonic() < deadline, "the wrist never reached its top speed"
+                arm.jog([0, 0, 0, 0, top, 0])
+                time.sleep(0.05)
+            arm.stop()
+            assert wait_until(lambda: abs(receive.getActualTCPSpeed()[4]) == 0.0, 1.0)
+        status = arm.status()
+        assert sim.stats()["watchdog_trips"] == trips, f"the stop tripped the watchdog: {status}"
+        assert status["longest_silence_ms"] < arm.config.watchdog_window_s * 1000, status
+    finally:
+        arm.disconnect()
