@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import tempfile
 import threading
 import time
@@ -325,8 +326,6 @@ class TaskSizes:
     parallel_cells: int = 1
 
 
-# mask_assist joins the full table when the table is measured again with it (docs/lab.md
-# holds its first small measurement); run_cell runs it on its own meanwhile
 ALL = (("lan", "intercontinental", "bad_day"), ("mask", "direct", "none"))
 SIZES = {
     "full": TaskSizes(50, *ALL),
@@ -338,14 +337,21 @@ SIZES = {
 def measure(ctx: Context, sizes: TaskSizes) -> dict[str, Any]:
     from concurrent.futures import ThreadPoolExecutor
 
-    from deploy.bench.timing import machine_load
+    from deploy.bench.timing import machine_load, original_affinity
 
     setups = trial_setups(TRIAL_SEED, sizes.trials)
     load_before = machine_load()
     plan = [(scenario, feedback) for scenario in sizes.scenarios for feedback in sizes.feedbacks]
     t0 = time.monotonic()
-    with ThreadPoolExecutor(max_workers=sizes.parallel_cells) as pool:
-        cells = list(pool.map(lambda cell: _saved_cell(ctx.task_cells, *cell, setups), plan))
+    # A cell is a whole deployment (a world, a robot node, a link simulator, an operator):
+    # under the bench's pin to one core they all shared it and the world fell behind.
+    pinned = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, original_affinity())
+    try:
+        with ThreadPoolExecutor(max_workers=sizes.parallel_cells) as pool:
+            cells = list(pool.map(lambda cell: _saved_cell(ctx.task_cells, *cell, setups), plan))
+    finally:
+        os.sched_setaffinity(0, pinned)
     resumed = sum(1 for c in cells if c.get("resumed"))
     return {
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
