@@ -326,7 +326,7 @@ class TaskSizes:
     parallel_cells: int = 1
 
 
-ALL = (("lan", "intercontinental", "bad_day"), ("mask", "direct", "none"))
+ALL = (("lan", "intercontinental", "bad_day"), ("mask_assist", "mask", "direct", "none"))
 SIZES = {
     "full": TaskSizes(50, *ALL),
     "quick": TaskSizes(5, *ALL),
