@@ -47,6 +47,7 @@ from common.tactile import ANGLES_DEG, classes_of, pattern_of
 from robot_side.arm.base import TELEMETRY_POSE_KEYS, ArmLimits
 from robot_side.config import AssistConfig
 from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL
+from robot_side.perception.band_angle import band_angle_deg
 
 if TYPE_CHECKING:
     from robot_side.node.command_desk import CommandDesk
@@ -149,12 +150,34 @@ class Assist:
         pattern = self._felt(now, since=self._phase_since, settle_ms=0.0)
         if pattern is None:
             return
-        if pattern == ALIGNED_PATTERN:
-            self._enter("aligned", now, "90 deg centre recognised")
+        if self._aligned(pattern, now):
             return
         grip = self.desk.grip_level_commanded  # the operator's close, not where it stalled
         self._level = grip if grip is not None else DEFAULT_CLOSE_LEVEL
         self._regrasp(pattern, now)
+
+    def _aligned(self, pattern: int, now: int) -> bool:
+        """90 deg centre recognised, and the band's own angle near 90 deg (when measured)."""
+        if pattern != ALIGNED_PATTERN:
+            return False
+        band = self._band_deg(pattern)
+        if band is not None and abs(band - 90.0) > self.config.aligned_within_deg:
+            return False  # "90" by class, yet far enough off to be another: turn the rest
+        measured = "" if band is None else f" (the band at {band:.0f} deg)"
+        self._enter("aligned", now, f"90 deg centre recognised{measured}")
+        return True
+
+    def _band_deg(self, pattern: int) -> float | None:
+        """The band's angle on the last frame, when it agrees with ``pattern``'s class."""
+        frame = self.pipeline.last_frame
+        if frame is None:
+            return None
+        band = band_angle_deg(frame)
+        if band is None:
+            return None
+        angle_class, _ = classes_of(pattern)
+        off = (band - ANGLES_DEG[angle_class] + 90.0) % 180.0 - 90.0
+        return band if abs(off) <= self.config.band_agrees_deg else None
 
     def _regrasp(self, pattern: int, now: int) -> None:
         """Plan the shift and the turn from ``pattern``; open the gripper."""
@@ -168,15 +191,22 @@ class Assist:
         side = {0: 0.0, 1: 1.0, 2: -1.0}[position] * self.config.side_offset_mm / 1000
         shift = rot @ np.array([dx * side, 0.0, dz * side])
         self._shift_to = self._inside_box(pose[:3] + shift)
-        # 0 deg: far off either way; an eighth turn makes it 45 or 135, which the next says
-        wanted = 90 - ANGLES_DEG[angle_class] if angle_class else 45
+        # 0 deg: far off either way; an eighth turn makes it 45 or 135, which the next says.
+        # Otherwise the band's own angle when it agrees with the class: a whole-class turn
+        # from a band at 67 deg ends at 112, "90" to the CNN and "135" to the world.
+        band = self._band_deg(pattern) if angle_class else None
+        aim = ANGLES_DEG[angle_class] if band is None else band
+        wanted = 90 - aim if angle_class else 45
         limit = self.config.max_turn_deg
         turn = max(-limit, min(limit, self._turned_deg + wanted)) - self._turned_deg
         self._turned_deg += turn
         self._turn_by = math.radians(turn)
         shift_mm = np.round(shift * 1000, 1).tolist()
         self._issue(Command(seq=0, t_send_ns=0, action="gripper_open"))
-        self._enter("release", now, f"pattern {pattern}: shift {shift_mm} mm, turn {turn} deg")
+        measured = "" if band is None else f" (the band at {band:.0f} deg)"
+        self._enter(
+            "release", now, f"pattern {pattern}{measured}: shift {shift_mm} mm, turn {turn:.0f} deg"
+        )
 
     def _step_release(self, now: int) -> None:
         """Move once the fingers are off the pipette (or this scene has no gripper to open)."""
@@ -224,9 +254,9 @@ class Assist:
         pattern = self._felt(now, since=self._phase_since)
         if pattern is None:
             return
-        if pattern == ALIGNED_PATTERN:
-            self._enter("aligned", now, "90 deg centre recognised")
-        elif self.regrasps >= self.config.max_regrasps:
+        if self._aligned(pattern, now):
+            return
+        if self.regrasps >= self.config.max_regrasps:
             self._enter("gave_up", now, f"pattern {pattern} after {self.regrasps} re-grasps")
         else:
             self._regrasp(pattern, now)

@@ -71,6 +71,7 @@ class FramePipeline:
         self._last_publish_ns = 0
         self._seq = 0
         self.last_capture_ns: int | None = None  # of the last frame processed
+        self.last_frame: np.ndarray | None = None  # the last frame processed
         #: the stimulus the operator renders now: the last one sent, keyframes included
         self.last_stimulus: Stimulus | None = None
 
@@ -135,6 +136,7 @@ class FramePipeline:
             return None
         self.counters["frames_processed"] += 1
         self.last_capture_ns = sample.t_capture_ns
+        self.last_frame = sample.frame  # the assist reads the band's finer angle from it
         truth = sample.truth.pattern if sample.truth is not None else None
         outcome = self.renderer.rendered(sample, now, truth)
         if outcome is None:

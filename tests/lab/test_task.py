@@ -64,4 +64,7 @@ def test_the_assist_turns_a_45_degree_grasp_to_90_degrees_on_the_robot(tmp_path)
     assert classes_of(trial["felt_truth"][0])[0] == 1, f"and the world agrees: {trial}"
     assert after == pattern_of(2, 0) and trial["attempts"] == 2, f"then 90 centre: {trial}"
     assert trial["success"] and trial["truth"] == "90 deg centre", trial
+    # the pads saw about 60 deg: a whole-class turn (45) would leave it at 105, "90" by class
+    # and 15 deg from the 112.5 deg edge; the band's own angle turns it the 30 it needed
+    assert abs(trial["truth_tilt_deg"] - 90.0) <= 10.0, f"aligned to 90 deg: {trial}"
     _report_clock(trial)
