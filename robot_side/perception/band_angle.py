@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from common.stimulus import sanitize_frame
 from common.tactile import PAD_COLS, PAD_ROWS
 
 #: a taxel below this share of the frame's peak does not weigh in (noise, stuck floors)
@@ -33,11 +34,10 @@ _Y = -np.repeat(np.arange(PAD_ROWS, dtype=np.float64)[:, None], PAD_COLS, axis=1
 def band_angle_deg(frame: np.ndarray) -> float | None:
     """theta in [0, 180), or None when the contact is too small or round to have one.
 
-    Garbage in (NaN, infinities, negative readings) weighs nothing; it never
-    makes an angle up.
+    Garbage in (NaN, infinities, negative readings) is held to the sensor's
+    range by the node's own ``sanitize_frame``; it never makes an angle up.
     """
-    pads = np.asarray(frame, dtype=np.float64).reshape(-1, PAD_ROWS, PAD_COLS)
-    w = np.nan_to_num(pads, nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0).sum(axis=0)
+    w = sanitize_frame(frame).astype(np.float64).sum(axis=0)  # the pads in the common view
     peak = float(w.max())
     if not peak > 0.0:
         return None
