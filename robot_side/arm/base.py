@@ -63,7 +63,11 @@ class ArmLimits:
         "the speed cap; ur_rtde's own speedStop default is 10. A turning wrist stops harder "
         "(URArm: within half its watchdog window)",
     )
-    angular_acceleration_rad_s2: float = param(1.0, "rotational acceleration for jogs")
+    angular_acceleration_rad_s2: float = param(
+        1.0,
+        "rotational acceleration for jogs: a pure wrist turn ramps at it; a jog that also "
+        "translates at the lower of this and linear_acceleration_m_s2 (URArm: speedL has one)",
+    )
     default_move_speed_m_s: float = param(0.05, "move_to speed when the caller gives none")
     jog_timeout_s: float = param(
         0.25, "a jog stops this long after the last jog command (deadman on a lost link)"

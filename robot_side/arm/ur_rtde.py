@@ -632,7 +632,7 @@ class URArm(Arm):
             "speedL",
             ctrl.speedL,
             velocity.tolist(),
-            self.limits.linear_acceleration_m_s2,
+            self._jog_acceleration(velocity),
             0.0,
             realtime=True,
         )
@@ -679,6 +679,18 @@ class URArm(Arm):
             self.limits.max_linear_speed_m_s / self.limits.stop_deceleration_m_s2,
             STOP_WITHIN_WINDOW * self.config.watchdog_window_s,
         )
+
+    def _jog_acceleration(self, velocity: np.ndarray) -> float:
+        """speedL's one acceleration, which the controller applies to the turn too (rad/s^2).
+
+        URScript's ``speedl(xd, a)``: ``aRot`` defaults to ``a``, and ur-rtde passes no
+        ``aRot``. A pure wrist turn therefore ramps at the angular limit; a jog that
+        translates at the lower of the two, so neither part exceeds its own.
+        """
+        lim = self.limits
+        if not np.any(velocity[:3]):
+            return lim.angular_acceleration_rad_s2
+        return min(lim.linear_acceleration_m_s2, lim.angular_acceleration_rad_s2)
 
     def _stop_acceleration(self) -> float:
         """The stop's one acceleration: the limits' gentle one, or more if the wrist turns fast.

@@ -1,0 +1,69 @@
+"""How fast a jog gets going, read on the controller's own clock (the UR simulator's stream).
+
+ur-rtde's ``speedL`` takes one acceleration and the controller ramps the turn
+at that number in rad/s^2 (URScript ``speedl``: ``aRot`` defaults to ``a``).
+Passing the linear limit for every jog turned a wrist at half its configured
+angular acceleration, and every correction of a grasp waited on it.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from robot_side.arm.base import ArmLimits
+from robot_side.arm.ur_rtde import URArm, URArmConfig
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
+
+
+@pytest.fixture(scope="module")
+def receive(sim):
+    import rtde_receive
+
+    r = rtde_receive.RTDEReceiveInterface(sim.host)
+    yield r
+    r.disconnect()
+
+
+def _ramp(arm: URArm, receive, velocity: list[float], part: slice) -> float:
+    """The slope (per s of controller time) of |velocity[part]| between 20 % and 80 % of it."""
+    top = float(np.linalg.norm(velocity[part]))
+    samples: list[tuple[float, float]] = []
+    deadline = time.monotonic() + 5.0
+    last_jog = 0.0
+    while time.monotonic() < deadline:
+        if time.monotonic() - last_jog > 0.05:  # renewed, as a held key is
+            arm.jog(velocity)
+            last_jog = time.monotonic()
+        speed = float(np.linalg.norm(np.asarray(receive.getActualTCPSpeed())[part]))
+        samples.append((receive.getTimestamp(), speed))
+        if speed > 0.95 * top:
+            break
+        time.sleep(0.002)
+    arm.stop()
+    ramp = [(t, v) for t, v in samples if 0.2 * top <= v <= 0.8 * top]
+    assert len(ramp) >= 5, f"too few samples on the ramp: {samples[:20]}"
+    t, v = np.array(ramp).T
+    return float(np.polyfit(t, v, 1)[0])
+
+
+def test_a_wrist_turn_ramps_at_the_angular_limit_and_a_translation_at_the_linear(sim, receive):
+    limits = ArmLimits()  # the defaults a lab runs with: 0.5 m/s^2, 1.0 rad/s^2
+    assert limits.angular_acceleration_rad_s2 > limits.linear_acceleration_m_s2
+    arm = URArm(URArmConfig(host=sim.host, limits=limits, stale_after_s=0.5))
+    arm.connect()
+    try:
+        w = limits.max_angular_speed_rad_s
+        turn = _ramp(arm, receive, [0, 0, 0, 0, w, 0], slice(3, 6))
+        assert turn == pytest.approx(limits.angular_acceleration_rad_s2, rel=0.1)
+        time.sleep(0.3)  # at rest again
+        v = limits.max_linear_speed_m_s
+        # a jog that translates and turns: neither part beyond its own limit
+        shift = _ramp(arm, receive, [v, 0, 0, 0, 0.1, 0], slice(0, 3))
+        assert shift <= limits.linear_acceleration_m_s2 * 1.1
+        assert shift >= limits.linear_acceleration_m_s2 * 0.7
+    finally:
+        arm.disconnect()
