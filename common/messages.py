@@ -22,6 +22,7 @@ CommandAction = Literal[
     "gripper_open",
     "gripper_close",
     "gripper_hold",
+    "gripper_ease",
     "arm_jog",
     "arm_jog_end",
     "arm_stop",

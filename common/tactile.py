@@ -34,6 +34,8 @@ PAD_COLS = 10
 PAD_SHAPE = (PAD_ROWS, PAD_COLS)
 FRAME_SHAPE = (N_PADS, PAD_ROWS, PAD_COLS)
 STIMULUS_SHAPE = (3, 3)
+#: taxel pitch (mm): 10 taxels over the paper's 5.8 cm^2 pad, about 24.1 mm square
+TAXEL_PITCH_MM = 2.41
 
 #: the sensor's ceiling: a taxel above this reads this, and no stimulus exceeds it
 SATURATION_N = 9.0

@@ -117,6 +117,24 @@ class Outcome:
     gave_up: str | None = None
 
 
+class SteadyPalm:
+    """What the palm says, and since when: a reading is believed once held ``settle_s``."""
+
+    def __init__(self, settle_s: float) -> None:
+        self.settle_s = settle_s
+        self.held: tuple[int | None, bool] | None = None
+        self.since = 0.0
+
+    def see(self, snap: Any, now: float) -> tuple[int | None, bool] | None:
+        """The reading once it has held still long enough; None until then."""
+        ok = snap.link_state == "ok"
+        reading = (read_palm(snap.stimulus), says_lift(snap.stimulus)) if ok else None
+        if reading is None or reading[0] is None or reading != self.held:
+            self.held, self.since = reading, now
+            return None
+        return reading if now - self.since >= self.settle_s else None
+
+
 class ScriptedOperatorError(RuntimeError):
     """The arm did not do what the operator asked (no pose, a move timed out, a lost link)."""
 
@@ -224,26 +242,23 @@ class ScriptedOperator:
         raise ScriptedOperatorError(f"no arm pose from the robot within {timeout_s:g} s")
 
     def feel(
-        self, timeout_s: float, closing: bool = True
+        self, timeout_s: float, closing: bool = True, palm: SteadyPalm | None = None
     ) -> tuple[int | None, bool, np.ndarray | None]:
         """(pattern, "lift", the stimulus) once the palm has held still ``settle_s``.
 
         (None, False, None) when nothing is felt within ``timeout_s``. ``closing``: the
         fingers were just told to close (not after the assist, which closed and settled).
+        ``palm``: what the operator has already watched it say (while holding the assist).
         """
         cfg = self.config
         if closing:
             self.stop.wait(cfg.close_wait_s)  # the fingers are still closing: not yet a grasp
         end = self.clock() + timeout_s
-        held, since = None, 0.0
+        palm = palm or SteadyPalm(cfg.settle_s)
         while self.clock() < end and not self.stop.is_set():
             snap = self.node.snapshot()
-            ok = snap.link_state == "ok"
-            reading = (read_palm(snap.stimulus), says_lift(snap.stimulus)) if ok else None
-            now = self.clock()
-            if reading is None or reading[0] is None or reading != held:
-                held, since = reading, now
-            elif now - since >= cfg.settle_s:
+            reading = palm.see(snap, self.clock())
+            if reading is not None:
                 log.debug("palm reads %s from %s (robot: %s)", reading, snap.stimulus, snap.pattern)
                 return (*reading, snap.stimulus)
             self.stop.wait(0.02)
@@ -330,8 +345,9 @@ class ScriptedOperator:
             if lift:
                 return self._lift(grasp, t0, outcome, on_lift)
             if self.assist and felt is not None and len(outcome.attempts) == 1:
-                self.hold_assist()
-                felt, lift, stimulus = self.feel(cfg.feel_timeout_s, closing=False)
+                palm = SteadyPalm(cfg.settle_s)  # watched while the robot works, as a person would
+                self.hold_assist(palm)
+                felt, lift, stimulus = self.feel(cfg.feel_timeout_s, closing=False, palm=palm)
                 truth = observe() if observe is not None else None
                 outcome.attempts.append(Attempt(turn_deg, shift_m, felt, self.clock() - t0, truth))
                 if lift:  # lifted from where the assist left the arm
@@ -375,12 +391,13 @@ class ScriptedOperator:
         outcome.gave_up = f"no 90 deg centre grasp in {cfg.max_attempts} attempts"
         return outcome
 
-    def hold_assist(self) -> str | None:
+    def hold_assist(self, palm: SteadyPalm | None = None) -> str | None:
         """Hold the assist (an enable every jog period) until the robot says it stopped.
 
         The robot turns, shifts and re-grasps on its own (robot_side/node/assist.py);
         the heartbeat's ``assist_phase`` says when it is done. Returns the phase it
         ended in (None: not within ``assist_timeout_s``); the enable is let go either way.
+        ``palm`` watches the palm meanwhile (it keeps rendering throughout).
         """
         cfg = self.config
         end = self.clock() + cfg.assist_timeout_s
@@ -388,7 +405,10 @@ class ScriptedOperator:
         phase = None
         while self.clock() < end and not self.stop.is_set():
             self.node.send_command("arm_assist")
-            code = self.node.snapshot().robot_stats.get("assist_phase")
+            snap = self.node.snapshot()
+            if palm is not None:
+                palm.see(snap, self.clock())
+            code = snap.robot_stats.get("assist_phase")
             if code is not None and int(code) in done:
                 phase = ASSIST_PHASES[int(code)]
                 break

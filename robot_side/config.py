@@ -148,8 +148,17 @@ class AssistConfig:
     )
     side_offset_mm: float = param(
         5.0,
-        "one shift toward centre (mm): a side class is 3 mm or more off centre (the lab's "
-        "threshold), so 5 mm centres anything 3-8 mm off and re-grasps judge the rest",
+        "one shift toward centre (mm) when the band's offset cannot be measured: a side "
+        "class is 3 mm or more off centre (the lab's threshold), so 5 mm centres anything "
+        "3-8 mm off and re-grasps judge the rest",
+    )
+    max_shift_mm: float = param(
+        10.0, "the longest shift one re-grasp makes by the band's measured offset (mm)"
+    )
+    centred_within_mm: float = param(
+        2.5,
+        "90 deg centre recognised is aligned only when the band's measured offset is this "
+        "close to the pad centre too (mm): 'centre' ends 3 mm out",
     )
     max_turn_deg: float = param(
         50.0, "the wrist never turns further from where the assist began (a singularity nears)"
@@ -168,7 +177,9 @@ class AssistConfig:
     )
     position_tolerance_mm: float = param(0.3, "a shift this close to its target is done")
     release_ms: float = param(
-        150.0, "the gripper opens at least this long, and until nothing is felt, before moving"
+        50.0,
+        "the fingers ease off (gripper_ease) at least this long, and until nothing is felt, "
+        "before moving",
     )
     settle_ms: float = param(400.0, "after a re-grasp: contact held this long before judging")
     phase_timeout_s: float = param(
@@ -178,7 +189,14 @@ class AssistConfig:
     box_margin_m: float = param(0.002, "its targets are kept this far inside the workspace box")
 
     def __post_init__(self) -> None:
-        for name in ("turn_speed_rad_s", "shift_speed_m_s", "gain_per_s", "phase_timeout_s"):
+        for name in (
+            "turn_speed_rad_s",
+            "shift_speed_m_s",
+            "gain_per_s",
+            "phase_timeout_s",
+            "max_shift_mm",
+            "centred_within_mm",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"assist.{name} must be positive")
         if self.max_regrasps < 1:

@@ -194,6 +194,9 @@ class SessionResampler:
         elif action == "gripper_hold":
             if self.gripper_position is not None:
                 self.grip_target = self.gripper_position
+        elif action == "gripper_ease":  # as Gripper.ease: just past level 1, never closing
+            here = self.gripper_position if self.gripper_position is not None else POSITION_OPEN
+            self.grip_target = float(min(here, self.levels.ease_position()))
         elif action == "arm_jog" and r.get("velocity"):
             sent = r.get("sent_velocity")
             if sent is not None:

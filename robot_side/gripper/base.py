@@ -99,6 +99,11 @@ class GripLevels:
     open_margin: int = param(
         5, "counts more open than level 1 that still read as level 1 (else: open, None)"
     )
+    ease_counts: int = param(
+        15,
+        "an ease opens this many counts past open_margin below level 1: the pads clear the "
+        "pipette (2.5 mm a finger on a 2F-85) and a re-grasp closes in about 0.15 s, not 0.8",
+    )
 
     def __post_init__(self) -> None:
         for name in ("level1_position", "level31_position"):
@@ -114,6 +119,8 @@ class GripLevels:
             )
         if self.open_margin < 0:
             raise ConfigError("grip levels: open_margin must not be negative")
+        if self.ease_counts < 1:
+            raise ConfigError("grip levels: ease_counts must be at least 1 (else it holds)")
 
     def position(self, level: int) -> int:
         span = self.level31_position - self.level1_position
@@ -122,6 +129,10 @@ class GripLevels:
     def force(self, level: int) -> int:
         span = self.level31_force - self.level1_force
         return self.level1_force + round(span * (level - 1) / (N_GRIP_LEVELS - 1))
+
+    def ease_position(self) -> int:
+        """Where an ease opens to: just more open than any level reads (``level_at``: None)."""
+        return max(POSITION_OPEN, self.level1_position - self.open_margin - self.ease_counts)
 
     def level_at(self, position: int) -> int | None:
         """The level nearest ``position``; None when more open than level 1 allows."""
@@ -231,6 +242,16 @@ class Gripper(Device):
 
     def open(self, speed: int = 255, force: int = 150) -> None:
         self.move(POSITION_OPEN, speed, force)
+
+    def ease(self, speed: int = 255, force: int = 150) -> None:
+        """Open just enough to let go (``GripLevels.ease_position``), never closing further.
+
+        A re-grasp (the assist's) then closes a few counts instead of the whole stroke.
+        Fingers already more open than that stop where they are.
+        """
+        self.require_connected()
+        here = self._read_state().position
+        self.move(min(here, self.levels.ease_position()), speed, force)
 
     def close_to_level(self, level: int) -> None:
         """Close to grip level 1..31 (lightest touch .. strongest squeeze)."""

@@ -3,10 +3,11 @@
 Every correction an operator makes by hand (turn the wrist, shift, re-grasp)
 waits a round trip of the link and the palm's settling. The assist makes
 them on the robot from its own recognised pattern (what ``FramePipeline``
-last recognised): open, shift the pad centre onto the pipette's axis, turn
-the wrist about the closing axis until the pipette runs along the fingers
-(90 deg), close at the same grip level, and judge again; then it stops and
-the operator decides to lift.
+last recognised, refined by the band's measured angle and offset on the last
+frame, ``robot_side/perception/band.py``): ease the fingers off the pipette,
+shift the pad centre onto its axis, turn the wrist about the closing axis
+until the pipette runs along the fingers (90 deg), close at the same grip
+level, and judge again; then it stops and the operator decides to lift.
 
 Safety is the operator's jog's, not a copy of it:
 
@@ -47,7 +48,7 @@ from common.tactile import ANGLES_DEG, classes_of, pattern_of
 from robot_side.arm.base import TELEMETRY_POSE_KEYS, ArmLimits
 from robot_side.config import AssistConfig
 from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL
-from robot_side.perception.band_angle import band_angle_deg
+from robot_side.perception.band import Band, measure_band
 
 if TYPE_CHECKING:
     from robot_side.node.command_desk import CommandDesk
@@ -160,24 +161,43 @@ class Assist:
         """90 deg centre recognised, and the band's own angle near 90 deg (when measured)."""
         if pattern != ALIGNED_PATTERN:
             return False
-        band = self._band_deg(pattern)
-        if band is not None and abs(band - 90.0) > self.config.aligned_within_deg:
-            return False  # "90" by class, yet far enough off to be another: turn the rest
-        measured = "" if band is None else f" (the band at {band:.0f} deg)"
-        self._enter("aligned", now, f"90 deg centre recognised{measured}")
+        band = self._band(pattern)
+        if band is not None:
+            if abs(band.angle_deg - 90.0) > self.config.aligned_within_deg:
+                return False  # "90" by class, yet far enough off to be another: turn the rest
+            if math.hypot(*band.offset_mm) > self.config.centred_within_mm:
+                return False  # "centre" by class, yet near the side's edge: shift the rest
+        self._enter("aligned", now, f"90 deg centre recognised{_measured(band)}")
         return True
 
-    def _band_deg(self, pattern: int) -> float | None:
-        """The band's angle on the last frame, when it agrees with ``pattern``'s class."""
+    def _band(self, pattern: int) -> Band | None:
+        """The band on the last frame, when its angle agrees with ``pattern``'s class."""
         frame = self.pipeline.last_frame
         if frame is None:
             return None
-        band = band_angle_deg(frame)
+        band = measure_band(frame)
         if band is None:
             return None
         angle_class, _ = classes_of(pattern)
-        off = (band - ANGLES_DEG[angle_class] + 90.0) % 180.0 - 90.0
+        off = (band.angle_deg - ANGLES_DEG[angle_class] + 90.0) % 180.0 - 90.0
         return band if abs(off) <= self.config.band_agrees_deg else None
+
+    def _shift_mm(self, band: Band | None, angle_class: int, position: int) -> np.ndarray:
+        """Where the pipette's axis lies from the pad centre (tool x, z; mm).
+
+        The band's measured offset when there is one on the class's side (a tilted
+        pipette meets the pads up to 10 mm off, past any fixed step), capped at
+        ``max_shift_mm``; else the class's side by ``side_offset_mm``.
+        """
+        dx, dz = offset_direction(angle_class)
+        side = {0: 0.0, 1: 1.0, 2: -1.0}[position]
+        if band is not None:
+            ox, oz = band.offset_mm
+            along = ox * dx + oz * dz
+            if side == 0.0 or along * side > 0.0:
+                shift = np.array([ox, 0.0, oz])
+                return _capped(shift, self.config.max_shift_mm)
+        return np.array([dx, 0.0, dz]) * side * self.config.side_offset_mm
 
     def _regrasp(self, pattern: int, now: int) -> None:
         """Plan the shift and the turn from ``pattern``; open the gripper."""
@@ -187,25 +207,25 @@ class Assist:
             return  # the arm's first reading is still to come
         self.regrasps += 1
         rot = rotvec_to_matrix(pose[3:])
-        dx, dz = offset_direction(angle_class)
-        side = {0: 0.0, 1: 1.0, 2: -1.0}[position] * self.config.side_offset_mm / 1000
-        shift = rot @ np.array([dx * side, 0.0, dz * side])
+        band = self._band(pattern)
+        shift = rot @ self._shift_mm(band, angle_class, position) / 1000
         self._shift_to = self._inside_box(pose[:3] + shift)
         # 0 deg: far off either way; an eighth turn makes it 45 or 135, which the next says.
         # Otherwise the band's own angle when it agrees with the class: a whole-class turn
         # from a band at 67 deg ends at 112, "90" to the CNN and "135" to the world.
-        band = self._band_deg(pattern) if angle_class else None
-        aim = ANGLES_DEG[angle_class] if band is None else band
+        aim = ANGLES_DEG[angle_class] if band is None or not angle_class else band.angle_deg
         wanted = 90 - aim if angle_class else 45
         limit = self.config.max_turn_deg
         turn = max(-limit, min(limit, self._turned_deg + wanted)) - self._turned_deg
         self._turned_deg += turn
         self._turn_by = math.radians(turn)
         shift_mm = np.round(shift * 1000, 1).tolist()
-        self._issue(Command(seq=0, t_send_ns=0, action="gripper_open"))
-        measured = "" if band is None else f" (the band at {band:.0f} deg)"
+        # just off the pipette, not the whole stroke: the close back takes 0.15 s, not 0.8
+        self._issue(Command(seq=0, t_send_ns=0, action="gripper_ease"))
         self._enter(
-            "release", now, f"pattern {pattern}{measured}: shift {shift_mm} mm, turn {turn:.0f} deg"
+            "release",
+            now,
+            f"pattern {pattern}{_measured(band)}: shift {shift_mm} mm, turn {turn:.0f} deg",
         )
 
     def _step_release(self, now: int) -> None:
@@ -329,6 +349,12 @@ class Assist:
             out["assist_regrasps"] = float(self.regrasps)
             out["assist_steps"] = float(self.steps)
         return out
+
+
+def _measured(band: Band | None) -> str:
+    if band is None:
+        return ""
+    return f" (the band at {band.angle_deg:.0f} deg, {math.hypot(*band.offset_mm):.1f} mm off)"
 
 
 def _capped(v: np.ndarray, cap: float) -> np.ndarray:

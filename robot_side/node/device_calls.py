@@ -55,6 +55,10 @@ def _hold(gripper: Gripper, cmd: Command, sent_ns: int | None) -> Call:
     return gripper.hold, ()
 
 
+def _ease(gripper: Gripper, cmd: Command, sent_ns: int | None) -> Call:
+    return gripper.ease, ()
+
+
 DEVICE_CALLS: dict[str, DeviceCall] = {
     "arm_jog": DeviceCall("arm", _jog),
     "arm_jog_end": DeviceCall("arm", _stop),
@@ -62,4 +66,5 @@ DEVICE_CALLS: dict[str, DeviceCall] = {
     "gripper_open": DeviceCall("gripper", _open),
     "gripper_close": DeviceCall("gripper", _close),
     "gripper_hold": DeviceCall("gripper", _hold),
+    "gripper_ease": DeviceCall("gripper", _ease),
 }

@@ -240,6 +240,25 @@ def test_close_to_level_reads_back_the_level_on_a_soft_pipette(gripper):
     assert wait_until(lambda: gripper.grip_level() is None)
 
 
+def test_an_ease_lets_go_of_a_held_pipette_without_opening_the_stroke_and_never_closes(
+    server, gripper
+):
+    """The assist's re-grasp: just past level 1, so closing back is a few counts, not 200."""
+    gripper.close_to_level(16)
+    assert wait_until(lambda: settled(gripper)) and gripper.grip_level() == 16
+    gripper.ease()
+    assert wait_until(lambda: gripper.state().object_status == 3)  # at its request
+    assert gripper.position() == LEVELS.ease_position() < LEVELS.level1_position
+    assert gripper.grip_level() is None  # reads open: nothing held
+    assert gripper.position() > 150  # not the whole stroke
+    gripper.open()
+    assert wait_until(lambda: gripper.position() == 0)
+    gripper.ease()  # already more open: stays put
+    assert gripper.state().requested_position == 0
+    time.sleep(0.1)
+    assert gripper.position() == 0
+
+
 def test_a_stiffer_pipette_stops_a_strong_level_early(server, gripper):
     server.model.set_object(True, contact_position=196, compression_at_full_force=20.0)
     gripper.close_to_level(31)

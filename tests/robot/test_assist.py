@@ -20,7 +20,7 @@ from tests_support import free_ports, wait_until
 
 from common.rotation import rotvec_to_matrix
 from common.signing import generate_key_files
-from common.synthetic_tactile import offset_direction
+from common.synthetic_tactile import GeneratorParams, offset_direction
 from common.tactile import classes_of
 from deploy.faults.matrix import ARM_STILL_BUDGET_S, STILL_M_S
 from operator_side.config import OperatorConfig
@@ -30,6 +30,7 @@ from robot_side.arm.sim import SimulatedArm
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.node.assist import PHASE_CODES
+from robot_side.perception.band import measure_band
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 
@@ -98,7 +99,7 @@ class ListRecorder:
             return [r for c, r in self.records if c == name]
 
 
-def _cell(tmp_path, pattern: int, box_face_mm: float | None):
+def _cell(tmp_path, pattern: int, box_face_mm: float | None, side_offset_mm: float | None):
     """(robot, arm, {"a": ..., "b": ...}, stop event, threads); the arm started, a holding."""
     tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_ports(2))
     entries, secrets = [], {}
@@ -118,8 +119,13 @@ def _cell(tmp_path, pattern: int, box_face_mm: float | None):
     rc.assist.settle_ms = 150.0
     rc.assist.release_ms = 100.0
     grasp = GraspStep(pattern=pattern, grip_level=16, ramp_s=0.2, hold_s=3600.0)
+    generator = GeneratorParams()
+    if side_offset_mm is not None:  # the pipette this far off the pad centre, give or take 0.3
+        generator = GeneratorParams(side_offset_mm=side_offset_mm, offset_jitter_mm=0.3)
     tactile = ScriptedTactileSensor(
-        ScriptedTactileConfig(script=GraspScript(grasps=[grasp], loop=False, start_delay_s=0.3))
+        ScriptedTactileConfig(
+            script=GraspScript(grasps=[grasp], loop=False, start_delay_s=0.3), generator=generator
+        )
     )
     arm = SimulatedArm()
     arm.connect()
@@ -157,8 +163,8 @@ def _cell(tmp_path, pattern: int, box_face_mm: float | None):
 def make_cell(tmp_path, quiet_gc):
     made = []
 
-    def make(pattern: int, box_face_mm: float | None = None):
-        cell = _cell(tmp_path, pattern, box_face_mm)
+    def make(pattern: int, box_face_mm: float | None = None, side_offset_mm: float | None = None):
+        cell = _cell(tmp_path, pattern, box_face_mm, side_offset_mm)
         made.append(cell)
         robot, _arm, ops, *_ = cell
         wait(lambda: ops["a"].is_controller, 30, "a's lease")
@@ -195,7 +201,7 @@ def test_the_assist_never_leaves_the_box_however_its_pattern_pushes(make_cell):
     assert worst <= 0.0001, f"the TCP went {worst * 1000:.2f} mm beyond the workspace box"
     # every step is in the recording: its phases, and each command with what the arm was sent
     phases = [r["phase"] for r in robot.recorder.channel("robot/assist")]
-    assert phases[:4] == ["waiting", "release", "shift", "turn"], phases
+    assert phases[:4] == ["waiting", "release", "shift", "turn"], robot.recorder.channel("robot/assist")
     assert phases.count("release") == robot.config.assist.max_regrasps and "gave_up" in phases
     jogs = [
         r for r in robot.recorder.channel("robot/command")
@@ -204,6 +210,30 @@ def test_the_assist_never_leaves_the_box_however_its_pattern_pushes(make_cell):
     assert len(jogs) >= 10, "the assist's jogs are recorded"
     cap = robot.config.assist.shift_speed_m_s + 1e-9
     assert all(np.linalg.norm(r["sent_velocity"][:3]) <= cap for r in jogs)
+
+
+def test_one_shift_puts_the_pad_centre_on_the_bands_measured_axis(make_cell):
+    """A pipette met 8 mm off centre: the shift is the band's offset, not a fixed step.
+
+    A fixed 5 mm step left it 3 mm off, still "left": a second re-grasp, about
+    1.5 s more, on every pipette a tilt put far from its hole's line.
+    """
+    robot, arm, ops, *_ = make_cell(SHIFT_ONLY, side_offset_mm=8.0)
+    a = ops["a"]
+    start = arm.sim.tcp_pose()
+    with holding(a):
+        wait(
+            lambda: any(r["phase"] == "turn" for r in robot.recorder.channel("robot/assist")),
+            10,
+            "the first shift to end",
+        )
+        moved = arm.sim.tcp_pose()[:3] - start[:3]
+    band = measure_band(robot.pipeline.last_frame)  # the grasp is held still: what it saw
+    assert band is not None
+    ox, oz = band.offset_mm
+    assert np.hypot(ox, oz) > 7.0, band  # the scripted grasp: 8 mm off, give or take 0.3
+    in_tool = rotvec_to_matrix(start[3:]).T @ moved * 1000  # mm, tool frame
+    np.testing.assert_allclose(in_tool, (ox, 0.0, oz), atol=0.6)
 
 
 def test_a_stop_ends_the_assist_within_the_arms_stop_budget_and_a_non_holder_is_refused(
