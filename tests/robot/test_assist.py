@@ -200,8 +200,9 @@ def test_the_assist_never_leaves_the_box_however_its_pattern_pushes(make_cell):
     assert moved > 0.0025, f"the assist moved the TCP only {moved * 1000:.2f} mm toward the face"
     assert worst <= 0.0001, f"the TCP went {worst * 1000:.2f} mm beyond the workspace box"
     # every step is in the recording: its phases, and each command with what the arm was sent
-    phases = [r["phase"] for r in robot.recorder.channel("robot/assist")]
-    assert phases[:4] == ["waiting", "release", "shift", "turn"], robot.recorder.channel("robot/assist")
+    records = robot.recorder.channel("robot/assist")
+    phases = [r["phase"] for r in records]
+    assert phases[:4] == ["waiting", "release", "shift", "turn"], records
     assert phases.count("release") == robot.config.assist.max_regrasps and "gave_up" in phases
     jogs = [
         r for r in robot.recorder.channel("robot/command")
