@@ -118,10 +118,12 @@ def clip_jog_velocity(
     """The velocity a jog actually sends: speed-capped, and kept inside the box.
 
     Linear and angular parts are scaled (direction kept) to their caps. A
-    linear component that points out of the box is zeroed when the TCP is
-    at or beyond that face, so the operator can always jog back in. A
-    function of the limits alone, so an exporter can apply it to recorded
-    commands.
+    linear component that points toward a face is slowed so that the jog
+    cannot carry the TCP past it within its own lifetime (``jog_timeout_s``,
+    after which the deadman stops it): the box holds even if no fresher jog
+    comes, from a starved node or a wedged link. At or beyond the face it is
+    zero, so the operator can always jog back in. A function of the limits
+    alone, so an exporter can apply it to recorded commands.
     """
     v = as_vector6(velocity, "jog velocity")
     lin, ang = v[:3], v[3:]
@@ -134,11 +136,12 @@ def clip_jog_velocity(
     lin = lin.copy()
     if pose is not None:
         xyz = as_vector6(pose, "pose")[:3]
+        life = limits.jog_timeout_s
         for i in range(3):
-            if xyz[i] >= limits.workspace_max[i] and lin[i] > 0:
-                lin[i] = 0.0
-            if xyz[i] <= limits.workspace_min[i] and lin[i] < 0:
-                lin[i] = 0.0
+            if lin[i] > 0:
+                lin[i] = min(lin[i], max(0.0, limits.workspace_max[i] - xyz[i]) / life)
+            elif lin[i] < 0:
+                lin[i] = max(lin[i], -max(0.0, xyz[i] - limits.workspace_min[i]) / life)
     return np.concatenate([lin, ang])
 
 

@@ -173,6 +173,26 @@ def test_jog_cannot_push_out_of_the_box_but_can_come_back(still_arm):
         still_arm.clip_jog([float("nan"), 0, 0, 0, 0, 0], pose)
 
 
+def test_one_jog_toward_a_face_cannot_carry_the_tcp_past_it_before_its_deadman(still_arm, sim):
+    """No fresher jog comes (a starved node): the box holds all the same, seen on the controller.
+
+    A jog at the cap 5 mm from a face used to run its whole lifetime (20 mm) past it.
+    """
+    limits = still_arm.limits
+    saved = limits.workspace_max
+    y = float(sim.tcp_pose()[1])
+    limits.workspace_max = (saved[0], y + 0.005, saved[2])
+    try:
+        still_arm.jog([0.0, 1.0, 0.0, 0.0, 0.0, 0.0])  # once, at the cap, toward +y
+        assert wait_until(lambda: sim.tcp_speed()[1] > 0.005, 1.0), "the jog never moved it"
+        assert wait_until(lambda: sim.mode_name() == "idle", limits.jog_timeout_s + 1.0)
+        reached = float(sim.tcp_pose()[1])
+        assert reached <= y + 0.005 + 1e-5, f"{(reached - y) * 1000:.2f} mm: past the face at 5"
+        assert reached > y + 0.002, "the jog hardly moved toward the face"
+    finally:
+        limits.workspace_max = saved
+
+
 def test_stop_is_idempotent(still_arm, sim):
     still_arm.stop()
     still_arm.stop()
