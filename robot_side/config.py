@@ -163,25 +163,26 @@ class AssistConfig:
     max_turn_deg: float = param(
         50.0, "the wrist never turns further from where the assist began (a singularity nears)"
     )
-    angle_tolerance_deg: float = param(1.5, "a turn this close to its target is done")
+    angle_tolerance_deg: float = param(
+        3.0, "a turn this close to its target is done (the band is measured to 1-4 deg)"
+    )
     aligned_within_deg: float = param(
         12.0,
         "90 deg centre recognised is aligned only when the band's angle on the pads (its "
         "second moments) is this close to 90 deg too: the classes are 45 deg wide, and a "
         "pipette at 113 deg can read '90' and lift as '135'",
     )
-    band_agrees_deg: float = param(
-        35.0,
-        "the band's measured angle is used (to turn by, and to judge alignment) only this "
-        "close to the recognised class's; else the class alone decides",
+    position_tolerance_mm: float = param(
+        0.5, "a shift this close to its target is done ('centre' spans 3 mm either way)"
     )
-    position_tolerance_mm: float = param(0.3, "a shift this close to its target is done")
     release_ms: float = param(
         50.0,
         "the fingers ease off (gripper_ease) at least this long, and until nothing is felt, "
         "before moving",
     )
-    settle_ms: float = param(400.0, "after a re-grasp: contact held this long before judging")
+    settle_ms: float = param(
+        250.0, "after a re-grasp: contact held this long before judging (the operator's own)"
+    )
     phase_timeout_s: float = param(
         8.0, "a phase not finished by then (or nothing felt): the assist gives up"
     )

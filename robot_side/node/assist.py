@@ -158,10 +158,10 @@ class Assist:
         self._regrasp(pattern, now)
 
     def _aligned(self, pattern: int, now: int) -> bool:
-        """90 deg centre recognised, and the band's own angle near 90 deg (when measured)."""
+        """90 deg centre recognised, and the band itself near 90 deg and centred (if measured)."""
         if pattern != ALIGNED_PATTERN:
             return False
-        band = self._band(pattern)
+        band = self._band()
         if band is not None:
             if abs(band.angle_deg - 90.0) > self.config.aligned_within_deg:
                 return False  # "90" by class, yet far enough off to be another: turn the rest
@@ -170,51 +170,45 @@ class Assist:
         self._enter("aligned", now, f"90 deg centre recognised{_measured(band)}")
         return True
 
-    def _band(self, pattern: int) -> Band | None:
-        """The band on the last frame, when its angle agrees with ``pattern``'s class."""
+    def _band(self) -> Band | None:
+        """The band on the last frame: its measured angle and offset (None: no band to see)."""
         frame = self.pipeline.last_frame
-        if frame is None:
-            return None
-        band = measure_band(frame)
-        if band is None:
-            return None
-        angle_class, _ = classes_of(pattern)
-        off = (band.angle_deg - ANGLES_DEG[angle_class] + 90.0) % 180.0 - 90.0
-        return band if abs(off) <= self.config.band_agrees_deg else None
+        return None if frame is None else measure_band(frame)
 
-    def _shift_mm(self, band: Band | None, angle_class: int, position: int) -> np.ndarray:
-        """Where the pipette's axis lies from the pad centre (tool x, z; mm).
+    def _plan(self, band: Band | None, pattern: int) -> tuple[np.ndarray, float]:
+        """(shift in tool x, y, z, mm; turn about the tool's y, deg) onto 90 deg centre.
 
-        The band's measured offset when there is one on the class's side (a tilted
-        pipette meets the pads up to 10 mm off, past any fixed step), capped at
-        ``max_shift_mm``; else the class's side by ``side_offset_mm``.
+        The band's geometry when the frame has one: the CNN names a class every
+        45 deg and a side from 3 mm, and a tilted pipette meets the pads up to
+        10 mm off centre at angles between the classes (a whole-class turn from a
+        band at 67 deg ends at 112, "90" to the CNN and "135" to the world). The
+        recognised class only when the frame has no band: its side by
+        ``side_offset_mm``, its angle, and for 0 deg (far off either way) an
+        eighth turn, after which the next grasp says which way.
         """
-        dx, dz = offset_direction(angle_class)
-        side = {0: 0.0, 1: 1.0, 2: -1.0}[position]
         if band is not None:
             ox, oz = band.offset_mm
-            along = ox * dx + oz * dz
-            if side == 0.0 or along * side > 0.0:
-                shift = np.array([ox, 0.0, oz])
-                return _capped(shift, self.config.max_shift_mm)
-        return np.array([dx, 0.0, dz]) * side * self.config.side_offset_mm
+            shift = _capped(np.array([ox, 0.0, oz]), self.config.max_shift_mm)
+            wanted = 90.0 - band.angle_deg  # the pads cannot tell a band from its half turn:
+            wanted = min((wanted, wanted - 180.0, wanted + 180.0),  # the nearer of the two
+                         key=lambda w: abs(self._turned_deg + w))  # fmt: skip
+            return shift, wanted
+        angle_class, position = classes_of(pattern)
+        dx, dz = offset_direction(angle_class)
+        side = {0: 0.0, 1: 1.0, 2: -1.0}[position] * self.config.side_offset_mm
+        wanted = 90.0 - ANGLES_DEG[angle_class] if angle_class else 45.0
+        return np.array([dx * side, 0.0, dz * side]), wanted
 
     def _regrasp(self, pattern: int, now: int) -> None:
-        """Plan the shift and the turn from ``pattern``; open the gripper."""
-        angle_class, position = classes_of(pattern)
+        """Plan the shift and the turn; ease the fingers off the pipette."""
         pose = self._pose()
         if pose is None:
             return  # the arm's first reading is still to come
         self.regrasps += 1
-        rot = rotvec_to_matrix(pose[3:])
-        band = self._band(pattern)
-        shift = rot @ self._shift_mm(band, angle_class, position) / 1000
+        band = self._band()
+        shift_tool, wanted = self._plan(band, pattern)
+        shift = rotvec_to_matrix(pose[3:]) @ shift_tool / 1000
         self._shift_to = self._inside_box(pose[:3] + shift)
-        # 0 deg: far off either way; an eighth turn makes it 45 or 135, which the next says.
-        # Otherwise the band's own angle when it agrees with the class: a whole-class turn
-        # from a band at 67 deg ends at 112, "90" to the CNN and "135" to the world.
-        aim = ANGLES_DEG[angle_class] if band is None or not angle_class else band.angle_deg
-        wanted = 90 - aim if angle_class else 45
         limit = self.config.max_turn_deg
         turn = max(-limit, min(limit, self._turned_deg + wanted)) - self._turned_deg
         self._turned_deg += turn
