@@ -312,7 +312,7 @@ class RobotRig:
 
             assert wait_for(probe, 5, step_s=0.02), "the robot node never heard a publisher"
         time.sleep(0.2)
-        self.sent = self.received()  # probes sent before the connection was up were lost
+        self._count_from_here()  # probes sent before the connection was up were lost
         # the operator's heartbeats at 20 Hz come from their own thread, as in the real node,
         # so the deadman sees a live operator whatever the fuzzing thread is doing
         self._beating = threading.Event()
@@ -320,7 +320,18 @@ class RobotRig:
         self._beat_thread.start()
         # the robot moves nothing before a heartbeat round trip has given it our clock
         assert wait_for(lambda: (self.read_telemetry(), self.node.clock.is_synced)[1], 5)
-        self.sent = self.received()
+        self._count_from_here()
+
+    def _count_from_here(self) -> None:
+        """Count what is sent from what the node has read so far.
+
+        Under the lock that ``_send`` holds across a send and its count: a beat
+        the node read before the beat thread counted it was counted twice here
+        (in ``received`` and then in ``sent``), and ``sync`` then waited for
+        one message more than was ever sent.
+        """
+        with self._count_lock:
+            self.sent = self.received()
 
     def _beat(self) -> None:
         while not self._beating.wait(0.05):
@@ -338,8 +349,8 @@ class RobotRig:
         return self.thread.is_alive() and not self.error
 
     def _send(self, sock: zmq.Socket, data: bytes) -> None:
-        sock.send(data)
-        with self._count_lock:
+        with self._count_lock:  # a send and its count are one step for _count_from_here
+            sock.send(data)
             self.sent += 1
 
     def send_evil(self, data: bytes) -> None:
