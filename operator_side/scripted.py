@@ -213,7 +213,7 @@ class ScriptedOperator:
         clock: Callable[[], float] = time.monotonic,
         stop: threading.Event | None = None,
     ) -> None:
-        """``assist``: after a wrong first grasp, hold the robot's assist (arm_assist) until it
+        """``assist``: at the first wrong grasp felt, hold the robot's assist (arm_assist) until it
         stops, then feel again; correct by hand only if it did not align the grasp."""
         self.node = node
         self.config = config or ScriptedOperatorConfig()
@@ -332,6 +332,7 @@ class ScriptedOperator:
         last_step = 0.0  # the last wrist correction (deg), 0 after a shift
         last_shift = 0.0  # the last sideways correction (m)
         outcome = Outcome(lifted=False, t_decision_s=None)
+        assisted = False
         for _ in range(cfg.max_attempts):
             grasp = self._grasp_pose(start, r_start, turn_deg, shift_m)
             self.move_to(grasp)
@@ -344,7 +345,9 @@ class ScriptedOperator:
             outcome.attempts.append(Attempt(turn_deg, shift_m, felt, self.clock() - t0, truth))
             if lift:
                 return self._lift(grasp, t0, outcome, on_lift)
-            if self.assist and felt is not None and len(outcome.attempts) == 1:
+            # once a trial, at the first grasp that felt wrong (a miss first searches by hand)
+            if self.assist and felt is not None and not assisted:
+                assisted = True
                 palm = SteadyPalm(cfg.settle_s)  # watched while the robot works, as a person would
                 self.hold_assist(palm)
                 felt, lift, stimulus = self.feel(cfg.feel_timeout_s, closing=False, palm=palm)

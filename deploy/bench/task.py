@@ -15,8 +15,9 @@ truth is 90 deg centre and the lift draws the pipette out of its hole.
 
 Feedback conditions: ``mask`` (the robot's CNN picks the pattern and the
 stimulus is its mask), ``direct`` (the frame downsized, no CNN), ``none``
-(the operator ignores the palm), ``mask_assist`` (mask; after a wrong first
-grasp the operator holds the robot's assist instead of correcting by hand).
+(the operator ignores the palm), ``mask_assist`` (mask; at the first wrong
+grasp it feels the operator holds the robot's assist instead of correcting by
+hand).
 
 As a bench section: the task benchmark, does the palm help an operator grasp a pipette right?
 """
@@ -596,7 +597,7 @@ def markdown(results: Results) -> list[str]:
     lines += [
         "",
         (
-            "`mask_assist`: `mask`, and after a wrong first grasp the operator holds the "
+            "`mask_assist`: `mask`, and at the first wrong grasp it feels the operator holds the "
             "robot's assist (robot_side/node/assist.py: the robot turns, shifts and re-grasps "
             "on its own recognised pattern) instead of correcting by hand, then feels again "
             "and lifts or corrects by hand; "
