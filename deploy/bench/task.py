@@ -598,9 +598,10 @@ def markdown(results: Results) -> list[str]:
         "",
         (
             "`mask_assist`: `mask`, and at the first wrong grasp it feels the operator holds the "
-            "robot's assist (robot_side/node/assist.py: the robot turns, shifts and re-grasps "
-            "on its own recognised pattern) instead of correcting by hand, then feels again "
-            "and lifts or corrects by hand; "
+            "robot's assist (robot_side/node/assist.py: the robot eases its fingers off, "
+            "shifts and turns by the band it measures on its pads, or by its recognised "
+            "pattern when it sees no band, and closes again) instead of correcting by hand, "
+            "then feels again and lifts or corrects by hand; "
             if any(c["feedback"] == "mask_assist" for c in s["cells"])
             else ""
         )
