@@ -103,6 +103,7 @@ class Assist:
         self._turn_by = 0.0  # the re-grasp's turn about the tool's y (rad)
         self._arm_moving = False
         self._turned_deg = 0.0
+        self._eased = False  # our ease left the fingers off the pipette, and nothing closed them
 
     # ------------------------------------------------------ the operator's side
     def hold(self, enable_ns: int, now: int) -> str | None:
@@ -117,6 +118,10 @@ class Assist:
             self._turned_deg = 0.0  # planned turns since the enable was pressed
             self._enter("waiting", now, "enable held")
         return None
+
+    def gripper_taken(self) -> None:
+        """The holder commanded the gripper: where the fingers are is theirs now, not ours."""
+        self._eased = False
 
     def end(self, why: str) -> None:
         """A stop, the deadman, a lease change or the operator's own command: stop now."""
@@ -147,6 +152,12 @@ class Assist:
         getattr(self, f"_step_{phase}", lambda now: None)(now)
 
     def _step_waiting(self, now: int) -> None:
+        stim = self.pipeline.last_stimulus
+        if self._eased and (stim is None or not stim.contact):
+            # an assist that lapsed mid re-grasp (the enable's deadman on a lossy link, a
+            # stop) left the fingers eased off: nothing to feel until they close again
+            self._close(now, "the fingers were left eased off")
+            return
         # the pattern the operator felt and answered by holding the assist: no settling
         pattern = self._felt(now, since=self._phase_since, settle_ms=0.0)
         if pattern is None:
@@ -216,6 +227,7 @@ class Assist:
         shift_mm = np.round(shift * 1000, 1).tolist()
         # just off the pipette, not the whole stroke: the close back takes 0.15 s, not 0.8
         self._issue(Command(seq=0, t_send_ns=0, action="gripper_ease"))
+        self._eased = "gripper" in self.workers.workers
         self._enter(
             "release",
             now,
@@ -257,9 +269,7 @@ class Assist:
         error = self._turn_by - turned
         if abs(math.degrees(error)) <= self.config.angle_tolerance_deg:
             self._stop_moving("turn done")
-            self._issue(Command(seq=0, t_send_ns=0, action="gripper_close", grip_level=self._level))
-            self._contact_since = None
-            self._enter("close", now, f"at grip level {self._level}")
+            self._close(now, "turn done")
             return
         w = float(np.clip(self.config.gain_per_s * error, -1, 1)) * self.config.turn_speed_rad_s
         self._jog(np.concatenate([np.zeros(3), w * r0[:, 1]]))
@@ -276,6 +286,12 @@ class Assist:
             self._regrasp(pattern, now)
 
     # ------------------------------------------------------------ helpers
+    def _close(self, now: int, why: str) -> None:
+        self._issue(Command(seq=0, t_send_ns=0, action="gripper_close", grip_level=self._level))
+        self._eased = False
+        self._contact_since = None
+        self._enter("close", now, f"{why}: closing at grip level {self._level}")
+
     def _felt(self, now: int, since: int, settle_ms: float | None = None) -> int | None:
         """The pattern recognised with contact held ``settle_ms`` (default: the config's)
         on frames captured after ``since``."""

@@ -170,6 +170,8 @@ class CommandDesk:
             return
         if self.assist is not None:
             self.assist.end(f"the holder's own {msg.action}")
+            if msg.action.startswith("gripper_"):
+                self.assist.gripper_taken()
         call = DEVICE_CALLS.get(msg.action)
         if call is None:  # the codec admits no other action; should one be added, say so
             self.counters["messages_unexpected"] += 1
