@@ -112,6 +112,25 @@ def as_vector6(value: Sequence[float], what: str) -> np.ndarray:
     return arr
 
 
+#: the time a deadman stop takes to reach the controller, and the thread's own lateness
+STOP_TRANSIT_S = 0.03
+
+
+def deadman_period_s(limits: ArmLimits) -> float:
+    """How often the deadman thread wakes: its jog check and ``_keep_alive`` run this often."""
+    return min(0.02, limits.jog_timeout_s / 5)
+
+
+def jog_reach_s(limits: ArmLimits) -> float:
+    """How long one jog can move the TCP at its speed, at most, if no other command comes.
+
+    Its lifetime (``jog_timeout_s``), the deadman's wake period, the stop's
+    transit, and its deceleration from the speed cap (v / 2a per unit of v).
+    """
+    decel = limits.max_linear_speed_m_s / (2.0 * limits.stop_deceleration_m_s2)
+    return limits.jog_timeout_s + deadman_period_s(limits) + STOP_TRANSIT_S + decel
+
+
 def clip_jog_velocity(
     limits: ArmLimits, velocity: Sequence[float], pose: Sequence[float] | None = None
 ) -> np.ndarray:
@@ -119,11 +138,11 @@ def clip_jog_velocity(
 
     Linear and angular parts are scaled (direction kept) to their caps. A
     linear component that points toward a face is slowed so that the jog
-    cannot carry the TCP past it within its own lifetime (``jog_timeout_s``,
-    after which the deadman stops it): the box holds even if no fresher jog
-    comes, from a starved node or a wedged link. At or beyond the face it is
-    zero, so the operator can always jog back in. A function of the limits
-    alone, so an exporter can apply it to recorded commands.
+    cannot carry the TCP past it before the deadman has stopped it
+    (``jog_reach_s``): the box holds even if no fresher jog comes, from a
+    starved node or a wedged link. At or beyond the face it is zero, so the
+    operator can always jog back in. A function of the limits alone, so an
+    exporter can apply it to recorded commands.
     """
     v = as_vector6(velocity, "jog velocity")
     lin, ang = v[:3], v[3:]
@@ -136,7 +155,7 @@ def clip_jog_velocity(
     lin = lin.copy()
     if pose is not None:
         xyz = as_vector6(pose, "pose")[:3]
-        life = limits.jog_timeout_s
+        life = jog_reach_s(limits)
         for i in range(3):
             if lin[i] > 0:
                 lin[i] = min(lin[i], max(0.0, limits.workspace_max[i] - xyz[i]) / life)
@@ -349,7 +368,7 @@ class Arm(Device):
     @property
     def deadman_period_s(self) -> float:
         """How often the deadman thread wakes: its jog check and ``_keep_alive`` run this often."""
-        return min(0.02, self.limits.jog_timeout_s / 5)
+        return deadman_period_s(self.limits)
 
     def _keep_alive(self) -> None:
         """Tell the controller this process is alive; called every deadman period.

@@ -176,7 +176,9 @@ def test_jog_cannot_push_out_of_the_box_but_can_come_back(still_arm):
 def test_one_jog_toward_a_face_cannot_carry_the_tcp_past_it_before_its_deadman(still_arm, sim):
     """No fresher jog comes (a starved node): the box holds all the same, seen on the controller.
 
-    A jog at the cap 5 mm from a face used to run its whole lifetime (20 mm) past it.
+    A jog at the cap 5 mm from a face used to run its whole lifetime (20 mm) past it;
+    clipped to the jog's reach (lifetime, deadman period, stop transit and deceleration)
+    it ends short of the face.
     """
     limits = still_arm.limits
     saved = limits.workspace_max
