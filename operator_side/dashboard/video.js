@@ -64,6 +64,7 @@ const VIDEO = (() => {
       this.timeline = []; // [presented at, captured at] wall-clock ms, per stamped frame
       this.presented = []; // wall-clock ms of each presented frame
       this.unreadable = 0;
+      this.unreadableAt = []; // the index (in presented) of each frame whose stamp was unreadable
       this.lastCounter = null;
       this.skipped = 0; // frames that never reached the screen (counter gaps)
       this.canvas = document.createElement("canvas");
@@ -251,6 +252,7 @@ const VIDEO = (() => {
       const stamp = readStamp(this.ctx.getImageData(0, 0, w, band).data, w);
       if (!stamp) {
         this.unreadable++;
+        this.unreadableAt.push(this.presented.length); // which frames: the first few, or any
         return;
       }
       if (this.lastCounter !== null) {
@@ -272,7 +274,7 @@ const VIDEO = (() => {
       const pct = (p) => (lat.length ? lat[Math.min(lat.length - 1, Math.floor((p / 100) * lat.length))] : null);
       let stall = 0;
       for (let i = 1; i < this.presented.length; i++) stall = Math.max(stall, this.presented[i] - this.presented[i - 1]);
-      return { frames: this.presented.length, stamped: lat.length, p50: pct(50), p99: pct(99), max_gap_ms: stall, unreadable: this.unreadable, skipped: this.skipped, reconnects: this.reconnects, last_reason: this.lastReason };
+      return { frames: this.presented.length, stamped: lat.length, p50: pct(50), p99: pct(99), max_gap_ms: stall, unreadable: this.unreadable, unreadable_at: this.unreadableAt.slice(0, 20), skipped: this.skipped, reconnects: this.reconnects, last_reason: this.lastReason };
     }
   }
 
