@@ -25,11 +25,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.tactile import TAXEL_PITCH_MM
 from robot_side.arm.sim.kinematics import DH_A, DH_D, HOME_Q, forward, pose_to_matrix
 from robot_side.lab.config import LabWorldConfig, PipetteConfig
 
 N_ROWS = N_COLS = 10
-PITCH_M = 0.00241  # 24.1 mm / 10: 5.8 cm^2 per pad
+PITCH_M = TAXEL_PITCH_MM / 1000  # 24.1 mm / 10: 5.8 cm^2 per pad (the tactile contract)
 TAXEL_HALF_M = 0.00118  # a hair under half the pitch: neighbours never touch
 TAXEL_DEPTH_HALF_M = 0.00075
 PAD_CENTRE_Z_M = 0.15  # the TCP: the fingertip centre, as the UR simulator's tcp_offset

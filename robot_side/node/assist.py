@@ -162,17 +162,17 @@ class Assist:
         pattern = self._felt(now, since=self._phase_since, settle_ms=0.0)
         if pattern is None:
             return
-        if self._aligned(pattern, now):
+        band = self._band()
+        if self._aligned(pattern, band, now):
             return
         grip = self.desk.grip_level_commanded  # the operator's close, not where it stalled
         self._level = grip if grip is not None else DEFAULT_CLOSE_LEVEL
-        self._regrasp(pattern, now)
+        self._regrasp(pattern, band, now)
 
-    def _aligned(self, pattern: int, now: int) -> bool:
+    def _aligned(self, pattern: int, band: Band | None, now: int) -> bool:
         """90 deg centre recognised, and the band itself near 90 deg and centred (if measured)."""
         if pattern != ALIGNED_PATTERN:
             return False
-        band = self._band()
         if band is not None:
             if abs(band.angle_deg - 90.0) > self.config.aligned_within_deg:
                 return False  # "90" by class, yet far enough off to be another: turn the rest
@@ -210,13 +210,12 @@ class Assist:
         wanted = 90.0 - ANGLES_DEG[angle_class] if angle_class else 45.0
         return np.array([dx * side, 0.0, dz * side]), wanted
 
-    def _regrasp(self, pattern: int, now: int) -> None:
-        """Plan the shift and the turn; ease the fingers off the pipette."""
+    def _regrasp(self, pattern: int, band: Band | None, now: int) -> None:
+        """Plan the shift and the turn from one look at the frame; ease the fingers off."""
         pose = self._pose()
         if pose is None:
             return  # the arm's first reading is still to come
         self.regrasps += 1
-        band = self._band()
         shift_tool, wanted = self._plan(band, pattern)
         shift = rotvec_to_matrix(pose[3:]) @ shift_tool / 1000
         self._shift_to = self._inside_box(pose[:3] + shift)
@@ -278,12 +277,13 @@ class Assist:
         pattern = self._felt(now, since=self._phase_since)
         if pattern is None:
             return
-        if self._aligned(pattern, now):
+        band = self._band()
+        if self._aligned(pattern, band, now):
             return
         if self.regrasps >= self.config.max_regrasps:
             self._enter("gave_up", now, f"pattern {pattern} after {self.regrasps} re-grasps")
         else:
-            self._regrasp(pattern, now)
+            self._regrasp(pattern, band, now)
 
     # ------------------------------------------------------------ helpers
     def _close(self, now: int, why: str) -> None:
