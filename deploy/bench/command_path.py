@@ -139,14 +139,14 @@ class ArmWatch:
         self._thread.join(2)
 
 
+_BIND_ATTEMPTS = 3
+
+
 class RobotUnderCommands:
     """The robot node process on its simulators, watched from outside (a context manager)."""
 
     def __init__(self, workdir: Path | None = None) -> None:
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix="deepxpalm-cmd-"))
-        self.telemetry_endpoint, self.command_endpoint = (
-            f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2)
-        )
 
     def __enter__(self) -> RobotUnderCommands:
         from robot_side.arm.sim import URSimProcess
@@ -154,8 +154,34 @@ class RobotUnderCommands:
 
         self.arm_sim = URSimProcess().start()
         self.gripper_sim = GripperSimServer(GripperSimConfig(port=0)).start()
-        config = self.workdir / "robot.toml"
-        config.write_text(
+        self.config = self.workdir / "robot.toml"
+        self.log = self.workdir / "robot.log"
+        self.arm = ArmWatch(self.arm_sim)
+        self.telemetry: Telemetry | None = None
+        for attempt in range(_BIND_ATTEMPTS):
+            # The node's ports are picked only now, after the simulators hold theirs; a port
+            # "free" a moment ago can still be taken by any other process before the node
+            # binds it, so a node that finds its address in use gets fresh ones.
+            self._use_fresh_endpoints()
+            try:
+                self.start_node()
+                break
+            except RuntimeError as e:
+                if attempt + 1 < _BIND_ATTEMPTS and "Address already in use" in str(e):
+                    self.log.write_text("")
+                    continue
+                self.__exit__()
+                raise
+        time.sleep(0.3)
+        return self
+
+    def _use_fresh_endpoints(self) -> None:
+        if self.telemetry is not None:
+            self.telemetry.close()
+        self.telemetry_endpoint, self.command_endpoint = (
+            f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2)
+        )
+        self.config.write_text(
             _ROBOT_TOML.format(
                 rate=PUBLISH_HZ,
                 gripper_port=self.gripper_sim.port,
@@ -164,17 +190,7 @@ class RobotUnderCommands:
                 cmd=self.command_endpoint,
             )
         )
-        self.config = config
-        self.log = self.workdir / "robot.log"
         self.telemetry = Telemetry(self.telemetry_endpoint)
-        self.arm = ArmWatch(self.arm_sim)
-        try:
-            self.start_node()
-        except RuntimeError:
-            self.__exit__()
-            raise
-        time.sleep(0.3)
-        return self
 
     def start_node(self, timeout_s: float = 60.0) -> None:
         """Start the robot node process; returns once it publishes (again, after a restart)."""
