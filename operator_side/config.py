@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,12 @@ class OperatorLinkConfig:
         150.0,
         "nothing from the robot sent within this long (its send time on our clock): jogs are "
         "held, since we no longer see what we steer; the robot's deadman then stops the arm",
+    )
+    jog_max_age_ms: float = param(
+        150.0,
+        "a jog or assist enable older than this when it would go out (it waited on a busy "
+        "operator PC: in the page's socket, the dashboard or this node's queue) is dropped; "
+        "the robot's deadman then stops the arm",
     )
     heartbeat_rate_hz: float = param(20.0, "heartbeats keep the robot's deadman satisfied")
     heartbeat_early_ms: float = param(
@@ -90,6 +97,10 @@ class OperatorLinkConfig:
     security: SecurityConfig = param(
         SecurityConfig(), "CURVE keys: ours and the robot's (or the relay's) public key"
     )
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.jog_max_age_ms) and self.jog_max_age_ms > 0):
+            raise ValueError(f"link.jog_max_age_ms must be positive, not {self.jog_max_age_ms}")
 
 
 @dataclass

@@ -13,6 +13,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
+import math
 import os
 import queue
 import secrets
@@ -125,7 +126,8 @@ class OperatorNode:
         self.link_state = "down"
         #: (monotonic ns, new state) of the latest link state changes
         self.link_changes: collections.deque[tuple[int, str]] = collections.deque(maxlen=256)
-        self._commands: queue.SimpleQueue[Command | VideoSignal] = queue.SimpleQueue()
+        # each with when the operator issued it (our clock): a jog that waited too long is dropped
+        self._commands: queue.SimpleQueue[tuple[int, Command | VideoSignal]] = queue.SimpleQueue()
         #: called on the node's thread with each video signal the robot sends (the dashboard)
         self.video_signal_handler: Callable[[VideoSignal], None] | None = None
         self._vsig_seq = 0
@@ -159,6 +161,7 @@ class OperatorNode:
         #: the send time of the robot's newest stimulus or heartbeat, on our clock
         self._robot_heard_ns: int | None = None
         self._blind_log = BurstLog(log, "jog held: no fresh telemetry, we cannot see the arm")
+        self._late_log = BurstLog(log, "jog dropped: it waited too long on this busy PC")
         self._rejected_before = 0  # rejections counted by sockets since reopened
         link_cfg = config.link
         try:
@@ -215,21 +218,29 @@ class OperatorNode:
         grip_level: int | None = None,
         velocity: tuple[float, ...] | None = None,
         grantee: bytes | None = None,
+        age_ms: float = 0.0,
     ) -> None:
         """Queue a command for the robot; thread-safe (sockets stay on the loop thread).
 
         ``arm_stop`` is a STOP: it latches on the robot, which then refuses
         every jog (from anyone) until the lease holder sends ``arm_resume``;
         ``arm_jog_end`` ends a jog without latching (docs/protocol.md).
+        ``age_ms``: how long ago the operator issued it (a page's jog that sat in
+        a queue before it reached us); a jog older than ``jog_max_age_ms`` when
+        its turn comes is dropped.
         """
+        issued = self.now() - round(max(age_ms, 0.0) * 1e6) if math.isfinite(age_ms) else 0
         self._commands.put(
-            Command(
-                seq=0,
-                t_send_ns=0,
-                action=action,
-                grip_level=grip_level,
-                velocity=velocity,
-                grantee=grantee,
+            (
+                issued,
+                Command(
+                    seq=0,
+                    t_send_ns=0,
+                    action=action,
+                    grip_level=grip_level,
+                    velocity=velocity,
+                    grantee=grantee,
+                ),
             )
         )
         with contextlib.suppress(BlockingIOError, OSError):
@@ -241,7 +252,8 @@ class OperatorNode:
         It travels the command link (signed, through the relay when there is
         one), so video needs no connection of its own to the robot PC.
         """
-        self._commands.put(VideoSignal(seq=0, t_send_ns=0, kind=kind, viewer=viewer, sdp=sdp))
+        signal = VideoSignal(seq=0, t_send_ns=0, kind=kind, viewer=viewer, sdp=sdp)
+        self._commands.put((self.now(), signal))
         with contextlib.suppress(BlockingIOError, OSError):
             os.write(self._wake_w, b"v")
 
@@ -669,16 +681,22 @@ class OperatorNode:
         """
         while True:
             try:
-                cmd = self._commands.get_nowait()
+                issued, cmd = self._commands.get_nowait()
             except queue.Empty:
                 break
             if isinstance(cmd, VideoSignal):  # sent below, in order, once the robot hears us
                 self._held_signals.append((now, cmd))
                 continue
-            if cmd.action in ("arm_jog", "arm_assist") and not self.sees_robot(now):
-                self.counters["jogs_held_blind"] += 1  # the assist is held like a jog
-                self._blind_log(cmd.action)
-                continue
+            if cmd.action in ("arm_jog", "arm_assist"):  # the assist is held like a jog
+                if (now - issued) / 1e6 > self.config.link.jog_max_age_ms:
+                    # the hand may have let go since: the robot's deadman stops the arm
+                    self.counters["jogs_dropped_late"] += 1
+                    self._late_log(f"{cmd.action}, {(now - issued) / 1e6:.0f} ms old")
+                    continue
+                if not self.sees_robot(now):
+                    self.counters["jogs_held_blind"] += 1
+                    self._blind_log(cmd.action)
+                    continue
             self._send_command(cmd, now, resends=0)
         self._release_held_signals(now)
         pending = self._gripper_pending

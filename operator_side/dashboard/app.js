@@ -85,10 +85,12 @@ function sendCommand(action, gripLevel) {
 dxp.sendCommand = sendCommand;
 
 // The arm's jog and stop messages; false when the socket is down (the robot's
-// deadman stops a jog that is no longer renewed).
+// deadman stops a jog that is no longer renewed). Each carries the page's clock:
+// the server drops a jog that reached it late (a busy PC queued it), so a hand
+// that let go never moves the arm afterwards.
 function sendArm(msg) {
   if (!socket || !socket.isOpen()) return false;
-  socket.send(msg);
+  socket.send(msg.type === "command" ? { ...msg, t_page_ms: performance.now() } : msg);
   return true;
 }
 

@@ -45,6 +45,40 @@ REFRESH_S = 0.25  # ages and counters move even when the stimulus does not
 FULL_STATE_S = 1.0  # a page that missed a push (it lagged) is whole again within this
 COMMANDS_PER_S = 10  # a stuck key or a buggy page cannot flood the robot's command link
 JOG_WATCHDOG_PERIODS = 6  # a jogging page silent this many send periods (200 ms) is stopped
+#: how fast a page's clock may drift from the server's before its fresh jogs look late
+#: (1000 ppm; real clocks drift under 100)
+PAGE_CLOCK_DRIFT = 1e-3
+
+
+class PageClock:
+    """How much later than usual a page's messages reach the server, in ms.
+
+    The page stamps its arm messages with its own monotonic clock. Its offset
+    from ours is unknown (the page may run on another machine), so the fastest
+    arrival seen stands for "no delay": a message that took longer sat in a
+    queue (this process starved, the page's socket backed up). The floor may
+    rise by ``PAGE_CLOCK_DRIFT`` per second, so two clocks that drift apart
+    never make fresh messages look late.
+    """
+
+    def __init__(self) -> None:
+        self._floor_ms: float | None = None  # the smallest (arrival - stamp) seen
+        self._floor_at_ms = 0.0
+
+    def delay_ms(self, t_page_ms: Any, now_ms: float) -> float | None:
+        """This message's delay beyond the fastest seen; None when the stamp is not a time."""
+        if isinstance(t_page_ms, bool) or not isinstance(t_page_ms, (int, float)):
+            return None
+        if not math.isfinite(t_page_ms):
+            return None
+        sample = now_ms - float(t_page_ms)
+        if self._floor_ms is None:
+            self._floor_ms = sample
+        else:
+            allowed = self._floor_ms + PAGE_CLOCK_DRIFT * (now_ms - self._floor_at_ms)
+            self._floor_ms = min(allowed, sample)
+        self._floor_at_ms = now_ms
+        return sample - self._floor_ms
 
 
 @dataclass
@@ -56,6 +90,7 @@ class _Page:
     jogging: bool = False
     last_jog: float = 0.0
     video: asyncio.Task | None = None  # the relayed signalling session to the robot
+    clock: PageClock = field(default_factory=PageClock)
 
 
 class DashboardSource(Protocol):
@@ -68,6 +103,7 @@ class DashboardSource(Protocol):
         action: str,
         grip_level: int | None = None,
         velocity: tuple[float, ...] | None = None,
+        age_ms: float = 0.0,
     ) -> None: ...
 
 
@@ -363,6 +399,23 @@ class Dashboard:
             return {"type": "ack", "ok": False, "error": "expected a command"}
         action = msg.get("action")
         now = time.monotonic()
+        delay_ms = None
+        if action in ARM_ACTIONS and "t_page_ms" in msg:
+            delay_ms = page.clock.delay_ms(msg["t_page_ms"], now * 1000.0)
+            if delay_ms is None:
+                return {
+                    "type": "ack",
+                    "ok": False,
+                    "action": action,
+                    "error": "t_page_ms must be a finite number (the page's performance.now())",
+                }
+        if action in ("arm_jog", "arm_assist") and delay_ms is None:
+            return {
+                "type": "ack",
+                "ok": False,
+                "action": action,
+                "error": "an arm jog or assist must carry t_page_ms (the page's performance.now())",
+            }
         if action == "arm_stop":  # never rate-limited: stopping must always get through
             self._stop_arm(page)
             return {"type": "ack", "ok": True, "action": action}
@@ -370,9 +423,9 @@ class Dashboard:
             self._end_jog(page, "released on the page")
             return {"type": "ack", "ok": True, "action": action}
         if action == "arm_jog":
-            return self._on_jog(msg, page, now)
+            return self._on_jog(msg, page, now, delay_ms)
         if action == "arm_assist":
-            return self._on_assist(page, now)
+            return self._on_assist(page, now, delay_ms)
         sent_at = page.sent_at
         sent_at[:] = [t for t in sent_at if now - t < 1.0]
         if len(sent_at) >= COMMANDS_PER_S:
@@ -406,7 +459,7 @@ class Dashboard:
         log.info("dashboard: %s%s", action, "" if level is None else f" (grip level {level})")
         return {"type": "ack", "ok": True, "action": action, "grip_level": level}
 
-    def _on_assist(self, page: _Page, now: float) -> dict[str, Any] | None:
+    def _on_assist(self, page: _Page, now: float, age_ms: float) -> dict[str, Any] | None:
         """The assist held on the page: an enable, rate-limited and watched as a jog is.
 
         Let go, the page sends ``arm_jog_end`` (which ends the assist on the
@@ -416,12 +469,14 @@ class Dashboard:
         if len(page.jog_at) >= self._jogs_per_s:
             return {"type": "ack", "ok": False, "action": "arm_assist", "error": "too many jogs"}
         page.jog_at.append(now)
-        self.node.send_command("arm_assist")
+        self.node.send_command("arm_assist", age_ms=age_ms)
         page.jogging, page.last_jog = True, now
         self.assists_forwarded += 1
         return None
 
-    def _on_jog(self, msg: dict[str, Any], page: _Page, now: float) -> dict[str, Any] | None:
+    def _on_jog(
+        self, msg: dict[str, Any], page: _Page, now: float, age_ms: float
+    ) -> dict[str, Any] | None:
         velocity = msg.get("velocity")
         if (
             not isinstance(velocity, list)
@@ -448,10 +503,13 @@ class Dashboard:
             if page.jogging:
                 self._end_jog(page, "zero jog")
             return None
-        self.node.send_command("arm_jog", velocity=twist)
+        self.node.send_command("arm_jog", velocity=twist, age_ms=age_ms)
         page.jogging, page.last_jog = True, now
         self.jogs_forwarded += 1
         return None
+
+
+ARM_ACTIONS = ("arm_jog", "arm_assist", "arm_jog_end", "arm_stop")
 
 
 def _is_video_offer(raw: str | bytes) -> bool:

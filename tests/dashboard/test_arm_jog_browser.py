@@ -292,7 +292,7 @@ SOCKET_JOG = """
   });
   if (!opened) return false;
   for (let i = 0; i < 30; i++) {
-    ws.send(jog);
+    ws.send(JSON.stringify({ ...JSON.parse(jog), t_page_ms: performance.now() }));
     await new Promise((r) => setTimeout(r, 33));
   }
   ws.close();

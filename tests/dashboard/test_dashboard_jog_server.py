@@ -26,11 +26,20 @@ pytestmark = pytest.mark.timeout(30)
 class JogNode(FakeNode):
     control = None  # the control lease as the robot's heartbeat states it (None: unsigned)
 
+    def __init__(self) -> None:
+        super().__init__()
+        self.ages_ms: list[float] = []
+
     def snapshot(self):
         return dataclasses.replace(super().snapshot(), control=self.control)
 
-    def send_command(self, action, grip_level=None, velocity=None) -> None:
+    stall_s = 0.0  # the next send_command blocks the server this long (a starved process)
+
+    def send_command(self, action, grip_level=None, velocity=None, age_ms=0.0) -> None:
         self.commands.append((time.monotonic(), action, velocity))
+        self.ages_ms.append(age_ms)
+        stall, self.stall_s = self.stall_s, 0.0
+        time.sleep(stall)
 
     def actions(self) -> list[str]:
         return [a for _, a, _ in self.commands]
@@ -47,8 +56,14 @@ def dashboard():
         d.stop()
 
 
-def _jog(ws, velocity) -> None:
-    ws.send(json.dumps({"type": "command", "action": "arm_jog", "velocity": velocity}))
+def _page_ms() -> float:
+    return time.monotonic() * 1000.0  # a page's performance.now(); its origin does not matter
+
+
+def _jog(ws, velocity, t_page_ms: float | None = None) -> None:
+    stamp = _page_ms() if t_page_ms is None else t_page_ms
+    msg = {"type": "command", "action": "arm_jog", "velocity": velocity, "t_page_ms": stamp}
+    ws.send(json.dumps(msg))
 
 
 def test_jogs_are_capped_and_forwarded_and_bad_ones_refused(dashboard):
@@ -59,9 +74,9 @@ def test_jogs_are_capped_and_forwarded_and_bad_ones_refused(dashboard):
         _jog(ws, [1.0, 0, 0, 0, 0, 3.0])  # far over the caps
         for bad in ([0, 0, 0], [0, 0, 0, 0, 0, float("nan")], "fast", [True] * 6):
             ws.send(
-                json.dumps({"type": "command", "action": "arm_jog", "velocity": bad}).replace(
-                    "NaN", "1e999"
-                )
+                json.dumps(
+                    {"type": "command", "action": "arm_jog", "velocity": bad, "t_page_ms": 1.0}
+                ).replace("NaN", "1e999")
             )
             ack = _next(ws, "ack")
             assert not ack["ok"] and "velocity" in ack["error"]
@@ -230,7 +245,9 @@ def test_the_assist_is_held_like_a_jog_forwarded_and_ended_by_the_watchdog(dashb
         hello = _next(ws, "hello")
         assert hello["jog"]["assist_key"] == "g" and hello["jog"]["gamepad"]["assist_button"] == 0
         for _ in range(3):
-            ws.send(json.dumps({"type": "command", "action": "arm_assist"}))
+            ws.send(
+                json.dumps({"type": "command", "action": "arm_assist", "t_page_ms": _page_ms()})
+            )
         t_last = time.monotonic()
         deadline = t_last + 2
         while "arm_jog_end" not in node.actions():  # the socket stays open, the page is silent
@@ -245,3 +262,81 @@ def test_the_assist_key_and_button_must_move_nothing_else():
         JogConfig(assist_key="w")
     with pytest.raises(ValueError, match="assist_button"):
         from_dict(JogConfig, {"gamepad": {"assist_button": 5}}, where="jog")
+
+
+def test_a_jog_without_the_pages_clock_is_refused(dashboard):
+    node, d = dashboard
+    with connect(d.ws_url) as ws:
+        _next(ws, "hello")
+        for stamp in (None, "now", float("nan"), True):
+            msg = {"type": "command", "action": "arm_jog", "velocity": [0.02, 0, 0, 0, 0, 0]}
+            if stamp is not None:
+                msg["t_page_ms"] = stamp
+            ws.send(json.dumps(msg).replace("NaN", "1e999"))
+            ack = _next(ws, "ack")
+            assert not ack["ok"] and "t_page_ms" in ack["error"], (stamp, ack)
+        ws.send(json.dumps({"type": "command", "action": "arm_assist"}))
+        assert "t_page_ms" in _next(ws, "ack")["error"]
+    assert "arm_jog" not in node.actions() and "arm_assist" not in node.actions()
+
+
+def test_jogs_that_waited_behind_a_stalled_server_are_handed_on_with_their_age(dashboard):
+    """The server stalls (a starved operator PC) while the page keeps jogging: the jogs
+    that queued up reach the node with the time they waited, so it can drop them."""
+    node, d = dashboard
+    with connect(d.ws_url) as ws:
+        _next(ws, "hello")
+        origin = 5_000_000.0 - _page_ms()  # the page's clock has its own origin
+        _jog(ws, [0.02, 0, 0, 0, 0, 0], _page_ms() + origin)
+        deadline = time.monotonic() + 2
+        while not node.actions():
+            assert time.monotonic() < deadline
+            time.sleep(0.005)
+        node.stall_s = 0.5
+        _jog(ws, [0.02, 0, 0, 0, 0, 0], _page_ms() + origin)  # this one stalls the server
+        for _ in range(6):
+            time.sleep(0.033)
+            _jog(ws, [0.02, 0, 0, 0, 0, 0], _page_ms() + origin)
+        while len(node.actions()) < 8:
+            assert time.monotonic() < deadline + 2, node.actions()
+            time.sleep(0.01)
+    ages = node.ages_ms[:8]
+    assert max(ages[:2]) < 50, ages  # on time
+    queued = ages[2:]
+    # each waited for the rest of the stall: about 0.5 s less its send time (33 ms apart)
+    assert all(250 < a < 700 for a in queued), ages
+    assert queued == sorted(queued, reverse=True), ages
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    offset_ms=st.floats(-1e9, 1e9),
+    drift_ppm=st.floats(-500, 500),
+    jitter_ms=st.lists(st.floats(0, 20), min_size=50, max_size=50),
+    gap_s=st.floats(0.01, 3600),
+    stall_ms=st.floats(200, 5000),
+)
+def test_the_page_clock_sees_a_stall_whatever_the_pages_offset_and_drift(
+    offset_ms, drift_ppm, jitter_ms, gap_s, stall_ms
+):
+    """Fresh messages never look late, over an hour's silence and any offset or drift under
+    500 ppm; a message that waited ``stall_ms`` shows (almost) all of it."""
+    from operator_side.dashboard.server import PageClock
+
+    clock = PageClock()
+    rate = 1 + drift_ppm * 1e-6
+
+    def page(t_ms: float) -> float:
+        return t_ms * rate + offset_ms
+
+    t = 1000.0
+    for j in jitter_ms:  # a second and a half of jogs, each 0-20 ms in transit
+        t += 33.0
+        assert clock.delay_ms(page(t), t + j) <= 20.0 + 1e-6
+    t += gap_s * 1000.0  # the operator lets go; the page is quiet
+    for j in jitter_ms[:5]:
+        t += 33.0
+        assert clock.delay_ms(page(t), t + j) <= 20.0 + 0.5 * 1e-3 * gap_s * 1000 + 1e-6
+    t += 33.0
+    late = clock.delay_ms(page(t), t + stall_ms)
+    assert late >= stall_ms - 20.0 - 1e-6, late

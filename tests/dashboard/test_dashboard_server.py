@@ -55,7 +55,7 @@ class FakeNode:
                 robot_stats=dict(self.robot_stats),
             )
 
-    def send_command(self, action, grip_level=None, velocity=None) -> None:
+    def send_command(self, action, grip_level=None, velocity=None, age_ms=0.0) -> None:
         self.commands.append((action, grip_level))
 
 

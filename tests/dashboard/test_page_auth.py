@@ -26,7 +26,6 @@ from operator_side.dashboard.page_auth import PageAuth
 
 pytestmark = pytest.mark.timeout(30)
 
-JOG = json.dumps({"type": "command", "action": "arm_jog", "velocity": [0.05, 0, 0, 0, 0, 0]})
 CLOSE = json.dumps({"type": "command", "action": "gripper_close", "grip_level": 31})
 
 
