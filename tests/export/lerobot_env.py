@@ -61,7 +61,7 @@ def ensure_env() -> Path:
     if stamp.exists():
         return python
     venv.EnvBuilder(with_pip=True, clear=True).create(path)
-    pip = [str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
+    pip = [str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check", "--no-compile"]
     subprocess.run([*pip, TORCH, TORCHVISION, LEROBOT_DATASET], check=True, timeout=1800)
     stamp.write_text(KEY + "\n")
     return python
@@ -74,7 +74,16 @@ def ensure_policy_env() -> Path:
     key = " ".join(LEROBOT_POLICIES) + "\n"
     if stamp.exists() and stamp.read_text() == key:
         return python
-    pip = [str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check", "--no-deps"]
+    pip = [
+        str(python),
+        "-m",
+        "pip",
+        "install",
+        "-q",
+        "--disable-pip-version-check",
+        "--no-compile",
+        "--no-deps",
+    ]
     subprocess.run([*pip, *LEROBOT_POLICIES], check=True, timeout=1800)
     stamp.write_text(key)
     return python
@@ -88,7 +97,15 @@ def ensure_video_decoder(python: Path) -> dict[str, str]:
     """
     stamp = env_dir() / ".installed-video"
     if not stamp.exists() or stamp.read_text() != TORCHCODEC + "\n":
-        pip = [str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check"]
+        pip = [
+            str(python),
+            "-m",
+            "pip",
+            "install",
+            "-q",
+            "--disable-pip-version-check",
+            "--no-compile",
+        ]
         subprocess.run([*pip, "--no-deps", TORCHCODEC], check=True, timeout=1800)
         stamp.write_text(TORCHCODEC + "\n")
     bundled = next((env_dir() / "lib").glob("python3*/site-packages/av.libs"))
