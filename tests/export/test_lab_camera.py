@@ -35,7 +35,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 def test_a_lab_session_exports_the_overview_camera_lerobot_decodes(tmp_path):
     session = tmp_path / "lab-session"
-    demo = ["demo", "--scene", "lab", "--duration", "8", "--json", "--record", str(session)]
+    demo = ["demo", "--scene", "lab", "--duration", "4", "--json", "--record", str(session)]
     proc = subprocess.run(
         [sys.executable, "-m", "deploy.cli", *demo],
         capture_output=True,
