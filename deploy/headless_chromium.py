@@ -96,7 +96,11 @@ class Chromium:
         try:
             port = self._wait_port(timeout_s)
             self.ws = self._stack.enter_context(
-                connect(self._page_ws(port, timeout_s), max_size=64 * 1024 * 1024)
+                # close_timeout: a browser that never answers the closing handshake (seen
+                # after a page on another origin) held every close() for websockets' 10 s
+                connect(
+                    self._page_ws(port, timeout_s), max_size=64 * 1024 * 1024, close_timeout=1.0
+                )
             )
             for domain in ("Page", "Runtime", "Network"):
                 self.call(f"{domain}.enable")
