@@ -12,8 +12,10 @@ TORCH ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 
 # The tests not marked slow wait far more than they compute (25 s of CPU in 84 s on 2 cores),
-# so they run four at a time (pytest-xdist: 41 s). The slow ones run one at a time: their
-# timing checks compare with baselines taken in the same run, under the machine's own load.
+# so they run four at a time (pytest-xdist: 41 s), with the slow ones marked untimed (no
+# timing checked), each file on one worker so a module's fixture runs once. The other slow
+# ones run one at a time: their timing checks compare with baselines taken in the same run,
+# under the machine's own load.
 FAST_WORKERS ?= 4
 
 .PHONY: demo test test-fast lint bench setup clean
@@ -39,8 +41,8 @@ test: $(STAMP)
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
 	@# both lanes run whatever the first gave; exit 5 is a lane that ARGS left empty
 	status=0; \
-	$(BIN)/python -m pytest -m "not slow and not soak" -n $(FAST_WORKERS) $(ARGS) || [ $$? -eq 5 ] || status=1; \
-	$(BIN)/python -m pytest -m "slow and not soak" $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(BIN)/python -m pytest -m "(not slow or untimed) and not soak" -n $(FAST_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(BIN)/python -m pytest -m "slow and not untimed and not soak" $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	exit $$status
 
 # The fast lane: every test not marked slow, without the system packages the browser and

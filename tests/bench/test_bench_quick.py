@@ -16,7 +16,7 @@ from deploy.bench.report import write_outputs
 from deploy.bench.runner import run_bench
 from deploy.bench.sizes import PRESETS, SECTIONS
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing asserted (above)
 
 # Every section runs once, in the module's fixture (the processes' too), but six whose
 # measurements other tests run: the task's ``run_cell`` (tests/lab/test_task.py), the

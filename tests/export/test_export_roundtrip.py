@@ -22,7 +22,8 @@ from deploy.export.cli import export
 from deploy.export.resample import ExportConfig
 
 FPS = 30
-pytestmark = pytest.mark.slow
+# slow, but no check here is a timing: it may run beside other tests (make test's first lane)
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]
 
 
 @pytest.fixture(scope="module")
