@@ -106,6 +106,12 @@ STOP_WITHIN_WINDOW = 0.5
 
 #: How long a refused command waits for the receive stream to show the stopped script.
 REFUSAL_CATCH_UP_S = 0.05
+#: After a move ends on the control connection, how long move_to waits for the receive stream
+#: (another connection, cached by its own thread) to show the arm at rest: on a busy machine
+#: its newest package was still from the move's last milliseconds, 23 um short of the target.
+MOVE_CATCH_UP_S = 0.1
+AT_REST_M_S = 1e-4
+AT_REST_RAD_S = 1e-3
 
 
 class _Worker:
@@ -199,6 +205,7 @@ class URArm(Arm):
         self._ctrl_broken: str | None = None
         self._speeding = False
         self._moving = False
+        self._move_ended_at: float | None = None  # when the control connection said so
         self._last_ts = -1.0
         self._last_ts_change = 0.0
         self._stale_events = 0
@@ -658,6 +665,7 @@ class URArm(Arm):
         if self._speeding:
             self._stop_speed()
         self._moving = True
+        self._move_ended_at = None
         ok = self._control(
             "moveL", ctrl.moveL, pose.tolist(), speed, self.limits.linear_acceleration_m_s2, True
         )
@@ -671,7 +679,17 @@ class URArm(Arm):
             )
         if self._ctrl.getAsyncOperationProgress() >= 0:
             return False
+        now = now_s()
+        if self._move_ended_at is None:
+            self._move_ended_at = now
+        speed = np.asarray(self._fresh().getActualTCPSpeed(), dtype=float)
+        moving = (
+            np.linalg.norm(speed[:3]) > AT_REST_M_S or np.linalg.norm(speed[3:]) > AT_REST_RAD_S
+        )
+        if moving and now - self._move_ended_at < MOVE_CATCH_UP_S:
+            return False  # the receive stream has not caught up: the pose read next would lag
         self._moving = False
+        self._move_ended_at = None
         return True
 
     def _decel_time(self) -> float:

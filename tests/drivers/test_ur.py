@@ -438,3 +438,62 @@ def _servol_then_movej(sim: URSimProcess, r, c) -> None:
     c.stopScript()
     assert wait_until(lambda: not sim.stats()["program_running"], 1.0)
     assert {24, 16, 1, 255} <= set(sim.commands_seen())
+
+
+class LaggingReceive:
+    """ur-rtde's receive interface as a busy machine serves it: every value is from ``lag_s``
+    ago (its thread behind), while the control connection already says the move ended."""
+
+    def __init__(self, real, lag_s: float) -> None:
+        import collections
+        import threading
+
+        self._real, self._lag_s = real, lag_s
+        self._history: collections.deque = collections.deque(maxlen=2000)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+        wait_until(lambda: len(self._history) > 0, 1.0)
+
+    def _sample(self) -> None:
+        while not self._stop.wait(0.001):
+            r = self._real
+            self._history.append(
+                (time.monotonic(), r.getActualTCPPose(), r.getActualTCPSpeed(), r.getTimestamp())
+            )
+
+    def _then(self) -> tuple:
+        cutoff = time.monotonic() - self._lag_s
+        older = [h for h in self._history if h[0] <= cutoff]
+        return older[-1] if older else self._history[0]
+
+    def getActualTCPPose(self):
+        return self._then()[1]
+
+    def getActualTCPSpeed(self):
+        return self._then()[2]
+
+    def getTimestamp(self):
+        return self._then()[3]
+
+    def __getattr__(self, name):
+        return getattr(self._real, name)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(1)
+
+
+def test_move_to_returns_once_the_receive_stream_shows_the_arm_at_the_target(still_arm):
+    """The control connection reports a move's end before a lagging receive stream shows it;
+    the pose read right after move_to must be the target's, not one from the deceleration."""
+    lagging = LaggingReceive(still_arm._recv, lag_s=0.02)
+    real, still_arm._recv = still_arm._recv, lagging
+    try:
+        target = still_arm.tcp_pose()
+        target[:3] += [0.02, 0.0, 0.01]
+        still_arm.move_to(target, speed=0.1)
+        np.testing.assert_allclose(still_arm.tcp_pose()[:3], target[:3], atol=1e-5)
+    finally:
+        still_arm._recv = real
+        lagging.close()
