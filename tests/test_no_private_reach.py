@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing checked
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("robot_side", "operator_side", "relay_side", "common", "deploy")

@@ -83,6 +83,7 @@ def test_random_bytes(data):
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 @settings(max_examples=200, deadline=None)
 @given(st.sampled_from(TOPICS), st.binary(max_size=300))
 def test_random_bytes_behind_a_real_topic(topic, data):
@@ -104,6 +105,7 @@ def maps(draw) -> bytes:
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 @settings(max_examples=200, deadline=None)
 @given(maps())
 def test_maps_of_protocol_fields_with_any_values(data):
@@ -111,6 +113,7 @@ def test_maps_of_protocol_fields_with_any_values(data):
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 @settings(max_examples=100, deadline=None)
 @given(st.randoms(use_true_random=False))
 def test_valid_messages_round_trip(rnd):
@@ -122,6 +125,7 @@ def test_valid_messages_round_trip(rnd):
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 def test_ten_thousand_structure_aware_mutants():
     mut = Mutator(seed=31)
     decoded = 0

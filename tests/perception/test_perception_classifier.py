@@ -48,6 +48,7 @@ def test_shipped_files_are_in_the_package_and_small() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 def test_shipped_model_meets_the_bar_on_fresh_synthetic_frames(
     numpy_classifier: TiltClassifier, fresh: ds.TactileDataset
 ) -> None:
@@ -71,6 +72,7 @@ def test_shipped_model_carries_over_to_an_independent_generator(
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 @pytest.mark.parametrize("backend", [b for b in BACKENDS if b != "torch"])
 def test_backends_match_eager_torch(
     backend: str, reference: TiltClassifier, fresh: ds.TactileDataset
@@ -104,6 +106,7 @@ def test_backends_match_eager_torch(
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_one_frame_at_a_time_agrees_with_the_batch_path(
     backend: str, fresh: ds.TactileDataset
@@ -145,6 +148,7 @@ def test_wrong_frame_shapes_are_refused(numpy_classifier: TiltClassifier) -> Non
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 def test_non_torch_backends_do_not_import_torch() -> None:
     code = (
         "import sys, numpy as np\n"

@@ -33,6 +33,7 @@ def test_every_pattern_and_grip_level_appears_repeats_times(small: ds.TactileDat
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 def test_generation_is_reproducible_by_seed(small: ds.TactileDataset) -> None:
     again = ds.generate(ds.DatasetConfig(repeats=1, frames_per_sensor=20, seed=3))
     assert np.array_equal(again.frames, small.frames)
@@ -87,6 +88,7 @@ def test_missing_or_unreadable_files_are_refused(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 @given(n=st.integers(0, 5000), seed=st.integers(0, 2**32 - 1))
 def test_split_is_a_fixed_50_25_25_partition(n: int, seed: int) -> None:
     train, val, test = ds.split_indices(n, seed)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing checked
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGE = ROOT / "robot_side" / "perception"

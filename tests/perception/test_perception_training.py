@@ -15,7 +15,7 @@ from robot_side.perception import dataset as ds  # noqa: E402
 from robot_side.perception import load_classifier  # noqa: E402
 from robot_side.perception.model import PAPER_CONV, PAPER_HIDDEN, ModelConfig, TiltNet  # noqa: E402
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing checked
 
 
 @pytest.fixture(scope="module")

@@ -175,6 +175,7 @@ def test_strongest_grip_saturates_some_taxels() -> None:
     seed=st.integers(0, 2**31 - 1),
 )
 @pytest.mark.slow
+@pytest.mark.untimed  # no timing checked
 def test_every_reading_is_zero_or_within_the_sensor_range(
     pattern: int | None, level: int, seed: int
 ) -> None:

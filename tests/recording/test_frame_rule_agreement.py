@@ -21,7 +21,7 @@ from robot_side.node import RobotNode
 from robot_side.perception import load_classifier
 from robot_side.tactile.base import GraspTruth, TactileSample
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing checked
 
 PERIOD_NS = 8_333_333  # 120 Hz
 

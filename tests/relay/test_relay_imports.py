@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing checked
 
 
 def test_the_relay_loads_neither_node_nor_torch_nor_a_signing_library():

@@ -18,7 +18,7 @@ from operator_side.study.analysis import (
 )
 
 # the timeout: pingouin's first import is slow on a cold disk
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.slow, pytest.mark.untimed, pytest.mark.timeout(120)]
 
 TABLE_I = Path(__file__).parent / "data" / "paper_table1.csv"
 
