@@ -122,6 +122,7 @@ def glass_to_glass(
         "stalls_over_500ms": int(np.sum(gaps > STALL_MS)),
         "skipped_frames": int(summary["skipped"]),
         "unreadable_frames": int(summary["unreadable"]),
+        "unreadable_at": summary.get("unreadable_at", []),  # their indices among those shown
         "wall_s": round(wall_s, 1),
         # this process: capture, VP8 encoding, SRTP (the robot's side) and the dashboard
         "server_cpu_share": round(cpu_s / wall_s, 3),
