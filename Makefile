@@ -15,7 +15,8 @@ STAMP := $(VENV)/.installed
 # so they run four at a time (pytest-xdist: 41 s), with the slow ones marked untimed (no
 # timing checked), each file on one worker so a module's fixture runs once. The other slow
 # ones run one at a time: their timing checks compare with baselines taken in the same run,
-# under the machine's own load.
+# under the machine's own load; so do the few quick ones marked serial (their timing checks
+# skip on a loaded machine, and in the parallel lane their neighbours are the load).
 FAST_WORKERS ?= 4
 
 .PHONY: demo test test-fast lint bench setup clean
@@ -41,14 +42,17 @@ test: $(STAMP)
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
 	@# both lanes run whatever the first gave; exit 5 is a lane that ARGS left empty
 	status=0; \
-	$(BIN)/python -m pytest -m "(not slow or untimed) and not soak" -n $(FAST_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
-	$(BIN)/python -m pytest -m "slow and not untimed and not soak" $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(BIN)/python -m pytest -m "(not slow or untimed) and not serial and not soak" -n $(FAST_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(BIN)/python -m pytest -m "(slow and not untimed or serial) and not soak" $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	exit $$status
 
 # The fast lane: every test not marked slow, without the system packages the browser and
 # TURN tests need (those tests are slow ones). The whole suite stays `make test`.
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -m "not slow and not soak" -n $(FAST_WORKERS) $(ARGS)
+	status=0; \
+	$(BIN)/python -m pytest -m "not slow and not serial and not soak" -n $(FAST_WORKERS) $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(BIN)/python -m pytest -m "serial and not slow and not soak" $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	exit $$status
 
 bench: $(STAMP)
 	$(BIN)/deepxpalm bench $(ARGS)

@@ -20,6 +20,10 @@ from tests_support import late_unless_loaded
 from common.netsim.datagram import DatagramForwarder
 from common.netsim.scenario import load_scenario, scenario_from_dict
 
+# serial: its delay checks skip on a loaded machine, so make test keeps it out of the
+# parallel lane, where its own neighbours would be the load
+pytestmark = pytest.mark.serial
+
 STAMP = struct.Struct("!Iq")  # sequence number, monotonic send time (ns)
 
 

@@ -24,7 +24,9 @@ from robot_side.camera.config import TestPatternConfig
 from robot_side.camera.test_pattern import TestPatternCamera
 from robot_side.video.server import VideoConfig, VideoServer
 
-pytestmark = [pytest.mark.timeout(90)]
+# serial: its delay checks skip on a loaded machine, so make test keeps it out of the
+# parallel lane, where its own neighbours would be the load
+pytestmark = [pytest.mark.timeout(90), pytest.mark.serial]
 
 
 def _watch(scenario: str, seconds: float) -> tuple[ViewerRun, dict, list[str]]:
