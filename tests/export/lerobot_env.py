@@ -53,6 +53,12 @@ def env_dir() -> Path:
     return root / KEY.replace("==", "-")
 
 
+def _pip(python: Path) -> list[str]:
+    """pip install in the environment; --no-compile: modules compile at first import."""
+    quiet = ["-q", "--disable-pip-version-check"]
+    return [str(python), "-m", "pip", "install", *quiet, "--no-compile"]
+
+
 def ensure_env() -> Path:
     """The environment's python, building the environment if it is not there yet."""
     path = env_dir()
@@ -61,8 +67,7 @@ def ensure_env() -> Path:
     if stamp.exists():
         return python
     venv.EnvBuilder(with_pip=True, clear=True).create(path)
-    pip = [str(python), "-m", "pip", "install", "-q", "--disable-pip-version-check", "--no-compile"]
-    subprocess.run([*pip, TORCH, TORCHVISION, LEROBOT_DATASET], check=True, timeout=1800)
+    subprocess.run([*_pip(python), TORCH, TORCHVISION, LEROBOT_DATASET], check=True, timeout=1800)
     stamp.write_text(KEY + "\n")
     return python
 
@@ -74,17 +79,7 @@ def ensure_policy_env() -> Path:
     key = " ".join(LEROBOT_POLICIES) + "\n"
     if stamp.exists() and stamp.read_text() == key:
         return python
-    pip = [
-        str(python),
-        "-m",
-        "pip",
-        "install",
-        "-q",
-        "--disable-pip-version-check",
-        "--no-compile",
-        "--no-deps",
-    ]
-    subprocess.run([*pip, *LEROBOT_POLICIES], check=True, timeout=1800)
+    subprocess.run([*_pip(python), "--no-deps", *LEROBOT_POLICIES], check=True, timeout=1800)
     stamp.write_text(key)
     return python
 
@@ -97,16 +92,7 @@ def ensure_video_decoder(python: Path) -> dict[str, str]:
     """
     stamp = env_dir() / ".installed-video"
     if not stamp.exists() or stamp.read_text() != TORCHCODEC + "\n":
-        pip = [
-            str(python),
-            "-m",
-            "pip",
-            "install",
-            "-q",
-            "--disable-pip-version-check",
-            "--no-compile",
-        ]
-        subprocess.run([*pip, "--no-deps", TORCHCODEC], check=True, timeout=1800)
+        subprocess.run([*_pip(python), "--no-deps", TORCHCODEC], check=True, timeout=1800)
         stamp.write_text(TORCHCODEC + "\n")
     bundled = next((env_dir() / "lib").glob("python3*/site-packages/av.libs"))
     links = env_dir() / "ffmpeg-links"
