@@ -399,22 +399,19 @@ class Dashboard:
             return {"type": "ack", "ok": False, "error": "expected a command"}
         action = msg.get("action")
         now = time.monotonic()
-        delay_ms = None
-        if action in ARM_ACTIONS and "t_page_ms" in msg:
-            delay_ms = page.clock.delay_ms(msg["t_page_ms"], now * 1000.0)
-            if delay_ms is None:
-                return {
-                    "type": "ack",
-                    "ok": False,
-                    "action": action,
-                    "error": "t_page_ms must be a finite number (the page's performance.now())",
-                }
+        # every arm message keeps the page's clock current; a stop with a bad stamp still stops
+        delay_ms = (
+            page.clock.delay_ms(msg.get("t_page_ms"), now * 1000.0)
+            if action in ARM_ACTIONS
+            else None
+        )
         if action in ("arm_jog", "arm_assist") and delay_ms is None:
             return {
                 "type": "ack",
                 "ok": False,
                 "action": action,
-                "error": "an arm jog or assist must carry t_page_ms (the page's performance.now())",
+                "error": "an arm jog or assist must carry t_page_ms, a finite number (the "
+                "page's performance.now())",
             }
         if action == "arm_stop":  # never rate-limited: stopping must always get through
             self._stop_arm(page)

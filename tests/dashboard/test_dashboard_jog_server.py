@@ -340,3 +340,12 @@ def test_the_page_clock_sees_a_stall_whatever_the_pages_offset_and_drift(
     t += 33.0
     late = clock.delay_ms(page(t), t + stall_ms)
     assert late >= stall_ms - 20.0 - 1e-6, late
+
+
+def test_a_stop_with_a_bad_page_stamp_still_stops(dashboard):
+    node, d = dashboard
+    with connect(d.ws_url) as ws:
+        _next(ws, "hello")
+        ws.send(json.dumps({"type": "command", "action": "arm_stop", "t_page_ms": "soon"}))
+        assert _next(ws, "ack")["ok"]
+    assert node.actions() == ["arm_stop"]
