@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import os
+import sys
 import time
 
 
@@ -39,3 +41,63 @@ class BurstLog:
             self._last_s = now
         else:
             self._suppressed += 1
+
+
+#: syslog priorities (sd-daemon(3)): what the journal files a line under
+_PRIORITY = {
+    logging.CRITICAL: 2,
+    logging.ERROR: 3,
+    logging.WARNING: 4,
+    logging.INFO: 6,
+    logging.DEBUG: 7,
+}
+
+
+def syslog_priority(levelno: int) -> int:
+    """The syslog priority of a logging level (a level between two takes the lower one's)."""
+    for level in sorted(_PRIORITY, reverse=True):
+        if levelno >= level:
+            return _PRIORITY[level]
+    return 7
+
+
+class JournalFormatter(logging.Formatter):
+    """``<N>name: message`` on every line: the journal files each line under its severity.
+
+    systemd reads a ``<N>`` prefix as the line's syslog priority
+    (``SyslogLevelPrefix=``, on by default) and stamps the time itself, so the
+    line carries neither a second time stamp nor the level's name. Every line
+    of a multi-line message (a traceback) gets the prefix, or the journal would
+    file the continuation lines as info.
+    """
+
+    def __init__(self, fmt: str = "%(name)s: %(message)s") -> None:
+        super().__init__(fmt)
+
+    def format(self, record: logging.LogRecord) -> str:
+        prefix = f"<{syslog_priority(record.levelno)}>"
+        return "\n".join(prefix + line for line in super().format(record).splitlines() or [""])
+
+
+def stderr_is_journal(environ: dict[str, str] | None = None) -> bool:
+    """Whether stderr is connected to the journal (``JOURNAL_STREAM``, systemd.exec(5)).
+
+    systemd sets ``JOURNAL_STREAM=device:inode`` for a unit whose output goes
+    to the journal; a child that redirected stderr elsewhere inherits the
+    variable, so the device and inode of stderr must match it too.
+    """
+    value = (os.environ if environ is None else environ).get("JOURNAL_STREAM", "")
+    try:
+        device, inode = (int(part) for part in value.split(":"))
+        st = os.fstat(sys.stderr.fileno())
+    except (ValueError, OSError, AttributeError):  # unset, malformed, or stderr is no file
+        return False
+    return (st.st_dev, st.st_ino) == (device, inode)
+
+
+def configure(level: int, fmt: str = "%(asctime)s %(levelname)s %(name)s: %(message)s") -> None:
+    """The process's log lines on stderr: ``fmt`` on a terminal or a file, the journal's
+    ``<N>`` priority prefix (and no time stamp of ours) when stderr is the journal."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JournalFormatter() if stderr_is_journal() else logging.Formatter(fmt))
+    logging.basicConfig(level=level, handlers=[handler])

@@ -16,6 +16,7 @@ import signal
 import sys
 
 from common.errors import DeepXPalmError
+from common.logs import configure as configure_logging
 
 log = logging.getLogger(__name__)
 
@@ -93,10 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    logging.basicConfig(
-        level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    configure_logging([logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)])
     _dump_stacks_on_request(args.command != "sim")  # simulators use SIGUSR1 as "unplug"
     module = importlib.import_module(SUBCOMMANDS[args.command][0])
     try:

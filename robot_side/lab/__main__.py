@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from common.config import from_dict, load_toml
+from common.logs import configure as configure_logging
 from common.signals import stop_on_signals
 from robot_side.lab.config import LabWorldConfig
 
@@ -31,9 +32,7 @@ def main(argv: list[str] | None = None) -> None:
         help="also write the addresses (with the board's calibration) here, for running_world",
     )
     args = ap.parse_args(argv)
-    logging.basicConfig(
-        level=args.log_level, format="%(asctime)s lab %(name)s: %(message)s", stream=sys.stderr
-    )
+    configure_logging(args.log_level, "%(asctime)s lab %(name)s: %(message)s")
     if args.config_json:
         config = from_dict(LabWorldConfig, json.loads(args.config_json), where="world")
     elif args.config is not None:

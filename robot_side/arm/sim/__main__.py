@@ -14,6 +14,7 @@ import logging
 import sys
 
 from common.config import from_dict
+from common.logs import configure as configure_logging
 from common.signals import stop_on_signals
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 
@@ -32,9 +33,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.log_level is not None
         else (logging.DEBUG if args.verbose else logging.INFO)
     )
-    logging.basicConfig(
-        level=level, format="%(asctime)s ursim %(name)s: %(message)s", stream=sys.stderr
-    )
+    configure_logging(level, "%(asctime)s ursim %(name)s: %(message)s")
     if args.config_json:
         config = from_dict(URSimConfig, json.loads(args.config_json), where="sim")
     else:
