@@ -11,7 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
-from common.config import config_toml, defaults_toml, from_dict, load_toml
+from common.config import check_secret_file, config_toml, defaults_toml, from_dict, load_toml
 from common.overrides import apply_overrides
 from common.sd_notify import watch_node
 from common.signals import on_signal, stop_on_signals
@@ -62,11 +62,15 @@ def load_node_config(args: argparse.Namespace, cls: type[T], section: str) -> T:
         data = {}
     prefix = f"{section}."
     local = [o[len(prefix) :] if o.startswith(prefix) else o for o in args.overrides]
-    return from_dict(cls, apply_overrides(data, local), where=section)
+    config = from_dict(cls, apply_overrides(data, local), where=section)
+    if args.config:
+        check_secret_file(args.config, config)  # a token in a file others can read: refused
+    return config
 
 
 def print_config(config: Any, section: str) -> None:
-    print(config_toml(config, section), end="")
+    """The effective config, its secrets not shown (a terminal is often someone's screen)."""
+    print(config_toml(config, section, redact=True), end="")
 
 
 def reload_on_hangup(reload: threading.Event) -> None:

@@ -28,14 +28,17 @@ log = logging.getLogger(__name__)
 RENAMED_KEYS = {"baud": "baudrate"}
 
 
-def param(default: Any, doc: str = "", **kwargs: Any) -> Any:
-    """A dataclass field with a default and a one-line reason for it."""
+def param(default: Any, doc: str = "", *, secret: bool = False, **kwargs: Any) -> Any:
+    """A dataclass field with a default and a one-line reason for it.
+
+    ``secret``: its value is never shown (``--print-config``, recordings'
+    metadata), and a config file holding it must not be open to other users.
+    """
+    metadata = {"doc": doc, "secret": secret}
     if isinstance(default, (list, dict, set)) or dataclasses.is_dataclass(default):
         value = default
-        return dataclasses.field(
-            default_factory=lambda: _copy(value), metadata={"doc": doc}, **kwargs
-        )
-    return dataclasses.field(default=default, metadata={"doc": doc}, **kwargs)
+        return dataclasses.field(default_factory=lambda: _copy(value), metadata=metadata, **kwargs)
+    return dataclasses.field(default=default, metadata=metadata, **kwargs)
 
 
 def _copy(value: Any) -> Any:
@@ -186,14 +189,21 @@ def defaults_toml(cls: type, section: str = "") -> str:
     return config_toml(cls(), section)
 
 
-def config_toml(obj: Any, section: str = "") -> str:
-    """A config instance as commented TOML (what --print-config shows)."""
+def config_toml(obj: Any, section: str = "", *, redact: bool = True) -> str:
+    """A config instance as commented TOML (what --print-config shows).
+
+    ``redact`` (the default): a secret setting that is set shows as a comment
+    (loaded back, it is unset: a fresh token), and a URL's ``?token=`` is
+    removed, so the text can go to a terminal, a log or a recording. Only
+    a config written for a node to run (the demo's robot.toml) needs
+    ``redact=False``.
+    """
     lines: list[str] = []
-    _emit(obj, section, lines)
+    _emit(obj, section, lines, redact)
     return "\n".join(lines).strip() + "\n"
 
 
-def _emit(obj: Any, section: str, lines: list[str]) -> None:
+def _emit(obj: Any, section: str, lines: list[str], redact: bool) -> None:
     scalars, tables = [], []
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
@@ -205,16 +215,81 @@ def _emit(obj: Any, section: str, lines: list[str]) -> None:
         lines.append(f"\n[{section}]")
     for f, value in scalars:
         doc = f.metadata.get("doc", "")
-        rendered = _toml_value(to_dict(value))
+        if redact and f.metadata.get("secret") and value:
+            lines.append(f"# {f.name} = (set; not shown)" + (f"  # {doc}" if doc else ""))
+            continue
+        rendered = _toml_value(to_dict(value), redact)
         if rendered is None:
             lines.append(f"# {f.name} = (unset)" + (f"  # {doc}" if doc else ""))
         else:
             lines.append(f"{f.name} = {rendered}" + (f"  # {doc}" if doc else ""))
     for f, value in tables:
-        _emit(value, f"{section}.{f.name}" if section else f.name, lines)
+        _emit(value, f"{section}.{f.name}" if section else f.name, lines, redact)
 
 
-def _toml_value(v: Any) -> str | None:
+def secret_values(obj: Any) -> list[tuple[str, str]]:
+    """(dotted name, value) of every secret setting set in ``obj``, and of every URL setting
+    carrying a ``?token=`` (that value being the token)."""
+    from common.web_token import from_query
+
+    found: list[tuple[str, str]] = []
+
+    def walk(value: Any, name: str, secret: bool) -> None:
+        if dataclasses.is_dataclass(value):
+            for f in dataclasses.fields(value):
+                walk(
+                    getattr(value, f.name),
+                    f"{name}.{f.name}" if name else f.name,
+                    bool(f.metadata.get("secret")),
+                )
+        elif isinstance(value, dict):
+            for k, v in value.items():
+                walk(v, f"{name}.{k}", False)
+        elif isinstance(value, (list, tuple)):
+            for i, v in enumerate(value):
+                walk(v, f"{name}[{i}]", False)
+        elif isinstance(value, str) and value:
+            if secret:
+                found.append((name, value))
+            elif "://" in value and (token := from_query(value)):
+                found.append((name, token))
+
+    walk(obj, "", False)
+    return found
+
+
+def check_secret_file(path: str | Path, config: Any) -> None:
+    """Refuse a config file that holds a secret setting of ``config`` and that other users
+    can read; warn when its group can. (A token from the environment or a token_file is
+    not in the file, and needs nothing here.)"""
+    path = Path(path)
+    try:
+        text = path.read_text()
+        mode = path.stat().st_mode
+    except OSError:
+        return  # the loader has said why it cannot be read
+    held = [name for name, value in secret_values(config) if value in text]
+    if not held:
+        return
+    names = ", ".join(held)
+    if mode & 0o007:
+        raise ConfigError(
+            f"config file {path} holds a secret ({names}) and other users can read it "
+            f"(mode {mode & 0o777:o}): chmod 600 {path} (owned by the user the node runs as), "
+            "or move the secret out of it (a token_file, or the environment)"
+        )
+    if mode & 0o070:
+        log.warning(
+            "config file %s holds a secret (%s) and its group can read it (mode %o): "
+            "chmod 600 %s unless every member of the group may steer the robot",
+            path,
+            names,
+            mode & 0o777,
+            path,
+        )
+
+
+def _toml_value(v: Any, redact: bool = False) -> str | None:
     if v is None:
         return None
     if isinstance(v, bool):
@@ -222,9 +297,13 @@ def _toml_value(v: Any) -> str | None:
     if isinstance(v, (int, float)):
         return repr(v)
     if isinstance(v, str):
+        if redact and "://" in v and "token=" in v:
+            from common.web_token import without_token
+
+            v = without_token(v)
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(v, list):
-        return "[" + ", ".join(_toml_value(x) or '""' for x in v) + "]"
+        return "[" + ", ".join(_toml_value(x, redact) or '""' for x in v) + "]"
     if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+        return "{ " + ", ".join(f"{k} = {_toml_value(x, redact)}" for k, x in v.items()) + " }"
     return repr(v)

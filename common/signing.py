@@ -77,6 +77,29 @@ def parse_public_key(text: str, where: str = "signing key") -> bytes:
     return raw
 
 
+def write_secret_file(path: Path, text: str) -> None:
+    """``text`` into ``path``, a file that is mode 0600 from its first byte to its last.
+
+    Written to a fresh file created 0600 (``O_EXCL``: never one someone else
+    made or opened) beside ``path``, then renamed over it: an existing file
+    of a wider mode is replaced, not reused, and no other user can open the
+    secret between its creation and a later ``chmod``, whatever the umask.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{os.urandom(4).hex()}")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    try:
+        with os.fdopen(fd, "w") as f:
+            os.fchmod(f.fileno(), 0o600)  # a umask can only narrow it; this says it
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def generate_key_files(directory: Path, name: str, force: bool = False) -> tuple[Path, Path]:
     """Write ``NAME.sign`` (public, hex) and ``NAME.sign_secret`` (seed, hex, mode 0600)."""
     directory.mkdir(parents=True, exist_ok=True)
@@ -84,10 +107,7 @@ def generate_key_files(directory: Path, name: str, force: bool = False) -> tuple
     if not force and (public.exists() or secret.exists()):
         raise ConfigError(f"{public} or {secret} exists; pass --force to replace them")
     seed = os.urandom(32)
-    fd = os.open(secret, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        f.write(seed.hex() + "\n")
-    os.chmod(secret, 0o600)
+    write_secret_file(secret, seed.hex() + "\n")
     public.write_text(Signer(seed).public.hex() + "\n")
     return public, secret
 

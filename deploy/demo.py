@@ -27,11 +27,12 @@ from pathlib import Path
 from typing import Any
 
 from common.cli_support import add_overrides_argument, stop_on_signals
-from common.config import config_toml, from_dict
+from common.config import check_secret_file, config_toml, from_dict
 from common.errors import ConfigError
+from common.signing import write_secret_file
 from common.transport import free_loopback_ports
 from deploy import live_view
-from deploy.scene import Scene, load_scene_dict
+from deploy.scene import Scene, load_scene_dict, scene_path
 from deploy.supervisor import DEFAULT_RESTART_S, Child, Supervisor, unit_restart_s
 from deploy.unit_policy import set_niceness, unit_nice
 from operator_side.dashboard.config import VIDEO_OVER_LINK
@@ -52,10 +53,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--scenario", help="network scenario, overriding the scene's")
     parser.add_argument("--no-netsim", action="store_true", help="connect the nodes directly")
-    parser.add_argument(
+    link = parser.add_mutually_exclusive_group()
+    link.add_argument(
         "--curve",
         action="store_true",
-        help="encrypt and authenticate the link with fresh CURVE keys (the simulator relays it)",
+        help="encrypt and authenticate the link with CURVE keys made for this run (the "
+        "default; the simulator relays the encrypted bytes)",
+    )
+    link.add_argument(
+        "--plain",
+        action="store_true",
+        help="plain TCP between the nodes: ANY process on this machine can then steer the "
+        "arm, open the gripper and watch the camera through the robot's command port "
+        "(needed only for the simulator's message mode, which re-publishes messages)",
     )
     parser.add_argument(
         "--record", type=Path, metavar="DIR", help="record robot.mcap and operator.mcap here"
@@ -273,6 +283,7 @@ def video_args(
 def run(args: argparse.Namespace) -> int:
     data = load_scene_dict(args.scene, args.overrides)
     scene: Scene = from_dict(Scene, data, where="")
+    check_secret_file(scene_path(args.scene), scene)
     if args.scenario:
         scene.network.scenario = args.scenario
     use_netsim = scene.network.enabled and not args.no_netsim
@@ -284,7 +295,15 @@ def run(args: argparse.Namespace) -> int:
     scene.operator.link.command_endpoint = op_cmd if use_netsim else robot_cmd
     if use_netsim:
         fit_command_timing(scene)
-    if args.curve:
+    if demo_link_is_plain(args, scene, use_netsim):
+        scene.robot.link.allow_plain_commands = True
+        log.warning(
+            "--plain: the robot's command port %s%s takes commands from any process on this "
+            "machine",
+            robot_cmd,
+            f" and the link simulator's {op_cmd}" if use_netsim else "",
+        )
+    else:
         _use_fresh_curve_keys(scene, workdir / "keys")
     children = Supervisor()
     world = start_lab_world(scene, workdir)
@@ -315,7 +334,7 @@ def run(args: argparse.Namespace) -> int:
             )
         )
     robot_cfg = workdir / "robot.toml"
-    robot_cfg.write_text(config_toml(scene.robot, "robot"))
+    robot_cfg.write_text(config_toml(scene.robot, "robot", redact=False))  # in our 0700 dir
     errors: list[str] = []
     stop = stop_on_signals()
     robot_stats_path = workdir / "robot-stats.json"
@@ -393,8 +412,11 @@ def run(args: argparse.Namespace) -> int:
             scene.operator.dashboard.enabled = True
             dashboard = Dashboard(node, scene.operator.dashboard)
             dashboard.start()
-            dashboard_line = f"dashboard {dashboard.url}\n"
-            print(dashboard_line, end="", file=sys.stderr, flush=True)
+            url_file = workdir / "dashboard.url"  # the address with its token, 0600 in a 0700 dir
+            write_secret_file(url_file, dashboard.url + "\n")
+            # the token once, at start (scripts read this line); never again after it
+            print(f"dashboard {dashboard.url}", file=sys.stderr, flush=True)
+            dashboard_line = live_view.dashboard_line(dashboard.url, url_file)
         with keyboard:
             while not stop.is_set():
                 elapsed = time.monotonic() - t0
@@ -442,11 +464,41 @@ def _configured(scenario_name: str) -> dict[str, Any]:
     return out
 
 
+def demo_link_is_plain(args: argparse.Namespace, scene: Scene, use_netsim: bool) -> bool:
+    """Whether the nodes talk plain TCP: only when asked with ``--plain``.
+
+    By default the link is CURVE with keys made for the run, on loopback
+    too: a plain loopback port takes commands from any local process (another
+    user, a script, a browser extension's helper), and the page's token would
+    not protect the arm. The link simulator's message mode re-publishes
+    messages, so CURVE cannot pass it; that mode needs ``--plain``, said here
+    rather than as a link that never comes up.
+    """
+    if args.plain:
+        return True
+    if use_netsim:
+        from common.netsim.scenario import load_scenario
+
+        mode = scene.network.mode or load_scenario(scene.network.scenario).mode
+        if mode == "message":
+            raise ConfigError(
+                f"the link simulator's message mode (scenario {scene.network.scenario!r}, "
+                "network.mode) re-publishes messages and cannot carry the demo's CURVE link: "
+                "use network.mode = 'stream', or pass --plain (then any process on this "
+                "machine can steer the arm)"
+            )
+    return False
+
+
 def _use_fresh_curve_keys(scene: Scene, directory: Path) -> None:
-    """Keys for this run only: the robot allows just this operator's key."""
+    """Keys for this run only, in a directory only we can open: the robot allows just this
+    operator's key, so a local process without it completes no handshake and commands nothing.
+    """
     from common.security import SecurityConfig
     from deploy.keys_cli import allow, generate
 
+    directory.mkdir(mode=0o700)
+    directory.chmod(0o700)  # mkdir's mode passes through the umask
     robot_pub, robot_sec = generate(directory / "robot", "robot")
     op_pub, op_sec = generate(directory / "operator", "operator")
     authorized = directory / "authorized"

@@ -19,7 +19,7 @@ never leave the machine they were made on (they are written mode 0600).
 from __future__ import annotations
 
 import argparse
-import os
+import datetime
 import shutil
 from pathlib import Path
 
@@ -73,13 +73,46 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def generate(directory: Path, name: str, force: bool = False) -> tuple[Path, Path]:
+    """``NAME.key`` and ``NAME.key_secret`` (pyzmq's certificate format); the secret 0600.
+
+    Not ``zmq.auth.create_certificates``: it writes the secret under the
+    process umask (often 0644) and leaves a chmod to the caller, a window in
+    which another user can open it. Here it is never on disk in another mode.
+    """
+    from common.signing import write_secret_file
+
     directory.mkdir(parents=True, exist_ok=True)
     public, secret = directory / f"{name}.key", directory / f"{name}.key_secret"
     if not force and (public.exists() or secret.exists()):
         raise ConfigError(f"{public} or {secret} exists; pass --force to replace the pair")
-    made_public, made_secret = zmq.auth.create_certificates(str(directory), name)
-    os.chmod(made_secret, 0o600)
-    return Path(made_public), Path(made_secret)
+    public_key, secret_key = zmq.curve_keypair()
+    made = datetime.datetime.now()
+    write_secret_file(
+        secret,
+        _certificate(_SECRET_BANNER.format(made), public_key, secret_key),
+    )
+    public.write_text(_certificate(_PUBLIC_BANNER.format(made), public_key))
+    return public, secret
+
+
+_PUBLIC_BANNER = """#   ****  Generated on {0} by deepxpalm keys  ****
+#   ZeroMQ CURVE Public Certificate
+#   Copy it to the machines that must know this key.
+
+"""
+_SECRET_BANNER = """#   ****  Generated on {0} by deepxpalm keys  ****
+#   ZeroMQ CURVE **Secret** Certificate
+#   DO NOT PROVIDE THIS FILE TO OTHER USERS nor change its permissions.
+
+"""
+
+
+def _certificate(banner: str, public_key: bytes, secret_key: bytes | None = None) -> str:
+    """A certificate file as pyzmq writes it (``zmq.auth.load_certificate`` reads it)."""
+    text = banner + "metadata\ncurve\n" + f'    public-key = "{public_key.decode()}"\n'
+    if secret_key is not None:
+        text += f'    secret-key = "{secret_key.decode()}"\n'
+    return text
 
 
 def allow(public_key: Path, authorized: Path) -> Path:

@@ -167,3 +167,12 @@ class Keyboard:
             elif key == "g":
                 out.append(("arm_resume", {}))
         return out
+
+
+def dashboard_line(url: str, url_file: object) -> str:
+    """The dashboard's line under every frame: its address without the token (the frames
+    go wherever the terminal's output goes: a screen share, a log of the session), and the
+    0600 file holding the address with it."""
+    from common.web_token import without_token
+
+    return f"dashboard {without_token(url)}  (with its token: {url_file})\n"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import threading
 from typing import Any
@@ -85,8 +86,26 @@ def _dashboard(node: Any, config: OperatorConfig) -> Any:
 
     dashboard = Dashboard(node, config.dashboard)
     dashboard.start()
-    print(f"dashboard: {dashboard.url}", flush=True)
+    from operator_side.dashboard.config import TOKEN_ENV
+
+    if _stdout_is_journal() and (config.dashboard.token or os.environ.get(TOKEN_ENV)):
+        # a token set by whoever may open the page: they have it, the journal need not
+        where = "dashboard.token" if config.dashboard.token else f"${TOKEN_ENV}"
+        print(f"dashboard: {dashboard.server.base_url} (token: {where})", flush=True)
+    else:
+        # printed once (the only place a fresh token is shown); no log line carries it
+        print(f"dashboard: {dashboard.url}", flush=True)
     return dashboard
+
+
+def _stdout_is_journal() -> bool:
+    """Whether stdout is systemd's journal (``$JOURNAL_STREAM`` names its device:inode)."""
+    stream = os.environ.get("JOURNAL_STREAM", "")
+    try:
+        st = os.fstat(sys.stdout.fileno())
+    except (OSError, ValueError):
+        return False
+    return stream == f"{st.st_dev}:{st.st_ino}"
 
 
 def run(args: argparse.Namespace) -> int:

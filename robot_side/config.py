@@ -109,6 +109,12 @@ class RobotLinkConfig:
         "with mode relay, run without signing_key_file: anyone who can inject into the relay "
         "(a compromised relay host) can then make operators' palms feel what did not happen",
     )
+    allow_plain_commands: bool = param(
+        False,
+        "bound with security.mode = 'plain' and no roster_file: take commands from any "
+        "process that reaches the command port (on loopback: every user and program on this "
+        "PC) although an arm, gripper or camera is configured; false = refuse to start so",
+    )
     video_url: str = param(
         "",
         "the video server on this PC (deepxpalm video, e.g. ws://127.0.0.1:8890/): viewers' "

@@ -15,7 +15,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _build(config: RobotConfig, recorder: Any) -> Any:
     from robot_side.node import build_robot_node  # not for --help: it loads the devices
+    from robot_side.node.link_setup import check_command_access
 
+    check_command_access(config)  # before any device is opened
     node = build_robot_node(config, recorder=recorder)
     if recorder is not None:  # arm and gripper state at each heartbeat, for datasets
         from robot_side.device_recording import DeviceStateRecorder

@@ -26,9 +26,12 @@ class DashboardConfig:
     port: int = param(8765, "HTTP and WebSocket port (one port, so one tunnel suffices)")
     token: str = param(
         "",
-        "the secret every request of the page must carry (the printed URL's ?token=, then a "
-        f"cookie); empty: ${TOKEN_ENV}, else a fresh random one each run. Any local process "
-        "could otherwise steer the arm",
+        "the secret the page's WebSocket (and a script's Authorization: Bearer) must prove; "
+        f"the page takes it from the printed URL's ?token= and keeps it per tab; empty: "
+        f"${TOKEN_ENV}, else a fresh random one each run. Any local process could otherwise "
+        "steer the arm. Never shown again after start-up; a config file holding it must not "
+        "be readable by other users",
+        secret=True,
     )
     allowed_hosts: list[str] = param(
         [],

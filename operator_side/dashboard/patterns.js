@@ -1,5 +1,6 @@
-// Drawing shared by the dashboard and the perception study's answer page:
-// the colour scale of the tactile heatmaps and the picture of a pattern.
+// Shared by the dashboard and the perception study's answer page: the colour
+// scale of the tactile heatmaps, the picture of a pattern, and the page's
+// socket to its node (with the run's token, see openSocket).
 "use strict";
 
 const DXP = (() => {
@@ -78,33 +79,102 @@ const DXP = (() => {
     ctx.restore();
   }
 
+  // The run's token: from the printed URL (?token=, or #token=) the first
+  // time, then from this tab's sessionStorage (per origin, port included, and
+  // per tab; no cookie, which the browser would send to every port of the
+  // host). It leaves the address bar and the history at once, and a reload
+  // finds it in the tab's storage.
+  const TOKEN_KEY = "dxp-token";
+  function takeToken() {
+    const params = new URLSearchParams(location.search);
+    let token = params.get("token");
+    if (!token && location.hash.startsWith("#token=")) {
+      token = decodeURIComponent(location.hash.slice("#token=".length));
+    }
+    if (token) {
+      try {
+        sessionStorage.setItem(TOKEN_KEY, token);
+      } catch (e) {
+        // storage refused (a private window's quota): the token lives in this page only
+      }
+      params.delete("token");
+      const query = params.toString();
+      history.replaceState(null, "", location.pathname + (query ? "?" + query : ""));
+      return token;
+    }
+    try {
+      return sessionStorage.getItem(TOKEN_KEY);
+    } catch (e) {
+      return null;
+    }
+  }
+  const pageToken = takeToken(); // at once, before anything else can read the address
+
+  // The answer to the server's challenge: HMAC-SHA256(token, context + nonce),
+  // so the token itself never goes on the socket (a process squatting the
+  // port while the node restarts learns nothing from our reconnects). A page
+  // opened over plain HTTP under a non-loopback name has no WebCrypto; it
+  // sends the token, as its URL already did.
+  async function answerChallenge(nonce) {
+    if (!(window.crypto && crypto.subtle)) return { type: "auth", token: pageToken };
+    const enc = new TextEncoder();
+    const key = await crypto.subtle.importKey(
+      "raw", enc.encode(pageToken), { name: "HMAC", hash: "SHA-256" }, false, ["sign"],
+    );
+    const mac = await crypto.subtle.sign("HMAC", key, enc.encode("deepxpalm-page:" + nonce));
+    const hex = Array.from(new Uint8Array(mac), (b) => b.toString(16).padStart(2, "0")).join("");
+    return { type: "auth", mac: hex };
+  }
+
   // A WebSocket to the node that served this page, reopened with a growing
   // back-off; the #conn element says whether it is up. Returns a sender.
   function openSocket(state, liveText, onMessage) {
     const scheme = location.protocol === "https:" ? "wss://" : "ws://";
     const conn = document.getElementById("conn");
     let ws = null;
+    let proven = false;
     let retryMs = 250;
     function connect() {
-      ws = new WebSocket(scheme + location.host + "/ws");
+      if (!pageToken) {
+        conn.textContent = "no token: open the URL printed when the node started";
+        conn.className = "conn";
+        return;
+      }
+      proven = false;
+      ws = new WebSocket(scheme + location.host + "/ws", ["deepxpalm.challenge"]);
       ws.onopen = () => {
-        state.connected = true;
         retryMs = 250;
-        conn.textContent = liveText;
-        conn.className = "conn live";
       };
-      ws.onclose = () => {
+      ws.onclose = (ev) => {
         state.connected = false;
-        conn.textContent = "reconnecting…";
+        proven = false;
+        conn.textContent =
+          ev.code === 4401 ? "token refused: open the URL printed at start" : "reconnecting…";
         conn.className = "conn";
         setTimeout(connect, retryMs);
         retryMs = Math.min(retryMs * 2, 4000);
       };
-      ws.onmessage = (ev) => onMessage(JSON.parse(ev.data));
+      ws.onmessage = (ev) => {
+        const msg = JSON.parse(ev.data);
+        if (!proven) {
+          if (msg.type !== "auth_challenge") return;
+          const socket = ws;
+          answerChallenge(String(msg.nonce)).then((reply) => {
+            if (socket !== ws || socket.readyState !== WebSocket.OPEN) return;
+            socket.send(JSON.stringify(reply));
+            proven = true;
+            state.connected = true;
+            conn.textContent = liveText;
+            conn.className = "conn live";
+          });
+          return;
+        }
+        onMessage(msg);
+      };
     }
     connect();
     return {
-      isOpen: () => ws !== null && ws.readyState === WebSocket.OPEN,
+      isOpen: () => ws !== null && proven && ws.readyState === WebSocket.OPEN,
       send: (msg) => ws.send(JSON.stringify(msg)),
     };
   }

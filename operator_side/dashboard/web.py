@@ -7,17 +7,21 @@ browser, and a slow browser never holds up anything but its own updates.
 
 Pages come only from files in the package (no CDN, nothing external), and a
 Content-Security-Policy header tells the browser to load nothing from
-anywhere else either. Every request, the WebSocket's too, must carry the
-run's token and name an allowed host (``page_auth.py``); ``url`` is the
-address to open, with the token in it.
+anywhere else either. Every request must name an allowed host, and the
+WebSocket must prove the run's token, in its request (scripts) or by the
+page's answer to a challenge before anything else is sent or read
+(``page_auth.py``); ``url`` is the address to open, with the token in it.
 """
 
 from __future__ import annotations
 
 import asyncio
 import http
+import json
 import logging
+import secrets
 import threading
+import weakref
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from importlib import resources
@@ -30,7 +34,7 @@ from websockets.http11 import Request, Response
 
 from common import web_token
 from common.errors import ConfigError
-from operator_side.dashboard.page_auth import PageAuth, Refusal
+from operator_side.dashboard.page_auth import CHALLENGE_PROTOCOL, PageAuth, Refusal
 
 log = logging.getLogger(__name__)
 # websockets logs every HTTP request at INFO; a page load is five of them.
@@ -53,6 +57,10 @@ CSP = (
 # A client whose unsent data passes this is skipped until it catches up:
 # the newest state matters, a backlog of old ones does not.
 MAX_BUFFERED_BYTES = 256 * 1024
+#: a page's socket must answer the token challenge within this, or it is closed
+AUTH_TIMEOUT_S = 5.0
+#: the close code of a socket that did not prove the token (the page says so)
+CLOSE_UNAUTHORIZED = 4401
 
 
 @dataclass(frozen=True)
@@ -112,6 +120,9 @@ class WebServer:
         self._started = threading.Event()
         self._stop: asyncio.Event | None = None
         self._error: BaseException | None = None
+        #: sockets whose request carried the token (scripts): no challenge
+        self._proven: weakref.WeakSet[ServerConnection] = weakref.WeakSet()
+        self.auth_refused = 0  # sockets closed for a missing or wrong answer to the challenge
 
     @property
     def base_url(self) -> str:
@@ -182,6 +193,7 @@ class WebServer:
             self.host,
             self.port,
             process_request=self._process_request,
+            select_subprotocol=_select_subprotocol,
             compression=None,  # small JSON at up to 60 Hz: deflate costs more CPU than it saves
             max_size=64 * 1024,  # pages send only tiny commands
             ping_interval=10,
@@ -205,11 +217,31 @@ class WebServer:
                     await conn.close(1001, "server stopping")
 
     async def _serve_ws(self, conn: ServerConnection) -> None:
+        if conn not in self._proven and not await self._challenge(conn):
+            self.auth_refused += 1
+            await conn.close(CLOSE_UNAUTHORIZED, "the page's token is needed")
+            return
         self.connections.add(conn)
         try:
             await self.handler(conn)
         finally:
             self.connections.discard(conn)
+
+    async def _challenge(self, conn: ServerConnection) -> bool:
+        """The page proves the token without sending it: a fresh nonce, its HMAC back."""
+        nonce = secrets.token_hex(16)
+        try:
+            await conn.send(json.dumps({"type": "auth_challenge", "nonce": nonce}))
+            raw = await asyncio.wait_for(conn.recv(), AUTH_TIMEOUT_S)
+            reply = json.loads(raw)
+        except (TimeoutError, ValueError, TypeError, RecursionError):
+            reply = None
+        except Exception:  # the peer went away: nothing to prove, nothing to serve
+            return False
+        if self.auth.answers(nonce, reply):
+            return True
+        log.info("%s: closed a socket that did not prove the token", self.name)
+        return False
 
     def _process_request(self, conn: ServerConnection, request: Request) -> Response | None:
         path = urlsplit(request.path).path
@@ -222,6 +254,8 @@ class WebServer:
         if refusal is not None:
             return _refusal(refusal)
         if path == self.ws_path:
+            if self.auth.proven(request.path, headers):
+                self._proven.add(conn)
             return None
         static = self.files.get(path)
         if static is None:
@@ -241,7 +275,13 @@ class WebServer:
         return True
 
 
-AUTH_HEADERS = ("Host", "Origin", "Cookie", "Authorization")
+AUTH_HEADERS = ("Host", "Origin", "Authorization", "Sec-WebSocket-Protocol")
+
+
+def _select_subprotocol(conn: ServerConnection, offered: Any) -> Any:
+    """The challenge's subprotocol when the page offers it (the browser requires an answer
+    naming one it offered); none otherwise."""
+    return CHALLENGE_PROTOCOL if CHALLENGE_PROTOCOL in offered else None
 
 
 def _single_headers(headers: Headers) -> dict[str, str] | None:

@@ -17,7 +17,7 @@ from common.errors import ConfigError
 from common.messages import Command, Heartbeat, VideoSignal
 from common.security import Authenticator, check_endpoint, client_options, server_options
 from common.transport import Publisher, Subscriber
-from robot_side.config import RobotLinkConfig
+from robot_side.config import RobotConfig, RobotLinkConfig
 
 if TYPE_CHECKING:  # cryptography only when signing
     from common.signing import Signer
@@ -53,6 +53,44 @@ def stream_signer(link: RobotLinkConfig) -> Signer | None:
     from common.signing import load_signer  # cryptography only when signing
 
     return load_signer(link.signing_key_file)
+
+
+def check_command_access(config: RobotConfig) -> None:
+    """Refuse a bound, plain, unsigned command port in front of an arm, gripper or camera.
+
+    Plain TCP is allowed on loopback, but a loopback port is open to every
+    user and program on the PC: without CURVE (its allowlist) or a roster
+    (signed commands) any of them could jog the arm, open the gripper,
+    resume a latched stop or be sent the camera. ``deepxpalm robot`` checks
+    this before any device is opened; ``link.allow_plain_commands`` says the
+    risk is taken.
+    """
+    link = config.link
+    if link.mode != "bind" or link.security.mode == "curve" or link.roster_file is not None:
+        return
+    actuators = [
+        name
+        for name, section in (("arm", config.arm), ("gripper", config.gripper))
+        if section.get("kind", "none") != "none"
+    ]
+    if link.video_url:
+        actuators.append("camera (link.video_url)")
+    if not actuators:
+        return
+    if link.allow_plain_commands:
+        log.warning(
+            "link.allow_plain_commands: any process that reaches %s commands the %s",
+            link.command_endpoint,
+            " and ".join(actuators),
+        )
+        return
+    raise ConfigError(
+        f"robot link.command_endpoint {link.command_endpoint} is plain TCP with no roster: "
+        f"any process that reaches it (on loopback, every user of this PC) could command the "
+        f"{' and '.join(actuators)}. Set link.security.mode = 'curve' with keys from "
+        "`deepxpalm keys` (or link.roster_file, for signed commands), or "
+        "link.allow_plain_commands = true to take that risk"
+    )
 
 
 def open_link(

@@ -347,8 +347,10 @@ def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station
             )
             assert not opened and moved < 1e-4, (opened, moved)
 
-            # the control: the same script from the page's own origin does move the arm
+            # the control: the same script, same token, from the page's own origin moves it
             browser.navigate(dashboard.url)
             browser.wait_for("dxp.state.arm && dxp.state.arm.available", 20)
-            opened, moved = jog_from_page(browser, arm, f"ws://127.0.0.1:{port}/ws")
+            opened, moved = jog_from_page(
+                browser, arm, with_token(f"ws://127.0.0.1:{port}/ws", token)
+            )
             assert opened and moved > 0.01, (opened, moved)

@@ -15,14 +15,15 @@ import socket
 
 import pytest
 from test_dashboard_server import FakeNode, _next
-from websockets.exceptions import InvalidStatus
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from common.errors import ConfigError
 from common.web_token import from_query, with_token
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.dashboard.config import TOKEN_ENV
-from operator_side.dashboard.page_auth import PageAuth
+from operator_side.dashboard.page_auth import CHALLENGE_PROTOCOL, PageAuth, challenge_mac
+from operator_side.dashboard.web import AUTH_TIMEOUT_S, CLOSE_UNAUTHORIZED
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -56,42 +57,76 @@ def refused(url: str, status: int, **kw) -> None:
     assert e.value.response.status_code == status
 
 
-def test_without_the_token_nothing_is_served_and_no_command_gets_through(dashboard):
+def challenged(url: str, reply: object | None, **kw) -> tuple[int, list[dict]]:
+    """A page's socket answering the server's challenge with ``reply`` (None: nothing): the
+    close code it got and every message it was sent besides the challenge."""
+    with connect(url, subprotocols=[CHALLENGE_PROTOCOL], open_timeout=2, **kw) as ws:
+        challenge = json.loads(ws.recv(timeout=2))
+        assert challenge["type"] == "auth_challenge" and len(challenge["nonce"]) >= 32
+        if reply is not None:
+            ws.send(json.dumps(reply(challenge["nonce"]) if callable(reply) else reply))
+        ws.send(CLOSE)  # a command before (or instead of) a right answer
+        got = []
+        with pytest.raises(ConnectionClosed) as e:
+            while True:
+                got.append(json.loads(ws.recv(timeout=AUTH_TIMEOUT_S + 2)))
+    return e.value.rcvd.code, got
+
+
+def test_without_the_token_no_socket_opens_and_no_command_gets_through(dashboard):
     node, d = dashboard
     token = d.server.auth.token
     bare_ws = f"ws://127.0.0.1:{d.server.port}/ws"
-    for target in ("/", "/index.html", "/app.js", "/ws", "/missing", "/?token=guess"):
+    # a wrong token, for a file or the socket: 401
+    for target in ("/?token=guess", "/app.js?token=guess", "/ws?token=guess"):
         assert get(d, target).status == 401, target
-    assert get(d, "/", Cookie=f"dxp-page-{d.server.port}=guess").status == 401
     assert get(d, "/", Authorization="Bearer guess").status == 401
-    # a cookie of another port (the study page) is not this page's
-    assert get(d, "/", Cookie=f"dxp-page-{d.server.port + 1}={token}").status == 401
+    # a socket with no token and no challenge: 401 before the upgrade
     refused(bare_ws, 401)
     refused(with_token(bare_ws, "x" * 32), 401)
     refused(bare_ws, 401, additional_headers={"Authorization": "Bearer guess"})
-    # with the token the same client is served: the refusals above were the token's
+    # the challenge answered wrongly, with the token of another run, or not at all: closed
+    wrong = {"type": "auth", "mac": challenge_mac("x" * 32, "0" * 32)}
+    for reply in (
+        wrong,
+        lambda nonce: {"type": "auth", "mac": challenge_mac("another-run-token-0123", nonce)},
+        {"type": "auth", "token": "guess"},
+        None,
+    ):
+        code, got = challenged(bare_ws, reply)
+        assert code == CLOSE_UNAUTHORIZED and got == [], (reply, got)
+    assert node.commands == []
+    # with the token the same clients are served: the refusals above were the token's
     assert get(d, "/app.js", Authorization=f"Bearer {token}").status == 200
     with connect(d.ws_url) as ws:
         assert _next(ws, "hello")
         ws.send(CLOSE)
         assert _next(ws, "ack")["ok"] is True
-    assert node.commands == [("gripper_close", 31)]
-
-
-def test_the_printed_url_sets_a_cookie_that_a_reload_and_a_second_tab_use(dashboard):
-    _, d = dashboard
-    first = get(d, "/" + d.url.split("/", 3)[3])
-    assert first.status == 303
-    assert first.getheader("Location") == "/"  # the token leaves the address bar
-    cookie = first.getheader("Set-Cookie")
-    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and "Path=/" in cookie
-    assert first.getheader("Referrer-Policy") == "no-referrer"
-    pair = cookie.split(";")[0]
-    assert pair == f"dxp-page-{d.server.port}={d.server.auth.token}"
-    for target in ("/", "/app.js", "/style.css"):  # a reload, a second tab: the cookie suffices
-        assert get(d, target, Cookie=pair).status == 200
-    with connect(f"ws://127.0.0.1:{d.server.port}/ws", additional_headers={"Cookie": pair}) as ws:
+    with connect(bare_ws, subprotocols=[CHALLENGE_PROTOCOL]) as ws:
+        nonce = json.loads(ws.recv(timeout=2))["nonce"]
+        ws.send(json.dumps({"type": "auth", "mac": challenge_mac(token, nonce)}))
         assert _next(ws, "hello")
+        ws.send(CLOSE)
+        assert _next(ws, "ack")["ok"] is True
+    assert node.commands == [("gripper_close", 31)] * 2
+
+
+def test_the_page_is_served_without_a_cookie_and_its_files_carry_nothing_of_the_run(dashboard):
+    _, d = dashboard
+    token = d.server.auth.token
+    first = get(d, "/" + d.url.split("/", 3)[3])  # the printed URL
+    assert first.status == 200
+    assert first.getheader("Set-Cookie") is None  # no cookie: it would reach every port
+    assert first.getheader("Referrer-Policy") == "no-referrer"
+    # a reload (the token gone from the address bar): the page's own files, none holding it
+    for target in ("/", "/app.js", "/patterns.js", "/style.css"):
+        conn = http.client.HTTPConnection("127.0.0.1", d.server.port, timeout=2)
+        conn.request("GET", target)
+        response = conn.getresponse()
+        body = response.read()
+        conn.close()
+        assert response.status == 200 and response.getheader("Set-Cookie") is None, target
+        assert token.encode() not in body, target
 
 
 def test_a_request_under_a_rebinding_name_is_refused_even_with_the_token(dashboard):
