@@ -84,6 +84,10 @@ _MAX_FRAME = MAX_MESSAGE_BYTES + 1 + MAX_NAME_LEN
 #: larger frame closes the sender's connection in libzmq before it is stored; a smaller one
 #: that is not a subscription is read, counted, logged with its key and dropped.
 _MAX_SUBSCRIBER_FRAME = 64 * 1024
+#: a longer subscription prefix is not applied nor forwarded: no message of the protocol
+#: needs one, and a robot's socket refuses (and then never reconnects) a subscription over
+#: its own message size limit
+_MAX_PREFIX = 256
 #: the connection number the relay's ZAP handler gives each handshake (a ZAP metadata property)
 CONN_PROPERTY = "X-Conn"
 
@@ -392,7 +396,11 @@ class _Path:
         self.subscriptions.seen(peer)
         prefix = data[1:]
         if data[0] == 1:
-            if peer.conn is not None:  # libzmq sends no subscription for a closed connection
+            if len(prefix) > _MAX_PREFIX:
+                self.counters["subscriptions_refused_length"] += 1
+                self._junk(f"{peer.text()} asked for a {len(prefix)}-byte prefix (at most "
+                           f"{_MAX_PREFIX}): not forwarded to the publishers")  # fmt: skip
+            elif peer.conn is not None:  # libzmq sends no subscription for a closed connection
                 self._subscribe(peer, prefix)
         elif peer.conn is None:
             self._closed(prefix)
