@@ -105,6 +105,7 @@ class ConnectionWatch:
         self._ended_ns: int | None = None
         self._ended_how = ""
         self.wait_s = wait_s  # before reopening: grows while reopened sockets fail too
+        self.closed = False  # the socket's owner closed it: nothing to watch any more
 
     def poll(self, now: int) -> bool:
         from zmq.utils.monitor import recv_monitor_message
@@ -156,7 +157,7 @@ class _Reconnecting:
     def check_link(self, now: int | None = None) -> bool:
         """Open the socket again if libzmq gave up on its connection; True if it did."""
         watch = self.watch
-        if watch is None or not watch.poll(now_ns() if now is None else now):
+        if watch is None or watch.closed or not watch.poll(now_ns() if now is None else now):
             return False
         log.warning(
             "%s link to %s %s and libzmq will not reconnect (a protocol error: an oversized "
@@ -187,9 +188,8 @@ class _Reconnecting:
 
     def health(self) -> dict[str, float]:
         """``link_NAME_up`` (1/0) and ``link_NAME_reopened``: what a heartbeat carries."""
-        if self.watch is None:
+        if self.watch is None:  # read only: also asked after close (a node's last stats)
             return {}
-        self.check_link()
         return {
             f"link_{self.link_name}_up": float(self.watch.up),
             f"link_{self.link_name}_reopened": float(self.watch.reopens),
@@ -198,6 +198,7 @@ class _Reconnecting:
     def close(self) -> None:
         if self.watch is not None:
             self.watch.close(self.sock)
+            self.watch.closed = True
         self.sock.close(0)
 
 
