@@ -5,11 +5,18 @@ caller keeps the newest message of each kind, so a backlog never turns into
 lag. Every socket has LINGER 0 (closing never blocks), a maximum message size
 (oversized frames are dropped by ZeroMQ before they are read) and bounded
 queues. Decoding errors are counted by class and logged once per burst.
+
+A connecting socket may watch its connection (``reconnect=True``): libzmq
+never reconnects after a protocol error (an oversized or malformed frame from
+the peer, a handshake in a language it does not speak), so such a socket is
+closed and opened again by the next call that touches it, within a fraction
+of a second, and says so in ``link_health``.
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import math
 from collections import Counter
@@ -63,7 +70,148 @@ def last_endpoint(sock: zmq.Socket) -> str:
     return sock.getsockopt(zmq.LAST_ENDPOINT).decode()
 
 
-class Publisher:
+_WATCHED_EVENTS = (
+    zmq.EVENT_CONNECTED
+    | zmq.EVENT_CONNECT_DELAYED
+    | zmq.EVENT_CONNECT_RETRIED
+    | zmq.EVENT_DISCONNECTED
+    | zmq.EVENT_HANDSHAKE_SUCCEEDED
+    | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+    | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+    | zmq.EVENT_HANDSHAKE_FAILED_AUTH
+)
+#: libzmq retries at once after an ordinary disconnect (CONNECT_RETRIED); without that word
+#: for this long after a disconnect or a failed handshake, it has given up on the connection
+RECONNECT_GRACE_S = 0.25
+#: the wait before opening again doubles while the new socket fails too, up to this
+RECONNECT_MAX_S = 0.5
+
+
+class ConnectionWatch:
+    """A connecting socket's connection as its monitor tells it, and whether libzmq gave up.
+
+    ``poll`` reads the queued events without waiting; it answers True when the
+    connection ended (disconnect or failed handshake) and libzmq has not
+    announced a retry within the grace time: the caller then opens the socket
+    again. A live or retrying connection is left alone.
+    """
+
+    def __init__(self, sock: zmq.Socket, what: str, reopens: int = 0, wait_s: float = 0.0):
+        self.what = what
+        self.monitor = sock.get_monitor_socket(_WATCHED_EVENTS)
+        self.up = False
+        self.reopens = reopens
+        #: when libzmq stopped trying (a disconnect or failed handshake not followed by a retry)
+        self._ended_ns: int | None = None
+        self._ended_how = ""
+        self.wait_s = wait_s  # before reopening: grows while reopened sockets fail too
+        self.closed = False  # the socket's owner closed it: nothing to watch any more
+
+    def poll(self, now: int) -> bool:
+        from zmq.utils.monitor import recv_monitor_message
+
+        mon = self.monitor
+        while mon.get(_EVENTS) & _POLLIN:
+            try:
+                event = recv_monitor_message(mon, _NOBLOCK)["event"]
+            except zmq.Again:
+                break
+            if event == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                self.up, self._ended_ns, self.wait_s = True, None, 0.0
+            elif event in (zmq.EVENT_CONNECT_RETRIED, zmq.EVENT_CONNECT_DELAYED):
+                self._ended_ns = None  # libzmq carries on by itself
+            elif event != zmq.EVENT_CONNECTED:  # a disconnect, or a handshake that failed
+                self.up = False
+                self._ended_ns = now
+                self._ended_how = "closed" if event == zmq.EVENT_DISCONNECTED else "refused"
+        if self._ended_ns is None:
+            return False
+        return now - self._ended_ns >= (RECONNECT_GRACE_S + self.wait_s) * 1e9
+
+    def close(self, sock: zmq.Socket) -> None:
+        with contextlib.suppress(zmq.ZMQError):  # already closed
+            sock.disable_monitor()
+        self.monitor.close(0)
+
+
+class _Reconnecting:
+    """What ``Publisher`` and ``Subscriber`` share: a socket that can be opened again."""
+
+    sock: zmq.Socket
+    watch: ConnectionWatch | None
+    link_name: str
+
+    def _setup(
+        self,
+        ctx: zmq.Context,
+        kind: int,
+        endpoint: str,
+        bind: bool,
+        opts: dict[int, Any],
+        reconnect: bool,
+    ) -> None:
+        self._args = (ctx, kind, endpoint, bind, opts)
+        self.sock = _open(*self._args)
+        self.watch = ConnectionWatch(self.sock, self.link_name) if reconnect and not bind else None
+
+    def check_link(self, now: int | None = None) -> bool:
+        """Open the socket again if libzmq gave up on its connection; True if it did."""
+        watch = self.watch
+        if watch is None or watch.closed or not watch.poll(now_ns() if now is None else now):
+            return False
+        log.warning(
+            "%s link to %s %s and libzmq will not reconnect (a protocol error: an oversized "
+            "or malformed frame, or a handshake that failed); opening the socket again",
+            self.link_name,
+            self._args[2],
+            watch._ended_how,
+        )
+        old = self.sock
+        watch.close(old)
+        self._before_reopen(old)
+        old.close(0)
+        self.sock = _open(*self._args)
+        self.watch = ConnectionWatch(
+            self.sock,
+            self.link_name,
+            watch.reopens + 1,
+            min(RECONNECT_MAX_S, 2 * watch.wait_s + RECONNECT_GRACE_S),
+        )
+        self._after_reopen()
+        return True
+
+    def _before_reopen(self, old: zmq.Socket) -> None:
+        pass
+
+    def _after_reopen(self) -> None:
+        pass
+
+    def health(self) -> dict[str, float]:
+        """``link_NAME_up`` (1/0) and ``link_NAME_reopened``: what a heartbeat carries."""
+        if self.watch is None:  # read only: also asked after close (a node's last stats)
+            return {}
+        return {
+            f"link_{self.link_name}_up": float(self.watch.up),
+            f"link_{self.link_name}_reopened": float(self.watch.reopens),
+        }
+
+    def close(self) -> None:
+        if self.watch is not None:
+            self.watch.close(self.sock)
+            self.watch.closed = True
+        self.sock.close(0)
+
+
+def link_health(*ends: Any) -> dict[str, float]:
+    """Each watched end's state and reopen count (an end with no watch says nothing)."""
+    out: dict[str, float] = {}
+    for end in ends:
+        if isinstance(end, _Reconnecting):
+            out.update(end.health())
+    return out
+
+
+class Publisher(_Reconnecting):
     """Sends messages; a PUB never blocks, and drops for a subscriber that lags.
 
     ``name``: a robot's name, carried after every topic (docs/protocol.md) so
@@ -84,12 +232,17 @@ class Publisher:
         name: bytes = b"",
         signer: Any = None,
         watch_subscriptions: bool = False,
+        reconnect: bool = False,
+        link_name: str = "telemetry",
     ) -> None:
+        """``reconnect``: a connecting socket opened again when libzmq gives up on it
+        (``check_link``, called by ``send`` and ``read_subscriptions``)."""
         kind = zmq.XPUB if watch_subscriptions else zmq.PUB
         opts = {zmq.SNDHWM: sndhwm, **(sock_opts or {})}
         if watch_subscriptions:
             opts[zmq.MAXMSGSIZE] = 1 + MAX_MESSAGE_BYTES  # a subscription: 1 byte + a prefix
-        self.sock = _open(ctx, kind, endpoint, bind, opts)
+        self.link_name = link_name
+        self._setup(ctx, kind, endpoint, bind, opts, reconnect)
         self.endpoint = last_endpoint(self.sock) if bind else endpoint
         self.name = name
         self.signer = signer
@@ -104,8 +257,14 @@ class Publisher:
         self.send_raw(data)
         return data
 
+    def _after_reopen(self) -> None:
+        # the relay sends its subscriptions again to the new connection
+        self.subscriptions.clear()
+
     def read_subscriptions(self) -> bool:
         """Take in queued (un)subscriptions (XPUB only); True if the set changed."""
+        if self.watch is not None and self.check_link():
+            return True
         if not self.watching:
             return False
         changed = False
@@ -133,6 +292,8 @@ class Publisher:
         return any(prefix.startswith(s) for s in self.subscriptions)
 
     def send_raw(self, data: bytes) -> None:
+        if self.watch is not None:
+            self.check_link()
         try:
             self.sock.send(data, _NOBLOCK)
         except zmq.Again:  # only for exotic socket options; a PUB drops instead
@@ -140,11 +301,8 @@ class Publisher:
         self.sent += 1
         self.bytes_sent += len(data)
 
-    def close(self) -> None:
-        self.sock.close(0)
 
-
-class Subscriber:
+class Subscriber(_Reconnecting):
     """Receives and validates messages; bad ones are counted and dropped."""
 
     def __init__(
@@ -158,14 +316,20 @@ class Subscriber:
         name: str = "subscriber",
         topics: tuple[bytes, ...] = (b"",),
         expect_name: bytes | None = None,
+        reconnect: bool = False,
+        link_name: str = "commands",
     ) -> None:
         """``topics``: subscription prefixes (``codec.name_prefix``), b"" for everything.
 
         ``expect_name``: a robot name every message must carry (b"" for none);
         another is refused as ``WrongRobotError``. None accepts any.
+        ``reconnect``: a connecting socket opened again when libzmq gives up on
+        it (``check_link``, called by ``ready``/``poll``).
         """
         opts = {zmq.RCVHWM: rcvhwm, zmq.MAXMSGSIZE: MAX_MESSAGE_BYTES, **(sock_opts or {})}
-        self.sock = _open(ctx, zmq.SUB, endpoint, bind, opts)
+        self.link_name = link_name
+        self.topics = topics
+        self._setup(ctx, zmq.SUB, endpoint, bind, opts, reconnect)
         for topic in topics:
             self.sock.setsockopt(zmq.SUBSCRIBE, topic)
         self.expect_name = expect_name
@@ -187,7 +351,17 @@ class Subscriber:
         the last millisecond before every deadline became a busy loop of
         zero-length polls (about 90 turns per deadline, 3 % of a core at 60 Hz).
         """
+        if self.watch is not None:
+            self.check_link()
         return dict(self.poller.poll(math.ceil(max(0.0, timeout_s) * 1000)))
+
+    def _before_reopen(self, old: zmq.Socket) -> None:
+        self.poller.unregister(old)
+
+    def _after_reopen(self) -> None:
+        for topic in self.topics:
+            self.sock.setsockopt(zmq.SUBSCRIBE, topic)
+        self.poller.register(self.sock, zmq.POLLIN)
 
     def drain(self, max_messages: int = 1024) -> list[tuple[Message, int]]:
         """Every valid queued message with its local receive time, oldest first."""
@@ -229,9 +403,6 @@ class Subscriber:
     @property
     def rejected_total(self) -> int:
         return sum(self.rejected.values())
-
-    def close(self) -> None:
-        self.sock.close(0)
 
 
 class Sender(Protocol):

@@ -44,7 +44,15 @@ from common.messages import (
 from common.recording import NullRecorder, Recorder
 from common.security import check_endpoint, client_options
 from common.tactile import matches_pattern
-from common.transport import Link, Publisher, Receiver, Sender, Subscriber, make_context
+from common.transport import (
+    Link,
+    Publisher,
+    Receiver,
+    Sender,
+    Subscriber,
+    link_health,
+    make_context,
+)
 from operator_side.config import OperatorConfig
 from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
@@ -325,6 +333,8 @@ class OperatorNode:
             name="operator telemetry",
             topics=self._topics(),
             expect_name=self.robot_name,
+            reconnect=True,  # opened again at once if libzmq gives up (a protocol error)
+            link_name="telemetry",
         )
         self.pub = Publisher(
             self.ctx,
@@ -333,6 +343,8 @@ class OperatorNode:
             sock_opts=opts,
             name=self.robot_name,
             signer=self.signer,
+            reconnect=True,
+            link_name="commands",
         )
         self.sub.poller.register(self._wake_r, zmq.POLLIN)
         self._sockets_opened_ns = self.now()
@@ -773,6 +785,7 @@ class OperatorNode:
         for key, value in self.link.snapshot(self.now()).as_dict().items():
             if isinstance(value, (int, float)) and key != "window_s":
                 out[f"link_{key}"] = float(value)
+        out.update(link_health(self.sub, self.pub))  # each link up, and reopened after a give-up
         if self.signer is not None:
             out["lease_holder"] = float(self.is_controller)
         return out

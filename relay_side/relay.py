@@ -22,6 +22,23 @@ subscriptions back upstream:
   applied only for its own names, so it cannot read another robot's
   commands (``commands_subscriptions_refused_name``).
 
+Each subscriber connection's subscriptions are kept apart (``_Subscriptions``).
+The ZAP handler tags every handshake with a connection number, which libzmq
+attaches to every message of that connection, so the relay knows which
+connection sent each (un)subscription and what it holds. An unsubscribe for a
+prefix that connection does not hold is ignored, counted
+(``*_unsubscribes_ignored``) and logged; it never reaches another peer's
+subscriptions nor the publishers. Upstream, the telemetry path forwards the
+union: a prefix goes to the robots when its first holder asks and leaves when
+its last holder drops it or closes. The command path forwards nothing
+upstream (the relay's own catch-all already asks the operators for
+everything); a robot connection's unsubscribe only ever narrows its own
+connection. Anything else a subscriber sends (a frame that is not a
+subscription) is dropped, counted (``*_subscriber_frames_dropped``) and logged
+with its key; every socket has a message size limit, the subscribers' sides a
+small one, so a large frame closes only its sender's connection, before it is
+stored.
+
 The relay reads only the topic and name of a message (and a command's
 action); it never verifies a signature. Both paths run at tens to hundreds
 of messages a second, which a Python loop carries in microseconds each
@@ -36,6 +53,7 @@ roster, so a compromised relay can delay or drop, never command
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import logging
 import threading
@@ -62,6 +80,16 @@ ROBOTS_DOMAIN, OPERATORS_DOMAIN = "robots", "operators"
 _CMND = b"CMND"
 #: a message from a robot or operator may carry a robot name after the topic
 _MAX_FRAME = MAX_MESSAGE_BYTES + 1 + MAX_NAME_LEN
+#: what a subscriber may send: a subscription (1 byte + a prefix: topic, name and more). A
+#: larger frame closes the sender's connection in libzmq before it is stored; a smaller one
+#: that is not a subscription is read, counted, logged with its key and dropped.
+_MAX_SUBSCRIBER_FRAME = 64 * 1024
+#: a longer subscription prefix is not applied nor forwarded: no message of the protocol
+#: needs one, and a robot's socket refuses (and then never reconnects) a subscription over
+#: its own message size limit
+_MAX_PREFIX = 256
+#: the connection number the relay's ZAP handler gives each handshake (a ZAP metadata property)
+CONN_PROPERTY = "X-Conn"
 
 
 def _read_roster(path: Path) -> tuple[Roster, str]:
@@ -120,6 +148,178 @@ class KeyAllowlist:
         return False
 
 
+def _zmtp_property(name: bytes, value: bytes) -> bytes:
+    """One property as ZMTP (and a ZAP reply's metadata frame) encodes it."""
+    return bytes([len(name)]) + name + len(value).to_bytes(4, "big") + value
+
+
+def _tagging_authenticator(ctx: zmq.Context) -> Any:
+    """pyzmq's ThreadAuthenticator whose every accepted handshake carries a connection number.
+
+    libzmq attaches a ZAP reply's metadata to every message of that
+    connection; the relay reads it back (``CONN_PROPERTY``) to keep each
+    connection's subscriptions apart. Without CURVE the same handler admits
+    every NULL handshake (pyzmq's rule with no address list) and still tags it.
+    """
+    from zmq.auth.thread import ThreadAuthenticator
+
+    class TaggingAuthenticator(ThreadAuthenticator):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self.connections = itertools.count(1)
+
+        def _send_zap_reply(
+            self,
+            request_id: bytes,
+            status_code: bytes,
+            status_text: bytes,
+            user_id: str | bytes = "anonymous",
+        ) -> None:
+            if status_code != b"200":
+                super()._send_zap_reply(request_id, status_code, status_text, user_id)
+                return
+            if isinstance(user_id, str):
+                user_id = user_id.encode("utf-8", "replace")
+            conn = str(next(self.connections)).encode()
+            metadata = _zmtp_property(CONN_PROPERTY.encode(), conn)
+            self.zap_socket.send_multipart(
+                [b"1.0", request_id, status_code, status_text, user_id, metadata]
+            )
+
+    return TaggingAuthenticator(ctx, log=logging.getLogger("deepxpalm.auth"))
+
+
+class _Peer:
+    """Who sent a frame from a subscriber: its connection (None: a closed connection's
+    unsubscribe, which libzmq sends with no metadata), its socket fd and its CURVE key."""
+
+    __slots__ = ("conn", "fd", "key")
+
+    def __init__(self, frame: zmq.Frame) -> None:
+        self.conn: int | None = None
+        self.fd = -1
+        self.key = b""
+        try:
+            frame.get("Socket-Type")  # every live connection's messages carry it
+        except (zmq.ZMQError, AttributeError):
+            return
+        self.key = _sender(frame)
+        try:
+            self.fd = int(frame.get("__fd"))  # libzmq's own property (ZMQ_SRCFD)
+        except (zmq.ZMQError, ValueError, AttributeError):
+            self.fd = -1
+        try:
+            self.conn = int(frame.get(CONN_PROPERTY))
+        except (zmq.ZMQError, ValueError, AttributeError):
+            # no tag (cannot happen with the relay's ZAP handler): the fd, made unique
+            self.conn = -2 - self.fd
+
+    def text(self) -> str:
+        if self.conn is None:
+            return "a closed connection"
+        key = self.key.decode("ascii", "replace") or "(no key)"
+        return f"key {key} (connection {self.conn})"
+
+
+class _Subscriptions:
+    """Each subscriber connection's prefixes, and how many connections hold each prefix.
+
+    A connection is the relay's ZAP number for it (``_Peer.conn``). libzmq says
+    when a connection closes only through that connection's unsubscribes, with
+    no metadata; on the telemetry path (``closes_count``) those are counted
+    against each prefix (``closed``), which keeps ``count`` exact without
+    knowing which connection closed. A closed connection's record is dropped
+    when a newer connection arrives on its socket fd (one live connection per
+    fd), or when none holds the prefix any more. Records are capped; past the
+    cap a prefix is still counted but not recorded, so its holder's unsubscribe
+    is ignored and the prefix stays subscribed upstream: more traffic, never
+    less.
+    """
+
+    def __init__(self, closes_count: bool, max_per_conn: int = 256, max_total: int = 65536):
+        self.closes_count = closes_count
+        self.max_per_conn, self.max_total = max_per_conn, max_total
+        self.held: dict[int, set[bytes]] = {}
+        self.holders: dict[bytes, set[int]] = {}
+        self.count: Counter[bytes] = Counter()
+        self.fd_conn: dict[int, int] = {}
+        self.records = 0
+
+    def seen(self, peer: _Peer) -> None:
+        """A live connection's frame: a connection older on the same fd has closed."""
+        if peer.fd < 0 or peer.conn is None:
+            return
+        old = self.fd_conn.get(peer.fd)
+        if old == peer.conn:
+            return
+        if old is not None and old < peer.conn:
+            self._forget(old)
+        if old is None or old < peer.conn:
+            self.fd_conn[peer.fd] = peer.conn
+
+    def _forget(self, conn: int) -> None:
+        for prefix in self.held.pop(conn, ()):
+            self.records -= 1
+            holders = self.holders.get(prefix)
+            if holders is not None:
+                holders.discard(conn)
+                if not holders:
+                    del self.holders[prefix]
+            if not self.closes_count:  # nothing else will take it off the count
+                self._decrement(prefix)
+
+    def holds(self, conn: int, prefix: bytes) -> bool:
+        return prefix in self.held.get(conn, ())
+
+    def full(self, conn: int) -> bool:
+        return len(self.held.get(conn, ())) >= self.max_per_conn or self.records >= self.max_total
+
+    def add(self, conn: int, prefix: bytes) -> bool:
+        """``conn`` holds ``prefix`` (again: no change); True when it is the first holder."""
+        if self.holds(conn, prefix):
+            return False
+        if not self.full(conn):
+            self.held.setdefault(conn, set()).add(prefix)
+            self.holders.setdefault(prefix, set()).add(conn)
+            self.records += 1
+        self.count[prefix] += 1
+        return self.count[prefix] == 1
+
+    def remove(self, conn: int, prefix: bytes) -> bool:
+        """``conn`` (which holds it) drops ``prefix``; True when nobody holds it any more."""
+        held = self.held[conn]
+        held.discard(prefix)
+        if not held:
+            del self.held[conn]
+        self.records -= 1
+        holders = self.holders[prefix]
+        holders.discard(conn)
+        if not holders:
+            del self.holders[prefix]
+        return self._decrement(prefix)
+
+    def closed(self, prefix: bytes) -> bool:
+        """A closed connection held ``prefix``; True when nobody holds it any more."""
+        return self._decrement(prefix)
+
+    def _decrement(self, prefix: bytes) -> bool:
+        n = self.count.get(prefix, 0)
+        if n <= 0:
+            return False
+        if n > 1:
+            self.count[prefix] = n - 1
+            return False
+        del self.count[prefix]
+        for conn in self.holders.pop(prefix, ()):  # every remaining record is a closed one's
+            held = self.held.get(conn)
+            if held is not None:
+                held.discard(prefix)
+                self.records -= 1
+                if not held:
+                    del self.held[conn]
+        return True
+
+
 #: a path's loop is stuck when it has not turned for this long (its poll waits 100 ms)
 _STUCK_S = 2.0
 
@@ -133,6 +333,8 @@ class _Path:
     """
 
     what = "path"
+    #: a closed connection's unsubscribes are exactly what it held (libzmq, XPUB not manual)
+    closes_count = True
 
     def __init__(
         self,
@@ -143,6 +345,9 @@ class _Path:
         self.frontend, self.backend = frontend, backend
         self.names = names
         self.counters: Counter[str] = Counter()
+        self.subscriptions = _Subscriptions(closes_count=self.closes_count)
+        self._ignored = BurstLog(log, f"unsubscribe ignored at the relay ({self.what})")
+        self._junk = BurstLog(log, f"frame from a subscriber dropped at the relay ({self.what})")
         self.turned = time.monotonic()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"relay-{self.what}", daemon=True)
@@ -157,9 +362,9 @@ class _Path:
             while not self._stop.is_set():
                 ready = dict(poller.poll(100))
                 self.turned = time.monotonic()
-                if back in ready:  # subscriptions, upstream to the publishers
+                if back in ready:  # from the subscribers: subscriptions only
                     while back.get(zmq.EVENTS) & zmq.POLLIN:
-                        self._subscription(back.recv(zmq.NOBLOCK, copy=False))
+                        self._from_subscriber(back.recv(zmq.NOBLOCK, copy=False))
                 if front in ready:
                     for _ in range(256):
                         if not front.get(zmq.EVENTS) & zmq.POLLIN:
@@ -173,8 +378,51 @@ class _Path:
             front.close(0)
             back.close(0)
 
-    def _subscription(self, frame: zmq.Frame) -> None:
-        self.frontend.send(frame)
+    def _from_subscriber(self, frame: zmq.Frame) -> None:
+        """A frame from the subscribers' side: a subscription, or something to drop."""
+        data = frame.bytes
+        peer = _Peer(frame)
+        if frame.more or not data or data[0] not in (0, 1):
+            parts = 1
+            while self.backend.get(zmq.RCVMORE):
+                self.backend.recv(zmq.NOBLOCK, copy=False)
+                parts += 1
+            self.counters["subscriber_frames_dropped"] += 1
+            self._junk(
+                f"{peer.text()} sent {len(data)} bytes ({parts} frames) starting "
+                f"{data[:8]!r}: a subscriber sends subscriptions only"
+            )
+            return
+        self.subscriptions.seen(peer)
+        prefix = data[1:]
+        if data[0] == 1:
+            if len(prefix) > _MAX_PREFIX:
+                self.counters["subscriptions_refused_length"] += 1
+                self._junk(f"{peer.text()} asked for a {len(prefix)}-byte prefix (at most "
+                           f"{_MAX_PREFIX}): not forwarded to the publishers")  # fmt: skip
+            elif peer.conn is not None:  # libzmq sends no subscription for a closed connection
+                self._subscribe(peer, prefix)
+        elif peer.conn is None:
+            self._closed(prefix)
+        elif self.subscriptions.holds(peer.conn, prefix):
+            self._unsubscribe(peer, prefix)
+        else:
+            self.counters["unsubscribes_ignored"] += 1
+            self._ignored(
+                f"{peer.text()} dropped {_prefix_text(prefix)}, which that connection does not hold"
+            )
+
+    def _subscribe(self, peer: _Peer, prefix: bytes) -> None:
+        if self.subscriptions.add(peer.conn, prefix):
+            self.frontend.send(b"\x01" + prefix)
+
+    def _unsubscribe(self, peer: _Peer, prefix: bytes) -> None:
+        if self.subscriptions.remove(peer.conn, prefix):
+            self.frontend.send(b"\x00" + prefix)
+
+    def _closed(self, prefix: bytes) -> None:
+        if self.subscriptions.closed(prefix):
+            self.frontend.send(b"\x00" + prefix)
 
     def _forward(self, frame: zmq.Frame) -> None:
         if frame.more:  # the protocol is single-frame: drop the rest too
@@ -216,6 +464,13 @@ def _sender(frame: zmq.Frame) -> bytes:
         return b""
 
 
+def _prefix_text(prefix: bytes) -> str:
+    if not prefix:
+        return "everything (the empty prefix)"
+    name = _claimed_name(prefix)
+    return f"{prefix[:TOPIC_LEN]!r} of robot {name.decode()}" if name else repr(prefix[:40])
+
+
 def _names_text(names: frozenset[bytes] | None) -> str:
     return ", ".join(sorted(n.decode() for n in names)) if names else "none (not a roster robot)"
 
@@ -252,6 +507,8 @@ class _CommandPath(_Path):
     press one), and each robot key subscribed to its own names' commands only."""
 
     what = "commands"
+    #: XPUB_MANUAL: a closed connection's unsubscribes name what it asked for, granted or not
+    closes_count = False
 
     def __init__(
         self,
@@ -265,25 +522,39 @@ class _CommandPath(_Path):
         self._refused = BurstLog(log, "subscription refused at the relay: a robot key posing")
         super().__init__(frontend, backend, names)
 
-    def _subscription(self, frame: zmq.Frame) -> None:
-        data = frame.bytes
-        if self.names is not None and data:  # XPUB_MANUAL: we apply what we allow
-            prefix = data[1:]
-            if data[0] == 1:
-                key = _sender(frame)
-                mine = self.names.get(key)
-                if mine is None or _claimed_name(prefix) not in mine:
-                    self.counters["subscriptions_refused_name"] += 1
-                    self._refused(
-                        f"key {key.decode()} asked for {prefix[:TOPIC_LEN]!r} of robot "
-                        f"{_claimed_name(prefix).decode() or '(every robot)'}; it may use "
-                        f"{_names_text(mine)}"
-                    )
-                    return
-                self.backend.setsockopt(zmq.SUBSCRIBE, prefix)
-            else:  # narrowing is always allowed (a closed peer's: libzmq ignores it)
-                self.backend.setsockopt(zmq.UNSUBSCRIBE, prefix)
-        self.frontend.send(frame)
+    def _subscribe(self, peer: _Peer, prefix: bytes) -> None:
+        """Applied (XPUB_MANUAL: to this connection only) when the key may read it.
+
+        Nothing goes upstream: the relay's own catch-all subscription already
+        asks the operators for every command, so no robot's subscription can
+        change what the relay receives.
+        """
+        names = self.names
+        if names is not None:
+            mine = names.get(peer.key)
+            if mine is None or _claimed_name(prefix) not in mine:
+                self.counters["subscriptions_refused_name"] += 1
+                self._refused(
+                    f"key {peer.key.decode()} asked for {prefix[:TOPIC_LEN]!r} of robot "
+                    f"{_claimed_name(prefix).decode() or '(every robot)'}; it may use "
+                    f"{_names_text(mine)}"
+                )
+                return
+        if self.subscriptions.holds(peer.conn, prefix):
+            return
+        if self.subscriptions.full(peer.conn):
+            self.counters["subscriptions_refused_count"] += 1
+            self._refused(f"{peer.text()} holds {self.subscriptions.max_per_conn} prefixes already")
+            return
+        self.subscriptions.add(peer.conn, prefix)
+        self.backend.setsockopt(zmq.SUBSCRIBE, prefix)
+
+    def _unsubscribe(self, peer: _Peer, prefix: bytes) -> None:
+        self.subscriptions.remove(peer.conn, prefix)
+        self.backend.setsockopt(zmq.UNSUBSCRIBE, prefix)  # this connection's, and only it
+
+    def _closed(self, prefix: bytes) -> None:
+        """libzmq has already taken the closed connection's subscriptions off its own pipe."""
 
     def _admit(self, frame: zmq.Frame) -> bool:
         if self.roles is not None and frame.bytes[:TOPIC_LEN] == _CMND:
@@ -359,9 +630,10 @@ class Relay:
         tel_out = self._socket(zmq.XPUB, "operators_telemetry_endpoint", OPERATORS_DOMAIN, rebind_s)
         cmd_in = self._socket(zmq.XSUB, "operators_command_endpoint", OPERATORS_DOMAIN, rebind_s)
         curve = self.config.security.mode == "curve"
-        # with CURVE, a robot's subscription is applied only for its own names (_CommandPath)
+        # a robot connection's subscription is applied by the relay, to that connection only,
+        # and with CURVE only for the key's own names (_CommandPath)
         cmd_out = self._socket(
-            zmq.XPUB, "robots_command_endpoint", ROBOTS_DOMAIN, rebind_s, manual=curve
+            zmq.XPUB, "robots_command_endpoint", ROBOTS_DOMAIN, rebind_s, manual=True
         )
         cmd_in.send(b"\x01")  # nothing is filtered by topic: roles decide, below
         names = self.roster.robot_names_by_curve_key() if curve else None
@@ -413,6 +685,9 @@ class Relay:
             sock.setsockopt(zmq.SNDHWM, c.subscriber_queue)
             sock.setsockopt(zmq.SNDBUF, c.subscriber_sndbuf_bytes)
             sock.setsockopt(zmq.XPUB_NODROP, 0)  # drop for a peer that lags, never block
+            sock.setsockopt(zmq.MAXMSGSIZE, _MAX_SUBSCRIBER_FRAME)
+            if not manual:  # every (un)subscription of every connection, to keep them apart
+                sock.setsockopt(zmq.XPUB_VERBOSER, 1)
         else:
             sock.setsockopt(zmq.RCVHWM, c.publisher_queue)
             sock.setsockopt(zmq.MAXMSGSIZE, _MAX_FRAME)
@@ -422,7 +697,8 @@ class Relay:
             )
             for opt, value in options.items():
                 sock.setsockopt(opt, value)
-            sock.setsockopt(zmq.ZAP_DOMAIN, domain.encode())
+        # with or without CURVE: the ZAP handler numbers each connection (_Peer.conn)
+        sock.setsockopt(zmq.ZAP_DOMAIN, domain.encode())
         endpoint = self.endpoints.get(key) or getattr(c, key)  # again: the same port
         deadline = time.monotonic() + rebind_s
         while True:
@@ -440,17 +716,15 @@ class Relay:
         return sock
 
     def _start_auth(self) -> None:
+        self._auth = _tagging_authenticator(self.ctx)
+        self._auth.start()
         if self.config.security.mode != "curve":
             return
-        from zmq.auth.thread import ThreadAuthenticator
-
         what = {ROBOTS_DOMAIN: "robot", OPERATORS_DOMAIN: "operator"}
         self._allowlists = {
             domain: KeyAllowlist(keys, what[domain])
             for domain, keys in _allowed_keys(self.roster).items()
         }
-        self._auth = ThreadAuthenticator(self.ctx, log=logging.getLogger("deepxpalm.auth"))
-        self._auth.start()
         for domain, allowlist in self._allowlists.items():
             self._auth.configure_curve_callback(domain=domain, credentials_provider=allowlist)
 

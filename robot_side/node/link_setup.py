@@ -105,7 +105,10 @@ def open_link(
     """(the stream we publish, the operators' messages we read, the CURVE allowlist if bound).
 
     Bound: we are the CURVE server. Through a relay the relay is, and its
-    allowlist and ours (the roster) both apply.
+    allowlist and ours (the roster) both apply; both sockets then connect out
+    and are opened again when libzmq gives up on their connection (it never
+    reconnects after a protocol error), their state in the heartbeat's stats
+    (``link_telemetry_up``, ``link_telemetry_reopened``, and the same for commands).
     """
     for endpoint in (link.telemetry_endpoint, link.command_endpoint):
         check_endpoint(endpoint, link.security)
@@ -125,6 +128,8 @@ def open_link(
         name=name,
         signer=signer,
         watch_subscriptions=not bind,  # the relay tells us what anyone subscribed to
+        reconnect=not bind,  # opened again if libzmq gives up on it (a protocol error)
+        link_name="telemetry",
     )
     stack.callback(pub.close)
     topics: tuple[bytes, ...] = (b"",)
@@ -141,6 +146,8 @@ def open_link(
         name="robot commands",
         topics=topics,
         expect_name=name,
+        reconnect=not bind,
+        link_name="commands",
     )
     stack.callback(sub.close)
     return pub, sub, auth

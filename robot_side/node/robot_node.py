@@ -25,7 +25,7 @@ from common.clock_sync import ClockSync
 from common.messages import Stimulus, VideoSignal
 from common.recording import NullRecorder, Recorder
 from common.security import Authenticator
-from common.transport import Link, Receiver, Sender, make_context
+from common.transport import Link, Receiver, Sender, link_health, make_context
 from robot_side.arm.base import Arm
 from robot_side.config import RobotConfig
 from robot_side.gripper.base import Gripper
@@ -326,5 +326,7 @@ class RobotNode:
 
     def stats(self) -> dict[str, float]:
         """The counters, the workers', video's and CURVE's, and the devices' state."""
-        return node_stats(self.counters, self.workers, self.video.signalling, self._auth,
-                          self.pipeline, self.desk)  # fmt: skip
+        out = node_stats(self.counters, self.workers, self.video.signalling, self._auth,
+                         self.pipeline, self.desk)  # fmt: skip
+        out.update(link_health(self.pub, self.sub))  # relay mode: each link up, and reopens
+        return out
