@@ -118,6 +118,8 @@ class Exchange:
     stimuli: int = 0
     rejected: int = 0
     peer_state: str | None = None
+    #: the peer's newest heartbeat counters (its links' health among them)
+    peer_stats: dict[str, float] = field(default_factory=dict)
     clock: ClockSync = field(default_factory=ClockSync)
     duration_s: float = 0.0
     sub_events: list[str] = field(default_factory=list)
@@ -216,6 +218,7 @@ def heartbeat_exchange(
                     if isinstance(msg, Heartbeat) and msg.node == peer:
                         out.heartbeats += 1
                         out.peer_state = msg.state
+                        out.peer_stats = dict(msg.stats)
                         out.clock.on_heartbeat(
                             msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv
                         )
@@ -229,6 +232,32 @@ def heartbeat_exchange(
         out.pub_events, out.sub_events = pub_mon.events, sub_mon.events
         out.denied_keys = auth.refused_keys if server else []
     return out
+
+
+def link_health_verdict(report: Report, peer: str, stats: dict[str, float]) -> None:
+    """The peer's own view of its links (relay mode: each socket up, and how often it was
+    opened again after libzmq gave up on it), from its heartbeat's counters."""
+    ends = [e for e in ("telemetry", "commands") if f"link_{e}_up" in stats]
+    if not ends:
+        return  # a direct link: the node binds, nothing to reopen
+    down = [e for e in ends if not stats[f"link_{e}_up"]]
+    reopened = {e: int(stats.get(f"link_{e}_reopened", 0)) for e in ends}
+    detail = ", ".join(
+        f"{e} {'down' if e in down else 'up'}"
+        + (f" (opened again {reopened[e]}x)" if reopened[e] else "")
+        for e in ends
+    )
+    if down:
+        report.add(
+            f"{peer} links",
+            WARN,
+            f"the {peer} node reports its {' and '.join(down)} link down: {detail}",
+            "it reopens a link libzmq gave up on by itself within 2 s; if it stays down, "
+            f"check the relay (`deepxpalm doctor --role relay`) and the {peer} node's log for "
+            "'link ... opened again'",
+        )
+    else:
+        report.add(f"{peer} links", PASS, f"the {peer} node's links: {detail}")
 
 
 def _clock_verdict(report: Report, role: str, config: Any, ex: Exchange) -> None:
@@ -351,6 +380,7 @@ def check_robot_link(report: Report, config: Any, options: DoctorOptions) -> boo
             PASS,
             f"operator node answers: {ex.heartbeats} heartbeats in {ex.duration_s:.1f} s",
         )
+        link_health_verdict(report, "operator", ex.peer_stats)
         _clock_verdict(report, "robot", config, ex)
     return True
 
@@ -467,4 +497,5 @@ def check_operator_link(report: Report, config: Any, options: DoctorOptions) -> 
         f"{ex.heartbeats} heartbeats, {ex.stimuli} stimuli in {ex.duration_s:.1f} s; it sees "
         f"the link as {ex.peer_state!r}",
     )
+    link_health_verdict(report, "robot", ex.peer_stats)
     _clock_verdict(report, "operator", config, ex)

@@ -106,8 +106,10 @@ class Telemetry:
         """``stats()``, cut to what a heartbeat may carry: the operator refuses a longer map."""
         stats = self.stats()
         if len(stats) > MAX_STATS:
-            self._stats_cut(f"{len(stats)} counters, {MAX_STATS} sent: {sorted(stats)[MAX_STATS:]}")
-            stats = dict(sorted(stats.items())[:MAX_STATS])
+            # the links' health first: `deepxpalm doctor` reads it from here
+            ranked = sorted(stats, key=lambda k: (not k.startswith("link_"), k))
+            self._stats_cut(f"{len(stats)} counters, {MAX_STATS} sent: {ranked[MAX_STATS:]}")
+            stats = {k: stats[k] for k in ranked[:MAX_STATS]}
         return stats
 
     def send_frame(self, sample: TactileSample) -> None:
