@@ -186,6 +186,7 @@ class Arm(Device):
         self._keep_alive_thread: threading.Thread | None = None
         self._deadman_quit = threading.Event()
         self._deadman_woke = 0.0  # monotonic s: the deadman thread's latest wake
+        self._deadman_stopping_since: float | None = None  # it waits for a stop since then
 
     # -- what drivers implement -------------------------------------------
 
@@ -389,13 +390,22 @@ class Arm(Device):
 
     @property
     def deadman_responsive(self) -> bool:
-        """The deadman thread woke within a jog's lifetime (``jog_timeout_s``).
+        """The deadman thread woke within a jog's lifetime (``jog_timeout_s``), or is making
+        a stop that has not yet outlasted ``_deadman_stop_limit_s``.
 
-        Busy with a stop it may miss a few wakes; stuck longer, it could not
-        stop a jog either, and a keep-alive must then let the controller's
-        own watchdog stop the arm.
+        Stuck longer, it could not stop a jog either, and a keep-alive must
+        then let the controller's own watchdog stop the arm.
         """
-        return now_s() - self._deadman_woke <= self.limits.jog_timeout_s
+        now = now_s()
+        if now - self._deadman_woke <= self.limits.jog_timeout_s:
+            return True
+        since = self._deadman_stopping_since
+        return since is not None and now - since <= self._deadman_stop_limit_s()
+
+    def _deadman_stop_limit_s(self) -> float:
+        """The longest a stop (the lock's wait included) may take before the deadman counts as
+        stuck; drivers whose calls have deadlines say theirs."""
+        return 2.0
 
     @property
     def deadman_period_s(self) -> float:
@@ -428,15 +438,20 @@ class Arm(Device):
             until = self._jog_until
             if until is None or now_s() < until:
                 continue
-            with self._lock:
-                if self._jog_until is None or now_s() < self._jog_until:
-                    continue  # a jog or stop arrived meanwhile
-                log.warning(
-                    "no jog for %.2f s: stopping the arm (deadman)", self.limits.jog_timeout_s
-                )
-                self._deadman_stops += 1
-                try:
-                    self._stop_locked()
-                except Exception:  # the thread must survive to try again
-                    log.exception("deadman stop failed")
-                    self._jog_until = now_s() + self.limits.jog_timeout_s
+            self._deadman_stopping_since = now_s()
+            try:
+                self._deadman_stop()
+            finally:
+                self._deadman_stopping_since = None
+
+    def _deadman_stop(self) -> None:
+        with self._lock:
+            if self._jog_until is None or now_s() < self._jog_until:
+                return  # a jog or stop arrived meanwhile
+            log.warning("no jog for %.2f s: stopping the arm (deadman)", self.limits.jog_timeout_s)
+            self._deadman_stops += 1
+            try:
+                self._stop_locked()
+            except Exception:  # the thread must survive to try again
+                log.exception("deadman stop failed")
+                self._jog_until = now_s() + self.limits.jog_timeout_s

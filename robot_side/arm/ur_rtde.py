@@ -750,6 +750,10 @@ class URArm(Arm):
             STOP_WITHIN_WINDOW * self.config.watchdog_window_s,
         )
 
+    def _deadman_stop_limit_s(self) -> float:
+        """A stop's two calls, each with its deadline and the wait for rest between."""
+        return 2 * (self.config.command_timeout_s + self._decel_time() + REST_CATCH_UP_S)
+
     def _jog_acceleration(self, velocity: np.ndarray) -> float:
         """speedL's one acceleration, which the controller applies to the turn too (rad/s^2).
 
