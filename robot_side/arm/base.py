@@ -183,7 +183,10 @@ class Arm(Device):
         self._last_jog = np.zeros(6)
         self._deadman_stops = 0
         self._deadman_thread: threading.Thread | None = None
+        self._keep_alive_thread: threading.Thread | None = None
         self._deadman_quit = threading.Event()
+        self._deadman_woke = 0.0  # monotonic s: the deadman thread's latest wake
+        self._deadman_stopping_since: float | None = None  # it waits for a stop since then
 
     # -- what drivers implement -------------------------------------------
 
@@ -326,6 +329,16 @@ class Arm(Device):
                 out["error"] = str(e)
         return out
 
+    def live_readings(self) -> dict[str, float]:
+        """The newest pose (and what else the driver streams) without a device call.
+
+        For the robot's heartbeat, which must not wait for the arm's worker
+        (busy for a whole stop): values another thread already received,
+        under ``TELEMETRY_POSE_KEYS`` and the ``telemetry()`` names. Empty
+        when the driver has no such stream or it is not live. Never blocks.
+        """
+        return {}
+
     def telemetry(self) -> dict[str, float]:
         """What the operator's dashboard shows, as flat numbers for the heartbeat's stats.
 
@@ -352,18 +365,47 @@ class Arm(Device):
     # -- deadman -----------------------------------------------------------
 
     def _start_deadman(self) -> None:
+        """The deadman thread and, for a driver with a ``_keep_alive``, the thread that kicks."""
         self._deadman_quit.clear()
         self._jog_until = None
-        t = threading.Thread(target=self._deadman_loop, name=f"{type(self).__name__}-deadman")
+        self._deadman_woke = now_s()
+        name = type(self).__name__
+        t = threading.Thread(target=self._deadman_loop, name=f"{name}-deadman")
         t.daemon = True
         self._deadman_thread = t
         t.start()
+        if type(self)._keep_alive is not Arm._keep_alive:
+            k = threading.Thread(target=self._keep_alive_loop, name=f"{name}-keepalive")
+            k.daemon = True
+            self._keep_alive_thread = k
+            k.start()
 
     def _stop_deadman(self) -> None:
         self._deadman_quit.set()
-        t, self._deadman_thread = self._deadman_thread, None
-        if t is not None and t is not threading.current_thread():
-            t.join(timeout=2.0)
+        threads = (self._deadman_thread, self._keep_alive_thread)
+        self._deadman_thread = self._keep_alive_thread = None
+        for t in threads:
+            if t is not None and t is not threading.current_thread():
+                t.join(timeout=2.0)
+
+    @property
+    def deadman_responsive(self) -> bool:
+        """The deadman thread woke within a jog's lifetime (``jog_timeout_s``), or is making
+        a stop that has not yet outlasted ``_deadman_stop_limit_s``.
+
+        Stuck longer, it could not stop a jog either, and a keep-alive must
+        then let the controller's own watchdog stop the arm.
+        """
+        now = now_s()
+        if now - self._deadman_woke <= self.limits.jog_timeout_s:
+            return True
+        since = self._deadman_stopping_since
+        return since is not None and now - since <= self._deadman_stop_limit_s()
+
+    def _deadman_stop_limit_s(self) -> float:
+        """The longest a stop (the lock's wait included) may take before the deadman counts as
+        stuck; drivers whose calls have deadlines say theirs."""
+        return 2.0
 
     @property
     def deadman_period_s(self) -> float:
@@ -373,31 +415,43 @@ class Arm(Device):
     def _keep_alive(self) -> None:
         """Tell the controller this process is alive; called every deadman period.
 
-        Runs on the deadman thread, which lives and dies (or freezes) with this
-        process, so a controller that watches for it stops the arm when the
-        process cannot (ur-rtde's watchdog, ``URArm``). It must never block:
-        it shares the thread with the jog deadman. Nothing to do by default.
+        Runs on a thread of its own, which lives and dies (or freezes) with
+        this process, so a controller that watches for it stops the arm when
+        the process cannot (ur-rtde's watchdog, ``URArm``). Not the deadman
+        thread: that one makes the deadman's stops, and a stop may wait for
+        the whole deceleration. It must never block. Nothing to do by default
+        (and then no thread runs).
         """
 
-    def _deadman_loop(self) -> None:
+    def _keep_alive_loop(self) -> None:
         period = self.deadman_period_s
         while not self._deadman_quit.wait(period):
             try:
                 self._keep_alive()
-            except Exception:  # the deadman below must run whatever the keep-alive does
+            except Exception:  # the next period tries again
                 log.exception("%s: keep-alive failed", type(self).__name__)
+
+    def _deadman_loop(self) -> None:
+        period = self.deadman_period_s
+        while not self._deadman_quit.wait(period):
+            self._deadman_woke = now_s()
             until = self._jog_until
             if until is None or now_s() < until:
                 continue
-            with self._lock:
-                if self._jog_until is None or now_s() < self._jog_until:
-                    continue  # a jog or stop arrived meanwhile
-                log.warning(
-                    "no jog for %.2f s: stopping the arm (deadman)", self.limits.jog_timeout_s
-                )
-                self._deadman_stops += 1
-                try:
-                    self._stop_locked()
-                except Exception:  # the thread must survive to try again
-                    log.exception("deadman stop failed")
-                    self._jog_until = now_s() + self.limits.jog_timeout_s
+            self._deadman_stopping_since = now_s()
+            try:
+                self._deadman_stop()
+            finally:
+                self._deadman_stopping_since = None
+
+    def _deadman_stop(self) -> None:
+        with self._lock:
+            if self._jog_until is None or now_s() < self._jog_until:
+                return  # a jog or stop arrived meanwhile
+            log.warning("no jog for %.2f s: stopping the arm (deadman)", self.limits.jog_timeout_s)
+            self._deadman_stops += 1
+            try:
+                self._stop_locked()
+            except Exception:  # the thread must survive to try again
+                log.exception("deadman stop failed")
+                self._jog_until = now_s() + self.limits.jog_timeout_s

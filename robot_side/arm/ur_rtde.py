@@ -28,14 +28,22 @@ That deadman lives in this process, so the controller must also stop the arm
 when this process cannot (``kill -9``, ``SIGSTOP``, a wedged interpreter):
 ``connect`` arms ur-rtde's watchdog (``setWatchdog``: the control script calls
 ``rtde_set_watchdog("input_int_register_0", 1 / watchdog_window_s, "stop")``)
-and the deadman thread kicks it every period (``kickWatchdog`` writes 0 to
-that register; any command does too). When no update arrives for
+and a keep-alive thread of its own kicks it every deadman period
+(``kickWatchdog`` writes 0 to that register; any command does too), while
+the deadman thread is responsive. When no update arrives for
 ``watchdog_window_s`` the controller stops the program, and the arm with it.
 A script that stopped while the safety mode stayed normal (that trip, or a
 stop on the pendant) makes the driver refuse every command and ask for a
 reconnect, which uploads a fresh script with a cleared command register:
 nothing sent before the stop can move the arm after it. docs/arm.md has the
 stop budget.
+
+No kick may interrupt a command's handshake (it would overwrite the command
+register), so a stop never waits for the deceleration on the wire: a jog is
+stopped by a realtime ``speedL`` to zero at the stop's deceleration (no
+handshake) and, once the receive stream shows the arm at rest, ``speedStop``
+ends the script's speed thread (a handshake of a few controller cycles); a
+move by an asynchronous ``stopL``. The kicks go on while the arm decelerates.
 """
 
 from __future__ import annotations
@@ -63,9 +71,10 @@ from common.errors import (
     DeviceTimeoutError,
     StaleDataError,
 )
+from common.logs import BurstLog
 from common.messages import ARM_SAFETY_MODES
 from common.preflight import Finding, PreflightContext, tcp_findings, tcp_probe
-from robot_side.arm.base import Arm, ArmLimits
+from robot_side.arm.base import TELEMETRY_POSE_KEYS, Arm, ArmLimits
 
 log = logging.getLogger(__name__)
 
@@ -100,9 +109,13 @@ STOP_BUDGET_S = 0.4
 #: 8 ms on a CB3) after a speedL it could overwrite the command before the script read it, so
 #: no kick follows a command sooner than this; that command updated the register itself.
 KICK_AFTER_COMMAND_S = 0.01
-#: a stop waits for the script's "done" with no kick (_keep_alive): it must end within this
-#: share of the watchdog window, however fast the wrist turned (see _stop_acceleration)
+#: a stop must end within this share of the watchdog window, however fast the wrist turned
+#: (see _stop_acceleration): where the receive stream cannot be read, the stop's handshake
+#: waits for the whole deceleration with no kick (_keep_alive)
 STOP_WITHIN_WINDOW = 0.5
+#: how long after the deceleration should have ended a stop still waits for the receive stream
+#: to show the arm at rest before it sends its handshake anyway
+REST_CATCH_UP_S = 0.05
 
 #: How long a refused command waits for the receive stream to show the stopped script.
 REFUSAL_CATCH_UP_S = 0.05
@@ -209,6 +222,7 @@ class URArm(Arm):
         self._last_ts = -1.0
         self._last_ts_change = 0.0
         self._stale_events = 0
+        self._live_ts, self._live_ts_change = -1.0, 0.0  # live_readings' own view of the stream
         # one control call on the wire at a time: a kick between a command and the script's
         # answer would overwrite the command register (see _keep_alive)
         self._wire = threading.Lock()
@@ -216,6 +230,7 @@ class URArm(Arm):
         self._last_sent = 0.0  # monotonic s: the last write to the command register
         self._silence_max_s = 0.0  # longest the controller heard nothing from us (connected)
         self._kicks = 0
+        self._kicks_withheld = BurstLog(log, "URArm")
         self._program_lost: str | None = None
 
     def _check_watchdog_config(self) -> None:
@@ -430,6 +445,35 @@ class URArm(Arm):
             )
         return recv
 
+    def live_readings(self) -> dict[str, float]:
+        """The receive interface's newest TCP pose and speed, read from its cache.
+
+        ur-rtde's receive thread fills that cache from its own connection, so
+        this never waits for the control side (a stop, a move's handshake) or
+        the driver's lock; the getters take microseconds. Nothing when the
+        stream is lost, stale (``stale_after_s``, judged on this caller's own
+        reads) or the program stopped under us.
+        """
+        recv = self._recv
+        if recv is None or self._program_lost is not None:
+            return {}
+        try:
+            if not recv.isConnected():
+                return {}
+            ts, now = float(recv.getTimestamp()), now_s()
+            if ts != self._live_ts:
+                self._live_ts, self._live_ts_change = ts, now
+            elif now - self._live_ts_change > self.config.stale_after_s:
+                return {}
+            pose = recv.getActualTCPPose()
+            speed = np.asarray(recv.getActualTCPSpeed(), dtype=float)
+        except RuntimeError:  # the interface closed under us (a reconnect): nothing live
+            return {}
+        out = dict(zip(TELEMETRY_POSE_KEYS, (float(v) for v in pose), strict=True))
+        out["arm_speed_m_s"] = float(np.linalg.norm(speed[:3]))
+        out["arm_angular_speed_rad_s"] = float(np.linalg.norm(speed[3:]))
+        return out
+
     def _read_tcp_pose(self) -> np.ndarray:
         return np.asarray(self._fresh().getActualTCPPose(), dtype=float)
 
@@ -526,10 +570,11 @@ class URArm(Arm):
     def _keep_alive(self) -> None:
         """Kick the watchdog unless a command just did; notice a script that stopped under us.
 
-        Called every deadman period on the deadman thread; never waits: a kick
-        while another call is on the wire is skipped, since that call writes
-        the register itself and a kick in the middle of its handshake would
-        overwrite the command before the script read it.
+        Called every deadman period on the keep-alive thread; never waits: a
+        kick while another call is on the wire is skipped, since that call
+        writes the register itself and a kick in the middle of its handshake
+        would overwrite the command before the script read it. No kick while
+        the deadman thread is stuck: the kicks also vouch for it.
         """
         recv, ctrl = self._recv, self._ctrl
         if (
@@ -542,6 +587,13 @@ class URArm(Arm):
             return
         self._notice_program_stop(recv)
         if self._program_lost is not None or now_s() - self._last_sent < KICK_AFTER_COMMAND_S:
+            return
+        if not self.deadman_responsive:
+            # a deadman that cannot stop a jog must not be covered for: the controller stops it
+            self._kicks_withheld(
+                f"the deadman thread has not woken for over {self.limits.jog_timeout_s:g} s "
+                "(it could not stop a jog): kicks withheld, the controller's watchdog stops the arm"
+            )
             return
         if not ctrl.isConnected():
             # kickWatchdog would start ur-rtde's own reconnect; the node's recovery reconnects
@@ -698,6 +750,10 @@ class URArm(Arm):
             STOP_WITHIN_WINDOW * self.config.watchdog_window_s,
         )
 
+    def _deadman_stop_limit_s(self) -> float:
+        """A stop's two calls, each with its deadline and the wait for rest between."""
+        return 2 * (self.config.command_timeout_s + self._decel_time() + REST_CATCH_UP_S)
+
     def _jog_acceleration(self, velocity: np.ndarray) -> float:
         """speedL's one acceleration, which the controller applies to the turn too (rad/s^2).
 
@@ -729,33 +785,77 @@ class URArm(Arm):
         return max(self.limits.stop_deceleration_m_s2, turning / within)
 
     def _stop_speed(self) -> None:
-        ok = self._control(
-            "speedStop",
-            self._ctrl.speedStop,
-            self._stop_acceleration(),
-            extra_s=self._decel_time(),
-        )
+        """Decelerate with the wire free for kicks, then end the script's speed thread at rest.
+
+        ``speedStop`` waits for the script's "done", which comes after the whole
+        deceleration (75 ms from the wrist's cap), and no kick may interrupt a
+        handshake: that silence left 60 ms of margin to the watchdog window and
+        tripped it on a busy machine. A ``speedL`` to zero at the same
+        deceleration is realtime (no handshake), so the keep-alive thread goes
+        on kicking while the arm decelerates, and the ``speedStop`` that follows
+        at rest is a few controller cycles.
+        """
+        a = self._stop_acceleration()
+        ok = self._control("speedL to rest", self._ctrl.speedL, [0.0] * 6, a, 0.0, realtime=True)
+        self._check(ok, "speedL to rest")
+        self._wait_at_rest()
+        ok = self._control("speedStop", self._ctrl.speedStop, a, extra_s=self._decel_time())
         self._speeding = False
         self._check(ok, "speedStop")
 
     def _stop_move(self) -> None:
+        """A move in progress is stopped asynchronously (the wire free for kicks), then awaited."""
+        if not self._moving:  # nothing this driver started moves: a short handshake
+            self._control("stopL", self._ctrl.stopL, self._stop_acceleration(), False)
+            return
         self._control(
-            "stopL",
-            self._ctrl.stopL,
-            self._stop_acceleration(),
-            False,
-            extra_s=self._decel_time(),
+            "stopL", self._ctrl.stopL, self._stop_acceleration(), True, extra_s=self._decel_time()
         )
         self._moving = False
+        self._wait_at_rest()
+
+    def _wait_at_rest(self) -> None:
+        """Until the receive stream shows the TCP at rest, or the deceleration's time is up.
+
+        The wire lock is not held: the keep-alive thread kicks meanwhile. A
+        stream that cannot be read ends the wait at once (the handshake that
+        follows then waits for the deceleration itself).
+        """
+        deadline = now_s() + self._decel_time() + REST_CATCH_UP_S
+        while not self._seen_at_rest():
+            if now_s() >= deadline:
+                log.debug("URArm: the arm still moves after the stop's deceleration")
+                return
+            time.sleep(0.002)
+
+    def _seen_at_rest(self) -> bool:
+        """The receive stream shows the TCP still (False when it cannot be read)."""
+        try:
+            speed = np.asarray(self._fresh().getActualTCPSpeed(), dtype=float)
+        except (DeviceError, RuntimeError):
+            return False
+        return bool(
+            np.linalg.norm(speed[:3]) <= AT_REST_M_S and np.linalg.norm(speed[3:]) <= AT_REST_RAD_S
+        )
 
     def _send_stop(self) -> None:
-        """speedStop ends a jog's speed thread; stopL ends a move (and anything else)."""
+        """A jog's speed thread and a move each stopped as above; a still arm costs no handshake.
+
+        Every handshake is silence on the wire (no kick may interrupt it), so a
+        stop of an arm this driver knows to be still (a repeated stop, a
+        released key after a STOP) sends nothing, unless the receive stream
+        shows the TCP moving or cannot be read: then both stops go.
+        """
         if self._program_lost is not None:
             log.debug("URArm: stop: no control script runs; the controller stopped the arm")
             self._speeding = self._moving = False
             return
+        unknown = not (self._speeding or self._moving) and not self._seen_at_rest()
         errors = []
-        for step in (self._stop_speed if self._speeding else None, self._stop_move):
+        for step in (
+            self._stop_speed if self._speeding or unknown else None,
+            self._stop_move if self._moving or unknown else None,
+        ):
             if step is None:
                 continue
             try:

@@ -35,7 +35,7 @@ from robot_side.node.deadman import NEVER_NS, Deadman
 from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.frame_rule import Classifier
 from robot_side.node.link_setup import open_link, stream_signer, wire_name
-from robot_side.node.telemetry import Telemetry, node_stats
+from robot_side.node.telemetry import HeartbeatSchedule, Telemetry, node_stats
 from robot_side.node.video_desk import VideoDesk, video_signalling
 from robot_side.node.workers import DeviceWorkers
 from robot_side.stop_latch import StopLatch
@@ -226,7 +226,7 @@ class RobotNode:
 
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
         link = self.config.link
-        heartbeat = Periodic(link.heartbeat_rate_hz, link.heartbeat_early_ms / 1e3)
+        heartbeat = HeartbeatSchedule(link.heartbeat_rate_hz, link.heartbeat_early_ms / 1e3)
         # raw frames on a fixed grid, so the average rate is the configured one even though
         # the loop only wakes for the frames it renders (at 60 Hz, 15 Hz is every 4th)
         frame_msgs = (
@@ -266,8 +266,10 @@ class RobotNode:
             self.assist.step(self.now())
             # write: heartbeats and video answers
             if heartbeat.due(now) or self.telemetry.now_wanted:
+                on_grid = heartbeat.due(now)  # else an announcement: one more, off the grid
                 self._send_heartbeat()
-                heartbeat.done(now)
+                if on_grid:
+                    heartbeat.done(now)
             self.video.serve(now)
 
     def _wait(self, deadline: int) -> None:

@@ -12,6 +12,7 @@ import logging
 from collections import Counter
 from collections.abc import Callable
 
+from common.clock import Periodic
 from common.codec import MAX_STATS, name_prefix
 from common.logs import BurstLog
 from common.messages import Heartbeat, Stimulus, TactileFrame
@@ -25,6 +26,37 @@ from robot_side.tactile.base import TactileSample
 from robot_side.video.link_signalling import LinkSignalling
 
 log = logging.getLogger(__name__)
+
+
+class HeartbeatSchedule:
+    """When heartbeats go out: on a fixed grid (the rate exact), never more than a period apart.
+
+    A heartbeat may go out up to ``early_s`` before its deadline with a
+    frame's work (``Periodic``), and then the next one at its own deadline
+    would leave a period plus ``early_s`` between the two: the loop wakes for
+    the next one a period after the last instead, which always falls inside
+    that one's early window, so the rate stays exactly ``hz``. A heartbeat sent
+    off the grid (``Telemetry.announce``: a lease or latch change) is one
+    more and moves no deadline, or the next would come up to two periods later.
+    """
+
+    def __init__(self, hz: float, early_s: float) -> None:
+        self._grid = Periodic(hz, early_s)
+        self._last_ns: int | None = None  # the last heartbeat on the grid
+
+    @property
+    def deadline_ns(self) -> int:
+        """The latest time the next heartbeat may go out: the loop wakes for it then."""
+        grid = self._grid.deadline_ns
+        return grid if self._last_ns is None else min(grid, self._last_ns + self._grid.period_ns)
+
+    def due(self, now: int) -> bool:
+        return self._grid.due(now)
+
+    def done(self, now: int) -> None:
+        """The heartbeat due on the grid went out at ``now``."""
+        self._grid.done(now)
+        self._last_ns = now
 
 
 class Telemetry:
