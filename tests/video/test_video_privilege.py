@@ -292,8 +292,8 @@ def test_an_observers_offers_and_flood_leave_the_controllers_page_its_video(depl
 def test_offers_at_once_never_take_more_than_the_slots(deployment):
     async def one() -> str:
         async with connect(deployment.video_url, max_size=2**22) as ws:
-            await ws.send(json.dumps({"type": "offer", "sdp": deployment.silent}))
             try:
+                await ws.send(json.dumps({"type": "offer", "sdp": deployment.silent}))
                 reply = json.loads(await asyncio.wait_for(ws.recv(), 15))
             except ConnectionClosed as e:
                 return f"closed: {e.rcvd.reason if e.rcvd else e}"
