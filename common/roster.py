@@ -6,6 +6,7 @@ name = "alice"
 role = "controller"        # controller (may hold a robot's control lease), observer, recorder
 curve_key = "Z85..."       # her CURVE public key (NAME.key): the relay lets it in
 signing_key = "hex..."     # her Ed25519 public key (NAME.sign): the robot checks her signatures
+video = true               # optional: an observer may watch the robot's camera too (below)
 
 [[robot]]
 name = "cell1"             # the name on the wire (docs/protocol.md, Robot names)
@@ -20,6 +21,11 @@ PC cannot pose as another robot. A name belongs to one key. The robot reads
 ``signing_key`` and ``role`` (it acts only on commands signed by the key
 that holds its lease). The robot trusts its own copy, never the relay's:
 docs/security.md.
+
+Video is a controller's: the robot answers a video offer only from a
+controller's key, or from an observer whose entry says ``video = true``. A
+recorder never gets video (``video = true`` on one is an error), and
+``video = false`` keeps a controller from it.
 
 A reload that would leave no robot or no controller where there were some
 (an empty file, one cut short) is refused (``RosterLockoutError``) unless
@@ -46,6 +52,15 @@ class OperatorEntry:
     role: str
     curve_key: bytes | None  # z85, as ZeroMQ's authenticator hands it over
     signing_key: bytes | None  # raw 32 bytes
+    #: the roster's ``video``: None = the role's default (a controller's, nobody else's)
+    video: bool | None = None
+
+    @property
+    def may_watch(self) -> bool:
+        """Whether the robot answers this key's video offers (never a recorder's)."""
+        if self.role == "recorder":
+            return False
+        return self.video if self.video is not None else self.role == "controller"
 
 
 @dataclass(frozen=True)
@@ -159,7 +174,7 @@ def parse_roster(text: str, path: Path | str) -> Roster:
     seen: set[str] = set()
     for i, entry in enumerate(data.get("operator", [])):
         where = f"{path}: operator[{i}]"
-        extra = set(entry) - {"name", "role", "curve_key", "signing_key"}
+        extra = set(entry) - {"name", "role", "curve_key", "signing_key", "video"}
         if extra:
             raise ConfigError(f"{where}: unknown keys {sorted(extra)}")
         name = _str(entry, "name", where)
@@ -171,6 +186,11 @@ def parse_roster(text: str, path: Path | str) -> Roster:
         seen.add(name)
         curve = entry.get("curve_key")
         signing = entry.get("signing_key")
+        video = entry.get("video")
+        if video is not None and not isinstance(video, bool):
+            raise ConfigError(f"{where}.video must be true or false")
+        if video and role == "recorder":
+            raise ConfigError(f"{where}: a recorder never gets video (video = true on {name!r})")
         operators.append(
             OperatorEntry(
                 name=name,
@@ -179,6 +199,7 @@ def parse_roster(text: str, path: Path | str) -> Roster:
                 signing_key=None
                 if signing is None
                 else parse_public_key(str(signing), f"{where}.signing_key"),
+                video=video,
             )
         )
     robots = []
@@ -213,14 +234,18 @@ def parse_roster(text: str, path: Path | str) -> Roster:
     return Roster(tuple(operators), tuple(robots), lockout)
 
 
-def operator_entry(name: str, role: str, curve_key: bytes, signing_key: bytes) -> str:
-    """An ``[[operator]]`` entry as TOML (``curve_key`` z85, ``signing_key`` raw 32 bytes)."""
+def operator_entry(
+    name: str, role: str, curve_key: bytes, signing_key: bytes, video: bool | None = None
+) -> str:
+    """An ``[[operator]]`` entry as TOML (``curve_key`` z85, ``signing_key`` raw 32 bytes);
+    ``video``: the entry's video flag (None: the role's default, no line)."""
     if role not in ROLES:
         raise ConfigError(f"role {role!r} is not one of {list(ROLES)}")
-    return (
+    entry = (
         f'[[operator]]\nname = "{name}"\nrole = "{role}"\n'
         f'curve_key = "{curve_key.decode()}"\nsigning_key = "{signing_key.hex()}"\n'
     )
+    return entry if video is None else entry + f"video = {str(video).lower()}\n"
 
 
 def robot_entry(name: str, curve_key: bytes, names: tuple[str, ...] = ()) -> str:

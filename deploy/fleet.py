@@ -145,6 +145,8 @@ class Fleet:
     env: dict[str, str] = field(default_factory=lambda: {**os.environ, "PYTHONUNBUFFERED": "1"})
     #: relay name -> its four endpoints, for every relay started
     relay_endpoints: dict[str, dict[str, str]] = field(default_factory=dict)
+    #: observers whose roster entry says ``video = true`` (video is a controller's otherwise)
+    video_observers: frozenset[str] = frozenset()
 
     def __post_init__(self) -> None:
         keys = self.workdir / "keys"
@@ -190,7 +192,8 @@ class Fleet:
         for name, role in roles.items():
             m = self.members[name]
             curve, _ = zmq.auth.load_certificate(m.curve_public)
-            entries.append(operator_entry(name, role, curve, m.signing_public))
+            video = True if name in self.video_observers else None
+            entries.append(operator_entry(name, role, curve, m.signing_public, video))
         for name in self.robots:  # last, as docs/deploy.md says: a cut file loses every robot
             curve, _ = zmq.auth.load_certificate(self.members[name].curve_public)
             entries.append(robot_entry(name, curve))
@@ -298,17 +301,22 @@ class Fleet:
         return self._start(name, ["-v", "robot", "--config", str(config)])
 
     def start_video(
-        self, name: str = "video", fps: float = 15.0, port: int | None = None
+        self,
+        name: str = "video",
+        fps: float = 15.0,
+        port: int | None = None,
+        settings: tuple[str, ...] = (),
     ) -> tuple[Proc, str]:
         """A video server (the stamped test pattern, 320x240) on loopback; (process, its URL,
         token included: a robot's link.video_url).
 
         ``port``: the one it had before a restart (default: a free one). Its token file
-        stays in the workdir, so a restarted server keeps its token."""
+        stays in the workdir, so a restarted server keeps its token. ``settings``: more
+        ``--set`` overrides (``ice_timeout_s=3``)."""
         port = port or free_loopback_ports(1)[0]
         url = self.video_url(name, port)
-        settings = [f"port={port}", "test_pattern.width=320", "test_pattern.height=240"]
-        settings += [f"test_pattern.fps={fps}", f'token_file="{self.workdir / name}.token"']
+        settings = (*settings, f"port={port}", "test_pattern.width=320", "test_pattern.height=240")
+        settings += (f"test_pattern.fps={fps}", f'token_file="{self.workdir / name}.token"')
         args = ["-v", "video", *(a for s in settings for a in ("--set", s))]
         return self._start(name, args), url
 

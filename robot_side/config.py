@@ -128,6 +128,19 @@ class RobotLinkConfig:
     video_viewer_timeout_s: float = param(
         5.0, "a viewer whose node has not been heard for this long loses its video session"
     )
+    video_max_sessions: int = param(
+        4,
+        "video sessions at once through this link (as the video server's max_viewers); when "
+        "full, a controller's offer closes an observer's session to make room",
+    )
+    video_sessions_per_key: int = param(
+        2, "video sessions one operator key holds at once; a newer one closes its oldest"
+    )
+    video_offers_per_s: float = param(
+        2.0,
+        "video offers a second one key may make (as many at once); more are refused, "
+        "counted and told why; a page that reconnects makes one every few seconds",
+    )
     security: SecurityConfig = param(
         SecurityConfig(),
         "CURVE keys and the operator allowlist; with a relay, server_public_key_file is the "
@@ -139,6 +152,10 @@ class RobotLinkConfig:
             raise ValueError(f"link.video_url must be a ws:// or wss:// URL: {self.video_url!r}")
         if self.video_viewer_timeout_s <= 0:
             raise ValueError("link.video_viewer_timeout_s must be positive")
+        if self.video_max_sessions < 1 or self.video_sessions_per_key < 1:
+            raise ValueError("link.video_max_sessions and video_sessions_per_key must be >= 1")
+        if not self.video_offers_per_s > 0:
+            raise ValueError("link.video_offers_per_s must be positive")
 
 
 @dataclass

@@ -16,8 +16,9 @@ from robot_side.video.stamp import read_stamp
 async def watch_video(page_ws: str, frames: int) -> dict:
     """Offer over the dashboard's socket, then decode ``frames`` frames.
 
-    Returns ``{"answer": ..., "stamps": [...], "frames": [rgb, ...]}``, or
-    ``{"closed": reason}`` when the dashboard says the video closed.
+    Returns ``{"answer": ..., "stamps": [...], "frames": [rgb, ...], "answer_s": ...,
+    "first_frame_s": ...}`` (the seconds from the offer to its answer and to the first
+    decoded frame), or ``{"closed": reason}`` when the dashboard says the video closed.
     """
     from aiortc import RTCConfiguration, RTCPeerConnection, RTCSessionDescription
     from websockets.asyncio.client import connect
@@ -28,24 +29,36 @@ async def watch_video(page_ws: str, frames: int) -> dict:
     pc.on("track", lambda track: track_future.done() or track_future.set_result(track))
     await pc.setLocalDescription(await pc.createOffer())
     stamps, images = [], []
+    loop = asyncio.get_running_loop()
     try:
         async with connect(page_ws, max_size=2**22) as ws:
             await ws.send(json.dumps({"type": "video_offer", "sdp": pc.localDescription.sdp}))
+            t_offer = loop.time()
             while True:
                 msg = json.loads(await asyncio.wait_for(ws.recv(), 20))
                 if msg["type"] in ("video_answer", "video_closed"):
                     break
             if msg["type"] == "video_closed":
                 return {"closed": msg["reason"]}
+            answer_s = loop.time() - t_offer
+            first_frame_s = None
             await pc.setRemoteDescription(RTCSessionDescription(msg["sdp"], "answer"))
             track = await asyncio.wait_for(track_future, 20)
             for _ in range(frames):
                 frame = await asyncio.wait_for(track.recv(), 30)
+                if first_frame_s is None:
+                    first_frame_s = loop.time() - t_offer
                 rgb = frame.to_ndarray(format="rgb24")
                 images.append(rgb)
                 stamp = read_stamp(rgb)
                 if stamp is not None:
                     stamps.append(stamp)
-        return {"answer": msg, "stamps": stamps, "frames": images}
+        return {
+            "answer": msg,
+            "stamps": stamps,
+            "frames": images,
+            "answer_s": answer_s,
+            "first_frame_s": first_frame_s,
+        }
     finally:
         await pc.close()

@@ -24,7 +24,7 @@ from typing import Any, Protocol
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from common import web_token
+from common import bounded_json, web_token
 from common.errors import ConfigError
 from common.messages import MAX_SDP_CHARS, VideoSignal
 from common.tactile import GRIP_LEVELS
@@ -252,7 +252,8 @@ class Dashboard:
                 if self.config.video_url and _is_video_offer(raw):
                     if page.video is not None:
                         page.video.cancel()  # the page renegotiates: drop the old session
-                    page.video = asyncio.create_task(self._relay_video(conn, json.loads(raw)))
+                    offer = bounded_json.loads(raw)
+                    page.video = asyncio.create_task(self._relay_video(conn, offer))
                     continue
                 reply = self._on_message(raw, page)
                 if reply is not None:
@@ -346,7 +347,13 @@ class Dashboard:
                 url, open_timeout=5, close_timeout=VIDEO_CLOSE_WAIT_S, max_size=256 * 1024
             ) as robot:
                 await robot.send(json.dumps({"type": "offer", "sdp": offer.get("sdp")}))
-                answer = json.loads(await asyncio.wait_for(robot.recv(), VIDEO_ANSWER_TIMEOUT_S))
+                answer = bounded_json.loads(
+                    await asyncio.wait_for(robot.recv(), VIDEO_ANSWER_TIMEOUT_S)
+                )
+                if not isinstance(answer, dict) or answer.get("type") != "answer":
+                    raise ValueError(
+                        str(answer.get("error") if isinstance(answer, dict) else answer)[:200]
+                    )
                 await conn.send(json.dumps({**answer, "type": "video_answer"}))
                 await robot.wait_closed()
             reason = "the robot's video server closed the session"
@@ -392,8 +399,10 @@ class Dashboard:
     def _on_message(self, raw: str | bytes, page: _Page) -> dict[str, Any] | None:
         """The reply to one page message; None for a jog that went through (30 a second)."""
         try:
-            msg = json.loads(raw)
-        except (ValueError, UnicodeDecodeError):
+            msg = bounded_json.loads(raw)  # any depth: an error reply, the socket stays open
+        except bounded_json.TooDeep as e:
+            return {"type": "ack", "ok": False, "error": f"not JSON we take: {e}"}
+        except ValueError:  # UnicodeDecodeError included
             return {"type": "ack", "ok": False, "error": "not JSON"}
         if not isinstance(msg, dict) or msg.get("type") != "command":
             return {"type": "ack", "ok": False, "error": "expected a command"}
@@ -511,8 +520,8 @@ ARM_ACTIONS = ("arm_jog", "arm_assist", "arm_jog_end", "arm_stop")
 
 def _is_video_offer(raw: str | bytes) -> bool:
     try:
-        msg = json.loads(raw)
-    except (ValueError, UnicodeDecodeError):
+        msg = bounded_json.loads(raw)
+    except ValueError:  # too deep, not UTF-8 or not JSON: _on_message says which
         return False
     return isinstance(msg, dict) and msg.get("type") == "video_offer"
 

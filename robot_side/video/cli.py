@@ -17,6 +17,7 @@ from common.cli_support import (
     load_node_config,
     print_config,
     stop_on_signals,
+    write_stats,
 )
 from robot_side.video.server import VideoConfig
 
@@ -45,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
         stop.wait(args.duration)
     finally:
         clean = server.stop()
+        write_stats(args.stats_file, server.stats())
     if not clean:
         log.error("video: exiting without waiting for a stuck encoder thread")
         logging.shutdown()

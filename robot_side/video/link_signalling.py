@@ -14,6 +14,17 @@ viewer's key goes unheard for ``viewer_timeout_s`` (a tab that vanished
 without a word). So the camera is captured and encoded only while someone
 watches.
 
+Who may watch is the video desk's call (``video_desk.py``: a controller's
+key, or an observer the roster grants ``video``; offers at a bounded rate).
+Here the sessions are bounded: ``max_sessions`` at once, ``per_key`` of
+them one key's (a newer one closes that key's oldest), and when all are
+taken a controller's offer closes an observer's session to make room. The
+slot is taken on this bridge's loop with no await between the check and the
+taking, so offers at once never pass the bound; the video server holds its
+own bound the same way, tells the controller's offers from the others'
+(``role`` in the offer), and gives back the slot of a session whose ICE has
+not completed within its ``ice_timeout_s``.
+
 Each offer opens its own connection, so a video server that died and came
 back (systemd, or ``deepxpalm demo``, restarts it) needs nothing here: a
 session it held ends with ``closed``, an offer while it is down is answered
@@ -36,7 +47,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from common import web_token
+from common import bounded_json, web_token
 from common.messages import VideoSignal
 
 log = logging.getLogger(__name__)
@@ -48,6 +59,7 @@ ABNORMAL_CLOSURE = 1006  # the video server's socket dropped without a close (it
 @dataclass
 class _Session:
     signer: bytes | None
+    controller: bool = True  # a controller's session (an observer's may be closed for it)
     task: asyncio.Task[None] | None = None
 
 
@@ -55,13 +67,19 @@ class LinkSignalling:
     """Carries viewers' offers to the local video server and its answers back."""
 
     def __init__(
-        self, video_url: str, *, token_file: Path | None = None, max_sessions: int = 8
+        self,
+        video_url: str,
+        *,
+        token_file: Path | None = None,
+        max_sessions: int = 4,
+        per_key: int = 2,
     ) -> None:
         self.video_url = video_url
         #: the video server's token_file; None: ``video_url`` carries the token
         self.token_file = token_file
         self._shown_url = web_token.without_token(video_url)  # for logs and viewers
         self.max_sessions = max_sessions
+        self.per_key = per_key
         #: signals for the node to publish, appended by the sessions' thread
         self.outgoing: collections.deque[VideoSignal] = collections.deque()
         self.counters: collections.Counter[str] = collections.Counter()
@@ -72,11 +90,16 @@ class LinkSignalling:
         self._finishing: asyncio.Future[None] | None = None
 
     # ----------------------------------------------------- the node's side
-    def on_signal(self, msg: VideoSignal, signer: bytes | None) -> None:
-        """An offer or a bye from a viewer; never blocks."""
+    def on_signal(self, msg: VideoSignal, signer: bytes | None, controller: bool = True) -> None:
+        """An offer or a bye from a viewer; never blocks.
+
+        ``controller``: the offer is a controller's (it may close an observer's
+        session when every slot is taken). Whether the key may watch at all is
+        the caller's to judge (video_desk.py).
+        """
         if msg.kind == "offer" and msg.sdp:
             self.counters["video_offers"] += 1
-            self._call(self._open, msg.viewer, msg.sdp, signer)
+            self._call(self._open, msg.viewer, msg.sdp, signer, controller)
         elif msg.kind == "bye":
             self._call(self._end, msg.viewer, signer, None)
         else:
@@ -88,11 +111,16 @@ class LinkSignalling:
             out.append(self.outgoing.popleft())
         return out
 
-    def expire(self, heard_lately: Callable[[bytes | None], bool]) -> None:
-        """End the sessions of viewers whose key has gone quiet (``heard_lately`` says no)."""
+    def expire(
+        self,
+        heard_lately: Callable[[bytes | None], bool],
+        may_watch: Callable[[bytes | None], bool] | None = None,
+    ) -> None:
+        """End the sessions of viewers whose key has gone quiet (``heard_lately`` says no),
+        and of keys that may no longer watch (``may_watch`` says no: a roster reload)."""
         if self._loop is None:
             return
-        self._call(self._expire, heard_lately)
+        self._call(self._expire, heard_lately, may_watch)
 
     @property
     def sessions(self) -> int:
@@ -141,7 +169,8 @@ class LinkSignalling:
 
         self._finishing = asyncio.ensure_future(finish())
 
-    def _open(self, viewer: int, sdp: str, signer: bytes | None) -> None:
+    def _open(self, viewer: int, sdp: str, signer: bytes | None, controller: bool) -> None:
+        """The slot checked and taken in one step (no await): offers at once keep the bound."""
         old = self._sessions.get(viewer)
         if old is not None:
             if old.signer != signer:
@@ -150,11 +179,27 @@ class LinkSignalling:
             if old.task is not None:
                 old.task.cancel()  # the page renegotiates
             del self._sessions[viewer]
+        mine = [v for v, s in self._sessions.items() if s.signer == signer]  # oldest first
+        if len(mine) >= self.per_key:
+            self.counters["video_sessions_replaced"] += 1
+            self._end(mine[0], signer, f"a newer video session of this key (at most "
+                      f"{self.per_key} per key)")  # fmt: skip
         if len(self._sessions) >= self.max_sessions:
-            self.counters["video_offers_refused"] += 1
-            self._emit(viewer, "closed", reason=f"at most {self.max_sessions} video sessions")
-            return
-        session = _Session(signer)
+            others = [v for v, s in self._sessions.items() if not s.controller]
+            if not controller or not others:
+                self.counters["video_offers_refused"] += 1
+                self.counters["video_offers_refused_full"] += 1
+                whose = "" if controller else ", and a controller's come first"
+                self._emit(
+                    viewer,
+                    "closed",
+                    reason=f"all {self.max_sessions} video sessions are taken{whose}",
+                )
+                return
+            self.counters["video_sessions_preempted"] += 1
+            victim = self._sessions[others[0]]
+            self._end(others[0], victim.signer, "closed to make room for a controller's video")
+        session = _Session(signer, controller)
         self._sessions[viewer] = session
         session.task = asyncio.ensure_future(self._session(viewer, sdp, session))
 
@@ -168,11 +213,18 @@ class LinkSignalling:
         if reason is not None:
             self._emit(viewer, "closed", reason=reason)
 
-    def _expire(self, heard_lately: Callable[[bytes | None], bool]) -> None:
+    def _expire(
+        self,
+        heard_lately: Callable[[bytes | None], bool],
+        may_watch: Callable[[bytes | None], bool] | None,
+    ) -> None:
         for viewer, session in list(self._sessions.items()):
             if not heard_lately(session.signer):
                 self.counters["video_sessions_expired"] += 1
                 self._end(viewer, session.signer, "the viewer went quiet")
+            elif may_watch is not None and not may_watch(session.signer):
+                self.counters["video_sessions_revoked"] += 1
+                self._end(viewer, session.signer, "this key may no longer watch (the roster)")
 
     def _emit(self, viewer: int, kind: str, **fields: object) -> None:
         self.outgoing.append(VideoSignal(seq=0, t_send_ns=0, kind=kind, viewer=viewer, **fields))
@@ -192,8 +244,12 @@ class LinkSignalling:
         reason = "the video server ended the session"
         try:
             async with connect(self.url(), open_timeout=5, max_size=256 * 1024) as ws:
-                await ws.send(json.dumps({"type": "offer", "sdp": sdp}))
-                answer = json.loads(await asyncio.wait_for(ws.recv(), ANSWER_TIMEOUT_S))
+                role = "controller" if session.controller else "observer"
+                await ws.send(json.dumps({"type": "offer", "sdp": sdp, "role": role}))
+                answer = bounded_json.loads(await asyncio.wait_for(ws.recv(), ANSWER_TIMEOUT_S))
+                if not isinstance(answer, dict) or answer.get("type") != "answer":
+                    error = answer.get("error") if isinstance(answer, dict) else answer
+                    raise ValueError(f"it refused the offer: {str(error)[:120]}")
                 self._emit(
                     viewer,
                     "answer",

@@ -35,7 +35,9 @@ without waiting for such a thread.
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
+import contextlib
 import json
 import logging
 import threading
@@ -45,7 +47,7 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
-from common import web_token
+from common import bounded_json, web_token
 from common.config import param
 from common.errors import ConfigError
 from common.ice import IceConfig
@@ -67,6 +69,19 @@ CLOSE_TIMEOUT_S = 3.0  # for every viewer's peer connection to close at stop
 #: 10 s default then held up every stop by as long (the dashboard's server waits 1 s too)
 WS_CLOSE_TIMEOUT_S = 1.0
 SHARED_FORMAT = "yuv420p"  # what the VP8 encoder takes as it is (no reformat on its thread)
+
+
+class _Viewer:
+    """One viewer's slot: whether a controller's, and how it was ended early (if it was)."""
+
+    def __init__(self, controller: bool) -> None:
+        self.controller = controller
+        self.ended = asyncio.Event()
+        self.why = ""  # the close reason its signalling socket gets
+
+    def end(self, why: str) -> None:
+        self.why = why
+        self.ended.set()
 
 
 @dataclass
@@ -92,7 +107,16 @@ class VideoConfig:
         "test_pattern",
         f"which camera: one of {', '.join(CAMERA_KINDS)} (lab: a simulated lab's camera)",
     )
-    max_viewers: int = param(4, "peer connections at once; each costs an encoder")
+    max_viewers: int = param(
+        4,
+        "peer connections at once; each costs an encoder. When all are taken, a controller's "
+        "offer (the robot node says whose) closes an observer's session to make room",
+    )
+    ice_timeout_s: float = param(
+        10.0,
+        "a viewer whose connection (ICE, then DTLS) has not completed this long after its "
+        "answer gives its slot back: an offer that never connects holds no slot for longer",
+    )
     ice: IceConfig = param(
         IceConfig(), "STUN/TURN servers; the operator's dashboard needs the same"
     )
@@ -121,6 +145,8 @@ class VideoConfig:
             raise ValueError(f"video port must be 0..65535, not {self.port}")
         if self.max_viewers < 1:
             raise ValueError("video max_viewers must be at least 1")
+        if not 0 < self.ice_timeout_s <= 120:
+            raise ValueError(f"video ice_timeout_s must be in (0, 120], not {self.ice_timeout_s}")
         if not self.media_interfaces:
             raise ValueError("video media_interfaces must name at least one interface (e.g. lo)")
 
@@ -213,8 +239,11 @@ class VideoServer:
         self.source = source
         self.config = config or VideoConfig()
         self.port = self.config.port
-        self.viewers = 0
+        self._viewers: list[_Viewer] = []  # the slots taken, oldest first (the loop's thread)
         self.sessions = 0
+        self.peak_viewers = 0  # the most slots ever taken at once
+        #: refusals and ends, by kind: bad_offers, offers_refused_full, viewers_preempted, ...
+        self.counters: collections.Counter[str] = collections.Counter()
         self._track: Any = None
         self._relay: Any = None
         self.feed: CameraFeed | None = None
@@ -319,6 +348,17 @@ class VideoServer:
         self.stop()
 
     @property
+    def viewers(self) -> int:
+        """Viewers holding a slot now."""
+        return len(self._viewers)
+
+    def stats(self) -> dict[str, float]:
+        """Counters for ``--stats-file``: sessions, the peak of slots taken, refusals."""
+        out = {k: float(v) for k, v in self.counters.items()}
+        out.update(sessions=float(self.sessions), peak_viewers=float(self.peak_viewers))
+        return out
+
+    @property
     def frames_encoded(self) -> int:
         """Frames taken from the source by the current track (0 while nobody watches)."""
         return 0 if self._track is None else self._track.frames
@@ -396,37 +436,94 @@ class VideoServer:
         log.warning("video: refused a signalling request without the token")
         return conn.respond(http.HTTPStatus.UNAUTHORIZED, "the video server's token is needed\n")
 
-    async def _session(self, conn: Any) -> None:
-        from aiortc import RTCPeerConnection, RTCSessionDescription
+    async def _offer(self, conn: Any) -> tuple[str, bool] | None:
+        """(sdp, a controller's?) of the first good offer; None if none came in time.
 
-        if self.viewers >= self.config.max_viewers:
-            await conn.close(1013, f"at most {self.config.max_viewers} viewers")
-            return
+        A message that is not an offer (malformed JSON of any depth, a wrong
+        field) gets an ``error`` reply naming what is wrong, and the socket
+        waits for a good one until ``OFFER_TIMEOUT_S`` from its opening.
+        """
+        deadline = time.monotonic() + OFFER_TIMEOUT_S
+        while True:
+            try:
+                raw = await asyncio.wait_for(conn.recv(), deadline - time.monotonic())
+            except TimeoutError:
+                return None
+            try:
+                offer = bounded_json.loads(raw)
+                if not isinstance(offer, dict) or offer.get("type") != "offer":
+                    raise ValueError('expected {"type": "offer", "sdp": ...}')
+                sdp = offer.get("sdp")
+                if not isinstance(sdp, str):
+                    raise ValueError("the offer's sdp must be a string")
+                # a dashboard connecting straight here holds the token: the operator's own
+                return sdp, offer.get("role", "controller") == "controller"
+            except ValueError as e:  # UnicodeDecodeError and bounded_json.TooDeep included
+                self.counters["bad_offers"] += 1
+                await conn.send(json.dumps({"type": "error", "error": f"bad offer: {e}"[:200]}))
+
+    def _take_slot(self, controller: bool) -> _Viewer | None:
+        """A viewer's slot, checked and taken in one step (no await: offers at once keep the
+        bound). When every slot is taken, a controller's offer ends the oldest session of
+        another role and takes its slot; None: no slot for this offer."""
+        if len(self._viewers) >= self.config.max_viewers:
+            victim = next((v for v in self._viewers if not v.controller), None)
+            if not controller or victim is None:
+                return None
+            self._viewers.remove(victim)
+            victim.end("closed to make room for a controller's video")
+            self.counters["viewers_preempted"] += 1
+        viewer = _Viewer(controller)
+        self._viewers.append(viewer)
+        self.sessions += 1
+        self.peak_viewers = max(self.peak_viewers, len(self._viewers))
+        return viewer
+
+    async def _session(self, conn: Any) -> None:
         from websockets.exceptions import ConnectionClosed
 
         try:
-            offer = json.loads(await asyncio.wait_for(conn.recv(), OFFER_TIMEOUT_S))
-            sdp = offer["sdp"]
-            if offer.get("type") != "offer" or not isinstance(sdp, str):
-                raise ValueError("expected {type: offer, sdp}")
+            offer = await self._offer(conn)
         except ConnectionClosed:
             log.debug("video: a connection closed before offering (a probe, or a page gone)")
             return
-        except (TimeoutError, ValueError, KeyError, TypeError) as e:
-            await conn.close(1008, f"bad offer: {e}"[:120])
+        if offer is None:
+            await conn.close(1008, f"no offer within {OFFER_TIMEOUT_S:.0f} s")
             return
+        sdp, controller = offer
+        viewer = self._take_slot(controller)
+        if viewer is None:
+            self.counters["offers_refused_full"] += 1
+            first = "" if controller else ", and a controller's offer comes first"
+            await conn.close(1013, f"at most {self.config.max_viewers} viewers{first}")
+            return
+        try:
+            await self._serve_viewer(conn, sdp, viewer)
+        except ConnectionClosed:  # the other end went away while we answered
+            log.debug("video: a viewer's signalling closed during its offer")
+        except Exception as e:  # one viewer's offer aiortc cannot take: that viewer told, no more
+            self.counters["offers_failed"] += 1
+            log.warning("video: a viewer's offer failed: %s: %s", type(e).__name__, e)
+            with contextlib.suppress(ConnectionClosed):
+                await conn.close(1011, f"the offer failed: {type(e).__name__}: {e}"[:120])
+
+    async def _serve_viewer(self, conn: Any, sdp: str, viewer: _Viewer) -> None:
+        """Answer ``sdp`` and hold the session; the slot is ``viewer``'s until this returns."""
+        from aiortc import RTCPeerConnection, RTCSessionDescription
+
         pc = RTCPeerConnection(rtc_configuration(self.config.ice))
         closed = asyncio.Event()
+        connected = asyncio.Event()
 
         @pc.on("connectionstatechange")
         async def _state() -> None:
             log.info("video: viewer %s", pc.connectionState)
+            if pc.connectionState == "connected":
+                connected.set()
             if pc.connectionState in ("failed", "closed"):
                 closed.set()
 
         path: SimulatedMediaPath | None = None
-        self.viewers += 1
-        self.sessions += 1
         self._peers.add(pc)
         try:
             if self._track is None:
@@ -459,19 +556,38 @@ class VideoServer:
                     }
                 )
             )
-            gone = asyncio.create_task(conn.wait_closed())
-            failed = asyncio.create_task(closed.wait())
-            await asyncio.wait({gone, failed}, return_when=asyncio.FIRST_COMPLETED)
-            gone.cancel()
-            failed.cancel()
+            ending = {
+                asyncio.create_task(conn.wait_closed()),
+                asyncio.create_task(closed.wait()),
+                asyncio.create_task(viewer.ended.wait()),
+            }
+            up = asyncio.create_task(connected.wait())
+            try:
+                # half-open (ICE or DTLS not completed) for at most ice_timeout_s: its slot
+                # goes back, whoever made the offer and whether or not they answer checks
+                done, _ = await asyncio.wait(
+                    {up, *ending},
+                    timeout=self.config.ice_timeout_s,
+                    return_when=asyncio.FIRST_COMPLETED,
+                )
+                if not done:
+                    self.counters["viewers_half_open_ended"] += 1
+                    viewer.end(f"ICE/DTLS did not complete within {self.config.ice_timeout_s:g} s")
+                    log.info("video: a viewer's %s", viewer.why)
+                elif up in done and not done & ending:
+                    await asyncio.wait(ending, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                for task in (up, *ending):
+                    task.cancel()
         finally:
+            if viewer in self._viewers:
+                self._viewers.remove(viewer)
             self._peers.discard(pc)
             await pc.close()
             if path is not None:
                 self.media_paths.remove(path)
                 await asyncio.get_running_loop().run_in_executor(None, path.stop)
-            self.viewers -= 1
-            if self.viewers == 0 and self._track is not None:
+            if not self._viewers and self._track is not None:
                 self._track.stop()
                 self._track = None
-            await conn.close()
+            await conn.close(1000, viewer.why[:120])

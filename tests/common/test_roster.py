@@ -50,3 +50,22 @@ def test_a_reload_that_would_remove_every_robot_or_controller_is_refused_unless_
     # fewer robots, another controller: a change, not a lock-out
     smaller = operator_entry("bob", "controller", b"b" * 40, bytes(32)) + robot_entry("c", KEY2)
     check_replacement(old, parse_roster(smaller, "r"), "r")
+
+
+def test_video_is_a_controllers_unless_the_roster_grants_an_observer_never_a_recorder():
+    ops = "".join(
+        f'[[operator]]\nname = "{name}"\nrole = "{role}"\n{extra}\n'
+        for name, role, extra in (
+            ("alice", "controller", ""),
+            ("bob", "observer", ""),
+            ("carol", "observer", "video = true"),
+            ("dave", "controller", "video = false"),
+            ("rec", "recorder", ""),
+        )
+    )
+    watch = {op.name: op.may_watch for op in parse_roster(ops, "r.toml").operators}
+    assert watch == {"alice": True, "bob": False, "carol": True, "dave": False, "rec": False}
+    with pytest.raises(ConfigError, match="a recorder never gets video"):
+        parse_roster('[[operator]]\nname = "r"\nrole = "recorder"\nvideo = true\n', "r.toml")
+    with pytest.raises(ConfigError, match="video must be true or false"):
+        parse_roster('[[operator]]\nname = "b"\nrole = "observer"\nvideo = "yes"\n', "r.toml")

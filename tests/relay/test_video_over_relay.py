@@ -30,7 +30,13 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leaves(
     tmp_path, quiet_gc
 ):
-    fleet = Fleet(robots=["cell1"], operators={"obs1": "observer"}, workdir=tmp_path)
+    # video is a controller's: this observer's roster entry grants it (video = true)
+    fleet = Fleet(
+        robots=["cell1"],
+        operators={"obs1": "observer"},
+        workdir=tmp_path,
+        video_observers=frozenset({"obs1"}),
+    )
     page_port = free_loopback_ports(1)[0]
     with fleet:
         fleet.start_relay()
