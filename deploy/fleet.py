@@ -26,7 +26,7 @@ import zmq.auth
 
 from common import web_token
 from common.roster import operator_entry, robot_entry
-from common.signing import generate_key_files, load_public_key
+from common.signing import generate_key_files, load_public_key, write_secret_file
 from common.transport import free_loopback_ports
 from deploy.keys_cli import generate
 from deploy.unit_policy import set_niceness, unit_nice
@@ -242,7 +242,8 @@ class Fleet:
             "operators_command": f"tcp://127.0.0.1:{p[3]}",
         }
         config = self.workdir / f"{name}.toml"
-        config.write_text(
+        write_secret_file(
+            config,
             _RELAY_TOML.format(
                 p0=p[0],
                 p1=p[1],
@@ -251,7 +252,7 @@ class Fleet:
                 roster=self.relay_roster,
                 status=self.workdir / f"{name}-roster-status.json",
                 secret=self.members["relay"].curve_secret,
-            )
+            ),
         )
         return self._start(name, ["-v", "relay", "--config", str(config)])
 
@@ -271,7 +272,8 @@ class Fleet:
         """
         arm = f'kind = "ur_rtde"\nhost = "{arm_host}"' if arm_host else 'kind = "none"'
         config = self.workdir / f"{name}.toml"
-        config.write_text(
+        write_secret_file(
+            config,
             _ROBOT_TOML.format(
                 rate=rate_hz,
                 arm=arm,
@@ -285,7 +287,7 @@ class Fleet:
                 video_url=video_url,
                 signing=self.members[name].signing_secret,
                 devices=devices,
-            )
+            ),
         )
         return config
 
@@ -342,7 +344,8 @@ class Fleet:
         tel, cmd = endpoints or (self.ops_telemetry, self.ops_command)
         proc_name = f"{name}@{robot}"  # one key may follow several robots, a process each
         config = self.workdir / f"{proc_name}.toml"
-        config.write_text(
+        write_secret_file(
+            config,
             _OPERATOR_TOML.format(
                 robot=robot,
                 signing=m.signing_secret,
@@ -354,7 +357,7 @@ class Fleet:
                 request=str(request_control).lower(),
                 secret=m.curve_secret,
                 relay_public=self.members["relay"].curve_public,
-            )
+            ),
         )
         args = ["-v", "operator", "--config", str(config), "--commands-from-stdin"]
         return self._start(proc_name, [*args, *(extra or [])], stdin=True)
@@ -375,7 +378,7 @@ class Fleet:
             f'secret_key_file = "{m.curve_secret}"',
             f'server_public_key_file = "{self.members["relay"].curve_public}"',
         ]
-        config.write_text("\n".join(lines) + "\n")
+        write_secret_file(config, "\n".join(lines) + "\n")
         return self._start(name, ["-v", "record", "--config", str(config)])
 
     def wait_for(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:

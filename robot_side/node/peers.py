@@ -48,6 +48,10 @@ class OnePeer:
     def last_heard_ns(self, key: bytes | None) -> int:
         return self.peer.last_heard_ns
 
+    def entry(self, key: bytes | None) -> OperatorEntry | None:
+        """The one operator, whoever signed (a controller)."""
+        return ONE_OPERATOR
+
 
 class RosterPeers:
     """Signed messages from the roster's keys; only the lease holder commands (lease.py)."""
@@ -83,3 +87,10 @@ class RosterPeers:
     def last_heard_ns(self, key: bytes | None) -> int:
         peer = None if key is None else self.lease.peer(key)
         return peer.last_heard_ns if peer is not None else 0
+
+    def entry(self, key: bytes | None) -> OperatorEntry | None:
+        """``key``'s roster entry in force now; None for no key or a stranger.
+
+        Read on the video thread too: one lookup in the roster in force, never a change.
+        """
+        return None if key is None else self.lease.operators.get(key)

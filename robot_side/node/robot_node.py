@@ -24,7 +24,6 @@ from common.clock import Clock, Periodic, now_ns
 from common.clock_sync import ClockSync
 from common.messages import Stimulus, VideoSignal
 from common.recording import NullRecorder, Recorder
-from common.roster import OperatorEntry
 from common.security import Authenticator
 from common.transport import Link, Receiver, Sender, link_health, make_context
 from robot_side.arm.base import Arm
@@ -36,7 +35,6 @@ from robot_side.node.deadman import NEVER_NS, Deadman
 from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.frame_rule import Classifier
 from robot_side.node.link_setup import open_link, stream_signer, wire_name
-from robot_side.node.peers import ONE_OPERATOR
 from robot_side.node.telemetry import HeartbeatSchedule, Telemetry, node_stats
 from robot_side.node.video_desk import VideoDesk, video_signalling
 from robot_side.node.workers import DeviceWorkers
@@ -105,7 +103,7 @@ class RobotNode:
             now=now,
             session=self.session,
             last_heard_ns=self.desk.peers.last_heard_ns,
-            who=self._roster_entry,
+            who=self.desk.peers.entry,
             offers_per_s=link_cfg.video_offers_per_s,
         )
         self.pipeline = FramePipeline(
@@ -304,16 +302,6 @@ class RobotNode:
 
     def _on_video(self, msg: VideoSignal, signer: bytes | None) -> None:
         self.video.on_signal(msg, signer)
-
-    def _roster_entry(self, signer: bytes | None) -> OperatorEntry | None:
-        """``signer``'s roster entry now (the one operator of an unsigned link: a controller).
-
-        Read on the video thread too: one lookup in the roster in force, never a change.
-        """
-        lease = self.desk.peers.lease
-        if lease is None:
-            return ONE_OPERATOR
-        return None if signer is None else lease.operators.get(signer)
 
     def _announce(self) -> None:
         self.telemetry.announce()
