@@ -44,13 +44,15 @@ class Operator:
         """One heartbeat round trip: the robot knows our clock (offset 0) and acts on jogs."""
         t1 = now_ns() - 2_000_000  # the robot's heartbeat, as we echo it
         hb = Heartbeat(seq=1, t_send_ns=now_ns() - 1_000_000, node="operator", state="ok",
-                       echo_t_send_ns=t1, echo_t_recv_ns=t1 + 500_000)  # fmt: skip
+                       echo_t_send_ns=t1, echo_t_recv_ns=t1 + 500_000, session=7,
+                       echo_session=self.node.session)  # fmt: skip
         self.link.deliver(hb, now_ns())
         self.node.receive(now_ns())
         assert self.node.clock.is_synced
 
     def send(self, action: str, **fields) -> None:
-        cmd = Command(seq=next(self.seq), t_send_ns=now_ns(), action=action, session=7, **fields)
+        cmd = Command(seq=next(self.seq), t_send_ns=now_ns(), action=action, session=7,
+                      echo_session=self.node.session, **fields)  # fmt: skip
         self.link.deliver(cmd, now_ns())
         self.node.receive(now_ns())
 
