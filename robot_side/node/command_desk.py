@@ -226,7 +226,8 @@ class CommandDesk:
 
     def _refused(self, refusal: str, msg: Message, peer: Peer) -> None:
         self.counters[refusal] += 1
-        if refusal not in ("commands_unsynced", "commands_stale"):  # those are routine
+        # routine: an operator's first messages of a run, before it has heard the robot's
+        if refusal not in ("commands_unsynced", "commands_stale", "messages_unproven"):
             self._refused_log(
                 f"{refusal}: {type(msg).__name__} from {peer.entry.name}, boot "
                 f"{msg.session or 0:016x}, seq {msg.seq}"
