@@ -19,7 +19,8 @@ a command here):
 
 A stop whose sender has not yet proven it hears this robot run (command_gate.py,
 ``PENDING``) stops the arm at once and holds it as a latch would (``pending``)
-while the proof is awaited; proven, it latches, refused, the hold ends.
+while the proof is awaited; proven, it latches, refused, the hold ends. The
+holder's ``arm_resume`` releases a pending stop as it releases a latched one.
 
 The robot's own stops (its deadman, a lease hand-over, shutdown) are not
 anyone pressing STOP and latch nothing. The latch is the node's memory: a

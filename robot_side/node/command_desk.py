@@ -335,6 +335,14 @@ class CommandDesk:
             self.counters[refusal] += 1
             self._record(msg, f"refused: {REFUSALS[refusal]}")
             return False
+        if msg.action == "arm_resume" and self.pending_stops:
+            # the holder resumed after those stops were pressed: as it releases a latched one
+            self.counters["arm_stops_pending_resumed"] += len(self.pending_stops)
+            log.warning(
+                "%d pending arm_stop(s) released by %s's arm_resume", len(self.pending_stops), who
+            )
+            self.pending_stops = []
+            latch.pending = 0
         if msg.action in ("arm_stop", "arm_resume"):
             if latch.apply(msg.action, who, now):
                 self.announce()  # every operator sees the latch change at once
