@@ -266,6 +266,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("echo_signer", _KEY, False),
         ("controller", _KEY, False),
         ("lease_pending", _KEY, False),
+        ("echo_session", _SESSION, False),
     ],
     Command: [
         *_COMMON,
@@ -275,6 +276,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("session", _SESSION, False),
         ("grantee", _KEY, False),
         ("signer", _KEY, False),
+        ("echo_session", _SESSION, False),
     ],
     VideoSignal: [
         *_COMMON,
@@ -288,6 +290,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("fps", _float_range(0.0, 1000.0), False),
         ("session", _SESSION, False),
         ("signer", _KEY, False),
+        ("echo_session", _SESSION, False),
     ],
 }
 _BY_TOPIC = {cls.TOPIC: cls for cls in MESSAGE_TYPES}
@@ -435,21 +438,67 @@ def decode_named(data: bytes) -> tuple[bytes, Message]:
         raise UnknownMessageTypeError(
             f"type {body.get('type')!r} does not match topic {topic!r} ({cls.TYPE!r})"
         )
-    if not _KNOWN_KEYS[cls].issuperset(body):  # one C-level test on the common path
-        _check_unknown_keys(cls, body)
-    kwargs: dict[str, Any] = {}
-    for field_name, label, check, required in _DECODE_PLAN[cls]:
-        value = body.get(field_name)
-        if value is None:
-            if required:
-                raise MissingFieldError(f"{cls.TYPE} is missing required field {field_name!r}")
-            continue
-        kwargs[field_name] = check(label, value)
+    if cls is Command and body.get("action") == "arm_stop":
+        kwargs = _lenient_stop(body)
+    else:
+        if not _KNOWN_KEYS[cls].issuperset(body):  # one C-level test on the common path
+            _check_unknown_keys(cls, body)
+        kwargs = {}
+        for field_name, label, check, required in _DECODE_PLAN[cls]:
+            value = body.get(field_name)
+            if value is None:
+                if required:
+                    raise MissingFieldError(f"{cls.TYPE} is missing required field {field_name!r}")
+                continue
+            kwargs[field_name] = check(label, value)
     if "sig" in body:
         _check_signature(cls, data, body)
     elif "signer" in kwargs:
         raise SignatureError(f"{cls.TYPE} names a signer but carries no sig")
     return name, cls(**kwargs)
+
+
+#: an arm_stop's fields it cannot do without: the signature's (checked as for any message)
+_STOP_NEEDS = frozenset({"signer"})
+#: what a required field of a stop becomes when it is unreadable (the defect names it)
+_STOP_FALLBACK = {"seq": 0, "t_send_ns": 0}
+
+
+def _lenient_stop(body: dict[str, Any]) -> dict[str, Any]:
+    """An ``arm_stop``'s fields: a bad one is named in ``defects``, never a reason to drop it.
+
+    A stop that arrives must stop the arm, whatever else is wrong with it (a
+    malformed send time, a stray field): refusing it could only keep the arm
+    moving. Its version, type, action and signature are checked as for any
+    message (a forged stop is still refused); every other field that fails
+    its check is left out, or set to 0 if required, and ``"field: error"``
+    goes in ``defects`` for the robot to log and count (robot_side/command_gate.py
+    decides how far such a stop is believed).
+    """
+    defects: list[str] = []
+    if not _KNOWN_KEYS[Command].issuperset(body):
+        try:
+            _check_unknown_keys(Command, body)
+        except DecodeError as e:
+            defects.append(f"(other): {e}")
+    kwargs: dict[str, Any] = {}
+    for field_name, label, check, required in _DECODE_PLAN[Command]:
+        value = body.get(field_name)
+        if value is None:
+            if required:
+                kwargs[field_name] = _STOP_FALLBACK[field_name]
+                defects.append(f"{field_name}: missing")
+            continue
+        try:
+            kwargs[field_name] = check(label, value)
+        except DecodeError as e:
+            if field_name in _STOP_NEEDS:
+                raise
+            if required:
+                kwargs[field_name] = _STOP_FALLBACK[field_name]
+            defects.append(f"{field_name}: {e}")
+    kwargs["defects"] = tuple(defects)
+    return kwargs
 
 
 def _check_signature(cls: type, data: bytes, body: dict[str, Any]) -> None:

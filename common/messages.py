@@ -140,8 +140,10 @@ class Heartbeat:
     stimulus_seq: int | None = None  # robot: the stimulus that is still current
     t_capture_ns: int | None = None  # robot: newest frame that confirmed it
     stats: dict[str, float] = field(default_factory=dict)
-    session: int | None = None  # robot: random per node run (boot id)
+    session: int | None = None  # random per node run (boot id), robot and operator
     signer: bytes | None = None  # the sender's Ed25519 public key (signed messages)
+    #: operator: the robot run (its ``session``) it last heard: proves the message is of this run
+    echo_session: int | None = None
     echo_signer: bytes | None = None  # robot: whose heartbeat the echo fields answer
     controller: bytes | None = None  # robot: the key holding the control lease
     lease_pending: bytes | None = None  # robot: a key asking for the lease
@@ -159,9 +161,13 @@ class Command:
     action: str  # one of COMMAND_ACTIONS
     grip_level: int | None = None  # gripper_close: 1..31
     velocity: tuple[float, ...] | None = None  # arm_jog: vx vy vz (m/s) wx wy wz (rad/s)
-    session: int | None = None  # random per operator run: seq and t_send_ns increase within it
+    session: int | None = None  # random per operator run: seq increases within it
     grantee: bytes | None = None  # lease_grant: the key the lease goes to
     signer: bytes | None = None  # the sender's Ed25519 public key (signed messages)
+    echo_session: int | None = None  # the robot run the operator last heard (its ``session``)
+    #: not on the wire: an ``arm_stop``'s fields that failed their check, ``"field: error"``
+    #: (the codec keeps a stop whatever else is wrong with it, and names each bad field here)
+    defects: tuple[str, ...] = ()
 
     TOPIC = b"CMND"
     TYPE = "command"
@@ -187,8 +193,9 @@ class VideoSignal:
     width: int | None = None  # answer
     height: int | None = None  # answer
     fps: float | None = None  # answer
-    session: int | None = None  # robot: random per node run (boot id)
+    session: int | None = None  # random per node run (boot id), robot and operator
     signer: bytes | None = None  # the sender's Ed25519 public key (signed messages)
+    echo_session: int | None = None  # operator: the robot run it last heard
 
     TOPIC = b"VSIG"
     TYPE = "video_signal"

@@ -15,6 +15,14 @@ window has moved past it.
   nothing below the highest (commands: a reordered command is refused).
 - Anything else is a replay, including a duplicate the link made itself.
 
+The operators' messages to a robot (commands, heartbeats, video signals)
+use the window with ``by_time=False``: their ``seq`` alone orders them (it
+is signed, and unique within a boot), so a send time that is unreadable or
+wrong (a stop is acted on whatever its stamp says) cannot push the window
+ahead of the sender's next messages. With ``retired`` > 0 the window also
+remembers that many sessions it has forgotten, and refuses everything of
+them: a boot pushed out by newer ones cannot be taken up again by a replay.
+
 Deciding and recording are two calls, since a receiver may refuse a message
 for another reason (too old) after it passed the window, and a refused
 message must not move the window.
@@ -37,22 +45,32 @@ class _Stream:
 class ReplayWindow:
     """Per session and stream: which sequence numbers were accepted."""
 
-    def __init__(self, width: int = 0, max_sessions: int = 16) -> None:
-        if width < 0 or max_sessions < 1:
-            raise ValueError(f"width must be >= 0 and max_sessions >= 1: {width}, {max_sessions}")
+    def __init__(
+        self, width: int = 0, max_sessions: int = 16, *, by_time: bool = True, retired: int = 0
+    ) -> None:
+        if width < 0 or max_sessions < 1 or retired < 0:
+            raise ValueError(
+                f"width and retired must be >= 0 and max_sessions >= 1: {width}, {retired}, "
+                f"{max_sessions}"
+            )
         self.width = width
         self.max_sessions = max_sessions
+        self.by_time = by_time
+        self.max_retired = retired
         self._mask = (1 << max(width, 1)) - 1
         self._sessions: OrderedDict[int, dict[Hashable, _Stream]] = OrderedDict()
+        self._retired: OrderedDict[int, None] = OrderedDict()
 
     def replayed(self, session: int, stream: Hashable, seq: int, t_send_ns: int) -> bool:
         """Whether accepting this message would accept something a second time (or too late)."""
         streams = self._sessions.get(session)
-        s = None if streams is None else streams.get(stream)
+        if streams is None:
+            return session in self._retired
+        s = streams.get(stream)
         if s is None:
             return False
         if seq > s.seq:
-            return t_send_ns <= s.t_send_ns
+            return self.by_time and t_send_ns <= s.t_send_ns
         behind = s.seq - seq
         return behind >= self.width or bool((s.seen >> behind) & 1)
 
@@ -62,7 +80,11 @@ class ReplayWindow:
         if streams is None:
             streams = self._sessions[session] = {}
             while len(self._sessions) > self.max_sessions:
-                self._sessions.popitem(last=False)  # the least recently heard is forgotten
+                gone, _ = self._sessions.popitem(last=False)  # the least recently heard
+                if self.max_retired:
+                    self._retired[gone] = None
+                    while len(self._retired) > self.max_retired:
+                        self._retired.popitem(last=False)
         else:
             self._sessions.move_to_end(session)
         s = streams.get(stream)
@@ -75,8 +97,14 @@ class ReplayWindow:
         else:
             s.seen |= 1 << (s.seq - seq)
 
+    def has(self, session: int, stream: Hashable) -> bool:
+        """Whether this session's stream has an accepted message (its window is set)."""
+        streams = self._sessions.get(session)
+        return streams is not None and stream in streams
+
     def clear(self) -> None:
         self._sessions.clear()
+        self._retired.clear()
 
     def __contains__(self, session: int) -> bool:
         return session in self._sessions

@@ -152,8 +152,11 @@ class OperatorNode:
         self._robot_stats: dict[str, float] = {}
         self._hb_seq = 0
         self._cmd_seq = 0
-        #: this run's command session: the robot checks seq and send time increase within it
+        #: this run's boot id, on every message we send: the robot checks seq increases within it
         self._session = secrets.randbits(63) or 1
+        #: the robot run (its session) we last heard, echoed on everything we send: it proves
+        #: to a robot that restarted that our messages are of its run, not recorded before
+        self._robot_session: int | None = None
         #: the newest gripper command until the robot's heartbeat confirms it
         self._gripper_pending: _PendingGripper | None = None
         self._goal: list[int] = self.renderer.retract_goals  # six counts, ids 1..6
@@ -547,6 +550,8 @@ class OperatorNode:
             echo_send = echo_recv = None  # it answers another operator's heartbeat
         self.clock.on_heartbeat(msg.t_send_ns, echo_send, echo_recv, t_recv)
         self._heard_robot(msg.t_send_ns, t_recv)
+        if msg.session is not None:
+            self._robot_session = msg.session
         was = self.is_controller
         self.lease_holder = msg.controller
         self.lease_pending = msg.lease_pending
@@ -669,6 +674,8 @@ class OperatorNode:
                 state=self.link_state,
                 echo_t_send_ns=echo_send,
                 echo_t_recv_ns=echo_recv,
+                session=self._session,
+                echo_session=self._robot_session,
             )
         )
 
@@ -751,12 +758,14 @@ class OperatorNode:
     def _send_video_signal(self, cmd: VideoSignal) -> None:
         self._vsig_seq += 1
         cmd.seq, cmd.t_send_ns = self._vsig_seq, self.now()
+        cmd.session, cmd.echo_session = self._session, self._robot_session
         self.pub.send(cmd)
         self.counters[f"video_{cmd.kind}s_sent"] += 1
 
     def _send_command(self, cmd: Command, now: int, resends: int) -> None:
         self._cmd_seq += 1
         cmd.seq, cmd.t_send_ns, cmd.session = self._cmd_seq, self.now(), self._session
+        cmd.echo_session = self._robot_session
         data = self.pub.send(cmd)
         self.counters["commands_sent"] += 1
         if self._recording:

@@ -17,6 +17,11 @@ a command here):
 - ``arm_jog_end`` (a hold-to-move input let go) stops the arm and latches
   nothing: it ends one jog, it is not a STOP.
 
+A stop whose sender has not yet proven it hears this robot run (command_gate.py,
+``PENDING``) stops the arm at once and holds it as a latch would (``pending``)
+while the proof is awaited; proven, it latches, refused, the hold ends. The
+holder's ``arm_resume`` releases a pending stop as it releases a latched one.
+
 The robot's own stops (its deadman, a lease hand-over, shutdown) are not
 anyone pressing STOP and latch nothing. The latch is the node's memory: a
 restarted robot node starts unlatched (the restart itself stopped the arm).
@@ -36,6 +41,7 @@ MOVES_ARM = frozenset({"arm_jog", "arm_assist"})
 
 #: Refusal reasons, each the name of the counter it increments.
 STOP_LATCHED = "commands_stop_latched"
+STOP_PENDING = "commands_stop_pending"
 NOT_CONTROLLER = "commands_not_controller"
 STOP_REFUSED_ROLE = "arm_stops_refused_role"
 RESUME_REFUSED = "arm_resumes_refused_not_holder"
@@ -43,6 +49,7 @@ RESUME_REFUSED = "arm_resumes_refused_not_holder"
 #: what a recording (``robot/command`` outcome) says of each refusal
 REFUSALS = {
     STOP_LATCHED: "the arm's stop is latched (an arm_resume from the lease holder releases it)",
+    STOP_PENDING: "an arm_stop waits for its sender's proof (at most 2 s): the arm holds still",
     NOT_CONTROLLER: "not the lease holder",
     STOP_REFUSED_ROLE: f"only a {' or '.join(sorted(STOP_ROLES))} key may stop the arm",
     RESUME_REFUSED: "only the lease holder may resume the arm",
@@ -56,6 +63,7 @@ class StopLatch:
     latched: bool = False
     by: str | None = None  # who pressed the stop in force (a roster name, or "operator")
     since_ns: int = 0
+    pending: int = 0  # stops awaiting their sender's proof: the arm holds still meanwhile
 
     def judge(self, action: str, holder: bool, role: str | None = None) -> str | None:
         """Refusal counter for an admitted command, or None to act on it.
@@ -71,6 +79,8 @@ class StopLatch:
             return NOT_CONTROLLER
         if self.latched and action in MOVES_ARM:
             return STOP_LATCHED
+        if self.pending and action in MOVES_ARM:
+            return STOP_PENDING
         return None
 
     def apply(self, action: str, who: str, now_ns: int) -> bool:

@@ -54,7 +54,8 @@ class RecordingArm:
 
 class ProtocolOperator:
     """An operator as docs/protocol.md describes it, on raw sockets: heartbeats that echo the
-    robot's, and commands stamped with a session, an increasing seq and the send time.
+    robot's, and commands stamped with a session, an increasing seq and the send time; each
+    echoes the robot run it heard (``echo_session``), as the robot's replay window asks.
 
     The robot acts on motion commands only once a heartbeat round trip has given it the
     clock offset; ``sync()`` exchanges heartbeats until it has.
@@ -69,6 +70,7 @@ class ProtocolOperator:
         self._echo: tuple[int | None, int | None] = (None, None)
         self._next_hb_ns = 0
         self._echoing_sent: set[int] = set()  # our heartbeats that carried an echo
+        self.robot_session: int | None = None  # the robot run we heard, echoed as the node does
         self.robot_has_clock = False  # the robot answered one of those: it knows our offset
 
     def pump(self, duration_s: float = 0.0) -> None:
@@ -82,6 +84,7 @@ class ProtocolOperator:
                 self.received.append((t_recv, msg))
                 if isinstance(msg, Heartbeat):
                     self._echo = (msg.t_send_ns, t_recv)
+                    self.robot_session = msg.session
                     if msg.echo_t_send_ns in self._echoing_sent:
                         self.robot_has_clock = True
             now = now_ns()
@@ -95,6 +98,8 @@ class ProtocolOperator:
                         state="ok",
                         echo_t_send_ns=self._echo[0],
                         echo_t_recv_ns=self._echo[1],
+                        session=self.session,
+                        echo_session=self.robot_session,
                     )
                 )
                 if self._echo[0] is not None:
@@ -124,7 +129,12 @@ class ProtocolOperator:
 
         self.seq += 1
         cmd = Command(
-            seq=self.seq, t_send_ns=now_ns(), action=action, session=self.session, **fields
+            seq=self.seq,
+            t_send_ns=now_ns(),
+            action=action,
+            session=self.session,
+            echo_session=self.robot_session,
+            **fields,
         )
         self.pub.send(cmd)
         return cmd

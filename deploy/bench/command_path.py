@@ -375,17 +375,21 @@ def flood(n_flood: int, baseline_s: float, n_cost: int) -> dict[str, Any]:
     return out
 
 
-def _heartbeat(seq: int, echo: tuple[int, int] | None) -> bytes:
+def _heartbeat(seq: int, echo: tuple[int, int] | None, session: int, run: int | None) -> bytes:
     body = {"v": 1, "type": "heartbeat", "seq": seq, "t_send_ns": time.monotonic_ns()}
-    body.update(node="operator", state="ok")
+    body.update(node="operator", state="ok", session=session)
     if echo is not None:
         body.update(echo_t_send_ns=echo[0], echo_t_recv_ns=echo[1])
+    if run is not None:  # the robot run we heard: the robot believes our boot from it
+        body.update(echo_session=run)
     return b"HBRT" + msgpack.packb(body)
 
 
-def _jog(seq: int, velocity: list[float], session: int) -> bytes:
+def _jog(seq: int, velocity: list[float], session: int, run: int | None) -> bytes:
     body = {"v": 1, "type": "command", "seq": seq, "t_send_ns": time.monotonic_ns()}
     body.update(action="arm_jog", velocity=velocity, session=session)
+    if run is not None:
+        body.update(echo_session=run)
     return b"CMND" + msgpack.packb(body)
 
 
@@ -401,6 +405,7 @@ def run(telemetry: str, commands: str, n: int, velocity: list[float], session: i
     pub.setsockopt(zmq.LINGER, 0)
     pub.connect(commands)
     state = {"echo": None, "hb": 0, "next_hb": 0, "first_echoing": None, "synced": False}
+    state["run"] = None  # the robot's session, echoed
 
     def tend() -> None:
         """Read the robot's heartbeats (non-blocking) and send ours every 50 ms."""
@@ -408,6 +413,7 @@ def run(telemetry: str, commands: str, n: int, velocity: list[float], session: i
             data = sub.recv()
             body = msgpack.unpackb(data[4:])
             state["echo"] = (body["t_send_ns"], time.monotonic_ns())
+            state["run"] = body.get("session")
             first, echoed = state["first_echoing"], body.get("echo_t_send_ns")
             if first is not None and echoed is not None and echoed >= first:
                 state["synced"] = True  # it read a heartbeat of ours that echoed one of its own
@@ -416,7 +422,7 @@ def run(telemetry: str, commands: str, n: int, velocity: list[float], session: i
             state["hb"] += 1
             if state["echo"] is not None and state["first_echoing"] is None:
                 state["first_echoing"] = now
-            pub.send(_heartbeat(state["hb"], state["echo"]))
+            pub.send(_heartbeat(state["hb"], state["echo"], session, state["run"]))
             state["next_hb"] = now + 50_000_000
 
     seq = 0
@@ -429,13 +435,13 @@ def run(telemetry: str, commands: str, n: int, velocity: list[float], session: i
     end = time.monotonic() + 0.6  # an operator jogging, renewed every 50 ms
     while time.monotonic() < end:
         seq += 1
-        pub.send(_jog(seq, velocity, session))
+        pub.send(_jog(seq, velocity, session, state["run"]))
         tend()
         time.sleep(0.05)
     t_first = time.monotonic_ns()
     for i in range(n):
         seq += 1
-        pub.send(_jog(seq, velocity, session))
+        pub.send(_jog(seq, velocity, session, state["run"]))
         if i % 256 == 0:
             tend()
     t_last = time.monotonic_ns()

@@ -31,6 +31,7 @@ processes:
 
 from __future__ import annotations
 
+import secrets
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -122,6 +123,8 @@ def swarm(
     rejected = [0] * len(clients)
     budget = [0.0] * len(clients)
     hb_seq = 0
+    boot = secrets.randbits(63) or 1  # this bench run's operator boot id
+    runs: list[int | None] = [None] * len(clients)  # each client's robot run heard
     period = 1e9 / heartbeat_hz if heartbeat_hz > 0 else None
     next_hb = time.monotonic_ns()
     last_t = time.monotonic_ns()
@@ -159,6 +162,7 @@ def swarm(
                 if isinstance(msg, Stimulus):
                     latencies[i].append((t_recv - msg.t_send_ns) / 1e3)
                 elif isinstance(msg, Heartbeat):
+                    runs[i] = msg.session  # echoed: the robot believes our heartbeats from it
                     echo = msg.echo_signer
                     mine = signers[i] is not None and echo == signers[i].public
                     clocks[i].on_heartbeat(
@@ -181,6 +185,8 @@ def swarm(
                     state="ok",
                     echo_t_send_ns=echo_send,
                     echo_t_recv_ns=echo_recv,
+                    session=boot,
+                    echo_session=runs[i],
                 )
                 pub.send(encode(hb, name, signers[i]), zmq.NOBLOCK)
     out = []

@@ -69,9 +69,13 @@ class PageClock:
         """This message's delay beyond the fastest seen; None when the stamp is not a time."""
         if isinstance(t_page_ms, bool) or not isinstance(t_page_ms, (int, float)):
             return None
-        if not math.isfinite(t_page_ms):
+        try:
+            stamp = float(t_page_ms)  # a 400-digit integer does not fit: not a time either
+        except OverflowError:
             return None
-        sample = now_ms - float(t_page_ms)
+        if not math.isfinite(stamp):
+            return None
+        sample = now_ms - stamp
         if self._floor_ms is None:
             self._floor_ms = sample
         else:
@@ -407,6 +411,8 @@ class Dashboard:
         if not isinstance(msg, dict) or msg.get("type") != "command":
             return {"type": "ack", "ok": False, "error": "expected a command"}
         action = msg.get("action")
+        if not isinstance(action, str):
+            return {"type": "ack", "ok": False, "error": "action must be a string"}
         now = time.monotonic()
         # every arm message keeps the page's clock current; a stop with a bad stamp still stops
         delay_ms = (

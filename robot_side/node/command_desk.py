@@ -4,9 +4,14 @@
 an unsigned link is a roster of one operator who always holds control):
 
 1. whose message is it: a key of the roster, or the one operator;
-2. a heartbeat syncs that sender's clock and keeps its deadman alive; a
-   video signal goes to the video desk; a command goes on:
-3. fresh, in order and not replayed, by the sender's own clock (command_gate.py);
+2. once, in order and of this robot run: every kind passes the sender's
+   replay window (command_gate.py): a replayed heartbeat or video signal is
+   refused as a replayed command is;
+3. a heartbeat syncs that sender's clock and keeps its deadman alive; a
+   video signal goes to the video desk; a command must be fresh by the
+   sender's own clock (command_gate.py). An ``arm_stop`` the window cannot
+   yet believe stops the arm now and latches once its sender proves live
+   (``PENDING``: the gate's trade-off);
 4. a lease action changes who holds control (lease.py), and stops there;
 5. the stop latch's word (stop_latch.py): only the holder moves the arm,
    and nothing moves it while a stop is latched;
@@ -32,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 from common.clock_sync import ClockSync
 from common.codec import DecodeError
 from common.errors import ConfigError, DeviceError
+from common.logs import BurstLog
 from common.messages import (
     LEASE_ACTIONS,
     SESSION_LOW_MASK,
@@ -42,10 +48,17 @@ from common.messages import (
 )
 from common.recording import Recorder
 from common.roster import Roster, check_replacement, load_roster
-from robot_side.command_gate import CommandGate
+from robot_side.command_gate import (
+    PENDING,
+    STOP_BEFORE_RUN,
+    STOP_PROVEN,
+    STOP_UNPROVEN,
+    CommandGate,
+    RobotRun,
+)
 from robot_side.config import RobotLinkConfig
 from robot_side.device_worker import DeviceRequest
-from robot_side.lease import ControlLease
+from robot_side.lease import ControlLease, Peer
 from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL, DEVICE_CALLS
 from robot_side.node.peers import OnePeer, RosterPeers
 from robot_side.node.workers import DeviceWorkers
@@ -58,6 +71,14 @@ log = logging.getLogger(__name__)
 
 #: the newest admitted command of each device in a batch, with its send time on our clock
 Newest = dict[str, tuple[Command, int | None]]
+
+#: what the log says of a pending stop's outcome
+_PENDING_OUTCOMES = {
+    STOP_PROVEN: "its sender proved it hears this run: latched",
+    STOP_BEFORE_RUN: "sent before this robot run started (a replay): refused, nothing latched",
+    STOP_UNPROVEN: "its sender never proved it hears this run within 2 s (a replay, or an "
+    "operator that cannot hear this robot): refused, nothing latched",
+}
 
 
 class CommandDesk:
@@ -73,9 +94,11 @@ class CommandDesk:
         recorder: Recorder | None,
         on_video: Callable[[VideoSignal, bytes | None], None],
         announce: Callable[[], None],
+        session: int = 0,
     ) -> None:
         """``recorder`` None records nothing;
-        ``announce`` asks for a heartbeat at once (a lease or latch change)."""
+        ``announce`` asks for a heartbeat at once (a lease or latch change);
+        ``session``: this robot run's boot id, which operators echo to prove a message is of it."""
         self.link = link
         self.workers = workers
         self.counters = counters
@@ -84,6 +107,12 @@ class CommandDesk:
         self.on_video = on_video
         self.announce = announce
         max_age_ns = round(link.max_command_age_ms * 1e6)
+        #: this run: what an operator's message must echo, and when it started
+        self.run = RobotRun(session, now())
+        #: (signer, its state, the stop, arrival): stops awaiting their sender's proof
+        self.pending_stops: list[tuple[bytes | None, Peer, Command, int]] = []
+        self._refused_log = BurstLog(log, "operator message refused (replay window)")
+        self._malformed_stop_log = BurstLog(log, "arm_stop with malformed fields, acted on")
         #: the one operator's clock on an unsigned link (each roster key has its own)
         self.clock = ClockSync()
         #: an operator's arm_stop holds the arm until the holder's arm_resume (stop_latch.py)
@@ -123,6 +152,8 @@ class CommandDesk:
         newest: Newest = {}
         for msg, t_recv in batch:
             self.admit(msg, t_recv, now, newest)
+        if self.pending_stops:  # after the batch: it may hold the proof
+            self._judge_pending(now)
         if self.lease is not None:
             timed_out = self.lease.tick(now)
             if timed_out is not None:
@@ -138,6 +169,11 @@ class CommandDesk:
             self.counters[found] += 1
             return
         key, peer = found
+        if isinstance(msg, (Heartbeat, VideoSignal)):
+            refusal = peer.gate.admit_signal(msg, self.run)
+            if refusal is not None:
+                self._refused(refusal, msg, peer)
+                return
         peer.last_heard_ns = now
         if isinstance(msg, Heartbeat):
             peer.clock.on_heartbeat(msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv)
@@ -150,9 +186,15 @@ class CommandDesk:
             self.counters["messages_unexpected"] += 1
             return
         self.counters["commands_received"] += 1
-        refusal, sent = peer.gate.admit(msg, t_recv, now)
+        if msg.defects:
+            self.counters["arm_stops_malformed"] += 1
+            self._malformed_stop_log(f"from {peer.entry.name}: {'; '.join(msg.defects)}")
+        refusal, sent = peer.gate.admit(msg, t_recv, now, self.run)
+        if refusal == PENDING:
+            self._pend_stop(key, peer, msg, t_recv, now, newest)
+            return
         if refusal is not None:
-            self.counters[refusal] += 1
+            self._refused(refusal, msg, peer)
             self._record(msg, f"refused: {refusal}")
             return
         if msg.action in LEASE_ACTIONS:
@@ -181,6 +223,77 @@ class CommandDesk:
             self.counters["commands_superseded"] += 1
             self._record(older[0], "superseded")
         newest[call.device] = (msg, sent)
+
+    def _refused(self, refusal: str, msg: Message, peer: Peer) -> None:
+        self.counters[refusal] += 1
+        # routine: an operator's first messages of a run, before it has heard the robot's
+        if refusal not in ("commands_unsynced", "commands_stale", "messages_unproven"):
+            self._refused_log(
+                f"{refusal}: {type(msg).__name__} from {peer.entry.name}, boot "
+                f"{msg.session or 0:016x}, seq {msg.seq}"
+            )
+
+    # ------------------------------------------------------------ pending stops
+    def _pend_stop(
+        self, key: bytes | None, peer: Peer, msg: Command, t_recv: int, now: int, newest: Newest
+    ) -> None:
+        """An arm_stop the window cannot yet believe: the arm stops now, the latch waits.
+
+        Its sender's role is judged now (a recorder's stop moves nothing);
+        while it waits, nothing sets the arm moving (``StopLatch.pending``).
+        The same stop twice waits once.
+        """
+        refusal = self.stop_latch.judge("arm_stop", self.peers.holds(key), peer.entry.role)
+        if refusal is not None:
+            self.counters[refusal] += 1
+            self._record(msg, f"refused: {REFUSALS[refusal]}")
+            return
+        for k, _, other, _ in self.pending_stops:
+            if k == key and (other.session, other.seq) == (msg.session, msg.seq):
+                self.counters["commands_replayed"] += 1
+                return
+        self.counters[PENDING] += 1
+        self.pending_stops.append((key, peer, msg, t_recv))
+        self.stop_latch.pending = len(self.pending_stops)
+        log.warning(
+            "arm_stop from %s (boot %016x, seq %d) stopped the arm; it latches once its "
+            "sender proves it hears this run",
+            peer.entry.name,
+            msg.session or 0,
+            msg.seq,
+        )
+        if self.assist is not None:
+            self.assist.end(f"arm_stop from {peer.entry.name}")
+        older = newest.get("arm")
+        if older is not None:
+            self.counters["commands_superseded"] += 1
+            self._record(older[0], "superseded")
+        newest["arm"] = (msg, None)
+
+    def _judge_pending(self, now: int) -> None:
+        """Latch each pending stop whose sender proved live, refuse those that cannot be."""
+        waiting = []
+        for key, peer, msg, t_recv in self.pending_stops:
+            outcome = peer.gate.judge_pending(msg, t_recv, now, self.run)
+            if outcome is None:
+                waiting.append((key, peer, msg, t_recv))
+                continue
+            self.counters[outcome] += 1
+            log.warning(
+                "pending arm_stop from %s (boot %016x, seq %d): %s",
+                peer.entry.name,
+                msg.session or 0,
+                msg.seq,
+                _PENDING_OUTCOMES[outcome],
+            )
+            if outcome == STOP_PROVEN:
+                if self.stop_latch.apply("arm_stop", peer.entry.name, now):
+                    self.announce()
+                self.counters["arm_stops_latched"] += 1
+            else:
+                self._record(msg, f"refused: {outcome}")
+        self.pending_stops = waiting
+        self.stop_latch.pending = len(waiting)
 
     def _hold_assist(self, msg: Command, enable_ns: int, now: int) -> None:
         refusal = "assist_refused_none" if self.assist is None else self.assist.hold(enable_ns, now)
@@ -222,6 +335,14 @@ class CommandDesk:
             self.counters[refusal] += 1
             self._record(msg, f"refused: {REFUSALS[refusal]}")
             return False
+        if msg.action == "arm_resume" and self.pending_stops:
+            # the holder resumed after those stops were pressed: as it releases a latched one
+            self.counters["arm_stops_pending_resumed"] += len(self.pending_stops)
+            log.warning(
+                "%d pending arm_stop(s) released by %s's arm_resume", len(self.pending_stops), who
+            )
+            self.pending_stops = []
+            latch.pending = 0
         if msg.action in ("arm_stop", "arm_resume"):
             if latch.apply(msg.action, who, now):
                 self.announce()  # every operator sees the latch change at once

@@ -93,6 +93,7 @@ class RobotNode:
             recorder=recording,
             on_video=self._on_video,
             announce=self._announce,
+            session=self.session,
         )
         #: signs everything we send when set: operators holding our key drop what is not ours
         self.signer = stream_signer(link_cfg)

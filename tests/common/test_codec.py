@@ -12,6 +12,8 @@ from hypothesis import strategies as st
 
 from common import codec
 from common.codec import (
+    SIG_ENTRY_BYTES,
+    SIG_TAG,
     DecodeError,
     FieldTypeError,
     MalformedMessageError,
@@ -19,12 +21,14 @@ from common.codec import (
     MissingFieldError,
     NonFiniteValueError,
     OutOfRangeError,
+    SignatureError,
     UnknownMessageTypeError,
     UnsupportedVersionError,
     decode,
     encode,
 )
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
+from common.signing import Signer
 
 
 def stimulus(**kw) -> Stimulus:
@@ -199,10 +203,53 @@ def test_any_single_byte_corruption_is_rejected_or_still_valid(index, flip):
     ],
 )
 def test_unknown_keys_may_hold_nothing_the_protocol_forbids_anywhere(extra, error):
-    body = msgpack.unpackb(encode(Command(seq=1, t_send_ns=2, action="arm_stop"))[4:])
+    body = msgpack.unpackb(encode(Command(seq=1, t_send_ns=2, action="arm_jog_end"))[4:])
     body.update(extra)
     with pytest.raises(error):
         decode(b"CMND" + msgpack.packb(body, use_bin_type=True))
+    body["action"] = "arm_stop"  # a stop is kept, its defect named
+    stop = decode(b"CMND" + msgpack.packb(body, use_bin_type=True))
+    assert stop.action == "arm_stop" and stop.seq == 1 and len(stop.defects) == 1
+
+
+@pytest.mark.parametrize(
+    ("stamp", "defect"),
+    [
+        (float("nan"), "t_send_ns: command.t_send_ns must be an unsigned integer, not float"),
+        ("soon", "t_send_ns: command.t_send_ns must be an unsigned integer, not str"),
+        (2**64 - 1, "t_send_ns: command.t_send_ns = 18446744073709551615 is outside 0..2**63-1"),
+        (None, "t_send_ns: missing"),
+    ],
+)
+def test_a_stop_with_a_malformed_stamp_decodes_and_names_it_and_nothing_else_does(stamp, defect):
+    signer = Signer.generate()
+    for action in ("arm_stop", "arm_jog_end"):
+        data = encode(Command(seq=4, t_send_ns=2, action=action, session=3), signer=signer)
+        body = msgpack.unpackb(data[4:])
+        body.pop("sig")
+        if stamp is None:
+            body.pop("t_send_ns")
+        else:
+            body["t_send_ns"] = stamp
+        resigned = _resign(body, signer)
+        if action != "arm_stop":
+            with pytest.raises(DecodeError):
+                decode(resigned)
+            continue
+        stop = decode(resigned)
+        assert (stop.seq, stop.t_send_ns, stop.session, stop.defects) == (4, 0, 3, (defect,))
+        assert stop.signer == signer.public
+        forged = resigned[:-1] + bytes([resigned[-1] ^ 1])
+        with pytest.raises(SignatureError):  # a stop is kept, never a forged one
+            decode(forged)
+
+
+def _resign(body: dict, signer) -> bytes:
+    """``body`` signed as ``encode`` signs (the sig entry last, over every byte before it)."""
+    body = dict(body, sig=bytes(64))
+    packed = b"CMND" + msgpack.packb(body, use_bin_type=True)
+    signed = packed[:-SIG_ENTRY_BYTES]
+    return signed + SIG_TAG + signer.sign(signed)
 
 
 def test_a_multipart_message_is_refused_and_counted_by_the_subscriber():

@@ -282,7 +282,8 @@ class RobotRig:
         self.cmd_seq = 0
         self.my_heartbeats: dict[int, int] = {}  # t_send_ns -> seq of the good heartbeats
         self.robot_heartbeat: tuple[int | None, int | None] = (None, None)  # newest, for echoes
-        self.session = 4242  # the good operator's command session
+        self.session = 4242  # the good operator's boot id (commands and heartbeats)
+        self.robot_session: int | None = None  # the robot run heard, echoed on what we send
         self.echoed = 0
         self.telemetry: dict[str, int] = {"stimulus": 0, "heartbeat": 0, "frame": 0}
         self._lock = threading.Lock()  # my_heartbeats and hb_seq, shared with the beat thread
@@ -373,13 +374,20 @@ class RobotRig:
                 state="ok",
                 echo_t_send_ns=echo_send,
                 echo_t_recv_ns=echo_recv,
+                session=self.session,
+                echo_session=self.robot_session,
             )
         )
 
     def command(self, action: str, **kw: Any) -> None:
         self.cmd_seq += 1
         cmd = Command(
-            seq=self.cmd_seq, t_send_ns=now_ns(), action=action, session=self.session, **kw
+            seq=self.cmd_seq,
+            t_send_ns=now_ns(),
+            action=action,
+            session=self.session,
+            echo_session=self.robot_session,
+            **kw,
         )
         self._send(self.good, encode(cmd))
 
@@ -392,6 +400,7 @@ class RobotRig:
                 mine = isinstance(msg, Heartbeat) and msg.echo_t_send_ns in self.my_heartbeats
                 if isinstance(msg, Heartbeat):  # echoed in ours: the robot learns our clock
                     self.robot_heartbeat = (msg.t_send_ns, now_ns())
+                    self.robot_session = msg.session  # echoed: our messages are of its run
             self.echoed += mine
 
     def sync(self, timeout_s: float = 10.0) -> bool:

@@ -69,6 +69,7 @@ def test_oversized_commands_cost_only_the_senders_connection(robot):
             action="arm_jog",
             velocity=(0.01, 0, 0, 0, 0, 0),
             session=99,
+            echo_session=robot.robot_session,  # of this robot run, as an operator's is
         )
         robot.evil.send(encode(jog))
         time.sleep(0.05)

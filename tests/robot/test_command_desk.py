@@ -44,13 +44,15 @@ class Operator:
         """One heartbeat round trip: the robot knows our clock (offset 0) and acts on jogs."""
         t1 = now_ns() - 2_000_000  # the robot's heartbeat, as we echo it
         hb = Heartbeat(seq=1, t_send_ns=now_ns() - 1_000_000, node="operator", state="ok",
-                       echo_t_send_ns=t1, echo_t_recv_ns=t1 + 500_000)  # fmt: skip
+                       echo_t_send_ns=t1, echo_t_recv_ns=t1 + 500_000, session=7,
+                       echo_session=self.node.session)  # fmt: skip
         self.link.deliver(hb, now_ns())
         self.node.receive(now_ns())
         assert self.node.clock.is_synced
 
     def send(self, action: str, **fields) -> None:
-        cmd = Command(seq=next(self.seq), t_send_ns=now_ns(), action=action, session=7, **fields)
+        cmd = Command(seq=next(self.seq), t_send_ns=now_ns(), action=action, session=7,
+                      echo_session=self.node.session, **fields)  # fmt: skip
         self.link.deliver(cmd, now_ns())
         self.node.receive(now_ns())
 
@@ -106,3 +108,21 @@ def test_a_lease_action_on_an_unsigned_link_is_counted_and_moves_nothing(rig) ->
     assert node.counters["commands_rejected"] == 1
     time.sleep(0.2)  # anything posted to the arm's worker would have run by now
     assert arm.stops == 0 and not arm.sent_jogs
+
+
+def test_a_stop_awaiting_proof_stops_and_holds_the_arm_until_the_holders_resume(rig) -> None:
+    """A stop that does not echo this run (a replay, or a sender a beat behind) waits."""
+    node, arm, op = rig
+    op.send("arm_jog", velocity=JOG)
+    assert _until(lambda: len(arm.sent_jogs) == 1)
+    cmd = Command(seq=1, t_send_ns=now_ns(), action="arm_stop", session=8, echo_session=1)
+    op.link.deliver(cmd, now_ns())  # another boot, echoing a run that is not this one
+    node.receive(now_ns())
+    assert _until(lambda: arm.stops == 1), "the waiting stop did not stop the arm"
+    assert node.counters["arm_stops_pending"] == 1 and not node.desk.stop_latch.latched
+    op.send("arm_jog", velocity=JOG)
+    assert node.counters["commands_stop_pending"] == 1
+    op.send("arm_resume")
+    assert node.counters["arm_stops_pending_resumed"] == 1
+    op.send("arm_jog", velocity=JOG)
+    assert _until(lambda: len(arm.sent_jogs) == 2), "the jog after the resume never moved it"
