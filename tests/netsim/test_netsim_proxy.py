@@ -8,6 +8,7 @@ import time
 import pytest
 
 from common.netsim.impairments import DirectionConfig, Scenario
+from operator_side.config import OperatorLinkConfig
 
 
 def _fixed(to_operator_ms: float, to_robot_ms: float) -> Scenario:
@@ -40,13 +41,16 @@ def _one_way_ms(link, pub, sub, n: int = 30) -> list[float]:
 
 
 def test_fixed_delay_per_direction(make_link) -> None:
-    link = make_link(_fixed(20.0, 5.0))
+    link = make_link(_fixed(30.0, 5.0))
     down = _one_way_ms(link, link.robot_pub, link.operator_sub, 15)
     up = _one_way_ms(link, link.operator_pub, link.robot_sub, 15)
-    # Never early; late by loopback plus scheduling noise (generous: the
-    # machine is shared, the benchmark measures the real figure).
-    assert min(down) >= 20.0 and statistics.median(down) < 25.0
-    assert min(up) >= 5.0 and statistics.median(up) < 10.0
+    # Never early, on any machine; each direction its own delay (the commands' 5 ms, not the
+    # telemetry's 30). How late beyond it on a quiet machine is the bench's figure
+    # (python -m deploy.bench.netsim_engine, own cost); here at most the operator's
+    # staleness limit, which a busy machine's scheduling stays far inside.
+    late = OperatorLinkConfig().stale_after_ms
+    assert min(down) >= 30.0 and statistics.median(down) < 30.0 + late, down
+    assert min(up) >= 5.0 and statistics.median(up) < 30.0, up
 
 
 @pytest.mark.slow
