@@ -21,12 +21,11 @@ import time
 import pytest
 
 from common.netsim.datagram import DatagramForwarder
-from common.netsim.kernel_stamps import ANC_BYTES, SO_TIMESTAMPNS
+from common.netsim.kernel_stamps import ANC_BYTES, SO_TIMESTAMPNS, arrival_ns, real_minus_mono_ns
 from common.netsim.scenario import load_scenario, scenario_from_dict
 from operator_side.config import OperatorLinkConfig
 
 STAMP = struct.Struct("!Iq")  # sequence number, monotonic send time (ns)
-_TIMESPEC = struct.Struct("qq")
 #: The most a datagram may arrive after its configured delay, on any machine: a path that
 #: much later than its scenario shows the operator a stale link the scenario does not have.
 LATE_MS = OperatorLinkConfig().stale_after_ms
@@ -41,32 +40,11 @@ def _receiver() -> socket.socket:
     return s
 
 
-def _real_minus_mono_ns() -> int:
-    """The wall clock minus the monotonic one, never above the truth.
-
-    Read between two monotonic reads, the wall clock's offset lies between
-    ``real - after`` and ``real - before``; the tightest lower bound of a few
-    tries errs by well under a microsecond, towards a later arrival.
-    """
-    best = None
-    for _ in range(50):
-        before = time.monotonic_ns()
-        real = time.time_ns()
-        after = time.monotonic_ns()
-        if best is None or after - before < best[0]:
-            best = (after - before, real - after)
-    assert best is not None
-    return best[1]
-
-
 def _recv_stamped(rx: socket.socket, real_minus_mono: int) -> tuple[bytes, int]:
     """One datagram and when the kernel received it, on the monotonic clock."""
     data, anc, _, _ = rx.recvmsg(65536, ANC_BYTES)
-    for level, kind, payload in anc:
-        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-            sec, nsec = _TIMESPEC.unpack_from(payload)
-            return data, sec * 1_000_000_000 + nsec - real_minus_mono
-    raise AssertionError("the kernel gave no receive timestamp")
+    assert anc, "the kernel gave no receive timestamp"
+    return data, arrival_ns(anc, time.monotonic_ns(), real_minus_mono)
 
 
 def _relay(both: dict, **kw) -> DatagramForwarder:
@@ -91,7 +69,7 @@ def _run(
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     got: list[tuple[int, float]] = []
     rx.setblocking(False)
-    real_minus_mono = _real_minus_mono_ns()
+    real_minus_mono = real_minus_mono_ns()
 
     def drain() -> None:
         while True:
