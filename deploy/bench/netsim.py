@@ -2,8 +2,8 @@
 
 Runs ``common.netsim.fidelity`` (a PUB at 100 Hz to a SUB directly and to
 another through ``deepxpalm netsim`` in byte-stream mode, on loopback) for
-the transparent case and the delayed scenarios, and renders the table that
-docs/benchmarks.md and docs/netsim.md both carry; then the datagram mode
+the transparent case and the delayed scenarios (and metro in message mode),
+and renders the table that docs/benchmarks.md and docs/netsim.md both carry; then the datagram mode
 (the video's path): UDP datagrams at 200 Hz, directly and through a
 ``DatagramForwarder``, each timed by the receiver's kernel stamp. Every row
 gets a verdict. The section also runs on its own and rewrites the block in
@@ -32,6 +32,8 @@ from deploy.bench.fmt import results_of
 from deploy.bench.section import Context, Results, Section, Verdict
 
 SCENARIOS = ("none", "lan", "metro", "intercontinental", "loopback_trace")  # as the full preset
+#: Run again in message mode (ZeroMQ PUB/SUB through the simulator, as without CURVE).
+MESSAGE_SCENARIOS = ("metro",)
 #: The datagram rows: a fixed delay (judged against the direct path too) and two shipped ones.
 DATAGRAM_SCENARIOS = ("fixed_20ms", "metro", "loopback_trace")
 #: A datagram path's p50 may exceed configured + direct by at most this, ms (a quiet machine).
@@ -43,7 +45,11 @@ DATAGRAM_RATE_HZ = 200.0
 BEGIN, END = "<!-- netsim-fidelity:begin -->", "<!-- netsim-fidelity:end -->"
 
 
-def fidelity(seconds: float, scenarios: tuple[str, ...] = SCENARIOS) -> dict[str, Any]:
+def fidelity(
+    seconds: float,
+    scenarios: tuple[str, ...] = SCENARIOS,
+    message_scenarios: tuple[str, ...] = MESSAGE_SCENARIOS,
+) -> dict[str, Any]:
     """One rig run per scenario; the simulator gets every core the bench had before pinning."""
     from common.netsim.fidelity import measure as run_rig
 
@@ -54,6 +60,10 @@ def fidelity(seconds: float, scenarios: tuple[str, ...] = SCENARIOS) -> dict[str
     except (ImportError, OSError):
         cpus = None
     runs = [run_rig(name, seconds=seconds, netsim_cpus=cpus).as_dict() for name in scenarios]
+    runs += [
+        run_rig(name, seconds=seconds, netsim_cpus=cpus, mode="message").as_dict()
+        for name in message_scenarios
+    ]
     datagrams = [datagram_run(name, seconds) for name in DATAGRAM_SCENARIOS]
     load = os.getloadavg()
     return {
@@ -156,7 +166,7 @@ def _us(x: float | None) -> str:
 
 
 def verdicts(results: Results) -> list[Verdict]:
-    """One per row: the stream mode's criteria, then the datagram mode's."""
+    """One per row: the stream and message modes' criteria, then the datagram mode's."""
     s = results_of(results, "netsim")
     if s is None:
         return []
@@ -170,7 +180,7 @@ def verdicts(results: Results) -> list[Verdict]:
             what = "p5/p50/p95 within 0.5 ms or 5 % of configured + direct"
         out.append(
             Verdict(
-                f"netsim stream, {r['scenario']}: {what}",
+                f"netsim {r.get('mode', 'stream')}, {r['scenario']}: {what}",
                 f"p50 {v['p50']:.2f} ms" + (f" (failed: {', '.join(failed)})" if failed else ""),
                 bool(r["ok"]),
             )
@@ -222,11 +232,12 @@ def fidelity_table(section: dict[str, Any] | None) -> list[str]:
     if not section or "runs" not in section:
         return []
     out = [
-        "## Link simulator fidelity (byte-stream mode, over real sockets)",
+        "## Link simulator fidelity (over real sockets)",
         "",
         "A PUB sends 100 messages a second carrying their send time, for "
         f"{section['seconds_per_scenario']:g} s, to a SUB directly and to another through "
-        "`deepxpalm netsim` (its own process, stream mode) on loopback; the two paths "
+        "`deepxpalm netsim` (its own process, stream mode unless the row says message "
+        "mode) on loopback; the two paths "
         "alternate half a period apart. One-way delays in ms, to the operator. "
         "Target: configured + direct. "
         "Criteria: at zero delay, p50 within 0.15 ms and p99 within 0.5 ms of the direct "
@@ -241,8 +252,10 @@ def fidelity_table(section: dict[str, Any] | None) -> list[str]:
         d, v, c = r["direct_ms"], r["via_ms"], r["configured_ms"]
         own = r.get("netsim_own_latency_us") or {}
         failed = [k for k, ok in r["verdicts"].items() if not ok]
+        mode = r.get("mode", "stream")
+        label = r["scenario"] if mode == "stream" else f"{r['scenario']} ({mode} mode)"
         out.append(
-            f"| {r['scenario']} | {_ms(d['p5'])} / {_ms(d['p50'])} / {_ms(d['p95'])} / "
+            f"| {label} | {_ms(d['p5'])} / {_ms(d['p50'])} / {_ms(d['p95'])} / "
             f"{_ms(d['p99'])} | {_ms(c['p5'])} / {_ms(c['p50'])} / {_ms(c['p95'])} | "
             f"{_ms(v['p5'])} / {_ms(v['p50'])} / {_ms(v['p95'])} / {_ms(v['p99'])} | "
             f"{_us(own.get('p50'))} / {_us(own.get('p99'))} | "
@@ -300,17 +313,20 @@ def main(argv: list[str] | None = None) -> int:
 class NetsimSizes:
     netsim_seconds: float  # per scenario, 100 messages a second
     netsim_scenarios: tuple[str, ...]
+    netsim_message_scenarios: tuple[str, ...] = MESSAGE_SCENARIOS
 
 
 SIZES = {
     "full": NetsimSizes(netsim_seconds=20.0, netsim_scenarios=SCENARIOS),
     "quick": NetsimSizes(netsim_seconds=5.0, netsim_scenarios=SCENARIOS),
-    "smallest": NetsimSizes(netsim_seconds=1.0, netsim_scenarios=("none",)),
+    "smallest": NetsimSizes(
+        netsim_seconds=1.0, netsim_scenarios=("none",), netsim_message_scenarios=()
+    ),
 }
 
 
 def measure(ctx: Context, sizes: NetsimSizes) -> dict[str, Any]:
-    return fidelity(sizes.netsim_seconds, sizes.netsim_scenarios)
+    return fidelity(sizes.netsim_seconds, sizes.netsim_scenarios, sizes.netsim_message_scenarios)
 
 
 def markdown(results: Results) -> list[str]:
