@@ -84,12 +84,15 @@ def test_outage_on_real_sockets(make_link) -> None:
     while (data := link.recv(link.operator_sub, 0.2)) is not None:
         got.add(int.from_bytes(data[4:8], "little"))
     margin = 0.02e9  # loopback transit either side of the edges
+    inside = 0
     for s, t in sent.items():
         if 1.0e9 + margin < t < 1.5e9 - margin:
+            inside += 1
             assert s not in got, f"message sent {t / 1e9:.3f} s in crossed the outage"
         elif t < 1.0e9 - margin or t > 1.5e9 + margin:
             assert s in got, f"message sent {t / 1e9:.3f} s in was lost outside the outage"
-    assert link.sim.counters()["to_operator"]["outage_dropped"] >= 40
+    # counted by when each was sent: a busy machine's sender falls behind its 10 ms pace
+    assert inside > 0 and link.sim.counters()["to_operator"]["outage_dropped"] >= inside
 
 
 def test_corrupted_messages_are_rejected_by_the_operator_decoder(make_link) -> None:
