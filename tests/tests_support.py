@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
 import time
 from collections.abc import Callable
-
-import pytest
 
 from common.transport import free_loopback_ports
 from robot_side.arm.base import ArmLimits
@@ -315,20 +312,3 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, period_s: float = 0.0
             return True
         time.sleep(period_s)
     return cond()
-
-
-def late_unless_loaded(ok: bool, message: str) -> None:
-    """Hold a "not later than" timing bound on a quiet machine; on a busy one, skip saying so.
-
-    A datagram or a frame that arrives late on a machine with more runnable
-    processes than cores measures the machine (every process, the direct
-    path's too, waits for a core), not the product: such a test skips with
-    the load and the figures, and the bench is the record. Bounds that load
-    cannot break (nothing leaves early, nothing is lost) stay plain asserts.
-    """
-    if ok:
-        return
-    load, cores = os.getloadavg()[0], os.cpu_count() or 1
-    if load > cores:
-        pytest.skip(f"load, not product (load average {load:.1f} on {cores} cores): {message}")
-    raise AssertionError(f"product, at load average {load:.1f} on {cores} cores: {message}")

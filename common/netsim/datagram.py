@@ -16,9 +16,11 @@ One engine per direction serves every flow, so the bottleneck is the link's,
 shared as a real one is.
 
 Timing follows the stream relay: each datagram is timed from the kernel's
-receive timestamp, released early by the median cost of recent releases,
-and the thread spins the last ``spin_us`` before a due time instead of
-sleeping through it. Needs no root and no kernel module.
+receive timestamp, and the thread spins the last ``spin_us`` before a due
+time instead of sleeping through it. A send never starts before its due
+time on the relay's monotonic clock: loopback hands the datagram to its
+receiver inside ``send``, so a send started early by its expected cost
+would deliver it that much early. Needs no root and no kernel module.
 """
 
 from __future__ import annotations
@@ -29,7 +31,6 @@ import heapq
 import logging
 import select
 import socket
-import statistics
 import time
 from collections import OrderedDict, deque
 from typing import Any
@@ -49,11 +50,6 @@ _MAX_WAIT_S = 0.02
 _RECV_BYTES = 1 << 16
 #: Datagrams read from one socket before due ones are released again.
 _MAX_BATCH = 64
-_COST_WINDOW = 128
-_COST_START_NS = 30_000
-#: The most a release is started early. On a loaded machine a release waits for a core
-#: for milliseconds; that is lateness, not a cost to learn, or the datagrams leave early.
-_COST_MAX_NS = 300_000
 #: Sender addresses mapped at once; the longest idle one is forgotten beyond this.
 MAX_FLOWS = 64
 
@@ -105,19 +101,15 @@ class DatagramForwarder(ForwardingThread):
         self.address: Address | None = None
         self._configs = {n: datagram_config(self.scenario.direction(n)) for n in DIRECTIONS}
         self._engines: dict[str, DirectionImpairment] = {}
-        #: Directions whose jitter must not reorder: releases kept in due order too.
-        self._fifo = {n: not c.jitter_reorders for n, c in self._configs.items()}
-        self._last = {n: (0, 0) for n in DIRECTIONS}  # (due, release) of the latest in order
         self._counters = {name: DirectionCounters() for name in DIRECTIONS}
         self._sock: socket.socket | None = None
         self._flows: OrderedDict[Address, _Flow] = OrderedDict()
         self._by_upstream: dict[socket.socket, _Flow] = {}
-        #: (release ns, order, due ns, arrival ns, direction, flow, bytes)
-        self._heap: list[tuple[int, int, int, int, str, _Flow, bytes]] = []
+        #: (due ns, order, arrival ns, direction, flow, bytes): equal dues leave in arrival
+        #: order, so a direction whose jitter must not reorder (its dues never decrease) keeps it
+        self._heap: list[tuple[int, int, int, str, _Flow, bytes]] = []
         self._order = 0
         self._own_ns: deque[int] = deque(maxlen=100_000)
-        self._costs: deque[int] = deque(maxlen=_COST_WINDOW)
-        self._cost_ns = _COST_START_NS
         self._init_thread()
 
     # ------------------------------------------------------------ lifecycle
@@ -220,23 +212,16 @@ class DatagramForwarder(ForwardingThread):
                 continue
             counters.duplicated += len(deliveries) - 1
             for due, payload in deliveries:
-                release = max(arrival, due - self._cost_ns)
-                if self._fifo[direction] and due >= self._last[direction][0]:
-                    # the release-cost estimate moves: never let it swap two datagrams
-                    release = max(release, self._last[direction][1])
-                    self._last[direction] = (due, release)
-                if release <= t_read and not self._heap:
-                    self._send(direction, out_flow, payload, arrival, due, release)
+                if due <= t_read and not self._heap:
+                    self._send(direction, out_flow, payload, arrival, due)
                 else:
                     heapq.heappush(
-                        self._heap,
-                        (release, self._order, due, arrival, direction, out_flow, payload),
+                        self._heap, (due, self._order, arrival, direction, out_flow, payload)
                     )
                     self._order += 1
 
-    def _send(
-        self, direction: str, flow: _Flow, data: bytes, arrival: int, due: int, target: int
-    ) -> None:
+    def _send(self, direction: str, flow: _Flow, data: bytes, arrival: int, due: int) -> None:
+        """Send one datagram; called only once its due time has come."""
         try:
             if direction == "to_robot":
                 flow.upstream.send(data)
@@ -254,10 +239,6 @@ class DatagramForwarder(ForwardingThread):
         late = t1 - due
         if late > c.late_ns_max:
             c.late_ns_max = late
-        if target > arrival:  # a scheduled release: learn how long one takes
-            self._costs.append(t1 - target)
-            if len(self._costs) % 16 == 0:
-                self._cost_ns = min(_COST_MAX_NS, round(statistics.median(self._costs)))
 
     def _run(self) -> None:
         set_timer_slack_ns(1_000)
@@ -268,10 +249,10 @@ class DatagramForwarder(ForwardingThread):
             while not stop.is_set():
                 t = now_ns()
                 while heap and heap[0][0] <= t:
-                    release, _, due, arrival, direction, flow, data = heapq.heappop(heap)
+                    due, _, arrival, direction, flow, data = heapq.heappop(heap)
                     if direction == "to_robot" and flow.upstream.fileno() < 0:
                         continue  # its flow was forgotten meanwhile
-                    self._send(direction, flow, data, arrival, due, release)
+                    self._send(direction, flow, data, arrival, due)
                     t = now_ns()
                 wait_s = _MAX_WAIT_S
                 if heap:

@@ -11,10 +11,11 @@ losses as the retransmission stalls TCP would show. A chunk is what one
 
 Its own cost is kept out of the delays: every chunk is timed from the
 kernel's receive timestamp (``SO_TIMESTAMPNS``), so the thread's wake-up
-and read are inside the scheduled delay, and a delayed chunk's send starts
-early by the measured cost of a release (median of the recent ones). A
-chunk whose delay is zero is sent as soon as it is read, without going
-through the schedule.
+and read are inside the scheduled delay, and the thread spins the last
+``spin_us`` before a due time. A send never starts before its due time: on
+loopback the bytes reach the receiver inside ``send``, so starting it early
+by its expected cost would deliver them early. A chunk whose delay is zero
+is sent as soon as it is read, without going through the schedule.
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ import logging
 import math
 import select
 import socket
-import statistics
 import time
 from collections import deque
 from typing import Any
@@ -49,9 +49,6 @@ _MAX_WAIT_S = 0.02
 _RECV_BYTES = 1 << 16
 #: Bytes waiting for a slow receiver before the forwarder stops reading its source.
 _BACKPRESSURE_BYTES = 1 << 22
-#: Recent release costs kept for the median the schedule subtracts.
-_COST_WINDOW = 128
-_COST_START_NS = 40_000
 #: A connection to the robot must be up within this (connects block the forwarder's thread).
 _CONNECT_TIMEOUT_S = 1.0
 
@@ -126,8 +123,8 @@ class _Pipe:
         self.direction = direction
         self.engine = engine  # None: passthrough
         self.counters = counters
-        #: (nominal due ns, release at ns, arrival ns, bytes), in due order.
-        self.queue: deque[tuple[int, int, int, bytes]] = deque()
+        #: (due ns, arrival ns, bytes), in due order.
+        self.queue: deque[tuple[int, int, bytes]] = deque()
         self.pending = bytearray()  # released but not yet accepted by the kernel
         self.closed = False
 
@@ -152,7 +149,6 @@ class StreamForwarder(ForwardingThread):
         endpoints: Endpoints | None = None,
         seed: int = 0,
         spin_us: float = 300.0,
-        subtract_own_cost: bool = True,
     ) -> None:
         self.scenario = scenario if scenario is not None else Scenario()
         self.endpoints = endpoints if endpoints is not None else Endpoints()
@@ -160,7 +156,6 @@ class StreamForwarder(ForwardingThread):
         if spin_us < 0:
             raise ConfigError(f"spin_us must be >= 0, not {spin_us}")
         self.spin_ns = round(spin_us * 1000)
-        self.subtract_own_cost = subtract_own_cost
         self._configs = {name: stream_config(self.scenario.direction(name)) for name in DIRECTIONS}
         self._passthrough = {name: _is_passthrough(c) for name, c in self._configs.items()}
         self._counters = {name: DirectionCounters() for name in DIRECTIONS}
@@ -176,8 +171,6 @@ class StreamForwarder(ForwardingThread):
         self._init_thread()
         self.start_ns: int | None = None
         self._own_ns: deque[int] = deque(maxlen=100_000)
-        self._costs: deque[int] = deque(maxlen=_COST_WINDOW)
-        self._cost_ns = _COST_START_NS
         self.operator_telemetry_endpoint: str | None = None
         self.operator_commands_endpoint: str | None = None
 
@@ -237,10 +230,6 @@ class StreamForwarder(ForwardingThread):
     def own_latency_ns(self) -> list[int]:
         """Recent per-chunk costs of the forwarder: sent minus the later of arrival and due time."""
         return list(self._own_ns)
-
-    def release_cost_ns(self) -> int:
-        """The current estimate of a release's own cost, taken off every scheduled delay."""
-        return self._cost_ns
 
     # ------------------------------------------------------------ connections
     def _accept(self, link: str, listener: socket.socket, target: tuple[str, int]) -> None:
@@ -342,7 +331,7 @@ class StreamForwarder(ForwardingThread):
         c.received += 1
         c.bytes_in += len(data)
         if pipe.engine is None:
-            self._release(pipe, data, arrival, arrival, arrival)
+            self._release(pipe, data, arrival, arrival)
             return
         out = pipe.engine.process(arrival, data)
         if not out:  # gave up after the retransmissions: TCP resets the connection
@@ -351,13 +340,12 @@ class StreamForwarder(ForwardingThread):
             self._close_pair(pipe)
             return
         due, payload = out[0]
-        release = max(arrival, due - self._cost_ns) if self.subtract_own_cost else due
-        if not pipe.queue and release <= t_read:
-            self._release(pipe, payload, arrival, due, release)
+        if not pipe.queue and due <= t_read:
+            self._release(pipe, payload, arrival, due)
         else:
-            pipe.queue.append((due, release, arrival, payload))
+            pipe.queue.append((due, arrival, payload))
 
-    def _release(self, pipe: _Pipe, data: bytes, arrival: int, due: int, target: int) -> None:
+    def _release(self, pipe: _Pipe, data: bytes, arrival: int, due: int) -> None:
         """Send ``data`` (or queue it behind what the receiver has not taken yet)."""
         if pipe.pending:
             pipe.pending += data
@@ -381,10 +369,6 @@ class StreamForwarder(ForwardingThread):
         late = t1 - due
         if late > c.late_ns_max:
             c.late_ns_max = late
-        if target > arrival:  # a scheduled release: learn how long one takes
-            self._costs.append(t1 - target)
-            if len(self._costs) % 16 == 0:
-                self._cost_ns = round(statistics.median(self._costs))
 
     def _flush(self, pipe: _Pipe) -> None:
         try:
@@ -422,12 +406,12 @@ class StreamForwarder(ForwardingThread):
                 t = now_ns()
                 for pipe in self._pipes:
                     q = pipe.queue
-                    while q and q[0][1] <= t and not pipe.closed:
-                        due, target, arrival, data = q.popleft()
-                        self._release(pipe, data, arrival, due, target)
+                    while q and q[0][0] <= t and not pipe.closed:
+                        due, arrival, data = q.popleft()
+                        self._release(pipe, data, arrival, due)
                         t = now_ns()
-                    if q and (next_ns is None or q[0][1] - spin_ns < next_ns):
-                        next_ns = q[0][1] - spin_ns
+                    if q and (next_ns is None or q[0][0] - spin_ns < next_ns):
+                        next_ns = q[0][0] - spin_ns
                 if self._dirty:
                     continue
                 # Wait for bytes, a writable receiver, or the next release.

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from deploy.bench.fmt import results_of
-from deploy.bench.section import Context, Results, Section
+from deploy.bench.section import Context, Results, Section, Verdict
 
 SCENARIOS = ("none", "metro", "intercontinental", "bad_day", "loopback_trace")
 #: the bandwidth-limited row: metro with this bottleneck towards the operator
@@ -39,6 +39,9 @@ RUN_S = 28.0  # the outage and 6 s after it
 WARMUP_S = 3.0  # ICE, the first keyframe, the receiver's buffer settling
 SETTLE_S = 10.0  # the bitrate is read over this many seconds before the outage (or the end)
 STALL_MS = 500.0
+#: metro's glass-to-glass p50 above the direct-through-none row's: more than 0 (its 4 ms one
+#: way shows), less than this (the simulator adds nothing of its own a viewer would see)
+METRO_EXTRA_MS = 25.0
 BEGIN, END = "<!-- video-netsim:begin -->", "<!-- video-netsim:end -->"
 TITLE = "Video through the link simulator"
 
@@ -54,7 +57,7 @@ class VideoNetsimSizes:
 
 SIZES = {
     "full": VideoNetsimSizes(SCENARIOS, True, 640, 480, 30.0),
-    "quick": VideoNetsimSizes(("metro", "bad_day"), True, 640, 480, 30.0),
+    "quick": VideoNetsimSizes(("none", "metro", "bad_day"), True, 640, 480, 30.0),
     "smallest": VideoNetsimSizes(("metro",), False, 320, 240, 15.0),
 }
 
@@ -250,10 +253,32 @@ def table(section: dict[str, Any] | None) -> list[str]:
     return out
 
 
+def verdicts(results: Results) -> list[Verdict]:
+    """metro's picture is later than none's by its delay, and by not much more."""
+    s = results_of(results, "video_netsim")
+    rows = {r["scenario"]: r for r in (s or {}).get("rows", [])}
+    if "metro" not in rows or "none" not in rows:
+        return []
+    metro, none = rows["metro"]["p50_ms"], rows["none"]["p50_ms"]
+    extra = None if metro is None or none is None else metro - none
+    return [
+        Verdict(
+            f"video through netsim: metro's glass-to-glass p50 above none's by 0-"
+            f"{METRO_EXTRA_MS:g} ms (4 ms one way)",
+            None if extra is None else f"{extra:+.1f} ms ({metro} against {none})",
+            None if extra is None else 0.0 < extra < METRO_EXTRA_MS,
+        )
+    ]
+
+
 def markdown(results: Results) -> list[str]:
     lines = table(results_of(results, "video_netsim"))
     if not lines:
         return []
+    goal = verdicts(results)
+    if goal:
+        verdict = {True: "passes", False: "fails", None: "was not measured"}[goal[0].passed]
+        lines = [*lines, "", f"Goal: {goal[0].what}: it {verdict} ({goal[0].measured})."]
     return [
         "",
         f"## {TITLE}",
@@ -291,6 +316,7 @@ SECTION = Section(
     sizes=SIZES,
     measure=measure,
     markdown=markdown,
+    verdicts=verdicts,
     update_other_docs=update_netsim_doc,
     quick=False,  # a browser per scenario
 )

@@ -279,11 +279,26 @@ class VideoServer:
         return web_token.with_token(self.base_url, self.token)
 
     def start(self, timeout_s: float = 10.0) -> VideoServer:
+        # imported here, untimed: on a busy machine importing aiortc alone can take seconds,
+        # which is not the server failing to bind
+        try:
+            import aiortc.contrib.media  # noqa: F401
+            import websockets.asyncio.server  # noqa: F401
+        except ImportError as e:
+            raise ConfigError(
+                f"video: {e.name} is not installed (pip install 'deepxpalm[video]')"
+            ) from None
+
         self.link_start_ns = time.monotonic_ns()
         self.feed = CameraFeed(self.source)
         self._thread = threading.Thread(target=self._run, name="video-server", daemon=True)
         self._thread.start()
-        if not self._started.wait(timeout_s) or self._error is not None:
+        if not self._started.wait(timeout_s):
+            raise ConfigError(
+                f"video: not serving on {self.config.host}:{self.config.port} after "
+                f"{timeout_s:g} s (is the machine overloaded?)"
+            )
+        if self._error is not None:
             raise ConfigError(
                 f"video: cannot serve on {self.config.host}:{self.config.port}: {self._error} "
                 "(is another program using the port?)"

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import pytest
 import zmq
 
-from common.netsim.fidelity import FidelityRun
 from common.netsim.impairments import Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
 
@@ -89,72 +88,3 @@ def make_link() -> Iterator:
         for sim in sims:
             sim.stop()
         ctx.destroy(linger=0)
-
-
-#: Percentiles that one stalled process on a loaded 2-core machine can move by milliseconds.
-TAIL_VERDICTS = ("p95", "p99")
-
-
-def on_this_machine(run: FidelityRun) -> dict[str, bool]:
-    """The run's verdicts scaled to what one hop costs here (``FidelityRun.scaled_verdicts``)."""
-    return run.scaled_verdicts()
-
-
-#: Measurements a fidelity test takes at most: another job on the machine can stall one.
-ATTEMPTS = 3
-
-
-def _figures(run: FidelityRun) -> str:
-    """The run in one line, every figure kept (pytest cuts a long dict's repr)."""
-    d = run.as_dict()
-    parts = []
-    for key in ("direct_ms", "configured_ms", "via_ms"):
-        parts.append(f"{key} " + " / ".join(f"{k} {v:.3f}" for k, v in d[key].items()))
-    parts.append(f"verdicts {on_this_machine(run)}")
-    return "; ".join(parts)
-
-
-@pytest.fixture
-def assert_faithful():
-    """Check a ``FidelityRun``: its median unless the machine is saturated, its tails unless
-    it is overloaded.
-
-    A short stall of one process by another job (a CI runner may share the
-    machine) moves a 6 s measurement's median without moving the load
-    average, so a run that fails is measured again, up to ``ATTEMPTS`` in
-    all, and the first that meets every criterion passes; if none does, the
-    last one is judged. With more runnable processes than cores (load
-    average above the core count), any process, the direct path's included,
-    waits milliseconds for a core now and then; the tails then measure the
-    machine, not the simulator, and the test skips their check saying so.
-    Above 1.5 runnable processes a core (two busy loops beside it on two
-    cores) the median waits too, and the test skips whatever failed, saying
-    so. The bench table is the record.
-    """
-    import os
-
-    def check(run: FidelityRun, remeasure: Callable[[], FidelityRun]) -> None:
-        tried = [run]
-        while not all(on_this_machine(run).values()) and len(tried) < ATTEMPTS:
-            run = remeasure()
-            tried.append(run)
-        summary = f"{len(tried)} measurement(s), the last: {_figures(run)}"
-        if len(tried) > 1:
-            summary += "; before it: " + " | ".join(_figures(r) for r in tried[:-1])
-        assert len(run.via_ms) >= 0.99 * run.seconds * run.rate_hz, summary
-        verdicts = on_this_machine(run)
-        load, cores = os.getloadavg()[0], os.cpu_count() or 1
-        if not all(verdicts.values()) and load > 1.5 * cores:
-            # two busy loops on two cores: the relay process gets two thirds of a core and
-            # even its median waits for one; measured again, this is the machine
-            pytest.skip(f"not checkable at load average {load:.1f} on {cores} cores: {summary}")
-        medians_ok = all(ok for k, ok in verdicts.items() if k not in TAIL_VERDICTS)
-        assert medians_ok, f"at load average {load:.1f} on {cores} cores: {summary}"
-        tails_ok = all(ok for k, ok in verdicts.items() if k in TAIL_VERDICTS)
-        if not tails_ok and load > cores:
-            pytest.skip(
-                f"tails not checkable at load average {load:.1f} on {cores} cores: {summary}"
-            )
-        assert tails_ok, f"at load average {load:.1f} on {cores} cores: {summary}"
-
-    return check

@@ -112,6 +112,7 @@ def test_before_any_round_trip() -> None:
     t1=st.integers(0, 10**15),
 )
 @pytest.mark.slow
+@pytest.mark.untimed  # arithmetic on given numbers: no clock
 def test_one_exchange_is_exact_up_to_half_the_asymmetry(offset, fwd, back, hold, t1) -> None:
     cs = ClockSync()
     t2 = t1 + fwd + offset

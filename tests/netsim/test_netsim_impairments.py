@@ -227,6 +227,7 @@ def test_truncation_is_always_rejected_by_the_decoder(wire: bytes) -> None:
     u=st.floats(0, 1, exclude_max=True),
 )
 @pytest.mark.slow
+@pytest.mark.untimed  # arithmetic on given numbers: no clock
 def test_any_truncated_msgpack_map_fails_to_unpack(body: dict, u: float) -> None:
     from common.netsim.impairments import _corrupt
 

@@ -8,6 +8,7 @@ import time
 import pytest
 
 from common.netsim.impairments import DirectionConfig, Scenario
+from operator_side.config import OperatorLinkConfig
 
 
 def _fixed(to_operator_ms: float, to_robot_ms: float) -> Scenario:
@@ -40,13 +41,16 @@ def _one_way_ms(link, pub, sub, n: int = 30) -> list[float]:
 
 
 def test_fixed_delay_per_direction(make_link) -> None:
-    link = make_link(_fixed(20.0, 5.0))
+    link = make_link(_fixed(30.0, 5.0))
     down = _one_way_ms(link, link.robot_pub, link.operator_sub, 15)
     up = _one_way_ms(link, link.operator_pub, link.robot_sub, 15)
-    # Never early; late by loopback plus scheduling noise (generous: the
-    # machine is shared, the benchmark measures the real figure).
-    assert min(down) >= 20.0 and statistics.median(down) < 25.0
-    assert min(up) >= 5.0 and statistics.median(up) < 10.0
+    # Never early, on any machine; each direction its own delay (the commands' 5 ms, not the
+    # telemetry's 30). How late beyond it on a quiet machine is the bench's figure
+    # (python -m deploy.bench.netsim_engine, own cost); here at most the operator's
+    # staleness limit, which a busy machine's scheduling stays far inside.
+    late = OperatorLinkConfig().stale_after_ms
+    assert min(down) >= 30.0 and statistics.median(down) < 30.0 + late, down
+    assert min(up) >= 5.0 and statistics.median(up) < 30.0, up
 
 
 @pytest.mark.slow
@@ -80,12 +84,15 @@ def test_outage_on_real_sockets(make_link) -> None:
     while (data := link.recv(link.operator_sub, 0.2)) is not None:
         got.add(int.from_bytes(data[4:8], "little"))
     margin = 0.02e9  # loopback transit either side of the edges
+    inside = 0
     for s, t in sent.items():
         if 1.0e9 + margin < t < 1.5e9 - margin:
+            inside += 1
             assert s not in got, f"message sent {t / 1e9:.3f} s in crossed the outage"
         elif t < 1.0e9 - margin or t > 1.5e9 + margin:
             assert s in got, f"message sent {t / 1e9:.3f} s in was lost outside the outage"
-    assert link.sim.counters()["to_operator"]["outage_dropped"] >= 40
+    # counted by when each was sent: a busy machine's sender falls behind its 10 ms pace
+    assert inside > 0 and link.sim.counters()["to_operator"]["outage_dropped"] >= inside
 
 
 def test_corrupted_messages_are_rejected_by_the_operator_decoder(make_link) -> None:

