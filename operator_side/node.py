@@ -293,6 +293,13 @@ class OperatorNode:
                     self.ctx.term()
 
     @property
+    def loop_turns(self) -> int:
+        """Turns of the loop so far (at least one per heartbeat period, robot or not): systemd's
+        watchdog is pinged only while this grows (``common.sd_notify``), so a frozen or stuck
+        loop is ended and the palm lifted by the unit's ExecStopPost."""
+        return self.counters["wakeups"]
+
+    @property
     def arm_stop_latched(self) -> bool:
         """Whether the robot's newest heartbeat says a STOP holds the arm (anyone's stop)."""
         return bool(self._robot_stats.get("arm_stop_latched"))
