@@ -380,7 +380,8 @@ class Deployment:
             "operator",
             start,
             rule,
-            stop_post=lambda: spawn_cli(["-v", *stop_post], log_path),
+            # at the unit's Nice=, as systemd runs every command of the unit
+            stop_post=lambda: spawn_cli(["-v", *stop_post], log_path, "operator"),
             watchdog=watchdog,
         )
         self.units["operator"].launch()
