@@ -5,9 +5,9 @@ killed (``kill -9``, a crash) or frozen while a stimulus pressed the palm
 leaves the linkages pressing it. Any process that opens the bus once the node
 is gone can lift them; this command is that process. It opens the servo bus
 the operator's config names (the node's own driver, calibration and limits),
-writes the node's own retract pose (``LinkGlideRenderer.retract_goals``), waits
-until every servo reports it is there, and lets go as the node does on its
-way out (torque off).
+writes the node's own retract pose (``renderer_config.retract_goals``), waits
+until every servo reports it is there (``ServoBus.wait_for_arrival``), and lets
+go as the node does on its way out (torque off).
 
 The operator's systemd unit runs it after every exit of the node
 (``ExecStopPost=``, which runs after ``kill -9`` and after the watchdog ended
@@ -25,20 +25,29 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from common.config import param
 from common.errors import ConfigError, DeviceError
+from operator_side.renderer_config import RendererConfig
 
 if TYPE_CHECKING:
-    from operator_side.config import OperatorConfig
     from operator_side.servos.base import ServoBus
 
 log = logging.getLogger(__name__)
 
-#: a servo this close to its retract goal (counts, about 1.4 degrees) is off the palm
-ARRIVED_COUNTS = 16
-READ_PERIOD_S = 0.01
+
+@dataclass
+class PalmConfig:
+    """What the lift reads of the operator's config: the servo bus and the renderer's
+    settings (the retract point and the linkages). The rest of the node's config is
+    not read, nor are its parts imported (ZeroMQ, the dashboard, NumPy): this
+    process's start-up is the time a dead node's linkages stay on the palm."""
+
+    renderer: RendererConfig = param(RendererConfig(), "the retract point and the linkages")
+    servos: dict[str, Any] = param({"kind": "recording"}, "LinkGlide servo bus: kind + settings")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,14 +71,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def lift(config: OperatorConfig, within_s: float = 2.0) -> dict[str, Any]:
+def lift(config: PalmConfig, within_s: float = 2.0) -> dict[str, Any]:
     """Open the bus ``config.servos`` names, write the retract pose, wait, torque off.
 
     Returns what happened (ports, goals, how long); raises ``DeviceError`` with
     what to check when the palm could not be lifted.
     """
     from common.devices import build_device
-    from operator_side.renderer import LinkGlideRenderer
+    from operator_side.renderer_config import retract_goals
     from operator_side.servos import KINDS
 
     kind = config.servos.get("kind")
@@ -85,44 +94,32 @@ def lift(config: OperatorConfig, within_s: float = 2.0) -> dict[str, Any]:
     try:
         calibration = servos.calibration
         assert calibration is not None  # connect() loads it
-        retract = LinkGlideRenderer(config.renderer, calibration).retract_goals
-        goals = dict(zip((int(i) for i in calibration.ids), retract, strict=True))
+        goals = dict(
+            zip(calibration.id_list, retract_goals(config.renderer, calibration), strict=True)
+        )
         servos.write_goals(goals)
         written_s = time.monotonic() - t0
-        present = _wait_for(servos, goals, within_s)
-    finally:
-        servos.disconnect()  # torque off, as the node leaves the palm on a clean stop
-    return {
-        "goals": goals,
-        "present": present,
-        "written_ms": round(written_s * 1e3),
-        "arrived_ms": round((time.monotonic() - t0) * 1e3),
-    }
-
-
-def _wait_for(servos: ServoBus, goals: dict[int, int], within_s: float) -> dict[int, int]:
-    """Present positions once every servo is within ``ARRIVED_COUNTS`` of its goal."""
-    deadline = time.monotonic() + within_s
-    while True:
-        present = servos.read_positions()
-        away = {i: present[i] for i in goals if abs(present[i] - goals[i]) > ARRIVED_COUNTS}
-        if not away:
-            return present
-        if time.monotonic() > deadline:
+        away = servos.wait_for_arrival(goals, within_s)
+        if away:
             raise DeviceError(
                 f"servos {sorted(away)} did not reach the retract pose within {within_s:g} s "
                 f"(at {away}, goals {[goals[i] for i in sorted(away)]}); torque is now off, so "
                 "they no longer press. Check for a blocked linkage, and goal_speed in "
                 "[operator.servos]"
             )
-        time.sleep(READ_PERIOD_S)
+    finally:
+        servos.disconnect()  # torque off, as the node leaves the palm on a clean stop
+    return {
+        "goals": goals,
+        "written_ms": round(written_s * 1e3),
+        "arrived_ms": round((time.monotonic() - t0) * 1e3),
+    }
 
 
 def run(args: argparse.Namespace) -> int:
     from common.cli_support import load_node_config
-    from operator_side.config import OperatorConfig
 
-    config = load_node_config(args, OperatorConfig, "operator")
+    config = load_node_config(args, PalmConfig, "operator", only=("renderer", "servos"))
     done = lift(config, args.within)
     port = config.servos.get("port", config.servos.get("kind"))
     print(
