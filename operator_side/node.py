@@ -30,7 +30,7 @@ from common.clock import Clock, Periodic, now_ns
 from common.clock_sync import ClockSync
 from common.codec import DecodeError, check_robot_name, encode, name_prefix
 from common.devices import build_device
-from common.errors import ConfigError
+from common.errors import ConfigError, DeviceError
 from common.link_stats import LinkStats
 from common.logs import BurstLog
 from common.messages import (
@@ -62,6 +62,9 @@ VIDEO_HOLD_NS = 3_000_000_000
 #: clock, and counted in ``late_wakes``)
 LATE_WAKE_NS = 100_000_000
 RESTART_SEQ_GAP = 1000  # a sequence number this far back means the robot restarted
+#: the clean stop's longest wait for the retract pose before torque off (a pressing linkage
+#: is a few degrees from it: about 0.1 s at the servos' speed)
+LIFT_ARRIVAL_S = 0.2
 
 
 @dataclass
@@ -634,8 +637,24 @@ class OperatorNode:
         return self._stim
 
     def _lift_off_now(self) -> None:
-        """On shutdown: straight to the retract pose (a lift is always safe)."""
+        """On shutdown: straight to the retract pose (a lift is always safe), and torque stays
+        on until the servos are there (at most ``LIFT_ARRIVAL_S``): let go mid-way, a linkage
+        stays where it was, maybe on the palm."""
         self._write(self.renderer.retract_goals)
+        goals = dict(zip(self._servo_ids, self.renderer.retract_goals, strict=True))
+        try:
+            away = self.servos.wait_for_arrival(goals, LIFT_ARRIVAL_S)
+        except DeviceError as e:  # the bus failed on the way out: torque goes off regardless
+            log.warning("lift on the way out: positions unreadable (%s); torque off", e)
+            return
+        if away:
+            log.warning(
+                "lift on the way out: servos %s not at the retract pose after %.0f ms (at %s); "
+                "torque off",
+                sorted(away),
+                LIFT_ARRIVAL_S * 1e3,
+                away,
+            )
 
     # --------------------------------------------------------- heartbeat
     def _send_heartbeat(self) -> None:
