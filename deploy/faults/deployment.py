@@ -29,6 +29,7 @@ from common.transport import free_loopback_ports
 from deploy.demo import spawn_cli
 from deploy.faults.watchdog import UnitWatchdog
 from deploy.fleet import Fleet, Proc
+from deploy.supervisor import StopPost
 from deploy.unit_policy import RestartPolicy, policy
 
 log = logging.getLogger(__name__)
@@ -131,9 +132,7 @@ class Unit:
     #: each clean restart: seconds from SIGTERM to the end, and whether it had to be killed
     stops: list[tuple[float, bool]] = field(default_factory=list)
     #: the unit's ExecStopPost= as a process of this deployment (None: the unit has none)
-    stop_post: Callable[[], subprocess.Popen] | None = None
-    #: (monotonic start, end, exit code) of each ExecStopPost= run
-    stop_posts: list[tuple[float, float, int]] = field(default_factory=list)
+    stop_post: StopPost | None = None
     #: systemd's watchdog for this unit's process (None: no WatchdogSec=)
     watchdog: UnitWatchdog | None = None
     started_at: float = 0.0  # monotonic, the running process's start
@@ -146,13 +145,15 @@ class Unit:
         self.starts += 1
         return self.proc
 
+    @property
+    def stop_posts(self) -> list[tuple[float, float, int]]:
+        """(monotonic start, end, exit code) of each ExecStopPost= run."""
+        return [] if self.stop_post is None else self.stop_post.runs
+
     def run_stop_post(self) -> None:
         """ExecStopPost= to its end (a clean restart: systemd runs it between stop and start)."""
-        if self.stop_post is None:
-            return
-        t0 = time.monotonic()
-        code = self.stop_post().wait(60)
-        self.stop_posts.append((t0, time.monotonic(), code))
+        if self.stop_post is not None:
+            self.stop_post.run(self.started_at)
 
     @property
     def pid(self) -> int:
@@ -186,7 +187,6 @@ class Supervisor:
 
     def _run(self) -> None:
         due: dict[str, float] = {}
-        post: dict[str, tuple[float, subprocess.Popen]] = {}  # ExecStopPost= running
         while not self._stop.wait(0.02):
             now = time.monotonic()
             for name, unit in self.units.items():
@@ -198,8 +198,8 @@ class Supervisor:
                     if unit.watchdog is not None:
                         unit.watchdog.check(unit.pid)
                     continue
-                if name not in due and not self._stop_post_done(unit, post):
-                    continue
+                if name not in due and unit.stop_post and not unit.stop_post.done(unit.started_at):
+                    continue  # ExecStopPost= first, then the restart
                 if name not in due:
                     if not unit.policy.restarts_after(code):
                         continue
@@ -211,26 +211,6 @@ class Supervisor:
                     del due[name]
                     unit.launch()
                     unit.restarted_at.append(time.monotonic())
-
-    @staticmethod
-    def _stop_post_done(unit: Unit, post: dict[str, tuple[float, subprocess.Popen]]) -> bool:
-        """Start the unit's ExecStopPost= once per end of its process; True once it is over."""
-        if unit.stop_post is None:
-            return True
-        running = post.get(unit.name)
-        if running is None:
-            if unit.stop_posts and unit.stop_posts[-1][0] > unit.started_at:
-                return True  # this end's already ran
-            post[unit.name] = (time.monotonic(), unit.stop_post())
-            return False
-        t0, popen = running
-        code = popen.poll()
-        if code is None:
-            return False
-        del post[unit.name]
-        unit.stop_posts.append((t0, time.monotonic(), code))
-        log.info("%s: ExecStopPost ended with %s in %.2f s", unit.name, code, time.monotonic() - t0)
-        return True
 
     def close(self) -> None:
         self._stop.set()
@@ -381,7 +361,9 @@ class Deployment:
             start,
             rule,
             # at the unit's Nice=, as systemd runs every command of the unit
-            stop_post=lambda: spawn_cli(["-v", *stop_post], log_path, "operator"),
+            stop_post=StopPost(
+                "operator", lambda: spawn_cli(["-v", *stop_post], log_path, "operator")
+            ),
             watchdog=watchdog,
         )
         self.units["operator"].launch()
