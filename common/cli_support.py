@@ -54,7 +54,14 @@ def _indent(text: str) -> str:
     return "\n".join("  " + line for line in text.splitlines())
 
 
-def load_node_config(args: argparse.Namespace, cls: type[T], section: str) -> T:
+def load_node_config(
+    args: argparse.Namespace, cls: type[T], section: str, only: tuple[str, ...] = ()
+) -> T:
+    """``args.config``'s ``[section]`` (or the whole file) with ``args.overrides``, as ``cls``.
+
+    ``only``: read just these keys of the section (``cls`` has just those fields), the rest
+    unchecked: a one-shot command that needs a part of a node's config.
+    """
     data: dict[str, Any] = load_toml(args.config) if args.config else {}
     if section in data and isinstance(data[section], dict):
         data = data[section]
@@ -62,7 +69,10 @@ def load_node_config(args: argparse.Namespace, cls: type[T], section: str) -> T:
         data = {}
     prefix = f"{section}."
     local = [o[len(prefix) :] if o.startswith(prefix) else o for o in args.overrides]
-    config = from_dict(cls, apply_overrides(data, local), where=section)
+    data = apply_overrides(data, local)
+    if only:
+        data = {k: v for k, v in data.items() if k in only}
+    config = from_dict(cls, data, where=section)
     if args.config:
         check_secret_file(args.config, config)  # a token in a file others can read: refused
     return config

@@ -96,12 +96,14 @@ class Notifier:
 class NodeWatch:
     """Tells systemd a node is ready once its loop publishes, and alive while it keeps doing so.
 
-    Watches ``node.pub.sent`` (the node's publisher counter) from a daemon
-    thread: the first message sent means the devices are connected, the
-    sockets are up and the loop runs (READY=1); each later increase within
-    a quarter of the watchdog interval earns one WATCHDOG=1. ``node`` is any
-    object with ``pub`` (None until the sockets are open) and optionally
-    ``link_state`` for the status line.
+    Watches ``node.pub.sent`` (the node's publisher counter), or
+    ``node.loop_turns`` where the node counts its loop's turns (the operator:
+    a signed observer sends only 2 heartbeats a second), from a daemon
+    thread: the first message sent (turn) means the devices are connected,
+    the sockets are up and the loop runs (READY=1); each later increase
+    within a quarter of the watchdog interval earns one WATCHDOG=1. ``node``
+    is any object with ``pub`` (None until the sockets are open) or
+    ``loop_turns``, and optionally ``link_state`` for the status line.
     """
 
     def __init__(self, node: Any, stop: threading.Event, notifier: Notifier) -> None:
@@ -122,6 +124,9 @@ class NodeWatch:
         return self
 
     def _sent(self) -> int | None:
+        turns = getattr(self.node, "loop_turns", None)  # a node whose loop counts its turns
+        if turns is not None:
+            return int(turns) or None
         pub = getattr(self.node, "pub", None)
         return None if pub is None else int(getattr(pub, "sent", 0))
 

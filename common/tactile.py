@@ -28,6 +28,9 @@ from __future__ import annotations
 
 import numpy as np
 
+# the force scale, in a module of its own that needs no NumPy
+from common.tactile_scale import CONTACT_FLOOR_N, SATURATION_N  # noqa: F401
+
 N_PADS = 2
 PAD_ROWS = 10
 PAD_COLS = 10
@@ -36,11 +39,6 @@ FRAME_SHAPE = (N_PADS, PAD_ROWS, PAD_COLS)
 STIMULUS_SHAPE = (3, 3)
 #: taxel pitch (mm): 10 taxels over the paper's 5.8 cm^2 pad, about 24.1 mm square
 TAXEL_PITCH_MM = 2.41
-
-#: the sensor's ceiling: a taxel above this reads this, and no stimulus exceeds it
-SATURATION_N = 9.0
-#: the sensor's floor: a taxel below this reads 0, and a frame reaching it holds a grasp
-CONTACT_FLOOR_N = 1.0
 
 ANGLES_DEG = (0, 45, 90, 135)
 N_ANGLES = 4

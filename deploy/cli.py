@@ -25,6 +25,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("deploy.demo", "run both nodes, simulated devices and the link simulator"),
     "robot": ("robot_side.node_cli", "run the robot node (tactile pads, gripper, arm)"),
     "operator": ("operator_side.node_cli", "run the operator node (LinkGlide)"),
+    "palm": (
+        "operator_side.palm_cli",
+        "lift: every LinkGlide linkage off the palm, with no node running (after it died)",
+    ),
     "video": ("robot_side.video.cli", "stream a camera from the robot PC to the dashboard"),
     "relay": (
         "relay_side.cli",

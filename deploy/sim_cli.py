@@ -65,9 +65,12 @@ def front_panel(sim: Any) -> dict[str, Any]:
         panel["goals"] = {str(i): sim.goal(i) for i in ids}
         panel["torque"] = {str(i): sim.torque(i) for i in ids}
     goal_log = getattr(sim, "goal_log", None)
+    since = panel["t_ns"] - GOAL_LOG_SPAN_NS
     if goal_log is not None:  # every goal that reached a servo lately, so a reader misses none
-        since = panel["t_ns"] - GOAL_LOG_SPAN_NS
         panel["goal_log"] = [list(entry) for entry in list(goal_log) if entry[0] >= since]
+    release_log = getattr(sim, "release_log", None)
+    if release_log is not None:  # every torque off lately, and where the servo was let go
+        panel["release_log"] = [list(entry) for entry in list(release_log) if entry[0] >= since]
     plugged = getattr(sim, "plugged_in", None)
     if isinstance(plugged, bool):
         panel["plugged_in"] = plugged

@@ -19,6 +19,12 @@ found it through its addresses file, are restarted after it (systemd's
 
 Restarts are armed only once the demo is up: a child that fails while the
 demo starts (a wrong setting) ends it at once with its log, as before.
+
+A child may have an ``ExecStopPost=`` (``StopPost``): a command run after
+every end of its process, before the restart, as systemd runs the unit's.
+The operator's lifts the palm (``deepxpalm palm lift``): the servos keep
+their last goal when the node dies. The fault matrix's supervisor uses the
+same ``StopPost``.
 """
 
 from __future__ import annotations
@@ -47,6 +53,55 @@ def unit_restart_s(unit: str, default: float = DEFAULT_RESTART_S) -> float:
     return default if found is None else found.restart_sec
 
 
+class StopPost:
+    """A unit's ``ExecStopPost=``: ``start()`` spawns the command once per end of the process;
+    ``done()`` polls it (never blocks the supervisor's loop) and records each run."""
+
+    def __init__(self, name: str, start: Callable[[], subprocess.Popen]) -> None:
+        self.name = name
+        self.start = start
+        #: (monotonic start, end, exit code) of each run
+        self.runs: list[tuple[float, float, int]] = []
+        self._running: tuple[float, subprocess.Popen] | None = None
+        self._ran_for: float | None = None  # the process start (monotonic) its last run followed
+
+    def done(self, started_at: float) -> bool:
+        """Whether the run after the end of the process started at ``started_at`` is over
+        (it is started on the first call for that process)."""
+        if self._ran_for == started_at:
+            return True
+        if self._running is None:
+            self._running = (time.monotonic(), self.start())
+            return False
+        t0, popen = self._running
+        code = popen.poll()
+        if code is None:
+            return False
+        self._record(t0, code)
+        self._ran_for = started_at
+        return True
+
+    def run(self, started_at: float, timeout_s: float = 60.0) -> int:
+        """To its end (a clean restart: systemd runs it between stop and start)."""
+        while not self.done(started_at):
+            if self._running is not None and time.monotonic() - self._running[0] > timeout_s:
+                stop_process(self._running[1])
+            time.sleep(0.01)
+        return self.runs[-1][2]
+
+    def _record(self, t0: float, code: int) -> None:
+        self._running = None
+        self.runs.append((t0, time.monotonic(), code))
+        level = logging.INFO if code == 0 else logging.ERROR
+        log.log(
+            level,
+            "%s: ExecStopPost ended with %s in %.2f s",
+            self.name,
+            code,
+            time.monotonic() - t0,
+        )
+
+
 @dataclass
 class Child:
     """One process of the demo; ``start(incarnation)`` spawns it (0 first, then 1, 2 ...)."""
@@ -57,6 +112,7 @@ class Child:
     restart_delay_s: float
     essential: bool = True  # given up on: the demo ends
     restarts_too: tuple[str, ...] = ()  # restarted after this one (they depend on it)
+    stop_post: StopPost | None = None  # run after every end, before the restart
     proc: subprocess.Popen | None = None
     incarnation: int = 0
     pids: list[int] = field(default_factory=list)
@@ -64,8 +120,10 @@ class Child:
     restart_times: list[float] = field(default_factory=list)  # monotonic
     restart_at: float | None = None  # when a restart is due
     gave_up: bool = False
+    started_at: float = 0.0  # monotonic, the running process's start
 
     def spawn(self) -> None:
+        self.started_at = time.monotonic()
         self.proc = self.start(self.incarnation)
         self.pids.append(self.proc.pid)
 
@@ -115,6 +173,8 @@ class Supervisor:
                 code = child.proc.poll() if child.proc is not None else None
                 if code is None:
                     continue
+                if child.stop_post is not None and not child.stop_post.done(child.started_at):
+                    continue  # its ExecStopPost first (the palm lifted), then the rest
                 if not self.armed:
                     errors.append(f"{child.name} stopped early with {code}; see {child.log_path}")
                     return False

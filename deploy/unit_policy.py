@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import shlex
 import signal
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,13 +23,16 @@ _CLEAN_SIGNALS = {signal.SIGHUP, signal.SIGINT, signal.SIGTERM, signal.SIGPIPE}
 
 @dataclass(frozen=True)
 class RestartPolicy:
-    """A unit's Restart=, RestartSec=, WatchdogSec= (0: none) and Nice= (None: none)."""
+    """A unit's Restart=, RestartSec=, WatchdogSec= (0: none), Nice= (None: none),
+    TimeoutAbortSec= and ExecStopPost= (the ``deepxpalm`` arguments it runs after any exit)."""
 
     unit: str
     restart: str
     restart_sec: float
     watchdog_sec: float
     nice: int | None = None
+    timeout_abort_sec: float = 10.0
+    stop_post: tuple[str, ...] = ()
 
     def restarts_after(self, returncode: int) -> bool:
         """Whether systemd starts the process again after it ended with ``returncode``."""
@@ -65,7 +69,19 @@ def policy(unit: str, units_dir: Path = UNITS_DIR) -> RestartPolicy | None:
         restart_sec=_seconds(keys.get("RestartSec", "100ms")),
         watchdog_sec=_seconds(keys.get("WatchdogSec", "0")),
         nice=int(keys["Nice"]) if "Nice" in keys else None,
+        timeout_abort_sec=_seconds(keys.get("TimeoutAbortSec", keys.get("TimeoutStopSec", "10"))),
+        stop_post=_deepxpalm_args(keys.get("ExecStopPost", "")),
     )
+
+
+def _deepxpalm_args(command: str) -> tuple[str, ...]:
+    """The arguments of an installed ``.../bin/deepxpalm ...`` command line; () for none."""
+    argv = shlex.split(command)
+    if not argv:
+        return ()
+    if not argv[0].endswith("/deepxpalm"):
+        raise ValueError(f"a unit runs {argv[0]!r}; only the deepxpalm command is understood")
+    return tuple(argv[1:])
 
 
 def unit_nice(unit: str | None) -> int | None:

@@ -4,17 +4,22 @@ Row n drives linkage n. A row with no non-zero cell retracts its contact
 point off the palm; a cell in column c with v newtons places the point at
 X = column_x_mm[c] and presses (v - floor) / (full - floor) of the maximum
 depth into the palm.
+
+NumPy only where an array is asked for: the contact mapping is part of the
+operator's config, which ``deepxpalm palm lift`` reads without NumPy.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from common.config import param
-from common.tactile import SATURATION_N
+from common.tactile_scale import SATURATION_N
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 @dataclass(frozen=True)
@@ -50,17 +55,27 @@ def row_to_point(row: list[float], m: ContactMapping) -> tuple[float, float]:
     return (m.column_x_mm[col], m.palm_y_mm + m.max_depth_mm * depth)
 
 
-def stimulus_to_points(stimulus: np.ndarray, m: ContactMapping) -> list[tuple[float, float]]:
-    if type(stimulus) is np.ndarray and stimulus.shape == (3, 3):
-        rows = stimulus.tolist()  # what the codec delivers: one call, exact floats
+def stimulus_to_points(stimulus: Any, m: ContactMapping) -> list[tuple[float, float]]:
+    if getattr(stimulus, "shape", None) == (3, 3):
+        rows = stimulus.tolist()  # what the codec delivers (an array): one call, exact floats
     else:
+        import numpy as np
+
         rows = np.asarray(stimulus, dtype=np.float64).reshape(3, 3).tolist()
     return [row_to_point(row, m) for row in rows]
 
 
-def reachable_set(m: ContactMapping, depth_steps: int = 25) -> np.ndarray:
+def reachable_points(m: ContactMapping, depth_steps: int = 25) -> list[tuple[float, float]]:
     """Every point the mapping can produce: each column over its depth range, and the retract."""
-    depths = np.linspace(0.0, m.max_depth_mm, depth_steps)
+    step = m.max_depth_mm / max(depth_steps - 1, 1)
+    depths = [i * step for i in range(depth_steps - 1)] + [m.max_depth_mm]  # as np.linspace
     pts = [(x, m.palm_y_mm + d) for x in m.column_x_mm for d in depths]
     pts.append(m.retract_point_mm)
-    return np.array(pts, dtype=np.float64)
+    return pts
+
+
+def reachable_set(m: ContactMapping, depth_steps: int = 25) -> np.ndarray:
+    """``reachable_points`` as an (N, 2) array."""
+    import numpy as np
+
+    return np.array(reachable_points(m, depth_steps), dtype=np.float64)

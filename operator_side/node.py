@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
+import json
 import logging
 import math
 import os
@@ -30,7 +32,7 @@ from common.clock import Clock, Periodic, now_ns
 from common.clock_sync import ClockSync
 from common.codec import DecodeError, check_robot_name, encode, name_prefix
 from common.devices import build_device
-from common.errors import ConfigError
+from common.errors import ConfigError, DeviceError
 from common.link_stats import LinkStats
 from common.logs import BurstLog
 from common.messages import (
@@ -70,6 +72,9 @@ VIDEO_HOLD_NS = 3_000_000_000
 #: clock, and counted in ``late_wakes``)
 LATE_WAKE_NS = 100_000_000
 RESTART_SEQ_GAP = 1000  # a sequence number this far back means the robot restarted
+#: the clean stop's longest wait for the retract pose before torque off (a pressing linkage
+#: is a few degrees from it: about 0.1 s at the servos' speed)
+LIFT_ARRIVAL_S = 0.2
 
 
 @dataclass
@@ -89,6 +94,35 @@ class Snapshot:
     robot_stats: dict[str, float]
     #: with a signing key: who holds the robot's control lease (``OperatorNode.control_view``)
     control: dict[str, Any] | None = None
+
+    def as_json(self) -> dict[str, Any]:
+        """Plain JSON data (an operator node in another process shows it: its status file)."""
+        out = dataclasses.asdict(self)
+        for name in (*_SNAPSHOT_ARRAYS, "goal_angles"):
+            value = out[name]
+            out[name] = None if value is None else np.asarray(value).tolist()
+        return json.loads(json.dumps(out, default=_plain))
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Snapshot:
+        fields = dict(data)
+        for name, dtype in _SNAPSHOT_ARRAYS.items():
+            if fields[name] is not None:
+                fields[name] = np.array(fields[name], dtype=dtype)
+        fields["goal_angles"] = np.array(fields["goal_angles"], dtype=np.float64)
+        return cls(**fields)
+
+
+_SNAPSHOT_ARRAYS = {"stimulus": np.float32, "frame": np.float32, "goal_counts": np.int64}
+
+
+def _plain(value: Any) -> Any:
+    """A NumPy scalar or bytes (a key) as JSON."""
+    if isinstance(value, bytes):
+        return value.hex()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON")
 
 
 @dataclass
@@ -302,6 +336,13 @@ class OperatorNode:
                 self.servos.disconnect()
                 if self._own_ctx:
                     self.ctx.term()
+
+    @property
+    def loop_turns(self) -> int:
+        """Turns of the loop so far (at least one per heartbeat period, robot or not): systemd's
+        watchdog is pinged only while this grows (``common.sd_notify``), so a frozen or stuck
+        loop is ended and the palm lifted by the unit's ExecStopPost."""
+        return self.counters["wakeups"]
 
     @property
     def arm_stop_latched(self) -> bool:
@@ -644,8 +685,24 @@ class OperatorNode:
         return self._stim
 
     def _lift_off_now(self) -> None:
-        """On shutdown: straight to the retract pose (a lift is always safe)."""
+        """On shutdown: straight to the retract pose (a lift is always safe), and torque stays
+        on until the servos are there (at most ``LIFT_ARRIVAL_S``): let go mid-way, a linkage
+        stays where it was, maybe on the palm."""
         self._write(self.renderer.retract_goals)
+        goals = dict(zip(self._servo_ids, self.renderer.retract_goals, strict=True))
+        try:
+            away = self.servos.wait_for_arrival(goals, LIFT_ARRIVAL_S)
+        except DeviceError as e:  # the bus failed on the way out: torque goes off regardless
+            log.warning("lift on the way out: positions unreadable (%s); torque off", e)
+            return
+        if away:
+            log.warning(
+                "lift on the way out: servos %s not at the retract pose after %.0f ms (at %s); "
+                "torque off",
+                sorted(away),
+                LIFT_ARRIVAL_S * 1e3,
+                away,
+            )
 
     # --------------------------------------------------------- heartbeat
     def _send_heartbeat(self) -> None:

@@ -8,12 +8,16 @@ import logging
 import os
 import sys
 import threading
+import time
+from pathlib import Path
 from typing import Any
 
-from common.cli_support import add_config_arguments, run_node
+from common.cli_support import add_config_arguments, run_node, write_stats
 from operator_side.config import OperatorConfig
 
 log = logging.getLogger(__name__)
+
+STATUS_PERIOD_S = 0.1
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,6 +28,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help='read commands as JSON lines on stdin, e.g. {"action": "arm_jog", '
         '"velocity": [0.02, 0, 0, 0, 0, 0]} or {"action": "lease_grant", '
         '"grantee": "HEX"} (scripts and tests drive a real process this way)',
+    )
+    parser.add_argument(
+        "--status-file",
+        type=Path,
+        help="rewrite what the node shows (its live view, counters, dashboard address) here "
+        f"every {STATUS_PERIOD_S * 1e3:.0f} ms, JSON replaced atomically: how `deepxpalm demo` "
+        "shows its operator, which runs as a process of its own",
     )
 
 
@@ -62,12 +73,47 @@ class StdinCommands:
         pass  # a daemon thread blocked on stdin; it ends with the process
 
 
-def _attachments(node: Any, config: OperatorConfig, from_stdin: bool) -> Any:
+class StatusFile:
+    """The node's snapshot, counters and dashboard address, rewritten every ``STATUS_PERIOD_S``
+    and once more at the end (with the final counters)."""
+
+    def __init__(self, node: Any, path: Path, dashboard: Any) -> None:
+        self.node, self.path = node, path
+        self.dashboard_url = None if dashboard is None else dashboard.url
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="status-file", daemon=True)
+        self._thread.start()
+
+    def write(self) -> None:
+        write_stats(
+            self.path,
+            {
+                "t_ns": time.monotonic_ns(),
+                "snapshot": self.node.snapshot().as_json(),
+                "latency_samples": len(self.node.latencies_ms),
+                "dashboard_url": self.dashboard_url,
+            },
+        )
+
+    def _run(self) -> None:
+        while not self._stop.wait(STATUS_PERIOD_S):
+            try:
+                self.write()
+            except Exception:  # a view must not end the node
+                log.exception("status file %s not written", self.path)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.write()
+
+
+def _attachments(node: Any, config: OperatorConfig, from_stdin: bool, status: Path | None) -> Any:
     dashboard = _dashboard(node, config)
-    if not from_stdin:
-        return dashboard
-    stdin = StdinCommands(node)
-    return stdin if dashboard is None else _Both(dashboard, stdin)
+    parts = [p for p in (dashboard, StdinCommands(node) if from_stdin else None) if p is not None]
+    if status is not None:
+        parts.append(StatusFile(node, status, dashboard))
+    return _Both(*parts) if parts else None
 
 
 class _Both:
@@ -110,10 +156,11 @@ def _stdout_is_journal() -> bool:
 
 def run(args: argparse.Namespace) -> int:
     from_stdin = bool(getattr(args, "commands_from_stdin", False))
+    status = getattr(args, "status_file", None)
     return run_node(
         args,
         OperatorConfig,
         "operator",
         _build,
-        lambda node, config: _attachments(node, config, from_stdin),
+        lambda node, config: _attachments(node, config, from_stdin, status),
     )

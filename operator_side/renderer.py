@@ -9,32 +9,22 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
-from common.config import param
 from common.errors import ConfigError
-from operator_side.contact import ContactMapping, reachable_set, stimulus_to_points
+from operator_side.contact import reachable_set, stimulus_to_points
 from operator_side.linkglide import (
-    LinkageGeometry,
     UnreachableTargetError,
     inverse_kinematics,
     inverse_kinematics_one,
 )
+
+# the settings and the retract pose, where `deepxpalm palm lift` reads them without NumPy
+from operator_side.renderer_config import RendererConfig, retract_goals, retract_pose
 from operator_side.servos.calibration import COUNTS_PER_RAD, LinkGlideCalibration
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class RendererConfig:
-    contact: ContactMapping = param(ContactMapping(), "stimulus to contact point mapping")
-    geometry: LinkageGeometry = param(LinkageGeometry(), "link lengths of all three linkages")
-    max_step_deg_per_cycle: float = param(
-        4.0, "largest goal change per servo per control cycle: a jump becomes a short motion"
-    )
-    control_rate_hz: float = param(60.0, "servo goal updates per second")
 
 
 class LinkGlideRenderer:
@@ -55,10 +45,9 @@ class LinkGlideRenderer:
             raise ConfigError(
                 f"the contact mapping asks for a point LinkGlide cannot reach: {e}"
             ) from None
-        rx, ry = config.contact.retract_point_mm
-        self._retract_pose = list(inverse_kinematics_one(rx, ry, self.geometry)) * 3
+        self._retract_pose = retract_pose(config)
         #: six goal counts (ids 1..6) with every linkage off the palm
-        self.retract_goals = calibration.counts_for(self._retract_pose)
+        self.retract_goals = retract_goals(config, calibration)
         self.retract_angles = np.array(self._retract_pose).reshape(3, 2)
         self.retract_counts = np.array(self.retract_goals, dtype=np.int64)
 

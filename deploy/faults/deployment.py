@@ -7,7 +7,9 @@ byte-stream relay: CURVE passes, as over a real network); every device is a
 simulator in a process of its own (``deepxpalm sim ur|gripper|tactile|servos``)
 so that killing a node never kills its device. ``Supervisor`` plays systemd:
 a process of a shipped unit that ends is started again after the unit's
-RestartSec= when its Restart= says so.
+RestartSec= when its Restart= says so, runs its ExecStopPost= after any end
+(the operator's lifts the palm), and ends a process whose WatchdogSec= passed
+without a ping (``watchdog.UnitWatchdog``).
 """
 
 from __future__ import annotations
@@ -25,7 +27,9 @@ from pathlib import Path
 
 from common.transport import free_loopback_ports
 from deploy.demo import spawn_cli
+from deploy.faults.watchdog import UnitWatchdog
 from deploy.fleet import Fleet, Proc
+from deploy.supervisor import StopPost
 from deploy.unit_policy import RestartPolicy, policy
 
 log = logging.getLogger(__name__)
@@ -127,11 +131,29 @@ class Unit:
     restarted_at: list[float] = field(default_factory=list)
     #: each clean restart: seconds from SIGTERM to the end, and whether it had to be killed
     stops: list[tuple[float, bool]] = field(default_factory=list)
+    #: the unit's ExecStopPost= as a process of this deployment (None: the unit has none)
+    stop_post: StopPost | None = None
+    #: systemd's watchdog for this unit's process (None: no WatchdogSec=)
+    watchdog: UnitWatchdog | None = None
+    started_at: float = 0.0  # monotonic, the running process's start
 
     def launch(self) -> Proc:
+        if self.watchdog is not None:
+            self.watchdog.started()
+        self.started_at = time.monotonic()
         self.proc = self.start()
         self.starts += 1
         return self.proc
+
+    @property
+    def stop_posts(self) -> list[tuple[float, float, int]]:
+        """(monotonic start, end, exit code) of each ExecStopPost= run."""
+        return [] if self.stop_post is None else self.stop_post.runs
+
+    def run_stop_post(self) -> None:
+        """ExecStopPost= to its end (a clean restart: systemd runs it between stop and start)."""
+        if self.stop_post is not None:
+            self.stop_post.run(self.started_at)
 
     @property
     def pid(self) -> int:
@@ -173,7 +195,11 @@ class Supervisor:
                         continue
                 code = unit.proc.popen.poll()
                 if code is None:
+                    if unit.watchdog is not None:
+                        unit.watchdog.check(unit.pid)
                     continue
+                if name not in due and unit.stop_post and not unit.stop_post.done(unit.started_at):
+                    continue  # ExecStopPost= first, then the restart
                 if name not in due:
                     if not unit.policy.restarts_after(code):
                         continue
@@ -189,6 +215,9 @@ class Supervisor:
     def close(self) -> None:
         self._stop.set()
         self._thread.join(5)
+        for unit in self.units.values():
+            if unit.watchdog is not None:
+                unit.watchdog.close()
 
 
 def _announcement(proc: Proc, timeout_s: float = 60.0) -> dict:
@@ -228,6 +257,7 @@ class Deployment:
         self.video_url = ""
         self.netsim_endpoints = ("", "")
         self.supervisor = Supervisor(self.units)
+        self._env_lock = threading.Lock()
 
     # ------------------------------------------------------------ starting
     def _sim(self, device: str, config: str, extra: list[str] | None = None) -> Proc:
@@ -293,21 +323,50 @@ class Deployment:
         )
         self.netsim_endpoints = tuple(f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2))
         self._add("netsim", self._start_netsim)
-        self._add(
-            "operator",
-            lambda: fleet.start_operator(
-                OPERATOR,
-                ROBOT,
-                request_control=True,
-                want_frames=False,
-                servos=_SERVOS.format(port=self.servo_port),
-                endpoints=self.netsim_endpoints,
-            ),
-            "operator",
-        )
+        self._add_operator()
         self._add("recorder", lambda: fleet.start_recorder(RECORDER, self.recording))
         self.supervisor.start()
         return self
+
+    def _add_operator(self) -> None:
+        """The operator node under its unit's rules: its watchdog on the notify socket, and
+        its ExecStopPost= (the palm lifted) with this deployment's config for /etc's."""
+        rule = policy("operator")
+        assert rule is not None
+        watchdog = UnitWatchdog(
+            self.dir / "operator.notify", rule.watchdog_sec, rule.timeout_abort_sec
+        )
+        config = self.fleet.workdir / f"{OPERATOR}@{ROBOT}.toml"  # what start_operator writes
+        stop_post = [str(config) if a.startswith("/etc/deepxpalm/") else a for a in rule.stop_post]
+        log_path = self.dir / "operator-stop-post.log"
+
+        def start() -> Proc:
+            with self._env_lock:  # the fleet starts every process with its env: this one's
+                env = self.fleet.env
+                self.fleet.env = {**env, **watchdog.environ()}
+                try:
+                    return self.fleet.start_operator(
+                        OPERATOR,
+                        ROBOT,
+                        request_control=True,
+                        want_frames=False,
+                        servos=_SERVOS.format(port=self.servo_port),
+                        endpoints=self.netsim_endpoints,
+                    )
+                finally:
+                    self.fleet.env = env
+
+        self.units["operator"] = Unit(
+            "operator",
+            start,
+            rule,
+            # at the unit's Nice=, as systemd runs every command of the unit
+            stop_post=StopPost(
+                "operator", lambda: spawn_cli(["-v", *stop_post], log_path, "operator")
+            ),
+            watchdog=watchdog,
+        )
+        self.units["operator"].launch()
 
     # ------------------------------------------------------------ faults
     def signal(self, name: str, sig: int) -> None:
@@ -330,6 +389,7 @@ class Deployment:
                 popen.wait()
                 killed = True
             unit.stops.append((time.monotonic() - t_term, killed))
+            unit.run_stop_post()
             unit.launch()
             unit.restarted_at.append(time.monotonic())
         finally:

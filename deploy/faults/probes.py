@@ -166,6 +166,9 @@ class PalmProbe(_Probe):
         self._last_t_ns: int | None = None
         self._logged_ns: int | None = None  # the newest goal-log entry taken
         self._log_goals: list[int] | None = None
+        #: (t_s, servo id, present counts) of each torque off, at the bus's time: where a
+        #: servo was let go (a linkage let go mid-way stays there)
+        self.releases: list[tuple[float, int, int]] = []
 
     def read(self) -> float | None:
         panel = json.loads(self.status_file.read_text())
@@ -174,6 +177,10 @@ class PalmProbe(_Probe):
         self._last_t_ns = panel["t_ns"]
         goals = [panel["goals"][str(i + 1)] for i in range(len(self.retract))]
         self._replay_goal_log(panel.get("goal_log", []), goals)
+        taken = self.releases[-1][0] if self.releases else float("-inf")
+        self.releases += [
+            (t / 1e9, i, p) for t, i, p in panel.get("release_log", []) if t / 1e9 > taken
+        ]
         return self._distance(goals)
 
     def _distance(self, goals: list[int]) -> float:

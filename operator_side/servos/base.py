@@ -10,12 +10,17 @@ here, in ``write_goals``, so no bus can forget it: a bus only implements
 from __future__ import annotations
 
 import abc
+import time
 from collections.abc import Mapping
 
 from common.devices import Device
 from common.errors import DeviceError
 from operator_side.servos.calibration import LinkGlideCalibration
 from operator_side.servos.limits import GoalOutOfLimitsError, check_goals
+
+#: a servo this close to its goal (counts, about 1.4 degrees) has arrived
+ARRIVED_COUNTS = 16
+_ARRIVAL_READ_S = 0.01
 
 
 class ServoBus(Device):
@@ -56,3 +61,17 @@ class ServoBus(Device):
     @abc.abstractmethod
     def set_torque(self, enabled: bool) -> None:
         """Torque on or off for every servo on the bus."""
+
+    def wait_for_arrival(self, goals: Mapping[int, int], within_s: float) -> dict[int, int]:
+        """Read positions until every servo is within ``ARRIVED_COUNTS`` of its goal, at most
+        ``within_s``; returns the servos still away (id -> counts), empty once all arrived.
+
+        A lift waits for it before torque goes off: a linkage let go mid-way stays there.
+        """
+        deadline = time.monotonic() + within_s
+        while True:
+            present = self.read_positions()
+            away = {i: present[i] for i in goals if abs(present[i] - goals[i]) > ARRIVED_COUNTS}
+            if not away or time.monotonic() >= deadline:
+                return away
+            time.sleep(_ARRIVAL_READ_S)

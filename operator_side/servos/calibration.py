@@ -4,18 +4,25 @@ counts = zero_counts + direction * angle * 4096 / (2 pi), then clipped to
 [min_counts, max_counts]. The clip is the last word: whatever the stimulus,
 the message or the kinematics say, no count outside the limits is produced.
 A real device is measured (``deepxpalm calibrate``) and stored in TOML.
+
+The counts are plain numbers (``counts_for``, ``clip_list``: the 60 Hz loop's
+size); the array forms import NumPy when first used, so ``deepxpalm palm
+lift`` loads a calibration without it.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from common.config import from_dict, load_toml, param, to_dict
 from common.errors import ConfigError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 COUNTS_PER_TURN = 4096
 COUNTS_PER_RAD = COUNTS_PER_TURN / (2 * math.pi)
@@ -55,11 +62,8 @@ class LinkGlideCalibration:
             raise ConfigError(f"calibration must list servo ids 1..6 exactly once, got {ids}")
         by_id = {s.id: s for s in self.servos}
         ordered = [by_id[i] for i in range(1, 7)]
-        self.ids = np.array([s.id for s in ordered], dtype=np.int64)
-        self._zero = np.array([s.zero_counts for s in ordered], dtype=np.float64)
-        self._scale = np.array([s.direction * COUNTS_PER_RAD for s in ordered])
-        self.min_counts = np.array([s.min_counts for s in ordered], dtype=np.int64)
-        self.max_counts = np.array([s.max_counts for s in ordered], dtype=np.int64)
+        #: the servo ids, 1..6
+        self.id_list = [s.id for s in ordered]
         #: id -> (min, max) counts, for the bus's check of every write
         self.limits_by_id = {s.id: (s.min_counts, s.max_counts) for s in ordered}
         #: (id, zero, counts per radian, min, max) per servo, ids 1..6, as plain numbers
@@ -68,12 +72,41 @@ class LinkGlideCalibration:
             for s in ordered
         ]
 
+    # -- array forms (NumPy imported on first use) --------------------------------
+
+    @cached_property
+    def ids(self) -> np.ndarray:
+        """The servo ids 1..6 as an int64 array."""
+        import numpy as np
+
+        return np.array(self.id_list, dtype=np.int64)
+
+    @cached_property
+    def min_counts(self) -> np.ndarray:
+        import numpy as np
+
+        return np.array([p[3] for p in self._per_servo], dtype=np.int64)
+
+    @cached_property
+    def max_counts(self) -> np.ndarray:
+        import numpy as np
+
+        return np.array([p[4] for p in self._per_servo], dtype=np.int64)
+
+    @cached_property
+    def _zero_scale(self) -> tuple[np.ndarray, np.ndarray]:
+        import numpy as np
+
+        return np.array([p[1] for p in self._per_servo]), np.array([p[2] for p in self._per_servo])
+
     def angles_to_counts(self, angles: np.ndarray) -> np.ndarray:
         """(3, 2) angles (tau_a, tau_e per linkage) -> (6,) int counts, ids 1..6, clipped.
 
         Angles are wrapped to (-pi, pi] first; a non-finite angle raises,
         because no safe count can be guessed for it.
         """
+        import numpy as np
+
         flat = np.asarray(angles, dtype=np.float64).reshape(6).tolist()
         return np.array(self.counts_for(flat), dtype=np.int64)
 
@@ -97,13 +130,19 @@ class LinkGlideCalibration:
         ]
 
     def counts_to_angles(self, counts: np.ndarray) -> np.ndarray:
-        flat = np.asarray(counts, dtype=np.float64).reshape(6)
-        return ((flat - self._zero) / self._scale).reshape(3, 2)
+        import numpy as np
+
+        zero, scale = self._zero_scale
+        return ((np.asarray(counts, dtype=np.float64).reshape(6) - zero) / scale).reshape(3, 2)
 
     def clip_counts(self, counts: np.ndarray) -> np.ndarray:
+        import numpy as np
+
         return np.clip(np.asarray(counts, dtype=np.int64), self.min_counts, self.max_counts)
 
     def within_limits(self, counts: np.ndarray) -> bool:
+        import numpy as np
+
         c = np.asarray(counts)
         return bool(np.all((c >= self.min_counts) & (c <= self.max_counts)))
 

@@ -15,6 +15,10 @@ What the driver adds to the SDK, and why:
   reply window per attempt: the SDK's 34 ms (twice a 16 ms USB latency
   timer, plus 2 ms), or ``reply_timeout_ms`` when set.
 - Errors name what to check: which ids did not answer, the port, the baud.
+- One process on the bus at a time: the port is locked (``flock``) while
+  open, so a second opener (``deepxpalm palm lift`` or ``calibrate`` beside
+  a running node) is refused with who holds it, instead of interleaving its
+  packets with the node's.
 - The 60 Hz goal write of all six servos is laid out once
   (``sync_write.SyncWritePacket``, the SDK's bytes exactly) and sent through
   the SDK's port handler; rebuilding it with ``GroupSyncWrite`` cost about
@@ -27,6 +31,7 @@ Counts, not angles: the operator node converts angles with the calibration
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import select
@@ -131,6 +136,28 @@ class FeetechConfig:
 _READ_WAIT_S = 0.005
 
 
+class PortBusyError(DeviceError):
+    """Another process holds the servo bus's port (its lock); nothing was sent."""
+
+
+def port_holders(port: str) -> list[str]:
+    """``pid (command line)`` of every other process with ``port`` open that we may see."""
+    target = os.path.realpath(port)
+    found = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        if int(pid) == os.getpid():
+            continue
+        try:
+            fds = os.listdir(f"/proc/{pid}/fd")
+            if not any(os.readlink(f"/proc/{pid}/fd/{fd}") == target for fd in fds):
+                continue
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:  # gone, or another user's: not ours to see
+            continue
+        found.append(f"{pid} ({cmd.strip()[:120]})")
+    return found
+
+
 class _WaitingPort(sdk.PortHandler):
     """The SDK's port, waiting for a reply in ``select`` instead of spinning on ``read``.
 
@@ -148,6 +175,23 @@ class _WaitingPort(sdk.PortHandler):
     def __init__(self, port_name: str, reply_timeout_ms: float | None = None) -> None:
         super().__init__(port_name)
         self.reply_timeout_ms = reply_timeout_ms
+
+    def setupPort(self, cflag_baud: int) -> bool:  # the SDK calls it by this name
+        """The SDK's open, then the port's lock: refused while another process holds it."""
+        ok = super().setupPort(cflag_baud)
+        try:
+            fcntl.flock(self.ser.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self.ser.close()
+            self.is_open = False
+            holders = port_holders(self.port_name)
+            raise PortBusyError(
+                f"servo bus port {self.port_name} is in use by another process"
+                + (f" (open in pid {', '.join(holders)})" if holders else "")
+                + ": stop the operator node first (`systemctl stop deepxpalm-operator`, "
+                "which lifts the palm itself), or end a frozen one with `kill -9 PID`"
+            ) from None
+        return ok
 
     def getCurrentTime(self) -> float:  # the SDK calls it by this name; milliseconds
         return time.monotonic() * 1e3

@@ -163,6 +163,9 @@ class FakeStsBus:
         self._corrupt: list[int | None] = []
         self._stalled_until_ns = 0
         self.goal_log: deque[tuple[int, int, int]] = deque(maxlen=cfg.goal_log_size)
+        #: (t_ns, id, present position) of each torque off: where a servo was let go (a
+        #: linkage let go mid-way stays there, maybe on the palm)
+        self.release_log: deque[tuple[int, int, int]] = deque(maxlen=cfg.goal_log_size)
         self.counters: dict[str, int] = {
             "packets": 0,
             "bad_checksum": 0,
@@ -409,10 +412,13 @@ class FakeStsBus:
                 self._reply(servo, data)
 
     def _write(self, servo: _Servo, address: int, data: bytes) -> None:
+        was_on = servo.torque
         servo.write(address, data)
         goal = GOAL_POSITION.address
         if address <= goal < address + len(data) and address <= goal + 1 < address + len(data):
             self.goal_log.append((now_ns(), servo.id, servo.goal))
+        if was_on and not servo.torque:
+            self.release_log.append((now_ns(), servo.id, round(servo.position)))
 
     def _reply(self, servo: _Servo, data: bytes) -> None:
         if self._take(self._drop, servo.id):

@@ -26,3 +26,22 @@ def test_operator_node_and_study_load_without_torch_or_robot_side() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT
     )
     assert out.returncode == 0, out.stderr
+
+
+def test_the_palm_lift_runs_without_numpy_or_zeromq(tmp_path) -> None:
+    """``deepxpalm palm lift`` to a failed open (every import on its path done): no NumPy, no
+    ZeroMQ. Its start-up is the time a dead node's linkages stay on the palm; NumPy alone
+    takes about half a second to import."""
+    code = (
+        "import sys\n"
+        "from deploy.cli import main\n"
+        "code = main(['palm', 'lift', '--set', 'servos.kind=\"feetech\"', "
+        f"'--set', 'servos.port=\"{tmp_path / 'no-such-tty'}\"'])\n"
+        "heavy = sorted({m.split('.')[0] for m in sys.modules} & {'numpy', 'zmq', 'torch'})\n"
+        "print(code, heavy)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT
+    )
+    assert out.stdout.split("\n")[0] == "1 []", out.stdout + out.stderr
+    assert "no-such-tty" in out.stderr, out.stderr  # it got as far as opening the bus

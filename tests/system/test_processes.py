@@ -130,3 +130,38 @@ def test_demo_json_reports_a_clean_run():
     lat = summary["latency_ms"]
     assert lat["samples"] > 20 and 0 < lat["p50"] <= lat["p99"] <= lat["max"] < 100
     assert summary["pattern_match"]["share"] > 0.95
+
+
+def test_operator_status_file_shows_the_node_from_outside(tmp_path):
+    """``deepxpalm operator --status-file``: the live view and the counters of a node in another
+    process, rewritten while it runs and once more, final, when it ends."""
+    from deploy import live_view
+    from operator_side.node import Snapshot
+
+    status = tmp_path / "operator-status.json"
+    tel, cmd = _free_port(), _free_port()
+    proc = subprocess.Popen(
+        _cli(
+            "operator",
+            *("--duration", "3", "--status-file", str(status)),
+            *("--set", f'link.telemetry_endpoint="tcp://127.0.0.1:{tel}"'),
+            *("--set", f'link.command_endpoint="tcp://127.0.0.1:{cmd}"'),
+        ),
+        env=ENV,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    seen = []
+    while proc.poll() is None:
+        if status.exists():
+            seen.append(json.loads(status.read_text())["t_ns"])
+        time.sleep(0.05)
+    assert proc.returncode == 0, proc.stderr.read()
+    assert len(set(seen)) >= 3, f"rewritten {len(set(seen))} times while the node ran"
+    final = json.loads(status.read_text())
+    snap = Snapshot.from_json(final["snapshot"])
+    assert snap.link_state == "down"  # nobody at the robot's end
+    assert snap.stats["servo_writes"] >= 1  # the retract pose, written at the start
+    assert snap.goal_counts.tolist() == final["snapshot"]["goal_counts"]
+    assert final["dashboard_url"] is None and final["latency_samples"] == 0
+    assert "DeepXPalm demo" in live_view.render(snap, "demo", 1.0)

@@ -1,0 +1,150 @@
+"""The palm fails safe: a killed or frozen operator node leaves no linkage pressing the palm.
+
+One deployment (``deploy.faults.deployment``: every node and device a process
+of its own, the operator under its unit's rules: ExecStopPost= runs ``deepxpalm
+palm lift``, WatchdogSec= ends a frozen node). The palm is read from outside
+every node, from the servo simulator's front panel (its goals, and every goal
+write in its log): pressed by the grasp, then lifted after the fault.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+
+from deploy.faults.deployment import Deployment
+from deploy.faults.matrix import GRASP_LEVEL, PALM_PRESSED
+from deploy.faults.probes import PalmProbe
+from deploy.unit_policy import policy
+from operator_side.node import LIFT_ARRIVAL_S
+from operator_side.servos.base import ARRIVED_COUNTS
+
+#: the issue's bound: a killed operator's palm is lifted within this
+KILL_LIFT_S = 0.5
+OPERATOR = policy("operator")
+
+
+@pytest.fixture(scope="module")
+def deployment():
+    from operator_side.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.servos.feetech import FeetechConfig
+
+    retract = LinkGlideRenderer(RendererConfig(), FeetechConfig().calibration).retract_goals
+    with Deployment() as d:
+        palm = PalmProbe(d.servo_status, retract).start()
+        try:
+            yield d, palm
+        finally:
+            palm.close()
+
+
+def _pressed(d: Deployment, palm: PalmProbe, timeout_s: float = 90.0) -> None:
+    """Grasp until the palm feels it: pressed after the running node's own retract pose (the
+    bus's power-up pose is neither), so the node is up and renders the grasp."""
+    unit = d.units["operator"]
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        start = unit.started_at
+        if not unit.alive():
+            time.sleep(0.1)  # ended: its ExecStopPost, then the restart, are due
+            continue
+        d.operator_send({"action": "gripper_close", "grip_level": GRASP_LEVEL})
+        since = palm.between(start)
+        up = next((s.t_s for s in since if s.value == 0), None)
+        recent = palm.between(time.monotonic() - 0.3)
+        if up is not None and recent and min(s.value for s in recent) > PALM_PRESSED:
+            return
+        time.sleep(0.3)
+    pytest.fail(f"the palm never felt the grasp within {timeout_s:.0f} s\n{d.log_tails()}")
+
+
+def _lifted_after(d: Deployment, palm: PalmProbe, t_fault: float) -> tuple[float | None, list]:
+    """Seconds from the fault to the palm's lift (None: never), once the unit's ExecStopPost
+    ended (at most 60 s), and that run's (start, end, exit code) from the fault."""
+    unit = d.units["operator"]
+    deadline = time.monotonic() + 60.0
+    while not [p for p in unit.stop_posts if p[0] >= t_fault] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.2)  # the front panel's next rewrite
+    post = [(round(a - t_fault, 3), round(b - t_fault, 3), c) for a, b, c in unit.stop_posts]
+    off = [s.t_s for s in palm.between(t_fault) if s.value == 0]
+    return (None if not off else off[0] - t_fault), [p for p in post if p[0] >= 0]
+
+
+def _within(lifted: float, bound: float, what: str, post: list) -> None:
+    assert lifted <= bound, (
+        f"{what}: the palm was lifted {lifted:.3f} s after the fault, over the {bound:g} s "
+        f"bound; ExecStopPost (start, end, exit) from the fault: {post}"
+    )
+
+
+def test_the_unit_policy_is_what_the_bounds_assume():
+    assert OPERATOR is not None
+    assert 0 < OPERATOR.watchdog_sec <= 2.0
+    assert OPERATOR.stop_post[:2] == ("palm", "lift")
+
+
+@pytest.mark.slow
+def test_a_killed_operator_lets_go_of_the_palm(deployment):
+    d, palm = deployment
+    _pressed(d, palm)
+    t_fault = time.monotonic()
+    d.signal("operator", signal.SIGKILL)
+    lifted, post = _lifted_after(d, palm, t_fault)
+    assert post and post[0][2] == 0, f"deepxpalm palm lift failed: {post}\n{d.log_tails()}"
+    assert lifted is not None and lifted <= post[0][1] + 0.2, (
+        f"the palm was not lifted by the end of ExecStopPost: lifted at {lifted} s, "
+        f"ExecStopPost {post}\n{d.log_tails()}"
+    )
+    _within(lifted, KILL_LIFT_S, "kill -9", post)
+
+
+@pytest.mark.slow
+def test_a_frozen_operator_is_ended_by_its_watchdog_and_lets_go(deployment):
+    d, palm = deployment
+    _pressed(d, palm)
+    unit = d.units["operator"]
+    pid = unit.pid
+    t_fault = time.monotonic()
+    d.signal("operator", signal.SIGSTOP)
+    lifted, post = _lifted_after(d, palm, t_fault)
+    fired = [t - t_fault for t, p in unit.watchdog.fired if p == pid]
+    assert fired, f"the watchdog never ended the frozen node (pid {pid})\n{d.log_tails()}"
+    assert fired[0] <= OPERATOR.watchdog_sec + 0.5, f"the watchdog fired {fired[0]:.2f} s late"
+    assert post and post[0][2] == 0, f"deepxpalm palm lift failed: {post}\n{d.log_tails()}"
+    assert lifted is not None and lifted <= post[0][1] + 0.2, (
+        f"the palm was not lifted by the end of ExecStopPost: lifted at {lifted} s, "
+        f"ExecStopPost {post}\n{d.log_tails()}"
+    )
+    _within(lifted, OPERATOR.watchdog_sec + KILL_LIFT_S, "SIGSTOP", post)
+
+
+@pytest.mark.slow
+def test_a_stopped_operator_lets_go_of_the_palm_only_once_it_is_lifted(deployment):
+    """``systemctl restart``: the node lifts the palm itself on its way out and keeps torque on
+    until the linkages are there; each servo's torque off is read from the bus (where it was
+    let go) before the unit's ExecStopPost opens the bus again."""
+    d, palm = deployment
+    _pressed(d, palm)
+    unit = d.units["operator"]
+    posts = len(unit.stop_posts)
+    t_fault = time.monotonic()
+    d.clean_restart("operator")
+    lift_start = unit.stop_posts[posts][0]
+    time.sleep(0.3)  # the front panel's next rewrites
+    released = {i: p for t, i, p in palm.releases if t_fault <= t < lift_start}
+    assert sorted(released) == [1, 2, 3, 4, 5, 6], (
+        f"the node did not turn every servo's torque off on its way out: {released}\n"
+        f"{d.log_tails()}"
+    )
+    away = {
+        i: (p, palm.retract[i - 1])
+        for i, p in released.items()
+        if abs(p - palm.retract[i - 1]) > ARRIVED_COUNTS
+    }
+    assert not away, (
+        f"servos let go before the retract pose (present, retract): {away}; the node waits "
+        f"{LIFT_ARRIVAL_S:g} s for it\n{d.log_tails()}"
+    )
