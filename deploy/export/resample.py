@@ -21,6 +21,7 @@ import collections
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -51,6 +52,17 @@ class ExportConfig:
     video_codec: str = param(
         "libsvtav1", "camera features' codec: libsvtav1 (AV1, LeRobot's default) or libx264"
     )
+    exclude: list[int] = param(
+        [],
+        "episode numbers to leave out, as an export of the same recordings without them "
+        "numbers its episodes",
+    )
+    task_file: Path | None = param(
+        None, 'TOML file of NUMBER = "task" lines: each episode\'s task (same numbering)'
+    )
+    drop_failed: bool = param(
+        False, "leave out episodes the operator marked failed (default: kept, success false)"
+    )
 
     def __post_init__(self) -> None:
         if not 1 <= self.fps <= 1000:
@@ -62,6 +74,8 @@ class ExportConfig:
         for name in ("grasp_gap_s", "min_grasp_s", "grasp_margin_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative")
+        if any(n < 0 for n in self.exclude):
+            raise ValueError("exclude holds episode numbers, 0 and up")
 
 
 class SessionResampler:
