@@ -55,7 +55,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--task-file",
-        type=Path,
         help='TOML file of NUMBER = "task" lines: the task of each episode (same numbering), '
         "over the tasks marked while recording and --task",
     )
