@@ -4,6 +4,7 @@ Typical uses::
 
     deepxpalm export runs/today --out datasets/today             # one episode per grasp
     deepxpalm export runs/mon runs/tue --out ds --episodes session --fps 60
+    deepxpalm export runs/today --out ds2 --exclude 3,7 --task-file tasks.toml
 """
 
 from __future__ import annotations
@@ -88,6 +89,7 @@ def export(
 
     config = config or ExportConfig()
     t_start, cpu_start = time.monotonic(), time.process_time()
+    tasks = load_task_file(config.task_file) if config.task_file else {}
     _check_out(out)
     sessions = [scan(s) for s in find_sessions(paths)]
     groups = {"core"}
@@ -125,7 +127,7 @@ def export(
     curator = Curator(
         default_task=config.task,
         exclude=config.exclude,
-        tasks=load_task_file(config.task_file) if config.task_file else {},
+        tasks=tasks,
         drop_failed=config.drop_failed,
         begin=begin,
         add=add,
