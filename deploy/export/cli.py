@@ -46,7 +46,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["grasp", "session"],
         help=f"one episode per grasp or per session (default {d.episodes})",
     )
-    parser.add_argument("--task", help=f"task string of every episode (default {d.task!r})")
+    parser.add_argument(
+        "--task",
+        help=f"task string of episodes given none while recording or in --task-file "
+        f"(default {d.task!r})",
+    )
     parser.add_argument(
         "--exclude",
         type=_numbers,

@@ -41,7 +41,10 @@ Row = dict[str, Any]
 class ExportConfig:
     fps: int = param(30, "rows per second of every episode (LeRobot stores one fps per dataset)")
     episodes: str = param("grasp", "'grasp': one episode per grasp; 'session': one per session")
-    task: str = param("grasp the pipette", "the task string of every episode (meta/tasks.parquet)")
+    task: str = param(
+        "grasp the pipette",
+        "the task string of episodes given none by a mark or the task file (meta/tasks.parquet)",
+    )
     grasp_gap_s: float = param(
         0.3, "contact lost for less than this keeps a grasp going (a slipping finger)"
     )
