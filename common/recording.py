@@ -26,6 +26,8 @@ CHANNELS: dict[str, str] = {
     "operator/servo_goals": "servo goal counts written (ids 1..6) and their angles",
     "operator/command": "command sent to the robot: the wire bytes",
     "operator/link": "operator link state, age, clock offset and counters",
+    "operator/episode_mark": "the operator's mark on the episode in progress (dashboard): kind "
+    "failed, discard or success, the optional task string, and where it came from (source)",
     "camera/image": "a camera picture (video server, camera.mcap): JPEG bytes in data, "
     "t_capture_ns on the robot's monotonic clock, capture_wall_ns, width, height",
 }

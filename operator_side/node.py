@@ -302,6 +302,26 @@ class OperatorNode:
         with contextlib.suppress(BlockingIOError, OSError):
             os.write(self._wake_w, b"v")
 
+    def mark_episode(self, kind: str, task: str | None = None, source: str = "dashboard") -> bool:
+        """Record the operator's mark on the episode in progress; thread-safe.
+
+        ``kind`` is failed, discard or success (common/episode_marks.py); the
+        export applies it to the episode it falls in. Nothing goes to the
+        robot. False when this node is not recording: the mark would be lost.
+        """
+        from common.episode_marks import CHANNEL, check_mark
+
+        problem = check_mark(kind, task)
+        if problem is not None:
+            raise ValueError(problem)
+        if not self._recording:
+            return False
+        record: dict[str, Any] = {"kind": kind, "source": source}
+        if task is not None:
+            record["task"] = task.strip()
+        self.recorder.write(CHANNEL, self.now(), record)
+        return True
+
     # --------------------------------------------------------------- run
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
         if self._handed_link:

@@ -4,6 +4,7 @@ Typical uses::
 
     deepxpalm export runs/today --out datasets/today             # one episode per grasp
     deepxpalm export runs/mon runs/tue --out ds --episodes session --fps 60
+    deepxpalm export runs/today --out ds2 --exclude 3,7 --task-file tasks.toml
 """
 
 from __future__ import annotations
@@ -45,7 +46,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["grasp", "session"],
         help=f"one episode per grasp or per session (default {d.episodes})",
     )
-    parser.add_argument("--task", help=f"task string of every episode (default {d.task!r})")
+    parser.add_argument(
+        "--task",
+        help=f"task string of episodes given none while recording or in --task-file "
+        f"(default {d.task!r})",
+    )
+    parser.add_argument(
+        "--exclude",
+        type=_numbers,
+        metavar="N,N",
+        help="episode numbers to leave out, as an export of the same recordings without "
+        "--exclude numbers them (e.g. 3,7)",
+    )
+    parser.add_argument(
+        "--task-file",
+        help='TOML file of NUMBER = "task" lines: the task of each episode (same numbering), '
+        "over the tasks marked while recording and --task",
+    )
+    parser.add_argument(
+        "--drop-failed",
+        action="store_true",
+        default=None,
+        help="leave out the episodes marked failed while recording (default: kept, with "
+        "next.success false)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument(
@@ -60,20 +84,16 @@ def export(
     paths: list[Path], out: Path, config: Any = None, *, progress: bool = False
 ) -> dict[str, Any]:
     """Export the sessions under ``paths`` into a new dataset at ``out``; a summary."""
+    from common.episode_marks import read_marks
+    from deploy.export.curation import Curator, load_task_file, verdicts
     from deploy.export.lerobot_v3 import LeRobotV3Writer
-    from deploy.export.resample import EpisodeCutter, ExportConfig, SessionResampler
+    from deploy.export.resample import ExportConfig
     from deploy.export.schema import features_for, image_feature
-    from deploy.export.session import (
-        GAP,
-        ExportError,
-        camera_records,
-        find_sessions,
-        robot_records,
-        scan,
-    )
+    from deploy.export.session import ExportError, find_sessions, scan
 
     config = config or ExportConfig()
     t_start, cpu_start = time.monotonic(), time.process_time()
+    tasks = load_task_file(config.task_file) if config.task_file else {}
     _check_out(out)
     sessions = [scan(s) for s in find_sessions(paths)]
     groups = {"core"}
@@ -92,48 +112,77 @@ def export(
     writer = LeRobotV3Writer(out, features, config.fps, video_codec=config.video_codec)
     total_s = sum(s.metadata["duration_s"] for s in sessions)
     bar = _bar(total_s, progress)
-    records = 0
+    first_t: list[int] = []
+    meta_json = ""
+    session_name = ""
+
+    def begin(task: str, extra: dict[str, Any]) -> None:
+        first_t.clear()
+        writer.begin_episode(
+            task, {"deepxpalm/session": session_name, "deepxpalm/metadata": meta_json, **extra}
+        )
+
+    def add(row: dict[str, Any]) -> None:
+        if not first_t:
+            first_t.append(row["t_ns"])
+            writer.ep["deepxpalm/t_first_ns"] = row["t_ns"]
+        writer.add(row)
+
+    curator = Curator(
+        default_task=config.task,
+        exclude=config.exclude,
+        tasks=tasks,
+        drop_failed=config.drop_failed,
+        begin=begin,
+        add=add,
+        end=writer.end_episode,
+    )
+    marks_read = marks_unplaced = marks_early = records = 0
     for session in sessions:
-        resampler = SessionResampler(config.fps, session.robot_config, groups, cameras)
         meta_json = json.dumps(session.metadata, sort_keys=True, default=str)
-        first_t: list[int] = []
-
-        def begin(session=session, meta_json=meta_json, first_t=first_t) -> None:
-            first_t.clear()
-            writer.begin_episode(
-                config.task,
-                {"deepxpalm/session": session.name, "deepxpalm/metadata": meta_json},
+        session_name = session.name
+        marks, unplaced = read_marks(session.operator) if session.operator else ([], 0)
+        marks_read += len(marks) + unplaced
+        marks_unplaced += unplaced
+        if unplaced:
+            log.warning(
+                "%s: %d episode mark(s) left unapplied: the recording holds no clock offset to "
+                "the robot (the operator never heard it)",
+                session.operator,
+                unplaced,
             )
-
-        def add(row: dict[str, Any], first_t=first_t) -> None:
-            if not first_t:
-                first_t.append(row["t_ns"])
-                writer.ep["deepxpalm/t_first_ns"] = row["t_ns"]
-            writer.add(row)
-
-        cutter = EpisodeCutter(config, begin, add, writer.end_episode)
-        last_t = None
-        streams = [robot_records(session), *(camera_records(session, k) for k in cameras)]
-        for channel, t_ns, record in heapq.merge(*streams, key=lambda r: r[1]):
-            if channel == GAP:  # nothing is known across it: end the episode, start afresh
-                cutter.finish()
-                resampler = SessionResampler(config.fps, session.robot_config, groups, cameras)
-                cutter = EpisodeCutter(config, begin, add, writer.end_episode)
-                continue
-            records += channel.startswith("robot/")
-            for row in resampler.feed(channel, t_ns, record):
-                cutter.add(row)
-            if bar is not None and resampler.t0 is not None and t_ns - (last_t or 0) > 1e9:
-                bar.update((t_ns - (last_t or resampler.t0)) / 1e9)
-                last_t = t_ns
-        cutter.finish()
+        session_verdicts = None
+        if marks:  # where the episodes start, to know which one each mark is on: a dry run
+            starts = _EpisodeStarts()
+            _cut_session(session, config, groups, cameras, starts.begin, starts.add, starts.end)
+            session_verdicts, early = verdicts(marks, starts.t_ns)
+            marks_early += early
+        curator.session(session.name, session_verdicts)
+        records += _cut_session(
+            session, config, groups, cameras, curator.begin, curator.add, curator.end, bar
+        )
     if bar is not None:
         bar.close()
     if writer.index == 0:
+        if curator.left_out:
+            raise ExportError(
+                f"no rows to export: every episode was left out ({len(curator.left_out)}: "
+                "discarded or marked failed while recording, or in --exclude)"
+            )
         raise ExportError(
             "no rows to export: no grasp found (try --episodes session) or the recordings "
             "hold no frames"
         )
+    unused = curator.unused()
+    for what, numbers in unused.items():
+        if numbers:
+            log.warning(
+                "%s names episode(s) %s, but the recordings gave %d episodes (0..%d): ignored",
+                "--exclude" if what == "exclude" else "--task-file",
+                ", ".join(map(str, numbers)),
+                curator.number,
+                curator.number - 1,
+            )
     provenance = {
         "exported_by": "deepxpalm export",
         "export_config": dataclasses.asdict(config),
@@ -166,7 +215,74 @@ def export(
         "features": [f.name for f in features],
         "damage": damage,
         "cut_short": [s.name for s in sessions if s.metadata["robot_cut_short"]],
+        "failed_episodes": curator.failed,
+        "left_out": curator.left_out,
+        "marks": {
+            "read": marks_read,
+            "unplaced": marks_unplaced,
+            "before_first_episode": marks_early,
+        },
+        "unused_numbers": unused,
     }
+
+
+class _EpisodeStarts:
+    """A dry run's episode callbacks: the first row time of each episode."""
+
+    def __init__(self) -> None:
+        self.t_ns: list[int] = []
+        self._open = False
+
+    def begin(self) -> None:
+        self._open = True
+
+    def add(self, row: dict[str, Any]) -> None:
+        if self._open:
+            self.t_ns.append(row["t_ns"])
+            self._open = False
+
+    def end(self) -> None:
+        self._open = False
+
+
+def _cut_session(
+    session: Any,
+    config: Any,
+    groups: set[str],
+    cameras: tuple[str, ...],
+    begin: Any,
+    add: Any,
+    end: Any,
+    bar: Any = None,
+) -> int:
+    """The session's rows, cut into episodes through ``begin``, ``add``, ``end``.
+
+    The same records give the same episodes, so a dry run (to place the
+    operator's marks) and the writing run agree episode by episode. Returns
+    the robot records read.
+    """
+    from deploy.export.resample import EpisodeCutter, SessionResampler
+    from deploy.export.session import GAP, camera_records, robot_records
+
+    resampler = SessionResampler(config.fps, session.robot_config, groups, cameras)
+    cutter = EpisodeCutter(config, begin, add, end)
+    last_t = None
+    records = 0
+    streams = [robot_records(session), *(camera_records(session, k) for k in cameras)]
+    for channel, t_ns, record in heapq.merge(*streams, key=lambda r: r[1]):
+        if channel == GAP:  # nothing is known across it: end the episode, start afresh
+            cutter.finish()
+            resampler = SessionResampler(config.fps, session.robot_config, groups, cameras)
+            cutter = EpisodeCutter(config, begin, add, end)
+            continue
+        records += channel.startswith("robot/")
+        for row in resampler.feed(channel, t_ns, record):
+            cutter.add(row)
+        if bar is not None and resampler.t0 is not None and t_ns - (last_t or 0) > 1e9:
+            bar.update((t_ns - (last_t or resampler.t0)) / 1e9)
+            last_t = t_ns
+    cutter.finish()
+    return records
 
 
 def _common_cameras(sessions: list[Any]) -> tuple[str, ...]:
@@ -175,6 +291,17 @@ def _common_cameras(sessions: list[Any]) -> tuple[str, ...]:
     for key in set().union(*(s.cameras for s in sessions)) - keys:
         log.warning("only some sessions recorded camera %s: its feature is left out", key)
     return tuple(sorted(keys))
+
+
+def _numbers(text: str) -> list[int]:
+    """``3,7`` -> [3, 7]; argparse reports the error."""
+    try:
+        numbers = [int(n) for n in text.replace(" ", "").split(",") if n]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not episode numbers like 3,7") from None
+    if any(n < 0 for n in numbers):
+        raise argparse.ArgumentTypeError("episode numbers are 0 and up")
+    return numbers
 
 
 def _check_out(out: Path) -> None:
@@ -210,7 +337,7 @@ def run(args: argparse.Namespace) -> int:
     from deploy.export.resample import ExportConfig
 
     data = load_toml(args.config).get("export", {}) if args.config else {}
-    for key in ("fps", "episodes", "task"):
+    for key in ("fps", "episodes", "task", "exclude", "task_file", "drop_failed"):
         if getattr(args, key) is not None:
             data[key] = getattr(args, key)
     try:
@@ -229,6 +356,16 @@ def run(args: argparse.Namespace) -> int:
             f"{summary['sessions']} sessions ({summary['recorded_s']} s recorded) in "
             f"{summary['export_s']} s"
         )
+        for e in summary["left_out"]:
+            why = {"discard": "discarded while recording", "failed": "marked failed"}.get(
+                e["reason"], f"--exclude {e['number']}"
+            )
+            print(f"  left out: an episode of {e.get('rows', 0)} rows of {e['session']} ({why})")
+        if summary["failed_episodes"]:
+            print(
+                "  marked failed (next.success false): episodes "
+                + ", ".join(map(str, summary["failed_episodes"]))
+            )
         for d in summary["damage"]:
             print(
                 f"  damaged: {d['file']} bytes {d['bytes'][0]}..{d['bytes'][1]} unreadable: "

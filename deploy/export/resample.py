@@ -21,6 +21,7 @@ import collections
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -40,7 +41,10 @@ Row = dict[str, Any]
 class ExportConfig:
     fps: int = param(30, "rows per second of every episode (LeRobot stores one fps per dataset)")
     episodes: str = param("grasp", "'grasp': one episode per grasp; 'session': one per session")
-    task: str = param("grasp the pipette", "the task string of every episode (meta/tasks.parquet)")
+    task: str = param(
+        "grasp the pipette",
+        "the task string of episodes given none by a mark or the task file (meta/tasks.parquet)",
+    )
     grasp_gap_s: float = param(
         0.3, "contact lost for less than this keeps a grasp going (a slipping finger)"
     )
@@ -50,6 +54,17 @@ class ExportConfig:
     )
     video_codec: str = param(
         "libsvtav1", "camera features' codec: libsvtav1 (AV1, LeRobot's default) or libx264"
+    )
+    exclude: list[int] = param(
+        [],
+        "episode numbers to leave out, as an export of the same recordings without them "
+        "numbers its episodes",
+    )
+    task_file: Path | None = param(
+        None, 'TOML file of NUMBER = "task" lines: each episode\'s task (same numbering)'
+    )
+    drop_failed: bool = param(
+        False, "leave out episodes the operator marked failed (default: kept, success false)"
     )
 
     def __post_init__(self) -> None:
@@ -62,6 +77,8 @@ class ExportConfig:
         for name in ("grasp_gap_s", "min_grasp_s", "grasp_margin_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative")
+        if any(n < 0 for n in self.exclude):
+            raise ValueError("exclude holds episode numbers, 0 and up")
 
 
 class SessionResampler:

@@ -18,7 +18,7 @@ from common.tactile import FRAME_SHAPE
 @dataclass(frozen=True)
 class Feature:
     name: str
-    dtype: str  # LeRobot / datasets dtype: float32, int64
+    dtype: str  # LeRobot / datasets dtype: float32, int64, bool
     shape: tuple[int, ...]
     names: list[str] | None
     unit: str
@@ -146,6 +146,18 @@ FEATURES: list[Feature] = [
         "what the arm and gripper were sent: the jog velocity the arm sent (robot/command "
         "sent_velocity), 0 once stopped or past the arm's jog deadline (the operator's send "
         "time plus jog_timeout_s); and the gripper's target finger position",
+        "core",
+    ),
+    Feature(
+        "next.success",
+        "bool",
+        (1,),
+        None,
+        "true/false",
+        "-",
+        "LeRobot's success flag: true on the last row of an episode that succeeded (not marked "
+        "failed by the operator), false on every other row; the episode's metadata says the "
+        "same (deepxpalm/success)",
         "core",
     ),
     Feature(

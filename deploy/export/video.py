@@ -65,7 +65,13 @@ class VideoFeatureWriter:
 
     def begin_episode(self) -> dict[str, Any]:
         """Open a file when none is, or a new one past the size limit; where the episode starts."""
-        if self._container is not None and self.path.stat().st_size > self.file_bytes:
+        # the muxer creates the file with its first packet: an encoder still filling its
+        # lookahead (a short first episode) has written nothing yet
+        if (
+            self._container is not None
+            and self.path.exists()
+            and self.path.stat().st_size > self.file_bytes
+        ):
             self._close()
             self.file_index += 1
         if self._container is None:

@@ -19,6 +19,7 @@ const dxp = {
   stopSentAt: null, // Date.now() of this page's latest STOP
   staleAtResume: null, // the robot's stale-command count when this page last sent RESUME
   resumeCheck: null, // the timer that says why a resume left the stop in place
+  marks: [], // the server's answers to this page's episode marks
 };
 window.dxp = dxp;
 
@@ -56,6 +57,10 @@ function onMessage(msg) {
     if (dxp.acks.length > 200) dxp.acks.shift();
     if (msg.action === "arm_resume") {
       onResumeAck(msg);
+      return;
+    }
+    if (msg.action === "episode_mark") {
+      onMarkAck(msg);
       return;
     }
     if (msg.action && msg.action.startsWith("arm")) {
@@ -650,6 +655,49 @@ if (navigator.hid) {
     if (dxp.jog && e.device === dxp.jog.hidDevice) dxp.jog.spaceMouseLost();
   });
 }
+
+// ------------------------------------------------------------------ episode marks
+// The operator's word on the grasp in progress (or the one that just ended): the
+// node records it and `deepxpalm export` applies it (docs/datasets.md). A key the
+// jog uses stays the jog's.
+const MARK_KEYS = { v: "success", x: "failed", Delete: "discard" };
+
+function markEpisode(kind) {
+  if (!socket || !socket.isOpen()) {
+    $("mark-status").textContent = `not connected: the episode was not marked ${kind}`;
+    return false;
+  }
+  const msg = { type: "command", action: "episode_mark", kind };
+  const task = $("mark-task").value.trim();
+  if (task) msg.task = task;
+  socket.send(msg);
+  return true;
+}
+dxp.markEpisode = markEpisode;
+
+function onMarkAck(msg) {
+  dxp.marks.push(msg);
+  if (dxp.marks.length > 200) dxp.marks.shift();
+  const at = new Date().toLocaleTimeString();
+  $("mark-status").textContent = msg.ok
+    ? `${at}: episode marked ${msg.kind}${msg.task ? ` (task: ${msg.task})` : ""}`
+    : `${at}: not marked: ${msg.error}`;
+  $("mark-status").classList.toggle("refused", !msg.ok);
+}
+
+for (const kind of ["success", "failed", "discard"]) {
+  $(`mark-${kind}`).addEventListener("click", () => markEpisode(kind));
+}
+window.addEventListener("keydown", (e) => {
+  if (e.repeat || e.ctrlKey || e.metaKey || e.altKey || e.target.tagName === "INPUT") return;
+  const kind = MARK_KEYS[e.key] || MARK_KEYS[e.key.toLowerCase()];
+  if (!kind) return;
+  const jog = dxp.jog && dxp.jog.cfg;
+  const key = e.key.toLowerCase();
+  if (jog && (key in jog.keyboard || key === jog.assist_key)) return;
+  e.preventDefault();
+  markEpisode(kind);
+});
 
 // ------------------------------------------------------------------ controls
 $("level").addEventListener("input", () => {

@@ -170,6 +170,7 @@ class Dashboard:
         self.assists_forwarded = 0  # arm_assist enables sent for a page holding the assist
         self.jog_ends = 0
         self.arm_stops = 0
+        self.episode_marks = 0  # marks the node recorded (operator/episode_mark)
 
     @property
     def url(self) -> str:
@@ -438,6 +439,8 @@ class Dashboard:
             return self._on_jog(msg, page, now, delay_ms)
         if action == "arm_assist":
             return self._on_assist(page, now, delay_ms)
+        if action == "episode_mark":
+            return self._on_episode_mark(msg, page, now)
         sent_at = page.sent_at
         sent_at[:] = [t for t in sent_at if now - t < 1.0]
         if len(sent_at) >= COMMANDS_PER_S:
@@ -470,6 +473,36 @@ class Dashboard:
         sent_at.append(now)
         log.info("dashboard: %s%s", action, "" if level is None else f" (grip level {level})")
         return {"type": "ack", "ok": True, "action": action, "grip_level": level}
+
+    def _on_episode_mark(self, msg: dict[str, Any], page: _Page, now: float) -> dict[str, Any]:
+        """The operator's mark on the episode in progress, recorded by the node (not sent).
+
+        It shares the page's command budget, so a stuck key cannot flood the
+        recording; refused with a reason when the node does not record.
+        """
+        from common.episode_marks import check_mark
+
+        kind, task = msg.get("kind"), msg.get("task")
+        if task == "":
+            task = None  # an empty task field on the page: the export's default task
+        reply: dict[str, Any] = {"type": "ack", "ok": False, "action": "episode_mark", "kind": kind}
+        problem = check_mark(kind, task)
+        if problem is not None:
+            return {**reply, "error": problem}
+        page.sent_at[:] = [t for t in page.sent_at if now - t < 1.0]
+        if len(page.sent_at) >= COMMANDS_PER_S:
+            return {**reply, "error": "too many commands"}
+        page.sent_at.append(now)
+        mark = getattr(self.node, "mark_episode", None)
+        if mark is None or not mark(kind, task):
+            return {
+                **reply,
+                "error": "not recording, so the mark would be lost: start the operator node "
+                "with --record (deepxpalm demo --record DIR) to mark episodes",
+            }
+        self.episode_marks += 1
+        log.info("dashboard: episode marked %s%s", kind, "" if task is None else f" ({task!r})")
+        return {**reply, "ok": True, "task": task}
 
     def _on_assist(self, page: _Page, now: float, age_ms: float) -> dict[str, Any] | None:
         """The assist held on the page: an enable, rate-limited and watched as a jog is.

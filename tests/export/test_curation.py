@@ -1,0 +1,195 @@
+"""Curating a dataset: marks made on the dashboard while recording, then ``deepxpalm export``.
+
+The demo runs with its dashboard and records; a client holding the page's
+token marks, through the page's WebSocket, one grasp failed (with a task
+string) and a later grasp discarded, each while the palm shows contact.
+The export, given --exclude and --task-file as a user types them, is
+loaded by LeRobot's own ``LeRobotDataset``: the discarded grasp and the
+excluded one are not there, the failed one is, with ``next.success``
+false and its task, and every other episode ends with ``next.success``.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from lerobot_env import load_with_lerobot
+from tests_support import DashboardDemo
+from websockets.sync.client import connect
+
+from common.episode_marks import CHANNEL, read_marks
+from common.mcap_recorder import read_recording
+
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]
+
+FPS = 30
+FAILED_TASK = "grasp the pipette: it slipped"
+FILE_TASK = "grasp the pipette, second try"
+#: contact shown this long on the page before marking: the grasp is one the export cuts
+#: (its min_grasp_s is 0.2 s)
+CONTACT_S = 0.4
+#: no contact this long between the two marks: a new grasp began (the script pauses 0.4 s)
+APART_S = 0.25
+
+
+class MarkingClient:
+    """On the page's WebSocket: marks the grasps it sees, as an operator watching the palm."""
+
+    def __init__(self, ws_url: str) -> None:
+        self.ws_url = ws_url
+        self.acks: list[dict] = []
+        self.error: BaseException | None = None
+        self.done = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            with connect(self.ws_url) as ws:
+                plan = [("contact", None), ("apart", None), ("contact", None)]
+                marks = [("failed", FAILED_TASK), None, ("discard", None)]
+                since = None  # when the current run of contact (or none) began
+                in_contact = None
+                step = 0
+                deadline = time.monotonic() + 60
+                while step < len(plan) and time.monotonic() < deadline:
+                    msg = json.loads(ws.recv(timeout=5))
+                    if msg.get("type") == "ack":
+                        self.acks.append(msg)
+                        continue
+                    if msg.get("type") != "state" or "stimulus" not in msg:
+                        continue
+                    stim = msg["stimulus"]
+                    contact = stim is not None and max(map(max, stim)) > 0
+                    now = time.monotonic()
+                    if contact != in_contact:
+                        in_contact, since = contact, now
+                    want = plan[step][0] == "contact"
+                    held = CONTACT_S if want else APART_S
+                    if contact == want and now - since >= held:
+                        mark = marks[step]
+                        if mark is not None:
+                            kind, task = mark
+                            cmd = {"type": "command", "action": "episode_mark", "kind": kind}
+                            if task:
+                                cmd["task"] = task
+                            ws.send(json.dumps(cmd))
+                        step += 1
+                        since = now
+                while len(self.acks) < 2 and time.monotonic() < deadline:
+                    msg = json.loads(ws.recv(timeout=5))
+                    if msg.get("type") == "ack":
+                        self.acks.append(msg)
+        except BaseException as e:  # reported by the test
+            self.error = e
+        finally:
+            self.done.set()
+
+
+@pytest.fixture(scope="module")
+def marked_session(tmp_path_factory):
+    """A demo recording, its dashboard used to mark one grasp failed and a later one discarded."""
+    out = tmp_path_factory.mktemp("marked")
+    with DashboardDemo("--record", str(out), "--no-video") as demo:
+        client = MarkingClient(demo.ws_url)
+        assert client.done.wait(90), "the marking client never finished"
+        time.sleep(5.0)  # two more grasps: one to exclude, one to give a task
+        code, _, stderr = demo.finish()
+    assert client.error is None, repr(client.error)
+    assert code == 0, stderr[-3000:]
+    assert [(a["ok"], a["kind"]) for a in client.acks] == [(True, "failed"), (True, "discard")]
+    return out
+
+
+def _run_export(session, out, *args):
+    proc = subprocess.run(
+        [
+            *(sys.executable, "-m", "deploy.cli", "export", str(session), "--out", str(out)),
+            *("--fps", str(FPS), "--no-progress", "--json", *args),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout)
+
+
+def _episodes(root):
+    import pyarrow.parquet as pq
+
+    return pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+
+
+def test_a_grasp_marked_failed_on_the_dashboard_is_exported_as_failed(marked_session, tmp_path):
+    # the marks are in the operator's recording, on their own channel
+    recorded = [r for ch, _, r in read_recording(marked_session / "operator.mcap") if ch == CHANNEL]
+    assert [(r["kind"], r.get("task"), r["source"]) for r in recorded] == [
+        ("failed", FAILED_TASK, "dashboard"),
+        ("discard", None, "dashboard"),
+    ]
+    (failed_mark, discard_mark), unplaced = read_marks(marked_session / "operator.mcap")
+    assert unplaced == 0
+
+    # the numbering a user sees: an export without --exclude
+    first = _run_export(marked_session, tmp_path / "first")
+    assert first["marks"] == {"read": 2, "unplaced": 0, "before_first_episode": 0}
+    assert [e["reason"] for e in first["left_out"]] == ["discard"]
+    numbered = _episodes(tmp_path / "first")
+    assert len(numbered) >= 3, "the demo made too few grasps to curate"
+    [failed] = first["failed_episodes"]
+    others = [e["deepxpalm/number"] for e in numbered if e["deepxpalm/number"] != failed]
+    excluded, retasked = others[-1], others[0]
+    (tmp_path / "tasks.toml").write_text(f'{retasked} = "{FILE_TASK}"\n')
+
+    root = tmp_path / "curated"
+    summary = _run_export(
+        marked_session,
+        root,
+        "--exclude",
+        str(excluded),
+        "--task-file",
+        str(tmp_path / "tasks.toml"),
+    )
+    assert summary["episodes"] == len(numbered) - 1
+    npz = tmp_path / "loaded.npz"
+    load_with_lerobot(root, npz)
+    with np.load(npz) as z:
+        a = {k: z[k] for k in z.files}
+    meta = json.loads(a.pop("_meta").tobytes())
+    assert meta["num_episodes"] == len(numbered) - 1
+    assert meta["features"]["next.success"]["dtype"] == "bool"
+
+    t_first = {e["deepxpalm/number"]: e["deepxpalm/t_first_ns"] for e in numbered}
+    loaded_starts = [ep["deepxpalm/t_first_ns"] for ep in meta["episodes"]]
+    assert t_first[excluded] not in loaded_starts
+    assert sorted(loaded_starts) == sorted(t for n, t in t_first.items() if n != excluded)
+
+    def span(ep):
+        return ep["deepxpalm/t_first_ns"], ep["deepxpalm/t_first_ns"] + ep["length"] * 1e9 / FPS
+
+    # the discarded grasp: no loaded episode holds the moment it was marked (in contact)
+    assert not any(lo <= discard_mark.t_robot_ns < hi for lo, hi in map(span, meta["episodes"]))
+    [failed_ep] = [
+        ep for ep in meta["episodes"] if span(ep)[0] <= failed_mark.t_robot_ns < span(ep)[1]
+    ]
+    success = a["next.success"].reshape(-1)
+    for ep in meta["episodes"]:
+        rows = slice(ep["dataset_from_index"], ep["dataset_to_index"])
+        tasks = set(meta["tasks"][rows])
+        if ep is failed_ep:
+            assert not success[rows].any()
+            assert tasks == {FAILED_TASK}
+            continue
+        # LeRobot's convention: true on the episode's last row only
+        assert success[rows].tolist() == [False] * (ep["length"] - 1) + [True]
+        if ep["deepxpalm/t_first_ns"] == t_first[retasked]:
+            assert tasks == {FILE_TASK}
+        else:
+            assert tasks == {"grasp the pipette"}
