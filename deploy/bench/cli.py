@@ -150,18 +150,18 @@ def run(args: argparse.Namespace) -> int:
     if models is None:
         default_sweep = Path("runs/width-sweep")
         models = [default_sweep] if default_sweep.is_dir() else []
+    from deploy.bench.progress import BenchProgress, last_durations, stored_reports
     from deploy.bench.report import write_outputs
     from deploy.bench.runner import run_bench
 
-    results = run_bench(
-        sizes,
-        preset,
-        skip,
-        args.cpu,
-        models,
-        progress=lambda line: print(line, flush=True),
-        task_cells=args.task_cells,
-    )
+    # the ETA: each section's time in the last stored run of this preset
+    progress = BenchProgress(last_durations(preset, stored_reports(args.out)))
+    try:
+        results = run_bench(
+            sizes, preset, skip, args.cpu, models, progress=progress, task_cells=args.task_cells
+        )
+    finally:
+        progress.close()
     if args.only:
         from deploy.bench.report import merge_sections
 
