@@ -47,14 +47,18 @@ def section_seconds(section: dict[str, Any]) -> float | None:
     return None if seconds is None else float(seconds)
 
 
-def stored_reports(out_dir: Path | None, runs: Path = Path("runs/bench")) -> list[Path]:
+def stored_reports(
+    out_dir: Path | None,
+    runs: Path = Path("runs/bench"),
+    committed: Path = Path("docs/benchmarks.json"),
+) -> list[Path]:
     """Where the last runs are: this run's folder, runs/bench/* newest first, docs/."""
     paths = [out_dir / "benchmarks.json"] if out_dir is not None else []
     if runs.is_dir():
         found = [p for p in runs.glob("*/benchmarks.json") if p.is_file()]
         found.sort(key=lambda p: p.stat().st_mtime, reverse=True)
         paths += found[:MAX_REPORTS]
-    paths.append(Path("docs/benchmarks.json"))
+    paths.append(committed)
     unique: list[Path] = []
     for p in paths:
         if p.is_file() and p.resolve() not in {u.resolve() for u in unique}:
