@@ -1,12 +1,20 @@
 """``deepxpalm bench``: measure the loop, write benchmarks.md, .json and the figures.
 
-    deepxpalm bench                  # the full run (about 12 minutes; on a quiet machine)
+    deepxpalm bench                  # the full run: about 1 h 45 min (below)
     deepxpalm bench --quick          # under 90 s: the in-process sections, smaller samples
     deepxpalm bench --quick --only netsim         # one left-out section at its quick size
     deepxpalm bench --update-docs    # the full run, written over docs/ (the committed report)
     deepxpalm bench --only netsim --update-docs   # re-measure one section into docs/
     deepxpalm bench --out /tmp/bench --skip node_cpu
     deepxpalm bench --only task --task-cells runs/task --update-docs   # resumable, cell by cell
+
+The full run's time is its sections' as the committed report measured them
+(docs/benchmarks.json, each section's ``seconds``), about 1 h 45 min on two
+shared cores: the task table's twelve cells about 77 minutes of it, the fault
+matrix 8, the rest 18. With --task-cells an interrupted task table resumes
+where it stopped. On a terminal a bar shows the section, its cells or trials
+and an ETA from the last stored run of the same preset; in a log or CI a
+plain line per section.
 
 A run writes to a folder of its own (runs/bench/<date-time>/) unless told
 --out or --update-docs, so trying it never dirties the committed report.

@@ -131,7 +131,8 @@ class BenchProgress:
             k = len(self.took)
             eta, open_ = self.estimate()[1:3]
             state = f"failed after {seconds} s: {error}" if error else f"{seconds} s"
-            after = f"; ETA {'>' if open_ else ''}{clock(eta)}" if k < len(self.names) else ""
+            lower = ">" if open_ and eta is not None else ""
+            after = f"; ETA {lower}{clock(eta)}" if k < len(self.names) else ""
             self._show(draw=False)
             self.bar.note(f"[bench] {name}: {state} ({k}/{len(self.names)} sections{after})")
 

@@ -90,6 +90,20 @@ def test_the_estimate_follows_the_stored_times_this_runs_pace_and_the_steps():
     p.close()
 
 
+def test_the_stated_run_time_is_the_sum_of_the_committed_reports_sections():
+    """The help's and the README's full run time against the sections' own measured times."""
+    import deploy.bench.cli as cli
+    from deploy.bench.progress import section_seconds
+
+    committed = json.loads((REPO / "docs" / "benchmarks.json").read_text())
+    measured = sum(section_seconds(s) or 0.0 for s in committed["sections"].values())
+    readme = (REPO / "README.md").read_text()
+    for text in (cli.__doc__, readme):
+        hours, minutes = re.search(r"full run:? about (\d+) h (\d+) min", text).groups()
+        stated = int(hours) * 3600 + int(minutes) * 60
+        assert abs(stated - measured) <= 0.15 * measured, (stated, measured)
+
+
 def _bench(out: Path) -> list[str]:
     only = [a for name in SECTIONS for a in ("--only", name)]
     return [sys.executable, "-m", "deploy.cli", "bench", "--size", "smallest", *only,
