@@ -322,3 +322,39 @@ def late_unless_loaded(ok: bool, message: str) -> None:
     if load > cores:
         pytest.skip(f"load, not product (load average {load:.1f} on {cores} cores): {message}")
     raise AssertionError(f"product, at load average {load:.1f} on {cores} cores: {message}")
+
+
+def stderr_on_pty(
+    argv: list[str], env: dict[str, str], cwd: str | os.PathLike | None = None, timeout_s=240.0
+) -> tuple[bytes, int]:
+    """``argv`` with its stderr on a pseudo-terminal (a user's terminal): the bytes it wrote
+    there, and its exit status. stdin and stdout are not the terminal."""
+    import select
+
+    master, slave = os.openpty()
+    proc = subprocess.Popen(
+        argv, cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=slave
+    )
+    os.close(slave)
+    seen = b""
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([master], [], [], 0.5)
+            if ready:
+                try:
+                    chunk = os.read(master, 65536)
+                except OSError:  # EIO: the last holder of the slave exited
+                    break
+                if not chunk:
+                    break
+                seen += chunk
+            elif proc.poll() is not None:
+                break
+        rc = proc.wait(timeout=max(deadline - time.monotonic(), 1.0))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(master)
+    return seen, rc

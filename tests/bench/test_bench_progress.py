@@ -11,13 +11,13 @@ from __future__ import annotations
 import json
 import os
 import re
-import select
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from tests_support import stderr_on_pty
 
 from deploy.bench.progress import BenchProgress, last_durations, stored_reports
 
@@ -117,36 +117,6 @@ def _env(**extra: str) -> dict[str, str]:
     return env
 
 
-def _in_pty(argv: list[str], env: dict[str, str], timeout_s: float = 240.0) -> tuple[bytes, int]:
-    """``argv`` with its stderr on a pseudo-terminal's slave: the bytes written there, and rc."""
-    master, slave = os.openpty()
-    proc = subprocess.Popen(
-        argv, cwd=REPO, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=slave
-    )
-    os.close(slave)
-    seen = b""
-    deadline = time.monotonic() + timeout_s
-    try:
-        while time.monotonic() < deadline:
-            ready, _, _ = select.select([master], [], [], 0.5)
-            if ready:
-                try:
-                    chunk = os.read(master, 65536)
-                except OSError:  # the slave's last holder exited
-                    break
-                if not chunk:
-                    break
-                seen += chunk
-            elif proc.poll() is not None:
-                break
-        rc = proc.wait(timeout=max(deadline - time.monotonic(), 1.0))
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        os.close(master)
-    return seen, rc
-
-
 @pytest.fixture(scope="module")
 def two_runs(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench-progress")
@@ -155,7 +125,7 @@ def two_runs(tmp_path_factory):
     )
     assert piped.returncode == 0, piped.stderr.decode()[-2000:]
     stored = json.loads((out / "benchmarks.json").read_text())
-    tty, rc = _in_pty(_bench(out), _env(TERM="xterm"))
+    tty, rc = stderr_on_pty(_bench(out), _env(TERM="xterm"), cwd=REPO)
     assert rc == 0, tty.decode(errors="replace")[-2000:]
     return piped, stored, tty
 
