@@ -11,10 +11,10 @@
 The full run's time is its sections' as the committed report measured them
 (docs/benchmarks.json, each section's ``seconds``), about 1 h 45 min on two
 shared cores: the task table's twelve cells about 77 minutes of it, the fault
-matrix 8, the rest 18. With --task-cells an interrupted task table resumes
-where it stopped. On a terminal a bar shows the section, its cells or trials
-and an ETA from the last stored run of the same preset; in a log or CI a
-plain line per section.
+matrix 8, the other fifteen sections 18. With --task-cells an interrupted
+task table resumes where it stopped. On a terminal a bar shows the section,
+its cells or trials and an ETA from the last stored run of the same preset
+(none yet: "ETA ?"); in a log or CI a plain line per section and per tenth.
 
 A run writes to a folder of its own (runs/bench/<date-time>/) unless told
 --out or --update-docs, so trying it never dirties the committed report.
