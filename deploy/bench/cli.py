@@ -9,7 +9,7 @@
     deepxpalm bench --only task --task-cells runs/task --update-docs   # resumable, cell by cell
 
 The full run's time is its sections' as the committed report measured them
-(docs/benchmarks.json, each section's ``seconds``), about 1 h 45 min on two
+(docs/benchmarks.json; the task table's, its cells' own), about 1 h 45 min on two
 shared cores: the task table's twelve cells about 77 minutes of it, the fault
 matrix 8, the other fifteen sections 18. With --task-cells an interrupted
 task table resumes where it stopped. On a terminal a bar shows the section,
