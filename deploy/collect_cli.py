@@ -25,6 +25,7 @@ from pathlib import Path
 from common.cli_support import add_overrides_argument
 from common.config import from_dict
 from common.devices import build_device
+from common.progress import Progress
 from common.tactile import ANGLES_DEG, classes_of
 from robot_side.perception.collect import POSITION_NAMES, CollectConfig, collect
 
@@ -66,8 +67,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_overrides_argument(parser, "robot.tactile.world_config=world.toml")
 
 
-def _prompt(pattern: int) -> None:
+def _prompt(pattern: int, bar: Progress) -> None:
     angle, position = classes_of(pattern)
+    bar.clear()  # the prompt takes the line; the next pattern-level draws the bar again
     input(
         f"pattern {pattern}: hold the pipette at {ANGLES_DEG[angle]} deg, "
         f"{POSITION_NAMES[position]}, "
@@ -121,21 +123,21 @@ def run(args: argparse.Namespace) -> int:
         world = getattr(arm, "world", None) or getattr(gripper, "world", None)
         truth = (lambda: world.grasp()["pattern"]) if world is not None else None
 
-        def progress(done: int, total: int) -> None:
-            if done % 31 == 0 or done == total:
-                print(f"  {done}/{total} pattern-levels", flush=True)
-
         n = len(config.patterns) * len(config.grip_levels) * config.frames_per_level
         print(f"collecting {n} frames on scene {scene.scene.name} ...", flush=True)
-        data = collect(
-            pads,
-            gripper,  # type: ignore[arg-type]
-            config,
-            arm=arm,  # type: ignore[arg-type]
-            present=None if use_arm else _prompt,
-            truth=truth,
-            progress=progress,
-        )
+        # a bar on a terminal, a line per tenth in a log (stderr: stdout keeps the results)
+        levels = len(config.patterns) * len(config.grip_levels)
+        with Progress("collect", levels, unit="pattern-levels") as bar:
+            bar.update(0, force=True)
+            data = collect(
+                pads,
+                gripper,  # type: ignore[arg-type]
+                config,
+                arm=arm,  # type: ignore[arg-type]
+                present=None if use_arm else lambda pattern: _prompt(pattern, bar),
+                truth=truth,
+                progress=lambda done, total: bar.update(done, total),
+            )
     finally:
         for device in reversed(opened):
             device.disconnect()

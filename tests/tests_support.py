@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -312,3 +313,39 @@ def wait_until(cond: Callable[[], bool], timeout_s: float, period_s: float = 0.0
             return True
         time.sleep(period_s)
     return cond()
+
+
+def stderr_on_pty(
+    argv: list[str], env: dict[str, str], cwd: str | os.PathLike | None = None, timeout_s=240.0
+) -> tuple[bytes, int]:
+    """``argv`` with its stderr on a pseudo-terminal (a user's terminal): the bytes it wrote
+    there, and its exit status. stdin and stdout are not the terminal."""
+    import select
+
+    master, slave = os.openpty()
+    proc = subprocess.Popen(
+        argv, cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=slave
+    )
+    os.close(slave)
+    seen = b""
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([master], [], [], 0.5)
+            if ready:
+                try:
+                    chunk = os.read(master, 65536)
+                except OSError:  # EIO: the last holder of the slave exited
+                    break
+                if not chunk:
+                    break
+                seen += chunk
+            elif proc.poll() is not None:
+                break
+        rc = proc.wait(timeout=max(deadline - time.monotonic(), 1.0))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(master)
+    return seen, rc

@@ -1,12 +1,20 @@
 """``deepxpalm bench``: measure the loop, write benchmarks.md, .json and the figures.
 
-    deepxpalm bench                  # the full run (about 12 minutes; on a quiet machine)
+    deepxpalm bench                  # the full run: about 1 h 45 min (below)
     deepxpalm bench --quick          # under 90 s: the in-process sections, smaller samples
     deepxpalm bench --quick --only netsim         # one left-out section at its quick size
     deepxpalm bench --update-docs    # the full run, written over docs/ (the committed report)
     deepxpalm bench --only netsim --update-docs   # re-measure one section into docs/
     deepxpalm bench --out /tmp/bench --skip node_cpu
     deepxpalm bench --only task --task-cells runs/task --update-docs   # resumable, cell by cell
+
+The full run's time is its sections' as the committed report measured them
+(docs/benchmarks.json; the task table's, its cells' own), about 1 h 45 min on two
+shared cores: the task table's twelve cells about 77 minutes of it, the fault
+matrix 8, the other fifteen sections 18. With --task-cells an interrupted
+task table resumes where it stopped. On a terminal a bar shows the section,
+its cells or trials and an ETA from the last stored run of the same preset
+(none yet: "ETA ?"); in a log or CI a plain line per section and per tenth.
 
 A run writes to a folder of its own (runs/bench/<date-time>/) unless told
 --out or --update-docs, so trying it never dirties the committed report.
@@ -150,18 +158,18 @@ def run(args: argparse.Namespace) -> int:
     if models is None:
         default_sweep = Path("runs/width-sweep")
         models = [default_sweep] if default_sweep.is_dir() else []
+    from deploy.bench.progress import BenchProgress, last_durations, stored_reports
     from deploy.bench.report import write_outputs
     from deploy.bench.runner import run_bench
 
-    results = run_bench(
-        sizes,
-        preset,
-        skip,
-        args.cpu,
-        models,
-        progress=lambda line: print(line, flush=True),
-        task_cells=args.task_cells,
-    )
+    # the ETA: each section's time in the last stored run of this preset
+    progress = BenchProgress(last_durations(preset, stored_reports(args.out)))
+    try:
+        results = run_bench(
+            sizes, preset, skip, args.cpu, models, progress=progress, task_cells=args.task_cells
+        )
+    finally:
+        progress.close()
     if args.only:
         from deploy.bench.report import merge_sections
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,7 +45,7 @@ def measure(ctx: Context, sizes: FaultsSizes) -> dict[str, Any]:
     os.sched_setaffinity(0, original_affinity())
     try:
         load_before = machine_load()
-        rows = run_cells(cells, progress=lambda line: print(line[:300], flush=True))
+        rows = run_cells(cells, progress=_cell_ended(ctx, cells))
         load_after = machine_load()
     finally:
         os.sched_setaffinity(0, pinned)
@@ -55,6 +56,17 @@ def measure(ctx: Context, sizes: FaultsSizes) -> dict[str, Any]:
         "load_after": load_after,
         "cells": rows,
     }
+
+
+def _cell_ended(ctx: Context, cells: list[Any]) -> Callable[[str], None]:
+    """The matrix's word per cell ended, as the bench's progress (its row is in the report)."""
+    done = [0]
+
+    def ended(line: str) -> None:
+        done[0] += 1
+        ctx.steps(done[0], len(cells), "cells", cells[done[0] - 1].label)
+
+    return ended
 
 
 def _s(x: float | None) -> str:

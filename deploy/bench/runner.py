@@ -13,12 +13,14 @@ import platform
 import subprocess
 import time
 import traceback
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from deploy.bench.section import Context, Section
 from deploy.bench.sizes import Sizes
+
+if TYPE_CHECKING:
+    from deploy.bench.progress import BenchProgress
 
 log = logging.getLogger(__name__)
 
@@ -70,12 +72,13 @@ def run_bench(
     skip: set[str],
     cpu: int | None,
     models: list[Path],
-    progress: Callable[[str], None] | None = None,
+    progress: BenchProgress | None = None,
     task_cells: Path | None = None,
 ) -> dict[str, Any]:
     """Every section not skipped; a section that fails is reported, not fatal.
 
-    ``progress`` is told when each section starts and ends (the CLI prints it).
+    ``progress`` is told which sections run, when each starts and ends, and how far
+    the running one is through its cells or trials (the CLI draws it).
     """
     from deploy.bench import timing
 
@@ -95,7 +98,7 @@ def _measure(
     skip: set[str],
     core: int,
     models: list[Path],
-    progress: Callable[[str], None] | None,
+    progress: BenchProgress | None,
     task_cells: Path | None = None,
 ) -> dict[str, Any]:
     from deploy.bench import timing
@@ -111,6 +114,10 @@ def _measure(
         classifier=load_classifier(),
         task_cells=task_cells,
     )
+    if progress is not None:
+        ctx.steps = progress.steps
+        ctx.say = progress.note
+        progress.begin([s.name for s in SECTIONS if s.name not in skip])
     timing.limit_torch_threads()
     default_backend = next(b for b in DEFAULT_BACKEND_ORDER if backend_installed(b))
     t_start = time.monotonic()
@@ -146,20 +153,26 @@ def _measure(
 
 
 def _run_section(
-    section: Section, ctx: Context, sizes: Any, progress: Callable[[str], None] | None
+    section: Section, ctx: Context, sizes: Any, progress: BenchProgress | None
 ) -> dict[str, Any]:
-    """One section's results, or its error: one broken section must not lose the others."""
+    """One section's results, or its error: one broken section must not lose the others.
+
+    Its wall time is stored with it (``seconds``): the next run's ETA reads it.
+    """
     t = time.monotonic()
     if progress:
-        progress(f"[bench] {section.name} ...")
+        progress.start(section.name)
     try:
         out = section.measure(ctx, sizes)
     except Exception as e:
         log.exception("section %s failed", section.name)
-        return {"error": f"{type(e).__name__}: {e}", "trace": traceback.format_exc()}
+        error = f"{type(e).__name__}: {e}"
+        if progress:
+            progress.end(section.name, round(time.monotonic() - t, 2), error)
+        return {"error": error, "trace": traceback.format_exc()}
     out["seconds"] = round(time.monotonic() - t, 2)
     if progress:
-        progress(f"[bench] {section.name}: {out['seconds']} s")
+        progress.end(section.name, out["seconds"])
     return out
 
 

@@ -54,6 +54,11 @@ class Context:
     #: where the task section saves each cell as it ends, and reads the cells already there
     #: instead of running them again (``deepxpalm bench --task-cells``); None: keep nothing
     task_cells: Path | None = None
+    #: a section with cells or trials says how far it is: ``steps(done, total, unit, detail)``
+    #: (the bench's bar and ETA); the runner sets it, a section only calls it
+    steps: Callable[..., None] = field(default=lambda *_, **__: None, repr=False)
+    #: a line worth a reader's eye (a failed cell), printed above the bar rather than through it
+    say: Callable[[str], None] = field(default=print, repr=False)
     _demo_frames: list[Any] = field(default_factory=list, init=False, repr=False)
 
     def demo_frames(self) -> list[Any]:

@@ -30,6 +30,7 @@ import os
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -87,8 +88,12 @@ def run_cell(
     *,
     world_seed: int = 0,
     workdir: Path | None = None,
+    on_trial: Callable[[], None] | None = None,
 ) -> dict[str, Any]:
-    """Every trial of one cell, from fresh processes; the trials and a summary."""
+    """Every trial of one cell, from fresh processes; the trials and a summary.
+
+    ``on_trial`` is called as each trial ends (the bench's progress).
+    """
     from operator_side.node import build_operator_node
     from operator_side.scripted import ScriptedOperator
     from robot_side.lab.config import LabWorldConfig, PipetteConfig
@@ -149,6 +154,8 @@ def run_cell(
         hands.wait_for_pose(timeout_s=30.0)
         for setup in setups:
             trials.append(_trial(world, hands, setup))
+            if on_trial is not None:
+                on_trial()
             for name, proc, path in procs:
                 if proc.poll() is not None:
                     raise RuntimeError(f"{name} stopped during the trials; see {path}")
@@ -344,13 +351,40 @@ def measure(ctx: Context, sizes: TaskSizes) -> dict[str, Any]:
     load_before = machine_load()
     plan = [(scenario, feedback) for scenario in sizes.scenarios for feedback in sizes.feedbacks]
     t0 = time.monotonic()
+    # progress in trials run: a cell read back from --task-cells, or the trials a failed cell
+    # never ran, come off the total
+    count = {"done": 0, "total": len(plan) * sizes.trials}
+    lock = threading.Lock()
+
+    def cell(scenario: str, feedback: str) -> dict[str, Any]:
+        ran = [0]
+        name = f"{scenario}/{feedback}"
+
+        def trial_ended() -> None:
+            with lock:
+                ran[0] += 1
+                count["done"] += 1
+                ctx.steps(count["done"], count["total"], "trials", name)
+
+        def read_back() -> None:
+            with lock:
+                count["total"] -= sizes.trials
+                ctx.steps(count["done"], count["total"], "trials", f"{name} read back")
+
+        out = _saved_cell(ctx.task_cells, scenario, feedback, setups, trial_ended, read_back)
+        if out.get("failed"):
+            with lock:
+                count["total"] -= sizes.trials - ran[0]
+            ctx.say(f"[bench] task cell {name} failed: {out['failed']}")
+        return out
+
     # A cell is a whole deployment (a world, a robot node, a link simulator, an operator):
     # under the bench's pin to one core they all shared it and the world fell behind.
     pinned = os.sched_getaffinity(0)
     os.sched_setaffinity(0, original_affinity())
     try:
         with ThreadPoolExecutor(max_workers=sizes.parallel_cells) as pool:
-            cells = list(pool.map(lambda cell: _saved_cell(ctx.task_cells, *cell, setups), plan))
+            cells = list(pool.map(lambda sf: cell(*sf), plan))
     finally:
         os.sched_setaffinity(0, pinned)
     resumed = sum(1 for c in cells if c.get("resumed"))
@@ -372,7 +406,12 @@ def measure(ctx: Context, sizes: TaskSizes) -> dict[str, Any]:
 
 
 def _saved_cell(
-    folder: Path | None, scenario: str, feedback: str, setups: list[TrialSetup]
+    folder: Path | None,
+    scenario: str,
+    feedback: str,
+    setups: list[TrialSetup],
+    on_trial: Callable[[], None] | None = None,
+    on_read_back: Callable[[], None] | None = None,
 ) -> dict[str, Any]:
     """A cell read back from ``folder`` when it ran there on these placements, else run and saved.
 
@@ -381,7 +420,7 @@ def _saved_cell(
     failed cell is never saved, so the next run tries it again.
     """
     if folder is None:
-        return _cell_or_failure(scenario, feedback, setups)
+        return _cell_or_failure(scenario, feedback, setups, on_trial)
     from deploy.bench.runner import git_commit
     from deploy.bench.timing import machine_load
 
@@ -391,11 +430,13 @@ def _saved_cell(
         ran = [{k: t[k] for k in ("index", "tilt_deg", "offset_m")} for t in saved["trials"]]
         if ran == [asdict(s) for s in setups]:
             log.info("task cell %s/%s read back from %s", scenario, feedback, path)
+            if on_read_back is not None:
+                on_read_back()
             return dict(saved, resumed=True)
         log.warning("task cell %s/%s: %s ran other placements; running it again", scenario,
                     feedback, path)  # fmt: skip
     stamp = {"load_before": machine_load(), "git_commit": git_commit()}
-    cell = _cell_or_failure(scenario, feedback, setups)
+    cell = _cell_or_failure(scenario, feedback, setups, on_trial)
     if cell.get("failed"):
         return cell
     stamp.update(load_after=machine_load(), date=time.strftime("%Y-%m-%d %H:%M:%S %Z"))
@@ -404,10 +445,15 @@ def _saved_cell(
     return dict(cell, **stamp)
 
 
-def _cell_or_failure(scenario: str, feedback: str, setups: list[TrialSetup]) -> dict[str, Any]:
+def _cell_or_failure(
+    scenario: str,
+    feedback: str,
+    setups: list[TrialSetup],
+    on_trial: Callable[[], None] | None = None,
+) -> dict[str, Any]:
     """One cell, or what failed in it: the full table is 90 minutes, one cell must not lose it."""
     try:
-        return run_cell(scenario, feedback, setups)
+        return run_cell(scenario, feedback, setups, on_trial=on_trial)
     except Exception as e:  # a process of the cell died or never came up: say so in its row
         log.exception("task cell %s/%s failed", scenario, feedback)
         return {

@@ -70,7 +70,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="leave out the episodes marked failed while recording (default: kept, with "
         "next.success false)",
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress on stderr (a bar on a terminal, else a line per tenth of the work)",
+    )
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument(
         "--accept-damage",
@@ -279,7 +283,7 @@ def _cut_session(
         for row in resampler.feed(channel, t_ns, record):
             cutter.add(row)
         if bar is not None and resampler.t0 is not None and t_ns - (last_t or 0) > 1e9:
-            bar.update((t_ns - (last_t or resampler.t0)) / 1e9)
+            bar.advance((t_ns - (last_t or resampler.t0)) / 1e9)
             last_t = t_ns
     cutter.finish()
     return records
@@ -326,11 +330,12 @@ def _peak_rss_mb() -> float:
 
 
 def _bar(total_s: float, progress: bool) -> Any:
+    """Seconds of recording exported: a bar on a terminal, a line per tenth in a log."""
     if not progress:
         return None
-    from tqdm import tqdm
+    from common.progress import Progress
 
-    return tqdm(total=round(total_s, 1), unit="s rec", desc="export", file=sys.stderr)
+    return Progress("export", round(total_s, 1), unit="s recorded")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -346,8 +351,7 @@ def run(args: argparse.Namespace) -> int:
         from common.errors import ConfigError
 
         raise ConfigError(f"export: {e}") from None
-    progress = not args.no_progress and sys.stderr.isatty()
-    summary = export(args.sessions, args.out, config, progress=progress)
+    summary = export(args.sessions, args.out, config, progress=not args.no_progress)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

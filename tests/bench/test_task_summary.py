@@ -84,7 +84,7 @@ def test_issue_28s_aims_for_the_assist_are_verdicts_met_or_not():
 def test_a_failed_cell_is_a_row_that_says_so_and_the_others_stay(monkeypatch):
     import deploy.bench.task as task
 
-    def run_cell(scenario, feedback, setups):
+    def run_cell(scenario, feedback, setups, on_trial=None):
         if feedback == "direct":
             raise RuntimeError("robot stopped during the trials; see robot.log")
         return _cell(scenario, feedback, [_trial()])
@@ -123,22 +123,31 @@ def test_task_cells_are_saved_as_they_end_and_read_back_instead_of_run_again(mon
 
     ran = []
 
-    def run_cell(scenario, feedback, setups):
+    def run_cell(scenario, feedback, setups, on_trial=None):
         ran.append(feedback)
         if feedback == "direct" and ran.count("direct") == 1:
             raise RuntimeError("netsim stopped during the trials")
         rows = [dict(_trial(), **task.asdict(s)) for s in setups]
+        for _ in rows:
+            on_trial()
         return _cell(scenario, feedback, rows)
 
     monkeypatch.setattr(task, "run_cell", run_cell)
+    steps = []
     ctx = Context("full", 0, [], None, task_cells=tmp_path / "cells")
+    ctx.steps = lambda *step: steps.append(step[:3])  # the bench's progress, in trials run
+    ctx.say = lambda line: None
     sizes = task.TaskSizes(2, ("lan",), ("mask", "direct"))
     first = task.measure(ctx, sizes)
     assert ran == ["mask", "direct"] and first["cells"][1]["failed"]
+    assert steps == [(1, 4, "trials"), (2, 4, "trials")]
     assert sorted(p.name for p in ctx.task_cells.iterdir()) == ["lan-mask.json"]  # not failed
 
+    steps.clear()
     second = task.measure(ctx, sizes)  # the failed cell runs again, the other is read back
     assert ran == ["mask", "direct", "direct"]
+    # the cell read back leaves only the other's trials to count
+    assert steps == [(0, 2, "trials"), (1, 2, "trials"), (2, 2, "trials")]
     assert [c.get("resumed", False) for c in second["cells"]] == [True, False]
     assert second["resumed_cells"] == 1 and second["wall_s"] == 2.0  # the cells' own time
     (text,) = [
