@@ -34,7 +34,7 @@ class RecordingServer(http.server.ThreadingHTTPServer):
         server = self
 
         class Handler(http.server.BaseHTTPRequestHandler):
-            def do_GET(self) -> None:  # noqa: N802 (the stdlib's name)
+            def do_GET(self) -> None:
                 server.seen.append((self.path, dict(self.headers.items())))
                 body = b"<html><body><img src='/pixel.png'>another local site</body></html>"
                 self.send_response(200)
