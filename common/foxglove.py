@@ -18,12 +18,16 @@ NumPy only: the operator's and the recorder's install stays light.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import logging
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from common.config import param
+from common.errors import ConfigError
 from common.rotation import rotvec_to_quaternion
 from common.tactile import N_PADS, PAD_COLS, PAD_ROWS, SATURATION_N
 
@@ -307,7 +311,13 @@ _CELL_M = 0.018
 
 
 def palm_stimulus(stimulus: Any, t_wall_ns: int) -> dict[str, Any]:
-    """The 3x3 stimulus as a scene: one square a cell, its height and redness the force."""
+    """The palm as a scene: the 3x3 stimulus and the three contact points it asks for.
+
+    Each cell is a square whose height and redness are its force; each row's
+    contact point (a blue ball) sits over the row's strongest cell, pressed
+    in by its force, or lifted off the palm when the row has none (the
+    LinkGlide renderer's rule, docs/architecture.md).
+    """
     s = np.nan_to_num(np.asarray(stimulus, dtype=np.float64).reshape(3, 3), nan=0.0)
     cubes = []
     for r in range(3):
@@ -328,36 +338,34 @@ def palm_stimulus(stimulus: Any, t_wall_ns: int) -> dict[str, Any]:
                     "color": {"r": 0.3 + 0.7 * level, "g": 0.3, "b": 0.3, "a": 0.8},
                 }
             )
-    return {"deletions": [], "entities": [_entity("stimulus", t_wall_ns, cubes=cubes)]}
-
-
-def palm_contacts(angles: Any, t_wall_ns: int) -> dict[str, Any] | None:
-    """The three contact points the servos put on the palm (their forward kinematics)."""
-    from operator_side.linkglide import UnreachableTargetError, forward_kinematics
-
-    try:
-        pts = forward_kinematics(np.asarray(angles, dtype=np.float64).reshape(3, 2))
-    except (UnreachableTargetError, ValueError):
-        return None
     spheres = []
-    for n, (x_mm, y_mm) in enumerate(pts):
+    for r in range(3):  # row r drives linkage r: its contact point on the palm
+        row = [float(v) for v in s[r]]
+        force = max(row)
+        c = row.index(force)
+        pressed = force > 0  # a row with no force lifts its contact off the palm
+        depth = min(max(force / SATURATION_N, 0.0), 1.0) if pressed else 0.0
         spheres.append(
             {
                 "pose": {
-                    # linkage n's plane sits at row n of the stimulus drawing; its Y (toward
-                    # the palm) is drawn as height above the palm, its X across the palm
                     "position": {
-                        "x": float(x_mm) / 1000 - 0.01,
-                        "y": (1 - n) * _CELL_M,
-                        "z": 0.02 + (55.0 - float(y_mm)) / 1000,
+                        "x": (c - 1) * _CELL_M if pressed else 1.6 * _CELL_M,
+                        "y": (1 - r) * _CELL_M,
+                        "z": 0.014 - 0.008 * depth if pressed else 0.03,
                     },
                     "orientation": dict(_IDENTITY),
                 },
-                "size": {"x": 0.006, "y": 0.006, "z": 0.006},
-                "color": {"r": 0.2, "g": 0.6, "b": 1.0, "a": 1.0},
+                "size": {"x": 0.008, "y": 0.008, "z": 0.008},
+                "color": {"r": 0.2, "g": 0.6, "b": 1.0, "a": 1.0 if pressed else 0.4},
             }
         )
-    return {"deletions": [], "entities": [_entity("contacts", t_wall_ns, spheres=spheres)]}
+    return {
+        "deletions": [],
+        "entities": [
+            _entity("stimulus", t_wall_ns, cubes=cubes),
+            _entity("contacts", t_wall_ns, spheres=spheres),
+        ],
+    }
 
 
 def views(channel: str, record: dict[str, Any], t_wall_ns: int) -> list[tuple[str, dict]]:
@@ -374,9 +382,6 @@ def views(channel: str, record: dict[str, Any], t_wall_ns: int) -> list[tuple[st
         stim = (record.get("decoded") or {}).get("stimulus")
         if stim is not None:
             return [(channel.replace("/stimulus", "/palm"), palm_stimulus(stim, t_wall_ns))]
-    if channel == "operator/servo_goals" and record.get("angles") is not None:
-        scene = palm_contacts(record["angles"], t_wall_ns)
-        return [] if scene is None else [("operator/palm", scene)]
     return []
 
 
@@ -404,3 +409,22 @@ def log_message(rec: logging.LogRecord, message: str) -> dict[str, Any]:
         "file": rec.pathname or "",
         "line": max(0, int(rec.lineno or 0)),
     }
+
+
+# --------------------------------------------------------------------- live
+@dataclasses.dataclass
+class FoxgloveLiveConfig:
+    enabled: bool = param(False, "serve the recordings live to Foxglove (the 'foxglove' extra)")
+    follow: Path | None = param(None, "the session folder being recorded (its *.mcap files)")
+    host: str = param("127.0.0.1", "address of Foxglove's WebSocket server")
+    port: int = param(8765, "port of Foxglove's WebSocket server (0: any free one)")
+    delay_s: float = param(
+        1.5, "send each message this long after its recorded time (> the recorders' 1 s flush)"
+    )
+    poll_interval_s: float = param(0.05, "how often the files are checked for new data")
+
+    def __post_init__(self) -> None:
+        if not self.delay_s > 0:
+            raise ConfigError(f"foxglove.delay_s must be positive, not {self.delay_s!r}")
+        if not self.poll_interval_s > 0:
+            raise ConfigError("foxglove.poll_interval_s must be positive")
