@@ -2,8 +2,8 @@
 
 The client is written from Foxglove's WebSocket protocol (ws-protocol; it
 offers the subprotocols Foxglove's app does, ``foxglove.sdk.v1`` and
-``foxglove.websocket.v1``, and the SDK's server takes the first): it reads the server's ``advertise``
-ops, sends ``subscribe`` and decodes binary message-data frames (opcode
+``foxglove.websocket.v1``, and the SDK's server takes the first): it reads
+the server's ``advertise`` ops, sends ``subscribe`` and decodes binary message-data frames (opcode
 0x01, subscription id u32, timestamp u64, payload). The session is written
 by a child process through ``McapRecorder``, as the robot node and the video
 server write theirs: the arm at 20 Hz, the camera at 10 fps.
@@ -12,6 +12,7 @@ server write theirs: the arm at 20 Hz, the camera at 10 fps.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import os
 import struct
@@ -101,9 +102,11 @@ def live(tmp_path_factory):
     (port,) = free_ports(1)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(REPO / "tests")])}
     server = subprocess.Popen(
-        [sys.executable, "-m", "deploy.cli", "record", "--duration", "40"]
-        + ["--set", "foxglove.enabled=true", "--set", f"foxglove.port={port}"]
-        + ["--set", f'foxglove.follow="{session}"', "--set", "foxglove.delay_s=1.5"],
+        [
+            *(sys.executable, "-m", "deploy.cli", "record", "--duration", "40"),
+            *("--set", "foxglove.enabled=true", "--set", f"foxglove.port={port}"),
+            *("--set", f'foxglove.follow="{session}"', "--set", "foxglove.delay_s=1.5"),
+        ],
         env=env,
     )
     writer = subprocess.Popen(
@@ -154,7 +157,7 @@ def test_camera_and_pose_arrive_at_their_rates(live, topic):
     # arrived spread over it, none of its seconds without one
     span_recv = recv[-1] - recv[0]
     assert span_recv > WATCH_S - 1.0, f"{len(msgs)} messages arrived within {span_recv:.2f} s"
-    gaps = [b - a for a, b in zip(recv, recv[1:], strict=False)]
+    gaps = [b - a for a, b in itertools.pairwise(recv)]
     assert max(gaps) < 1.0, f"a {max(gaps):.2f} s gap: sent as the recorders flush (1 s)"
     last = msgs[-1][2]
     if topic == "camera/image":
