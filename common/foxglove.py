@@ -422,8 +422,20 @@ class FoxgloveLiveConfig:
         1.5, "send each message this long after its recorded time (> the recorders' 1 s flush)"
     )
     poll_interval_s: float = param(0.05, "how often the files are checked for new data")
+    allow_remote: bool = param(
+        False, "serve on a non-loopback host (anyone reaching it sees the camera and the session)"
+    )
 
     def __post_init__(self) -> None:
+        from common.security import is_loopback_endpoint
+
+        host = f"[{self.host}]" if ":" in self.host else self.host  # an IPv6 address
+        if not self.allow_remote and not is_loopback_endpoint(f"tcp://{host}:{self.port}"):
+            raise ConfigError(
+                f"foxglove.host {self.host!r} is not a loopback address: the live view has no "
+                "authentication, so anyone who reaches it sees the camera and the session. Use "
+                "an SSH tunnel, or set foxglove.allow_remote=true on a network you trust"
+            )
         if not self.delay_s > 0:
             raise ConfigError(f"foxglove.delay_s must be positive, not {self.delay_s!r}")
         if not self.poll_interval_s > 0:

@@ -24,8 +24,10 @@ from pathlib import Path
 import pytest
 from tests_support import free_ports
 
+from common.errors import ConfigError
+from common.foxglove import FoxgloveLiveConfig
+
 pytest.importorskip("mcap", reason="recording needs the 'record' extra")
-pytest.importorskip("foxglove", reason="the live view needs the 'foxglove' extra")
 websockets = pytest.importorskip("websockets", reason="the test's client uses websockets")
 
 REPO = Path(__file__).resolve().parents[2]
@@ -96,8 +98,27 @@ async def _watch(url: str, topics: set[str], seconds: float) -> dict:
     return {"got": got, "advertised": advertised}
 
 
+@pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.10", "robot-pc.local"])
+def test_the_live_view_stays_on_loopback_unless_allowed(host):
+    """It has no authentication and serves the camera: another host needs allow_remote."""
+    with pytest.raises(ConfigError, match="allow_remote"):
+        FoxgloveLiveConfig(host=host)
+    assert FoxgloveLiveConfig(host=host, allow_remote=True).host == host
+    for ok in ("127.0.0.1", "127.0.0.2", "localhost", "::1"):
+        assert FoxgloveLiveConfig(host=ok).host == ok
+
+
+def test_the_live_view_without_its_extra_says_how_to_install_it(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "foxglove", None)  # as if not installed
+    from common.foxglove_live import LiveSource
+
+    with pytest.raises(ConfigError, match=r"pip install '\.\[foxglove\]'"):
+        LiveSource(FoxgloveLiveConfig(enabled=True, follow=tmp_path))
+
+
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
+    pytest.importorskip("foxglove", reason="the live view needs the 'foxglove' extra")
     session = tmp_path_factory.mktemp("live")
     (port,) = free_ports(1)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(REPO / "tests")])}
