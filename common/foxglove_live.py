@@ -12,10 +12,10 @@ the Foxglove types, the nodes' own channels and the log lines alike.
 
 Pacing: a message is sent ``delay_s`` after its recorded time (the
 recording's monotonic clock, the same PC's), so the camera's 10 pictures a
-second arrive 100 ms apart, not as a burst each time a chunk lands. A
-message already older than that when its chunk is read (the file's history
-when the view starts, or a stalled disk) is skipped and counted, so the
-view shows now, not a replay.
+second arrive 100 ms apart, not as a burst each time a chunk lands. What
+was due before the view started (the files' history) is skipped, so the
+view shows now, not a replay; a message read after its time (a loaded
+machine, a stalled disk) is sent at once and counted as late.
 
 Nothing here touches a node: a slow or stopped Foxglove client costs the
 robot nothing (the server drops the oldest messages for a slow client).
@@ -127,6 +127,7 @@ class LiveSource:
         self._due: list[tuple[int, int, Any, bytes, int]] = []
         self._order = itertools.count()
         self.counters: Counter[str] = Counter()
+        self._t_start = time.monotonic_ns()
         try:
             self.server = foxglove.start_server(
                 name="deepxpalm", host=config.host, port=config.port
@@ -172,9 +173,11 @@ class LiveSource:
                 if channel is None:
                     continue
                 due = rec.publish_time + delay_ns
-                if due < now - delay_ns // 2:
-                    self.counters["skipped_old"] += 1
+                if due < self._t_start:  # the file's history: the view shows from now on
+                    self.counters["skipped_history"] += 1
                     continue
+                if due < now:  # read late (a loaded machine, a stalled disk): sent at once
+                    self.counters["late"] += 1
                 heapq.heappush(self._due, (due, next(self._order), channel, rec.data, rec.log_time))
         while self._due and self._due[0][0] <= now:
             _, _, channel, data, log_time = heapq.heappop(self._due)

@@ -27,12 +27,14 @@ from tests_support import free_ports
 from common.errors import ConfigError
 from common.foxglove import FoxgloveLiveConfig
 
-pytest.importorskip("mcap", reason="recording needs the 'record' extra")
+make_reader = pytest.importorskip("mcap.reader", reason="the 'record' extra").make_reader
 websockets = pytest.importorskip("websockets", reason="the test's client uses websockets")
 
 REPO = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).parent
 WATCH_S = 3.0
+#: the recorders flush every 1 s; 2 s more lets a loaded machine flush and read late
+DELAY_S = 3.0
 #: what Foxglove's app offers: the SDK's name for the protocol, and ws-protocol's original
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 TOPICS = {
@@ -55,12 +57,16 @@ async def _connect(url: str):
             await asyncio.sleep(0.2)
 
 
-async def _watch(url: str, topics: set[str], seconds: float) -> dict:
-    """Subscribe to ``topics`` once advertised; (receive time, log time, message) per topic."""
+async def _watch(url: str, topics: set[str], seconds: float, start) -> dict:
+    """Subscribe to ``topics`` once advertised; (receive time, log time, message) per topic.
+
+    ``start()`` is called once connected: the session begins while the view is open.
+    """
     got: dict[str, list] = {t: [] for t in topics}
     advertised: dict[int, dict] = {}
     subs: dict[int, str] = {}
     async with await _connect(url) as ws:
+        start()
         assert ws.subprotocol in SUBPROTOCOLS
         t_first = None
         deadline = time.monotonic() + 60  # the first chunks land after the recorders' flush
@@ -124,25 +130,39 @@ def live(tmp_path_factory):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(REPO / "tests")])}
     server = subprocess.Popen(
         [
-            *(sys.executable, "-m", "deploy.cli", "record", "--duration", "40"),
+            *(sys.executable, "-m", "deploy.cli", "record", "--duration", "90"),
             *("--set", "foxglove.enabled=true", "--set", f"foxglove.port={port}"),
-            *("--set", f'foxglove.follow="{session}"', "--set", "foxglove.delay_s=1.5"),
+            *("--set", f'foxglove.follow="{session}"', "--set", f"foxglove.delay_s={DELAY_S}"),
         ],
         env=env,
     )
-    writer = subprocess.Popen(
-        [sys.executable, str(HERE / "record_live_session.py"), str(session), "12"],
-        env=env,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
+    procs = [server]
+
+    def start_writer() -> None:
+        writer = subprocess.Popen(
+            [sys.executable, str(HERE / "record_live_session.py"), str(session), "12"],
+            env=env,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        procs.append(writer)
         assert writer.stdout.readline().strip() == "recording"
-        yield asyncio.run(_watch(f"ws://127.0.0.1:{port}/", set(TOPICS), WATCH_S))
+
+    try:
+        url = f"ws://127.0.0.1:{port}/"
+        seen = asyncio.run(_watch(url, set(TOPICS), WATCH_S, start_writer))
+        assert procs[1].wait(timeout=60) == 0
+        recorded: dict[str, list[int]] = {t: [] for t in TOPICS}
+        for name in ("robot", "camera"):
+            with open(session / f"{name}.mcap", "rb") as f:
+                for _, channel, message in make_reader(f).iter_messages():
+                    if channel.topic in recorded:
+                        recorded[channel.topic].append(message.log_time)
+        yield {**seen, "recorded": recorded}
     finally:
-        for p in (writer, server):
+        for p in procs:
             p.terminate()
-        for p in (writer, server):
+        for p in procs:
             try:
                 p.wait(timeout=10)
             except subprocess.TimeoutExpired:
@@ -170,10 +190,10 @@ def test_camera_and_pose_arrive_at_their_rates(live, topic):
     assert msgs, f"no {topic} message in {WATCH_S} s"
     recv = [m[0] for m in msgs]
     stamps = [m[1] for m in msgs]
-    # every message once and in order, spaced as recorded (the recording's own times)
-    assert stamps == sorted(set(stamps))
-    span_s = (stamps[-1] - stamps[0]) / 1e9
-    assert (len(msgs) - 1) / span_s == pytest.approx(rate_hz, rel=0.15)
+    # every message recorded in the window, once and in order, with its recorded time
+    recorded = live["recorded"][topic]
+    assert stamps == [t for t in recorded if stamps[0] <= t <= stamps[-1]]
+    assert len(msgs) >= WATCH_S * rate_hz / 2, f"{len(msgs)} in {WATCH_S} s"
     # and sent paced, not in a burst per recorder flush (1 s): the messages of the window
     # arrived spread over it, none of its seconds without one
     span_recv = recv[-1] - recv[0]
