@@ -160,7 +160,8 @@ def lab_session(tmp_path_factory):
     pytest.importorskip("aiortc", reason="the lab's camera is recorded by the 'video' extra")
     out = tmp_path_factory.mktemp("lab")
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    cmd = [sys.executable, "-m", "deploy.cli", "demo", "--scene", "lab", "--json"]
+    # -v: the nodes log at INFO, so the recordings hold log lines
+    cmd = [sys.executable, "-m", "deploy.cli", "-v", "demo", "--scene", "lab", "--json"]
     proc = subprocess.run(
         [*cmd, "--duration", "4", "--record", str(out)],
         env=env,
