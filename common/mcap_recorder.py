@@ -8,6 +8,13 @@ become base64 strings; the schema marks them (``x-numpy-dtype``,
 arrays and bytes. A record holding the wire bytes of a message (``wire``)
 also gets its decoded fields (``decoded``), so a stimulus can be plotted.
 
+Foxglove (``common/foxglove.py``): the camera's pictures and the log lines
+are written as Foxglove's own types (``foxglove.CompressedImage``,
+``foxglove.Log``), and the pads, the arm's and fingers' poses and the palm
+as Foxglove views derived from the records, on channels of their own
+marked ``deepxpalm.view_of`` that ``read_recording`` leaves out unless
+asked, so old and new files read alike.
+
 Durability: the nodes' threads only append to a bounded queue; one writer
 thread serialises, and every ``flush_interval_s`` closes the MCAP chunk in
 progress, writes it and fsyncs. A chunk is a length-prefixed, CRC-checked
