@@ -43,7 +43,7 @@ from robot_side.tactile.wire import (
     encode,
 )
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.timeout(30), pytest.mark.parallel]
 
 # -- the codec and the parser ----------------------------------------------------------
 

@@ -23,7 +23,7 @@ from common.transport import Subscriber
 from deploy.fleet import Fleet
 from operator_side.config import OperatorLinkConfig
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 #: the fleet's operators keep the default: a stimulus older than this lifts the palm
 OPERATOR_STALE_AFTER_MS = OperatorLinkConfig().stale_after_ms
