@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pyarrow.parquet as pq
+import pytest
 from synthetic import flip, robot_recording
 
 from common.mcap_recorder import read_recording
@@ -25,6 +26,8 @@ def _export(*args):
     )
 
 
+@pytest.mark.slow
+@pytest.mark.untimed  # 20 s of recording written, then two export processes: no timing asserted
 def test_a_flip_at_40_percent_exports_every_intact_chunk_and_says_what_was_lost(tmp_path):
     rec = tmp_path / "robot.mcap"
     robot_recording(rec, 20.0)
