@@ -14,6 +14,10 @@ from synthetic import flip, robot_recording
 from common.mcap_recorder import read_recording
 from deploy.export.cli import EXIT_DAMAGED
 
+#: every test runs `deepxpalm export` as a user does, in a process of its own (its imports
+#: alone are seconds of CPU): slow, and no timing asserted
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]
+
 FPS = 30
 
 
@@ -26,8 +30,6 @@ def _export(*args):
     )
 
 
-@pytest.mark.slow
-@pytest.mark.untimed  # 20 s of recording written, then two export processes: no timing asserted
 def test_a_flip_at_40_percent_exports_every_intact_chunk_and_says_what_was_lost(tmp_path):
     rec = tmp_path / "robot.mcap"
     robot_recording(rec, 20.0)
