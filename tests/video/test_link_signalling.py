@@ -23,7 +23,7 @@ from robot_side.node import RobotNode
 from robot_side.video.link_signalling import LinkSignalling
 from robot_side.video.server import VideoConfig, VideoServer
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.parallel]
 
 ALICE, BOB = b"a" * 32, b"b" * 32
 
