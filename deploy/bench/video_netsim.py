@@ -348,7 +348,7 @@ def verdicts(results: Results) -> list[Verdict]:
         )
     else:  # a report from before this comparison was part of the section
         out.append(Verdict(what, None, None, table="target"))
-    out += _metro_over_none(results)
+    out += metro_over_none(results)
     rows = s.get("rows") or []
     outages = [r for r in rows if r.get("outage_s")]
     if outages:
@@ -417,7 +417,7 @@ def table(section: dict[str, Any] | None) -> list[str]:
     return out
 
 
-def _metro_over_none(results: Results) -> list[Verdict]:
+def metro_over_none(results: Results) -> list[Verdict]:
     """metro's picture is later than none's by its delay, and by not much more."""
     s = results_of(results, "video_netsim")
     rows = {r["scenario"]: r for r in (s or {}).get("rows", [])}
@@ -439,7 +439,7 @@ def markdown(results: Results) -> list[str]:
     lines = table(results_of(results, "video_netsim"))
     if not lines:
         return []
-    goal = _metro_over_none(results)
+    goal = metro_over_none(results)
     if goal:
         verdict = {True: "passes", False: "fails", None: "was not measured"}[goal[0].passed]
         lines = [*lines, "", f"Goal: {goal[0].what}: it {verdict} ({goal[0].measured})."]
