@@ -125,6 +125,8 @@ def run_cell(
         scene.operator.link.telemetry_endpoint = op_tel
         scene.operator.link.command_endpoint = op_cmd
         fit_command_timing(scene)
+        # the trial's own scripted operator, on loopback, with plain commands by design
+        scene.robot.link.allow_plain_commands = True
         robot_cfg = workdir / "robot.toml"
         robot_cfg.write_text(config_toml(scene.robot, "robot"))
         procs.append(
