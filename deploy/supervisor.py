@@ -60,6 +60,12 @@ def unit_restart_s(unit: str, default: float = DEFAULT_RESTART_S) -> float:
     return default if found is None else found.restart_sec
 
 
+def stop_post_args(stop_post: tuple[str, ...], config: Path) -> list[str]:
+    """A unit's ``ExecStopPost=`` arguments with ``config`` for the installed config it names
+    (``/etc/deepxpalm/...``): the same command, on this run's config."""
+    return [str(config) if a.startswith("/etc/deepxpalm/") else a for a in stop_post]
+
+
 class StopPost:
     """A unit's ``ExecStopPost=``: ``start()`` spawns the command once per end of the process;
     ``done()`` polls it (never blocks the supervisor's loop) and records each run."""

@@ -28,7 +28,7 @@ from pathlib import Path
 from common.transport import free_loopback_ports
 from deploy.demo import spawn_cli
 from deploy.fleet import Fleet, Proc
-from deploy.supervisor import StopPost
+from deploy.supervisor import StopPost, stop_post_args
 from deploy.unit_policy import RestartPolicy, policy
 from deploy.watchdog import UnitWatchdog
 
@@ -337,7 +337,7 @@ class Deployment:
             self.dir / "operator.notify", rule.watchdog_sec, rule.timeout_abort_sec
         )
         config = self.fleet.workdir / f"{OPERATOR}@{ROBOT}.toml"  # what start_operator writes
-        stop_post = [str(config) if a.startswith("/etc/deepxpalm/") else a for a in rule.stop_post]
+        stop_post = stop_post_args(rule.stop_post, config)
         log_path = self.dir / "operator-stop-post.log"
 
         def start() -> Proc:
