@@ -273,7 +273,8 @@ class Supervisor:
             "events": self.events,
             "policy": (
                 f"a child that exits is restarted after its unit's RestartSec "
-                f"(robot {unit_restart_s('robot'):g} s, video {unit_restart_s('video'):g} s, "
+                f"(robot {unit_restart_s('robot'):g} s, operator {unit_restart_s('operator'):g} s, "
+                f"video {unit_restart_s('video'):g} s, "
                 f"others {DEFAULT_RESTART_S:g} s), given up on after {START_LIMIT_BURST} "
                 f"restarts in {START_LIMIT_INTERVAL_S:.0f} s"
             ),
