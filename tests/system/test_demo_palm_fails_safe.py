@@ -51,6 +51,8 @@ class Demo:
         self.proc = subprocess.Popen(
             argv, stdin=subprocess.DEVNULL, stdout=self.stdout, stderr=self.stderr
         )
+        #: when each child pid was first seen (monotonic s)
+        self.seen: dict[int, float] = {}
 
     def child(self, role: str, timeout_s: float = 90.0, not_pid: int | None = None) -> int:
         """The pid of the demo's ``role`` child (a new one: not ``not_pid``)."""
@@ -58,6 +60,7 @@ class Demo:
         while time.monotonic() < deadline:
             pid = child_processes(self.proc.pid).get(role)
             if pid is not None and pid != not_pid:
+                self.seen.setdefault(pid, time.monotonic())
                 return pid
             if self.proc.poll() is not None:
                 break
@@ -106,8 +109,8 @@ def _pressed_by(d: Demo, palm: PalmProbe, pid: int, timeout_s: float = 90.0) -> 
     """Until operator ``pid`` presses the palm: at the retract pose since ``pid`` appeared (the
     node writes it at its start; the bus's power-up pose is not it), then its samples over the
     last 0.3 s all on the palm."""
-    since = time.monotonic()
-    deadline = since + timeout_s
+    since = d.seen[pid]
+    deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         up = next((s.t_s for s in palm.between(since) if s.value == 0), None)
         recent = palm.between(time.monotonic() - 0.3)
@@ -170,15 +173,15 @@ def test_a_frozen_operator_is_ended_by_the_demos_watchdog_and_lets_go(demo):
     d, palm = demo
     pid = d.child("operator")
     _pressed_by(d, palm, pid)
-    time.sleep(1.0)  # the node's pings have come a while: the watchdog runs from the last one
     t_fault = time.monotonic()
     os.kill(pid, signal.SIGSTOP)
     window = OPERATOR.watchdog_sec
     lifted, ended = _lifted_after(palm, t_fault, pid, window + KILL_LIFT_S)
     print(f"SIGSTOP: process ended after {ended} s, palm lifted after {lifted} s")
     assert ended is not None, f"the frozen operator (pid {pid}) was never ended{d.tail()}"
-    # its watchdog counts from the last ping, before the fault; the supervisor checks every 20 ms
-    assert ended <= window + 0.1, f"the frozen node ended {ended:.2f} s after SIGSTOP{d.tail()}"
+    # the watchdog counts from the node's last ping (every quarter window, before the fault);
+    # the demo's supervisor checks it every 20 ms, then SIGABRT ends the process
+    assert ended <= window + 0.25, f"the frozen node ended {ended:.2f} s after SIGSTOP{d.tail()}"
     assert lifted is not None, f"the palm was never lifted after SIGSTOP{d.tail()}"
     assert lifted <= window + KILL_LIFT_S, (
         f"SIGSTOP: the palm was lifted {lifted:.3f} s after the fault, over the watchdog's "
