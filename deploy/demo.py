@@ -627,10 +627,13 @@ class OperatorChild:
         proc = child.proc
         if proc is None or proc.stdin is None or proc.poll() is not None:
             return
-        line = json.dumps({"action": action, **kwargs}) + "\n"
+        line = (json.dumps({"action": action, **kwargs}) + "\n").encode()
         try:
-            proc.stdin.write(line.encode())
-            proc.stdin.flush()
+            fd = proc.stdin.fileno()
+            os.set_blocking(fd, False)  # a node that stopped reading never stalls the demo
+            os.write(fd, line)  # one line, under PIPE_BUF: written whole or not at all
+        except BlockingIOError:
+            log.warning("operator: not reading its commands; key %s dropped", action)
         except (BrokenPipeError, OSError, ValueError):
             pass  # it just died: the supervisor restarts it
 
