@@ -159,6 +159,16 @@ class Child:
             "exit_codes": self.exits,
             "pids": self.pids,
             "log": str(self.log_path),
+            **(
+                {}
+                if self.stop_post is None
+                else {  # each ExecStopPost run: how long it took, how it ended
+                    "stop_post": [
+                        {"took_s": round(end - start, 3), "exit_code": code}
+                        for start, end, code in self.stop_post.runs
+                    ]
+                }
+            ),
         }
 
 

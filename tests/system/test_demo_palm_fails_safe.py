@@ -44,7 +44,10 @@ _HELD_GRASP = (
 
 class Demo:
     def __init__(self, tmp: Path) -> None:
-        argv = [sys.executable, "-m", "deploy.cli", "demo", "--json", "--no-video"]
+        # --dashboard: the demo names its page once it is up (the robot heard): before that, an
+        # operator's end is a failed start, which ends the demo
+        argv = [sys.executable, "-m", "deploy.cli", "demo", "--json", "--no-video", "--dashboard"]
+        argv += ["--set", "operator.dashboard.port=0"]  # a free one, kept across restarts
         argv += ["--duration", "600", "--set", "robot.render.mode=direct", "--set", _HELD_GRASP]
         self.stdout = (tmp / "stdout").open("w+b")
         self.stderr = (tmp / "stderr").open("w+b")
@@ -53,6 +56,13 @@ class Demo:
         )
         #: when each child pid was first seen (monotonic s)
         self.seen: dict[int, float] = {}
+
+    def wait_until_up(self, timeout_s: float = 120.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while b"dashboard http" not in Path(self.stderr.name).read_bytes():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError(f"the demo never came up{self.tail()}")
+            time.sleep(0.1)
 
     def child(self, role: str, timeout_s: float = 90.0, not_pid: int | None = None) -> int:
         """The pid of the demo's ``role`` child (a new one: not ``not_pid``)."""
@@ -94,6 +104,7 @@ def demo(tmp_path_factory):
     d = Demo(tmp_path_factory.mktemp("demo-palm"))
     palm = None
     try:
+        d.wait_until_up()
         panel = d.servo_panel()
         palm = PalmProbe(panel, retract).start()
         yield d, palm
@@ -202,3 +213,6 @@ def test_the_demo_reports_both_ends_and_no_error(demo):
     assert summary["stimuli_received"] > 0 and summary["servo_writes"] > 0
     lifts = Path(summary["logs"], "palm-lift.log").read_text()
     assert lifts.count("palm lifted") == 2, lifts
+    runs = operator["stop_post"]
+    print(f"deepxpalm palm lift, start to end: {[r['took_s'] for r in runs]} s")
+    assert [r["exit_code"] for r in runs] == [0, 0], runs
