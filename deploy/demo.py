@@ -1,12 +1,18 @@
 """``deepxpalm demo``: both nodes, simulated devices and the link simulator, one command.
 
-The robot node and the link simulator run as child processes, as they would
-on their own machines; the operator node runs here, with the live view (or
-headless with ``--json``). Latency comes from the messages' timestamps.
+Every node runs as a child process, as it would on its own machine: the
+robot node, the link simulator, the operator node (``deepxpalm operator``,
+which writes what it shows to a status file), and the simulated servo bus
+(``deepxpalm sim servos``) on a pty whose path survives its restarts. The
+demo draws the live view from the operator's status file (or prints one JSON
+summary with ``--json``) and hands the keys to the operator over its stdin.
+Latency comes from the messages' timestamps.
 
-A child that dies while the demo runs (the robot node, the link simulator,
-the lab world, the video server) is restarted as its systemd unit would be
-(``deploy/supervisor.py``); the live view and the summary say so.
+A child that dies while the demo runs is restarted as its systemd unit would
+be (``deploy/supervisor.py``); the live view and the summary say so. The
+operator runs under its unit's rules: its watchdog ends a frozen node, and
+after any end of the node ``deepxpalm palm lift`` opens the servo bus and
+lifts the linkages off the palm before the node is started again.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import contextlib
 import importlib.util
 import json
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -27,16 +34,24 @@ from pathlib import Path
 from typing import Any
 
 from common.cli_support import add_overrides_argument, stop_on_signals
-from common.config import check_secret_file, config_toml, from_dict
+from common.config import check_secret_file, config_toml, from_dict, to_dict
 from common.errors import ConfigError
 from common.signing import write_secret_file
 from common.transport import free_loopback_ports
 from deploy import live_view
 from deploy.scene import Scene, load_scene_dict, scene_path
-from deploy.supervisor import DEFAULT_RESTART_S, Child, Supervisor, unit_restart_s
-from deploy.unit_policy import set_niceness, unit_nice
-from operator_side.dashboard.config import VIDEO_OVER_LINK
-from operator_side.node import build_operator_node
+from deploy.supervisor import (
+    DEFAULT_RESTART_S,
+    Child,
+    StopPost,
+    Supervisor,
+    stop_post_args,
+    terminate,
+    unit_restart_s,
+)
+from deploy.unit_policy import policy, set_niceness, unit_nice
+from deploy.watchdog import UnitWatchdog
+from operator_side.dashboard.config import TOKEN_ENV, VIDEO_OVER_LINK
 
 log = logging.getLogger(__name__)
 
@@ -92,8 +107,16 @@ def die_with_parent() -> None:
         pass
 
 
-def spawn_cli(args: list[str], log_path: Path, unit: str | None = None) -> subprocess.Popen:
-    """``deepxpalm ARGS`` as a child of the demo; at the priority of its systemd ``unit``."""
+def spawn_cli(
+    args: list[str],
+    log_path: Path,
+    unit: str | None = None,
+    *,
+    stdin: int | None = None,
+    env: dict[str, str] | None = None,
+) -> subprocess.Popen:
+    """``deepxpalm ARGS`` as a child of the demo; at the priority of its systemd ``unit``,
+    with ``env`` added to ours (a notify socket) and ``stdin`` (a pipe for commands)."""
     out = log_path.open("ab")  # a restarted child's log follows its crash
     nice = unit_nice(unit)
 
@@ -103,18 +126,27 @@ def spawn_cli(args: list[str], log_path: Path, unit: str | None = None) -> subpr
 
     return subprocess.Popen(
         [sys.executable, "-m", "deploy.cli", *args],
+        stdin=stdin,
         stdout=out,
         stderr=subprocess.STDOUT,
+        env=None if env is None else {**os.environ, **env},
         start_new_session=True,  # Ctrl-C reaches the demo only; it stops the children in order
         preexec_fn=in_child,
     )
 
 
 def wait_for_robot(node: Any, procs: list, stop: threading.Event, errors: list[str]) -> None:
+    """Until an operator node of this process hears the robot, at most 60 s."""
+    wait_until_heard(lambda: node.counters["heartbeats_received"] > 0, procs, stop, errors)
+
+
+def wait_until_heard(
+    heard: Callable[[], bool], procs: list, stop: threading.Event, errors: list[str]
+) -> None:
     """Until the operator hears the robot (devices connected, simulators up), at most 60 s."""
     deadline = time.monotonic() + 60
     while not stop.is_set() and time.monotonic() < deadline:
-        if node.counters["heartbeats_received"] > 0:
+        if heard():
             return
         if any(proc.poll() is not None for _, proc, _ in procs):
             return  # reported by the main loop
@@ -132,7 +164,7 @@ def stop_child(proc: subprocess.Popen, name: str, errors: list[str], log_path: P
     every child deaf to Ctrl-C and killed after 10 s. No shell ignores SIGTERM.
     """
     if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
+        terminate(proc)
         try:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
@@ -376,77 +408,234 @@ def run(args: argparse.Namespace) -> int:
             restart_delay_s=unit_restart_s("video"),
             essential=False,  # the demo runs on without a camera
         )
-    recorder = None
-    if args.record:
-        from common.mcap_recorder import node_recorder
-
-        recorder = node_recorder(args.record / "operator.mcap", scene.operator, "operator")
-        recorder.add_metadata(  # what `deepxpalm export` puts in a dataset's metadata
-            "deepxpalm.session",
-            {
-                "scene": scene.scene.name,
-                "network_scenario": scene.network.scenario if scene.network.enabled else "none",
-            },
+    servos = servo_simulator(scene, workdir)
+    if servos is not None:
+        servo_args, servo_log = servos
+        children.add(
+            Child(
+                "servos",
+                lambda n: spawn_servo_simulator(servo_args, servo_log, first=n == 0),
+                servo_log,
+                DEFAULT_RESTART_S,
+                # a bus that came back is opened again by a new node (its pty is a new one)
+                restarts_too=("operator",),
+            )
         )
-    node = build_operator_node(scene.operator, recorder=recorder)
-    node_error: list[BaseException] = []
-
-    def operate() -> None:
-        try:
-            node.run(stop)
-        except BaseException as e:  # reported below, never swallowed
-            node_error.append(e)
-            stop.set()
-
-    thread = threading.Thread(target=operate, name="operator", daemon=True)
-    thread.start()
-    wait_for_robot(node, children.procs(), stop, errors)
-    children.armed = node.counters["heartbeats_received"] > 0  # up: from now on, restart
+    operator = OperatorChild(args, scene, workdir, verbosity, keyboard=not args.json)
+    children.add(operator.child())
+    status = live_view.OperatorStatus(operator.status_path)
+    wait_until_heard(status.heard_robot, children.procs(), stop, errors)
+    children.armed = status.heard_robot()  # up: from now on, restart
+    deadline = time.monotonic() + 10
+    while not children.armed and not stop.is_set() and time.monotonic() < deadline:
+        if not children.poll(errors):  # a child that ended while starting: its log's tail
+            break
+        stop.wait(SUPERVISE_PERIOD_S)
     t0 = time.monotonic()  # --duration counts from the first word of the robot
     keyboard = live_view.Keyboard() if not args.json else contextlib.nullcontext()
-    dashboard, dashboard_line = None, ""
+    dashboard_line = ""
     try:
-        if args.dashboard or scene.operator.dashboard.enabled:
-            from operator_side.dashboard import Dashboard
-
-            scene.operator.dashboard.enabled = True
-            dashboard = Dashboard(node, scene.operator.dashboard)
-            dashboard.start()
-            url_file = workdir / "dashboard.url"  # the address with its token, 0600 in a 0700 dir
-            write_secret_file(url_file, dashboard.url + "\n")
-            # the token once, at start (scripts read this line); never again after it
-            print(f"dashboard {dashboard.url}", file=sys.stderr, flush=True)
-            dashboard_line = live_view.dashboard_line(dashboard.url, url_file)
+        if scene.operator.dashboard.enabled and children.armed:
+            url = status.dashboard_url()
+            if url is None:
+                errors.append(f"the operator node named no dashboard; see {operator.log_path}")
+            else:
+                url_file = workdir / "dashboard.url"  # with its token, 0600 in a 0700 dir
+                write_secret_file(url_file, url + "\n")
+                # the token once, at start (scripts read this line); never again after it
+                print(f"dashboard {url}", file=sys.stderr, flush=True)
+                dashboard_line = live_view.dashboard_line(url, url_file)
+        next_view = 0.0
         with keyboard:
-            while not stop.is_set():
-                elapsed = time.monotonic() - t0
+            while not stop.is_set() and children.armed:
+                now = time.monotonic()
+                elapsed = now - t0
                 if args.duration is not None and elapsed >= args.duration:
                     break
-                if not children.poll(errors):
+                if not children.poll(errors):  # every tick: the watchdog, a dead child
                     stop.set()
-                if not args.json:
+                if not args.json and now >= next_view:
+                    next_view = now + VIEW_PERIOD_S
                     for action, kwargs in keyboard.commands():
-                        node.send_command(action, **kwargs)
-                    view = live_view.render(node.snapshot(), scene.scene.name, elapsed)
+                        operator.send(children.children["operator"], action, kwargs)
+                    snap = status.snapshot()
+                    view = (
+                        live_view.render(snap, scene.scene.name, elapsed)
+                        if snap is not None
+                        else "\x1b[H\x1b[2Jthe operator node is starting\n"
+                    )
                     sys.stdout.write(view + children.status_line() + "\n" + dashboard_line)
                     sys.stdout.flush()
-                stop.wait(0.1 if args.json else 0.05)
+                stop.wait(SUPERVISE_PERIOD_S)
     finally:
         ran_s = time.monotonic() - t0
-        if dashboard is not None:
-            dashboard.stop()
         stop.set()
-        thread.join(timeout=10)
-        if recorder is not None:
-            recorder.close()
         children.stop_all(stop_child, errors)
-    if node_error:
-        errors.append(f"operator node failed: {node_error[0]!r}")
-    summary = _summary(scene, node, ran_s, robot_stats_path, netsim_stats_path, errors)
+    summary = _summary(scene, status, ran_s, robot_stats_path, netsim_stats_path, errors)
     summary["processes"] = children.summary()
     summary["logs"] = str(workdir)
     print(json.dumps(summary, indent=2))
     return 1 if errors else 0
+
+
+#: how often the demo's supervisor looks at its children: a dead operator's palm lift starts
+#: within this, and a frozen one's watchdog is checked as often
+SUPERVISE_PERIOD_S = 0.02
+#: how often the live view is drawn (and the keys read)
+VIEW_PERIOD_S = 0.05
+
+
+def servo_simulator(scene: Scene, workdir: Path) -> tuple[list[str], Path] | None:
+    """``deepxpalm sim servos`` for a scene whose palm is simulated, its pty at a fixed path.
+
+    The operator node then drives it as a real bus (``kind = "feetech"``, the
+    scene's driver settings, the pty's path for the port), so the bus outlives
+    the node and a ``deepxpalm palm lift`` can open it once the node is gone.
+    The bus's front panel (its goals, every goal write and torque off) is
+    ``servos-status.json`` in the demo's directory. None: the scene's servos
+    are not simulated.
+    """
+    servos = scene.operator.servos
+    if servos.get("kind") != "simulated_feetech":
+        return None
+    from operator_side.servos.sts_sim import SimulatedFeetechConfig
+
+    settings = {k: v for k, v in servos.items() if k != "kind"}
+    sim = from_dict(SimulatedFeetechConfig, settings, where="operator.servos")
+    link_dir = workdir / "servo-link"
+    sim.bus.link_dir = link_dir
+    config = workdir / "sim-servos.toml"
+    config.write_text(config_toml(sim.bus))
+    driver = {k: v for k, v in to_dict(sim.driver).items() if k in _DRIVER_KEYS}
+    driver.update(settings.get("driver", {}))  # what the scene set for the driver
+    scene.operator.servos = {**driver, "kind": "feetech", "port": str(link_dir / "sts-bus")}
+    status = workdir / "servos-status.json"
+    args = ["sim", "servos", "--config", str(config), "--status-file", str(status)]
+    return args, workdir / "servos.log"
+
+
+#: what the simulated bus's driver changes from the real driver's defaults (a wider reply
+#: window and more retries: the bus simulator is a process of a loaded machine)
+_DRIVER_KEYS = ("retries", "reply_timeout_ms")
+SERVOS_START_S = 60.0
+
+
+def spawn_servo_simulator(args: list[str], log_path: Path, first: bool) -> subprocess.Popen:
+    """The bus simulator; the first one waited for until it serves its pty (the node opens
+    it at start). A restarted one serves the same path."""
+    start = log_path.stat().st_size if log_path.exists() else 0
+    proc = spawn_cli(args, log_path)
+    deadline = time.monotonic() + SERVOS_START_S
+    while first:
+        text = log_path.read_bytes()[start:].decode(errors="replace")
+        if '{"simulator"' in text:
+            break
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            raise ConfigError(f"the servo bus simulator did not start: {text[-1000:]}")
+        time.sleep(0.05)
+    return proc
+
+
+class OperatorChild:
+    """``deepxpalm operator`` as the demo's child, under its unit's rules.
+
+    Its config (the scene's operator with the run's keys and ports) is a 0600
+    file in the demo's directory; it writes its live view, counters and
+    dashboard address to ``operator-status.json``; the keys reach it as JSON
+    lines on its stdin. It runs with its unit's watchdog (a notify socket in
+    the demo's directory) and, when its servos are a bus of their own, its
+    unit's ``ExecStopPost=`` (``deepxpalm palm lift``) after every end.
+    """
+
+    def __init__(
+        self,
+        args: argparse.Namespace,
+        scene: Scene,
+        workdir: Path,
+        verbosity: list[str],
+        keyboard: bool,
+    ) -> None:
+        self.args, self.scene, self.verbosity, self.keyboard = args, scene, verbosity, keyboard
+        self.workdir = workdir
+        self.config_path = workdir / "operator.toml"
+        self.status_path = workdir / "operator-status.json"
+        self.log_path = workdir / "operator.log"
+        self.rule = policy("operator")
+        dashboard = scene.operator.dashboard
+        if args.dashboard:
+            dashboard.enabled = True
+        if dashboard.enabled:  # a restarted node serves the open pages on the same address
+            if dashboard.port == 0:
+                dashboard.port = free_loopback_ports(1)[0]
+            if not dashboard.token and not os.environ.get(TOKEN_ENV):
+                from common.web_token import new_token
+
+                dashboard.token = new_token()
+        # with the run's keys and the page's token: 0600, in our 0700 directory
+        write_secret_file(self.config_path, config_toml(scene.operator, "operator", redact=False))
+
+    def argv(self, n: int) -> list[str]:
+        argv = [*self.verbosity, "operator", "--config", str(self.config_path)]
+        argv += ["--status-file", str(self.status_path)]
+        if self.keyboard:
+            argv.append("--commands-from-stdin")
+        if self.args.record:  # a restarted node records beside the crashed one's file
+            name = "operator.mcap" if n == 0 else f"operator.restart{n}.mcap"
+            argv += ["--record", str(self.args.record / name)]
+            network = self.scene.network
+            session = {  # what `deepxpalm export` puts in a dataset's metadata
+                "scene": self.scene.scene.name,
+                "network_scenario": network.scenario if network.enabled else "none",
+            }
+            for key, value in session.items():
+                argv += ["--record-metadata", f"{key}={value}"]
+        return argv
+
+    def child(self) -> Child:
+        rule = self.rule
+        watchdog = None
+        stop_post = None
+        if rule is not None and rule.watchdog_sec > 0:
+            watchdog = UnitWatchdog(
+                self.workdir / "operator.notify", rule.watchdog_sec, rule.timeout_abort_sec
+            )
+        if (
+            rule is not None
+            and rule.stop_post
+            and self.scene.operator.servos.get("kind") == ("feetech")
+        ):
+            lift = ["-v", *stop_post_args(rule.stop_post, self.config_path)]
+            lift_log = self.workdir / "palm-lift.log"
+            # at the unit's Nice=, as systemd runs every command of the unit
+            stop_post = StopPost("operator", lambda: spawn_cli(lift, lift_log, "operator"))
+        env = None if watchdog is None else watchdog.environ()
+        stdin = subprocess.PIPE if self.keyboard else subprocess.DEVNULL
+        return Child(
+            "operator",
+            lambda n: spawn_cli(self.argv(n), self.log_path, "operator", stdin=stdin, env=env),
+            self.log_path,
+            unit_restart_s("operator"),
+            stop_post=stop_post,
+            watchdog=watchdog,
+        )
+
+    @staticmethod
+    def send(child: Child, action: str, kwargs: dict[str, Any]) -> None:
+        """A key's command to the running node's stdin; dropped while it is down (as keys
+        typed at a dead node's terminal are)."""
+        proc = child.proc
+        if proc is None or proc.stdin is None or proc.poll() is not None:
+            return
+        line = (json.dumps({"action": action, **kwargs}) + "\n").encode()
+        try:
+            fd = proc.stdin.fileno()
+            os.set_blocking(fd, False)  # a node that stopped reading never stalls the demo
+            os.write(fd, line)  # one line, under PIPE_BUF: written whole or not at all
+        except BlockingIOError:
+            log.warning("operator: not reading its commands; key %s dropped", action)
+        except (BrokenPipeError, OSError, ValueError):
+            pass  # it just died: the supervisor restarts it
 
 
 def _configured(scenario_name: str) -> dict[str, Any]:
@@ -512,14 +701,23 @@ def _use_fresh_curve_keys(scene: Scene, directory: Path) -> None:
 
 
 def _summary(
-    scene: Scene, node: Any, elapsed: float, robot_path: Path, netsim_path: Path, errors: list[str]
+    scene: Scene,
+    status: live_view.OperatorStatus,
+    elapsed: float,
+    robot_path: Path,
+    netsim_path: Path,
+    errors: list[str],
 ) -> dict[str, Any]:
+    """The run's figures; the operator's are its status file's last (its final counters,
+    written as it stopped; those of its newest process when it was restarted)."""
     robot: dict[str, float] = {}
     if robot_path.exists():
         robot = json.loads(robot_path.read_text())
     else:
         errors.append("the robot node wrote no statistics")
-    op = node.stats()
+    op = status.stats()
+    if status.read() is None:
+        errors.append("the operator node wrote no status")
     with_truth = int(op.get("stimuli_with_truth", 0))
     matching = int(op.get("stimuli_matching_truth", 0))
     out: dict[str, Any] = {
@@ -543,7 +741,7 @@ def _summary(
             "p50": op.get("latency_p50_ms"),
             "p99": op.get("latency_p99_ms"),
             "max": op.get("latency_max_ms"),
-            "samples": len(node.latencies_ms),
+            "samples": status.latency_samples(),
             "what": "frame capture (robot clock, offset-corrected) to servo command",
         },
         "pattern_match": {

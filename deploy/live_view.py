@@ -1,9 +1,16 @@
-"""The demo's live terminal view: both pads, the pattern, the stimulus, the servos, the link."""
+"""The demo's live terminal view: both pads, the pattern, the stimulus, the servos, the link.
+
+The operator node runs as a process of its own; what the view shows is its
+status file (``deepxpalm operator --status-file``), read by ``OperatorStatus``.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import json
 import math
-from typing import ClassVar
+from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -12,6 +19,42 @@ from operator_side.node import Snapshot
 
 _SHADES = " .:-=+*#%@"
 _RESET = "\x1b[0m"
+
+
+class OperatorStatus:
+    """An operator node's status file, as another process reads it: its snapshot, counters,
+    latency sample count and dashboard address (the file is replaced whole, never half
+    written; a restarted node's first write replaces its predecessor's last)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._last: dict[str, Any] | None = None
+
+    def read(self) -> dict[str, Any] | None:
+        """The newest status; the last one read while none is there (None before the first)."""
+        with contextlib.suppress(FileNotFoundError, ValueError):
+            self._last = json.loads(self.path.read_text())
+        return self._last
+
+    def snapshot(self) -> Snapshot | None:
+        status = self.read()
+        return None if status is None else Snapshot.from_json(status["snapshot"])
+
+    def stats(self) -> dict[str, float]:
+        status = self.read()
+        return {} if status is None else dict(status["snapshot"]["stats"])
+
+    def latency_samples(self) -> int:
+        status = self.read()
+        return 0 if status is None else int(status["latency_samples"])
+
+    def heard_robot(self) -> bool:
+        """Whether the node has heard the robot (a heartbeat: devices connected, up)."""
+        return self.stats().get("heartbeats_received", 0) > 0
+
+    def dashboard_url(self) -> str | None:
+        status = self.read()
+        return None if status is None else status.get("dashboard_url")
 
 
 def _heat(v: float, vmax: float = SATURATION_N) -> str:

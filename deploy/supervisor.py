@@ -25,6 +25,12 @@ every end of its process, before the restart, as systemd runs the unit's.
 The operator's lifts the palm (``deepxpalm palm lift``): the servos keep
 their last goal when the node dies. The fault matrix's supervisor uses the
 same ``StopPost``.
+
+A child may have a watchdog (``deploy.watchdog.UnitWatchdog``, the unit's
+``WatchdogSec=``): a child that said ``READY=1`` on its notify socket and then
+stopped saying ``WATCHDOG=1`` (frozen, SIGSTOP, a stuck loop) is sent SIGABRT
+and SIGCONT, as systemd's watchdog does; its end then runs the
+``ExecStopPost=`` and the restart as any other end.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ from pathlib import Path
 from typing import Any
 
 from deploy.unit_policy import policy
+from deploy.watchdog import UnitWatchdog
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +58,12 @@ def unit_restart_s(unit: str, default: float = DEFAULT_RESTART_S) -> float:
     """``RestartSec=`` of the shipped ``deepxpalm-<unit>.service``; ``default`` without one."""
     found = policy(unit)
     return default if found is None else found.restart_sec
+
+
+def stop_post_args(stop_post: tuple[str, ...], config: Path) -> list[str]:
+    """A unit's ``ExecStopPost=`` arguments with ``config`` for the installed config it names
+    (``/etc/deepxpalm/...``): the same command, on this run's config."""
+    return [str(config) if a.startswith("/etc/deepxpalm/") else a for a in stop_post]
 
 
 class StopPost:
@@ -113,6 +126,7 @@ class Child:
     essential: bool = True  # given up on: the demo ends
     restarts_too: tuple[str, ...] = ()  # restarted after this one (they depend on it)
     stop_post: StopPost | None = None  # run after every end, before the restart
+    watchdog: UnitWatchdog | None = None  # ends a process that stopped pinging (WatchdogSec=)
     proc: subprocess.Popen | None = None
     incarnation: int = 0
     pids: list[int] = field(default_factory=list)
@@ -123,6 +137,8 @@ class Child:
     started_at: float = 0.0  # monotonic, the running process's start
 
     def spawn(self) -> None:
+        if self.watchdog is not None:
+            self.watchdog.started()  # unarmed until the new process says READY=1
         self.started_at = time.monotonic()
         self.proc = self.start(self.incarnation)
         self.pids.append(self.proc.pid)
@@ -143,6 +159,16 @@ class Child:
             "exit_codes": self.exits,
             "pids": self.pids,
             "log": str(self.log_path),
+            **(
+                {}
+                if self.stop_post is None
+                else {  # each ExecStopPost run: how long it took, how it ended
+                    "stop_post": [
+                        {"took_s": round(end - start, 3), "exit_code": code}
+                        for start, end, code in self.stop_post.runs
+                    ]
+                }
+            ),
         }
 
 
@@ -172,6 +198,8 @@ class Supervisor:
             if child.restart_at is None:
                 code = child.proc.poll() if child.proc is not None else None
                 if code is None:
+                    if child.watchdog is not None and child.proc is not None:
+                        child.watchdog.check(child.proc.pid)
                     continue
                 if child.stop_post is not None and not child.stop_post.done(child.started_at):
                     continue  # its ExecStopPost first (the palm lifted), then the rest
@@ -201,9 +229,15 @@ class Supervisor:
             )
             return
         child.restart_at = now + child.restart_delay_s
+        watchdog = child.watchdog
+        ended_by = (
+            " (ended by its watchdog)"
+            if watchdog is not None and any(pid == child.proc.pid for _, pid in watchdog.fired)
+            else ""
+        )
         self._say(
             logging.WARNING,
-            f"{child.name} (pid {child.proc.pid}) exited with {code}: restarting in "
+            f"{child.name} (pid {child.proc.pid}) exited with {code}{ended_by}: restarting in "
             f"{child.restart_delay_s:g} s; see {child.log_path}",
         )
 
@@ -249,7 +283,8 @@ class Supervisor:
             "events": self.events,
             "policy": (
                 f"a child that exits is restarted after its unit's RestartSec "
-                f"(robot {unit_restart_s('robot'):g} s, video {unit_restart_s('video'):g} s, "
+                f"(robot {unit_restart_s('robot'):g} s, operator {unit_restart_s('operator'):g} s, "
+                f"video {unit_restart_s('video'):g} s, "
                 f"others {DEFAULT_RESTART_S:g} s), given up on after {START_LIMIT_BURST} "
                 f"restarts in {START_LIMIT_INTERVAL_S:.0f} s"
             ),
@@ -265,16 +300,26 @@ class Supervisor:
                 )
             elif child.proc is not None and child.restart_at is None:
                 stop_child(child.proc, child.name, errors, child.log_path)
+            if child.watchdog is not None:
+                child.watchdog.close()
+
+
+def terminate(proc: subprocess.Popen) -> None:
+    """SIGTERM and SIGCONT, as systemd stops a unit's process (a stopped one would not run
+    its handler until continued)."""
+    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(signal.SIGCONT)
 
 
 def stop_process(proc: subprocess.Popen | None, timeout_s: float = 10.0) -> None:
     """SIGTERM, then SIGKILL after ``timeout_s``: a child restarted with another.
 
-    SIGTERM, not SIGINT, which a child of a shell without job control inherits ignored.
+    SIGTERM, not SIGINT, which a child of a shell without job control inherits ignored;
+    then SIGCONT, as systemd sends it, so a stopped process runs and ends.
     """
     if proc is None or proc.poll() is not None:
         return
-    proc.send_signal(signal.SIGTERM)
+    terminate(proc)
     try:
         proc.wait(timeout=timeout_s)
     except subprocess.TimeoutExpired:

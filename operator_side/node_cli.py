@@ -12,7 +12,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import add_config_arguments, run_node, write_stats
+from common.cli_support import add_config_arguments, run_node
+from common.errors import ConfigError
 from operator_side.config import OperatorConfig
 
 log = logging.getLogger(__name__)
@@ -34,13 +35,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         help="rewrite what the node shows (its live view, counters, dashboard address) here "
         f"every {STATUS_PERIOD_S * 1e3:.0f} ms, JSON replaced atomically: how `deepxpalm demo` "
-        "shows its operator, which runs as a process of its own",
+        "shows its operator, which runs as a process of its own. The file is 0600: it holds the "
+        "dashboard's address with its token, which is then not printed",
+    )
+    parser.add_argument(
+        "--record-metadata",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"with --record: a {SESSION_METADATA} entry in the recording (repeatable), which "
+        "`deepxpalm export` puts in a dataset's metadata, e.g. --record-metadata scene=demo",
     )
 
 
-def _build(config: OperatorConfig, recorder: Any) -> Any:
+#: the recording's metadata record that ``--record-metadata`` fills
+SESSION_METADATA = "deepxpalm.session"
+
+
+def session_metadata(pairs: list[str]) -> dict[str, str]:
+    """``KEY=VALUE`` strings as a map; a pair without ``=`` or a key is an error to fix."""
+    out: dict[str, str] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--record-metadata {pair!r}: expected KEY=VALUE, e.g. scene=demo")
+        out[key.strip()] = value
+    return out
+
+
+def _build(config: OperatorConfig, recorder: Any, session: dict[str, str]) -> Any:
     from operator_side.node import build_operator_node
 
+    if recorder is not None and session:
+        recorder.add_metadata(SESSION_METADATA, session)
     return build_operator_node(config, recorder=recorder)
 
 
@@ -85,15 +112,19 @@ class StatusFile:
         self._thread.start()
 
     def write(self) -> None:
-        write_stats(
-            self.path,
-            {
-                "t_ns": time.monotonic_ns(),
-                "snapshot": self.node.snapshot().as_json(),
-                "latency_samples": len(self.node.latencies_ms),
-                "dashboard_url": self.dashboard_url,
-            },
-        )
+        status = {
+            "t_ns": time.monotonic_ns(),
+            "snapshot": self.node.snapshot().as_json(),
+            "latency_samples": len(self.node.latencies_ms),
+            "dashboard_url": self.dashboard_url,
+        }
+        # 0600 from its creation (the address carries the page's token), then renamed over
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        tmp.unlink(missing_ok=True)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+        with os.fdopen(fd, "w") as f:
+            json.dump(status, f, sort_keys=True)
+        tmp.replace(self.path)
 
     def _run(self) -> None:
         while not self._stop.wait(STATUS_PERIOD_S):
@@ -109,7 +140,7 @@ class StatusFile:
 
 
 def _attachments(node: Any, config: OperatorConfig, from_stdin: bool, status: Path | None) -> Any:
-    dashboard = _dashboard(node, config)
+    dashboard = _dashboard(node, config, status)
     parts = [p for p in (dashboard, StdinCommands(node) if from_stdin else None) if p is not None]
     if status is not None:
         parts.append(StatusFile(node, status, dashboard))
@@ -125,7 +156,7 @@ class _Both:
             part.stop()
 
 
-def _dashboard(node: Any, config: OperatorConfig) -> Any:
+def _dashboard(node: Any, config: OperatorConfig, status: Path | None = None) -> Any:
     if not config.dashboard.enabled:
         return None
     from operator_side.dashboard import Dashboard  # websockets only when asked for
@@ -134,7 +165,11 @@ def _dashboard(node: Any, config: OperatorConfig) -> Any:
     dashboard.start()
     from operator_side.dashboard.config import TOKEN_ENV
 
-    if _stdout_is_journal() and (config.dashboard.token or os.environ.get(TOKEN_ENV)):
+    if status is not None:
+        # whoever reads the status file has the address with its token (deepxpalm demo shows
+        # it once); the node's output, a log file, does not
+        print(f"dashboard: {dashboard.server.base_url} (token: in {status})", flush=True)
+    elif _stdout_is_journal() and (config.dashboard.token or os.environ.get(TOKEN_ENV)):
         # a token set by whoever may open the page: they have it, the journal need not
         where = "dashboard.token" if config.dashboard.token else f"${TOKEN_ENV}"
         print(f"dashboard: {dashboard.server.base_url} (token: {where})", flush=True)
@@ -157,10 +192,13 @@ def _stdout_is_journal() -> bool:
 def run(args: argparse.Namespace) -> int:
     from_stdin = bool(getattr(args, "commands_from_stdin", False))
     status = getattr(args, "status_file", None)
+    session = session_metadata(getattr(args, "record_metadata", []))
+    if session and not args.record:
+        raise ConfigError("--record-metadata describes a recording: add --record FILE")
     return run_node(
         args,
         OperatorConfig,
         "operator",
-        _build,
+        lambda config, recorder: _build(config, recorder, session),
         lambda node, config: _attachments(node, config, from_stdin, status),
     )

@@ -246,7 +246,8 @@ class VideoServerProcess:
 def child_processes(parent_pid: int) -> dict[str, int]:
     """The pids of a ``deepxpalm demo``'s children by role, read from /proc, as ``ps`` would.
 
-    Roles: the ``deepxpalm`` subcommand (robot, netsim, video), or ``world`` for the lab.
+    Roles: the ``deepxpalm`` subcommand (robot, netsim, video, operator), ``servos`` for the
+    servo bus simulator, or ``world`` for the lab.
     """
     import os
 
@@ -265,7 +266,7 @@ def child_processes(parent_pid: int) -> dict[str, int]:
             continue
         if "robot_side.lab" in words:
             found["world"] = int(entry)
-        for role in ("robot", "netsim", "video"):
+        for role in ("robot", "netsim", "video", "operator", "servos"):
             if role in words:
                 found[role] = int(entry)
     return found

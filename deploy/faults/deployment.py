@@ -9,7 +9,7 @@ so that killing a node never kills its device. ``Supervisor`` plays systemd:
 a process of a shipped unit that ends is started again after the unit's
 RestartSec= when its Restart= says so, runs its ExecStopPost= after any end
 (the operator's lifts the palm), and ends a process whose WatchdogSec= passed
-without a ping (``watchdog.UnitWatchdog``).
+without a ping (``deploy.watchdog.UnitWatchdog``).
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ from pathlib import Path
 
 from common.transport import free_loopback_ports
 from deploy.demo import spawn_cli
-from deploy.faults.watchdog import UnitWatchdog
 from deploy.fleet import Fleet, Proc
-from deploy.supervisor import StopPost
+from deploy.supervisor import StopPost, stop_post_args
 from deploy.unit_policy import RestartPolicy, policy
+from deploy.watchdog import UnitWatchdog
 
 log = logging.getLogger(__name__)
 
@@ -337,7 +337,7 @@ class Deployment:
             self.dir / "operator.notify", rule.watchdog_sec, rule.timeout_abort_sec
         )
         config = self.fleet.workdir / f"{OPERATOR}@{ROBOT}.toml"  # what start_operator writes
-        stop_post = [str(config) if a.startswith("/etc/deepxpalm/") else a for a in rule.stop_post]
+        stop_post = stop_post_args(rule.stop_post, config)
         log_path = self.dir / "operator-stop-post.log"
 
         def start() -> Proc:

@@ -36,8 +36,10 @@ def test_the_demo_page_plays_the_robots_video_offered_through_the_link():
     with DashboardDemo(ready_timeout_s=60) as demo:
         with Chromium(width=1280, height=900) as browser:
             summary, errors = play_video(browser, demo.url, frames=30)
-            # a viewer is connected: what the page's process and the video server listen on
-            pids = {"page": demo.proc.pid, "video": child_processes(demo.proc.pid)["video"]}
+            # a viewer is connected: what the page's process (the demo's operator node) and
+            # the video server listen on
+            children = child_processes(demo.proc.pid)
+            pids = {"page": children["operator"], "video": children["video"]}
             sockets = {role: listening_sockets(pid) for role, pid in pids.items()}
         time.sleep(1.0)  # the tab is gone: the page's bye (or the dead peer) closes the camera
         code, out, stderr = demo.finish()

@@ -3,6 +3,8 @@ delay, one that keeps dying is given up on, and that ends the demo only if it is
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -83,3 +85,60 @@ def test_a_child_failing_while_the_demo_starts_ends_it(tmp_path):
     sup.add(Child("robot", _python("raise SystemExit(2)"), _log(tmp_path, "r"), 0.01)).proc.wait()
     assert not sup.poll(errors)  # not armed: a wrong setting would otherwise loop
     assert "robot stopped early with 2" in errors[0]
+
+
+#: a unit's process as common.sd_notify makes it: READY=1, then WATCHDOG=1 every 50 ms
+PINGER = """
+import os, socket, time
+s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+s.sendto(b"READY=1", os.environ["NOTIFY_SOCKET"])
+while True:
+    s.sendto(b"WATCHDOG=1", os.environ["NOTIFY_SOCKET"])
+    time.sleep(0.05)
+"""
+
+
+def test_a_frozen_child_is_ended_by_its_watchdog_then_its_stop_post_runs(tmp_path):
+    """SIGSTOP: silent for the watchdog's window, it is sent SIGABRT and SIGCONT (as systemd
+    does), its ExecStopPost runs before the restart, and the new process is watched again."""
+    from deploy.supervisor import StopPost
+    from deploy.watchdog import UnitWatchdog
+
+    watchdog = UnitWatchdog(tmp_path / "w.notify", watchdog_sec=0.3, timeout_abort_sec=1.0)
+    env = {**os.environ, **watchdog.environ()}
+    marks = tmp_path / "stop-post"
+    post = StopPost(
+        "op",
+        lambda: subprocess.Popen(["sh", "-c", f"echo ran >> {marks}"]),
+    )
+    start = lambda n: subprocess.Popen([sys.executable, "-c", PINGER], env=env)  # noqa: E731
+    sup, errors = Supervisor(), []
+    child = sup.add(
+        Child("op", start, _log(tmp_path, "op"), 0.1, stop_post=post, watchdog=watchdog)
+    )
+    sup.armed = True
+    first = child.proc.pid
+    _poll_until(sup, errors, lambda: watchdog.pings >= 3)
+    child.proc.send_signal(signal.SIGSTOP)
+    t0 = time.monotonic()
+    _poll_until(sup, errors, lambda: child.proc.pid != first)
+    fired = [t - t0 for t, pid in watchdog.fired if pid == first]
+    assert fired and fired[0] <= 0.3 + 0.2, f"the watchdog fired at {fired} s"
+    assert child.exits == [-6], child.exits  # SIGABRT
+    assert marks.read_text() == "ran\n" and post.runs[0][1] <= child.started_at
+    assert "ended by its watchdog" in sup.events[0], sup.events
+    pings = watchdog.pings
+    _poll_until(sup, errors, lambda: watchdog.pings >= pings + 3)  # the new one, watched
+    assert len(watchdog.fired) == 1
+    sup.stop_all(stop_child, errors)
+    assert errors == []
+
+
+def test_a_stopped_child_is_stopped_at_the_end_without_waiting(tmp_path):
+    """SIGTERM with SIGCONT, as systemd stops a unit: a stopped process ends at once."""
+    sup, errors = Supervisor(), []
+    child = sup.add(Child("robot", SLEEPER, _log(tmp_path, "r"), 0.3))
+    child.proc.send_signal(signal.SIGSTOP)
+    t0 = time.monotonic()
+    sup.stop_all(stop_child, errors)
+    assert time.monotonic() - t0 < 5.0 and errors == [], errors

@@ -217,6 +217,9 @@ def test_the_token_is_shown_once_and_the_keys_are_0600(demo):
         assert TOKEN not in log.read_text(errors="replace"), log
     url_file = workdir / "dashboard.url"  # where the live view points for the full address
     assert TOKEN in url_file.read_text() and stat.S_IMODE(url_file.stat().st_mode) == 0o600
+    # the operator node's status file holds the address too (the demo reads it from there)
+    status = workdir / "operator-status.json"
+    assert TOKEN in status.read_text() and stat.S_IMODE(status.stat().st_mode) == 0o600
     keys = workdir / "keys"
     assert stat.S_IMODE(keys.stat().st_mode) == 0o700
     secrets = list(keys.rglob("*.key_secret"))
@@ -231,4 +234,6 @@ def test_the_token_is_shown_once_and_the_keys_are_0600(demo):
     config = metadata["deepxpalm.node"]["config_toml"]
     assert "[operator.dashboard]" in config and "token = (set; not shown)" in config
     assert TOKEN not in json.dumps(metadata)
+    # the session record `deepxpalm export` reads, written by the operator node's process
+    assert metadata["deepxpalm.session"] == {"scene": "demo", "network_scenario": "lan"}
     assert os.path.exists(demo.record / "robot.mcap")

@@ -5,7 +5,8 @@ A unit with ``WatchdogSec=`` hands its process ``$NOTIFY_SOCKET`` and
 ``WatchdogSec`` without ``WATCHDOG=1`` makes systemd send the watchdog signal
 (SIGABRT) followed by SIGCONT (so a stopped process runs and dies), then
 SIGKILL after ``TimeoutAbortSec=``. ``UnitWatchdog`` does the same for a
-process the fault matrix starts, so a frozen node is ended as on the
+process that ``deepxpalm demo`` or the fault matrix starts under a shipped
+unit's rules (``deploy/supervisor.py``), so a frozen node is ended as on the
 deployed machine, and its unit's ``ExecStopPost=`` then runs.
 """
 
