@@ -2,7 +2,9 @@
 
 ``common`` is at the bottom and imports no other package; ``robot_side``,
 ``operator_side`` and ``relay_side`` import ``common`` and never each other;
-``deploy`` is at the top and may import all of them. Every import counts,
+``deploy`` is above them and may import all of them; ``harness`` (the bench,
+the fault matrix, the fleet, the soak) sits above the whole product and
+nothing in the product imports it. Every import counts,
 at module level or inside a function (a lazy import still ties the packages
 together), and so does ``importlib.import_module("...")`` with a literal name.
 """
@@ -19,6 +21,7 @@ ALLOWED: dict[str, frozenset[str]] = {
     "common": frozenset({"common"}),
     **{node: frozenset({"common", node}) for node in NODES},
     "deploy": frozenset({"common", *NODES, "deploy"}),
+    "harness": frozenset({"common", *NODES, "deploy", "harness"}),
 }
 
 

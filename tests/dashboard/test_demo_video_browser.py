@@ -21,7 +21,7 @@ import pytest
 from headless_chromium import Chromium, needs_chromium, play_video
 from tests_support import DashboardDemo, child_processes, listening_sockets
 
-from deploy.bench.video import cpu_times, idle_share
+from harness.bench.video import cpu_times, idle_share
 from robot_side.video.stamp import MS_MODULO
 
 pytest.importorskip("aiortc", reason="the demo's video needs the 'video' extra")

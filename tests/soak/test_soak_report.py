@@ -7,7 +7,7 @@ import os
 import numpy as np
 
 from common.mcap_recorder import McapRecorder
-from deploy import soak
+from harness import soak
 
 
 def test_proc_readings_of_this_process():

@@ -26,7 +26,7 @@ pytest.importorskip("aiortc")
 
 from tests_support import VideoServerProcess
 
-from deploy.bench.video import cpu_times, idle_share, watch
+from harness.bench.video import cpu_times, idle_share, watch
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
