@@ -36,7 +36,7 @@ SIZES = {
 
 def measure(ctx: Context, sizes: FaultsSizes) -> dict[str, Any]:
     """Every cell, with the bench's pin to one core lifted: these are whole deployments."""
-    from harness.bench.runner import git_commit
+    from harness.bench.stamp import git_commit
     from harness.bench.timing import machine_load, original_affinity
     from harness.faults.matrix import MATRICES, run_cells
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import os
 import platform
-import subprocess
 import time
 import traceback
 from pathlib import Path
@@ -18,21 +17,12 @@ from typing import TYPE_CHECKING, Any
 
 from harness.bench.section import Context, Section
 from harness.bench.sizes import Sizes
+from harness.bench.stamp import git_commit
 
 if TYPE_CHECKING:
     from harness.bench.progress import BenchProgress
 
 log = logging.getLogger(__name__)
-
-
-def git_commit() -> str | None:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5
-        )
-        return out.stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
 
 
 def _versions() -> dict[str, str | None]:

@@ -64,7 +64,7 @@ class Context:
     def demo_frames(self) -> list[Any]:
         """The demo scene's frames, made once for every section that drives the nodes."""
         if not self._demo_frames:
-            from harness.bench.skipping import demo_frames
+            from harness.bench.scene_frames import demo_frames
 
             cycles = 1.0 if self.preset == "full" else 0.3
             self._demo_frames.extend(demo_frames("demo", cycles)[0])

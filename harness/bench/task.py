@@ -423,7 +423,7 @@ def _saved_cell(
     """
     if folder is None:
         return _cell_or_failure(scenario, feedback, setups, on_trial)
-    from harness.bench.runner import git_commit
+    from harness.bench.stamp import git_commit
     from harness.bench.timing import machine_load
 
     path = folder / f"{scenario}-{feedback}.json"

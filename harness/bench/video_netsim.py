@@ -208,7 +208,7 @@ def summarise(
 
 def measure_rows(sizes: VideoNetsimSizes) -> dict[str, Any]:
     from common.netsim.scenario import load_scenario
-    from harness.bench.runner import git_commit
+    from harness.bench.stamp import git_commit
 
     picture = (sizes.video_netsim_width, sizes.video_netsim_height, sizes.video_netsim_fps)
     rows = []
