@@ -21,7 +21,6 @@ import math
 import os
 import signal
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -31,12 +30,11 @@ from typing import Any
 import numpy as np
 
 from common.cli_support import add_overrides_argument
+from harness.processes import children_of, cli_argv, cmdline, cpu_s, rss_mb
 
 log = logging.getLogger(__name__)
 
 MAX_GROWTH_MB = 20.0  # memory growth allowed over the soak
-_PAGE_KB = os.sysconf("SC_PAGE_SIZE") // 1024
-_TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -68,52 +66,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-# ------------------------------------------------------------------ /proc
-def _read(path: str) -> str | None:
-    try:
-        with open(path) as f:
-            return f.read()
-    except OSError:
-        return None
-
-
-def _stat_fields(pid: int) -> list[str] | None:
-    """Fields of /proc/PID/stat after the command name (which may hold spaces)."""
-    text = _read(f"/proc/{pid}/stat")
-    if text is None:
-        return None
-    return text[text.rindex(")") + 2 :].split()
-
-
-def children_of(pid: int) -> list[int]:
-    out = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            fields = _stat_fields(int(entry))
-            if fields is not None and int(fields[1]) == pid:
-                out.append(int(entry))
-    return out
-
-
-def rss_mb(pid: int) -> float | None:
-    text = _read(f"/proc/{pid}/statm")
-    if text is None:
-        return None
-    return int(text.split()[1]) * _PAGE_KB / 1024
-
-
-def cpu_s(pid: int) -> float | None:
-    fields = _stat_fields(pid)
-    if fields is None:
-        return None
-    return (int(fields[11]) + int(fields[12])) * _TICK_S  # utime + stime
-
-
 def _role(pid: int) -> str | None:
-    text = _read(f"/proc/{pid}/cmdline")
-    if text is None:
+    argv = cmdline(pid)
+    if argv is None:
         return None
-    argv = text.split("\0")
     for role in ("robot", "netsim"):
         if role in argv:
             return role
@@ -228,25 +184,24 @@ def run(args: argparse.Namespace) -> int:
     workdir = args.dir or Path(tempfile.mkdtemp(prefix="deepxpalm-soak-"))
     workdir.mkdir(parents=True, exist_ok=True)
     rec_dir = workdir / "recording"
-    cmd = [
-        sys.executable,
-        "-m",
-        "deploy.cli",
-        "-v",
-        "demo",
-        "--json",
-        "--duration",
-        str(duration_s),
-        "--scene",
-        args.scene,
-        "--scenario",
-        args.scenario,
-        "--record",
-        str(rec_dir),
-        # per-message faults, corruption included, so the decoders are exercised
-        "--set",
-        "network.mode=message",
-    ]
+    cmd = cli_argv(
+        [
+            "-v",
+            "demo",
+            "--json",
+            "--duration",
+            str(duration_s),
+            "--scene",
+            args.scene,
+            "--scenario",
+            args.scenario,
+            "--record",
+            str(rec_dir),
+            # per-message faults, corruption included, so the decoders are exercised
+            "--set",
+            "network.mode=message",
+        ]
+    )
     for override in args.overrides:
         cmd += ["--set", override]
     out_path, err_path = workdir / "demo.json", workdir / "demo.log"

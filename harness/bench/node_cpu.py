@@ -21,9 +21,9 @@ import contextlib
 import json
 import logging
 import os
+import signal
 import socket
 import subprocess
-import sys
 import tempfile
 import termios
 import threading
@@ -39,13 +39,8 @@ from common.config import config_toml
 from harness.bench.fixtures import scan_bytes
 from harness.bench.fmt import num, results_of, table
 from harness.bench.section import Context, Results, Section, Verdict
-from harness.bench.timing import (
-    deployed_env,
-    original_affinity,
-    process_cpu_s,
-    summarize_ns,
-    thread_cpu_s,
-)
+from harness.bench.timing import deployed_env, original_affinity, summarize_ns
+from harness.processes import process_cpu_s, spawn_cli, stop, thread_cpu_s
 
 log = logging.getLogger(__name__)
 
@@ -132,26 +127,14 @@ def _free_ports(n: int) -> list[int]:
 def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
     """A node as deployed: every core this bench could use, no thread limits it added."""
     out = log_path.open("wb")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "deploy.cli", *args],
-        stdout=out,
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-        env=deployed_env(),
-    )
+    proc = spawn_cli(args, out, start_new_session=True, env=deployed_env())
     with contextlib.suppress(OSError):  # it may already have exited: reported later
         os.sched_setaffinity(proc.pid, original_affinity())
     return proc
 
 
 def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(2)  # SIGINT: the nodes stop cleanly and write their stats
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    stop(proc, 10, signal.SIGINT)  # the nodes stop cleanly and write their stats
 
 
 class RobotWatch:

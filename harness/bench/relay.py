@@ -47,6 +47,7 @@ from common.tactile import FRAME_SHAPE
 from common.transport import free_loopback_ports
 from harness.bench.fmt import num, results_of, table
 from harness.bench.section import Context, Results, Section, Verdict
+from harness.processes import process_cpu_s
 
 
 @dataclass
@@ -457,14 +458,6 @@ def _run_pair(
     pub.join(5)
     sw.join(5)
     return result, sent
-
-
-def process_cpu_s(pid: int) -> float:
-    """utime + stime of a process so far, seconds (/proc)."""
-    import os
-
-    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()  # noqa: SIM115
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def run_robot_cpu(

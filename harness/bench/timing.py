@@ -188,41 +188,6 @@ def timer_overhead_ns(n: int = 10000) -> float:
     return float(np.median(out))
 
 
-def process_cpu_s(pid: int) -> float:
-    """utime + stime of a process (all its threads) in seconds, from /proc."""
-    with open(f"/proc/{pid}/stat", "rb") as f:
-        raw = f.read().decode()
-    # the command name may hold spaces and parentheses: split after the last ')'
-    fields = raw[raw.rindex(")") + 2 :].split()
-    ticks = int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15)
-    return ticks / os.sysconf("SC_CLK_TCK")
-
-
-def thread_cpu_s(pid: int) -> dict[str, float]:
-    """CPU seconds per thread of a process, keyed "main", or by the thread's OS name + id.
-
-    ZeroMQ names its I/O threads (ZMQbg/...); Python threads all carry the
-    interpreter's name, so they are told apart by id only.
-    """
-    out: dict[str, float] = {}
-    tick = os.sysconf("SC_CLK_TCK")
-    try:
-        tids = os.listdir(f"/proc/{pid}/task")
-    except OSError:
-        return out
-    for tid in tids:
-        try:
-            with open(f"/proc/{pid}/task/{tid}/stat", "rb") as f:
-                raw = f.read().decode()
-        except OSError:
-            continue  # the thread ended
-        name = raw[raw.index("(") + 1 : raw.rindex(")")]
-        fields = raw[raw.rindex(")") + 2 :].split()
-        key = "main" if tid == str(pid) else f"{name}#{tid}"
-        out[key] = (int(fields[11]) + int(fields[12])) / tick
-    return out
-
-
 def wakeup_cpu_us(rate_hz: float = 240.0, seconds: float = 2.0) -> float:
     """CPU microseconds one sleeping thread spends per wake-up on this machine.
 

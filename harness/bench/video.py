@@ -32,13 +32,13 @@ import os
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
+from harness.processes import idle_share, machine_cpu
 from robot_side.video.stamp import MS_MODULO, cell_size, read_stamp
 
 WARMUP_FRAMES = 30  # the first second: ICE, keyframe, the receiver's buffer settling
@@ -227,7 +227,7 @@ def many_viewers(
     from robot_side.video.server import VideoConfig, VideoServer
 
     source = TestPatternCamera(TestPatternConfig(width=width, height=height, fps=fps))
-    cpu0 = cpu_times()
+    cpu0 = machine_cpu()
     with VideoServer(source, VideoConfig(port=0, max_viewers=viewers)) as server:
         runs = asyncio.run(watch(server.url, viewers, seconds))
     lat = np.concatenate([np.asarray(r.latencies_ms) for r in runs] + [np.zeros(0)])
@@ -243,20 +243,8 @@ def many_viewers(
         "fps_per_viewer_max": round(max(v["frames"] for v in each) / seconds, 1),
         "fps_source": fps,
         "ended_early": sum(v["ended"] is not None for v in each),
-        "machine_idle_cpu": round(idle_share(cpu0, cpu_times()), 3),
+        "machine_idle_cpu": round(idle_share(cpu0, machine_cpu()), 3),
     }
-
-
-def cpu_times() -> tuple[float, float]:
-    """(idle, total) jiffies of the whole machine since boot (Linux ``/proc/stat``)."""
-    fields = [float(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
-    return fields[3] + fields[4], sum(fields[:8])  # idle + iowait; user .. steal
-
-
-def idle_share(before: tuple[float, float], after: tuple[float, float]) -> float:
-    """Share of the machine's CPU time left idle between two ``cpu_times()`` readings."""
-    total = after[1] - before[1]
-    return (after[0] - before[0]) / total if total > 0 else 0.0
 
 
 TITLE = "Video: glass to glass"

@@ -280,11 +280,12 @@ def against_direct(scenario: str, sessions: int) -> dict[str, Any]:
 
     from common.netsim.scenario import load_scenario
     from harness.bench.timing import machine_load
-    from harness.bench.video import all_cores, cpu_times, idle_share
+    from harness.bench.video import all_cores
     from harness.headless_chromium import Chromium
+    from harness.processes import idle_share, machine_cpu
 
     one_way = load_scenario(scenario).to_operator.delay_quantile_ms(0.5)
-    load_before, cpu0 = machine_load(), cpu_times()
+    load_before, cpu0 = machine_load(), machine_cpu()
     direct: list[list[float]] = []
     through: list[list[float]] = []
     with all_cores(), Chromium(width=1280, height=900) as browser:
@@ -313,7 +314,7 @@ def against_direct(scenario: str, sessions: int) -> dict[str, Any]:
         "through_p50_ms": round(m_p50, 1),
         "direct_spread_ms": round(max(medians) - min(medians), 1),
         "off_ms": round(m_p50 - (d_p50 + one_way), 1),
-        "idle": round(idle_share(cpu0, cpu_times()), 2),
+        "idle": round(idle_share(cpu0, machine_cpu()), 2),
         "page_errors": errors,
         "through_sent": sent,
         "through_fresh": [fresh, badge],
