@@ -12,9 +12,7 @@ import contextlib
 import json
 import logging
 import os
-import signal
 import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -29,7 +27,7 @@ from common.roster import operator_entry, robot_entry
 from common.signing import generate_key_files, load_public_key, write_secret_file
 from common.transport import free_loopback_ports
 from deploy.keys_cli import generate
-from deploy.unit_policy import set_niceness, unit_nice
+from harness.processes import spawn_cli, stop
 
 log = logging.getLogger(__name__)
 
@@ -217,16 +215,14 @@ class Fleet:
         """``deepxpalm ARGS`` at the priority its systemd unit gives it (``args[1]``: the unit)."""
         log_path = self.workdir / f"{name}.log"
         stats_path = self.workdir / f"{name}-stats.json"
-        nice = unit_nice(args[1])
         with log_path.open("w") as out:
-            popen = subprocess.Popen(
-                [sys.executable, "-m", "deploy.cli", *args, "--stats-file", str(stats_path)],
-                stdout=out,
-                stderr=subprocess.STDOUT,
+            popen = spawn_cli(
+                [*args, "--stats-file", str(stats_path)],
+                out,
+                unit=args[1],
                 stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
                 env=self.env,
                 text=True,
-                preexec_fn=lambda: set_niceness(nice),
             )
         proc = Proc(name, popen, log_path, stats_path, popen.stdin if stdin else None)
         self.procs[name] = proc
@@ -390,16 +386,14 @@ class Fleet:
                 raise AssertionError(f"timed out waiting for {what}\n{logs}")
             time.sleep(0.05)
 
-    def stop(self, name: str, sig: int = signal.SIGTERM, timeout_s: float = 15.0) -> int:
-        proc = self.procs[name]
-        if proc.popen.poll() is None:
-            proc.popen.send_signal(sig)
-            try:
-                proc.popen.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                proc.popen.kill()
-                proc.popen.wait()
-        return proc.popen.returncode
+    def stop(self, name: str, sig: int | None = None, timeout_s: float = 15.0) -> int:
+        """``sig`` (default SIGTERM, as ``systemctl stop``), then SIGKILL; the exit code."""
+        popen = self.procs[name].popen
+        if sig is None:
+            stop(popen, timeout_s)
+        else:
+            stop(popen, timeout_s, sig)
+        return popen.returncode
 
     def close(self) -> None:
         for name in reversed(list(self.procs)):  # operators first, the relay last

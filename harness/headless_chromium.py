@@ -16,7 +16,6 @@ import base64
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -28,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 from websockets.sync.client import connect
+
+from harness.processes import stop
 
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = (
@@ -266,14 +267,7 @@ class Chromium:
         with suppress(Exception):  # the browser may already be gone
             self._stack.close()
         self.ws = None
-        if self.proc.poll() is None:
-            try:
-                os.killpg(self.proc.pid, signal.SIGTERM)
-                self.proc.wait(timeout=5)
-            except (ProcessLookupError, subprocess.TimeoutExpired):
-                with suppress(ProcessLookupError):
-                    os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait(timeout=5)
+        stop(self.proc, 5, group=True)  # the browser and its helper processes
         self._log.close()
         shutil.rmtree(self.profile, ignore_errors=True)
 

@@ -23,8 +23,6 @@ from __future__ import annotations
 import multiprocessing
 import secrets
 import signal
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -40,9 +38,9 @@ from common.clock import now_ns
 from common.errors import DeviceError
 from common.messages import Heartbeat, Stimulus
 from common.transport import Subscriber, free_loopback_ports
-from deploy.unit_policy import set_niceness, unit_nice
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
+from harness.processes import spawn_cli, stop
 
 PUBLISH_HZ = 60.0
 FLOOD_VELOCITY = [0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
@@ -197,14 +195,8 @@ class RobotUnderCommands:
     def start_node(self, timeout_s: float = 60.0) -> None:
         """Start the robot node process; returns once it publishes (again, after a restart)."""
         t0 = now_ns()
-        nice = unit_nice("robot")
-        with self.log.open("a") as out:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "deploy.cli", "-v", "robot", "--config", str(self.config)],
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                preexec_fn=lambda: set_niceness(nice),  # as its unit runs it
-            )
+        with self.log.open("a") as out:  # at its unit's niceness, as its unit runs it
+            self.proc = spawn_cli(["-v", "robot", "--config", str(self.config)], out, unit="robot")
         deadline = time.monotonic() + timeout_s
         while not self.telemetry.times(Stimulus, t0):
             if self.proc.poll() is not None or time.monotonic() > deadline:
@@ -221,13 +213,7 @@ class RobotUnderCommands:
     def __exit__(self, *exc: object) -> None:
         self.arm.close()
         self.telemetry.close()
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(15)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        stop(self.proc, 15)
         self.gripper_sim.stop()
         self.arm_sim.stop()
 

@@ -36,6 +36,7 @@ from common.clock import Rate, now_ns
 from harness.bench.fmt import num, results_of
 from harness.bench.section import Context, Results, Section, Verdict
 from harness.bench.timing import THREAD_ENV, summarize_ns
+from harness.processes import stop
 
 log = logging.getLogger(__name__)
 
@@ -131,9 +132,7 @@ def end_to_end_tcp(
         proc.wait(timeout=30)
         result = json.loads(out_path.read_text())
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        stop(proc, 0)
         out_path.unlink(missing_ok=True)
         pub.close()
         ctx.term()
@@ -210,9 +209,7 @@ def loopback_floor(
         proc.wait(timeout=30)
         result = json.loads(out_path.read_text())
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        stop(proc, 0)
         out_path.unlink(missing_ok=True)
         pub.close(0)
         ctx.term()

@@ -7,13 +7,13 @@ the bench's report; ``harness/faults/`` runs it.
 from __future__ import annotations
 
 import os
-import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from harness.bench.doc_block import replace_block
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
 
@@ -220,12 +220,7 @@ def update_robustness_doc(section: dict[str, Any], out_dir: Path) -> list[Path]:
     page = out_dir / "robustness.md"
     if not page.exists() or "error" in section:
         return []
-    text = page.read_text()
-    pattern = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
-    if not pattern.search(text):
-        raise ValueError(f"{page} has no {BEGIN} ... {END} block")
-    body = "\n".join([BEGIN, *table(section), END])
-    page.write_text(pattern.sub(lambda _: body, text))
+    replace_block(page, BEGIN, END, table(section))
     return [page]
 
 

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from harness.bench.doc_block import replace_block
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
 
@@ -280,21 +281,14 @@ def update_doc(path: Path, section: dict[str, Any]) -> None:
     # (results from before the section stored its date keep the one the page has)
     kept = re.search(re.escape(BEGIN) + r"\s*Measured (\d{4}-\d{2}-\d{2})", text)
     date = section.get("date") or (kept.group(1) if kept else "an unknown date")
-    body = "\n".join(
-        [
-            BEGIN,
-            f"Measured {date}; regenerate with "
-            "`deepxpalm bench --only netsim --update-docs` or "
-            "`python -m harness.bench.netsim --update docs/netsim.md`.",
-            "",
-            *fidelity_table(section)[2:],
-            END,
-        ]
-    )
-    pattern = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
-    if not pattern.search(text):
-        raise ValueError(f"{path} has no {BEGIN} ... {END} block")
-    path.write_text(pattern.sub(lambda _: body, text))
+    lines = [
+        f"Measured {date}; regenerate with "
+        "`deepxpalm bench --only netsim --update-docs` or "
+        "`python -m harness.bench.netsim --update docs/netsim.md`.",
+        "",
+        *fidelity_table(section)[2:],
+    ]
+    replace_block(path, BEGIN, END, lines)
 
 
 def main(argv: list[str] | None = None) -> int:

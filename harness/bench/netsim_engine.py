@@ -48,6 +48,7 @@ from scipy.stats import norm
 from common.netsim.impairments import DirectionConfig, DirectionImpairment, Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
 from common.netsim.scenario import builtin_scenarios, load_scenario
+from harness.bench.doc_block import replace_block
 
 MS = 1_000_000
 SIZE = 200  # bytes, about a stimulus message
@@ -461,12 +462,7 @@ def report(rows: list[dict], sockets: list[dict], n: int, seed: int) -> tuple[st
 
 
 def update_docs(path: Path, section: str) -> None:
-    text = path.read_text()
-    if BEGIN not in text or END not in text:
-        raise SystemExit(f"{path} has no {BEGIN} ... {END} section to replace")
-    head, rest = text.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
-    path.write_text(f"{head}{BEGIN}\n{section}{END}{tail}")
+    replace_block(path, BEGIN, END, section.removesuffix("\n").split("\n"))
 
 
 def main() -> int:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import re
 import sys
 import time
 from collections.abc import Iterator
@@ -30,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from harness.bench.doc_block import replace_block
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
 
@@ -484,12 +484,7 @@ def _against_direct_lines(section: dict[str, Any] | None) -> list[str]:
 
 def update_doc(path: Path, section: dict[str, Any]) -> None:
     """Replace the block between the markers in ``path`` with this run's table."""
-    text = path.read_text()
-    body = "\n".join([BEGIN, *table(section), END])
-    pattern = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
-    if not pattern.search(text):
-        raise ValueError(f"{path} has no {BEGIN} ... {END} block")
-    path.write_text(pattern.sub(lambda _: body, text))
+    replace_block(path, BEGIN, END, table(section))
 
 
 def update_netsim_doc(section: dict[str, Any], out_dir: Path) -> list[Path]:

@@ -18,7 +18,6 @@ import contextlib
 import json
 import logging
 import signal
-import subprocess
 import threading
 import time
 from collections.abc import Callable
@@ -31,6 +30,7 @@ from deploy.supervisor import StopPost
 from deploy.unit_policy import RestartPolicy, policy
 from harness.faults.watchdog import UnitWatchdog
 from harness.fleet import Fleet, Proc
+from harness.processes import stop
 
 log = logging.getLogger(__name__)
 
@@ -377,17 +377,10 @@ class Deployment:
         unit = self.units[name]
         self.supervisor.hold(name)
         try:
-            popen = unit.proc.popen
             t_term = time.monotonic()
-            popen.send_signal(signal.SIGTERM)
-            killed = False
-            try:
-                popen.wait(timeout_s)
-            except subprocess.TimeoutExpired:  # systemd's TimeoutStopSec=, then SIGKILL
+            killed = stop(unit.proc.popen, timeout_s)  # systemd's TimeoutStopSec=, then SIGKILL
+            if killed:
                 log.warning("%s still running %.0f s after SIGTERM: killed", name, timeout_s)
-                popen.kill()
-                popen.wait()
-                killed = True
             unit.stops.append((time.monotonic() - t_term, killed))
             unit.run_stop_post()
             unit.launch()
@@ -443,12 +436,7 @@ class Deployment:
             popen = unit.proc.popen
             if popen.poll() is None:
                 popen.send_signal(signal.SIGCONT)  # a cell may end with it stopped
-                popen.terminate()
-                try:
-                    popen.wait(15)
-                except subprocess.TimeoutExpired:
-                    popen.kill()
-                    popen.wait()
+                stop(popen, 15)
             if unit.proc.stdin is not None:
                 with contextlib.suppress(BrokenPipeError, OSError):
                     unit.proc.stdin.close()

@@ -43,7 +43,7 @@ def test_stop_ends_a_child_by_sigterm_and_kills_one_that_ignores_it():
 
 def test_the_cli_is_run_by_this_interpreter_with_its_arguments():
     assert processes.cli_argv(["-v", "demo"]) == [sys.executable, "-m", "deploy.cli", "-v", "demo"]
-    proc = processes.spawn_cli(["--help"], subprocess.PIPE)
+    proc = processes.spawn_cli(["--help"], subprocess.PIPE, unit="robot")  # at its niceness
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0 and b"deepxpalm" in out
 
