@@ -7,7 +7,9 @@ operator`` never pays for (or depends on) what the robot needs.
 Commands from outside the product (the test harness's ``bench`` and
 ``soak``) plug in through the ``deepxpalm.commands`` entry-point group, so
 the product never names them: each entry point loads a ``(module, help)``
-pair like the ones in ``SUBCOMMANDS``.
+pair like the ones in ``SUBCOMMANDS``. They are looked up only when the
+command asked for is not the product's own, so ``deepxpalm palm lift`` (run
+after the operator node dies) or ``deepxpalm robot`` never pays for the lookup.
 """
 
 from __future__ import annotations
@@ -15,16 +17,18 @@ from __future__ import annotations
 import argparse
 import faulthandler
 import importlib
-import importlib.metadata
 import io
 import logging
 import signal
 import sys
-import tomllib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from common.errors import DeepXPalmError
 from common.logs import configure as configure_logging
+
+if TYPE_CHECKING:
+    from importlib.metadata import EntryPoint
 
 log = logging.getLogger(__name__)
 
@@ -68,13 +72,16 @@ COMMAND_GROUP = "deepxpalm.commands"
 CHECKOUT_PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 
 
-def _declared_in(pyproject: Path) -> list[importlib.metadata.EntryPoint]:
+def _declared_in(pyproject: Path) -> list[EntryPoint]:
     """The group's entry points as a checkout's own pyproject.toml declares them.
 
     An editable install's metadata is written at install time; a checkout whose
     pyproject.toml gained a command since (or a tree put first on PYTHONPATH)
     would not see it without this.
     """
+    import tomllib
+    from importlib.metadata import EntryPoint
+
     try:
         project = tomllib.loads(pyproject.read_text()).get("project", {})
     except (OSError, tomllib.TOMLDecodeError):
@@ -82,7 +89,7 @@ def _declared_in(pyproject: Path) -> list[importlib.metadata.EntryPoint]:
     if project.get("name") != "deepxpalm":
         return []
     declared = project.get("entry-points", {}).get(COMMAND_GROUP, {})
-    return [importlib.metadata.EntryPoint(n, v, COMMAND_GROUP) for n, v in declared.items()]
+    return [EntryPoint(n, v, COMMAND_GROUP) for n, v in declared.items()]
 
 
 def plugin_commands(pyproject: Path = CHECKOUT_PYPROJECT) -> dict[str, tuple[str, str]]:
@@ -92,7 +99,9 @@ def plugin_commands(pyproject: Path = CHECKOUT_PYPROJECT) -> dict[str, tuple[str
     them. A command whose package is not installed is left out with a warning
     that says so; one that would shadow a product command is refused.
     """
-    points = {ep.name: ep for ep in importlib.metadata.entry_points(group=COMMAND_GROUP)}
+    from importlib.metadata import entry_points
+
+    points = {ep.name: ep for ep in entry_points(group=COMMAND_GROUP)}
     points.update({ep.name: ep for ep in _declared_in(pyproject)})
     commands: dict[str, tuple[str, str]] = {}
     for name, point in sorted(points.items()):
@@ -108,8 +117,10 @@ def plugin_commands(pyproject: Path = CHECKOUT_PYPROJECT) -> dict[str, tuple[str
     return commands
 
 
-def all_commands() -> dict[str, tuple[str, str]]:
-    """The product's subcommands, then the plugged-in ones."""
+def commands_for(chosen: str | None) -> dict[str, tuple[str, str]]:
+    """The product's subcommands; the plugged-in ones too unless ``chosen`` is the product's."""
+    if chosen in SUBCOMMANDS:
+        return dict(SUBCOMMANDS)
     return {**SUBCOMMANDS, **plugin_commands()}
 
 
@@ -149,7 +160,7 @@ def _dump_stacks_on_request(on_usr1: bool) -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     chosen = next((a for a in argv if not a.startswith("-")), None)
-    commands = all_commands()
+    commands = commands_for(chosen)
     if chosen not in commands:
         chosen = None
     parser = _build_parser(chosen, commands)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from deploy.cli import SUBCOMMANDS, plugin_commands
+from deploy.cli import SUBCOMMANDS, commands_for, plugin_commands
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -46,6 +46,12 @@ def test_a_declared_command_is_found_and_a_broken_one_left_out(tmp_path, caplog)
     assert "'gone'" in caplog.text and "no_such_package" in caplog.text
     assert "demo" not in found  # a plug-in never shadows a product command
     assert SUBCOMMANDS["demo"][0] == "deploy.demo"
+
+
+def test_a_product_command_never_looks_the_plug_ins_up():
+    """``deepxpalm palm lift`` runs after the operator node dies: it pays for nothing else."""
+    assert commands_for("palm") == SUBCOMMANDS
+    assert {"bench", "soak"} <= set(commands_for("bench")) and "bench" in commands_for(None)
 
 
 def test_another_projects_pyproject_adds_nothing(tmp_path):
