@@ -3,6 +3,13 @@
 Each subcommand lives in its own module with ``add_arguments(parser)`` and
 ``run(args) -> int``; only the chosen one is imported, so ``deepxpalm
 operator`` never pays for (or depends on) what the robot needs.
+
+Commands from outside the product (the test harness's ``bench`` and
+``soak``) plug in through the ``deepxpalm.commands`` entry-point group, so
+the product never names them: each entry point loads a ``(module, help)``
+pair like the ones in ``SUBCOMMANDS``. They are looked up only when the
+command asked for is not the product's own, so ``deepxpalm palm lift`` (run
+after the operator node dies) or ``deepxpalm robot`` never pays for the lookup.
 """
 
 from __future__ import annotations
@@ -14,9 +21,14 @@ import io
 import logging
 import signal
 import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from common.errors import DeepXPalmError
 from common.logs import configure as configure_logging
+
+if TYPE_CHECKING:
+    from importlib.metadata import EntryPoint
 
 log = logging.getLogger(__name__)
 
@@ -48,16 +60,73 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     ),
     "sim": ("deploy.sim_cli", "run one device simulator on its real wire, standalone"),
     "keys": ("deploy.keys_cli", "make CURVE key pairs and allow operators on the robot"),
-    "bench": ("deploy.bench.cli", "latency budget, run time against error: docs/benchmarks.md"),
     "doctor": ("deploy.doctor", "check this machine before a session: config, devices, keys, peer"),
     "replay": ("deploy.replay", "check a recording against the pipeline, or publish it again"),
     "export": ("deploy.export.cli", "recorded sessions -> a LeRobot dataset (docs/datasets.md)"),
-    "soak": ("deploy.soak", "run the demo for a long time on a bad link and report how it aged"),
     "study": ("operator_side.study.cli", "run the palm perception study and analyse it"),
 }
 
+#: the entry-point group other packages add ``deepxpalm`` subcommands through
+COMMAND_GROUP = "deepxpalm.commands"
+#: a source checkout's pyproject.toml, when the command runs from one
+CHECKOUT_PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 
-def _build_parser(chosen: str | None) -> argparse.ArgumentParser:
+
+def _declared_in(pyproject: Path) -> list[EntryPoint]:
+    """The group's entry points as a checkout's own pyproject.toml declares them.
+
+    An editable install's metadata is written at install time; a checkout whose
+    pyproject.toml gained a command since (or a tree put first on PYTHONPATH)
+    would not see it without this.
+    """
+    import tomllib
+    from importlib.metadata import EntryPoint
+
+    try:
+        project = tomllib.loads(pyproject.read_text()).get("project", {})
+    except (OSError, tomllib.TOMLDecodeError):
+        return []
+    if project.get("name") != "deepxpalm":
+        return []
+    declared = project.get("entry-points", {}).get(COMMAND_GROUP, {})
+    return [EntryPoint(n, v, COMMAND_GROUP) for n, v in declared.items()]
+
+
+def plugin_commands(pyproject: Path = CHECKOUT_PYPROJECT) -> dict[str, tuple[str, str]]:
+    """subcommand -> (module, help) for every command in ``COMMAND_GROUP``.
+
+    Installed entry points first, then the checkout's own declarations over
+    them. A command whose package is not installed is left out with a warning
+    that says so; one that would shadow a product command is refused.
+    """
+    from importlib.metadata import entry_points
+
+    points = {ep.name: ep for ep in entry_points(group=COMMAND_GROUP)}
+    points.update({ep.name: ep for ep in _declared_in(pyproject)})
+    commands: dict[str, tuple[str, str]] = {}
+    for name, point in sorted(points.items()):
+        if name in SUBCOMMANDS:
+            log.warning("entry point %s in %s ignored: a built-in command", name, COMMAND_GROUP)
+            continue
+        try:
+            module, help_text = point.load()
+        except (ImportError, AttributeError, TypeError, ValueError) as e:
+            log.warning("command %r (%s) unavailable: %s", name, point.value, e)
+            continue
+        commands[name] = (str(module), str(help_text))
+    return commands
+
+
+def commands_for(chosen: str | None) -> dict[str, tuple[str, str]]:
+    """The product's subcommands; the plugged-in ones too unless ``chosen`` is the product's."""
+    if chosen in SUBCOMMANDS:
+        return dict(SUBCOMMANDS)
+    return {**SUBCOMMANDS, **plugin_commands()}
+
+
+def _build_parser(
+    chosen: str | None, commands: dict[str, tuple[str, str]]
+) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="deepxpalm",
         description="DeepXPalm: feel on the palm what a remote robot's gripper feels.",
@@ -66,7 +135,7 @@ def _build_parser(chosen: str | None) -> argparse.ArgumentParser:
         "-v", "--verbose", action="count", default=0, help="more logging (-vv debug)"
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (module, help_text) in SUBCOMMANDS.items():
+    for name, (module, help_text) in commands.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name == chosen:
             importlib.import_module(module).add_arguments(p)
@@ -91,16 +160,17 @@ def _dump_stacks_on_request(on_usr1: bool) -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     chosen = next((a for a in argv if not a.startswith("-")), None)
-    if chosen not in SUBCOMMANDS:
+    commands = commands_for(chosen)
+    if chosen not in commands:
         chosen = None
-    parser = _build_parser(chosen)
+    parser = _build_parser(chosen, commands)
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
     configure_logging([logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)])
     _dump_stacks_on_request(args.command != "sim")  # simulators use SIGUSR1 as "unplug"
-    module = importlib.import_module(SUBCOMMANDS[args.command][0])
+    module = importlib.import_module(commands[args.command][0])
     try:
         return int(module.run(args) or 0)
     except DeepXPalmError as e:

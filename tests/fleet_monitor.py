@@ -12,7 +12,7 @@ from common.codec import name_prefix
 from common.messages import Heartbeat, Stimulus
 from common.security import SecurityConfig, client_options
 from common.transport import Subscriber
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 
 
 class Monitor:

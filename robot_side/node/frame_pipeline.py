@@ -1,7 +1,7 @@
 """The whole frame rule, from a tactile sample to the stimulus sent (or nothing).
 
 The robot node, replay (deploy/replay.py) and the skipping bench
-(deploy/bench/skipping.py) all drive frames through ``FramePipeline.offer``,
+(harness/bench/skipping.py) all drive frames through ``FramePipeline.offer``,
 so the rate cap, the stale-frame test, the contact test, the no-contact and
 identical-frame skips, the dead band and the keyframes are one piece of
 code that the three cannot apply differently.

@@ -6,8 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from deploy.bench.cli import QUICK_LEAVES_OUT, add_arguments, output_folder, sections_to_skip
-from deploy.bench.report import merge_sections
+from harness.bench.cli import QUICK_LEAVES_OUT, add_arguments, output_folder, sections_to_skip
+from harness.bench.report import merge_sections
 
 
 def parse(*argv: str) -> argparse.Namespace:
@@ -63,7 +63,7 @@ def test_only_into_an_empty_folder_is_the_run_itself(tmp_path):
 
 def test_every_preset_writes_the_flat_sizes_the_committed_report_holds():
     """Each section keeps its own sizes; together they are the JSON's one flat dict."""
-    from deploy.bench.sizes import PRESETS
+    from harness.bench.sizes import PRESETS
 
     committed = json.loads(Path("docs/benchmarks.json").read_text())["sizes"]
     full = PRESETS["full"].flat()

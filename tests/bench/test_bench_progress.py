@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from tests_support import stderr_on_pty
 
-from deploy.bench.progress import BenchProgress, last_durations, stored_reports
+from harness.bench.progress import BenchProgress, last_durations, stored_reports
 
 REPO = Path(__file__).resolve().parents[2]
 SECTIONS = ("downsizing", "ik")
@@ -92,8 +92,8 @@ def test_the_estimate_follows_the_stored_times_this_runs_pace_and_the_steps():
 
 def test_the_stated_run_time_is_the_sum_of_the_committed_reports_sections():
     """The help's and the README's full run time against the sections' own measured times."""
-    import deploy.bench.cli as cli
-    from deploy.bench.progress import section_seconds
+    import harness.bench.cli as cli
+    from harness.bench.progress import section_seconds
 
     committed = json.loads((REPO / "docs" / "benchmarks.json").read_text())
     measured = sum(section_seconds(s) or 0.0 for s in committed["sections"].values())

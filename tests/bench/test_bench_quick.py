@@ -12,9 +12,9 @@ import json
 
 import pytest
 
-from deploy.bench.report import write_outputs
-from deploy.bench.runner import run_bench
-from deploy.bench.sizes import PRESETS, SECTIONS
+from harness.bench.report import write_outputs
+from harness.bench.runner import run_bench
+from harness.bench.sizes import PRESETS, SECTIONS
 
 pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing asserted (above)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from deploy.bench import netsim, video, video_netsim
+from harness.bench import netsim, video, video_netsim
 
 
 def _datagram_row(**kw) -> dict:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from deploy.bench.report import markdown, summary_verdicts
-from deploy.bench.sections import SECTION_NAMES, SECTIONS
-from deploy.bench.sizes import PRESETS
+from harness.bench.report import markdown, summary_verdicts
+from harness.bench.sections import SECTION_NAMES, SECTIONS
+from harness.bench.sizes import PRESETS
 
 
 def _committed() -> dict:

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy.bench.section import Context
-from deploy.bench.task import markdown, summarise
+from harness.bench.section import Context
+from harness.bench.task import markdown, summarise
 
 
 def _trial(success=True, attempts=1, first=1.8, decision=1.8, sim_wall=1.0):
@@ -62,7 +62,7 @@ def _cell(scenario, feedback, trials):
 
 
 def test_issue_28s_aims_for_the_assist_are_verdicts_met_or_not():
-    from deploy.bench.task import verdicts
+    from harness.bench.task import verdicts
 
     fix = [_trial(attempts=2, first=2.0, decision=4.0)] * 19 + [_trial(success=False)]
     slow_fix = [_trial(attempts=2, first=2.0, decision=8.0)] * 20
@@ -82,7 +82,7 @@ def test_issue_28s_aims_for_the_assist_are_verdicts_met_or_not():
 
 
 def test_a_failed_cell_is_a_row_that_says_so_and_the_others_stay(monkeypatch):
-    import deploy.bench.task as task
+    import harness.bench.task as task
 
     def run_cell(scenario, feedback, setups, on_trial=None):
         if feedback == "direct":
@@ -99,7 +99,7 @@ def test_a_failed_cell_is_a_row_that_says_so_and_the_others_stay(monkeypatch):
 
 
 def test_slip_and_the_worlds_clock_are_verdicts_over_every_cell_naming_the_worst():
-    from deploy.bench.task import verdicts
+    from harness.bench.task import verdicts
 
     slipping = dict(_trial(), lifted_mm=37.0)  # the tool rose 40 mm, the pipette 37
     cells = [
@@ -119,7 +119,7 @@ def test_slip_and_the_worlds_clock_are_verdicts_over_every_cell_naming_the_worst
 
 def test_task_cells_are_saved_as_they_end_and_read_back_instead_of_run_again(monkeypatch, tmp_path):
     """A 90-minute table resumes; deleting a flagged cell's file reruns that cell alone."""
-    import deploy.bench.task as task
+    import harness.bench.task as task
 
     ran = []
 

@@ -10,7 +10,7 @@ import numpy as np
 from common import tactile
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("common", "robot_side", "operator_side", "relay_side", "deploy")
+PACKAGES = ("common", "robot_side", "operator_side", "relay_side", "deploy", "harness")
 #: names that once had a literal copy in several modules
 CONTRACT_NAMES = {
     "ANGLES_DEG",

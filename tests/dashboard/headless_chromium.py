@@ -1,4 +1,4 @@
-"""The browser driver the dashboard tests use; it lives in ``deploy/headless_chromium.py``
+"""The browser driver the dashboard tests use; it lives in ``harness/headless_chromium.py``
 (the video benchmark drives the same browser). Also runnable: ``python
 tests/dashboard/headless_chromium.py URL OUT.png`` screenshots a page."""
 
@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from deploy.headless_chromium import BrowserError, Chromium, chromium_path, main
+from harness.headless_chromium import BrowserError, Chromium, chromium_path, main
 
 # Browser tests skip without chromium, except in CI, where they must run.
 needs_chromium = pytest.mark.skipif(

@@ -21,7 +21,7 @@ import pytest
 from headless_chromium import Chromium, needs_chromium, play_video
 from tests_support import DashboardDemo, child_processes, listening_sockets
 
-from deploy.bench.video import cpu_times, idle_share
+from harness.processes import idle_share, machine_cpu
 from robot_side.video.stamp import MS_MODULO
 
 pytest.importorskip("aiortc", reason="the demo's video needs the 'video' extra")
@@ -82,7 +82,7 @@ def test_two_pages_play_and_play_again_after_kill_9_of_the_video_server():
             before = child_processes(demo.proc.pid)
             assert {"robot", "video"} <= set(before), before
             stimuli = a.evaluate("dxp.state.stats.stimuli_received")
-            cpu0 = cpu_times()
+            cpu0 = machine_cpu()
             killed_ms = time.time_ns() // 1_000_000
             os.kill(before["video"], signal.SIGKILL)
             t_kill = time.monotonic()
@@ -98,7 +98,7 @@ def test_two_pages_play_and_play_again_after_kill_9_of_the_video_server():
                     if name not in back and _stamp_after(page, killed_ms):
                         back[name] = time.monotonic() - t_kill
                 time.sleep(0.05)
-            idle = idle_share(cpu0, cpu_times())
+            idle = idle_share(cpu0, machine_cpu())
             after = child_processes(demo.proc.pid)
             stimuli_after = a.evaluate("dxp.state.stats.stimuli_received")
             link = a.evaluate("dxp.state.link_state")

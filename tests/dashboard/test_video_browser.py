@@ -13,7 +13,7 @@ from headless_chromium import needs_chromium
 
 pytest.importorskip("aiortc")
 
-from deploy.bench.video import glass_to_glass
+from harness.bench.video import glass_to_glass
 
 pytestmark = [
     pytest.mark.slow,

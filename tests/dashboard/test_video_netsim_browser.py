@@ -30,7 +30,7 @@ from headless_chromium import Chromium, needs_chromium
 pytest.importorskip("aiortc", reason="the video needs the 'video' extra")
 
 from common.netsim.scenario import load_scenario
-from deploy.bench.video_netsim import (
+from harness.bench.video_netsim import (
     AGAINST_FRAMES,
     AGAINST_WARMUP,
     RECOVER_S,
@@ -134,7 +134,7 @@ def test_on_bad_day_the_page_shows_stale_during_the_outage_and_plays_within_2_s_
 
 
 def test_under_a_1_mbit_bottleneck_the_picture_keeps_playing_and_the_encoder_settles_under_it():
-    from deploy.bench.video_netsim import play, with_limit
+    from harness.bench.video_netsim import play, with_limit
 
     limited = with_limit(load_scenario("metro"), LIMIT_KBIT, 40)
     # 17 s: the encoder's rate is read over the last 10 s (7-17 s); measured here it had

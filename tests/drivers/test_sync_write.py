@@ -8,7 +8,7 @@ import scservo_sdk as sdk
 from hypothesis import given
 from hypothesis import strategies as st
 
-from deploy.bench.fixtures import CapturePort
+from harness.bench.fixtures import CapturePort
 from operator_side.servos.calibration import LinkGlideCalibration, ServoCalibration
 from operator_side.servos.limits import GoalOutOfLimitsError, check_goals
 from operator_side.servos.sts_registers import GOAL_POSITION

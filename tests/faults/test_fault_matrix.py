@@ -2,7 +2,7 @@
 
 Each cell is a whole deployment (relay, robot and operator nodes, netsim,
 video, recorder, and the four device simulators as processes of their own)
-with an operator jogging and holding a grasp; ``deploy/faults/matrix.py``
+with an operator jogging and holding a grasp; ``harness/faults/matrix.py``
 injects the fault and reads the arm from the UR simulator, the gripper from
 its socket and the palm from the servo bus. The bounds are the product's
 budgets widened for a loaded machine; each message says which it was: a
@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import pytest
 
-from deploy.faults.deployment import DeploymentError
-from deploy.faults.matrix import (
+from harness.faults.deployment import DeploymentError
+from harness.faults.matrix import (
     ARM_STILL_BUDGET_S,
     PALM_LIFT_BUDGET_S,
     Cell,

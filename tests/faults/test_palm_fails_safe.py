@@ -1,6 +1,6 @@
 """The palm fails safe: a killed or frozen operator node leaves no linkage pressing the palm.
 
-One deployment (``deploy.faults.deployment``: every node and device a process
+One deployment (``harness.faults.deployment``: every node and device a process
 of its own, the operator under its unit's rules: ExecStopPost= runs ``deepxpalm
 palm lift``, WatchdogSec= ends a frozen node). The palm is read from outside
 every node, from the servo simulator's front panel (its goals, and every goal
@@ -14,10 +14,10 @@ import time
 
 import pytest
 
-from deploy.faults.deployment import Deployment
-from deploy.faults.matrix import GRASP_LEVEL, PALM_PRESSED
-from deploy.faults.probes import PalmProbe
 from deploy.unit_policy import policy
+from harness.faults.deployment import Deployment
+from harness.faults.matrix import GRASP_LEVEL, PALM_PRESSED
+from harness.faults.probes import PalmProbe
 from operator_side.node import LIFT_ARRIVAL_S
 from operator_side.servos.base import ARRIVED_COUNTS
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from deploy.faults.probes import PalmProbe
+from harness.faults.probes import PalmProbe
 
 RETRACT = [3783, 2361, 3783, 2361, 3783, 2361]
 PRESSED = [3000, 3000, 3000, 3000, 3000, 3000]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from deploy.faults.matrix import ARM_STILL_BUDGET_S, STILL_FOR_S, back_before_a_stop_was_due
+from harness.faults.matrix import ARM_STILL_BUDGET_S, STILL_FOR_S, back_before_a_stop_was_due
 
 
 def test_a_link_back_within_the_budget_needs_no_stop():
@@ -25,7 +25,7 @@ def test_a_link_down_long_enough_to_see_a_stop_is_judged_by_the_stop():
 
 
 def test_a_fault_that_never_cut_the_jog_is_not_called_a_link_that_came_back():
-    from deploy.bench.faults import _arm
+    from harness.bench.faults import _arm
 
     row = {
         "arm_speed_at_fault_m_s": 0.03,
@@ -40,7 +40,7 @@ def test_a_fault_that_never_cut_the_jog_is_not_called_a_link_that_came_back():
 
 
 def test_a_link_simulator_back_before_a_lift_could_complete_needs_no_palm_off():
-    from deploy.faults.matrix import STALE_AFTER_S, back_before_a_lift_could_show
+    from harness.faults.matrix import STALE_AFTER_S, back_before_a_lift_could_show
     from operator_side.config import OperatorLinkConfig
 
     assert OperatorLinkConfig().stale_after_ms / 1000 == STALE_AFTER_S  # one limit, not two
@@ -50,7 +50,7 @@ def test_a_link_simulator_back_before_a_lift_could_complete_needs_no_palm_off():
 
 
 def test_nothing_breaking_is_not_a_link_back_at_once_for_netsims_own_cells():
-    from deploy.faults.matrix import CellResult
+    from harness.faults.matrix import CellResult
 
     row = CellResult(
         "netsim", "restart", "a human (restart)", 0.02, None, None, None, None, None, None,

@@ -17,7 +17,7 @@ pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (M
 pytest.importorskip("rtde_control", reason="the lab's arm is driven through ur-rtde")
 
 from common.tactile import classes_of, pattern_of
-from deploy.bench.task import LIFTED_MM, TrialSetup, run_cell
+from harness.bench.task import LIFTED_MM, TrialSetup, run_cell
 
 pytestmark = [
     pytest.mark.slow,

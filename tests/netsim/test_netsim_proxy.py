@@ -46,7 +46,7 @@ def test_fixed_delay_per_direction(make_link) -> None:
     up = _one_way_ms(link, link.operator_pub, link.robot_sub, 15)
     # Never early, on any machine; each direction its own delay (the commands' 5 ms, not the
     # telemetry's 30). How late beyond it on a quiet machine is the bench's figure
-    # (python -m deploy.bench.netsim_engine, own cost); here at most the operator's
+    # (python -m harness.bench.netsim_engine, own cost); here at most the operator's
     # staleness limit, which a busy machine's scheduling stays far inside.
     late = OperatorLinkConfig().stale_after_ms
     assert min(down) >= 30.0 and statistics.median(down) < 30.0 + late, down

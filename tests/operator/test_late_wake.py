@@ -7,7 +7,7 @@ import threading
 import time
 
 from common.transport import free_loopback_ports
-from deploy.faults.deployment import late_wakes_in
+from harness.faults.deployment import late_wakes_in
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus

@@ -19,7 +19,7 @@ from hypothesis.extra import numpy as hnp
 
 from common.rotation import matrix_to_rotvec, rotvec_to_matrix
 from common.tactile import MASKS, N_PATTERNS, pattern_of
-from operator_side.scripted import (
+from harness.scripted_operator import (
     POSE_KEYS,
     TARGET_PATTERN,
     ScriptedOperator,

@@ -14,8 +14,8 @@ from common.clock import VirtualClock
 from common.mcap_recorder import node_recorder
 from common.transport import CaptureLink
 from deploy import replay
-from deploy.bench.fixtures import frame_set
-from deploy.bench.skipping import Shadow
+from harness.bench.fixtures import frame_set
+from harness.bench.skipping import Shadow
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.perception import load_classifier

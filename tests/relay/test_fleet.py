@@ -20,7 +20,7 @@ from common.clock import now_ns
 from common.codec import name_prefix
 from common.security import SecurityConfig, client_options
 from common.transport import Subscriber
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 from operator_side.config import OperatorLinkConfig
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]

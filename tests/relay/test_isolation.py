@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 
-from deploy.bench.relay import run_isolation
+from harness.bench.relay import run_isolation
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 

@@ -28,14 +28,14 @@ from common.clock import now_ns
 from common.codec import decode_named, name_prefix
 from common.messages import Command, Heartbeat, TactileFrame, VideoSignal
 from common.security import SecurityConfig, client_options
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 AFTER_S = float(os.environ.get("DEEPXPALM_VOICE_AFTER_S", "3"))
 #: the controller's commands a second in the test (the issue's controller sent 20)
 COMMAND_HZ = 20.0
-#: the fleet's robots send raw frames on this grid while someone wants them (deploy/fleet.py)
+#: the fleet's robots send raw frames on this grid while someone wants them (harness/fleet.py)
 FRAME_HZ = 15.0
 ROBOTS = ("cell1", "cell2")
 

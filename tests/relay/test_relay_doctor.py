@@ -7,7 +7,7 @@ import tomllib
 from common.preflight import FAIL, PASS, WARN
 from deploy.doctor.cli import diagnose
 from deploy.doctor.report import DoctorOptions
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 from relay_side.config import RelayConfig, RelaySecurityConfig
 from relay_side.relay import Relay
 

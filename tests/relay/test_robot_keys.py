@@ -15,7 +15,7 @@ import pytest
 
 from common.roster import load_roster
 from common.signing import load_public_key, load_signer
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
 

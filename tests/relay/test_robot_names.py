@@ -18,7 +18,7 @@ from common.codec import decode_named, encode, name_prefix
 from common.messages import Command, Heartbeat, Stimulus
 from common.security import SecurityConfig, client_options
 from common.transport import Publisher
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
 

@@ -19,7 +19,7 @@ import zmq
 from common.codec import encode, name_prefix
 from common.messages import Command, Stimulus
 from common.security import SecurityConfig, client_options
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(90), pytest.mark.parallel]
 

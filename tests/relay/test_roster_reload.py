@@ -14,7 +14,7 @@ import pytest
 from fleet_monitor import Monitor, jog_for
 
 from common.clock import now_ns
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180), pytest.mark.parallel]
 

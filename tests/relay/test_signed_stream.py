@@ -18,7 +18,7 @@ from common.messages import Stimulus
 from common.security import SecurityConfig, client_options
 from common.signing import Signer
 from common.transport import Publisher
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
 

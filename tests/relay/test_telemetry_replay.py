@@ -18,7 +18,7 @@ import zmq
 
 from common.codec import decode_named, name_prefix
 from common.security import SecurityConfig, client_options
-from deploy.fleet import SCRIPTED_TACTILE, Fleet
+from harness.fleet import SCRIPTED_TACTILE, Fleet
 from operator_side.servos.sts_sim import FakeStsBus
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), pytest.mark.parallel]

@@ -22,7 +22,7 @@ from video_page import watch_video
 
 from common.transport import free_loopback_ports
 from common.web_token import from_query, with_token
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
 

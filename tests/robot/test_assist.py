@@ -22,7 +22,7 @@ from common.rotation import rotvec_to_matrix
 from common.signing import generate_key_files
 from common.synthetic_tactile import GeneratorParams, offset_direction
 from common.tactile import classes_of
-from deploy.faults.matrix import ARM_STILL_BUDGET_S, STILL_M_S
+from harness.faults.matrix import ARM_STILL_BUDGET_S, STILL_M_S
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus

@@ -13,7 +13,7 @@ pytest.importorskip("numba")
 from common.clock import VirtualClock
 from common.stimulus import render_cells, sanitize_with_peak
 from common.transport import CaptureLink
-from deploy.bench.fixtures import frame_set
+from harness.bench.fixtures import frame_set
 from robot_side.compiled_step import CompiledFrameStep
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode

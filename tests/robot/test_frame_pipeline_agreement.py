@@ -2,7 +2,7 @@
 
 The same 120 Hz frames go through the node's path (``pipeline.offer`` at each
 frame's arrival, as the node's loop offers it, recording as the live node
-records), the bench's (``deploy.bench.skipping.through_node``) and replay's
+records), the bench's (``harness.bench.skipping.through_node``) and replay's
 (``deploy.replay.check`` on the node's recording). With ``publish_rate_hz``
 at 60 the cap skips about every other frame; all three must send the same
 stimuli for the same frames and skip the same frames.
@@ -17,8 +17,8 @@ from common.clock import VirtualClock
 from common.mcap_recorder import node_recorder
 from common.transport import CaptureLink
 from deploy import replay
-from deploy.bench.fixtures import frame_set
-from deploy.bench.skipping import through_node
+from harness.bench.fixtures import frame_set
+from harness.bench.skipping import through_node
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.perception import load_classifier

@@ -15,7 +15,7 @@ from common.stimulus import (
     render_stimulus,
 )
 from common.tactile import MASKS, matches_pattern
-from deploy.bench.downsizing import downsize, peak_per_row
+from harness.bench.downsizing import downsize, peak_per_row
 
 pytestmark = pytest.mark.parallel
 
@@ -134,7 +134,7 @@ def test_cubic_overshoot_never_goes_negative(x):
 def test_the_fused_path_renders_what_the_separable_oracle_renders(method, order):
     """One (9, 200) product per frame against contact map, ``Wy @ X @ Wx.T``, peak, mask."""
     from common.stimulus import render_cells, sanitize_frame
-    from deploy.bench.downsizing import separable_stimulus
+    from harness.bench.downsizing import separable_stimulus
 
     rng = np.random.default_rng(7)
     for _ in range(50):

@@ -9,7 +9,7 @@ import pytest
 
 from common.clock import VirtualClock
 from common.transport import CaptureLink
-from deploy.bench.fixtures import frame_set, scan_bytes, serial_sensor
+from harness.bench.fixtures import frame_set, scan_bytes, serial_sensor
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 

@@ -21,7 +21,7 @@ from tests_support import ProtocolOperator
 from common.clock import now_ns
 from common.messages import Heartbeat, Stimulus
 from common.transport import Publisher, Subscriber
-from deploy.bench.command_path import RobotUnderCommands
+from harness.bench.command_path import RobotUnderCommands
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
 

@@ -21,7 +21,7 @@ from common.clock import now_ns
 from common.codec import encode
 from common.messages import Command, Heartbeat, Stimulus
 from common.transport import Publisher, Subscriber
-from deploy.bench.command_path import PUBLISH_HZ, RobotUnderCommands
+from harness.bench.command_path import PUBLISH_HZ, RobotUnderCommands
 from robot_side.gripper.base import GripLevels
 
 N_FLOOD = 100_000

@@ -25,8 +25,8 @@ from pathlib import Path
 import pytest
 from tests_support import child_processes
 
-from deploy.faults.probes import PalmProbe
 from deploy.unit_policy import policy
+from harness.faults.probes import PalmProbe
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 

@@ -27,8 +27,8 @@ from tests_support import ProtocolOperator
 
 from common.clock import now_ns
 from common.transport import Publisher, Subscriber
-from deploy.bench.command_path import RobotUnderCommands
 from deploy.unit_policy import set_niceness, unit_nice
+from harness.bench.command_path import RobotUnderCommands
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc_module")]
 

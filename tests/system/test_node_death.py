@@ -23,7 +23,7 @@ import zmq
 from tests_support import ProtocolOperator
 
 from common.transport import Publisher, Subscriber
-from deploy.bench.command_path import RobotUnderCommands
+from harness.bench.command_path import RobotUnderCommands
 
 JOG_SPEED_M_S = 0.03
 #: kill or freeze to an arm at rest, read by the controller (issue 25's budget)

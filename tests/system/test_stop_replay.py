@@ -27,7 +27,7 @@ from common.codec import SIG_ENTRY_BYTES, SIG_TAG, encode
 from common.messages import Command, Heartbeat, VideoSignal
 from common.signing import generate_key_files, load_signer
 from common.transport import Publisher, Subscriber
-from deploy.bench.command_path import RobotUnderCommands
+from harness.bench.command_path import RobotUnderCommands
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), pytest.mark.usefixtures("quiet_gc")]
 

@@ -26,7 +26,8 @@ pytest.importorskip("aiortc")
 
 from tests_support import VideoServerProcess
 
-from deploy.bench.video import cpu_times, idle_share, watch
+from harness.bench.video import watch
+from harness.processes import idle_share, machine_cpu
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
@@ -47,9 +48,9 @@ def test_four_viewers_watch_without_crash_cut_off_or_starved():
     stall_ms = _page_stall_ms()
     settings = (f"test_pattern.width={WIDTH}", f"test_pattern.height={HEIGHT}")
     with VideoServerProcess(None, *settings, f"test_pattern.fps={FPS}") as server:
-        cpu0 = cpu_times()
+        cpu0 = machine_cpu()
         runs = asyncio.run(watch(server.url, VIEWERS, SECONDS))
-        idle = idle_share(cpu0, cpu_times())
+        idle = idle_share(cpu0, machine_cpu())
         alive = server.proc.poll()
     seen = {f"viewer {i}": r.summary() for i, r in enumerate(runs)}
     lat = np.concatenate([np.asarray(r.latencies_ms) for r in runs] + [np.zeros(0)])

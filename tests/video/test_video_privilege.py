@@ -48,7 +48,7 @@ from common.security import SecurityConfig, client_options
 from common.signing import load_signer
 from common.transport import Publisher, Subscriber, free_loopback_ports
 from common.web_token import from_query, with_token
-from deploy.fleet import Fleet
+from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 

@@ -150,7 +150,7 @@ def test_sigterm_ends_a_server_with_two_viewers_promptly():
 
     from tests_support import VideoServerProcess
 
-    from deploy.bench.video import watch
+    from harness.bench.video import watch
 
     async def watch_then_term(server) -> tuple[list, float]:
         viewers = asyncio.ensure_future(watch(server.url, 2, 30.0))

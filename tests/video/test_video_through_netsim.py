@@ -20,7 +20,7 @@ import pytest
 
 pytest.importorskip("aiortc")
 
-from deploy.bench.video import ViewerRun, view
+from harness.bench.video import ViewerRun, view
 from operator_side.dashboard.config import DashboardConfig
 from robot_side.camera.config import TestPatternConfig
 from robot_side.camera.test_pattern import TestPatternCamera

@@ -1,0 +1,452 @@
+"""Every process of a deployment on this machine, each started as on its own machine.
+
+The relay, the robot node, the operator node, the recorder and the video
+server run as ``harness.fleet`` starts them (CURVE, a roster, signed
+commands); the operator reaches the relay through ``deepxpalm netsim`` (the
+byte-stream relay: CURVE passes, as over a real network); every device is a
+simulator in a process of its own (``deepxpalm sim ur|gripper|tactile|servos``)
+so that killing a node never kills its device. ``Supervisor`` plays systemd:
+a process of a shipped unit that ends is started again after the unit's
+RestartSec= when its Restart= says so, runs its ExecStopPost= after any end
+(the operator's lifts the palm), and ends a process whose WatchdogSec= passed
+without a ping (``deploy.watchdog.UnitWatchdog``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from common.transport import free_loopback_ports
+from deploy.demo import spawn_cli
+from deploy.supervisor import StopPost, stop_post_args
+from deploy.unit_policy import RestartPolicy, policy
+from deploy.watchdog import UnitWatchdog
+from harness.fleet import Fleet, Proc
+from harness.processes import stop
+
+log = logging.getLogger(__name__)
+
+ROBOT, OPERATOR, RECORDER = "cell", "op", "rec"
+
+#: the grasp the tactile board feels for the whole run, and the renderer that needs no model
+_BOARD_TOML = """
+seed = 7
+zero_counts_min = 300.0
+zero_counts_max = 300.0
+gain_spread = 0.0
+counts_at_9n = 3000.0
+link_dir = "{link_dir}"
+[script]
+loop = false
+start_delay_s = 0.5
+grasps = [{{pattern = 6, grip_level = 25, ramp_s = 0.1, hold_s = 3600.0}}]
+"""
+
+_ROBOT_DEVICES = """
+[robot.render]
+mode = "direct"
+[robot.tactile]
+kind = "serial"
+port = "{tactile_port}"
+zero_counts = 300.0
+gain_n_per_count = 0.003
+auto_reconnect = true
+[robot.gripper]
+kind = "robotiq_socket"
+host = "{gripper_host}"
+port = {gripper_port}
+"""
+
+#: a pipette the fingers stop on at every grip level (the default gives way past level 20's goal)
+_PIPETTE = """[model]
+compression_at_full_force = 20.0
+"""
+
+_SERVOS = """kind = "feetech"
+port = "{port}"
+"""
+
+#: the link: a wired LAN, and an outage of ``outage_s`` from ``outage_at_s`` after netsim starts
+_SCENARIO_TOML = """
+name = "lan-with-outage"
+description = "wired LAN with one scheduled outage (the fault matrix)"
+[both]
+delivery = "stream"
+delay_ms = 0.1
+jitter_ms = 0.02
+distribution = "normal"
+retransmit_ms = 34.0
+outages = [[{t1}, {t2}]]
+"""
+
+#: hardware and the network come back by themselves: a device's power, the link. The
+#: supervisor (a thread that lives as long as the deployment) starts them again, because a
+#: child's PR_SET_PDEATHSIG follows the *thread* that forked it: one forked from a short
+#: thread would get SIGTERM the moment that thread ends
+DEVICE_BACK = RestartPolicy(unit="", restart="on-failure", restart_sec=2.0, watchdog_sec=0.0)
+DEVICES = ("ur", "gripper", "tactile", "servos", "netsim")
+
+#: never, for a deployment whose link does not fail
+NO_OUTAGE_AT_S = 1e6
+
+
+def _logged_s(line: str, key: str) -> float:
+    """A ``key=<ns>`` field of a log line, in seconds."""
+    return int(line.rsplit(f"{key}=", 1)[1].split()[0]) / 1e9
+
+
+def late_wakes_in(log_text: str) -> list[tuple[float, float]]:
+    """When an operator's loop was due and when it woke, each time it woke over 100 ms late
+    (monotonic s, from its log). A starved operator cannot lift the palm meanwhile."""
+    return [
+        (_logged_s(line, "due_ns"), _logged_s(line, "woke_ns"))
+        for line in log_text.splitlines()
+        if "woke_ns=" in line
+    ]
+
+
+class DeploymentError(RuntimeError):
+    """The deployment did not come up: a process ended or never got ready (its log says why)."""
+
+
+@dataclass
+class Unit:
+    """One process of the deployment: how to start it and who starts it again."""
+
+    name: str
+    start: Callable[[], Proc]
+    #: the shipped systemd unit's policy; None: no unit ships (a device, the network, a tool)
+    policy: RestartPolicy | None
+    proc: Proc | None = None
+    starts: int = 0
+    #: monotonic times at which the supervisor (or a clean restart) started it again
+    restarted_at: list[float] = field(default_factory=list)
+    #: each clean restart: seconds from SIGTERM to the end, and whether it had to be killed
+    stops: list[tuple[float, bool]] = field(default_factory=list)
+    #: the unit's ExecStopPost= as a process of this deployment (None: the unit has none)
+    stop_post: StopPost | None = None
+    #: systemd's watchdog for this unit's process (None: no WatchdogSec=)
+    watchdog: UnitWatchdog | None = None
+    started_at: float = 0.0  # monotonic, the running process's start
+
+    def launch(self) -> Proc:
+        if self.watchdog is not None:
+            self.watchdog.started()
+        self.started_at = time.monotonic()
+        self.proc = self.start()
+        self.starts += 1
+        return self.proc
+
+    @property
+    def stop_posts(self) -> list[tuple[float, float, int]]:
+        """(monotonic start, end, exit code) of each ExecStopPost= run."""
+        return [] if self.stop_post is None else self.stop_post.runs
+
+    def run_stop_post(self) -> None:
+        """ExecStopPost= to its end (a clean restart: systemd runs it between stop and start)."""
+        if self.stop_post is not None:
+            self.stop_post.run(self.started_at)
+
+    @property
+    def pid(self) -> int:
+        assert self.proc is not None
+        return self.proc.popen.pid
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.popen.poll() is None
+
+
+class Supervisor:
+    """systemd for the units that ship one: restart after RestartSec= when Restart= says so."""
+
+    def __init__(self, units: dict[str, Unit]) -> None:
+        self.units = units
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
+        self._lock = threading.Lock()
+        self._held: set[str] = set()  # a clean restart in progress: the harness starts it
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def hold(self, name: str) -> None:
+        with self._lock:
+            self._held.add(name)
+
+    def release(self, name: str) -> None:
+        with self._lock:
+            self._held.discard(name)
+
+    def _run(self) -> None:
+        due: dict[str, float] = {}
+        while not self._stop.wait(0.02):
+            now = time.monotonic()
+            for name, unit in self.units.items():
+                with self._lock:
+                    if name in self._held or unit.policy is None or unit.proc is None:
+                        continue
+                code = unit.proc.popen.poll()
+                if code is None:
+                    if unit.watchdog is not None:
+                        unit.watchdog.check(unit.pid)
+                    continue
+                if name not in due and unit.stop_post and not unit.stop_post.done(unit.started_at):
+                    continue  # ExecStopPost= first, then the restart
+                if name not in due:
+                    if not unit.policy.restarts_after(code):
+                        continue
+                    due[name] = now + unit.policy.restart_sec
+                    log.info(
+                        "%s ended (%s): restart in %.1f s", name, code, unit.policy.restart_sec
+                    )
+                if now >= due[name]:
+                    del due[name]
+                    unit.launch()
+                    unit.restarted_at.append(time.monotonic())
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        for unit in self.units.values():
+            if unit.watchdog is not None:
+                unit.watchdog.close()
+
+
+def _announcement(proc: Proc, timeout_s: float = 60.0) -> dict:
+    """The JSON line a ``deepxpalm sim`` prints once it serves (its address)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for line in proc.log_text().splitlines():
+            if line.startswith('{"simulator"'):
+                return json.loads(line)
+        if proc.popen.poll() is not None:
+            break
+        time.sleep(0.05)
+    raise DeploymentError(f"{proc.name} did not start: {proc.log_text()[-2000:]}")
+
+
+class Deployment:
+    """The processes, their supervisor, and where each device can be read from outside.
+
+    ``with Deployment(...) as d`` starts everything; leaving stops everything.
+    ``outage_at_s``: the link's outage (5 s) starts this long after netsim does.
+    """
+
+    def __init__(self, workdir: Path | None = None, outage_at_s: float = NO_OUTAGE_AT_S) -> None:
+        self.fleet = Fleet(robots=[ROBOT], operators={OPERATOR: "controller", RECORDER: "recorder"})
+        if workdir is not None:
+            self.fleet.workdir = workdir
+        self.dir = self.fleet.workdir
+        self.outage_at_s = outage_at_s
+        self.outage_s = 5.0
+        self.units: dict[str, Unit] = {}
+        self.recording = self.dir / "recording.bin"
+        self.servo_status = self.dir / "servos-status.json"
+        self.ur_host = ""
+        self.gripper = ("127.0.0.1", 0)
+        self.tactile_port = ""
+        self.servo_port = ""
+        self.video_url = ""
+        self.netsim_endpoints = ("", "")
+        self.supervisor = Supervisor(self.units)
+        self._env_lock = threading.Lock()
+
+    # ------------------------------------------------------------ starting
+    def _sim(self, device: str, config: str, extra: list[str] | None = None) -> Proc:
+        path = self.dir / f"sim-{device}.toml"
+        path.write_text(config)
+        log_path = self.dir / f"sim-{device}.log"
+        args = ["sim", device, "--config", str(path), *(extra or [])]
+        stats = self.dir / f"sim-{device}-stats.json"  # unused: a simulator writes none
+        return Proc(f"sim-{device}", spawn_cli(args, log_path), log_path, stats)
+
+    def _add(self, name: str, start: Callable[[], Proc], unit: str | None = None) -> Unit:
+        rule = policy(unit) if unit else (DEVICE_BACK if name in DEVICES else None)
+        self.units[name] = Unit(name, start, rule)
+        self.units[name].launch()
+        return self.units[name]
+
+    def _start_netsim(self) -> Proc:
+        scenario = self.dir / "scenario.toml"
+        t1 = self.outage_at_s
+        scenario.write_text(_SCENARIO_TOML.format(t1=t1, t2=t1 + self.outage_s))
+        log_path = self.dir / "netsim.log"
+        args = [
+            "-v",
+            "netsim",
+            *("--scenario", str(scenario), "--mode", "stream"),
+            *("--robot-telemetry", self.fleet.ops_telemetry),
+            *("--robot-commands", self.fleet.ops_command),
+            *("--operator-telemetry", self.netsim_endpoints[0]),
+            *("--operator-commands", self.netsim_endpoints[1]),
+        ]
+        return Proc("netsim", spawn_cli(args, log_path), log_path, self.dir / "netsim-stats.json")
+
+    def start(self) -> Deployment:
+        fleet = self.fleet
+        self._add("relay", fleet.start_relay, "relay")
+        ur = self._add("ur", lambda: self._sim("ur", 'host = "auto"\n'))
+        self.ur_host = _announcement(ur.proc)["host"]
+        ur.start = lambda: self._sim("ur", f'host = "{self.ur_host}"\n')
+        gripper = self._add("gripper", lambda: self._sim("gripper", "port = 0\n" + _PIPETTE))
+        g = _announcement(gripper.proc)
+        self.gripper = (g["host"], g["port"])
+        at = f'host = "{g["host"]}"\nport = {g["port"]}\n'
+        gripper.start = lambda: self._sim("gripper", at + _PIPETTE)
+        board = _BOARD_TOML.format(link_dir=self.dir / "tactile-link")
+        tactile = self._add("tactile", lambda: self._sim("tactile", board))
+        self.tactile_port = _announcement(tactile.proc)["port"]
+        bus = f'link_dir = "{self.dir / "servo-link"}"\n'
+        status = ["--status-file", str(self.servo_status)]
+        servos = self._add("servos", lambda: self._sim("servos", bus, status))
+        self.servo_port = _announcement(servos.proc)["port"]
+        video_port = free_loopback_ports(1)[0]
+        self.video_url = fleet.video_url("video", video_port)
+        self._add("video", lambda: fleet.start_video(port=video_port)[0], "video")
+        devices = _ROBOT_DEVICES.format(
+            tactile_port=self.tactile_port, gripper_host=g["host"], gripper_port=g["port"]
+        )
+        self._add(
+            "robot",
+            lambda: fleet.start_robot(
+                ROBOT, self.ur_host, video_url=self.video_url, devices=devices
+            ),
+            "robot",
+        )
+        self.netsim_endpoints = tuple(f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2))
+        self._add("netsim", self._start_netsim)
+        self._add_operator()
+        self._add("recorder", lambda: fleet.start_recorder(RECORDER, self.recording))
+        self.supervisor.start()
+        return self
+
+    def _add_operator(self) -> None:
+        """The operator node under its unit's rules: its watchdog on the notify socket, and
+        its ExecStopPost= (the palm lifted) with this deployment's config for /etc's."""
+        rule = policy("operator")
+        assert rule is not None
+        watchdog = UnitWatchdog(
+            self.dir / "operator.notify", rule.watchdog_sec, rule.timeout_abort_sec
+        )
+        config = self.fleet.workdir / f"{OPERATOR}@{ROBOT}.toml"  # what start_operator writes
+        stop_post = stop_post_args(rule.stop_post, config)
+        log_path = self.dir / "operator-stop-post.log"
+
+        def start() -> Proc:
+            with self._env_lock:  # the fleet starts every process with its env: this one's
+                env = self.fleet.env
+                self.fleet.env = {**env, **watchdog.environ()}
+                try:
+                    return self.fleet.start_operator(
+                        OPERATOR,
+                        ROBOT,
+                        request_control=True,
+                        want_frames=False,
+                        servos=_SERVOS.format(port=self.servo_port),
+                        endpoints=self.netsim_endpoints,
+                    )
+                finally:
+                    self.fleet.env = env
+
+        self.units["operator"] = Unit(
+            "operator",
+            start,
+            rule,
+            # at the unit's Nice=, as systemd runs every command of the unit
+            stop_post=StopPost(
+                "operator", lambda: spawn_cli(["-v", *stop_post], log_path, "operator")
+            ),
+            watchdog=watchdog,
+        )
+        self.units["operator"].launch()
+
+    # ------------------------------------------------------------ faults
+    def signal(self, name: str, sig: int) -> None:
+        self.units[name].proc.popen.send_signal(sig)
+
+    def clean_restart(self, name: str, timeout_s: float = 20.0) -> float:
+        """``systemctl restart``: SIGTERM, wait for the end, start again; the restart's time."""
+        unit = self.units[name]
+        self.supervisor.hold(name)
+        try:
+            t_term = time.monotonic()
+            killed = stop(unit.proc.popen, timeout_s)  # systemd's TimeoutStopSec=, then SIGKILL
+            if killed:
+                log.warning("%s still running %.0f s after SIGTERM: killed", name, timeout_s)
+            unit.stops.append((time.monotonic() - t_term, killed))
+            unit.run_stop_post()
+            unit.launch()
+            unit.restarted_at.append(time.monotonic())
+        finally:
+            self.supervisor.release(name)
+        return unit.restarted_at[-1]
+
+    def netsim_started(self) -> list[float]:
+        """When each netsim process began forwarding (monotonic s, from its log), in order."""
+        return [
+            _logged_s(line, "schedule_start_ns")
+            for line in self.units["netsim"].proc.log_text().splitlines()
+            if "schedule_start_ns=" in line
+        ]
+
+    def operator_late_wakes(self) -> list[tuple[float, float]]:
+        """Each time the operator's loop woke over 100 ms late (``late_wakes_in`` its log)."""
+        return late_wakes_in(self.units["operator"].proc.log_text())
+
+    def outage_window(self) -> tuple[float, float] | None:
+        """The scheduled outage on the monotonic clock, from netsim's own start time."""
+        starts = self.netsim_started()
+        if not starts:
+            return None
+        return starts[0] + self.outage_at_s, starts[0] + self.outage_at_s + self.outage_s
+
+    def operator_send(self, command: dict) -> bool:
+        """A JSON command to the operator node's stdin; False while it is down."""
+        unit = self.units["operator"]
+        if not unit.alive():
+            return False
+        try:
+            unit.proc.send(command)
+        except (BrokenPipeError, ValueError, OSError):
+            return False
+        return True
+
+    def log_tails(self, chars: int = 1500) -> str:
+        return "\n".join(
+            f"--- {n}\n{u.proc.log_text()[-chars:]}" for n, u in self.units.items() if u.proc
+        )
+
+    # ------------------------------------------------------------ stopping
+    def close(self) -> None:
+        self.supervisor.close()
+        order = ["recorder", "operator", "netsim", "robot", "video", "relay"]
+        order += ["servos", "tactile", "gripper", "ur"]
+        for name in order:
+            unit = self.units.get(name)
+            if unit is None or unit.proc is None:
+                continue
+            popen = unit.proc.popen
+            if popen.poll() is None:
+                popen.send_signal(signal.SIGCONT)  # a cell may end with it stopped
+                stop(popen, 15)
+            if unit.proc.stdin is not None:
+                with contextlib.suppress(BrokenPipeError, OSError):
+                    unit.proc.stdin.close()
+
+    def __enter__(self) -> Deployment:
+        try:
+            return self.start()
+        except BaseException:
+            self.close()
+            raise
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
