@@ -68,6 +68,8 @@ host = "{arm_host}"
 [robot.link]
 telemetry_endpoint = "{tel}"
 command_endpoint = "{cmd}"
+# the attacks come from other local processes by design: the plain port is the point
+allow_plain_commands = true
 """
 
 
