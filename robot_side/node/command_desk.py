@@ -20,8 +20,10 @@ an unsigned link is a roster of one operator who always holds control):
 7. the newest admitted command of each device wins the batch; it goes to
    its device's worker through ``DEVICE_CALLS`` (device_calls.py).
 
-The assist's own commands (``act_for_holder``) take steps 5 and 7: the same
-stop latch, device calls, clipping and recording as the holder's.
+The assist's own commands (``Handover.act_for_holder``, handover.py) take
+steps 5 and 7: the same stop latch, device calls, clipping and recording as
+the holder's. The desk owns the assist and tells it what it admitted; the
+assist never calls the desk (it is handed the hand-over's callables).
 
 Whatever arrives, from a dashboard page, a gamepad, a script or the API,
 passes the same clipping (the arm driver's), deadman and stop latch.
@@ -32,26 +34,21 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 from common.clock_sync import ClockSync
 from common.errors import ConfigError
 from common.logs import BurstLog
 from common.messages import LEASE_ACTIONS, Command, Heartbeat, Message, VideoSignal
-from common.recording import Recorder
 from common.roster import Roster, check_replacement, load_roster
 from robot_side.command_gate import PENDING, CommandGate, RobotRun
 from robot_side.config import RobotLinkConfig
 from robot_side.lease import ControlLease, Peer
+from robot_side.node.assist import Assist
 from robot_side.node.device_calls import DEVICE_CALLS
 from robot_side.node.handover import Handover
 from robot_side.node.peers import OnePeer, RosterPeers
 from robot_side.node.pending_stops import PendingStops
-from robot_side.node.workers import DeviceWorkers
 from robot_side.stop_latch import REFUSALS, StopLatch
-
-if TYPE_CHECKING:
-    from robot_side.node.assist import Assist
 
 log = logging.getLogger(__name__)
 
@@ -65,20 +62,20 @@ class CommandDesk:
     def __init__(
         self,
         link: RobotLinkConfig,
-        workers: DeviceWorkers,
+        handover: Handover,
+        assist: Assist | None,
         *,
         counters: Counter[str],
         now: Callable[[], int],
-        recorder: Recorder | None,
         on_video: Callable[[VideoSignal, bytes | None], None],
         announce: Callable[[], None],
         session: int = 0,
     ) -> None:
-        """``recorder`` None records nothing;
+        """``handover``: the stop latch and the devices (handover.py);
+        ``assist``: the reflex an ``arm_assist`` holds (None: refused);
         ``announce`` asks for a heartbeat at once (a lease or latch change);
         ``session``: this robot run's boot id, which operators echo to prove a message is of it."""
         self.link = link
-        self.workers = workers
         self.counters = counters
         self.on_video = on_video
         self.announce = announce
@@ -86,7 +83,8 @@ class CommandDesk:
         #: this run: what an operator's message must echo, and when it started
         self.run = RobotRun(session, now())
         #: the stop latch, the device workers' queue and the robot/command recording
-        self.handover = Handover(workers, counters=counters, now=now, recorder=recorder)
+        self.handover = handover
+        self.assist = assist
         #: arm_stops that wait for their sender's proof (pending_stops.py)
         self.pending_stops = PendingStops(
             self.handover, self.run, counters=counters, announce=announce
@@ -112,24 +110,11 @@ class CommandDesk:
                 "signed commands from the lease holder may move the arm (docs/security.md)"
             )
         self._lease_changes_seen = 0
-        #: the robot-side reflex an ``arm_assist`` holds (set by the node; None: refused)
-        self.assist: Assist | None = None
 
     @property
     def stop_latch(self) -> StopLatch:
         """An operator's arm_stop holds the arm until the holder's arm_resume (stop_latch.py)."""
         return self.handover.stop_latch
-
-    @property
-    def gripper_ack(self) -> tuple[float, float] | None:
-        return self.handover.gripper_ack
-
-    @property
-    def grip_level_commanded(self) -> int | None:
-        return self.handover.grip_level_commanded
-
-    def act_for_holder(self, cmd: Command, sent_ns: int | None) -> bool:
-        return self.handover.act_for_holder(cmd, sent_ns)
 
     @property
     def gate(self) -> CommandGate:
@@ -315,7 +300,8 @@ class CommandDesk:
             return
         self._lease_changes_seen = lease.changes
         self.announce()
+        why = f"control lease now {lease.holder_name() or 'nobody'}'s"
         if self.assist is not None:
-            self.assist.end(f"control lease now {lease.holder_name() or 'nobody'}'s")
+            self.assist.end(why)
         if not any(cmd.action == "arm_jog" for cmd, _ in newest.values()):
-            self.workers.stop_devices(f"control lease now {lease.holder_name() or 'nobody'}'s")
+            self.handover.workers.stop_devices(why)
