@@ -18,7 +18,6 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import zmq
 
 from common.clock import Clock, Periodic, now_ns
@@ -36,7 +35,7 @@ from operator_side.node.link_setup import LinkKeys, Sockets, telemetry_gate_for,
 from operator_side.node.outbox import Outbox
 from operator_side.node.palm import Palm
 from operator_side.node.recording import NodeRecording
-from operator_side.node.snapshot import Snapshot
+from operator_side.node.snapshot import Snapshot, take_snapshot
 from operator_side.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
@@ -280,17 +279,7 @@ class OperatorNode:
             due = min(next_control, heartbeat.deadline_ns)
             ready = self.sub.ready((due - self.now()) / 1e9)
             self.counters["wakeups"] += 1
-            woke = self.now()
-            if woke - due > LATE_WAKE_NS:  # at most ten a second, by its definition
-                self.counters["late_wakes"] += 1
-                log.warning(
-                    "the loop woke %.0f ms late (a starved process: the palm cannot lift "
-                    "meanwhile, its staleness limit is %.0f ms); due_ns=%d woke_ns=%d",
-                    (woke - due) / 1e6,
-                    link.stale_after_ms,
-                    due,
-                    woke,
-                )
+            _note_late_wake(self.counters, due, self.now(), link.stale_after_ms)
             changed = self.receive() if self.sub.sock in ready else False
             now = self.now()
             if changed or now >= next_control:
@@ -320,9 +309,6 @@ class OperatorNode:
     def control_step(self, now: int, period_ns: int) -> None:
         self.palm.control_step(now, period_ns)
 
-    def fresh_stimulus(self, now: int) -> tuple[np.ndarray | None, float | None]:
-        return self.palm.fresh_stimulus(now)
-
     def sees_robot(self, now: int) -> bool:
         """Whether the robot's telemetry is fresh enough to steer by (``jog_blind_after_ms``)."""
         return self.heard.sees_robot(now)
@@ -351,24 +337,25 @@ class OperatorNode:
         return out
 
     def snapshot(self) -> Snapshot:
-        stim, frame, robot_stats = self.arrivals.views()
-        _, age = self.palm.fresh_stimulus(self.now())
-        written = self.palm.goal_counts()
-        return Snapshot(
-            link_state=self.palm.link_state,
-            stimulus=None if stim is None else stim.stimulus.copy(),
-            pattern=None if stim is None else stim.pattern,
-            confidence=None if stim is None else stim.confidence,
-            grip_level=None if stim is None else stim.grip_level,
-            frame=None if frame is None else frame.frame.copy(),
-            goal_counts=written,
-            goal_angles=self.palm.calibration.counts_to_angles(written),
-            age_ms=age,
-            stats=self.stats(),
-            robot_stats=robot_stats,
-            control=self.control_view(),
-        )
+        """What the live views show, from any thread."""
+        now, control = self.now(), self.control_view()
+        return take_snapshot(self.arrivals, self.palm, now, self.stats(), control)
 
     def control_view(self) -> dict[str, Any] | None:
         """The control lease as the robot's newest heartbeat states it (None when unsigned)."""
         return self.lease.view()
+
+
+def _note_late_wake(counters: Counter[str], due: int, woke: int, stale_after_ms: float) -> None:
+    """Count and log a loop turn that woke ``LATE_WAKE_NS`` or more after it was due."""
+    if woke - due <= LATE_WAKE_NS:  # at most ten a second, by its definition
+        return
+    counters["late_wakes"] += 1
+    log.warning(
+        "the loop woke %.0f ms late (a starved process: the palm cannot lift "
+        "meanwhile, its staleness limit is %.0f ms); due_ns=%d woke_ns=%d",
+        (woke - due) / 1e6,
+        stale_after_ms,
+        due,
+        woke,
+    )

@@ -5,9 +5,13 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from operator_side.node.arrivals import Arrivals
+    from operator_side.node.palm import Palm
 
 
 @dataclass
@@ -56,3 +60,30 @@ def _plain(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+def take_snapshot(
+    arrivals: Arrivals,
+    palm: Palm,
+    now: int,
+    stats: dict[str, float],
+    control: dict[str, Any] | None,
+) -> Snapshot:
+    """The node's parts as the live views show them: copies, taken under the arrivals' lock."""
+    stim, frame, robot_stats = arrivals.views()
+    _, age = palm.fresh_stimulus(now)
+    written = palm.goal_counts()
+    return Snapshot(
+        link_state=palm.link_state,
+        stimulus=None if stim is None else stim.stimulus.copy(),
+        pattern=None if stim is None else stim.pattern,
+        confidence=None if stim is None else stim.confidence,
+        grip_level=None if stim is None else stim.grip_level,
+        frame=None if frame is None else frame.frame.copy(),
+        goal_counts=written,
+        goal_angles=palm.calibration.counts_to_angles(written),
+        age_ms=age,
+        stats=stats,
+        robot_stats=robot_stats,
+        control=control,
+    )
