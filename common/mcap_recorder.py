@@ -8,6 +8,13 @@ become base64 strings; the schema marks them (``x-numpy-dtype``,
 arrays and bytes. A record holding the wire bytes of a message (``wire``)
 also gets its decoded fields (``decoded``), so a stimulus can be plotted.
 
+Foxglove (``common/foxglove.py``): the camera's pictures and the log lines
+are written as Foxglove's own types (``foxglove.CompressedImage``,
+``foxglove.Log``), and the pads, the arm's and fingers' poses and the palm
+as Foxglove views derived from the records, on channels of their own
+marked ``deepxpalm.view_of`` that ``read_recording`` leaves out unless
+asked, so old and new files read alike.
+
 Durability: the nodes' threads only append to a bounded queue; one writer
 thread serialises, and every ``flush_interval_s`` closes the MCAP chunk in
 progress, writes it and fsyncs. A chunk is a length-prefixed, CRC-checked
@@ -42,6 +49,7 @@ from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
+from common import foxglove
 from common.errors import DeepXPalmError
 from common.logs import BurstLog
 from common.recording import CHANNELS
@@ -54,6 +62,7 @@ SCHEMA_PREFIX = "deepxpalm/"
 LIBRARY = "deepxpalm McapRecorder"
 ENC_KEY = "_enc"  # per-message encodings, only where the channel's schema does not say them
 NONFINITE_KEY = "_nonfinite"  # paths of NaN/inf values written as null (a bug to look at)
+VIEW_OF_KEY = "deepxpalm.view_of"  # channel metadata: a Foxglove view, and of which channel
 _COMPRESSION = {
     "zstd": CompressionType.ZSTD,
     "lz4": CompressionType.LZ4,
@@ -221,6 +230,8 @@ class McapRecorder:
         fsync: bool = True,
         decode_wire: bool = True,
         metadata: dict[str, dict[str, str]] | None = None,
+        foxglove_views: bool = True,
+        log_level: int | None = None,
     ) -> None:
         if not flush_interval_s > 0:
             raise ValueError(f"flush_interval_s must be positive, not {flush_interval_s!r}")
@@ -231,6 +242,7 @@ class McapRecorder:
         self.max_queue = int(max_queue)
         self._fsync = fsync
         self._decode_wire = decode_wire
+        self._foxglove = foxglove_views
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 (closed by the writer thread)
@@ -270,6 +282,10 @@ class McapRecorder:
             target=self._run, name=f"mcap-recorder:{self.path.name}", daemon=True
         )
         self._thread.start()
+        self._log_handler: _LogHandler | None = None
+        if log_level is not None:
+            self._log_handler = _LogHandler(self, log_level)
+            logging.getLogger().addHandler(self._log_handler)
 
     # ------------------------------------------------------------ Recorder
     def write(self, channel: str, t_ns: int, record: dict[str, Any]) -> None:
@@ -289,6 +305,8 @@ class McapRecorder:
 
     def close(self) -> None:
         """Write everything queued, the summary and the footer; idempotent."""
+        if self._log_handler is not None:
+            logging.getLogger().removeHandler(self._log_handler)
         with self._cond:
             if self._closed:
                 return
@@ -380,6 +398,23 @@ class McapRecorder:
     def _add(self, channel: str, t_ns: int, record: dict[str, Any]) -> None:
         if self._decode_wire and isinstance(record.get("wire"), (bytes, bytearray)):
             record["decoded"] = _decoded_fields(bytes(record["wire"]))
+        t_wall_ns = t_ns + self.wall_offset_ns
+        if channel in foxglove.IN_PLACE:
+            record.update(foxglove.camera_fields(record, t_wall_ns))
+        self._add_json(channel, t_ns, record)
+        self.records_written += 1  # the records given; their Foxglove views are not counted
+        if self._foxglove:
+            for topic, message in foxglove.views(channel, record, t_wall_ns):
+                self._add_view(topic, channel, t_ns, message)
+
+    def _add_view(self, topic: str, source: str, t_ns: int, message: dict[str, Any]) -> None:
+        """A Foxglove message derived from a record, on a channel of its own."""
+        state = self._channels.get(topic)
+        if state is None:
+            state = self._register_typed(topic, foxglove.VIEW_TOPICS[topic], {VIEW_OF_KEY: source})
+        self._write_message(state, t_ns, json.dumps(message, separators=(",", ":")).encode())
+
+    def _add_json(self, channel: str, t_ns: int, record: dict[str, Any]) -> None:
         encs: dict[str, str] = {}
         nonfinite: list[str] = []
         body = _to_json(record, "", encs, nonfinite)
@@ -391,7 +426,11 @@ class McapRecorder:
         if nonfinite:
             body[NONFINITE_KEY] = nonfinite
             self.records_nonfinite += 1
-        data = json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
+        self._write_message(
+            state, t_ns, json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
+        )
+
+    def _write_message(self, state: _ChannelState, t_ns: int, data: bytes) -> None:
         state.seq += 1
         self._writer.add_message(
             state.id,
@@ -400,9 +439,25 @@ class McapRecorder:
             publish_time=max(0, t_ns),
             sequence=state.seq & 0xFFFFFFFF,
         )
-        self.records_written += 1
+
+    def _register_typed(
+        self, channel: str, type_name: str, metadata: dict[str, str] | None = None
+    ) -> _ChannelState:
+        """A channel whose schema is one of Foxglove's (docs/recording.md, "Foxglove")."""
+        schema = foxglove.SCHEMAS[type_name]
+        schema_id = self._writer.register_schema(
+            type_name, SCHEMA_ENCODING, json.dumps(schema).encode()
+        )
+        cid = self._writer.register_channel(channel, MESSAGE_ENCODING, schema_id, metadata or {})
+        state = _ChannelState(cid, _encodings_in_schema(schema))
+        self._channels[channel] = state
+        return state
 
     def _register(self, channel: str, body: dict[str, Any], encs: dict[str, str]) -> _ChannelState:
+        if channel in foxglove.IN_PLACE:
+            return self._register_typed(channel, foxglove.IN_PLACE[channel])
+        if channel == foxglove.LOG_CHANNEL:
+            return self._register_typed(channel, "foxglove.Log")
         schema = _schema_of(body, "", encs) or {"type": "object", "properties": {}}
         schema["title"] = channel
         if channel in CHANNELS:
@@ -451,6 +506,34 @@ class McapRecorder:
         log.error("recording %s stopped: %s; the nodes keep running", self.path, e)
 
 
+class _LogHandler(logging.Handler):
+    """The process's log lines into the recording, as ``foxglove.Log`` on the ``log`` channel.
+
+    ``emit`` only queues (``McapRecorder.write``); lines logged by the recorder's
+    own writer thread, or while this handler is already writing one (a full
+    queue logs), are left out so a line can never feed itself.
+    """
+
+    def __init__(self, recorder: McapRecorder, level: int) -> None:
+        super().__init__(level)
+        self.recorder = recorder
+        self._inside = threading.local()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if threading.current_thread() is self.recorder._thread or getattr(
+            self._inside, "on", False
+        ):
+            return
+        self._inside.on = True
+        try:
+            message = foxglove.log_message(record, record.getMessage())
+            self.recorder.write(foxglove.LOG_CHANNEL, time.monotonic_ns(), message)
+        except Exception:  # a line that cannot be formatted must not break the caller
+            self.handleError(record)
+        finally:
+            self._inside.on = False
+
+
 # -------------------------------------------------------------------- reader
 MAGIC = b"\x89MCAP0\r\n"
 _CHUNK_OPCODE = 0x06
@@ -490,8 +573,9 @@ class RecordingReader:
     cleanly (its footer is there), whatever lies between.
     """
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, views: bool = False) -> None:
         self.path = Path(path)
+        self.views = views  # also the Foxglove views derived from records (docs/recording.md)
         if not self.path.exists():
             raise RecordingError(f"no recording at {self.path}")
         self.metadata: dict[str, dict[str, str]] = {}
@@ -503,7 +587,7 @@ class RecordingReader:
 
     def __iter__(self) -> Iterator[tuple[str, int, dict[str, Any]]]:
         schemas: dict[int, dict[str, Any]] = {}
-        channels: dict[int, tuple[str, dict[str, str]]] = {}
+        channels: dict[int, tuple[str, dict[str, str]] | None] = {}  # None: a view, skipped
         #: per channel: the newest sequence number read, how many damages came before it,
         #: how many records were read
         seen: dict[str, tuple[int, int, int]] = {}
@@ -535,8 +619,7 @@ class RecordingReader:
                             if isinstance(r, Schema):
                                 schemas[r.id] = _parse_schema(r)
                             elif isinstance(r, Channel):
-                                encs = _encodings_in_schema(schemas.get(r.schema_id, {}))
-                                channels[r.id] = (r.topic, encs)
+                                channels[r.id] = self._channel(r, schemas)
                             elif isinstance(r, Message):
                                 out = self._message(r, channels)
                                 if out is not None:
@@ -554,7 +637,7 @@ class RecordingReader:
                 except Exception as e:  # damaged data raises many types (mcap, struct, zstd)
                     error = f"{type(e).__name__}: {e}"
                 if not self.damage:  # a lost chunk may have held channels the rest uses
-                    summary = _channels_from_summary(f, schemas, channels)
+                    summary = _channels_from_summary(f, schemas, channels, self._channel)
                 resume = _next_chunk(f, good_end + 1, size)
                 if resume is None:
                     self._ended_early(f, size, good_end, error, last_t)
@@ -599,7 +682,7 @@ class RecordingReader:
             return
         for cid, expected in stats.channel_message_counts.items():
             channel = summary.channels.get(cid)
-            if channel is None:
+            if channel is None or (VIEW_OF_KEY in (channel.metadata or {}) and not self.views):
                 continue
             topic = channel.topic
             accounted = sum(d.records_lost.get(topic, 0) for d in self.damage)
@@ -622,12 +705,21 @@ class RecordingReader:
         self.bytes_unread = max(0, size - good_end)
         log.info("%s ends early (%s); read up to byte %d", self.path, error, good_end)
 
-    def _message(
-        self, msg: Message, channels: dict[int, tuple[str, dict[str, str]]]
-    ) -> tuple[str, int, dict[str, Any]] | None:
-        topic, encs = channels.get(msg.channel_id, (None, {}))
-        if topic is None:
+    def _channel(
+        self, ch: Channel, schemas: dict[int, dict[str, Any]]
+    ) -> tuple[str, dict[str, str]] | None:
+        """(topic, encodings) of a channel to read; None for a Foxglove view when not asked."""
+        if VIEW_OF_KEY in (ch.metadata or {}) and not self.views:
             return None
+        return ch.topic, _encodings_in_schema(schemas.get(ch.schema_id, {}))
+
+    def _message(
+        self, msg: Message, channels: dict[int, tuple[str, dict[str, str]] | None]
+    ) -> tuple[str, int, dict[str, Any]] | None:
+        found = channels.get(msg.channel_id)
+        if found is None:
+            return None
+        topic, encs = found
         try:
             record = json.loads(msg.data)
         except ValueError:
@@ -642,7 +734,8 @@ class RecordingReader:
 def _channels_from_summary(
     f: BinaryIO,
     schemas: dict[int, dict[str, Any]],
-    channels: dict[int, tuple[str, dict[str, str]]],
+    channels: dict[int, tuple[str, dict[str, str]] | None],
+    channel_of: Any,
 ) -> Any:
     """Add the channels a closed file's summary lists (a clean close repeats them all there).
 
@@ -661,7 +754,7 @@ def _channels_from_summary(
         schemas.setdefault(sid, _parse_schema(schema))
     for cid, ch in summary.channels.items():
         if cid not in channels:
-            channels[cid] = (ch.topic, _encodings_in_schema(schemas.get(ch.schema_id, {})))
+            channels[cid] = channel_of(ch, schemas)
     return summary
 
 
@@ -730,9 +823,15 @@ def _parse_schema(schema: Schema) -> dict[str, Any]:
     return out if isinstance(out, dict) else {}
 
 
-def read_recording(path: str | os.PathLike[str]) -> Iterator[tuple[str, int, dict[str, Any]]]:
-    """(channel, t_ns, record) in file order; stops quietly where a crash cut the file."""
-    yield from RecordingReader(path)
+def read_recording(
+    path: str | os.PathLike[str], *, views: bool = False
+) -> Iterator[tuple[str, int, dict[str, Any]]]:
+    """(channel, t_ns, record) in file order; stops quietly where a crash cut the file.
+
+    ``views``: also the Foxglove messages the recorder derived from the records
+    (pads, transforms, the palm's scene); off, old and new files read alike.
+    """
+    yield from RecordingReader(path, views=views)
 
 
 def read_metadata(path: str | os.PathLike[str]) -> dict[str, dict[str, str]]:
@@ -748,7 +847,9 @@ def node_recorder(path: str | os.PathLike[str], config: Any, node: str) -> McapR
     from common.config import config_toml
 
     return McapRecorder(
-        path, metadata={"deepxpalm.node": {"node": node, "config_toml": config_toml(config, node)}}
+        path,
+        metadata={"deepxpalm.node": {"node": node, "config_toml": config_toml(config, node)}},
+        log_level=logging.INFO,
     )
 
 

@@ -5,6 +5,10 @@ whole telemetry of the robots it names (frames included), checks every
 message with the codec (a bad one is counted, never written) and appends
 the wire bytes to a file, each as ``<u64 receive ns><u32 length><bytes>``
 (little-endian). It sends nothing, so it can never command a robot.
+
+With ``foxglove.enabled`` it also serves a session's recordings live to
+Foxglove (``common/foxglove_live.py``: the camera, the pads, the arm and the
+palm as they are written, on the robot PC); that needs the ``foxglove`` extra.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from common.cli_support import (
 from common.clock import now_ns
 from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, DecodeError, decode_named
 from common.config import param
+from common.foxglove import FoxgloveLiveConfig
 from common.logs import BurstLog
 from common.security import SecurityConfig, check_endpoint, client_options
 
@@ -46,6 +51,9 @@ class RecorderConfig:
     robots: list[str] = param([], "robot names to record; empty = every one")
     output: Path | None = param(None, "append the wire messages here; unset = count only")
     security: SecurityConfig = param(SecurityConfig(), "CURVE: our key pair and the relay's key")
+    foxglove: FoxgloveLiveConfig = param(
+        FoxgloveLiveConfig(), "a live view in Foxglove of a session being recorded; off by default"
+    )
 
 
 class StreamRecorder:
@@ -137,9 +145,26 @@ def run(args: argparse.Namespace) -> int:
         print_config(config, "recorder")
         return 0
     stop = stop_on_signals()
+    live = None
+    if config.foxglove.enabled:
+        from common.foxglove_live import LiveSource  # the foxglove extra, only when asked
+
+        live = LiveSource(config.foxglove)
     recorder = StreamRecorder(config)
+    thread = None
+    if live is not None:
+        thread = threading.Thread(
+            target=live.run, args=(stop, args.duration), name="foxglove-live", daemon=True
+        )
+        thread.start()
     try:
         recorder.run(stop, args.duration)
     finally:
-        write_stats(args.stats_file, recorder.stats())
+        stop.set()
+        if thread is not None:
+            thread.join(timeout=5)
+        stats = recorder.stats()
+        if live is not None:
+            stats.update({f"foxglove_{k}": float(v) for k, v in live.counters.items()})
+        write_stats(args.stats_file, stats)
     return 0

@@ -1,4 +1,4 @@
-"""``deepxpalm bench``: run time against error, and the latency budget (issue 8).
+"""``deepxpalm bench``: run time against error, and the latency budget.
 
 Every shortcut the nodes take (a cheaper downsizing, a smaller model, a
 closed-form IK, skipping work) is measured here with its cost in error, and

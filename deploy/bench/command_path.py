@@ -68,7 +68,7 @@ host = "{arm_host}"
 [robot.link]
 telemetry_endpoint = "{tel}"
 command_endpoint = "{cmd}"
-# the attacks come from other local processes by design: the plain port is the point
+# the rig is the test's own "operator" on loopback, with plain unsigned commands by design
 allow_plain_commands = true
 """
 

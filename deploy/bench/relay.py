@@ -673,7 +673,7 @@ def markdown(results: Results) -> list[str]:
     c = iso["clients"]
     out += [
         "",
-        f"Slow-subscriber isolation (libzmq issue 3280): the same stream ({iso['rate_hz']:g} Hz "
+        f"Slow-subscriber isolation (libzmq #3280): the same stream ({iso['rate_hz']:g} Hz "
         f"stimuli and frames, {iso['duration_s']:g} s) into two relays; relay A also serves a "
         f"subscriber that never reads and one that reads at "
         f"{iso['slow_bytes_per_s'] * 8 / 1000:g} kbit/s, relay B two more that read "

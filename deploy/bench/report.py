@@ -60,7 +60,7 @@ def markdown(results: dict[str, Any]) -> str:
         _gc_line(results),
         *_remeasured_lines(results),
         "",
-        "## Verdicts against issue 8",
+        "## Verdicts",
         "",
     ]
     out += table(

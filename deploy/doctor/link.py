@@ -181,6 +181,9 @@ def heartbeat_exchange(
         poller = zmq.Poller()
         poller.register(sub, zmq.POLLIN)
         seq = 0
+        # this exchange's run, and the peer's: a robot acts on an operator's heartbeat (and
+        # answers it) only once it echoes the robot's current run (docs/protocol.md)
+        run, peer_run = int.from_bytes(os.urandom(8), "big") >> 1, None
         t0 = time.monotonic()
         next_hb = t0
         while time.monotonic() - t0 < timeout_s and out.clock.accepted < CLOCK_SAMPLES:
@@ -198,6 +201,8 @@ def heartbeat_exchange(
                             echo_t_send_ns=echo_send,
                             echo_t_recv_ns=echo_recv,
                             stats={"doctor": 1.0},
+                            session=run,
+                            echo_session=peer_run,
                         )
                     ),
                     zmq.NOBLOCK,
@@ -219,6 +224,7 @@ def heartbeat_exchange(
                         out.heartbeats += 1
                         out.peer_state = msg.state
                         out.peer_stats = dict(msg.stats)
+                        peer_run = msg.session if msg.session is not None else peer_run
                         out.clock.on_heartbeat(
                             msg.t_send_ns, msg.echo_t_send_ns, msg.echo_t_recv_ns, t_recv
                         )

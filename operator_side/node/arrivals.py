@@ -165,6 +165,11 @@ class Arrivals:
             return True
         self.counters[refusal] += 1
         if refusal == UNPROVEN:
+            if isinstance(msg, Heartbeat) and msg.session is not None:
+                # Echo the run we hear (signed by our robot) before we believe it: the robot
+                # acts on our heartbeats only once they echo its run, and only then answers
+                # them, which is what proves the run to us. Nothing else is taken from it.
+                self.heard.session = msg.session
             return False  # they come at every start, until the robot answers us
         session = getattr(msg, "session", None)
         if session is None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-#: sim/wall below this fell behind real time (issue 28: a trial below it is flagged)
+#: sim/wall below this fell behind real time (a trial below it is flagged)
 BEHIND_SIM_WALL = 0.98
 
 

@@ -51,7 +51,7 @@ def test_report_files_and_structure(smallest):
     md = (out / "benchmarks.md").read_text()
     for heading in (
         "## Conditions",
-        "## Verdicts against issue 8",
+        "## Verdicts",
         "## Defaults in the code against the measurements",
         "## Latency budget per stage",
         "## End to end: frame bytes to servo packet",

@@ -75,7 +75,7 @@ def test_metro_is_judged_against_the_none_row_only_when_both_ran():
             out.append({"scenario": "none", "p50_ms": none})
         return {"sections": {"video_netsim": {"rows": out}}}
 
-    assert video_netsim.verdicts(rows(52.0, 45.0))[0].passed
-    assert not video_netsim.verdicts(rows(45.0, 45.0))[0].passed  # the delay did not show
-    assert not video_netsim.verdicts(rows(90.0, 45.0))[0].passed
-    assert video_netsim.verdicts(rows(52.0, None)) == []
+    assert video_netsim.metro_over_none(rows(52.0, 45.0))[0].passed
+    assert not video_netsim.metro_over_none(rows(45.0, 45.0))[0].passed  # the delay did not show
+    assert not video_netsim.metro_over_none(rows(90.0, 45.0))[0].passed
+    assert video_netsim.metro_over_none(rows(52.0, None)) == []

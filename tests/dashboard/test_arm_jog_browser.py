@@ -35,6 +35,7 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(120),
     needs_chromium,
+    pytest.mark.parallel,
 ]
 
 STOP_WITHIN_S = 0.4
@@ -118,13 +119,13 @@ def page(station):
 
 
 @contextlib.contextmanager
-def excused_by_a_watchdog_trip(arm: SimulatedArm):
-    """A failed motion check is a skip when the controller's own watchdog stopped the arm.
+def watchdog_trips_named(arm: SimulatedArm):
+    """A failed motion check says whether the controller's own watchdog stopped the arm.
 
-    The nodes here run inside the test process at its priority, not at the robot unit's
-    (Nice=-10); on a saturated machine that process can fall silent for the watchdog
-    window, and the controller then stops the arm and the driver reconnects: the safe
-    behaviour, read from the simulator, not a defect of the jog path.
+    The controller stops the program when the driver's kicks stop for its watchdog window
+    (docs/arm.md); the driver then reconnects. On a robot PC that is busy, that is a stop the
+    operator did not ask for: a failure of the product under load, so it fails the test, with
+    the trips named so the message says which failure it was.
     """
     trips0 = arm.sim.stats()["watchdog_trips"]
     try:
@@ -132,7 +133,10 @@ def excused_by_a_watchdog_trip(arm: SimulatedArm):
     except AssertionError as e:
         trips = arm.sim.stats()["watchdog_trips"] - trips0
         if trips:
-            pytest.skip(f"load, not product: the controller's watchdog tripped {trips}x ({e})")
+            raise AssertionError(
+                f"the controller's watchdog tripped {trips}x during the check (the driver's "
+                f"kicks stopped for the watchdog window; status {arm.status()}): {e}"
+            ) from e
         raise
 
 
@@ -184,7 +188,7 @@ def move_for(arm: SimulatedArm, seconds: float) -> tuple[np.ndarray, float]:
 
 def test_gamepad_moves_the_arm_only_while_enable_is_held_and_stops_on_release(page):
     browser, arm = page
-    with excused_by_a_watchdog_trip(arm):
+    with watchdog_trips_named(arm):
         _gamepad_moves_the_arm_only_while_enable_is_held(browser, arm)
 
 
@@ -233,7 +237,7 @@ def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, arm: Sim
 
 def test_spacemouse_reports_move_the_arm_and_its_button_release_stops_it(page):
     browser, arm = page
-    with excused_by_a_watchdog_trip(arm):
+    with watchdog_trips_named(arm):
         _spacemouse_moves_the_arm(browser, arm)
 
 
@@ -258,7 +262,7 @@ def _spacemouse_moves_the_arm(browser: Chromium, arm: SimulatedArm):
 
 def test_closing_the_tab_stops_the_arm(station):
     arm, dashboard = station
-    with Chromium(width=1280, height=1000) as browser, excused_by_a_watchdog_trip(arm):
+    with Chromium(width=1280, height=1000) as browser, watchdog_trips_named(arm):
         browser.navigate(dashboard.url)
         browser.wait_for("dxp.jog !== null && dxp.state.arm && dxp.state.arm.pose", 20)
         browser.wait_for("dxp.state.arm.available", 20)
@@ -323,7 +327,7 @@ def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station
 
     arm, dashboard = station
     port, token = dashboard.server.port, dashboard.server.auth.token
-    with excused_by_a_watchdog_trip(arm):
+    with watchdog_trips_named(arm):
         wait_still(arm)
         start = arm.sim.tcp_pose()
         with (

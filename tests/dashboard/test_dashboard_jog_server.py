@@ -20,7 +20,7 @@ from operator_side.dashboard.jog_config import JogConfig, parse_mapping
 from operator_side.dashboard.server import cap_twist
 from operator_side.dashboard.view import arm_view
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.timeout(30), pytest.mark.parallel]
 
 
 class JogNode(FakeNode):

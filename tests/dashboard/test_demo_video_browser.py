@@ -26,7 +26,10 @@ from robot_side.video.stamp import MS_MODULO
 
 pytest.importorskip("aiortc", reason="the demo's video needs the 'video' extra")
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_chromium]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_chromium, pytest.mark.parallel]
+
+#: both pages play again within this of kill -9 of the video server (docs/dashboard.md)
+RECOVER_S = 5.0
 
 
 def test_the_demo_page_plays_the_robots_video_offered_through_the_link():
@@ -82,7 +85,13 @@ def test_two_pages_play_and_play_again_after_kill_9_of_the_video_server():
             os.kill(before["video"], signal.SIGKILL)
             t_kill = time.monotonic()
             back: dict[str, float] = {}
+            restarted = None  # when the demo's new video server process was there
             while len(back) < 2 and time.monotonic() - t_kill < 30:
+                if restarted is None and child_processes(demo.proc.pid).get("video") not in (
+                    None,
+                    before["video"],
+                ):
+                    restarted = time.monotonic() - t_kill
                 for name, page in (("a", a), ("b", b)):
                     if name not in back and _stamp_after(page, killed_ms):
                         back[name] = time.monotonic() - t_kill
@@ -106,9 +115,10 @@ def test_two_pages_play_and_play_again_after_kill_9_of_the_video_server():
     assert len(back) == 2, f"a page did not play again within 30 s: {back}, {pages}"
     recovered = max(back.values())
     print(f"pages played again {back} s after kill -9 of the video server, {idle:.0%} idle")
-    if recovered >= 5.0 and idle < 0.15:
-        pytest.skip(
-            f"load, not product: the pages played again after {recovered:.1f} s "
-            f"with {idle:.0%} of the machine's CPU idle (video server restart delay 1 s)"
-        )
-    assert recovered < 5.0, f"product: played again after {back} s, {idle:.0%} idle: {pages}"
+    # the demo restarts the server after 1 s (its unit's RestartSec) and the pages offer again
+    # at most 1 s apart while the outage is young (video.js): docs/dashboard.md's 5 s
+    assert recovered < RECOVER_S, (
+        f"product: played again after {back} s, not within {RECOVER_S:g} s (the new video server "
+        f"process there {restarted} s after the kill; {idle:.0%} of the machine's CPU idle "
+        f"meanwhile): {pages}"
+    )

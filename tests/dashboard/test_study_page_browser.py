@@ -22,6 +22,7 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(90),
     needs_chromium,
+    pytest.mark.parallel,
 ]
 
 

@@ -35,6 +35,7 @@ pytestmark = [
         reason="coturn is not installed: run scripts/install-test-system-packages.sh "
         "(required in CI)",
     ),
+    pytest.mark.parallel,
 ]
 
 

@@ -18,6 +18,8 @@ from deploy.scene import load_scene
 from operator_side.config import OperatorConfig
 from robot_side.config import RobotConfig
 
+pytestmark = pytest.mark.parallel
+
 SCENES = sorted(
     p.name[:-5] for p in resources.files("deploy.scenes").iterdir() if p.name.endswith(".toml")
 )

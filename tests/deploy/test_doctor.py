@@ -17,6 +17,8 @@ from deploy.keys_cli import generate
 from deploy.scene import load_scene_dict
 from robot_side.gripper.memory import MemoryGripper
 
+pytestmark = pytest.mark.parallel
+
 #: No test may depend on whether this machine has the units' user.
 OPTS = DoctorOptions(peer_timeout_s=1.5, device_timeout_s=15.0, service_user="nobody-deepxpalm")
 NO_PEER = DoctorOptions(check_peer=False, device_timeout_s=15.0, service_user="nobody-deepxpalm")

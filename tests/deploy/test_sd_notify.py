@@ -17,6 +17,8 @@ from tests_support import free_ports
 
 from common.sd_notify import Notifier, watch_node
 
+pytestmark = pytest.mark.parallel
+
 
 class FakeSystemd:
     """The receiving end of $NOTIFY_SOCKET: an AF_UNIX datagram socket."""

@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 from deploy_support import ENV, EXAMPLES, REPO
 
+pytestmark = pytest.mark.parallel
+
 UNITS = REPO / "deploy" / "systemd"
 RULES = REPO / "deploy" / "udev" / "99-deepxpalm.rules"
 ROLES = ("robot", "operator")

@@ -23,7 +23,7 @@ import zmq
 from deploy_support import ENV, EXAMPLES, cli, loopback
 from tests_support import free_ports
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 LINK_UP = "operator link down -> ok"
 

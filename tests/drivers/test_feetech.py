@@ -36,7 +36,7 @@ from operator_side.servos.sts_registers import (
 )
 from operator_side.servos.sts_sim import FakeStsBus, FakeStsBusConfig, SimulatedFeetechServoBus
 
-pytestmark = [pytest.mark.timeout(30), pytest.mark.usefixtures("quiet_gc")]
+pytestmark = [pytest.mark.timeout(30), pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
 
 IDS = (1, 2, 3, 4, 5, 6)
 

@@ -16,7 +16,7 @@ import pytest
 from robot_side.arm.base import ArmLimits
 from robot_side.arm.ur_rtde import URArm, URArmConfig
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ from common.errors import ConfigError, DeviceError
 from robot_side.arm.base import ArmLimits
 from robot_side.arm.ur_rtde import URArm, URArmConfig
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
 
 JOG = [0.03, 0.0, 0.0, 0.0, 0.0, 0.0]
 

@@ -8,10 +8,15 @@ import sys
 
 import numpy as np
 import pyarrow.parquet as pq
+import pytest
 from synthetic import flip, robot_recording
 
 from common.mcap_recorder import read_recording
 from deploy.export.cli import EXIT_DAMAGED
+
+#: every test runs `deepxpalm export` as a user does, in a process of its own (its imports
+#: alone are seconds of CPU): slow, and no timing asserted
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]
 
 FPS = 30
 

@@ -30,7 +30,7 @@ from deploy.export.resample import ExportConfig
 from robot_side.video.recording import decode_jpeg
 
 FPS = 30
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600), pytest.mark.parallel]
 
 
 def test_a_lab_session_exports_the_overview_camera_lerobot_decodes(tmp_path):

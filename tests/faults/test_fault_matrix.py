@@ -26,6 +26,8 @@ from deploy.faults.matrix import (
     run_cell,
 )
 
+pytestmark = pytest.mark.parallel
+
 #: how much a loaded machine may add to a budget before the test calls it the product's fault
 LOAD_SLACK_S = 0.6
 
@@ -90,16 +92,11 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
             "the palm's lift could show (stale after 0.15 s, then 0.1 s of travel)"
         )
         return
-    if row.palm_off_s is None and row.operator_starved_through_gap:
-        # the operator's own log: its loop was due while the link was away and woke when the
-        # link was back; no staleness logic can act in a process that does not run
-        pytest.skip(
-            f"{cell.label}: load, not product: the operator's loop woke {row.operator_late_ms} "
-            f"ms late, across the link's gap (back at {row.link_back_s} s); {row}"
-        )
     assert row.palm_off_s is not None and row.palm_off_s <= PALM_LIFT_BUDGET_S + LOAD_SLACK_S, (
         f"{cell.label}: the palm lifted off {row.palm_off_s} s after the fault, budget "
         f"{PALM_LIFT_BUDGET_S * 1e3:.0f} ms (None: never, the product's staleness limit failed; "
-        f"the operator's loop woke at most {row.operator_late_ms} ms late); netsim forwarding "
-        f"again {row.link_back_s} s after the fault; {row}"
+        f"the operator's loop woke at most {row.operator_late_ms} ms late"
+        f"{', across the link gap' if row.operator_starved_through_gap else ''}: a palm that "
+        "stays pressed on a dead link is the product failing, a busy machine or not); netsim "
+        f"forwarding again {row.link_back_s} s after the fault; {row}"
     )

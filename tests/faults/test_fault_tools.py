@@ -22,6 +22,8 @@ from deploy.unit_policy import policy
 from operator_side.record_cli import _RECORD, read_records
 from robot_side.gripper.sim import GripperSimServer
 
+pytestmark = pytest.mark.parallel
+
 
 def test_restart_policy_is_the_shipped_units():
     robot, relay = policy("robot"), policy("relay")

@@ -21,6 +21,8 @@ from common.clock_sync import ClockSync
 from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
 from common.messages import Heartbeat
 
+pytestmark = pytest.mark.parallel
+
 
 @pytest.mark.slow
 def test_operator_reconnects_after_an_oversized_telemetry_frame():

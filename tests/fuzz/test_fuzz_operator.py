@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from common.codec import DecodeError, decode
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 N_MALFORMED = int(os.environ.get("DEEPXPALM_FUZZ_N", "100000"))
 PATTERNS = [6, 3, 9, None, 0, 7, 11, 4]

@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 from common.codec import DecodeError, decode
 from common.messages import Command
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 N_MALFORMED = int(os.environ.get("DEEPXPALM_FUZZ_N", "100000"))
 KINDS = ["command", "command", "command", "heartbeat", "heartbeat", "stimulus"]

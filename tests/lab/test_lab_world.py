@@ -28,7 +28,12 @@ from robot_side.lab.devices import (
     LabTactileSensor,
 )
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.usefixtures("quiet_gc")]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.timeout(120),
+    pytest.mark.usefixtures("quiet_gc"),
+    pytest.mark.parallel,
+]
 
 #: the TCP this far below home puts the pads' centre 20 mm down the pipettes' tops
 GRASP_DEPTH_M = 0.025

@@ -19,7 +19,12 @@ pytest.importorskip("rtde_control", reason="the lab's arm is driven through ur-r
 from common.tactile import classes_of, pattern_of
 from deploy.bench.task import LIFTED_MM, TrialSetup, run_cell
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), pytest.mark.usefixtures("quiet_gc")]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.timeout(240),
+    pytest.mark.usefixtures("quiet_gc"),
+    pytest.mark.parallel,
+]
 
 OFF_CENTRE = TrialSetup(index=0, tilt_deg=0.0, offset_m=-0.006)
 

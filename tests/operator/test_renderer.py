@@ -16,6 +16,8 @@ from operator_side.linkglide import forward_kinematics
 from operator_side.renderer import LinkGlideRenderer, RendererConfig
 from operator_side.servos.calibration import LinkGlideCalibration, ServoCalibration
 
+pytestmark = pytest.mark.parallel
+
 
 def renderer(**kw) -> LinkGlideRenderer:
     return LinkGlideRenderer(RendererConfig(**kw), LinkGlideCalibration())

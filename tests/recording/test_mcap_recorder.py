@@ -24,6 +24,8 @@ from common.mcap_recorder import (
 )
 from common.messages import Stimulus
 
+pytestmark = pytest.mark.parallel
+
 HERE = Path(__file__).parent
 
 

@@ -23,7 +23,7 @@ from common.transport import Subscriber
 from deploy.fleet import Fleet
 from operator_side.config import OperatorLinkConfig
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 #: the fleet's operators keep the default: a stimulus older than this lifts the palm
 OPERATOR_STALE_AFTER_MS = OperatorLinkConfig().stale_after_ms
@@ -71,33 +71,25 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
                 key = fleet.signing_key(c)
                 held = lambda k=key: monitor.holder_since(k, 0) is not None  # noqa: E731
                 fleet.wait_for(held, 60, f"{c}'s lease")
-            for attempt in (1, 2):
-                trips = arm_sims[0].stats()["watchdog_trips"]
-                start = [sim.tcp_pose()[:3].copy() for sim in arm_sims]
-                # The observers jog both robots along y; only cell1's controller jogs (along x).
-                jogging = [
-                    threading.Thread(target=jog_for, args=(o, JOG_Y, 1.5)) for o in observers
-                ]
-                for t in jogging:
-                    t.start()
-                jog_for(c1, JOG_X, 1.0)
-                for t in jogging:
-                    t.join()
-                time.sleep(0.5)
-                moved = [sim.tcp_pose()[:3] - s for sim, s in zip(arm_sims, start, strict=True)]
-                assert abs(moved[0][1]) < 1e-3, f"cell1 moved along an observer's y: {moved[0]}"
-                assert np.abs(moved[1]).max() < 1e-3, f"cell2 moved with no jog from c2: {moved[1]}"
-                tripped = arm_sims[0].stats()["watchdog_trips"] - trips
-                if moved[0][0] > 0.015 or not tripped or attempt == 2:
-                    break
-                # load, not product: the robot node missed the controller's 150 ms watchdog
-                # (the simulator counted the trip), the arm stopped as it must and the driver
-                # reconnects; the routing is checked again once it has
-                print(f"cell1's controller watchdog tripped {tripped}x mid-jog; jogging again")
-                time.sleep(3.0)
-            assert moved[0][0] > 0.015, (
+            trips = arm_sims[0].stats()["watchdog_trips"]
+            start = [sim.tcp_pose()[:3].copy() for sim in arm_sims]
+            # The observers jog both robots along y; only cell1's controller jogs (along x).
+            jogging = [threading.Thread(target=jog_for, args=(o, JOG_Y, 1.5)) for o in observers]
+            for t in jogging:
+                t.start()
+            jog_for(c1, JOG_X, 1.0)
+            for t in jogging:
+                t.join()
+            time.sleep(0.5)
+            moved = [sim.tcp_pose()[:3] - s for sim, s in zip(arm_sims, start, strict=True)]
+            assert abs(moved[0][1]) < 1e-3, f"cell1 moved along an observer's y: {moved[0]}"
+            assert np.abs(moved[1]).max() < 1e-3, f"cell2 moved with no jog from c2: {moved[1]}"
+            # a trip of the controller's watchdog stops the arm mid-jog: the robot node's kicks
+            # stopped for the window, an unasked stop of the product (busy machine or not)
+            tripped = arm_sims[0].stats()["watchdog_trips"] - trips
+            assert moved[0][0] > 0.015 and not tripped, (
                 f"cell1 did not follow its controller: {moved[0]} "
-                f"(controller watchdog trips in the last try: {tripped})"
+                f"(controller watchdog trips during the jog: {tripped})"
             )
 
             # Killing cell2's controller mid-jog stops that arm within the deadman.
@@ -204,13 +196,13 @@ def test_hand_over_is_fast_loses_no_stimulus_and_moves_the_arm_for_the_new_holde
     for name in ("a@cell1", "b@cell1"):
         s = stats[name]
         assert s["link_lost"] == 0 and s["stimuli_received"] > 100, (name, s)
-        if s.get("lift_offs", 0) and gap_ms > OPERATOR_STALE_AFTER_MS:
-            pytest.skip(
-                f"load, not product: the robot's stream paused {gap_ms:.0f} ms (seen by the "
-                f"test's own relay client) and {name}'s palm lifted off, as a stale stream "
-                f"must (over {OPERATOR_STALE_AFTER_MS:.0f} ms)"
-            )
-        assert s.get("lift_offs", 0) == 0, (name, s, f"largest stimulus gap {gap_ms:.0f} ms")
+        # a lift-off is the operator's staleness rule acting on a stream that paused over its
+        # limit: on a hand-over the stream must not pause, busy machine or not
+        assert s.get("lift_offs", 0) == 0, (
+            f"{name}'s palm lifted off: the robot's stream paused (largest gap {gap_ms:.0f} ms "
+            f"seen by the test's own relay client, staleness limit "
+            f"{OPERATOR_STALE_AFTER_MS:.0f} ms); {s}"
+        )
     robot = stats["cell1"]
     assert robot["lease_handed_over"] == 2 and robot["commands_not_controller"] > 5, robot
     print("hand-over times (ms):", [round(t, 1) for t in times])

@@ -12,7 +12,7 @@ import pytest
 
 from deploy.bench.relay import run_isolation
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 
 def _check(r: dict) -> float:

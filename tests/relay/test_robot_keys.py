@@ -17,7 +17,7 @@ from common.roster import load_roster
 from common.signing import load_public_key, load_signer
 from deploy.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:

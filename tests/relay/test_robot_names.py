@@ -20,7 +20,7 @@ from common.security import SecurityConfig, client_options
 from common.transport import Publisher
 from deploy.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
 
 #: a posing message's seq: whatever reaches a subscriber with one came from the attacker
 POSING = 10**6

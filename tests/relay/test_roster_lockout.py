@@ -21,7 +21,7 @@ from common.messages import Command, Stimulus
 from common.security import SecurityConfig, client_options
 from deploy.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(90)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(90), pytest.mark.parallel]
 
 
 class _Traffic:

@@ -16,7 +16,7 @@ from fleet_monitor import Monitor, jog_for
 from common.clock import now_ns
 from deploy.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180), pytest.mark.parallel]
 
 JOG_X = [0.03, 0.0, 0.0, 0.0, 0.0, 0.0]
 

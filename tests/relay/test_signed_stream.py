@@ -20,7 +20,7 @@ from common.signing import Signer
 from common.transport import Publisher
 from deploy.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
 
 
 def test_forged_stimuli_are_dropped_and_the_robots_own_still_arrive(tmp_path, quiet_gc):

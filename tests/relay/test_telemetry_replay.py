@@ -21,7 +21,7 @@ from common.security import SecurityConfig, client_options
 from deploy.fleet import SCRIPTED_TACTILE, Fleet
 from operator_side.servos.sts_sim import FakeStsBus
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), pytest.mark.parallel]
 
 BELIEVED = "believed: a heartbeat answered ours"
 #: the fleet's held grasp without read noise, and the renderer's default dead band: once the

@@ -24,7 +24,7 @@ from common.transport import free_loopback_ports
 from common.web_token import from_query, with_token
 from deploy.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
 
 
 def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leaves(

@@ -24,6 +24,8 @@ from robot_side.command_gate import (
     RobotRun,
 )
 
+pytestmark = pytest.mark.parallel
+
 MS = 1_000_000
 AGE = 250 * MS
 OFFSET = 7_000 * MS  # the operator's clock minus ours

@@ -10,6 +10,8 @@ import pytest
 from common.errors import DeviceError
 from robot_side.recovery import DeviceRecovery
 
+pytestmark = pytest.mark.parallel
+
 
 class FlakyArm:
     def __init__(self, connect_failures: int = 0) -> None:

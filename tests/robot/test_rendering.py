@@ -17,6 +17,8 @@ from common.stimulus import (
 from common.tactile import MASKS, matches_pattern
 from deploy.bench.downsizing import downsize, peak_per_row
 
+pytestmark = pytest.mark.parallel
+
 
 def band_frame(cells: list[tuple[int, int]], force: float = 6.0) -> np.ndarray:
     frame = np.zeros((2, 10, 10), np.float32)

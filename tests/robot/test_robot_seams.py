@@ -13,7 +13,7 @@ from deploy.bench.fixtures import frame_set, scan_bytes, serial_sensor
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 
 def test_bytes_fed_to_the_serial_driver_become_a_frame_the_node_renders() -> None:

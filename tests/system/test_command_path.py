@@ -26,7 +26,7 @@ from robot_side.gripper.base import GripLevels
 
 N_FLOOD = 100_000
 
-pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc")]
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
 
 
 @pytest.fixture

@@ -19,7 +19,7 @@ from robot_side.node import RobotNode
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 HOLD_S = 1.2
 PATTERNS = [6, 7, 0, 9]

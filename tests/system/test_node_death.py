@@ -31,7 +31,7 @@ STOP_BUDGET_S = 0.4
 TRIALS = 5  # each about 2.5 s; docs/arm.md's figures are from runs of 10
 GRIP_LEVEL = 25
 
-pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc")]
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
 
 
 class ControllerReader:

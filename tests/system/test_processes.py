@@ -14,7 +14,7 @@ import msgpack
 import pytest
 import zmq
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
 

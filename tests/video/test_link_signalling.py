@@ -23,7 +23,7 @@ from robot_side.node import RobotNode
 from robot_side.video.link_signalling import LinkSignalling
 from robot_side.video.server import VideoConfig, VideoServer
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.parallel]
 
 ALICE, BOB = b"a" * 32, b"b" * 32
 
@@ -122,7 +122,9 @@ def test_a_robot_without_video_answers_an_offer_with_the_reason():
     link = CaptureLink()
     config = RobotConfig(render=RenderConfig(mode="direct"), link=RobotLinkConfig())
     node = RobotNode(config, None, link=link)
-    link.deliver(_signal("offer", 5, "v=0"), 1)
+    offer = _signal("offer", 5, "v=0")
+    offer.session, offer.echo_session = 7, node.session  # an operator run that heard this one
+    link.deliver(offer, 1)
     node.receive(1)
     sent = [m for m in link.messages if isinstance(m, VideoSignal)]
     assert len(sent) == 1 and sent[0].kind == "closed" and sent[0].viewer == 5

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import re
 import signal
 import socket
@@ -42,7 +43,7 @@ from websockets.exceptions import ConnectionClosed
 
 from common.clock import now_ns
 from common.codec import name_prefix
-from common.messages import VideoSignal
+from common.messages import Heartbeat, VideoSignal
 from common.security import SecurityConfig, client_options
 from common.signing import load_signer
 from common.transport import Publisher, Subscriber, free_loopback_ports
@@ -89,20 +90,37 @@ class SignedViewer:
             fleet.ops_telemetry,
             bind=False,
             sock_opts=opts,
-            topics=(name_prefix(VideoSignal.TOPIC, ROBOT),),
+            topics=(name_prefix(VideoSignal.TOPIC, ROBOT), name_prefix(Heartbeat.TOPIC, ROBOT)),
         )
         self.seq = 0
+        self.run = int.from_bytes(os.urandom(8), "big") >> 1  # this viewer's run, as a node's
+        self.robot_run: int | None = None  # the robot's, echoed: the robot's replay window
         self.heard: dict[int, list[tuple[float, VideoSignal]]] = {}  # viewer -> signals
 
     def send(self, kind: str, viewer: int, sdp: str | None = None) -> float:
+        deadline = time.monotonic() + 10.0
+        while self.robot_run is None:  # a node hears the robot's run before it signals
+            assert time.monotonic() < deadline, "no heartbeat from the robot"
+            self.read()
+            self.sub.poll(0.02)
         self.seq += 1
         self.pub.send(
-            VideoSignal(seq=self.seq, t_send_ns=now_ns(), kind=kind, viewer=viewer, sdp=sdp)
+            VideoSignal(
+                seq=self.seq,
+                t_send_ns=now_ns(),
+                kind=kind,
+                viewer=viewer,
+                sdp=sdp,
+                session=self.run,
+                echo_session=self.robot_run,
+            )
         )
         return time.monotonic()
 
     def read(self) -> None:
         for msg, _ in self.sub.drain():
+            if isinstance(msg, Heartbeat) and msg.session is not None:
+                self.robot_run = msg.session
             if isinstance(msg, VideoSignal):
                 self.heard.setdefault(msg.viewer, []).append((time.monotonic(), msg))
 
