@@ -363,8 +363,14 @@ class Subscriber(_Reconnecting):
             self.sock.setsockopt(zmq.SUBSCRIBE, topic)
         self.poller.register(self.sock, zmq.POLLIN)
 
-    def drain(self, max_messages: int = 1024) -> list[tuple[Message, int]]:
-        """Every valid queued message with its local receive time, oldest first."""
+    def drain(
+        self, max_messages: int = 1024, wires: list[bytes] | None = None
+    ) -> list[tuple[Message, int]]:
+        """Every valid queued message with its local receive time, oldest first.
+
+        ``wires``: each returned message's bytes as received are appended to it,
+        in the same order (a recorder keeps what crossed the link, not a re-encoding).
+        """
         out: list[tuple[Message, int]] = []
         sock = self.sock
         for _ in range(max_messages):
@@ -386,6 +392,8 @@ class Subscriber(_Reconnecting):
                 if self.expect_name is not None and robot != self.expect_name:
                     raise WrongRobotError(f"for robot {robot!r}, not {self.expect_name!r}")
                 out.append((msg, t_recv))
+                if wires is not None:
+                    wires.append(data)
             except DecodeError as e:
                 self.rejected[type(e).__name__] += 1
                 self._bad(str(e))
@@ -420,7 +428,9 @@ class Receiver(Protocol):
 
     def poll(self, timeout_s: float) -> bool: ...
 
-    def drain(self, max_messages: int = 1024) -> list[tuple[Message, int]]: ...
+    def drain(
+        self, max_messages: int = 1024, wires: list[bytes] | None = None
+    ) -> list[tuple[Message, int]]: ...
 
     @property
     def rejected_total(self) -> int: ...
@@ -479,10 +489,15 @@ class CaptureInbox:
     def poll(self, timeout_s: float) -> bool:
         return bool(self._queue)
 
-    def drain(self, max_messages: int = 1024) -> list[tuple[Message, int]]:
+    def drain(
+        self, max_messages: int = 1024, wires: list[bytes] | None = None
+    ) -> list[tuple[Message, int]]:
+        """``wires``: each message encoded as a socket would carry it (unsigned, unnamed)."""
         out = []
         while self._queue and len(out) < max_messages:
             out.append(self._queue.popleft())
+            if wires is not None:
+                wires.append(encode(out[-1][0]))
         self.received += len(out)
         return out
 

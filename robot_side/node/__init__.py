@@ -6,8 +6,11 @@
   and the skipping bench alike; ``frame_rule``: ``render_frame``, the rule
   for one frame, and the renderer that applies it (plain or compiled);
 - ``command_desk``: ``CommandDesk``, the one admission of every operator
-  message, signed or not (``peers``), and ``device_calls``, the table from
-  action to device call;
+  message, signed or not (``peers``); ``pending_stops``: the stops that wait
+  for their sender's proof; ``handover``: the stop latch, the hand-over to
+  the device workers and the ``robot/command`` recording; ``device_calls``,
+  the table from action to device call; ``assist``: the reflex the desk
+  holds for the lease holder;
 - ``workers``: the devices' worker threads and recoveries; ``deadman``;
   ``telemetry``: heartbeats and display frames; ``video_desk``: viewers'
   signalling; ``link_setup``: name, signing key and sockets; ``build``:

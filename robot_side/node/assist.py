@@ -16,11 +16,14 @@ Safety is the operator's jog's, not a copy of it:
   enable was sent, and every arm velocity it issues carries that enable's
   send time, so the arm's own deadman stops it at the same moment;
 - its commands are ``arm_jog``, ``arm_jog_end`` and gripper commands given
-  to ``CommandDesk.act_for_holder``: the stop latch, ``DEVICE_CALLS``, the
+  to ``Handover.act_for_holder`` (handover.py, handed in as ``act``): the
+  stop latch, ``DEVICE_CALLS``, the
   arm driver's speed caps and workspace clipping and the recording, as for
   the holder's own. Its own targets are kept inside the box as well;
 - any stop, the deadman, a lease change, the holder's own command or the
-  enable's release ends it, and the arm stops.
+  enable's release ends it, and the arm stops. The command desk, which
+  admits those, owns the assist and tells it (``hold``, ``end``,
+  ``gripper_taken``); the assist never calls the desk.
 
 Sign conventions (docs/tactile.md, ``LabWorld.grasp_geometry``): the pads lie
 in the tool's x-z plane, columns along +x ("right"), rows up along +z (the
@@ -51,7 +54,6 @@ from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL
 from robot_side.perception.band import Band, measure_band
 
 if TYPE_CHECKING:
-    from robot_side.node.command_desk import CommandDesk
     from robot_side.node.frame_pipeline import FramePipeline
     from robot_side.node.workers import DeviceWorkers
 
@@ -72,17 +74,24 @@ class Assist:
     def __init__(
         self,
         config: AssistConfig,
-        desk: CommandDesk,
         pipeline: FramePipeline,
         workers: DeviceWorkers,
         *,
+        act: Callable[[Command, int | None], bool],
+        stop_latched: Callable[[], bool],
+        grip_level: Callable[[], int | None],
         limits: ArmLimits | None,
         now: Callable[[], int],
         recorder: Recorder | None,
         announce: Callable[[], None],
     ) -> None:
+        """``act``: a command on the holder's path (False: refused); ``stop_latched``:
+        whether an operator's stop holds the arm; ``grip_level``: the level of the holder's
+        newest gripper_close (None: none yet)."""
         self.config = config
-        self.desk = desk
+        self.act = act
+        self.stop_latched = stop_latched
+        self.grip_level = grip_level
         self.pipeline = pipeline
         self.workers = workers
         self.limits = limits
@@ -141,7 +150,7 @@ class Assist:
             self._stop_moving(released)
             self._enter("off", now, released)
             return
-        if self.desk.stop_latch.latched:
+        if self.stop_latched():
             self.end("stop latched")
             return
         phase = self.phase
@@ -165,7 +174,7 @@ class Assist:
         band = self._band()
         if self._aligned(pattern, band, now):
             return
-        grip = self.desk.grip_level_commanded  # the operator's close, not where it stalled
+        grip = self.grip_level()  # the operator's close, not where it stalled
         self._level = grip if grip is not None else DEFAULT_CLOSE_LEVEL
         self._regrasp(pattern, band, now)
 
@@ -186,37 +195,13 @@ class Assist:
         frame = self.pipeline.last_frame
         return None if frame is None else measure_band(frame)
 
-    def _plan(self, band: Band | None, pattern: int) -> tuple[np.ndarray, float]:
-        """(shift in tool x, y, z, mm; turn about the tool's y, deg) onto 90 deg centre.
-
-        The band's geometry when the frame has one: the CNN names a class every
-        45 deg and a side from 3 mm, and a tilted pipette meets the pads up to
-        10 mm off centre at angles between the classes (a whole-class turn from a
-        band at 67 deg ends at 112, "90" to the CNN and "135" to the world). The
-        recognised class only when the frame has no band: its side by
-        ``side_offset_mm``, its angle, and for 0 deg (far off either way) an
-        eighth turn, after which the next grasp says which way.
-        """
-        if band is not None:
-            ox, oz = band.offset_mm
-            shift = _capped(np.array([ox, 0.0, oz]), self.config.max_shift_mm)
-            wanted = 90.0 - band.angle_deg  # the pads cannot tell a band from its half turn:
-            wanted = min((wanted, wanted - 180.0, wanted + 180.0),  # the nearer of the two
-                         key=lambda w: abs(self._turned_deg + w))  # fmt: skip
-            return shift, wanted
-        angle_class, position = classes_of(pattern)
-        dx, dz = offset_direction(angle_class)
-        side = {0: 0.0, 1: 1.0, 2: -1.0}[position] * self.config.side_offset_mm
-        wanted = 90.0 - ANGLES_DEG[angle_class] if angle_class else 45.0
-        return np.array([dx * side, 0.0, dz * side]), wanted
-
     def _regrasp(self, pattern: int, band: Band | None, now: int) -> None:
         """Plan the shift and the turn from one look at the frame; ease the fingers off."""
         pose = self._pose()
         if pose is None:
             return  # the arm's first reading is still to come
         self.regrasps += 1
-        shift_tool, wanted = self._plan(band, pattern)
+        shift_tool, wanted = plan_regrasp(self.config, band, pattern, self._turned_deg)
         shift = rotvec_to_matrix(pose[3:]) @ shift_tool / 1000
         self._shift_to = self._inside_box(pose[:3] + shift)
         limit = self.config.max_turn_deg
@@ -338,7 +323,7 @@ class Assist:
         self._seq += 1
         cmd.seq, cmd.t_send_ns = self._seq, self.now()
         self.steps += 1
-        self.desk.act_for_holder(cmd, self._enable_ns)
+        self.act(cmd, self._enable_ns)
 
     def _enter(self, phase: str, now: int, why: str) -> None:
         self.phase, self.why, self._phase_since = phase, why, now
@@ -359,6 +344,35 @@ class Assist:
             out["assist_regrasps"] = float(self.regrasps)
             out["assist_steps"] = float(self.steps)
         return out
+
+
+def plan_regrasp(
+    config: AssistConfig, band: Band | None, pattern: int, turned_deg: float
+) -> tuple[np.ndarray, float]:
+    """(shift in tool x, y, z, mm; turn about the tool's y, deg) onto 90 deg centre.
+
+    The band's geometry when the frame has one: the CNN names a class every
+    45 deg and a side from 3 mm, and a tilted pipette meets the pads up to
+    10 mm off centre at angles between the classes (a whole-class turn from a
+    band at 67 deg ends at 112, "90" to the CNN and "135" to the world). The
+    recognised class only when the frame has no band: its side by
+    ``side_offset_mm``, its angle, and for 0 deg (far off either way) an
+    eighth turn, after which the next grasp says which way. ``turned_deg``: the
+    turns planned since the enable was pressed (the nearer of a band's two
+    readings is taken from there).
+    """
+    if band is not None:
+        ox, oz = band.offset_mm
+        shift = _capped(np.array([ox, 0.0, oz]), config.max_shift_mm)
+        wanted = 90.0 - band.angle_deg  # the pads cannot tell a band from its half turn:
+        wanted = min((wanted, wanted - 180.0, wanted + 180.0),  # the nearer of the two
+                     key=lambda w: abs(turned_deg + w))  # fmt: skip
+        return shift, wanted
+    angle_class, position = classes_of(pattern)
+    dx, dz = offset_direction(angle_class)
+    side = {0: 0.0, 1: 1.0, 2: -1.0}[position] * config.side_offset_mm
+    wanted = 90.0 - ANGLES_DEG[angle_class] if angle_class else 45.0
+    return np.array([dx * side, 0.0, dz * side]), wanted
 
 
 def _measured(band: Band | None) -> str:

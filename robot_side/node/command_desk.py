@@ -20,8 +20,10 @@ an unsigned link is a roster of one operator who always holds control):
 7. the newest admitted command of each device wins the batch; it goes to
    its device's worker through ``DEVICE_CALLS`` (device_calls.py).
 
-The assist's own commands (``act_for_holder``) take steps 5 and 7: the same
-stop latch, device calls, clipping and recording as the holder's.
+The assist's own commands (``Handover.act_for_holder``, handover.py) take
+steps 5 and 7: the same stop latch, device calls, clipping and recording as
+the holder's. The desk owns the assist and tells it what it admitted; the
+assist never calls the desk (it is handed the hand-over's callables).
 
 Whatever arrives, from a dashboard page, a gamepad, a script or the API,
 passes the same clipping (the arm driver's), deadman and stop latch.
@@ -32,53 +34,26 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
 
 from common.clock_sync import ClockSync
-from common.codec import DecodeError
-from common.errors import ConfigError, DeviceError
+from common.errors import ConfigError
 from common.logs import BurstLog
-from common.messages import (
-    LEASE_ACTIONS,
-    SESSION_LOW_MASK,
-    Command,
-    Heartbeat,
-    Message,
-    VideoSignal,
-)
-from common.recording import Recorder
+from common.messages import LEASE_ACTIONS, Command, Heartbeat, Message, VideoSignal
 from common.roster import Roster, check_replacement, load_roster
-from robot_side.command_gate import (
-    PENDING,
-    STOP_BEFORE_RUN,
-    STOP_PROVEN,
-    STOP_UNPROVEN,
-    CommandGate,
-    RobotRun,
-)
+from robot_side.command_gate import PENDING, CommandGate, RobotRun
 from robot_side.config import RobotLinkConfig
-from robot_side.device_worker import DeviceRequest
 from robot_side.lease import ControlLease, Peer
-from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL, DEVICE_CALLS
+from robot_side.node.assist import Assist
+from robot_side.node.device_calls import DEVICE_CALLS
+from robot_side.node.handover import Handover
 from robot_side.node.peers import OnePeer, RosterPeers
-from robot_side.node.workers import DeviceWorkers
+from robot_side.node.pending_stops import PendingStops
 from robot_side.stop_latch import REFUSALS, StopLatch
-
-if TYPE_CHECKING:
-    from robot_side.node.assist import Assist
 
 log = logging.getLogger(__name__)
 
 #: the newest admitted command of each device in a batch, with its send time on our clock
 Newest = dict[str, tuple[Command, int | None]]
-
-#: what the log says of a pending stop's outcome
-_PENDING_OUTCOMES = {
-    STOP_PROVEN: "its sender proved it hears this run: latched",
-    STOP_BEFORE_RUN: "sent before this robot run started (a replay): refused, nothing latched",
-    STOP_UNPROVEN: "its sender never proved it hears this run within 2 s (a replay, or an "
-    "operator that cannot hear this robot): refused, nothing latched",
-}
 
 
 class CommandDesk:
@@ -87,36 +62,37 @@ class CommandDesk:
     def __init__(
         self,
         link: RobotLinkConfig,
-        workers: DeviceWorkers,
+        handover: Handover,
+        assist: Assist | None,
         *,
         counters: Counter[str],
         now: Callable[[], int],
-        recorder: Recorder | None,
         on_video: Callable[[VideoSignal, bytes | None], None],
         announce: Callable[[], None],
         session: int = 0,
     ) -> None:
-        """``recorder`` None records nothing;
+        """``handover``: the stop latch and the devices (handover.py);
+        ``assist``: the reflex an ``arm_assist`` holds (None: refused);
         ``announce`` asks for a heartbeat at once (a lease or latch change);
         ``session``: this robot run's boot id, which operators echo to prove a message is of it."""
         self.link = link
-        self.workers = workers
         self.counters = counters
-        self.now = now
-        self.recorder = recorder
         self.on_video = on_video
         self.announce = announce
         max_age_ns = round(link.max_command_age_ms * 1e6)
         #: this run: what an operator's message must echo, and when it started
         self.run = RobotRun(session, now())
-        #: (signer, its state, the stop, arrival): stops awaiting their sender's proof
-        self.pending_stops: list[tuple[bytes | None, Peer, Command, int]] = []
+        #: the stop latch, the device workers' queue and the robot/command recording
+        self.handover = handover
+        self.assist = assist
+        #: arm_stops that wait for their sender's proof (pending_stops.py)
+        self.pending_stops = PendingStops(
+            self.handover, self.run, counters=counters, announce=announce
+        )
         self._refused_log = BurstLog(log, "operator message refused (replay window)")
         self._malformed_stop_log = BurstLog(log, "arm_stop with malformed fields, acted on")
         #: the one operator's clock on an unsigned link (each roster key has its own)
         self.clock = ClockSync()
-        #: an operator's arm_stop holds the arm until the holder's arm_resume (stop_latch.py)
-        self.stop_latch = StopLatch()
         #: the roster in force (a reload that would lock everyone out keeps it)
         self.roster: Roster | None = None
         #: with a roster: signed commands, obeyed only from the lease holder (lease.py)
@@ -134,13 +110,11 @@ class CommandDesk:
                 "signed commands from the lease holder may move the arm (docs/security.md)"
             )
         self._lease_changes_seen = 0
-        #: (seq, low 32 bits of the session) of the newest gripper command handed to the gripper
-        self.gripper_ack: tuple[float, float] | None = None
-        #: the grip level of the newest gripper_close handed to the gripper (the assist's
-        #: re-grasp closes at it: the level the fingers read is where they met the pipette)
-        self.grip_level_commanded: int | None = None
-        #: the robot-side reflex an ``arm_assist`` holds (set by the node; None: refused)
-        self.assist: Assist | None = None
+
+    @property
+    def stop_latch(self) -> StopLatch:
+        """An operator's arm_stop holds the arm until the holder's arm_resume (stop_latch.py)."""
+        return self.handover.stop_latch
 
     @property
     def gate(self) -> CommandGate:
@@ -153,14 +127,14 @@ class CommandDesk:
         for msg, t_recv in batch:
             self.admit(msg, t_recv, now, newest)
         if self.pending_stops:  # after the batch: it may hold the proof
-            self._judge_pending(now)
+            self.pending_stops.judge(now)
         if self.lease is not None:
             timed_out = self.lease.tick(now)
             if timed_out is not None:
                 self.counters[timed_out] += 1
             self._follow_lease(now, newest)
         for device, (cmd, sent) in newest.items():
-            self._dispatch(device, cmd, sent)
+            self.handover.dispatch(device, cmd, sent)
 
     def admit(self, msg: Message, t_recv: int, now: int, newest: Newest) -> None:
         """The one admission of an operator message, signed or not (the module's steps 1-6)."""
@@ -191,16 +165,19 @@ class CommandDesk:
             self._malformed_stop_log(f"from {peer.entry.name}: {'; '.join(msg.defects)}")
         refusal, sent = peer.gate.admit(msg, t_recv, now, self.run)
         if refusal == PENDING:
-            self._pend_stop(key, peer, msg, t_recv, now, newest)
+            if self.pending_stops.pend(key, peer, msg, t_recv, self.peers.holds(key)):
+                if self.assist is not None:
+                    self.assist.end(f"arm_stop from {peer.entry.name}")
+                self._newest(newest, "arm", msg, None)
             return
         if refusal is not None:
             self._refused(refusal, msg, peer)
-            self._record(msg, f"refused: {refusal}")
+            self.handover.record(msg, f"refused: {refusal}")
             return
         if msg.action in LEASE_ACTIONS:
             outcome = self.peers.lease_action(key, msg, now)
             self.counters[outcome] += 1
-            self._record(msg, outcome)
+            self.handover.record(msg, outcome)
             return
         holder, who = self.peers.holds(key), peer.entry
         if self.assist is not None and msg.action == "arm_stop":
@@ -218,11 +195,15 @@ class CommandDesk:
         if call is None:  # the codec admits no other action; should one be added, say so
             self.counters["messages_unexpected"] += 1
             return
-        older = newest.get(call.device)
-        if older is not None:  # newest only: an older wish is never acted on
+        self._newest(newest, call.device, msg, sent)
+
+    def _newest(self, newest: Newest, device: str, msg: Command, sent: int | None) -> None:
+        """Newest only: an older wish of the same device in the batch is never acted on."""
+        older = newest.get(device)
+        if older is not None:
             self.counters["commands_superseded"] += 1
-            self._record(older[0], "superseded")
-        newest[call.device] = (msg, sent)
+            self.handover.record(older[0], "superseded")
+        newest[device] = (msg, sent)
 
     def _refused(self, refusal: str, msg: Message, peer: Peer) -> None:
         self.counters[refusal] += 1
@@ -233,94 +214,13 @@ class CommandDesk:
                 f"{msg.session or 0:016x}, seq {msg.seq}"
             )
 
-    # ------------------------------------------------------------ pending stops
-    def _pend_stop(
-        self, key: bytes | None, peer: Peer, msg: Command, t_recv: int, now: int, newest: Newest
-    ) -> None:
-        """An arm_stop the window cannot yet believe: the arm stops now, the latch waits.
-
-        Its sender's role is judged now (a recorder's stop moves nothing);
-        while it waits, nothing sets the arm moving (``StopLatch.pending``).
-        The same stop twice waits once.
-        """
-        refusal = self.stop_latch.judge("arm_stop", self.peers.holds(key), peer.entry.role)
-        if refusal is not None:
-            self.counters[refusal] += 1
-            self._record(msg, f"refused: {REFUSALS[refusal]}")
-            return
-        for k, _, other, _ in self.pending_stops:
-            if k == key and (other.session, other.seq) == (msg.session, msg.seq):
-                self.counters["commands_replayed"] += 1
-                return
-        self.counters[PENDING] += 1
-        self.pending_stops.append((key, peer, msg, t_recv))
-        self.stop_latch.pending = len(self.pending_stops)
-        log.warning(
-            "arm_stop from %s (boot %016x, seq %d) stopped the arm; it latches once its "
-            "sender proves it hears this run",
-            peer.entry.name,
-            msg.session or 0,
-            msg.seq,
-        )
-        if self.assist is not None:
-            self.assist.end(f"arm_stop from {peer.entry.name}")
-        older = newest.get("arm")
-        if older is not None:
-            self.counters["commands_superseded"] += 1
-            self._record(older[0], "superseded")
-        newest["arm"] = (msg, None)
-
-    def _judge_pending(self, now: int) -> None:
-        """Latch each pending stop whose sender proved live, refuse those that cannot be."""
-        waiting = []
-        for key, peer, msg, t_recv in self.pending_stops:
-            outcome = peer.gate.judge_pending(msg, t_recv, now, self.run)
-            if outcome is None:
-                waiting.append((key, peer, msg, t_recv))
-                continue
-            self.counters[outcome] += 1
-            log.warning(
-                "pending arm_stop from %s (boot %016x, seq %d): %s",
-                peer.entry.name,
-                msg.session or 0,
-                msg.seq,
-                _PENDING_OUTCOMES[outcome],
-            )
-            if outcome == STOP_PROVEN:
-                if self.stop_latch.apply("arm_stop", peer.entry.name, now):
-                    self.announce()
-                self.counters["arm_stops_latched"] += 1
-            else:
-                self._record(msg, f"refused: {outcome}")
-        self.pending_stops = waiting
-        self.stop_latch.pending = len(waiting)
-
     def _hold_assist(self, msg: Command, enable_ns: int, now: int) -> None:
         refusal = "assist_refused_none" if self.assist is None else self.assist.hold(enable_ns, now)
         if refusal is not None:
             self.counters[refusal] += 1
-            self._record(msg, f"refused: {refusal}")
+            self.handover.record(msg, f"refused: {refusal}")
             return
         self.counters["assist_enables"] += 1
-
-    def act_for_holder(self, cmd: Command, sent_ns: int | None) -> bool:
-        """A command the robot makes for the lease holder (the assist), on the holder's path.
-
-        The stop latch judges it as the holder's own, ``DEVICE_CALLS`` carries
-        it out (an arm velocity passes the arm driver's caps and box clipping,
-        and ``sent_ns``, the holder's enable, starts the arm's jog deadman) and
-        it is recorded in ``robot/command``. It never names itself in the
-        heartbeat's gripper acknowledgement, which is the operator's own.
-        False when refused.
-        """
-        refusal = self.stop_latch.judge(cmd.action, True)
-        if refusal is not None:
-            self.counters[refusal] += 1
-            self._record(cmd, f"refused: {REFUSALS[refusal]}", by_assist=True)
-            return False
-        self.counters["assist_commands"] += 1
-        self._dispatch(DEVICE_CALLS[cmd.action].device, cmd, sent_ns, by_assist=True)
-        return True
 
     def _latch_lets(self, msg: Command, holder: bool, role: str, who: str, now: int) -> bool:
         """The stop latch's word on an admitted command: True to act on it on the device.
@@ -333,22 +233,16 @@ class CommandDesk:
         refusal = latch.judge(msg.action, holder, role)
         if refusal is not None:
             self.counters[refusal] += 1
-            self._record(msg, f"refused: {REFUSALS[refusal]}")
+            self.handover.record(msg, f"refused: {REFUSALS[refusal]}")
             return False
-        if msg.action == "arm_resume" and self.pending_stops:
-            # the holder resumed after those stops were pressed: as it releases a latched one
-            self.counters["arm_stops_pending_resumed"] += len(self.pending_stops)
-            log.warning(
-                "%d pending arm_stop(s) released by %s's arm_resume", len(self.pending_stops), who
-            )
-            self.pending_stops = []
-            latch.pending = 0
+        if msg.action == "arm_resume":
+            self.pending_stops.release(who)
         if msg.action in ("arm_stop", "arm_resume"):
             if latch.apply(msg.action, who, now):
                 self.announce()  # every operator sees the latch change at once
             self.counters["arm_stops_latched" if msg.action == "arm_stop" else "arm_resumes"] += 1
         if msg.action == "arm_resume":
-            self._record(msg, "applied")
+            self.handover.record(msg, "applied")
             return False
         return True
 
@@ -406,73 +300,8 @@ class CommandDesk:
             return
         self._lease_changes_seen = lease.changes
         self.announce()
+        why = f"control lease now {lease.holder_name() or 'nobody'}'s"
         if self.assist is not None:
-            self.assist.end(f"control lease now {lease.holder_name() or 'nobody'}'s")
+            self.assist.end(why)
         if not any(cmd.action == "arm_jog" for cmd, _ in newest.values()):
-            self.workers.stop_devices(f"control lease now {lease.holder_name() or 'nobody'}'s")
-
-    # ---------------------------------------------------------- the devices
-    def _dispatch(
-        self, device: str, cmd: Command, sent_ns: int | None, *, by_assist: bool = False
-    ) -> None:
-        """Hand the command to its device's worker; a missing device refuses at once."""
-        if device not in self.workers.workers:
-            self.counters["commands_rejected"] += 1
-            log.warning("command %s rejected: this scene has no %s", cmd.action, device)
-            self._record(cmd, f"rejected: this scene has no {device}", by_assist=by_assist)
-            return
-        if device == "gripper" and not by_assist:
-            # the heartbeat names it, so the operator can resend a gripper command we never saw
-            self.gripper_ack = (float(cmd.seq), float((cmd.session or 0) & SESSION_LOW_MASK))
-            if cmd.action == "gripper_close":
-                self.grip_level_commanded = cmd.grip_level or DEFAULT_CLOSE_LEVEL
-        call, args = DEVICE_CALLS[cmd.action].make(self.workers.device(device), cmd, sent_ns)
-        self.workers.post(
-            device, DeviceRequest(cmd.action, call, args, self._on_done(cmd, sent_ns, by_assist))
-        )
-
-    def _on_done(
-        self, cmd: Command, sent_ns: int | None, by_assist: bool = False
-    ) -> Callable[..., None]:
-        def on_done(request: DeviceRequest, result: Any, error: BaseException | None) -> None:
-            if error is None:
-                outcome = "applied"
-            elif isinstance(error, (DeviceError, ValueError, DecodeError)):
-                log.warning("command %s rejected: %s", cmd.action, error)
-                outcome = f"rejected: {error}"
-            else:
-                log.error("command %s failed: %r", cmd.action, error)
-                outcome = f"failed: {error!r}"
-            sent = result if cmd.action == "arm_jog" and error is None else None
-            self._record(cmd, outcome, sent, sent_ns, by_assist=by_assist)
-
-        return on_done
-
-    def _record(
-        self,
-        cmd: Command,
-        outcome: str,
-        sent: Any = None,
-        sent_ns: int | None = None,
-        *,
-        by_assist: bool = False,
-    ) -> None:
-        """``t_sent_ns`` (the operator's send time on our clock) is when the arm's jog
-        deadline started counting, which an exporter needs to end the jog where the arm did.
-        The assist's commands say so (``by``: its seqs are its own, not an operator's)."""
-        if self.recorder is None:
-            return
-        self.recorder.write(
-            "robot/command",
-            self.now(),
-            ({"by": "assist"} if by_assist else {})
-            | {
-                "seq": cmd.seq,
-                "action": cmd.action,
-                "grip_level": cmd.grip_level,
-                "velocity": list(cmd.velocity) if cmd.velocity else None,
-                "sent_velocity": None if sent is None else [float(v) for v in sent],
-                "t_sent_ns": sent_ns,
-                "outcome": outcome,
-            },
-        )
+            self.handover.workers.stop_devices(why)

@@ -34,6 +34,7 @@ from robot_side.node.command_desk import CommandDesk
 from robot_side.node.deadman import NEVER_NS, Deadman
 from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.frame_rule import Classifier
+from robot_side.node.handover import Handover
 from robot_side.node.link_setup import open_link, stream_signer, wire_name
 from robot_side.node.telemetry import HeartbeatSchedule, Telemetry, node_stats
 from robot_side.node.video_desk import VideoDesk, video_signalling
@@ -85,12 +86,39 @@ class RobotNode:
         #: our name on the wire (b"" = unnamed); ConfigError for a name the protocol forbids
         self.name = wire_name(link_cfg.robot_name)
         self.workers = DeviceWorkers(arm, gripper, link_cfg.heartbeat_rate_hz)
-        self.desk = CommandDesk(
-            link_cfg,
-            self.workers,
+        self.pipeline = FramePipeline(
+            config,
+            classifier,
+            self._send,
+            now=now,
+            session=self.session,
             counters=self.counters,
+            recorder=recording,
+            grip_level=lambda: self.workers.grip_level,
+        )
+        #: the stop latch, the device workers' queue and the robot/command recording
+        self.handover = handover = Handover(
+            self.workers, counters=self.counters, now=now, recorder=recording
+        )
+        #: the robot-side reflex the holder's arm_assist enables (off until held)
+        self.assist = Assist(
+            config.assist,
+            self.pipeline,
+            self.workers,
+            act=handover.act_for_holder,
+            stop_latched=lambda: handover.stop_latch.latched,
+            grip_level=lambda: handover.grip_level_commanded,
+            limits=None if arm is None else arm.limits,
             now=now,
             recorder=recording,
+            announce=self._announce,
+        )
+        self.desk = CommandDesk(
+            link_cfg,
+            handover,
+            self.assist,
+            counters=self.counters,
+            now=now,
             on_video=self._on_video,
             announce=self._announce,
             session=self.session,
@@ -106,27 +134,6 @@ class RobotNode:
             last_heard_ns=self.desk.peers.last_heard_ns,
             who=self.desk.peers.entry,
             offers_per_s=link_cfg.video_offers_per_s,
-        )
-        self.pipeline = FramePipeline(
-            config,
-            classifier,
-            self._send,
-            now=now,
-            session=self.session,
-            counters=self.counters,
-            recorder=recording,
-            grip_level=lambda: self.workers.grip_level,
-        )
-        #: the robot-side reflex the holder's arm_assist enables (off until held)
-        self.assist = self.desk.assist = Assist(
-            config.assist,
-            self.desk,
-            self.pipeline,
-            self.workers,
-            limits=None if arm is None else arm.limits,
-            now=now,
-            recorder=recording,
-            announce=self._announce,
         )
         self.deadman = Deadman(link_cfg.deadman_ms, self.counters)
         self.telemetry = Telemetry(
@@ -170,7 +177,7 @@ class RobotNode:
 
     @property
     def stop_latch(self) -> StopLatch:
-        return self.desk.stop_latch
+        return self.handover.stop_latch
 
     @property
     def uses_compiled_step(self) -> bool:

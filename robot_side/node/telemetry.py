@@ -185,6 +185,7 @@ def node_stats(
     out["arm_stop_latched"] = float(desk.stop_latch.latched)
     if desk.assist is not None:
         out.update(desk.assist.stats())
-    if desk.gripper_ack is not None:
-        out["gripper_command_seq"], out["gripper_command_session"] = desk.gripper_ack
+    ack = desk.handover.gripper_ack
+    if ack is not None:
+        out["gripper_command_seq"], out["gripper_command_session"] = ack
     return out

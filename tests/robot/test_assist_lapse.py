@@ -53,9 +53,11 @@ def _rig():
     desk = Desk()
     assist = Assist(
         AssistConfig(),
-        desk,
         pipeline,
         workers,
+        act=desk.act_for_holder,
+        stop_latched=lambda: desk.stop_latch.latched,
+        grip_level=lambda: desk.grip_level_commanded,
         limits=ArmLimits(),
         now=lambda: clock[0],
         recorder=None,

@@ -1,0 +1,89 @@
+"""What the live views show of the operator node: one copy, safe to read from another thread."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from operator_side.node.arrivals import Arrivals
+    from operator_side.node.palm import Palm
+
+
+@dataclass
+class Snapshot:
+    """What the live views show; a copy, safe to read from another thread."""
+
+    link_state: str
+    stimulus: np.ndarray | None
+    pattern: int | None
+    confidence: float | None
+    grip_level: int | None
+    frame: np.ndarray | None
+    goal_counts: np.ndarray
+    goal_angles: np.ndarray
+    age_ms: float | None
+    stats: dict[str, float]
+    robot_stats: dict[str, float]
+    #: with a signing key: who holds the robot's control lease (``OperatorNode.control_view``)
+    control: dict[str, Any] | None = None
+
+    def as_json(self) -> dict[str, Any]:
+        """Plain JSON data (an operator node in another process shows it: its status file)."""
+        out = dataclasses.asdict(self)
+        for name in (*_SNAPSHOT_ARRAYS, "goal_angles"):
+            value = out[name]
+            out[name] = None if value is None else np.asarray(value).tolist()
+        return json.loads(json.dumps(out, default=_plain))
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Snapshot:
+        fields = dict(data)
+        for name, dtype in _SNAPSHOT_ARRAYS.items():
+            if fields[name] is not None:
+                fields[name] = np.array(fields[name], dtype=dtype)
+        fields["goal_angles"] = np.array(fields["goal_angles"], dtype=np.float64)
+        return cls(**fields)
+
+
+_SNAPSHOT_ARRAYS = {"stimulus": np.float32, "frame": np.float32, "goal_counts": np.int64}
+
+
+def _plain(value: Any) -> Any:
+    """A NumPy scalar or bytes (a key) as JSON."""
+    if isinstance(value, bytes):
+        return value.hex()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+def take_snapshot(
+    arrivals: Arrivals,
+    palm: Palm,
+    now: int,
+    stats: dict[str, float],
+    control: dict[str, Any] | None,
+) -> Snapshot:
+    """The node's parts as the live views show them: copies, taken under the arrivals' lock."""
+    stim, frame, robot_stats = arrivals.views()
+    _, age = palm.fresh_stimulus(now)
+    written = palm.goal_counts()
+    return Snapshot(
+        link_state=palm.link_state,
+        stimulus=None if stim is None else stim.stimulus.copy(),
+        pattern=None if stim is None else stim.pattern,
+        confidence=None if stim is None else stim.confidence,
+        grip_level=None if stim is None else stim.grip_level,
+        frame=None if frame is None else frame.frame.copy(),
+        goal_counts=written,
+        goal_angles=palm.calibration.counts_to_angles(written),
+        age_ms=age,
+        stats=stats,
+        robot_stats=robot_stats,
+        control=control,
+    )
