@@ -34,11 +34,7 @@ ALLOWED: dict[str, frozenset[str]] = {
 
 #: circles known and being taken apart elsewhere; each entry names its modules. The
 #: check fails when one is gone (delete its entry) as when a new one appears.
-KNOWN_CIRCLES: dict[frozenset[str], str] = {
-    # The assist and the command desk call each other (wired by mutation); they are
-    # being made to talk in one direction, the desk never calling the assist.
-    frozenset({"robot_side.node.assist", "robot_side.node.command_desk"}): "assist <-> desk",
-}
+KNOWN_CIRCLES: dict[frozenset[str], str] = {}
 
 
 @functools.cache
