@@ -11,14 +11,17 @@ BIN := $(VENV)/bin
 TORCH ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 
-# Two lanes (docs/testing.md). The parallel lane: most tests wait far more than they compute,
-# and their bounds are the product's own limits (the 400 ms stop, the 150 ms staleness), which
-# hold beside other tests as they must on a busy robot PC; so they run four at a time
-# (pytest-xdist), each file on one worker so a module's fixture runs once: the tests not
-# marked slow, and the slow ones marked `parallel` or `untimed`. The serial lane: the slow
-# tests not so marked, and those marked `serial`, one at a time.
+# Three lanes (docs/testing.md). Most tests wait far more than they compute: the tests not
+# marked slow, and the slow ones marked `untimed` (they check no timing), run four at a time
+# (pytest-xdist), each file on one worker so a module's fixture runs once. The slow ones marked
+# `parallel` start deployments (nodes, simulators, browsers) and bound their timing by the
+# product's own limits (the 400 ms stop, the 150 ms staleness), which must hold beside another
+# deployment as on a busy robot PC: two at a time, so the lane is not starved of CPU. The other
+# slow tests, and those marked `serial`, compare timings or need the machine: one at a time.
 FAST_WORKERS ?= 4
-PARALLEL_LANE := (not slow or untimed or parallel) and not serial and not soak
+DEPLOYMENT_WORKERS ?= 2
+PARALLEL_LANE := (not slow or untimed) and not serial and not soak
+DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not soak
 SERIAL_LANE := (slow and not untimed and not parallel or serial) and not soak
 
 .PHONY: demo test test-fast lint bench setup clean
@@ -42,9 +45,10 @@ test: $(STAMP)
 	bash scripts/install-test-system-packages.sh || [ -z "$$CI" ]
 	@# LeRobot's own dataset class in an environment of its own (cached), to load exports with
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
-	@# both lanes run whatever the first gave; exit 5 is a lane that ARGS left empty
+	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty
 	status=0; \
 	$(BIN)/python -m pytest -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(BIN)/python -m pytest -m "$(DEPLOYMENT_LANE)" -n $(DEPLOYMENT_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(BIN)/python -m pytest -m "$(SERIAL_LANE)" $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	exit $$status
 

@@ -26,7 +26,7 @@ from robot_side.video.stamp import MS_MODULO
 
 pytest.importorskip("aiortc", reason="the demo's video needs the 'video' extra")
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_chromium, pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_chromium]
 
 #: both pages play again within this of kill -9 of the video server (docs/dashboard.md)
 RECOVER_S = 5.0

@@ -23,7 +23,7 @@ from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.parallel]
 
 KEY_DELETE = {"key": "Delete", "code": "Delete", "windowsVirtualKeyCode": 46}
 MARK_ACKS = "dxp.marks.length"

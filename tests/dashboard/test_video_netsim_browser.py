@@ -39,7 +39,7 @@ from harness.bench.video_netsim import (
 )
 from robot_side.video.stamp import MS_MODULO
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(150), needs_chromium, pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(150), needs_chromium]
 
 LIMIT_KBIT = 1000.0
 #: the page offers again when no frame is decoded for this long (video.js): a gap this long is

@@ -12,7 +12,7 @@ import pytest
 
 from harness.bench.relay import run_isolation
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = [pytest.mark.slow]
 
 
 def _check(r: dict) -> float:

@@ -29,7 +29,12 @@ from common.signing import generate_key_files, load_signer
 from common.transport import Publisher, Subscriber
 from harness.bench.command_path import RobotUnderCommands
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), pytest.mark.usefixtures("quiet_gc")]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.timeout(240),
+    pytest.mark.usefixtures("quiet_gc"),
+    pytest.mark.parallel,
+]
 
 JOG = (0.03, 0.0, 0.0, 0.0, 0.0, 0.0)
 STOP_BUDGET_NS = 400_000_000  # the product's stop budget

@@ -50,7 +50,7 @@ from common.transport import Publisher, Subscriber, free_loopback_ports
 from common.web_token import from_query, with_token
 from harness.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
 
 ICE_S = 3.0  # the video server's ice_timeout_s here (its default: 10 s)
 MAX_VIEWERS = 4  # the video server's and the robot's default
