@@ -69,7 +69,7 @@ VIDEO_HOLD_NS = 3_000_000_000
 
 #: the loop woke this much later than it was due: the machine starved it, and the palm's
 #: staleness could not act meanwhile (logged with when it was due and woke, on the monotonic
-#: clock, and counted in ``late_wakes``)
+#: clock, and counted in ``late_wakes``, its lateness summed in ``late_wake_ms``)
 LATE_WAKE_NS = 100_000_000
 RESTART_SEQ_GAP = 1000  # a sequence number this far back means the robot restarted
 #: the clean stop's longest wait for the retract pose before torque off (a pressing linkage
@@ -444,6 +444,7 @@ class OperatorNode:
             woke = self.now()
             if woke - due > LATE_WAKE_NS:  # at most ten a second, by its definition
                 self.counters["late_wakes"] += 1
+                self.counters["late_wake_ms"] += round((woke - due) / 1e6)
                 log.warning(
                     "the loop woke %.0f ms late (a starved process: the palm cannot lift "
                     "meanwhile, its staleness limit is %.0f ms); due_ns=%d woke_ns=%d",
