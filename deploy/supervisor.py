@@ -26,6 +26,13 @@ The operator's lifts the palm (``deepxpalm palm lift``): the servos keep
 their last goal when the node dies. The fault matrix's supervisor uses the
 same ``StopPost``.
 
+The fault matrix (``harness.faults.deployment``) runs the same supervisor
+on a thread of its own (``start_thread``), with the shipped units' own rules
+per child: ``restart_on`` (``Restart=``: which ends restart it; a process
+of no unit is never restarted), no start limit (``start_limit_burst=None``,
+as the shipped units), and ``hold`` while it restarts a child itself
+(``systemctl restart``).
+
 A child may have a watchdog (``deploy.watchdog.UnitWatchdog``, the unit's
 ``WatchdogSec=``): a child that said ``READY=1`` on its notify socket and then
 stopped saying ``WATCHDOG=1`` (frozen, SIGSTOP, a stuck loop) is sent SIGABRT
@@ -38,6 +45,7 @@ from __future__ import annotations
 import logging
 import signal
 import subprocess
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -135,6 +143,15 @@ class Child:
     restart_at: float | None = None  # when a restart is due
     gave_up: bool = False
     started_at: float = 0.0  # monotonic, the running process's start
+    #: ``Restart=``: whether an end with this code restarts it; None: any end (the demo never
+    #: stops a child before its end, so any end is a failure)
+    restart_on: Callable[[int], bool] | None = None
+    #: restarts within START_LIMIT_INTERVAL_S before it is given up on; None: never (as the
+    #: shipped units, ``StartLimitIntervalSec=0``)
+    start_limit_burst: int | None = START_LIMIT_BURST
+    #: called with the child on every poll (what it reports: the fault matrix reads the
+    #: operator's status file)
+    watch: Callable[[Child], None] | None = None
 
     def spawn(self) -> None:
         if self.watchdog is not None:
@@ -175,10 +192,15 @@ class Child:
 class Supervisor:
     """Watches the children; ``poll()`` restarts or gives up; ``stop_all()`` at the end."""
 
-    def __init__(self) -> None:
+    def __init__(self, name: str = "demo") -> None:
+        self.name = name  # what the log lines say it supervises
         self.children: dict[str, Child] = {}
         self.armed = False  # set once the demo is up; before, an exit is a startup failure
         self.events: list[str] = []  # what happened, for the summary
+        self._lock = threading.RLock()  # a poll, or a child held (``hold``)
+        self._held: set[str] = set()  # restarted by someone else just now: not watched
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
 
     def add(self, child: Child) -> Child:
         child.spawn()
@@ -191,10 +213,16 @@ class Supervisor:
 
     def poll(self, errors: list[str]) -> bool:
         """Restart what died, when due; False when the demo must end (see ``errors``)."""
+        with self._lock:
+            return self._poll(errors)
+
+    def _poll(self, errors: list[str]) -> bool:
         now = time.monotonic()
         for child in list(self.children.values()):
-            if child.gave_up:
+            if child.gave_up or child.name in self._held:
                 continue
+            if child.watch is not None:
+                child.watch(child)
             if child.restart_at is None:
                 code = child.proc.poll() if child.proc is not None else None
                 if code is None:
@@ -206,6 +234,8 @@ class Supervisor:
                 if not self.armed:
                     errors.append(f"{child.name} stopped early with {code}; see {child.log_path}")
                     return False
+                if child.restart_on is not None and not child.restart_on(code):
+                    continue  # its Restart= leaves it ended
                 self._died(child, code, now)
             if child.gave_up:
                 if child.essential:
@@ -218,7 +248,8 @@ class Supervisor:
     def _died(self, child: Child, code: int, now: float) -> None:
         child.exits.append(code)
         recent = [t for t in child.restart_times if now - t < START_LIMIT_INTERVAL_S]
-        if len(recent) >= START_LIMIT_BURST:
+        burst = child.start_limit_burst
+        if burst is not None and len(recent) >= burst:
             child.gave_up = True
             self._say(
                 logging.ERROR,
@@ -266,8 +297,45 @@ class Supervisor:
             )
 
     def _say(self, level: int, message: str) -> None:
-        log.log(level, "demo: %s", message)
+        log.log(level, "%s: %s", self.name, message)
         self.events.append(f"{time.strftime('%H:%M:%S')} {message}")
+
+    def hold(self, name: str) -> None:
+        """Not watched until ``release``: restarted by the caller (``systemctl restart``)."""
+        with self._lock:
+            self._held.add(name)
+
+    def release(self, name: str) -> None:
+        with self._lock:
+            self._held.discard(name)
+
+    def start_thread(self, period_s: float = 0.02) -> None:
+        """``poll`` every ``period_s`` on a thread until ``close``. A restarted child is forked
+        from that thread, which lives as long as the supervisor (a child's PR_SET_PDEATHSIG
+        follows the thread that forked it)."""
+        self.armed = True
+
+        def run() -> None:
+            while not self._stop.wait(period_s):
+                errors: list[str] = []
+                try:
+                    if not self.poll(errors):
+                        for error in errors:
+                            log.error("%s: %s", self.name, error)
+                except Exception:  # a watch hook's bug must not end the supervision
+                    log.exception("%s: poll failed", self.name)
+
+        self._thread = threading.Thread(target=run, name=f"{self.name}-supervisor", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        """The thread ended and every watchdog closed; the children are the caller's to stop."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+        for child in self.children.values():
+            if child.watchdog is not None:
+                child.watchdog.close()
 
     def status_line(self) -> str:
         """One line for the live view: each child's state and restarts."""

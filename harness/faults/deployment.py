@@ -5,7 +5,8 @@ server run as ``harness.fleet`` starts them (CURVE, a roster, signed
 commands); the operator reaches the relay through ``deepxpalm netsim`` (the
 byte-stream relay: CURVE passes, as over a real network); every device is a
 simulator in a process of its own (``deepxpalm sim ur|gripper|tactile|servos``)
-so that killing a node never kills its device. ``Supervisor`` plays systemd:
+so that killing a node never kills its device. The demo's supervisor
+(``deploy.supervisor``) plays systemd on a thread of its own:
 a process of a shipped unit that ends is started again after the unit's
 RestartSec= when its Restart= says so, runs its ExecStopPost= after any end
 (the operator's lifts the palm), and ends a process whose WatchdogSec= passed
@@ -18,15 +19,17 @@ import contextlib
 import json
 import logging
 import signal
+import subprocess
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from common.transport import free_loopback_ports
 from deploy.demo import spawn_cli
-from deploy.supervisor import StopPost, stop_post_args
+from deploy.supervisor import Child, StopPost, Supervisor, stop_post_args
 from deploy.unit_policy import RestartPolicy, policy
 from deploy.watchdog import UnitWatchdog
 from harness.fleet import Fleet, Proc
@@ -103,47 +106,68 @@ def _logged_s(line: str, key: str) -> float:
     return int(line.rsplit(f"{key}=", 1)[1].split()[0]) / 1e9
 
 
-def late_wakes_in(log_text: str) -> list[tuple[float, float]]:
-    """When an operator's loop was due and when it woke, each time it woke over 100 ms late
-    (monotonic s, from its log). A starved operator cannot lift the palm meanwhile."""
-    return [
-        (_logged_s(line, "due_ns"), _logged_s(line, "woke_ns"))
-        for line in log_text.splitlines()
-        if "woke_ns=" in line
-    ]
+class LateWakes:
+    """When the operator's loop woke over 100 ms late, from its status file (``--status-file``,
+    rewritten every 0.1 s): its counters ``late_wakes`` and ``late_wake_ms`` (their sum), read
+    on each poll of the supervisor. A starved operator cannot lift the palm meanwhile.
+
+    ``wakes``: (due, woke) on the monotonic clock (s), the wake known to the status file's
+    period: it woke by the status that first counted it; several counted by one status are
+    one wake as late as their sum."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.wakes: list[tuple[float, float]] = []
+        self._mtime_ns = 0
+        #: the running process's start, and its latest counters (late_wakes, late_wake_ms)
+        self._seen: tuple[float, int, float] = (0.0, 0, 0.0)
+
+    def read(self, child: Child) -> None:
+        try:
+            mtime_ns = self.path.stat().st_mtime_ns
+        except FileNotFoundError:
+            return
+        if mtime_ns == self._mtime_ns:
+            return
+        self._mtime_ns = mtime_ns
+        try:
+            status = json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            return  # renamed over whole: not seen half written, but gone between stat and read
+        t_s = status["t_ns"] / 1e9
+        if t_s < child.started_at:
+            return  # the previous process's last word
+        stats = status["snapshot"]["stats"]
+        count, late_ms = int(stats.get("late_wakes", 0)), float(stats.get("late_wake_ms", 0.0))
+        started, seen, seen_ms = self._seen
+        if started != child.started_at:  # a new process counts from zero
+            seen, seen_ms = 0, 0.0
+        if count > seen:
+            self.wakes.append((t_s - (late_ms - seen_ms) / 1e3, t_s))
+        self._seen = (child.started_at, count, late_ms)
 
 
 class DeploymentError(RuntimeError):
     """The deployment did not come up: a process ended or never got ready (its log says why)."""
 
 
-@dataclass
-class Unit:
-    """One process of the deployment: how to start it and who starts it again."""
+def _never(returncode: int) -> bool:
+    """No unit ships for it: nothing starts it again."""
+    return False
 
-    name: str
-    start: Callable[[], Proc]
+
+@dataclass
+class Unit(Child):
+    """One process of the deployment, as the supervisor keeps it (``deploy.supervisor.Child``)
+    under its shipped unit's rules (``policy``), started by ``launcher``."""
+
     #: the shipped systemd unit's policy; None: no unit ships (a device, the network, a tool)
-    policy: RestartPolicy | None
-    proc: Proc | None = None
-    starts: int = 0
-    #: monotonic times at which the supervisor (or a clean restart) started it again
-    restarted_at: list[float] = field(default_factory=list)
+    policy: RestartPolicy | None = None
+    launcher: Callable[[], Proc] | None = None
+    #: the running process as the fleet started it (its log, stdin, stats)
+    handle: Proc | None = None
     #: each clean restart: seconds from SIGTERM to the end, and whether it had to be killed
     stops: list[tuple[float, bool]] = field(default_factory=list)
-    #: the unit's ExecStopPost= as a process of this deployment (None: the unit has none)
-    stop_post: StopPost | None = None
-    #: systemd's watchdog for this unit's process (None: no WatchdogSec=)
-    watchdog: UnitWatchdog | None = None
-    started_at: float = 0.0  # monotonic, the running process's start
-
-    def launch(self) -> Proc:
-        if self.watchdog is not None:
-            self.watchdog.started()
-        self.started_at = time.monotonic()
-        self.proc = self.start()
-        self.starts += 1
-        return self.proc
 
     @property
     def stop_posts(self) -> list[tuple[float, float, int]]:
@@ -158,66 +182,40 @@ class Unit:
     @property
     def pid(self) -> int:
         assert self.proc is not None
-        return self.proc.popen.pid
+        return self.proc.pid
 
     def alive(self) -> bool:
-        return self.proc is not None and self.proc.popen.poll() is None
+        return self.proc is not None and self.proc.poll() is None
 
 
-class Supervisor:
-    """systemd for the units that ship one: restart after RestartSec= when Restart= says so."""
+def make_unit(
+    name: str,
+    launcher: Callable[[], Proc],
+    rule: RestartPolicy | None,
+    log_path: Path,
+    **kw: Any,
+) -> Unit:
+    """A process under ``rule`` (its unit's RestartSec= and Restart=, never given up on),
+    started by ``launcher`` (which may be replaced: a device's second start names its port)."""
 
-    def __init__(self, units: dict[str, Unit]) -> None:
-        self.units = units
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
-        self._lock = threading.Lock()
-        self._held: set[str] = set()  # a clean restart in progress: the harness starts it
+    def start(_incarnation: int) -> subprocess.Popen:
+        assert made.launcher is not None
+        made.handle = made.launcher()
+        made.log_path = made.handle.log_path
+        return made.handle.popen
 
-    def start(self) -> None:
-        self._thread.start()
-
-    def hold(self, name: str) -> None:
-        with self._lock:
-            self._held.add(name)
-
-    def release(self, name: str) -> None:
-        with self._lock:
-            self._held.discard(name)
-
-    def _run(self) -> None:
-        due: dict[str, float] = {}
-        while not self._stop.wait(0.02):
-            now = time.monotonic()
-            for name, unit in self.units.items():
-                with self._lock:
-                    if name in self._held or unit.policy is None or unit.proc is None:
-                        continue
-                code = unit.proc.popen.poll()
-                if code is None:
-                    if unit.watchdog is not None:
-                        unit.watchdog.check(unit.pid)
-                    continue
-                if name not in due and unit.stop_post and not unit.stop_post.done(unit.started_at):
-                    continue  # ExecStopPost= first, then the restart
-                if name not in due:
-                    if not unit.policy.restarts_after(code):
-                        continue
-                    due[name] = now + unit.policy.restart_sec
-                    log.info(
-                        "%s ended (%s): restart in %.1f s", name, code, unit.policy.restart_sec
-                    )
-                if now >= due[name]:
-                    del due[name]
-                    unit.launch()
-                    unit.restarted_at.append(time.monotonic())
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
-        for unit in self.units.values():
-            if unit.watchdog is not None:
-                unit.watchdog.close()
+    made = Unit(
+        name,
+        start,
+        log_path=log_path,
+        restart_delay_s=0.0 if rule is None else rule.restart_sec,
+        restart_on=_never if rule is None else rule.restarts_after,
+        start_limit_burst=None,
+        policy=rule,
+        launcher=launcher,
+        **kw,
+    )
+    return made
 
 
 def _announcement(proc: Proc, timeout_s: float = 60.0) -> dict:
@@ -256,7 +254,8 @@ class Deployment:
         self.servo_port = ""
         self.video_url = ""
         self.netsim_endpoints = ("", "")
-        self.supervisor = Supervisor(self.units)
+        self.supervisor = Supervisor("deployment")
+        self.late_wakes = LateWakes(self.dir / "operator-status.json")
         self._env_lock = threading.Lock()
 
     # ------------------------------------------------------------ starting
@@ -270,9 +269,10 @@ class Deployment:
 
     def _add(self, name: str, start: Callable[[], Proc], unit: str | None = None) -> Unit:
         rule = policy(unit) if unit else (DEVICE_BACK if name in DEVICES else None)
-        self.units[name] = Unit(name, start, rule)
-        self.units[name].launch()
-        return self.units[name]
+        made = make_unit(name, start, rule, self.dir / f"{name}.log")
+        self.units[name] = made
+        self.supervisor.add(made)
+        return made
 
     def _start_netsim(self) -> Proc:
         scenario = self.dir / "scenario.toml"
@@ -294,20 +294,20 @@ class Deployment:
         fleet = self.fleet
         self._add("relay", fleet.start_relay, "relay")
         ur = self._add("ur", lambda: self._sim("ur", 'host = "auto"\n'))
-        self.ur_host = _announcement(ur.proc)["host"]
-        ur.start = lambda: self._sim("ur", f'host = "{self.ur_host}"\n')
+        self.ur_host = _announcement(ur.handle)["host"]
+        ur.launcher = lambda: self._sim("ur", f'host = "{self.ur_host}"\n')
         gripper = self._add("gripper", lambda: self._sim("gripper", "port = 0\n" + _PIPETTE))
-        g = _announcement(gripper.proc)
+        g = _announcement(gripper.handle)
         self.gripper = (g["host"], g["port"])
         at = f'host = "{g["host"]}"\nport = {g["port"]}\n'
-        gripper.start = lambda: self._sim("gripper", at + _PIPETTE)
+        gripper.launcher = lambda: self._sim("gripper", at + _PIPETTE)
         board = _BOARD_TOML.format(link_dir=self.dir / "tactile-link")
         tactile = self._add("tactile", lambda: self._sim("tactile", board))
-        self.tactile_port = _announcement(tactile.proc)["port"]
+        self.tactile_port = _announcement(tactile.handle)["port"]
         bus = f'link_dir = "{self.dir / "servo-link"}"\n'
         status = ["--status-file", str(self.servo_status)]
         servos = self._add("servos", lambda: self._sim("servos", bus, status))
-        self.servo_port = _announcement(servos.proc)["port"]
+        self.servo_port = _announcement(servos.handle)["port"]
         video_port = free_loopback_ports(1)[0]
         self.video_url = fleet.video_url("video", video_port)
         self._add("video", lambda: fleet.start_video(port=video_port)[0], "video")
@@ -325,7 +325,7 @@ class Deployment:
         self._add("netsim", self._start_netsim)
         self._add_operator()
         self._add("recorder", lambda: fleet.start_recorder(RECORDER, self.recording))
-        self.supervisor.start()
+        self.supervisor.start_thread()
         return self
 
     def _add_operator(self) -> None:
@@ -352,25 +352,28 @@ class Deployment:
                         want_frames=False,
                         servos=_SERVOS.format(port=self.servo_port),
                         endpoints=self.netsim_endpoints,
+                        extra=["--status-file", str(self.late_wakes.path)],
                     )
                 finally:
                     self.fleet.env = env
 
-        self.units["operator"] = Unit(
+        self.units["operator"] = make_unit(
             "operator",
             start,
             rule,
+            self.dir / "operator.log",
             # at the unit's Nice=, as systemd runs every command of the unit
             stop_post=StopPost(
                 "operator", lambda: spawn_cli(["-v", *stop_post], log_path, "operator")
             ),
             watchdog=watchdog,
+            watch=self.late_wakes.read,
         )
-        self.units["operator"].launch()
+        self.supervisor.add(self.units["operator"])
 
     # ------------------------------------------------------------ faults
     def signal(self, name: str, sig: int) -> None:
-        self.units[name].proc.popen.send_signal(sig)
+        self.units[name].proc.send_signal(sig)
 
     def clean_restart(self, name: str, timeout_s: float = 20.0) -> float:
         """``systemctl restart``: SIGTERM, wait for the end, start again; the restart's time."""
@@ -378,28 +381,30 @@ class Deployment:
         self.supervisor.hold(name)
         try:
             t_term = time.monotonic()
-            killed = stop(unit.proc.popen, timeout_s)  # systemd's TimeoutStopSec=, then SIGKILL
+            killed = stop(unit.proc, timeout_s)  # systemd's TimeoutStopSec=, then SIGKILL
             if killed:
                 log.warning("%s still running %.0f s after SIGTERM: killed", name, timeout_s)
             unit.stops.append((time.monotonic() - t_term, killed))
             unit.run_stop_post()
-            unit.launch()
-            unit.restarted_at.append(time.monotonic())
+            unit.restart_times.append(time.monotonic())
+            unit.incarnation += 1
+            unit.spawn()
+            started = time.monotonic()
         finally:
             self.supervisor.release(name)
-        return unit.restarted_at[-1]
+        return started
 
     def netsim_started(self) -> list[float]:
         """When each netsim process began forwarding (monotonic s, from its log), in order."""
         return [
             _logged_s(line, "schedule_start_ns")
-            for line in self.units["netsim"].proc.log_text().splitlines()
+            for line in self.units["netsim"].handle.log_text().splitlines()
             if "schedule_start_ns=" in line
         ]
 
     def operator_late_wakes(self) -> list[tuple[float, float]]:
-        """Each time the operator's loop woke over 100 ms late (``late_wakes_in`` its log)."""
-        return late_wakes_in(self.units["operator"].proc.log_text())
+        """Each time the operator's loop woke over 100 ms late: (due, woke), see ``LateWakes``."""
+        return list(self.late_wakes.wakes)
 
     def outage_window(self) -> tuple[float, float] | None:
         """The scheduled outage on the monotonic clock, from netsim's own start time."""
@@ -414,14 +419,14 @@ class Deployment:
         if not unit.alive():
             return False
         try:
-            unit.proc.send(command)
+            unit.handle.send(command)
         except (BrokenPipeError, ValueError, OSError):
             return False
         return True
 
     def log_tails(self, chars: int = 1500) -> str:
         return "\n".join(
-            f"--- {n}\n{u.proc.log_text()[-chars:]}" for n, u in self.units.items() if u.proc
+            f"--- {n}\n{u.handle.log_text()[-chars:]}" for n, u in self.units.items() if u.handle
         )
 
     # ------------------------------------------------------------ stopping
@@ -431,15 +436,15 @@ class Deployment:
         order += ["servos", "tactile", "gripper", "ur"]
         for name in order:
             unit = self.units.get(name)
-            if unit is None or unit.proc is None:
+            if unit is None or unit.handle is None:
                 continue
-            popen = unit.proc.popen
+            popen = unit.proc
             if popen.poll() is None:
                 popen.send_signal(signal.SIGCONT)  # a cell may end with it stopped
                 stop(popen, 15)
-            if unit.proc.stdin is not None:
+            if unit.handle.stdin is not None:
                 with contextlib.suppress(BrokenPipeError, OSError):
-                    unit.proc.stdin.close()
+                    unit.handle.stdin.close()
 
     def __enter__(self) -> Deployment:
         try:

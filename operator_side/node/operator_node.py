@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 
 #: the loop woke this much later than it was due: the machine starved it, and the palm's
 #: staleness could not act meanwhile (logged with when it was due and woke, on the monotonic
-#: clock, and counted in ``late_wakes``)
+#: clock, and counted in ``late_wakes``, its lateness summed in ``late_wake_ms``)
 LATE_WAKE_NS = 100_000_000
 
 
@@ -351,6 +351,7 @@ def _note_late_wake(counters: Counter[str], due: int, woke: int, stale_after_ms:
     if woke - due <= LATE_WAKE_NS:  # at most ten a second, by its definition
         return
     counters["late_wakes"] += 1
+    counters["late_wake_ms"] += round((woke - due) / 1e6)
     log.warning(
         "the loop woke %.0f ms late (a starved process: the palm cannot lift "
         "meanwhile, its staleness limit is %.0f ms); due_ns=%d woke_ns=%d",

@@ -148,3 +148,27 @@ def test_a_stopped_operator_lets_go_of_the_palm_only_once_it_is_lifted(deploymen
         f"servos let go before the retract pose (present, retract): {away}; the node waits "
         f"{LIFT_ARRIVAL_S:g} s for it\n{d.log_tails()}"
     )
+
+
+@pytest.mark.slow
+def test_a_briefly_stopped_operator_reports_how_late_its_loop_woke(deployment):
+    """Held for less than its watchdog: the node runs on, and its status file (the interface
+    the fault matrix reads, not a log line) counts the late wake-up and how late it was."""
+    d, palm = deployment
+    _pressed(d, palm)
+    before = len(d.operator_late_wakes())
+    pid = d.units["operator"].pid
+    t_stop = time.monotonic()
+    d.signal("operator", signal.SIGSTOP)
+    time.sleep(0.6)
+    d.signal("operator", signal.SIGCONT)
+    t_cont = time.monotonic()
+    deadline = t_cont + 5.0
+    while len(d.operator_late_wakes()) == before and time.monotonic() < deadline:
+        time.sleep(0.05)
+    wakes = [(due - t_stop, woke - t_stop) for due, woke in d.operator_late_wakes()[before:]]
+    assert wakes, f"no late wake-up reported after a 0.6 s stop\n{d.log_tails()}"
+    assert any(woke >= t_cont - t_stop and woke - due >= 0.5 for due, woke in wakes), (
+        f"(due, woke) from the stop: {wakes}; continued at {t_cont - t_stop:.3f} s"
+    )
+    assert d.units["operator"].pid == pid, "a node stopped for less than its WatchdogSec ended"

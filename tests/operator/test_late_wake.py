@@ -1,4 +1,5 @@
-"""A starved operator loop says so in its log, in the words the fault matrix reads."""
+"""A starved operator loop counts its late wake-ups and how late (its stats: the status file the
+fault matrix reads), and says so in its log."""
 
 from __future__ import annotations
 
@@ -7,13 +8,12 @@ import threading
 import time
 
 from common.transport import free_loopback_ports
-from harness.faults.deployment import late_wakes_in
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus
 
 
-def test_a_loop_that_wakes_300_ms_late_is_logged_with_when_it_was_due_and_woke(caplog):
+def test_a_loop_that_wakes_300_ms_late_is_counted_with_how_late(caplog):
     tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2))
     config = OperatorConfig()
     config.link.telemetry_endpoint, config.link.command_endpoint = tel, cmd
@@ -36,8 +36,10 @@ def test_a_loop_that_wakes_300_ms_late_is_logged_with_when_it_was_due_and_woke(c
         starved.set()
         thread.join(timeout=5)
     assert not thread.is_alive()
-    wakes = late_wakes_in(caplog.text)
+    stats = node.stats()
+    late = [r for r in caplog.records if "the loop woke" in r.getMessage()]
     # one for the jump (a loaded machine may starve the loop of its own once more)
-    assert node.counters["late_wakes"] == len(wakes) >= 1, caplog.text
-    # 300 ms less what was left of the wait the jump came in (a heartbeat is due every 50 ms)
-    assert any(0.19 <= woke - due < 0.5 for due, woke in wakes), wakes
+    assert stats["late_wakes"] == len(late) >= 1, caplog.text
+    # each over 100 ms; the jump's 300 ms less what was left of the wait it came in (a
+    # heartbeat is due every 50 ms)
+    assert stats["late_wake_ms"] >= max(190, 100 * stats["late_wakes"]), (stats, caplog.text)
