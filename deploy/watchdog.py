@@ -60,6 +60,13 @@ class UnitWatchdog:
             self._ready_at = self._last_ping = self._abort_sent_at = None
             self._aborted_pid = None
 
+    @property
+    def armed(self) -> bool:
+        """The unit's current process said READY=1: from now on a silence ends it (before that,
+        systemd's TimeoutStartSec= would)."""
+        with self._lock:
+            return self._ready_at is not None
+
     def _listen(self) -> None:
         while not self._stop.is_set():
             try:

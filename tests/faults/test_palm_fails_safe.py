@@ -106,6 +106,12 @@ def test_a_frozen_operator_is_ended_by_its_watchdog_and_lets_go(deployment):
     d, palm = deployment
     _pressed(d, palm)
     unit = d.units["operator"]
+    # its watchdog is armed by READY=1, which may come after the palm is pressed (a node
+    # restarted by the test before this one): freeze it only once it is watched
+    deadline = time.monotonic() + 10.0
+    while not unit.watchdog.armed:
+        assert time.monotonic() < deadline, f"the operator never said READY=1\n{d.log_tails()}"
+        time.sleep(0.02)
     pid = unit.pid
     t_fault = time.monotonic()
     d.signal("operator", signal.SIGSTOP)
