@@ -59,7 +59,10 @@ def test_a_wrist_turn_ramps_at_the_angular_limit_and_a_translation_at_the_linear
         w = limits.max_angular_speed_rad_s
         turn = _ramp(arm, receive, [0, 0, 0, 0, w, 0], slice(3, 6))
         assert turn == pytest.approx(limits.angular_acceleration_rad_s2, rel=0.1)
-        time.sleep(0.3)  # at rest again
+        deadline = time.monotonic() + 3.0  # at rest again, by the controller's own reading
+        while np.linalg.norm(receive.getActualTCPSpeed()) > 1e-4:
+            assert time.monotonic() < deadline, "the arm did not come to rest after the stop"
+            time.sleep(0.01)
         v = limits.max_linear_speed_m_s
         # a jog that translates and turns: neither part beyond its own limit
         shift = _ramp(arm, receive, [v, 0, 0, 0, 0.1, 0], slice(0, 3))
