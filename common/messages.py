@@ -9,6 +9,7 @@ own clock with the offset estimated from heartbeats.
 
 from __future__ import annotations
 
+import secrets
 from dataclasses import dataclass, field
 from typing import Literal, get_args
 
@@ -125,6 +126,11 @@ ASSIST_PHASES = (
 #: a heartbeat's stats are floats, exact to 2^53: a session is named by its low 32 bits
 #: (the robot's ``gripper_command_session``)
 SESSION_LOW_MASK = 0xFFFFFFFF
+
+
+def new_run() -> int:
+    """A node run's random ``session`` (its boot id): 63 bits, never 0."""
+    return secrets.randbits(63) or 1
 
 
 @dataclass(slots=True)

@@ -144,7 +144,7 @@ def heartbeat_exchange(
     import zmq.auth  # common.security needs it loaded
 
     from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
-    from common.messages import Heartbeat, Stimulus
+    from common.messages import Heartbeat, Stimulus, new_run
     from common.security import Authenticator, client_options, server_options
 
     out = Exchange()
@@ -183,7 +183,7 @@ def heartbeat_exchange(
         seq = 0
         # this exchange's run, and the peer's: a robot acts on an operator's heartbeat (and
         # answers it) only once it echoes the robot's current run (docs/protocol.md)
-        run, peer_run = int.from_bytes(os.urandom(8), "big") >> 1, None
+        run, peer_run = new_run(), None
         t0 = time.monotonic()
         next_hb = t0
         while time.monotonic() - t0 < timeout_s and out.clock.accepted < CLOCK_SAMPLES:

@@ -12,7 +12,6 @@ or dropped), ``lease_view``, ``palm`` (renderer, servos, latency), ``outbox``
 from __future__ import annotations
 
 import logging
-import secrets
 import threading
 from collections import Counter, deque
 from collections.abc import Callable
@@ -23,7 +22,7 @@ import zmq
 from common.clock import Clock, Periodic, now_ns
 from common.clock_sync import ClockSync
 from common.link_stats import LinkStats
-from common.messages import Command, Stimulus, VideoSignal
+from common.messages import Command, Stimulus, VideoSignal, new_run
 from common.recording import Recorder
 from common.security import check_endpoint
 from common.transport import Link, Receiver, Sender, link_health, make_context
@@ -74,7 +73,7 @@ class OperatorNode:
         self.clock = ClockSync()
         self.counters: Counter[str] = Counter()
         #: this run's boot id, on every message we send: the robot checks seq increases within it
-        self.session = secrets.randbits(63) or 1
+        self.session = new_run()
         link_cfg = config.link
         keys = LinkKeys.load(link_cfg)
         self.robot_name, self.signer, self.robot_key = keys.robot_name, keys.signer, keys.robot_key

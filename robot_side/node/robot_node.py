@@ -14,7 +14,6 @@ import collections
 import contextlib
 import logging
 import math
-import secrets
 import threading
 from collections import Counter
 
@@ -22,7 +21,7 @@ import zmq
 
 from common.clock import Clock, Periodic, now_ns
 from common.clock_sync import ClockSync
-from common.messages import Stimulus, VideoSignal
+from common.messages import Stimulus, VideoSignal, new_run
 from common.recording import NullRecorder, Recorder
 from common.security import Authenticator
 from common.transport import Link, Receiver, Sender, link_health, make_context
@@ -81,7 +80,7 @@ class RobotNode:
         self.counters: Counter[str] = Counter()
         #: this run's boot id, on everything we send: seqs restart with it, so an operator
         #: tells a restart from a replay and refuses what an older run sent (replay_window.py)
-        self.session = secrets.randbits(63) or 1
+        self.session = new_run()
         link_cfg = config.link
         #: our name on the wire (b"" = unnamed); ConfigError for a name the protocol forbids
         self.name = wire_name(link_cfg.robot_name)

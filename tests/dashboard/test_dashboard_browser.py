@@ -10,6 +10,7 @@ reached the stand-in robot's socket.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
@@ -122,14 +123,15 @@ class StandInRobot:
         self.sub.close()
 
 
-@pytest.fixture
-def station(zmq_ctx):
-    """Stand-in robot + operator node + dashboard, all on loopback; torn down in order."""
+@contextlib.contextmanager
+def operator_station(zmq_ctx, recorder=None):
+    """Stand-in robot + operator node (recording to ``recorder``, if any) + dashboard, all on
+    loopback; torn down in order."""
     robot = StandInRobot(zmq_ctx)
     cfg = OperatorConfig()
     cfg.link.telemetry_endpoint = robot.pub.endpoint
     cfg.link.command_endpoint = robot.sub.endpoint
-    node = OperatorNode(cfg, RecordingServoBus(), ctx=zmq_ctx)
+    node = OperatorNode(cfg, RecordingServoBus(), ctx=zmq_ctx, recorder=recorder)
     stop = threading.Event()
     node_thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
     dashboard = Dashboard(node, DashboardConfig(enabled=True, port=0))
@@ -144,6 +146,12 @@ def station(zmq_ctx):
         node_thread.join(timeout=5)
         robot.close()
         assert not node_thread.is_alive(), "the operator node did not stop"
+
+
+@pytest.fixture
+def station(zmq_ctx):
+    with operator_station(zmq_ctx) as parts:
+        yield parts
 
 
 def canvases(browser: Chromium) -> dict[str, str]:

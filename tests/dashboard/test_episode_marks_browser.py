@@ -8,12 +8,11 @@ recording, and on the robot's side of the link, where none may arrive.
 from __future__ import annotations
 
 import json
-import threading
 import time
 
 import pytest
 from headless_chromium import Chromium, needs_chromium
-from test_dashboard_browser import StandInRobot
+from test_dashboard_browser import operator_station
 from websockets.sync.client import connect
 
 from common.episode_marks import CHANNEL
@@ -32,27 +31,12 @@ MARK_ACKS = "dxp.marks.length"
 @pytest.fixture
 def recording_station(zmq_ctx, tmp_path):
     """Stand-in robot, operator node recording to operator.mcap, dashboard; torn down in order."""
-    robot = StandInRobot(zmq_ctx)
-    cfg = OperatorConfig()
-    cfg.link.telemetry_endpoint = robot.pub.endpoint
-    cfg.link.command_endpoint = robot.sub.endpoint
     recorder = McapRecorder(tmp_path / "operator.mcap", fsync=False)
-    node = OperatorNode(cfg, RecordingServoBus(), ctx=zmq_ctx, recorder=recorder)
-    stop = threading.Event()
-    node_thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
-    dashboard = Dashboard(node, DashboardConfig(enabled=True, port=0))
-    robot.start()
-    node_thread.start()
-    dashboard.start()
     try:
-        yield robot, recorder, dashboard
+        with operator_station(zmq_ctx, recorder) as (robot, _node, dashboard):
+            yield robot, recorder, dashboard
     finally:
-        dashboard.stop()
-        stop.set()
-        node_thread.join(timeout=5)
-        robot.close()
         recorder.close()
-        assert not node_thread.is_alive(), "the operator node did not stop"
 
 
 @pytest.mark.slow

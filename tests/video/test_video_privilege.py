@@ -23,7 +23,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import os
 import re
 import signal
 import socket
@@ -43,7 +42,7 @@ from websockets.exceptions import ConnectionClosed
 
 from common.clock import now_ns
 from common.codec import name_prefix
-from common.messages import Heartbeat, VideoSignal
+from common.messages import Heartbeat, VideoSignal, new_run
 from common.security import SecurityConfig, client_options
 from common.signing import load_signer
 from common.transport import Publisher, Subscriber, free_loopback_ports
@@ -93,7 +92,7 @@ class SignedViewer:
             topics=(name_prefix(VideoSignal.TOPIC, ROBOT), name_prefix(Heartbeat.TOPIC, ROBOT)),
         )
         self.seq = 0
-        self.run = int.from_bytes(os.urandom(8), "big") >> 1  # this viewer's run, as a node's
+        self.run = new_run()  # this viewer's run, as a node's
         self.robot_run: int | None = None  # the robot's, echoed: the robot's replay window
         self.heard: dict[int, list[tuple[float, VideoSignal]]] = {}  # viewer -> signals
 
