@@ -26,8 +26,6 @@ from harness.faults.matrix import (
     run_cell,
 )
 
-pytestmark = pytest.mark.parallel
-
 #: how much a loaded machine may add to a budget before the test calls it the product's fault
 LOAD_SLACK_S = 0.6
 

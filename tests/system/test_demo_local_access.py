@@ -34,7 +34,7 @@ from common.clock import now_ns
 from common.messages import Command, Heartbeat, VideoSignal
 from common.transport import Publisher, Subscriber
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
 TOKEN = "fixed-demo-page-token-for-the-redaction-check"
 DURATION_S = 40.0
