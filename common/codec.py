@@ -264,7 +264,7 @@ SCHEMAS: dict[type, list[tuple[str, Check, bool]]] = {
         ("session", _SESSION, False),
         ("signer", _KEY, False),
         ("echo_signer", _KEY, False),
-        ("controller", _KEY, False),
+        ("lease_holder", _KEY, False),
         ("lease_pending", _KEY, False),
         ("echo_session", _SESSION, False),
     ],
@@ -299,6 +299,9 @@ _KNOWN_KEYS = {
     cls: frozenset(("v", "type", "sig", *(name for name, _, _ in fields)))
     for cls, fields in SCHEMAS.items()
 }
+#: per type, {name an older build sent: the field's name now}; read as the new name when the
+#: new one is absent (the signature covers the bytes as sent, so a renamed field still verifies)
+RENAMED_FIELDS: dict[type, dict[str, str]] = {Heartbeat: {"controller": "lease_holder"}}
 #: how deep an unknown value may nest before the message is refused as malformed
 MAX_UNKNOWN_DEPTH = 8
 #: per type, (field, its label in error messages, check, required): labels made once, not per field
@@ -438,6 +441,8 @@ def decode_named(data: bytes) -> tuple[bytes, Message]:
         raise UnknownMessageTypeError(
             f"type {body.get('type')!r} does not match topic {topic!r} ({cls.TYPE!r})"
         )
+    if cls in RENAMED_FIELDS:
+        _rename_old_fields(body, RENAMED_FIELDS[cls])
     if cls is Command and body.get("action") == "arm_stop":
         kwargs = _lenient_stop(body)
     else:
@@ -456,6 +461,13 @@ def decode_named(data: bytes) -> tuple[bytes, Message]:
     elif "signer" in kwargs:
         raise SignatureError(f"{cls.TYPE} names a signer but carries no sig")
     return name, cls(**kwargs)
+
+
+def _rename_old_fields(body: dict[str, Any], renamed: dict[str, str]) -> None:
+    for old, new in renamed.items():
+        if old in body:
+            value = body.pop(old)
+            body.setdefault(new, value)
 
 
 #: an arm_stop's fields it cannot do without: the signature's (checked as for any message)

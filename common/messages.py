@@ -151,7 +151,8 @@ class Heartbeat:
     #: operator: the robot run (its ``session``) it last heard: proves the message is of this run
     echo_session: int | None = None
     echo_signer: bytes | None = None  # robot: whose heartbeat the echo fields answer
-    controller: bytes | None = None  # robot: the key holding the control lease
+    lease_holder: bytes | None = None  # robot: the key holding the lease (wire name; an older
+    #: build's ``controller`` is read as this)
     lease_pending: bytes | None = None  # robot: a key asking for the lease
 
     TOPIC = b"HBRT"

@@ -443,7 +443,7 @@ class Link:
     """What a node sends on (``pub``) and reads from (``sub``).
 
     A node opens its ZeroMQ link in ``run()``; one handed a link instead is
-    driven by its caller (``process``, ``receive``, ``control_step``): the
+    driven by its caller (``process``, ``receive``, ``palm_step``): the
     bench, replay and tests, with real sockets or a ``CaptureLink``. A half
     the caller does not need may be None.
     """

@@ -387,7 +387,7 @@ class Fleet:
             time.sleep(0.05)
 
     def stop(self, name: str, sig: int | None = None, timeout_s: float = 15.0) -> int:
-        """``sig`` (default SIGTERM, as ``systemctl stop``), then SIGKILL; the exit code."""
+        """``sig`` (default: what ``systemctl stop`` sends), then a kill; the exit code."""
         popen = self.procs[name].popen
         if sig is None:
             stop(popen, timeout_s)

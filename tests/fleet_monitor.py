@@ -54,7 +54,7 @@ class Monitor:
     def holder_since(self, key: bytes, t0: int) -> int | None:
         """Arrival time of the first robot heartbeat after ``t0`` that names ``key`` as holder."""
         for t, hb in list(self.heartbeats):
-            if t >= t0 and hb.controller == key:
+            if t >= t0 and hb.lease_holder == key:
                 return t
         return None
 

@@ -1,7 +1,7 @@
 """Section: end to end in one process (inproc), frame bytes to servo packet.
 
 End to end runs the nodes' own methods (``RobotNode.process`` and
-``OperatorNode.receive`` / ``control_step``) over ZeroMQ's inproc transport,
+``OperatorNode.receive`` / ``palm_step``) over ZeroMQ's inproc transport,
 from the bytes of a scan to the bytes of the servo packet. Its part of the
 report is the whole end-to-end part, the TCP rows included.
 """
@@ -83,7 +83,7 @@ class InprocLoop:
         self.sensor.feed(scan, t0)
         robot.process(self.sensor.latest())
         op.receive()
-        op.control_step(now_ns(), self.period_ns)
+        op.palm_step(now_ns(), self.period_ns)
         c1 = time.thread_time_ns()
         if self.bus.writes == writes:
             return -1, -1
@@ -265,7 +265,7 @@ def markdown(results: Results) -> list[str]:
         "parser to the sync-write packet for six servos leaving scservo_sdk, through the "
         "nodes' own code: the driver's parser and frame assembly, `RobotNode.process` "
         "(classify, render, encode, publish), ZeroMQ, `OperatorNode.receive` (decode, "
-        "validate) and `control_step` (IK, counts, rate limit, packet). Every frame is "
+        "validate) and `palm_step` (IK, counts, rate limit, packet). Every frame is "
         "forced to a packet (the robot forgets its last stimulus, the operator its last "
         "write), so these are the times of frames that change what the palm feels. "
         "The verdicts give both inproc runs: paced at the sensor's rate (as in the field) "

@@ -2,7 +2,7 @@
 
 This process plays the robot PC (the serial driver's parser and frame code,
 then ``RobotNode.process`` publishing on TCP); a child process plays the
-operator PC (``OperatorNode.receive`` and ``control_step`` writing to a bus
+operator PC (``OperatorNode.receive`` and ``palm_step`` writing to a bus
 that builds the real sync-write packet). Both read the same
 ``CLOCK_MONOTONIC``, so the child measures from the stimulus's
 ``t_capture_ns`` (taken before the scan's bytes were parsed) to the moment
@@ -293,7 +293,7 @@ def _peer(args: argparse.Namespace) -> int:
         writes = bus.writes
         if not node.receive():
             continue
-        node.control_step(now_ns(), period_ns)
+        node.palm_step(now_ns(), period_ns)
         last_msg = time.monotonic()
         stim = node.last_stimulus
         if not joined:

@@ -93,7 +93,7 @@ outages = [[{t1}, {t2}]]
 #: hardware and the network come back by themselves: a device's power, the link. The
 #: supervisor (a thread that lives as long as the deployment) starts them again, because a
 #: child's PR_SET_PDEATHSIG follows the *thread* that forked it: one forked from a short
-#: thread would get SIGTERM the moment that thread ends
+#: thread would be sent its death signal the moment that thread ends
 DEVICE_BACK = RestartPolicy(unit="", restart="on-failure", restart_sec=2.0, watchdog_sec=0.0)
 DEVICES = ("ur", "gripper", "tactile", "servos", "netsim")
 
@@ -166,7 +166,7 @@ class Unit(Child):
     launcher: Callable[[], Proc] | None = None
     #: the running process as the fleet started it (its log, stdin, stats)
     handle: Proc | None = None
-    #: each clean restart: seconds from SIGTERM to the end, and whether it had to be killed
+    #: each clean restart: seconds from the stop signal to the end, and whether it was killed
     stops: list[tuple[float, bool]] = field(default_factory=list)
 
     @property
@@ -376,14 +376,14 @@ class Deployment:
         self.units[name].proc.send_signal(sig)
 
     def clean_restart(self, name: str, timeout_s: float = 20.0) -> float:
-        """``systemctl restart``: SIGTERM, wait for the end, start again; the restart's time."""
+        """``systemctl restart``: stop (``processes.stop``), start again; the restart's time."""
         unit = self.units[name]
         self.supervisor.hold(name)
         try:
             t_term = time.monotonic()
             killed = stop(unit.proc, timeout_s)  # systemd's TimeoutStopSec=, then SIGKILL
             if killed:
-                log.warning("%s still running %.0f s after SIGTERM: killed", name, timeout_s)
+                log.warning("%s still running %.0f s after its stop: killed", name, timeout_s)
             unit.stops.append((time.monotonic() - t_term, killed))
             unit.run_stop_post()
             unit.restart_times.append(time.monotonic())

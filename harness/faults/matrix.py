@@ -92,7 +92,7 @@ def full_matrix() -> list[Cell]:
 
 def quick_matrix() -> list[Cell]:
     """The cells the tests hold too: the robot node killed and frozen, the relay, netsim's clean
-    restart (it once ignored SIGTERM and relayed on), the link."""
+    restart (it once ignored its stop signal and relayed on), the link."""
     return [
         Cell("robot", KILL),
         Cell("robot", STOP),
@@ -129,7 +129,7 @@ class CellResult:
     recording_gap_s: float | None  # last record before the fault, seconds before it
     recording_records: int
     notes: str
-    stop_s: float | None = None  # a clean restart: SIGTERM to the end of the process
+    stop_s: float | None = None  # a clean restart: stop signal to the end of the process
     error: str | None = None
     #: netsim's own cells: its new process forwarding again, from the fault (None: not seen)
     link_back_s: float | None = None
@@ -441,7 +441,7 @@ class CellRun:
         if unit is not None and unit.stops:
             took, killed = unit.stops[-1]
             if killed:
-                by += f"; ignored SIGTERM, killed after {took:.0f} s"
+                by += f"; ignored its stop signal, killed after {took:.0f} s"
         return CellResult(
             target=self.cell.target,
             fault=self.cell.fault,

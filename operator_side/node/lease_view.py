@@ -45,7 +45,7 @@ class LeaseView:
 
     def on_heartbeat(self, msg: Heartbeat) -> None:
         was = self.ours
-        self.holder, self.pending = msg.controller, msg.lease_pending
+        self.holder, self.pending = msg.lease_holder, msg.lease_pending
         if self.ours != was:
             self.counters["lease_gained" if not was else "lease_lost"] += 1
             log.info("control lease %s", "ours" if not was else "no longer ours")

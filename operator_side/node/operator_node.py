@@ -174,7 +174,7 @@ class OperatorNode:
         return self.lease.pending
 
     @property
-    def is_controller(self) -> bool:
+    def holds_lease(self) -> bool:
         """Whether the robot's newest heartbeat names our key as the lease holder."""
         return self.lease.ours
 
@@ -284,7 +284,7 @@ class OperatorNode:
             if changed or now >= next_control:
                 # Rendered as soon as something changed; otherwise the loop sleeps
                 # until the goal moves, the data would go stale, or a heartbeat.
-                self.control_step(now, period)
+                self.palm_step(now, period)
                 next_control = palm.next_control_ns(now, period)
             if heartbeat.due(now):
                 if self.lease.heartbeat_wanted():
@@ -305,8 +305,8 @@ class OperatorNode:
         self.counters["decode_errors"] = self.sockets.decode_errors
         return new
 
-    def control_step(self, now: int, period_ns: int) -> None:
-        self.palm.control_step(now, period_ns)
+    def palm_step(self, now: int, period_ns: int) -> None:
+        self.palm.palm_step(now, period_ns)
 
     def sees_robot(self, now: int) -> bool:
         """Whether the robot's telemetry is fresh enough to steer by (``jog_blind_after_ms``)."""
@@ -332,7 +332,7 @@ class OperatorNode:
                 out[f"link_{key}"] = float(value)
         out.update(link_health(self.sub, self.pub))  # each link up, and reopened after a give-up
         if self.signer is not None:
-            out["lease_holder"] = float(self.is_controller)
+            out["lease_holder"] = float(self.holds_lease)
         return out
 
     def snapshot(self) -> Snapshot:

@@ -82,7 +82,7 @@ class Palm:
             return None, age_ms
         return stim.stimulus, age_ms
 
-    def control_step(self, now: int, period_ns: int) -> None:
+    def palm_step(self, now: int, period_ns: int) -> None:
         stimulus, age_ms = self.fresh_stimulus(now)
         stim = self.arrivals.stimulus
         state = "ok" if stimulus is not None else ("stale" if stim is not None else "down")

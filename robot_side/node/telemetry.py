@@ -96,10 +96,10 @@ class Telemetry:
         self._hb_seq += 1
         desk, lease = self.desk, self.desk.lease
         echo_send, echo_recv = desk.clock.echo_fields()
-        echo_signer = controller = pending = None
+        echo_signer = holder = pending = None
         if lease is not None:
             echo_signer, echo_send, echo_recv = self._next_echo()
-            controller, pending = lease.holder, lease.pending
+            holder, pending = lease.holder, lease.pending
         self.pub.send(
             Heartbeat(
                 seq=self._hb_seq,
@@ -112,7 +112,7 @@ class Telemetry:
                 t_capture_ns=last_capture_ns if last else None,
                 stats=self._heartbeat_stats(),
                 echo_signer=echo_signer,
-                controller=controller,
+                lease_holder=holder,
                 lease_pending=pending,
                 session=self.session,
             )

@@ -142,3 +142,28 @@ def test_a_command_signed_exactly_as_the_protocol_doc_says_is_accepted():
     data = signed + b"\xa3sig\xc4\x40" + key.sign(signed)
     name, msg = decode_named(data)
     assert name == b"cell1" and msg.action == "arm_stop" and msg.signer == public
+
+
+def test_a_heartbeat_from_an_older_build_names_its_lease_holder_under_the_old_field():
+    """Builds before the rename sent the lease holder's key as ``controller``: a signed
+    heartbeat of theirs still verifies and reads as ``lease_holder``; the new name wins."""
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+    from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+    key = Ed25519PrivateKey.generate()
+    public = key.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+    holder = bytes(range(32))
+
+    def signed_heartbeat(**fields) -> bytes:
+        body = {"v": 1, "type": "heartbeat", "seq": 7, "t_send_ns": 70, "node": "robot"}
+        body |= {"state": "ok", "signer": public, **fields}
+        signed = b"HBRT" + bytes((0x80 + len(body) + 1,)) + msgpack.packb(body)[1:]
+        return signed + b"\xa3sig\xc4\x40" + key.sign(signed)
+
+    old = decode(signed_heartbeat(controller=holder))
+    assert old.lease_holder == holder and old.signer == public
+    both = decode(signed_heartbeat(controller=bytes(32), lease_holder=holder))
+    assert both.lease_holder == holder
+    new = Heartbeat(seq=1, t_send_ns=2, node="robot", state="ok", lease_holder=holder)
+    assert b"lease_holder" in encode(new) and b"controller" not in encode(new)
+    assert decode(encode(new)).lease_holder == holder

@@ -194,6 +194,21 @@ def _wait(cond, timeout_s: float = 2.0) -> None:
         time.sleep(0.005)
 
 
+def _wait_for_pattern(board, sensor, pattern: int) -> None:
+    """Until the newest frame shows the board's ``pattern``: what the frames hold, not how
+    fresh they are (the staleness rule has tests of its own; a loaded test process may
+    hold the simulator's thread back for longer than a frame)."""
+
+    def shown() -> bool:
+        sample = sensor.latest()
+        if sample is None:
+            return False
+        truth = board.truth_for(sample.seq - 1)
+        return truth is not None and truth.pattern == pattern
+
+    _wait(shown)
+
+
 def _assert_same_newtons(driver_frame: np.ndarray, sim_frame: np.ndarray) -> None:
     """Equal up to ADC quantisation and noise, allowing taxels right at the 1 N floor."""
     diff = np.abs(driver_frame - sim_frame)
@@ -207,7 +222,7 @@ def _assert_same_newtons(driver_frame: np.ndarray, sim_frame: np.ndarray) -> Non
 def test_calibration_and_mirroring_reproduce_the_boards_newtons(board) -> None:
     with _driver(board.port) as sensor:
         sensor.set_calibration(board.calibration)
-        _wait(lambda: board.truth_for(sensor.read_latest(100).seq - 1).pattern == 4)
+        _wait_for_pattern(board, sensor, 4)
         compared = 0
         for sample in _frames(sensor, 10):
             sim_frame = board.frame_for(sample.seq - 1)
@@ -229,7 +244,7 @@ def test_calibration_and_mirroring_reproduce_the_boards_newtons(board) -> None:
 def test_without_mirroring_finger2_comes_out_in_its_own_view(board) -> None:
     with _driver(board.port, mirror_finger2=False) as sensor:
         sensor.set_calibration(board.calibration)
-        _wait(lambda: board.truth_for(sensor.read_latest(100).seq - 1).pattern == 4)
+        _wait_for_pattern(board, sensor, 4)
         sample = _frames(sensor, 1)[0]
         sim_frame = board.frame_for(sample.seq - 1)
         _assert_same_newtons(sample.frame[1], sim_frame[1][:, ::-1])
@@ -289,7 +304,7 @@ def test_calibration_file_round_trip_and_use(board, tmp_path) -> None:
         loaded.gain_n_per_count, board.calibration.gain_n_per_count, rtol=1e-5
     )
     with _driver(board.port, calibration_file=path) as sensor:
-        _wait(lambda: board.truth_for(sensor.read_latest(100).seq - 1).pattern == 4)
+        _wait_for_pattern(board, sensor, 4)
         sample = _frames(sensor, 1)[0]
         _assert_same_newtons(sample.frame, board.frame_for(sample.seq - 1))
 

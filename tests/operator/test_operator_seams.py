@@ -37,19 +37,19 @@ def test_a_delivered_stimulus_moves_the_servos_in_virtual_time() -> None:
     link.deliver(_stimulus(1, clock()), clock())
     assert node.receive()
     assert node.last_stimulus is not None and node.last_stimulus.seq == 1
-    node.control_step(clock(), period)
+    node.palm_step(clock(), period)
     first = node.written_goals
     assert first is not None and first != node.renderer.retract_goals
     clock.advance(period)
-    node.control_step(clock(), period)  # still stepping toward the goal
+    node.palm_step(clock(), period)  # still stepping toward the goal
     assert node.written_goals != first
     writes = node.counters["servo_writes"]
     node.rewrite_next()
-    node.control_step(clock(), period)
+    node.palm_step(clock(), period)
     assert node.counters["servo_writes"] == writes + 1
     stale = round(node.config.link.stale_after_ms * 1e6) + 1
     clock.advance(stale)
-    node.control_step(clock(), period)
+    node.palm_step(clock(), period)
     assert node.link_state == "stale"
 
 
@@ -129,7 +129,7 @@ def test_with_the_robots_key_only_its_signed_telemetry_reaches_the_palm(tmp_path
     link.deliver(_stimulus(2, clock()), clock())
     assert not node.receive()
     assert node.counters["telemetry_forged"] == 1 and node.counters["telemetry_unsigned"] == 1
-    node.control_step(clock(), period)
+    node.palm_step(clock(), period)
     assert node.last_stimulus is None
     assert node.written_goals in (None, node.renderer.retract_goals)  # the palm stays free
     # the robot's own, once a heartbeat of its run answered ours (test_telemetry_gate.py)
@@ -144,7 +144,7 @@ def test_with_the_robots_key_only_its_signed_telemetry_reaches_the_palm(tmp_path
     wire = encode(stimulus, b"cell1", robot)
     link.deliver(decode(wire), clock())
     assert node.receive() and node.last_stimulus.seq == 3
-    node.control_step(clock(), period)
+    node.palm_step(clock(), period)
     assert node.written_goals != node.renderer.retract_goals
     # and its bytes cannot be altered on the way: the stimulus cells are signed too
     tampered = bytearray(wire)

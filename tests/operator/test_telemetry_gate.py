@@ -54,7 +54,7 @@ class Rig:
     def deliver(self, msg, late_ns: int = 0) -> None:
         self.link.deliver(msg, self.clock() + late_ns)
         self.node.receive()
-        self.node.control_step(self.clock(), self.period)
+        self.node.palm_step(self.clock(), self.period)
 
     def stimulus(self, session: int | None, cells=(5, 5, 5), seq: int | None = None):
         if seq is None:

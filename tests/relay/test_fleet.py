@@ -234,7 +234,7 @@ def test_a_relay_that_lets_an_observer_command_still_cannot_move_the_arm(
             jog_eve.join()
             time.sleep(0.3)
             assert np.abs(arm_sim.tcp_pose()[:3] - start).max() < 1e-4
-            assert all(hb.controller is None for _, hb in monitor.heartbeats)
+            assert all(hb.lease_holder is None for _, hb in monitor.heartbeats)
         finally:
             monitor.close()
     robot = fleet.procs["cell1"].stats()

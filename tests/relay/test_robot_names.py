@@ -94,7 +94,7 @@ def test_cell2s_key_publishing_as_cell1_reaches_none_of_cell1s_subscribers(fleet
         cell1.send(encode(_stimulus(seq), b"cell1"))
         cell2.send(encode(_stimulus(seq), b"cell2"))  # its own name: the control
         cell2.send(encode(_stimulus(POSING + seq), b"cell1"))  # posing as cell1
-        hb = Heartbeat(POSING + seq, time.monotonic_ns(), "robot", "ok", controller=bytes(32))
+        hb = Heartbeat(POSING + seq, time.monotonic_ns(), "robot", "ok", lease_holder=bytes(32))
         cell2.send(encode(hb, b"cell1"))  # a forged lease holder for cell1's dashboards
         got.extend(_received(watcher))
 

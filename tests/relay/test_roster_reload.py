@@ -29,7 +29,7 @@ def _hang_up(fleet: Fleet, *names: str) -> None:
 def _holder(monitor: Monitor, since_ns: int) -> bytes | str | None:
     """The lease holder in the newest robot heartbeat that arrived after ``since_ns``."""
     beats = [hb for t, hb in list(monitor.heartbeats) if t >= since_ns]
-    return beats[-1].controller if beats else "no heartbeat yet"
+    return beats[-1].lease_holder if beats else "no heartbeat yet"
 
 
 def test_a_key_added_may_take_control_and_a_key_removed_loses_it_and_stops_the_arm(

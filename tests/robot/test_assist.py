@@ -167,7 +167,7 @@ def make_cell(tmp_path, quiet_gc):
         cell = _cell(tmp_path, pattern, box_face_mm, side_offset_mm)
         made.append(cell)
         robot, _arm, ops, *_ = cell
-        wait(lambda: ops["a"].is_controller, 30, "a's lease")
+        wait(lambda: ops["a"].holds_lease, 30, "a's lease")
         wait(lambda: robot.last_stimulus is not None and robot.last_stimulus.contact, 10,
              "the scripted grasp")  # fmt: skip
         time.sleep(0.5)  # both operators' clocks known at the robot
@@ -301,5 +301,5 @@ def test_a_lease_hand_over_ends_the_assist_and_stills_the_arm(make_cell):
         while time.monotonic() < end:  # a still holds the assist: refused, as its jogs would be
             assert not moving(arm), "a's assist moved the arm after a handed the lease over"
             time.sleep(0.01)
-        assert b.is_controller
+        assert b.holds_lease
     assert robot.assist.why.startswith("control lease now"), robot.assist.why

@@ -85,7 +85,7 @@ def cell(tmp_path, quiet_gc):
         t.start()
     try:
         wait(lambda: arm.sim is not None and arm.is_connected, 30, "the simulated arm")
-        wait(lambda: operators["a"].is_controller, 30, "a's lease")
+        wait(lambda: operators["a"].holds_lease, 30, "a's lease")
         time.sleep(1.0)  # every operator's clock offset known at the robot
         yield robot, arm, operators
     finally:
@@ -168,7 +168,7 @@ def test_a_stop_latches_for_everyone_and_only_the_holders_resume_releases_it(cel
     b.send_command("lease_request")
     wait(lambda: b.lease_pending is not None, 3, "b's request")
     a.send_command("lease_grant", grantee=b.signer.public)
-    wait(lambda: b.is_controller, 3, "b's lease")
+    wait(lambda: b.holds_lease, 3, "b's lease")
     a.send_command("arm_resume")
     with jogging(b):
         assert moves(arm, 1.0) < 1e-4, "a hand-over released the latch"

@@ -100,7 +100,7 @@ class Cell:
         deadline = time.monotonic() + timeout_s
         while True:
             hb = self.robot_heartbeat()
-            if hb is not None and hb.controller == self.signer.public:
+            if hb is not None and hb.lease_holder == self.signer.public:
                 return
             assert time.monotonic() < deadline, "the controller never got the lease"
             self.op.command("lease_request")
@@ -130,7 +130,7 @@ class Cell:
         while not self.rig.arm.moving_between(t0, now_ns(), above=0.01):
             assert time.monotonic() < deadline, f"the jog never moved the arm:\n{self.log()}"
             hb = self.robot_heartbeat()
-            if hb is None or hb.controller != self.signer.public:
+            if hb is None or hb.lease_holder != self.signer.public:
                 self.hold_lease()  # a starved test process fell silent past the deadman
             self.op.command("arm_jog", velocity=self.jog)
             self.op.pump(0.05)
