@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from common.cli_support import add_config_arguments, load_node_config, print_config, write_stats
@@ -70,6 +72,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for key in _ENDPOINT_KEYS:
         parser.add_argument(f"--{key.replace('_', '-')}", dest=key, metavar="ENDPOINT")
     parser.add_argument("--duration-s", type=float, help="stop after this many seconds")
+    parser.add_argument(
+        "--ready-file",
+        type=Path,
+        help="once forwarding, write JSON here: pid, mode, endpoints and schedule_start_ns "
+        "(the monotonic ns the scenario's outages count from); for supervisors and tests",
+    )
 
 
 _ENDPOINT_KEYS = ("robot_telemetry", "robot_commands", "operator_telemetry", "operator_commands")
@@ -124,6 +132,17 @@ def run(args: argparse.Namespace) -> int:
             sim.operator_telemetry_endpoint,
             sim.operator_commands_endpoint,
             sim.start_ns,
+        )
+        write_stats(
+            getattr(args, "ready_file", None),
+            {
+                "pid": os.getpid(),
+                "mode": mode_of(config, scenario),
+                "scenario": scenario.name,
+                "operator_telemetry": sim.operator_telemetry_endpoint,
+                "operator_commands": sim.operator_commands_endpoint,
+                "schedule_start_ns": sim.start_ns,
+            },
         )
         t_end = time.monotonic() + config.duration_s if config.duration_s > 0 else None
         t_report = time.monotonic()

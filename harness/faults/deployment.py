@@ -101,11 +101,6 @@ DEVICES = ("ur", "gripper", "tactile", "servos", "netsim")
 NO_OUTAGE_AT_S = 1e6
 
 
-def _logged_s(line: str, key: str) -> float:
-    """A ``key=<ns>`` field of a log line, in seconds."""
-    return int(line.rsplit(f"{key}=", 1)[1].split()[0]) / 1e9
-
-
 class LateWakes:
     """When the operator's loop woke over 100 ms late, from its status file (``--status-file``,
     rewritten every 0.1 s): its counters ``late_wakes`` and ``late_wake_ms`` (their sum), read
@@ -254,6 +249,7 @@ class Deployment:
         self.servo_port = ""
         self.video_url = ""
         self.netsim_endpoints = ("", "")
+        self._netsim_starts = 0  # each start writes its own ready file
         self.supervisor = Supervisor("deployment")
         self.late_wakes = LateWakes(self.dir / "operator-status.json")
         self._env_lock = threading.Lock()
@@ -279,6 +275,8 @@ class Deployment:
         t1 = self.outage_at_s
         scenario.write_text(_SCENARIO_TOML.format(t1=t1, t2=t1 + self.outage_s))
         log_path = self.dir / "netsim.log"
+        self._netsim_starts += 1
+        ready = self.dir / f"netsim-ready-{self._netsim_starts}.json"
         args = [
             "-v",
             "netsim",
@@ -287,6 +285,7 @@ class Deployment:
             *("--robot-commands", self.fleet.ops_command),
             *("--operator-telemetry", self.netsim_endpoints[0]),
             *("--operator-commands", self.netsim_endpoints[1]),
+            *("--ready-file", str(ready)),
         ]
         return Proc("netsim", spawn_cli(args, log_path), log_path, self.dir / "netsim-stats.json")
 
@@ -395,12 +394,15 @@ class Deployment:
         return started
 
     def netsim_started(self) -> list[float]:
-        """When each netsim process began forwarding (monotonic s, from its log), in order."""
-        return [
-            _logged_s(line, "schedule_start_ns")
-            for line in self.units["netsim"].handle.log_text().splitlines()
-            if "schedule_start_ns=" in line
-        ]
+        """When each netsim process began forwarding (monotonic s, its ready file), in order."""
+        starts = []
+        for n in range(1, self._netsim_starts + 1):
+            try:
+                ready = json.loads((self.dir / f"netsim-ready-{n}.json").read_text())
+            except FileNotFoundError:
+                continue  # that start has not forwarded yet, or never did
+            starts.append(ready["schedule_start_ns"] / 1e9)
+        return starts
 
     def operator_late_wakes(self) -> list[tuple[float, float]]:
         """Each time the operator's loop woke over 100 ms late: (due, woke), see ``LateWakes``."""

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import time
 
 import pytest
 
@@ -75,10 +77,17 @@ def test_run_for_a_short_duration_returns_zero(tmp_path) -> None:
         ]
     )
     args.stats_file = tmp_path / "netsim.json"
+    args.ready_file = tmp_path / "ready.json"
+    before = time.monotonic_ns()
     assert cli.run(args) == 0
     stats = json.loads(args.stats_file.read_text())
     assert stats["scenario"] == "none"
     assert stats["directions"]["to_operator"]["received"] == 0
+    # what a supervisor reads to know it forwards, and when its scenario's clock started
+    ready = json.loads(args.ready_file.read_text())
+    assert ready["pid"] == os.getpid() and ready["scenario"] == "none"
+    assert before <= ready["schedule_start_ns"] <= time.monotonic_ns()
+    assert ready["operator_telemetry"].startswith("tcp://127.0.0.1:")
 
 
 def test_config_file_then_set_then_options(tmp_path) -> None:
