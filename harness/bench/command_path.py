@@ -21,6 +21,7 @@ as its own process.
 from __future__ import annotations
 
 import multiprocessing
+import re
 import secrets
 import signal
 import tempfile
@@ -142,11 +143,28 @@ class ArmWatch:
 _BIND_ATTEMPTS = 3
 
 
-class RobotUnderCommands:
-    """The robot node process on its simulators, watched from outside (a context manager)."""
+@dataclass(frozen=True)
+class LogLine:
+    """One line of the node's log: wall time (``time.time()``, ms resolution), level, logger."""
 
-    def __init__(self, workdir: Path | None = None) -> None:
+    created: float
+    level: str
+    name: str
+    message: str
+
+
+_LOG_LINE = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) (\w+) ([\w.]+): (.*)$")
+
+
+class RobotUnderCommands:
+    """The robot node process on its simulators, watched from outside (a context manager).
+
+    ``settings`` are ``--set KEY=VALUE`` overrides on the node's command line.
+    """
+
+    def __init__(self, workdir: Path | None = None, settings: tuple[str, ...] = ()) -> None:
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix="deepxpalm-cmd-"))
+        self.settings = settings
 
     def __enter__(self) -> RobotUnderCommands:
         from robot_side.arm.sim import URSimProcess
@@ -196,12 +214,25 @@ class RobotUnderCommands:
         """Start the robot node process; returns once it publishes (again, after a restart)."""
         t0 = now_ns()
         with self.log.open("a") as out:  # at its unit's niceness, as its unit runs it
-            self.proc = spawn_cli(["-v", "robot", "--config", str(self.config)], out, unit="robot")
+            sets = [a for kv in self.settings for a in ("--set", kv)]
+            argv = ["-v", "robot", "--config", str(self.config), *sets]
+            self.proc = spawn_cli(argv, out, unit="robot")
         deadline = time.monotonic() + timeout_s
         while not self.telemetry.times(Stimulus, t0):
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"the robot node never published:\n{self.log.read_text()}")
             time.sleep(0.02)
+
+    def log_lines(self, name: str = "") -> list[LogLine]:
+        """The node's log lines so far (from loggers under ``name``), times on this clock."""
+        out = []
+        for line in self.log.read_text(errors="replace").splitlines():
+            m = _LOG_LINE.match(line)
+            if m is None or not m[4].startswith(name):
+                continue  # a traceback's continuation, a stack dump
+            stamp = time.mktime(time.strptime(m[1], "%Y-%m-%d %H:%M:%S"))
+            out.append(LogLine(stamp + int(m[2]) / 1000, m[3], m[4], m[5]))
+        return out
 
     def log_with_stacks(self) -> str:
         """The node's log, ending with every thread's stack (``kill -USR1``) if it still runs."""

@@ -7,6 +7,11 @@ them, and sends jogs over its WebSocket; the dashboard server hands them to
 the operator node's command sender; the robot node applies them through the
 arm interface's clipping and deadman to ur-rtde, which drives the UR
 simulator. Motion and standstill are read from the simulator itself.
+
+The arm's path runs as deployed: the robot node is its own process (at its
+unit's priority) and the UR simulator another, so the driver's watchdog kicks
+share an interpreter with the robot node alone; the operator node and its
+dashboard run here, beside the browser's driver.
 """
 
 from __future__ import annotations
@@ -15,21 +20,19 @@ import contextlib
 import json
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 from headless_chromium import Chromium, needs_chromium
-from tests_support import free_ports
 
+from harness.bench.command_path import RobotUnderCommands
 from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus
-from robot_side.arm.sim import SimulatedArm
-from robot_side.config import RobotConfig
-from robot_side.node import RobotNode
-from robot_side.tactile.scripted import ScriptedTactileSensor
+from robot_side.arm.sim import URSimProcess
 
 pytestmark = [
     pytest.mark.slow,
@@ -64,90 +67,98 @@ def hid(report_id: int, values: list[int], fmt: str = "<6h") -> str:
 
 
 @pytest.fixture(scope="module")
-def station():
-    with running_station() as both:
+def station(tmp_path_factory, quiet_gc_module):
+    with running_station(tmp_path_factory.mktemp("arm-jog")) as both:
         yield both
 
 
 @contextlib.contextmanager
-def running_station(max_command_age_ms: float | None = None):
-    """A robot node on the UR simulator, an operator node and its dashboard, on threads."""
-    tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_ports(2))
-    rc = RobotConfig()
-    rc.render.mode = "mask_ground_truth"  # no classifier needed: this test is about the arm
-    rc.link.telemetry_endpoint, rc.link.command_endpoint = tel, cmd
+def running_station(
+    workdir: Path, max_command_age_ms: float | None = None
+) -> Iterator[tuple[RobotUnderCommands, Dashboard]]:
+    """The robot node as deployed, on the UR simulator; an operator node and its dashboard here.
+
+    The robot node is its own process at its unit's priority, and the UR
+    simulator another (``RobotUnderCommands``): the thread that kicks the
+    controller's watchdog shares its interpreter with the robot node alone, as
+    on the robot PC, not with this process's browser driver, operator node and
+    dashboard. Motion is read from the simulator.
+    """
+    settings: tuple[str, ...] = ()
     if max_command_age_ms is not None:
-        rc.link.max_command_age_ms = max_command_age_ms
-    arm = SimulatedArm()
-    robot = RobotNode(rc, ScriptedTactileSensor(), arm=arm)
-    oc = OperatorConfig()
-    oc.link.telemetry_endpoint, oc.link.command_endpoint = tel, cmd
-    operator = OperatorNode(oc, RecordingServoBus())
-    stop = threading.Event()
-    threads = [
-        threading.Thread(target=robot.run, args=(stop,), daemon=True),
-        threading.Thread(target=operator.run, args=(stop,), daemon=True),
-    ]
-    for t in threads:
-        t.start()
-    dashboard = Dashboard(operator, DashboardConfig(enabled=True, port=0))
-    dashboard.start()
-    try:
-        deadline = time.monotonic() + 30
-        while arm.sim is None or not arm.is_connected:
-            assert time.monotonic() < deadline, "the simulated arm did not connect"
-            time.sleep(0.05)
-        yield arm, dashboard
-    finally:
-        dashboard.stop()
-        stop.set()
-        for t in threads:
-            t.join(timeout=10)
-        assert not any(t.is_alive() for t in threads), "a node did not stop"
+        settings += (f"robot.link.max_command_age_ms={max_command_age_ms}",)
+    with RobotUnderCommands(workdir, settings) as rig:
+        oc = OperatorConfig()
+        oc.link.telemetry_endpoint, oc.link.command_endpoint = (
+            rig.telemetry_endpoint,
+            rig.command_endpoint,
+        )
+        operator = OperatorNode(oc, RecordingServoBus())
+        stop = threading.Event()
+        thread = threading.Thread(target=operator.run, args=(stop,), daemon=True)
+        thread.start()
+        dashboard = Dashboard(operator, DashboardConfig(enabled=True, port=0))
+        dashboard.start()
+        try:
+            deadline = time.monotonic() + 30
+            while rig.arm_sim.stats()["watchdog_hz"] is None:  # the driver armed it: connected
+                assert time.monotonic() < deadline, (
+                    f"the arm never connected:\n{rig.log.read_text()[-3000:]}"
+                )
+                time.sleep(0.05)
+            yield rig, dashboard
+        finally:
+            dashboard.stop()
+            stop.set()
+            thread.join(timeout=10)
+            assert not thread.is_alive(), "the operator node did not stop"
 
 
 @pytest.fixture
 def page(station):
-    arm, dashboard = station
+    rig, dashboard = station
     with Chromium(width=1280, height=1000) as browser:
         browser.navigate(dashboard.url)
         browser.wait_for("dxp.jog !== null && dxp.state.arm && dxp.state.arm.pose", 20)
         # a page that says "reconnecting" (the arm recovering from a watchdog trip) is waited out
         browser.wait_for("dxp.state.arm.available", 20)
-        yield browser, arm
+        yield browser, rig
         assert browser.page_errors() == []
 
 
 @contextlib.contextmanager
-def watchdog_trips_named(arm: SimulatedArm):
+def watchdog_trips_named(rig: RobotUnderCommands):
     """A failed motion check says whether the controller's own watchdog stopped the arm.
 
     The controller stops the program when the driver's kicks stop for its watchdog window
-    (docs/arm.md); the driver then reconnects. On a robot PC that is busy, that is a stop the
-    operator did not ask for: a failure of the product under load, so it fails the test, with
-    the trips named so the message says which failure it was.
+    (docs/arm.md); the driver then reconnects. That is a stop the operator did not ask for,
+    so it fails the test, with the trips and the driver's own account of its silences (its
+    log) named, so the message says which failure it was.
     """
-    trips0 = arm.sim.stats()["watchdog_trips"]
+    trips0 = rig.arm_sim.stats()["watchdog_trips"]
     try:
         yield
     except AssertionError as e:
-        trips = arm.sim.stats()["watchdog_trips"] - trips0
+        trips = rig.arm_sim.stats()["watchdog_trips"] - trips0
         if trips:
+            said = [
+                f"{line.level} {line.message}" for line in rig.log_lines("robot_side.arm.ur_rtde")
+            ]
             raise AssertionError(
                 f"the controller's watchdog tripped {trips}x during the check (the driver's "
-                f"kicks stopped for the watchdog window; status {arm.status()}): {e}"
+                f"kicks stopped for the watchdog window; the driver said: {said[-6:]}): {e}"
             ) from e
         raise
 
 
-def speed(arm: SimulatedArm) -> float:
-    return float(np.linalg.norm(arm.sim.tcp_speed()[:3]))
+def speed(sim: URSimProcess) -> float:
+    return float(np.linalg.norm(sim.tcp_speed()[:3]))
 
 
-def wait_still(arm: SimulatedArm, timeout_s: float = 3.0) -> float:
+def wait_still(sim: URSimProcess, timeout_s: float = 3.0) -> float:
     """Seconds until the simulator's TCP is at standstill (printed: pytest -s shows them)."""
     t0 = time.monotonic()
-    while speed(arm) > STILL_M_S or np.linalg.norm(arm.sim.tcp_speed()[3:]) > 1e-3:
+    while speed(sim) > STILL_M_S or np.linalg.norm(sim.tcp_speed()[3:]) > 1e-3:
         assert time.monotonic() - t0 < timeout_s, "the arm never stopped"
         time.sleep(0.005)
     took = time.monotonic() - t0
@@ -156,64 +167,65 @@ def wait_still(arm: SimulatedArm, timeout_s: float = 3.0) -> float:
 
 
 def move_until(
-    arm: SimulatedArm, reached: Callable[[np.ndarray], bool], timeout_s: float = 5.0
+    sim: URSimProcess, reached: Callable[[np.ndarray], bool], timeout_s: float = 5.0
 ) -> tuple[np.ndarray, float]:
     """(pose change, top linear speed) once ``reached(change)`` holds, or at ``timeout_s``.
 
-    A second of jogging covers 30 mm on a quiet machine; on a saturated one the nodes in
-    this process send and admit fewer jogs and the deadman stops the arm between them, so
+    A second of jogging covers 30 mm on a quiet machine; on a saturated one the page and
+    the nodes send and admit fewer jogs and the deadman stops the arm between them, so
     the distance is waited for (the speed checks that follow stay exact).
     """
-    start = arm.sim.tcp_pose()
+    start = sim.tcp_pose()
     top = 0.0
     t_end = time.monotonic() + timeout_s
     while time.monotonic() < t_end:
-        top = max(top, speed(arm))
-        if reached(arm.sim.tcp_pose() - start):
+        top = max(top, speed(sim))
+        if reached(sim.tcp_pose() - start):
             break
         time.sleep(0.02)
-    return arm.sim.tcp_pose() - start, top
+    return sim.tcp_pose() - start, top
 
 
-def move_for(arm: SimulatedArm, seconds: float) -> tuple[np.ndarray, float]:
+def move_for(sim: URSimProcess, seconds: float) -> tuple[np.ndarray, float]:
     """(pose change, top linear speed) over ``seconds`` of an already commanded jog."""
-    start = arm.sim.tcp_pose()
+    start = sim.tcp_pose()
     top = 0.0
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end:
-        top = max(top, speed(arm))
+        top = max(top, speed(sim))
         time.sleep(0.02)
-    return arm.sim.tcp_pose() - start, top
+    return sim.tcp_pose() - start, top
 
 
 def test_gamepad_moves_the_arm_only_while_enable_is_held_and_stops_on_release(page):
-    browser, arm = page
-    with watchdog_trips_named(arm):
-        _gamepad_moves_the_arm_only_while_enable_is_held(browser, arm)
+    browser, rig = page
+    sim = rig.arm_sim
+    with watchdog_trips_named(rig):
+        _gamepad_moves_the_arm_only_while_enable_is_held(browser, sim)
 
 
-def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, arm: SimulatedArm):
-    wait_still(arm)
+def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, sim: URSimProcess):
+    wait_still(sim)
     browser.evaluate(PAD)
     # stick pushed forward, enable not held: nothing may move
     browser.evaluate("window.__pad.axes[1] = -1.0")
-    delta, top = move_for(arm, 0.4)
+    delta, top = move_for(sim, 0.4)
     assert top < STILL_M_S and np.linalg.norm(delta[:3]) < 1e-4
     # enable held: +x at the speed scale, nothing else
     browser.evaluate("window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }")
     browser.wait_until("dxp.jog.moving", bool)
-    delta, top = move_until(arm, lambda d: d[0] > 0.03)
+    delta, top = move_until(sim, lambda d: d[0] > 0.03)
     assert delta[0] > 0.015, delta
     assert abs(delta[1]) < 0.1 * delta[0] and abs(delta[2]) < 0.1 * delta[0], delta
     assert top <= SPEED_SCALE * 0.10 * 1.02, top  # within the scaled cap
     assert top > SPEED_SCALE * 0.10 * 0.8, top  # and really at it
     # the page shows the arm moving where the simulator has it
     shown = browser.evaluate("dxp.state.arm.pose[0]")
-    assert abs(shown / 1000 - arm.sim.tcp_pose()[0]) < 0.01
+    assert abs(shown / 1000 - sim.tcp_pose()[0]) < 0.01
     # release: standstill within 400 ms
     browser.evaluate("window.__pad.buttons[5] = { pressed: false, touched: false, value: 0 }")
     t_release = time.monotonic()
-    wait_still(arm)
+    wait_still(sim)
     assert time.monotonic() - t_release < STOP_WITHIN_S
     # wrist rotation from the right stick
     browser.evaluate("window.__pad.axes[1] = 0; window.__pad.axes[2] = -1.0")
@@ -224,49 +236,51 @@ def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, arm: Sim
     while time.monotonic() - t0 < 0.6 or (
         top_w <= SPEED_SCALE * 0.5 * 0.8 and time.monotonic() - t0 < 5.0
     ):
-        w = arm.sim.tcp_speed()
+        w = sim.tcp_speed()
         top_w, top_v = max(top_w, w[5]), max(top_v, float(np.linalg.norm(w[:3])))
         time.sleep(0.02)
     assert SPEED_SCALE * 0.5 * 0.8 < top_w <= SPEED_SCALE * 0.5 * 1.02, top_w  # +wz, scaled
     assert top_v < 1e-3, top_v  # the wrist turns, the TCP stays put
     browser.evaluate("window.__pad.buttons[5] = { pressed: false, touched: false, value: 0 }")
     t_release = time.monotonic()
-    wait_still(arm)
+    wait_still(sim)
     assert time.monotonic() - t_release < STOP_WITHIN_S
 
 
 def test_spacemouse_reports_move_the_arm_and_its_button_release_stops_it(page):
-    browser, arm = page
-    with watchdog_trips_named(arm):
-        _spacemouse_moves_the_arm(browser, arm)
+    browser, rig = page
+    sim = rig.arm_sim
+    with watchdog_trips_named(rig):
+        _spacemouse_moves_the_arm(browser, sim)
 
 
-def _spacemouse_moves_the_arm(browser: Chromium, arm: SimulatedArm):
-    wait_still(arm)
+def _spacemouse_moves_the_arm(browser: Chromium, sim: URSimProcess):
+    wait_still(sim)
     # a newer SpaceMouse: one 12-byte report, cap pushed away (ty -350) and lifted (tz -350)
     browser.evaluate(hid(1, [0, -350, -350, 0, 0, 0]))
-    delta, top = move_for(arm, 0.3)
+    delta, top = move_for(sim, 0.3)
     assert top < STILL_M_S, "moved without the enable button"
     browser.evaluate(hid(3, [1], "<B"))  # left button down
     browser.wait_until("dxp.jog.moving", bool)
-    delta, top = move_until(arm, lambda d: d[0] > 0.02 and d[2] > 0.02)
+    delta, top = move_until(sim, lambda d: d[0] > 0.02 and d[2] > 0.02)
     assert delta[0] > 0.01 and delta[2] > 0.01, delta  # +x and +z
     assert abs(delta[1]) < 0.1 * delta[0], delta
     assert top <= SPEED_SCALE * 0.10 * 1.02, top  # the scale caps the combined speed
     browser.evaluate(hid(3, [0], "<B"))
     t_release = time.monotonic()
-    wait_still(arm)
+    wait_still(sim)
     assert time.monotonic() - t_release < STOP_WITHIN_S
     browser.evaluate(hid(1, [0, 0, 0, 0, 0, 0]))
 
 
 def test_closing_the_tab_stops_the_arm(station):
-    arm, dashboard = station
-    with Chromium(width=1280, height=1000) as browser, watchdog_trips_named(arm):
+    rig, dashboard = station
+    sim = rig.arm_sim
+    with Chromium(width=1280, height=1000) as browser, watchdog_trips_named(rig):
         browser.navigate(dashboard.url)
         browser.wait_for("dxp.jog !== null && dxp.state.arm && dxp.state.arm.pose", 20)
         browser.wait_for("dxp.state.arm.available", 20)
-        wait_still(arm)
+        wait_still(sim)
         browser.evaluate(PAD)
         browser.evaluate(
             "window.__pad.axes[0] = 1.0;"  # stick right: -y
@@ -275,12 +289,12 @@ def test_closing_the_tab_stops_the_arm(station):
         browser.wait_until("dxp.jog.moving", bool)
         # moving -y at speed (a starved simulator makes the driver refuse jogs for a while)
         deadline = time.monotonic() + 5
-        while arm.sim.tcp_speed()[1] > -0.8 * SPEED_SCALE * 0.10:
-            assert time.monotonic() < deadline, arm.sim.tcp_speed()
+        while sim.tcp_speed()[1] > -0.8 * SPEED_SCALE * 0.10:
+            assert time.monotonic() < deadline, sim.tcp_speed()
             time.sleep(0.01)
         browser.ws.send(json.dumps({"id": 10**6, "method": "Page.close", "params": {}}))
         t_close = time.monotonic()
-        wait_still(arm)
+        wait_still(sim)
         assert time.monotonic() - t_close < STOP_WITHIN_S
 
 
@@ -305,15 +319,15 @@ SOCKET_JOG = """
 """
 
 
-def jog_from_page(browser: Chromium, arm: SimulatedArm, ws_url: str) -> tuple[bool, float]:
+def jog_from_page(browser: Chromium, sim: URSimProcess, ws_url: str) -> tuple[bool, float]:
     """(whether the page's socket opened, how far the simulator's TCP moved) for one attempt."""
-    wait_still(arm)
-    start = arm.sim.tcp_pose()
+    wait_still(sim)
+    start = sim.tcp_pose()
     opened = browser.evaluate(
         f"{SOCKET_JOG}({json.dumps(ws_url)}, {json.dumps(JOG_X)})", timeout_s=10
     )
     time.sleep(0.3)
-    return opened, float(np.linalg.norm(arm.sim.tcp_pose()[:3] - start[:3]))
+    return opened, float(np.linalg.norm(sim.tcp_pose()[:3] - start[:3]))
 
 
 def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station):
@@ -325,11 +339,12 @@ def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station
 
     from common.web_token import with_token
 
-    arm, dashboard = station
+    rig, dashboard = station
+    sim = rig.arm_sim
     port, token = dashboard.server.port, dashboard.server.auth.token
-    with watchdog_trips_named(arm):
-        wait_still(arm)
-        start = arm.sim.tcp_pose()
+    with watchdog_trips_named(rig):
+        wait_still(sim)
+        start = sim.tcp_pose()
         with (
             pytest.raises(InvalidStatus) as e,
             connect(f"ws://127.0.0.1:{port}/ws", open_timeout=2) as ws,
@@ -338,7 +353,7 @@ def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station
                 ws.send(JOG_X)
                 time.sleep(0.033)
         assert e.value.response.status_code == 401
-        assert np.linalg.norm(arm.sim.tcp_pose()[:3] - start[:3]) < 1e-4
+        assert np.linalg.norm(sim.tcp_pose()[:3] - start[:3]) < 1e-4
 
         rules = "--host-resolver-rules=MAP evil.example 127.0.0.1"
         with Chromium(width=800, height=600, flags=(rules,)) as browser:
@@ -347,7 +362,7 @@ def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station
             assert "is not one this page is served under" in shown, shown
             assert browser.evaluate("typeof dxp") == "undefined"  # no page, no script
             opened, moved = jog_from_page(
-                browser, arm, with_token(f"ws://evil.example:{port}/ws", token)
+                browser, sim, with_token(f"ws://evil.example:{port}/ws", token)
             )
             assert not opened and moved < 1e-4, (opened, moved)
 
@@ -355,6 +370,6 @@ def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station
             browser.navigate(dashboard.url)
             browser.wait_for("dxp.state.arm && dxp.state.arm.available", 20)
             opened, moved = jog_from_page(
-                browser, arm, with_token(f"ws://127.0.0.1:{port}/ws", token)
+                browser, sim, with_token(f"ws://127.0.0.1:{port}/ws", token)
             )
             assert opened and moved > 0.01, (opened, moved)

@@ -11,9 +11,10 @@ Before the latch lived on the robot, B's stop lasted until A's next jog,
 33 ms later: the arm went on at 30 mm/s.
 
 Times are wall-clock (``time.time()`` here, ``Date.now()`` in the pages,
-``LogRecord.created`` for the robot's log), one clock on one machine, so a
-stop is timed from the press in the page, not from when DevTools got round
-to delivering it.
+the time stamps of the robot node's log lines, to the millisecond), one
+clock on one machine, so a stop is timed from the press in the page, not
+from when DevTools got round to delivering it. The robot node runs as its
+own process and the UR simulator as another (``running_station``).
 """
 
 from __future__ import annotations
@@ -35,6 +36,9 @@ from test_arm_jog_browser import (  # noqa: F401 (station: a fixture)
     station,
 )
 
+from harness.bench.command_path import RobotUnderCommands
+from robot_side.arm.sim import URSimProcess
+
 pytestmark = [pytest.mark.timeout(240), pytest.mark.slow, needs_chromium]
 
 STOP_BUDGET_MS = 100  # issue 25: a stop from any page stops a jog held on another within this
@@ -53,8 +57,8 @@ OWN_STOP_LEAD_S = 0.1  # such a stop this long before the keyup still ends the m
 class SpeedLog:
     """The simulator's TCP speed every 2 ms on a thread, so a stop's timing is read off it."""
 
-    def __init__(self, arm) -> None:
-        self.arm = arm
+    def __init__(self, sim: URSimProcess) -> None:
+        self.sim = sim
         self.samples: list[tuple[float, float, float]] = []  # (time.time(), linear, angular)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -62,7 +66,7 @@ class SpeedLog:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            v = self.arm.sim.tcp_speed()
+            v = self.sim.tcp_speed()
             lin, ang = float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:]))
             self.samples.append((time.time(), lin, ang))
             time.sleep(0.002)
@@ -92,7 +96,7 @@ class SpeedLog:
 
 @pytest.fixture
 def pages(station, quiet_gc) -> Iterator[tuple[Chromium, Chromium, SpeedLog]]:  # noqa: F811
-    arm, dashboard = station
+    rig, dashboard = station
     with Chromium(width=1280, height=1000) as a, Chromium(width=1280, height=1000) as b:
         for page in (a, b):
             page.navigate(dashboard.url)
@@ -100,7 +104,7 @@ def pages(station, quiet_gc) -> Iterator[tuple[Chromium, Chromium, SpeedLog]]:  
             page.evaluate(KEYUP_CLOCK)
             # no event per WebSocket frame (90 a second here): unread, they make closing slow
             page.call("Network.disable")
-        log = SpeedLog(arm)
+        log = SpeedLog(rig.arm_sim)
         try:
             yield a, b, log
         finally:
@@ -126,7 +130,7 @@ def hold_until_moving(page: Chromium, log: SpeedLog, timeout_s: float = 10.0) ->
         time.sleep(0.01)
 
 
-def release_ms(page: Chromium, log: SpeedLog, caplog: pytest.LogCaptureFixture) -> float | None:
+def release_ms(page: Chromium, log: SpeedLog, robot: RobotUnderCommands) -> float | None:
     """Let go of the held key: ms from the page's keyup to the arm at rest (the baseline path).
 
     None when the arm was not moving at the keyup, or the robot stopped it on its own
@@ -137,16 +141,16 @@ def release_ms(page: Chromium, log: SpeedLog, caplog: pytest.LogCaptureFixture) 
     key(page, "keyUp")
     up = page.evaluate("window.__keyupAt") / 1000
     at_rest = log.at_rest_after(up)
-    if not log.moving_at(up) or robot_stopped_on_its_own(caplog, up - OWN_STOP_LEAD_S, at_rest):
+    if not log.moving_at(up) or robot_stopped_on_its_own(robot, up - OWN_STOP_LEAD_S, at_rest):
         return None
     return (at_rest - up) * 1000
 
 
-def robot_stopped_on_its_own(caplog: pytest.LogCaptureFixture, t0: float, t1: float) -> bool:
+def robot_stopped_on_its_own(robot: RobotUnderCommands, t0: float, t1: float) -> bool:
     """Whether the arm's jog deadman or the link's deadman stopped the arm between t0 and t1."""
     return any(
-        t0 <= r.created <= t1 and r.name in OWN_STOPS and OWN_STOPS[r.name] in r.getMessage()
-        for r in caplog.records
+        t0 <= r.created <= t1 and r.name in OWN_STOPS and OWN_STOPS[r.name] in r.message
+        for r in robot.log_lines()
     )
 
 
@@ -168,14 +172,12 @@ def stays_still_while_held(log: SpeedLog, what: str) -> None:
     )
 
 
-def robot_heard_stop(caplog: pytest.LogCaptureFixture, after: float) -> float:
+def robot_heard_stop(robot: RobotUnderCommands, after: float) -> float:
     """Wall time the robot logged the stop's arrival (it latches as it admits the command)."""
     deadline = time.monotonic() + 3
     while True:
         times = [
-            r.created
-            for r in caplog.records
-            if r.name == "robot_side.stop_latch" and "latched by" in r.getMessage()
+            r.created for r in robot.log_lines("robot_side.stop_latch") if "latched by" in r.message
         ]
         if times and times[-1] >= after:
             return times[-1]
@@ -190,8 +192,10 @@ class Stops:
     resume ends with a plain release of A's key, timed as the baseline.
     """
 
-    def __init__(self, a: Chromium, b: Chromium, log: SpeedLog, caplog, dashboard) -> None:
-        self.a, self.b, self.log, self.caplog = a, b, log, caplog
+    def __init__(
+        self, a: Chromium, b: Chromium, log: SpeedLog, robot: RobotUnderCommands, dashboard
+    ) -> None:
+        self.a, self.b, self.log, self.robot = a, b, log, robot
         self.dashboard = dashboard
         self.stops: dict[str, list[tuple[float, float, float]]] = {}
         self.releases: list[float] = []
@@ -202,7 +206,7 @@ class Stops:
         t0 = time.time()
         pressed = press()
         at_rest = self.log.at_rest_after(pressed)
-        heard = robot_heard_stop(self.caplog, t0)
+        heard = robot_heard_stop(self.robot, t0)
         if self.log.moving_at(pressed):  # else A's jog had stuttered (a loaded machine): untimed
             self.stops.setdefault(what, []).append((pressed, heard, at_rest))
         for page in (self.a, self.b):
@@ -249,7 +253,7 @@ class Stops:
 
     def time_release(self) -> None:
         """A plain release of A's held key, kept unless it timed no release (``release_ms``)."""
-        took = release_ms(self.a, self.log, self.caplog)
+        took = release_ms(self.a, self.log, self.robot)
         if took is not None:
             self.releases.append(took)
 
@@ -298,14 +302,12 @@ def test_a_stop_on_one_page_or_a_gamepad_holds_the_jog_of_another_until_a_resume
     pages,
     caplog,
 ):
-    _, dashboard = station
+    rig, dashboard = station  # the robot node's own log says when it heard and stopped
     a, b, log = pages
-    caplog.set_level(logging.WARNING, logger="robot_side.stop_latch")
     caplog.set_level(logging.INFO, logger="operator_side.dashboard.server")
-    caplog.set_level(logging.INFO, logger="robot_side.node.workers")  # its "arm stopped"
     for page in (a, b):
         shows_latch(page, False)
-    run = Stops(a, b, log, caplog, dashboard)
+    run = Stops(a, b, log, rig, dashboard)
     hold_until_moving(a, log)
     run.time_release()
 
@@ -343,7 +345,9 @@ def test_a_stop_on_one_page_or_a_gamepad_holds_the_jog_of_another_until_a_resume
     run.check_budget("the gamepad's stop button on page B", sampled_every_ms=1000 / 30)
 
 
-def test_a_resume_the_robot_refuses_as_stale_keeps_the_stop_and_the_page_says_why(quiet_gc):
+def test_a_resume_the_robot_refuses_as_stale_keeps_the_stop_and_the_page_says_why(
+    quiet_gc, tmp_path
+):
     """A robot that finds every resume too old (1 us of max age) keeps its stop; the page says so.
 
     STOP is acted on however late (it only ends motion); RESUME lets the
@@ -351,7 +355,7 @@ def test_a_resume_the_robot_refuses_as_stale_keeps_the_stop_and_the_page_says_wh
     told to press again, not left guessing at the lease or the link.
     """
     with (
-        running_station(max_command_age_ms=0.001) as (_, dashboard),
+        running_station(tmp_path, max_command_age_ms=0.001) as (_, dashboard),
         Chromium(width=1280, height=1000) as page,
     ):
         page.navigate(dashboard.url)
