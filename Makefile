@@ -5,6 +5,11 @@
 # Extra arguments: make demo ARGS="--duration 10 --json"
 
 PYTHON ?= python3
+# Python keeps each module's compiled bytecode next to it and reuses it at the next start. Images
+# that set PYTHONDONTWRITEBYTECODE (many do) make every process compile everything it imports
+# again: torch alone took 4.0 s of CPU to import instead of 2.3, aiortc 0.8 instead of 0.4, and
+# the suite and the demo start hundreds of processes. The venv is ours to write to.
+unexport PYTHONDONTWRITEBYTECODE
 VENV ?= .venv
 BIN := $(VENV)/bin
 # The CPU build this project is tested with; the range in pyproject.toml admits it.

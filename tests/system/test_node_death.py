@@ -28,7 +28,7 @@ from harness.bench.command_path import RobotUnderCommands
 JOG_SPEED_M_S = 0.03
 #: kill or freeze to an arm at rest, read by the controller (issue 25's budget)
 STOP_BUDGET_S = 0.4
-TRIALS = 5  # each about 2.5 s; docs/arm.md's figures are from runs of 10
+TRIALS = 3  # each about 2.5 s; the worst of three is held to the budget (docs/arm.md: runs of 10)
 GRIP_LEVEL = 25
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
