@@ -63,7 +63,7 @@ ANSWER_TIMEOUT_S = 10.0
 #: how long an offer waits for a video server that is not listening (restarting: its unit's
 #: RestartSec and its start, a few seconds) before the viewer hears that none is running;
 #: well inside the dashboard's 10 s wait for the answer
-SERVER_WAIT_S = 5.0
+SERVER_WAIT_S = 6.0
 SERVER_POLL_S = 0.1  # a refused connection on loopback costs next to nothing
 ABNORMAL_CLOSURE = 1006  # the video server's socket dropped without a close (it died)
 
