@@ -3,14 +3,18 @@
 SIGTERM (systemd's stop) and Ctrl-C close every viewer and exit. Should an
 encoder thread be stuck in native code, the process exits without joining
 it (Python would otherwise wait for it forever at exit, and systemd would
-have to SIGKILL a server that had looked as if it ignored SIGTERM).
+have to SIGKILL a server that had looked as if it ignored SIGTERM). The
+interpreter's teardown is skipped after every stop, and a stop held up
+past its bound ends the process with every thread's stack in the log.
 """
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import os
+import sys
 
 from common.cli_support import (
     add_config_arguments,
@@ -22,6 +26,9 @@ from common.cli_support import (
 from robot_side.video.server import VideoConfig
 
 log = logging.getLogger(__name__)
+
+STOP_S = 5.0  # VideoServer.stop's bound: viewers closed, threads ended or left
+EXIT_GRACE_S = 2.0  # then the stats file and the logs; past that the process is ended
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -45,10 +52,15 @@ def run(args: argparse.Namespace) -> int:
             print(f"video: {shown}", flush=True)
         stop.wait(args.duration)
     finally:
-        clean = server.stop()
+        # whatever holds the stop up past its bound, the process ends, its threads' stacks in
+        # the log (systemd would SIGKILL it at TimeoutStopSec with nothing said)
+        faulthandler.dump_traceback_later(STOP_S + EXIT_GRACE_S, exit=True)
+        clean = server.stop(STOP_S)
         write_stats(args.stats_file, server.stats())
     if not clean:
         log.error("video: exiting without waiting for a stuck encoder thread")
-        logging.shutdown()
-        os._exit(1)
-    return 0
+    # nothing is left to flush but the logs: the interpreter's own teardown (joining the
+    # encoders' worker threads, collecting aiortc's and PyAV's objects) is not waited for
+    logging.shutdown()
+    sys.stdout.flush()
+    os._exit(0 if clean else 1)

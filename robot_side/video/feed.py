@@ -77,12 +77,17 @@ class CameraFeed:
                 raise self._error
             return None
 
-    def close(self) -> None:
-        """End the loop (the camera is disconnected); waits at most a few seconds for it."""
+    @property
+    def closed(self) -> bool:
+        """``close()`` was called: no frame will come."""
+        return self._closed
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """End the loop (the camera is disconnected); waits at most ``timeout_s`` for it."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
-        self._thread.join(5.0)
+        self._thread.join(timeout_s)
 
     # ------------------------------------------------------------ the loop
     def _wanted(self) -> bool:

@@ -27,8 +27,11 @@ not completed within its ``ice_timeout_s``.
 
 Each offer opens its own connection, so a video server that died and came
 back (systemd, or ``deepxpalm demo``, restarts it) needs nothing here: a
-session it held ends with ``closed``, an offer while it is down is answered
-``closed`` with the reason, and the next offer after it is back works.
+session it held ends with ``closed``. An offer while it is down waits for it
+(a connection tried every ``SERVER_POLL_S``, for up to ``SERVER_WAIT_S``: its
+unit's ``RestartSec`` and its start) and is carried to it the moment it
+listens again, rather than at the viewer's next retry; one it does not come
+back for in time is answered ``closed`` with the reason.
 
 Nothing here blocks the frame loop: the node calls ``on_signal`` and
 ``take_outgoing`` (a deque each way), and the sessions run on an asyncio
@@ -46,13 +49,22 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from common import bounded_json, web_token
 from common.messages import VideoSignal
 
+if TYPE_CHECKING:
+    from websockets.asyncio.client import ClientConnection
+
 log = logging.getLogger(__name__)
 
 ANSWER_TIMEOUT_S = 10.0
+#: how long an offer waits for a video server that is not listening (restarting: its unit's
+#: RestartSec and its start, a few seconds) before the viewer hears that none is running;
+#: well inside the dashboard's 10 s wait for the answer
+SERVER_WAIT_S = 6.0
+SERVER_POLL_S = 0.1  # a refused connection on loopback costs next to nothing
 ABNORMAL_CLOSURE = 1006  # the video server's socket dropped without a close (it died)
 
 
@@ -73,8 +85,11 @@ class LinkSignalling:
         token_file: Path | None = None,
         max_sessions: int = 4,
         per_key: int = 2,
+        server_wait_s: float = SERVER_WAIT_S,
     ) -> None:
         self.video_url = video_url
+        #: how long an offer waits for a video server that is not listening
+        self.server_wait_s = server_wait_s
         #: the video server's token_file; None: ``video_url`` carries the token
         self.token_file = token_file
         self._shown_url = web_token.without_token(video_url)  # for logs and viewers
@@ -237,13 +252,37 @@ class LinkSignalling:
             self.video_url, web_token.token_file(self.token_file, "link.video_token_file")
         )
 
-    async def _session(self, viewer: int, sdp: str, session: _Session) -> None:
+    async def _connect(self, viewer: int) -> ClientConnection:
+        """The video server's signalling socket, waiting up to ``server_wait_s`` for a server
+        that is not listening (restarting); ``ConnectionRefusedError`` after that."""
         from websockets.asyncio.client import connect
+
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.server_wait_s
+        waiting = False
+        while True:
+            try:
+                return await connect(self.url(), open_timeout=5, max_size=256 * 1024)
+            except ConnectionRefusedError:
+                left = deadline - loop.time()
+                if left <= 0:
+                    raise
+                if not waiting:
+                    waiting = True
+                    self.counters["video_offers_waited"] += 1
+                    log.info(
+                        "video: viewer %016x waits for the video server at %s (restarting?)",
+                        viewer,
+                        self._shown_url,
+                    )
+                await asyncio.sleep(min(SERVER_POLL_S, left))
+
+    async def _session(self, viewer: int, sdp: str, session: _Session) -> None:
         from websockets.exceptions import ConnectionClosed, InvalidStatus
 
         reason = "the video server ended the session"
         try:
-            async with connect(self.url(), open_timeout=5, max_size=256 * 1024) as ws:
+            async with await self._connect(viewer) as ws:
                 role = "controller" if session.controller else "observer"
                 await ws.send(json.dumps({"type": "offer", "sdp": sdp, "role": role}))
                 answer = bounded_json.loads(await asyncio.wait_for(ws.recv(), ANSWER_TIMEOUT_S))
@@ -278,7 +317,10 @@ class LinkSignalling:
             )
             log.warning("video: %s", reason)
         except ConnectionRefusedError:
-            reason = f"no video server is running at {self._shown_url} (restarting?)"
+            reason = (
+                f"no video server is running at {self._shown_url} (waited "
+                f"{self.server_wait_s:g} s for it to restart)"
+            )
             log.warning("video: %s", reason)
         except (OSError, TimeoutError, ValueError, KeyError, TypeError) as e:
             reason = f"no video server at {self._shown_url}: {e}"

@@ -63,7 +63,12 @@ log = logging.getLogger(__name__)
 
 VIDEO_CLOCK = 90_000  # RTP's video clock rate
 OFFER_TIMEOUT_S = 10.0
-CLOSE_TIMEOUT_S = 3.0  # for every viewer's peer connection to close at stop
+#: for every viewer's peer connection, then every signalling socket, to close at stop: one
+#: budget for both, inside stop()'s own (a stop must end well within systemd's
+#: TimeoutStopSec, the fault matrix's and the tests' bounds)
+CLOSE_TIMEOUT_S = 3.0
+#: for the loop's last tasks (the relay's readers, a viewer's session ending) once cancelled
+CANCEL_TIMEOUT_S = 1.0
 #: how long a signalling socket's close waits for the other end's close frame: a viewer
 #: whose process froze or whose loop already ended never sends one, and websockets' own
 #: 10 s default then held up every stop by as long (the dashboard's server waits 1 s too)
@@ -169,8 +174,11 @@ def _shareable(frame: CapturedFrame) -> Any:
     return rgb.reformat(format=SHARED_FORMAT)
 
 
-def _source_track(feed: CameraFeed) -> Any:
-    """An aiortc track of ``feed``'s frames: subscribed on its first frame, until ``stop``."""
+def _source_track(feed: CameraFeed, thread_prefix: str) -> Any:
+    """An aiortc track of ``feed``'s frames: subscribed on its first frame, until ``stop``.
+
+    Frames are taken on a thread whose name starts with ``thread_prefix`` (the server's
+    ``stop()`` waits for its threads by name)."""
     import av
     from aiortc import MediaStreamTrack
     from aiortc.mediastreams import MediaStreamError
@@ -180,14 +188,17 @@ def _source_track(feed: CameraFeed) -> Any:
 
         def __init__(self) -> None:
             super().__init__()
-            self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="video-cap")
+            self._pool = concurrent.futures.ThreadPoolExecutor(
+                1, thread_name_prefix=f"{thread_prefix}-cap"
+            )
             self._open = False
             self._seq = 0
             self._t0: int | None = None
             self.frames = 0
 
         def _next(self) -> tuple[CapturedFrame, Any]:
-            while self.readyState == "live":
+            # until stopped, or the feed closed (its next_frame then returns at once: no spin)
+            while self.readyState == "live" and not feed.closed:
                 got = feed.next_frame(self._seq, timeout_s=0.5)
                 if got is not None:
                     self._seq, frame = got
@@ -254,6 +265,7 @@ class VideoServer:
         self._started = threading.Event()
         self._error: BaseException | None = None
         self._peers: set[Any] = set()  # the viewers' RTCPeerConnections (the loop's thread)
+        #: this server's worker threads (encoders, frame taking): stop() knows them by name
         self._encoder_prefix = f"video-encode-{id(self):x}"
         if self.config.token_file is not None:
             self.token = web_token.token_file(self.config.token_file, "video token_file")
@@ -337,14 +349,18 @@ class VideoServer:
             self.recording.stop()
             self.recording = None
         deadline = time.monotonic() + timeout_s
+
+        def left() -> float:
+            return max(0.0, deadline - time.monotonic())
+
         if self._loop is not None and self._stop is not None:
             self._loop.call_soon_threadsafe(self._stop.set)
-        thread.join(timeout_s)
+        thread.join(left())
         if self.feed is not None:
-            self.feed.close()
+            self.feed.close(left())
         stuck = [t for t in threading.enumerate() if t.name.startswith(self._encoder_prefix)]
         for t in stuck:
-            t.join(max(0.0, deadline - time.monotonic()))
+            t.join(left())
         stuck = [t.name for t in stuck if t.is_alive()]
         if thread.is_alive() or stuck:
             log.error(
@@ -399,7 +415,8 @@ class VideoServer:
             left = asyncio.all_tasks(loop)  # the relay's readers, waiting on a capture
             for task in left:
                 task.cancel()
-            loop.run_until_complete(asyncio.gather(*left, return_exceptions=True))
+            if left:  # bounded: stop() waits for this thread only so long
+                loop.run_until_complete(asyncio.wait(left, timeout=CANCEL_TIMEOUT_S))
             loop.run_until_complete(loop.shutdown_asyncgens())
             loop.close()
 
@@ -423,15 +440,17 @@ class VideoServer:
             self._started.set()
             await self._stop.wait()
             # every viewer's peer connection closed first (the browser hears a BYE
-            # rather than waiting for ICE to time out), then the signalling sockets
+            # rather than waiting for ICE to time out), then the signalling sockets,
+            # both within CLOSE_TIMEOUT_S
+            deadline = self._loop.time() + CLOSE_TIMEOUT_S
             peers = [asyncio.ensure_future(pc.close()) for pc in self._peers]
             if peers:
-                _, late = await asyncio.wait(peers, timeout=CLOSE_TIMEOUT_S)
+                _, late = await asyncio.wait(peers, timeout=CLOSE_TIMEOUT_S / 2)
                 if late:
                     log.warning("video: %d viewer(s) did not close in time", len(late))
             server.close(code=1001, reason="video server stopping")
             try:
-                await asyncio.wait_for(server.wait_closed(), CLOSE_TIMEOUT_S)
+                await asyncio.wait_for(server.wait_closed(), max(0.1, deadline - self._loop.time()))
             except TimeoutError:
                 log.warning("video: signalling sessions did not end in time")
         if self._track is not None:
@@ -542,7 +561,7 @@ class VideoServer:
         self._peers.add(pc)
         try:
             if self._track is None:
-                self._track = _source_track(self.feed)
+                self._track = _source_track(self.feed, self._encoder_prefix)
             pc.addTrack(self._relay.subscribe(self._track, buffered=False))
             # mDNS (.local) candidates would open a listener on 0.0.0.0:5353: dropped,
             # the browser's checks reach our candidates and ICE learns its address

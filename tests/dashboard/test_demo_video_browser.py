@@ -29,8 +29,9 @@ pytest.importorskip("aiortc", reason="the demo's video needs the 'video' extra")
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_chromium]
 
 #: both pages play again within this of kill -9 of the video server (docs/dashboard.md): the
-#: unit's 1 s RestartSec, the server's start, at most 1 s between the page's offers, a session
-RECOVER_S = 6.0
+#: unit's 0.2 s RestartSec, the server's start (about a second of CPU), then the offers the
+#: robot node held meanwhile are answered at once, and a session's ICE, DTLS and first frame
+RECOVER_S = 5.0
 
 
 def test_the_demo_page_plays_the_robots_video_offered_through_the_link():
@@ -71,7 +72,7 @@ def _stamp_after(browser, since_ms: int) -> bool:
 def test_two_pages_play_and_play_again_after_kill_9_of_the_video_server():
     """Two tabs on the demo (the server used to die of SIGSEGV a second after the second
     viewer); then kill -9 of the video server: the demo and the robot node run on, stimuli
-    keep coming, the demo restarts the server and both pages play again within 6 s."""
+    keep coming, the demo restarts the server and both pages play again within 5 s."""
     with DashboardDemo(ready_timeout_s=90) as demo:
         with Chromium(width=1280, height=900) as a, Chromium(width=1280, height=900) as b:
             for page in (a, b):
@@ -118,8 +119,8 @@ def test_two_pages_play_and_play_again_after_kill_9_of_the_video_server():
     assert len(back) == 2, f"a page did not play again within 30 s: {back}, {pages}"
     recovered = max(back.values())
     print(f"pages played again {back} s after kill -9 of the video server, {idle:.0%} idle")
-    # the demo restarts the server after 1 s (its unit's RestartSec) and the pages offer again
-    # at most 1 s apart while the outage is young (video.js): docs/dashboard.md's 6 s
+    # the demo restarts the server after 0.2 s (its unit's RestartSec); the pages' offers wait
+    # in the robot node until it listens: docs/dashboard.md's 5 s
     assert recovered < RECOVER_S, (
         f"product: played again after {back} s, not within {RECOVER_S:g} s (the new video server "
         f"process there {restarted} s after the kill; {idle:.0%} of the machine's CPU idle "

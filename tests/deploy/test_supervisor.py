@@ -41,7 +41,7 @@ def _poll_until(sup: Supervisor, errors: list, cond, timeout_s: float = 20.0) ->
 
 def test_the_delays_are_the_shipped_units():
     assert unit_restart_s("robot") == 3.0  # deploy/systemd/deepxpalm-robot.service
-    assert unit_restart_s("video") == 1.0
+    assert unit_restart_s("video") == 0.2
     assert unit_restart_s("netsim") == 1.0  # no unit: the default
 
 

@@ -51,3 +51,34 @@ def test_a_viewer_that_never_answers_the_close_does_not_hold_up_the_stop():
             v.close()
     assert ended, "the video server did not stop within 5 s"
     assert took < WS_CLOSE_TIMEOUT_S + 2.0, f"stop took {took:.1f} s"
+
+
+@pytest.mark.slow
+def test_a_camera_stuck_in_a_capture_does_not_hold_the_stop_past_its_timeout():
+    """A camera that stops delivering inside ``capture()`` (a USB camera gone mid-read, a frozen
+    lab renderer): the stop still ends within its timeout, which systemd's TimeoutStopSec and
+    the SIGTERM test count on; the capture thread is not waited for beyond it."""
+    import threading
+
+    stuck = threading.Event()
+    release = threading.Event()
+
+    class StuckCamera(TestPatternCamera):
+        def capture(self):
+            frame = super().capture()
+            if self._count >= 3:  # a few frames, then the device stops answering
+                stuck.set()
+                release.wait(30.0)
+            return frame
+
+    camera = StuckCamera(TestPatternConfig(width=160, height=120, fps=15))
+    server = VideoServer(camera, VideoConfig(port=0)).start()
+    try:
+        server.feed.subscribe("viewer")  # as a viewer's first frame does: the camera opens
+        assert stuck.wait(10.0), "the camera never got stuck"
+        t0 = time.monotonic()
+        server.stop(timeout_s=1.0)
+        took = time.monotonic() - t0
+    finally:
+        release.set()
+    assert took < 1.5, f"stop took {took:.1f} s with a timeout of 1 s"
