@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,18 @@ CONTRACT_NAMES = {
     "SENSOR_MAX_N",
     "STIMULUS_MAX_N",
 }
+
+
+@functools.cache
+def _project_sources() -> list[tuple[Path, ast.Module]]:
+    """Every project module but the contract's own, parsed once for both scans below."""
+    out = []
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            if path in (ROOT / "common" / "tactile.py", ROOT / "common" / "tactile_scale.py"):
+                continue  # the contract, and its force scale apart from NumPy
+            out.append((path, ast.parse(path.read_text(), str(path))))
+    return out
 
 
 def test_values_are_the_papers():
@@ -88,20 +101,17 @@ def _literal(node: ast.expr) -> bool:
 
 def test_no_module_declares_its_own_copy():
     copies = []
-    for package in PACKAGES:
-        for path in sorted((ROOT / package).rglob("*.py")):
-            if path in (ROOT / "common" / "tactile.py", ROOT / "common" / "tactile_scale.py"):
-                continue  # the contract, and its force scale apart from NumPy
-            for node in ast.parse(path.read_text(), str(path)).body:
-                if isinstance(node, ast.Assign):
-                    targets, value = node.targets, node.value
-                elif isinstance(node, ast.AnnAssign) and node.value is not None:
-                    targets, value = [node.target], node.value
-                else:
-                    continue
-                names = {t.id for t in targets if isinstance(t, ast.Name)}
-                if names & CONTRACT_NAMES and _literal(value):
-                    copies.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    for path, tree in _project_sources():
+        for node in tree.body:
+            if isinstance(node, ast.Assign):
+                targets, value = node.targets, node.value
+            elif isinstance(node, ast.AnnAssign) and node.value is not None:
+                targets, value = [node.target], node.value
+            else:
+                continue
+            names = {t.id for t in targets if isinstance(t, ast.Name)}
+            if names & CONTRACT_NAMES and _literal(value):
+                copies.append(f"{path.relative_to(ROOT)}:{node.lineno}")
     assert not copies, f"declare these in common/tactile.py and import them: {copies}"
 
 
@@ -189,12 +199,8 @@ shape = (3, 10, 10)
 def test_no_module_spells_the_contract_out():
     """``grep`` for the encoding finds it in common/tactile.py only (and in the tests)."""
     spelled = []
-    for package in PACKAGES:
-        for path in sorted((ROOT / package).rglob("*.py")):
-            if path in (ROOT / "common" / "tactile.py", ROOT / "common" / "tactile_scale.py"):
-                continue  # the contract, and its force scale apart from NumPy
-            tree = ast.parse(path.read_text(), str(path))
-            spelled += [f"{path.relative_to(ROOT)}:{n}: {what}" for n, what in _spelled_out(tree)]
+    for path, tree in _project_sources():
+        spelled += [f"{path.relative_to(ROOT)}:{n}: {what}" for n, what in _spelled_out(tree)]
     assert not spelled, "name the contract (common/tactile.py) instead:\n" + "\n".join(spelled)
 
 
