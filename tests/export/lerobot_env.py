@@ -190,12 +190,6 @@ class LeRobot:
         self.close()
 
 
-def load_with_lerobot(root: Path, out_npz: Path, timeout_s: float = 300) -> None:
-    """One load in an interpreter of its own (a module with a single load)."""
-    with LeRobot(out_npz.parent) as lerobot:
-        lerobot.load(root, out_npz, timeout_s)
-
-
 if __name__ == "__main__":  # `make test` builds it before pytest, so tests time only themselves
     python = ensure_policy_env()
     ensure_video_decoder(python)

@@ -15,7 +15,6 @@ import sys
 
 import numpy as np
 import pytest
-from lerobot_env import LeRobot
 
 from common.mcap_recorder import read_recording
 from deploy.export.cli import export
@@ -38,13 +37,6 @@ def session(tmp_path_factory):
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out
-
-
-@pytest.fixture(scope="module")
-def lerobot(tmp_path_factory):
-    """One LeRobot interpreter for the module's loads: its imports cost more than the loads."""
-    with LeRobot(tmp_path_factory.mktemp("lerobot"), policies=True) as server:
-        yield server
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,6 @@ import pytest
 pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (MuJoCo)")
 pytest.importorskip("aiortc", reason="the camera is recorded by the video server ('video' extra)")
 
-from lerobot_env import load_with_lerobot
 
 from common.mcap_recorder import read_metadata, read_recording
 from deploy.export.cli import export
@@ -33,7 +32,7 @@ FPS = 30
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600), pytest.mark.parallel]
 
 
-def test_a_lab_session_exports_the_overview_camera_lerobot_decodes(tmp_path):
+def test_a_lab_session_exports_the_overview_camera_lerobot_decodes(lerobot, tmp_path):
     session = tmp_path / "lab-session"
     demo = ["demo", "--scene", "lab", "--duration", "4", "--json", "--record", str(session)]
     proc = subprocess.run(
@@ -50,7 +49,7 @@ def test_a_lab_session_exports_the_overview_camera_lerobot_decodes(tmp_path):
     key = "observation.images.overview"
     assert key in summary["features"]
     npz = tmp_path / "loaded.npz"
-    load_with_lerobot(root, npz)
+    lerobot.load(root, npz)
     with np.load(npz) as z:
         images = z[key]
         meta = json.loads(z["_meta"].tobytes())
