@@ -93,17 +93,10 @@ def _measure(
 ) -> dict[str, Any]:
     from harness.bench import timing
     from harness.bench.sections import SECTIONS
-    from robot_side.perception import DEFAULT_BACKEND_ORDER, load_classifier
+    from robot_side.perception import DEFAULT_BACKEND_ORDER
     from robot_side.perception.inference import backend_installed
 
-    # the node's default: shipped model, first installed backend
-    ctx = Context(
-        preset=preset,
-        core=core,
-        models=models,
-        classifier=load_classifier(),
-        task_cells=task_cells,
-    )
+    ctx = Context(preset=preset, core=core, models=models, task_cells=task_cells)
     if progress is not None:
         ctx.steps = progress.steps
         ctx.say = progress.note
@@ -111,6 +104,7 @@ def _measure(
     timing.limit_torch_threads()
     default_backend = next(b for b in DEFAULT_BACKEND_ORDER if backend_installed(b))
     t_start = time.monotonic()
+    smallest = preset == "smallest"
     sections: dict[str, Any] = {}
     for section in SECTIONS:
         if section.name in skip:
@@ -134,8 +128,9 @@ def _measure(
         "versions": _versions(),
         "defaults": _defaults(default_backend),
         "timer_overhead_ns": timing.timer_overhead_ns(),
-        "wakeup_cpu_us": timing.wakeup_cpu_us(),
-        "cold_call": timing.cold_call_us(),
+        # the smallest preset's numbers mean nothing (sizes.py): a tenth of the samples
+        "wakeup_cpu_us": timing.wakeup_cpu_us(seconds=0.2 if smallest else 2.0),
+        "cold_call": timing.cold_call_us(n=15 if smallest else 150),
         "full_collection": timing.full_collection_ms(),
         "total_seconds": round(time.monotonic() - t_start, 1),
         "sections": sections,

@@ -46,7 +46,6 @@ class Context:
     preset: str
     core: int
     models: list[Path]
-    classifier: Any
     #: paced stage medians (what a frame costs in the field), filled in by the stages section
     stage_medians_us: dict[str, float] = field(default_factory=dict)
     #: one-way PUB to SUB over loopback TCP in one process, filled in by the stages section
@@ -60,6 +59,17 @@ class Context:
     #: a line worth a reader's eye (a failed cell), printed above the bar rather than through it
     say: Callable[[str], None] = field(default=print, repr=False)
     _demo_frames: list[Any] = field(default_factory=list, init=False, repr=False)
+    _classifier: Any = field(default=None, init=False, repr=False)
+
+    @property
+    def classifier(self) -> Any:
+        """The node's default classifier (shipped model, first installed backend), loaded on
+        first use: a run of sections that classify nothing (``--only ik``) loads none."""
+        if self._classifier is None:
+            from robot_side.perception import load_classifier
+
+            self._classifier = load_classifier()
+        return self._classifier
 
     def demo_frames(self) -> list[Any]:
         """The demo scene's frames, made once for every section that drives the nodes."""

@@ -3,7 +3,9 @@
 The two runs of ``deepxpalm bench`` below are the smallest preset's (as
 tests/bench/test_bench_quick.py) and two in-process sections: the first is
 piped and stores its sections' times, the second runs in a pseudo-terminal
-and must draw the bar with an ETA from them.
+and must draw the bar with an ETA from them. The sections are the two that
+need no classifier (the bench loads none for them): the runs cost their
+interpreter and imports, not measurements.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from tests_support import stderr_on_pty
 from harness.bench.progress import BenchProgress, last_durations, stored_reports
 
 REPO = Path(__file__).resolve().parents[2]
-SECTIONS = ("downsizing", "ik")
+SECTIONS = ("ik", "scale")
 CONTROL = re.compile(rb"[\r\x1b\x00-\x08\x0b-\x1f\x7f]")
 
 
@@ -90,6 +92,19 @@ def test_the_estimate_follows_the_stored_times_this_runs_pace_and_the_steps():
     p.close()
 
 
+def test_a_section_stored_at_zero_seconds_counts_as_measured():
+    """The scale model takes under 5 ms: stored as 0.0 s, a time, not a section never run."""
+    import io
+
+    p = BenchProgress({"scale": 0.0, "ik": 10.0}, stream=io.StringIO(), terminal=False)
+    p.begin(["scale", "ik"])
+    t = time.monotonic()
+    p.current, p.started = "scale", t
+    _, eta, open_ = p.estimate(t)
+    assert (eta, open_) == (10.0, False)
+    p.close()
+
+
 def test_the_stated_run_time_is_the_sum_of_the_committed_reports_sections():
     """The help's and the README's full run time against the sections' own measured times."""
     import harness.bench.cli as cli
@@ -138,8 +153,9 @@ def test_piped_the_bench_writes_a_plain_line_per_section_and_no_control_characte
         assert not CONTROL.search(stream.replace(b"\n", b"")), stream[-500:]
     lines = piped.stderr.decode().splitlines()
     for name in SECTIONS:  # each section's wall time, where the next run's ETA reads it
-        assert stored["sections"][name]["seconds"] > 0
+        assert stored["sections"][name]["seconds"] >= 0  # scale's model: under 5 ms, 0.0
         assert any(line.startswith(f"[bench] {name}: ") for line in lines), lines
+    assert stored["sections"]["ik"]["seconds"] > 0
     assert len([line for line in lines if line.startswith("bench: ")]) <= 10
 
 

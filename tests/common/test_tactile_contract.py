@@ -6,6 +6,7 @@ import ast
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from common import tactile
 
@@ -86,22 +87,44 @@ def _literal(node: ast.expr) -> bool:
     return False
 
 
-def test_no_module_declares_its_own_copy():
-    copies = []
+def _own_copies(tree: ast.Module) -> list[int]:
+    """Lines where a module assigns a contract name a value spelled out in numbers."""
+    lines = []
+    for node in tree.body:
+        if isinstance(node, ast.Assign):
+            targets, value = node.targets, node.value
+        elif isinstance(node, ast.AnnAssign) and node.value is not None:
+            targets, value = [node.target], node.value
+        else:
+            continue
+        names = {t.id for t in targets if isinstance(t, ast.Name)}
+        if names & CONTRACT_NAMES and _literal(value):
+            lines.append(node.lineno)
+    return lines
+
+
+@pytest.fixture(scope="module")
+def scanned() -> dict[str, list[str]]:
+    """Both scans below over every project module but the contract's own, each parsed once.
+
+    Only the findings are kept: a module's syntax tree is dropped once scanned (all of
+    them held would be millions of objects for the garbage collector in every later test).
+    """
+    copies: list[str] = []
+    spelled: list[str] = []
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):
             if path in (ROOT / "common" / "tactile.py", ROOT / "common" / "tactile_scale.py"):
                 continue  # the contract, and its force scale apart from NumPy
-            for node in ast.parse(path.read_text(), str(path)).body:
-                if isinstance(node, ast.Assign):
-                    targets, value = node.targets, node.value
-                elif isinstance(node, ast.AnnAssign) and node.value is not None:
-                    targets, value = [node.target], node.value
-                else:
-                    continue
-                names = {t.id for t in targets if isinstance(t, ast.Name)}
-                if names & CONTRACT_NAMES and _literal(value):
-                    copies.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+            tree = ast.parse(path.read_text(), str(path))
+            where = path.relative_to(ROOT)
+            copies += [f"{where}:{n}" for n in _own_copies(tree)]
+            spelled += [f"{where}:{n}: {what}" for n, what in _spelled_out(tree)]
+    return {"copies": copies, "spelled": spelled}
+
+
+def test_no_module_declares_its_own_copy(scanned):
+    copies = scanned["copies"]
     assert not copies, f"declare these in common/tactile.py and import them: {copies}"
 
 
@@ -186,15 +209,9 @@ shape = (3, 10, 10)
         assert not _spelled_out(ast.parse(line)), line
 
 
-def test_no_module_spells_the_contract_out():
+def test_no_module_spells_the_contract_out(scanned):
     """``grep`` for the encoding finds it in common/tactile.py only (and in the tests)."""
-    spelled = []
-    for package in PACKAGES:
-        for path in sorted((ROOT / package).rglob("*.py")):
-            if path in (ROOT / "common" / "tactile.py", ROOT / "common" / "tactile_scale.py"):
-                continue  # the contract, and its force scale apart from NumPy
-            tree = ast.parse(path.read_text(), str(path))
-            spelled += [f"{path.relative_to(ROOT)}:{n}: {what}" for n, what in _spelled_out(tree)]
+    spelled = scanned["spelled"]
     assert not spelled, "name the contract (common/tactile.py) instead:\n" + "\n".join(spelled)
 
 

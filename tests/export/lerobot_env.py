@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import subprocess
 import sys
+import threading
 import venv
 from pathlib import Path
 
@@ -22,8 +24,8 @@ LEROBOT_DATASET = "lerobot-dataset==0.4.4"
 TORCH = os.environ.get("TORCH", "torch==2.13.0")
 TORCHVISION = "torchvision==0.28.0"  # the release built against torch 2.13
 KEY = f"{LEROBOT_DATASET}-{TORCH}-{TORCHVISION}-py{sys.version_info[0]}{sys.version_info[1]}"
-LOADER = Path(__file__).with_name("load_with_lerobot.py")
-POLICY_FEATURES = Path(__file__).with_name("policy_features.py")
+#: answers the loads and the policies' questions (``load_with_lerobot.py``, ``policy_features.py``)
+SERVER = Path(__file__).with_name("lerobot_server.py")
 #: ``lerobot`` itself, for its policies' configs, on top of the same environment: without
 #: its dependencies (they pin torch<2.11, which would pull CUDA), plus what importing
 #: ``LeRobotDataset``, ``ACTConfig`` and ``DiffusionConfig`` needs, measured by importing them
@@ -108,39 +110,84 @@ def ensure_video_decoder(python: Path) -> dict[str, str]:
     return {"LD_LIBRARY_PATH": os.pathsep.join(p for p in paths if p)}
 
 
-def load_with_lerobot(root: Path, out_npz: Path, timeout_s: float = 300) -> None:
-    """Load the dataset at ``root`` with ``LeRobotDataset``; every item goes to ``out_npz``."""
-    python = ensure_env()
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"}
-    env.update(ensure_video_decoder(python))
-    env["HF_HOME"] = str(out_npz.parent / "hf-home")  # its caches stay in the test's folder
-    proc = subprocess.run(
-        [str(python), str(LOADER), str(root), str(out_npz)],
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-        env=env,
-    )
-    if proc.returncode != 0:
-        raise AssertionError(f"LeRobotDataset could not load {root}:\n{proc.stderr[-4000:]}")
+class LeRobot:
+    """One interpreter in the LeRobot environment, answering every load a test module asks.
 
+    Importing LeRobot costs about 12 s of CPU, loading a demo's dataset under a
+    second or two: a module shares one (a module-scoped fixture) instead of
+    starting the environment's python per load. ``policies`` builds the
+    environment with ``lerobot`` itself (``policy_features`` needs it).
+    """
 
-def policy_features(root: Path, work: Path, timeout_s: float = 300) -> dict:
-    """What LeRobot's ACT and Diffusion configs make of the dataset at ``root``."""
-    python = ensure_policy_env()
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"}
-    env.update(ensure_video_decoder(python))
-    env["HF_HOME"] = str(work / "hf-home")
-    proc = subprocess.run(
-        [str(python), str(POLICY_FEATURES), str(root)],
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-        env=env,
-    )
-    if proc.returncode != 0:
-        raise AssertionError(f"LeRobot could not derive policy features:\n{proc.stderr[-4000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    def __init__(self, work: Path, policies: bool = False) -> None:
+        python = ensure_policy_env() if policies else ensure_env()
+        env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"}
+        env.update(ensure_video_decoder(python))
+        env["HF_HOME"] = str(work / "hf-home")  # its caches stay in the test's folder
+        self._stderr_path = work / "lerobot-server.stderr"
+        self._stderr = self._stderr_path.open("w")
+        self._proc = subprocess.Popen(
+            [str(python), str(SERVER)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self._stderr,
+            text=True,
+            env=env,
+        )
+        self._answers: queue.Queue[str | None] = queue.Queue()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self._proc.stdout:
+            self._answers.put(line)
+        self._answers.put(None)  # the server ended
+
+    def _stderr_tail(self) -> str:
+        self._stderr.flush()
+        return self._stderr_path.read_text(errors="replace")[-4000:]
+
+    def _ask(self, request: dict, timeout_s: float) -> dict:
+        try:
+            self._proc.stdin.write(json.dumps(request) + "\n")
+            self._proc.stdin.flush()
+            line = self._answers.get(timeout=timeout_s)
+        except (BrokenPipeError, queue.Empty) as e:
+            self._proc.kill()  # a server that does not answer answers nothing later either
+            why = "did not answer in time" if isinstance(e, queue.Empty) else "had ended"
+            raise AssertionError(f"LeRobot {why}:\n{self._stderr_tail()}") from None
+        if line is None:
+            raise AssertionError(f"LeRobot ended without answering:\n{self._stderr_tail()}")
+        return json.loads(line)
+
+    def load(self, root: Path, out_npz: Path, timeout_s: float = 300) -> None:
+        """Load the dataset at ``root`` with ``LeRobotDataset``; every item goes to ``out_npz``."""
+        reply = self._ask({"op": "load", "root": str(root), "out": str(out_npz)}, timeout_s)
+        if not reply["ok"]:
+            raise AssertionError(f"LeRobotDataset could not load {root}:\n{reply['error']}")
+
+    def policy_features(self, root: Path, timeout_s: float = 300) -> dict:
+        """What LeRobot's ACT and Diffusion configs make of the dataset at ``root``."""
+        reply = self._ask({"op": "policy", "root": str(root)}, timeout_s)
+        if not reply["ok"]:
+            raise AssertionError(f"LeRobot could not derive policy features:\n{reply['error']}")
+        return reply["result"]
+
+    def close(self) -> None:
+        # every answer is in: ended at once (its own exit, torch's and datasets' teardown,
+        # takes seconds and checks nothing)
+        self._proc.kill()
+        self._proc.wait()
+        self._reader.join(timeout=10)  # it reads to the end of the answers
+        self._proc.stdin.close()
+        self._proc.stdout.close()
+        self._stderr.close()
+
+    def __enter__(self) -> LeRobot:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 if __name__ == "__main__":  # `make test` builds it before pytest, so tests time only themselves

@@ -19,7 +19,6 @@ import time
 
 import numpy as np
 import pytest
-from lerobot_env import load_with_lerobot
 from tests_support import DashboardDemo
 from websockets.sync.client import connect
 
@@ -127,7 +126,9 @@ def _episodes(root):
     return pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
 
 
-def test_a_grasp_marked_failed_on_the_dashboard_is_exported_as_failed(marked_session, tmp_path):
+def test_a_grasp_marked_failed_on_the_dashboard_is_exported_as_failed(
+    lerobot, marked_session, tmp_path
+):
     # the marks are in the operator's recording, on their own channel
     recorded = [r for ch, _, r in read_recording(marked_session / "operator.mcap") if ch == CHANNEL]
     assert [(r["kind"], r.get("task"), r["source"]) for r in recorded] == [
@@ -159,7 +160,7 @@ def test_a_grasp_marked_failed_on_the_dashboard_is_exported_as_failed(marked_ses
     )
     assert summary["episodes"] == len(numbered) - 1
     npz = tmp_path / "loaded.npz"
-    load_with_lerobot(root, npz)
+    lerobot.load(root, npz)
     with np.load(npz) as z:
         a = {k: z[k] for k in z.files}
     meta = json.loads(a.pop("_meta").tobytes())

@@ -15,7 +15,6 @@ import sys
 
 import numpy as np
 import pytest
-from lerobot_env import load_with_lerobot, policy_features
 
 from common.mcap_recorder import read_recording
 from deploy.export.cli import export
@@ -48,21 +47,21 @@ def records(session):
     return out
 
 
-def _loaded(session, tmp_path, episodes: str):
+def _loaded(lerobot, session, tmp_path, episodes: str):
     root = tmp_path / f"ds-{episodes}"
     summary = export([session], root, ExportConfig(fps=FPS, episodes=episodes))
     npz = tmp_path / f"loaded-{episodes}.npz"
-    load_with_lerobot(root, npz)
+    lerobot.load(root, npz)
     with np.load(npz) as z:
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(arrays.pop("_meta").tobytes())
-    return summary, arrays, meta
+    return summary, arrays, meta, root
 
 
 @pytest.fixture(scope="module")
-def one_episode(session, tmp_path_factory):
+def one_episode(lerobot, session, tmp_path_factory):
     """The session exported as one episode and loaded by LeRobot, once for the tests reading it."""
-    return _loaded(session, tmp_path_factory.mktemp("one-episode"), "session")
+    return _loaded(lerobot, session, tmp_path_factory.mktemp("one-episode"), "session")
 
 
 def _held(channel_records, t_row, before_first=None):
@@ -82,8 +81,8 @@ NO_STIMULUS = {
 }
 
 
-def test_every_value_lerobot_loads_matches_the_recording(session, records, tmp_path):
-    summary, a, meta = _loaded(session, tmp_path, "grasp")
+def test_every_value_lerobot_loads_matches_the_recording(lerobot, session, records, tmp_path):
+    summary, a, meta, _ = _loaded(lerobot, session, tmp_path, "grasp")
     assert meta["num_frames"] == summary["frames"] == len(a["index"]) > 60
     assert meta["num_episodes"] == summary["episodes"] >= 2
     assert meta["fps"] == FPS
@@ -146,7 +145,7 @@ def test_the_camera_lerobot_decodes_is_the_rows_picture(session, records, one_ep
     before the row's time, and so within one camera period of the row's tactile frame."""
     from robot_side.video.stamp import MS_MODULO, read_stamp
 
-    summary, a, meta = one_episode
+    summary, a, meta, _ = one_episode
     key = "observation.images.test_pattern"
     assert key in summary["features"] and meta["video_keys"] == [key]
     assert meta["features"][key]["info"]["video.codec"] == "av1"
@@ -187,7 +186,7 @@ def camera_fps(session) -> str:
     return read_metadata(session / "camera.mcap")["deepxpalm.camera"]["record_fps"]
 
 
-def test_lerobot_policies_find_the_state_and_the_action(session, tmp_path):
+def test_lerobot_policies_find_the_state_and_the_action(lerobot, one_episode):
     """LeRobot's own dataset_to_policy_features, ACTConfig and DiffusionConfig on an export.
 
     Both policies need an image or an environment state beside the robot
@@ -196,9 +195,7 @@ def test_lerobot_policies_find_the_state_and_the_action(session, tmp_path):
     accept the export as it is; without a camera they must refuse for that
     reason alone: with a camera's feature added, the same features pass.
     """
-    root = tmp_path / "ds"
-    export([session], root, ExportConfig(fps=FPS, episodes="session"))
-    report = policy_features(root, tmp_path)
+    report = lerobot.policy_features(one_episode[3])  # the session exported as one episode
     features = report["features"]
     assert features["observation.state"] == ["STATE", [7]]
     assert features["action"] == ["ACTION", [7]]
@@ -218,7 +215,7 @@ def test_lerobot_policies_find_the_state_and_the_action(session, tmp_path):
 
 
 def test_one_episode_per_session_covers_the_recording(records, one_episode):
-    _, a, meta = one_episode
+    _, a, meta, _ = one_episode
     assert meta["num_episodes"] == 1
     frames = records["robot/frame"]
     span_s = (frames[-1][0] - frames[0][0]) / 1e9

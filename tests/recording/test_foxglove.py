@@ -225,14 +225,14 @@ def test_a_lab_recording_is_made_of_foxglove_messages(lab_session):
 
 @pytest.mark.slow
 @pytest.mark.untimed
-def test_the_lab_sessions_overview_camera_is_exported_and_lerobot_decodes_it(lab_session, tmp_path):
+def test_the_lab_sessions_overview_camera_is_exported_and_lerobot_decodes_it(
+    lab_session, lerobot, tmp_path
+):
     """The same lab recording, exported: an ``observation.images.overview`` video feature, and
     LeRobot's own loader decodes every row's picture as the recorded picture the row holds
     (the lab's pictures carry no time stamp; test_export_roundtrip.py checks identity by stamp
     and the picture's time against its row's tactile frame)."""
     import bisect
-
-    from lerobot_env import load_with_lerobot
 
     from common.mcap_recorder import read_metadata
     from deploy.export.cli import export
@@ -247,7 +247,7 @@ def test_the_lab_sessions_overview_camera_is_exported_and_lerobot_decodes_it(lab
     key = "observation.images.overview"
     assert key in summary["features"]
     npz = tmp_path / "loaded.npz"
-    load_with_lerobot(root, npz)
+    lerobot.load(root, npz)
     with np.load(npz) as z:
         images = z[key]
         meta = json.loads(z["_meta"].tobytes())
