@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 
@@ -89,8 +90,13 @@ def test_an_idle_worker_polls_the_device_at_its_interval():
     device = SlowDevice()
     polls: list[float] = []
     worker = _worker(device, idle_poll=lambda: polls.append(time.monotonic()), idle_poll_s=0.02)
+    deadline = time.monotonic() + 10.0  # a starved worker polls late, never early
     try:
-        time.sleep(0.3)
+        while len(polls) < 6 and time.monotonic() < deadline:
+            time.sleep(0.01)
     finally:
         worker.close()
-    assert 5 <= len(polls) <= 20
+    assert len(polls) >= 6, f"{len(polls)} polls in 10 s at a 20 ms interval"
+    # the next poll is due an interval after the last one began (its own call's time apart)
+    gaps = [b - a for a, b in itertools.pairwise(polls)]
+    assert min(gaps) >= 0.01, f"polled {min(gaps) * 1e3:.1f} ms apart at a 20 ms interval"
