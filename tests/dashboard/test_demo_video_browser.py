@@ -26,7 +26,9 @@ from robot_side.video.stamp import MS_MODULO
 
 pytest.importorskip("aiortc", reason="the demo's video needs the 'video' extra")
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_chromium]
+#: serial: a killed video server's replacement needs about a second of CPU to start, and beside
+#: another test's deployment a 2-core machine had 1 % to give it (the pages came back in 5.03 s)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240), needs_chromium, pytest.mark.serial]
 
 #: both pages play again within this of kill -9 of the video server (docs/dashboard.md): the
 #: unit's 0.2 s RestartSec, the server's start (about a second of CPU), then the offers the

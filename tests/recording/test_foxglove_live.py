@@ -30,6 +30,10 @@ from common.foxglove import FoxgloveLiveConfig
 make_reader = pytest.importorskip("mcap.reader", reason="the 'record' extra").make_reader
 websockets = pytest.importorskip("websockets", reason="the test's client uses websockets")
 
+#: serial: the live view's pace is judged against the recorders' 1 s flush; beside another
+#: deployment its camera channel once sent nothing the test saw (not yet understood)
+pytestmark = pytest.mark.serial
+
 REPO = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).parent
 WATCH_S = 3.0
