@@ -33,6 +33,7 @@ def test_the_palm_turns_an_off_centre_grasp_into_a_correct_lift(tmp_path):
     cell = run_cell("lan", "mask", [OFF_CENTRE], workdir=tmp_path / "mask")
     assert not cell["errors"], cell["errors"]
     (trial,) = cell["trials"]
+    assert "error" not in trial, f"the trial did not reach its lift: {trial['error']}"
     _report_clock(trial)
     assert trial["felt"][0] == pattern_of(2, 1), f"felt 90 deg left first: {trial}"
     assert trial["felt_truth"][0] == pattern_of(2, 1), "and the world agrees"
@@ -44,6 +45,7 @@ def test_without_feedback_the_same_grasp_is_lifted_off_centre(tmp_path):
     cell = run_cell("lan", "none", [OFF_CENTRE], workdir=tmp_path / "none")
     assert not cell["errors"], cell["errors"]
     (trial,) = cell["trials"]
+    assert "error" not in trial, f"the trial did not reach its lift: {trial['error']}"
     _report_clock(trial)
     assert not trial["success"] and trial["truth"] == "90 deg left", trial
 
@@ -64,6 +66,7 @@ def test_the_assist_turns_a_45_degree_grasp_to_90_degrees_on_the_robot(tmp_path)
     cell = run_cell("lan", "mask_assist", [TILTED], workdir=tmp_path / "mask_assist")
     assert not cell["errors"], cell["errors"]
     (trial,) = cell["trials"]
+    assert "error" not in trial, f"the trial did not reach its lift: {trial['error']}"
     first, after = trial["felt"][0], trial["felt"][1]
     assert classes_of(first)[0] == 1, f"felt 45 deg first: {trial}"
     assert classes_of(trial["felt_truth"][0])[0] == 1, f"and the world agrees: {trial}"
