@@ -65,10 +65,14 @@ class Chromium:
         self,
         width: int = 1280,
         height: int = 900,
-        timeout_s: float = 15.0,
+        timeout_s: float = 60.0,
         flags: tuple[str, ...] = (),
     ) -> None:
-        """``flags``: more command-line switches (``--host-resolver-rules=...``)."""
+        """``flags``: more command-line switches (``--host-resolver-rules=...``).
+
+        ``timeout_s`` bounds chromium's own start (its DevTools port, its first page): no
+        product limit, so it is generous; beside two busy loops and three deployments the
+        browser took over 15 s to open its port."""
         exe = chromium_path()
         if exe is None:
             raise BrowserError(
