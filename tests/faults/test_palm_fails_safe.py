@@ -167,8 +167,8 @@ def test_a_briefly_stopped_operator_reports_how_late_its_loop_woke(deployment):
     t_stop = time.monotonic()
     d.signal("operator", signal.SIGSTOP)
     time.sleep(0.6)
+    t_cont = time.monotonic()  # before the signal: the node may run and write before we read
     d.signal("operator", signal.SIGCONT)
-    t_cont = time.monotonic()
     deadline = t_cont + 5.0
     while len(d.operator_late_wakes()) == before and time.monotonic() < deadline:
         time.sleep(0.05)
