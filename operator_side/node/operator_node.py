@@ -278,7 +278,7 @@ class OperatorNode:
             due = min(next_control, heartbeat.deadline_ns)
             ready = self.sub.ready((due - self.now()) / 1e9)
             self.counters["wakeups"] += 1
-            _note_late_wake(self.counters, due, self.now(), link.stale_after_ms)
+            _note_late_wake(self.counters, due, woke := self.now(), link.stale_after_ms)
             changed = self.receive() if self.sub.sock in ready else False
             now = self.now()
             if changed or now >= next_control:
@@ -295,6 +295,8 @@ class OperatorNode:
                 outbox.drain_wake_pipe()
             self.flush_commands(now)
             self.sockets.reopen_if_silent(now, self.ctx, self._topics(), outbox.wake_r)
+            # held up mid-turn (frozen or starved outside its wait): the palm was as stuck
+            _note_late_wake(self.counters, woke, self.now(), link.stale_after_ms)
 
     # ------------------------------------------- the loop's steps, driven
     def receive(self) -> bool:
