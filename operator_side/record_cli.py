@@ -41,6 +41,8 @@ from common.security import SecurityConfig, check_endpoint, client_options
 log = logging.getLogger(__name__)
 
 _RECORD = struct.Struct("<QI")
+#: a forward jump in a sender's seq this large is a restart, not messages lost
+SEQ_RESTART_GAP = 100_000
 
 
 @dataclass
@@ -66,6 +68,7 @@ class StreamRecorder:
         self._own_ctx = ctx is None
         self.ctx = ctx or zmq.Context()
         self.counters: Counter[str] = Counter()
+        self._last_seq: dict[str, int] = {}
         self._bad = BurstLog(log, "recorder: rejected message")
         check_endpoint(config.telemetry_endpoint, config.security)
         self.sock = self.ctx.socket(zmq.SUB)
@@ -100,9 +103,24 @@ class StreamRecorder:
             self.counters["rejected"] += 1
             self._bad(str(e))
             return
-        self.counters[f"{name.decode() or '-'}_{type(msg).TOPIC.decode()}"] += 1
+        stream = f"{name.decode() or '-'}_{type(msg).TOPIC.decode()}"
+        self.counters[stream] += 1
+        self._count_gap(stream, getattr(msg, "seq", None))
         if self._out is not None:
             self._out.write(_RECORD.pack(t_recv_ns, len(data)) + data)
+
+    def _count_gap(self, stream: str, seq: int | None) -> None:
+        """``<stream>_lost``: messages missing from a sender's ``seq`` (one up per message).
+
+        A step back or a jump past ``SEQ_RESTART_GAP`` is the sender restarting,
+        not a loss; a recording that lost nothing shows no ``_lost`` key at all.
+        """
+        if not isinstance(seq, int):
+            return
+        last = self._last_seq.get(stream)
+        self._last_seq[stream] = seq
+        if last is not None and 1 < seq - last <= SEQ_RESTART_GAP:
+            self.counters[f"{stream}_lost"] += seq - last - 1
 
     def stats(self) -> dict[str, float]:
         return {k: float(v) for k, v in self.counters.items()}

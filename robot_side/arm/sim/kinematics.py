@@ -188,11 +188,14 @@ class KinematicArm:
         if self.mode == Mode.MOVE_L:
             self._step_move_l(dt)
         elif self.mode in (Mode.SPEED_L, Mode.STOPPING):
-            dv = self.target_velocity - self.velocity
-            n = float(np.linalg.norm(dv))
+            # URScript's speedl(xd, a) and stopl(a): the translation ramps at a in m/s^2 and
+            # the turn at aRot in rad/s^2, each on its own (aRot defaults to a)
             max_dv = self.accel * dt
-            self.velocity = (
-                self.target_velocity.copy() if n <= max_dv else self.velocity + dv * (max_dv / n)
+            self.velocity = np.concatenate(
+                [
+                    _approach(self.velocity[:3], self.target_velocity[:3], max_dv),
+                    _approach(self.velocity[3:], self.target_velocity[3:], max_dv),
+                ]
             )
             self._integrate(self.velocity, dt)
             if self.mode == Mode.STOPPING and not np.any(self.velocity):
@@ -297,3 +300,10 @@ class KinematicArm:
 def _cap(v: np.ndarray, limit: float) -> np.ndarray:
     n = float(np.linalg.norm(v))
     return v if n <= limit else v * (limit / n)
+
+
+def _approach(v: np.ndarray, target: np.ndarray, max_step: float) -> np.ndarray:
+    """``v`` moved toward ``target`` by at most ``max_step`` (Euclidean), landing on it exactly."""
+    dv = target - v
+    n = float(np.linalg.norm(dv))
+    return target.copy() if n <= max_step else v + dv * (max_step / n)

@@ -204,6 +204,10 @@ class URSimulator:
         self._async_wr_count = 0
         self._async_running = False
         self._t0 = now_s()
+        # the controller's clock in motion_clock "wall": the time the arm was stepped by, so
+        # a tick the machine stalled past MAX_TICK_S costs the clock what it costs the motion
+        # (a real controller is hard real time: its timestamps and motion always agree)
+        self._clock_s = 0.0
         self._last_cmd = 0
         self._commands_seen: list[int] = []  # every new command value, for tests
         self.scripts_received = 0
@@ -539,6 +543,7 @@ class URSimulator:
                     self._runtime_error()
                 if dt > 0 and self.config.motion_clock == "wall":
                     self._step_arm(dt)
+                    self._clock_s += dt
                 if self._pending_done and not self.arm.moving:
                     self._pending_done = False
                     self.out_int[0] = STATUS_DONE
@@ -631,7 +636,9 @@ class URSimulator:
         protective = self.safety_mode == SAFETY_MODE_PROTECTIVE_STOP
         status_bits = (1 if self.powered else 0) | (2 if self.program_running else 0)
         return {
-            "timestamp": now_s() - self._t0,
+            "timestamp": (
+                self._clock_s if self.config.motion_clock == "wall" else now_s() - self._t0
+            ),
             "actual_q": q,
             "target_q": q,
             "actual_qd": qd,

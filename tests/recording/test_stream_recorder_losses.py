@@ -1,0 +1,43 @@
+"""The fleet recorder says what went missing: gaps in each sender's sequence numbers."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import zmq
+
+from common.codec import encode
+from common.messages import Stimulus
+from operator_side.record_cli import RecorderConfig, StreamRecorder
+
+_STIM = Stimulus(
+    seq=1,
+    t_send_ns=10,
+    t_capture_ns=9,
+    frame_seq=1,
+    mode="direct",
+    contact=True,
+    stimulus=np.zeros((3, 3), np.float32),
+)
+
+
+def _take(recorder: StreamRecorder, robot: bytes, seqs: list[int]) -> None:
+    for s in seqs:
+        recorder.take(encode(dataclasses.replace(_STIM, seq=s), robot), 0)
+
+
+def test_gaps_count_per_robot_and_a_restart_is_not_a_loss():
+    ctx = zmq.Context()
+    recorder = StreamRecorder(RecorderConfig(robots=["cell1", "cell2"]), ctx)
+    try:
+        _take(recorder, b"cell1", [1, 2, 5, 6])  # 3 and 4 lost
+        _take(recorder, b"cell2", [7, 8, 9])  # joined mid-stream: nothing lost
+        _take(recorder, b"cell2", [1, 2])  # cell2 restarted: its seq starts again
+        _take(recorder, b"cell1", [7, 300_000])  # a jump past the restart gap: a restart
+        stats = recorder.stats()
+        assert stats["cell1_STIM"] == 6 and stats["cell1_STIM_lost"] == 2
+        assert stats["cell2_STIM"] == 5 and "cell2_STIM_lost" not in stats
+    finally:
+        recorder.close()
+        ctx.term()
