@@ -253,11 +253,26 @@ async def _next_of(ws, kind: str) -> dict:
 def test_an_observers_offers_and_flood_leave_the_controllers_page_its_video(deployment):
     d = deployment
     obs1, obs2 = d.viewers["obs1"], d.viewers["obs2"]
-    # 8 offers that never connect, from the two observers the roster grants video
+    # 8 offers that never connect, from the two observers the roster grants video, each key's
+    # offer budget full (an earlier test's offer spent some): 2 answered and 2 refused a key
+    time.sleep(1.0)
     first = [(v, next(_next_viewer)) for v in (obs1, obs2) for _ in range(4)]
     for v, viewer in first:
         v.send("offer", viewer, d.silent)
-    time.sleep(0.5)
+
+    def settled() -> list[str]:
+        """Each offer's first answer or refusal so far (a busy machine answers late)."""
+        for v in (obs1, obs2):
+            v.read()
+        kinds = [[m.kind for _, m in v.heard.get(i, [])] for v, i in first]
+        return [next((k for k in ks if k in ("answer", "closed")), "") for ks in kinds]
+
+    deadline = time.monotonic() + 10.0
+    while not all(settled()):
+        assert time.monotonic() < deadline, f"the observers' offers unanswered: {settled()}"
+        time.sleep(0.02)
+    # every slot is an observer's half-open session when the controller's page first asks
+    assert settled().count("answer") == MAX_VIEWERS, settled()
     stop = threading.Event()
     flood_ids: list[int] = []
 
