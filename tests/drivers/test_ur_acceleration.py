@@ -8,6 +8,7 @@ angular acceleration, and every correction of a grasp waited on it.
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
@@ -28,8 +29,10 @@ def receive(sim):
     r.disconnect()
 
 
-def _ramp(arm: URArm, receive, velocity: list[float], part: slice) -> float:
-    """The slope (per s of controller time) of |velocity[part]| between 20 % and 80 % of it."""
+def _ramp_once(
+    arm: URArm, receive, velocity: list[float], part: slice
+) -> list[tuple[float, float]]:
+    """(controller time, |velocity[part]|) from rest until 95 % of the jog's speed."""
     top = float(np.linalg.norm(velocity[part]))
     samples: list[tuple[float, float]] = []
     deadline = time.monotonic() + 5.0
@@ -44,6 +47,28 @@ def _ramp(arm: URArm, receive, velocity: list[float], part: slice) -> float:
             break
         time.sleep(0.002)
     arm.stop()
+    deadline = time.monotonic() + 3.0  # at rest again, by the controller's own reading
+    while np.linalg.norm(receive.getActualTCPSpeed()) > 1e-4:
+        assert time.monotonic() < deadline, "the arm did not come to rest after the stop"
+        time.sleep(0.01)
+    return samples
+
+
+def _ramp(arm: URArm, receive, velocity: list[float], part: slice) -> float:
+    """The slope (per s of controller time) of |velocity[part]| between 20 % and 80 % of it.
+
+    A ramp that dipped was cut by the jog's own deadman (this test's renewals starved past
+    ``jog_timeout_s`` on a busy machine): it says nothing about the acceleration, and is
+    taken again, at most three times.
+    """
+    top = float(np.linalg.norm(velocity[part]))
+    for _ in range(3):
+        samples = _ramp_once(arm, receive, velocity, part)
+        speeds = [v for _, v in samples]
+        if all(b >= a - 0.02 * top for a, b in itertools.pairwise(speeds)):
+            break
+    else:
+        raise AssertionError(f"every ramp dipped: {samples}")
     ramp = [(t, v) for t, v in samples if 0.2 * top <= v <= 0.8 * top]
     assert len(ramp) >= 5, f"too few samples on the ramp: {samples[:20]}"
     t, v = np.array(ramp).T
@@ -59,10 +84,6 @@ def test_a_wrist_turn_ramps_at_the_angular_limit_and_a_translation_at_the_linear
         w = limits.max_angular_speed_rad_s
         turn = _ramp(arm, receive, [0, 0, 0, 0, w, 0], slice(3, 6))
         assert turn == pytest.approx(limits.angular_acceleration_rad_s2, rel=0.1)
-        deadline = time.monotonic() + 3.0  # at rest again, by the controller's own reading
-        while np.linalg.norm(receive.getActualTCPSpeed()) > 1e-4:
-            assert time.monotonic() < deadline, "the arm did not come to rest after the stop"
-            time.sleep(0.01)
         v = limits.max_linear_speed_m_s
         # a jog that translates and turns: neither part beyond its own limit
         # (the controller ramps the translation at a and the turn at aRot, each on its own)
