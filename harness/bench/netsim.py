@@ -50,6 +50,7 @@ def fidelity(
     seconds: float,
     scenarios: tuple[str, ...] = SCENARIOS,
     message_scenarios: tuple[str, ...] = MESSAGE_SCENARIOS,
+    datagram_scenarios: tuple[str, ...] = DATAGRAM_SCENARIOS,
 ) -> dict[str, Any]:
     """One rig run per scenario; the simulator gets every core the bench had before pinning."""
     from common.netsim.fidelity import measure as run_rig
@@ -65,7 +66,7 @@ def fidelity(
         run_rig(name, seconds=seconds, netsim_cpus=cpus, mode="message").as_dict()
         for name in message_scenarios
     ]
-    datagrams = [datagram_run(name, seconds) for name in DATAGRAM_SCENARIOS]
+    datagrams = [datagram_run(name, seconds) for name in datagram_scenarios]
     load = os.getloadavg()
     return {
         "seconds_per_scenario": seconds,  # the runner writes the section's total as "seconds"
@@ -308,19 +309,28 @@ class NetsimSizes:
     netsim_seconds: float  # per scenario, 100 messages a second
     netsim_scenarios: tuple[str, ...]
     netsim_message_scenarios: tuple[str, ...] = MESSAGE_SCENARIOS
+    netsim_datagram_scenarios: tuple[str, ...] = DATAGRAM_SCENARIOS
 
 
 SIZES = {
     "full": NetsimSizes(netsim_seconds=20.0, netsim_scenarios=SCENARIOS),
     "quick": NetsimSizes(netsim_seconds=5.0, netsim_scenarios=SCENARIOS),
     "smallest": NetsimSizes(
-        netsim_seconds=1.0, netsim_scenarios=("none",), netsim_message_scenarios=()
+        netsim_seconds=1.0,
+        netsim_scenarios=("none",),
+        netsim_message_scenarios=(),
+        netsim_datagram_scenarios=("fixed_20ms",),
     ),
 }
 
 
 def measure(ctx: Context, sizes: NetsimSizes) -> dict[str, Any]:
-    return fidelity(sizes.netsim_seconds, sizes.netsim_scenarios, sizes.netsim_message_scenarios)
+    return fidelity(
+        sizes.netsim_seconds,
+        sizes.netsim_scenarios,
+        sizes.netsim_message_scenarios,
+        sizes.netsim_datagram_scenarios,
+    )
 
 
 def markdown(results: Results) -> list[str]:
