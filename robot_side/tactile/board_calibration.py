@@ -46,7 +46,7 @@ class BoardCalibration:
         """For simulators: newtons -> counts (float64, not rounded).
 
         The other direction, with floor, saturation and the mirror, is the
-        serial driver's ``_Converter`` (one place, on its hot path).
+        serial driver's ``ScanConverter`` (one place, on its hot path).
         """
         return np.asarray(newtons, dtype=np.float64) / self.gain_n_per_count + self.zero_counts
 

@@ -131,7 +131,7 @@ class SerialTactileSensor(TactileSensor):
         # Pairing the two pads of one scan (their payloads, as sent).
         self._pending_seq: int | None = None
         self._pending: dict[int, bytes] = {}
-        self._converter: _Converter | None = None
+        self._converter: ScanConverter | None = None
         self._last_wire_seq: int | None = None
         self._published_seq = 0
         self._raw_sinks: list[list[np.ndarray]] = []
@@ -215,7 +215,7 @@ class SerialTactileSensor(TactileSensor):
         if cfg.calibration_file is not None and not self._explicit_calibration:
             self._calibration = load_board_calibration(cfg.calibration_file)
         self._reset_stream_state()
-        self._converter = _Converter(self._calibration, cfg)  # compiled before the first scan
+        self._converter = ScanConverter(self._calibration, cfg)  # compiled before the first scan
         self._ser = self._open_port()  # missing port or no permission: raise now, by name
         self._link = "open"
         self._stop.clear()
@@ -426,7 +426,7 @@ class SerialTactileSensor(TactileSensor):
                 self._sink_cond.notify_all()
         converter = self._converter
         if converter is None or converter.calibration is not self._calibration:
-            converter = self._converter = _Converter(self._calibration, self.config)
+            converter = self._converter = ScanConverter(self._calibration, self.config)
         self._counters["frames"] += 1
         self._publish_raw(seq, t_ns, payloads, converter, self._truth_for_wire_seq(wire_seq))
 
@@ -523,7 +523,7 @@ class SerialTactileSensor(TactileSensor):
         )
 
 
-class _Converter:
+class ScanConverter:
     """Count bytes of one scan -> a ``FRAME_SHAPE`` float32 frame in newtons, common view.
 
     newtons = (counts - zero) * gain per taxel, above saturation clipped,

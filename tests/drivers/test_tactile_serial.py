@@ -264,14 +264,14 @@ def test_compiled_conversion_is_bit_identical_to_numpy(
     counts: list[int], zero: float, gain: float, mirror: bool, floor: float, saturation: float
 ) -> None:
     pytest.importorskip("numba")
-    from robot_side.tactile.serial_board import _Converter
+    from robot_side.tactile.serial_board import ScanConverter
 
     rng = np.random.default_rng(len(counts) + int(zero))
     cal = BoardCalibration(
         zero + rng.uniform(-50, 50, (2, 10, 10)), gain * rng.uniform(0.5, 2, (2, 10, 10))
     )
     cfg = SerialTactileConfig(mirror_finger2=mirror, floor_n=floor, saturation_n=saturation)
-    converter = _Converter(cal, cfg)
+    converter = ScanConverter(cal, cfg)
     assert converter._compiled is not None
     payloads = np.array(counts, "<u2").tobytes()
     compiled, reference = converter(payloads), converter.numpy_path(payloads)
