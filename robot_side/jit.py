@@ -20,6 +20,9 @@ log = logging.getLogger(__name__)
 
 _warned = False
 
+#: every function compiled through ``njit``, for ``cache_counts``
+COMPILED: list[Any] = []
+
 
 def njit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
     """``numba.njit(cache=True, nogil=True, **options)``, or without the cache if it cannot be."""
@@ -27,7 +30,7 @@ def njit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
     def wrap(fn: Callable[..., Any]) -> Any:
         global _warned
         try:
-            return numba.njit(cache=True, nogil=True, **options)(fn)
+            compiled = numba.njit(cache=True, nogil=True, **options)(fn)
         except RuntimeError as e:  # "cannot cache function ...: no locator available"
             if not _warned:
                 _warned = True
@@ -36,6 +39,15 @@ def njit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
                     "Set NUMBA_CACHE_DIR to a writable directory to cache it",
                     e,
                 )
-            return numba.njit(cache=False, nogil=True, **options)(fn)
+            compiled = numba.njit(cache=False, nogil=True, **options)(fn)
+        COMPILED.append(compiled)
+        return compiled
 
     return wrap
+
+
+def cache_counts() -> tuple[int, int]:
+    """(signatures loaded from the cache, signatures compiled) in this process so far."""
+    hits = sum(sum(f.stats.cache_hits.values()) for f in COMPILED)
+    misses = sum(sum(f.stats.cache_misses.values()) for f in COMPILED)
+    return hits, misses

@@ -51,7 +51,13 @@ def main() -> int:
     except ImportError as e:
         print(f"nothing to compile: {e} (numba is in the robot extra)", file=sys.stderr)
         return 0
-    print(f"compiled or loaded: {', '.join(done)} ({time.monotonic() - t0:.1f} s)")
+    from robot_side.jit import cache_counts
+
+    loaded, compiled = cache_counts()
+    print(
+        f"{', '.join(done)}: {loaded} loaded from the cache, {compiled} compiled "
+        f"({time.monotonic() - t0:.1f} s)"
+    )
     return 0
 
 
