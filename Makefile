@@ -54,8 +54,10 @@ test: $(STAMP)
 	bash scripts/install-test-system-packages.sh || [ -z "$$CI" ]
 	@# LeRobot's own dataset class in an environment of its own (cached), to load exports with
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
-	@# the robot node's numba code compiled once (about 14 s cold), not by every worker at once
+	@# the robot node's numba code, and the bytecode of the heavy packages, compiled once
+	@# (about 14 and 13 s cold), not by every worker and every process it starts at once
 	$(BIN)/python -m robot_side.jit_warm
+	$(BIN)/python scripts/warm-bytecode.py
 	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty
 	status=0; \
 	$(BIN)/python -m pytest -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
