@@ -15,10 +15,17 @@ class BurstLog:
     first example, which is the useful one.
     """
 
-    def __init__(self, logger: logging.Logger, what: str, interval_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        logger: logging.Logger,
+        what: str,
+        interval_s: float = 5.0,
+        level: int = logging.WARNING,
+    ) -> None:
         self.logger = logger
         self.what = what
         self.interval_s = interval_s
+        self.level = level
         self.total = 0
         self._suppressed = 0
         self._last_s = -float("inf")
@@ -28,7 +35,8 @@ class BurstLog:
         now = time.monotonic()
         if now - self._last_s >= self.interval_s:
             if self._suppressed:
-                self.logger.warning(
+                self.logger.log(
+                    self.level,
                     "%s: %d more in the last %.0f s; latest: %s",
                     self.what,
                     self._suppressed,
@@ -36,7 +44,7 @@ class BurstLog:
                     detail,
                 )
             else:
-                self.logger.warning("%s: %s", self.what, detail)
+                self.logger.log(self.level, "%s: %s", self.what, detail)
             self._suppressed = 0
             self._last_s = now
         else:

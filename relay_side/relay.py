@@ -72,6 +72,7 @@ from common.messages import ROLES, STOP_ROLES
 from common.roster import Roster, RosterLockoutError, check_replacement, parse_roster
 from common.security import SecurityConfig, check_endpoint, server_options
 from relay_side.config import RelayConfig
+from relay_side.connection_log import ConnectionLog
 
 log = logging.getLogger(__name__)
 
@@ -349,6 +350,7 @@ class _Path:
         self._ignored = BurstLog(log, f"unsubscribe ignored at the relay ({self.what})")
         self._junk = BurstLog(log, f"frame from a subscriber dropped at the relay ({self.what})")
         self.turned = time.monotonic()
+        self.connections = ConnectionLog(backend, self.what, self.counters)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"relay-{self.what}", daemon=True)
         self._thread.start()
@@ -358,10 +360,13 @@ class _Path:
         poller = zmq.Poller()
         poller.register(front, zmq.POLLIN)
         poller.register(back, zmq.POLLIN)
+        poller.register(self.connections.monitor, zmq.POLLIN)
         try:
             while not self._stop.is_set():
                 ready = dict(poller.poll(100))
                 self.turned = time.monotonic()
+                if self.connections.monitor in ready:
+                    self.connections.handle()
                 if back in ready:  # from the subscribers: subscriptions only
                     while back.get(zmq.EVENTS) & zmq.POLLIN:
                         self._from_subscriber(back.recv(zmq.NOBLOCK, copy=False))
@@ -375,6 +380,7 @@ class _Path:
         except zmq.ZMQError as e:
             log.error("relay %s path ended: %s", self.what, e)
         finally:
+            self.connections.close()
             front.close(0)
             back.close(0)
 
@@ -382,6 +388,8 @@ class _Path:
         """A frame from the subscribers' side: a subscription, or something to drop."""
         data = frame.bytes
         peer = _Peer(frame)
+        if peer.conn is not None:
+            self.connections.heard(peer.fd, peer.text())
         if frame.more or not data or data[0] not in (0, 1):
             parts = 1
             while self.backend.get(zmq.RCVMORE):

@@ -234,7 +234,8 @@ def test_an_observers_large_frames_reach_no_robot_and_cost_the_relay_nothing(fle
     try:
         for size in (17 * 1024, 50 * 1024 * 1024):
             raw = _socket(ctx, fleet, zmq.XSUB, "mallory", fleet.ops_telemetry)
-            time.sleep(0.3)  # the handshake
+            time.sleep(1.1)  # the handshake, and the relay's log of endings ready for a line
+            logged = len(relay.log_text())
             t_send = time.monotonic()
             raw.send(b"\x02" + b"x" * (size - 1))
             print(f"{size} bytes sent in {time.monotonic() - t_send:.2f} s")
@@ -242,6 +243,10 @@ def test_an_observers_large_frames_reach_no_robot_and_cost_the_relay_nothing(fle
             while time.monotonic() < end:
                 peak_kb = max(peak_kb, _rss_kb(pid))
                 time.sleep(0.02)
+            if size > 64 * 1024:  # mallory still holds it open: the relay ended it, and says so
+                ended = relay.log_text()[logged:]
+                assert "subscriber connection ended at the relay (telemetry)" in ended, ended
+                assert "a key that had sent nothing from 127.0.0.1:" in ended, ended
             raw.close(0)
     finally:
         ctx.term()
