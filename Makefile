@@ -56,8 +56,8 @@ test: $(STAMP)
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
 	@# the robot node's numba code, and the bytecode of the heavy packages, compiled once
 	@# (about 14 and 13 s cold), not by every worker and every process it starts at once
-	$(BIN)/python -m robot_side.jit_warm
-	$(BIN)/python scripts/warm-bytecode.py
+	$(BIN)/python -m robot_side.jit_warm & warm=$$!; \
+	$(BIN)/python scripts/warm-bytecode.py && wait $$warm
 	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty
 	status=0; \
 	$(BIN)/python -m pytest -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
