@@ -71,4 +71,5 @@ def measure_band(frame: np.ndarray) -> Band | None:
     theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
     nx, ny = -math.sin(theta), math.cos(theta)  # across the axis
     across = mx * nx + my * ny  # the centroid's distance from the centre, across the axis
-    return Band(math.degrees(theta) % 180.0, (across * nx, across * ny))
+    angle = math.degrees(theta) % 180.0  # a theta a hair below 0 rounds to 180.0 here
+    return Band(0.0 if angle >= 180.0 else angle, (across * nx, across * ny))

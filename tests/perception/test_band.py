@@ -76,6 +76,13 @@ def test_any_frame_gives_a_band_in_range_or_none_never_an_error(frame):
         assert np.hypot(*band.offset_mm) <= 12.1 * math.sqrt(2)  # on the pad
 
 
+def test_a_row_whose_axis_comes_out_a_hair_below_zero_is_at_0_not_180_degrees():
+    frame = np.zeros(FRAME_SHAPE, np.float32)  # found by the property above
+    frame[0, 6, 4], frame[0, 6, 8], frame[1, 6, 2] = 4.5, 1.0, 4.5
+    band = measure_band(frame)
+    assert band is not None and band.angle_deg == 0.0
+
+
 def test_a_round_blob_or_a_blank_frame_has_no_band():
     blank = np.zeros(FRAME_SHAPE, np.float32)
     assert measure_band(blank) is None
