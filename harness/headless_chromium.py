@@ -107,8 +107,8 @@ class Chromium:
                     self._page_ws(port, timeout_s), max_size=64 * 1024 * 1024, close_timeout=1.0
                 )
             )
-            for domain in ("Page", "Runtime", "Network"):
-                self.call(f"{domain}.enable")
+            for domain in ("Page", "Runtime", "Network"):  # a starting browser, on a busy
+                self.call(f"{domain}.enable", timeout_s=timeout_s)  # machine: its start's time
             self.call(
                 "Emulation.setDeviceMetricsOverride",
                 width=width,

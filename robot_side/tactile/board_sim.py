@@ -108,6 +108,7 @@ class TactileBoardSimulator:
         self._paused = threading.Event()
         self._seq = cfg.first_seq % SEQ_MODULO
         self._history: OrderedDict[int, tuple[GraspTruth, np.ndarray]] = OrderedDict()
+        self._streaming = threading.Event()  # set by the first scan after start()
         # Faults waiting to be applied to the next packets.
         self._garbage = bytearray()
         self._corrupt = 0
@@ -153,10 +154,20 @@ class TactileBoardSimulator:
         self._pty = PtyLink("tactile-board", self.config.link_dir)
         self._pty.plug()
         self._stop.clear()
+        self._streaming.clear()
         self._thread = threading.Thread(target=self._run, name="tactile-board-sim", daemon=True)
         self._thread.start()
         log.info("tactile board simulator on %s -> %s", self._pty.path, self._pty.slave_path)
         return self
+
+    def wait_streaming(self, timeout_s: float = 10.0) -> None:
+        """Until the first scan is out: a powered board streams before anyone opens its port.
+
+        So a driver's ``connect_timeout_s`` (a real board's first frame) never counts the
+        simulator's own start, which a busy machine can stretch past it.
+        """
+        if not self._streaming.wait(timeout_s):
+            raise TimeoutError(f"the tactile board simulator sent no scan in {timeout_s:.0f} s")
 
     def stop(self) -> None:
         self._stop.set()
@@ -291,6 +302,7 @@ class TactileBoardSimulator:
             for pad in range(WIRE_SHAPE[0]):
                 data += self._faulty(encode(pad, seq, counts[pad]))
             self.counters["scans"] += 1
+            self._streaming.set()
             master = None if self._pty is None else self._pty.master
             if master is None:
                 return  # unplugged: the scan happens, nobody hears it
@@ -365,6 +377,7 @@ class SimulatedSerialTactileSensor(OnItsSimulator, SerialTactileSensor):
 
     def _start_simulator(self) -> None:
         self.simulator.start()
+        self.simulator.wait_streaming()
         self.config = dataclasses.replace(self.config, port=self.simulator.port)
         if self.sim_config.use_factory_calibration and self.config.calibration_file is None:
             self.set_calibration(self.simulator.calibration)

@@ -223,11 +223,16 @@ def test_the_page_follows_the_stimulus_and_its_buttons_command_the_gripper(stati
         browser.click("#open")
         browser.wait_for("dxp.acks.length >= 2", 3)
         deadline = time.monotonic() + 3
-        while len(robot.commands) < 2 and time.monotonic() < deadline:
+        while not any(c.action == "gripper_open" for c in robot.commands):
+            if time.monotonic() > deadline:
+                break
             time.sleep(0.02)
+        # in order; a gripper command the robot's heartbeat had not confirmed yet is sent
+        # again as it was (the operator's resend, a busy machine): one press, one command
         actions = [(c.action, c.grip_level) for c in robot.commands]
-        assert actions == [("gripper_close", 23), ("gripper_open", None)]
-        assert browser.evaluate("dxp.acks.every(a => a.ok)")
+        pressed = [a for i, a in enumerate(actions) if i == 0 or a != actions[i - 1]]
+        assert pressed == [("gripper_close", 23), ("gripper_open", None)], actions
+        assert browser.evaluate("dxp.acks.every(a => a.ok) && dxp.acks.length === 2")
 
         # The robot goes quiet: within the stale limit the badge says so and the palm lifts.
         robot.publishing.clear()

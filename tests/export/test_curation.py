@@ -45,6 +45,8 @@ class MarkingClient:
         self.acks: list[dict] = []
         self.error: BaseException | None = None
         self.done = threading.Event()
+        #: set once the discarded grasp ended and two more whole grasps followed it
+        self.two_more = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
@@ -85,6 +87,25 @@ class MarkingClient:
                     msg = json.loads(ws.recv(timeout=5))
                     if msg.get("type") == "ack":
                         self.acks.append(msg)
+                self.done.set()
+                # the discarded grasp's end and two more grasps (one to exclude, one to give a
+                # task), counted on the palm, however long a busy machine makes them
+                releases, touching, apart_since = 0, True, None
+                while releases < 3 and time.monotonic() < deadline + 60:
+                    msg = json.loads(ws.recv(timeout=5))
+                    if msg.get("type") != "state" or "stimulus" not in msg:
+                        continue
+                    stim = msg["stimulus"]
+                    contact = stim is not None and max(map(max, stim)) > 0
+                    now = time.monotonic()
+                    if contact:
+                        touching, apart_since = True, None
+                    elif touching:  # a release once it has lasted, as the plan's steps judge
+                        apart_since = apart_since or now
+                        if now - apart_since >= APART_S:
+                            releases, touching = releases + 1, False
+                if releases >= 3:
+                    self.two_more.set()
         except BaseException as e:  # reported by the test
             self.error = e
         finally:
@@ -98,7 +119,7 @@ def marked_session(tmp_path_factory):
     with DashboardDemo("--record", str(out), "--no-video") as demo:
         client = MarkingClient(demo.ws_url)
         assert client.done.wait(90), "the marking client never finished"
-        time.sleep(5.0)  # two more grasps: one to exclude, one to give a task
+        assert client.two_more.wait(60) or client.error, "no two more grasps after the marks"
         code, _, stderr = demo.finish()
     assert client.error is None, repr(client.error)
     assert code == 0, stderr[-3000:]
