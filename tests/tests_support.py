@@ -10,6 +10,7 @@ import sys
 import time
 from collections.abc import Callable
 
+from common.messages import Stimulus
 from common.transport import free_loopback_ports
 from robot_side.arm.base import ArmLimits
 
@@ -350,3 +351,23 @@ def stderr_on_pty(
             proc.wait()
         os.close(master)
     return seen, rc
+
+
+def stimulus(**kw) -> Stimulus:
+    """A valid stimulus message; any field overridden by keyword."""
+    import numpy as np
+
+    base = dict(
+        seq=7,
+        t_send_ns=1_000,
+        t_capture_ns=900,
+        frame_seq=3,
+        mode="mask",
+        contact=True,
+        stimulus=np.array([[0, 2.5, 0], [1.25, 0, 0], [0, 0, 0]], np.float32),
+        pattern=4,
+        confidence=0.93,
+        grip_level=12,
+    )
+    base.update(kw)
+    return Stimulus(**base)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from tests_support import stimulus
 
 from common import codec
 from common.codec import (
@@ -29,23 +30,6 @@ from common.codec import (
 )
 from common.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.signing import Signer
-
-
-def stimulus(**kw) -> Stimulus:
-    base = dict(
-        seq=7,
-        t_send_ns=1_000,
-        t_capture_ns=900,
-        frame_seq=3,
-        mode="mask",
-        contact=True,
-        stimulus=np.array([[0, 2.5, 0], [1.25, 0, 0], [0, 0, 0]], np.float32),
-        pattern=4,
-        confidence=0.93,
-        grip_level=12,
-    )
-    base.update(kw)
-    return Stimulus(**base)
 
 
 def body_of(data: bytes) -> dict:

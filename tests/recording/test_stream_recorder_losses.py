@@ -2,29 +2,16 @@
 
 from __future__ import annotations
 
-import dataclasses
-
-import numpy as np
 import zmq
+from tests_support import stimulus
 
 from common.codec import encode
-from common.messages import Stimulus
 from operator_side.record_cli import RecorderConfig, StreamRecorder
-
-_STIM = Stimulus(
-    seq=1,
-    t_send_ns=10,
-    t_capture_ns=9,
-    frame_seq=1,
-    mode="direct",
-    contact=True,
-    stimulus=np.zeros((3, 3), np.float32),
-)
 
 
 def _take(recorder: StreamRecorder, robot: bytes, seqs: list[int]) -> None:
     for s in seqs:
-        recorder.take(encode(dataclasses.replace(_STIM, seq=s), robot), 0)
+        recorder.take(encode(stimulus(seq=s), robot), 0)
 
 
 def test_gaps_count_per_robot_and_a_restart_is_not_a_loss():
