@@ -29,8 +29,13 @@ log = logging.getLogger(__name__)
 def _peer_address(fd: int) -> str:
     """``host:port`` of the peer on ``fd`` (a libzmq-owned socket, read through a copy)."""
     try:
-        copy = socket.socket(fileno=os.dup(fd))
+        dup = os.dup(fd)
     except OSError:
+        return "an unknown address"
+    try:
+        copy = socket.socket(fileno=dup)
+    except OSError:
+        os.close(dup)
         return "an unknown address"
     try:
         host, port = copy.getpeername()[:2]
