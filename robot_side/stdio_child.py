@@ -86,11 +86,14 @@ class StdioChild:
     ``what`` names the child in every error ("UR simulator", "lab world").
     """
 
-    def __init__(self, module: str, config: Any, what: str, log_level: int) -> None:
+    def __init__(
+        self, module: str, config: Any, what: str, log_level: int, nice: int | None = None
+    ) -> None:
         self.module = module
         self.config = config
         self.what = what
         self.log_level = log_level
+        self.nice = nice
         self._proc: subprocess.Popen[str] | None = None
         self._lock = threading.Lock()  # one request in flight: the pipe is a conversation
 
@@ -118,6 +121,9 @@ class StdioChild:
         self._proc = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
         )
+        if self.nice is not None:  # where this process may raise it (root, CAP_SYS_NICE)
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, self._proc.pid, self.nice)
         try:
             msg = self._read(self._proc, timeout_s, "start")
         except DeviceError:

@@ -45,7 +45,12 @@ class URSimProcess(StdioChild):
     """Start with :meth:`start`; ``host`` is then the address the simulator serves."""
 
     def __init__(self, config: URSimConfig | None = None, log_level: int = logging.WARNING):
-        super().__init__("robot_side.arm.sim", config or URSimConfig(), "UR simulator", log_level)
+        # a controller is hard real time: it never waits for the PC's CPU. The simulator that
+        # stands in for it runs at the robot node's priority (Nice=-10) where it may, so a
+        # busy machine slows the nodes under test, not the controller they are judged by
+        super().__init__(
+            "robot_side.arm.sim", config or URSimConfig(), "UR simulator", log_level, nice=-10
+        )
         self.host: str | None = None
 
     def start(self, timeout_s: float = 15.0) -> URSimProcess:
