@@ -39,7 +39,8 @@ _HIST_BINS = 400  # up to 10 us * 1.04**399, about 60 s
 _LOG_RATIO = math.log(_HIST_RATIO)
 _SEQ_WINDOW = 64  # how far back duplicates and late arrivals are recognised
 _SEQ_MASK = (1 << _SEQ_WINDOW) - 1
-_RESTART_GAP = 100_000  # a jump this large in seq is a sender restart, not loss
+#: a jump this large in a sender's seq is a restart, not messages lost
+SEQ_RESTART_GAP = 100_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,7 +153,7 @@ class LinkStats:
         """Count one arrival: its ``seq``, the sender's ``t_send_ns``, our ``t_recv_ns``."""
         s = self._slot(t_recv_ns)
         hi = self._highest
-        if hi is None or seq - hi > _RESTART_GAP or hi - seq > _RESTART_GAP:
+        if hi is None or seq - hi > SEQ_RESTART_GAP or hi - seq > SEQ_RESTART_GAP:
             self._highest, self._seen = seq, 1  # first message, or the sender restarted
         elif seq > hi:
             gap = seq - hi - 1

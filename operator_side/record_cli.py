@@ -35,14 +35,13 @@ from common.clock import now_ns
 from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, DecodeError, decode_named
 from common.config import param
 from common.foxglove import FoxgloveLiveConfig
+from common.link_stats import SEQ_RESTART_GAP
 from common.logs import BurstLog
 from common.security import SecurityConfig, check_endpoint, client_options
 
 log = logging.getLogger(__name__)
 
 _RECORD = struct.Struct("<QI")
-#: a forward jump in a sender's seq this large is a restart, not messages lost
-SEQ_RESTART_GAP = 100_000
 
 
 @dataclass
