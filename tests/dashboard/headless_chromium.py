@@ -18,6 +18,12 @@ needs_chromium = pytest.mark.skipif(
     "(required in CI)",
 )
 
+#: Stamps a page may fail to read in one run before a test calls the picture broken. One
+#: of ~180 has been unreadable in some full-suite runs, quiet or loaded, on one page or on
+#: two pages at once, never in a run on its own (docs/dashboard.md, Video): one is the
+#: instrument's miss, which the bench also reports; two are a picture that breaks up.
+MISSED_STAMPS_ALLOWED = 1
+
 
 def play_video(browser: Chromium, url: str, frames: int, timeout_s: float = 60.0) -> tuple:
     """Open the dashboard at ``url`` and wait for ``frames`` stamped frames on its screen.
@@ -34,7 +40,15 @@ def play_video(browser: Chromium, url: str, frames: int, timeout_s: float = 60.0
     return browser.evaluate("dxp.video.summary()"), browser.page_errors()
 
 
-__all__ = ["BrowserError", "Chromium", "chromium_path", "main", "needs_chromium", "play_video"]
+__all__ = [
+    "MISSED_STAMPS_ALLOWED",
+    "BrowserError",
+    "Chromium",
+    "chromium_path",
+    "main",
+    "needs_chromium",
+    "play_video",
+]
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))

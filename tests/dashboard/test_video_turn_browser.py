@@ -17,7 +17,7 @@ import subprocess
 import time
 
 import pytest
-from headless_chromium import Chromium, needs_chromium, play_video
+from headless_chromium import MISSED_STAMPS_ALLOWED, Chromium, needs_chromium, play_video
 
 pytest.importorskip("aiortc")
 
@@ -89,7 +89,7 @@ def test_the_page_gets_the_robots_video_through_turn_only(turn_server):
         finally:
             dashboard.stop()
     assert errors == [], errors
-    assert summary["unreadable"] == 0, summary
+    assert summary["unreadable"] <= MISSED_STAMPS_ALLOWED, summary
     assert path is not None and path["local"] == "relay", f"the browser's pair: {path}"
     log = turn_log.read_text()
     assert "ALLOCATE processed, success" in log, log[-3000:]
