@@ -28,13 +28,14 @@ STAMP := $(VENV)/.installed
 FAST_WORKERS ?= 4
 DEPLOYMENT_WORKERS ?= 4
 PAIRED_WORKERS ?= 3
-# The lanes run above the machine's ordinary work (a CI machine's other jobs): the deployments
-# they start stand for robot PCs, controllers and boards of their own, and their budgets (the
-# 400 ms stop, the 150 ms staleness) are the product's. The nodes still run above the lanes, at
-# their units' Nice=-10, as on a robot PC. Where the user may not raise a priority, nice says so
-# and the lanes run at the one they have (docs/testing.md).
+# The lanes run above the machine's ordinary work (a CI machine's other jobs), in a session of
+# their own: the deployments they start stand for robot PCs, controllers and boards of their own,
+# and their budgets (the 400 ms stop, the 150 ms staleness) are the product's. The nodes still run
+# above the lanes, at their units' Nice=-10. Where the user may not raise a priority, the lanes
+# run at the one they have, and say so (scripts/at-test-priority.py, docs/testing.md).
 TEST_NICE ?= -5
-LANE := nice -n $(TEST_NICE) $(BIN)/python -m pytest
+AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --
+LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest
 PARALLEL_LANE := (not slow or untimed) and not serial and not soak
 DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not soak
 PAIRED_LANE := slow and not untimed and not parallel and not serial and not soak
@@ -63,8 +64,8 @@ test: $(STAMP)
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
 	@# the robot node's numba code, and the bytecode of the heavy packages, compiled once
 	@# (about 14 and 13 s cold), not by every worker and every process it starts at once
-	$(BIN)/python -m robot_side.jit_warm & warm=$$!; \
-	$(BIN)/python scripts/warm-bytecode.py && wait $$warm
+	$(AT_TEST_PRIORITY) $(BIN)/python -m robot_side.jit_warm & warm=$$!; \
+	$(AT_TEST_PRIORITY) $(BIN)/python scripts/warm-bytecode.py && wait $$warm
 	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty
 	status=0; \
 	$(LANE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \

@@ -1,0 +1,80 @@
+"""Run a command in a session of its own, above the machine's ordinary work.
+
+    python scripts/at-test-priority.py NICE -- COMMAND [ARGS ...]
+
+The test lanes run through this (the Makefile's ``TEST_NICE``). Their
+deployments stand for robot PCs, controllers and boards of their own, which
+a shared machine's other jobs (a CI machine's other builds, two busy loops)
+do not share, and their budgets (the 400 ms stop, the 150 ms staleness) are
+the product's. Inside a lane the nodes still run above the rest, at their
+units' ``Nice=-10``.
+
+A priority alone is not enough where the kernel groups processes by session
+before it weighs their priorities (``sched_autogroup``, on by default on
+most distributions): a busy loop started from the same shell would share
+the lanes' group and take its share of it. So the command gets a session
+(and so a group) of its own, and the group gets ``NICE`` too. Ctrl-C and a
+stop reach it as before: this process forwards them to its process group.
+Where the user may not raise a priority (not root, no CAP_SYS_NICE), the
+command runs at the one it has, and one line says so.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+
+FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _raise_priority(nice: int) -> str | None:
+    """In the child, after setsid: the group's and the process's niceness; why not, if not."""
+    try:
+        with open("/proc/self/autogroup", "w") as f:
+            f.write(str(nice))
+    except FileNotFoundError:
+        pass  # no autogroup: the process's niceness is all there is
+    except OSError as e:
+        return f"the session's group: {e.strerror}"
+    try:
+        os.nice(nice - os.nice(0))
+    except OSError as e:
+        return f"the process: {e.strerror}"
+    return None
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) < 3 or argv[1] != "--":
+        print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
+        return 2
+    nice, command = int(argv[0]), argv[2:]
+    pid = os.fork()
+    if pid == 0:
+        os.setsid()
+        refused = _raise_priority(nice)
+        if refused is not None:
+            print(
+                f"at-test-priority: running at the priority it has, not nice {nice} ({refused})",
+                file=sys.stderr,
+            )
+        try:
+            os.execvp(command[0], command)
+        except OSError as e:
+            print(f"at-test-priority: cannot run {command[0]}: {e.strerror}", file=sys.stderr)
+            os._exit(127)
+
+    def forward(signum: int, _frame: object) -> None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(pid, signum)
+
+    for signum in FORWARDED:
+        signal.signal(signum, forward)
+    _, status = os.waitpid(pid, 0)
+    code = os.waitstatus_to_exitcode(status)
+    return code if code >= 0 else 128 - code
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
