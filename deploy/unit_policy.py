@@ -95,10 +95,19 @@ def set_niceness(nice: int | None) -> None:
 
     The nodes' units ask for a higher priority than other work (the robot
     and operator nodes ``Nice=-10``): on a busy machine their loops keep
-    their rate. Where the process may not raise its priority (not root, no
+    their rate. systemd puts each unit in a cgroup of its own; a child that
+    is a session leader (the demo's) gets the niceness for its session's
+    group as well. Where the process may not raise its priority (not root, no
     CAP_SYS_NICE) it keeps the one it has: the same programs, less margin.
     """
     if nice is None:
         return  # no unit says: the parent's priority
     with contextlib.suppress(OSError):
         os.nice(nice - os.nice(0))
+    if os.getsid(0) == os.getpid():
+        # A session of its own (the demo's children): where the kernel groups processes by
+        # session before it weighs priorities (sched_autogroup), the group's niceness is what
+        # counts against other sessions' work, so it gets the unit's too. Never a shared
+        # session's: that would raise or lower every process in it.
+        with contextlib.suppress(OSError):
+            Path("/proc/self/autogroup").write_text(str(nice))
