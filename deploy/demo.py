@@ -265,12 +265,18 @@ def spawn_lab_world(addresses: Path, config: str | None, log_path: Path) -> subp
     args = [sys.executable, "-m", "robot_side.lab", "--addresses-file", str(addresses)]
     if config is not None:
         args += ["--config", config]
+    from robot_side.stdio_child import SIMULATED_HARDWARE_NICE  # the world is the lab's hardware
+
+    def in_child() -> None:
+        die_with_parent()
+        set_niceness(SIMULATED_HARDWARE_NICE)
+
     proc = subprocess.Popen(
         args,
         stdout=subprocess.DEVNULL,
         stderr=log_path.open("ab"),
         start_new_session=True,
-        preexec_fn=die_with_parent,
+        preexec_fn=in_child,
     )
     deadline = time.monotonic() + WORLD_START_S
     while not addresses.exists():

@@ -101,6 +101,11 @@ def _where(sim: Any) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     import importlib
 
+    from deploy.unit_policy import set_niceness
+    from robot_side.stdio_child import SIMULATED_HARDWARE_NICE
+
+    # a device never waits for the PC's CPU: where it may, the simulator outranks ordinary work
+    set_niceness(SIMULATED_HARDWARE_NICE)
     module_name, cls_name, config_name = SIMULATORS[args.device]
     module = importlib.import_module(module_name)
     data = load_toml(args.config) if args.config else {}

@@ -20,7 +20,7 @@ from typing import IO, Any
 import numpy as np
 
 from robot_side.lab.config import LabWorldConfig
-from robot_side.stdio_child import StdioChild
+from robot_side.stdio_child import SIMULATED_HARDWARE_NICE, StdioChild
 from robot_side.stdio_child import serve_stdio as serve_child
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,14 @@ class LabWorldProcess(StdioChild):
     """Start with :meth:`start`; ``addresses`` then says where each simulator listens."""
 
     def __init__(self, config: LabWorldConfig | None = None, log_level: int = logging.WARNING):
-        super().__init__("robot_side.lab", config or LabWorldConfig(), "lab world", log_level)
+        # the world's physics and the controllers in it are the lab's hardware
+        super().__init__(
+            "robot_side.lab",
+            config or LabWorldConfig(),
+            "lab world",
+            log_level,
+            nice=SIMULATED_HARDWARE_NICE,
+        )
         self.addresses: dict[str, Any] = {}
 
     def start(self, timeout_s: float = 30.0) -> LabWorldProcess:

@@ -15,7 +15,7 @@ from typing import IO, Any
 import numpy as np
 
 from robot_side.arm.sim.server import URSimConfig, URSimulator
-from robot_side.stdio_child import StdioChild
+from robot_side.stdio_child import SIMULATED_HARDWARE_NICE, StdioChild
 from robot_side.stdio_child import serve_stdio as serve_child
 
 log = logging.getLogger(__name__)
@@ -45,11 +45,13 @@ class URSimProcess(StdioChild):
     """Start with :meth:`start`; ``host`` is then the address the simulator serves."""
 
     def __init__(self, config: URSimConfig | None = None, log_level: int = logging.WARNING):
-        # a controller is hard real time: it never waits for the PC's CPU. The simulator that
-        # stands in for it runs at the robot node's priority (Nice=-10) where it may, so a
-        # busy machine slows the nodes under test, not the controller they are judged by
+        # a controller is hard real time: it never waits for the PC's CPU
         super().__init__(
-            "robot_side.arm.sim", config or URSimConfig(), "UR simulator", log_level, nice=-10
+            "robot_side.arm.sim",
+            config or URSimConfig(),
+            "UR simulator",
+            log_level,
+            nice=SIMULATED_HARDWARE_NICE,
         )
         self.host: str | None = None
 
