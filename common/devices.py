@@ -13,9 +13,13 @@ there is no hardware behind it, ``location()`` where its hardware is, and
 from __future__ import annotations
 
 import abc
+import contextlib
+import functools
 import importlib
 import logging
-from collections.abc import Mapping
+import os
+import threading
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, Self
 
 from common.config import from_dict
@@ -107,6 +111,30 @@ def build_device(registry: Mapping[str, str], section: Mapping[str, Any], where:
     config = from_dict(cls.Config, rest, where=where)
     log.debug("building %s kind %s", where, kind)
     return cls(config)
+
+
+#: The priority of a simulator that stands for hardware (a controller, a board, a servo bus,
+#: the lab's physics): hardware never waits for the PC's CPU, so its simulator runs at the
+#: robot node's priority (Nice=-10) where it may (root, CAP_SYS_NICE), and a busy machine
+#: slows the nodes under test, not the devices they are judged by.
+SIMULATED_HARDWARE_NICE = -10
+
+
+def as_hardware(target: Callable[..., Any]) -> Callable[..., Any]:
+    """A simulator thread's ``target``, run at :data:`SIMULATED_HARDWARE_NICE` where it may.
+
+    Linux keeps a niceness per thread, and a thread starts at its creator's: a simulator
+    served from a driver's or a test's process outranks that process's other threads
+    and everything at ordinary priority, and so do the threads it starts (a connection's).
+    """
+
+    @functools.wraps(target)
+    def run(*args: Any, **kwargs: Any) -> Any:
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), SIMULATED_HARDWARE_NICE)
+        return target(*args, **kwargs)
+
+    return run
 
 
 class OnItsSimulator(abc.ABC):

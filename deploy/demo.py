@@ -265,7 +265,7 @@ def spawn_lab_world(addresses: Path, config: str | None, log_path: Path) -> subp
     args = [sys.executable, "-m", "robot_side.lab", "--addresses-file", str(addresses)]
     if config is not None:
         args += ["--config", config]
-    from robot_side.stdio_child import SIMULATED_HARDWARE_NICE  # the world is the lab's hardware
+    from common.devices import SIMULATED_HARDWARE_NICE  # the world is the lab's hardware
 
     def in_child() -> None:
         die_with_parent()

@@ -101,8 +101,8 @@ def _where(sim: Any) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     import importlib
 
+    from common.devices import SIMULATED_HARDWARE_NICE
     from deploy.unit_policy import set_niceness
-    from robot_side.stdio_child import SIMULATED_HARDWARE_NICE
 
     # a device never waits for the PC's CPU: where it may, the simulator outranks ordinary work
     set_niceness(SIMULATED_HARDWARE_NICE)

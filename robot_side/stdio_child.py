@@ -33,12 +33,6 @@ from common.errors import DeviceError, DeviceTimeoutError
 
 log = logging.getLogger(__name__)
 
-#: The priority of a simulator that stands for hardware (a controller, the lab's physics):
-#: hardware never waits for the PC's CPU, so its simulator runs at the robot node's priority
-#: (Nice=-10) where it may, and a busy machine slows the nodes under test, not the devices
-#: they are judged by.
-SIMULATED_HARDWARE_NICE = -10
-
 
 def jsonable(value: Any) -> Any:
     """NumPy arrays and scalars as the plain values JSON carries."""

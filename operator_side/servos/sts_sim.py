@@ -28,7 +28,7 @@ from typing import Any, Self
 
 from common.clock import now_ns
 from common.config import param
-from common.devices import OnItsSimulator
+from common.devices import OnItsSimulator, as_hardware
 from common.errors import ConfigError
 from common.pty_link import PtyLink
 from operator_side.servos.feetech import FeetechConfig, FeetechServoBus
@@ -196,7 +196,9 @@ class FakeStsBus:
         with self._lock:
             self._link.plug()
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="fake-sts-bus", daemon=True)
+        self._thread = threading.Thread(
+            target=as_hardware(self._run), name="fake-sts-bus", daemon=True
+        )
         self._thread.start()
         log.info("fake STS bus (ids %s) on %s -> %s", self.config.ids, self.port, self.slave_path)
         return self

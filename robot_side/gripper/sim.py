@@ -34,7 +34,7 @@ from typing import Any, Protocol
 
 from common.clock import Rate, now_s
 from common.config import param
-from common.devices import OnItsSimulator
+from common.devices import OnItsSimulator, as_hardware
 from common.errors import ConfigError, DeviceError
 from robot_side.gripper.base import ActivationStatus, ObjectStatus
 from robot_side.gripper.urcap_socket import RobotiqSocketConfig, RobotiqSocketGripper
@@ -317,7 +317,7 @@ class GripperSimServer:
         self.host, self.port = s.getsockname()[:2]
         self._quit.clear()
         for name, target in (("tick", self._tick_loop), ("accept", self._accept_loop)):
-            t = threading.Thread(target=target, name=f"grippersim-{name}", daemon=True)
+            t = threading.Thread(target=as_hardware(target), name=f"grippersim-{name}", daemon=True)
             self._threads.append(t)
             t.start()
         log.info("gripper simulator serving on %s:%d", self.host, self.port)
@@ -366,7 +366,9 @@ class GripperSimServer:
         s.listen(4)
         with self._lock:
             self._listener = s
-        t = threading.Thread(target=self._accept_loop, name="grippersim-accept", daemon=True)
+        t = threading.Thread(
+            target=as_hardware(self._accept_loop), name="grippersim-accept", daemon=True
+        )
         self._threads.append(t)
         t.start()
         log.info("gripper simulator plugged in again on %s:%d", self.host, self.port)

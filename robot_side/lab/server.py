@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from common.clock import Rate, now_s
+from common.devices import as_hardware
 from common.tactile import N_GRIP_LEVELS
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.gripper.base import GripLevels
@@ -122,7 +123,9 @@ class LabServer:
         self.board.start()
         self.cameras.start()
         self._quit.clear()
-        self._thread = threading.Thread(target=self._run, name="lab-physics", daemon=True)
+        self._thread = threading.Thread(
+            target=as_hardware(self._run), name="lab-physics", daemon=True
+        )
         self._thread.start()
         return self
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from common.clock import Rate, now_ns
 from common.config import param
-from common.devices import OnItsSimulator
+from common.devices import OnItsSimulator, as_hardware
 from common.pty_link import PtyLink
 from common.synthetic_tactile import GeneratorParams, HeldGrasp, SyntheticTactileModel
 from robot_side.tactile.base import GraspTruth
@@ -155,7 +155,9 @@ class TactileBoardSimulator:
         self._pty.plug()
         self._stop.clear()
         self._streaming.clear()
-        self._thread = threading.Thread(target=self._run, name="tactile-board-sim", daemon=True)
+        self._thread = threading.Thread(
+            target=as_hardware(self._run), name="tactile-board-sim", daemon=True
+        )
         self._thread.start()
         log.info("tactile board simulator on %s -> %s", self._pty.path, self._pty.slave_path)
         return self

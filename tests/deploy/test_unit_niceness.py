@@ -1,12 +1,15 @@
-"""A child started at its unit's Nice=: the process, and its session's group when it leads one."""
+"""Priorities: a child at its unit's Nice= (and its session's group when it leads one), a
+simulator's thread at the hardware's."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
+from common.devices import SIMULATED_HARDWARE_NICE, as_hardware
 from deploy.unit_policy import set_niceness
 
 GROUP = Path("/proc/self/autogroup")  # absent on a kernel without sched_autogroup
@@ -42,3 +45,21 @@ def test_a_child_in_its_parents_session_leaves_the_sessions_group_alone():
     process, group = _child(os.nice(0) + 1, new_session=False)  # lowering needs no privilege
     assert process == os.nice(0) + 1
     assert group == mine
+
+
+def test_a_simulators_thread_runs_at_the_hardware_priority_and_its_process_does_not():
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    seen: dict[str, int] = {}
+
+    def serve() -> None:
+        seen["simulator"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        child = threading.Thread(target=lambda: seen.update(connection=os.nice(0)))
+        child.start()  # a connection's thread, started by the simulator's
+        child.join()
+
+    thread = threading.Thread(target=as_hardware(serve))
+    thread.start()
+    thread.join()
+    expected = SIMULATED_HARDWARE_NICE if os.geteuid() == 0 else mine
+    assert seen == {"simulator": expected, "connection": expected}
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine

@@ -46,6 +46,7 @@ import numpy as np
 
 from common.clock import Rate, now_s
 from common.config import param
+from common.devices import as_hardware
 from common.errors import ConfigError, DeviceError
 from robot_side.arm.sim import rtde_wire as w
 from robot_side.arm.sim.kinematics import HOME_Q, KinematicArm, Mode
@@ -308,7 +309,7 @@ class URSimulator:
         raise DeviceError("UR simulator: no free 127.0.0.x address with ports 29999/30003/30004")
 
     def _spawn(self, name: str, target: Any) -> None:
-        t = threading.Thread(target=target, name=name, daemon=True)
+        t = threading.Thread(target=as_hardware(target), name=name, daemon=True)
         self._threads.append(t)
         t.start()
 
