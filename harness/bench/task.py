@@ -132,7 +132,11 @@ def run_cell(
         procs.append(
             (
                 "robot",
-                spawn_cli(["robot", "--config", str(robot_cfg)], workdir / "robot.log"),
+                # at its unit's priority, as deployed: its arm worker kicks the
+                # controller's 150 ms watchdog
+                spawn_cli(
+                    ["robot", "--config", str(robot_cfg)], workdir / "robot.log", unit="robot"
+                ),
                 workdir / "robot.log",
             )
         )
