@@ -38,6 +38,9 @@ COMMAND_HZ = 20.0
 #: the fleet's robots send raw frames on this grid while someone wants them (harness/fleet.py)
 FRAME_HZ = 15.0
 ROBOTS = ("cell1", "cell2")
+#: how long the relay may take to log a connection it ended (its log summarises bursts once
+#: a second; a loaded machine has taken over one)
+LOG_WITHIN_S = 10.0
 
 
 def _socket(ctx: zmq.Context, fleet: Fleet, kind: int, member: str, endpoint: str) -> zmq.Socket:
@@ -239,17 +242,24 @@ def test_an_observers_large_frames_reach_no_robot_and_cost_the_relay_nothing(fle
             t_send = time.monotonic()
             raw.send(b"\x02" + b"x" * (size - 1))
             print(f"{size} bytes sent in {time.monotonic() - t_send:.2f} s")
-            end = time.monotonic() + 1.0
-            while time.monotonic() < end:
+            # a second of the relay's memory; for the large frame, until the relay has said
+            # that it ended the connection (mallory still holds it open), however busy it is
+            said = "subscriber connection ended at the relay (telemetry)"
+            start = time.monotonic()
+            while time.monotonic() < start + 1.0 or (
+                size > 64 * 1024
+                and said not in relay.log_text()[logged:]
+                and time.monotonic() < start + LOG_WITHIN_S
+            ):
                 peak_kb = max(peak_kb, _rss_kb(pid))
                 time.sleep(0.02)
-            if size > 64 * 1024:  # mallory still holds it open: the relay ended it, and says so
+            if size > 64 * 1024:
                 ended = relay.log_text()[logged:]
-                assert "subscriber connection ended at the relay (telemetry)" in ended, ended
+                assert said in ended, f"nothing logged in {LOG_WITHIN_S:g} s: {ended!r}"
                 assert "a key that had sent nothing from 127.0.0.1:" in ended, ended
             raw.close(0)
     finally:
-        ctx.term()
+        ctx.destroy(linger=0)  # a failed check leaves the 50 MB frame queued: never wait on it
     t_through = now_ns()
     time.sleep(AFTER_S)
     t_after = now_ns()
