@@ -95,19 +95,28 @@ def set_niceness(nice: int | None) -> None:
 
     The nodes' units ask for a higher priority than other work (the robot
     and operator nodes ``Nice=-10``): on a busy machine their loops keep
-    their rate. systemd puts each unit in a cgroup of its own; a child that
-    is a session leader (the demo's) gets the niceness for its session's
-    group as well. Where the process may not raise its priority (not root, no
+    their rate. Where the process may not raise its priority (not root, no
     CAP_SYS_NICE) it keeps the one it has: the same programs, less margin.
+    ``None`` (no unit, or no setting): the parent's priority. Either way a
+    child that leads a session of its own (the demo's) keeps its parent's
+    session's scheduling weight (:func:`keep_parents_group_weight`).
     """
-    if nice is None:
-        return  # no unit says: the parent's priority
-    with contextlib.suppress(OSError):
-        os.nice(nice - os.nice(0))
-    if os.getsid(0) == os.getpid():
-        # A session of its own (the demo's children): where the kernel groups processes by
-        # session before it weighs priorities (sched_autogroup), the group's niceness is what
-        # counts against other sessions' work, so it gets the unit's too. Never a shared
-        # session's: that would raise or lower every process in it.
+    if nice is not None:
         with contextlib.suppress(OSError):
-            Path("/proc/self/autogroup").write_text(str(nice))
+            os.nice(nice - os.nice(0))
+    if os.getsid(0) == os.getpid():
+        keep_parents_group_weight()
+
+
+def keep_parents_group_weight() -> None:
+    """In a child that leads a session of its own: its parent's session's scheduling weight.
+
+    Where the kernel groups processes by session before it weighs their
+    priorities (``sched_autogroup``, the default on most desktops), a new
+    session is a new group at nice 0, whatever the session it came from.
+    The demo's children lead sessions only so that Ctrl-C reaches the demo
+    alone; they keep the weight of the one they were started from.
+    """
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        parent = Path(f"/proc/{os.getppid()}/autogroup").read_text().split()[-1]
+        Path("/proc/self/autogroup").write_text(str(int(parent)))
