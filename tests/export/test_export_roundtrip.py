@@ -22,6 +22,9 @@ from deploy.export.cli import export
 from deploy.export.resample import ExportConfig
 
 FPS = 30
+#: how long after the first robot frame every exported channel has its first record (the
+#: camera last): 1.0 s measured beside two busy loops
+CHANNELS_START_WITHIN_S = 2.0
 # slow, but no check here is a timing: it may run beside other tests (make test's first lane)
 pytestmark = [pytest.mark.slow, pytest.mark.untimed]
 
@@ -231,7 +234,12 @@ def test_one_episode_per_session_covers_the_recording(records, one_episode):
     assert meta["num_episodes"] == 1
     frames = records["robot/frame"]
     span_s = (frames[-1][0] - frames[0][0]) / 1e9
-    assert abs(len(a["index"]) - span_s * FPS) < FPS  # the whole session, at the chosen rate
+    # the whole session at the chosen rate: never a row beyond it, and rows from the moment
+    # every exported channel has a record (docs/datasets.md), which the camera's video server,
+    # started beside the robot node, reaches a second or so later on a loaded machine
+    rows = len(a["index"])
+    assert rows <= span_s * FPS + 1, (rows, span_s)
+    assert rows >= (span_s - CHANNELS_START_WITHIN_S) * FPS, (rows, span_s)
     truth = a["annotation.sim_truth_pattern"]
     assert set(np.unique(truth[truth >= 0])) <= set(range(12)) and (truth >= 0).any()
 
