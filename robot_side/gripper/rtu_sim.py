@@ -23,6 +23,7 @@ import struct
 import threading
 import tty
 
+from common.devices import as_hardware
 from robot_side.gripper.modbus_rtu import (
     FC_READ_HOLDING_REGISTERS,
     FC_READ_INPUT_REGISTERS,
@@ -65,7 +66,7 @@ class RtuGripperSim:
         self.port = os.ttyname(self._slave)
         self._quit.clear()
         for name, target in (("tick", self._tick_loop), ("serve", self._serve_loop)):
-            t = threading.Thread(target=target, name=f"rtusim-{name}", daemon=True)
+            t = threading.Thread(target=as_hardware(target), name=f"rtusim-{name}", daemon=True)
             self._threads.append(t)
             t.start()
         log.info("RTU gripper simulator on %s", self.port)
