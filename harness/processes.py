@@ -48,27 +48,20 @@ def spawn_cli(
 ) -> subprocess.Popen:
     """``deepxpalm ARGS`` as a child; at the niceness of its systemd ``unit`` when named.
 
-    A unit's process also gets a session of its own, and so a scheduling group
-    of its own where the kernel groups by session (``sched_autogroup``), at its
-    parent's group's weight (``keep_parents_group_weight``): systemd gives each
-    unit a cgroup of its own, and a node that shared its test's group would
-    share its CPU with every other process of the test. ``stdout`` is where its
-    output goes (stderr with it unless ``stderr=`` says otherwise); ``in_child``
-    runs in the child before the command (after the niceness); every other
-    keyword goes to :class:`subprocess.Popen`.
+    ``stdout`` is where its output goes (stderr with it unless ``stderr=`` says
+    otherwise); ``in_child`` runs in the child before the command (after the
+    niceness); every other keyword goes to :class:`subprocess.Popen`.
     """
     nice = unit_nice(unit) if unit is not None else None
-    if unit is not None:
-        popen.setdefault("start_new_session", True)
 
     def before() -> None:
-        if unit is not None:
-            set_niceness(nice)  # None: the parent's niceness, and still its group's weight
+        if nice is not None:
+            set_niceness(nice)
         if in_child is not None:
             in_child()
 
     popen.setdefault("stderr", subprocess.STDOUT if stdout is not None else None)
-    needs_hook = unit is not None or in_child is not None
+    needs_hook = nice is not None or in_child is not None
     return subprocess.Popen(
         cli_argv(args), stdout=stdout, preexec_fn=before if needs_hook else None, **popen
     )
