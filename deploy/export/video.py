@@ -16,15 +16,20 @@ Statistics are LeRobot's for images: per channel, over pixels, in 0..1
 from __future__ import annotations
 
 import os
+import threading
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from common.errors import DeepXPalmError
+
 VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 CODEC_NAMES = {"libsvtav1": "av1", "libx264": "h264"}
 STATS_STRIDE = 8
+#: how long an encoder may take to flush its last pictures and close the file
+FLUSH_TIMEOUT_S = 60.0
 
 
 def encoder_options(codec: str) -> dict[str, str]:
@@ -135,9 +140,35 @@ class VideoFeatureWriter:
         self._n = 0
 
     def _close(self) -> None:
-        for packet in self._stream.encode():
-            self._container.mux(packet)
-        self._container.close()
+        """Flush the encoder and close the file; an encoder that never returns is an error.
+
+        SVT-AV1 has known deadlocks (its flush waited on its own threads forever
+        once, CPU idle, in one of about twenty exports of the test suite's runs).
+        The flush runs on a thread of its own; one that is not done in
+        ``FLUSH_TIMEOUT_S`` is abandoned with the file, and the export fails
+        with what to do instead of hanging.
+        """
+        failed: list[BaseException] = []
+
+        def flush() -> None:
+            try:
+                for packet in self._stream.encode():
+                    self._container.mux(packet)
+                self._container.close()
+            except BaseException as e:  # raised again in the caller's thread
+                failed.append(e)
+
+        flushing = threading.Thread(target=flush, name=f"{self.name}-flush", daemon=True)
+        flushing.start()
+        flushing.join(FLUSH_TIMEOUT_S)
+        if flushing.is_alive():
+            raise DeepXPalmError(
+                f"the {CODEC_NAMES[self.codec]} encoder did not finish {self.path} in "
+                f"{FLUSH_TIMEOUT_S:.0f} s (SVT-AV1 has known deadlocks): export again, or "
+                'export with video_codec = "libx264"'
+            )
+        if failed:
+            raise failed[0]
         self._container = self._stream = None
 
 
