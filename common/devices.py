@@ -137,22 +137,6 @@ def as_hardware(target: Callable[..., Any]) -> Callable[..., Any]:
     return run
 
 
-def as_hardware_process() -> None:
-    """In a simulator's child process, before exec: the hardware's priority.
-
-    The process runs at :data:`SIMULATED_HARDWARE_NICE` where it may; started
-    as a session of its own (``start_new_session=True``), its scheduling group
-    gets it too, where the kernel groups processes by session before it weighs
-    their priorities (``sched_autogroup``): otherwise every other session's
-    group, a node's or a busy loop's, weighs as much as the whole world.
-    """
-    with contextlib.suppress(OSError):
-        os.nice(SIMULATED_HARDWARE_NICE - os.nice(0))
-    if os.getsid(0) == os.getpid():
-        with contextlib.suppress(OSError), open("/proc/self/autogroup", "w") as group:
-            group.write(str(SIMULATED_HARDWARE_NICE))
-
-
 class OnItsSimulator(abc.ABC):
     """Mixin for a simulated kind: the real driver, connected to a simulator it owns.
 

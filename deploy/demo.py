@@ -265,11 +265,11 @@ def spawn_lab_world(addresses: Path, config: str | None, log_path: Path) -> subp
     args = [sys.executable, "-m", "robot_side.lab", "--addresses-file", str(addresses)]
     if config is not None:
         args += ["--config", config]
-    from common.devices import as_hardware_process  # the world is the lab's hardware
+    from common.devices import SIMULATED_HARDWARE_NICE  # the world is the lab's hardware
 
     def in_child() -> None:
         die_with_parent()
-        as_hardware_process()
+        set_niceness(SIMULATED_HARDWARE_NICE)
 
     proc = subprocess.Popen(
         args,

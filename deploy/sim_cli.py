@@ -101,9 +101,11 @@ def _where(sim: Any) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     import importlib
 
-    from common.devices import as_hardware_process
+    from common.devices import SIMULATED_HARDWARE_NICE
+    from deploy.unit_policy import set_niceness
 
-    as_hardware_process()  # a device never waits for the PC's CPU: it outranks ordinary work
+    # a device never waits for the PC's CPU: where it may, the simulator outranks ordinary work
+    set_niceness(SIMULATED_HARDWARE_NICE)
     module_name, cls_name, config_name = SIMULATORS[args.device]
     module = importlib.import_module(module_name)
     data = load_toml(args.config) if args.config else {}

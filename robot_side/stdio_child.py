@@ -29,7 +29,6 @@ from typing import IO, Any
 import numpy as np
 
 from common.config import to_dict
-from common.devices import as_hardware_process
 from common.errors import DeviceError, DeviceTimeoutError
 
 log = logging.getLogger(__name__)
@@ -84,19 +83,17 @@ def serve_stdio(
 class StdioChild:
     """The parent's side: start the child, call its methods, stop or kill it.
 
-    ``what`` names the child in every error ("UR simulator", "lab world");
-    ``as_hardware``: it stands for hardware, and runs at the hardware's priority
-    (:func:`common.devices.as_hardware_process`).
+    ``what`` names the child in every error ("UR simulator", "lab world").
     """
 
     def __init__(
-        self, module: str, config: Any, what: str, log_level: int, as_hardware: bool = False
+        self, module: str, config: Any, what: str, log_level: int, nice: int | None = None
     ) -> None:
         self.module = module
         self.config = config
         self.what = what
         self.log_level = log_level
-        self.as_hardware = as_hardware  # a simulator of hardware (common.devices)
+        self.nice = nice
         self._proc: subprocess.Popen[str] | None = None
         self._lock = threading.Lock()  # one request in flight: the pipe is a conversation
 
@@ -121,18 +118,12 @@ class StdioChild:
             str(self.log_level),
         ]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        # simulated hardware: a session and a scheduling group of its own at the hardware's
-        # priority, where the user may raise it (root, CAP_SYS_NICE); it still ends with its
-        # parent, when its stdin closes
         self._proc = subprocess.Popen(
-            cmd,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-            env=env,
-            start_new_session=self.as_hardware,
-            preexec_fn=as_hardware_process if self.as_hardware else None,
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
         )
+        if self.nice is not None:  # where this process may raise it (root, CAP_SYS_NICE)
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, self._proc.pid, self.nice)
         try:
             msg = self._read(self._proc, timeout_s, "start")
         except DeviceError:

@@ -19,6 +19,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from common.devices import SIMULATED_HARDWARE_NICE
 from robot_side.lab.config import LabWorldConfig
 from robot_side.stdio_child import StdioChild
 from robot_side.stdio_child import serve_stdio as serve_child
@@ -43,7 +44,7 @@ class LabWorldProcess(StdioChild):
             config or LabWorldConfig(),
             "lab world",
             log_level,
-            as_hardware=True,
+            nice=SIMULATED_HARDWARE_NICE,
         )
         self.addresses: dict[str, Any] = {}
 

@@ -9,7 +9,7 @@ import sys
 import threading
 from pathlib import Path
 
-from common.devices import SIMULATED_HARDWARE_NICE, as_hardware, as_hardware_process
+from common.devices import SIMULATED_HARDWARE_NICE, as_hardware
 from deploy.unit_policy import set_niceness
 
 GROUP = Path("/proc/self/autogroup")  # absent on a kernel without sched_autogroup
@@ -65,20 +65,3 @@ def test_a_simulators_thread_runs_at_the_hardware_priority_and_its_process_does_
     expected = SIMULATED_HARDWARE_NICE if os.geteuid() == 0 else mine
     assert seen == {"simulator": expected, "connection": expected}
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine
-
-
-def test_a_simulators_own_process_and_its_sessions_group_run_at_the_hardware_priority():
-    out = subprocess.run(
-        [sys.executable, "-c", REPORT],
-        capture_output=True,
-        text=True,
-        timeout=30,
-        start_new_session=True,
-        preexec_fn=as_hardware_process,
-    )
-    process, group = out.stdout.split()
-    if os.geteuid() == 0:
-        assert int(process) == SIMULATED_HARDWARE_NICE
-        assert group in (str(SIMULATED_HARDWARE_NICE), "none")
-    else:  # not permitted: the priority it had, in a new group at the default
-        assert int(process) == os.nice(0) and group in ("0", "none")

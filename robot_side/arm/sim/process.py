@@ -14,6 +14,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from common.devices import SIMULATED_HARDWARE_NICE
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.stdio_child import StdioChild
 from robot_side.stdio_child import serve_stdio as serve_child
@@ -51,7 +52,7 @@ class URSimProcess(StdioChild):
             config or URSimConfig(),
             "UR simulator",
             log_level,
-            as_hardware=True,
+            nice=SIMULATED_HARDWARE_NICE,
         )
         self.host: str | None = None
 
