@@ -225,8 +225,11 @@ def test_duplication_and_netem_reordering_reach_the_receiver():
     seqs = [seq for seq, _ in got]
     dups = len(seqs) - len(set(seqs))
     assert 70 < dups < 130 and dups == counts["duplicated"], (dups, counts)
-    quick = sum(1 for _, d in got if d < 10.0)  # sent at once, skipping the 20 ms
-    assert 70 < quick < 140 and _late(seqs) > quick, (quick, counts)
+    # sent at once, skipping the 20 ms, by the engine's count; at the receiver, each passes
+    # datagrams still held back, which then arrive late (how soon the quick ones came is
+    # the relay thread's promptness, a figure of the bench, not of this test)
+    reordered = counts["reordered"]
+    assert 70 < reordered < 140 and _late(seqs) > reordered, (_late(seqs), counts)
 
 
 def test_the_bottleneck_carries_its_rate_and_tail_drops_beyond_its_queue():
