@@ -26,30 +26,6 @@ settings.load_profile(
 )
 
 
-def _a_scheduling_group_per_worker() -> None:
-    """Each pytest-xdist worker in a session (and so a scheduling group) of its own.
-
-    Where the kernel groups processes by session before it weighs priorities
-    (``sched_autogroup``), every node, simulator and browser that leads a
-    session of its own weighs as much as a whole lane of workers together,
-    and the workers' own simulators, clients and judges were left the
-    crumbs. A worker gets its own group at its lane's weight, as a test
-    running alone on its own machine would.
-    """
-    if not os.environ.get("PYTEST_XDIST_WORKER") or os.getsid(0) == os.getpid():
-        return
-    try:
-        os.setsid()
-    except OSError:
-        return
-    from deploy.unit_policy import keep_parents_group_weight
-
-    keep_parents_group_weight()
-
-
-_a_scheduling_group_per_worker()
-
-
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """The soak runs only when a -m expression names it.
 
