@@ -31,11 +31,14 @@ DEPLOYMENT_WORKERS ?= 3
 PAIRED_WORKERS ?= 3
 # The lanes run above the machine's ordinary work (a CI machine's other jobs), in a session of
 # their own: the deployments they start stand for robot PCs, controllers and boards of their own,
-# and their budgets (the 400 ms stop, the 150 ms staleness) are the product's. The nodes still run
-# above the lanes, at their units' Nice=-10. Where the user may not raise a priority, the lanes
-# run at the one they have, and say so (scripts/at-test-priority.py, docs/testing.md).
+# and their budgets (the 400 ms stop, the 150 ms staleness) are the product's. The session's group
+# weighs as a robot node's unit (nice -10) against other sessions; inside it the tests' own
+# processes run at nice -5, below the nodes and the simulated hardware (nice -10). Where the user
+# may not raise a priority, the lanes run at the one they have, and say so
+# (scripts/at-test-priority.py, docs/testing.md).
 TEST_NICE ?= -5
-AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --
+TEST_GROUP_NICE ?= -10
+AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --group $(TEST_GROUP_NICE) --
 LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest
 PARALLEL_LANE := (not slow or untimed) and not serial and not soak
 DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not soak

@@ -120,21 +120,30 @@ def build_device(registry: Mapping[str, str], section: Mapping[str, Any], where:
 SIMULATED_HARDWARE_NICE = -10
 
 
-def as_hardware(target: Callable[..., Any]) -> Callable[..., Any]:
-    """A simulator thread's ``target``, run at :data:`SIMULATED_HARDWARE_NICE` where it may.
+def at_niceness(nice: int, target: Callable[..., Any]) -> Callable[..., Any]:
+    """A thread's ``target``, run at niceness ``nice`` where the process may raise it.
 
-    Linux keeps a niceness per thread, and a thread starts at its creator's: a simulator
-    served from a driver's or a test's process outranks that process's other threads
-    and everything at ordinary priority, and so do the threads it starts (a connection's).
+    Linux keeps a niceness per thread, and a thread starts at its creator's, so
+    the threads it starts (a connection's) run at ``nice`` too. Without root or
+    CAP_SYS_NICE the thread keeps the priority it has: the same program, less margin.
     """
 
     @functools.wraps(target)
     def run(*args: Any, **kwargs: Any) -> Any:
         with contextlib.suppress(OSError):
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), SIMULATED_HARDWARE_NICE)
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
         return target(*args, **kwargs)
 
     return run
+
+
+def as_hardware(target: Callable[..., Any]) -> Callable[..., Any]:
+    """A simulator thread's ``target``, run at :data:`SIMULATED_HARDWARE_NICE` where it may.
+
+    A simulator served from a driver's or a test's process outranks that
+    process's other threads and everything at ordinary priority.
+    """
+    return at_niceness(SIMULATED_HARDWARE_NICE, target)
 
 
 class OnItsSimulator(abc.ABC):

@@ -1,6 +1,6 @@
 """Run a command in a session of its own, above the machine's ordinary work.
 
-    python scripts/at-test-priority.py NICE -- COMMAND [ARGS ...]
+    python scripts/at-test-priority.py NICE [--group GROUP_NICE] -- COMMAND [ARGS ...]
 
 The test lanes run through this (the Makefile's ``TEST_NICE``). Their
 deployments stand for robot PCs, controllers and boards of their own, which
@@ -13,8 +13,12 @@ A priority alone is not enough where the kernel groups processes by session
 before it weighs their priorities (``sched_autogroup``, on by default on
 most distributions): a busy loop started from the same shell would share
 the lanes' group and take its share of it. So the command gets a session
-(and so a group) of its own, and the group gets ``NICE`` too. Ctrl-C and a
-stop reach it as before: this process forwards them to its process group.
+(and so a group) of its own, at ``GROUP_NICE`` (``NICE`` if not given)
+against the other sessions, while its processes run at ``NICE`` inside it:
+a group at -10 and processes at -5 leave the nodes and simulated hardware
+(at -10) above the tests' own processes, and the whole above a busy loop
+at nice 0 in another session by about nine to one. Ctrl-C and a stop reach
+it as before: this process forwards them to its process group.
 Where the user may not raise a priority (not root, no CAP_SYS_NICE), the
 command runs at the one it has, and one line says so.
 """
@@ -29,11 +33,11 @@ import sys
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
-def _raise_priority(nice: int) -> str | None:
+def _raise_priority(nice: int, group: int) -> str | None:
     """In the child, after setsid: the group's and the process's niceness; why not, if not."""
     try:
         with open("/proc/self/autogroup", "w") as f:
-            f.write(str(nice))
+            f.write(str(group))
     except FileNotFoundError:
         pass  # no autogroup: the process's niceness is all there is
     except OSError as e:
@@ -46,17 +50,22 @@ def _raise_priority(nice: int) -> str | None:
 
 
 def main(argv: list[str]) -> int:
+    group = None
+    if len(argv) >= 3 and argv[1] == "--group":
+        group, argv = argv[2], [argv[0], *argv[3:]]
     if len(argv) < 3 or argv[1] != "--":
         print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
         return 2
     nice, command = int(argv[0]), argv[2:]
+    group_nice = nice if group is None else int(group)
     pid = os.fork()
     if pid == 0:
         os.setsid()
-        refused = _raise_priority(nice)
+        refused = _raise_priority(nice, group_nice)
         if refused is not None:
             print(
-                f"at-test-priority: running at the priority it has, not nice {nice} ({refused})",
+                f"at-test-priority: running at the priority it has, not nice {nice} "
+                f"(group {group_nice}) ({refused})",
                 file=sys.stderr,
             )
         try:

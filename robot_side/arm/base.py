@@ -26,7 +26,7 @@ import numpy as np
 
 from common.clock import now_s
 from common.config import param
-from common.devices import Device
+from common.devices import Device, at_niceness
 from common.errors import ConfigError, DeviceError, DeviceTimeoutError
 from common.rotation import rotation_angle, rotvec_to_matrix
 
@@ -114,6 +114,12 @@ def as_vector6(value: Sequence[float], what: str) -> np.ndarray:
 
 #: the time a deadman stop takes to reach the controller, and the thread's own lateness
 STOP_TRANSIT_S = 0.03
+
+#: The deadman's, the keep-alive's and a driver's control threads run at the robot node
+#: unit's priority (Nice=-10) where the process may raise it, like ur-rtde's own
+#: ``rt_priority``: a driver used from a process at ordinary priority (a tool, a test, a
+#: notebook) on a busy machine still stops its jogs and kicks its controller's watchdog.
+SAFETY_THREAD_NICE = -10
 
 
 def deadman_period_s(limits: ArmLimits) -> float:
@@ -370,12 +376,17 @@ class Arm(Device):
         self._jog_until = None
         self._deadman_woke = now_s()
         name = type(self).__name__
-        t = threading.Thread(target=self._deadman_loop, name=f"{name}-deadman")
+        t = threading.Thread(
+            target=at_niceness(SAFETY_THREAD_NICE, self._deadman_loop), name=f"{name}-deadman"
+        )
         t.daemon = True
         self._deadman_thread = t
         t.start()
         if type(self)._keep_alive is not Arm._keep_alive:
-            k = threading.Thread(target=self._keep_alive_loop, name=f"{name}-keepalive")
+            k = threading.Thread(
+                target=at_niceness(SAFETY_THREAD_NICE, self._keep_alive_loop),
+                name=f"{name}-keepalive",
+            )
             k.daemon = True
             self._keep_alive_thread = k
             k.start()

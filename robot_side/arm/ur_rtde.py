@@ -63,6 +63,7 @@ import numpy as np
 
 from common.clock import now_s
 from common.config import param
+from common.devices import at_niceness
 from common.errors import (
     ConfigError,
     DeviceAlreadyConnectedError,
@@ -74,7 +75,7 @@ from common.errors import (
 from common.logs import BurstLog
 from common.messages import ARM_SAFETY_MODES
 from common.preflight import Finding, PreflightContext, tcp_findings, tcp_probe
-from robot_side.arm.base import TELEMETRY_POSE_KEYS, Arm, ArmLimits
+from robot_side.arm.base import SAFETY_THREAD_NICE, TELEMETRY_POSE_KEYS, Arm, ArmLimits
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +137,9 @@ class _Worker:
 
     def __init__(self, name: str) -> None:
         self._jobs: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread = threading.Thread(
+            target=at_niceness(SAFETY_THREAD_NICE, self._run), name=name, daemon=True
+        )
         self._thread.start()
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> concurrent.futures.Future[Any]:

@@ -12,11 +12,17 @@ from pathlib import Path
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "at-test-priority.py"
 REPORT = "import os; print(os.getsid(0), os.nice(0))"
+GROUP = Path("/proc/self/autogroup")  # absent on a kernel without sched_autogroup
+GROUP_REPORT = (
+    "import os, pathlib; g = pathlib.Path('/proc/self/autogroup');"
+    "print(os.nice(0), g.read_text().split()[-1] if g.exists() else 'none')"
+)
 
 
-def _run(*command: str, nice: int = -5) -> subprocess.CompletedProcess:
+def _run(*command: str, nice: int = -5, group: int | None = None) -> subprocess.CompletedProcess:
+    options = [] if group is None else ["--group", str(group)]
     return subprocess.run(
-        [sys.executable, str(SCRIPT), str(nice), "--", *command],
+        [sys.executable, str(SCRIPT), str(nice), *options, "--", *command],
         capture_output=True,
         text=True,
         timeout=30,
@@ -32,6 +38,16 @@ def test_the_command_runs_in_a_session_of_its_own_at_the_priority_or_says_why_no
         assert "running at the priority it has" not in done.stderr
     else:  # not permitted here: the same command at the priority it had, and one line
         assert nice == os.nice(0) and "running at the priority it has" in done.stderr
+
+
+def test_the_sessions_group_may_weigh_more_than_the_processes_inside_it():
+    done = _run(sys.executable, "-c", GROUP_REPORT, nice=-5, group=-10)
+    assert done.returncode == 0, done.stderr
+    nice, group = done.stdout.split()
+    if "running at the priority it has" in done.stderr:  # not permitted here
+        assert int(nice) == os.nice(0)
+    else:
+        assert int(nice) == -5 and group == ("-10" if GROUP.exists() else "none")
 
 
 def test_the_exit_status_and_a_death_by_signal_come_back_as_a_shell_reports_them():

@@ -9,7 +9,9 @@ what is tested is the wire: ``setWatchdog`` (command 35, the frequency in
 from __future__ import annotations
 
 import dataclasses
+import os
 import socket
+import threading
 import time
 
 import numpy as np
@@ -17,7 +19,7 @@ import pytest
 from tests_support import wait_until
 
 from common.errors import ConfigError, DeviceError
-from robot_side.arm.base import ArmLimits
+from robot_side.arm.base import SAFETY_THREAD_NICE, ArmLimits
 from robot_side.arm.ur_rtde import URArm, URArmConfig
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
@@ -139,6 +141,18 @@ def test_the_driver_arms_the_watchdog_and_its_deadman_thread_keeps_it_quiet(arm,
     assert quiet, f"the watchdog tripped under a live driver: {status}"
     assert status["watchdog_kicks"] > 20 and "program_lost" not in status
     assert status["longest_silence_ms"] < window_ms, status
+
+
+def test_the_threads_that_stop_and_kick_run_at_the_robot_nodes_priority(arm):
+    """A driver in a process at ordinary priority (a test, a tool) still kicks on a busy machine."""
+    names = ("URArm-deadman", "URArm-keepalive", f"urarm-ctrl-{arm.config.host}")
+    threads = {t.name: t.native_id for t in threading.enumerate() if t.name in names}
+    assert sorted(threads) == sorted(names)
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    expected = SAFETY_THREAD_NICE if os.geteuid() == 0 else mine
+    assert {n: os.getpriority(os.PRIO_PROCESS, tid) for n, tid in threads.items()} == dict.fromkeys(
+        names, expected
+    )
 
 
 def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecting(
