@@ -37,7 +37,7 @@ PAIRED_WORKERS ?= 3
 # may not raise a priority, the lanes run at the one they have, and say so
 # (scripts/at-test-priority.py, docs/testing.md).
 TEST_NICE ?= -5
-TEST_GROUP_NICE ?= -10
+TEST_GROUP_NICE ?= -20
 AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --group $(TEST_GROUP_NICE) --
 LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest
 PARALLEL_LANE := (not slow or untimed) and not serial and not soak

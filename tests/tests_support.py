@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import signal
@@ -10,9 +11,22 @@ import sys
 import time
 from collections.abc import Callable
 
+import pytest
+
 from common.messages import Stimulus
 from common.transport import free_loopback_ports
 from robot_side.arm.base import ArmLimits
+
+
+def needs(module: str, reason: str | None = None) -> pytest.MarkDecorator:
+    """Skip where ``module`` (an extra's library) is not installed, without importing it.
+
+    ``pytest.importorskip`` at a module's top imports the library while every
+    test worker collects every module: torch alone cost each worker about 2 s
+    of CPU before any test ran. The tests import what they use when they run.
+    """
+    missing = importlib.util.find_spec(module.split(".")[0]) is None
+    return pytest.mark.skipif(missing, reason=reason or f"needs {module}")
 
 
 def free_ports(n: int) -> list[int]:

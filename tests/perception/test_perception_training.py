@@ -7,15 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tests_support import needs
 
-torch = pytest.importorskip("torch")
+from deploy.cli import main as deepxpalm
+from robot_side.perception import dataset as ds
+from robot_side.perception import load_classifier
 
-from deploy.cli import main as deepxpalm  # noqa: E402
-from robot_side.perception import dataset as ds  # noqa: E402
-from robot_side.perception import load_classifier  # noqa: E402
-from robot_side.perception.model import PAPER_CONV, PAPER_HIDDEN, ModelConfig, TiltNet  # noqa: E402
-
-pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing checked
+# no timing checked; torch is imported by the tests that run, not at collection (every test
+# worker collects every module, and torch's import costs about 2 s of CPU)
+pytestmark = [pytest.mark.slow, pytest.mark.untimed, needs("torch")]
 
 
 @pytest.fixture(scope="module")
@@ -64,6 +64,7 @@ def test_trained_model_loads_in_every_backend_and_they_agree(tiny_run: Path) -> 
 
 
 def test_a_few_steps_reduce_the_loss() -> None:
+    from robot_side.perception.model import ModelConfig
     from robot_side.perception.train import TrainConfig, train
 
     data = ds.generate(ds.DatasetConfig(repeats=1, seed=4))
@@ -76,6 +77,10 @@ def test_a_few_steps_reduce_the_loss() -> None:
 
 
 def test_architecture_is_the_papers_at_width_1() -> None:
+    import torch
+
+    from robot_side.perception.model import PAPER_CONV, PAPER_HIDDEN, ModelConfig, TiltNet
+
     model = TiltNet(ModelConfig(width=1.0))
     convs = [m for m in model.backbone if isinstance(m, torch.nn.Conv2d)]
     norms = [m for m in model.backbone if isinstance(m, torch.nn.BatchNorm2d)]
