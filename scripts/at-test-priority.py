@@ -15,9 +15,9 @@ most distributions): a busy loop started from the same shell would share
 the lanes' group and take its share of it. So the command gets a session
 (and so a group) of its own, at ``GROUP_NICE`` (``NICE`` if not given)
 against the other sessions, while its processes run at ``NICE`` inside it:
-a group at -10 and processes at -5 leave the nodes and simulated hardware
-(at -10) above the tests' own processes, and the whole above a busy loop
-at nice 0 in another session by about nine to one. Ctrl-C and a stop reach
+the Makefile's group at -20 outweighs a session at nice 0 about 87 to 1,
+and its processes at -5 leave the nodes and simulated hardware (at -10)
+above the tests' own processes. Ctrl-C and a stop reach
 it as before: this process forwards them to its process group.
 Where the user may not raise a priority (not root, no CAP_SYS_NICE), the
 command runs at the one it has, and one line says so.
