@@ -96,7 +96,7 @@ class LeRobotV3Writer:
         *,
         batch_rows: int = 1024,
         file_size_mb: float = 100.0,
-        video_codec: str = "libsvtav1",
+        video_codec: str = "libx264",
     ) -> None:
         self.root = Path(root)
         self.features = features

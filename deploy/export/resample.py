@@ -53,7 +53,9 @@ class ExportConfig:
         0.25, "rows kept before a grasp's first and after its last contact (approach, release)"
     )
     video_codec: str = param(
-        "libsvtav1", "camera features' codec: libsvtav1 (AV1, LeRobot's default) or libx264"
+        "libx264",
+        "camera features' codec: libx264 (H.264) or libsvtav1 (AV1, LeRobot's own default, "
+        "whose encoder deadlocks now and then: docs/datasets.md)",
     )
     exclude: list[int] = param(
         [],

@@ -49,7 +49,7 @@ class VideoFeatureWriter:
         width: int,
         height: int,
         fps: int,
-        codec: str = "libsvtav1",
+        codec: str = "libx264",
         file_mb: float = 200.0,
     ) -> None:
         os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its banner on stderr otherwise

@@ -156,7 +156,7 @@ def test_the_camera_lerobot_decodes_is_the_rows_picture(session, records, one_ep
     summary, a, meta, _ = one_episode
     key = "observation.images.test_pattern"
     assert key in summary["features"] and meta["video_keys"] == [key]
-    assert meta["features"][key]["info"]["video.codec"] == "av1"
+    assert meta["features"][key]["info"]["video.codec"] == "h264"
     camera = [(t, r) for _, t, r in read_recording(session / "camera.mcap")]
     by_ms = {r["capture_wall_ns"] // 1_000_000 % MS_MODULO: t for t, r in camera}
     times = [t for t, _ in camera]
