@@ -252,7 +252,11 @@ def run_nodes(
                 workdir / "operator.log",
             )
         watch = RobotWatch(tel)
-        watch.wait_ready(procs["robot"], timeout_s=120.0)
+        try:
+            watch.wait_ready(procs["robot"], timeout_s=120.0)
+        except RuntimeError as e:
+            tail = (workdir / "robot.log").read_text(errors="replace")[-800:]
+            raise RuntimeError(f"{e}: {tail}") from None
         time.sleep(warmup_s)
         for name, proc in procs.items():
             if proc.poll() is not None:
