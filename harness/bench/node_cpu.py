@@ -36,6 +36,7 @@ import numpy as np
 
 from common.clock import Rate
 from common.config import config_toml
+from common.devices import as_hardware
 from harness.bench.fixtures import scan_bytes
 from harness.bench.fmt import num, results_of, table
 from harness.bench.section import Context, Results, Section, Verdict
@@ -81,7 +82,12 @@ class PtyFeeder:
         self.overflow_bytes = 0
 
     def start(self) -> PtyFeeder:
-        self._thread = threading.Thread(target=self._run, name="bench-pty-feeder", daemon=True)
+        # a board never waits for the PC's CPU: at the simulated hardware's priority (-10), as
+        # the project's other simulators; at the bench's own, it once sent nothing for the
+        # robot node's whole 1 s start-up check beside a lane's other deployments
+        self._thread = threading.Thread(
+            target=as_hardware(self._run), name="bench-pty-feeder", daemon=True
+        )
         self._thread.start()
         return self
 
