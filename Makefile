@@ -72,9 +72,9 @@ test: $(STAMP)
 	$(AT_TEST_PRIORITY) $(BIN)/python scripts/warm-bytecode.py && wait $$warm
 	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty
 	status=0; \
-	$(LANE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) --dist loadfile --no-loadscope-reorder $(ARGS) || [ $$? -eq 5 ] || status=1; \
-	$(LANE) -m "$(DEPLOYMENT_LANE)" -n $(DEPLOYMENT_WORKERS) --dist loadfile --no-loadscope-reorder $(ARGS) || [ $$? -eq 5 ] || status=1; \
-	$(LANE) -m "$(PAIRED_LANE)" -n $(PAIRED_WORKERS) --dist loadfile --no-loadscope-reorder $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(LANE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(LANE) -m "$(DEPLOYMENT_LANE)" -n $(DEPLOYMENT_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(LANE) -m "$(PAIRED_LANE)" -n $(PAIRED_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(SERIAL_LANE)" $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	exit $$status
 

@@ -26,51 +26,12 @@ settings.load_profile(
 )
 
 
-#: Modules that keep a test worker busy for a quarter of a minute or more, longest first
-#: (measured with ``--junitxml`` on a quiet 2-core machine). A lane hands its files to its
-#: workers in this order (``--dist loadfile --no-loadscope-reorder`` in the Makefile), then
-#: the rest in collection order: a long file handed out last keeps the lane waiting on one
-#: worker while the others idle. Order only; add a module when its file takes that long.
-LONG_MODULES = (
-    "tests/bench/test_bench_quick.py",  # 61 s
-    "tests/lab/test_lab_world.py",  # 60 s
-    "tests/faults/test_fault_matrix.py",  # about 55 s
-    "tests/dashboard/test_video_netsim_browser.py",  # about 50 s
-    "tests/export/test_curation.py",  # 38 s
-    "tests/system/test_command_path.py",  # 37 s
-    "tests/lab/test_task.py",  # 37 s
-    "tests/recording/test_foxglove.py",  # 36 s
-    "tests/export/test_export_roundtrip.py",  # 35 s
-    "tests/relay/test_fleet.py",  # 33 s
-    "tests/video/test_video_privilege.py",  # 29 s
-    "tests/system/test_stop_replay.py",  # 27 s
-    "tests/dashboard/test_arm_jog_browser.py",  # 25 s
-    "tests/robot/test_assist.py",  # 21 s
-    "tests/fuzz/test_fuzz_operator.py",  # 21 s
-    "tests/system/test_node_death.py",  # 20 s
-    "tests/relay/test_telemetry_replay.py",  # 19 s
-    "tests/study/test_study_session.py",  # 18 s
-    "tests/system/test_devices_cli.py",  # 17 s
-    "tests/system/test_processes.py",  # 17 s
-    "tests/drivers/test_ur.py",  # 17 s
-    "tests/drivers/test_ur_watchdog.py",  # 16 s
-    "tests/fuzz/test_fuzz_robot.py",  # 16 s
-    "tests/relay/test_video_over_relay.py",  # 15 s
-)
-
-
-def _long_first(item: pytest.Item) -> int:
-    path = item.nodeid.split("::", 1)[0]
-    return LONG_MODULES.index(path) if path in LONG_MODULES else len(LONG_MODULES)
-
-
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The long modules first (``LONG_MODULES``); the soak only when a -m expression names it.
+    """The soak runs only when a -m expression names it.
 
     pyproject's addopts say ``-m 'not soak'``, but a -m on the command line (the fast
     lane's ``-m "not slow"``) replaces that one, and would start the 30-minute soak.
     """
-    items.sort(key=_long_first)  # stable: each module keeps its own order
     if "soak" in (config.getoption("markexpr") or ""):
         return
     soak = [item for item in items if item.get_closest_marker("soak")]
