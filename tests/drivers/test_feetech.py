@@ -1,8 +1,8 @@
 """The REAL FeetechServoBus and the unchanged feetech-servo-sdk against the fake
-STS bus on a pseudo-terminal. The fake answers from a thread of this process,
-which a loaded machine can hold up past the SDK's 34 ms reply window, so these
-tests open a wider one; a servo that does not answer costs a window per try, so
-silent-servo tests keep retries and ids few."""
+STS bus on a pseudo-terminal. The fake answers from a process of its own
+(``sts_bus_process``), which a loaded machine can still hold up past the SDK's
+34 ms reply window, so these tests open a wider one; a servo that does not
+answer costs a window per try, so silent-servo tests keep retries and ids few."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import scservo_sdk as sdk
 import scservo_sdk.port_handler
+from sts_bus_process import FakeStsBusProcess
 
 from common.devices import build_device
 from common.errors import ConfigError, DeviceError, DeviceTimeoutError
@@ -34,7 +35,7 @@ from operator_side.servos.sts_registers import (
     TORQUE_ENABLE,
     packet,
 )
-from operator_side.servos.sts_sim import FakeStsBus, FakeStsBusConfig, SimulatedFeetechServoBus
+from operator_side.servos.sts_sim import FakeStsBusConfig, SimulatedFeetechServoBus
 
 pytestmark = [pytest.mark.timeout(30), pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
 
@@ -42,8 +43,8 @@ IDS = (1, 2, 3, 4, 5, 6)
 
 
 @pytest.fixture
-def fake() -> Iterator[FakeStsBus]:
-    with FakeStsBus(FakeStsBusConfig(speed_counts_per_s=20000.0)) as bus:
+def fake() -> Iterator[FakeStsBusProcess]:
+    with FakeStsBusProcess(FakeStsBusConfig(speed_counts_per_s=20000.0)) as bus:
         yield bus
 
 
@@ -123,7 +124,7 @@ def test_fake_bus_answers_every_instruction_the_sdk_sends(fake, monkeypatch) -> 
 
 def test_fake_bus_moves_at_finite_speed() -> None:
     with (
-        FakeStsBus(FakeStsBusConfig(speed_counts_per_s=1000.0)) as fake,
+        FakeStsBusProcess(FakeStsBusConfig(speed_counts_per_s=1000.0)) as fake,
         _bus(fake.port) as bus,
     ):
         t0 = time.monotonic()
