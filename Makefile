@@ -32,10 +32,13 @@ PAIRED_WORKERS ?= 3
 # The lanes run above the machine's ordinary work (a CI machine's other jobs), in a session of
 # their own: the deployments they start stand for robot PCs, controllers and boards of their own,
 # and their budgets (the 400 ms stop, the 150 ms staleness) are the product's. The session's group
-# takes the CPU before other sessions (group nice -20: a busy loop at nice 0 gets about 1 % of what
-# the lanes want, and all they leave idle); inside it the tests' own processes run at nice -5,
-# below the nodes and the simulated hardware (nice -10). Where the user may not raise a priority,
-# the lanes run at the one they have, and say so (scripts/at-test-priority.py, docs/testing.md).
+# takes the CPU before other sessions (group nice -20, about 87 times a session at nice 0); inside
+# it the tests' own processes run at nice -5, below the nodes and the simulated hardware (-10).
+# The cost: the kernel's workers that carry a pseudo-terminal's bytes (every simulated serial
+# device's) run at nice 0 outside any session and get little while the lanes are busy
+# (scripts/pty-latency-under-load.py); at -10 the busy loops reached the lanes more often.
+# Where the user may not raise a priority, the lanes run at the one they have, and say so
+# (scripts/at-test-priority.py, docs/testing.md).
 TEST_NICE ?= -5
 TEST_GROUP_NICE ?= -20
 AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --group $(TEST_GROUP_NICE) --
