@@ -124,14 +124,16 @@ def at_niceness(nice: int, target: Callable[..., Any]) -> Callable[..., Any]:
     """A thread's ``target``, run at niceness ``nice`` where the process may raise it.
 
     Linux keeps a niceness per thread, and a thread starts at its creator's, so
-    the threads it starts (a connection's) run at ``nice`` too. Without root or
+    the threads it starts (a connection's) run at ``nice`` too. A thread that
+    already runs higher (a process started at -15) keeps its own. Without root or
     CAP_SYS_NICE the thread keeps the priority it has: the same program, less margin.
     """
 
     @functools.wraps(target)
     def run(*args: Any, **kwargs: Any) -> Any:
+        tid = threading.get_native_id()
         with contextlib.suppress(OSError):
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+            os.setpriority(os.PRIO_PROCESS, tid, min(nice, os.getpriority(os.PRIO_PROCESS, tid)))
         return target(*args, **kwargs)
 
     return run

@@ -9,7 +9,7 @@ import sys
 import threading
 from pathlib import Path
 
-from common.devices import SIMULATED_HARDWARE_NICE, as_hardware
+from common.devices import SIMULATED_HARDWARE_NICE, as_hardware, at_niceness
 from deploy.unit_policy import set_niceness
 
 GROUP = Path("/proc/self/autogroup")  # absent on a kernel without sched_autogroup
@@ -65,3 +65,22 @@ def test_a_simulators_thread_runs_at_the_hardware_priority_and_its_process_does_
     expected = SIMULATED_HARDWARE_NICE if os.geteuid() == 0 else mine
     assert seen == {"simulator": expected, "connection": expected}
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine
+
+
+def test_a_thread_already_above_the_asked_priority_keeps_its_own():
+    seen: dict[str, int] = {}
+
+    def higher() -> None:  # a node started at -15, say
+        tid = threading.get_native_id()
+        try:
+            os.setpriority(os.PRIO_PROCESS, tid, -15)
+        except OSError:  # not permitted here: nothing to keep
+            return
+        inner = threading.Thread(target=at_niceness(-10, lambda: seen.update(inner=os.nice(0))))
+        inner.start()
+        inner.join()
+
+    thread = threading.Thread(target=higher)
+    thread.start()
+    thread.join()
+    assert seen == ({"inner": -15} if os.geteuid() == 0 else {})
