@@ -157,15 +157,20 @@ def _apply_set(servos: dict[int, ServoCalibration], sid_text: str, assignment: s
 def _open_bus(args: argparse.Namespace, cal: LinkGlideCalibration) -> Iterator[FeetechServoBus]:
     with contextlib.ExitStack() as stack:
         port = args.port
+        window: dict[str, float | int | None] = {}
         if args.simulate:
-            from operator_side.servos.sts_sim import FakeStsBus
+            from operator_side.servos.sts_sim import FakeStsBus, SimulatedFeetechConfig
 
             port = stack.enter_context(FakeStsBus()).port
             print(f"simulated STS bus on {port}")
+            # the simulated kind's reply window and retries: the fake servos answer from a
+            # thread of this process, which a busy machine holds up past a real bus's 34 ms
+            driver = SimulatedFeetechConfig().driver
+            window = {"retries": driver.retries, "reply_timeout_ms": driver.reply_timeout_ms}
         if not port:
             raise ConfigError("this step talks to the servos: give --port (or --simulate)")
         config = FeetechConfig(
-            port=port, baudrate=args.baudrate, calibration=cal, torque_on_connect=False
+            port=port, baudrate=args.baudrate, calibration=cal, torque_on_connect=False, **window
         )
         yield stack.enter_context(FeetechServoBus(config))
 
