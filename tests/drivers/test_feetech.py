@@ -132,7 +132,8 @@ def test_fake_bus_moves_at_finite_speed() -> None:
         seen: list[tuple[float, int]] = []  # (seconds since before the write, position)
         while not seen or (seen[-1][1] != 2548 and seen[-1][0] < 5.0):
             time.sleep(0.02)
-            seen.append((time.monotonic() - t0, bus.read_positions()[1]))
+            position = bus.read_positions()[1]  # then the time: a read may wait out a retry
+            seen.append((time.monotonic() - t0, position))
         assert seen[-1][1] == 2548, seen
         assert time.monotonic() - t0 >= 0.45, seen
         # never ahead of its speed, however late this thread ran, and through the middle
