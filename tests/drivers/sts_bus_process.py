@@ -11,13 +11,13 @@ real ``FakeStsBus``, and the test reaches it through a proxy.
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import multiprocessing
-import os
 from multiprocessing.managers import BaseManager
 from typing import Any
 
 from common.devices import SIMULATED_HARDWARE_NICE
+from deploy.unit_policy import set_niceness
 from operator_side.servos.sts_sim import FakeStsBus, FakeStsBusConfig
 
 
@@ -44,17 +44,12 @@ _CONTEXT = multiprocessing.get_context("forkserver")
 _CONTEXT.set_forkserver_preload(["operator_side.servos.sts_sim"])
 
 
-def _at_hardware_priority() -> None:
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, 0, SIMULATED_HARDWARE_NICE)
-
-
 class FakeStsBusProcess:
     """``FakeStsBus``'s test API, served from another process; a context manager."""
 
     def __init__(self, config: FakeStsBusConfig | None = None) -> None:
         self._manager = _Manager(ctx=_CONTEXT)
-        self._manager.start(_at_hardware_priority)
+        self._manager.start(functools.partial(set_niceness, SIMULATED_HARDWARE_NICE))
         self._bus: Any = self._manager.FakeStsBus(config)  # type: ignore[attr-defined]
         self.port = ""
 
@@ -74,4 +69,6 @@ class FakeStsBusProcess:
         return self._bus.goal_log_list()
 
     def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):  # not the bus's: no lookup through a proxy not yet made
+            raise AttributeError(name)
         return getattr(self._bus, name)
