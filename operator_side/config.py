@@ -108,5 +108,10 @@ class OperatorConfig:
     link: OperatorLinkConfig = param(OperatorLinkConfig(), "sockets and link health")
     renderer: RendererConfig = param(RendererConfig(), "stimulus to servo goals")
     servos: dict[str, Any] = param({"kind": "recording"}, "LinkGlide servo bus: kind + settings")
+    palm_guard: bool = param(
+        True,
+        "with a feetech bus, `deepxpalm operator` starts `deepxpalm palm guard` beside the node: "
+        "it lifts the palm the moment the node ends, however it ends",
+    )
     latency_window: int = param(20000, "latency samples kept for percentiles")
     dashboard: DashboardConfig = param(DashboardConfig(), "live web page for the operator")

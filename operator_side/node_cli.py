@@ -195,6 +195,30 @@ def run(args: argparse.Namespace) -> int:
     session = session_metadata(getattr(args, "record_metadata", []))
     if session and not args.record:
         raise ConfigError("--record-metadata describes a recording: add --record FILE")
+    guard = None if args.print_config else _palm_guard(args)
+    try:
+        return _run(args, session, from_stdin, status)
+    finally:
+        if guard is not None:
+            guard.release()  # the node is done with the bus: the guard lifts the palm now
+
+
+def _palm_guard(args: argparse.Namespace) -> Any:
+    """The palm guard for this node's bus (``operator_side.palm_guard``), or None: a bus that
+    ends with the node, or ``palm_guard = false``."""
+    from common.cli_support import load_node_config
+
+    config = load_node_config(args, OperatorConfig, "operator")
+    if not config.palm_guard or config.servos.get("kind") != "feetech":
+        return None
+    from operator_side.palm_guard import PalmGuard
+
+    return PalmGuard.start(args.config, args.overrides)
+
+
+def _run(
+    args: argparse.Namespace, session: dict[str, str], from_stdin: bool, status: Path | None
+) -> int:
     return run_node(
         args,
         OperatorConfig,

@@ -16,8 +16,14 @@ a frozen node too); the demo's supervisor runs it when the operator dies.
     deepxpalm palm lift --config /etc/deepxpalm/operator.toml
 
 Exits 0 once the palm is free; 1 with what to do when it cannot be: the bus
-is held by another process (a node still running), no servo answers, or a
-servo did not reach the retract pose in time.
+is held by another process for longer than ``--wait-for-bus`` (a node still
+running), no servo answers, or a servo did not reach the retract pose in
+time.
+
+``deepxpalm palm guard`` is the same lift started ahead of time: the node
+starts it beside itself, and it lifts the moment the node ends, without a
+fresh process's start-up (``operator_side.palm_guard``). ``palm lift`` waits
+while the guard holds the bus.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from common.errors import ConfigError, DeviceError
 from operator_side.renderer_config import RendererConfig
 
 if TYPE_CHECKING:
-    from operator_side.servos.base import ServoBus
+    from operator_side.servos.feetech import FeetechServoBus
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = __doc__
     parser.add_argument(
-        "action", choices=["lift"], help="lift: write the retract pose and wait for it"
+        "action",
+        choices=["lift", "guard"],
+        help="lift: write the retract pose and wait for it; guard: the same once the node "
+        "whose pipe --watch-fd is ends (the node starts it)",
     )
     parser.add_argument(
         "--config", type=Path, help="the operator's TOML config (or a scene file): its servos"
@@ -69,10 +78,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help="longest wait for every servo to reach the retract pose (default: 2 s)",
     )
+    parser.add_argument(
+        "--wait-for-bus",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="longest wait while another process holds the bus, as the node's palm guard does "
+        "while it lifts (default: 5 s)",
+    )
+    parser.add_argument(
+        "--watch-fd",
+        type=int,
+        metavar="FD",
+        help="guard: the pipe whose end (the node's) starts the lift",
+    )
 
 
-def lift(config: PalmConfig, within_s: float = 2.0) -> dict[str, Any]:
+def lift(config: PalmConfig, within_s: float = 2.0, bus_wait_s: float = 0.0) -> dict[str, Any]:
     """Open the bus ``config.servos`` names, write the retract pose, wait, torque off.
+
+    A bus another process holds is tried again for up to ``bus_wait_s`` (the
+    palm guard lifting it; a node on its way out).
 
     Returns what happened (ports, goals, how long); raises ``DeviceError`` with
     what to check when the palm could not be lifted.
@@ -88,17 +114,13 @@ def lift(config: PalmConfig, within_s: float = 2.0) -> dict[str, Any]:
             'no bus left to lift. The palm\'s bus is kind = "feetech" (a simulated one runs '
             "as its own process: `deepxpalm sim servos`)"
         )
-    servos: ServoBus = build_device(KINDS, config.servos, "operator.servos")  # type: ignore[assignment]
+    servos: FeetechServoBus = build_device(KINDS, config.servos, "operator.servos")  # type: ignore[assignment]
+    calibration = servos.configured_calibration()
+    goals = dict(zip(calibration.id_list, retract_goals(config.renderer, calibration), strict=True))
     t0 = time.monotonic()
-    servos.connect()
+    _connect(servos, goals, bus_wait_s)  # the goals go out first, the checks after them
     try:
-        calibration = servos.calibration
-        assert calibration is not None  # connect() loads it
-        goals = dict(
-            zip(calibration.id_list, retract_goals(config.renderer, calibration), strict=True)
-        )
-        servos.write_goals(goals)
-        written_s = time.monotonic() - t0
+        checked_s = time.monotonic() - t0
         away = servos.wait_for_arrival(goals, within_s)
         if away:
             raise DeviceError(
@@ -111,20 +133,47 @@ def lift(config: PalmConfig, within_s: float = 2.0) -> dict[str, Any]:
         servos.disconnect()  # torque off, as the node leaves the palm on a clean stop
     return {
         "goals": goals,
-        "written_ms": round(written_s * 1e3),
+        "checked_ms": round(checked_s * 1e3),
         "arrived_ms": round((time.monotonic() - t0) * 1e3),
     }
+
+
+def _connect(servos: FeetechServoBus, goals: dict[int, int], bus_wait_s: float) -> None:
+    from operator_side.servos.feetech import PortBusyError
+
+    deadline = time.monotonic() + bus_wait_s
+    while True:
+        try:
+            servos.connect(first_goals=goals)
+            return
+        except PortBusyError:
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.01)
 
 
 def run(args: argparse.Namespace) -> int:
     from common.cli_support import load_node_config
 
     config = load_node_config(args, PalmConfig, "operator", only=("renderer", "servos"))
-    done = lift(config, args.within)
+    if args.action == "guard":
+        if args.watch_fd is None:
+            raise ConfigError(
+                "palm guard watches the node's pipe: --watch-fd FD (the node "
+                "starts it; run `deepxpalm palm lift` by hand instead)"
+            )
+        from operator_side.palm_guard import guard
+
+        done = guard(config, args.watch_fd, args.within)
+        what = "palm guard: the node ended, palm lifted"
+    else:
+        done = lift(config, args.within, args.wait_for_bus)
+        what = "palm lifted"
     port = config.servos.get("port", config.servos.get("kind"))
     print(
-        f"palm lifted: servos {sorted(done['goals'])} at the retract pose on {port} "
-        f"({done['written_ms']} ms to write it, {done['arrived_ms']} ms to arrive); torque off",
+        f"{what}: servos {sorted(done['goals'])} at the retract pose on {port} "
+        f"({done['checked_ms']} ms to write it and hear every servo, {done['arrived_ms']} ms to "
+        "arrive); torque off",
         flush=True,
     )
     return 0

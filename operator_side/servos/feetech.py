@@ -264,31 +264,56 @@ class FeetechServoBus(ServoBus):
         """Why the bus stopped (torque is off), or None while it is healthy."""
         return self._fault
 
-    def connect(self) -> None:
+    def connect(self, first_goals: Mapping[int, int] | None = None) -> None:
+        """Open, ping every servo, read where they are, and hold them there (torque on).
+
+        ``first_goals`` (every servo's, checked against the limits): written with
+        torque on as the port opens, before any reply is awaited, and held
+        instead of the present pose. The palm's lift wants its pose on the bus
+        first and the checks after: eight round trips, each a reply window on a
+        slow bus, would keep the linkages on the palm meanwhile.
+        """
         if self._port is not None:
             raise DeviceAlreadyConnectedError(f"servo bus on {self.config.port} is connected")
         cfg = self.config
-        self._calibration = (
-            load_calibration(cfg.calibration_file) if cfg.calibration_file else cfg.calibration
-        )
+        self._calibration = self.configured_calibration()
         known = {s.id for s in self._calibration.servos}
         if not set(cfg.ids) <= known:
             raise ConfigError(f"servo ids {sorted(set(cfg.ids) - known)} have no calibration")
+        first = None if first_goals is None else check_goals(self._calibration, first_goals)
+        if first is not None and first.keys() != set(cfg.ids):
+            raise ConfigError(f"first goals for ids {sorted(first)}, the bus has {list(cfg.ids)}")
         self._fault = None
         self._open()
         try:
+            if first is not None:  # sync writes are not answered: nothing is waited for
+                self._write_speed_and_acceleration()
+                self._sync_write(GOAL_POSITION.address, 2, first)
+                self._sync_write(TORQUE_ENABLE.address, 1, dict.fromkeys(cfg.ids, 1))
             self._ping_all()
             present = self.read_positions()
-            if cfg.goal_speed is not None:
-                self._sync_write(GOAL_SPEED.address, 2, dict.fromkeys(cfg.ids, cfg.goal_speed))
-            if cfg.acceleration is not None:
-                self._sync_write(ACCELERATION.address, 1, dict.fromkeys(cfg.ids, cfg.acceleration))
-            if cfg.torque_on_connect:
-                self._hold(present)
+            if first is not None:
+                self.set_torque(True)  # read back: a limp palm is not 'on'
+            else:
+                self._write_speed_and_acceleration()
+                if cfg.torque_on_connect:
+                    self._hold(present)
         except BaseException:
             self._shutdown()
             raise
         log.info("servo bus on %s: ids %s answered", cfg.port, list(cfg.ids))
+
+    def configured_calibration(self) -> LinkGlideCalibration:
+        """The calibration ``connect`` enforces: ``calibration_file``'s, else the config's."""
+        cfg = self.config
+        return load_calibration(cfg.calibration_file) if cfg.calibration_file else cfg.calibration
+
+    def _write_speed_and_acceleration(self) -> None:
+        cfg = self.config
+        if cfg.goal_speed is not None:
+            self._sync_write(GOAL_SPEED.address, 2, dict.fromkeys(cfg.ids, cfg.goal_speed))
+        if cfg.acceleration is not None:
+            self._sync_write(ACCELERATION.address, 1, dict.fromkeys(cfg.ids, cfg.acceleration))
 
     def disconnect(self) -> None:
         """Torque off (best effort), then close. Safe to call in any state."""

@@ -155,6 +155,35 @@ def test_connect_pings_all_holds_pose_and_turns_torque_on(fake) -> None:
     _wait(lambda: not any(fake.torque(i) for i in IDS))  # torque off on disconnect
 
 
+def test_first_goals_reach_the_bus_before_any_reply_is_awaited(fake) -> None:
+    """The palm's lift: its pose and torque on go out as the port opens, so even a bus whose
+    every reply is lost has them; then the checks fail, and torque goes off as always."""
+    fake.drop_replies(1000)
+    bus = _bus(fake.port, retries=0, reply_timeout_ms=20.0)
+    with pytest.raises(DeviceTimeoutError, match="no servo answered"):
+        bus.connect(first_goals=_goals(2300))
+    firsts = {}
+    for _, sid, goal in fake.goal_log:
+        firsts.setdefault(sid, goal)
+    assert firsts == _goals(2300), fake.goal_log
+    _wait(lambda: not any(fake.torque(i) for i in IDS))
+    assert fake.stats()["ping"] >= 1  # the checks came after the goals, and failed
+
+
+def test_first_goals_are_held_once_the_bus_answers(fake) -> None:
+    fake.move_by_hand(2, 2600)
+    with _bus(fake.port) as plain:  # as the node connects: where it is
+        assert fake.goal(2) == 2600
+    with _bus(fake.port) as bus:
+        bus.disconnect()
+        bus.connect(first_goals=_goals(2100))
+        assert all(fake.torque(i) for i in IDS) and all(fake.goal(i) == 2100 for i in IDS)
+        _wait(lambda: all(abs(fake.present(i) - 2100) <= 2 for i in IDS))
+    assert not plain.is_connected
+    with pytest.raises(GoalOutOfLimitsError):
+        _bus(fake.port).connect(first_goals=_goals(3900))  # refused before the port opens
+
+
 def test_a_servo_outside_its_limits_at_connect_is_brought_inside(fake) -> None:
     fake.move_by_hand(5, 3900)  # default max_counts is 3800
     with _bus(fake.port) as bus:
