@@ -81,7 +81,7 @@ def guard(config: Any, watch_fd: int, within_s: float) -> dict[str, Any]:
     node's end costs only the bus's work.
     """
     from common import devices  # noqa: F401  (each imported now, not after the end)
-    from operator_side import palm_cli, renderer_config  # noqa: F401
+    from operator_side import palm_lift, renderer_config  # noqa: F401
     from operator_side.servos import feetech  # noqa: F401
 
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -89,4 +89,4 @@ def guard(config: Any, watch_fd: int, within_s: float) -> dict[str, Any]:
     while os.read(watch_fd, 64):
         pass  # nothing is ever written: the end of the pipe is the message
     os.close(watch_fd)
-    return palm_cli.lift(config, within_s, bus_wait_s=GUARD_BUS_WAIT_S)
+    return palm_lift.lift(config, within_s, bus_wait_s=GUARD_BUS_WAIT_S)
