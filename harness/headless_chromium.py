@@ -54,6 +54,14 @@ def chromium_path() -> str | None:
     return shutil.which("chromium")
 
 
+#: what DevTools answers an evaluation whose page navigated away meanwhile
+_NAVIGATED = (
+    "Inspected target navigated or closed",
+    "Execution context was destroyed",
+    "Cannot find context with specified id",
+)
+
+
 class BrowserError(RuntimeError):
     pass
 
@@ -203,13 +211,23 @@ class Chromium:
         timeout_s: float = 5.0,
         poll_s: float = 0.03,
     ) -> Any:
-        """Evaluate until ``predicate(value)`` holds in Python; the last value on timeout."""
+        """Evaluate until ``predicate(value)`` holds in Python; the last value on timeout.
+
+        A poll that meets a navigation (the page the expression was sent to went away under
+        it, as when the expression waits for the next page) is tried again on the next one.
+        """
         deadline = time.monotonic() + timeout_s
         value: Any = None
         while time.monotonic() < deadline:
-            value = self.evaluate(expression)
-            if predicate(value):
-                return value
+            try:
+                value = self.evaluate(expression)
+            except BrowserError as e:
+                if not any(m in str(e) for m in _NAVIGATED):
+                    raise
+                value = None
+            else:
+                if predicate(value):
+                    return value
             time.sleep(poll_s)
         raise BrowserError(f"timed out after {timeout_s} s waiting on {expression!r} ({value!r})")
 

@@ -200,11 +200,14 @@ def test_a_local_process_without_the_key_moves_nothing_and_hears_nothing(demo):
     assert code == 0, err[-3000:]
     summary = json.loads(out[out.rindex("\n{") :])
     assert summary["security"] == "curve" and summary["errors"] == []
-    # the robot kept publishing, and the operator's node got what it published (the link is
-    # TCP: a stimulus is lost only while a node starts or stops); a count of its own would
-    # judge the machine's speed, not the attack
+    # the robot kept publishing, and the operator's node got every stimulus from its first
+    # on: no gap in their sequence (the link is TCP; what the robot published before the
+    # operator's node was up, which a busy machine makes longer, is no gap); a count of its
+    # own would judge the machine's speed, not the attack
     published, received = summary["stimuli_published"], summary["stimuli_received"]
-    assert published >= 20 and received >= 0.8 * published, (published, received)
+    link = summary["link"]
+    assert published >= 20 and received >= 20, (published, received)
+    assert link["lost"] == 0 and link["telemetry_reopened"] == 0, link
 
 
 def test_the_token_is_shown_once_and_the_keys_are_0600(demo):
