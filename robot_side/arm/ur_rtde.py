@@ -525,7 +525,10 @@ class URArm(Arm):
             )
         if self._program_lost is not None:
             raise DeviceError(f"URArm: {what} refused: {self._program_lost}")
-        if not ctrl.isConnected():
+        # the receive side notices a vanished controller first (its stream stops every 2 ms):
+        # a call into a control interface whose controller is gone may crash inside ur-rtde
+        # (a segfault once, a realtime speedL at a controller killed mid-jog)
+        if not ctrl.isConnected() or not self._recv.isConnected():
             raise DeviceNotConnectedError(
                 f"URArm: lost the control connection to {self.config.host} before {what}; "
                 "the controller's own stop applies. disconnect() and connect() again"

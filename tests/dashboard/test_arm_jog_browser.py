@@ -42,6 +42,8 @@ pytestmark = [
 ]
 
 STOP_WITHIN_S = 0.4
+#: the page's arm pose is one the simulator had at most this long ago
+SHOWN_WITHIN_S = 0.5
 STILL_M_S = 1e-4  # the simulator reports exactly zero at standstill; allow rounding
 SPEED_SCALE = 0.3  # the page's default: 30 % of the operator's 0.10 m/s cap
 
@@ -219,9 +221,17 @@ def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, sim: URS
     assert abs(delta[1]) < 0.1 * delta[0] and abs(delta[2]) < 0.1 * delta[0], delta
     assert top <= SPEED_SCALE * 0.10 * 1.02, top  # within the scaled cap
     assert top > SPEED_SCALE * 0.10 * 0.8, top  # and really at it
-    # the page shows the arm moving where the simulator has it
-    shown = browser.evaluate("dxp.state.arm.pose[0]")
-    assert abs(shown / 1000 - sim.tcp_pose()[0]) < 0.01
+    # the page shows the arm moving where the simulator has it: a pose the simulator had in
+    # the last half second (the heartbeat's 50 ms, the link and the page's own redraw; at
+    # 30 mm/s a fixed 10 mm allowed 0.33 s, which a loaded machine once passed by 3 ms)
+    xs = []
+    t_end = time.monotonic() + SHOWN_WITHIN_S
+    while time.monotonic() < t_end:
+        xs.append(sim.tcp_pose()[0])
+        time.sleep(0.02)
+    shown = browser.evaluate("dxp.state.arm.pose[0]") / 1000
+    xs.append(sim.tcp_pose()[0])
+    assert min(xs) - 0.001 <= shown <= max(xs) + 0.001, (shown, min(xs), max(xs))
     # release: standstill within 400 ms
     browser.evaluate("window.__pad.buttons[5] = { pressed: false, touched: false, value: 0 }")
     t_release = time.monotonic()
