@@ -135,6 +135,10 @@ class SteadyPalm:
         return reading if now - self.since >= self.settle_s else None
 
 
+#: how long an operator waits for the arm's pose to come back to the panel
+POSE_GAP_S = 2.0
+
+
 class ScriptedOperatorError(RuntimeError):
     """The arm did not do what the operator asked (no pose, a move timed out, a lost link)."""
 
@@ -225,12 +229,22 @@ class ScriptedOperator:
     # -- what the operator sees -------------------------------------------------------
 
     def pose(self) -> np.ndarray:
-        """The arm's TCP pose from the newest robot heartbeat."""
+        """The arm's TCP pose from the newest robot heartbeat.
+
+        A heartbeat without one (the robot's arm stream stale for a moment, which a busy
+        machine makes happen; the page's panel then says so) is waited out, as an operator
+        looking at the panel would, for up to ``POSE_GAP_S``.
+        """
         stats = self.node.snapshot().robot_stats
         try:
             return np.array([float(stats[k]) for k in POSE_KEYS])
         except KeyError:
-            raise ScriptedOperatorError("the robot's heartbeat carries no arm pose") from None
+            try:
+                return self.wait_for_pose(POSE_GAP_S)
+            except ScriptedOperatorError:
+                raise ScriptedOperatorError(
+                    f"the robot's heartbeats carried no arm pose for {POSE_GAP_S:g} s"
+                ) from None
 
     def wait_for_pose(self, timeout_s: float = 10.0) -> np.ndarray:
         end = self.clock() + timeout_s

@@ -207,7 +207,16 @@ def test_the_demo_reports_both_ends_and_no_error(demo):
     operator = summary["processes"]["children"]["operator"]
     events = "\n".join(summary["processes"]["events"])
     assert code == 0 and summary["errors"] == [], summary["errors"]
-    assert operator["exit_codes"] == [-signal.SIGKILL, -signal.SIGABRT], operator
+    killed, aborted = operator["exit_codes"]
+    assert killed == -signal.SIGKILL, operator
+    if aborted == -signal.SIGSEGV:
+        # the watchdog's SIGABRT comes with SIGCONT: faulthandler's dump of every thread runs
+        # while the resumed main thread changes its frames, and may crash reading them (seen
+        # once). The abort is what ended the node; its dump says so first
+        log = Path(operator["log"]).read_text()
+        assert "Fatal Python error: Aborted" in log.split("Segmentation fault")[0], log[-3000:]
+    else:
+        assert aborted == -signal.SIGABRT, operator
     assert operator["restarts"] == 2 and operator["state"] == "running", operator
     assert "ended by its watchdog" in events, events
     assert summary["stimuli_received"] > 0 and summary["servo_writes"] > 0
