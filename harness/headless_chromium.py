@@ -169,7 +169,10 @@ class Chromium:
             left = deadline - time.monotonic()
             if left <= 0:
                 raise BrowserError(f"{method}: no answer in {timeout_s} s")
-            msg = json.loads(self.ws.recv(timeout=left))
+            try:
+                msg = json.loads(self.ws.recv(timeout=left))
+            except TimeoutError:
+                raise BrowserError(f"{method}: no answer in {timeout_s} s") from None
             if msg.get("id") == ident:
                 if "error" in msg:
                     raise BrowserError(f"{method}: {msg['error']}")
