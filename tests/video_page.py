@@ -31,7 +31,11 @@ async def watch_video(page_ws: str, frames: int) -> dict:
     stamps, images = [], []
     loop = asyncio.get_running_loop()
     try:
-        async with connect(page_ws, max_size=2**22) as ws:
+        # every message buffered, as a browser's socket does: the dashboard pushes its state
+        # ~20 times a second and this page reads only the video's; with websockets' default
+        # of 16 frames the socket stopped reading, and its close waited out the 10 s
+        # close_timeout behind the unread state (measured under an observer's flood)
+        async with connect(page_ws, max_size=2**22, max_queue=None) as ws:
             await ws.send(json.dumps({"type": "video_offer", "sdp": pc.localDescription.sdp}))
             t_offer = loop.time()
             while True:
