@@ -49,7 +49,11 @@ from common.transport import Publisher, Subscriber, free_loopback_ports
 from common.web_token import from_query, with_token
 from harness.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
+#: serial: the video server runs at its unit's priority (Nice=0, below the nodes' -10, as video
+#: yields to control on a robot PC), and in the deployment lane other tests' nodes outranked
+#: it: in four of eight clean-clone runs one page session late in the flood got its first frame
+#: after 2.3 to 3.6 s, against 2, while alone or beside three lane files it took at most 0.8 s
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.serial]
 
 ICE_S = 3.0  # the video server's ice_timeout_s here (its default: 10 s)
 MAX_VIEWERS = 4  # the video server's and the robot's default
