@@ -54,6 +54,10 @@ def chromium_path() -> str | None:
     return shutil.which("chromium")
 
 
+#: a poll's evaluation may take what is left of its wait, and at least this: a renderer held
+#: up by a busy machine answered one poll after more than 5 s, inside the wait's 10
+_POLL_ANSWER_S = 1.0
+
 #: what DevTools answers an evaluation whose page navigated away meanwhile
 _NAVIGATED = (
     "Inspected target navigated or closed",
@@ -200,8 +204,8 @@ class Chromium:
         """Evaluate until truthy; the last value (or the failure) in the error on timeout."""
         deadline = time.monotonic() + timeout_s
         value: Any = None
-        while time.monotonic() < deadline:
-            value = self.evaluate(expression)
+        while (left := deadline - time.monotonic()) > 0:
+            value = self.evaluate(expression, timeout_s=max(left, _POLL_ANSWER_S))
             if value:
                 return value
             time.sleep(poll_s)
@@ -221,9 +225,9 @@ class Chromium:
         """
         deadline = time.monotonic() + timeout_s
         value: Any = None
-        while time.monotonic() < deadline:
+        while (left := deadline - time.monotonic()) > 0:
             try:
-                value = self.evaluate(expression)
+                value = self.evaluate(expression, timeout_s=max(left, _POLL_ANSWER_S))
             except BrowserError as e:
                 if not any(m in str(e) for m in _NAVIGATED):
                     raise
