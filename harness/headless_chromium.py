@@ -202,14 +202,7 @@ class Chromium:
 
     def wait_for(self, expression: str, timeout_s: float = 5.0, poll_s: float = 0.03) -> Any:
         """Evaluate until truthy; the last value (or the failure) in the error on timeout."""
-        deadline = time.monotonic() + timeout_s
-        value: Any = None
-        while (left := deadline - time.monotonic()) > 0:
-            value = self.evaluate(expression, timeout_s=max(left, _POLL_ANSWER_S))
-            if value:
-                return value
-            time.sleep(poll_s)
-        raise BrowserError(f"timed out after {timeout_s} s waiting for {expression!r} ({value!r})")
+        return self.wait_until(expression, bool, timeout_s, poll_s)
 
     def wait_until(
         self,

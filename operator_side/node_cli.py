@@ -139,11 +139,22 @@ class StatusFile:
         self.write()
 
 
-def _attachments(node: Any, config: OperatorConfig, from_stdin: bool, status: Path | None) -> Any:
+def _attachments(
+    node: Any,
+    config: OperatorConfig,
+    args: argparse.Namespace,
+    from_stdin: bool,
+    status: Path | None,
+) -> Any:
     dashboard = _dashboard(node, config, status)
     parts = [p for p in (dashboard, StdinCommands(node) if from_stdin else None) if p is not None]
     if status is not None:
         parts.append(StatusFile(node, status, dashboard))
+    if config.palm_guard and config.servos.get("kind") == "feetech":
+        # a bus that outlives the node; stopped after the node's run, which closed the bus
+        from operator_side.palm_guard import PalmGuard
+
+        parts.append(PalmGuard.start(args.config, args.overrides))
     return _Both(*parts) if parts else None
 
 
@@ -195,34 +206,10 @@ def run(args: argparse.Namespace) -> int:
     session = session_metadata(getattr(args, "record_metadata", []))
     if session and not args.record:
         raise ConfigError("--record-metadata describes a recording: add --record FILE")
-    guard = None if args.print_config else _palm_guard(args)
-    try:
-        return _run(args, session, from_stdin, status)
-    finally:
-        if guard is not None:
-            guard.release()  # the node is done with the bus: the guard lifts the palm now
-
-
-def _palm_guard(args: argparse.Namespace) -> Any:
-    """The palm guard for this node's bus (``operator_side.palm_guard``), or None: a bus that
-    ends with the node, or ``palm_guard = false``."""
-    from common.cli_support import load_node_config
-
-    config = load_node_config(args, OperatorConfig, "operator")
-    if not config.palm_guard or config.servos.get("kind") != "feetech":
-        return None
-    from operator_side.palm_guard import PalmGuard
-
-    return PalmGuard.start(args.config, args.overrides)
-
-
-def _run(
-    args: argparse.Namespace, session: dict[str, str], from_stdin: bool, status: Path | None
-) -> int:
     return run_node(
         args,
         OperatorConfig,
         "operator",
         lambda config, recorder: _build(config, recorder, session),
-        lambda node, config: _attachments(node, config, from_stdin, status),
+        lambda node, config: _attachments(node, config, args, from_stdin, status),
     )

@@ -66,7 +66,7 @@ class PalmGuard:
         log.info("palm guard: pid %d lifts the palm when this node ends", process.pid)
         return cls(process, wake_w)
 
-    def release(self) -> None:
+    def stop(self) -> None:
         """The node is done with the bus (a clean end): the guard lifts now. A node that dies
         never gets here; the kernel closes the pipe for it."""
         if self._wake_w is not None:

@@ -19,7 +19,8 @@ the Makefile's group at -20 outweighs a session at nice 0 about 87 to 1,
 and its processes at -5 leave the nodes and simulated hardware (at -10)
 above the tests' own processes. The kernel's own workers get little too
 (those that carry a pseudo-terminal's bytes run at nice 0 outside any
-session): with the group saturated, a pty's round trip took up to 290 ms
+session): with the group saturated beside a test run, a pty's round trip
+took up to 290 ms, on an otherwise quiet machine 10 to 12 ms
 (``scripts/pty-latency-under-load.py``). Ctrl-C and a stop reach
 it as before: this process forwards them to its process group.
 Where the user may not raise a priority (not root, no CAP_SYS_NICE), the
