@@ -79,7 +79,7 @@ class ScriptedPage(threading.Thread):
         self.error: BaseException | None = None
         self.done = threading.Event()
 
-    def feel(self, timeout_s: float = 3.0) -> int:
+    def feel(self, timeout_s: float = 10.0) -> int:
         """What the palm presses once the linkages have come to rest.
 
         On their way from the retract point the contact points can cross the
@@ -133,15 +133,30 @@ def test_a_whole_masked_session_on_the_page_then_its_analysis(tmp_path):
     responder.open()
     page = ScriptedPage(responder.server.ws_url, bus, display)
     page.start()
+    # The session waits for a page as long as none is open, as it should for a participant:
+    # a scripted page that failed is reported at once, not after the test's timeout.
+    outcome: dict = {}
+
+    def run_session() -> None:
+        try:
+            outcome["summary"] = Session(config, "S01", 11, display, responder, results).run()
+        except BaseException as e:
+            outcome["error"] = e
+
+    session = threading.Thread(target=run_session, daemon=True)
     try:
-        summary = Session(config, "S01", 11, display, responder, results).run()
+        session.start()
+        while session.is_alive() and page.error is None:
+            session.join(timeout=0.2)
     finally:
         display.close()
         responder.close()
         results.close()
         page.done.set()
         page.join(timeout=5)
-    assert page.error is None, page.error
+    assert page.error is None, f"the scripted page failed: {page.error!r}"
+    assert "error" not in outcome, f"the session failed: {outcome['error']!r}"
+    summary = outcome["summary"]
 
     # Training showed every pattern in order, and the palm felt each one.
     assert page.trained == list(range(12))
