@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -24,6 +25,18 @@ settings.register_profile(
 settings.load_profile(
     os.environ.get("HYPOTHESIS_PROFILE") or ("ci" if os.environ.get("CI") else "dev")
 )
+
+
+@pytest.hookimpl(trylast=True)  # after pytest's own tmp_path plugin has set up its folder
+def pytest_configure(config: pytest.Config) -> None:
+    """What the product and the processes it starts put in the temp folder (a demo's logs, a
+    fleet's keys and logs, a simulated device's link) goes under pytest's own folder, which
+    keeps the last three runs: a suite run left 28 MB in /tmp, and a machine that runs CI
+    again and again fills up. Set before collection: modules copy the environment when
+    imported, for the processes they start."""
+    folder = config._tmp_path_factory.mktemp("tmp", numbered=False)
+    os.environ["TMPDIR"] = str(folder)
+    tempfile.tempdir = None  # read again from TMPDIR
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
