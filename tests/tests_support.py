@@ -385,3 +385,17 @@ def stimulus(**kw) -> Stimulus:
     )
     base.update(kw)
     return Stimulus(**base)
+
+
+def why_the_demo_failed(proc: subprocess.CompletedProcess) -> str:
+    """A finished ``deepxpalm demo --json``'s exit code, the errors and process events of its
+    summary (where it printed one), and the end of its stderr: what a failing test shows."""
+    out = f"the demo exited with {proc.returncode}"
+    start = 0 if proc.stdout.startswith("{") else proc.stdout.find("\n{")
+    try:
+        report = json.loads(proc.stdout[start:])
+        out += f"\nerrors: {report['errors']}\nevents: {report['processes']['events']}"
+        out += f"\nlogs: {report.get('logs')}"
+    except (ValueError, KeyError, TypeError):
+        out += f"\nstdout: {proc.stdout[-1500:]}"
+    return f"{out}\nstderr: {proc.stderr[-3000:]}"

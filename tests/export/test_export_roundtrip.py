@@ -8,7 +8,6 @@ before its time, the held frame within one sample period of the row.
 from __future__ import annotations
 
 import bisect
-import contextlib
 import importlib.util
 import json
 import subprocess
@@ -16,6 +15,7 @@ import sys
 
 import numpy as np
 import pytest
+from tests_support import why_the_demo_failed
 
 from common.mcap_recorder import read_recording
 from deploy.export.cli import export
@@ -39,12 +39,7 @@ def session(tmp_path_factory):
         text=True,
         timeout=120,
     )
-    if proc.returncode != 0:  # the demo's own summary names what went wrong
-        summary = proc.stdout[proc.stdout.find("\n{") :]
-        with contextlib.suppress(ValueError):
-            report = json.loads(summary)
-            summary = json.dumps([report["errors"], report["processes"]["events"]])
-        pytest.fail(f"the demo exited with {proc.returncode}: {summary[-3000:]}")
+    assert proc.returncode == 0, why_the_demo_failed(proc)  # its summary names what went wrong
     return out
 
 

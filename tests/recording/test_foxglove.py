@@ -30,6 +30,7 @@ pytest.importorskip("foxglove_schemas_protobuf", reason="Foxglove's schemas: the
 from google.protobuf import json_format  # noqa: E402 (after the skips)
 from google.protobuf.descriptor import FieldDescriptor  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
+from tests_support import why_the_demo_failed  # noqa: E402
 
 from common import foxglove  # noqa: E402
 from common.mcap_recorder import McapRecorder, read_recording  # noqa: E402
@@ -170,7 +171,7 @@ def lab_session(tmp_path_factory):
         text=True,
         timeout=240,
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.returncode == 0, why_the_demo_failed(proc)
     return out
 
 
