@@ -25,7 +25,9 @@ STAMP := $(VENV)/.installed
 # left it a quarter idle, gained little on a clean clone and failed browser jogs once). The other
 # slow tests compare timings with tighter margins (a link simulator's floor, a palm's lift after a
 # death, a page's video): three at a time. Those marked `serial` need the machine to themselves:
-# one at a time.
+# one at a time. So do those marked `pty` (a driver against its simulator through a
+# pseudo-terminal, within reply windows): the kernel's workers that carry a pty's bytes starve
+# while the other lanes keep both cores busy (below).
 FAST_WORKERS ?= 4
 DEPLOYMENT_WORKERS ?= 3
 PAIRED_WORKERS ?= 3
@@ -43,10 +45,10 @@ TEST_NICE ?= -5
 TEST_GROUP_NICE ?= -20
 AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --group $(TEST_GROUP_NICE) --
 LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest
-PARALLEL_LANE := (not slow or untimed) and not serial and not soak
-DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not soak
-PAIRED_LANE := slow and not untimed and not parallel and not serial and not soak
-SERIAL_LANE := serial and not soak
+PARALLEL_LANE := (not slow or untimed) and not serial and not pty and not soak
+DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not pty and not soak
+PAIRED_LANE := slow and not untimed and not parallel and not serial and not pty and not soak
+SERIAL_LANE := (serial or pty) and not soak
 
 .PHONY: demo test test-fast lint bench setup clean
 

@@ -37,7 +37,8 @@ from operator_side.servos.sts_registers import (
 )
 from operator_side.servos.sts_sim import FakeStsBusConfig, SimulatedFeetechServoBus
 
-pytestmark = [pytest.mark.timeout(30), pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
+# pty: the fake bus answers through a pseudo-terminal within the driver's reply windows
+pytestmark = [pytest.mark.timeout(30), pytest.mark.usefixtures("quiet_gc"), pytest.mark.pty]
 
 IDS = (1, 2, 3, 4, 5, 6)
 

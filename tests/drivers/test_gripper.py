@@ -41,6 +41,8 @@ from robot_side.gripper.sim import (
 from robot_side.gripper.urcap_socket import RobotiqSocketConfig, RobotiqSocketGripper
 
 pytestmark = pytest.mark.timeout(20)
+#: the Modbus RTU tests: the simulator answers through a pseudo-terminal within reply windows
+pty = pytest.mark.pty
 
 _hosts = itertools.cycle(range(2, 250))
 FAST = dict(activation_time_s=0.05, min_speed_counts_s=500.0, max_speed_counts_s=4000.0)
@@ -163,6 +165,7 @@ def test_a_new_socket_driver_leaves_a_closed_gripper_closed(server):
     assert not [line for line in lines if line.startswith("SET")], lines
 
 
+@pty
 def test_a_new_rtu_driver_leaves_a_closed_gripper_closed(rtu):
     sim, first = rtu
     first.connect()
@@ -435,6 +438,7 @@ def rtu():
     sim.stop()
 
 
+@pty
 def test_rtu_activates_moves_and_detects_an_object(rtu):
     sim, g = rtu
     g.connect()
@@ -449,6 +453,7 @@ def test_rtu_activates_moves_and_detects_an_object(rtu):
     assert wait_until(lambda: g.position() == 0)
 
 
+@pty
 def test_rtu_grip_levels(rtu):
     _, g = rtu
     g.connect()
@@ -457,6 +462,7 @@ def test_rtu_grip_levels(rtu):
     assert g.grip_level() == 20
 
 
+@pty
 def test_rtu_retries_a_corrupt_reply_and_counts_it(rtu):
     sim, g = rtu
     g.connect()
@@ -465,6 +471,7 @@ def test_rtu_retries_a_corrupt_reply_and_counts_it(rtu):
     assert g.status()["crc_errors"] == 1
 
 
+@pty
 def test_rtu_gives_up_with_a_clear_error_when_the_gripper_is_silent(rtu):
     sim, g = rtu
     g.connect()
@@ -477,6 +484,7 @@ def test_rtu_gives_up_with_a_clear_error_when_the_gripper_is_silent(rtu):
     assert g.position() == 0  # the line recovers without reconnecting
 
 
+@pty
 def test_rtu_skips_garbage_on_the_line(rtu):
     sim, g = rtu
     g.connect()
@@ -485,6 +493,7 @@ def test_rtu_skips_garbage_on_the_line(rtu):
     assert sim.crc_errors > 0
 
 
+@pty
 def test_rtu_wrong_slave_id_times_out(rtu):
     sim, _ = rtu
     g = RobotiqRtuGripper(RobotiqRtuConfig(port=sim.port, slave_id=3, reply_timeout_s=0.1))
@@ -499,6 +508,7 @@ def test_rtu_missing_port_is_a_clear_error():
         g.connect()
 
 
+@pty
 def test_rtu_simulator_answers_exceptions_for_wrong_addresses(rtu):
     _, g = rtu
     g.connect()

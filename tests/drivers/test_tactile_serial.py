@@ -43,7 +43,8 @@ from robot_side.tactile.wire import (
     encode,
 )
 
-pytestmark = [pytest.mark.timeout(30), pytest.mark.parallel]
+# pty: the board streams through a pseudo-terminal, and the driver's reads have deadlines
+pytestmark = [pytest.mark.timeout(30), pytest.mark.pty]
 
 # -- the codec and the parser ----------------------------------------------------------
 
