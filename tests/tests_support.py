@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 
@@ -229,7 +230,8 @@ class DashboardDemo:
 
 class VideoServerProcess:
     """``deepxpalm video`` on the test pattern as its own process, so its crash is seen from
-    outside; ``with`` starts it and waits until it serves (``url``)."""
+    outside; ``with`` starts it and waits until it serves (``url``). Its log goes to a file
+    (``log_text()``): a pipe nobody reads fills up and blocks the server's next log line."""
 
     def __init__(self, port: int | None = None, *settings: str) -> None:
         self.port = port or free_loopback_ports(1)[0]
@@ -237,18 +239,26 @@ class VideoServerProcess:
         for s in settings:
             self.argv += ["--set", s]
         self.proc: subprocess.Popen | None = None
+        # open past the process: tests read the log after the with block; gone with this object
+        self._log = tempfile.TemporaryFile("w+")  # noqa: SIM115
 
         #: its signalling URL with the token, as it printed it
         self.url = f"ws://127.0.0.1:{self.port}/"
 
+    def log_text(self) -> str:
+        """What the server logged so far."""
+        self._log.flush()
+        self._log.seek(0)
+        return self._log.read()
+
     def __enter__(self) -> VideoServerProcess:
-        self.proc = subprocess.Popen(
-            self.argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-        )
+        # stdout: the one line that names the URL, then nothing (a pipe is safe)
+        self.proc = subprocess.Popen(self.argv, stdout=subprocess.PIPE, stderr=self._log, text=True)
         line = self.proc.stdout.readline()  # "video: ws://...?token=... (source ...)"
         if not line.startswith("video: ws://"):
             self.proc.kill()
-            raise RuntimeError(f"the video server did not start: {self.proc.stderr.read()[-2000:]}")
+            self.proc.wait()
+            raise RuntimeError(f"the video server did not start: {self.log_text()[-2000:]}")
         self.url = line.split()[1]
         return self
 

@@ -55,6 +55,6 @@ def test_without_the_token_no_answer_and_the_camera_stays_closed(tmp_path):
             assert _next(bridge).kind == "answer"
         finally:
             bridge.close()
-    log = server.proc.stderr.read()
+    log = server.log_text()
     assert log.count("video: refused a signalling request") == 5, log[-2000:]
     assert token not in log

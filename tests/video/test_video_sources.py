@@ -142,6 +142,9 @@ def test_server_streams_only_while_a_viewer_is_connected():
         assert source.opened == 1
 
 
+# serial: beside the paired lane's deployments (their nodes at nice -10, above it) the server
+# once had not exited 10 s after the SIGTERM
+@pytest.mark.serial
 def test_sigterm_ends_a_server_with_two_viewers_promptly():
     """systemd's stop with viewers watching: the process exits 0 within seconds and the viewers'
     streams end. The old server's second viewer hung an encoder thread, and Python's exit waited
@@ -165,7 +168,9 @@ def test_sigterm_ends_a_server_with_two_viewers_promptly():
     with VideoServerProcess(None, "test_pattern.width=320", "test_pattern.height=240") as server:
         runs, took = asyncio.run(watch_then_term(server))
         code = server.proc.poll()
-    assert code == 0, f"SIGTERM: exit {code} after {took:.1f} s"
+    assert code == 0, (
+        f"SIGTERM: exit {code} after {took:.1f} s; its log:\n{server.log_text()[-3000:]}"
+    )
     assert took < 5.0, f"SIGTERM took {took:.1f} s"
     assert all(r.arrivals_s for r in runs), [r.summary() for r in runs]  # both were watching
     assert all(r.ended for r in runs), [r.summary() for r in runs]  # and their streams ended
