@@ -45,6 +45,9 @@ TEST_NICE ?= -5
 TEST_GROUP_NICE ?= -20
 AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --group $(TEST_GROUP_NICE) --
 LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest
+# Whole files to each worker (a module's deployment starts once), the longest first
+# (tests/file_durations.json, in tests/conftest.py's order; scripts/file-durations.py)
+BY_FILE := --dist loadfile --no-loadscope-reorder
 PARALLEL_LANE := (not slow or untimed) and not serial and not pty and not soak
 DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not pty and not soak
 PAIRED_LANE := slow and not untimed and not parallel and not serial and not pty and not soak
@@ -77,9 +80,9 @@ test: $(STAMP)
 	$(AT_TEST_PRIORITY) $(BIN)/python scripts/warm-bytecode.py && wait $$warm
 	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty
 	status=0; \
-	$(LANE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
-	$(LANE) -m "$(DEPLOYMENT_LANE)" -n $(DEPLOYMENT_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
-	$(LANE) -m "$(PAIRED_LANE)" -n $(PAIRED_WORKERS) --dist loadfile $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(LANE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(LANE) -m "$(DEPLOYMENT_LANE)" -n $(DEPLOYMENT_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(LANE) -m "$(PAIRED_LANE)" -n $(PAIRED_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(SERIAL_LANE)" $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	exit $$status
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
+from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -39,18 +41,30 @@ def pytest_configure(config: pytest.Config) -> None:
     tempfile.tempdir = None  # read again from TMPDIR
 
 
+#: each test file's measured time (scripts/file-durations.py writes it from a lane's report)
+FILE_DURATIONS = Path(__file__).with_name("file_durations.json")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The soak runs only when a -m expression names it.
+    """The soak runs only when a -m expression names it; the longest files come first.
 
     pyproject's addopts say ``-m 'not soak'``, but a -m on the command line (the fast
     lane's ``-m "not slow"``) replaces that one, and would start the 30-minute soak.
+
+    The lanes hand whole files to their workers in this order (``--no-loadscope-reorder``
+    in the Makefile; pytest-xdist's own order puts the files with the most tests first,
+    and a long file of one test could start last while the other workers ran out of
+    work). Longest first, the shortest at the end: a lane ends near its average. A test
+    file keeps its tests' order, and a file the measurements do not name keeps its place
+    after the named ones.
     """
-    if "soak" in (config.getoption("markexpr") or ""):
-        return
-    soak = [item for item in items if item.get_closest_marker("soak")]
-    if soak:
-        config.hook.pytest_deselected(items=soak)
-        items[:] = [item for item in items if not item.get_closest_marker("soak")]
+    if "soak" not in (config.getoption("markexpr") or ""):
+        soak = [item for item in items if item.get_closest_marker("soak")]
+        if soak:
+            config.hook.pytest_deselected(items=soak)
+            items[:] = [item for item in items if not item.get_closest_marker("soak")]
+    seconds = json.loads(FILE_DURATIONS.read_text()) if FILE_DURATIONS.exists() else {}
+    items.sort(key=lambda item: -seconds.get(item.nodeid.split("::", 1)[0], 0.0))
 
 
 @pytest.fixture
