@@ -159,7 +159,9 @@ def test_process_sections_run(smallest):
     assert tcp["received"] > 0 and tcp["median_us"] > 0
     cpu = results["sections"]["node_cpu"]
     assert "error" not in cpu, cpu.get("error")
-    assert cpu["robot_cpu_percent"] > 0 and cpu["operator_cpu_percent"] > 0
+    # /proc counts CPU in 10 ms ticks: over the smallest size's 2 s an operator node that only
+    # hears heartbeats (an unchanged stimulus is not sent again) may use less than one tick
+    assert cpu["robot_cpu_percent"] > 0 and cpu["operator_cpu_percent"] >= 0
     assert cpu["robot_stats"]["frames_captured"] > 0
     assert cpu["operator_stats"]["stimuli_received"] > 0
     netsim = results["sections"]["netsim"]
