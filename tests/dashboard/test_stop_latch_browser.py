@@ -207,7 +207,10 @@ class Stops:
         pressed = press()
         at_rest = self.log.at_rest_after(pressed)
         heard = robot_heard_stop(self.robot, t0)
-        if self.log.moving_at(pressed):  # else A's jog had stuttered (a loaded machine): untimed
+        # untimed: A's jog had stuttered at the press, or the arm came to rest before the robot
+        # heard the stop (a jog that stuttered after it, ended by the node's deadman): either
+        # way something else stopped the arm (a loaded machine; one such read -298 ms)
+        if self.log.moving_at(pressed) and at_rest >= heard:
             self.stops.setdefault(what, []).append((pressed, heard, at_rest))
         for page in (self.a, self.b):
             shows_latch(page, True)
