@@ -9,6 +9,7 @@ servo goals inside their limits, steps within the rate limit.
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
@@ -159,9 +160,11 @@ def test_process_sections_run(smallest):
     assert tcp["received"] > 0 and tcp["median_us"] > 0
     cpu = results["sections"]["node_cpu"]
     assert "error" not in cpu, cpu.get("error")
-    # /proc counts CPU in 10 ms ticks: over the smallest size's 2 s an operator node that only
-    # hears heartbeats (an unchanged stimulus is not sent again) may use less than one tick
-    assert cpu["robot_cpu_percent"] > 0 and cpu["operator_cpu_percent"] >= 0
+    # /proc charges CPU by the 10 ms tick: over the smallest size's 2 s a node using about 1 %
+    # may be charged none (0.0, read in two runs beside two busy loops, once for the robot
+    # node); that the nodes worked is what their counters below say
+    for name in ("robot", "operator"):
+        assert math.isfinite(cpu[f"{name}_cpu_percent"]) and cpu[f"{name}_cpu_percent"] >= 0
     assert cpu["robot_stats"]["frames_captured"] > 0
     assert cpu["operator_stats"]["stimuli_received"] > 0
     netsim = results["sections"]["netsim"]
