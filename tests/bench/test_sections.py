@@ -38,3 +38,16 @@ def test_a_report_with_every_section_skipped_still_holds_together():
     for name in SECTION_NAMES:
         assert f"- `{name}` skipped (`--skip`)" in md
     assert all(v.passed is None for v in summary_verdicts(results))
+
+
+def test_the_committed_report_renders_every_section_it_measured(tmp_path):
+    """What ``deepxpalm bench --from-json docs/benchmarks.json`` writes: each measured
+    section's table, none of them skipped (a section whose results grew a part its text did
+    not expect, the four viewers beside the video's one, once ended the report in a crash)."""
+    from deploy.cli import main as deepxpalm
+
+    args = ["bench", "--from-json", "docs/benchmarks.json", "--out", str(tmp_path), "--no-figures"]
+    assert deepxpalm(args) == 0
+    md = (tmp_path / "benchmarks.md").read_text()
+    assert "skipped (`--skip`)" not in md and "Not run." not in md
+    assert md.count("\n## ") >= len(SECTION_NAMES)
