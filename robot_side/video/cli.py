@@ -5,7 +5,8 @@ encoder thread be stuck in native code, the process exits without joining
 it (Python would otherwise wait for it forever at exit, and systemd would
 have to SIGKILL a server that had looked as if it ignored SIGTERM). The
 interpreter's teardown is skipped after every stop, and a stop held up
-past its bound ends the process with every thread's stack in the log.
+past its bound ends the process with every thread's stack in the log; so
+does a main thread kept from running for five seconds while it serves.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import faulthandler
 import logging
 import os
 import sys
+import threading
+import time
 
 from common.cli_support import (
     add_config_arguments,
@@ -29,6 +32,25 @@ log = logging.getLogger(__name__)
 
 STOP_S = 5.0  # VideoServer.stop's bound: viewers closed, threads ended or left
 EXIT_GRACE_S = 2.0  # then the stats file and the logs; past that the process is ended
+AWAKE_S = 1.0  # the main thread wakes this often while it serves
+STALL_S = 5.0  # a main thread that has not woken for this long ends the process, stacks logged
+
+
+def wait_for_stop(stop: threading.Event, duration_s: float | None) -> None:
+    """Until SIGTERM, Ctrl-C or ``duration_s``, waking every ``AWAKE_S`` to re-arm the stall timer.
+
+    The timer runs in C, without the GIL: a main thread kept from running for ``STALL_S``
+    (native code holding the GIL, a signal whose wake-up never reached this wait) ends the
+    process with every thread's stack in the log, as systemd's SIGKILL would end it with
+    nothing said. Waking also runs any signal handler that is due, whichever thread the
+    kernel delivered the signal to.
+    """
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    while True:
+        faulthandler.dump_traceback_later(STALL_S, exit=True)
+        left = AWAKE_S if deadline is None else min(AWAKE_S, deadline - time.monotonic())
+        if left <= 0 or stop.wait(left):
+            return
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             shown = f"{server.base_url} (token in {config.token_file}, source {config.source})"
             print(f"video: {shown}", flush=True)
-        stop.wait(args.duration)
+        wait_for_stop(stop, args.duration)
     finally:
         # whatever holds the stop up past its bound, the process ends, its threads' stacks in
         # the log (systemd would SIGKILL it at TimeoutStopSec with nothing said)

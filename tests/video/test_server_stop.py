@@ -82,3 +82,41 @@ def test_a_camera_stuck_in_a_capture_does_not_hold_the_stop_past_its_timeout():
     finally:
         release.set()
     assert took < 1.5, f"stop took {took:.1f} s with a timeout of 1 s"
+
+
+def test_a_main_thread_kept_from_running_ends_the_server_with_every_threads_stack():
+    """``deepxpalm video`` waits for its stop awake: a main thread that cannot run (native code
+    holding the GIL; here a regular expression that backtracks for a minute) ends the process
+    within the stall bound, the stuck thread's stack in its log, where systemd's SIGKILL would
+    have said nothing. A server that runs normally wakes, re-arms and returns on its stop."""
+    import faulthandler
+    import subprocess
+    import sys
+    import threading
+
+    from robot_side.video import cli
+
+    stop = threading.Event()
+    threading.Timer(0.3, stop.set).start()
+    t0 = time.monotonic()
+    cli.wait_for_stop(stop, None)
+    cli.wait_for_stop(threading.Event(), 0.2)  # or at the end of its duration
+    assert time.monotonic() - t0 < 2.0
+    faulthandler.cancel_dump_traceback_later()  # armed for this test process
+
+    stuck = (
+        "import re, threading, time\n"
+        "from robot_side.video import cli\n"
+        "cli.AWAKE_S, cli.STALL_S = 0.05, 0.5\n"
+        "def hog(): re.match(r'(a+)+$', 'a' * 30 + 'b')\n"
+        "hogger = threading.Timer(0.3, hog)\n"  # once the server waits for its stop
+        "hogger.daemon = True\n"
+        "hogger.start()\n"
+        "cli.wait_for_stop(threading.Event(), None)\n"
+    )
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", stuck], capture_output=True, text=True, timeout=30)
+    took = time.monotonic() - t0
+    assert done.returncode == 1, (done.returncode, done.stderr[-2000:])
+    assert "Timeout" in done.stderr and "hog" in done.stderr, done.stderr[-2000:]
+    assert took < 20, f"ended after {took:.1f} s, the hog alone runs for a minute"
