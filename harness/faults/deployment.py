@@ -337,7 +337,7 @@ class Deployment:
         )
         config = self.fleet.workdir / f"{OPERATOR}@{ROBOT}.toml"  # what start_operator writes
         stop_post = stop_post_args(rule.stop_post, config)
-        log_path = self.dir / "operator-stop-post.log"
+        log_path = self.dir / "operator-stop-post.log"  # log_tails shows it
 
         def start() -> Proc:
             with self._env_lock:  # the fleet starts every process with its env: this one's
@@ -427,9 +427,15 @@ class Deployment:
         return True
 
     def log_tails(self, chars: int = 1500) -> str:
-        return "\n".join(
+        """Each unit's log tail, and its ExecStopPost's (the palm lift says why it failed)."""
+        tails = [
             f"--- {n}\n{u.handle.log_text()[-chars:]}" for n, u in self.units.items() if u.handle
-        )
+        ]
+        stop_post = self.dir / "operator-stop-post.log"
+        if stop_post.exists():
+            text = stop_post.read_text(errors="replace")
+            tails.append(f"--- operator ExecStopPost\n{text[-chars:]}")
+        return "\n".join(tails)
 
     # ------------------------------------------------------------ stopping
     def close(self) -> None:
