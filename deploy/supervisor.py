@@ -260,16 +260,10 @@ class Supervisor:
             )
             return
         child.restart_at = now + child.restart_delay_s
-        watchdog = child.watchdog
-        ended_by = (
-            " (ended by its watchdog)"
-            if watchdog is not None and any(pid == child.proc.pid for _, pid in watchdog.fired)
-            else ""
-        )
         self._say(
             logging.WARNING,
-            f"{child.name} (pid {child.proc.pid}) exited with {code}{ended_by}: restarting in "
-            f"{child.restart_delay_s:g} s; see {child.log_path}",
+            f"{child.name} (pid {child.proc.pid}) exited with {code}{_ended_by(child)}: "
+            f"restarting in {child.restart_delay_s:g} s; see {child.log_path}",
         )
 
     def _restart(self, child: Child, now: float) -> None:
@@ -367,9 +361,31 @@ class Supervisor:
                     f"restarts; see {child.log_path}"
                 )
             elif child.proc is not None and child.restart_at is None:
-                stop_child(child.proc, child.name, errors, child.log_path)
+                code = child.proc.poll()
+                if code is not None and self.armed and child.stop_post is not None:
+                    # it ended on its own a moment ago, and its ExecStopPost (the palm's
+                    # lift) was still running: the lift ends, the end counts as any other,
+                    # and no restart follows (Ctrl-C just after a watchdog's kill)
+                    child.stop_post.run(child.started_at)
+                    child.exits.append(code)
+                    self._say(
+                        logging.WARNING,
+                        f"{child.name} (pid {child.proc.pid}) exited with {code}"
+                        f"{_ended_by(child)} as the demo stopped; see {child.log_path}",
+                    )
+                else:
+                    stop_child(child.proc, child.name, errors, child.log_path)
             if child.watchdog is not None:
                 child.watchdog.close()
+
+
+def _ended_by(child: Child) -> str:
+    """What the log says of a process its unit's watchdog ended."""
+    watchdog, proc = child.watchdog, child.proc
+    fired = watchdog is not None and proc is not None
+    if fired and any(pid == proc.pid for _, pid in watchdog.fired):
+        return " (ended by its watchdog)"
+    return ""
 
 
 def terminate(proc: subprocess.Popen) -> None:

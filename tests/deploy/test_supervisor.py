@@ -142,3 +142,24 @@ def test_a_stopped_child_is_stopped_at_the_end_without_waiting(tmp_path):
     t0 = time.monotonic()
     sup.stop_all(stop_child, errors)
     assert time.monotonic() - t0 < 5.0 and errors == [], errors
+
+
+def test_a_child_that_ended_while_its_stop_post_runs_is_no_error_when_the_demo_stops(tmp_path):
+    """Ctrl-C just after a child ended (a watchdog's kill), its ExecStopPost (the palm's lift)
+    still running: the lift runs to its end, the exit is counted and said, and it is not
+    reported as an error (it was reported as "exited with -6" before)."""
+    from deploy.supervisor import StopPost
+
+    marks = tmp_path / "stop-post"
+    post = StopPost("op", lambda: subprocess.Popen(["sh", "-c", f"sleep 0.5; echo ran >> {marks}"]))
+    sup, errors = Supervisor(), []
+    child = sup.add(Child("op", SLEEPER, _log(tmp_path, "op"), 0.1, stop_post=post))
+    sup.armed = True
+    child.proc.send_signal(signal.SIGABRT)
+    child.proc.wait()
+    assert sup.poll(errors)  # the lift starts; the end waits for it
+    assert post.runs == [] and child.exits == []
+    sup.stop_all(stop_child, errors)
+    assert errors == [], errors
+    assert marks.read_text() == "ran\n" and [r[2] for r in post.runs] == [0]
+    assert child.exits == [-signal.SIGABRT] and "as the demo stopped" in sup.events[-1]
