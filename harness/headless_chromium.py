@@ -54,6 +54,10 @@ def chromium_path() -> str | None:
     return shutil.which("chromium")
 
 
+#: what a page is given to answer or to show something, unless the test bounds it itself (a
+#: product limit, such as the STALE badge within the staleness, is always passed explicitly):
+#: beside two deployments on two saturated cores a page once answered nothing for over 5 s
+PAGE_WAIT_S = 15.0
 #: a poll's evaluation may take what is left of its wait, and at least this: a renderer held
 #: up by a busy machine answered one poll after more than 5 s, inside the wait's 10
 _POLL_ANSWER_S = 1.0
@@ -227,7 +231,7 @@ class Chromium:
                         changed.append(tid)
         return changed
 
-    def evaluate(self, expression: str, timeout_s: float = 5.0) -> Any:
+    def evaluate(self, expression: str, timeout_s: float = PAGE_WAIT_S) -> Any:
         res = self.call(
             "Runtime.evaluate",
             timeout_s=timeout_s,
@@ -239,7 +243,9 @@ class Chromium:
             raise BrowserError(f"{expression!r} threw: {res['exceptionDetails']}")
         return res["result"].get("value")
 
-    def wait_for(self, expression: str, timeout_s: float = 5.0, poll_s: float = 0.03) -> Any:
+    def wait_for(
+        self, expression: str, timeout_s: float = PAGE_WAIT_S, poll_s: float = 0.03
+    ) -> Any:
         """Evaluate until truthy; the last value (or the failure) in the error on timeout."""
         return self.wait_until(expression, bool, timeout_s, poll_s)
 
@@ -247,7 +253,7 @@ class Chromium:
         self,
         expression: str,
         predicate: Callable[[Any], bool],
-        timeout_s: float = 5.0,
+        timeout_s: float = PAGE_WAIT_S,
         poll_s: float = 0.03,
     ) -> Any:
         """Evaluate until ``predicate(value)`` holds in Python; the last value on timeout.
@@ -270,7 +276,7 @@ class Chromium:
             time.sleep(poll_s)
         raise BrowserError(f"timed out after {timeout_s} s waiting on {expression!r} ({value!r})")
 
-    def click(self, selector: str, timeout_s: float = 5.0) -> None:
+    def click(self, selector: str, timeout_s: float = PAGE_WAIT_S) -> None:
         """A real mouse click at the element's centre, as a person would: scrolled into view,
         and only once nothing else (a banner that just appeared, a moving layout) covers it.
         """

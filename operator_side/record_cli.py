@@ -103,6 +103,8 @@ class StreamRecorder:
             self._bad(str(e))
             return
         stream = f"{name.decode() or '-'}_{type(msg).TOPIC.decode()}"
+        if stream not in self.counters:  # what an operator checks first: is it recording?
+            log.info("recorder: recording %s from its first message", stream)
         self.counters[stream] += 1
         self._count_gap(stream, getattr(msg, "seq", None))
         if self._out is not None:

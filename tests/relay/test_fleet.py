@@ -64,9 +64,18 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
             for o in ("obs1", "obs2")
             for r in ("cell1", "cell2")
         ]
-        fleet.start_recorder("rec")
+        rec_proc = fleet.start_recorder("rec")
         monitor = Monitor(fleet, "rec", ["cell1", "cell2"])
         try:
+            # the recorder starts last, below the nodes' priority: the scenario waits for it
+            # to record both robots (a loaded run began without it and it saw 5 heartbeats)
+            fleet.wait_for(
+                lambda: all(
+                    f"recording {r}_HBRT" in rec_proc.log_text() for r in ("cell1", "cell2")
+                ),
+                60,
+                "the recorder's first heartbeat of each robot",
+            )
             for c in ("c1", "c2"):
                 key = fleet.signing_key(c)
                 held = lambda k=key: monitor.holder_since(k, 0) is not None  # noqa: E731
