@@ -68,6 +68,7 @@ def test_the_assist_turns_a_45_degree_grasp_to_90_degrees_on_the_robot(tmp_path)
     (trial,) = cell["trials"]
     assert "error" not in trial, f"the trial did not reach its lift: {trial['error']}"
     first, after = trial["felt"][0], trial["felt"][1]
+    assert first is not None, f"the first grasp was never felt steadily: {trial}"
     assert classes_of(first)[0] == 1, f"felt 45 deg first: {trial}"
     assert classes_of(trial["felt_truth"][0])[0] == 1, f"and the world agrees: {trial}"
     assert after == pattern_of(2, 0) and trial["attempts"] == 2, f"then 90 centre: {trial}"
