@@ -382,10 +382,9 @@ class Supervisor:
 def _ended_by(child: Child) -> str:
     """What the log says of a process its unit's watchdog ended."""
     watchdog, proc = child.watchdog, child.proc
-    fired = watchdog is not None and proc is not None
-    if fired and any(pid == proc.pid for _, pid in watchdog.fired):
-        return " (ended by its watchdog)"
-    return ""
+    if watchdog is None or proc is None:
+        return ""
+    return " (ended by its watchdog)" if any(p == proc.pid for _, p in watchdog.fired) else ""
 
 
 def terminate(proc: subprocess.Popen) -> None:

@@ -28,7 +28,7 @@ from typing import Any
 
 from websockets.sync.client import connect
 
-from harness.processes import stop
+from harness.processes import in_session, stop
 
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = (
@@ -72,20 +72,6 @@ _NAVIGATED = (
 
 class BrowserError(RuntimeError):
     pass
-
-
-def _in_session(sid: int) -> list[int]:
-    """The pids of the session ``sid`` leads (chromium and every process it started)."""
-    pids = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        with suppress(OSError):
-            with open(f"/proc/{entry}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-            if int(fields[3]) == sid:  # after ")": state, ppid, pgrp, session
-                pids.append(int(entry))
-    return pids
 
 
 class Chromium:
@@ -221,7 +207,7 @@ class Chromium:
         """
         ours = os.nice(0)
         changed = []
-        for pid in _in_session(self.proc.pid):
+        for pid in in_session(self.proc.pid):
             with suppress(OSError):  # ended meanwhile
                 threads = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
             for tid in threads:  # Linux keeps a niceness per thread

@@ -183,6 +183,18 @@ def children_of(pid: int) -> list[int]:
     return out
 
 
+def in_session(sid: int) -> list[int]:
+    """The processes of the session ``sid`` leads (a process started with ``start_new_session``
+    and every process it started, however deep)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            fields = _stat_fields(f"/proc/{entry}/stat")
+            if fields is not None and int(fields[3]) == sid:  # state, ppid, pgrp, session
+                out.append(int(entry))
+    return out
+
+
 def machine_cpu() -> tuple[float, float]:
     """(idle, total) jiffies of the whole machine since boot (Linux ``/proc/stat``)."""
     fields = [float(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]

@@ -242,6 +242,7 @@ class Deployment:
         self.outage_s = 5.0
         self.units: dict[str, Unit] = {}
         self.recording = self.dir / "recording.bin"
+        self.stop_post_log = self.dir / "operator-stop-post.log"  # the palm lift's; in log_tails
         self.servo_status = self.dir / "servos-status.json"
         self.ur_host = ""
         self.gripper = ("127.0.0.1", 0)
@@ -337,7 +338,7 @@ class Deployment:
         )
         config = self.fleet.workdir / f"{OPERATOR}@{ROBOT}.toml"  # what start_operator writes
         stop_post = stop_post_args(rule.stop_post, config)
-        log_path = self.dir / "operator-stop-post.log"  # log_tails shows it
+        log_path = self.stop_post_log
 
         def start() -> Proc:
             with self._env_lock:  # the fleet starts every process with its env: this one's
@@ -431,9 +432,8 @@ class Deployment:
         tails = [
             f"--- {n}\n{u.handle.log_text()[-chars:]}" for n, u in self.units.items() if u.handle
         ]
-        stop_post = self.dir / "operator-stop-post.log"
-        if stop_post.exists():
-            text = stop_post.read_text(errors="replace")
+        if self.stop_post_log.exists():
+            text = self.stop_post_log.read_text(errors="replace")
             tails.append(f"--- operator ExecStopPost\n{text[-chars:]}")
         return "\n".join(tails)
 
