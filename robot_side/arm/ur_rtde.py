@@ -102,6 +102,12 @@ _ABANDONED: list[Any] = []
 #: how long connect() waits for each controller port to accept before calling ur-rtde
 PORT_PROBE_TIMEOUT_S = 1.0
 
+#: How many times connect() uploads the script and arms the watchdog. The controller counts
+#: the window from the moment it arms the watchdog, and ur-rtde's next update goes out only
+#: once this process has read the script's answer: a process starved that long at connect (a
+#: busy robot PC starting its node) lost its script to the watchdog before the first kick.
+WATCHDOG_ARM_TRIES = 3
+
 #: A dead node's arm is still within this (docs/arm.md): two watchdog windows (a controller
 #: was reported to trip that late, on URSim) must leave time to decelerate inside it.
 STOP_BUDGET_S = 0.4
@@ -177,6 +183,10 @@ def _retire(interface: Any) -> None:
     except RuntimeError as e:  # already gone: nothing left to close
         log.debug("URArm: disconnect of a retired interface: %s", e)
     ctypes.pythonapi.Py_IncRef(ctypes.py_object(interface))
+
+
+class WatchdogArmingLostError(DeviceNotConnectedError):
+    """The control script stopped while connect() armed its watchdog; connecting again may work."""
 
 
 class ArmCommandRefusedError(DeviceError):
@@ -309,6 +319,18 @@ class URArm(Arm):
     def connect(self) -> None:
         if self.is_connected:
             raise DeviceAlreadyConnectedError(f"URArm at {self.config.host} is already connected")
+        for attempt in range(1, WATCHDOG_ARM_TRIES + 1):
+            try:
+                self._connect_once()
+                return
+            except WatchdogArmingLostError as e:
+                if attempt == WATCHDOG_ARM_TRIES:
+                    raise
+                log.warning(
+                    "URArm: %s; connecting again (%d of %d)", e, attempt + 1, WATCHDOG_ARM_TRIES
+                )
+
+    def _connect_once(self) -> None:
         import rtde_control
         import rtde_receive
 
@@ -380,7 +402,16 @@ class URArm(Arm):
             ok = self._control("setWatchdog", self._ctrl.setWatchdog, hz)
             self._check(ok, "setWatchdog")
         except DeviceError as e:
+            lost = self._program_lost
             self.disconnect()
+            if lost is not None:
+                # the script stopped while it armed the watchdog: the controller's answer
+                # reached this process later than the window (above), or someone stopped it
+                raise WatchdogArmingLostError(
+                    f"the control script at {self.config.host} stopped while it armed the "
+                    f"watchdog ({lost}): this process read the controller's answer later than "
+                    f"the {self.config.watchdog_window_s * 1000:.0f} ms window, as on a busy PC"
+                ) from e
             raise DeviceNotConnectedError(
                 f"URArm: could not arm the controller's watchdog at {self.config.host} ({e}); "
                 "without it a dead node would leave the arm moving, so the arm is not connected"

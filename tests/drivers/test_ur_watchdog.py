@@ -242,3 +242,40 @@ def test_a_stop_from_the_wrists_top_speed_ends_before_the_watchdog_window(sim, r
         assert status["longest_silence_ms"] < arm.config.watchdog_window_s * 1000, status
     finally:
         arm.disconnect()
+
+
+def test_a_watchdog_that_trips_while_it_is_armed_is_armed_again(sim, receive, monkeypatch, caplog):
+    """The controller counts the window from the moment it arms the watchdog; ur-rtde's next
+    update goes out once this process has read the script's answer. A process that reads it
+    late (a busy robot PC starting its node; here the controller's stream held back 0.4 s)
+    loses the script to the watchdog before its first kick: connect arms it again."""
+    import rtde_control
+
+    class AnswerReadLate(rtde_control.RTDEControlInterface):
+        late = 1
+
+        def setWatchdog(self, min_frequency):
+            if AnswerReadLate.late:
+                AnswerReadLate.late -= 1
+                sim.freeze()
+                threading.Timer(0.4, sim.freeze, args=(False,)).start()
+            return super().setWatchdog(min_frequency)
+
+    monkeypatch.setattr(rtde_control, "RTDEControlInterface", AnswerReadLate)
+    trips = sim.stats()["watchdog_trips"]
+    arm = URArm(URArmConfig(host=sim.host, limits=dataclasses.replace(LIMITS), stale_after_s=0.5))
+    with caplog.at_level("WARNING", logger="robot_side.arm.ur_rtde"):
+        arm.connect()
+    try:
+        assert AnswerReadLate.late == 0, "the controller's answer was never held back"
+        assert sim.stats()["watchdog_trips"] == trips + 1, "the held-back answer did not trip"
+        assert "stopped while it armed the watchdog" in caplog.text
+        assert "connecting again (2 of 3)" in caplog.text
+        assert sim.stats()["watchdog_hz"] == pytest.approx(1 / arm.config.watchdog_window_s)
+        assert _program_running(receive) and not arm.needs_reconnect
+        arm.jog(JOG)  # the second script is the one that moves
+        assert wait_until(lambda: _speed(receive) > 0.0, 1.0)
+        arm.stop()
+        assert wait_until(lambda: _speed(receive) == 0.0, 1.0)
+    finally:
+        arm.disconnect()
