@@ -119,8 +119,13 @@ class Chromium:
             self.ws = self._stack.enter_context(
                 # close_timeout: a browser that never answers the closing handshake (seen
                 # after a page on another origin) held every close() for websockets' 10 s
+                # open_timeout: the DevTools handshake is part of the browser's start (a busy
+                # machine held it past websockets' default 10 s)
                 connect(
-                    self._page_ws(port, timeout_s), max_size=64 * 1024 * 1024, close_timeout=1.0
+                    self._page_ws(port, timeout_s),
+                    max_size=64 * 1024 * 1024,
+                    open_timeout=timeout_s,
+                    close_timeout=1.0,
                 )
             )
             for domain in ("Page", "Runtime", "Network"):  # a starting browser, on a busy
