@@ -1,4 +1,4 @@
-"""Each test file's time, from pytest's JUnit reports, for the lanes' scheduling order.
+"""Each test file's time (and each long test's), from pytest's JUnit reports, for the lanes' order.
 
     python scripts/file-durations.py REPORT.xml [REPORT.xml ...] > tests/file_durations.json
 
@@ -7,8 +7,11 @@ there is its setup, call and teardown). The lanes hand whole files to their
 workers; ``tests/conftest.py`` puts the longest files first, so that no worker
 starts a long file while the others are running out of work (the longest
 first, the shortest last: the lane ends close to its average). Files the
-reports do not name keep their place after the known ones. Times are wall
-seconds on the machine that ran the reports; only their order matters.
+reports do not name keep their place after the known ones. A test of at
+least ``LONG_TEST_S`` is named too, by its node id: the files whose tests
+are handed out one by one (``EACH_TEST_ON_ITS_OWN`` in tests/conftest.py)
+are ordered test by test. Times are wall seconds on the machine that ran
+the reports; only their order matters.
 """
 
 from __future__ import annotations
@@ -17,6 +20,9 @@ import json
 import sys
 import xml.etree.ElementTree as ET
 from collections import defaultdict
+
+#: a test this long (s) is named by its node id as well as counted in its file
+LONG_TEST_S = 10.0
 
 
 def file_of(case: ET.Element) -> str:
@@ -27,6 +33,15 @@ def file_of(case: ET.Element) -> str:
     return "/".join(parts) + ".py"
 
 
+def node_id(case: ET.Element) -> str:
+    """tests/x/test_y.py::Class::test_name[param] from a testcase."""
+    parts = case.get("classname", "").split(".")
+    classes = []
+    while parts and not parts[-1].startswith("test_"):
+        classes.insert(0, parts.pop())
+    return "::".join(["/".join(parts) + ".py", *classes, case.get("name", "")])
+
+
 def main(paths: list[str]) -> int:
     if not paths:
         print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
@@ -34,7 +49,10 @@ def main(paths: list[str]) -> int:
     seconds: dict[str, float] = defaultdict(float)
     for path in paths:
         for case in ET.parse(path).getroot().iter("testcase"):
-            seconds[file_of(case)] += float(case.get("time", 0.0))
+            took = float(case.get("time", 0.0))
+            seconds[file_of(case)] += took
+            if took >= LONG_TEST_S:
+                seconds[node_id(case)] += took
     ordered = dict(sorted(((f, round(s, 1)) for f, s in seconds.items()), key=lambda fs: -fs[1]))
     json.dump(ordered, sys.stdout, indent=1)
     print()

@@ -44,6 +44,32 @@ def pytest_configure(config: pytest.Config) -> None:
 #: each test file's measured time (scripts/file-durations.py writes it from a lane's report)
 FILE_DURATIONS = Path(__file__).with_name("file_durations.json")
 
+#: Files whose tests share no module fixture and each start a whole deployment of their own,
+#: and whose file is the longest of its lane: a lane hands their tests out one by one rather
+#: than the file whole. Whole, the fault matrix's cells (80 s) and the two stop-latch pages
+#: (75 s) ran one after the other on one worker while the other workers ran out of work.
+#: A module fixture added to one of these would start once per worker that runs its tests.
+EACH_TEST_ON_ITS_OWN = frozenset(
+    {
+        "tests/faults/test_fault_matrix.py",
+        "tests/dashboard/test_stop_latch_browser.py",
+    }
+)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
+    """``--dist loadfile``, but the tests of ``EACH_TEST_ON_ITS_OWN`` each a unit of their own."""
+    if config.getoption("dist", None) != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class ByFile(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            file = nodeid.split("::", 1)[0]
+            return nodeid if file in EACH_TEST_ON_ITS_OWN else file
+
+    return ByFile(config, log)
+
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """The soak runs only when a -m expression names it; the longest files come first.
@@ -56,7 +82,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     and a long file of one test could start last while the other workers ran out of
     work). Longest first, the shortest at the end: a lane ends near its average. A test
     file keeps its tests' order, and a file the measurements do not name keeps its place
-    after the named ones.
+    after the named ones; the tests of ``EACH_TEST_ON_ITS_OWN`` are placed one by one.
     """
     if "soak" not in (config.getoption("markexpr") or ""):
         soak = [item for item in items if item.get_closest_marker("soak")]
@@ -64,7 +90,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             config.hook.pytest_deselected(items=soak)
             items[:] = [item for item in items if not item.get_closest_marker("soak")]
     seconds = json.loads(FILE_DURATIONS.read_text()) if FILE_DURATIONS.exists() else {}
-    items.sort(key=lambda item: -seconds.get(item.nodeid.split("::", 1)[0], 0.0))
+
+    def took(item: pytest.Item) -> float:
+        file = item.nodeid.split("::", 1)[0]
+        if file in EACH_TEST_ON_ITS_OWN and item.nodeid in seconds:
+            return seconds[item.nodeid]  # handed out alone: placed by its own time
+        return seconds.get(file, 0.0)
+
+    items.sort(key=lambda item: -took(item))
 
 
 @pytest.fixture
