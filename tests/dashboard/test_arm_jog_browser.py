@@ -28,6 +28,7 @@ import pytest
 from headless_chromium import Chromium, needs_chromium
 
 from harness.bench.command_path import RobotUnderCommands
+from harness.headless_chromium import PAGE_WAIT_S
 from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.node import OperatorNode
@@ -337,8 +338,10 @@ def jog_from_page(browser: Chromium, sim: URSimProcess, ws_url: str) -> tuple[bo
     """(whether the page's socket opened, how far the simulator's TCP moved) for one attempt."""
     wait_still(sim)
     start = sim.tcp_pose()
+    # the page's answer in the harness's own wait (a busy machine held a page 10 s), plus the
+    # second the script jogs for
     opened = browser.evaluate(
-        f"{SOCKET_JOG}({json.dumps(ws_url)}, {json.dumps(JOG_X)})", timeout_s=10
+        f"{SOCKET_JOG}({json.dumps(ws_url)}, {json.dumps(JOG_X)})", timeout_s=PAGE_WAIT_S + 1.0
     )
     time.sleep(0.3)
     return opened, float(np.linalg.norm(sim.tcp_pose()[:3] - start[:3]))
