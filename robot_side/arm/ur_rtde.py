@@ -241,6 +241,8 @@ class URArm(Arm):
         self._wire = threading.Lock()
         self._watchdog_armed_ts: float | None = None  # controller time it was armed at
         self._last_sent = 0.0  # monotonic s: the last write to the command register
+        self._last_sent_what = "nothing yet"  # what that write was (a trip's warning names it)
+        self._keep_alive_ran = (0.0, 0.0)  # monotonic s: the keep-alive thread's last two turns
         self._silence_max_s = 0.0  # longest the controller heard nothing from us (connected)
         self._kicks = 0
         self._kicks_withheld = BurstLog(log, "URArm")
@@ -602,7 +604,7 @@ class URArm(Arm):
                     what,
                     self.config.watchdog_window_s * 1000,
                 )
-        self._last_sent = now
+        self._last_sent, self._last_sent_what = now, what
 
     def _keep_alive(self) -> None:
         """Kick the watchdog unless a command just did; notice a script that stopped under us.
@@ -613,6 +615,7 @@ class URArm(Arm):
         would overwrite the command before the script read it. No kick while
         the deadman thread is stuck: the kicks also vouch for it.
         """
+        self._keep_alive_ran = (self._keep_alive_ran[1], now_s())
         recv, ctrl = self._recv, self._ctrl
         if (
             self._watchdog_armed_ts is None
@@ -684,11 +687,19 @@ class URArm(Arm):
             "pressed stop on the pendant or the dashboard; the controller stopped the arm. "
             "Reconnect to upload the script again"
         )
+        # which of the two it was: a call that held the wire (no kick may interrupt it), or a
+        # keep-alive thread that did not run (the CPU or the GIL kept from it)
+        now = now_s()
         log.warning(
-            "URArm: %s (this process last wrote to the controller %.0f ms ago; the longest "
-            "silence since connect was %.0f ms; %d kicks)",
+            "URArm: %s (this process last wrote to the controller %.0f ms ago: %s; a call %s "
+            "the wire; the keep-alive thread's last two turns were %.0f and %.0f ms ago; the "
+            "longest silence since connect was %.0f ms; %d kicks)",
             self._program_lost,
-            (now_s() - self._last_sent) * 1000,
+            (now - self._last_sent) * 1000,
+            self._last_sent_what,
+            "holds" if self._wire.locked() else "does not hold",
+            (now - self._keep_alive_ran[0]) * 1000,
+            (now - self._keep_alive_ran[1]) * 1000,
             self._silence_max_s * 1000,
             self._kicks,
         )

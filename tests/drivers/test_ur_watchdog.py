@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import socket
 import threading
 import time
@@ -156,7 +157,7 @@ def test_the_threads_that_stop_and_kick_run_at_the_robot_nodes_priority(arm):
 
 
 def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecting(
-    arm, sim, receive
+    arm, sim, receive, caplog
 ):
     arm.limits.jog_timeout_s = 5.0  # only the watchdog may stop this jog
     arm.jog(JOG)
@@ -165,9 +166,16 @@ def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecti
     arm._keep_alive = lambda: None
     assert wait_until(lambda: not _program_running(receive), 1.0)
     assert wait_until(lambda: _speed(receive) == 0.0, 1.0)
-    del arm._keep_alive  # the thread is alive again: it notices the stopped program
-    assert wait_until(lambda: arm.needs_reconnect, 1.0)
+    with caplog.at_level("WARNING", logger="robot_side.arm.ur_rtde"):
+        del arm._keep_alive  # the thread is alive again: it notices the stopped program
+        assert wait_until(lambda: arm.needs_reconnect, 1.0)
     assert "program_lost" in arm.status()
+    # the warning says which silence it was: no call held the wire, the kicks did not run
+    said = re.search(
+        r"a call does not hold the wire; the keep-alive thread's last two turns were (\d+) and",
+        caplog.text,
+    )
+    assert said and int(said[1]) > 150, caplog.text
     with pytest.raises(DeviceError, match="stopped with the safety mode normal"):
         arm.jog(JOG)
     arm.stop()  # the controller stopped the arm: nothing to tell it, no error
