@@ -45,14 +45,17 @@ def pytest_configure(config: pytest.Config) -> None:
 FILE_DURATIONS = Path(__file__).with_name("file_durations.json")
 
 #: Files whose tests share no module fixture and each start a whole deployment of their own,
-#: and whose file is the longest of its lane: a lane hands their tests out one by one rather
-#: than the file whole. Whole, the fault matrix's cells (80 s) and the two stop-latch pages
-#: (75 s) ran one after the other on one worker while the other workers ran out of work.
-#: A module fixture added to one of these would start once per worker that runs its tests.
+#: and whose file is among the longest of its lane: a lane hands their tests out one by one
+#: rather than the file whole. Whole, the fault matrix's cells (80 s) and the two stop-latch
+#: pages (75 s) ran one after the other on one worker while the other workers ran out of work;
+#: in the serial lane, the video pages through the link simulator (40 s) and the demo's
+#: (24 s). A module fixture added to one of these would start once per worker that runs it.
 EACH_TEST_ON_ITS_OWN = frozenset(
     {
         "tests/faults/test_fault_matrix.py",
         "tests/dashboard/test_stop_latch_browser.py",
+        "tests/dashboard/test_video_netsim_browser.py",
+        "tests/dashboard/test_demo_video_browser.py",
     }
 )
 
