@@ -25,21 +25,19 @@ from collections import defaultdict
 LONG_TEST_S = 10.0
 
 
-def file_of(case: ET.Element) -> str:
-    """tests/x/test_y.py from a testcase's classname (``tests.x.test_y``, a class appended)."""
-    parts = case.get("classname", "").split(".")
-    while parts and not parts[-1].startswith("test_"):
-        parts.pop()  # a test class's name
-    return "/".join(parts) + ".py"
-
-
 def node_id(case: ET.Element) -> str:
-    """tests/x/test_y.py::Class::test_name[param] from a testcase."""
+    """tests/x/test_y.py::Class::test_name[param] from a testcase (classname ``tests.x.test_y``,
+    a class appended)."""
     parts = case.get("classname", "").split(".")
     classes = []
     while parts and not parts[-1].startswith("test_"):
-        classes.insert(0, parts.pop())
+        classes.insert(0, parts.pop())  # a test class's name
     return "::".join(["/".join(parts) + ".py", *classes, case.get("name", "")])
+
+
+def file_of(case: ET.Element) -> str:
+    """tests/x/test_y.py: the file part of the testcase's node id."""
+    return node_id(case).split("::", 1)[0]
 
 
 def main(paths: list[str]) -> int:
