@@ -328,9 +328,7 @@ class URArm(Arm):
             except WatchdogArmingLostError as e:
                 if attempt == WATCHDOG_ARM_TRIES:
                     raise
-                log.warning(
-                    "URArm: %s; connecting again (%d of %d)", e, attempt + 1, WATCHDOG_ARM_TRIES
-                )
+                log.warning("%s; connecting again (%d of %d)", e, attempt + 1, WATCHDOG_ARM_TRIES)
 
     def _connect_once(self) -> None:
         import rtde_control
@@ -410,9 +408,10 @@ class URArm(Arm):
                 # the script stopped while it armed the watchdog: the controller's answer
                 # reached this process later than the window (above), or someone stopped it
                 raise WatchdogArmingLostError(
-                    f"the control script at {self.config.host} stopped while it armed the "
+                    f"URArm: the control script at {self.config.host} stopped while it armed the "
                     f"watchdog ({lost}): this process read the controller's answer later than "
-                    f"the {self.config.watchdog_window_s * 1000:.0f} ms window, as on a busy PC"
+                    f"the {self.config.watchdog_window_s * 1000:.0f} ms window, as on a busy PC; "
+                    "the arm is not connected"
                 ) from e
             raise DeviceNotConnectedError(
                 f"URArm: could not arm the controller's watchdog at {self.config.host} ({e}); "
