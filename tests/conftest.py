@@ -60,18 +60,24 @@ EACH_TEST_ON_ITS_OWN = frozenset(
 )
 
 
+def unit_of(nodeid: str) -> str:
+    """What a lane hands a worker a test with: its file, or the test alone
+    (``EACH_TEST_ON_ITS_OWN``); ``file_durations.json`` times the units by these names."""
+    file = nodeid.split("::", 1)[0]
+    return nodeid if file in EACH_TEST_ON_ITS_OWN else file
+
+
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
-    """``--dist loadfile``, but the tests of ``EACH_TEST_ON_ITS_OWN`` each a unit of their own."""
+    """``--dist loadfile``, but in the units of :func:`unit_of`."""
     if config.getoption("dist", None) != "loadfile":
         return None
     from xdist.scheduler import LoadFileScheduling
 
-    class ByFile(LoadFileScheduling):
+    class ByUnit(LoadFileScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            file = nodeid.split("::", 1)[0]
-            return nodeid if file in EACH_TEST_ON_ITS_OWN else file
+            return unit_of(nodeid)
 
-    return ByFile(config, log)
+    return ByUnit(config, log)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -95,10 +101,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     seconds = json.loads(FILE_DURATIONS.read_text()) if FILE_DURATIONS.exists() else {}
 
     def took(item: pytest.Item) -> float:
+        """The unit's time; a test handed out alone and not measured alone, its file's."""
         file = item.nodeid.split("::", 1)[0]
-        if file in EACH_TEST_ON_ITS_OWN and item.nodeid in seconds:
-            return seconds[item.nodeid]  # handed out alone: placed by its own time
-        return seconds.get(file, 0.0)
+        return seconds.get(unit_of(item.nodeid), seconds.get(file, 0.0))
 
     items.sort(key=lambda item: -took(item))
 
