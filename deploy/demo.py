@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from common.cli_support import add_overrides_argument, stop_on_signals
-from common.config import check_secret_file, config_toml, from_dict, to_dict
+from common.config import check_secret_file, config_toml, from_dict
 from common.errors import ConfigError
 from common.signing import write_secret_file
 from common.transport import free_loopback_ports
@@ -504,7 +504,7 @@ def servo_simulator(scene: Scene, workdir: Path) -> tuple[list[str], Path] | Non
     servos = scene.operator.servos
     if servos.get("kind") != "simulated_feetech":
         return None
-    from operator_side.servos.sts_sim import SimulatedFeetechConfig
+    from operator_side.servos.sts_sim import SimulatedFeetechConfig, simulated_driver_settings
 
     settings = {k: v for k, v in servos.items() if k != "kind"}
     sim = from_dict(SimulatedFeetechConfig, settings, where="operator.servos")
@@ -512,7 +512,7 @@ def servo_simulator(scene: Scene, workdir: Path) -> tuple[list[str], Path] | Non
     sim.bus.link_dir = link_dir
     config = workdir / "sim-servos.toml"
     config.write_text(config_toml(sim.bus))
-    driver = {k: v for k, v in to_dict(sim.driver).items() if k in _DRIVER_KEYS}
+    driver = simulated_driver_settings(sim)
     driver.update(settings.get("driver", {}))  # what the scene set for the driver
     scene.operator.servos = {**driver, "kind": "feetech", "port": str(link_dir / "sts-bus")}
     status = workdir / "servos-status.json"
@@ -520,9 +520,6 @@ def servo_simulator(scene: Scene, workdir: Path) -> tuple[list[str], Path] | Non
     return args, workdir / "servos.log"
 
 
-#: what the simulated bus's driver changes from the real driver's defaults (a wider reply
-#: window and more retries: the bus simulator is a process of a loaded machine)
-_DRIVER_KEYS = ("retries", "reply_timeout_ms")
 SERVOS_START_S = 60.0
 
 

@@ -34,6 +34,7 @@ from deploy.unit_policy import RestartPolicy, policy
 from deploy.watchdog import UnitWatchdog
 from harness.fleet import Fleet, Proc
 from harness.processes import stop
+from operator_side.servos.sts_sim import simulated_driver_settings
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +74,11 @@ _PIPETTE = """[model]
 compression_at_full_force = 20.0
 """
 
+#: the operator's bus: the simulator's pty, with the driver settings a simulated bus needs
 _SERVOS = """kind = "feetech"
 port = "{port}"
+retries = {retries}
+reply_timeout_ms = {reply_timeout_ms}
 """
 
 #: the link: a wired LAN, and an outage of ``outage_s`` from ``outage_at_s`` after netsim starts
@@ -350,7 +354,7 @@ class Deployment:
                         ROBOT,
                         request_control=True,
                         want_frames=False,
-                        servos=_SERVOS.format(port=self.servo_port),
+                        servos=_SERVOS.format(port=self.servo_port, **simulated_driver_settings()),
                         endpoints=self.netsim_endpoints,
                         extra=["--status-file", str(self.late_wakes.path)],
                     )

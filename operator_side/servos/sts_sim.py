@@ -463,6 +463,22 @@ class SimulatedFeetechConfig:
     )
 
 
+#: what the simulated bus's driver changes from the real driver's defaults
+SIMULATED_DRIVER_KEYS = ("retries", "reply_timeout_ms")
+
+
+def simulated_driver_settings(config: SimulatedFeetechConfig | None = None) -> dict[str, Any]:
+    """The driver settings a node (or ``deepxpalm palm lift``) needs on the simulated bus run
+    as a process of its own (``deepxpalm sim servos``): the wider reply window and retries.
+
+    Its replies ride a pseudo-terminal, whose bytes the kernel's workers carry at ordinary
+    priority: beside a loaded machine's other work a round trip took up to 290 ms, so the
+    real bus's 34 ms window with two retries let a ping go unanswered.
+    """
+    driver = (config or SimulatedFeetechConfig()).driver
+    return {k: getattr(driver, k) for k in SIMULATED_DRIVER_KEYS}
+
+
 class SimulatedFeetechServoBus(OnItsSimulator, FeetechServoBus):
     """The real ``FeetechServoBus`` (and the real SDK) on a fake STS bus."""
 
