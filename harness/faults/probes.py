@@ -169,6 +169,12 @@ class PalmProbe(_Probe):
         #: (t_s, servo id, present counts) of each torque off, at the bus's time: where a
         #: servo was let go (a linkage let go mid-way stays there)
         self.releases: list[tuple[float, int, int]] = []
+        #: (t_s, servo id, goal) of each goal write, at the bus's time
+        self.goal_writes: list[tuple[float, int, int]] = []
+
+    def first_write_after(self, t_s: float) -> float:
+        """When the bus took its first goal write at or after ``t_s`` (inf: none yet)."""
+        return min((t for t, _, _ in self.goal_writes if t >= t_s), default=math.inf)
 
     def read(self) -> float | None:
         panel = json.loads(self.status_file.read_text())
@@ -201,6 +207,7 @@ class PalmProbe(_Probe):
             return
         goals = self._log_goals
         for t_ns, sid, goal in sorted(new):
+            self.goal_writes.append((t_ns / 1e9, sid, goal))
             if 1 <= sid <= len(goals):
                 goals[sid - 1] = goal
                 bisect.insort(self.samples, Sample(t_ns / 1e9, self._distance(goals)))
