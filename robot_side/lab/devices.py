@@ -179,6 +179,11 @@ class LabTactileSensor(OnTheWorld, SerialTactileSensor):
 class LabGripperConfig(RobotiqSocketConfig):
     host: str = param("auto", "ignored: the world's gripper simulator is used")
     port: int = param(0, "ignored: the world's gripper simulator is used")
+    reply_timeout_s: float = param(
+        3.0,
+        "the world's gripper simulator shares its process with the physics and the cameras' "
+        "renderer: allow it a stall (a world starting on a loaded machine answered over 1 s late)",
+    )
     world_config: Path | None = param(None, WORLD_CONFIG_WHY)
     running_world: Path | None = param(None, RUNNING_WORLD_WHY)
 
