@@ -185,6 +185,24 @@ def _retire(interface: Any) -> None:
     ctypes.pythonapi.Py_IncRef(ctypes.py_object(interface))
 
 
+def _retire_side_by_side(*interfaces: Any) -> None:
+    """``_retire`` each interface on a thread of its own, and wait for all of them.
+
+    Each ``disconnect()`` closes its sockets and then sleeps 0.5 s with the GIL
+    released, so two retired one after the other cost a second where side by
+    side they cost half: a node's stop, and a reconnect, are 0.5 s sooner. The
+    controller still sees both connections close 0.5 s before either returns.
+    """
+    threads = [
+        threading.Thread(target=_retire, args=(interface,), name="urarm-retire", daemon=True)
+        for interface in interfaces
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+
+
 class WatchdogArmingLostError(DeviceNotConnectedError):
     """The control script stopped while connect() armed its watchdog; connecting again may work."""
 
@@ -448,9 +466,9 @@ class URArm(Arm):
                 # a call is stuck inside it; destroying it now would block on that call
                 log.warning("URArm: control interface abandoned: %s", self._ctrl_broken)
                 _ABANDONED.append(ctrl)
+                _retire(recv)
             else:
-                _retire(ctrl)
-            _retire(recv)
+                _retire_side_by_side(ctrl, recv)
             log.info("URArm disconnected from %s", self.config.host)
 
     # -- receive side --------------------------------------------------------

@@ -201,6 +201,26 @@ def test_stop_is_idempotent(still_arm, sim):
     assert sim.mode_name() == "idle"
 
 
+#: ur-rtde's disconnect() sleeps 0.5 s on each of the two interfaces: side by side about 0.5 s,
+#: one after the other 1.0 s
+DISCONNECT_WITHIN_S = 0.9
+
+
+def test_disconnect_closes_both_interfaces_side_by_side_and_the_next_session_follows():
+    with URSimProcess() as own:  # the module's arm holds the shared simulator's inputs
+        arm = URArm(URArmConfig(host=own.host, limits=LIMITS, stale_after_s=STALE_S))
+        arm.connect()
+        t0 = time.monotonic()
+        arm.disconnect()
+        took = time.monotonic() - t0
+        assert 0.5 <= took < DISCONNECT_WITHIN_S, f"disconnect took {took:.3f} s"
+        arm.connect()  # the controller took both closes: the next session is not refused
+        try:
+            assert np.isfinite(arm.tcp_pose()).all()
+        finally:
+            arm.disconnect()
+
+
 def test_limits_config_refuses_an_inverted_box():
     with pytest.raises(ConfigError, match="below workspace_max"):
         from_dict(ArmLimits, {"workspace_min": [0.5, 0, 0], "workspace_max": [0.1, 1, 1]})
