@@ -213,6 +213,7 @@ class Chromium:
         ours = os.nice(0)
         changed = []
         for pid in in_session(self.proc.pid):
+            threads: list[int] = []
             with suppress(OSError):  # ended meanwhile
                 threads = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
             for tid in threads:  # Linux keeps a niceness per thread
