@@ -193,13 +193,16 @@ def _retire_side_by_side(*interfaces: Any) -> None:
     side they cost half: a node's stop, and a reconnect, are 0.5 s sooner. The
     controller still sees both connections close 0.5 s before either returns.
     """
-    threads = [
-        threading.Thread(target=_retire, args=(interface,), name="urarm-retire", daemon=True)
-        for interface in interfaces
-    ]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
+    started = []
+    for interface in interfaces:
+        thread = threading.Thread(target=_retire, args=(interface,), name="urarm-retire")
+        try:
+            thread.start()
+        except RuntimeError:  # no new thread at interpreter shutdown: here, in turn
+            _retire(interface)
+            continue
+        started.append(thread)
+    for thread in started:
         thread.join()
 
 
