@@ -182,11 +182,13 @@ class PalmProbe(_Probe):
             return None  # the bus simulator is not running: no news
         self._last_t_ns = panel["t_ns"]
         goals = [panel["goals"][str(i + 1)] for i in range(len(self.retract))]
-        self._replay_goal_log(panel.get("goal_log", []), goals)
+        # the torque offs before the goal writes: a reader who sees a write (a test waiting
+        # for the lift's first one) then sees every torque off the same panel held
         taken = self.releases[-1][0] if self.releases else float("-inf")
         self.releases += [
             (t / 1e9, i, p) for t, i, p in panel.get("release_log", []) if t / 1e9 > taken
         ]
+        self._replay_goal_log(panel.get("goal_log", []), goals)
         return self._distance(goals)
 
     def _distance(self, goals: list[int]) -> float:
