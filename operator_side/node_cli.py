@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import sys
 import threading
@@ -28,7 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help='read commands as JSON lines on stdin, e.g. {"action": "arm_jog", '
         '"velocity": [0.02, 0, 0, 0, 0, 0]} or {"action": "lease_grant", '
-        '"grantee": "HEX"} (scripts and tests drive a real process this way)',
+        '"grantee": "HEX"} (scripts and tests drive a real process this way); an optional '
+        '"issued_monotonic_s" (the writer\'s time.monotonic() on this machine) makes a jog '
+        "that waited in the pipe longer than link.jog_max_age_ms dropped, as a page's is",
     )
     parser.add_argument(
         "--status-file",
@@ -71,6 +74,17 @@ def _build(config: OperatorConfig, recorder: Any, session: dict[str, str]) -> An
     return build_operator_node(config, recorder=recorder)
 
 
+def _age_ms(issued_monotonic_s: Any) -> float:
+    """How long ago a stdin command was written, from the writer's monotonic clock (which every
+    process on this machine shares); 0 when it does not say."""
+    if issued_monotonic_s is None:
+        return 0.0
+    issued = float(issued_monotonic_s)
+    if not math.isfinite(issued):
+        raise ValueError(f"issued_monotonic_s must be a finite number, not {issued_monotonic_s}")
+    return max(time.monotonic() - issued, 0.0) * 1e3
+
+
 class StdinCommands:
     """JSON lines on stdin -> ``node.send_command``; a bad line is logged and skipped."""
 
@@ -92,6 +106,7 @@ class StdinCommands:
                     grip_level=cmd.get("grip_level"),
                     velocity=None if velocity is None else tuple(float(v) for v in velocity),
                     grantee=None if grantee is None else bytes.fromhex(grantee),
+                    age_ms=_age_ms(cmd.get("issued_monotonic_s")),
                 )
             except (ValueError, KeyError, TypeError, AttributeError) as e:
                 log.warning("stdin command %r skipped: %s", line.strip()[:200], e)

@@ -140,3 +140,26 @@ def test_jogs_queued_behind_a_starved_loop_are_dropped(linked):
     node.send_command("arm_jog", velocity=JOG)  # the hand, now
     assert wait_for_actions(robot, 2) == ["arm_jog_end", "arm_jog"]
     assert node.counters["jogs_dropped_late"] == 6
+
+
+def test_a_stdin_jog_that_waited_in_the_pipe_is_dropped(linked, monkeypatch, caplog):
+    """``--commands-from-stdin``: the writer's monotonic time says how long a line waited."""
+    import io
+    import json
+
+    from operator_side.node_cli import StdinCommands
+
+    node, robot = linked
+    waited_s = 2 * node.config.link.jog_max_age_ms / 1000
+    lines = [
+        {"action": "arm_jog", "velocity": list(JOG), "issued_monotonic_s": time.monotonic() - 1},
+        {"action": "arm_jog", "velocity": list(JOG), "issued_monotonic_s": "nan"},
+        {"action": "arm_jog_end", "issued_monotonic_s": time.monotonic() - waited_s},
+        {"action": "arm_jog", "velocity": list(JOG), "issued_monotonic_s": time.monotonic()},
+        {"action": "arm_jog", "velocity": list(JOG)},  # says nothing: as fresh as it is read
+    ]
+    monkeypatch.setattr("sys.stdin", io.StringIO("".join(json.dumps(c) + "\n" for c in lines)))
+    StdinCommands(node)
+    assert wait_for_actions(robot, 3) == ["arm_jog_end", "arm_jog", "arm_jog"]
+    assert node.counters["jogs_dropped_late"] == 1
+    assert "issued_monotonic_s must be a finite number" in caplog.text
