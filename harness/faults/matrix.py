@@ -11,6 +11,7 @@ that failed (``probes``), on the monotonic clock all processes share.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import signal
@@ -70,6 +71,10 @@ READY_TIMEOUT_S = 90.0
 OUTAGE_AT_S = 12.0
 OUTAGE_LATE_AT_S = 30.0
 RECOVER_TIMEOUT_S = 30.0
+#: how long the arm may take to show still after the operator let go at the end before the
+#: cell calls it moving on; the node's deadman takes about 0.25 s, a loaded machine's probe
+#: may read nothing for a second
+RELEASE_WAIT_S = 3.0
 UNAFFECTED_S = 3.0  # nothing broke this long after the fault ended: the cell is over
 
 
@@ -125,6 +130,8 @@ class CellResult:
     gripper_held: bool | None  # None: the gripper's own process died (nothing to read)
     gripper_min_pos: float | None
     released_still_s: float | None  # after the operator let go at the end
+    #: the longest stretch without a reading of the arm in the wait after the release
+    released_silence_s: float | None
     recording_ok: bool | None
     recording_gap_s: float | None  # last record before the fault, seconds before it
     recording_records: int
@@ -166,7 +173,12 @@ class Jogger:
             if self.active.is_set():
                 sign = 1.0 if int((time.monotonic() - t0) / FLIP_S) % 2 == 0 else -1.0
                 self.d.operator_send(
-                    {"action": "arm_jog", "velocity": [sign * JOG_M_S, 0, 0, 0, 0, 0]}
+                    {
+                        "action": "arm_jog",
+                        "velocity": [sign * JOG_M_S, 0, 0, 0, 0, 0],
+                        # a jog the operator node reads late (a starved PC) is not sent on
+                        "issued_monotonic_s": time.monotonic(),
+                    }
                 )
 
     def close(self) -> None:
@@ -243,6 +255,14 @@ def first_still(samples: list[Sample], after: float) -> float | None:
         else:
             start = None
     return None
+
+
+def longest_silence(samples: list[Sample], after: float) -> float | None:
+    """The longest stretch without a reading from ``after`` to the last one (None: none)."""
+    times = [after] + [s.t_s for s in samples if s.t_s >= after]
+    if len(times) < 2:
+        return None
+    return round(max(b - a for a, b in itertools.pairwise(times)), 3)
 
 
 def first_unreadable(samples: list[Sample], after: float, until: float) -> float | None:
@@ -413,13 +433,21 @@ class CellRun:
                 self._link_back = self._netsim_back(tl)
                 self._late_wakes = [w for w in self.d.operator_late_wakes() if w[1] >= tl.t_fault]
                 tl.t_release = t_release = time.monotonic()
-                time.sleep(1.5)
-                released_still = first_still(self.arm.samples, t_release)
+                released_still = self._still_after(t_release)
             finally:
                 jogger.close()
                 for probe in (self.arm, self.gripper, self.palm):
                     probe.close()
         return self._result(tl, released_still, t_release)
+
+    def _still_after(self, t_release: float) -> float | None:
+        """When the arm came to rest after the operator let go (None: not in RELEASE_WAIT_S)."""
+        deadline = t_release + RELEASE_WAIT_S
+        while (still := first_still(self.arm.samples, t_release)) is None:
+            if time.monotonic() > deadline:
+                return None
+            time.sleep(0.05)
+        return still
 
     def _netsim_back(self, tl: _Timeline) -> float | None:
         """When a restarted or killed netsim forwarded again: how long the link was away."""
@@ -467,6 +495,7 @@ class CellRun:
             released_still_s=None
             if released_still is None
             else round(released_still - t_release, 3),
+            released_silence_s=longest_silence(self.arm.between(t_release), t_release),
             recording_ok=rec_ok,
             recording_gap_s=rec_gap,
             recording_records=rec_n,

@@ -19,6 +19,7 @@ from harness.faults.deployment import DeploymentError
 from harness.faults.matrix import (
     ARM_STILL_BUDGET_S,
     PALM_LIFT_BUDGET_S,
+    RELEASE_WAIT_S,
     Cell,
     back_before_a_lift_could_show,
     back_before_a_stop_was_due,
@@ -56,8 +57,10 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
     )
     baseline = row.released_still_s
     assert baseline is not None, (
-        f"{cell.label}: the arm was still moving 1.5 s after the operator let go at the end "
-        "(product: nothing stopped it)"
+        f"{cell.label}: the arm had not come to rest {RELEASE_WAIT_S:.0f} s after the operator "
+        f"let go at the end; the longest stretch without a reading of it: "
+        f"{row.released_silence_s} s (product: nothing stopped it, unless the arm's probe "
+        f"read nothing); {row}"
     )
     if back_before_a_stop_was_due(row.arm_still_s, row.whole_again_s, row.arm_rest_s, LOAD_SLACK_S):
         print(

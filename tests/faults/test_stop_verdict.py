@@ -55,6 +55,7 @@ def test_nothing_breaking_is_not_a_link_back_at_once_for_netsims_own_cells():
     row = CellResult(
         "netsim", "restart", "a human (restart)", 0.02, None, None, None, None, None, None,
         recovered_s=0.0, gripper_held=True, gripper_min_pos=204.0, released_still_s=0.25,
+        released_silence_s=0.01,
         recording_ok=True, recording_gap_s=0.003, recording_records=589, notes="",
         link_back_s=0.6,
     )  # fmt: skip
