@@ -46,6 +46,7 @@ STOP_WITHIN_S = 0.4
 #: the page's arm pose is one the simulator had at most this long ago
 SHOWN_WITHIN_S = 0.5
 STILL_M_S = 1e-4  # the simulator reports exactly zero at standstill; allow rounding
+STILL_RAD_S = 1e-3
 SPEED_SCALE = 0.3  # the page's default: 30 % of the operator's 0.10 m/s cap
 
 PAD = """
@@ -161,12 +162,23 @@ def speed(sim: URSimProcess) -> float:
 def wait_still(sim: URSimProcess, timeout_s: float = 3.0) -> float:
     """Seconds until the simulator's TCP is at standstill (printed: pytest -s shows them)."""
     t0 = time.monotonic()
-    while speed(sim) > STILL_M_S or np.linalg.norm(sim.tcp_speed()[3:]) > 1e-3:
+    while speed(sim) > STILL_M_S or np.linalg.norm(sim.tcp_speed()[3:]) > STILL_RAD_S:
         assert time.monotonic() - t0 < timeout_s, "the arm never stopped"
         time.sleep(0.005)
     took = time.monotonic() - t0
     print(f"standstill after {took * 1000:.0f} ms")
     return took
+
+
+def stop_took(sim: URSimProcess, t0: float) -> float:
+    """Seconds from ``t0`` until the arm came to rest, by the simulator's own record: a test
+    process starved while it watched must not read as a late stop (one read "standstill after
+    467 ms" beside a jog the same starved process had dropped as 276 ms old)."""
+    wait_still(sim)
+    since = sim.at_rest_since(STILL_M_S, STILL_RAD_S)
+    assert since is not None, "the arm moved again after it stopped"
+    print(f"at rest {(since - t0) * 1000:.0f} ms after, by the simulator's record")
+    return since - t0
 
 
 def move_until(
@@ -254,8 +266,8 @@ def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, sim: URS
     # release: standstill within 400 ms
     browser.evaluate("window.__pad.buttons[5] = { pressed: false, touched: false, value: 0 }")
     t_release = time.monotonic()
-    wait_still(sim)
-    assert time.monotonic() - t_release < STOP_WITHIN_S
+    took = stop_took(sim, t_release)
+    assert took < STOP_WITHIN_S, f"the arm came to rest {took * 1e3:.0f} ms after the release"
     # wrist rotation from the right stick
     browser.evaluate("window.__pad.axes[1] = 0; window.__pad.axes[2] = -1.0")
     browser.evaluate("window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }")
@@ -276,8 +288,8 @@ def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, sim: URS
     assert top_v < 1e-3, (top_v, samples[:12])
     browser.evaluate("window.__pad.buttons[5] = { pressed: false, touched: false, value: 0 }")
     t_release = time.monotonic()
-    wait_still(sim)
-    assert time.monotonic() - t_release < STOP_WITHIN_S
+    took = stop_took(sim, t_release)
+    assert took < STOP_WITHIN_S, f"the arm came to rest {took * 1e3:.0f} ms after the release"
 
 
 def test_spacemouse_reports_move_the_arm_and_its_button_release_stops_it(page):
@@ -301,8 +313,8 @@ def _spacemouse_moves_the_arm(browser: Chromium, sim: URSimProcess):
     assert top <= SPEED_SCALE * 0.10 * 1.02, top  # the scale caps the combined speed
     browser.evaluate(hid(3, [0], "<B"))
     t_release = time.monotonic()
-    wait_still(sim)
-    assert time.monotonic() - t_release < STOP_WITHIN_S
+    took = stop_took(sim, t_release)
+    assert took < STOP_WITHIN_S, f"the arm came to rest {took * 1e3:.0f} ms after the release"
     browser.evaluate(hid(1, [0, 0, 0, 0, 0, 0]))
 
 
@@ -325,10 +337,10 @@ def test_closing_the_tab_stops_the_arm(station):
         while sim.tcp_speed()[1] > -0.8 * SPEED_SCALE * 0.10:
             assert time.monotonic() < deadline, sim.tcp_speed()
             time.sleep(0.01)
-        browser.ws.send(json.dumps({"id": 10**6, "method": "Page.close", "params": {}}))
         t_close = time.monotonic()
-        wait_still(sim)
-        assert time.monotonic() - t_close < STOP_WITHIN_S
+        browser.ws.send(json.dumps({"id": 10**6, "method": "Page.close", "params": {}}))
+        took = stop_took(sim, t_close)
+        assert took < STOP_WITHIN_S, f"the arm came to rest {took * 1e3:.0f} ms after the close"
 
 
 JOG_X = json.dumps({"type": "command", "action": "arm_jog", "velocity": [0.05, 0, 0, 0, 0, 0]})

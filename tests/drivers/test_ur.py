@@ -135,8 +135,13 @@ def test_jog_is_clipped_to_the_speed_limit_and_stops_when_told(still_arm, sim):
 
     assert wait_until(fast_enough, 1.0)
     assert np.linalg.norm(sim.tcp_speed()[:3]) <= LIMITS.max_linear_speed_m_s + 1e-9
+    assert sim.at_rest_since(1e-4, 1e-3) is None  # the controller's record: moving
+    t_stop = time.monotonic()
     still_arm.stop()
     assert np.allclose(sim.tcp_speed(), 0.0)
+    # ... and at rest since a moment between the stop's call and its return, on this clock
+    rest = sim.at_rest_since(1e-4, 1e-3)
+    assert rest is not None and t_stop < rest <= time.monotonic(), (t_stop, rest)
     at_rest = sim.tcp_pose()
     time.sleep(0.1)
     np.testing.assert_allclose(sim.tcp_pose(), at_rest, atol=1e-9)

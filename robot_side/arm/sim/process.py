@@ -31,6 +31,7 @@ REMOTE_METHODS = frozenset(
         "tcp_speed",
         "mode_name",
         "commands_seen",
+        "at_rest_since",
         "stats",
         "client_count",
     }
@@ -82,6 +83,10 @@ class URSimProcess(StdioChild):
 
     def commands_seen(self) -> list[int]:
         return self.call("commands_seen")
+
+    def at_rest_since(self, linear_m_s: float, angular_rad_s: float) -> float | None:
+        """As ``URSimulator.at_rest_since``: when the arm came to rest, by the controller."""
+        return self.call("at_rest_since", linear_m_s, angular_rad_s)
 
     def stats(self) -> dict[str, Any]:
         return self.call("stats")

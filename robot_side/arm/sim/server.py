@@ -34,11 +34,13 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import random
 import select
 import socket
 import struct
 import threading
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -100,6 +102,10 @@ SAFETY_MODE_NORMAL = 1
 SAFETY_MODE_PROTECTIVE_STOP = 3
 RUNTIME_STOPPED = 1
 RUNTIME_PLAYING = 2
+
+
+#: how long the simulator keeps the TCP's speed at each step (URSimulator.at_rest_since)
+MOTION_LOG_S = 10.0
 
 
 @dataclass
@@ -211,6 +217,12 @@ class URSimulator:
         self._clock_s = 0.0
         self._last_cmd = 0
         self._commands_seen: list[int] = []  # every new command value, for tests
+        #: (when, linear m/s, angular rad/s) after each step of the last MOTION_LOG_S: when the
+        #: arm came to rest, on the clock every process shares, for an observer that may have
+        #: looked late
+        self._motion_log: deque[tuple[float, float, float]] = deque(
+            maxlen=max(1, math.ceil(MOTION_LOG_S * self.config.tick_hz))
+        )
         self.scripts_received = 0
         self.data_packages_sent = 0
         # the control script's RTDE watchdog: the minimum update frequency, None when off
@@ -385,6 +397,21 @@ class URSimulator:
     def mode_name(self) -> str:
         """What the arm is doing: idle, moveL, moveJ, speedL, servoL or stopping."""
         return self.arm.mode.value
+
+    def at_rest_since(self, linear_m_s: float, angular_rad_s: float) -> float | None:
+        """Since when (``time.monotonic()``, which every process on this machine shares) the
+        TCP has moved no faster than both limits at every step; None while it moves faster.
+
+        The controller's own record: a test that looks late (its process starved) still
+        reads when the arm stopped, not when it looked. Kept for the last MOTION_LOG_S.
+        """
+        with self._lock:
+            since = None
+            for t, linear, angular in reversed(self._motion_log):
+                if linear > linear_m_s or angular > angular_rad_s:
+                    break
+                since = t
+            return since
 
     def commands_seen(self) -> list[int]:
         """Every new value of input_int_register_0, in order (0 = cleared)."""
@@ -590,6 +617,10 @@ class URSimulator:
             self.arm.step(dt)
         except Exception:
             self._runtime_error()
+        v = self.arm.velocity
+        self._motion_log.append(
+            (now_s(), float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:])))
+        )
 
     def _runtime_error(self) -> None:
         """A controller stops the program on a runtime error and keeps serving."""
