@@ -127,14 +127,21 @@ def at_niceness(nice: int, target: Callable[..., Any]) -> Callable[..., Any]:
     the threads it starts (a connection's) run at ``nice`` too. A thread that
     already runs higher (a process started at -15) keeps its own. Without root or
     CAP_SYS_NICE the thread keeps the priority it has: the same program, less margin.
+    When ``target`` returns, the thread gets its own niceness back (a caller that ran it
+    in place, not on a thread of its own, goes on at its priority).
     """
 
     @functools.wraps(target)
     def run(*args: Any, **kwargs: Any) -> Any:
         tid = threading.get_native_id()
+        own = os.getpriority(os.PRIO_PROCESS, tid)
         with contextlib.suppress(OSError):
-            os.setpriority(os.PRIO_PROCESS, tid, min(nice, os.getpriority(os.PRIO_PROCESS, tid)))
-        return target(*args, **kwargs)
+            os.setpriority(os.PRIO_PROCESS, tid, min(nice, own))
+        try:
+            return target(*args, **kwargs)
+        finally:
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, tid, own)
 
     return run
 

@@ -84,3 +84,13 @@ def test_a_thread_already_above_the_asked_priority_keeps_its_own():
     thread.start()
     thread.join()
     assert seen == ({"inner": -15} if os.geteuid() == 0 else {})
+
+
+def test_a_target_run_in_place_gives_the_caller_its_priority_back():
+    """``deepxpalm netsim`` raises itself this way; a test that calls it in place goes on at
+    the priority it had."""
+    tid = threading.get_native_id()
+    mine = os.getpriority(os.PRIO_PROCESS, tid)
+    during = as_hardware(lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))()
+    assert during == (min(SIMULATED_HARDWARE_NICE, mine) if os.geteuid() == 0 else mine)
+    assert os.getpriority(os.PRIO_PROCESS, tid) == mine
