@@ -63,6 +63,7 @@ LIFT_TRAVEL_S = 0.1
 STALE_AFTER_S = OperatorLinkConfig().stale_after_ms / 1000
 PALM_PRESSED = 50.0  # counts from the retract pose: a linkage on the palm
 GRASP_LEVEL = 20
+CLOSE_AGAIN_S = 3.0  # the operator presses close again if the fingers do not hold by then
 GRIP_SLACK = 5  # finger counts (of 255) the grip may relax and still hold
 READY_TIMEOUT_S = 90.0
 #: the outage starts this long after netsim does: after a start (ready took 5 s on a quiet
@@ -314,13 +315,23 @@ class CellRun:
         self.palm: PalmProbe | None = None
         self._link_back: float | None = None  # netsim's cells: when it forwarded again
         self._late_wakes: list[tuple[float, float]] = []  # the operator's, after the fault
+        self._close_pressed = -math.inf
 
     # ------------------------------------------------------------ phases
-    def _wait(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
+    def _wait(
+        self,
+        cond: Callable[[], bool],
+        timeout_s: float,
+        what: str,
+        seen: Callable[[], str] = str,
+    ) -> None:
+        """Until ``cond``; failing, says ``what`` did not happen, what ``seen`` reads, the logs."""
         deadline = time.monotonic() + timeout_s
         while not cond():
             if time.monotonic() > deadline:
-                raise DeploymentError(f"{what} within {timeout_s:.0f} s\n{self.d.log_tails()}")
+                raise DeploymentError(
+                    f"{what} within {timeout_s:.0f} s{seen()}\n{self.d.log_tails(4000)}"
+                )
             time.sleep(0.05)
 
     def _ready(self, jogger: Jogger) -> None:
@@ -330,11 +341,11 @@ class CellRun:
             READY_TIMEOUT_S,
             "the arm never followed the jog",
         )
-        self.d.operator_send({"action": "gripper_close", "grip_level": GRASP_LEVEL})
         self._wait(
-            lambda: bool(self.gripper.objects) and self.gripper.objects[-1].value == 2,
+            self._closing_on_the_pipette,
             20.0,
             "the gripper never closed on the pipette",
+            lambda: f" (the fingers' last readings, s and counts: {self._last_grips()})",
         )
         self._wait(
             lambda: bool(self.palm.samples) and self.palm.samples[-1].value > PALM_PRESSED,
@@ -342,6 +353,24 @@ class CellRun:
             "the palm never felt the grasp",
         )
         time.sleep(1.0)  # a steady second before the fault
+
+    def _closing_on_the_pipette(self) -> bool:
+        """The operator presses close, and again every CLOSE_AGAIN_S until the fingers hold the
+        pipette: a close the robot refused (its lease moved while a starved machine kept the
+        operator silent) or the node gave up resending is pressed again, as a person would."""
+        if bool(self.gripper.objects) and self.gripper.objects[-1].value == 2:
+            return True
+        now = time.monotonic()
+        if now - self._close_pressed >= CLOSE_AGAIN_S:
+            self._close_pressed = now
+            self.d.operator_send({"action": "gripper_close", "grip_level": GRASP_LEVEL})
+        return False
+
+    def _last_grips(self) -> list[tuple[float, float, float]]:
+        """(when, position, object flag) of the gripper probe's last five readings."""
+        t0 = self.arm.samples[0].t_s if self.arm.samples else 0.0
+        pairs = zip(self.gripper.samples[-5:], self.gripper.objects[-5:], strict=False)
+        return [(round(p.t_s - t0, 2), p.value, o.value) for p, o in pairs]
 
     def _inject(self) -> _Timeline:
         d, target, fault = self.d, self.cell.target, self.cell.fault
