@@ -157,3 +157,14 @@ def test_task_cells_are_saved_as_they_end_and_read_back_instead_of_run_again(mon
 
     task.measure(ctx, task.TaskSizes(3, ("lan",), ("mask",)))  # other placements: run again
     assert ran[-1] == "mask" and len(ran) == 4
+
+
+@pytest.mark.parametrize(("sim_s", "behind"), [(0.9795, False), (0.9794, True), (1.0, False)])
+def test_a_trial_is_behind_by_the_sim_wall_it_shows(sim_s, behind):
+    """0.9795 s of world time in 1 s shows as 0.98, which is not behind: the flag and the figure
+    in the report agree (a loaded run flagged 0.98 behind)."""
+    from harness.bench.task import _trial_clock
+
+    start = {"sim_time_s": 0.0, "wall_time_s": 0.0}
+    clock = _trial_clock(start, {"sim_time_s": sim_s, "wall_time_s": 1.0})
+    assert clock["behind"] is behind and clock["behind"] == (clock["sim_wall"] < 0.98), clock
