@@ -21,7 +21,6 @@ from typing import Any
 
 from common.cli_support import add_config_arguments, load_node_config, print_config, write_stats
 from common.config import param
-from common.devices import as_hardware
 from common.errors import ConfigError
 from common.netsim.impairments import DIRECTIONS, Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
@@ -117,13 +116,6 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "print_config", False):
         print_config(config, "netsim")
         return 0
-    # it stands for the network, which never waits for a PC's CPU: where it may, it runs (and
-    # the threads it starts) at the simulated devices' priority, so a busy machine slows the
-    # nodes, not the link between them
-    return as_hardware(_serve)(config, args)
-
-
-def _serve(config: NetsimConfig, args: argparse.Namespace) -> int:
     scenario = scenario_from_args(config, args)
     old = signal.getsignal(signal.SIGTERM)
     done = stop_on_signals((signal.SIGTERM,))  # Ctrl-C stays a KeyboardInterrupt

@@ -87,8 +87,8 @@ def test_a_thread_already_above_the_asked_priority_keeps_its_own():
 
 
 def test_a_target_run_in_place_gives_the_caller_its_priority_back():
-    """``deepxpalm netsim`` raises itself this way; a test that calls it in place goes on at
-    the priority it had."""
+    """A target run in place, not on a thread of its own: the caller goes on at the priority
+    it had."""
     tid = threading.get_native_id()
     mine = os.getpriority(os.PRIO_PROCESS, tid)
     during = as_hardware(lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))()
