@@ -98,6 +98,21 @@ class Telemetry:
         """
         return [m.t_send_ns for t, m in self.messages if isinstance(m, kind) and t0 <= t <= t1]
 
+    def sent_within(self, kind: type, t0: int, t1: int, timeout_s: float = 5.0) -> list[int]:
+        """The robot's send stamps that fall in [t0, t1], whenever they arrived here.
+
+        Waits (up to ``timeout_s``) until something the robot sent after ``t1``
+        has arrived, so a listener that was starved a while still counts all of
+        them: a rate from these is the robot's, not this process's.
+        """
+        deadline = time.monotonic() + timeout_s
+        while not any(getattr(m, "t_send_ns", 0) > t1 for _, m in self.messages[-64:]):
+            if time.monotonic() > deadline:
+                raise AssertionError(f"nothing sent after the window arrived in {timeout_s} s")
+            time.sleep(0.01)
+        sent = (m.t_send_ns for _, m in self.messages if isinstance(m, kind))
+        return [t for t in sent if t0 <= t <= t1]
+
     def robot_stats(self) -> dict[str, float]:
         beats = [m for _, m in self.messages if isinstance(m, Heartbeat)]
         return beats[-1].stats if beats else {}
@@ -268,7 +283,8 @@ class RobotUnderCommands:
         self.arm.sim = self.arm_sim
 
     def stimulus_rate(self, t0: int, t1: int) -> float:
-        return len(self.telemetry.times(Stimulus, t0, t1)) / ((t1 - t0) / 1e9)
+        """Stimuli per second the robot sent in [t0, t1] (its send stamps, this machine's clock)."""
+        return len(self.telemetry.sent_within(Stimulus, t0, t1)) / ((t1 - t0) / 1e9)
 
     def flood(self, n: int) -> dict[str, int]:
         """``n`` valid jogs from a client process of its own; its first and last send times."""
@@ -366,12 +382,12 @@ def flood(n_flood: int, baseline_s: float, n_cost: int) -> dict[str, Any]:
         t0 = now_ns()
         time.sleep(baseline_s)
         t1 = now_ns()
-        base_times = sorted(rig.telemetry.sent_times(Stimulus, t0, t1))
+        base_times = sorted(rig.telemetry.sent_within(Stimulus, t0, t1))
         report = rig.flood(n_flood)
         time.sleep(2.5)  # the backlog in the kernel's and ZeroMQ's queues ages out
         first, last = report["t_first_ns"], report["t_last_ns"]
         window_end = last + 2_000_000_000
-        during_times = sorted(rig.telemetry.sent_times(Stimulus, first, window_end))
+        during_times = sorted(rig.telemetry.sent_within(Stimulus, first, window_end))
         moving = rig.arm.moving_between(last, now_ns())
         stats = rig.telemetry.robot_stats()
     base_gaps = np.diff(base_times) / 1e6

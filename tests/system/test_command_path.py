@@ -51,7 +51,8 @@ def _flood_once(rig) -> tuple[float, float, dict]:
     # the arm is still 400 ms after the sender's last send, and stays still
     late = rig.arm.moving_between(t_last + 400_000_000, now_ns())
     assert not late, f"the arm moved {(late[-1] - t_last) / 1e6:.0f} ms after the last send"
-    # the palm kept its stimuli while the flood and its backlog were read
+    # the palm kept its stimuli while the flood and its backlog were read: counted by the
+    # robot's send stamps on the wire, so a starved listener here does not read as a slow robot
     return normal, rig.stimulus_rate(t_first, t_last + 2_000_000_000), report
 
 
