@@ -171,6 +171,18 @@ class LogLine:
 _LOG_LINE = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) (\w+) ([\w.]+): (.*)$")
 
 
+def read_log_lines(path: Path, name: str = "") -> list[LogLine]:
+    """A node's log lines (``deepxpalm -v``) from loggers under ``name``, times on this clock."""
+    out = []
+    for line in path.read_text(errors="replace").splitlines():
+        m = _LOG_LINE.match(line)
+        if m is None or not m[4].startswith(name):
+            continue  # a traceback's continuation, a stack dump
+        stamp = time.mktime(time.strptime(m[1], "%Y-%m-%d %H:%M:%S"))
+        out.append(LogLine(stamp + int(m[2]) / 1000, m[3], m[4], m[5]))
+    return out
+
+
 class RobotUnderCommands:
     """The robot node process on its simulators, watched from outside (a context manager).
 
@@ -240,14 +252,7 @@ class RobotUnderCommands:
 
     def log_lines(self, name: str = "") -> list[LogLine]:
         """The node's log lines so far (from loggers under ``name``), times on this clock."""
-        out = []
-        for line in self.log.read_text(errors="replace").splitlines():
-            m = _LOG_LINE.match(line)
-            if m is None or not m[4].startswith(name):
-                continue  # a traceback's continuation, a stack dump
-            stamp = time.mktime(time.strptime(m[1], "%Y-%m-%d %H:%M:%S"))
-            out.append(LogLine(stamp + int(m[2]) / 1000, m[3], m[4], m[5]))
-        return out
+        return read_log_lines(self.log, name)
 
     def log_with_stacks(self) -> str:
         """The node's log, ending with every thread's stack (``kill -USR1``) if it still runs."""

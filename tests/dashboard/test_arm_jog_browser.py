@@ -11,14 +11,13 @@ simulator. Motion and standstill are read from the simulator itself.
 The arm's path runs as deployed: the robot node is its own process (at its
 unit's priority) and the UR simulator another, so the driver's watchdog kicks
 share an interpreter with the robot node alone; the operator node and its
-dashboard run here, beside the browser's driver.
+dashboard are a process of their own too, at their unit's priority.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -29,10 +28,7 @@ from headless_chromium import Chromium, needs_chromium
 
 from harness.bench.command_path import RobotUnderCommands
 from harness.headless_chromium import PAGE_WAIT_S
-from operator_side.config import OperatorConfig
-from operator_side.dashboard import Dashboard, DashboardConfig
-from operator_side.node import OperatorNode
-from operator_side.servos.recording import RecordingServoBus
+from harness.operator_process import OperatorWithDashboard
 from robot_side.arm.sim import URSimProcess
 
 pytestmark = [
@@ -79,43 +75,30 @@ def station(tmp_path_factory, quiet_gc_module):
 @contextlib.contextmanager
 def running_station(
     workdir: Path, max_command_age_ms: float | None = None
-) -> Iterator[tuple[RobotUnderCommands, Dashboard]]:
-    """The robot node as deployed, on the UR simulator; an operator node and its dashboard here.
+) -> Iterator[tuple[RobotUnderCommands, OperatorWithDashboard]]:
+    """The robot node and the operator node with its dashboard, each as deployed.
 
-    The robot node is its own process at its unit's priority, and the UR
-    simulator another (``RobotUnderCommands``): the thread that kicks the
-    controller's watchdog shares its interpreter with the robot node alone, as
-    on the robot PC, not with this process's browser driver, operator node and
-    dashboard. Motion is read from the simulator.
+    Each node is its own process at its unit's priority, and the UR simulator
+    another (``RobotUnderCommands``, ``OperatorWithDashboard``): the thread
+    that kicks the controller's watchdog shares its interpreter with the robot
+    node alone, and the dashboard's with the operator node alone, as on the
+    robot's and the operator's PCs, never with this process's browser driver
+    and probes. Motion is read from the simulator.
     """
     settings: tuple[str, ...] = ()
     if max_command_age_ms is not None:
         settings += (f"robot.link.max_command_age_ms={max_command_age_ms}",)
     with RobotUnderCommands(workdir, settings) as rig:
-        oc = OperatorConfig()
-        oc.link.telemetry_endpoint, oc.link.command_endpoint = (
-            rig.telemetry_endpoint,
-            rig.command_endpoint,
-        )
-        operator = OperatorNode(oc, RecordingServoBus())
-        stop = threading.Event()
-        thread = threading.Thread(target=operator.run, args=(stop,), daemon=True)
-        thread.start()
-        dashboard = Dashboard(operator, DashboardConfig(enabled=True, port=0))
-        dashboard.start()
-        try:
-            deadline = time.monotonic() + 30
-            while rig.arm_sim.stats()["watchdog_hz"] is None:  # the driver armed it: connected
-                assert time.monotonic() < deadline, (
-                    f"the arm never connected:\n{rig.log.read_text()[-3000:]}"
-                )
-                time.sleep(0.05)
-            yield rig, dashboard
-        finally:
-            dashboard.stop()
-            stop.set()
-            thread.join(timeout=10)
-            assert not thread.is_alive(), "the operator node did not stop"
+        deadline = time.monotonic() + 30
+        while rig.arm_sim.stats()["watchdog_hz"] is None:  # the driver armed it: connected
+            assert time.monotonic() < deadline, (
+                f"the arm never connected:\n{rig.log.read_text()[-3000:]}"
+            )
+            time.sleep(0.05)
+        with OperatorWithDashboard(
+            workdir, rig.telemetry_endpoint, rig.command_endpoint
+        ) as operator:
+            yield rig, operator
 
 
 @pytest.fixture
@@ -337,10 +320,18 @@ def test_closing_the_tab_stops_the_arm(station):
         while sim.tcp_speed()[1] > -0.8 * SPEED_SCALE * 0.10:
             assert time.monotonic() < deadline, sim.tcp_speed()
             time.sleep(0.01)
-        t_close = time.monotonic()
+        t_close, wall_close = time.monotonic(), time.time()
         browser.ws.send(json.dumps({"id": 10**6, "method": "Page.close", "params": {}}))
         took = stop_took(sim, t_close)
-        assert took < STOP_WITHIN_S, f"the arm came to rest {took * 1e3:.0f} ms after the close"
+        # on failure: when the dashboard saw the socket close and ended the jog, by its log
+        seen = [
+            f"{(line.created - wall_close) * 1e3:+.0f} ms {line.message}"
+            for line in dashboard.log_lines("operator_side.dashboard")
+            if line.created >= wall_close - 0.5
+        ]
+        assert took < STOP_WITHIN_S, (
+            f"the arm came to rest {took * 1e3:.0f} ms after the close; the dashboard: {seen}"
+        )
 
 
 JOG_X = json.dumps({"type": "command", "action": "arm_jog", "velocity": [0.05, 0, 0, 0, 0, 0]})
@@ -388,7 +379,7 @@ def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station
 
     rig, dashboard = station
     sim = rig.arm_sim
-    port, token = dashboard.server.port, dashboard.server.auth.token
+    port, token = dashboard.port, dashboard.token
     with watchdog_trips_named(rig):
         wait_still(sim)
         start = sim.tcp_pose()
