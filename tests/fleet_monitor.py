@@ -52,10 +52,15 @@ class Monitor:
                         self.stimulus_times.append(t)
 
     def holder_since(self, key: bytes, t0: int) -> int | None:
-        """Arrival time of the first robot heartbeat after ``t0`` that names ``key`` as holder."""
-        for t, hb in list(self.heartbeats):
-            if t >= t0 and hb.lease_holder == key:
-                return t
+        """When the robot first named ``key`` its holder after ``t0``: its heartbeat's send stamp.
+
+        The robot's stamp (this machine's monotonic clock), not this client's
+        arrival time: a test thread starved beside other deployments must not
+        read as a slow hand-over (one such read 55 ms against 7).
+        """
+        for _, hb in list(self.heartbeats):
+            if hb.t_send_ns >= t0 and hb.lease_holder == key:
+                return hb.t_send_ns
         return None
 
     def largest_stimulus_gap_ms(self) -> float:
