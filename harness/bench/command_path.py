@@ -560,8 +560,9 @@ def markdown(results: Results) -> list[str]:
         "drivers against their simulators (`harness/bench/command_path.py`, the rig the system "
         "tests use too). A client written from docs/protocol.md alone syncs clocks, jogs the "
         f"arm, then sends {r['flood_messages']:,} valid `arm_jog` commands as fast as one "
-        f"process can ({r['flood_s']:.2f} s here). Intervals are taken from the robot's own "
-        f"send stamps. Goals (issue's test): {goal.what}: {verdict}.",
+        f"process can ({r['flood_s']:.2f} s here). Rates and intervals are counted by the "
+        "robot's own send stamps (what it put on the wire), not by when the listener read "
+        f"them. Goals (issue's test): {goal.what}: {verdict}.",
         "",
         "| what | measured |",
         "|---|---|",
