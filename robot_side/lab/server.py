@@ -229,6 +229,8 @@ class LabServer:
             "sim_wall_window_s": self.sim_wall.window_s,
             "sim_wall_windows_behind": self.sim_wall.windows_behind,
             "protective_stops": list(self.protective_stops),
+            # the control script stopped by its RTDE watchdog: the robot node kicked too late
+            "watchdog_trips": self.ursim.watchdog_trips,
             "camera_frames_rendered": w.frames_rendered,
             "safety_mode": self.ursim.safety_mode,
             "board": self.board.stats(),
