@@ -633,8 +633,9 @@ window.addEventListener("keyup", (e) => {
 });
 // a key released while the window was not focused never sends keyup: release everything
 window.addEventListener("blur", () => dxp.jog && dxp.jog.releaseAll());
-document.addEventListener("visibilitychange", () => document.hidden && dxp.jog && dxp.jog.releaseAll());
-window.addEventListener("pagehide", () => dxp.jog && dxp.jog.releaseAll());
+document.addEventListener("visibilitychange", () => dxp.jog && dxp.jog.setAway(document.hidden));
+window.addEventListener("pagehide", () => dxp.jog && dxp.jog.setAway(true));
+window.addEventListener("pageshow", () => dxp.jog && dxp.jog.setAway(document.hidden));
 window.addEventListener("gamepaddisconnected", () => dxp.jog && dxp.jog.tick());
 $("connect-spacemouse").addEventListener("click", async () => {
   if (!navigator.hid) {

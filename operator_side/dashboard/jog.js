@@ -145,6 +145,9 @@ const JOG = (() => {
       this.latched = false; // after STOP: nothing moves until every input is released
       this.robotLatched = false; // the robot's own latch, from its heartbeat: nothing moves
       this.padStops = new Set(); // gamepads whose stop button is down (a press stops once)
+      // the page is hidden or being left: no input moves the arm, however it is held (a
+      // gamepad's enable still reads as pressed on the ticks between pagehide and the end)
+      this.away = false;
       this.last = { source: "none", velocity: [0, 0, 0, 0, 0, 0], enabled: false };
       this.sent = { jogs: 0, stops: 0, assists: 0 };
       this.timer = setInterval(() => this.tick(), 1000 / cfg.send_rate_hz);
@@ -175,6 +178,10 @@ const JOG = (() => {
     }
 
     tick() {
+      if (this.away) {
+        if (this.moving) this.stop();
+        return;
+      }
       const sources = this.sources();
       for (const s of sources) {
         if (!s.source.startsWith("gamepad")) continue;
@@ -221,6 +228,12 @@ const JOG = (() => {
     setRobotLatched(latched) {
       this.robotLatched = latched;
       if (latched) this.latched = true;
+    }
+
+    // The page is hidden or left (true), or shown again (false).
+    setAway(away) {
+      this.away = away;
+      if (away) this.releaseAll();
     }
 
     releaseAll() {

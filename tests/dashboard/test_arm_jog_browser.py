@@ -334,6 +334,33 @@ def test_closing_the_tab_stops_the_arm(station):
         )
 
 
+def test_a_hidden_page_stops_the_arm_and_its_held_gamepad_moves_nothing(page):
+    """A tab hidden (or being left) ends the jog, and the gamepad its user still holds, read
+    again at every tick until the page is gone, does not start it again."""
+    browser, rig = page
+    sim = rig.arm_sim
+    with watchdog_trips_named(rig):
+        wait_still(sim)
+        browser.evaluate(PAD)
+        browser.evaluate(
+            "window.__pad.axes[0] = 1.0;"  # stick right: -y
+            "window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }"
+        )
+        browser.wait_until("dxp.jog.moving", bool)
+        browser.evaluate("window.dispatchEvent(new PageTransitionEvent('pagehide'))")
+        t_hidden = time.monotonic()
+        took = stop_took(sim, t_hidden)
+        assert took < STOP_WITHIN_S, f"the arm came to rest {took * 1e3:.0f} ms after the hide"
+        time.sleep(0.5)  # 15 ticks of the page with the pad still held
+        assert sim.at_rest_since(STILL_M_S, STILL_RAD_S) is not None, "the held pad moved it"
+        assert not browser.evaluate("dxp.jog.moving")
+        # shown again: the same held pad jogs again
+        browser.evaluate("window.dispatchEvent(new PageTransitionEvent('pageshow'))")
+        browser.wait_until("dxp.jog.moving", bool)
+        browser.evaluate("window.__pad.buttons[5] = { pressed: false, touched: false, value: 0 }")
+        stop_took(sim, time.monotonic())
+
+
 JOG_X = json.dumps({"type": "command", "action": "arm_jog", "velocity": [0.05, 0, 0, 0, 0, 0]})
 # A page's script jogging +x over a WebSocket at the page's rate for about a second.
 SOCKET_JOG = """
