@@ -229,7 +229,7 @@ class LabServer:
             "sim_wall_window_s": self.sim_wall.window_s,
             "sim_wall_windows_behind": self.sim_wall.windows_behind,
             "protective_stops": list(self.protective_stops),
-            # the control script stopped by its RTDE watchdog: the robot node kicked too late
+            # the control script stopped by its RTDE watchdog: no kick read within its window
             "watchdog_trips": self.ursim.watchdog_trips,
             "camera_frames_rendered": w.frames_rendered,
             "safety_mode": self.ursim.safety_mode,

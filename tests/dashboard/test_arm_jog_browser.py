@@ -301,6 +301,22 @@ def _spacemouse_moves_the_arm(browser: Chromium, sim: URSimProcess):
     browser.evaluate(hid(1, [0, 0, 0, 0, 0, 0]))
 
 
+def jog_right_with_the_pad(browser: Chromium, sim: URSimProcess) -> None:
+    """The injected gamepad's stick right (-y) with its enable held, until the TCP is at speed."""
+    wait_still(sim)
+    browser.evaluate(PAD)
+    browser.evaluate(
+        "window.__pad.axes[0] = 1.0;"  # stick right: -y
+        "window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }"
+    )
+    browser.wait_until("dxp.jog.moving", bool)
+    # moving -y at speed (a starved simulator makes the driver refuse jogs for a while)
+    deadline = time.monotonic() + 5
+    while sim.tcp_speed()[1] > -0.8 * SPEED_SCALE * 0.10:
+        assert time.monotonic() < deadline, sim.tcp_speed()
+        time.sleep(0.01)
+
+
 def test_closing_the_tab_stops_the_arm(station):
     rig, dashboard = station
     sim = rig.arm_sim
@@ -308,18 +324,7 @@ def test_closing_the_tab_stops_the_arm(station):
         browser.navigate(dashboard.url)
         browser.wait_for("dxp.jog !== null && dxp.state.arm && dxp.state.arm.pose", 20)
         browser.wait_for("dxp.state.arm.available", 20)
-        wait_still(sim)
-        browser.evaluate(PAD)
-        browser.evaluate(
-            "window.__pad.axes[0] = 1.0;"  # stick right: -y
-            "window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }"
-        )
-        browser.wait_until("dxp.jog.moving", bool)
-        # moving -y at speed (a starved simulator makes the driver refuse jogs for a while)
-        deadline = time.monotonic() + 5
-        while sim.tcp_speed()[1] > -0.8 * SPEED_SCALE * 0.10:
-            assert time.monotonic() < deadline, sim.tcp_speed()
-            time.sleep(0.01)
+        jog_right_with_the_pad(browser, sim)
         t_close, wall_close = time.monotonic(), time.time()
         browser.ws.send(json.dumps({"id": 10**6, "method": "Page.close", "params": {}}))
         took = stop_took(sim, t_close)
@@ -340,13 +345,7 @@ def test_a_hidden_page_stops_the_arm_and_its_held_gamepad_moves_nothing(page):
     browser, rig = page
     sim = rig.arm_sim
     with watchdog_trips_named(rig):
-        wait_still(sim)
-        browser.evaluate(PAD)
-        browser.evaluate(
-            "window.__pad.axes[0] = 1.0;"  # stick right: -y
-            "window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }"
-        )
-        browser.wait_until("dxp.jog.moving", bool)
+        jog_right_with_the_pad(browser, sim)
         browser.evaluate("window.dispatchEvent(new PageTransitionEvent('pagehide'))")
         t_hidden = time.monotonic()
         took = stop_took(sim, t_hidden)
