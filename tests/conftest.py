@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
@@ -152,6 +153,36 @@ def quiet_gc_module():
     gc.freeze()
     yield
     gc.unfreeze()
+
+
+@pytest.fixture(scope="module")
+def robot_node_priority_module():
+    """Every thread of this process at the robot unit's niceness (``Nice=-10``) for a module
+    whose fixture drives a UR arm from the test process, as the robot node does from its own.
+
+    The driver's keep-alive thread runs at that niceness already, but each kick needs the
+    GIL, and the lanes run the test process at -5, below three deployments' nodes and
+    simulators at -10: a test thread holding the GIL got so little CPU that the kicks
+    stopped for 162 ms and the arm's controller stopped the program (its window is 150 ms).
+    That is this process standing below the node it stands for, not the node. Where the
+    process may not raise a priority, nothing changes. Each thread gets its own back after.
+    """
+    from deploy.unit_policy import unit_nice
+
+    nice = unit_nice("robot")
+    task = Path("/proc/self/task")
+    before: dict[int, int] = {}
+    if nice is not None and task.is_dir():
+        for entry in task.iterdir():
+            tid = int(entry.name)
+            with contextlib.suppress(OSError):
+                own = os.getpriority(os.PRIO_PROCESS, tid)
+                os.setpriority(os.PRIO_PROCESS, tid, min(nice, own))
+                before[tid] = own
+    yield
+    for tid, own in before.items():
+        with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            os.setpriority(os.PRIO_PROCESS, tid, own)
 
 
 @pytest.fixture(scope="session")

@@ -31,7 +31,11 @@ from robot_side.arm.sim import URSimConfig, URSimProcess, URSimulator
 from robot_side.arm.sim import rtde_wire as w
 from robot_side.arm.ur_rtde import ArmCommandRefusedError, URArm, URArmConfig
 
-pytestmark = [pytest.mark.timeout(30), pytest.mark.parallel]
+pytestmark = [
+    pytest.mark.timeout(30),
+    pytest.mark.parallel,
+    pytest.mark.usefixtures("robot_node_priority_module"),
+]
 
 LIMITS = ArmLimits(
     workspace_min=(-0.45, -0.30, 0.05),

@@ -17,7 +17,12 @@ import pytest
 from robot_side.arm.base import ArmLimits
 from robot_side.arm.ur_rtde import URArm, URArmConfig
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.timeout(60),
+    pytest.mark.parallel,
+    pytest.mark.usefixtures("robot_node_priority_module"),
+]
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,12 @@ from common.errors import ConfigError, DeviceError
 from robot_side.arm.base import SAFETY_THREAD_NICE, ArmLimits
 from robot_side.arm.ur_rtde import URArm, URArmConfig
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.timeout(60),
+    pytest.mark.parallel,
+    pytest.mark.usefixtures("robot_node_priority_module"),
+]
 
 JOG = [0.03, 0.0, 0.0, 0.0, 0.0, 0.0]
 

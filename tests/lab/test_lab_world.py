@@ -41,7 +41,7 @@ CONTACT_N = 1.0
 
 
 @pytest.fixture(scope="module")
-def lab(quiet_gc_module):
+def lab(quiet_gc_module, robot_node_priority_module):
     limits = ArmLimits(workspace_min=(-0.45, -0.45, -0.05), max_linear_speed_m_s=0.2)
     arm = LabArm(LabArmConfig(limits=limits))
     gripper = LabGripper()
