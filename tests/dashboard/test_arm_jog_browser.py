@@ -154,9 +154,15 @@ def wait_still(sim: URSimProcess, timeout_s: float = 3.0) -> float:
 
 
 def stop_took(sim: URSimProcess, t0: float) -> float:
-    """Seconds from ``t0`` until the arm came to rest, by the simulator's own record: a test
-    process starved while it watched must not read as a late stop (one read "standstill after
-    467 ms" beside a jog the same starved process had dropped as 276 ms old)."""
+    """Seconds from ``t0`` until the arm came to rest for good, by the simulator's own record.
+
+    Read once the stop budget has passed: on a busy machine the jogs arrive sparse and the
+    deadman stops the arm between them, so the arm may be still at ``t0`` and move once more
+    for a jog sent before it, until the stop sent at ``t0`` arrives (it was read as "moved
+    again" 18 ms after a release). A test process starved while it watched must not read as
+    a late stop either (one read "standstill after 467 ms" beside a jog the same starved
+    process had dropped as 276 ms old)."""
+    time.sleep(max(0.0, t0 + STOP_WITHIN_S - time.monotonic()))
     wait_still(sim)
     since = sim.at_rest_since(STILL_M_S, STILL_RAD_S)
     assert since is not None, "the arm moved again after it stopped"
