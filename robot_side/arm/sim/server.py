@@ -161,6 +161,8 @@ class _RTDEConnection:
         self.started = False
         self.alive = True
         self.ticks = 0
+        #: bytes this connection's reader took off the socket and has not applied yet
+        self.in_hand = False
 
     def send(self, data: bytes) -> None:
         with self.send_lock:
@@ -449,6 +451,7 @@ class URSimulator:
                 chunk = sock.recv(65536)
                 if not chunk:
                     break
+                conn.in_hand = True  # arrived: the watchdog must not count it as missing
                 buf += chunk
                 while len(buf) >= w.HEADER.size:
                     size, mtype = w.HEADER.unpack_from(buf)
@@ -458,6 +461,7 @@ class URSimulator:
                         break
                     payload, buf = buf[w.HEADER.size : size], buf[size:]
                     self._handle_rtde(conn, mtype, payload)
+                conn.in_hand = False  # what is left is part of a message still on its way
         except (OSError, DeviceError, struct.error) as e:
             if not self._quit.is_set():
                 log.debug("RTDE %s dropped: %s", peer, e)
@@ -718,13 +722,18 @@ class URSimulator:
         self._stop_program("the RTDE input watchdog tripped")
 
     def _input_unread(self) -> bool:
-        """A client that writes inputs has bytes this process has not read yet.
+        """A client that writes inputs has bytes this process has not applied yet.
 
         A real controller reads each package as it arrives; here the threads
         that read them can lag behind on a loaded machine, and an update that
-        has arrived must not count as missing.
+        has arrived must not count as missing: neither bytes still in the
+        socket, nor bytes its reader took off it and holds while it waits for
+        the lock this judgement holds (the physics thread's ``advance``).
         """
-        socks = [c.sock for c in self._conns if c.alive and c.inputs]
+        writers = [c for c in self._conns if c.alive and c.inputs]
+        if any(c.in_hand for c in writers):
+            return True
+        socks = [c.sock for c in writers]
         try:
             readable, _, _ = select.select(socks, [], [], 0)
         except (OSError, ValueError):  # a socket closed meanwhile: judge on what was read
