@@ -29,6 +29,9 @@ KILL_LIFT_S = 0.5
 GUARD_LIFTED = "palm guard: the node ended, palm lifted"
 OPERATOR = policy("operator")
 
+# the palm is judged through the servo simulator's pseudo-terminal, within 500 ms of a death
+pytestmark = pytest.mark.pty
+
 
 @pytest.fixture(scope="module")
 def deployment():

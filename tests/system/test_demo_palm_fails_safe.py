@@ -28,7 +28,8 @@ from tests_support import child_processes
 from deploy.unit_policy import policy
 from harness.faults.probes import PalmProbe
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+# the palm is judged through the servo simulator's pseudo-terminal, within 500 ms of a death
+pytestmark = [pytest.mark.slow, pytest.mark.pty, pytest.mark.timeout(300)]
 
 #: the product's bound: a dead operator's palm is lifted within this
 KILL_LIFT_S = 0.5
