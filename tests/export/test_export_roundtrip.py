@@ -228,11 +228,11 @@ def test_one_episode_per_session_covers_the_recording(records, one_episode):
     assert meta["num_episodes"] == 1
     frames = records["robot/frame"]
     span_s = (frames[-1][0] - frames[0][0]) / 1e9
-    # the whole session at the chosen rate: never a row beyond it, and rows from the moment
-    # every exported channel has a record (docs/datasets.md), which the camera's video server,
-    # started beside the robot node, reaches a second or so later on a loaded machine
-    # rows stand until the session's last record of any channel (the arm's and the gripper's
-    # go on a moment after the last frame), never beyond
+    # the whole session at the chosen rate: rows until the last record of any channel (the
+    # arm's and the gripper's go on a moment after the last frame), never beyond, and rows
+    # from the moment every exported channel has a record (docs/datasets.md), which the
+    # camera's video server, started beside the robot node, reaches a second or so later on
+    # a loaded machine
     last_ns = max(channel[-1][0] for channel in records.values())
     whole_s = (last_ns - frames[0][0]) / 1e9
     rows = len(a["index"])
