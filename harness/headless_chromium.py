@@ -28,7 +28,7 @@ from typing import Any
 
 from websockets.sync.client import connect
 
-from harness.processes import in_session, stop
+from harness.processes import in_session, raise_threads, stop
 
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = (
@@ -211,17 +211,7 @@ class Chromium:
         Where raising a priority is not allowed, the page keeps the one it has.
         """
         ours = os.nice(0)
-        changed = []
-        for pid in in_session(self.proc.pid):
-            threads: list[int] = []
-            with suppress(OSError):  # ended meanwhile
-                threads = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-            for tid in threads:  # Linux keeps a niceness per thread
-                with suppress(OSError):  # ended meanwhile, or not ours to raise
-                    if os.getpriority(os.PRIO_PROCESS, tid) > ours:  # never lowered (-8s)
-                        os.setpriority(os.PRIO_PROCESS, tid, ours)
-                        changed.append(tid)
-        return changed
+        return [tid for pid in in_session(self.proc.pid) for tid in raise_threads(pid, ours)]
 
     def evaluate(self, expression: str, timeout_s: float = PAGE_WAIT_S) -> Any:
         res = self.call(

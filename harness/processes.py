@@ -158,6 +158,24 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     return out
 
 
+def raise_threads(pid: int, nice: int) -> dict[int, int]:
+    """Every thread of ``pid`` at niceness ``nice`` or higher (Linux keeps one per thread);
+    ``{thread id: its niceness before}`` of those raised. A thread already higher is left
+    alone; one that ended meanwhile, or that this process may not raise, keeps its own."""
+    raised: dict[int, int] = {}
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:  # ended meanwhile
+        return raised
+    for tid in tids:
+        with contextlib.suppress(OSError):
+            own = os.getpriority(os.PRIO_PROCESS, tid)
+            if own > nice:
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
+                raised[tid] = own
+    return raised
+
+
 def rss_mb(pid: int) -> float | None:
     """Resident memory of a process in MiB; None once it has ended."""
     text = _read(f"/proc/{pid}/statm")

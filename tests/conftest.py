@@ -168,17 +168,10 @@ def robot_node_priority_module():
     process may not raise a priority, nothing changes. Each thread gets its own back after.
     """
     from deploy.unit_policy import unit_nice
+    from harness.processes import raise_threads
 
     nice = unit_nice("robot")
-    task = Path("/proc/self/task")
-    before: dict[int, int] = {}
-    if nice is not None and task.is_dir():
-        for entry in task.iterdir():
-            tid = int(entry.name)
-            with contextlib.suppress(OSError):
-                own = os.getpriority(os.PRIO_PROCESS, tid)
-                os.setpriority(os.PRIO_PROCESS, tid, min(nice, own))
-                before[tid] = own
+    before = raise_threads(os.getpid(), nice) if nice is not None else {}
     yield
     for tid, own in before.items():
         with contextlib.suppress(OSError):  # a thread that ended meanwhile
