@@ -22,6 +22,7 @@ from common.codec import encode
 from common.messages import Command, Heartbeat, Stimulus
 from common.transport import Publisher, Subscriber
 from harness.bench.command_path import PUBLISH_HZ, RobotUnderCommands
+from operator_side.config import OperatorLinkConfig
 from robot_side.gripper.base import GripLevels
 
 N_FLOOD = 100_000
@@ -35,12 +36,23 @@ def rig(tmp_path: Path):
         yield r
 
 
-def _flood_once(rig) -> tuple[float, float, dict]:
-    """Stimuli per second before and during a flood; asserts the arm's safety on the way."""
+#: the operator's staleness rule: a stimulus older than this is not rendered, and with none
+#: fresher the palm lifts off. A flood must never make the robot's own sends that sparse.
+STALE_AFTER_NS = round(OperatorLinkConfig().stale_after_ms * 1e6)
+
+
+def test_a_flood_of_jogs_neither_starves_the_palm_nor_outlives_the_sender(rig):
+    """While a flood and its backlog are read, the palm keeps fresh stimuli and the arm stops.
+
+    The bound is the product's own: no gap in the robot's stimuli (its send stamps on the
+    wire, so a starved listener here does not read as a slow robot) as long as the operator's
+    staleness limit, which would lift the palm. The rate against the robot's rate before the
+    flood is a quiet machine's figure: `deepxpalm bench --only command_path` judges it.
+    """
     t0 = now_ns()
     time.sleep(2.0)
     normal = rig.stimulus_rate(t0, now_ns())
-    # the rig works at all (the flood's verdict below is relative to this rate)
+    # the rig works at all
     assert normal > 0.5 * PUBLISH_HZ, f"the scripted grasp gave only {normal:.0f} stimuli/s"
     report = rig.flood(N_FLOOD)
     t_first, t_last = report["t_first_ns"], report["t_last_ns"]
@@ -51,24 +63,21 @@ def _flood_once(rig) -> tuple[float, float, dict]:
     # the arm is still 400 ms after the sender's last send, and stays still
     late = rig.arm.moving_between(t_last + 400_000_000, now_ns())
     assert not late, f"the arm moved {(late[-1] - t_last) / 1e6:.0f} ms after the last send"
-    # the palm kept its stimuli while the flood and its backlog were read: counted by the
-    # robot's send stamps on the wire, so a starved listener here does not read as a slow robot
-    return normal, rig.stimulus_rate(t_first, t_last + 2_000_000_000), report
 
-
-def test_a_flood_of_jogs_neither_starves_the_palm_nor_outlives_the_sender(rig):
-    normal, during, report = _flood_once(rig)
-    first = during / normal
-    if first < 0.9:  # another process may have held the core: the safety held, measure once more
-        normal, during, report = _flood_once(rig)
-    assert during >= 0.9 * normal, (
-        f"stimuli at {during / normal:.2f} of normal during the flood (first try {first:.2f})"
+    sent = np.array(sorted(rig.telemetry.sent_within(Stimulus, t_first, t_last + 2_000_000_000)))
+    gaps_ms = np.diff(np.concatenate(([t_first], sent, [t_last + 2_000_000_000]))) / 1e6
+    during = (len(sent)) / ((t_last + 2_000_000_000 - t_first) / 1e9)
+    assert gaps_ms.max() < STALE_AFTER_NS / 1e6, (
+        f"the robot sent no stimulus for {gaps_ms.max():.0f} ms during the flood, past the "
+        f"operator's {STALE_AFTER_NS / 1e6:.0f} ms staleness: the palm would have lifted"
+        f" (stimuli {during:.1f}/s against {normal:.1f}/s before)"
     )
     stats = rig.telemetry.robot_stats()
     assert stats.get("commands_stale", 0) + stats.get("commands_superseded", 0) > 0
     print(
-        f"\nflood: {N_FLOOD} jogs in {(report['t_last_ns'] - report['t_first_ns']) / 1e9:.2f} s; "
-        f"stimuli {during:.1f}/s against {normal:.1f}/s (first try {first:.2f}); counters {stats}"
+        f"\nflood: {N_FLOOD} jogs in {(t_last - t_first) / 1e9:.2f} s; stimuli {during:.1f}/s "
+        f"against {normal:.1f}/s ({during / normal:.2f}), largest gap {gaps_ms.max():.1f} ms; "
+        f"counters {stats}"
     )
 
 
