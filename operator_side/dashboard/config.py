@@ -39,7 +39,15 @@ class DashboardConfig:
         "and [::1] (e.g. a VPN name); any other Host is refused (DNS rebinding)",
     )
     max_rate_hz: float = param(
-        60.0, "snapshots sampled and pushed per second at most; the stimulus rate is 60 Hz"
+        60.0,
+        "snapshots sampled per second at most, for the link history (its latency is the "
+        "youngest stimulus age sampled each second); the stimulus rate is 60 Hz",
+    )
+    push_rate_hz: float = param(
+        30.0,
+        "states pushed to each page per second at most, each drawn by the page: its redraw "
+        "rate (the camera's 30 fps); never more than max_rate_hz, and nothing while no page "
+        "is open",
     )
     video_url: str = param(
         "",
@@ -76,3 +84,5 @@ class DashboardConfig:
             raise ValueError(f"video_stale_ms must be > 0, not {self.video_stale_ms}")
         if not (math.isfinite(self.max_rate_hz) and 0 < self.max_rate_hz <= 240):
             raise ValueError(f"max_rate_hz must be in (0, 240], not {self.max_rate_hz}")
+        if not (math.isfinite(self.push_rate_hz) and 0 < self.push_rate_hz <= 240):
+            raise ValueError(f"push_rate_hz must be in (0, 240], not {self.push_rate_hz}")

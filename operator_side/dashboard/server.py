@@ -1,10 +1,11 @@
 """The live dashboard: the operator node's state on a web page, gripper buttons back.
 
 A sampler on the web server's loop takes ``node.snapshot()`` at up to
-``max_rate_hz`` and pushes a JSON state to every page only when something
-drawn changed (the stimulus, the pattern, the servo goals, the link state),
-plus a refresh four times a second for the ages and counters, and a full
-state with the last minute's link history once a second. The node knows
+``max_rate_hz`` for the link history and, at most ``push_rate_hz`` times a
+second and only while a page is connected, pushes a JSON state to every page
+when something drawn changed (the stimulus, the pattern, the servo goals, the
+link state), plus a refresh four times a second for the ages and counters,
+and a full state with the last minute's link history once a second. The node knows
 nothing of the dashboard: it only needs ``snapshot()`` and ``send_command()``,
 so a test or a replay can feed the page with any object that has them.
 """
@@ -162,7 +163,14 @@ class Dashboard:
         self._last_frame: Any = None
         self._last_push = 0.0
         self._last_full = 0.0
+        self._history_changed = False  # a second closed since the last push
+        #: the newest view pushed (or sent to a page as it connected)
         self._latest: dict[str, Any] | None = None
+        self._next_push = 0.0  # the next push slot (monotonic s)
+        #: a sample this close before its slot takes it: the sampler's own jitter never
+        #: turns every second slot into every third sample
+        push_hz = min(self.config.push_rate_hz, self.config.max_rate_hz)
+        self._push_period = 1.0 / push_hz - 0.5 / self.config.max_rate_hz
         jog = self.config.jog
         self._jog_watchdog_s = max(JOG_WATCHDOG_PERIODS / jog.send_rate_hz, 0.1)
         self._jogs_per_s = 2 * jog.send_rate_hz  # twice the page's rate: slack for bursts
@@ -214,20 +222,24 @@ class Dashboard:
     def _sample(self, now: float) -> None:
         snap = self.node.snapshot()
         self.samples += 1
-        history_changed = self.history.add(now, snap)
+        self._history_changed |= self.history.add(now, snap)
+        if now < self._next_push or not self.server.connections:
+            return  # not a push slot, or nobody to draw it: the history alone
+        self._next_push = now + self._push_period
         view = snapshot_view(snap)
         content = tuple(json.dumps(view[k]) for k in CONTENT_KEYS)
         frame_changed = view["frame"] != self._last_frame
-        full = history_changed or now - self._last_full >= FULL_STATE_S
+        self._latest = view
+        full = self._history_changed or now - self._last_full >= FULL_STATE_S
         due = (
             content != self._last_content
             or frame_changed
             or full
             or now - self._last_push >= REFRESH_S
         )
-        self._latest = view
         if not due:
             return
+        self._history_changed = False
         self._seq += 1
         msg = {"type": "state", "seq": self._seq, **view}
         if full:
@@ -246,10 +258,11 @@ class Dashboard:
         peer = conn.remote_address
         log.info("dashboard: page connected from %s", peer)
         await conn.send(self.hello)
-        if self._latest is not None:
-            first = {"type": "state", "seq": self._seq, **self._latest}
-            first["history"] = self.history.view()
-            await conn.send(json.dumps(first, separators=(",", ":")))
+        # the node as it is now: with no page connected, no view was kept up to date
+        self._latest = snapshot_view(self.node.snapshot())
+        first = {"type": "state", "seq": self._seq, **self._latest}
+        first["history"] = self.history.view()
+        await conn.send(json.dumps(first, separators=(",", ":")))
         page = _Page()
         watchdog = asyncio.create_task(self._jog_watchdog(page))
         try:

@@ -122,6 +122,44 @@ def test_pushes_only_when_something_changed_and_refreshes_slowly_otherwise(dashb
         assert msg["counts"] == node.renderer.target_counts(node.stimulus).tolist()
 
 
+@pytest.mark.slow
+def test_a_stimulus_changing_at_every_sample_reaches_a_page_at_the_push_rate(dashboard):
+    """Sampled at 120 Hz for the history; pushed at 30 (the page's redraws); none without a page."""
+    node, d = dashboard
+    stop = threading.Event()
+
+    def change() -> None:  # a new stimulus every 2 ms: every sample sees a change
+        level = 0
+        while not stop.is_set():
+            level = level % 9 + 1
+            with node.lock:
+                node.stimulus = (MASKS[9] * float(level)).astype(np.float32)
+            time.sleep(0.002)
+
+    changer = threading.Thread(target=change, daemon=True)
+    changer.start()
+    try:
+        samples0, pushes0 = d.samples, d.pushes
+        time.sleep(0.5)
+        assert d.samples - samples0 > 40, "the history is sampled with no page open"
+        assert d.pushes == pushes0, "states were pushed with no page open"
+        with connect(d.ws_url) as ws:
+            _next(ws, "hello")
+            _next(ws, "state")
+            t0, n = time.monotonic(), 0
+            samples0 = d.samples
+            while time.monotonic() - t0 < 1.0:
+                _next(ws, "state")
+                n += 1
+            sampled = d.samples - samples0
+    finally:
+        stop.set()
+        changer.join()
+    push_hz = d.config.push_rate_hz
+    assert 0.6 * push_hz <= n <= push_hz + 2, f"{n} states in a second, push rate {push_hz}"
+    assert sampled > 2 * n, f"{sampled} samples against {n} pushes"
+
+
 def test_commands_are_checked_before_they_reach_the_node(dashboard):
     node, d = dashboard
     with connect(d.ws_url) as ws:
