@@ -21,9 +21,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from harness.bench.command_path import RobotUnderCommands  # noqa: E402
-from harness.headless_chromium import Chromium  # noqa: E402
-from harness.operator_process import OperatorWithDashboard  # noqa: E402
+from harness.bench.command_path import RobotUnderCommands
+from harness.headless_chromium import Chromium
+from harness.operator_process import OperatorWithDashboard
 
 WINDOW_S = 10.0
 TICKS = os.sysconf("SC_CLK_TCK")
