@@ -231,6 +231,9 @@ class URSimulator:
         self.watchdog_hz: float | None = None
         # controller time since the last package carrying the variable (stalls not counted)
         self._watchdog_silent_s = 0.0
+        #: when the last update of the watchdog's input was applied (monotonic s): a tick
+        #: counts the silence since then, not since the tick before it
+        self._watchdog_update_s = 0.0
         self.watchdog_trips = 0
 
     # -- lifecycle -----------------------------------------------------------
@@ -539,6 +542,7 @@ class URSimulator:
                     self.inputs[n] = v
                 if WATCHDOG_VARIABLE in names:  # an update, whether or not the value changed
                     self._watchdog_silent_s = 0.0
+                    self._watchdog_update_s = now_s()
                 cmd = self.inputs.get("input_int_register_0", 0)
                 if cmd != self._last_cmd:
                     args = dict(zip(names, values, strict=True))
@@ -569,7 +573,10 @@ class URSimulator:
             with self._lock:
                 try:
                     if self.config.motion_clock == "wall":
-                        self._judge_watchdog(min(elapsed, MAX_SILENCE_TICK_S))
+                        # the silence since the last update when one came after the last tick: a
+                        # late tick counted the time before the update too, and tripped early
+                        silent = max(0.0, min(elapsed, t - self._watchdog_update_s))
+                        self._judge_watchdog(min(silent, MAX_SILENCE_TICK_S))
                     self._script_cycle()
                 except Exception:
                     self._runtime_error()
@@ -811,6 +818,7 @@ class URSimulator:
                 log.warning("rtde_set_watchdog with %.3g Hz is not simulated: ignored", hz)
                 return True
             self.watchdog_hz, self._watchdog_silent_s = hz, 0.0
+            self._watchdog_update_s = now_s()
             log.info("RTDE watchdog on %s at %.3g Hz", WATCHDOG_VARIABLE, hz)
             return True
         if cmd in (47, 48):  # isSteady (numbering differs between ur-rtde versions)
