@@ -13,7 +13,6 @@ linkages moving, so every push slot has something new to draw.
 
 from __future__ import annotations
 
-import os
 import sys
 import tempfile
 import time
@@ -24,39 +23,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from harness.bench.command_path import RobotUnderCommands
 from harness.headless_chromium import Chromium
 from harness.operator_process import OperatorWithDashboard
+from harness.processes import cpu_s, in_session, process_cpu_s
 
 WINDOW_S = 10.0
-TICKS = os.sysconf("SC_CLK_TCK")
 
 
-def cpu_s(pid: int) -> float:
-    """User and system seconds of one process so far."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / TICKS
-
-
-def tree_cpu_s(root: int) -> float:
-    """``cpu_s`` of a process and every descendant alive now."""
-    children: dict[int, list[int]] = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as f:
-                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-        except OSError:
-            continue
-        children.setdefault(ppid, []).append(int(entry))
-    total, todo = 0.0, [root]
-    while todo:
-        pid = todo.pop()
-        try:
-            total += cpu_s(pid)
-        except OSError:
-            continue
-        todo += children.get(pid, [])
-    return total
+def browser_cpu_s(page: Chromium) -> float:
+    """CPU seconds of every process of the browser's session (it starts in one of its own)."""
+    return sum(cpu_s(pid) or 0.0 for pid in in_session(page.proc.pid))
 
 
 def measure(push_rate_hz: float) -> None:
@@ -67,18 +41,18 @@ def measure(push_rate_hz: float) -> None:
         OperatorWithDashboard(workdir, rig.telemetry_endpoint, rig.command_endpoint, sets) as op,
     ):
         time.sleep(2.0)
-        c0 = cpu_s(op.proc.pid)
+        c0 = process_cpu_s(op.proc.pid)
         time.sleep(WINDOW_S)
-        idle = (cpu_s(op.proc.pid) - c0) / WINDOW_S
+        idle = (process_cpu_s(op.proc.pid) - c0) / WINDOW_S
         with Chromium(width=1280, height=1000) as page:
             page.navigate(op.url)
             page.wait_for("dxp.state.stimulus != null", 20)
             time.sleep(2.0)
             seq0 = page.evaluate("dxp.state.seq")
-            c0, b0 = cpu_s(op.proc.pid), tree_cpu_s(page.proc.pid)
+            c0, b0 = process_cpu_s(op.proc.pid), browser_cpu_s(page)
             time.sleep(WINDOW_S)
-            node = (cpu_s(op.proc.pid) - c0) / WINDOW_S
-            browser = (tree_cpu_s(page.proc.pid) - b0) / WINDOW_S
+            node = (process_cpu_s(op.proc.pid) - c0) / WINDOW_S
+            browser = (browser_cpu_s(page) - b0) / WINDOW_S
             drawn = (page.evaluate("dxp.state.seq") - seq0) / WINDOW_S
     print(
         f"push_rate_hz {push_rate_hz:g}: operator node {idle:.2f} CPU s/s with no page, "
