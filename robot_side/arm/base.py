@@ -115,11 +115,16 @@ def as_vector6(value: Sequence[float], what: str) -> np.ndarray:
 #: the time a deadman stop takes to reach the controller, and the thread's own lateness
 STOP_TRANSIT_S = 0.03
 
-#: The deadman's, the keep-alive's and a driver's control threads run at the robot node
-#: unit's priority (Nice=-10) where the process may raise it, like ur-rtde's own
-#: ``rt_priority``: a driver used from a process at ordinary priority (a tool, a test, a
-#: notebook) on a busy machine still stops its jogs and kicks its controller's watchdog.
-SAFETY_THREAD_NICE = -10
+#: The deadman's, the keep-alive's and a driver's control threads run above the rest of
+#: the robot node (its unit's Nice=-10) where the process may raise them (the unit's
+#: LimitNICE=-15), like ur-rtde's own ``rt_priority``. They sleep between short turns, so
+#: they take little; what they need is the CPU when they wake. At the node's own priority
+#: they queued behind ur-rtde's two receive threads (which poll every 100 us), the other
+#: threads of the node and whatever else runs at -10: on a saturated 2-core machine the
+#: keep-alive waited 168 ms for a CPU within 0.4 s (its schedstat) and the controller's
+#: watchdog tripped. A driver used from a process at ordinary priority (a tool, a test, a
+#: notebook) still stops its jogs and kicks its controller's watchdog.
+SAFETY_THREAD_NICE = -15
 
 
 def deadman_period_s(limits: ArmLimits) -> float:

@@ -174,6 +174,8 @@ def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecti
     with caplog.at_level("WARNING", logger="robot_side.arm.ur_rtde"):
         del arm._keep_alive  # the thread is alive again: it notices the stopped program
         assert wait_until(lambda: arm.needs_reconnect, 1.0)
+        # the thread logs what it noticed right after it marks the program lost
+        assert wait_until(lambda: "last two turns" in caplog.text, 1.0), caplog.text
     assert "program_lost" in arm.status()
     # the warning says which silence it was: no call held the wire, the kicks did not run
     said = re.search(
