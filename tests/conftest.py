@@ -157,8 +157,9 @@ def quiet_gc_module():
 
 @pytest.fixture(scope="module")
 def robot_node_priority_module():
-    """Every thread of this process at the robot unit's niceness (``Nice=-10``) for a module
-    whose fixture drives a UR arm from the test process, as the robot node does from its own.
+    """Every thread of this process at the robot unit's niceness (``Nice=-10``, the operator's
+    too) for a module whose fixture drives a UR arm from the test process, as the robot node
+    does from its own, or runs the nodes as threads of it.
 
     The driver's keep-alive thread runs at that niceness already, but each kick needs the
     GIL, and the lanes run the test process at -5, below three deployments' nodes and

@@ -21,7 +21,13 @@ from robot_side.node import RobotNode
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+#: the nodes run as threads of this process: at their units' priority, as deployed (a loaded
+#: clean-clone run read a lift-off 202 ms after the cut with the operator's loop at the tests' -5)
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.parallel,
+    pytest.mark.usefixtures("robot_node_priority_module"),
+]
 
 OUTAGE = (2.0, 3.5)  # seconds after the simulator starts
 CYCLE_MS = 1000 / 60
