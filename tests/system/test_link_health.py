@@ -21,7 +21,7 @@ from robot_side.node import RobotNode
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 
-#: the nodes run as threads of this process: at their units' priority, as deployed (a loaded
+#: the nodes run as threads of this process: at their units' priority, as deployed (a quiet
 #: clean-clone run read a lift-off 202 ms after the cut with the operator's loop at the tests' -5)
 pytestmark = [
     pytest.mark.slow,
