@@ -79,7 +79,7 @@ from robot_side.arm.base import SAFETY_THREAD_NICE, TELEMETRY_POSE_KEYS, Arm, Ar
 
 log = logging.getLogger(__name__)
 
-#: What the receive interface streams: only what this driver reads (less to parse at 500 Hz).
+#: What the receive interface streams: only what this driver reads (less to parse each package).
 RECEIVE_VARIABLES = [
     "timestamp",
     "actual_q",
@@ -223,7 +223,11 @@ CONTROL_CONNECT_RETRY_S = 0.2
 @dataclass
 class URArmConfig:
     host: str = param("192.168.1.10", "the UR controller's IP (pendant: Settings > Network)")
-    frequency_hz: float = param(500.0, "RTDE receive rate; the e-Series streams up to 500 Hz")
+    frequency_hz: float = param(
+        125.0,
+        "RTDE rate of both interfaces (the state stream, the control script's replies); the "
+        "e-Series streams up to 500 Hz, and nothing here reads faster than the 120 Hz frame loop",
+    )
     stale_after_s: float = param(
         0.1, "a controller timestamp frozen this long means it stopped streaming: reads raise"
     )
@@ -371,7 +375,7 @@ class URArm(Arm):
         ctrl = None
         for attempt in range(CONTROL_CONNECT_TRIES):
             try:
-                ctrl = rtde_control.RTDEControlInterface(host)
+                ctrl = rtde_control.RTDEControlInterface(host, self.config.frequency_hz)
                 break
             except RuntimeError as e:
                 # Right after a disconnect the controller may still hold our previous
@@ -578,7 +582,7 @@ class URArm(Arm):
             )
         if self._program_lost is not None:
             raise DeviceError(f"URArm: {what} refused: {self._program_lost}")
-        # the receive side notices a vanished controller first (its stream stops every 2 ms):
+        # the receive side notices a vanished controller first (a package every 8 ms stops):
         # a call into a control interface whose controller is gone may crash inside ur-rtde
         # (a segfault once, a realtime speedL at a controller killed mid-jog)
         if not ctrl.isConnected() or not self._recv.isConnected():
