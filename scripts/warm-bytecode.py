@@ -29,10 +29,12 @@ PACKAGES = (
     "matplotlib.pyplot",
     "mujoco",
     "OpenGL.GL",  # the lab's camera
+    "OpenGL.EGL",
     "aiortc",
     "av",
     "numba",
     "onnx",
+    "torch.onnx",  # training writes its graph
     "onnxruntime",
     "pyarrow.parquet",
     "foxglove",
@@ -43,8 +45,11 @@ PACKAGES = (
     "websockets.sync.client",
     "zmq",
     "msgpack",
+    "scservo_sdk",
+    "PIL.Image",
     "pytest",
     "xdist",
+    "execnet",
     "hypothesis.extra.numpy",
 )
 
