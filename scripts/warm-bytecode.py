@@ -1,4 +1,5 @@
-"""Import the heavy third-party packages once, so their bytecode is written once.
+"""Import the heavy third-party packages and compile the project once, so their bytecode is
+written once.
 
 ``make setup`` installs with ``--no-compile`` (compiling every file of every
 package took 31 of the install's 58 s), so Python compiles a module the first

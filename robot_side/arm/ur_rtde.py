@@ -582,7 +582,7 @@ class URArm(Arm):
             )
         if self._program_lost is not None:
             raise DeviceError(f"URArm: {what} refused: {self._program_lost}")
-        # the receive side notices a vanished controller first (a package every 8 ms stops):
+        # the receive side notices a vanished controller first (its stream of packages stops):
         # a call into a control interface whose controller is gone may crash inside ur-rtde
         # (a segfault once, a realtime speedL at a controller killed mid-jog)
         if not ctrl.isConnected() or not self._recv.isConnected():
