@@ -17,6 +17,7 @@ from __future__ import annotations
 import compileall
 import importlib
 import time
+import tomllib
 from pathlib import Path
 
 #: what the suite's processes import between them, heaviest first: the packages, and the
@@ -54,8 +55,13 @@ PACKAGES = (
     "hypothesis.extra.numpy",
 )
 
-#: the project's own packages: compiled whole, they are small
-PROJECT = ("common", "robot_side", "operator_side", "relay_side", "harness", "deploy")
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def project_packages() -> list[str]:
+    """The project's own packages, as pyproject.toml has setuptools find them."""
+    found = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    return [pattern.rstrip("*") for pattern in found["packages"]["find"]["include"]]
 
 
 def main() -> None:
@@ -67,9 +73,8 @@ def main() -> None:
         except Exception:  # not installed, or no library under it (OpenGL without a GL): skipped
             continue
         done.append(name)
-    root = Path(__file__).resolve().parent.parent
-    for package in PROJECT:
-        compileall.compile_dir(root / package, quiet=1)
+    for package in project_packages():  # compiled whole: they are small
+        compileall.compile_dir(ROOT / package, quiet=1)
     took = time.monotonic() - t0
     print(f"bytecode written for {', '.join(done)} and this project ({took:.1f} s)")
 

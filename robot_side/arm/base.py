@@ -123,7 +123,9 @@ STOP_TRANSIT_S = 0.03
 #: threads of the node and whatever else runs at -10: on a saturated 2-core machine the
 #: keep-alive waited 168 ms for a CPU within 0.4 s (its schedstat) and the controller's
 #: watchdog tripped. A driver used from a process at ordinary priority (a tool, a test, a
-#: notebook) still stops its jogs and kicks its controller's watchdog.
+#: notebook) still stops its jogs and kicks its controller's watchdog. Their priority does
+#: not help while a preempted thread of the node holds the interpreter lock they each need
+#: (measured: docs/robustness.md, "What the safety threads' priority cannot do").
 SAFETY_THREAD_NICE = -15
 
 
