@@ -22,7 +22,6 @@ import json
 import logging
 import os
 import signal
-import socket
 import subprocess
 import tempfile
 import termios
@@ -37,6 +36,7 @@ import numpy as np
 from common.clock import Rate
 from common.config import config_toml
 from common.devices import as_hardware
+from common.transport import free_loopback_ports
 from harness.bench.fixtures import scan_bytes
 from harness.bench.fmt import num, results_of, table
 from harness.bench.section import Context, Results, Section, Verdict
@@ -118,16 +118,9 @@ class PtyFeeder:
                 os.close(fd)
 
 
-def _free_ports(n: int) -> list[int]:
-    socks = []
-    for _ in range(n):
-        s = socket.socket()
-        s.bind(("127.0.0.1", 0))
-        socks.append(s)
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
+#: a port free a moment ago can be taken by any other process before the node binds it: a
+#: robot node that finds its address in use is started again on fresh ports, this often
+BIND_ATTEMPTS = 3
 
 
 def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
@@ -212,21 +205,14 @@ def run_nodes(
     from robot_side.config import RobotConfig
 
     workdir = Path(tempfile.mkdtemp(prefix="deepxpalm-bench-nodes-"))
-    tel, cmd = (f"tcp://127.0.0.1:{p}" for p in _free_ports(2))
     feeder = PtyFeeder(frames, rate_hz).start()
     robot_cfg = RobotConfig()
     robot_cfg.publish_rate_hz = publish_rate_hz
-    robot_cfg.link.telemetry_endpoint = tel
-    robot_cfg.link.command_endpoint = cmd
     robot_cfg.tactile = {"kind": "serial", "port": feeder.port}
     if backend is not None:
         robot_cfg.classifier.backend = backend
     op_cfg = OperatorConfig()
-    op_cfg.link.telemetry_endpoint = tel
-    op_cfg.link.command_endpoint = cmd
     op_cfg.servos = {"kind": "recording"}
-    (workdir / "robot.toml").write_text(config_toml(robot_cfg, "robot"))
-    (workdir / "operator.toml").write_text(config_toml(op_cfg, "operator"))
     procs: dict[str, subprocess.Popen] = {}
     watch: RobotWatch | None = None
     result: dict[str, Any] = {
@@ -236,33 +222,47 @@ def run_nodes(
         "measure_s": measure_s,
     }
     try:
-        procs["robot"] = _spawn(
-            [
-                "robot",
-                "--config",
-                str(workdir / "robot.toml"),
-                "--stats-file",
-                str(workdir / "robot.json"),
-            ],
-            workdir / "robot.log",
-        )
-        if with_operator:
-            procs["operator"] = _spawn(
+        for attempt in range(BIND_ATTEMPTS):
+            tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2))
+            for cfg in (robot_cfg, op_cfg):
+                cfg.link.telemetry_endpoint, cfg.link.command_endpoint = tel, cmd
+            (workdir / "robot.toml").write_text(config_toml(robot_cfg, "robot"))
+            (workdir / "operator.toml").write_text(config_toml(op_cfg, "operator"))
+            procs["robot"] = _spawn(
                 [
-                    "operator",
+                    "robot",
                     "--config",
-                    str(workdir / "operator.toml"),
+                    str(workdir / "robot.toml"),
                     "--stats-file",
-                    str(workdir / "operator.json"),
+                    str(workdir / "robot.json"),
                 ],
-                workdir / "operator.log",
+                workdir / "robot.log",
             )
-        watch = RobotWatch(tel)
-        try:
-            watch.wait_ready(procs["robot"], timeout_s=120.0)
-        except RuntimeError as e:
-            tail = (workdir / "robot.log").read_text(errors="replace")[-800:]
-            raise RuntimeError(f"{e}: {tail}") from None
+            if with_operator:
+                procs["operator"] = _spawn(
+                    [
+                        "operator",
+                        "--config",
+                        str(workdir / "operator.toml"),
+                        "--stats-file",
+                        str(workdir / "operator.json"),
+                    ],
+                    workdir / "operator.log",
+                )
+            watch = RobotWatch(tel)
+            try:
+                watch.wait_ready(procs["robot"], timeout_s=120.0)
+                break
+            except RuntimeError as e:
+                tail = (workdir / "robot.log").read_text(errors="replace")[-800:]
+                if attempt + 1 < BIND_ATTEMPTS and "Address already in use" in tail:
+                    watch.close()
+                    watch = None
+                    for proc in procs.values():
+                        _stop(proc)
+                    procs.clear()
+                    continue
+                raise RuntimeError(f"{e}: {tail}") from None
         time.sleep(warmup_s)
         for name, proc in procs.items():
             if proc.poll() is not None:
