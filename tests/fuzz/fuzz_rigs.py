@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import os
+import random
 import threading
 import time
 from typing import Any
@@ -37,6 +39,19 @@ from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 
 BIG_HWM = 1_000_000
+
+#: Malformed messages each node gets per run. Every run draws a new seed, so the runs between
+#: them cover far more mutants than one fixed set could (a run of 100,000 at a fixed seed took
+#: about 12 s of a deployment lane's two cores per node); a failure prints its seed, and
+#: ``DEEPXPALM_FUZZ_SEED`` / ``DEEPXPALM_FUZZ_N`` replay it or run more (docs/testing.md).
+N_MALFORMED = int(os.environ.get("DEEPXPALM_FUZZ_N", "25000"))
+
+
+def fuzz_seed() -> int:
+    """This run's seed: ``DEEPXPALM_FUZZ_SEED`` if set, else a fresh one; printed either way."""
+    seed = int(os.environ.get("DEEPXPALM_FUZZ_SEED") or random.SystemRandom().randrange(2**31))
+    print(f"fuzz seed {seed} (replay: DEEPXPALM_FUZZ_SEED={seed} DEEPXPALM_FUZZ_N={N_MALFORMED})")
+    return seed
 
 
 def _pub(ctx: zmq.Context, endpoint: str, *, bind: bool) -> zmq.Socket:

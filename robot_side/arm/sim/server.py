@@ -589,13 +589,18 @@ class URSimulator:
                 if self._async_running and not self.arm.moving:
                     self._async_running = False
                     self._set_async_progress(-1)
-                conns = [c for c in self._conns if c.alive and c.started and c.output]
-                state = self._state() if conns and not self._frozen.is_set() else None
+                # a package goes out at each connection's own rate (every output_divider
+                # ticks): the state is built only on a tick that sends one, a quarter of
+                # them at ur-rtde's 125 Hz (it was the cycle's largest cost)
+                due = []
+                for c in self._conns:
+                    if c.alive and c.started and c.output:
+                        c.ticks += 1
+                        if c.ticks % c.output_divider == 0:
+                            due.append(c)
+                state = self._state() if due and not self._frozen.is_set() else None
             if state is not None:
-                for c in conns:
-                    c.ticks += 1
-                    if c.ticks % c.output_divider:
-                        continue
+                for c in due:
                     self._send_data(c, state)
             rate.sleep()
 
