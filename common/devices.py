@@ -20,13 +20,14 @@ import logging
 import os
 import threading
 from collections.abc import Callable, Mapping
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar, Self, TypeVar
 
 from common.config import from_dict
 from common.errors import ConfigError, DeviceNotConnectedError
 from common.preflight import Finding, PreflightContext
 
 log = logging.getLogger(__name__)
+_T = TypeVar("_T")
 
 
 class Device(abc.ABC):
@@ -144,6 +145,37 @@ def at_niceness(nice: int, target: Callable[..., Any]) -> Callable[..., Any]:
                 os.setpriority(os.PRIO_PROCESS, tid, own)
 
     return run
+
+
+def raise_this_thread(nice: int) -> None:
+    """The calling thread, and every thread it starts from now on, at niceness ``nice`` where
+    the process may raise it (root, CAP_SYS_NICE, or the unit's LimitNICE); a thread already
+    higher keeps its own, and without the right nothing changes."""
+    tid = threading.get_native_id()
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, tid, min(nice, os.getpriority(os.PRIO_PROCESS, tid)))
+
+
+def native_threads_at(nice: int, make: Callable[[], _T]) -> _T:
+    """``make()``; the threads it started that are not Python's own run at ``nice`` or lower.
+
+    A C++ library's threads (ur-rtde's receive loops) start at their creator's niceness and
+    never take the interpreter lock, so they need not share the priority of the Python
+    threads around them; lowering a thread is always allowed. A Python thread started
+    meanwhile by another thread is recognised by its native id and left alone.
+    """
+    before = _thread_ids()
+    made = make()
+    python = {t.native_id for t in threading.enumerate()}
+    for tid in _thread_ids() - before - python:
+        with contextlib.suppress(OSError):  # ended meanwhile
+            if os.getpriority(os.PRIO_PROCESS, tid) < nice:
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
+    return made
+
+
+def _thread_ids() -> set[int]:
+    return {int(t) for t in os.listdir("/proc/self/task")}
 
 
 def as_hardware(target: Callable[..., Any]) -> Callable[..., Any]:

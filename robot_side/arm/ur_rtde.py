@@ -63,7 +63,7 @@ import numpy as np
 
 from common.clock import now_s
 from common.config import param
-from common.devices import at_niceness
+from common.devices import at_niceness, native_threads_at
 from common.errors import (
     ConfigError,
     DeviceAlreadyConnectedError,
@@ -75,7 +75,13 @@ from common.errors import (
 from common.logs import BurstLog
 from common.messages import ARM_SAFETY_MODES
 from common.preflight import Finding, PreflightContext, tcp_findings, tcp_probe
-from robot_side.arm.base import SAFETY_THREAD_NICE, TELEMETRY_POSE_KEYS, Arm, ArmLimits
+from robot_side.arm.base import (
+    NATIVE_DRIVER_THREAD_NICE,
+    SAFETY_THREAD_NICE,
+    TELEMETRY_POSE_KEYS,
+    Arm,
+    ArmLimits,
+)
 
 log = logging.getLogger(__name__)
 
@@ -366,8 +372,11 @@ class URArm(Arm):
         )
         self._require_ports_open(hint)
         try:
-            recv = rtde_receive.RTDEReceiveInterface(
-                host, self.config.frequency_hz, RECEIVE_VARIABLES
+            recv = native_threads_at(
+                NATIVE_DRIVER_THREAD_NICE,
+                lambda: rtde_receive.RTDEReceiveInterface(
+                    host, self.config.frequency_hz, RECEIVE_VARIABLES
+                ),
             )
         except RuntimeError as e:
             msg = f"URArm: RTDE receive to {host} failed ({e}); {hint}"
@@ -375,7 +384,10 @@ class URArm(Arm):
         ctrl = None
         for attempt in range(CONTROL_CONNECT_TRIES):
             try:
-                ctrl = rtde_control.RTDEControlInterface(host, self.config.frequency_hz)
+                ctrl = native_threads_at(
+                    NATIVE_DRIVER_THREAD_NICE,
+                    lambda: rtde_control.RTDEControlInterface(host, self.config.frequency_hz),
+                )
                 break
             except RuntimeError as e:
                 # Right after a disconnect the controller may still hold our previous

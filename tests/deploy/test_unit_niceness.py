@@ -9,8 +9,10 @@ import sys
 import threading
 from pathlib import Path
 
+import pytest
+
 from common.devices import SIMULATED_HARDWARE_NICE, as_hardware, at_niceness
-from deploy.unit_policy import set_niceness
+from deploy.unit_policy import set_niceness, unit_nice
 
 GROUP = Path("/proc/self/autogroup")  # absent on a kernel without sched_autogroup
 REPORT = (
@@ -94,3 +96,26 @@ def test_a_target_run_in_place_gives_the_caller_its_priority_back():
     during = as_hardware(lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))()
     assert during == (min(SIMULATED_HARDWARE_NICE, mine) if os.geteuid() == 0 else mine)
     assert os.getpriority(os.PRIO_PROCESS, tid) == mine
+
+
+@pytest.mark.slow
+@pytest.mark.untimed
+def test_the_robot_nodes_python_threads_run_at_the_safety_priority(tmp_path):
+    """The whole interpreter above the unit's Nice=-10, so that no thread holding the GIL
+    while preempted stands below the safety threads; ur-rtde's own threads below it."""
+    from harness.bench.command_path import RobotUnderCommands
+    from robot_side.arm.base import NATIVE_DRIVER_THREAD_NICE, SAFETY_THREAD_NICE
+
+    root = os.geteuid() == 0
+    with RobotUnderCommands(tmp_path) as rig:
+        pid = rig.proc.pid
+        nice = {
+            int(t): os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{pid}/task")
+        }
+    if not root:  # no right to raise: the node keeps what it was started with, and says so
+        assert nice[pid] == os.getpriority(os.PRIO_PROCESS, 0), nice
+        return
+    assert nice[pid] == SAFETY_THREAD_NICE, f"the main thread (the frame loop): {nice}"
+    assert set(nice.values()) <= {SAFETY_THREAD_NICE, NATIVE_DRIVER_THREAD_NICE}, nice
+    assert NATIVE_DRIVER_THREAD_NICE in nice.values(), f"ur-rtde's receive loops: {nice}"
+    assert unit_nice("robot") == NATIVE_DRIVER_THREAD_NICE

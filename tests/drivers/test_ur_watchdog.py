@@ -20,7 +20,7 @@ import pytest
 from tests_support import wait_until
 
 from common.errors import ConfigError, DeviceError
-from robot_side.arm.base import SAFETY_THREAD_NICE, ArmLimits
+from robot_side.arm.base import NATIVE_DRIVER_THREAD_NICE, SAFETY_THREAD_NICE, ArmLimits
 from robot_side.arm.ur_rtde import URArm, URArmConfig
 
 pytestmark = [
@@ -159,6 +159,30 @@ def test_the_threads_that_stop_and_kick_run_at_the_robot_nodes_priority(arm):
     assert {n: os.getpriority(os.PRIO_PROCESS, tid) for n, tid in threads.items()} == dict.fromkeys(
         names, expected
     )
+
+
+def test_ur_rtdes_own_threads_run_below_the_python_threads_that_drive_them(sim):
+    """Its receive loops never take the GIL: at the unit's -10, their polling stands in front
+    of no safety thread, and their wait for a CPU stops no Python thread."""
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    before = _thread_ids()
+    arm = URArm(URArmConfig(host=sim.host, limits=dataclasses.replace(LIMITS), stale_after_s=0.5))
+    arm.connect()
+    try:
+        python = {t.native_id for t in threading.enumerate()}
+        native = _thread_ids() - before - python
+        assert native, "ur-rtde started no thread of its own"
+        expected = max(mine, NATIVE_DRIVER_THREAD_NICE)  # lowered, never raised
+        assert {tid: os.getpriority(os.PRIO_PROCESS, tid) for tid in native} == dict.fromkeys(
+            native, expected
+        )
+        assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine
+    finally:
+        arm.disconnect()
+
+
+def _thread_ids() -> set[int]:
+    return {int(t) for t in os.listdir("/proc/self/task")}
 
 
 def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecting(
