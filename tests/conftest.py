@@ -157,23 +157,27 @@ def quiet_gc_module():
 
 @pytest.fixture(scope="module")
 def robot_node_priority_module():
-    """Every thread of this process at the robot node's (its Python threads run at the safety
-    threads' -15, ``robot_side.arm.base.SAFETY_THREAD_NICE``) for a module whose fixture
-    drives a UR arm from the test process, as the robot node does from its own, or runs the
-    nodes as threads of it. ur-rtde's threads started later go to the unit's -10, as the
-    node's do.
+    """Every thread of this process at the robot unit's niceness (``Nice=-10``, the operator's
+    too) for a module whose fixture drives a UR arm from the test process, as the robot node
+    does from its own, or runs the nodes as threads of it.
 
-    The driver's keep-alive thread runs at -15 already, but each kick needs the GIL, and
-    the lanes run the test process at -5, below three deployments' nodes and simulators: a
-    test thread holding the GIL got so little CPU that the kicks stopped for 162 ms and the
-    arm's controller stopped the program (its window is 150 ms). That is this process
-    standing below the node it stands for, not the node. Where the process may not raise a
-    priority, nothing changes. Each thread gets its own back after.
+    The driver's keep-alive thread runs at that niceness already, but each kick needs the
+    GIL, and the lanes run the test process at -5, below three deployments' nodes and
+    simulators at -10: a test thread holding the GIL got so little CPU that the kicks
+    stopped for 162 ms and the arm's controller stopped the program (its window is 150 ms).
+    That is this process standing below the node it stands for, not the node. Where the
+    process may not raise a priority, nothing changes. Each thread gets its own back after.
+
+    Not the -15 the robot node runs its Python threads at (``robot_side.node_cli``): a test
+    process does other work too (a training run, a browser's driver, its assertions), which
+    at -15 stood above every deployment's node beside it (a -15 probe thread in a robot node
+    waited 300-600 ms for a CPU).
     """
+    from deploy.unit_policy import unit_nice
     from harness.processes import raise_threads
-    from robot_side.arm.base import SAFETY_THREAD_NICE
 
-    before = raise_threads(os.getpid(), SAFETY_THREAD_NICE)
+    nice = unit_nice("robot")
+    before = raise_threads(os.getpid(), nice) if nice is not None else {}
     yield
     for tid, own in before.items():
         with contextlib.suppress(OSError):  # a thread that ended meanwhile

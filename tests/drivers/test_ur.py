@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from tests_support import wait_until
 
+from common.clock import now_s
 from common.config import from_dict
 from common.devices import build_device
 from common.errors import (
@@ -434,6 +435,30 @@ def test_an_external_motion_clock_moves_the_arm_only_by_the_time_its_owner_steps
         for _ in range(20):
             sim.advance(0.01)
         assert sim.watchdog_trips == 1 and not sim.program_running
+    finally:
+        sim.stop()
+
+
+def test_an_external_clocks_catch_up_is_no_silence_after_an_update():
+    """A world behind real time steps the time it owes at once; that time passed before an
+    update applied meanwhile, and the watchdog must not count it after (a lab trial tripped
+    at 141 ms of real silence in a 150 ms window). Silence counts on both clocks."""
+    sim = URSimulator(URSimConfig(host="auto", motion_clock="external")).start()
+    window_s = 0.5  # wide: the real-time steps below may run late on a busy machine
+    try:
+        with sim._lock:  # a running script with its watchdog, and an update just applied
+            sim.program_running, sim.watchdog_hz = True, 1 / window_s
+            sim._watchdog_silent_s, sim._watchdog_update_s = 0.0, now_s()
+        updated = now_s()
+        sim.advance(0.35)  # owed from before the update
+        while now_s() - updated < 0.2:  # then in real time: 0.55 s of the world's clock
+            time.sleep(0.01)
+            sim.advance(0.01)
+        assert sim.watchdog_trips == 0 and sim.program_running, "a catch-up counted as silence"
+        while sim.program_running and now_s() - updated < 5.0:  # silent on both clocks: a stop
+            time.sleep(0.01)
+            sim.advance(0.01)
+        assert sim.watchdog_trips == 1 and now_s() - updated > window_s
     finally:
         sim.stop()
 
