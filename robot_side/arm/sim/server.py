@@ -451,10 +451,16 @@ class URSimulator:
         buf = b""
         try:
             while not self._quit.is_set():
+                # Marked before it leaves the socket: recv() gives up the GIL, and the thread
+                # that has taken the bytes waits for it back while the judging thread holds it,
+                # which then saw neither bytes in the socket nor any in hand (a lab trial's
+                # watchdog tripped at 103 ms of real silence in a 150 ms window).
+                if not sock.recv(1, socket.MSG_PEEK):
+                    break
+                conn.in_hand = True  # arrived: the watchdog must not count it as missing
                 chunk = sock.recv(65536)
                 if not chunk:
                     break
-                conn.in_hand = True  # arrived: the watchdog must not count it as missing
                 buf += chunk
                 while len(buf) >= w.HEADER.size:
                     size, mtype = w.HEADER.unpack_from(buf)
