@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from tests_support import wait_until
 
+from common.devices import at_niceness
 from common.errors import ConfigError, DeviceError
 from robot_side.arm.base import NATIVE_DRIVER_THREAD_NICE, SAFETY_THREAD_NICE, ArmLimits
 from robot_side.arm.ur_rtde import URArm, URArmConfig
@@ -167,12 +168,17 @@ def test_ur_rtdes_own_threads_run_below_the_python_threads_that_drive_them(sim):
     mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
     before = _thread_ids()
     arm = URArm(URArmConfig(host=sim.host, limits=dataclasses.replace(LIMITS), stale_after_s=0.5))
-    arm.connect()
+
+    def connect() -> int:  # from a thread at the robot node's -15, as the node connects
+        arm.connect()
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    creator = at_niceness(SAFETY_THREAD_NICE, connect)()
     try:
         python = {t.native_id for t in threading.enumerate()}
         native = _thread_ids() - before - python
         assert native, "ur-rtde started no thread of its own"
-        expected = max(mine, NATIVE_DRIVER_THREAD_NICE)  # lowered, never raised
+        expected = max(creator, NATIVE_DRIVER_THREAD_NICE)  # lowered, never raised
         assert {tid: os.getpriority(os.PRIO_PROCESS, tid) for tid in native} == dict.fromkeys(
             native, expected
         )
