@@ -101,16 +101,22 @@ class Attachment(Protocol):
 
 
 def freeze_startup_heap() -> int:
-    """Collect once, then exempt everything alive from the cyclic collector; returns how many.
+    """Exempt everything alive from the cyclic collector (``gc.freeze``); returns how many.
 
     A full collection walks every tracked object. With a node's stack loaded
     (NumPy, ZeroMQ, and on the robot numba and the model) that is over 100,000
     objects and tens of milliseconds (docs/benchmarks.md, Conditions): a stall
     in a 60 Hz loop whenever the collector decides to run. What is alive once
-    the node is built lives as long as the process, so it is frozen
-    (``gc.freeze``) and later collections walk only what the loop makes.
+    the node is built lives as long as the process, so it is frozen and later
+    collections walk only what the loop makes.
+
+    No collection first: the node is built, its arm connected and the
+    controller's watchdog armed, and a full collection holds the interpreter
+    lock throughout (37 ms on a quiet machine with the robot's stack, longer
+    when the process is preempted meanwhile), which stops the keep-alive's
+    kicks too. :func:`run_node` collects before it builds instead; what the
+    build left as garbage stays, once.
     """
-    gc.collect()
     gc.freeze()
     return gc.get_freeze_count()
 
@@ -138,14 +144,21 @@ def run_node(
 
         recorder = node_recorder(args.record, config, section)
     stop = stop_on_signals()
+    # no collection from here until the heap is frozen: the devices connect during the build
+    # (freeze_startup_heap); what the imports so far left goes now
+    gc.collect()
+    gc.disable()
     try:
-        node = build(config, recorder)
-        reload = getattr(node, "roster_reload", None)  # the robot's, with a roster
-        if reload is not None:
-            reload_on_hangup(reload)
-        extra = attach(node, config) if attach is not None else None
-        watch = watch_node(node, stop)  # READY=1 once the loop runs, WATCHDOG=1 while it does
-        frozen = freeze_startup_heap()
+        try:
+            node = build(config, recorder)
+            reload = getattr(node, "roster_reload", None)  # the robot's, with a roster
+            if reload is not None:
+                reload_on_hangup(reload)
+            extra = attach(node, config) if attach is not None else None
+            watch = watch_node(node, stop)  # READY=1 once the loop runs, WATCHDOG=1 while it does
+            frozen = freeze_startup_heap()
+        finally:
+            gc.enable()
         full_before = gc.get_stats()[2]["collections"]
         try:
             node.run(stop, args.duration)

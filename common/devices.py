@@ -147,15 +147,6 @@ def at_niceness(nice: int, target: Callable[..., Any]) -> Callable[..., Any]:
     return run
 
 
-def raise_this_thread(nice: int) -> None:
-    """The calling thread, and every thread it starts from now on, at niceness ``nice`` where
-    the process may raise it (root, CAP_SYS_NICE, or the unit's LimitNICE); a thread already
-    higher keeps its own, and without the right nothing changes."""
-    tid = threading.get_native_id()
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, tid, min(nice, os.getpriority(os.PRIO_PROCESS, tid)))
-
-
 def native_threads_at(nice: int, make: Callable[[], _T]) -> _T:
     """``make()``; the threads it started that are not Python's own run at ``nice`` or lower.
 

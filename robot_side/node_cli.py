@@ -27,12 +27,4 @@ def _build(config: RobotConfig, recorder: Any) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from common.devices import raise_this_thread
-    from robot_side.arm.base import SAFETY_THREAD_NICE
-
-    # Before any thread starts, so that every Python thread of the node inherits it: a
-    # thread below the safety threads that holds the interpreter lock while preempted
-    # stops them too (robot_side.arm.base.SAFETY_THREAD_NICE). ur-rtde's own threads are
-    # put back at the unit's niceness by the driver.
-    raise_this_thread(SAFETY_THREAD_NICE)
     return run_node(args, RobotConfig, "robot", _build)

@@ -168,10 +168,6 @@ def robot_node_priority_module():
     That is this process standing below the node it stands for, not the node. Where the
     process may not raise a priority, nothing changes. Each thread gets its own back after.
 
-    Not the -15 the robot node runs its Python threads at (``robot_side.node_cli``): a test
-    process does other work too (a training run, a browser's driver, its assertions), which
-    at -15 stood above every deployment's node beside it (a -15 probe thread in a robot node
-    waited 300-600 ms for a CPU).
     """
     from deploy.unit_policy import unit_nice
     from harness.processes import raise_threads

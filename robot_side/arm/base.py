@@ -115,24 +115,22 @@ def as_vector6(value: Sequence[float], what: str) -> np.ndarray:
 #: the time a deadman stop takes to reach the controller, and the thread's own lateness
 STOP_TRANSIT_S = 0.03
 
-#: The deadman's, the keep-alive's and a driver's control threads run above the robot
-#: node's unit (Nice=-10) where the process may raise them (the unit's LimitNICE=-15), like
-#: ur-rtde's own ``rt_priority``. They sleep between short turns, so they take little; what
-#: they need is the CPU when they wake. At the node's own priority they queued behind
-#: ur-rtde's two receive threads (which poll every 100 us) and whatever else runs at -10: on
-#: a saturated 2-core machine the keep-alive waited 168 ms for a CPU within 0.4 s (its
-#: schedstat) and the controller's watchdog tripped. Each of their turns needs the
-#: interpreter lock, though, and a thread of lower priority that holds it while preempted
-#: stops them all (127 and 192 ms measured): so the robot node runs every one of its Python
-#: threads here (``robot_side.node_cli``), and only ur-rtde's own threads, which never take
-#: the lock, below (:data:`NATIVE_DRIVER_THREAD_NICE`). A driver used from a process at
-#: ordinary priority (a tool, a test, a notebook) still stops its jogs and kicks its
-#: controller's watchdog. docs/robustness.md has the measurements.
+#: The deadman's, the keep-alive's and a driver's control threads run above the rest of
+#: the robot node (its unit's Nice=-10) where the process may raise them (the unit's
+#: LimitNICE=-15), like ur-rtde's own ``rt_priority``. They sleep between short turns, so
+#: they take little; what they need is the CPU when they wake. At the node's own priority
+#: they queued behind ur-rtde's two receive threads (which poll every 100 us), the other
+#: threads of the node and whatever else runs at -10: on a saturated 2-core machine the
+#: keep-alive waited 168 ms for a CPU within 0.4 s (its schedstat) and the controller's
+#: watchdog tripped. A driver used from a process at ordinary priority (a tool, a test, a
+#: notebook) still stops its jogs and kicks its controller's watchdog. Their priority does
+#: not help while a preempted thread of the node holds the interpreter lock they each need,
+#: and the whole node at -15 starved the simulated hardware instead (docs/robustness.md).
 SAFETY_THREAD_NICE = -15
 #: ur-rtde's own threads (the receive loops that poll every 100 us) run at the robot unit's
-#: Nice=-10, below the node's Python threads: they never take the interpreter lock, so their
-#: wait for a CPU stops no Python thread, and their polling does not stand in front of the
-#: keep-alive. A driver in a process at lower priority leaves them at its own.
+#: Nice=-10 whichever thread connects (a reconnect may come from a -15 thread): they never
+#: take the interpreter lock, and at -15 their polling would stand in front of the safety
+#: threads. A driver in a process at lower priority leaves them at its own.
 NATIVE_DRIVER_THREAD_NICE = -10
 
 
