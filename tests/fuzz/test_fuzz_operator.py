@@ -1,4 +1,4 @@
-"""Malformed messages at a running operator node's telemetry: 25,000 a run, a new seed each run.
+"""Malformed messages at a running operator node's telemetry: 25,000 a run.
 
 The node keeps running, keeps rendering a good stimulus stream sent in
 between, counts every rejected message, and the servo bus never receives a
@@ -39,7 +39,7 @@ def rig():
 def test_operator_survives_malformed_telemetry_and_keeps_rendering(rig):
     t0 = time.monotonic()
     # about 15% of mutants still decode; generate until N_MALFORMED rejected ones were sent
-    stream = MutantStream(seed=fuzz_seed(), total=2 * N_MALFORMED, kinds=KINDS)
+    stream = MutantStream(seed=fuzz_seed(606), total=2 * N_MALFORMED, kinds=KINDS)
     verdicts: collections.Counter[str] = collections.Counter()
     escaped, spec, valid = [], [], []
     base_rejected = rig.rejected()
