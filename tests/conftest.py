@@ -167,7 +167,6 @@ def robot_node_priority_module():
     stopped for 162 ms and the arm's controller stopped the program (its window is 150 ms).
     That is this process standing below the node it stands for, not the node. Where the
     process may not raise a priority, nothing changes. Each thread gets its own back after.
-
     """
     from deploy.unit_policy import unit_nice
     from harness.processes import raise_threads
