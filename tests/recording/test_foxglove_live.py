@@ -7,6 +7,11 @@ the server's ``advertise`` ops, sends ``subscribe`` and decodes binary message-d
 0x01, subscription id u32, timestamp u64, payload). The session is written
 by a child process through ``McapRecorder``, as the robot node and the video
 server write theirs: the arm at 20 Hz, the camera at 10 fps.
+
+The client subscribes again when the server answers "Unknown channel ID" for
+a channel it has advertised: foxglove-sdk sends a channel's advertisement
+before it records the channel for that client, so on a loaded machine a
+subscription can arrive in between and be refused (docs/recording.md).
 """
 
 from __future__ import annotations
@@ -15,10 +20,12 @@ import asyncio
 import itertools
 import json
 import os
+import re
 import struct
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -30,8 +37,7 @@ from common.foxglove import FoxgloveLiveConfig
 make_reader = pytest.importorskip("mcap.reader", reason="the 'record' extra").make_reader
 websockets = pytest.importorskip("websockets", reason="the test's client uses websockets")
 
-#: serial: the live view's pace is judged against the recorders' 1 s flush; beside another
-#: deployment its camera channel once sent nothing the test saw (not yet understood)
+#: serial: the live view's pace is judged against the recorders' 1 s flush
 pytestmark = pytest.mark.serial
 
 REPO = Path(__file__).resolve().parents[2]
@@ -41,6 +47,8 @@ WATCH_S = 3.0
 DELAY_S = 3.0
 #: what Foxglove's app offers: the SDK's name for the protocol, and ws-protocol's original
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+#: the server's answer to a subscription to a channel it does not know (yet)
+UNKNOWN_CHANNEL = re.compile(r"Unknown channel ID: (\d+)")
 TOPICS = {
     "camera/image": ("foxglove.CompressedImage", 10.0),
     "robot/tf/tcp": ("foxglove.FrameTransform", 20.0),
@@ -61,6 +69,11 @@ async def _connect(url: str):
             await asyncio.sleep(0.2)
 
 
+async def _subscribe(ws, sub_id: int, channel_id: int) -> None:
+    message = {"op": "subscribe", "subscriptions": [{"id": sub_id, "channelId": channel_id}]}
+    await ws.send(json.dumps(message))
+
+
 async def _watch(url: str, topics: set[str], seconds: float, start) -> dict:
     """Subscribe to ``topics`` once advertised; (receive time, log time, message) per topic.
 
@@ -69,6 +82,7 @@ async def _watch(url: str, topics: set[str], seconds: float, start) -> dict:
     got: dict[str, list] = {t: [] for t in topics}
     advertised: dict[int, dict] = {}
     subs: dict[int, str] = {}
+    resubscribed: list[int] = []
     async with await _connect(url) as ws:
         start()
         assert ws.subprotocol in SUBPROTOCOLS
@@ -89,14 +103,14 @@ async def _watch(url: str, topics: set[str], seconds: float, start) -> dict:
                         if ch["topic"] in topics and ch["topic"] not in subs.values():
                             sub_id = len(subs) + 1
                             subs[sub_id] = ch["topic"]
-                            await ws.send(
-                                json.dumps(
-                                    {
-                                        "op": "subscribe",
-                                        "subscriptions": [{"id": sub_id, "channelId": ch["id"]}],
-                                    }
-                                )
-                            )
+                            await _subscribe(ws, sub_id, ch["id"])
+                elif op["op"] == "status" and (refused := UNKNOWN_CHANNEL.fullmatch(op["message"])):
+                    # the SDK's race (module docstring): the channel was advertised, so ask again
+                    channel_id = int(refused[1])
+                    (sub_id,) = [s for s, t in subs.items() if t == advertised[channel_id]["topic"]]
+                    resubscribed.append(channel_id)
+                    await asyncio.sleep(0.05)
+                    await _subscribe(ws, sub_id, channel_id)
                 continue
             if frame[0] != 0x01:  # only message data
                 continue
@@ -105,7 +119,7 @@ async def _watch(url: str, topics: set[str], seconds: float, start) -> dict:
             got[topic].append((time.monotonic(), log_time, json.loads(frame[13:])))
             if t_first is None and all(got.values()):
                 t_first = time.monotonic()
-    return {"got": got, "advertised": advertised}
+    return {"got": got, "advertised": advertised, "resubscribed": resubscribed}
 
 
 @pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.10", "robot-pc.local"])
@@ -155,6 +169,12 @@ def live(tmp_path_factory):
     try:
         url = f"ws://127.0.0.1:{port}/"
         seen = asyncio.run(_watch(url, set(TOPICS), WATCH_S, start_writer))
+        if seen["resubscribed"]:
+            warnings.warn(
+                f"the server refused a subscription to channel(s) {seen['resubscribed']} it had "
+                "just advertised (foxglove-sdk's race); subscribed again",
+                stacklevel=1,
+            )
         assert procs[1].wait(timeout=60) == 0
         recorded: dict[str, list[int]] = {t: [] for t in TOPICS}
         for name in ("robot", "camera"):
