@@ -526,16 +526,55 @@ class CaptureLink(Link):
         self.sub.deliver(msg, t_recv_ns)
 
 
+#: Where ports known in advance are drawn: from here up to the kernel's ephemeral range.
+KNOWN_PORTS_FROM = 10000
+
+
+def _ephemeral_low(path: str = "/proc/sys/net/ipv4/ip_local_port_range") -> int | None:
+    """The lowest port the kernel hands out on its own (a bind to port 0, a connect)."""
+    try:
+        with open(path) as f:
+            return int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def free_loopback_ports(n: int, host: str = "127.0.0.1") -> list[int]:
-    """``n`` TCP ports free on ``host`` right now (for endpoints that must be known in advance)."""
+    """``n`` TCP ports free on ``host`` right now (for endpoints that must be known in advance).
+
+    Drawn at random below the kernel's ephemeral range: a port there can only be taken by a
+    process that names it. A port the kernel picked itself (a bind to port 0) was free only
+    until the probe closed it: any process's next bind to port 0, or an outgoing
+    connection's source port, could take it before the caller bound it (a robot node's
+    bind failed that way beside two other deployments). Each port is bound once here to
+    check that nothing listens on it. Where the range leaves no room below it, the kernel
+    picks.
+    """
+    import random
     import socket
 
-    socks = []
+    low = _ephemeral_low()
+    socks: list[socket.socket] = []
     try:
-        for _ in range(n):
+        if low is None or low - KNOWN_PORTS_FROM < 1000:
+            for _ in range(n):
+                s = socket.socket()
+                s.bind((host, 0))
+                socks.append(s)
+            return [s.getsockname()[1] for s in socks]
+        draws = random.SystemRandom()
+        for _ in range(100 * n):
+            if len(socks) == n:
+                break
             s = socket.socket()
-            s.bind((host, 0))
+            try:
+                s.bind((host, draws.randrange(KNOWN_PORTS_FROM, low)))
+            except OSError:  # in use (or in TIME_WAIT): draw again
+                s.close()
+                continue
             socks.append(s)
+        if len(socks) < n:
+            raise OSError(f"no {n} free ports on {host} in {KNOWN_PORTS_FROM}..{low - 1}")
         return [s.getsockname()[1] for s in socks]
     finally:
         for s in socks:
