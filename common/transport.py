@@ -554,23 +554,20 @@ def free_loopback_ports(n: int, host: str = "127.0.0.1") -> list[int]:
     import socket
 
     low = _ephemeral_low()
+    room = low is not None and low - KNOWN_PORTS_FROM >= 1000
+    draws = random.SystemRandom()
     socks: list[socket.socket] = []
     try:
-        if low is None or low - KNOWN_PORTS_FROM < 1000:
-            for _ in range(n):
-                s = socket.socket()
-                s.bind((host, 0))
-                socks.append(s)
-            return [s.getsockname()[1] for s in socks]
-        draws = random.SystemRandom()
         for _ in range(100 * n):
             if len(socks) == n:
                 break
             s = socket.socket()
             try:
-                s.bind((host, draws.randrange(KNOWN_PORTS_FROM, low)))
+                s.bind((host, draws.randrange(KNOWN_PORTS_FROM, low) if room else 0))
             except OSError:  # in use (or in TIME_WAIT): draw again
                 s.close()
+                if not room:
+                    raise
                 continue
             socks.append(s)
         if len(socks) < n:

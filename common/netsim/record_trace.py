@@ -70,9 +70,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     child = None
     if args.loopback:
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
+        from common.transport import free_loopback_ports
+
+        (port,) = free_loopback_ports(1)
         child = subprocess.Popen(
             [sys.executable, "-m", "common.netsim.record_trace", "--serve", f"127.0.0.1:{port}"],
             stdout=subprocess.PIPE,

@@ -13,6 +13,7 @@ import time
 import msgpack
 import pytest
 import zmq
+from tests_support import free_ports
 
 from operator_side.config import OperatorConfig
 from operator_side.renderer_config import RendererConfig
@@ -27,14 +28,6 @@ RENDERED_WITHIN_MS = (
 )
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "deploy.cli", *args]
 
@@ -42,7 +35,7 @@ def _cli(*args: str) -> list[str]:
 def test_operator_process_never_imports_torch(tmp_path):
     """Run the operator node for a second, then look at what its process imported."""
     probe = tmp_path / "probe.py"
-    tel, cmd = _free_port(), _free_port()
+    tel, cmd = free_ports(2)
     probe.write_text(
         "import sys, threading\n"
         "from operator_side.config import OperatorConfig\n"
@@ -63,7 +56,7 @@ def test_operator_process_never_imports_torch(tmp_path):
 
 def test_live_stream_decodes_with_an_independent_decoder_from_the_protocol_doc(tmp_path):
     """Only msgpack and struct, exactly as docs/protocol.md describes the stream."""
-    tel, cmd = _free_port(), _free_port()
+    tel, cmd = free_ports(2)
     robot = subprocess.Popen(
         _cli(
             "robot",
@@ -150,7 +143,7 @@ def test_operator_status_file_shows_the_node_from_outside(tmp_path):
     from operator_side.node import Snapshot
 
     status = tmp_path / "operator-status.json"
-    tel, cmd = _free_port(), _free_port()
+    tel, cmd = free_ports(2)
     proc = subprocess.Popen(
         _cli(
             "operator",

@@ -8,7 +8,7 @@ import time
 
 import pytest
 import zmq
-from tests_support import ProtocolOperator, RecordingArm
+from tests_support import ProtocolOperator, RecordingArm, free_ports
 
 from common.codec import encode
 from common.errors import LinkError
@@ -56,16 +56,6 @@ class Relay:
         self.server.close()
 
 
-def _ports() -> tuple[int, int]:
-    socks = [socket.socket() for _ in range(2)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = tuple(s.getsockname()[1] for s in socks)
-    for s in socks:
-        s.close()
-    return ports
-
-
 def _collect(sub: Subscriber, seconds: float) -> list:
     out, end = [], time.monotonic() + seconds
     while time.monotonic() < end:
@@ -75,7 +65,7 @@ def _collect(sub: Subscriber, seconds: float) -> list:
 
 
 def test_only_an_allowed_key_reads_the_stream_or_moves_the_arm(keys):
-    tel, cmd = _ports()
+    tel, cmd = free_ports(2)
     rc = RobotConfig()
     rc.render.mode = "mask_ground_truth"
     rc.link.telemetry_endpoint = f"tcp://127.0.0.1:{tel}"
