@@ -1,0 +1,292 @@
+"""A node's link over the Zenoh fabric: the same ``Sender`` and ``Receiver`` as ZeroMQ's.
+
+What travels is the codec's frame, byte for byte as on a direct link (topic,
+robot name, msgpack, signature); the key expression (keyexprs.py) routes it.
+Each kind of message gets the quality of service it needs:
+
+- stimuli and display frames: best-effort, dropped under congestion, express,
+  at the highest priority: a stimulus is worth something only while it is the
+  newest, so it never waits behind a lost packet (QUIC datagrams);
+- commands, heartbeats and video signals: reliable (a QUIC stream), dropped
+  rather than queued when the session cannot send (the router is away): the
+  node's own freshness rules see the silence;
+- an operator's ``arm_stop``: reliable at the highest priority, and
+  ``STOP_COPIES`` best-effort copies beside it, so a lost packet cannot delay
+  it by a retransmission. The receiver keeps the first copy and drops the rest
+  (``stop_copies_dropped``); the operator node also resends a stop until the
+  robot's heartbeat shows it latched.
+
+Receiving never blocks Zenoh: the callback only appends to a bounded queue (a
+slot of one per latest-value key) and wakes the node's poll through a pipe.
+Decoding, signature checks and everything else happen on the node's thread in
+``drain``, exactly as for ``common.transport.Subscriber``.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import hashlib
+import logging
+import math
+import os
+import threading
+from collections import Counter
+from typing import Any
+
+import zmq
+
+from common.clock import now_ns
+from common.codec import (
+    DecodeError,
+    WrongRobotError,
+    decode_named,
+    encode,
+    name_prefix,
+)
+from common.fabric import keyexprs
+from common.logs import BurstLog
+from common.messages import Message, TactileFrame
+
+log = logging.getLogger(__name__)
+
+#: best-effort copies of an arm_stop sent beside its reliable one
+STOP_COPIES = 2
+#: how many stop payloads the receiver remembers to drop the copies of
+_STOP_MEMORY = 32
+
+
+def _qos(kind: str, best_effort: bool) -> dict[str, Any]:
+    import zenoh
+
+    priority = {
+        "stimulus": zenoh.Priority.REAL_TIME,
+        keyexprs.STOP: zenoh.Priority.REAL_TIME,
+        "command": zenoh.Priority.INTERACTIVE_HIGH,
+        "heartbeat": zenoh.Priority.INTERACTIVE_LOW,
+        "frame": zenoh.Priority.DATA_HIGH,
+        "video": zenoh.Priority.DATA,
+    }[kind]
+    return {
+        "reliability": zenoh.Reliability.BEST_EFFORT if best_effort else zenoh.Reliability.RELIABLE,
+        # BLOCK could hold the node's loop on a congested link: nothing here waits
+        "congestion_control": zenoh.CongestionControl.DROP,
+        "express": True,
+        "priority": priority,
+    }
+
+
+class FabricPublisher:
+    """Sends a node's messages to their key expressions (``Sender``).
+
+    ``robot``: the robot the messages are of (our own name on a robot).
+    ``operator``: our roster name when we are an operator, None on a robot.
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        *,
+        robot: bytes,
+        operator: str | None,
+        signer: Any = None,
+        endpoint: str = "",
+    ) -> None:
+        self.session = session
+        self.name = robot
+        self.signer = signer
+        self.from_robot = operator is None
+        self.endpoint = endpoint
+        self.sent = 0
+        self.bytes_sent = 0
+        self.send_errors = 0
+        kinds = keyexprs.ROBOT_KINDS if self.from_robot else keyexprs.OPERATOR_KINDS
+        names = set(kinds.values()) | (set() if self.from_robot else {keyexprs.STOP})
+        self._pubs: dict[str, Any] = {}
+        self._copies: Any = None
+        for kind in sorted(names):
+            key = (
+                keyexprs.robot_key(robot, kind)
+                if self.from_robot
+                else keyexprs.operator_key(robot, operator, kind)
+            )
+            best_effort = kind in keyexprs.LATEST_VALUE_KINDS
+            self._pubs[kind] = session.declare_publisher(key, **_qos(kind, best_effort))
+            if kind == keyexprs.STOP:
+                self._copies = session.declare_publisher(key, **_qos(kind, True))
+
+    def send(self, msg: Message) -> bytes:
+        data = encode(msg, self.name, self.signer)
+        self.send_raw(data, keyexprs.kind_of(msg, self.from_robot))
+        return data
+
+    def send_raw(self, data: bytes, kind: str) -> None:
+        import zenoh
+
+        try:
+            self._pubs[kind].put(data)
+            if kind == keyexprs.STOP:
+                for _ in range(STOP_COPIES):
+                    self._copies.put(data)
+        except zenoh.ZError as e:  # a closed session: the node is shutting down
+            self.send_errors += 1
+            log.debug("fabric put on %s failed: %s", kind, e)
+            return
+        self.sent += 1
+        self.bytes_sent += len(data)
+
+    def read_subscriptions(self) -> bool:
+        """Nothing to read: Zenoh tells each publisher whether anyone matches (``wanted``)."""
+        return False
+
+    def wanted(self, prefix: bytes) -> bool:
+        """Does anyone read raw frames? (Only frames are skipped when nobody does.)"""
+        if not self.from_robot or prefix != name_prefix(TactileFrame.TOPIC, self.name):
+            return True
+        try:
+            return bool(self._pubs["frame"].matching_status.matching)
+        except Exception:  # a closed session: sending is moot anyway
+            return False
+
+    def close(self) -> None:
+        for pub in (*self._pubs.values(), self._copies):
+            if pub is not None:
+                with contextlib.suppress(Exception):
+                    pub.undeclare()
+        self._pubs.clear()
+        self._copies = None
+
+
+class FabricSubscriber:
+    """Receives a node's messages from key expressions (``Receiver``).
+
+    Latest-value keys keep one message each (the newest); the others queue up
+    to ``queue`` messages, the oldest dropped first when a peer floods
+    (``queue_dropped``). ``poller`` is a ``zmq.Poller`` on the wake pipe, so a
+    node can register its other file descriptors beside it, as with ZeroMQ.
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        keys: tuple[str, ...],
+        *,
+        expect_name: bytes | None,
+        name: str = "subscriber",
+        queue: int = 256,
+        endpoint: str = "",
+    ) -> None:
+        self.endpoint = endpoint
+        self.expect_name = expect_name
+        self.received = 0
+        self.rejected: Counter[str] = Counter()
+        self.counters: Counter[str] = Counter()
+        self._bad = BurstLog(log, f"{name}: rejected message")
+        self._queue: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._queue_max = queue
+        self._latest: dict[str, tuple[int, bytes]] = {}
+        self._stops: collections.deque[bytes] = collections.deque(maxlen=_STOP_MEMORY)
+        self._lock = threading.Lock()
+        self._rfd, self._wfd = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        self._woken = False
+        self.sock = self._rfd  # what ``ready`` reports as readable when messages wait
+        self.poller = zmq.Poller()
+        self.poller.register(self._rfd, zmq.POLLIN)
+        self._subs = [session.declare_subscriber(key, self._on_sample) for key in keys]
+
+    # ------------------------------------------------------------ Zenoh's thread
+    def _on_sample(self, sample: Any) -> None:
+        t_recv = now_ns()
+        key = str(sample.key_expr)
+        data = sample.payload.to_bytes()
+        kind = key.rsplit("/", 1)[-1]
+        with self._lock:
+            if kind in keyexprs.LATEST_VALUE_KINDS:
+                if key in self._latest:
+                    self.counters["superseded"] += 1
+                self._latest[key] = (t_recv, data)
+            else:
+                if kind == keyexprs.STOP:
+                    digest = hashlib.blake2b(data, digest_size=16).digest()
+                    if digest in self._stops:
+                        self.counters["stop_copies_dropped"] += 1
+                        return
+                    self._stops.append(digest)
+                if len(self._queue) >= self._queue_max:
+                    self._queue.popleft()
+                    self.counters["queue_dropped"] += 1
+                self._queue.append((t_recv, data))
+            if self._woken:
+                return
+            self._woken = True
+        with contextlib.suppress(BlockingIOError, OSError):
+            os.write(self._wfd, b"!")
+
+    # -------------------------------------------------------------- node's thread
+    def poll(self, timeout_s: float) -> bool:
+        return bool(self.ready(timeout_s))
+
+    def ready(self, timeout_s: float) -> dict[Any, int]:
+        """Wait up to ``timeout_s``; what is readable (the wake pipe and anything beside it)."""
+        return dict(self.poller.poll(math.ceil(max(0.0, timeout_s) * 1000)))
+
+    def _take(self) -> list[tuple[int, bytes]]:
+        with self._lock:
+            self._woken = False
+            items = list(self._queue)
+            self._queue.clear()
+            if self._latest:
+                items.extend(self._latest.values())
+                self._latest.clear()
+                items.sort(key=lambda item: item[0])
+        with contextlib.suppress(BlockingIOError, OSError):
+            while os.read(self._rfd, 4096):
+                pass
+        return items
+
+    def drain(
+        self, max_messages: int = 1024, wires: list[bytes] | None = None
+    ) -> list[tuple[Message, int]]:
+        """Every valid waiting message with its local receive time, oldest first.
+
+        At most ``max_messages`` are decoded; the rest wait for the next call
+        (the wake pipe is set again so the caller's poll sees them).
+        """
+        items = self._take()
+        if len(items) > max_messages:
+            rest = items[max_messages:]
+            items = items[:max_messages]
+            with self._lock:
+                self._queue.extendleft(reversed(rest))
+                self._woken = True
+            with contextlib.suppress(BlockingIOError, OSError):
+                os.write(self._wfd, b"!")
+        out: list[tuple[Message, int]] = []
+        for t_recv, data in items:
+            self.received += 1
+            try:
+                robot, msg = decode_named(data)
+                if self.expect_name is not None and robot != self.expect_name:
+                    raise WrongRobotError(f"for robot {robot!r}, not {self.expect_name!r}")
+            except DecodeError as e:
+                self.rejected[type(e).__name__] += 1
+                self._bad(str(e))
+                continue
+            out.append((msg, t_recv))
+            if wires is not None:
+                wires.append(data)
+        return out
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+    def close(self) -> None:
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+        self._subs.clear()
+        with contextlib.suppress(OSError):
+            os.close(self._rfd)
+        with contextlib.suppress(OSError):
+            os.close(self._wfd)

@@ -1,0 +1,149 @@
+"""A node's Zenoh session to the fabric's router: its config, and how it is opened.
+
+A node connects out to a router (``router_endpoint``) as a Zenoh client, on
+QUIC with mutual TLS: the router admits only a certificate its CA signed, and
+knows the node by the certificate's common name, the node's roster name. QUIC
+in "mixed reliability" carries reliable messages (commands, heartbeats) on a
+stream and best-effort ones (stimuli, frames, STOP's extra copies) as
+datagrams, so a lost packet delays only the message it carried.
+
+If the router goes away the session keeps trying to reach it (every
+``retry_ms``, doubling up to 1 s); what is put meanwhile is dropped, never
+queued, and the node sees the silence through its own freshness rules.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from common.codec import MAX_MESSAGE_BYTES
+from common.config import param
+from common.errors import ConfigError, LinkError
+from common.fabric.certificates import CertFiles, common_name
+
+#: Zenoh's own framing around a message: the key, the QoS and the sequence number
+FRAMING_BYTES = 1024
+#: what a router or node accepts as one (defragmented) message at most: the codec's limit
+MAX_WIRE_MESSAGE_BYTES = MAX_MESSAGE_BYTES + FRAMING_BYTES
+
+
+@dataclass
+class FabricConfig:
+    router_endpoint: str = param(
+        "quic/127.0.0.1:7447",
+        "the router to connect out to (deepxpalm router): quic/HOST:PORT; HOST must be a "
+        "name or address in the router's certificate",
+    )
+    cert_dir: Path | None = param(
+        None,
+        "holds this node's NAME.crt and NAME.key and the fabric's ca.crt (`deepxpalm keys "
+        "certs`); NAME is the roster name: the robot's link.robot_name, the operator's own",
+    )
+    name: str = param(
+        "",
+        "our roster name, the certificate's common name; empty = the robot's "
+        "link.robot_name, or for an operator the one certificate in cert_dir",
+    )
+    retry_ms: float = param(
+        250.0, "how soon a lost router is tried again (doubling up to 1 s while it is away)"
+    )
+
+
+def cert_files(cert_dir: Path | None, name: str, where: str) -> CertFiles:
+    """The certificate files of ``name`` in ``cert_dir``, checked to exist and to be its own."""
+    if cert_dir is None:
+        raise ConfigError(
+            f"{where}.cert_dir is unset: the fabric needs this node's certificate "
+            "(`deepxpalm keys certs --roster ROSTER --dir DIR`)"
+        )
+    files = CertFiles.in_dir(cert_dir, name)
+    files.check(f"{where}.cert_dir")
+    cn = common_name(files.cert)
+    if cn != name:
+        raise ConfigError(f"{files.cert} is {cn!r}'s certificate, not {name!r}'s")
+    return files
+
+
+def only_member(cert_dir: Path, where: str) -> str:
+    """The one member certificate in ``cert_dir`` (an operator PC holds its own only)."""
+    names = sorted(p.stem for p in Path(cert_dir).glob("*.crt") if p.stem != "ca")
+    if len(names) != 1:
+        raise ConfigError(
+            f"{where}.name is unset and {cert_dir} holds {len(names)} member certificates "
+            f"({', '.join(names) or 'none'}): set {where}.name to ours"
+        )
+    return names[0]
+
+
+def _endpoint(endpoint: str, where: str) -> str:
+    if not endpoint.startswith("quic/"):
+        raise ConfigError(
+            f"{where}.router_endpoint {endpoint!r} must be quic/HOST:PORT: only QUIC carries "
+            "best-effort messages as datagrams beside reliable ones, encrypted"
+        )
+    base = endpoint.split("?", 1)[0]
+    return base + "?mixed_rel=1"
+
+
+def tls_section(files: CertFiles, *, listen: bool = False) -> dict[str, Any]:
+    """Zenoh's ``transport.link.tls``: our certificate for both ends, the CA, mutual TLS."""
+    tls: dict[str, Any] = {
+        "root_ca_certificate": str(files.ca),
+        "connect_private_key": str(files.key),
+        "connect_certificate": str(files.cert),
+        "enable_mtls": True,
+        "verify_name_on_connect": True,
+    }
+    if listen:
+        tls["listen_private_key"] = str(files.key)
+        tls["listen_certificate"] = str(files.cert)
+    return tls
+
+
+def quiet_discovery() -> dict[str, Any]:
+    """No multicast or gossip: a node talks to the router it was given, nothing else."""
+    return {"multicast": {"enabled": False}, "gossip": {"enabled": False}}
+
+
+def client_config(fabric: FabricConfig, files: CertFiles, where: str) -> dict[str, Any]:
+    """The Zenoh config of a node's session (a client of one router)."""
+    retry = max(10.0, fabric.retry_ms)
+    return {
+        "mode": "client",
+        "connect": {
+            "endpoints": [_endpoint(fabric.router_endpoint, where)],
+            # start whether or not the router is up, and keep trying it
+            "timeout_ms": 0,
+            "exit_on_failure": False,
+            "retry": {
+                "period_init_ms": round(retry),
+                "period_max_ms": round(max(retry, 1000.0)),
+                "period_increase_factor": 2,
+            },
+        },
+        "listen": {"endpoints": []},
+        "scouting": quiet_discovery(),
+        "transport": {
+            "link": {
+                "tls": tls_section(files),
+                "rx": {"max_message_size": MAX_WIRE_MESSAGE_BYTES},
+            },
+        },
+    }
+
+
+def open_session(config: dict[str, Any], what: str) -> Any:
+    """A Zenoh session from a config dict; LinkError with the reason if Zenoh refuses it."""
+    try:
+        import zenoh
+    except ImportError:
+        raise ConfigError(
+            "the fabric needs eclipse-zenoh: pip install 'deepxpalm[fabric]'"
+        ) from None
+    try:
+        return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
+    except zenoh.ZError as e:
+        raise LinkError(f"{what}: Zenoh refused to open its session: {e}") from None

@@ -1,0 +1,1 @@
+"""The fabric's router: a Zenoh router whose access control is made from the roster."""

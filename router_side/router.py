@@ -1,0 +1,125 @@
+"""The router process: a Zenoh session in router mode, configured from the roster.
+
+Zenoh does the routing, the encryption, the access control and the limits in
+its own threads; this process builds the config (zenoh_config.py), opens the
+session, tells systemd it is ready, writes a status file, and on SIGHUP reads
+the roster again and opens a new session with it (Zenoh cannot change an
+access control list in place): connected nodes lose the router for the time
+of a restart and reconnect by themselves.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from common.errors import ConfigError
+from common.fabric.session import cert_files, open_session
+from common.roster import Roster, check_replacement, load_roster
+from common.sd_notify import Notifier
+from router_side.config import RouterConfig
+from router_side.zenoh_config import router_config
+
+log = logging.getLogger(__name__)
+
+STATUS_EVERY_S = 2.0
+
+
+class Router:
+    def __init__(self, config: RouterConfig) -> None:
+        if config.roster_file is None:
+            raise ConfigError(
+                "router roster_file is unset: the router admits only the roster's members"
+            )
+        self.config = config
+        self.files = cert_files(config.cert_dir, config.name, "router")
+        self.roster: Roster = load_roster(config.roster_file)
+        self.roster_reload = threading.Event()
+        self.session: Any = None
+        self.started_at = time.time()
+        self.reloads = 0
+        self.reloads_refused = 0
+        self.last_refusal = ""
+
+    def zenoh_config(self) -> dict[str, Any]:
+        return router_config(self.config, self.roster, self.files)
+
+    def start(self) -> Router:
+        self.session = open_session(self.zenoh_config(), "router")
+        log.info("router up on %s: %s", self.config.listen_endpoint, self.roster.summary())
+        return self
+
+    @property
+    def endpoint(self) -> str:
+        return self.config.listen_endpoint
+
+    def reload(self) -> bool:
+        """Read the roster again; a new session with it, or the old one kept (and why)."""
+        try:
+            roster = load_roster(self.config.roster_file)
+            check_replacement(self.roster, roster, self.config.roster_file)
+        except ConfigError as e:
+            self.reloads_refused += 1
+            self.last_refusal = str(e)
+            log.error("roster reload refused, the roster in force stays: %s", e)
+            return False
+        self.roster = roster
+        self.session.close()
+        self.session = open_session(self.zenoh_config(), "router")
+        self.reloads += 1
+        log.info("roster reloaded, router restarted: %s", roster.summary())
+        return True
+
+    def stats(self) -> dict[str, Any]:
+        peers: list[str] = []
+        if self.session is not None and not self.session.is_closed():
+            try:
+                peers = [str(t.zid) for t in self.session.info.transports()]
+            except Exception:  # a session closing under us
+                peers = []
+        return {
+            "endpoint": self.config.listen_endpoint,
+            "roster": self.roster.summary(),
+            "peers": len(peers),
+            "reloads": self.reloads,
+            "reloads_refused": self.reloads_refused,
+            "last_refusal": self.last_refusal,
+            "up_s": round(time.time() - self.started_at, 1),
+        }
+
+    def _write_status(self) -> None:
+        path = self.config.status_file
+        if path is None:
+            return
+        tmp = Path(path).with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.stats(), indent=2, sort_keys=True))
+        tmp.replace(path)
+
+    def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
+        notifier = Notifier()
+        notifier.ready(f"routing for {self.roster.summary()}")
+        t_end = None if duration_s is None else time.monotonic() + duration_s
+        interval = notifier.watchdog_interval_s
+        tick = min(STATUS_EVERY_S, interval / 2) if interval else STATUS_EVERY_S
+        try:
+            while not stop.is_set():
+                if t_end is not None and time.monotonic() >= t_end:
+                    break
+                if self.roster_reload.is_set():
+                    self.roster_reload.clear()
+                    self.reload()
+                self._write_status()
+                notifier.watchdog()
+                stop.wait(tick if t_end is None else max(0.0, min(tick, t_end - time.monotonic())))
+        finally:
+            notifier.stopping()
+            self.close()
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close()
+            self.session = None
