@@ -539,7 +539,7 @@ def _ephemeral_low(path: str = "/proc/sys/net/ipv4/ip_local_port_range") -> int 
         return None
 
 
-def free_loopback_ports(n: int, host: str = "127.0.0.1") -> list[int]:
+def free_loopback_ports(n: int, host: str = "127.0.0.1", *, udp: bool = False) -> list[int]:
     """``n`` TCP ports free on ``host`` right now (for endpoints that must be known in advance).
 
     Drawn at random below the kernel's ephemeral range: a port there can only be taken by a
@@ -548,7 +548,7 @@ def free_loopback_ports(n: int, host: str = "127.0.0.1") -> list[int]:
     connection's source port, could take it before the caller bound it (a robot node's
     bind failed that way beside two other deployments). Each port is bound once here to
     check that nothing listens on it. Where the range leaves no room below it, the kernel
-    picks.
+    picks. ``udp``: UDP ports (a QUIC listener's), checked by a UDP bind.
     """
     import random
     import socket
@@ -561,7 +561,7 @@ def free_loopback_ports(n: int, host: str = "127.0.0.1") -> list[int]:
         for _ in range(100 * n):
             if len(socks) == n:
                 break
-            s = socket.socket()
+            s = socket.socket(type=socket.SOCK_DGRAM if udp else socket.SOCK_STREAM)
             try:
                 s.bind((host, draws.randrange(KNOWN_PORTS_FROM, low) if room else 0))
             except OSError:  # in use (or in TIME_WAIT): draw again

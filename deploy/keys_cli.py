@@ -12,6 +12,14 @@ there) and prints the machine's roster entry, to paste into roster.toml:
     deepxpalm keys robot --dir /etc/deepxpalm/keys --name cell1        # on robot PC cell1
     deepxpalm keys operator --dir /etc/deepxpalm/keys --name alice --role controller
 
+Across sites through Zenoh routers, one command on the machine that keeps the
+fabric's certificate authority makes a certificate per roster member (its roster
+name is the common name) and the router's:
+
+    deepxpalm keys certs --roster roster.toml --dir fabric --router-host relay.lab.org
+
+Copy each member's NAME.crt, NAME.key and ca.crt to that member's machine only.
+
 Copy only public ``.key`` and ``.sign`` files between machines; ``.key_secret`` files
 never leave the machine they were made on (they are written mode 0600).
 """
@@ -68,6 +76,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     operator.add_argument("--dir", type=Path, required=True, help="where the key files are")
     operator.add_argument("--name", required=True, help="the operator's name in the roster")
     operator.add_argument("--role", required=True, choices=ROLES)
+    certs = sub.add_parser(
+        "certs",
+        help="the fabric's CA (kept if there) and a certificate per roster member and router",
+    )
+    certs.add_argument("--roster", type=Path, required=True, help="the roster (roster.toml)")
+    certs.add_argument("--dir", type=Path, required=True, help="where the CA and certificates go")
+    certs.add_argument(
+        "--router-name", default="router", help="the router's certificate name (its config's name)"
+    )
+    certs.add_argument(
+        "--router-host",
+        nargs="+",
+        default=["127.0.0.1", "localhost"],
+        help="names and addresses nodes dial the router at (its certificate must name them)",
+    )
+    certs.add_argument("--force", action="store_true", help="renew every member's certificate")
     show = sub.add_parser("show", help="print a key file's public key (Z85)")
     show.add_argument("key_file", type=Path)
 
@@ -153,6 +177,27 @@ def machine_keys(directory: Path, name: str) -> dict[str, Path]:
     return files
 
 
+def fabric_certificates(
+    roster_file: Path, directory: Path, router: str, hosts: tuple[str, ...], force: bool
+) -> list[str]:
+    """The CA (made once) and a certificate for the router and each roster member."""
+    from common.fabric.certificates import issue, make_ca
+    from common.fabric.keyexprs import check_operator_name
+    from common.roster import load_roster
+
+    roster = load_roster(roster_file)
+    for op in roster.operators:
+        check_operator_name(op.name)
+    ca = make_ca(directory)
+    made = [issue(ca, directory, router, hosts, force)]
+    for name in [r.name for r in roster.robots] + [op.name for op in roster.operators]:
+        made.append(issue(ca, directory, name, (), force))
+    lines = [f"CA: {ca.cert} (its key {ca.key} stays on this machine)"]
+    lines += [f"{files.cert.stem}: {files.cert} {files.key}" for files in made]
+    lines.append("copy each member's NAME.crt, NAME.key and ca.crt to its machine only")
+    return lines
+
+
 def run(args: argparse.Namespace) -> int:
     if args.keys_command == "generate":
         public, secret = generate(args.dir, args.name, args.force)
@@ -184,6 +229,11 @@ def run(args: argparse.Namespace) -> int:
             print(f'#   and [operator.link.security] secret_key_file = "{files["curve_secret"]}"')
         print("# the roster (relay host and every robot PC; robots last) gets this entry:")
         print(entry, end="")
+    elif args.keys_command == "certs":
+        for line in fabric_certificates(
+            args.roster, args.dir, args.router_name, tuple(args.router_host), args.force
+        ):
+            print(line)
     elif args.keys_command == "allow":
         target = allow(args.public_key, args.authorized)
         print(f"allowed: {target}; restart the robot node to take it in")

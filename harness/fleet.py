@@ -1,6 +1,8 @@
-"""A relay, robots and operators as real processes on this machine (tests, bench, trials).
+"""A relay or router, robots and operators as real processes on this machine (tests, bench).
 
-Every hop is CURVE, every operator signs, and one roster says who is who:
+``transport="relay"``: the ZeroMQ relay, every hop CURVE. ``transport="fabric"``: a
+Zenoh router made from the roster (``deepxpalm router``), every hop QUIC with
+the members' certificates. Either way every operator signs, and one roster says who is who:
 the same layout as three machines (docs/deploy.md), on 127.0.0.1 with free
 ports. ``Fleet`` writes the keys, the roster and each process's config into
 one work folder, starts the processes and stops them all.
@@ -82,6 +84,44 @@ secret_key_file = "{secret}"
 server_public_key_file = "{relay_public}"
 """
 
+_ROBOT_FABRIC_TOML = """
+[robot.link]
+mode = "fabric"
+robot_name = "{name}"
+roster_file = "{roster}"
+frame_display_rate_hz = {frames}
+video_url = "{video_url}"
+signing_key_file = "{signing}"
+[robot.link.fabric]
+router_endpoint = "{router}"
+cert_dir = "{cert_dir}"
+"""
+
+_OPERATOR_FABRIC_TOML = """
+[operator]
+[operator.servos]
+{servos}
+[operator.link]
+mode = "fabric"
+robot_name = "{robot}"
+signing_key_file = "{signing}"
+robot_key_file = "{robot_key}"
+want_frames = {frames}
+request_control = {request}
+[operator.link.fabric]
+router_endpoint = "{router}"
+cert_dir = "{cert_dir}"
+name = "{name}"
+"""
+
+_ROUTER_TOML = """
+[router]
+listen_endpoint = "quic/127.0.0.1:{port}"
+roster_file = "{roster}"
+cert_dir = "{cert_dir}"
+status_file = "{status}"
+"""
+
 _RELAY_TOML = """
 [relay]
 robots_telemetry_endpoint = "tcp://127.0.0.1:{p0}"
@@ -145,6 +185,8 @@ class Fleet:
     relay_endpoints: dict[str, dict[str, str]] = field(default_factory=dict)
     #: observers whose roster entry says ``video = true`` (video is a controller's otherwise)
     video_observers: frozenset[str] = frozenset()
+    #: "relay" (ZeroMQ, CURVE) or "fabric" (a Zenoh router, QUIC and certificates)
+    transport: str = "relay"
 
     def __post_init__(self) -> None:
         keys = self.workdir / "keys"
@@ -163,6 +205,13 @@ class Fleet:
             if self.relay_roles is None
             else self._write_roster("relay-roster.toml", self.relay_roles)
         )
+        if self.transport == "fabric":
+            from deploy.keys_cli import fabric_certificates
+
+            self.cert_dir = self.workdir / "fabric"
+            fabric_certificates(self.roster, self.cert_dir, "router", ("127.0.0.1",), False)
+            self.router_port = free_loopback_ports(1, udp=True)[0]
+            self.router_endpoint = f"quic/127.0.0.1:{self.router_port}"
         ports = free_loopback_ports(4)
         self.robots_telemetry, self.robots_command, self.ops_telemetry, self.ops_command = (
             f"tcp://127.0.0.1:{p}" for p in ports
@@ -228,6 +277,24 @@ class Fleet:
         self.procs[name] = proc
         return proc
 
+    def start_router(self, name: str = "router") -> Proc:
+        """The fabric's Zenoh router, its access control made from the roster."""
+        config = self.workdir / f"{name}.toml"
+        write_secret_file(
+            config,
+            _ROUTER_TOML.format(
+                port=self.router_port,
+                roster=self.roster,
+                cert_dir=self.cert_dir,
+                status=self.workdir / f"{name}-status.json",
+            ),
+        )
+        return self._start(name, ["-v", "router", "--config", str(config)])
+
+    def start_hub(self) -> Proc:
+        """What the fleet's members meet through: the relay or the router."""
+        return self.start_router() if self.transport == "fabric" else self.start_relay()
+
     def start_relay(self, name: str = "relay") -> Proc:
         """The relay; another ``name`` starts a second one on fresh ports (``relay_endpoints``)."""
         p = self._ports if name == "relay" else free_loopback_ports(4)
@@ -268,6 +335,19 @@ class Fleet:
         """
         arm = f'kind = "ur_rtde"\nhost = "{arm_host}"' if arm_host else 'kind = "none"'
         config = self.workdir / f"{name}.toml"
+        if self.transport == "fabric":
+            head, _, _ = _ROBOT_TOML.partition("[robot.link]")
+            text = head.format(rate=rate_hz, arm=arm, devices=devices) + _ROBOT_FABRIC_TOML.format(
+                name=name,
+                roster=self.roster,
+                frames=15.0,
+                video_url=video_url,
+                signing=self.members[name].signing_secret,
+                router=self.router_endpoint,
+                cert_dir=self.cert_dir,
+            )
+            write_secret_file(config, text)
+            return config
         write_secret_file(
             config,
             _ROBOT_TOML.format(
@@ -340,6 +420,23 @@ class Fleet:
         tel, cmd = endpoints or (self.ops_telemetry, self.ops_command)
         proc_name = f"{name}@{robot}"  # one key may follow several robots, a process each
         config = self.workdir / f"{proc_name}.toml"
+        if self.transport == "fabric" and endpoints is None:
+            write_secret_file(
+                config,
+                _OPERATOR_FABRIC_TOML.format(
+                    robot=robot,
+                    signing=m.signing_secret,
+                    robot_key=self.workdir / "keys" / f"robot-{robot}.sign",
+                    frames=str(want_frames).lower(),
+                    servos=servos,
+                    request=str(request_control).lower(),
+                    router=self.router_endpoint,
+                    cert_dir=self.cert_dir,
+                    name=name,
+                ),
+            )
+            args = ["-v", "operator", "--config", str(config), "--commands-from-stdin"]
+            return self._start(proc_name, [*args, *(extra or [])], stdin=True)
         write_secret_file(
             config,
             _OPERATOR_TOML.format(

@@ -5,9 +5,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from common.config import param
+from common.fabric.session import FabricConfig
 from common.security import SecurityConfig
 from operator_side.dashboard.config import DashboardConfig
 from operator_side.renderer import RendererConfig
@@ -96,6 +97,15 @@ class OperatorLinkConfig:
     )
     security: SecurityConfig = param(
         SecurityConfig(), "CURVE keys: ours and the robot's (or the relay's) public key"
+    )
+    mode: Literal["direct", "fabric"] = param(
+        "direct",
+        "direct: ZeroMQ to the two endpoints above (the robot's, a netsim's or a relay's); "
+        "fabric: through a Zenoh router across sites ([link.fabric]; robot_name says which "
+        "robot), where the endpoints and CURVE settings are unused",
+    )
+    fabric: FabricConfig = param(
+        FabricConfig(), "mode fabric: the router, our certificate and our roster name"
     )
 
     def __post_init__(self) -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from common.config import param
+from common.fabric.session import FabricConfig
 from common.security import SecurityConfig
 
 
@@ -78,10 +79,11 @@ class RobotLinkConfig:
         "after a full batch, commands wait this long for the next turn while frames go on; "
         "what waits only ages (stale commands are refused)",
     )
-    mode: Literal["bind", "relay"] = param(
+    mode: Literal["bind", "relay", "fabric"] = param(
         "bind",
-        "bind: the operator connects to our two endpoints (one site opens a port); relay: we "
-        "connect out to a relay's robot-facing endpoints (deepxpalm relay), nobody connects in",
+        "bind: the operator connects to our two endpoints (one site opens a port); fabric: we "
+        "connect out to a Zenoh router across sites (deepxpalm router, the [link.fabric] "
+        "table), nobody connects in; relay: the older ZeroMQ relay (deepxpalm relay)",
     )
     robot_name: str = param(
         "",
@@ -145,6 +147,11 @@ class RobotLinkConfig:
         SecurityConfig(),
         "CURVE keys and the operator allowlist; with a relay, server_public_key_file is the "
         "relay's public key",
+    )
+    fabric: FabricConfig = param(
+        FabricConfig(),
+        "mode fabric: the router and our certificate (our roster name is robot_name); the "
+        "endpoints and CURVE settings above are then unused",
     )
 
     def __post_init__(self) -> None:

@@ -103,13 +103,15 @@ def access_control(roster: Roster) -> dict[str, Any]:
     policies: list[dict[str, Any]] = []
     robots = _robot_names(roster)
 
-    def member(name: str, puts: list[str], reads: list[str]) -> None:
+    def member(name: str, puts: list[str], reads: list[str], listeners: list[str]) -> None:
         sid = f"member:{name}"
         subjects.append({"id": sid, "cert_common_names": [name]})
         ids = []
         if puts:
             rules.append(_rule(f"{sid}:put", ["put"], "ingress", puts))
-            rules.append(_rule(f"{sid}:listeners", ["declare_subscriber"], "egress", puts))
+            # who listens to what we put: without it a publisher thinks nobody does and
+            # drops at the source (a robot's inbox subscription covers every operator)
+            rules.append(_rule(f"{sid}:listeners", ["declare_subscriber"], "egress", listeners))
             ids += [f"{sid}:put", f"{sid}:listeners"]
         if reads:
             rules.append(_rule(f"{sid}:subscribe", ["declare_subscriber"], "ingress", reads))
@@ -122,12 +124,13 @@ def access_control(roster: Roster) -> dict[str, Any]:
         names = sorted(n.decode() for n in robot.wire_names())
         puts = [keyexprs.robot_key(n, kind) for n in names for kind in ROBOT_PUTS]
         reads = [keyexprs.robot_inbox(n) for n in names]
-        member(robot.name, puts, reads)
+        member(robot.name, puts, reads, puts)
     for op in roster.operators:
         keyexprs.check_operator_name(op.name)
         puts = [keyexprs.operator_key(r, op.name, k) for r in robots for k in _operator_puts(op)]
         reads = [keyexprs.robot_key(r, k) for r in robots for k in _operator_reads(op)]
-        member(op.name, puts, reads)
+        inboxes = [keyexprs.robot_inbox_for(r, k) for r in robots for k in _operator_puts(op)]
+        member(op.name, puts, reads, puts + inboxes)
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -22,7 +22,7 @@ from collections import deque
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-NODES = ("robot_side", "operator_side", "relay_side")
+NODES = ("robot_side", "operator_side", "relay_side", "router_side")
 #: package -> the project packages its modules may import
 ALLOWED: dict[str, frozenset[str]] = {
     "common": frozenset({"common"}),

@@ -78,6 +78,11 @@ def robot_inbox(robot: str | bytes) -> str:
     return f"{ROOT}/{_robot(robot)}/op/*/*"
 
 
+def robot_inbox_for(robot: str | bytes, kind: str) -> str:
+    """What a robot subscribes to for one kind: every operator's messages of that kind."""
+    return f"{ROOT}/{_robot(robot)}/op/*/{kind}"
+
+
 def kind_of(msg: Message, from_robot: bool) -> str:
     """The key's last chunk for ``msg`` (``stop`` for an operator's ``arm_stop``)."""
     kinds = ROBOT_KINDS if from_robot else OPERATOR_KINDS

@@ -216,11 +216,10 @@ class FabricSubscriber:
                     self._queue.popleft()
                     self.counters["queue_dropped"] += 1
                 self._queue.append((t_recv, data))
-            if self._woken:
-                return
-            self._woken = True
-        with contextlib.suppress(BlockingIOError, OSError):
-            os.write(self._wfd, b"!")
+            if not self._woken:  # one byte in the pipe while anything waits, never more
+                self._woken = True
+                with contextlib.suppress(BlockingIOError, OSError):
+                    os.write(self._wfd, b"!")
 
     # -------------------------------------------------------------- node's thread
     def poll(self, timeout_s: float) -> bool:
@@ -231,17 +230,19 @@ class FabricSubscriber:
         return dict(self.poller.poll(math.ceil(max(0.0, timeout_s) * 1000)))
 
     def _take(self) -> list[tuple[int, bytes]]:
+        # The pipe is emptied and the flag cleared under the lock the callback writes under:
+        # a byte written after this belongs to a message this call does not take.
         with self._lock:
-            self._woken = False
+            if self._woken:
+                with contextlib.suppress(BlockingIOError, OSError):
+                    os.read(self._rfd, 64)
+                self._woken = False
             items = list(self._queue)
             self._queue.clear()
             if self._latest:
                 items.extend(self._latest.values())
                 self._latest.clear()
                 items.sort(key=lambda item: item[0])
-        with contextlib.suppress(BlockingIOError, OSError):
-            while os.read(self._rfd, 4096):
-                pass
         return items
 
     def drain(
@@ -258,9 +259,10 @@ class FabricSubscriber:
             items = items[:max_messages]
             with self._lock:
                 self._queue.extendleft(reversed(rest))
-                self._woken = True
-            with contextlib.suppress(BlockingIOError, OSError):
-                os.write(self._wfd, b"!")
+                if not self._woken:
+                    self._woken = True
+                    with contextlib.suppress(BlockingIOError, OSError):
+                        os.write(self._wfd, b"!")
         out: list[tuple[Message, int]] = []
         for t_recv, data in items:
             self.received += 1

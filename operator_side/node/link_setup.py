@@ -114,9 +114,32 @@ class Sockets:
         #: when the newest message the node believed arrived (local clock)
         self.last_rx_ns = 0
         self.rejected_before = 0  # rejections counted by sockets since reopened
+        self.session: Any = None  # mode fabric: our Zenoh session, opened once
+
+    def describe(self) -> str:
+        link = self.config
+        if link.mode == "fabric":
+            return f"fabric through {link.fabric.router_endpoint} as {self._member()!r}"
+        return f"telemetry {link.telemetry_endpoint}, commands {link.command_endpoint}"
+
+    def _member(self) -> str:
+        fabric = self.config.fabric
+        if fabric.name:
+            return fabric.name
+        if fabric.cert_dir is None:
+            raise ConfigError(
+                "operator link.fabric.cert_dir is unset: the fabric needs our certificate "
+                "(`deepxpalm keys certs --roster ROSTER --dir DIR`)"
+            )
+        from common.fabric.session import only_member
+
+        return only_member(fabric.cert_dir, "operator link.fabric")
 
     def open(self, ctx: zmq.Context, topics: tuple[bytes, ...], wake_fd: int) -> None:
         """Connect both sockets; ``wake_fd`` wakes the subscriber's poll (queued commands)."""
+        if self.config.mode == "fabric":
+            self._open_fabric(topics, wake_fd)
+            return
         link = self.config
         opts = client_options(link.security)
         self.sub = Subscriber(
@@ -143,6 +166,43 @@ class Sockets:
         self.sub.poller.register(wake_fd, zmq.POLLIN)
         self.opened_ns = self.now()
 
+    def _open_fabric(self, topics: tuple[bytes, ...], wake_fd: int) -> None:
+        """Our Zenoh session (opened once), the robot's keys we read, our keys we put on.
+
+        The session reconnects to the router by itself, so it is never reopened.
+        """
+        from common.fabric import keyexprs
+        from common.fabric.link import FabricPublisher, FabricSubscriber
+        from common.fabric.session import cert_files, client_config, open_session
+
+        link = self.config
+        robot = self.keys.robot_name
+        if not robot:
+            raise ConfigError("operator link.mode = 'fabric' needs link.robot_name")
+        member = self._member()
+        keyexprs.check_operator_name(member)
+        if self.session is None:
+            files = cert_files(link.fabric.cert_dir, member, "operator link.fabric")
+            config = client_config(link.fabric, files, "operator link.fabric")
+            self.session = open_session(config, "operator node")
+        kinds = {t[: len(Stimulus.TOPIC)] for t in topics}
+        by_topic = {
+            Stimulus.TOPIC: "stimulus",
+            Heartbeat.TOPIC: "heartbeat",
+            TactileFrame.TOPIC: "frame",
+            VideoSignal.TOPIC: "video",
+        }
+        keys = tuple(keyexprs.robot_key(robot, by_topic[t]) for t in sorted(kinds) if t in by_topic)
+        endpoint = link.fabric.router_endpoint
+        self.sub = FabricSubscriber(
+            self.session, keys, expect_name=robot, name="operator telemetry", endpoint=endpoint
+        )
+        self.pub = FabricPublisher(
+            self.session, robot=robot, operator=member, signer=self.keys.signer, endpoint=endpoint
+        )
+        self.sub.poller.register(wake_fd, zmq.POLLIN)
+        self.opened_ns = self.now()
+
     def reopen_if_silent(
         self, now: int, ctx: zmq.Context, topics: tuple[bytes, ...], wake_fd: int
     ) -> None:
@@ -152,6 +212,8 @@ class Sockets:
         oversized or malformed frame from the peer), so a link that went silent
         may be dead on our side only; a fresh socket costs nothing if it was not.
         """
+        if self.config.mode == "fabric":
+            return  # the Zenoh session reconnects to its router by itself
         quiet_since = max(self.last_rx_ns, self.opened_ns)
         if (now - quiet_since) / 1e6 < self.config.reopen_after_ms:
             return
@@ -172,3 +234,6 @@ class Sockets:
             self.sub.close()
         if self.pub is not None:
             self.pub.close()
+        if self.session is not None:
+            self.session.close()
+            self.session = None

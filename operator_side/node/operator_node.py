@@ -243,16 +243,13 @@ class OperatorNode:
         if bus_calibration is not None and bus_calibration is not self.palm.calibration:
             self.palm.use_calibration(bus_calibration)  # the bus's limits are the ones enforced
         try:
-            for endpoint in (link.telemetry_endpoint, link.command_endpoint):
-                check_endpoint(endpoint, link.security)
+            if link.mode == "direct":
+                for endpoint in (link.telemetry_endpoint, link.command_endpoint):
+                    check_endpoint(endpoint, link.security)
             self.sockets.open(self.ctx, self._topics(), self.outbox.wake_r)
             self.servos.set_torque(True)
             self.palm.write(self.palm.renderer.retract_goals)
-            log.info(
-                "operator node up: telemetry %s, commands %s",
-                link.telemetry_endpoint,
-                link.command_endpoint,
-            )
+            log.info("operator node up: %s", self.sockets.describe())
             self._loop(stop, duration_s)
         finally:
             try:

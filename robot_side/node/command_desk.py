@@ -104,9 +104,9 @@ class CommandDesk:
                 roster.by_signing_key(), max_age_ns, round(link.lease_request_timeout_ms * 1e6)
             )
             self.peers = RosterPeers(self.lease)
-        elif link.mode == "relay":
+        elif link.mode in ("relay", "fabric"):
             raise ConfigError(
-                "robot link.mode = 'relay' needs link.roster_file: through a relay only "
+                f"robot link.mode = {link.mode!r} needs link.roster_file: across sites only "
                 "signed commands from the lease holder may move the arm (docs/security.md)"
             )
         self._lease_changes_seen = 0

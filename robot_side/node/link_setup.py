@@ -16,7 +16,7 @@ from common.codec import DecodeError, check_robot_name, name_prefix
 from common.errors import ConfigError
 from common.messages import Command, Heartbeat, VideoSignal
 from common.security import Authenticator, check_endpoint, client_options, server_options
-from common.transport import Publisher, Subscriber
+from common.transport import Publisher, Receiver, Sender, Subscriber
 from robot_side.config import RobotConfig, RobotLinkConfig
 
 if TYPE_CHECKING:  # cryptography only when signing
@@ -38,12 +38,13 @@ def wire_name(name: str) -> bytes:
 def stream_signer(link: RobotLinkConfig) -> Signer | None:
     """What signs everything we send (None: unsigned); operators holding our key drop the rest.
 
-    Through a relay the stream is signed unless ``link.unsigned_stream`` says otherwise.
+    Across sites (a relay, the fabric) the stream is signed unless ``link.unsigned_stream``
+    says otherwise.
     """
-    if link.mode == "relay" and link.signing_key_file is None:
+    if link.mode in ("relay", "fabric") and link.signing_key_file is None:
         if not link.unsigned_stream:
             raise ConfigError(
-                "robot link.mode = 'relay' signs its stream: set link.signing_key_file "
+                f"robot link.mode = {link.mode!r} signs its stream: set link.signing_key_file "
                 "(`deepxpalm keys robot --name NAME` makes it), or link.unsigned_stream = "
                 "true to let a compromised relay forge what palms feel (docs/security.md)"
             )
@@ -101,8 +102,10 @@ def open_link(
     name: bytes,
     signer: Signer | None,
     serves_video: bool,
-) -> tuple[Publisher, Subscriber, Authenticator | None]:
+) -> tuple[Sender, Receiver, Authenticator | None]:
     """(the stream we publish, the operators' messages we read, the CURVE allowlist if bound).
+
+    Fabric: both go through our Zenoh session to the router (``open_fabric``).
 
     Bound: we are the CURVE server. Through a relay the relay is, and its
     allowlist and ours (the roster) both apply; both sockets then connect out
@@ -110,6 +113,9 @@ def open_link(
     reconnects after a protocol error), their state in the heartbeat's stats
     (``link_telemetry_up``, ``link_telemetry_reopened``, and the same for commands).
     """
+    if link.mode == "fabric":
+        pub, sub = open_fabric(stack, link, name=name, signer=signer, serves_video=serves_video)
+        return pub, sub, None
     for endpoint in (link.telemetry_endpoint, link.command_endpoint):
         check_endpoint(endpoint, link.security)
     bind = link.mode == "bind"
@@ -151,3 +157,43 @@ def open_link(
     )
     stack.callback(sub.close)
     return pub, sub, auth
+
+
+def open_fabric(
+    stack: contextlib.ExitStack,
+    link: RobotLinkConfig,
+    *,
+    name: bytes,
+    signer: Signer | None,
+    serves_video: bool,
+) -> tuple[Sender, Receiver]:
+    """Our Zenoh session to the router, our stream's publishers and our inbox.
+
+    Our certificate is our roster name's, which is our name on the wire: the
+    router lets us put under our own names only, and read only our inbox.
+    """
+    from common.fabric import keyexprs
+    from common.fabric.link import FabricPublisher, FabricSubscriber
+    from common.fabric.session import cert_files, client_config, open_session
+
+    if not name:
+        raise ConfigError("robot link.mode = 'fabric' needs link.robot_name (our roster name)")
+    member = link.fabric.name or name.decode()
+    files = cert_files(link.fabric.cert_dir, member, "robot link.fabric")
+    session = open_session(client_config(link.fabric, files, "robot link.fabric"), "robot node")
+    stack.callback(session.close)
+    endpoint = link.fabric.router_endpoint
+    pub = FabricPublisher(session, robot=name, operator=None, signer=signer, endpoint=endpoint)
+    stack.callback(pub.close)
+    kinds = ["command", keyexprs.STOP, "heartbeat"]
+    if serves_video:  # viewers' offers, only where a camera is served
+        kinds.append("video")
+    sub = FabricSubscriber(
+        session,
+        tuple(keyexprs.robot_inbox_for(name, kind) for kind in kinds),
+        expect_name=name,
+        name="robot commands",
+        endpoint=endpoint,
+    )
+    stack.callback(sub.close)
+    return pub, sub

@@ -18,8 +18,8 @@ pytestmark = pytest.mark.parallel
 UNITS = REPO / "deploy" / "systemd"
 RULES = REPO / "deploy" / "udev" / "99-deepxpalm.rules"
 ROLES = ("robot", "operator")
-#: every unit shipped: the two nodes', the relay's and the robot PC's camera server
-UNITS_SHIPPED = (*ROLES, "relay", "video")
+#: every unit shipped: the two nodes', the relay's, the router's and the robot PC's camera server
+UNITS_SHIPPED = (*ROLES, "relay", "router", "video")
 INSTALLED = "/opt/deepxpalm/.venv/bin/deepxpalm"
 
 
@@ -260,3 +260,13 @@ def test_the_operator_unit_lifts_the_palm_after_any_exit(tmp_path):
     assert "palm lifted" in out.stdout
     assert all(abs(p - r) <= 16 for p, r in zip(present, retract, strict=True)), (present, retract)
     assert released, "torque stays on after the lift"
+
+
+def test_the_router_unit_is_watched_bounded_and_starts_a_router_the_cli_accepts(tmp_path):
+    unit = _parse(_unit("router"))
+    assert _get(unit, "Service", "Type") == ["notify"]
+    assert _get(unit, "Service", "Restart") == ["always"]
+    # what the router's access control does not bound, its unit does
+    assert _get(unit, "Service", "MemoryMax") == ["256M"]
+    printed = _config_the_unit_starts(unit, "router", tmp_path)
+    assert "[router]" in printed and 'listen_endpoint = "quic/0.0.0.0:7447"' in printed
