@@ -18,7 +18,15 @@ import pytest
 pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing checked
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("robot_side", "operator_side", "relay_side", "router_side", "common", "deploy", "harness")
+PACKAGES = (
+    "robot_side",
+    "operator_side",
+    "relay_side",
+    "router_side",
+    "common",
+    "deploy",
+    "harness",
+)
 #: underscore names that are public API elsewhere (namedtuple's, the interpreter's)
 PUBLIC_UNDERSCORE = {"_replace", "_asdict", "_fields", "_make", "_exit", "_getframe"}
 
