@@ -82,6 +82,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "arm, open the gripper and watch the camera through the robot's command port "
         "(needed only for the simulator's message mode, which re-publishes messages)",
     )
+    link.add_argument(
+        "--fabric",
+        action="store_true",
+        help="across sites: the nodes meet through a Zenoh router made for the run (a roster, "
+        "its certificates, signed commands); the link simulator carries the operator's QUIC "
+        "connection to it, datagram by datagram",
+    )
     parser.add_argument(
         "--record", type=Path, metavar="DIR", help="record robot.mcap and operator.mcap here"
     )
@@ -333,7 +340,10 @@ def run(args: argparse.Namespace) -> int:
     scene.operator.link.command_endpoint = op_cmd if use_netsim else robot_cmd
     if use_netsim:
         fit_command_timing(scene)
-    if demo_link_is_plain(args, scene, use_netsim):
+    fabric = None
+    if args.fabric:
+        fabric = _use_fresh_fabric(scene, workdir / "fabric", use_netsim)
+    elif demo_link_is_plain(args, scene, use_netsim):
         scene.robot.link.allow_plain_commands = True
         log.warning(
             "--plain: the robot's command port %s%s takes commands from any process on this "
@@ -392,7 +402,20 @@ def run(args: argparse.Namespace) -> int:
         children.add(Child(name, lambda n: spawn_cli(argv(n), log_path, name), log_path, **kw))
 
     cli_child("robot", robot_args, restart_delay_s=unit_restart_s("robot"))
-    if use_netsim:
+    if fabric is not None:
+        router = [*verbosity, "router", "--config", str(fabric.router_config)]
+        cli_child("router", lambda n: router, restart_delay_s=unit_restart_s("router"))
+    if use_netsim and fabric is not None:
+        netsim = [
+            *verbosity,
+            "netsim",
+            *("--scenario", scene.network.scenario, "--seed", str(scene.network.seed)),
+            *("--mode", "datagram", "--robot-telemetry", fabric.router_udp),
+            *("--operator-telemetry", fabric.netsim_udp),
+            *("--stats-file", str(netsim_stats_path)),
+        ]
+        cli_child("netsim", lambda n: netsim, restart_delay_s=DEFAULT_RESTART_S)
+    elif use_netsim:
         netsim = [
             *verbosity,
             *netsim_args(scene, (robot_tel, robot_cmd, op_tel, op_cmd)),
@@ -682,6 +705,56 @@ def demo_link_is_plain(args: argparse.Namespace, scene: Scene, use_netsim: bool)
     return False
 
 
+class DemoFabric:
+    """Where the run's router listens, and what its config and the link simulator's are."""
+
+    def __init__(self, router_config: Path, router_port: int, netsim_port: int) -> None:
+        self.router_config = router_config
+        self.router_udp = f"udp://127.0.0.1:{router_port}"
+        self.netsim_udp = f"udp://127.0.0.1:{netsim_port}"
+
+
+def _use_fresh_fabric(scene: Scene, directory: Path, use_netsim: bool) -> DemoFabric:
+    """A roster of one robot and one controller, their signing keys and certificates, and a
+    router for this run only; the operator reaches the router through the link simulator.
+    """
+    from common.fabric.session import FabricConfig
+    from common.signing import generate_key_files
+    from deploy.keys_cli import fabric_certificates
+
+    directory.mkdir(mode=0o700)
+    directory.chmod(0o700)
+    robot_link, op_link = scene.robot.link, scene.operator.link
+    robot = robot_link.robot_name or "demo"
+    robot_sign, robot_secret = generate_key_files(directory, "robot")
+    op_sign, op_secret = generate_key_files(directory, "operator")
+    roster = directory / "roster.toml"
+    roster.write_text(
+        '[[operator]]\nname = "operator"\nrole = "controller"\n'
+        f'signing_key = "{op_sign.read_text().strip()}"\n\n[[robot]]\nname = "{robot}"\n'
+    )
+    certs = directory / "certs"
+    fabric_certificates(roster, certs, "router", ("127.0.0.1",), False)
+    router_port, netsim_port = free_loopback_ports(2, udp=True)
+    robot_link.mode, robot_link.robot_name, robot_link.roster_file = "fabric", robot, roster
+    robot_link.signing_key_file = robot_secret
+    robot_link.fabric = FabricConfig(
+        router_endpoint=f"quic/127.0.0.1:{router_port}", cert_dir=certs
+    )
+    op_link.mode, op_link.robot_name, op_link.request_control = "fabric", robot, True
+    op_link.signing_key_file, op_link.robot_key_file = op_secret, robot_sign
+    op_port = netsim_port if use_netsim else router_port
+    op_link.fabric = FabricConfig(
+        router_endpoint=f"quic/127.0.0.1:{op_port}", cert_dir=certs, name="operator"
+    )
+    router_config = directory / "router.toml"
+    router_config.write_text(
+        f'[router]\nlisten_endpoint = "quic/127.0.0.1:{router_port}"\n'
+        f'roster_file = "{roster}"\ncert_dir = "{certs}"\n'
+    )
+    return DemoFabric(router_config, router_port, netsim_port)
+
+
 def _use_fresh_curve_keys(scene: Scene, directory: Path) -> None:
     """Keys for this run only, in a directory only we can open: the robot allows just this
     operator's key, so a local process without it completes no handshake and commands nothing.
@@ -727,7 +800,11 @@ def _summary(
         "scene": scene.scene.name,
         "render_mode": scene.robot.render.mode,
         "network_scenario": scene.network.scenario if scene.network.enabled else None,
-        "security": scene.operator.link.security.mode,
+        "security": (
+            "fabric (QUIC, mutual TLS, signed)"
+            if scene.operator.link.mode == "fabric"
+            else scene.operator.link.security.mode
+        ),
         "duration_s": round(elapsed, 3),
         "frames_captured": int(robot.get("frames_captured", 0)),
         "frames_processed": int(robot.get("frames_processed", 0)),

@@ -15,6 +15,8 @@ queued, and the node sees the silence through its own freshness rules.
 from __future__ import annotations
 
 import json
+import logging
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +26,10 @@ from common.config import param
 from common.errors import ConfigError, LinkError
 from common.fabric.certificates import CertFiles, common_name
 
+log = logging.getLogger(__name__)
+
+#: how long closing a session may take before the node goes on without waiting for it
+CLOSE_WAIT_S = 1.0
 #: Zenoh's own framing around a message: the key, the QoS and the sequence number
 FRAMING_BYTES = 1024
 #: what a router or node accepts as one (defragmented) message at most: the codec's limit
@@ -147,3 +153,28 @@ def open_session(config: dict[str, Any], what: str) -> Any:
         return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
     except zenoh.ZError as e:
         raise LinkError(f"{what}: Zenoh refused to open its session: {e}") from None
+
+
+def close_session(session: Any, wait_s: float = CLOSE_WAIT_S) -> bool:
+    """Close ``session``, waiting at most ``wait_s``; True if it closed in that time.
+
+    Zenoh's close waits for its links to say goodbye; with the router gone it
+    waits for a peer that will not answer. A node stopping (the arm already
+    stopped by then) must not hang on that: the close goes on in a thread of
+    its own and the process ends without it.
+    """
+    done = threading.Event()
+
+    def close() -> None:
+        try:
+            session.close()
+        except Exception as e:  # already closed, or closing under us
+            log.debug("closing the Zenoh session: %s", e)
+        finally:
+            done.set()
+
+    threading.Thread(target=close, name="zenoh-close", daemon=True).start()
+    if done.wait(wait_s):
+        return True
+    log.warning("the Zenoh session did not close within %.1f s (router unreachable?)", wait_s)
+    return False

@@ -3,7 +3,10 @@
 Start the robot, then this, then point the operator at the simulator's bound
 endpoints (by default ports 5565/5566 instead of 5555/5556). The stream
 mode forwards TCP bytes (CURVE passes), the message mode re-publishes ZeroMQ
-messages; the scenario says which, ``--mode`` overrides. Settings come
+messages; the scenario says which, ``--mode`` overrides. The datagram mode
+forwards UDP (a QUIC connection to a fabric router: its best-effort
+datagrams lost one by one, never retransmitted) from
+``--operator-telemetry udp://HOST:PORT`` to ``--robot-telemetry udp://HOST:PORT``. Settings come
 from the defaults, then ``--config FILE`` (keys at the top level or under
 ``[netsim]``), then ``--set netsim.key=value``, then the explicit options.
 """
@@ -37,7 +40,9 @@ class NetsimConfig:
 
     scenario: str = param("lan", "built-in scenario name, or a path to a scenario .toml")
     mode: str = param(
-        "", "stream (TCP byte forwarder, CURVE passes) or message (ZeroMQ); empty = the scenario's"
+        "",
+        "stream (TCP byte forwarder, CURVE passes), message (ZeroMQ) or datagram (UDP: a "
+        "fabric router's QUIC; udp:// endpoints); empty = the scenario's",
     )
     seed: int = param(0, "same seed and scenario give the same impairment sequence")
     hwm: int = param(1000, "message mode: ZeroMQ high-water mark of each socket, in messages")
@@ -56,9 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--scenario", help="built-in scenario name or path to a .toml file")
     parser.add_argument("--seed", type=int, help="random seed of the impairments")
-    parser.add_argument(
-        "--mode", choices=("stream", "message"), help="override the scenario's mode"
-    )
+    parser.add_argument("--mode", choices=MODES, help="override the scenario's mode")
     parser.add_argument(
         "--delay-ms", type=float, help="base one-way delay in both directions (overrides scenario)"
     )
@@ -80,6 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+MODES = ("stream", "message", "datagram")
 _ENDPOINT_KEYS = ("robot_telemetry", "robot_commands", "operator_telemetry", "operator_commands")
 
 
@@ -125,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
         log.warning(
             "netsim running scenario %r (%s mode, seed %d): operator connects to %s "
             "(telemetry) and %s (commands); schedule_start_ns=%d (monotonic: outages count "
-            "from it)",
+            "from it)",  # datagram mode: both are its one UDP address
             scenario.name,
             mode_of(config, scenario),
             config.seed,
@@ -173,14 +177,67 @@ def run(args: argparse.Namespace) -> int:
 def mode_of(config: NetsimConfig, scenario: Scenario) -> str:
     """The configured mode, or the scenario's when none is configured."""
     mode = config.mode or scenario.mode
-    if mode not in ("stream", "message"):
-        raise ConfigError(f"netsim mode must be 'stream' or 'message', not {mode!r}")
+    if mode not in MODES:
+        raise ConfigError(f"netsim mode must be one of {', '.join(MODES)}, not {mode!r}")
     return mode
 
 
-def build_simulator(config: NetsimConfig, scenario: Scenario) -> LinkSimulator | StreamForwarder:
-    """The byte-stream forwarder or the message-level simulator, as the mode says."""
-    if mode_of(config, scenario) == "stream":
+def udp_address(endpoint: str, what: str) -> tuple[str, int]:
+    """(host, port) of ``udp://HOST:PORT``; ConfigError naming the setting otherwise."""
+    host, sep, port = endpoint.removeprefix("udp://").rpartition(":")
+    if not endpoint.startswith("udp://") or not sep or not port.isdigit():
+        raise ConfigError(f"netsim {what} must be udp://HOST:PORT in datagram mode: {endpoint!r}")
+    return host.strip("[]"), int(port)
+
+
+class DatagramLink:
+    """The datagram forwarder with the face ``run`` expects of a simulator."""
+
+    def __init__(self, config: NetsimConfig, scenario: Scenario) -> None:
+        from common.netsim.datagram import DatagramForwarder
+
+        self.scenario = scenario
+        self.seed = config.seed
+        self.forwarder = DatagramForwarder(
+            scenario,
+            target=udp_address(config.endpoints.robot_telemetry, "robot_telemetry"),
+            listen=udp_address(config.endpoints.operator_telemetry, "operator_telemetry"),
+            seed=config.seed,
+            spin_us=config.spin_us,
+        )
+        self.operator_telemetry_endpoint = self.operator_commands_endpoint = ""
+
+    def start(self) -> None:
+        self.forwarder.start()
+        host, port = self.forwarder.address
+        self.operator_telemetry_endpoint = self.operator_commands_endpoint = f"udp://{host}:{port}"
+
+    @property
+    def start_ns(self) -> int | None:
+        return self.forwarder.start_ns
+
+    @property
+    def error(self) -> BaseException | None:
+        return self.forwarder.error
+
+    def counters(self) -> dict[str, dict[str, Any]]:
+        return self.forwarder.counters()
+
+    def own_latency_ns(self) -> list[int]:
+        return self.forwarder.own_latency_ns()
+
+    def stop(self) -> None:
+        self.forwarder.stop()
+
+
+def build_simulator(
+    config: NetsimConfig, scenario: Scenario
+) -> LinkSimulator | StreamForwarder | DatagramLink:
+    """The byte-stream forwarder, the message-level simulator or the datagram forwarder."""
+    mode = mode_of(config, scenario)
+    if mode == "datagram":
+        return DatagramLink(config, scenario)
+    if mode == "stream":
         return StreamForwarder(
             scenario,
             endpoints=config.endpoints,
@@ -196,12 +253,13 @@ def build_simulator(config: NetsimConfig, scenario: Scenario) -> LinkSimulator |
     )
 
 
-def final_stats(sim: LinkSimulator | StreamForwarder) -> dict[str, Any]:
+def final_stats(sim: LinkSimulator | StreamForwarder | DatagramLink) -> dict[str, Any]:
     """Counters per direction and the simulator's own per-send cost, JSON-able."""
     own = sorted(sim.own_latency_ns())
+    mode = {StreamForwarder: "stream", DatagramLink: "datagram"}.get(type(sim), "message")
     out: dict[str, Any] = {
         "scenario": sim.scenario.name,
-        "mode": "stream" if isinstance(sim, StreamForwarder) else "message",
+        "mode": mode,
         "seed": sim.seed,
         "directions": sim.counters(),
     }

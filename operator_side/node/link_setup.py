@@ -235,5 +235,7 @@ class Sockets:
         if self.pub is not None:
             self.pub.close()
         if self.session is not None:
-            self.session.close()
+            from common.fabric.session import close_session
+
+            close_session(self.session)
             self.session = None

@@ -174,14 +174,14 @@ def open_fabric(
     """
     from common.fabric import keyexprs
     from common.fabric.link import FabricPublisher, FabricSubscriber
-    from common.fabric.session import cert_files, client_config, open_session
+    from common.fabric.session import cert_files, client_config, close_session, open_session
 
     if not name:
         raise ConfigError("robot link.mode = 'fabric' needs link.robot_name (our roster name)")
     member = link.fabric.name or name.decode()
     files = cert_files(link.fabric.cert_dir, member, "robot link.fabric")
     session = open_session(client_config(link.fabric, files, "robot link.fabric"), "robot node")
-    stack.callback(session.close)
+    stack.callback(close_session, session)
     endpoint = link.fabric.router_endpoint
     pub = FabricPublisher(session, robot=name, operator=None, signer=signer, endpoint=endpoint)
     stack.callback(pub.close)
