@@ -206,8 +206,9 @@ def link_health(*ends: Any) -> dict[str, float]:
     """Each watched end's state and reopen count (an end with no watch says nothing)."""
     out: dict[str, float] = {}
     for end in ends:
-        if isinstance(end, _Reconnecting):
-            out.update(end.health())
+        health = getattr(end, "health", None)  # a watched ZeroMQ socket, a fabric end
+        if health is not None:
+            out.update(health())
     return out
 
 

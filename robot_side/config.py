@@ -56,6 +56,12 @@ class RobotLinkConfig:
     heartbeat_rate_hz: float = param(
         20.0, "heartbeats confirm an unchanged stimulus is still current"
     )
+    heartbeat_stats_period_ms: float | None = param(
+        None,
+        "how often a heartbeat carries the node's counters (about 1.8 kB; the heartbeat "
+        "itself about 250 B); unset = every heartbeat on a direct link or relay, every 1000 ms "
+        "on the fabric, where a heartbeat must fit one datagram to travel as a latest value",
+    )
     heartbeat_early_ms: float = param(
         20.0, "a heartbeat due within this long goes out with a frame's work, not on its own"
     )

@@ -7,11 +7,11 @@ may put and read what without reading a payload.
 
     dxp/ROBOT/stimulus                  robot -> operators   best-effort, latest value
     dxp/ROBOT/frame                     robot -> operators   best-effort, latest value
-    dxp/ROBOT/heartbeat                 robot -> operators   reliable
+    dxp/ROBOT/heartbeat                 robot -> operators   best-effort, latest value
     dxp/ROBOT/video                     robot -> operators   reliable (answers to offers)
     dxp/ROBOT/op/OPERATOR/command       operator -> robot    reliable
     dxp/ROBOT/op/OPERATOR/stop          operator -> robot    reliable, and best-effort copies
-    dxp/ROBOT/op/OPERATOR/heartbeat     operator -> robot    reliable
+    dxp/ROBOT/op/OPERATOR/heartbeat     operator -> robot    best-effort, latest value
     dxp/ROBOT/op/OPERATOR/video         operator -> robot    reliable (offers, byes)
 
 ROBOT is a robot name (the roster's ``name`` or one of its ``names``),
@@ -40,8 +40,10 @@ ROBOT_KINDS: dict[type, str] = {
 #: what an operator sends, by message type (an ``arm_stop`` goes under "stop")
 OPERATOR_KINDS: dict[type, str] = {Command: "command", Heartbeat: "heartbeat", VideoSignal: "video"}
 STOP = "stop"
-#: best-effort, dropped under congestion, never retransmitted: only the newest counts
-LATEST_VALUE_KINDS = frozenset({"stimulus", "frame"})
+#: best-effort, dropped under congestion, never retransmitted: only the newest counts. A
+#: heartbeat is one too: the next one (50 ms later) says all it said, and held back behind a
+#: lost packet it would make a fresh stimulus look stale and a live operator look silent
+LATEST_VALUE_KINDS = frozenset({"stimulus", "frame", "heartbeat"})
 
 #: an operator name must be one chunk of a key expression: no '/', no wildcard
 _CHUNK = re.compile(r"[A-Za-z0-9_.-]{1,64}")

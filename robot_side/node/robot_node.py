@@ -35,7 +35,7 @@ from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.frame_rule import Classifier
 from robot_side.node.handover import Handover
 from robot_side.node.link_setup import open_link, stream_signer, wire_name
-from robot_side.node.telemetry import HeartbeatSchedule, Telemetry, node_stats
+from robot_side.node.telemetry import HeartbeatSchedule, Telemetry, node_stats, stats_period_ms
 from robot_side.node.video_desk import VideoDesk, video_signalling
 from robot_side.node.workers import DeviceWorkers
 from robot_side.stop_latch import StopLatch
@@ -142,6 +142,7 @@ class RobotNode:
             now=now,
             stats=self.stats,
             counters=self.counters,
+            stats_period_ms=stats_period_ms(link_cfg),
         )
         #: set it (SIGHUP: ``systemctl reload``) to read the roster again at the next loop turn
         self.roster_reload = threading.Event()

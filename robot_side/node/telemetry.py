@@ -19,6 +19,7 @@ from common.messages import Heartbeat, Stimulus, TactileFrame
 from common.security import Authenticator
 from common.stimulus import sanitize_frame
 from common.transport import Sender
+from robot_side.config import RobotLinkConfig
 from robot_side.node.command_desk import CommandDesk
 from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.workers import DeviceWorkers
@@ -71,8 +72,12 @@ class Telemetry:
         now: Callable[[], int],
         stats: Callable[[], dict[str, float]],
         counters: dict[str, int],
+        stats_period_ms: float = 0.0,
     ) -> None:
         self.desk = desk
+        #: heartbeats carry the counters at most this often (0: every one)
+        self._stats_period_ns = round(stats_period_ms * 1e6)
+        self._stats_due_ns = 0
         self.name = name
         self.session = session
         self.now = now
@@ -135,7 +140,15 @@ class Telemetry:
         return key, echo_send, echo_recv
 
     def _heartbeat_stats(self) -> dict[str, float]:
-        """``stats()``, cut to what a heartbeat may carry: the operator refuses a longer map."""
+        """``stats()``, cut to what a heartbeat may carry: the operator refuses a longer map.
+
+        Empty between two periods of ``stats_period_ms`` (the codec then leaves it out).
+        """
+        if self._stats_period_ns:
+            now = self.now()
+            if now < self._stats_due_ns:
+                return {}
+            self._stats_due_ns = now + self._stats_period_ns
         stats = self.stats()
         if len(stats) > MAX_STATS:
             # the links' health first: `deepxpalm doctor` reads it from here
@@ -160,6 +173,17 @@ class Telemetry:
                 session=self.session,
             )
         )
+
+
+#: across the fabric a heartbeat carries the counters once a second (one datagram otherwise)
+FABRIC_STATS_PERIOD_MS = 1000.0
+
+
+def stats_period_ms(link: RobotLinkConfig) -> float:
+    """How often heartbeats carry the counters: the config's, or the link mode's default."""
+    if link.heartbeat_stats_period_ms is not None:
+        return max(0.0, link.heartbeat_stats_period_ms)
+    return FABRIC_STATS_PERIOD_MS if link.mode == "fabric" else 0.0
 
 
 def node_stats(
