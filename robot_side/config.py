@@ -53,8 +53,11 @@ class RobotLinkConfig:
     command_endpoint: str = param(
         "tcp://127.0.0.1:5556", "SUB bound here: operator commands and heartbeats"
     )
-    heartbeat_rate_hz: float = param(
-        20.0, "heartbeats confirm an unchanged stimulus is still current"
+    heartbeat_rate_hz: float | None = param(
+        None,
+        "heartbeats confirm an unchanged stimulus is still current; unset = 20 on a direct "
+        "link or relay, 40 on the fabric, where each is a datagram and a loss burst can take "
+        "several in a row (docs/fabric.md)",
     )
     heartbeat_stats_period_ms: float | None = param(
         None,

@@ -35,7 +35,13 @@ from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.frame_rule import Classifier
 from robot_side.node.handover import Handover
 from robot_side.node.link_setup import open_link, stream_signer, wire_name
-from robot_side.node.telemetry import HeartbeatSchedule, Telemetry, node_stats, stats_period_ms
+from robot_side.node.telemetry import (
+    HeartbeatSchedule,
+    Telemetry,
+    heartbeat_rate_hz,
+    node_stats,
+    stats_period_ms,
+)
 from robot_side.node.video_desk import VideoDesk, video_signalling
 from robot_side.node.workers import DeviceWorkers
 from robot_side.stop_latch import StopLatch
@@ -84,7 +90,7 @@ class RobotNode:
         link_cfg = config.link
         #: our name on the wire (b"" = unnamed); ConfigError for a name the protocol forbids
         self.name = wire_name(link_cfg.robot_name)
-        self.workers = DeviceWorkers(arm, gripper, link_cfg.heartbeat_rate_hz)
+        self.workers = DeviceWorkers(arm, gripper, heartbeat_rate_hz(link_cfg))
         self.pipeline = FramePipeline(
             config,
             classifier,
@@ -236,7 +242,7 @@ class RobotNode:
 
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
         link = self.config.link
-        heartbeat = HeartbeatSchedule(link.heartbeat_rate_hz, link.heartbeat_early_ms / 1e3)
+        heartbeat = HeartbeatSchedule(heartbeat_rate_hz(link), link.heartbeat_early_ms / 1e3)
         # raw frames on a fixed grid, so the average rate is the configured one even though
         # the loop only wakes for the frames it renders (at 60 Hz, 15 Hz is every 4th)
         frame_msgs = (

@@ -177,6 +177,15 @@ class Telemetry:
 
 #: across the fabric a heartbeat carries the counters once a second (one datagram otherwise)
 FABRIC_STATS_PERIOD_MS = 1000.0
+#: heartbeats a second on a direct link, and on the fabric (datagrams, lost in bursts)
+DIRECT_HEARTBEAT_HZ, FABRIC_HEARTBEAT_HZ = 20.0, 40.0
+
+
+def heartbeat_rate_hz(link: RobotLinkConfig) -> float:
+    """The config's heartbeat rate, or the link mode's default."""
+    if link.heartbeat_rate_hz is not None:
+        return link.heartbeat_rate_hz
+    return FABRIC_HEARTBEAT_HZ if link.mode == "fabric" else DIRECT_HEARTBEAT_HZ
 
 
 def stats_period_ms(link: RobotLinkConfig) -> float:
