@@ -1,0 +1,266 @@
+"""One key, one voice, across sites: what one member's key sends through the router disturbs
+no other robot.
+
+A real router process (QUIC, mutual TLS, its access control made from the
+roster) and two real robot nodes; one controller key runs an operator process
+per robot, each sending ``arm_stop`` at 20 a second. The attacker is the test
+itself, holding one legitimate member's certificate (a robot's, an
+observer's). What the robots get is judged outside the router: each robot's
+own count of commands and latched stops, in the heartbeats a recorder reads
+through the router, in one-second bins; the router's memory from /proc.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from common.clock import now_ns
+from common.codec import MAX_MESSAGE_BYTES, decode_named, encode
+from common.fabric import keyexprs
+from common.fabric.session import FabricConfig, cert_files, client_config, open_session
+from common.messages import Command, Heartbeat
+from harness.fleet import Fleet
+
+pytestmark = [pytest.mark.slow, pytest.mark.parallel, pytest.mark.timeout(240)]
+
+ROBOTS = ("cell1", "cell2")
+#: the controller's STOPs a second to each robot (the issue's rate)
+COMMAND_HZ = 20.0
+#: how long each attack runs while the robots' commands are counted
+ATTACK_S = 3.0
+#: a bin's commands may fall short of those sent in it by this share, plus one at its edges
+SHORTFALL = 0.10
+#: a heartbeat carries the robot's counters once a second across the fabric: a bin's count
+#: is read from the first counters after its end, which may come that much later
+STATS_PERIOD_S = 1.0
+#: a STOP counted in a bin left this long before the bin's reading (the path, the robot's turn)
+LAG_NS = 100_000_000
+#: the router's memory may grow this much over idle through every attack (the issue's bound)
+ROUTER_GROWTH_KB = 50 * 1024
+
+
+def _rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError(f"no VmRSS for pid {pid}")
+
+
+class Wire:
+    """A recorder's session: every robot heartbeat's counters, with their arrival time."""
+
+    def __init__(self, fleet: Fleet) -> None:
+        self.session = _session(fleet, "rec")
+        self.stats: dict[str, list[tuple[int, dict[str, float]]]] = {r: [] for r in ROBOTS}
+        self.subs = [
+            self.session.declare_subscriber(keyexprs.robot_key(r, "heartbeat"), self._on)
+            for r in ROBOTS
+        ]
+
+    def _on(self, sample) -> None:
+        robot, msg = decode_named(sample.payload.to_bytes())
+        if isinstance(msg, Heartbeat) and msg.stats:
+            self.stats[robot.decode()].append((now_ns(), msg.stats))
+
+    def counter_at(self, robot: str, name: str, t_ns: int) -> float | None:
+        """``name`` in the first counters of ``robot`` that arrived at or after ``t_ns``."""
+        for t, stats in list(self.stats[robot]):
+            if t >= t_ns:
+                return stats.get(name, 0.0)
+        return None
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.session.close()
+
+
+class Stops:
+    """An operator process sending ``arm_stop`` at ``COMMAND_HZ``, each send time kept."""
+
+    def __init__(self, proc) -> None:
+        self.proc = proc
+        self.sent: list[int] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        period = 1.0 / COMMAND_HZ
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            self.proc.send({"action": "arm_stop"})
+            self.sent.append(now_ns())
+            next_t += period
+            self._stop.wait(max(0.0, next_t - time.monotonic()))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+
+
+def _session(fleet: Fleet, member: str):
+    fabric = FabricConfig(router_endpoint=fleet.router_endpoint, retry_ms=50.0)
+    files = cert_files(fleet.cert_dir, member, "test")
+    return open_session(client_config(fabric, files, "test"), f"test as {member}")
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    fleet = Fleet(
+        robots=list(ROBOTS),
+        operators={"c": "controller", "mallory": "observer", "rec": "recorder"},
+        workdir=tmp_path_factory.mktemp("hostile"),
+        transport="fabric",
+    )
+    with fleet:
+        router = fleet.start_router()
+        fleet.wait_for(lambda: "router up" in router.log_text(), 30, "the router")
+        for name in ROBOTS:
+            fleet.start_robot(name, None)
+        fleet.wire = Wire(fleet)
+        fleet.stops = {}
+        try:
+            for robot in ROBOTS:
+                proc = fleet.start_operator("c", robot, want_frames=False, request_control=True)
+                fleet.stops[robot] = Stops(proc)
+            fleet.wait_for(
+                lambda: all(
+                    (fleet.wire.counter_at(r, "arm_stops_latched", 0) or 0) > 5 for r in ROBOTS
+                ),
+                60,
+                "both robots latching the controller's STOPs",
+            )
+            fleet.idle_kb = _rss_kb(router.popen.pid)
+            fleet.peak_kb = fleet.idle_kb
+            yield fleet
+        finally:
+            for s in fleet.stops.values():
+                s.close()
+            fleet.wire.close()
+        print(f"router RSS idle {fleet.idle_kb} kB, peak {fleet.peak_kb} kB")
+
+
+def _during(fleet: Fleet, attack, seconds: float = ATTACK_S) -> None:
+    """Run ``attack(stop_event)`` in a thread for ``seconds``; every robot's STOPs kept their
+    rate in each one-second bin meanwhile, and the router's memory its bound."""
+    done = threading.Event()
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            attack(done)
+        except BaseException as e:  # reported below
+            errors.append(e)
+
+    thread = threading.Thread(target=run, daemon=True)
+    pid = fleet.procs["router"].popen.pid
+    t0 = now_ns()
+    thread.start()
+    while now_ns() - t0 < seconds * 1e9:
+        fleet.peak_kb = max(fleet.peak_kb, _rss_kb(pid))
+        time.sleep(0.05)
+    done.set()
+    thread.join(10)
+    t1 = now_ns()
+    assert not errors, errors
+    time.sleep(STATS_PERIOD_S + 0.5)  # the last bin's counters
+    for robot in ROBOTS:
+        sent = fleet.stops[robot].sent
+        readings = [(t, c.get("arm_stops_latched", 0.0)) for t, c in list(fleet.wire.stats[robot])]
+        # each pair of consecutive readings (a heartbeat's counters, once a second) is a bin:
+        # the STOPs sent between them, less the path's delay, against those latched between
+        bins = [
+            (a, b)
+            for a, b in itertools.pairwise(readings)
+            if a[0] >= t0 and b[0] <= t1 + STATS_PERIOD_S * 1e9
+        ]
+        assert len(bins) >= seconds - 1, f"{robot}: {len(bins)} readings of its counters"
+        for (ta, ca), (tb, cb) in bins:
+            n_sent = sum(1 for t in list(sent) if ta - LAG_NS <= t < tb - LAG_NS)
+            span_s = (tb - ta) / 1e9
+            assert n_sent >= (1 - SHORTFALL) * COMMAND_HZ * span_s - 1, (
+                f"the test sent only {n_sent} in {span_s:.2f} s"
+            )
+            assert cb - ca >= (1 - SHORTFALL) * n_sent - 1, (
+                f"{robot} latched {cb - ca:.0f} of {n_sent} STOPs in {span_s:.2f} s of the attack"
+            )
+    assert fleet.peak_kb - fleet.idle_kb < ROUTER_GROWTH_KB, (fleet.idle_kb, fleet.peak_kb)
+
+
+def test_a_robot_key_forging_another_robot_silences_nobody(fleet):
+    cell1 = _session(fleet, "cell1")
+    heard: list[str] = []
+    sub = cell1.declare_subscriber("dxp/cell2/op/*/*", lambda s: heard.append(str(s.key_expr)))
+    forged = encode(Heartbeat(seq=1, t_send_ns=now_ns(), node="robot", state="ok"), b"cell2")
+
+    def attack(done: threading.Event) -> None:
+        while not done.is_set():
+            for kind in ("stimulus", "heartbeat", "video"):
+                cell1.put(keyexprs.robot_key("cell2", kind), forged)
+            cell1.put(keyexprs.operator_key("cell2", "c", keyexprs.STOP), forged)
+            time.sleep(0.001)
+
+    try:
+        _during(fleet, attack)
+    finally:
+        sub.undeclare()
+        cell1.close()
+    assert heard == [], heard[:5]  # cell1 read none of cell2's commands
+
+
+def test_an_observer_reading_with_wildcards_gets_no_command(fleet):
+    mallory = _session(fleet, "mallory")
+    heard: list[str] = []
+
+    def attack(done: threading.Event) -> None:
+        subs = [
+            mallory.declare_subscriber(k, lambda s: heard.append(str(s.key_expr)))
+            for k in ("dxp/**", "dxp/*/op/**", "dxp/cell2/op/c/stop", "**")
+        ]
+        done.wait()
+        for sub in subs:
+            sub.undeclare()
+
+    try:
+        _during(fleet, attack)
+    finally:
+        mallory.close()
+    assert not [k for k in heard if "/op/" in k], heard[:5]
+
+
+def test_payloads_over_the_limit_floods_and_junk_from_an_observer_silence_nobody(fleet):
+    mallory = _session(fleet, "mallory")
+    big = b"\x00" * (MAX_MESSAGE_BYTES + 1)
+    stop = encode(Command(seq=1, t_send_ns=now_ns(), action="arm_stop", session=1), b"cell2")
+
+    def attack(done: threading.Event) -> None:
+        n = 0
+        while not done.is_set():
+            for robot in ROBOTS:
+                for kind in (keyexprs.STOP, "heartbeat", "command", "video"):
+                    key = keyexprs.operator_key(robot, "mallory", kind)
+                    mallory.put(key, big if n % 50 == 0 else b"junk" + n.to_bytes(4, "big"))
+                mallory.put(keyexprs.operator_key(robot, "mallory", keyexprs.STOP), stop)
+            n += 1
+
+    try:
+        _during(fleet, attack)
+    finally:
+        mallory.close()
+
+
+def test_connection_churn_and_subscription_floods_silence_nobody(fleet):
+    def attack(done: threading.Event) -> None:
+        while not done.is_set():
+            session = _session(fleet, "mallory")
+            for i in range(200):  # declarations the access control does not filter
+                session.declare_subscriber(f"dxp/cell{i}/stimulus", lambda s: None)
+            session.close()
+
+    _during(fleet, attack)
