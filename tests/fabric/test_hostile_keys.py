@@ -68,12 +68,10 @@ class Wire:
         if isinstance(msg, Heartbeat) and msg.stats:
             self.stats[robot.decode()].append((now_ns(), msg.stats))
 
-    def counter_at(self, robot: str, name: str, t_ns: int) -> float | None:
-        """``name`` in the first counters of ``robot`` that arrived at or after ``t_ns``."""
-        for t, stats in list(self.stats[robot]):
-            if t >= t_ns:
-                return stats.get(name, 0.0)
-        return None
+    def latest(self, robot: str, name: str) -> float:
+        """``name`` in the newest counters of ``robot`` (0 before any)."""
+        readings = list(self.stats[robot])
+        return readings[-1][1].get(name, 0.0) if readings else 0.0
 
     def close(self) -> None:
         with contextlib.suppress(Exception):
@@ -130,9 +128,7 @@ def fleet(tmp_path_factory):
                 proc = fleet.start_operator("c", robot, want_frames=False, request_control=True)
                 fleet.stops[robot] = Stops(proc)
             fleet.wait_for(
-                lambda: all(
-                    (fleet.wire.counter_at(r, "arm_stops_latched", 0) or 0) > 5 for r in ROBOTS
-                ),
+                lambda: all(fleet.wire.latest(r, "arm_stops_latched") > 5 for r in ROBOTS),
                 60,
                 "both robots latching the controller's STOPs",
             )
@@ -195,8 +191,9 @@ def _during(fleet: Fleet, attack, seconds: float = ATTACK_S) -> None:
 
 def test_a_robot_key_forging_another_robot_silences_nobody(fleet):
     cell1 = _session(fleet, "cell1")
+    reader = _session(fleet, "cell1")  # another session: a session hears its own puts locally
     heard: list[str] = []
-    sub = cell1.declare_subscriber("dxp/cell2/op/*/*", lambda s: heard.append(str(s.key_expr)))
+    sub = reader.declare_subscriber("dxp/cell2/op/*/*", lambda s: heard.append(str(s.key_expr)))
     forged = encode(Heartbeat(seq=1, t_send_ns=now_ns(), node="robot", state="ok"), b"cell2")
 
     def attack(done: threading.Event) -> None:
@@ -211,6 +208,7 @@ def test_a_robot_key_forging_another_robot_silences_nobody(fleet):
     finally:
         sub.undeclare()
         cell1.close()
+        reader.close()
     assert heard == [], heard[:5]  # cell1 read none of cell2's commands
 
 
