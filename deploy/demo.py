@@ -820,6 +820,7 @@ def _summary(
         "latency_ms": {
             "p50": op.get("latency_p50_ms"),
             "p99": op.get("latency_p99_ms"),
+            "p99.9": op.get("latency_p999_ms"),
             "max": op.get("latency_max_ms"),
             "samples": status.latency_samples(),
             "what": "frame capture (robot clock, offset-corrected) to servo command",

@@ -9,6 +9,7 @@ below.
 from __future__ import annotations
 
 from harness.bench import (
+    across_sites,
     classifier,
     command_path,
     downsizing,
@@ -45,6 +46,7 @@ SECTIONS: tuple[Section, ...] = (
     netsim.SECTION,
     video_netsim.SECTION,
     relay.SECTION,
+    across_sites.SECTION,
     task.SECTION,
     faults.SECTION,
 )

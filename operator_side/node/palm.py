@@ -159,12 +159,13 @@ class Palm:
         n = self.counters["latency_samples"]
         if self._latency_cache[0] != n and self.latencies_ms:
             lat = np.fromiter(self.latencies_ms, dtype=np.float64)
-            p50, p99 = np.percentile(lat, (50, 99))
+            p50, p99, p999 = np.percentile(lat, (50, 99, 99.9))
             self._latency_cache = (
                 n,
                 {
                     "latency_p50_ms": float(p50),
                     "latency_p99_ms": float(p99),
+                    "latency_p999_ms": float(p999),
                     "latency_max_ms": float(lat.max()),
                     "latency_last_ms": float(lat[-1]),
                 },
