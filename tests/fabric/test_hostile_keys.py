@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import signal
 import threading
 import time
 from pathlib import Path
@@ -58,6 +59,7 @@ class Wire:
     def __init__(self, fleet: Fleet) -> None:
         self.session = _session(fleet, "rec")
         self.stats: dict[str, list[tuple[int, dict[str, float]]]] = {r: [] for r in ROBOTS}
+        self.heard: dict[str, list[int]] = {r: [] for r in ROBOTS}  # every heartbeat's arrival
         self.subs = [
             self.session.declare_subscriber(keyexprs.robot_key(r, "heartbeat"), self._on)
             for r in ROBOTS
@@ -65,8 +67,10 @@ class Wire:
 
     def _on(self, sample) -> None:
         robot, msg = decode_named(sample.payload.to_bytes())
-        if isinstance(msg, Heartbeat) and msg.stats:
-            self.stats[robot.decode()].append((now_ns(), msg.stats))
+        if isinstance(msg, Heartbeat):
+            self.heard[robot.decode()].append(now_ns())
+            if msg.stats:
+                self.stats[robot.decode()].append((now_ns(), msg.stats))
 
     def latest(self, robot: str, name: str) -> float:
         """``name`` in the newest counters of ``robot`` (0 before any)."""
@@ -262,3 +266,27 @@ def test_connection_churn_and_subscription_floods_silence_nobody(fleet):
             session.close()
 
     _during(fleet, attack)
+
+
+def test_a_restarted_router_has_every_node_back_within_2_s(fleet):
+    """systemd restarts a router that died (its unit's Restart=always): robots and operators
+    reconnect by themselves, and both robots latch the controller's STOPs again within 2 s
+    of the router listening. Last in the module: it restarts the router."""
+    fleet.stop("router", signal.SIGKILL)
+    time.sleep(1.0)  # a second with no router: the robots' deadmen fire, the palms lift
+    router = fleet.start_router()
+    fleet.wait_for(lambda: "router up" in router.log_text(), 30, "the router back")
+    t_up = now_ns()
+    counts = {r: fleet.wire.latest(r, "arm_stops_latched") for r in ROBOTS}
+    for robot in ROBOTS:
+        fleet.wait_for(
+            lambda r=robot: any(
+                t > t_up and c.get("arm_stops_latched", 0) > counts[r]
+                for t, c in list(fleet.wire.stats[r])
+            ),
+            10,
+            f"{robot} latching STOPs again",
+        )
+        back_s = (min(t for t in list(fleet.wire.heard[robot]) if t > t_up) - t_up) / 1e9
+        print(f"{robot} heard again {back_s:.2f} s after the router listened")
+        assert back_s <= 2.0, back_s
