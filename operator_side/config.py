@@ -86,6 +86,16 @@ class OperatorLinkConfig:
         "a gripper command the robot's heartbeats have not confirmed by then (lost, or refused "
         "as stale on a slow link) is sent again, fresh",
     )
+    stop_resend_ms: float = param(
+        50.0,
+        "an arm_stop the robot's heartbeats have not yet shown latched is sent again this often "
+        "(a new command), so a lost one cannot delay a STOP by a retransmission; 0 = never",
+    )
+    stop_resend_for_ms: float = param(
+        1000.0,
+        "resending a STOP ends after this long without the robot showing it latched (counted "
+        "stops_unconfirmed), or at once when this operator sends another arm command",
+    )
     gripper_resends: int = param(
         2, "resends of an unconfirmed gripper command before it is counted gripper_unconfirmed"
     )

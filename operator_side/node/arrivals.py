@@ -224,7 +224,9 @@ class Arrivals:
         if msg.session is not None:
             self.heard.session = msg.session
         self.lease.on_heartbeat(msg)
-        self.robot_stats = msg.stats
+        # merged: across the fabric most heartbeats carry only what an operator acts on (the
+        # stop latch, the gripper's ack) and the whole counters once a second
+        self.robot_stats = {**self.robot_stats, **msg.stats}
         self.on_robot_stats(msg.stats)
         stim = self.stimulus
         if stim is not None and msg.stimulus_seq == stim.seq and msg.t_capture_ns is not None:

@@ -96,7 +96,7 @@ class OperatorNode:
             gate=self.telemetry_gate,
             counters=self.counters,
             recording=self.recording,
-            on_robot_stats=self.outbox.confirm_gripper,
+            on_robot_stats=self.outbox.on_robot_stats,
         )
         cal = calibration or servos.calibration or LinkGlideCalibration()
         self.palm = Palm(config, servos, cal, self.arrivals, **parts)

@@ -12,6 +12,11 @@
   ``gripper_command_session``); until it names ours, it is sent again as a
   new command (fresh seq and send time) every ``gripper_confirm_ms``,
   ``gripper_resends`` times at most;
+- an ``arm_stop`` is sent again as a new command every ``stop_resend_ms``
+  until the robot's heartbeat shows its stop latch set (``arm_stop_latched``,
+  in every heartbeat), for ``stop_resend_for_ms`` at most, and never after
+  this operator sent another arm command (a resume must not be undone by a
+  late copy of the stop before it);
 - a video signal (a WebRTC offer or bye) is held until the robot is known to
   hear us, then sent in order (``release_held_signals``).
 
@@ -55,6 +60,14 @@ class PendingGripper:
     resends: int
 
 
+@dataclass
+class PendingStop:
+    """An arm_stop the robot has not yet shown latched: when it was first sent, when next."""
+
+    since_ns: int
+    next_ns: int
+
+
 class Outbox:
     """Commands and video signals from any thread to the robot, on the loop's thread."""
 
@@ -90,6 +103,7 @@ class Outbox:
         self._cmd_seq = 0
         self._vsig_seq = 0
         self.gripper_pending: PendingGripper | None = None
+        self.stop_pending: PendingStop | None = None
         self._blind_log = BurstLog(log, "jog held: no fresh telemetry, we cannot see the arm")
         self._late_log = BurstLog(log, "jog dropped: it waited too long on this busy PC")
 
@@ -136,6 +150,24 @@ class Outbox:
             self._send_command(cmd, now, resends=0)
         self.release_held_signals(now)
         self._resend_gripper(now)
+        self._resend_stop(now)
+
+    def _resend_stop(self, now: int) -> None:
+        pending = self.stop_pending
+        if pending is None or now < pending.next_ns:
+            return
+        if (now - pending.since_ns) / 1e6 > self.link.stop_resend_for_ms:
+            self.stop_pending = None
+            self.counters["stops_unconfirmed"] += 1
+            log.warning(
+                "the robot never showed our STOP latched in %.0f ms: a recorder's key, or the "
+                "link is down (the robot's deadman stops the arm then)",
+                self.link.stop_resend_for_ms,
+            )
+            return
+        self.counters["stops_resent"] += 1
+        self._send_command(Command(seq=0, t_send_ns=0, action="arm_stop"), now, resends=1)
+        pending.next_ns = now + round(self.link.stop_resend_ms * 1e6)
 
     def _resend_gripper(self, now: int) -> None:
         pending = self.gripper_pending
@@ -188,11 +220,24 @@ class Outbox:
         data = self.pub().send(cmd)
         self.counters["commands_sent"] += 1
         self.recording.command(cmd.seq, cmd.t_send_ns, data)
+        if cmd.action == "arm_stop":
+            if resends == 0 and self.link.stop_resend_ms > 0:
+                next_ns = now + round(self.link.stop_resend_ms * 1e6)
+                self.stop_pending = PendingStop(now, next_ns)
+        elif cmd.action.startswith("arm_"):
+            self.stop_pending = None  # a resume (or a jog) after the stop: never re-stop after it
         if cmd.action.startswith("gripper"):
             deadline = now + round(self.link.gripper_confirm_ms * 1e6)
             self.gripper_pending = PendingGripper(
                 cmd.action, cmd.grip_level, cmd.seq, deadline, resends
             )
+
+    def on_robot_stats(self, stats: dict[str, float]) -> None:
+        """A robot heartbeat's state: it may confirm our STOP and our gripper command."""
+        if self.stop_pending is not None and stats.get("arm_stop_latched"):
+            self.stop_pending = None
+            self.counters["stops_confirmed"] += 1
+        self.confirm_gripper(stats)
 
     def confirm_gripper(self, stats: dict[str, float]) -> None:
         """The robot's heartbeat names the newest gripper command it acted on."""

@@ -142,14 +142,15 @@ class Telemetry:
     def _heartbeat_stats(self) -> dict[str, float]:
         """``stats()``, cut to what a heartbeat may carry: the operator refuses a longer map.
 
-        Empty between two periods of ``stats_period_ms`` (the codec then leaves it out).
+        Between two periods of ``stats_period_ms``: only what an operator acts on
+        (``STATE_STATS``: the stop latch, the gripper's acknowledgement).
         """
+        stats = self.stats()
         if self._stats_period_ns:
             now = self.now()
             if now < self._stats_due_ns:
-                return {}
+                return {k: stats[k] for k in STATE_STATS if k in stats}
             self._stats_due_ns = now + self._stats_period_ns
-        stats = self.stats()
         if len(stats) > MAX_STATS:
             # the links' health first: `deepxpalm doctor` reads it from here
             ranked = sorted(stats, key=lambda k: (not k.startswith("link_"), k))
@@ -177,6 +178,8 @@ class Telemetry:
 
 #: across the fabric a heartbeat carries the counters once a second (one datagram otherwise)
 FABRIC_STATS_PERIOD_MS = 1000.0
+#: what every heartbeat carries whatever the period: the state an operator acts on
+STATE_STATS = ("arm_stop_latched", "gripper_command_seq", "gripper_command_session")
 #: heartbeats a second on a direct link, and on the fabric (datagrams, lost in bursts)
 DIRECT_HEARTBEAT_HZ, FABRIC_HEARTBEAT_HZ = 20.0, 40.0
 

@@ -152,3 +152,62 @@ def test_with_the_robots_key_only_its_signed_telemetry_reaches_the_palm(tmp_path
     tampered[cells + 4] ^= 0x01
     with pytest.raises(SignatureError):
         decode(bytes(tampered))
+
+
+def _stops(link: CaptureLink) -> list[Command]:
+    return [m for m in link.messages if isinstance(m, Command) and m.action == "arm_stop"]
+
+
+def test_a_stop_is_sent_again_until_the_robot_shows_it_latched() -> None:
+    clock = VirtualClock(t_ns=1_000_000_000)
+    link = CaptureLink()
+    node = OperatorNode(OperatorConfig(), RecordingServoBus(), now=clock, link=link)
+    every = round(node.config.link.stop_resend_ms * 1e6)
+    node.send_command("arm_stop")
+    node.flush_commands(clock())
+    clock.advance(every - 1)
+    node.flush_commands(clock())
+    assert len(_stops(link)) == 1, "not yet due"
+    clock.advance(1)
+    node.flush_commands(clock())
+    clock.advance(every)
+    node.flush_commands(clock())
+    stops = _stops(link)
+    assert len(stops) == 3 and node.counters["stops_resent"] == 2
+    assert stops[2].seq > stops[1].seq > stops[0].seq, "each a new command"
+    # a heartbeat that says nothing of the latch confirms nothing; one that shows it set does
+    link.deliver(_robot_heartbeat(clock(), {"gripper_command_seq": 0.0}), clock())
+    node.receive()
+    clock.advance(every)
+    node.flush_commands(clock())
+    assert len(_stops(link)) == 4
+    link.deliver(_robot_heartbeat(clock(), {"arm_stop_latched": 1.0}), clock())
+    node.receive()
+    clock.advance(10 * every)
+    node.flush_commands(clock())
+    assert len(_stops(link)) == 4 and node.counters["stops_confirmed"] == 1
+
+
+def test_a_resume_ends_the_stops_resending_and_an_unlatched_stop_gives_up() -> None:
+    clock = VirtualClock(t_ns=1_000_000_000)
+    link = CaptureLink()
+    node = OperatorNode(OperatorConfig(), RecordingServoBus(), now=clock, link=link)
+    every = round(node.config.link.stop_resend_ms * 1e6)
+    node.send_command("arm_stop")
+    node.flush_commands(clock())
+    node.send_command("arm_resume")  # before the robot showed the latch: no stop after it
+    node.flush_commands(clock())
+    for _ in range(5):
+        clock.advance(every)
+        node.flush_commands(clock())
+    actions = [m.action for m in link.messages if isinstance(m, Command)]
+    assert actions == ["arm_stop", "arm_resume"]
+    node.send_command("arm_stop")  # never shown latched (a recorder's key): given up on
+    for _ in range(
+        round(node.config.link.stop_resend_for_ms / node.config.link.stop_resend_ms) + 5
+    ):
+        node.flush_commands(clock())
+        clock.advance(every)
+    assert node.counters["stops_unconfirmed"] == 1
+    resent = len(_stops(link)) - 2
+    assert 0 < resent <= node.config.link.stop_resend_for_ms / node.config.link.stop_resend_ms
