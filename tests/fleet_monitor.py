@@ -1,4 +1,4 @@
-"""A test's own relay client, and an operator process jogging, for the fleet tests."""
+"""A test's own relay or router client, and an operator process jogging, for the fleet tests."""
 
 from __future__ import annotations
 
@@ -16,9 +16,34 @@ from harness.fleet import Fleet
 
 
 class Monitor:
-    """The test's own relay client (the recorder's key): robot heartbeats and stimuli, timed."""
+    """The test's own relay or router client (the recorder's key): robot heartbeats and
+    stimuli, timed. On the fabric it reads with the product's own ``FabricSubscriber``."""
 
     def __init__(self, fleet: Fleet, key: str, robots: list[str]) -> None:
+        self.heartbeats: list[tuple[int, Heartbeat]] = []
+        self.stimulus_times: list[int] = []  # arrival here, our clock
+        self.ctx = self.session = None
+        if fleet.transport == "fabric":
+            self.sub = self._fabric(fleet, key, robots)
+        else:
+            self.sub = self._relay(fleet, key, robots)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _fabric(self, fleet: Fleet, key: str, robots: list[str]):
+        from common.fabric import keyexprs
+        from common.fabric.link import FabricSubscriber
+        from common.fabric.session import FabricConfig, cert_files, client_config, open_session
+
+        fabric = FabricConfig(router_endpoint=fleet.router_endpoint)
+        files = cert_files(fleet.cert_dir, key, "monitor")
+        self.session = open_session(client_config(fabric, files, "monitor"), "monitor")
+        keys = tuple(keyexprs.robot_key(r, k) for r in robots for k in ("heartbeat", "stimulus"))
+        # every heartbeat and stimulus, not the newest of each: a queue per key of its own
+        return FabricSubscriber(self.session, keys, expect_name=None, latest_value=False)
+
+    def _relay(self, fleet: Fleet, key: str, robots: list[str]) -> Subscriber:
         m = fleet.members[key]
         security = SecurityConfig(
             mode="curve",
@@ -29,18 +54,13 @@ class Monitor:
         topics = tuple(
             name_prefix(t, r.encode()) for r in robots for t in (Heartbeat.TOPIC, Stimulus.TOPIC)
         )
-        self.sub = Subscriber(
+        return Subscriber(
             self.ctx,
             fleet.ops_telemetry,
             bind=False,
             sock_opts=client_options(security),
             topics=topics,
         )
-        self.heartbeats: list[tuple[int, Heartbeat]] = []
-        self.stimulus_times: list[int] = []  # arrival here, our clock
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -77,7 +97,10 @@ class Monitor:
         self._stop.set()
         self._thread.join(2)
         self.sub.close()
-        self.ctx.term()
+        if self.ctx is not None:
+            self.ctx.term()
+        if self.session is not None:
+            self.session.close()
 
 
 def jog_for(proc, velocity: list[float], seconds: float) -> None:

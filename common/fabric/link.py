@@ -203,8 +203,12 @@ class FabricSubscriber:
         name: str = "subscriber",
         queue: int = 256,
         endpoint: str = "",
+        latest_value: bool = True,
     ) -> None:
+        """``latest_value=False``: every message queued, latest-value kinds too (a recorder
+        or a test that counts every message, not a node that acts on the newest)."""
         self.endpoint = endpoint
+        self._latest_kinds = keyexprs.LATEST_VALUE_KINDS if latest_value else frozenset()
         self.expect_name = expect_name
         self.received = 0
         self.rejected: Counter[str] = Counter()
@@ -229,7 +233,7 @@ class FabricSubscriber:
         data = sample.payload.to_bytes()
         kind = key.rsplit("/", 1)[-1]
         with self._lock:
-            if kind in keyexprs.LATEST_VALUE_KINDS:
+            if kind in self._latest_kinds:
                 if key in self._latest:
                     self.counters["superseded"] += 1
                 self._latest[key] = (t_recv, data)
