@@ -190,6 +190,92 @@ class RobotWatch:
         self.ctx.term()
 
 
+class FabricRobotWatch(RobotWatch):
+    """``RobotWatch`` through the fabric's router, with a recorder's certificate."""
+
+    def __init__(self, site: FabricSite) -> None:
+        from common.fabric import keyexprs
+        from common.fabric.link import FabricSubscriber
+        from common.fabric.session import FabricConfig, cert_files, client_config, open_session
+
+        fabric = FabricConfig(router_endpoint=site.endpoint)
+        files = cert_files(site.cert_dir, "watch", "bench")
+        self.session = open_session(client_config(fabric, files, "bench"), "bench watch")
+        keys = tuple(keyexprs.robot_key(site.robot, k) for k in ("stimulus", "heartbeat"))
+        self.sub = FabricSubscriber(self.session, keys, expect_name=None, latest_value=False)
+        self.stats = {}
+        self.capture_to_send_ns = []
+
+    def wait_ready(self, robot: subprocess.Popen, timeout_s: float) -> None:
+        from common.messages import Stimulus
+
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if robot.poll() is not None:
+                raise RuntimeError(f"robot node exited with {robot.returncode} while starting")
+            if self.sub.poll(0.2) and any(isinstance(m, Stimulus) for m, _ in self.sub.drain()):
+                return
+        raise RuntimeError(f"robot node published no stimulus within {timeout_s:.0f} s")
+
+    def latest_stats(self) -> dict[str, float]:
+        from common.messages import Heartbeat
+
+        for msg, _ in self.sub.drain(1 << 20):
+            if isinstance(msg, Heartbeat):
+                if msg.stats and len(msg.stats) > 3:  # the whole counters (once a second)
+                    self.stats = dict(msg.stats)
+            elif not msg.keyframe:
+                self.capture_to_send_ns.append(msg.t_send_ns - msg.t_capture_ns)
+        return dict(self.stats)
+
+    def close(self) -> None:
+        self.sub.close()
+        self.session.close()
+
+
+@dataclass
+class FabricSite:
+    """A router, a roster of one robot, one controller and the bench's watch, and their keys."""
+
+    workdir: Path
+    robot: str = "bench"
+
+    def __post_init__(self) -> None:
+        from common.signing import generate_key_files
+        from deploy.keys_cli import fabric_certificates
+
+        d = self.workdir / "fabric"
+        self.robot_sign, self.robot_secret = generate_key_files(d, "robot")
+        op_sign, self.op_secret = generate_key_files(d, "op")
+        self.roster = d / "roster.toml"
+        self.roster.write_text(
+            '[[operator]]\nname = "op"\nrole = "controller"\n'
+            f'signing_key = "{op_sign.read_text().strip()}"\n'
+            '[[operator]]\nname = "watch"\nrole = "recorder"\n'
+            f'[[robot]]\nname = "{self.robot}"\n'
+        )
+        self.cert_dir = d / "certs"
+        fabric_certificates(self.roster, self.cert_dir, "router", ("127.0.0.1",), False)
+        self.endpoint = f"quic/127.0.0.1:{free_loopback_ports(1, udp=True)[0]}"
+        self.router_config = d / "router.toml"
+        self.router_config.write_text(
+            f'[router]\nlisten_endpoint = "{self.endpoint}"\nroster_file = "{self.roster}"\n'
+            f'cert_dir = "{self.cert_dir}"\n'
+        )
+
+    def configure(self, robot_cfg: Any, op_cfg: Any) -> None:
+        from common.fabric.session import FabricConfig
+
+        link = robot_cfg.link
+        link.mode, link.robot_name, link.roster_file = "fabric", self.robot, self.roster
+        link.signing_key_file = self.robot_secret
+        link.fabric = FabricConfig(router_endpoint=self.endpoint, cert_dir=self.cert_dir)
+        op = op_cfg.link
+        op.mode, op.robot_name = "fabric", self.robot
+        op.signing_key_file, op.robot_key_file = self.op_secret, self.robot_sign
+        op.fabric = FabricConfig(router_endpoint=self.endpoint, cert_dir=self.cert_dir, name="op")
+
+
 def run_nodes(
     frames: list[np.ndarray],
     rate_hz: float,
@@ -199,8 +285,12 @@ def run_nodes(
     publish_rate_hz: float = 60.0,
     backend: str | None = None,
     with_operator: bool = True,
+    fabric: bool = False,
 ) -> dict[str, Any]:
-    """CPU share of one core for each node, with the counters that show it ran properly."""
+    """CPU share of one core for each node, with the counters that show it ran properly.
+
+    ``fabric``: the nodes meet through a router on the fabric (QUIC, certificates) instead of
+    the direct ZeroMQ link; the router's CPU is reported too."""
     from operator_side.config import OperatorConfig
     from robot_side.config import RobotConfig
 
@@ -215,7 +305,9 @@ def run_nodes(
     op_cfg.servos = {"kind": "recording"}
     procs: dict[str, subprocess.Popen] = {}
     watch: RobotWatch | None = None
+    site = FabricSite(workdir) if fabric else None
     result: dict[str, Any] = {
+        "link": "fabric" if fabric else "zeromq",
         "rate_hz": rate_hz,
         "publish_rate_hz": publish_rate_hz,
         "backend": backend or "default",
@@ -226,6 +318,11 @@ def run_nodes(
             tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2))
             for cfg in (robot_cfg, op_cfg):
                 cfg.link.telemetry_endpoint, cfg.link.command_endpoint = tel, cmd
+            if site is not None:
+                site.configure(robot_cfg, op_cfg)
+                procs["router"] = _spawn(
+                    ["router", "--config", str(site.router_config)], workdir / "router.log"
+                )
             (workdir / "robot.toml").write_text(config_toml(robot_cfg, "robot"))
             (workdir / "operator.toml").write_text(config_toml(op_cfg, "operator"))
             procs["robot"] = _spawn(
@@ -249,7 +346,7 @@ def run_nodes(
                     ],
                     workdir / "operator.log",
                 )
-            watch = RobotWatch(tel)
+            watch = RobotWatch(tel) if site is None else FabricRobotWatch(site)
             try:
                 watch.wait_ready(procs["robot"], timeout_s=120.0)
                 break
@@ -298,8 +395,11 @@ def run_nodes(
     finally:
         if watch is not None:
             watch.close()
-        for proc in procs.values():
-            _stop(proc)
+        for name, proc in procs.items():
+            if name != "router":
+                _stop(proc)
+        if "router" in procs:  # last: a node stopping beside a gone router waits for it
+            _stop(procs["router"])
         feeder.stop()
     for name in procs:
         path = workdir / f"{name}.json"
@@ -345,18 +445,26 @@ RENDERED_SHARE_TO_COUNT = 0.9
 class NodeCpuSizes:
     node_warmup_s: float
     node_measure_s: float
+    #: the same nodes through a router on the fabric, measured too
+    node_fabric: bool = True
 
 
 SIZES = {
     "full": NodeCpuSizes(node_warmup_s=5.0, node_measure_s=20.0),
     "quick": NodeCpuSizes(node_warmup_s=4.0, node_measure_s=6.0),
-    "smallest": NodeCpuSizes(node_warmup_s=3.0, node_measure_s=2.0),
+    "smallest": NodeCpuSizes(node_warmup_s=3.0, node_measure_s=2.0, node_fabric=False),
 }
 
 
 def measure(ctx: Context, sizes: NodeCpuSizes) -> dict[str, Any]:
     """The nodes are processes of their own: unpinned (they inherit the bench's affinity)."""
-    return run_nodes(ctx.demo_frames(), SENSOR_RATE_HZ, sizes.node_warmup_s, sizes.node_measure_s)
+    frames = ctx.demo_frames()
+    result = run_nodes(frames, SENSOR_RATE_HZ, sizes.node_warmup_s, sizes.node_measure_s)
+    if sizes.node_fabric:
+        result["fabric"] = run_nodes(
+            frames, SENSOR_RATE_HZ, sizes.node_warmup_s, sizes.node_measure_s, fabric=True
+        )
+    return result
 
 
 def _control_rate_hz() -> float:
@@ -393,6 +501,21 @@ def verdicts(results: Results) -> list[Verdict]:
             )
             verdict = False if val >= target else None
         rows.append(Verdict(f"{node}: < {target:g} % of one core", text, verdict))
+    fabric = None if cpu is None else cpu.get("fabric")
+    if fabric is not None:
+        for node, key, target in (
+            (f"robot node on the fabric at {SENSOR_RATE_HZ:g} Hz", "robot_cpu_percent",
+             ROBOT_CPU_TARGET),
+            (f"{operator} on the fabric", "operator_cpu_percent", OPERATOR_CPU_TARGET),
+        ):  # fmt: skip
+            val = fabric.get(key)
+            rows.append(
+                Verdict(
+                    f"{node}: < {target:g} % of one core",
+                    None if val is None else f"{val:.1f} %",
+                    None if val is None else val < target,
+                )
+            )
     return rows
 
 
@@ -449,6 +572,38 @@ def markdown(results: Results) -> list[str]:
         ],
         "|---|---:|---:|---|",
     )
+    fabric = s.get("fabric")
+    if fabric is not None:
+        out += [
+            "",
+            'The same nodes through a router on the fabric (`link.mode = "fabric"`: QUIC '
+            "with certificates to `deepxpalm router` on loopback, heartbeats at 40 Hz):",
+            "",
+        ]
+        out += table(
+            ["node", "CPU (% of one core)", "target", "busiest threads (% of one core)"],
+            [
+                [
+                    name,
+                    num(fabric.get(f"{key}_cpu_percent")),
+                    target,
+                    ", ".join(
+                        f"{k} {v:g}"
+                        for k, v in list(fabric.get(f"{key}_threads_percent", {}).items())[:4]
+                    ),
+                ]
+                for name, key, target in (
+                    (f"robot, {SENSOR_RATE_HZ:g} Hz frames", "robot", f"< {ROBOT_CPU_TARGET:g} %"),
+                    (
+                        f"operator, {_control_rate_hz():g} Hz control",
+                        "operator",
+                        f"< {OPERATOR_CPU_TARGET:g} %",
+                    ),
+                    ("router", "router", "-"),
+                )
+            ],
+            "|---|---:|---:|---|",
+        )
     return out
 
 
