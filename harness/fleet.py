@@ -458,6 +458,19 @@ class Fleet:
     def start_recorder(self, name: str, output: Path | None = None) -> Proc:
         m = self.members[name]
         config = self.workdir / f"{name}.toml"
+        if self.transport == "fabric":
+            lines = [
+                "[recorder]",
+                'mode = "fabric"',
+                f"robots = [{', '.join(repr(r).replace(chr(39), chr(34)) for r in self.robots)}]",
+                *([f'output = "{output}"'] if output is not None else []),
+                "[recorder.fabric]",
+                f'router_endpoint = "{self.router_endpoint}"',
+                f'cert_dir = "{self.cert_dir}"',
+                f'name = "{name}"',
+            ]
+            write_secret_file(config, "\n".join(lines) + "\n")
+            return self._start(name, ["-v", "record", "--config", str(config)])
         lines = [
             "[recorder]",
             f'telemetry_endpoint = "{self.ops_telemetry}"',

@@ -1,10 +1,13 @@
-"""``deepxpalm record``: keep every robot's stream from a relay, for later analysis.
+"""``deepxpalm record``: keep every robot's stream from a relay or the fabric, for analysis.
 
 A recorder is a roster key with the role ``recorder``: it subscribes to the
 whole telemetry of the robots it names (frames included), checks every
 message with the codec (a bad one is counted, never written) and appends
 the wire bytes to a file, each as ``<u64 receive ns><u32 length><bytes>``
-(little-endian). It sends nothing, so it can never command a robot.
+(little-endian). It sends nothing, so it can never command a robot. On the
+fabric (``mode = "fabric"``) it reads through the router with its recorder
+certificate, every message of the robots it names (none dropped for a newer
+one, as a node would).
 
 With ``foxglove.enabled`` it also serves a session's recordings live to
 Foxglove (``common/foxglove_live.py``: the camera, the pads, the arm and the
@@ -21,6 +24,7 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import zmq
 
@@ -34,6 +38,8 @@ from common.cli_support import (
 from common.clock import now_ns
 from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, DecodeError, decode_named
 from common.config import param
+from common.errors import ConfigError
+from common.fabric.session import FabricConfig
 from common.foxglove import FoxgloveLiveConfig
 from common.link_stats import SEQ_RESTART_GAP
 from common.logs import BurstLog
@@ -52,6 +58,12 @@ class RecorderConfig:
     robots: list[str] = param([], "robot names to record; empty = every one")
     output: Path | None = param(None, "append the wire messages here; unset = count only")
     security: SecurityConfig = param(SecurityConfig(), "CURVE: our key pair and the relay's key")
+    mode: Literal["direct", "fabric"] = param(
+        "direct",
+        "direct: the relay's telemetry endpoint above; fabric: through a Zenoh router "
+        "([recorder.fabric], docs/fabric.md), where robots must name each robot to record",
+    )
+    fabric: FabricConfig = param(FabricConfig(), "mode fabric: the router and our certificate")
     foxglove: FoxgloveLiveConfig = param(
         FoxgloveLiveConfig(), "a live view in Foxglove of a session being recorded; off by default"
     )
@@ -69,6 +81,11 @@ class StreamRecorder:
         self.counters: Counter[str] = Counter()
         self._last_seq: dict[str, int] = {}
         self._bad = BurstLog(log, "recorder: rejected message")
+        self._out = open(config.output, "ab") if config.output else None  # noqa: SIM115
+        self.session = self.inbox = self.sock = None
+        if config.mode == "fabric":
+            self._open_fabric(config)
+            return
         check_endpoint(config.telemetry_endpoint, config.security)
         self.sock = self.ctx.socket(zmq.SUB)
         self.sock.setsockopt(zmq.LINGER, 0)
@@ -81,12 +98,38 @@ class StreamRecorder:
         for name in names or [b""]:
             for topic in (b"STIM", b"FRAM", b"HBRT") if name else (b"",):
                 self.sock.setsockopt(zmq.SUBSCRIBE, name_prefix(topic, name))
-        self._out = open(config.output, "ab") if config.output else None  # noqa: SIM115
+
+    def _open_fabric(self, config: RecorderConfig) -> None:
+        from common.fabric import keyexprs
+        from common.fabric.link import FabricSubscriber
+        from common.fabric.session import cert_files, client_config, only_member, open_session
+
+        if not config.robots:
+            raise ConfigError(
+                "recorder mode 'fabric' needs robots: the router lets a recorder read each "
+                "robot it knows by exact key, never every robot by a wildcard"
+            )
+        fabric = config.fabric
+        if fabric.cert_dir is None:
+            raise ConfigError("recorder fabric.cert_dir is unset (`deepxpalm keys certs`)")
+        member = fabric.name or only_member(fabric.cert_dir, "recorder fabric")
+        files = cert_files(fabric.cert_dir, member, "recorder fabric")
+        self.session = open_session(client_config(fabric, files, "recorder fabric"), "recorder")
+        kinds = ("stimulus", "frame", "heartbeat")
+        keys = tuple(keyexprs.robot_key(r, k) for r in config.robots for k in kinds)
+        self.inbox = FabricSubscriber(
+            self.session, keys, expect_name=None, queue=10000, latest_value=False
+        )
 
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
         t_end = None if duration_s is None else now_ns() + round(duration_s * 1e9)
         try:
             while not stop.is_set() and (t_end is None or now_ns() < t_end):
+                if self.inbox is not None:
+                    if self.inbox.poll(0.1):
+                        for t_recv, data in self.inbox.drain_raw():
+                            self.take(data, t_recv)
+                    continue
                 if not self.sock.poll(100):
                     continue
                 while self.sock.get(zmq.EVENTS) & zmq.POLLIN:
@@ -130,7 +173,14 @@ class StreamRecorder:
         if self._out is not None:
             self._out.close()
             self._out = None
-        self.sock.close(0)
+        if self.inbox is not None:
+            from common.fabric.session import close_session
+
+            self.inbox.close()
+            close_session(self.session)
+            self.inbox = None
+        if self.sock is not None:
+            self.sock.close(0)
         if self._own_ctx:
             self.ctx.term()
 

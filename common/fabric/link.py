@@ -277,6 +277,11 @@ class FabricSubscriber:
                 items.sort(key=lambda item: item[0])
         return items
 
+    def drain_raw(self) -> list[tuple[int, bytes]]:
+        """Every waiting message as received, undecoded, with its receive time, oldest first
+        (a recorder checks and counts them itself)."""
+        return self._take()
+
     def drain(
         self, max_messages: int = 1024, wires: list[bytes] | None = None
     ) -> list[tuple[Message, int]]:

@@ -44,8 +44,16 @@ def test_two_robots_their_controllers_and_observers_through_one_router(
         c1 = fleet.start_operator("c1", "cell1", request_control=True)
         c2 = fleet.start_operator("c2", "cell2", request_control=True)
         observers = [fleet.start_operator("obs", r) for r in ("cell1", "cell2")]
+        rec_proc = fleet.start_recorder("rec", tmp_path / "rec.bin")
         monitor = Monitor(fleet, "rec", ["cell1", "cell2"])
         try:
+            fleet.wait_for(
+                lambda: all(
+                    f"recording {r}_HBRT" in rec_proc.log_text() for r in ("cell1", "cell2")
+                ),
+                60,
+                "the recorder's first heartbeat of each robot",
+            )
             for c in ("c1", "c2"):
                 key = fleet.signing_key(c)
                 held = lambda k=key: monitor.holder_since(k, 0) is not None  # noqa: E731
@@ -114,6 +122,15 @@ def test_two_robots_their_controllers_and_observers_through_one_router(
         assert stats[f"obs@{robot}"]["commands_sent"] > 5, stats[f"obs@{robot}"]
         assert stats[robot].get("commands_not_controller", 0) == 0, stats[robot]
     assert stats["cell2"]["lease_expired"] == 1 and stats["cell2"]["deadman_trips"] >= 1
+    # the recorder read every robot's stream through the router, every message queued (none
+    # superseded by a newer one); best-effort messages may be lost on a busy machine, rarely
+    rec = stats["rec"]
+    for robot in ("cell1", "cell2"):
+        for topic in ("STIM", "HBRT", "FRAM"):
+            got = rec.get(f"{robot}_{topic}", 0)
+            assert got > 5, (robot, topic, rec)
+            assert rec.get(f"{robot}_{topic}_lost", 0) <= 0.01 * got + 1, (robot, topic, rec)
+    assert rec.get("rejected", 0) == 0
 
 
 def test_hand_over_through_the_router_is_fast_and_moves_the_arm_for_the_new_holder_only(
