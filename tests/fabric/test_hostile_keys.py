@@ -69,7 +69,8 @@ class Wire:
         robot, msg = decode_named(sample.payload.to_bytes())
         if isinstance(msg, Heartbeat):
             self.heard[robot.decode()].append(now_ns())
-            if msg.stats:
+            # the whole counters (once a second), not the latch-and-ack of every heartbeat
+            if "arm_stops_latched" in msg.stats or "frames_captured" in msg.stats:
                 self.stats[robot.decode()].append((now_ns(), msg.stats))
 
     def latest(self, robot: str, name: str) -> float:
