@@ -119,6 +119,17 @@ def zmq_ctx():
 
 
 @pytest.fixture
+def arm_sims():
+    """Two simulated UR controllers on their real wire (the fleet tests' two cells)."""
+    from robot_side.arm.sim import URSimProcess
+
+    sims = [URSimProcess().start(), URSimProcess().start()]
+    yield sims
+    for sim in sims:
+        sim.stop()
+
+
+@pytest.fixture
 def quiet_gc():
     """The test process's heap frozen for one timing-sensitive test.
 

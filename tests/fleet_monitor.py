@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import itertools
+import signal
 import threading
 import time
 
+import numpy as np
 import zmq
 
 from common.codec import name_prefix
@@ -111,3 +113,35 @@ def jog_for(proc, velocity: list[float], seconds: float) -> None:
         except BrokenPipeError:  # the process was killed on purpose
             return
         time.sleep(0.05)
+
+
+def kill_mid_jog_and_time_the_stop(fleet: Fleet, controller, sim, jog: list[float]) -> float:
+    """Kill ``controller``'s process while it jogs ``sim``'s arm; ms until the arm was at rest.
+
+    The rest is read from the UR simulator (its own record, monotonic as ``now_ns``: this
+    process's poll may have been starved past the moment). Fails if the arm never moved
+    under the jog, never stopped within 2 s, or moved again after it stopped.
+    """
+    from common.clock import now_ns
+
+    jogging = threading.Thread(target=jog_for, args=(controller, jog, 4.0))
+    jogging.start()
+    # a loaded machine delays the first jogs (process, hop, robot, all on 2 cores): wait for
+    # the motion, with every process's log if it never comes
+    fleet.wait_for(
+        lambda: np.linalg.norm(sim.tcp_speed()[:3]) > 0.01, 3.0, "the arm to move under the jog"
+    )
+    time.sleep(0.3)  # mid-jog
+    t_kill = now_ns()
+    controller.popen.send_signal(signal.SIGKILL)
+    jogging.join()
+    stopped_at = None
+    while (now_ns() - t_kill) < 2e9:
+        if np.linalg.norm(sim.tcp_speed()[:3]) < 1e-4:
+            stopped_at = now_ns()
+            break
+        time.sleep(0.005)
+    assert stopped_at is not None, "the arm kept moving after its controller died"
+    since = sim.at_rest_since(1e-4, 1e-3)
+    assert since is not None, "the arm moved again after it stopped"
+    return (min(stopped_at, round(since * 1e9)) - t_kill) / 1e6

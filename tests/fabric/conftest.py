@@ -54,13 +54,3 @@ def site(tmp_path_factory):
     finally:
         site.close()
         router.close()
-
-
-@pytest.fixture
-def arm_sims():
-    from robot_side.arm.sim import URSimProcess
-
-    sims = [URSimProcess().start(), URSimProcess().start()]
-    yield sims
-    for sim in sims:
-        sim.stop()

@@ -8,13 +8,12 @@ nodes' counters.
 
 from __future__ import annotations
 
-import signal
 import threading
 import time
 
 import numpy as np
 import pytest
-from fleet_monitor import Monitor, jog_for
+from fleet_monitor import Monitor, jog_for, kill_mid_jog_and_time_the_stop
 
 from common.clock import now_ns
 from harness.fleet import Fleet
@@ -73,29 +72,11 @@ def test_two_robots_their_controllers_and_observers_through_one_router(
             assert moved[0][0] > 0.015, f"cell1 did not follow its controller: {moved[0]}"
 
             # killing cell2's controller mid-jog stops that arm within the deadman
-            jog = threading.Thread(target=jog_for, args=(c2, JOG_X, 4.0))
-            jog.start()
-            fleet.wait_for(
-                lambda: np.linalg.norm(arm_sims[1].tcp_speed()[:3]) > 0.01,
-                3.0,
-                "cell2 to move under c2's jog (never moved)",
-            )
-            time.sleep(0.3)  # mid-jog
-            t_kill = now_ns()
-            c2.popen.send_signal(signal.SIGKILL)
-            jog.join()
-            stopped_at = None
-            while (now_ns() - t_kill) < 2e9:
-                if np.linalg.norm(arm_sims[1].tcp_speed()[:3]) < 1e-4:
-                    stopped_at = now_ns()
-                    break
-                time.sleep(0.005)
-            assert stopped_at is not None, "cell2 kept moving after its controller died"
-            since = arm_sims[1].at_rest_since(1e-4, 1e-3)
-            assert since is not None, "cell2 moved again after it stopped"
-            stopped_at = min(stopped_at, round(since * 1e9))
-            assert (stopped_at - t_kill) / 1e6 < STOP_BUDGET_MS
-            print(f"cell2 stopped {(stopped_at - t_kill) / 1e6:.0f} ms after its controller died")
+            stop_ms = kill_mid_jog_and_time_the_stop(fleet, c2, arm_sims[1], JOG_X)
+            # the deadman (250 ms) plus the stop's deceleration (0.03 m/s at 2 m/s^2: 15 ms),
+            # the simulator's poll and the router hop: inside the issue's 400 ms stop budget
+            assert stop_ms < STOP_BUDGET_MS, stop_ms
+            print(f"cell2 stopped {stop_ms:.0f} ms after its controller died")
             # a STOP from the observer latches on cell1 and holds it against its controller
             observers[0].send({"action": "arm_stop"})
             fleet.wait_for(

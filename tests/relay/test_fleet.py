@@ -7,14 +7,13 @@ the nodes' counters.
 
 from __future__ import annotations
 
-import signal
 import threading
 import time
 
 import numpy as np
 import pytest
 import zmq
-from fleet_monitor import Monitor, jog_for
+from fleet_monitor import Monitor, jog_for, kill_mid_jog_and_time_the_stop
 
 from common.clock import now_ns
 from common.codec import name_prefix
@@ -29,16 +28,6 @@ pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 OPERATOR_STALE_AFTER_MS = OperatorLinkConfig().stale_after_ms
 JOG_X = [0.03, 0.0, 0.0, 0.0, 0.0, 0.0]  # the controllers jog along x
 JOG_Y = [0.0, 0.03, 0.0, 0.0, 0.0, 0.0]  # the observers try y: it must never happen
-
-
-@pytest.fixture
-def arm_sims():
-    from robot_side.arm.sim import URSimProcess
-
-    sims = [URSimProcess().start(), URSimProcess().start()]
-    yield sims
-    for sim in sims:
-        sim.stop()
 
 
 def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
@@ -102,35 +91,11 @@ def test_two_robots_five_operators_one_relay(tmp_path, arm_sims, quiet_gc):
             )
 
             # Killing cell2's controller mid-jog stops that arm within the deadman.
-            jog = threading.Thread(target=jog_for, args=(c2, JOG_X, 4.0))
-            jog.start()
-            # a loaded machine delays c2's first jogs (process, relay, robot, all on 2 cores):
-            # wait for the motion, with every process's log if it never comes
-            fleet.wait_for(
-                lambda: np.linalg.norm(arm_sims[1].tcp_speed()[:3]) > 0.01,
-                3.0,
-                "cell2 to move under c2's jog (never moved)",
-            )
-            time.sleep(0.3)  # mid-jog
-            t_kill = now_ns()
-            c2.popen.send_signal(signal.SIGKILL)
-            jog.join()
-            stopped_at = None
-            while (now_ns() - t_kill) < 2e9:
-                if np.linalg.norm(arm_sims[1].tcp_speed()[:3]) < 1e-4:
-                    stopped_at = now_ns()
-                    break
-                time.sleep(0.005)
-            assert stopped_at is not None, "cell2 kept moving after its controller died"
-            # when it came to rest by the controller's own record (monotonic, as now_ns): this
-            # process's poll may have been starved past the moment
-            since = arm_sims[1].at_rest_since(1e-4, 1e-3)
-            assert since is not None, "cell2 moved again after it stopped"
-            stopped_at = min(stopped_at, round(since * 1e9))
+            stop_ms = kill_mid_jog_and_time_the_stop(fleet, c2, arm_sims[1], JOG_X)
             # the deadman (250 ms) plus the stop's deceleration (0.03 m/s at 2 m/s^2: 15 ms),
             # the simulator's poll and the relay hop: inside the issue's 400 ms stop budget
-            assert (stopped_at - t_kill) / 1e6 < 400
-            print(f"cell2 stopped {(stopped_at - t_kill) / 1e6:.0f} ms after its controller died")
+            assert stop_ms < 400, stop_ms
+            print(f"cell2 stopped {stop_ms:.0f} ms after its controller died")
         finally:
             monitor.close()
         time.sleep(0.3)
