@@ -158,6 +158,14 @@ def open_session(config: dict[str, Any], what: str) -> Any:
     try:
         return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
     except zenoh.ZError as e:
+        endpoints = config.get("connect", {}).get("endpoints") or []
+        if config.get("mode") == "client" and "Unable to connect" in str(e):
+            raise LinkError(
+                f"{what}: no router answered at {', '.join(endpoints)} with our certificate: is "
+                "`deepxpalm router` running there, UDP open to it, its certificate naming the "
+                "host we dial, and its CA ours? (a node that lost its router later reconnects "
+                "by itself; one that never reached it exits, and systemd starts it again)"
+            ) from None
         raise LinkError(f"{what}: Zenoh refused to open its session: {e}") from None
 
 

@@ -57,6 +57,8 @@ def diagnose(
     config = check_config(report, role, data)
     if config is None:
         return report
+    if config.link.mode == "fabric":
+        return _diagnose_fabric(report, role, config, options)
     check_endpoints(report, role, config.link)
     via_relay = role == "robot" and config.link.mode == "relay"
     # through a relay the robot is a CURVE client, as an operator is
@@ -83,6 +85,20 @@ def diagnose(
             report.add("peer robot", SKIP, "not checked: the keys above fail")
         else:
             check_operator_link(report, config, options)
+    check_governor(report)
+    check_realtime(report)
+    check_service_user(report, options)
+    return report
+
+
+def _diagnose_fabric(report: Report, role: str, config: Any, options: DoctorOptions) -> Report:
+    """A node on the fabric: its certificate and router instead of endpoints and CURVE keys."""
+    from deploy.doctor.fabric import check_fabric
+
+    check_fabric(report, role, config, options)
+    check_devices(report, role, config, options)
+    if role == "robot":
+        check_video(report, config, options)
     check_governor(report)
     check_realtime(report)
     check_service_user(report, options)
