@@ -1,7 +1,9 @@
-"""Video through the relay: signalling rides the nodes' links, so no site opens a port.
+"""Video through the relay or the fabric's router: signalling rides the nodes' links, so no
+site opens a port.
 
-Real processes: a relay, a robot node in relay mode with a video server on its
-own machine's loopback, and an observer's operator node with its dashboard.
+Real processes: a relay (or a router), a robot node in relay (or fabric) mode
+with a video server on its own machine's loopback, and an observer's operator
+node with its dashboard.
 The test is the observer's browser: aiortc speaks the page's protocol to the
 dashboard's WebSocket, gets the robot's answer through the relay, and
 decodes the stamped test pattern. Closing the page stops the camera, read
@@ -27,8 +29,9 @@ from harness.fleet import Fleet
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
 
 
+@pytest.mark.parametrize("transport", ["relay", "fabric"])
 def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leaves(
-    tmp_path, quiet_gc
+    tmp_path, quiet_gc, transport
 ):
     # video is a controller's: this observer's roster entry grants it (video = true)
     fleet = Fleet(
@@ -36,10 +39,13 @@ def test_an_observer_watches_through_the_relay_and_the_camera_stops_when_it_leav
         operators={"obs1": "observer"},
         workdir=tmp_path,
         video_observers=frozenset({"obs1"}),
+        transport=transport,
     )
     page_port = free_loopback_ports(1)[0]
     with fleet:
-        fleet.start_relay()
+        hub = fleet.start_hub()
+        if transport == "fabric":
+            fleet.wait_for(lambda: "router up" in hub.log_text(), 30, "the router")
         video, video_url = fleet.start_video()
         # up before the first offer: an offer to a server not yet listening is answered
         # "closed" (the robot tells a viewer the camera is not there, it does not wait)
