@@ -224,6 +224,10 @@ class Fleet:
         pub, sec = generate(keys, name)
         spub, ssec = generate_key_files(keys, name)
         self.members[name] = Member(name, role, pub, sec, ssec, load_public_key(spub))
+        if getattr(self, "cert_dir", None) is not None:  # the fabric's CA is made: one more
+            from common.fabric.certificates import CertFiles, issue
+
+            issue(CertFiles.in_dir(self.cert_dir, "ca"), self.cert_dir, name)
         return self.members[name]
 
     def rewrite_roster(self, roles: dict[str, str]) -> None:

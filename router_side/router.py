@@ -27,6 +27,10 @@ from router_side.zenoh_config import router_config
 log = logging.getLogger(__name__)
 
 STATUS_EVERY_S = 2.0
+#: the main thread's turn: how soon a SIGHUP's reload starts
+TURN_S = 0.1
+#: how long a reload waits for the closed session's port to be free again
+REOPEN_S = 5.0
 
 
 class Router:
@@ -69,10 +73,24 @@ class Router:
             return False
         self.roster = roster
         self.session.close()
-        self.session = open_session(self.zenoh_config(), "router")
+        self.session = self._reopen()
         self.reloads += 1
         log.info("roster reloaded, router restarted: %s", roster.summary())
         return True
+
+    def _reopen(self) -> Any:
+        """A new session with the roster in force; the old one's UDP port may take a moment to
+        be released after its close, so the listener is tried again for up to ``REOPEN_S``."""
+        from common.errors import LinkError
+
+        deadline = time.monotonic() + REOPEN_S
+        while True:
+            try:
+                return open_session(self.zenoh_config(), "router")
+            except LinkError as e:
+                if "Address already in use" not in str(e) or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
 
     def stats(self) -> dict[str, Any]:
         peers: list[str] = []
@@ -104,17 +122,22 @@ class Router:
         notifier.ready(f"routing for {self.roster.summary()}")
         t_end = None if duration_s is None else time.monotonic() + duration_s
         interval = notifier.watchdog_interval_s
-        tick = min(STATUS_EVERY_S, interval / 2) if interval else STATUS_EVERY_S
+        every = min(STATUS_EVERY_S, interval / 2) if interval else STATUS_EVERY_S
+        next_status = 0.0
         try:
             while not stop.is_set():
-                if t_end is not None and time.monotonic() >= t_end:
+                now = time.monotonic()
+                if t_end is not None and now >= t_end:
                     break
                 if self.roster_reload.is_set():
                     self.roster_reload.clear()
                     self.reload()
-                self._write_status()
-                notifier.watchdog()
-                stop.wait(tick if t_end is None else max(0.0, min(tick, t_end - time.monotonic())))
+                if now >= next_status:
+                    self._write_status()
+                    notifier.watchdog()
+                    next_status = now + every
+                # a reload (SIGHUP) is taken within a turn; Zenoh routes in its own threads
+                stop.wait(TURN_S if t_end is None else max(0.0, min(TURN_S, t_end - now)))
         finally:
             notifier.stopping()
             self.close()
