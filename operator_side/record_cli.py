@@ -102,19 +102,16 @@ class StreamRecorder:
     def _open_fabric(self, config: RecorderConfig) -> None:
         from common.fabric import keyexprs
         from common.fabric.link import FabricSubscriber
-        from common.fabric.session import cert_files, client_config, only_member, open_session
+        from common.fabric.session import member_name, open_member_session
 
         if not config.robots:
             raise ConfigError(
                 "recorder mode 'fabric' needs robots: the router lets a recorder read each "
                 "robot it knows by exact key, never every robot by a wildcard"
             )
-        fabric = config.fabric
-        if fabric.cert_dir is None:
-            raise ConfigError("recorder fabric.cert_dir is unset (`deepxpalm keys certs`)")
-        member = fabric.name or only_member(fabric.cert_dir, "recorder fabric")
-        files = cert_files(fabric.cert_dir, member, "recorder fabric")
-        self.session = open_session(client_config(fabric, files, "recorder fabric"), "recorder")
+        where = "recorder fabric"
+        member = member_name(config.fabric, None, where)
+        self.session = open_member_session(config.fabric, member, where, "recorder")
         kinds = ("stimulus", "frame", "heartbeat")
         keys = tuple(keyexprs.robot_key(r, k) for r in config.robots for k in kinds)
         self.inbox = FabricSubscriber(

@@ -89,6 +89,27 @@ def only_member(cert_dir: Path, where: str) -> str:
     return names[0]
 
 
+def member_name(fabric: FabricConfig, default: str | None, where: str) -> str:
+    """Our roster name: ``fabric.name``, else ``default`` (a robot's name on the wire), else
+    the one member certificate in ``fabric.cert_dir``."""
+    if fabric.name:
+        return fabric.name
+    if default:
+        return default
+    if fabric.cert_dir is None:
+        raise ConfigError(
+            f"{where}.cert_dir is unset: the fabric needs our certificate "
+            "(`deepxpalm keys certs --roster ROSTER --dir DIR`)"
+        )
+    return only_member(fabric.cert_dir, where)
+
+
+def open_member_session(fabric: FabricConfig, member: str, where: str, what: str) -> Any:
+    """``member``'s session to its router, with its certificate from ``fabric.cert_dir``."""
+    files = cert_files(fabric.cert_dir, member, where)
+    return open_session(client_config(fabric, files, where), what)
+
+
 def _endpoint(endpoint: str, where: str) -> str:
     if not endpoint.startswith("quic/"):
         raise ConfigError(

@@ -23,17 +23,11 @@ RENEW_WITHIN_DAYS = 30
 
 
 def _member(role: str, config: Any) -> str | None:
-    fabric = config.link.fabric
-    if fabric.name:
-        return fabric.name
-    if role == "robot":
-        return config.link.robot_name or None
-    if fabric.cert_dir is None:
-        return None
-    from common.fabric.session import only_member
+    from common.fabric.session import member_name
 
+    default = config.link.robot_name if role == "robot" else None
     try:
-        return only_member(fabric.cert_dir, f"{role}.link.fabric")
+        return member_name(config.link.fabric, default, f"{role}.link.fabric")
     except ConfigError:
         return None
 

@@ -123,17 +123,9 @@ class Sockets:
         return f"telemetry {link.telemetry_endpoint}, commands {link.command_endpoint}"
 
     def _member(self) -> str:
-        fabric = self.config.fabric
-        if fabric.name:
-            return fabric.name
-        if fabric.cert_dir is None:
-            raise ConfigError(
-                "operator link.fabric.cert_dir is unset: the fabric needs our certificate "
-                "(`deepxpalm keys certs --roster ROSTER --dir DIR`)"
-            )
-        from common.fabric.session import only_member
+        from common.fabric.session import member_name
 
-        return only_member(fabric.cert_dir, "operator link.fabric")
+        return member_name(self.config.fabric, None, "operator link.fabric")
 
     def open(self, ctx: zmq.Context, topics: tuple[bytes, ...], wake_fd: int) -> None:
         """Connect both sockets; ``wake_fd`` wakes the subscriber's poll (queued commands)."""
@@ -173,7 +165,7 @@ class Sockets:
         """
         from common.fabric import keyexprs
         from common.fabric.link import FabricPublisher, FabricSubscriber
-        from common.fabric.session import cert_files, client_config, open_session
+        from common.fabric.session import open_member_session
 
         link = self.config
         robot = self.keys.robot_name
@@ -182,9 +174,8 @@ class Sockets:
         member = self._member()
         keyexprs.check_operator_name(member)
         if self.session is None:
-            files = cert_files(link.fabric.cert_dir, member, "operator link.fabric")
-            config = client_config(link.fabric, files, "operator link.fabric")
-            self.session = open_session(config, "operator node")
+            where = "operator link.fabric"
+            self.session = open_member_session(link.fabric, member, where, "operator node")
         kinds = {t[: len(Stimulus.TOPIC)] for t in topics}
         by_topic = {
             Stimulus.TOPIC: "stimulus",

@@ -174,13 +174,13 @@ def open_fabric(
     """
     from common.fabric import keyexprs
     from common.fabric.link import FabricPublisher, FabricSubscriber
-    from common.fabric.session import cert_files, client_config, close_session, open_session
+    from common.fabric.session import close_session, member_name, open_member_session
 
     if not name:
         raise ConfigError("robot link.mode = 'fabric' needs link.robot_name (our roster name)")
-    member = link.fabric.name or name.decode()
-    files = cert_files(link.fabric.cert_dir, member, "robot link.fabric")
-    session = open_session(client_config(link.fabric, files, "robot link.fabric"), "robot node")
+    where = "robot link.fabric"
+    member = member_name(link.fabric, name.decode(), where)
+    session = open_member_session(link.fabric, member, where, "robot node")
     stack.callback(close_session, session)
     endpoint = link.fabric.router_endpoint
     pub = FabricPublisher(session, robot=name, operator=None, signer=signer, endpoint=endpoint)
