@@ -322,7 +322,9 @@ class FabricSubscriber:
 
     def health(self) -> dict[str, float]:
         """What the receiving side dropped itself: older latest values, flood overflow, copies."""
-        return {f"link_fabric_{k}": float(v) for k, v in self.counters.items()}
+        with self._lock:  # Zenoh's threads add keys to it
+            counters = dict(self.counters)
+        return {f"link_fabric_{k}": float(v) for k, v in counters.items()}
 
     def close(self) -> None:
         for sub in self._subs:
