@@ -143,14 +143,14 @@ class Telemetry:
         """``stats()``, cut to what a heartbeat may carry: the operator refuses a longer map.
 
         Between two periods of ``stats_period_ms``: only what an operator acts on
-        (``STATE_STATS``: the stop latch, the gripper's acknowledgement).
+        (``state_stats``: the stop latch, the gripper's acknowledgement).
         """
-        stats = self.stats()
         if self._stats_period_ns:
             now = self.now()
             if now < self._stats_due_ns:
-                return {k: stats[k] for k in STATE_STATS if k in stats}
+                return state_stats(self.desk)  # not the whole counters: not computed either
             self._stats_due_ns = now + self._stats_period_ns
+        stats = self.stats()
         if len(stats) > MAX_STATS:
             # the links' health first: `deepxpalm doctor` reads it from here
             ranked = sorted(stats, key=lambda k: (not k.startswith("link_"), k))
@@ -178,8 +178,18 @@ class Telemetry:
 
 #: across the fabric a heartbeat carries the counters once a second (one datagram otherwise)
 FABRIC_STATS_PERIOD_MS = 1000.0
-#: what every heartbeat carries whatever the period: the state an operator acts on
-STATE_STATS = ("arm_stop_latched", "gripper_command_seq", "gripper_command_session")
+
+
+def state_stats(desk: CommandDesk) -> dict[str, float]:
+    """What every heartbeat carries whatever the counters' period: the state an operator acts
+    on (the stop latch; the newest gripper command acted on, which confirms the operator's)."""
+    out = {"arm_stop_latched": float(desk.stop_latch.latched)}
+    ack = desk.handover.gripper_ack
+    if ack is not None:
+        out["gripper_command_seq"], out["gripper_command_session"] = ack
+    return out
+
+
 #: heartbeats a second on a direct link, and on the fabric (datagrams, lost in bursts)
 DIRECT_HEARTBEAT_HZ, FABRIC_HEARTBEAT_HZ = 20.0, 40.0
 
@@ -218,10 +228,7 @@ def node_stats(
     if pipeline.first_seq is not None:
         out["frames_captured"] = float(pipeline.last_seq - pipeline.first_seq + 1)
     out.update(workers.arm_readings())  # the arm worker's latest reading, for the dashboard
-    out["arm_stop_latched"] = float(desk.stop_latch.latched)
     if desk.assist is not None:
         out.update(desk.assist.stats())
-    ack = desk.handover.gripper_ack
-    if ack is not None:
-        out["gripper_command_seq"], out["gripper_command_session"] = ack
+    out.update(state_stats(desk))
     return out
