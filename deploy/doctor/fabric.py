@@ -87,8 +87,12 @@ def check_router(report: Report, role: str, config: Any, files: Any, options: Do
         report.add(name, SKIP, "not checked: no certificate")
         return
     fabric = config.link.fabric
+    zconfig = client_config(fabric, files, f"{role}.link.fabric")
+    # a node tries its router once and exits; the doctor gives it the peer timeout to answer
+    # (QUIC's own handshake timeout, seconds, would make an absent router a long wait)
+    zconfig["connect"]["timeout_ms"] = round(max(options.peer_timeout_s, 1.0) * 1000)
     try:
-        session = open_session(client_config(fabric, files, f"{role}.link.fabric"), "doctor")
+        session = open_session(zconfig, "doctor")
     except Exception as e:  # ConfigError, LinkError, or one of Zenoh's own
         report.add(
             name,
