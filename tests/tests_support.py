@@ -197,9 +197,13 @@ class DashboardDemo:
             self.proc.kill()
         self.proc.wait()
         rest = self.proc.stderr.read() if self.proc.stderr else ""
+        # with --json the demo's account of why (its errors, each child's log) is on stdout
+        summary = self.proc.stdout.read() if self.proc.stdout else ""
         raise RuntimeError(
             f"the demo never named its dashboard (exit {self.proc.returncode}, "
-            f"ready timeout {self.ready_timeout_s:.0f} s): " + ("".join(seen) + rest)[-4000:]
+            f"ready timeout {self.ready_timeout_s:.0f} s): "
+            + ("".join(seen) + rest)[-4000:]
+            + f"\nits summary: {summary[-4000:]}"
         )
 
     def finish(self, timeout_s: float = 60.0) -> tuple[int, dict | None, str]:
