@@ -1,8 +1,8 @@
-"""A relay or router, robots and operators as real processes on this machine (tests, bench).
+"""A router, robots and operators as real processes on this machine (tests, bench).
 
-``transport="relay"``: the ZeroMQ relay, every hop CURVE. ``transport="fabric"``: a
-Zenoh router made from the roster (``deepxpalm router``), every hop QUIC with
-the members' certificates. Either way every operator signs, and one roster says who is who:
+The fabric across sites: a Zenoh router made from the roster (``deepxpalm
+router``), every hop QUIC with the members' certificates; every operator
+signs, every robot signs its stream, and one roster says who is who:
 the same layout as three machines (docs/deploy.md), on 127.0.0.1 with free
 ports. ``Fleet`` writes the keys, the roster and each process's config into
 one work folder, starts the processes and stops them all.
@@ -39,19 +39,6 @@ publish_rate_hz = {rate}
 {devices}
 [robot.arm]
 {arm}
-[robot.link]
-mode = "relay"
-robot_name = "{name}"
-roster_file = "{roster}"
-telemetry_endpoint = "{tel}"
-command_endpoint = "{cmd}"
-frame_display_rate_hz = {frames}
-video_url = "{video_url}"
-signing_key_file = "{signing}"
-[robot.link.security]
-mode = "curve"
-secret_key_file = "{secret}"
-server_public_key_file = "{relay_public}"
 """
 
 #: the tactile source and renderer of a robot with no devices of its own: a grasp held for an hour
@@ -64,24 +51,6 @@ kind = "scripted"
 [robot.tactile.script]
 loop = false
 grasps = [{pattern = 6, grip_level = 25, ramp_s = 0.1, hold_s = 3600.0}]
-"""
-
-_OPERATOR_TOML = """
-[operator]
-[operator.servos]
-{servos}
-[operator.link]
-robot_name = "{robot}"
-signing_key_file = "{signing}"
-robot_key_file = "{robot_key}"
-telemetry_endpoint = "{tel}"
-command_endpoint = "{cmd}"
-want_frames = {frames}
-request_control = {request}
-[operator.link.security]
-mode = "curve"
-secret_key_file = "{secret}"
-server_public_key_file = "{relay_public}"
 """
 
 _ROBOT_FABRIC_TOML = """
@@ -122,20 +91,6 @@ cert_dir = "{cert_dir}"
 status_file = "{status}"
 """
 
-_RELAY_TOML = """
-[relay]
-robots_telemetry_endpoint = "tcp://127.0.0.1:{p0}"
-robots_command_endpoint = "tcp://127.0.0.1:{p1}"
-operators_telemetry_endpoint = "tcp://127.0.0.1:{p2}"
-operators_command_endpoint = "tcp://127.0.0.1:{p3}"
-roster_file = "{roster}"
-roster_status_file = "{status}"
-stats_interval_s = 0
-[relay.security]
-mode = "curve"
-secret_key_file = "{secret}"
-"""
-
 
 @dataclass
 class Member:
@@ -171,69 +126,68 @@ class Proc:
 
 @dataclass
 class Fleet:
-    """Keys, roster and processes under ``workdir``; a context manager that stops everything."""
+    """Keys, certificates, roster and processes under ``workdir``; a context manager that
+    stops everything."""
 
     robots: list[str]
     operators: dict[str, str]  # name -> role
     workdir: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="deepxpalm-fleet-")))
-    #: relay's roster, if it should differ from the robots' (a compromised-relay trial)
-    relay_roles: dict[str, str] | None = None
+    #: the router's roster, if it should differ from the robots' (a compromised-router trial:
+    #: the robots still judge every command by their own roster)
+    router_roles: dict[str, str] | None = None
     members: dict[str, Member] = field(default_factory=dict)
     procs: dict[str, Proc] = field(default_factory=dict)
     env: dict[str, str] = field(default_factory=lambda: {**os.environ, "PYTHONUNBUFFERED": "1"})
-    #: relay name -> its four endpoints, for every relay started
-    relay_endpoints: dict[str, dict[str, str]] = field(default_factory=dict)
     #: observers whose roster entry says ``video = true`` (video is a controller's otherwise)
     video_observers: frozenset[str] = frozenset()
-    #: "relay" (ZeroMQ, CURVE) or "fabric" (a Zenoh router, QUIC and certificates)
-    transport: str = "relay"
 
     def __post_init__(self) -> None:
+        from deploy.keys_cli import fabric_certificates
+
         keys = self.workdir / "keys"
-        pub, sec = generate(keys, "relay")
-        self.members["relay"] = Member("relay", "relay", pub, sec)
-        for name in self.robots:  # a robot signs its stream: a relay cannot forge a palm
+        for name in self.robots:  # a robot signs its stream: a router cannot forge a palm
             pub, sec = generate(keys, f"robot-{name}")
             spub, ssec = generate_key_files(keys, f"robot-{name}")
             self.members[name] = Member(name, "robot", pub, sec, ssec, load_public_key(spub))
-        everyone = {**(self.relay_roles or {}), **self.operators}
+        everyone = {**(self.router_roles or {}), **self.operators}
         for name, role in everyone.items():
-            self.add_member(name, role)
+            self._keys(name, role)
         self.roster = self._write_roster("roster.toml", self.operators)
-        self.relay_roster = (
+        self.router_roster = (
             self.roster
-            if self.relay_roles is None
-            else self._write_roster("relay-roster.toml", self.relay_roles)
+            if self.router_roles is None
+            else self._write_roster("router-roster.toml", self.router_roles)
         )
-        if self.transport == "fabric":
-            from deploy.keys_cli import fabric_certificates
+        self.cert_dir = self.workdir / "fabric"
+        fabric_certificates(self.router_roster, self.cert_dir, "router", ("127.0.0.1",), False)
+        for name in set(self.operators) - set(self.router_roles or self.operators):
+            self._certificate(name)  # in the robots' roster only: a certificate all the same
+        self.router_port = free_loopback_ports(1, udp=True)[0]
+        self.router_endpoint = f"quic/127.0.0.1:{self.router_port}"
 
-            self.cert_dir = self.workdir / "fabric"
-            fabric_certificates(self.roster, self.cert_dir, "router", ("127.0.0.1",), False)
-            self.router_port = free_loopback_ports(1, udp=True)[0]
-            self.router_endpoint = f"quic/127.0.0.1:{self.router_port}"
-        ports = free_loopback_ports(4)
-        self.robots_telemetry, self.robots_command, self.ops_telemetry, self.ops_command = (
-            f"tcp://127.0.0.1:{p}" for p in ports
-        )
-        self._ports = ports
-
-    def add_member(self, name: str, role: str) -> Member:
-        """Keys for a person not (yet) in the roster: ``rewrite_roster`` lets them in."""
+    def _keys(self, name: str, role: str) -> Member:
         keys = self.workdir / "keys"
         pub, sec = generate(keys, name)
         spub, ssec = generate_key_files(keys, name)
         self.members[name] = Member(name, role, pub, sec, ssec, load_public_key(spub))
-        if getattr(self, "cert_dir", None) is not None:  # the fabric's CA is made: one more
-            from common.fabric.certificates import CertFiles, issue
-
-            issue(CertFiles.in_dir(self.cert_dir, "ca"), self.cert_dir, name)
         return self.members[name]
+
+    def _certificate(self, name: str) -> None:
+        from common.fabric.certificates import CertFiles, issue
+
+        issue(CertFiles.in_dir(self.cert_dir, "ca"), self.cert_dir, name)
+
+    def add_member(self, name: str, role: str) -> Member:
+        """Keys and a certificate for a person not (yet) in the roster: ``rewrite_roster``
+        lets them in."""
+        member = self._keys(name, role)
+        self._certificate(name)
+        return member
 
     def rewrite_roster(self, roles: dict[str, str]) -> None:
         """The shared roster now lists ``roles`` (name -> role); SIGHUP makes them read it."""
-        if self.relay_roster != self.roster:
-            raise ValueError("this fleet's relay has a roster of its own")
+        if self.router_roster != self.roster:
+            raise ValueError("this fleet's router has a roster of its own")
         self.operators = dict(roles)
         tmp = self._write_roster("roster.toml.new", roles)
         tmp.replace(self.roster)  # atomic: a reload never reads half a file
@@ -251,14 +205,6 @@ class Fleet:
         path = self.workdir / filename
         path.write_text("\n".join(entries))
         return path
-
-    def client_security(self, name: str) -> dict[str, str]:
-        """A member's CURVE client settings toward the relay, as SecurityConfig keys."""
-        return {
-            "mode": "curve",
-            "secret_key_file": str(self.members[name].curve_secret),
-            "server_public_key_file": str(self.members["relay"].curve_public),
-        }
 
     def signing_key(self, name: str) -> bytes:
         return self.members[name].signing_public
@@ -282,46 +228,18 @@ class Fleet:
         return proc
 
     def start_router(self, name: str = "router") -> Proc:
-        """The fabric's Zenoh router, its access control made from the roster."""
+        """The fabric's Zenoh router, its access control made from the (router's) roster."""
         config = self.workdir / f"{name}.toml"
         write_secret_file(
             config,
             _ROUTER_TOML.format(
                 port=self.router_port,
-                roster=self.roster,
+                roster=self.router_roster,
                 cert_dir=self.cert_dir,
                 status=self.workdir / f"{name}-status.json",
             ),
         )
         return self._start(name, ["-v", "router", "--config", str(config)])
-
-    def start_hub(self) -> Proc:
-        """What the fleet's members meet through: the relay or the router."""
-        return self.start_router() if self.transport == "fabric" else self.start_relay()
-
-    def start_relay(self, name: str = "relay") -> Proc:
-        """The relay; another ``name`` starts a second one on fresh ports (``relay_endpoints``)."""
-        p = self._ports if name == "relay" else free_loopback_ports(4)
-        self.relay_endpoints[name] = {
-            "robots_telemetry": f"tcp://127.0.0.1:{p[0]}",
-            "robots_command": f"tcp://127.0.0.1:{p[1]}",
-            "operators_telemetry": f"tcp://127.0.0.1:{p[2]}",
-            "operators_command": f"tcp://127.0.0.1:{p[3]}",
-        }
-        config = self.workdir / f"{name}.toml"
-        write_secret_file(
-            config,
-            _RELAY_TOML.format(
-                p0=p[0],
-                p1=p[1],
-                p2=p[2],
-                p3=p[3],
-                roster=self.relay_roster,
-                status=self.workdir / f"{name}-roster-status.json",
-                secret=self.members["relay"].curve_secret,
-            ),
-        )
-        return self._start(name, ["-v", "relay", "--config", str(config)])
 
     def robot_config(
         self,
@@ -331,44 +249,26 @@ class Fleet:
         video_url: str = "",
         devices: str = SCRIPTED_TACTILE,
     ) -> Path:
-        """Write robot ``name``'s config (relay mode, CURVE, the roster); its path.
+        """Write robot ``name``'s config (the fabric, its certificate, the roster); its path.
 
-        ``video_url``: a video server on this machine that viewers reach through the relay.
+        ``video_url``: a video server on this machine that viewers reach through the router.
         ``devices``: TOML of every robot section but the arm and the link (the renderer,
         the tactile source, a gripper); by default a scripted grasp and no gripper.
         """
         arm = f'kind = "ur_rtde"\nhost = "{arm_host}"' if arm_host else 'kind = "none"'
         config = self.workdir / f"{name}.toml"
-        if self.transport == "fabric":
-            head, _, _ = _ROBOT_TOML.partition("[robot.link]")
-            text = head.format(rate=rate_hz, arm=arm, devices=devices) + _ROBOT_FABRIC_TOML.format(
-                name=name,
-                roster=self.roster,
-                frames=15.0,
-                video_url=video_url,
-                signing=self.members[name].signing_secret,
-                router=self.router_endpoint,
-                cert_dir=self.cert_dir,
-            )
-            write_secret_file(config, text)
-            return config
-        write_secret_file(
-            config,
-            _ROBOT_TOML.format(
-                rate=rate_hz,
-                arm=arm,
-                name=name,
-                roster=self.roster,
-                tel=self.robots_telemetry,
-                cmd=self.robots_command,
-                frames=15.0,
-                secret=self.members[name].curve_secret,
-                relay_public=self.members["relay"].curve_public,
-                video_url=video_url,
-                signing=self.members[name].signing_secret,
-                devices=devices,
-            ),
+        text = _ROBOT_TOML.format(
+            rate=rate_hz, arm=arm, devices=devices
+        ) + _ROBOT_FABRIC_TOML.format(
+            name=name,
+            roster=self.roster,
+            frames=15.0,
+            video_url=video_url,
+            signing=self.members[name].signing_secret,
+            router=self.router_endpoint,
+            cert_dir=self.cert_dir,
         )
+        write_secret_file(config, text)
         return config
 
     def start_robot(
@@ -416,77 +316,41 @@ class Fleet:
         want_frames: bool = True,
         extra: list[str] | None = None,
         servos: str = 'kind = "recording"',
-        endpoints: tuple[str, str] | None = None,
+        router_endpoint: str | None = None,
     ) -> Proc:
         """An operator process; ``servos`` is its ``[operator.servos]`` TOML body, and
-        ``endpoints`` (telemetry, commands) another path to the relay (a link simulator)."""
+        ``router_endpoint`` another path to the router (a link simulator's datagram port)."""
         m = self.members[name]
-        tel, cmd = endpoints or (self.ops_telemetry, self.ops_command)
         proc_name = f"{name}@{robot}"  # one key may follow several robots, a process each
         config = self.workdir / f"{proc_name}.toml"
-        if self.transport == "fabric" and endpoints is None:
-            write_secret_file(
-                config,
-                _OPERATOR_FABRIC_TOML.format(
-                    robot=robot,
-                    signing=m.signing_secret,
-                    robot_key=self.workdir / "keys" / f"robot-{robot}.sign",
-                    frames=str(want_frames).lower(),
-                    servos=servos,
-                    request=str(request_control).lower(),
-                    router=self.router_endpoint,
-                    cert_dir=self.cert_dir,
-                    name=name,
-                ),
-            )
-            args = ["-v", "operator", "--config", str(config), "--commands-from-stdin"]
-            return self._start(proc_name, [*args, *(extra or [])], stdin=True)
         write_secret_file(
             config,
-            _OPERATOR_TOML.format(
+            _OPERATOR_FABRIC_TOML.format(
                 robot=robot,
                 signing=m.signing_secret,
                 robot_key=self.workdir / "keys" / f"robot-{robot}.sign",
-                tel=tel,
-                cmd=cmd,
                 frames=str(want_frames).lower(),
                 servos=servos,
                 request=str(request_control).lower(),
-                secret=m.curve_secret,
-                relay_public=self.members["relay"].curve_public,
+                router=router_endpoint or self.router_endpoint,
+                cert_dir=self.cert_dir,
+                name=name,
             ),
         )
         args = ["-v", "operator", "--config", str(config), "--commands-from-stdin"]
         return self._start(proc_name, [*args, *(extra or [])], stdin=True)
 
     def start_recorder(self, name: str, output: Path | None = None) -> Proc:
-        m = self.members[name]
         config = self.workdir / f"{name}.toml"
-        if self.transport == "fabric":
-            lines = [
-                "[recorder]",
-                'mode = "fabric"',
-                f"robots = [{', '.join(repr(r).replace(chr(39), chr(34)) for r in self.robots)}]",
-                *([f'output = "{output}"'] if output is not None else []),
-                "[recorder.fabric]",
-                f'router_endpoint = "{self.router_endpoint}"',
-                f'cert_dir = "{self.cert_dir}"',
-                f'name = "{name}"',
-            ]
-            write_secret_file(config, "\n".join(lines) + "\n")
-            return self._start(name, ["-v", "record", "--config", str(config)])
         lines = [
             "[recorder]",
-            f'telemetry_endpoint = "{self.ops_telemetry}"',
+            'mode = "fabric"',
             f"robots = [{', '.join(repr(r).replace(chr(39), chr(34)) for r in self.robots)}]",
-        ]
-        if output is not None:
-            lines.append(f'output = "{output}"')
-        lines += [
-            "[recorder.security]",
-            'mode = "curve"',
-            f'secret_key_file = "{m.curve_secret}"',
-            f'server_public_key_file = "{self.members["relay"].curve_public}"',
+            *([f'output = "{output}"'] if output is not None else []),
+            "[recorder.fabric]",
+            f'router_endpoint = "{self.router_endpoint}"',
+            f'cert_dir = "{self.cert_dir}"',
+            f'name = "{name}"',
         ]
         write_secret_file(config, "\n".join(lines) + "\n")
         return self._start(name, ["-v", "record", "--config", str(config)])
@@ -510,7 +374,7 @@ class Fleet:
         return popen.returncode
 
     def close(self) -> None:
-        for name in reversed(list(self.procs)):  # operators first, the relay last
+        for name in reversed(list(self.procs)):  # operators first, the router last
             self.stop(name)
             stdin = self.procs[name].stdin
             if stdin is not None and not stdin.closed:

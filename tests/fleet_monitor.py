@@ -1,4 +1,4 @@
-"""A test's own relay or router client, and an operator process jogging, for the fleet tests."""
+"""A test's own router client, and an operator process jogging, for the fleet tests."""
 
 from __future__ import annotations
 
@@ -8,27 +8,20 @@ import threading
 import time
 
 import numpy as np
-import zmq
 
-from common.codec import name_prefix
 from common.messages import Heartbeat, Stimulus
-from common.security import SecurityConfig, client_options
-from common.transport import Subscriber
 from harness.fleet import Fleet
 
 
 class Monitor:
-    """The test's own relay or router client (the recorder's key): robot heartbeats and
-    stimuli, timed. On the fabric it reads with the product's own ``FabricSubscriber``."""
+    """The test's own router client (the recorder's key): robot heartbeats and stimuli,
+    timed, read with the product's own ``FabricSubscriber``."""
 
     def __init__(self, fleet: Fleet, key: str, robots: list[str]) -> None:
         self.heartbeats: list[tuple[int, Heartbeat]] = []
         self.stimulus_times: list[int] = []  # arrival here, our clock
-        self.ctx = self.session = None
-        if fleet.transport == "fabric":
-            self.sub = self._fabric(fleet, key, robots)
-        else:
-            self.sub = self._relay(fleet, key, robots)
+        self.session = None
+        self.sub = self._fabric(fleet, key, robots)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -44,25 +37,6 @@ class Monitor:
         keys = tuple(keyexprs.robot_key(r, k) for r in robots for k in ("heartbeat", "stimulus"))
         # every heartbeat and stimulus, not the newest of each: a queue per key of its own
         return FabricSubscriber(self.session, keys, expect_name=None, latest_value=False)
-
-    def _relay(self, fleet: Fleet, key: str, robots: list[str]) -> Subscriber:
-        m = fleet.members[key]
-        security = SecurityConfig(
-            mode="curve",
-            secret_key_file=m.curve_secret,
-            server_public_key_file=fleet.members["relay"].curve_public,
-        )
-        self.ctx = zmq.Context()
-        topics = tuple(
-            name_prefix(t, r.encode()) for r in robots for t in (Heartbeat.TOPIC, Stimulus.TOPIC)
-        )
-        return Subscriber(
-            self.ctx,
-            fleet.ops_telemetry,
-            bind=False,
-            sock_opts=client_options(security),
-            topics=topics,
-        )
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -99,8 +73,6 @@ class Monitor:
         self._stop.set()
         self._thread.join(2)
         self.sub.close()
-        if self.ctx is not None:
-            self.ctx.term()
         if self.session is not None:
             self.session.close()
 

@@ -42,7 +42,6 @@ def site(tmp_path_factory):
         robots=list(ROBOTS),
         operators=dict(OPERATORS),
         workdir=tmp_path_factory.mktemp("fabric"),
-        transport="fabric",
     )
     config = RouterConfig(
         listen_endpoint=fleet.router_endpoint, roster_file=fleet.roster, cert_dir=fleet.cert_dir

@@ -33,7 +33,6 @@ def test_two_robots_their_controllers_and_observers_through_one_router(
         robots=["cell1", "cell2"],
         operators={"c1": "controller", "c2": "controller", "obs": "observer", "rec": "recorder"},
         workdir=tmp_path,
-        transport="fabric",
     )
     with fleet:
         router = fleet.start_router()
@@ -123,7 +122,6 @@ def test_hand_over_through_the_router_is_fast_and_moves_the_arm_for_the_new_hold
         robots=["cell1"],
         operators={"a": "controller", "b": "controller", "rec": "recorder"},
         workdir=tmp_path,
-        transport="fabric",
     )
     with fleet:
         router = fleet.start_router()

@@ -119,7 +119,6 @@ def fleet(tmp_path_factory):
         robots=list(ROBOTS),
         operators={"c": "controller", "mallory": "observer", "rec": "recorder"},
         workdir=tmp_path_factory.mktemp("hostile"),
-        transport="fabric",
     )
     with fleet:
         router = fleet.start_router()

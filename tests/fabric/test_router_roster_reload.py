@@ -33,7 +33,7 @@ def test_a_key_added_to_the_routers_roster_may_take_control_and_loses_it_when_re
     tmp_path, quiet_gc
 ):
     everyone = {"a": "controller", "rec": "recorder"}
-    fleet = Fleet(robots=["cell1"], operators=dict(everyone), workdir=tmp_path, transport="fabric")
+    fleet = Fleet(robots=["cell1"], operators=dict(everyone), workdir=tmp_path)
     fleet.add_member("late", "controller")  # a certificate from the CA, but not in the roster
     late_key = fleet.signing_key("late")
     with fleet:
