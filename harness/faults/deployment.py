@@ -1,11 +1,12 @@
 """Every process of a deployment on this machine, each started as on its own machine.
 
-The relay, the robot node, the operator node, the recorder and the video
-server run as ``harness.fleet`` starts them (CURVE, a roster, signed
-commands); the operator reaches the relay through ``deepxpalm netsim`` (the
-byte-stream relay: CURVE passes, as over a real network); every device is a
-simulator in a process of its own (``deepxpalm sim ur|gripper|tactile|servos``)
-so that killing a node never kills its device. The demo's supervisor
+The fabric's router, the robot node, the operator node, the recorder and the
+video server run as ``harness.fleet`` starts them (QUIC with the members'
+certificates, a roster, signed commands); the robot and the recorder connect
+to the router directly, the operator through ``deepxpalm netsim`` in datagram
+mode (its QUIC connection's UDP crosses the link, as over a real network);
+every device is a simulator in a process of its own (``deepxpalm sim
+ur|gripper|tactile|servos``) so that killing a node never kills its device. The demo's supervisor
 (``deploy.supervisor``) plays systemd on a thread of its own:
 a process of a shipped unit that ends is started again after the unit's
 RestartSec= when its Restart= says so, runs its ExecStopPost= after any end
@@ -81,16 +82,16 @@ retries = {retries}
 reply_timeout_ms = {reply_timeout_ms}
 """
 
-#: the link: a wired LAN, and an outage of ``outage_s`` from ``outage_at_s`` after netsim starts
+#: the link: a wired LAN carrying the operator's QUIC datagrams (the fabric), and an outage of
+#: ``outage_s`` from ``outage_at_s`` after netsim starts: every datagram of it lost, both ways
 _SCENARIO_TOML = """
 name = "lan-with-outage"
 description = "wired LAN with one scheduled outage (the fault matrix)"
 [both]
-delivery = "stream"
+delivery = "datagram"
 delay_ms = 0.1
 jitter_ms = 0.02
 distribution = "normal"
-retransmit_ms = 34.0
 outages = [[{t1}, {t2}]]
 """
 
@@ -253,7 +254,8 @@ class Deployment:
         self.tactile_port = ""
         self.servo_port = ""
         self.video_url = ""
-        self.netsim_endpoints = ("", "")
+        #: netsim's UDP port the operator's QUIC connection goes to (it forwards to the router's)
+        self.netsim_port = 0
         self._netsim_starts = 0  # each start writes its own ready file
         self.supervisor = Supervisor("deployment")
         self.late_wakes = LateWakes(self.dir / "operator-status.json")
@@ -285,18 +287,17 @@ class Deployment:
         args = [
             "-v",
             "netsim",
-            *("--scenario", str(scenario), "--mode", "stream"),
-            *("--robot-telemetry", self.fleet.ops_telemetry),
-            *("--robot-commands", self.fleet.ops_command),
-            *("--operator-telemetry", self.netsim_endpoints[0]),
-            *("--operator-commands", self.netsim_endpoints[1]),
+            *("--scenario", str(scenario), "--mode", "datagram"),
+            # the router's side, and the operator's: one UDP address each (deploy/demo_fabric.py)
+            *("--robot-telemetry", f"udp://127.0.0.1:{self.fleet.router_port}"),
+            *("--operator-telemetry", f"udp://127.0.0.1:{self.netsim_port}"),
             *("--ready-file", str(ready)),
         ]
         return Proc("netsim", spawn_cli(args, log_path), log_path, self.dir / "netsim-stats.json")
 
     def start(self) -> Deployment:
         fleet = self.fleet
-        self._add("relay", fleet.start_relay, "relay")
+        self._add("router", fleet.start_router, "router")
         ur = self._add("ur", lambda: self._sim("ur", 'host = "auto"\n'))
         self.ur_host = _announcement(ur.handle)["host"]
         ur.launcher = lambda: self._sim("ur", f'host = "{self.ur_host}"\n')
@@ -325,7 +326,7 @@ class Deployment:
             ),
             "robot",
         )
-        self.netsim_endpoints = tuple(f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2))
+        self.netsim_port = free_loopback_ports(1, udp=True)[0]
         self._add("netsim", self._start_netsim)
         self._add_operator()
         self._add("recorder", lambda: fleet.start_recorder(RECORDER, self.recording))
@@ -355,7 +356,7 @@ class Deployment:
                         request_control=True,
                         want_frames=False,
                         servos=_SERVOS.format(port=self.servo_port, **simulated_driver_settings()),
-                        endpoints=self.netsim_endpoints,
+                        router_endpoint=f"quic/127.0.0.1:{self.netsim_port}",
                         extra=["--status-file", str(self.late_wakes.path)],
                     )
                 finally:
@@ -444,7 +445,7 @@ class Deployment:
     # ------------------------------------------------------------ stopping
     def close(self) -> None:
         self.supervisor.close()
-        order = ["recorder", "operator", "netsim", "robot", "video", "relay"]
+        order = ["recorder", "operator", "netsim", "robot", "video", "router"]
         order += ["servos", "tactile", "gripper", "ur"]
         for name in order:
             unit = self.units.get(name)
