@@ -31,7 +31,7 @@ KILL, STOP, RESTART, OUTAGE, UNPLUG = "kill -9", "SIGSTOP 2 s", "restart", "outa
 PROCESSES = (
     "robot",
     "operator",
-    "relay",
+    "router",
     "netsim",
     "video",
     "recorder",
@@ -97,12 +97,13 @@ def full_matrix() -> list[Cell]:
 
 
 def quick_matrix() -> list[Cell]:
-    """The cells the tests hold too: the robot node killed and frozen, the relay, netsim's clean
-    restart (it once ignored its stop signal and relayed on), the link."""
+    """The cells the tests hold too: the robot node killed and frozen, the fabric's router
+    killed (the nodes reconnect by themselves), netsim's clean restart (it once ignored its stop
+    signal and forwarded on), the link."""
     return [
         Cell("robot", KILL),
         Cell("robot", STOP),
-        Cell("relay", KILL),
+        Cell("router", KILL),
         Cell("netsim", RESTART),
         Cell("link", OUTAGE),
     ]

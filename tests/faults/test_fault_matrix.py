@@ -1,6 +1,6 @@
 """The fault matrix's safety cells as tests: real processes, read from outside the one that fails.
 
-Each cell is a whole deployment (relay, robot and operator nodes, netsim,
+Each cell is a whole deployment (router, robot and operator nodes, netsim,
 video, recorder, and the four device simulators as processes of their own)
 with an operator jogging and holding a grasp; ``harness/faults/matrix.py``
 injects the fault and reads the arm from the UR simulator, the gripper from

@@ -26,9 +26,9 @@ pytestmark = pytest.mark.parallel
 
 
 def test_restart_policy_is_the_shipped_units():
-    robot, relay = policy("robot"), policy("relay")
+    robot, router = policy("robot"), policy("router")
     assert (robot.restart, robot.restart_sec, robot.watchdog_sec) == ("on-failure", 3.0, 5.0)
-    assert relay.restart_sec == 2.0
+    assert (router.restart, router.restart_sec) == ("always", 0.5)
     assert robot.restarts_after(-signal.SIGKILL) and robot.restarts_after(-signal.SIGABRT)
     assert robot.restarts_after(1)
     assert not robot.restarts_after(0) and not robot.restarts_after(-signal.SIGTERM)
