@@ -184,7 +184,7 @@ class Command:
 class VideoSignal:
     """Both ways: a viewer's WebRTC offer and the robot's answer, carried by the link.
 
-    Signalling takes the nodes' own sockets (and the relay), so video needs no
+    Signalling takes the nodes' own sockets (and the router), so video needs no
     port of its own on either site; the media then flows peer to peer.
     ``viewer`` is a random number per viewing session: it pairs an answer
     with its offer among everyone who reads the robot's stream.

@@ -1,26 +1,27 @@
-"""Who may connect and what each operator key may do: one TOML file, read by relay and robot.
+"""Who may connect and what each operator key may do: one TOML file, read by router and robot.
 
 ```toml
 [[operator]]
 name = "alice"
 role = "controller"        # controller (may hold a robot's control lease), observer, recorder
-curve_key = "Z85..."       # her CURVE public key (NAME.key): the relay lets it in
+curve_key = "Z85..."       # her CURVE public key (NAME.key): a direct link lets it in
 signing_key = "hex..."     # her Ed25519 public key (NAME.sign): the robot checks her signatures
 video = true               # optional: an observer may watch the robot's camera too (below)
 
 [[robot]]
 name = "cell1"             # the name on the wire (docs/protocol.md, Robot names)
-curve_key = "Z85..."       # the robot PC's CURVE public key: the relay lets it in
+curve_key = "Z85..."       # the robot PC's CURVE public key
 names = ["cell1", "cell1-cam"]  # optional: every name this key may use (default: [name])
 ```
 
-The relay reads ``curve_key`` and ``role`` (it drops commands from keys
-that are not controllers) and each robot key's names: that key may publish
-telemetry and subscribe to commands under those names only, so one robot's
-PC cannot pose as another robot. A name belongs to one key. The robot reads
+The router (``deepxpalm router``) makes its access control from ``name``
+and ``role`` (each member's certificate carries its name): a controller may
+put commands, an observer only stops and heartbeats, a recorder nothing, and
+a robot puts under its own names and reads only its inbox, so one robot's PC
+cannot pose as another robot. A name belongs to one member. The robot reads
 ``signing_key`` and ``role`` (it acts only on commands signed by the key
-that holds its lease). The robot trusts its own copy, never the relay's:
-docs/security.md.
+that holds its lease); ``curve_key`` lets a member in on a direct link. The
+robot trusts its own copy, never the router's: docs/security.md.
 
 Video is a controller's: the robot answers a video offer only from a
 controller's key, or from an observer whose entry says ``video = true``. A
@@ -121,7 +122,7 @@ def check_replacement(old: Roster, new: Roster, path: Path | str) -> None:
     """Refuse a new roster that would leave no robot or no controller where ``old`` had some.
 
     What an empty file or one cut at an entry boundary parses into: taken
-    in, it would lock the whole fleet out (every robot refused at the relay,
+    in, it would lock the whole fleet out (every robot refused at the router,
     no operator obeyed). The file's ``allow_lockout = true`` says it is meant.
     """
     if new.allow_lockout:

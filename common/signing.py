@@ -1,9 +1,9 @@
 """Ed25519 signatures end to end, operator to robot (docs/security.md).
 
-CURVE protects each hop; a relay in the middle terminates two CURVE
+CURVE or TLS protects each hop; a router in the middle terminates the
 connections and sees every message in clear. So the operator also signs what
 it sends with a key only it holds, and the robot checks the signature
-against its roster: a relay (or anything else on the path) can then drop or
+against its roster: a router (or anything else on the path) can then drop or
 delay a command, never make or change one. The library is ``cryptography``
 (OpenSSL's Ed25519); this module only stores keys and wraps its two calls.
 

@@ -216,10 +216,8 @@ class Publisher(_Reconnecting):
     """Sends messages; a PUB never blocks, and drops for a subscriber that lags.
 
     ``name``: a robot's name, carried after every topic (docs/protocol.md) so
-    that one relay can carry several robots. ``signer``: every message is
-    signed (common/signing.py). ``watch_subscriptions``: an XPUB instead of a
-    PUB, so the sender sees what its subscribers (or a relay on their behalf)
-    ask for and can skip encoding what nobody wants.
+    that one path can carry several robots. ``signer``: every message is
+    signed (common/signing.py).
     """
 
     def __init__(
@@ -232,65 +230,33 @@ class Publisher(_Reconnecting):
         sock_opts: dict[int, Any] | None = None,
         name: bytes = b"",
         signer: Any = None,
-        watch_subscriptions: bool = False,
         reconnect: bool = False,
         link_name: str = "telemetry",
     ) -> None:
         """``reconnect``: a connecting socket opened again when libzmq gives up on it
         (``check_link``, called by ``send`` and ``read_subscriptions``)."""
-        kind = zmq.XPUB if watch_subscriptions else zmq.PUB
         opts = {zmq.SNDHWM: sndhwm, **(sock_opts or {})}
-        if watch_subscriptions:
-            opts[zmq.MAXMSGSIZE] = 1 + MAX_MESSAGE_BYTES  # a subscription: 1 byte + a prefix
         self.link_name = link_name
-        self._setup(ctx, kind, endpoint, bind, opts, reconnect)
+        self._setup(ctx, zmq.PUB, endpoint, bind, opts, reconnect)
         self.endpoint = last_endpoint(self.sock) if bind else endpoint
         self.name = name
         self.signer = signer
-        self.watching = watch_subscriptions
         self.sent = 0
         self.bytes_sent = 0
-        #: subscription prefixes in force (XPUB only; a relay forwards each prefix once)
-        self.subscriptions: set[bytes] = set()
 
     def send(self, msg: Message) -> bytes:
         data = encode(msg, self.name, self.signer)
         self.send_raw(data)
         return data
 
-    def _after_reopen(self) -> None:
-        # the relay sends its subscriptions again to the new connection
-        self.subscriptions.clear()
-
     def read_subscriptions(self) -> bool:
-        """Take in queued (un)subscriptions (XPUB only); True if the set changed."""
-        if self.watch is not None and self.check_link():
-            return True
-        if not self.watching:
-            return False
-        changed = False
-        sock = self.sock
-        while sock.get(_EVENTS) & _POLLIN:
-            try:
-                data = sock.recv(_NOBLOCK)
-            except zmq.Again:
-                break
-            if not data or data[0] not in (0, 1):
-                continue  # nothing but subscriptions is ever read from a publisher
-            prefix = bytes(data[1:])
-            if data[0] == 1 and prefix not in self.subscriptions:
-                self.subscriptions.add(prefix)
-                changed = True
-            elif data[0] == 0 and prefix in self.subscriptions:
-                self.subscriptions.discard(prefix)
-                changed = True
-        return changed
+        """A PUB cannot tell who listens: True only when a connecting socket was opened
+        again (``check_link``)."""
+        return self.watch is not None and self.check_link()
 
     def wanted(self, prefix: bytes) -> bool:
-        """Does any subscription select frames starting with ``prefix``? (True for a PUB.)"""
-        if not self.watching:
-            return True
-        return any(prefix.startswith(s) for s in self.subscriptions)
+        """Does anyone want frames starting with ``prefix``? A PUB cannot tell: always True."""
+        return True
 
     def send_raw(self, data: bytes) -> None:
         if self.watch is not None:

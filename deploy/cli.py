@@ -42,15 +42,11 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "lift: every LinkGlide linkage off the palm, with no node running (after it died)",
     ),
     "video": ("robot_side.video.cli", "stream a camera from the robot PC to the dashboard"),
-    "relay": (
-        "relay_side.cli",
-        "run the relay: robots and operators connect out to it (docs/deploy.md)",
-    ),
     "router": (
         "router_side.cli",
         "run the fabric's Zenoh router: robots and operators of several sites meet there",
     ),
-    "record": ("operator_side.record_cli", "keep every robot's stream from a relay, to a file"),
+    "record": ("operator_side.record_cli", "keep every robot's stream from the fabric, to a file"),
     "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
     "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
     "collect": (

@@ -6,7 +6,7 @@
 
     deepxpalm keys generate-signing --dir keys --name operator-alice   # Ed25519, signs commands
 
-With a relay, one command per machine makes both pairs (or keeps the ones
+For a fleet, one command per machine makes both pairs (or keeps the ones
 there) and prints the machine's roster entry, to paste into roster.toml:
 
     deepxpalm keys robot --dir /etc/deepxpalm/keys --name cell1        # on robot PC cell1
@@ -16,7 +16,7 @@ Across sites through Zenoh routers, one command on the machine that keeps the
 fabric's certificate authority makes a certificate per roster member (its roster
 name is the common name) and the router's:
 
-    deepxpalm keys certs --roster roster.toml --dir fabric --router-host relay.lab.org
+    deepxpalm keys certs --roster roster.toml --dir fabric --router-host router.lab.org
 
 Copy each member's NAME.crt, NAME.key and ca.crt to that member's machine only.
 
@@ -227,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
             print("# operator.toml here: [operator.link] signing_key_file = ", end="")
             print(f'"{files["signing_secret"]}"')
             print(f'#   and [operator.link.security] secret_key_file = "{files["curve_secret"]}"')
-        print("# the roster (relay host and every robot PC; robots last) gets this entry:")
+        print("# the roster (router host and every robot PC; robots last) gets this entry:")
         print(entry, end="")
     elif args.keys_command == "certs":
         for line in fabric_certificates(

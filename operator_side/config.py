@@ -48,8 +48,8 @@ class OperatorLinkConfig:
     )
     robot_name: str = param(
         "",
-        "the robot to follow through a relay (its link.robot_name); empty = an unnamed robot "
-        "on a direct link",
+        "the robot to follow (its link.robot_name): required on the fabric; on a direct link "
+        "empty = an unnamed robot",
     )
     signing_key_file: Path | None = param(
         None,
@@ -59,13 +59,13 @@ class OperatorLinkConfig:
     robot_key_file: Path | None = param(
         None,
         "the robot's public signing key (its NAME.sign): telemetry not signed by it is "
-        "dropped (a relay cannot forge what the palm feels); needed with robot_name (through "
-        "a relay) unless unsigned_stream",
+        "dropped (a compromised router cannot forge what the palm feels); needed with mode "
+        "fabric unless unsigned_stream",
     )
     unsigned_stream: bool = param(
         False,
-        "with robot_name, run without robot_key_file and take the robot's telemetry unsigned: "
-        "a compromised relay can then make the palm feel what did not happen",
+        "with mode fabric, run without robot_key_file and take the robot's telemetry unsigned: "
+        "a compromised router can then make the palm feel what did not happen",
     )
     max_telemetry_age_ms: float = param(
         500.0,
@@ -106,11 +106,11 @@ class OperatorLinkConfig:
         "so an observer sends this few; holders and requesters send heartbeat_rate_hz",
     )
     security: SecurityConfig = param(
-        SecurityConfig(), "CURVE keys: ours and the robot's (or the relay's) public key"
+        SecurityConfig(), "CURVE keys: ours and the robot's public key (mode direct)"
     )
     mode: Literal["direct", "fabric"] = param(
         "direct",
-        "direct: ZeroMQ to the two endpoints above (the robot's, a netsim's or a relay's); "
+        "direct: ZeroMQ to the two endpoints above (the robot's, or a netsim's in between); "
         "fabric: through a Zenoh router across sites ([link.fabric]; robot_name says which "
         "robot), where the endpoints and CURVE settings are unused",
     )

@@ -1,4 +1,4 @@
-"""``deepxpalm record``: keep every robot's stream from a relay or the fabric, for analysis.
+"""``deepxpalm record``: keep every robot's stream from the fabric or a robot, for analysis.
 
 A recorder is a roster key with the role ``recorder``: it subscribes to the
 whole telemetry of the robots it names (frames included), checks every
@@ -53,14 +53,16 @@ _RECORD = struct.Struct("<QI")
 @dataclass
 class RecorderConfig:
     telemetry_endpoint: str = param(
-        "tcp://127.0.0.1:5585", "the relay's operator-facing telemetry XPUB"
+        "tcp://127.0.0.1:5555", "mode direct: a robot's telemetry endpoint (its link)"
     )
     robots: list[str] = param([], "robot names to record; empty = every one")
     output: Path | None = param(None, "append the wire messages here; unset = count only")
-    security: SecurityConfig = param(SecurityConfig(), "CURVE: our key pair and the relay's key")
+    security: SecurityConfig = param(
+        SecurityConfig(), "mode direct, CURVE: our key pair and the robot's key"
+    )
     mode: Literal["direct", "fabric"] = param(
         "direct",
-        "direct: the relay's telemetry endpoint above; fabric: through a Zenoh router "
+        "direct: one robot's telemetry endpoint above; fabric: through a Zenoh router "
         "([recorder.fabric], docs/fabric.md), where robots must name each robot to record",
     )
     fabric: FabricConfig = param(FabricConfig(), "mode fabric: the router and our certificate")

@@ -1,7 +1,7 @@
 """Which signed robot telemetry the operator believes: this robot run's, fresh, once.
 
 A signature proves who made a message, not when: a stimulus captured off
-the wire (by a relay, or anyone on the path) verifies as well a second later
+the wire (by a router, or anyone on the path) verifies as well a second later
 as it did the first time. So the robot stamps a random ``session`` per node
 run (its boot id) on everything it signs, beside the per-stream ``seq`` and
 its send time, and the operator refuses, counting each under its name:

@@ -56,13 +56,13 @@ class RobotLinkConfig:
     heartbeat_rate_hz: float | None = param(
         None,
         "heartbeats confirm an unchanged stimulus is still current; unset = 20 on a direct "
-        "link or relay, 40 on the fabric, where each is a datagram and a loss burst can take "
+        "link, 40 on the fabric, where each is a datagram and a loss burst can take "
         "several in a row (docs/fabric.md)",
     )
     heartbeat_stats_period_ms: float | None = param(
         None,
         "how often a heartbeat carries the node's counters (about 1.8 kB; the heartbeat "
-        "itself about 250 B); unset = every heartbeat on a direct link or relay, every 1000 ms "
+        "itself about 250 B); unset = every heartbeat on a direct link, every 1000 ms "
         "on the fabric, where a heartbeat must fit one datagram to travel as a latest value",
     )
     heartbeat_early_ms: float = param(
@@ -88,21 +88,22 @@ class RobotLinkConfig:
         "after a full batch, commands wait this long for the next turn while frames go on; "
         "what waits only ages (stale commands are refused)",
     )
-    mode: Literal["bind", "relay", "fabric"] = param(
+    mode: Literal["bind", "fabric"] = param(
         "bind",
         "bind: the operator connects to our two endpoints (one site opens a port); fabric: we "
         "connect out to a Zenoh router across sites (deepxpalm router, the [link.fabric] "
-        "table), nobody connects in; relay: the older ZeroMQ relay (deepxpalm relay)",
+        "table), nobody connects in",
     )
     robot_name: str = param(
         "",
-        "our name on the wire, after every topic (docs/protocol.md); needed with a relay, "
-        "which carries several robots; empty = unnamed (direct link only)",
+        "our name on the wire, after every topic (docs/protocol.md) and our roster name; "
+        "needed on the fabric, which carries several robots; empty = unnamed (direct link "
+        "only)",
     )
     roster_file: Path | None = param(
         None,
         "operators and their roles (common/roster.py): commands must then be signed, and "
-        "only the holder of the control lease is obeyed; needed with a relay. SIGHUP "
+        "only the holder of the control lease is obeyed; needed on the fabric. SIGHUP "
         "(systemctl reload) reads it again",
     )
     lease_request_timeout_ms: float = param(
@@ -112,13 +113,14 @@ class RobotLinkConfig:
         None,
         "our Ed25519 key (NAME.sign_secret, `deepxpalm keys generate-signing`): everything we "
         "send is signed, and operators holding our public key drop telemetry that is not, so "
-        "a relay cannot forge what a palm feels; needed with mode relay unless "
+        "a compromised router cannot forge what a palm feels; needed with mode fabric unless "
         "unsigned_stream; unset = unsigned",
     )
     unsigned_stream: bool = param(
         False,
-        "with mode relay, run without signing_key_file: anyone who can inject into the relay "
-        "(a compromised relay host) can then make operators' palms feel what did not happen",
+        "with mode fabric, run without signing_key_file: anyone who can inject into the "
+        "router (a compromised router host) can then make operators' palms feel what did "
+        "not happen",
     )
     allow_plain_commands: bool = param(
         False,
@@ -154,8 +156,7 @@ class RobotLinkConfig:
     )
     security: SecurityConfig = param(
         SecurityConfig(),
-        "CURVE keys and the operator allowlist; with a relay, server_public_key_file is the "
-        "relay's public key",
+        "CURVE keys and the operator allowlist (mode bind)",
     )
     fabric: FabricConfig = param(
         FabricConfig(),

@@ -1,10 +1,10 @@
 """The control lease: which one operator key a robot acts on, and how it changes hands.
 
-Several operators see one robot through a relay; exactly one of them may
+Several operators see one robot through the router; exactly one of them may
 command it at a time. Every operator message is signed (common/signing.py)
 and its signer looked up in the robot's own roster (common/roster.py):
 
-- a key not in the roster is ignored, whatever the relay let through;
+- a key not in the roster is ignored, whatever the router let through;
 - only ``controller`` keys may ask for the lease (``lease_request``); the
   first to ask while nobody holds it gets it;
 - a request while someone holds it waits for the holder: ``lease_grant``

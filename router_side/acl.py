@@ -44,7 +44,15 @@ READS = ("stimulus", "frame", "heartbeat")
 
 @dataclass
 class RateLimits:
-    """Per peer and key, at most this many messages a second pass the router."""
+    """Per peer and key, at most this many messages a second pass the router.
+
+    Zenoh's gate (``downsampling``) is a minimum interval, not a bucket: a
+    message within 1/hz of the last one passed is dropped. So it gates only
+    what may be dropped, the latest values and the stops (resent until
+    latched); commands and video signals, which must each arrive and are sent
+    two in one instant (a jog and a gripper command, a bye and an offer), are
+    not gated here: the robot queues each sender apart and refuses beyond its
+    own budgets, with a reason."""
 
     stimulus_hz: float = param(
         360.0, "a robot's stimuli (60/s by default, 120 at most, plus keyframes)"
@@ -53,15 +61,12 @@ class RateLimits:
     robot_heartbeat_hz: float = param(
         200.0, "a robot's heartbeats (20/s, plus one when its state changes)"
     )
-    robot_video_hz: float = param(50.0, "a robot's video answers and closes")
-    command_hz: float = param(
-        200.0, "an operator's commands to one robot (jogs at 60/s at most, plus the rest)"
+    stop_hz: float = param(
+        100.0, "an operator's stops to one robot (resent every 50 ms; the first copy passes)"
     )
-    stop_hz: float = param(100.0, "an operator's stops to one robot (resent every 50 ms)")
     operator_heartbeat_hz: float = param(
         100.0, "an operator's heartbeats to one robot (20/s, plus answers)"
     )
-    operator_video_hz: float = param(20.0, "an operator's video offers and byes to one robot")
 
 
 def _robot_names(roster: Roster) -> list[str]:
@@ -163,13 +168,10 @@ def rate_gates(limits: RateLimits, roster: Roster) -> list[dict[str, Any]]:
         "stimulus": limits.stimulus_hz,
         "frame": limits.frame_hz,
         "heartbeat": limits.robot_heartbeat_hz,
-        "video": limits.robot_video_hz,
     }
     per_operator_kind = {
-        "command": limits.command_hz,
         keyexprs.STOP: limits.stop_hz,
         "heartbeat": limits.operator_heartbeat_hz,
-        "video": limits.operator_video_hz,
     }
     rules = []
     for robot in _robot_names(roster):

@@ -42,6 +42,7 @@ class Router:
         self.config = config
         self.files = cert_files(config.cert_dir, config.name, "router")
         self.roster: Roster = load_roster(config.roster_file)
+        self._roster_sha256 = _sha256(config.roster_file)
         self.roster_reload = threading.Event()
         self.session: Any = None
         self.started_at = time.time()
@@ -72,6 +73,7 @@ class Router:
             log.error("roster reload refused, the roster in force stays: %s", e)
             return False
         self.roster = roster
+        self._roster_sha256 = _sha256(self.config.roster_file)
         self.session.close()
         self.session = self._reopen()
         self.reloads += 1
@@ -102,6 +104,7 @@ class Router:
         return {
             "endpoint": self.config.listen_endpoint,
             "roster": self.roster.summary(),
+            "roster_sha256": self._roster_sha256,
             "peers": len(peers),
             "reloads": self.reloads,
             "reloads_refused": self.reloads_refused,
@@ -146,3 +149,10 @@ class Router:
         if self.session is not None:
             self.session.close()
             self.session = None
+
+
+def _sha256(path: Path) -> str:
+    """The roster file's digest: the doctor tells the roster in force from the one on disk."""
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()

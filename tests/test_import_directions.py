@@ -1,7 +1,7 @@
 """Imports point one way (docs/architecture.md, "Packages and the data path").
 
 ``common`` is at the bottom and imports no other package; ``robot_side``,
-``operator_side`` and ``relay_side`` import ``common`` and never each other;
+``operator_side`` and ``router_side`` import ``common`` and never each other;
 ``deploy`` is above them and may import all of them; ``harness`` (the bench,
 the fault matrix, the fleet, the soak) sits above the whole product and
 nothing in the product imports it. Every import counts,
@@ -22,7 +22,7 @@ from collections import deque
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-NODES = ("robot_side", "operator_side", "relay_side", "router_side")
+NODES = ("robot_side", "operator_side", "router_side")
 #: package -> the project packages its modules may import
 ALLOWED: dict[str, frozenset[str]] = {
     "common": frozenset({"common"}),
@@ -291,8 +291,8 @@ def test_an_upward_import_fails_the_check(tmp_path):
             "robot_side/by_name.py": "import importlib\nimportlib.import_module('deploy.cli')\n",
             "robot_side/sideways.py": "import operator_side.node\n",
             "operator_side/node.py": "from . import config\nfrom common import codec\n",
-            "relay_side/relay.py": "from robot_side import node\n",
-            "deploy/cli.py": "import common, robot_side, operator_side, relay_side, deploy\n",
+            "router_side/router.py": "from robot_side import node\n",
+            "deploy/cli.py": "import common, robot_side, operator_side, router_side, deploy\n",
             "deploy/demo.py": "def run():\n    from harness.fleet import Fleet\n",
             "deploy/plugins.py": "import importlib\nimportlib.import_module('harness.bench.cli')\n",
             "common/harnessed.py": "import harness\n",
@@ -305,7 +305,7 @@ def test_an_upward_import_fails_the_check(tmp_path):
         "robot_side/by_name.py:2: robot_side -> deploy.cli",
         "robot_side/lazy.py:2: robot_side -> deploy.scene",
         "robot_side/sideways.py:1: robot_side -> operator_side.node",
-        "relay_side/relay.py:1: relay_side -> robot_side",
+        "router_side/router.py:1: router_side -> robot_side",
         "deploy/demo.py:2: deploy -> harness.fleet",
         "deploy/plugins.py:2: deploy -> harness.bench.cli",
     ]

@@ -21,7 +21,6 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = (
     "robot_side",
     "operator_side",
-    "relay_side",
     "router_side",
     "common",
     "deploy",

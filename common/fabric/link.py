@@ -61,6 +61,10 @@ STOP_COPIES = 2
 DATAGRAM_BYTES = 1100
 #: how many stop payloads the receiver remembers to drop the copies of
 _STOP_MEMORY = 32
+#: key expressions a subscriber keeps a queue for at most (one per sender and kind)
+_MAX_QUEUES = 1024
+#: the queue of messages taken but not yet decoded (``drain``'s limit), read first next time
+_REST = ""
 
 
 def _qos(kind: str, best_effort: bool) -> dict[str, Any]:
@@ -189,9 +193,10 @@ class FabricSubscriber:
     """Receives a node's messages from key expressions (``Receiver``).
 
     Latest-value keys keep one message each (the newest); the others queue up
-    to ``queue`` messages, the oldest dropped first when a peer floods
-    (``queue_dropped``). ``poller`` is a ``zmq.Poller`` on the wake pipe, so a
-    node can register its other file descriptors beside it, as with ZeroMQ.
+    to ``queue`` messages per key expression, so per sender, the oldest dropped
+    first when that sender floods (``queue_dropped``). ``poller`` is a
+    ``zmq.Poller`` on the wake pipe, so a node can register its other file
+    descriptors beside it, as with ZeroMQ.
     """
 
     def __init__(
@@ -214,8 +219,11 @@ class FabricSubscriber:
         self.rejected: Counter[str] = Counter()
         self.counters: Counter[str] = Counter()
         self._bad = BurstLog(log, f"{name}: rejected message")
-        self._queue: collections.deque[tuple[int, bytes]] = collections.deque()
+        #: one bounded queue per key expression, so per sender (the router lets a member put
+        #: under its own name only): a flood from one key drops its own oldest, nobody else's
+        self._queues: dict[str, collections.deque[tuple[int, bytes]]] = {}
         self._queue_max = queue
+        self._queued = 0
         self._latest: dict[str, tuple[int, bytes]] = {}
         self._stops: collections.deque[bytes] = collections.deque(maxlen=_STOP_MEMORY)
         self._lock = threading.Lock()
@@ -244,10 +252,18 @@ class FabricSubscriber:
                         self.counters["stop_copies_dropped"] += 1
                         return
                     self._stops.append(digest)
-                if len(self._queue) >= self._queue_max:
-                    self._queue.popleft()
+                queue = self._queues.get(key)
+                if queue is None:
+                    if len(self._queues) >= _MAX_QUEUES:  # keys seen: bounded by the roster
+                        self.counters["queue_dropped"] += 1
+                        return
+                    queue = self._queues[key] = collections.deque()
+                if len(queue) >= self._queue_max:
+                    queue.popleft()
                     self.counters["queue_dropped"] += 1
-                self._queue.append((t_recv, data))
+                    self._queued -= 1
+                queue.append((t_recv, data))
+                self._queued += 1
             if not self._woken:  # one byte in the pipe while anything waits, never more
                 self._woken = True
                 with contextlib.suppress(BlockingIOError, OSError):
@@ -269,11 +285,16 @@ class FabricSubscriber:
                 with contextlib.suppress(BlockingIOError, OSError):
                     os.read(self._rfd, 64)
                 self._woken = False
-            items = list(self._queue)
-            self._queue.clear()
+            items: list[tuple[int, bytes]] = []
+            if self._queued:
+                for queue in self._queues.values():
+                    items.extend(queue)
+                    queue.clear()
+                self._queued = 0
             if self._latest:
                 items.extend(self._latest.values())
                 self._latest.clear()
+            if len(items) > 1:
                 items.sort(key=lambda item: item[0])
         return items
 
@@ -295,7 +316,9 @@ class FabricSubscriber:
             rest = items[max_messages:]
             items = items[:max_messages]
             with self._lock:
-                self._queue.extendleft(reversed(rest))
+                queue = self._queues.setdefault(_REST, collections.deque())
+                queue.extendleft(reversed(rest))
+                self._queued += len(rest)
                 if not self._woken:
                     self._woken = True
                     with contextlib.suppress(BlockingIOError, OSError):

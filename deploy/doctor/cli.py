@@ -2,7 +2,7 @@
 
     deepxpalm doctor --role robot --config /etc/deepxpalm/robot.toml
     deepxpalm doctor --role operator --config /etc/deepxpalm/operator.toml
-    deepxpalm doctor --role relay --config /etc/deepxpalm/relay.toml
+    deepxpalm doctor --role router --config /etc/deepxpalm/router.toml
     deepxpalm doctor --scene demo --role robot --json
 
 A session fails in the first minute for the same handful of reasons: a
@@ -38,7 +38,6 @@ from deploy.doctor.devices import check_devices
 from deploy.doctor.keys import check_keys
 from deploy.doctor.link import check_endpoints, check_operator_link, check_robot_link
 from deploy.doctor.node_config import check_config, infer_role, node_section
-from deploy.doctor.relay import check_relay_from_node, diagnose_relay
 from deploy.doctor.report import ROLES, DoctorOptions, Report
 from deploy.doctor.system import check_governor, check_realtime, check_service_user
 from deploy.doctor.video import check_video
@@ -50,8 +49,10 @@ def diagnose(
     """Every check for ``role`` on a node config table (already picked from the file)."""
     options = options or DoctorOptions()
     report = Report(role, source)
-    if role == "relay":
-        diagnose_relay(report, data, options)
+    if role == "router":
+        from deploy.doctor.router import diagnose_router
+
+        diagnose_router(report, data, options)
         check_service_user(report, options)
         return report
     config = check_config(report, role, data)
@@ -60,16 +61,10 @@ def diagnose(
     if config.link.mode == "fabric":
         return _diagnose_fabric(report, role, config, options)
     check_endpoints(report, role, config.link)
-    via_relay = role == "robot" and config.link.mode == "relay"
-    # through a relay the robot is a CURVE client, as an operator is
-    check_keys(report, "operator" if via_relay else role, config.link.security, options)
+    check_keys(report, role, config.link.security, options)
     keys_failed = any(c.name.startswith("keys") and c.status == FAIL for c in report.checks)
     node_running = False
-    if via_relay or (role == "operator" and config.link.robot_name):
-        check_relay_from_node(report, role, config, options)
-    if via_relay:
-        pass  # nothing to bind: the relay's ports were probed above
-    elif role == "robot":
+    if role == "robot":
         if keys_failed:
             report.add("robot ports", SKIP, "not checked: the keys above fail")
         else:
@@ -80,7 +75,7 @@ def diagnose(
         check_devices(report, role, config, options)
     if role == "robot":
         check_video(report, config, options)
-    if role == "operator" and not config.link.robot_name:
+    if role == "operator":
         if keys_failed:
             report.add("peer robot", SKIP, "not checked: the keys above fail")
         else:

@@ -34,8 +34,6 @@ def _member(role: str, config: Any) -> str | None:
 
 def check_certificate(report: Report, role: str, config: Any) -> Any:
     """This node's certificate files, their name, signer, expiry and the key's mode."""
-    from cryptography import x509
-
     from common.fabric.session import cert_files
 
     name = "fabric: certificate"
@@ -53,6 +51,15 @@ def check_certificate(report: Report, role: str, config: Any) -> Any:
     except ConfigError as e:
         report.add(name, FAIL, str(e), fix)
         return None
+    return check_certificate_files(report, files, member, fix)
+
+
+def check_certificate_files(report: Report, files: Any, member: str, fix: str) -> Any:
+    """A member's certificate: signed by the fabric's CA, its key private, not about to expire;
+    ``files`` if it passes or only warns, else None."""
+    from cryptography import x509
+
+    name = "fabric: certificate"
     try:
         cert = x509.load_pem_x509_certificate(files.cert.read_bytes())
         ca = x509.load_pem_x509_certificate(files.ca.read_bytes())
@@ -142,5 +149,10 @@ def check_router(report: Report, role: str, config: Any, files: Any, options: Do
 
 
 def check_fabric(report: Report, role: str, config: Any, options: DoctorOptions) -> None:
+    from deploy.doctor.roster import check_roster, check_stream_signing
+
+    if role == "robot":
+        check_roster(report, config.link.roster_file, need_signing=True)
+    check_stream_signing(report, role, config.link)
     files = check_certificate(report, role, config)
     check_router(report, role, config, files, options)

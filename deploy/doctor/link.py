@@ -241,8 +241,8 @@ def heartbeat_exchange(
 
 
 def link_health_verdict(report: Report, peer: str, stats: dict[str, float]) -> None:
-    """The peer's own view of its links (relay mode: each socket up, and how often it was
-    opened again after libzmq gave up on it), from its heartbeat's counters."""
+    """The peer's own view of its links (each end it connects out with up, and how often it
+    was opened again), from its heartbeat's counters."""
     ends = [e for e in ("telemetry", "commands") if f"link_{e}_up" in stats]
     if not ends:
         return  # a direct link: the node binds, nothing to reopen
@@ -258,9 +258,9 @@ def link_health_verdict(report: Report, peer: str, stats: dict[str, float]) -> N
             f"{peer} links",
             WARN,
             f"the {peer} node reports its {' and '.join(down)} link down: {detail}",
-            "it reopens a link libzmq gave up on by itself within 2 s; if it stays down, "
-            f"check the relay (`deepxpalm doctor --role relay`) and the {peer} node's log for "
-            "'link ... opened again'",
+            "it reopens a link by itself within 2 s; if it stays down, check the path "
+            f"(on the fabric: `deepxpalm doctor --role router` on the router host) and the "
+            f"{peer} node's log for 'link ... opened again'",
         )
     else:
         report.add(f"{peer} links", PASS, f"the {peer} node's links: {detail}")

@@ -12,7 +12,7 @@ from common.preflight import FAIL, PASS, SKIP, WARN
 log = logging.getLogger(__name__)
 
 
-ROLES = ("robot", "operator", "relay")
+ROLES = ("robot", "operator", "router")
 #: The user the systemd units run as (deploy/systemd/*.service).
 SERVICE_USER = "deepxpalm"
 #: What the units add to the service user's groups (SupplementaryGroups=).

@@ -3,7 +3,7 @@
 Each message the subscriber hands over passes, in order:
 
 1. the robot's key: with ``link.robot_key_file`` a message not signed by it
-   is dropped (a relay, or anyone on the path, cannot make the palm move);
+   is dropped (a router, or anyone on the path, cannot make the palm move);
 2. the telemetry gate (telemetry_gate.py): a signed message is believed
    once, fresh, and from the robot run that answered our heartbeat;
 3. then a stimulus feeds the link statistics and becomes the one the palm
@@ -125,7 +125,7 @@ class Arrivals:
         batch = sub.drain() if wires is None else sub.drain(wires=wires)
         for i, (msg, t_recv) in enumerate(batch):
             if robot_key is not None and msg.signer != robot_key:
-                # not from our robot: a relay (or anyone on the path) cannot make the palm move
+                # not from our robot: a router (or anyone on the path) cannot make the palm move
                 what = "telemetry_unsigned" if msg.signer is None else "telemetry_forged"
                 self.counters[what] += 1
                 self._forged_log(f"{type(msg).__name__}: {what}")

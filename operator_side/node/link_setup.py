@@ -2,9 +2,9 @@
 
 - ``LinkKeys``: the robot's name on the wire, our signing key (commands the
   robot obeys only from the lease holder), and the robot's public key:
-  telemetry signed by anyone else is dropped. Through a relay (a robot name)
-  the robot's stream must be signed, unless ``link.unsigned_stream`` says the
-  risk of what a relay could forge is taken;
+  telemetry signed by anyone else is dropped. Across sites (the fabric) the
+  robot's stream must be signed, unless ``link.unsigned_stream`` says the
+  risk of what a compromised router could forge is taken;
 - ``telemetry_gate_for``: with the robot's key, its signed telemetry is
   believed once, fresh and from its current run (telemetry_gate.py);
 - ``Sockets``: the subscriber and publisher, opened again after a long
@@ -43,7 +43,7 @@ class LinkKeys:
 
     @classmethod
     def load(cls, link: OperatorLinkConfig) -> LinkKeys:
-        """ConfigError for a name the protocol forbids, or a relay with no robot key."""
+        """ConfigError for a name the protocol forbids, or the fabric with no robot key."""
         try:
             robot_name = check_robot_name(link.robot_name) if link.robot_name else b""
         except DecodeError as e:
@@ -53,11 +53,12 @@ class LinkKeys:
             from common.signing import load_signer  # cryptography only when signing
 
             signer = load_signer(link.signing_key_file)
-        if robot_name and link.robot_key_file is None and not link.unsigned_stream:
+        if link.mode == "fabric" and link.robot_key_file is None and not link.unsigned_stream:
             raise ConfigError(
-                "operator link.robot_name is set (through a relay), so the robot's stream must "
+                "operator link.mode = 'fabric' takes the robot's stream across sites, so it must "
                 "be signed: set link.robot_key_file to the robot's NAME.sign (`deepxpalm keys "
-                "robot`), or link.unsigned_stream = true to accept what a relay could forge"
+                "robot`), or link.unsigned_stream = true to accept what a compromised router "
+                "could forge"
             )
         robot_key = None
         if link.robot_key_file is not None:

@@ -221,7 +221,7 @@ class OperatorNode:
     def send_video_signal(self, kind: str, viewer: int, sdp: str | None = None) -> None:
         """Queue a WebRTC offer or bye for the robot's video server; thread-safe.
 
-        It travels the command link (signed, through the relay when there is
+        It travels the command link (signed, through the router when there is
         one), so video needs no connection of its own to the robot PC.
         """
         signal = VideoSignal(seq=0, t_send_ns=0, kind=kind, viewer=viewer, sdp=sdp)

@@ -104,7 +104,7 @@ class CommandDesk:
                 roster.by_signing_key(), max_age_ns, round(link.lease_request_timeout_ms * 1e6)
             )
             self.peers = RosterPeers(self.lease)
-        elif link.mode in ("relay", "fabric"):
+        elif link.mode == "fabric":
             raise ConfigError(
                 f"robot link.mode = {link.mode!r} needs link.roster_file: across sites only "
                 "signed commands from the lease holder may move the arm (docs/security.md)"

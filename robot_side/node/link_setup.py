@@ -15,7 +15,7 @@ import zmq
 from common.codec import DecodeError, check_robot_name, name_prefix
 from common.errors import ConfigError
 from common.messages import Command, Heartbeat, VideoSignal
-from common.security import Authenticator, check_endpoint, client_options, server_options
+from common.security import Authenticator, check_endpoint, server_options
 from common.transport import Publisher, Receiver, Sender, Subscriber
 from robot_side.config import RobotConfig, RobotLinkConfig
 
@@ -38,15 +38,15 @@ def wire_name(name: str) -> bytes:
 def stream_signer(link: RobotLinkConfig) -> Signer | None:
     """What signs everything we send (None: unsigned); operators holding our key drop the rest.
 
-    Across sites (a relay, the fabric) the stream is signed unless ``link.unsigned_stream``
-    says otherwise.
+    Across sites (the fabric) the stream is signed unless ``link.unsigned_stream`` says
+    otherwise.
     """
-    if link.mode in ("relay", "fabric") and link.signing_key_file is None:
+    if link.mode == "fabric" and link.signing_key_file is None:
         if not link.unsigned_stream:
             raise ConfigError(
                 f"robot link.mode = {link.mode!r} signs its stream: set link.signing_key_file "
                 "(`deepxpalm keys robot --name NAME` makes it), or link.unsigned_stream = "
-                "true to let a compromised relay forge what palms feel (docs/security.md)"
+                "true to let a compromised router forge what palms feel (docs/security.md)"
             )
         log.warning("link.unsigned_stream: this robot's stream is not signed")
     if link.signing_key_file is None:
@@ -107,34 +107,23 @@ def open_link(
 
     Fabric: both go through our Zenoh session to the router (``open_fabric``).
 
-    Bound: we are the CURVE server. Through a relay the relay is, and its
-    allowlist and ours (the roster) both apply; both sockets then connect out
-    and are opened again when libzmq gives up on their connection (it never
-    reconnects after a protocol error), their state in the heartbeat's stats
-    (``link_telemetry_up``, ``link_telemetry_reopened``, and the same for commands).
+    Bound (a direct link): we are the CURVE server, and the operator connects to us.
     """
     if link.mode == "fabric":
         pub, sub = open_fabric(stack, link, name=name, signer=signer, serves_video=serves_video)
         return pub, sub, None
     for endpoint in (link.telemetry_endpoint, link.command_endpoint):
         check_endpoint(endpoint, link.security)
-    bind = link.mode == "bind"
-    auth = None
-    if bind:
-        auth = Authenticator(ctx, link.security)
-        stack.callback(auth.stop)
-        opts = server_options(link.security)
-    else:
-        opts = client_options(link.security)
+    auth = Authenticator(ctx, link.security)
+    stack.callback(auth.stop)
+    opts = server_options(link.security)
     pub = Publisher(
         ctx,
         link.telemetry_endpoint,
-        bind=bind,
+        bind=True,
         sock_opts=opts,
         name=name,
         signer=signer,
-        watch_subscriptions=not bind,  # the relay tells us what anyone subscribed to
-        reconnect=not bind,  # opened again if libzmq gives up on it (a protocol error)
         link_name="telemetry",
     )
     stack.callback(pub.close)
@@ -147,12 +136,11 @@ def open_link(
     sub = Subscriber(
         ctx,
         link.command_endpoint,
-        bind=bind,
+        bind=True,
         sock_opts=opts,
         name="robot commands",
         topics=topics,
         expect_name=name,
-        reconnect=not bind,
         link_name="commands",
     )
     stack.callback(sub.close)

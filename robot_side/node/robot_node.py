@@ -346,5 +346,5 @@ class RobotNode:
         """The counters, the workers', video's and CURVE's, and the devices' state."""
         out = node_stats(self.counters, self.workers, self.video.signalling, self._auth,
                          self.pipeline, self.desk)  # fmt: skip
-        out.update(link_health(self.pub, self.sub))  # relay mode: each link up, and reopens
+        out.update(link_health(self.pub, self.sub))  # each end up, and reopens
         return out

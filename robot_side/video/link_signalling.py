@@ -1,7 +1,7 @@
 """WebRTC signalling through the robot node's link, so video opens no port of its own.
 
 A viewer's offer reaches the robot node as a ``VideoSignal`` on the command
-path (directly, or through the relay); this bridge carries it to the video
+path (directly, or through the router); this bridge carries it to the video
 server on the robot PC (``deepxpalm video``, its WebSocket on loopback) and
 hands the answer back to the node, which publishes it on its telemetry. The
 media then flows peer to peer (ICE), which needs no inbound port where one

@@ -25,7 +25,7 @@ def test_a_plain_run_never_writes_over_the_committed_report():
 
 
 def test_quick_leaves_out_the_process_sections_unless_only_names_one():
-    assert {"task", "faults", "relay", "netsim", "video"} <= set(QUICK_LEAVES_OUT)
+    assert {"task", "faults", "netsim", "video"} <= set(QUICK_LEAVES_OUT)
     assert "stages" not in QUICK_LEAVES_OUT
     assert sections_to_skip(parse("--quick")) == set(QUICK_LEAVES_OUT)
     assert sections_to_skip(parse("--quick", "--skip", "ik")) == {"ik", *QUICK_LEAVES_OUT}

@@ -19,16 +19,16 @@ from harness.bench.sizes import PRESETS, SECTIONS
 
 pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing asserted (above)
 
-# Every section runs once, in the module's fixture (the processes' too), but six whose
+# Every section runs once, in the module's fixture (the processes' too), but five whose
 # measurements other tests run: the task's ``run_cell`` (tests/lab/test_task.py), the
 # fault matrix's ``run_cells`` (tests/faults), the command path's flood rig
-# (tests/system/test_command_path.py), the video's viewers (tests/video) and the relay's
-# isolation rig (tests/relay/test_isolation.py), and the video through netsim's page
+# (tests/system/test_command_path.py), the video's viewers (tests/video), and the video
+# through netsim's page
 # (tests/dashboard/test_video_netsim_browser.py, which calls its ``play``); their tables
 # are rendered from the committed report by tests/bench/test_sections.py. Run here too
 # they cost two minutes of the suite's 15.
 PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim"}
-COVERED_ELSEWHERE = {"task", "faults", "command_path", "video", "relay", "video_netsim"}
+COVERED_ELSEWHERE = {"task", "faults", "command_path", "video", "video_netsim"}
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ import pytest
 from common import tactile
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("common", "robot_side", "operator_side", "relay_side", "deploy", "harness")
+PACKAGES = ("common", "robot_side", "operator_side", "router_side", "deploy", "harness")
 #: names that once had a literal copy in several modules
 CONTRACT_NAMES = {
     "ANGLES_DEG",

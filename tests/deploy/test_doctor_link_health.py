@@ -1,4 +1,4 @@
-"""`deepxpalm doctor` shows the peer's own view of its relay links, read from its heartbeat."""
+"""`deepxpalm doctor` shows the peer's own view of its links, read from its heartbeat."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ def test_a_link_the_robot_reports_down_is_a_warning_with_what_to_check() -> None
     check = report.find("robot links")
     assert check.status == WARN
     assert "telemetry link down" in check.detail and "opened again 2x" in check.detail
-    assert "--role relay" in check.fix
+    assert "--role router" in check.fix
 
 
 def test_links_up_pass_and_name_their_reopens() -> None:

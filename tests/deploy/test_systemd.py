@@ -18,8 +18,8 @@ pytestmark = pytest.mark.parallel
 UNITS = REPO / "deploy" / "systemd"
 RULES = REPO / "deploy" / "udev" / "99-deepxpalm.rules"
 ROLES = ("robot", "operator")
-#: every unit shipped: the two nodes', the relay's, the router's and the robot PC's camera server
-UNITS_SHIPPED = (*ROLES, "relay", "router", "video")
+#: every unit shipped: the two nodes', the router's and the robot PC's camera server
+UNITS_SHIPPED = (*ROLES, "router", "video")
 INSTALLED = "/opt/deepxpalm/.venv/bin/deepxpalm"
 
 
@@ -198,16 +198,6 @@ def test_udev_rules_cover_the_common_usb_serial_bridges():
         assert f'ATTRS{{idVendor}}=="{vendor}"' in text
     assert "udevadm info" in text
     assert 'ATTR{latency_timer}="1"' in text
-
-
-def test_the_relay_unit_is_watched_and_starts_a_relay_the_cli_accepts(tmp_path):
-    unit = _parse(_unit("relay"))
-    assert _get(unit, "Service", "Type") == ["notify"]
-    assert _get(unit, "Service", "WatchdogSec") == ["5s"]
-    assert _get(unit, "Service", "User") == ["deepxpalm"]
-    assert _get(unit, "Install", "WantedBy") == ["multi-user.target"]
-    printed = _config_the_unit_starts(unit, "relay", tmp_path)
-    assert "[relay]" in printed and 'mode = "curve"' in printed
 
 
 @pytest.mark.slow

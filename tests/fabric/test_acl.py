@@ -100,6 +100,8 @@ def test_limits_match_the_codec_and_gate_each_robot_apart():
     roster = parse_roster(ROSTER, "roster.toml")
     (gates,) = rate_gates(RateLimits(), roster)
     keys = [r["key_expr"] for r in gates["rules"]]
-    assert "dxp/cell1/op/*/command" in keys and "dxp/cell2/op/*/command" in keys
+    assert "dxp/cell1/op/*/stop" in keys and "dxp/cell2/op/*/stop" in keys
+    # what must each arrive is never dropped by a spacing gate
+    assert not any(k.endswith(("/command", "/video")) for k in keys)
     assert len(keys) == len(set(keys))
     assert gates["flows"] == ["ingress"]

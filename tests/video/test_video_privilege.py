@@ -1,13 +1,15 @@
 """Video is a controller's: an observer's offers, floods and half-open sessions never keep the
 controller's page from its video; offers at once never pass the cap; deep JSON is an error.
 
-One deployment for the module, every part its own process: a relay, a robot node in relay
-mode with its video server (the stamped test pattern, ``ice_timeout_s`` 3 s), and the
+One deployment for the module, every part its own process: a Zenoh router, a robot node on
+the fabric with its video server (the stamped test pattern, ``ice_timeout_s`` 3 s), and the
 controller's operator node with its dashboard. The attackers are this process, each with
-its own real keys from the roster: signed video signals sent into the relay, the robot's
-replies read from it, and the video server's signalling socket with its token (what the
-robot node's bridge holds). The controller's page is aiortc speaking the page's protocol
-to the dashboard, as a browser does (tests/video_page.py).
+its own real keys and certificate from the roster: signed video signals put through the
+router, the robot's replies read from it, and the video server's signalling socket with its
+token (what the robot node's bridge holds). The router's roster lets ``peek`` and ``rec``
+put video offers (a compromised router): the robot's own roster still refuses them. The
+controller's page is aiortc speaking the page's protocol to the dashboard, as a browser
+does (tests/video_page.py).
 
 The observers' offers name a UDP port on loopback that never answers: ICE never completes,
 as with an attacker who offers and walks away. ``obs1`` and ``obs2`` are observers the
@@ -34,18 +36,18 @@ import pytest
 
 pytest.importorskip("aiortc")
 
-import zmq
 from test_link_signalling import _offer_sdp
 from video_page import watch_video
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from common.clock import now_ns
-from common.codec import name_prefix
+from common.fabric import keyexprs
+from common.fabric.link import FabricPublisher, FabricSubscriber
+from common.fabric.session import FabricConfig, cert_files, client_config, open_session
 from common.messages import Heartbeat, VideoSignal, new_run
-from common.security import SecurityConfig, client_options
 from common.signing import load_signer
-from common.transport import Publisher, Subscriber, free_loopback_ports
+from common.transport import free_loopback_ports
 from common.web_token import from_query, with_token
 from harness.fleet import Fleet
 
@@ -79,22 +81,17 @@ def _silent_offer(port: int) -> str:
 
 
 class SignedViewer:
-    """One roster member's key: signed video signals into the relay, the robot's read back."""
+    """One roster member's key: signed video signals through the router, the robot's read
+    back."""
 
-    def __init__(self, fleet: Fleet, name: str, ctx: zmq.Context) -> None:
-        opts = client_options(SecurityConfig(**fleet.client_security(name)))
+    def __init__(self, fleet: Fleet, name: str) -> None:
         signer = load_signer(fleet.members[name].signing_secret)
-        self.pub = Publisher(
-            ctx, fleet.ops_command, bind=False, sock_opts=opts, name=ROBOT, signer=signer
-        )
-        opts = client_options(SecurityConfig(**fleet.client_security(name)))
-        self.sub = Subscriber(
-            ctx,
-            fleet.ops_telemetry,
-            bind=False,
-            sock_opts=opts,
-            topics=(name_prefix(VideoSignal.TOPIC, ROBOT), name_prefix(Heartbeat.TOPIC, ROBOT)),
-        )
+        files = cert_files(fleet.cert_dir, name, name)
+        fabric = FabricConfig(router_endpoint=fleet.router_endpoint)
+        self.session = open_session(client_config(fabric, files, name), name)
+        self.pub = FabricPublisher(self.session, robot=ROBOT, operator=name, signer=signer)
+        keys = tuple(keyexprs.robot_key(ROBOT, k) for k in ("video", "heartbeat"))
+        self.sub = FabricSubscriber(self.session, keys, expect_name=ROBOT, latest_value=False)
         self.seq = 0
         self.run = new_run()  # this viewer's run, as a node's
         self.robot_run: int | None = None  # the robot's, echoed: the robot's replay window
@@ -142,6 +139,7 @@ class SignedViewer:
     def close(self) -> None:
         self.pub.close()
         self.sub.close()
+        self.session.close()
 
 
 @dataclass
@@ -167,15 +165,16 @@ def deployment(tmp_path_factory):
         operators=operators,
         workdir=tmp_path_factory.mktemp("video-privilege"),
         video_observers=frozenset({"obs1", "obs2"}),
+        # a compromised router: it lets peek and rec offer, the robot's roster does not
+        router_roles={**operators, "peek": "controller", "rec": "controller"},
     )
-    ctx = zmq.Context()
     silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     silent.bind(("127.0.0.1", 0))  # held open and never read: checks go unanswered
     viewers: dict[str, SignedViewer] = {}
     page_port = free_loopback_ports(1)[0]
     try:
         with fleet:
-            fleet.start_relay()
+            fleet.start_router()
             video, video_url = fleet.start_video(settings=(f"ice_timeout_s={ICE_S}",))
             serving = lambda: "video signalling at" in video.log_text()  # noqa: E731
             fleet.wait_for(serving, 30, "the video server")
@@ -189,15 +188,14 @@ def deployment(tmp_path_factory):
             token = from_query(re.search(r"dashboard: (\S+)", operator_log())[1])
             page_ws = with_token(f"ws://127.0.0.1:{page_port}/ws", token)
             for name in ("obs1", "obs2", "peek", "rec"):
-                viewers[name] = SignedViewer(fleet, name, ctx)
-            time.sleep(1.0)  # the subscriptions cross the relay
+                viewers[name] = SignedViewer(fleet, name)
+            time.sleep(1.0)  # the subscriptions reach the router
             yield Deployment(
                 fleet, video_url, page_ws, viewers, _silent_offer(silent.getsockname()[1])
             )
     finally:
         for v in viewers.values():
             v.close()
-        ctx.term()
         silent.close()
 
 
@@ -302,7 +300,7 @@ def test_an_observers_offers_and_flood_leave_the_controllers_page_its_video(depl
         flooder.join()
     for v in (obs1, obs2):
         v.read()
-    assert all("closed" not in s for s in sessions), sessions
+    assert all("closed" not in s for s in sessions), [s.get("closed") for s in sessions]
     slow = [(s["answer_s"], s["first_frame_s"]) for s in sessions]
     assert all(max(times) <= GETS_VIDEO_S for times in slow), f"answer, first frame (s): {slow}"
     assert len(sessions) >= 2, slow
