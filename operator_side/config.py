@@ -74,7 +74,10 @@ class OperatorLinkConfig:
         "answers one of ours; must exceed the link's round trip (docs/protocol.md)",
     )
     want_frames: bool = param(
-        True, "subscribe to raw frames (heatmaps); false = the robot skips them if nobody wants"
+        True,
+        "subscribe to raw frames while something shows them (the dashboard's heatmap, "
+        "--status-file); a node with neither never does; false = never. A robot skips "
+        "encoding frames nobody subscribes to (on the fabric; a direct link always sends)",
     )
     request_control: bool = param(
         False,

@@ -162,6 +162,7 @@ def _attachments(
     status: Path | None,
 ) -> Any:
     dashboard = _dashboard(node, config, status)
+    node.frames_consumed = dashboard is not None or status is not None  # their heatmaps
     parts = [p for p in (dashboard, StdinCommands(node) if from_stdin else None) if p is not None]
     if status is not None:
         parts.append(StatusFile(node, status, dashboard))

@@ -82,9 +82,8 @@ def telemetry_gate_for(
 
 
 def topics(robot_name: bytes, frames: bool, video: bool) -> tuple[bytes, ...]:
-    """What we subscribe to: one robot's stimuli and heartbeats, and frames if wanted."""
-    if not robot_name:
-        return (b"",)
+    """What we subscribe to: one robot's (or the unnamed robot's) stimuli and heartbeats, and
+    frames and video signals if wanted; a PUB sends nothing else our way."""
     wanted = [name_prefix(Stimulus.TOPIC, robot_name), name_prefix(Heartbeat.TOPIC, robot_name)]
     if frames:
         wanted.append(name_prefix(TactileFrame.TOPIC, robot_name))

@@ -68,6 +68,9 @@ class OperatorNode:
         self.now = now
         self.recording = NodeRecording(recorder, now)
         self.recorder = self.recording.recorder
+        #: something shows raw frames (a dashboard's heatmap, a status file): only then are
+        #: they subscribed to (``link.want_frames``), so a robot with no viewer skips them
+        self.frames_consumed = False
         self._own_ctx = ctx is None
         self.ctx = ctx or make_context()
         self.clock = ClockSync()
@@ -263,7 +266,8 @@ class OperatorNode:
 
     def _topics(self) -> tuple[bytes, ...]:
         video = self.video_signal_handler is not None
-        return topics(self.robot_name, self.config.link.want_frames, video)
+        frames = self.config.link.want_frames and self.frames_consumed
+        return topics(self.robot_name, frames, video)
 
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
         link, palm, outbox = self.config.link, self.palm, self.outbox
