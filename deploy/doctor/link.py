@@ -243,7 +243,7 @@ def heartbeat_exchange(
 def link_health_verdict(report: Report, peer: str, stats: dict[str, float]) -> None:
     """The peer's own view of its links (each end it connects out with up, and how often it
     was opened again), from its heartbeat's counters."""
-    ends = [e for e in ("telemetry", "commands") if f"link_{e}_up" in stats]
+    ends = [e for e in ("telemetry", "commands", "fabric_router") if f"link_{e}_up" in stats]
     if not ends:
         return  # a direct link: the node binds, nothing to reopen
     down = [e for e in ends if not stats[f"link_{e}_up"]]

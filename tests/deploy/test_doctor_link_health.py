@@ -33,3 +33,10 @@ def test_a_direct_link_says_nothing() -> None:
     report = Report("operator", "test")
     link_health_verdict(report, "robot", {"frames": 3.0})
     assert report.checks == []
+
+
+def test_a_fabric_node_without_its_router_is_a_warning() -> None:
+    report = Report("operator", "test")
+    link_health_verdict(report, "robot", {"link_fabric_router_up": 0.0})
+    check = report.find("robot links")
+    assert check.status == WARN and "fabric_router link down" in check.detail

@@ -186,10 +186,10 @@ def test_a_flood_on_one_key_is_gated_per_peer_and_the_others_flow(site):
             next_command += 0.05
     got = _collect(robot, 2.0)
     commands = [m for m in got if isinstance(m, Command)]
-    # the other key's commands arrived. Alice shares this process and its interpreter lock
-    # with the flood, so some of her sends leave bunched inside her own key's gate; with the
-    # attacker in a process of its own, test_hostile_keys.py holds every second to 90 %
-    assert len(commands) >= 0.75 * sent, (len(commands), sent)
+    # the other key's commands all arrived: reliable, never gated at the router (bunched
+    # behind the flood's hold on this process's interpreter lock, they still pass), queued
+    # apart from the flood's stops at the robot
+    assert len(commands) == sent, (len(commands), sent)
     # the junk passed at most at the stop gate's rate (100/s for one peer): far below n
     refused = robot.rejected_total
     assert n > 2000 and refused <= 200, (n, refused)

@@ -1,6 +1,6 @@
 """Two robots and their operators meeting through a router, as real processes, arms simulated.
 
-The fleet's scenarios of tests/relay/test_fleet.py over the fabric: QUIC with
+The fleet's scenarios (leases, roles, hand-over) over the fabric: QUIC with
 certificates to a Zenoh router made from the roster, every operator signing.
 What moves an arm is read from the UR simulator's own state, not from the
 nodes' counters.

@@ -2,7 +2,7 @@
 
 The arm is a MemoryArm behind the node's own device worker, so what the
 tests read is what reached the driver. The signed path (a roster, the
-lease) is exercised end to end in tests/relay/test_fleet.py and
+lease) is exercised end to end in tests/fabric/test_fleet_fabric.py and
 tests/robot/test_stop_latch.py.
 """
 
