@@ -80,7 +80,7 @@ test: $(STAMP)
 	@# the robot node's numba code, the bytecode of the heavy packages and pytest's rewrite
 	@# of every test module, compiled once (about 14, 13 and 5 s cold), not by every worker
 	@# and every process it starts at once (each worker collects every test module)
-	$(AT_TEST_PRIORITY) $(BIN)/python -m robot_side.jit_warm & warm=$$!; \
+	$(AT_TEST_PRIORITY) $(BIN)/python -m robot_side.node.jit_warm & warm=$$!; \
 	$(AT_TEST_PRIORITY) $(BIN)/python scripts/warm-bytecode.py && \
 	{ $(AT_TEST_PRIORITY) $(BIN)/python -m pytest -q --collect-only -p no:cacheprovider \
 		>/dev/null || echo "collection failed: the lanes below report why"; } && wait $$warm

@@ -484,7 +484,7 @@ def _lenient_stop(body: dict[str, Any]) -> dict[str, Any]:
     moving. Its version, type, action and signature are checked as for any
     message (a forged stop is still refused); every other field that fails
     its check is left out, or set to 0 if required, and ``"field: error"``
-    goes in ``defects`` for the robot to log and count (robot_side/command_gate.py
+    goes in ``defects`` for the robot to log and count (robot_side/node/commands/command_gate.py
     decides how far such a stop is believed).
     """
     defects: list[str] = []

@@ -29,7 +29,7 @@ class RenderConfig:
     compiled_step: bool = param(
         True,
         "mask mode on the numba classifier: sanitize, classify and render a frame in one "
-        "compiled call (robot_side/compiled_step.py); false = the plain path",
+        "compiled call (robot_side/node/compiled_step.py); false = the plain path",
     )
     deadband_n: float = param(
         0.05, "a stimulus cell must change by more than this to be resent (0.04 mm of depth)"

@@ -314,7 +314,7 @@ def command_cost(n: int) -> dict[str, Any]:
     from common.clock_sync import ClockSync
     from common.messages import Command
     from common.transport import Publisher
-    from robot_side.command_gate import CommandGate, RobotRun
+    from robot_side.node.commands.command_gate import CommandGate, RobotRun
 
     ctx = zmq.Context()
     sub = Subscriber(ctx, "tcp://127.0.0.1:*", bind=True, rcvhwm=0)

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from common.clock import now_s
-from robot_side.recovery import DeviceRecovery
+from robot_side.devices.recovery import DeviceRecovery
 
 log = logging.getLogger(__name__)
 

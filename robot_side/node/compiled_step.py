@@ -32,7 +32,7 @@ from common.tactile import (
     STIMULUS_SHAPE,
     pattern_of,
 )
-from robot_side.jit import njit
+from robot_side.jit.cache import njit
 from robot_side.perception.numba_forward import classify_frame
 
 #: ``step``'s first value

@@ -11,7 +11,7 @@ import collections
 import logging
 from collections import Counter
 
-from robot_side.command_gate import CommandGate
+from robot_side.node.commands.command_gate import CommandGate
 
 log = logging.getLogger(__name__)
 

@@ -85,7 +85,7 @@ def compiled_step_for(classifier: Classifier | None, render: RenderConfig) -> An
     if getattr(classifier, "numba_forward", None) is None:
         return None  # numba may not even be installed: import nothing
     try:
-        from robot_side.compiled_step import CompiledFrameStep
+        from robot_side.node.compiled_step import CompiledFrameStep
 
         return CompiledFrameStep.for_node(classifier, render)
     except Exception as e:  # the plain path publishes the same stimuli, slower

@@ -21,10 +21,10 @@ from common.codec import DecodeError
 from common.errors import DeviceError
 from common.messages import SESSION_LOW_MASK, Command
 from common.recording import Recorder
-from robot_side.device_worker import DeviceRequest
+from robot_side.devices.device_worker import DeviceRequest
+from robot_side.node.commands.stop_latch import REFUSALS, StopLatch
 from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL, DEVICE_CALLS
 from robot_side.node.workers import DeviceWorkers
-from robot_side.stop_latch import REFUSALS, StopLatch
 
 log = logging.getLogger(__name__)
 

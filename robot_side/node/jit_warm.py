@@ -1,9 +1,9 @@
 """Compile (or load) every cached numba function the robot node uses, once, now.
 
-numba keeps the machine code it compiles next to the sources (``robot_side/jit.py``),
+numba keeps the machine code it compiles next to the sources (``robot_side/jit/cache.py``),
 and a robot node compiles what is missing when it starts: about 4 s for each
 process that starts before the cache exists, all of them at once when several
-start together. ``python -m robot_side.jit_warm`` compiles it in one process:
+start together. ``python -m robot_side.node.jit_warm`` compiles it in one process:
 an install step for a robot PC (its first start is then as quick as every
 other), and the test suite's before its lanes, so parallel workers load the
 cache instead of each compiling the same functions.
@@ -27,8 +27,8 @@ def warm() -> list[str]:
     import numba  # noqa: F401  (the robot extra)
 
     from common.tactile import FRAME_SHAPE
-    from robot_side.compiled_step import CompiledFrameStep
     from robot_side.config import RenderConfig
+    from robot_side.node.compiled_step import CompiledFrameStep
     from robot_side.perception import load_classifier
     from robot_side.tactile.board_calibration import BoardCalibration
     from robot_side.tactile.serial_board import ScanConverter, SerialTactileConfig
@@ -51,7 +51,7 @@ def main() -> int:
     except ImportError as e:
         print(f"nothing to compile: {e} (numba is in the robot extra)", file=sys.stderr)
         return 0
-    from robot_side.jit import cache_counts
+    from robot_side.jit.cache import cache_counts
 
     loaded, compiled = cache_counts()
     print(

@@ -12,8 +12,8 @@ from __future__ import annotations
 from common.clock_sync import ClockSync
 from common.messages import Command, Message
 from common.roster import OperatorEntry
-from robot_side.command_gate import CommandGate
-from robot_side.lease import ControlLease, Peer
+from robot_side.node.commands.command_gate import CommandGate
+from robot_side.node.commands.lease import ControlLease, Peer
 
 #: the one operator of an unsigned link (a stop latched by it says "operator")
 ONE_OPERATOR = OperatorEntry(name="operator", role="controller", curve_key=None, signing_key=None)

@@ -17,16 +17,16 @@ from collections import Counter
 from collections.abc import Callable
 
 from common.messages import Command
-from robot_side.command_gate import (
+from robot_side.node.commands.command_gate import (
     PENDING,
     STOP_BEFORE_RUN,
     STOP_PROVEN,
     STOP_UNPROVEN,
     RobotRun,
 )
-from robot_side.lease import Peer
+from robot_side.node.commands.lease import Peer
+from robot_side.node.commands.stop_latch import REFUSALS
 from robot_side.node.handover import Handover
-from robot_side.stop_latch import REFUSALS
 
 log = logging.getLogger(__name__)
 

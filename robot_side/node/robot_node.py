@@ -30,6 +30,7 @@ from robot_side.config import RobotConfig
 from robot_side.gripper.base import Gripper
 from robot_side.node.assist import Assist
 from robot_side.node.command_desk import CommandDesk
+from robot_side.node.commands.stop_latch import StopLatch
 from robot_side.node.deadman import NEVER_NS, Deadman
 from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.frame_rule import Classifier
@@ -44,7 +45,6 @@ from robot_side.node.telemetry import (
 )
 from robot_side.node.video_desk import VideoDesk, video_signalling
 from robot_side.node.workers import DeviceWorkers
-from robot_side.stop_latch import StopLatch
 from robot_side.tactile.base import TactileSample, TactileSensor
 
 log = logging.getLogger(__name__)

@@ -14,9 +14,9 @@ import logging
 import threading
 
 from robot_side.arm.base import Arm
-from robot_side.device_worker import DeviceRequest, DeviceWorker
+from robot_side.devices.device_worker import DeviceRequest, DeviceWorker
+from robot_side.devices.recovery import DeviceRecovery
 from robot_side.gripper.base import Gripper
-from robot_side.recovery import DeviceRecovery
 
 log = logging.getLogger(__name__)
 

@@ -116,7 +116,7 @@ class TiltClassifier:
     @property
     def numba_forward(self) -> Any:
         """The compiled pass (``NumbaForward``) with the numba backend, else None: the
-        robot node folds it into its own compiled frame step (``robot_side.compiled_step``)."""
+        robot node folds it into its own compiled frame step (``robot_side.node.compiled_step``)."""
         return self._logits if self.backend == "numba" else None
 
     def logits(self, frames: np.ndarray) -> Logits:

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from common.tactile import CONTACT_FLOOR_N, FRAME_SHAPE, SATURATION_N
-from robot_side.jit import njit
+from robot_side.jit.cache import njit
 from robot_side.perception.errors import ModelLoadError
 from robot_side.perception.folding import block_diag, fold_batch_norm
 
@@ -202,7 +202,7 @@ class NumbaForward:
     def kernel_args(self) -> tuple[Any, ...]:
         """``_forward_one``'s arguments after the frame, before the output: the weights
         (shared; never written) and a fresh set of work buffers, for a caller that
-        runs the pass in its own compiled code (``robot_side.compiled_step``)."""
+        runs the pass in its own compiled code (``robot_side.node.compiled_step``)."""
         c1 = self._weights[0].shape[0]
         widths = [self._heads[0].shape[1]] + [h.shape[0] for h in self._heads[:-1]]
         return (

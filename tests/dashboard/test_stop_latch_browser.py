@@ -179,7 +179,9 @@ def robot_heard_stop(robot: RobotUnderCommands, after: float) -> float:
     deadline = time.monotonic() + 3
     while True:
         times = [
-            r.created for r in robot.log_lines("robot_side.stop_latch") if "latched by" in r.message
+            r.created
+            for r in robot.log_lines("robot_side.node.commands.stop_latch")
+            if "latched by" in r.message
         ]
         if times and times[-1] >= after:
             return times[-1]

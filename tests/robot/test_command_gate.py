@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from common.clock_sync import ClockSync
 from common.messages import Command, Heartbeat
-from robot_side.command_gate import (
+from robot_side.node.commands.command_gate import (
     FROM_FUTURE,
     PENDING,
     REPLAYED,

@@ -6,8 +6,8 @@ import itertools
 import threading
 import time
 
-from robot_side.device_worker import DeviceRequest, DeviceWorker
-from robot_side.recovery import DeviceRecovery
+from robot_side.devices.device_worker import DeviceRequest, DeviceWorker
+from robot_side.devices.recovery import DeviceRecovery
 
 
 class SlowDevice:

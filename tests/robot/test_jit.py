@@ -8,7 +8,7 @@ import pytest
 
 numba = pytest.importorskip("numba")
 
-from robot_side import jit  # noqa: E402
+from robot_side.jit import cache as jit  # noqa: E402
 
 
 def test_a_kernel_without_a_writable_cache_compiles_in_memory(monkeypatch, caplog) -> None:
@@ -21,7 +21,7 @@ def test_a_kernel_without_a_writable_cache_compiles_in_memory(monkeypatch, caplo
 
     monkeypatch.setattr(jit.numba, "njit", refusing)
     monkeypatch.setattr(jit, "_warned", False)
-    with caplog.at_level(logging.WARNING, logger="robot_side.jit"):
+    with caplog.at_level(logging.WARNING, logger="robot_side.jit.cache"):
 
         @jit.njit()
         def twice(x):

@@ -12,7 +12,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 
 def _warm() -> tuple[int, int]:
-    run = [sys.executable, "-m", "robot_side.jit_warm"]
+    run = [sys.executable, "-m", "robot_side.node.jit_warm"]
     out = subprocess.run(run, capture_output=True, text=True, timeout=300, check=True).stdout
     assert "classifier (numba), compiled frame step (mask mode), serial scan conversion" in out
     loaded, compiled = re.search(r"(\d+) loaded from the cache, (\d+) compiled", out).groups()

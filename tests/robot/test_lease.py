@@ -1,11 +1,12 @@
-"""The control lease's rules (robot_side/lease.py): request, grant, release, timeout, expiry."""
+"""The control lease's rules (robot_side/node/commands/lease.py): request, grant, release,
+timeout, expiry."""
 
 from __future__ import annotations
 
 from common.messages import Command
 from common.roster import OperatorEntry
-from robot_side import lease as L
-from robot_side.lease import ControlLease
+from robot_side.node.commands import lease as L
+from robot_side.node.commands.lease import ControlLease
 
 MS = 1_000_000
 A, B, OBS = b"a" * 32, b"b" * 32, b"o" * 32

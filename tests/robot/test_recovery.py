@@ -8,7 +8,7 @@ import time
 import pytest
 
 from common.errors import DeviceError
-from robot_side.recovery import DeviceRecovery
+from robot_side.devices.recovery import DeviceRecovery
 
 pytestmark = pytest.mark.parallel
 

@@ -22,7 +22,7 @@ from operator_side.servos.recording import RecordingServoBus
 from robot_side.arm.sim import SimulatedArm
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
-from robot_side.stop_latch import StopLatch
+from robot_side.node.commands.stop_latch import StopLatch
 from robot_side.tactile.scripted import ScriptedTactileSensor
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]

@@ -16,8 +16,8 @@ import numpy as np
 
 from common.devices import SIMULATED_HARDWARE_NICE
 from robot_side.arm.sim.server import URSimConfig, URSimulator
-from robot_side.stdio_child import StdioChild
-from robot_side.stdio_child import serve_stdio as serve_child
+from robot_side.devices.stdio_child import StdioChild
+from robot_side.devices.stdio_child import serve_stdio as serve_child
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from common.clock_sync import ClockSync
 from common.messages import Command
 from common.roster import OperatorEntry
-from robot_side.command_gate import CommandGate
+from robot_side.node.commands.command_gate import CommandGate
 
 log = logging.getLogger(__name__)
 
