@@ -339,7 +339,7 @@ class OperatorReplay:
     """Stimuli -> LinkGlide goals; each recorded write must be one legal step toward them."""
 
     def __init__(self, config: Any, report: Report, calibration_file: Path | None = None) -> None:
-        from operator_side.renderer import LinkGlideRenderer
+        from operator_side.palm.renderer import LinkGlideRenderer
 
         self.calibration = calibration_for(config, calibration_file)
         self.renderer = LinkGlideRenderer(config.renderer, self.calibration)

@@ -11,7 +11,7 @@ from common.config import param
 from common.fabric.session import FabricConfig
 from common.security import SecurityConfig
 from operator_side.dashboard.config import DashboardConfig
-from operator_side.renderer import RendererConfig
+from operator_side.palm.renderer import RendererConfig
 
 
 @dataclass

@@ -168,7 +168,7 @@ def _attachments(
         parts.append(StatusFile(node, status, dashboard))
     if config.palm_guard and config.servos.get("kind") == "feetech":
         # a bus that outlives the node; stopped after the node's run, which closed the bus
-        from operator_side.palm_guard import PalmGuard
+        from operator_side.palm.guard import PalmGuard
 
         parts.append(PalmGuard.start(args.config, args.overrides))
     return _Both(*parts) if parts else None

@@ -22,7 +22,7 @@ time.
 
 ``deepxpalm palm guard`` is the same lift started ahead of time: the node
 starts it beside itself, and it lifts the moment the node ends, without a
-fresh process's start-up (``operator_side.palm_guard``). ``palm lift`` waits
+fresh process's start-up (``operator_side.palm.guard``). ``palm lift`` waits
 while the guard holds the bus.
 """
 
@@ -32,7 +32,7 @@ import argparse
 from pathlib import Path
 
 from common.errors import ConfigError
-from operator_side.palm_lift import PalmConfig, lift
+from operator_side.palm.lift import PalmConfig, lift
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
                 "palm guard watches the node's pipe: --watch-fd FD (the node "
                 "starts it; run `deepxpalm palm lift` by hand instead)"
             )
-        from operator_side.palm_guard import guard
+        from operator_side.palm.guard import guard
 
         done = guard(config, args.watch_fd, args.within)
         what = "palm guard: the node ended, palm lifted"

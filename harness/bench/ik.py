@@ -31,8 +31,8 @@ import numpy as np
 from harness.bench.fmt import IMG_DIR, num, pct, pyplot, results_of, save_figure, sci, table
 from harness.bench.section import Context, Results, Section
 from harness.bench.timing import summarize_ns, time_calls, time_interleaved
-from operator_side.contact import ContactMapping, reachable_set
-from operator_side.linkglide import (
+from operator_side.palm.contact import ContactMapping, reachable_set
+from operator_side.palm.linkglide import (
     DEFAULT_GEOMETRY,
     LinkageGeometry,
     UnreachableTargetError,

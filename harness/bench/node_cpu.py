@@ -469,7 +469,7 @@ def measure(ctx: Context, sizes: NodeCpuSizes) -> dict[str, Any]:
 
 def _control_rate_hz() -> float:
     """The operator's servo goal rate, as its renderer is configured by default."""
-    from operator_side.renderer import RendererConfig
+    from operator_side.palm.renderer import RendererConfig
 
     return RendererConfig().control_rate_hz
 

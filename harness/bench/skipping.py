@@ -34,7 +34,7 @@ from deploy.scene import load_scene
 from harness.bench.fmt import IMG_DIR, num, pyplot, results_of, save_figure, table
 from harness.bench.scene_frames import demo_frames
 from harness.bench.section import Context, Results, Section
-from operator_side.renderer import LinkGlideRenderer
+from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 from robot_side.node import FramePipeline, RobotNode
 

@@ -38,7 +38,7 @@ from harness.bench.fmt import IMG_DIR, num, pyplot, results_of, save_figure, tab
 from harness.bench.section import Context, Results, Section
 from harness.bench.timing import summarize_ns
 from operator_side.config import OperatorConfig
-from operator_side.renderer import LinkGlideRenderer
+from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 from robot_side.config import RobotConfig
 
@@ -57,7 +57,7 @@ STAGES: dict[str, str] = {
     "mean and 10x10 -> 3x3 as one 9x200 product, then mask and peak over nine numbers)",
     "frame_step": "the node's path in mask mode on the numba classifier: the three stages "
     "above (sanitize, contact, identical-frame test, classify, downsize, mask) as one "
-    "compiled call (robot_side/compiled_step.py); timed on alternate frames",
+    "compiled call (robot_side/node/compiled_step.py); timed on alternate frames",
     "encode": "Stimulus -> topic + msgpack (common.codec.encode)",
     "zmq_transit_tcp": "PUB.send -> SUB.recv over loopback TCP, one process",
     "decode": "bytes -> validated Stimulus (common.codec.decode)",
@@ -282,7 +282,7 @@ def _believing_gate() -> Any:
     """An operator's telemetry gate that believes one robot run, its clock offset known."""
     from common.clock_sync import ClockSync
     from common.messages import Heartbeat
-    from operator_side.telemetry_gate import TelemetryGate
+    from operator_side.node.telemetry_gate import TelemetryGate
 
     clock = ClockSync()
     age_ns = round(OperatorConfig().link.max_telemetry_age_ms * 1e6)

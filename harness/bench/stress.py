@@ -33,8 +33,12 @@ from common.tactile import FRAME_SHAPE, N_PATTERNS, SATURATION_N
 from harness.bench.fmt import num, results_of, sci, table
 from harness.bench.ik import edge_shell, reachable_mask, round_trip_mm, workspace_grid
 from harness.bench.section import Context, Results, Section, Verdict
-from operator_side.linkglide import DEFAULT_GEOMETRY, inverse_kinematics, inverse_kinematics_one
-from operator_side.renderer import LinkGlideRenderer, RendererConfig
+from operator_side.palm.linkglide import (
+    DEFAULT_GEOMETRY,
+    inverse_kinematics,
+    inverse_kinematics_one,
+)
+from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
 from operator_side.servos.calibration import COUNTS_PER_RAD, LinkGlideCalibration
 
 log = logging.getLogger(__name__)
@@ -385,7 +389,7 @@ def _step_limit(counts: int) -> str:
     """The renderer's per-cycle limit as configured, and what it rounds to in whole counts."""
     import math
 
-    from operator_side.renderer import RendererConfig
+    from operator_side.palm.renderer import RendererConfig
     from operator_side.servos.calibration import COUNTS_PER_RAD
 
     configured = RendererConfig().max_step_deg_per_cycle

@@ -225,7 +225,7 @@ def cold_call_us(gap_s: float = 0.008, n: int = 150) -> dict[str, float]:
     core: what the first call pays is the state the core lost meanwhile
     (caches, TLB, branch predictors), which is what a node pays per frame.
     """
-    from operator_side.linkglide import inverse_kinematics_one
+    from operator_side.palm.linkglide import inverse_kinematics_one
 
     clock = time.perf_counter_ns
     warm, cold = [], []

@@ -597,7 +597,7 @@ def restarted_by(cell: Cell, policy: Any) -> str:
 def run_cells(
     cells: list[Cell], progress: Callable[[str], None] | None = None
 ) -> list[dict[str, Any]]:
-    from operator_side.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
     from operator_side.servos.feetech import FeetechConfig
 
     retract = LinkGlideRenderer(RendererConfig(), FeetechConfig().calibration).retract_goals

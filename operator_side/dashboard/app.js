@@ -225,7 +225,7 @@ function drawStimulus(stim) {
   dxp.draws.stimulus++;
 }
 
-// Forward kinematics, as operator_side/linkglide.py: B and D from the servo
+// Forward kinematics, as operator_side/palm/linkglide.py: B and D from the servo
 // angles, C the intersection of circles (B, l3) and (D, l4) with the larger Y.
 function forward(g, ta, te) {
   const B = [g.l2 * Math.cos(ta), g.l2 * Math.sin(ta)];

@@ -34,7 +34,7 @@ from operator_side.dashboard.page_auth import PageAuth
 from operator_side.dashboard.view import CONTENT_KEYS, LinkHistory, hello_view, snapshot_view
 from operator_side.dashboard.web import WebServer, package_files
 from operator_side.node import Snapshot
-from operator_side.renderer import RendererConfig
+from operator_side.palm.renderer import RendererConfig
 
 log = logging.getLogger(__name__)
 
@@ -468,7 +468,7 @@ class Dashboard:
             self.node.send_command("gripper_open")
             level = None
         elif action in ("lease_request", "lease_grant", "lease_release"):
-            # the robot decides (robot_side/lease.py): a grant goes to whoever asked
+            # the robot decides (robot_side/node/commands/lease.py): a grant goes to whoever asked
             self.node.send_command(action)
             level = None
         elif action == "gripper_close":

@@ -18,7 +18,7 @@ from common.messages import ARM_SAFETY_MODES, ASSIST_PHASES
 from common.tactile import MASKS, N_PATTERNS, pattern_name
 from operator_side.dashboard.jog_config import JogConfig
 from operator_side.node import Snapshot
-from operator_side.renderer import RendererConfig
+from operator_side.palm.renderer import RendererConfig
 
 # Fields whose change is worth a push; age and counters ride along with them
 # or with the periodic refresh, or the page would be pushed at the full rate

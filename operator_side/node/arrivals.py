@@ -31,8 +31,8 @@ from common.tactile import matches_pattern
 from common.transport import Receiver
 from operator_side.node.lease_view import LeaseView
 from operator_side.node.recording import NodeRecording
-from operator_side.telemetry_gate import REFUSALS as TELEMETRY_REFUSALS
-from operator_side.telemetry_gate import UNPROVEN, TelemetryGate
+from operator_side.node.telemetry_gate import REFUSALS as TELEMETRY_REFUSALS
+from operator_side.node.telemetry_gate import UNPROVEN, TelemetryGate
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ from common.messages import Heartbeat
 from common.transport import Sender
 from operator_side.node.arrivals import RobotHeard
 from operator_side.node.recording import NodeRecording
-from operator_side.telemetry_gate import TelemetryGate
+from operator_side.node.telemetry_gate import TelemetryGate
 
 
 class HeartbeatOut:

@@ -1,7 +1,7 @@
 """The robot's control lease as its newest heartbeat states it, seen from this operator.
 
 With a signing key the robot obeys our commands only while we hold its lease
-(robot_side/lease.py). The heartbeat names the holder and the key waiting;
+(robot_side/node/commands/lease.py). The heartbeat names the holder and the key waiting;
 from that follow whether we control, what the dashboard shows, how often we
 send heartbeats (an observer sends them at ``observer_heartbeat_rate_hz``)
 and, with ``request_control``, when we ask for the lease.

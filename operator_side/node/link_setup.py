@@ -28,7 +28,7 @@ from common.messages import Heartbeat, Stimulus, TactileFrame, VideoSignal
 from common.security import client_options
 from common.transport import Link, Publisher, Receiver, Sender, Subscriber
 from operator_side.config import OperatorLinkConfig
-from operator_side.telemetry_gate import TelemetryGate
+from operator_side.node.telemetry_gate import TelemetryGate
 
 log = logging.getLogger(__name__)
 

@@ -35,7 +35,7 @@ from operator_side.node.outbox import Outbox
 from operator_side.node.palm import Palm
 from operator_side.node.recording import NodeRecording
 from operator_side.node.snapshot import Snapshot, take_snapshot
-from operator_side.renderer import LinkGlideRenderer
+from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
 

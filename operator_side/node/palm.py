@@ -21,7 +21,7 @@ from common.errors import DeviceError
 from operator_side.config import OperatorConfig
 from operator_side.node.arrivals import Arrivals
 from operator_side.node.recording import NodeRecording
-from operator_side.renderer import LinkGlideRenderer
+from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
 

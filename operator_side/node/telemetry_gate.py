@@ -25,7 +25,7 @@ its send time, and the operator refuses, counting each under its name:
 A new run retires the one before (a restarted node: its old messages are
 refused from then on) and resets the clock estimate, since a restarted robot
 may count on another clock. The robot's command gate is the mirror image
-(``robot_side/command_gate.py``).
+(``robot_side/node/commands/command_gate.py``).
 """
 
 from __future__ import annotations

@@ -81,7 +81,8 @@ def guard(config: Any, watch_fd: int, within_s: float) -> dict[str, Any]:
     node's end costs only the bus's work.
     """
     from common import devices  # noqa: F401  (each imported now, not after the end)
-    from operator_side import palm_lift, renderer_config  # noqa: F401
+    from operator_side.palm import lift as palm_lift
+    from operator_side.palm import renderer_config  # noqa: F401
     from operator_side.servos import feetech  # noqa: F401
 
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):

@@ -1,7 +1,7 @@
 """The palm's lift: every LinkGlide linkage off the palm, from a process that is not the node.
 
 What ``deepxpalm palm lift`` runs after the node's end, and what the node's
-palm guard runs the moment it ends (``operator_side.palm_guard``): open the
+palm guard runs the moment it ends (``operator_side.palm.guard``): open the
 servo bus the operator's config names (the node's own driver, calibration
 and limits), write the node's own retract pose as the port opens
 (``FeetechServoBus.connect(first_goals=...)``), check every servo, wait
@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from common.config import param
 from common.errors import ConfigError, DeviceError
-from operator_side.renderer_config import RendererConfig
+from operator_side.palm.renderer_config import RendererConfig
 
 if TYPE_CHECKING:
     from operator_side.servos.feetech import FeetechServoBus
@@ -47,7 +47,7 @@ def lift(config: PalmConfig, within_s: float = 2.0, bus_wait_s: float = 0.0) -> 
     what to check when the palm could not be lifted.
     """
     from common.devices import build_device
-    from operator_side.renderer_config import retract_goals
+    from operator_side.palm.renderer_config import retract_goals
     from operator_side.servos import KINDS
 
     kind = config.servos.get("kind")

@@ -21,7 +21,7 @@ No NumPy here: the 60 Hz loop solves one linkage at a time (NumPy's per-call
 cost is many times the arithmetic), and ``deepxpalm palm lift`` computes the
 retract pose with these very functions, in a process whose start-up is the
 time a dead operator node's linkages stay on the palm. The array forms are
-in ``operator_side.linkglide``.
+in ``operator_side.palm.linkglide``.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def inverse_kinematics_one(
 ) -> tuple[float, float]:
     """Scalar fast path for the 60 Hz loop (about 1 us; NumPy's per-call cost is 20x that).
 
-    Same formulas and checks as ``operator_side.linkglide.inverse_kinematics``.
+    Same formulas and checks as ``operator_side.palm.linkglide.inverse_kinematics``.
     """
     if not (math.isfinite(x) and math.isfinite(y)):
         raise UnreachableTargetError(f"contact point ({x!r}, {y!r}) mm is not finite")

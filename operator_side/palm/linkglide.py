@@ -1,7 +1,7 @@
 """LinkGlide's inverted five-bar linkages over arrays: inverse and forward kinematics.
 
 The geometry, the working mode and the inverse kinematics' derivation are in
-``operator_side.linkage``, which solves one linkage in plain numbers (the 60 Hz
+``operator_side.palm.linkage``, which solves one linkage in plain numbers (the 60 Hz
 loop and ``deepxpalm palm lift`` use it); here the same formulas run over
 arrays of points, and forward kinematics takes the circle intersection with
 the larger Y.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 # the scalar pieces, re-exported: one linkage's geometry and inverse kinematics
-from operator_side.linkage import (  # noqa: F401
+from operator_side.palm.linkage import (  # noqa: F401
     DEFAULT_GEOMETRY,
     EDGE_TOLERANCE_MM,
     LinkageGeometry,

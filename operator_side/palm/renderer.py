@@ -13,15 +13,15 @@ import math
 import numpy as np
 
 from common.errors import ConfigError
-from operator_side.contact import reachable_set, stimulus_to_points
-from operator_side.linkglide import (
+from operator_side.palm.contact import reachable_set, stimulus_to_points
+from operator_side.palm.linkglide import (
     UnreachableTargetError,
     inverse_kinematics,
     inverse_kinematics_one,
 )
 
 # the settings and the retract pose, where `deepxpalm palm lift` reads them without NumPy
-from operator_side.renderer_config import RendererConfig, retract_goals, retract_pose
+from operator_side.palm.renderer_config import RendererConfig, retract_goals, retract_pose
 from operator_side.servos.calibration import COUNTS_PER_RAD, LinkGlideCalibration
 
 log = logging.getLogger(__name__)

@@ -11,8 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from common.config import param
-from operator_side.contact import ContactMapping
-from operator_side.linkage import LinkageGeometry, inverse_kinematics_one
+from operator_side.palm.contact import ContactMapping
+from operator_side.palm.linkage import LinkageGeometry, inverse_kinematics_one
 from operator_side.servos.calibration import LinkGlideCalibration
 
 

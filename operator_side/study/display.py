@@ -33,7 +33,7 @@ from common.errors import DeviceError
 from common.stimulus import render_stimulus
 from common.synthetic_tactile import SyntheticTactileModel
 from common.tactile import MASKS
-from operator_side.renderer import LinkGlideRenderer, RendererConfig
+from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
 from operator_side.study.protocol import StudyConfig

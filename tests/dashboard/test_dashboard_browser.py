@@ -24,8 +24,8 @@ from common.tactile import MASKS
 from common.transport import Publisher, Subscriber
 from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
-from operator_side.linkglide import forward_kinematics
 from operator_side.node import OperatorNode
+from operator_side.palm.linkglide import forward_kinematics
 from operator_side.servos.recording import RecordingServoBus
 
 pytestmark = [

@@ -19,7 +19,7 @@ from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.dashboard.view import LinkHistory, snapshot_view
 from operator_side.node import Snapshot
-from operator_side.renderer import LinkGlideRenderer
+from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 
 pytestmark = pytest.mark.timeout(30)

@@ -214,7 +214,7 @@ def test_the_video_unit_starts_a_video_server_the_cli_accepts(tmp_path):
 def test_the_operator_unit_lifts_the_palm_after_any_exit(tmp_path):
     """ExecStopPost= is ``deepxpalm palm lift`` on the example config; run as the unit runs it
     (the servo port pointed at a simulated bus holding a pressed pose), it lifts every linkage."""
-    from operator_side.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
     from operator_side.servos.calibration import save_calibration
     from operator_side.servos.feetech import FeetechConfig
     from operator_side.servos.sts_sim import FakeStsBus, FakeStsBusConfig

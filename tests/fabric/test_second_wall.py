@@ -35,8 +35,8 @@ from common.messages import Stimulus
 from common.roster import robot_entry
 from common.signing import Signer
 from harness.fleet import SCRIPTED_TACTILE, Fleet, Proc
+from operator_side.node.telemetry_gate import OLD_SESSION, REPLAYED, STALE
 from operator_side.servos.sts_sim import FakeStsBus
-from operator_side.telemetry_gate import OLD_SESSION, REPLAYED, STALE
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel, pytest.mark.timeout(240)]
 

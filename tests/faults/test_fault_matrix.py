@@ -38,7 +38,7 @@ CELLS = [c for c in quick_matrix() if c.target != "robot"]
 
 @pytest.fixture(scope="module")
 def retract_goals() -> list[int]:
-    from operator_side.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
     from operator_side.servos.feetech import FeetechConfig
 
     return LinkGlideRenderer(RendererConfig(), FeetechConfig().calibration).retract_goals

@@ -35,7 +35,7 @@ pytestmark = pytest.mark.pty
 
 @pytest.fixture(scope="module")
 def deployment():
-    from operator_side.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
     from operator_side.servos.feetech import FeetechConfig
 
     retract = LinkGlideRenderer(RendererConfig(), FeetechConfig().calibration).retract_goals

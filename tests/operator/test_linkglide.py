@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from operator_side.linkglide import (
+from operator_side.palm.linkglide import (
     DEFAULT_GEOMETRY,
     EDGE_TOLERANCE_MM,
     LinkageGeometry,
@@ -55,7 +55,7 @@ def test_whole_workspace_grid_round_trips():
     pts = np.stack([xs, ys], -1).reshape(-1, 2)
     ok = np.array([_reachable(*p) for p in pts[::97]])  # sanity: both kinds exist
     assert ok.any() and not ok.all()
-    from operator_side.linkglide import solve_linkages
+    from operator_side.palm.linkglide import solve_linkages
 
     angles, mask = solve_linkages(pts, G)
     back = forward_kinematics(angles[mask])

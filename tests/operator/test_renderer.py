@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from common.errors import ConfigError
-from operator_side.contact import ContactMapping, stimulus_to_points
-from operator_side.linkglide import forward_kinematics
-from operator_side.renderer import LinkGlideRenderer, RendererConfig
+from operator_side.palm.contact import ContactMapping, stimulus_to_points
+from operator_side.palm.linkglide import forward_kinematics
+from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
 from operator_side.servos.calibration import LinkGlideCalibration, ServoCalibration
 
 pytestmark = pytest.mark.parallel

@@ -16,8 +16,7 @@ from common.signing import Signer, generate_key_files, load_signer
 from common.transport import CaptureLink
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
-from operator_side.servos.recording import RecordingServoBus
-from operator_side.telemetry_gate import (
+from operator_side.node.telemetry_gate import (
     FROM_FUTURE,
     OLD_SESSION,
     REPLAYED,
@@ -26,6 +25,7 @@ from operator_side.telemetry_gate import (
     WITHOUT_SESSION,
     TelemetryGate,
 )
+from operator_side.servos.recording import RecordingServoBus
 
 MS = 1_000_000
 RUN_A, RUN_B = 0xA11CE, 0xB0B

@@ -20,7 +20,7 @@ from websockets.sync.client import connect
 
 from common.tactile import MASKS, N_PATTERNS
 from deploy.cli import main
-from operator_side.linkglide import forward_kinematics
+from operator_side.palm.linkglide import forward_kinematics
 from operator_side.servos.recording import RecordingServoBus
 from operator_side.study.analysis import analyse_trials, load_test_trials, write_report
 from operator_side.study.display import PalmDisplay

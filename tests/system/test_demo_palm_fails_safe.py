@@ -96,7 +96,7 @@ class Demo:
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    from operator_side.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
     from operator_side.servos.feetech import FeetechConfig
 
     retract = LinkGlideRenderer(RendererConfig(), FeetechConfig().calibration).retract_goals

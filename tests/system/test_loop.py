@@ -11,8 +11,8 @@ import pytest
 from common.tactile import MASKS
 from common.transport import free_loopback_ports
 from operator_side.config import OperatorConfig
-from operator_side.linkglide import forward_kinematics
 from operator_side.node import OperatorNode
+from operator_side.palm.linkglide import forward_kinematics
 from operator_side.servos.recording import RecordingServoBus
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode

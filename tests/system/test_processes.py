@@ -16,7 +16,7 @@ import zmq
 from tests_support import free_ports
 
 from operator_side.config import OperatorConfig
-from operator_side.renderer_config import RendererConfig
+from operator_side.palm.renderer_config import RendererConfig
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
