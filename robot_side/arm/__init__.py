@@ -7,8 +7,8 @@ is the safety layer over a driver that only records (tests, benches).
 """
 
 KINDS = {
-    "ur_rtde": "robot_side.arm.ur_rtde:URArm",
-    "simulated": "robot_side.arm.sim:SimulatedArm",
-    "lab": "robot_side.lab.devices:LabArm",
+    "ur_rtde": "robot_side.arm.ur_rtde:URArmKind",
+    "simulated": "robot_side.arm.sim:SimulatedArmKind",
+    "lab": "robot_side.lab.devices:LabArmKind",
     "memory": "robot_side.arm.memory:MemoryArm",
 }

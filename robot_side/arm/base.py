@@ -18,7 +18,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,6 +28,7 @@ from common.clock import now_s
 from common.config import param
 from common.devices import Device, at_niceness
 from common.errors import ConfigError, DeviceError, DeviceTimeoutError
+from common.realtime import PeriodStats, Scheduling, raise_this_thread
 from common.rotation import rotation_angle, rotvec_to_matrix
 
 log = logging.getLogger(__name__)
@@ -98,7 +99,7 @@ class ArmLimits:
         return all(lo <= v <= hi for v, (lo, hi) in zip(xyz, bounds, strict=True))
 
 
-def _turn_angle(a: np.ndarray, b: np.ndarray) -> float:
+def turn_angle(a: np.ndarray, b: np.ndarray) -> float:
     """Angle (rad) between two orientations given as rotation vectors."""
     return rotation_angle(rotvec_to_matrix(a), rotvec_to_matrix(b))
 
@@ -205,6 +206,13 @@ class Arm(Device):
         self._deadman_quit = threading.Event()
         self._deadman_woke = 0.0  # monotonic s: the deadman thread's latest wake
         self._deadman_stopping_since: float | None = None  # it waits for a stop since then
+        #: SCHED_FIFO priority of the deadman and keep-alive threads (None: a niceness only);
+        #: the arm's own process sets it (robot_side/arm/process)
+        self.realtime_priority: int | None = None
+        #: what the keep-alive thread got from the scheduler, once it runs
+        self.keep_alive_scheduling: Scheduling | None = None
+        #: the intervals between the keep-alive thread's wakes (nominal: the deadman period)
+        self.keep_alive_periods = PeriodStats(deadman_period_s(self.limits))
 
     # -- what drivers implement -------------------------------------------
 
@@ -302,7 +310,7 @@ class Arm(Device):
             # a pure turn's moveL runs at ``speed`` rad/s: its length is the angle
             distance = max(
                 float(np.linalg.norm(target[:3] - start[:3])),
-                _turn_angle(start[3:], target[3:]),
+                turn_angle(start[3:], target[3:]),
             )
             accel = self.limits.linear_acceleration_m_s2
             # twice the trapezoid's duration, plus slack for the handshake and rotations
@@ -369,6 +377,7 @@ class Arm(Device):
         out = {
             "arm_jogging": float(self._jog_until is not None),
             "arm_deadman_stops": float(self._deadman_stops),
+            **self.keep_alive_telemetry(),
             "arm_max_linear_m_s": lim.max_linear_speed_m_s,
             "arm_max_angular_rad_s": lim.max_angular_speed_rad_s,
         }
@@ -380,6 +389,19 @@ class Arm(Device):
             out.update(zip(TELEMETRY_POSE_KEYS, (float(v) for v in pose), strict=True))
         return out
 
+    def keep_alive_telemetry(self) -> dict[str, float]:
+        """How on time the keep-alive runs: its period's p99 and max (ms), and whether it runs
+        real-time (1) or at a niceness (0); nothing for a driver without a keep-alive."""
+        summary = self.keep_alive_periods.summary()
+        if not summary:
+            return {}
+        got = self.keep_alive_scheduling
+        return {
+            "arm_keepalive_p99_ms": summary["p99_ms"],
+            "arm_keepalive_max_ms": summary["max_ms"],
+            "arm_keepalive_realtime": float(got is not None and got.realtime),
+        }
+
     # -- deadman -----------------------------------------------------------
 
     def _start_deadman(self) -> None:
@@ -387,21 +409,36 @@ class Arm(Device):
         self._deadman_quit.clear()
         self._jog_until = None
         self._deadman_woke = now_s()
+        self.keep_alive_periods.restart()
         name = type(self).__name__
-        t = threading.Thread(
-            target=at_niceness(SAFETY_THREAD_NICE, self._deadman_loop), name=f"{name}-deadman"
-        )
+        t = threading.Thread(target=self._safety_thread(self._deadman_loop), name=f"{name}-deadman")
         t.daemon = True
         self._deadman_thread = t
         t.start()
         if type(self)._keep_alive is not Arm._keep_alive:
             k = threading.Thread(
-                target=at_niceness(SAFETY_THREAD_NICE, self._keep_alive_loop),
+                target=self._safety_thread(self._keep_alive_loop, note=True),
                 name=f"{name}-keepalive",
             )
             k.daemon = True
             self._keep_alive_thread = k
             k.start()
+
+    def _safety_thread(self, loop: Callable[[], None], note: bool = False) -> Callable[[], None]:
+        """``loop`` at SCHED_FIFO ``realtime_priority`` where set and granted, else at the
+        safety threads' niceness; ``note``: the keep-alive records what it got."""
+        priority = self.realtime_priority
+        if priority is None:
+            return at_niceness(SAFETY_THREAD_NICE, loop)
+
+        def run() -> None:
+            got = raise_this_thread(priority, SAFETY_THREAD_NICE)
+            if note:
+                self.keep_alive_scheduling = got
+                log.info("%s keep-alive at %s", type(self).__name__, got.describe())
+            loop()
+
+        return run
 
     def _stop_deadman(self) -> None:
         self._deadman_quit.set()
@@ -447,8 +484,16 @@ class Arm(Device):
         """
 
     def _keep_alive_loop(self) -> None:
+        """Every deadman period on absolute deadlines (a late turn does not push the next
+        back); each wake is noted in ``keep_alive_periods``."""
         period = self.deadman_period_s
-        while not self._deadman_quit.wait(period):
+        due = now_s() + period
+        while not self._deadman_quit.wait(max(0.0, due - now_s())):
+            now = now_s()
+            self.keep_alive_periods.woke(now)
+            due += period
+            if due < now:  # more than a period late: start again from now, no burst of turns
+                due = now + period
             try:
                 self._keep_alive()
             except Exception:  # the next period tries again

@@ -82,6 +82,7 @@ from robot_side.arm.base import (
     Arm,
     ArmLimits,
 )
+from robot_side.arm.process import InOwnProcess
 
 log = logging.getLogger(__name__)
 
@@ -247,6 +248,18 @@ class URArmConfig:
         "20 ms, so a kick may come 130 ms late before it trips",
     )
     limits: ArmLimits = param(ArmLimits(), "workspace box, speed caps and the jog deadman")
+    own_process: bool = param(
+        True,
+        "run the driver (the watchdog's keep-alive, the jog deadman, stops, the pose read "
+        "back) in a process of its own, its keep-alive real-time where the unit grants it "
+        "(docs/arm.md); false = inside the robot node, sharing its interpreter lock",
+    )
+    realtime_priority: int = param(
+        20,
+        "SCHED_FIFO priority of the keep-alive and deadman threads in the arm process where "
+        "granted (the unit's LimitRTPRIO=, or root); refused: the highest niceness allowed. "
+        "0 = never real-time",
+    )
 
 
 class URArm(Arm):
@@ -982,3 +995,10 @@ class URArm(Arm):
             if self._ctrl_broken:
                 out["control_broken"] = self._ctrl_broken
         return out
+
+
+class URArmKind(InOwnProcess):
+    """Kind "ur_rtde": ``URArm``, in its arm process unless ``own_process = false``."""
+
+    driver = URArm
+    Config = URArmConfig

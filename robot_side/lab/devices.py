@@ -22,6 +22,7 @@ import numpy as np
 
 from common.config import from_dict, load_toml, param
 from common.errors import ConfigError
+from robot_side.arm.process import InOwnProcess
 from robot_side.arm.ur_rtde import URArm, URArmConfig
 from robot_side.gripper.urcap_socket import RobotiqSocketConfig, RobotiqSocketGripper
 from robot_side.lab.config import LabWorldConfig
@@ -223,3 +224,11 @@ class LabArm(OnTheWorld, URArm):
 
     def point_at(self, addresses: dict) -> None:
         self.config.host = addresses["ur_host"]
+
+
+class LabArmKind(InOwnProcess):
+    """Kind "lab": the world in the node, ``URArm`` in its arm process unless
+    ``own_process = false``."""
+
+    driver = LabArm
+    Config = LabArmConfig

@@ -28,6 +28,7 @@ from common.errors import (
 )
 from robot_side.arm import KINDS
 from robot_side.arm.base import ArmLimits, WorkspaceLimitError
+from robot_side.arm.process import ArmProcess
 from robot_side.arm.sim import URSimConfig, URSimProcess, URSimulator
 from robot_side.arm.sim import rtde_wire as w
 from robot_side.arm.ur_rtde import ArmCommandRefusedError, URArm, URArmConfig
@@ -313,12 +314,14 @@ def test_protective_stop_refuses_jogs_with_the_reason():
 def test_simulated_kind_runs_the_real_driver_and_survives_a_vanished_controller():
     section = {"kind": "simulated", "stale_after_s": STALE_S, "limits": {"jog_timeout_s": 0.3}}
     arm = build_device(KINDS, section, "arm")
-    assert type(arm).__name__ == "SimulatedArm" and isinstance(arm, URArm)
+    # the real driver in its arm process; the simulator, as a controller would, outside it
+    assert isinstance(arm, ArmProcess) and type(arm.local).__name__ == "SimulatedArm"
+    assert isinstance(arm.local, URArm)
     arm.connect()
     try:
-        host = arm.sim.host
+        host = arm.local.sim.host
         arm.jog([0.0, 0.0, 0.01, 0.0, 0.0, 0.0])
-        arm.sim.kill()  # the controller is gone: no FIN handshake, no goodbye
+        arm.local.sim.kill()  # the controller is gone: no FIN handshake, no goodbye
         t0 = time.monotonic()
         # refused either way: as a lost connection, or as a stale stream if its timestamp
         # stops for stale_after_s before the socket's loss is noticed (a loaded machine)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 from common.config import param
 from common.devices import OnItsSimulator
+from robot_side.arm.process import InOwnProcess
 from robot_side.arm.sim.process import URSimProcess
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.arm.ur_rtde import URArm, URArmConfig
@@ -50,3 +51,11 @@ class SimulatedArm(OnItsSimulator, URArm):
         if self.sim is not None:
             self.sim.stop()
             self.sim = None
+
+
+class SimulatedArmKind(InOwnProcess):
+    """Kind "simulated": the simulator in the node, ``URArm`` in its arm process unless
+    ``own_process = false``."""
+
+    driver = SimulatedArm
+    Config = SimulatedArmConfig

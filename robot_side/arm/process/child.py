@@ -1,0 +1,203 @@
+"""The arm process: the UR driver alone in a process, its keep-alive real-time.
+
+Started by the robot node (``ArmProcess``) as ``python -m robot_side.arm.process``.
+It builds the arm's driver (the kind the node's config names), raises the
+driver's deadman and keep-alive threads to SCHED_FIFO where granted, and
+then does three things:
+
+- answers the node's calls, one JSON line each way on stdin/stdout
+  (connect, jog, stop, moves, reads): not time-critical, and never in the
+  way of the keep-alive, which runs on its own thread with the interpreter
+  lock nearly always free (nothing else in this process computes);
+- writes the newest pose, the connection's state and the keep-alive's
+  timing into the shared state file every keep-alive period
+  (``state.py``), which the node reads without waiting;
+- when the node goes (its end of stdin closes: killed, crashed or done),
+  stops the arm, ends the control script and exits at once.
+
+SIGINT and SIGTERM are the node's to act on: a Ctrl-C or ``systemctl stop``
+reaches the whole group, and the node stops the arm through us and then
+closes our stdin. If this process dies, the controller's watchdog stops the
+arm within its window, as for any other silence.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from common.clock import now_s
+from common.config import from_dict
+from common.devices import load_object
+from common.logs import configure as configure_logging
+from robot_side.arm.base import Arm
+from robot_side.arm.process.state import StateView
+from robot_side.devices.stdio_child import serve_stdio
+
+log = logging.getLogger(__name__)
+
+#: the calls the node makes through the pipe
+REMOTE_METHODS = frozenset(
+    {
+        "connect",
+        "disconnect",
+        "jog",
+        "stop_arm",
+        "move_to",
+        "move_finished",
+        "tcp_pose",
+        "joint_positions",
+        "status",
+        "telemetry",
+    }
+)
+#: the keep-alive's timing percentiles are computed this often (the rest of a state write is
+#: a handful of cache reads)
+SUMMARY_EVERY_S = 1.0
+
+
+@dataclass
+class ArmProcessSpec:
+    """What the node hands its arm process (as JSON on its command line)."""
+
+    driver: str = ""  # "module:Class" of the arm's driver
+    driver_config: str = "{}"  # its Config, as JSON
+    state_file: str = ""
+    realtime_priority: int = 0
+
+
+class ServedArm:
+    """The driver's calls as the pipe carries them (plain values in, plain values out)."""
+
+    def __init__(self, arm: Arm) -> None:
+        self.arm = arm
+
+    def connect(self) -> None:
+        self.arm.connect()
+
+    def disconnect(self) -> None:
+        self.arm.disconnect()
+
+    def jog(self, velocity: list[float], issued_at_s: float | None) -> Any:
+        return self.arm.jog(velocity, issued_at_s)
+
+    def stop_arm(self) -> None:  # "stop" is the pipe's own: end the process
+        self.arm.stop()
+
+    def move_to(self, pose: list[float], speed: float | None) -> None:
+        self.arm.move_to(pose, speed, wait=False)
+
+    def move_finished(self) -> bool:
+        self.arm.require_connected()
+        with self.arm._lock:
+            return bool(self.arm._move_finished())
+
+    def tcp_pose(self) -> Any:
+        return self.arm.tcp_pose()
+
+    def joint_positions(self) -> Any:
+        return self.arm.joint_positions()
+
+    def status(self) -> dict[str, Any]:
+        return json.loads(json.dumps(self.arm.status(), default=float))
+
+    def telemetry(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.arm.telemetry().items()}
+
+
+class StateWriter:
+    """Writes the arm's newest state every keep-alive period, on a thread of its own."""
+
+    def __init__(self, arm: Arm, view: StateView) -> None:
+        self.arm = arm
+        self.view = view
+        self._quit = threading.Event()
+        self._summary: dict[str, float] = {}
+        self._summary_due = 0.0
+        self._thread = threading.Thread(target=self._run, name="arm-state", daemon=True)
+
+    def start(self) -> StateWriter:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        period = self.arm.deadman_period_s
+        while not self._quit.wait(period):
+            try:
+                self.view.write(self._state())
+            except Exception:  # an interface closing under us: the next turn writes again
+                log.debug("arm state not written", exc_info=True)
+
+    def _state(self) -> dict[str, float]:
+        arm, now = self.arm, now_s()
+        connected = arm.is_connected
+        out: dict[str, float] = {
+            "t_write_s": now,
+            "connected": float(connected),
+            "needs_reconnect": float(bool(getattr(arm, "needs_reconnect", False))),
+        }
+        live = arm.live_readings() if connected else {}
+        if live:
+            out["live"] = 1.0
+            out.update(live)
+        if now >= self._summary_due:
+            self._summary = arm.keep_alive_periods.summary()
+            self._summary_due = now + SUMMARY_EVERY_S
+        out.update({f"keepalive_{key}": value for key, value in self._summary.items()})
+        got = arm.keep_alive_scheduling
+        if got is not None:
+            out["keepalive_realtime"] = float(got.realtime)
+            out["keepalive_level"] = float(got.level)
+        return out
+
+    def stop(self) -> None:
+        self._quit.set()
+        self._thread.join(1.0)
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m robot_side.arm.process", description=__doc__)
+    ap.add_argument("--stdio", action="store_true", help="take requests as JSON lines on stdin")
+    ap.add_argument("--config-json", required=True, help="an ArmProcessSpec as JSON")
+    ap.add_argument("--log-level", type=int, default=logging.INFO)
+    args = ap.parse_args(argv)
+    # the pipe to the node is ours alone: ur-rtde prints to standard output (its reconnect
+    # messages), which would corrupt a reply, so fd 1 becomes the log's (stderr)
+    replies = os.fdopen(os.dup(sys.stdout.fileno()), "w")
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    configure_logging(args.log_level, "%(asctime)s %(levelname)s arm-process %(name)s: %(message)s")
+    for sig in (signal.SIGINT, signal.SIGTERM):  # the node stops the arm, then closes stdin
+        signal.signal(sig, signal.SIG_IGN)
+    spec = from_dict(ArmProcessSpec, json.loads(args.config_json), where="arm process")
+    try:
+        cls = load_object(spec.driver)
+        arm: Arm = cls(from_dict(cls.Config, json.loads(spec.driver_config), where="arm"))
+    except Exception as e:  # the node checked this config already; say why anyway
+        replies.write(json.dumps({"error": f"{type(e).__name__}: {e}"}) + "\n")
+        replies.flush()
+        raise SystemExit(f"arm process: {e}") from None
+    arm.realtime_priority = spec.realtime_priority
+    view = StateView(spec.state_file)
+    writer = StateWriter(arm, view).start()
+
+    def on_exit() -> None:
+        writer.stop()
+        t0 = time.monotonic()
+        try:
+            arm.disconnect()  # stops the arm and ends the control script
+        except Exception:
+            log.exception("arm process: disconnect at exit failed")
+        log.info("arm process %d: arm stopped and disconnected in %.0f ms", os.getpid(),
+                 (time.monotonic() - t0) * 1000)  # fmt: skip
+        view.close()
+
+    serve_stdio(ServedArm(arm), REMOTE_METHODS, os.getpid(), sys.stdin, replies, on_exit)

@@ -1,0 +1,92 @@
+"""The arm process's newest state, shared with the robot node through memory, never waited on.
+
+The arm process writes it every keep-alive period; the robot node reads it
+for each heartbeat and for its reconnect decisions. A sequence counter
+around every write (a seqlock: odd while writing) lets the reader take a
+consistent copy without a lock either side could be held on: a reader that
+meets a write in progress tries again, at most a few times, and otherwise
+keeps the copy it had.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import struct
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from robot_side.arm.base import TELEMETRY_POSE_KEYS
+
+#: the values after the sequence counter, in order
+FIELDS = (
+    "t_write_s",
+    "connected",
+    "needs_reconnect",
+    "live",
+    *TELEMETRY_POSE_KEYS,
+    "arm_speed_m_s",
+    "arm_angular_speed_rad_s",
+    "keepalive_count",
+    "keepalive_p50_ms",
+    "keepalive_p99_ms",
+    "keepalive_p999_ms",
+    "keepalive_max_ms",
+    "keepalive_realtime",
+    "keepalive_level",
+)
+_SEQ = struct.Struct("<Q")
+_VALUES = struct.Struct(f"<{len(FIELDS)}d")
+SIZE = _SEQ.size + _VALUES.size
+_READ_TRIES = 4
+
+
+def new_state_file() -> Path:
+    """A file for one arm process's state, in shared memory where the system has it."""
+    where = "/dev/shm" if os.path.isdir("/dev/shm") else None
+    fd, path = tempfile.mkstemp(prefix="deepxpalm-arm-", suffix=".state", dir=where)
+    try:
+        os.write(fd, bytes(SIZE))
+    finally:
+        os.close(fd)
+    return Path(path)
+
+
+@dataclass
+class StateView:
+    """One side's mapping of the state file."""
+
+    path: Path
+
+    def __post_init__(self) -> None:
+        with open(self.path, "r+b") as f:
+            self._map = mmap.mmap(f.fileno(), SIZE)
+        self._seq = 0
+        self._last: dict[str, float] = {}
+
+    # ------------------------------------------------------------ the arm process
+    def write(self, values: dict[str, float]) -> None:
+        self._seq += 1
+        _SEQ.pack_into(self._map, 0, self._seq * 2 - 1)  # odd: a write in progress
+        _VALUES.pack_into(self._map, _SEQ.size, *(float(values.get(k, 0.0)) for k in FIELDS))
+        _SEQ.pack_into(self._map, 0, self._seq * 2)
+
+    # ------------------------------------------------------------ the robot node
+    def read(self) -> dict[str, float]:
+        """The newest complete state ({} before the first write)."""
+        for _ in range(_READ_TRIES):
+            (before,) = _SEQ.unpack_from(self._map, 0)
+            if before == 0:
+                return {}
+            if before % 2:
+                continue
+            values = _VALUES.unpack_from(self._map, _SEQ.size)
+            (after,) = _SEQ.unpack_from(self._map, 0)
+            if after == before:
+                self._last = dict(zip(FIELDS, values, strict=True))
+                break
+        return self._last
+
+    def close(self) -> None:
+        self._map.close()
