@@ -3,8 +3,8 @@
 - ``operator_node``: ``OperatorNode``, receive -> render -> send each loop turn;
 - ``link_setup``: the robot's name, the keys and their policy, the sockets;
 - ``arrivals``: what the robot sends, believed or dropped (its key, the
-  telemetry gate), the clock sync and the link statistics; ``RobotHeard``:
-  when the robot was last heard, and its run;
+  telemetry gate: ``telemetry_gate``), the clock sync and the link
+  statistics; ``RobotHeard``: when the robot was last heard, and its run;
 - ``lease_view``: the robot's control lease as its heartbeat states it;
 - ``palm``: the stimulus to render, the servo goals, the latency;
 - ``outbox``: commands and video signals to the robot (late and blind jogs
