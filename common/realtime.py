@@ -15,7 +15,6 @@ deployment can show how close to its nominal period the keep-alive runs.
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import os
 import threading
@@ -60,37 +59,61 @@ def raise_this_thread(fifo_priority: int, fallback_nice: int) -> Scheduling:
     return Scheduling("nice", os.getpriority(os.PRIO_PROCESS, tid), why)
 
 
-class PeriodStats:
-    """The intervals between a periodic thread's wakes (the newest ``keep`` of them)."""
+#: the period histogram's resolution and range: a period longer than the range counts in the
+#: last bin (its exact length is kept as the max)
+BIN_S = 50e-6
+RANGE_S = 0.5
 
-    def __init__(self, nominal_s: float, keep: int = 1 << 16) -> None:
+
+class PeriodStats:
+    """The intervals between a periodic thread's wakes, as a histogram (50 us bins).
+
+    A wake costs an increment; a summary a cumulative sum over the bins: neither
+    holds the interpreter lock long enough to delay the thread it measures (a
+    percentile over the last 65,536 intervals held it 5 ms).
+    """
+
+    def __init__(self, nominal_s: float) -> None:
         self.nominal_s = nominal_s
-        self._intervals: collections.deque[float] = collections.deque(maxlen=keep)
+        self._bins = np.zeros(int(RANGE_S / BIN_S) + 1, dtype=np.int64)
         self._last: float | None = None
+        self._max_s = 0.0
         self.count = 0
 
     def woke(self, now_s: float) -> None:
-        if self._last is not None:
-            self._intervals.append(now_s - self._last)
-            self.count += 1
-        self._last = now_s
+        last, self._last = self._last, now_s
+        if last is None:
+            return
+        interval = now_s - last
+        self._bins[min(int(interval / BIN_S), len(self._bins) - 1)] += 1
+        self._max_s = max(self._max_s, interval)
+        self.count += 1
 
     def restart(self) -> None:
         """A pause that is not a late wake (a reconnect): the next wake starts a new series."""
         self._last = None
 
+    def clear(self) -> None:
+        """Forget every interval so far (a new connection's series starts)."""
+        self._bins[:] = 0
+        self._max_s, self.count, self._last = 0.0, 0, None
+
     def summary(self) -> dict[str, float]:
-        """p50, p99, p99.9 and max of the period (ms), the nominal and the count; {} when
-        there is none yet."""
-        if not self._intervals:
+        """p50, p99, p99.9 and max of the period (ms, to the bin's upper edge), the nominal and
+        the count; {} when there is none yet."""
+        if not self.count:
             return {}
-        ms = np.asarray(self._intervals, dtype=np.float64) * 1000.0
-        p50, p99, p999 = np.percentile(ms, (50.0, 99.0, 99.9))
+        cumulative = np.cumsum(self._bins)
+
+        def at(q: float) -> float:
+            index = int(np.searchsorted(cumulative, q * self.count, side="left"))
+            return min((index + 1) * BIN_S, self._max_s) * 1000.0
+
         return {
             "nominal_ms": self.nominal_s * 1000.0,
-            "p50_ms": float(p50),
-            "p99_ms": float(p99),
-            "p999_ms": float(p999),
-            "max_ms": float(ms.max()),
+            "p50_ms": at(0.5),
+            "p99_ms": at(0.99),
+            "p999_ms": at(0.999),
+            "max_ms": self._max_s * 1000.0,
             "count": float(self.count),
         }

@@ -409,7 +409,7 @@ class Arm(Device):
         self._deadman_quit.clear()
         self._jog_until = None
         self._deadman_woke = now_s()
-        self.keep_alive_periods.restart()
+        self.keep_alive_periods.clear()  # a new connection: a new series
         name = type(self).__name__
         t = threading.Thread(target=self._safety_thread(self._deadman_loop), name=f"{name}-deadman")
         t.daemon = True
