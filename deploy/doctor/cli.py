@@ -81,7 +81,7 @@ def diagnose(
         else:
             check_operator_link(report, config, options)
     check_governor(report)
-    check_realtime(report)
+    check_realtime(report, config, role)
     check_service_user(report, options)
     return report
 
@@ -95,7 +95,7 @@ def _diagnose_fabric(report: Report, role: str, config: Any, options: DoctorOpti
     if role == "robot":
         check_video(report, config, options)
     check_governor(report)
-    check_realtime(report)
+    check_realtime(report, config, role)
     check_service_user(report, options)
     return report
 

@@ -42,55 +42,91 @@ def check_governor(report: Report) -> None:
     )
 
 
-def _can_use_fifo() -> tuple[bool, str]:
-    """Try SCHED_FIFO priority 1 on a throwaway thread (the policy is per thread on Linux)."""
-    result: dict[str, Any] = {}
+#: how long the doctor's keep-alive probe runs, and its period (the arm's keep-alive's)
+PROBE_S = 2.0
+PROBE_PERIOD_S = 0.02
+#: the UR controller's watchdog window (URArmConfig's default): a wake this late stops the arm
+WATCHDOG_WINDOW_S = 0.15
 
-    def probe() -> None:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-            result["ok"] = True
-        except OSError as e:
-            result["ok"], result["why"] = False, e.strerror or str(e)
 
-    t = threading.Thread(target=probe, name="doctor-rt-probe", daemon=True)
+def probe_keep_alive(priority: int, seconds: float = PROBE_S) -> tuple[Any, dict[str, float]]:
+    """A thread scheduled as the arm process's keep-alive is (SCHED_FIFO ``priority`` where
+    granted, else the safety niceness), waking every 20 ms for ``seconds``: what it got and
+    how its period came out (common.realtime.PeriodStats)."""
+    from common.clock import now_s
+    from common.realtime import PeriodStats, raise_this_thread
+    from robot_side.arm.base import SAFETY_THREAD_NICE
+
+    out: dict[str, Any] = {}
+
+    def run() -> None:
+        out["got"] = raise_this_thread(priority, SAFETY_THREAD_NICE)
+        stats = PeriodStats(PROBE_PERIOD_S)
+        quit_ = threading.Event()
+        due = now_s() + PROBE_PERIOD_S
+        end = due + seconds
+        while not quit_.wait(max(0.0, due - now_s())) and now_s() < end:
+            stats.woke(now_s())
+            due += PROBE_PERIOD_S
+        out["summary"] = stats.summary()
+
+    t = threading.Thread(target=run, name="doctor-keepalive-probe", daemon=True)
     t.start()
-    t.join(2)
-    return bool(result.get("ok")), result.get("why", "")
+    t.join(seconds + 5)
+    return out.get("got"), out.get("summary", {})
 
 
-def check_realtime(report: Report) -> None:
-    """Whether the real-time drop-in can work here (only a warning: the units do not need it)."""
+def check_realtime(report: Report, config: Any = None, role: str = "robot") -> None:
+    """Whether the arm's keep-alive gets real-time scheduling here, and how on time it runs.
+
+    A probe thread is scheduled as the arm process schedules its keep-alive and
+    wakes every 20 ms for two seconds beside whatever the machine is doing;
+    the doctor reports what it got and its period's p99 and max. Run as the
+    unit runs (``sudo -u deepxpalm``, or under ``systemd-run -p LimitRTPRIO=20``)
+    to see what the unit gets: a shell's limits may differ from the unit's.
+    """
     import resource
 
+    if role != "robot":
+        return  # the operator's palm has no watchdog of its own to keep quiet
     if not hasattr(os, "SCHED_FIFO"):
         report.add("real-time scheduling", SKIP, "this platform has no SCHED_FIFO")
         return
-    max_prio = os.sched_get_priority_max(os.SCHED_FIFO)
+    arm = getattr(config, "arm", None) if config is not None else None
+    priority = int(arm.get("realtime_priority", 20)) if isinstance(arm, dict) else 20
     soft, _hard = resource.getrlimit(resource.RLIMIT_RTPRIO)
-    ok, why = _can_use_fifo()
-    kernel = "PREEMPT_RT" if Path("/sys/kernel/realtime").exists() else os.uname().version
-    rt_kernel = "PREEMPT_RT" in kernel
-    try:
-        runtime = int(Path("/proc/sys/kernel/sched_rt_runtime_us").read_text())
-    except (OSError, ValueError):
-        runtime = None
     rlimit = "unlimited" if soft == resource.RLIM_INFINITY else str(soft)
-    detail = (
-        f"SCHED_FIFO priorities 1..{max_prio}, RLIMIT_RTPRIO {rlimit}, "
-        f"{'PREEMPT_RT kernel' if rt_kernel else 'standard kernel'}"
-        + (f", RT throttling {runtime} us/s" if runtime is not None else "")
+    kernel = "PREEMPT_RT" if Path("/sys/kernel/realtime").exists() else "standard kernel"
+    got, summary = probe_keep_alive(priority)
+    if got is None or not summary:
+        report.add("real-time scheduling", WARN, "the keep-alive probe did not run")
+        return
+    timing = (
+        f"a 20 ms keep-alive here woke with period p99 {summary['p99_ms']:.1f} ms, max "
+        f"{summary['max_ms']:.1f} ms over {PROBE_S:g} s (the controller stops the arm at "
+        f"{WATCHDOG_WINDOW_S * 1000:.0f} ms)"
     )
-    if ok:
-        report.add("real-time scheduling", PASS, f"{detail}: this user can use SCHED_FIFO")
+    detail = f"{got.describe()} (RLIMIT_RTPRIO {rlimit}, {kernel}): {timing}"
+    late = summary["max_ms"] > WATCHDOG_WINDOW_S * 1000 / 2
+    if got.realtime and not late:
+        report.add("real-time scheduling", PASS, detail)
+    elif got.realtime:
+        report.add(
+            "real-time scheduling",
+            WARN,
+            detail,
+            "something on this PC runs ahead of real-time threads (another SCHED_FIFO "
+            "program, an interrupt storm, throttling): see docs/arm.md, Real time",
+        )
     else:
         report.add(
             "real-time scheduling",
             WARN,
-            f"{detail}: this user cannot use SCHED_FIFO ({why}); the units run with Nice=-10",
-            "only needed for the real-time drop-in in docs/deploy.md (systemd sets the policy "
-            "itself); for a shell session add '@dialout - rtprio 50' to "
-            "/etc/security/limits.d/deepxpalm.conf",
+            detail + "; without SCHED_FIFO a busy PC can hold the keep-alive past the "
+            "window and the controller stops the arm",
+            "the shipped robot unit grants it (LimitRTPRIO=20); for a shell add "
+            "'deepxpalm - rtprio 20' to /etc/security/limits.d/deepxpalm.conf "
+            "(docs/deploy.md, Real-time scheduling)",
         )
 
 

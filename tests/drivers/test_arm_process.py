@@ -1,0 +1,150 @@
+"""The arm's real-time duties in a process of their own, checked at the simulated controller.
+
+The robot node's driver runs in an arm process (``robot_side.arm.process``):
+its keep-alive on time and real-time where granted, the node's death a stop
+at once (not the controller's watchdog a window later), the arm process's
+death a stop by the controller's watchdog, and the node reconnecting after it.
+What moved is read from the UR simulator, not from the driver.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from common.devices import build_device
+from common.realtime import PeriodStats, raise_this_thread
+from robot_side.arm import KINDS
+from robot_side.arm.process import ArmProcess
+from robot_side.arm.sim import URSimConfig, URSimProcess
+from robot_side.arm.ur_rtde import URArmConfig
+
+pytestmark = pytest.mark.slow
+
+JOG = [0.02, 0.0, 0.0, 0.0, 0.0, 0.0]
+WINDOW_S = URArmConfig().watchdog_window_s
+#: a stop from the jog's speed at the stop deceleration, and the simulator's tick
+DECEL_S = 0.02 / 2.0 + 0.01
+
+
+def _at_rest(sim: URSimProcess) -> bool:
+    return float(np.linalg.norm(sim.tcp_speed()[:3])) < 1e-4
+
+
+def _wait(cond, timeout_s: float) -> float | None:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        if cond():
+            return time.monotonic() - t0
+        time.sleep(0.002)
+    return None
+
+
+def _fifo_granted() -> bool:
+    import threading
+
+    got: list = []
+    t = threading.Thread(target=lambda: got.append(raise_this_thread(1, 0)))
+    t.start()
+    t.join()
+    return got[0].realtime
+
+
+def test_a_period_histogram_gives_the_percentiles_of_its_wakes():
+    stats = PeriodStats(0.02)
+    t = 0.0
+    for i in range(2000):
+        t += 0.02 + (0.1 if i == 1000 else 0.0)
+        stats.woke(t)
+    s = stats.summary()
+    assert s["count"] == 1999 and s["p50_ms"] == pytest.approx(20.0, abs=0.06)
+    assert s["max_ms"] == pytest.approx(120.0) and s["p999_ms"] <= 120.0
+    stats.clear()
+    assert stats.summary() == {}
+
+
+def test_the_keep_alive_runs_in_the_arm_process_on_time_and_says_how():
+    arm = build_device(KINDS, {"kind": "simulated"}, "arm")
+    assert isinstance(arm, ArmProcess)
+    arm.connect()
+    try:
+        assert arm.pid is not None and arm.ready_info == arm.pid
+        time.sleep(1.5)
+        summary = arm.keep_alive_summary()
+        # what the scheduler gave it, as the doctor would see it on this machine
+        assert summary["realtime"] == float(_fifo_granted())
+        assert summary["count"] >= 40
+        assert summary["p50_ms"] == pytest.approx(20.0, abs=1.0)
+        live = arm.live_readings()  # from shared memory: the pose, and the keep-alive's timing
+        assert {"arm_x", "arm_speed_m_s", "arm_keepalive_p99_ms"} <= set(live)
+    finally:
+        arm.disconnect()
+    assert arm.pid is None
+
+
+NODE = textwrap.dedent(
+    """
+    import sys, time
+    from common.devices import build_device
+    from robot_side.arm import KINDS
+    arm = build_device(KINDS, {"kind": "ur_rtde", "host": sys.argv[1]}, "arm")
+    arm.connect()
+    print(arm.pid, flush=True)
+    while True:
+        arm.jog([0.02, 0, 0, 0, 0, 0])
+        time.sleep(0.05)
+    """
+)
+
+
+def test_a_killed_robot_node_has_its_arm_stopped_by_the_arm_process_at_once():
+    with URSimProcess(URSimConfig()) as sim:
+        node = subprocess.Popen(
+            [sys.executable, "-c", NODE, sim.host], stdout=subprocess.PIPE, text=True
+        )
+        try:
+            arm_pid = int(node.stdout.readline())
+            assert _wait(lambda: not _at_rest(sim), 10.0) is not None, "the jog never started"
+            time.sleep(0.3)
+            trips = sim.stats()["watchdog_trips"]
+            node.send_signal(signal.SIGKILL)
+            stopped = _wait(lambda: _at_rest(sim), 2.0)
+        finally:
+            node.kill()
+            node.wait()
+        # the arm process saw its node go (its stdin closed) and stopped the arm itself: well
+        # inside the controller's window, and the controller's watchdog never had to trip
+        assert stopped is not None and stopped < WINDOW_S, stopped
+        assert sim.stats()["watchdog_trips"] == trips
+        gone = _wait(lambda: subprocess.run(["kill", "-0", str(arm_pid)]).returncode != 0, 5.0)
+        assert gone is not None, "the arm process outlived its node"
+
+
+def test_a_killed_arm_process_is_stopped_by_the_controller_and_the_node_reconnects():
+    arm = build_device(KINDS, {"kind": "simulated"}, "arm")
+    arm.connect()
+    try:
+        sim = arm.local.sim
+        arm.jog(JOG)
+        assert _wait(lambda: not _at_rest(sim), 2.0) is not None
+        trips = sim.stats()["watchdog_trips"]
+        arm.kill()
+        stopped = _wait(lambda: _at_rest(sim), 2.0)
+        assert stopped is not None and stopped < 2 * WINDOW_S + DECEL_S, stopped
+        assert sim.stats()["watchdog_trips"] == trips + 1  # the controller's own stop
+        assert arm.needs_reconnect
+        arm.disconnect()  # what the node's recovery does: a new arm process (and, for this
+        arm.connect()  # kind, a new simulated controller)
+        sim = arm.local.sim
+        arm.jog(JOG)
+        assert _wait(lambda: not _at_rest(sim), 2.0) is not None
+        arm.stop()
+        assert _wait(lambda: _at_rest(sim), 1.0) is not None
+    finally:
+        arm.disconnect()
