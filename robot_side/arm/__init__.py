@@ -7,7 +7,7 @@ is the safety layer over a driver that only records (tests, benches).
 """
 
 KINDS = {
-    "ur_rtde": "robot_side.arm.ur_rtde:URArmKind",
+    "ur_rtde": "robot_side.arm.process.kinds:URArmKind",
     "simulated": "robot_side.arm.sim:SimulatedArmKind",
     "lab": "robot_side.lab.devices:LabArmKind",
     "memory": "robot_side.arm.memory:MemoryArm",

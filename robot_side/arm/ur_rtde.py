@@ -82,7 +82,6 @@ from robot_side.arm.base import (
     Arm,
     ArmLimits,
 )
-from robot_side.arm.process import InOwnProcess
 
 log = logging.getLogger(__name__)
 
@@ -995,10 +994,3 @@ class URArm(Arm):
             if self._ctrl_broken:
                 out["control_broken"] = self._ctrl_broken
         return out
-
-
-class URArmKind(InOwnProcess):
-    """Kind "ur_rtde": ``URArm``, in its arm process unless ``own_process = false``."""
-
-    driver = URArm
-    Config = URArmConfig

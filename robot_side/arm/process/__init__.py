@@ -134,25 +134,20 @@ class ArmProcess(Arm):
         return bool(state.get("needs_reconnect"))
 
     def _find_controller(self) -> None:
-        """Where the kind's controller is: a simulator started, the lab world attached."""
+        """Where the kind's controller is: a simulator started (``OnItsSimulator``), the lab
+        world attached (``OnTheWorld.find_controller``)."""
         local: Any = self.local
         if hasattr(local, "_start_simulator"):
             local._start_simulator()
-        elif hasattr(local, "point_at"):
-            from robot_side.lab.devices import attach_world
-
-            local.world = attach_world(local.world_config_path(), local.running_world_path())
-            local.point_at(local.world.addresses)
+        elif hasattr(local, "find_controller"):
+            local.find_controller()
 
     def _release_controller(self) -> None:
         local: Any = self.local
         if hasattr(local, "_stop_simulator"):
             local._stop_simulator()
-        elif getattr(local, "world", None) is not None:
-            from robot_side.lab.devices import detach_world
-
-            detach_world(local.world)
-            local.world = None
+        elif hasattr(local, "release_controller"):
+            local.release_controller()
 
     def _child_config(self) -> dict[str, Any]:
         """The UR driver's settings from the kind's config (its host now found)."""
