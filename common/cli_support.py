@@ -121,6 +121,16 @@ def freeze_startup_heap() -> int:
     return gc.get_freeze_count()
 
 
+def bound_endpoints(*parts: Any) -> dict[str, Any]:
+    """What each part bound or serves (its ``endpoints()``), for the node's READY=1."""
+    out: dict[str, Any] = {}
+    for part in parts:
+        endpoints = getattr(part, "endpoints", None)
+        if callable(endpoints):
+            out.update(endpoints())
+    return out
+
+
 def run_node(
     args: argparse.Namespace,
     cls: type[T],
@@ -155,7 +165,9 @@ def run_node(
             if reload is not None:
                 reload_on_hangup(reload)
             extra = attach(node, config) if attach is not None else None
-            watch = watch_node(node, stop)  # READY=1 once the loop runs, WATCHDOG=1 while it does
+            # READY=1 once the loop runs, with what the node and its attachments bound;
+            # WATCHDOG=1 while it runs
+            watch = watch_node(node, stop, endpoints=lambda: bound_endpoints(node, extra))
             frozen = freeze_startup_heap()
         finally:
             gc.enable()

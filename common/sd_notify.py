@@ -18,14 +18,21 @@ here does nothing.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import socket
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 log = logging.getLogger(__name__)
+
+#: systemd keeps fields it does not know; ours start with this
+FIELD_PREFIX = "X_DEEPXPALM_"
+#: the field of ``READY=1`` that says what the process bound or serves, as JSON
+#: (``{"telemetry": "tcp://127.0.0.1:40123"}``): whoever started it reads its ports there
+ENDPOINTS_FIELD = FIELD_PREFIX + "ENDPOINTS"
 
 
 def _address(path: str) -> str | bytes:
@@ -74,8 +81,18 @@ class Notifier:
             return False
         return True
 
-    def ready(self, status: str | None = None) -> bool:
-        extra = (f"STATUS={status}",) if status else ()
+    def ready(
+        self,
+        status: str | None = None,
+        endpoints: Mapping[str, Any] | None = None,
+        **fields: Any,
+    ) -> bool:
+        """``READY=1``, with ``STATUS=status``, what the process bound (``endpoints``, as
+        JSON in ``X_DEEPXPALM_ENDPOINTS``) and any ``X_DEEPXPALM_<NAME>=value`` fields."""
+        extra = [f"STATUS={status}"] if status else []
+        if endpoints is not None:
+            extra.append(f"{ENDPOINTS_FIELD}={json.dumps(endpoints, separators=(',', ':'))}")
+        extra += [f"{FIELD_PREFIX}{name.upper()}={value}" for name, value in fields.items()]
         return self.send("READY=1", *extra)
 
     def watchdog(self) -> bool:
@@ -104,12 +121,24 @@ class NodeWatch:
     within a quarter of the watchdog interval earns one WATCHDOG=1. ``node``
     is any object with ``pub`` (None until the sockets are open) or
     ``loop_turns``, and optionally ``link_state`` for the status line.
+    ``endpoints()``, asked once at READY=1, says what the node bound or serves
+    (its sockets' ports, its dashboard) for whoever started it.
     """
 
-    def __init__(self, node: Any, stop: threading.Event, notifier: Notifier) -> None:
+    #: how often the node is looked at before it is ready: its parent waits for READY=1
+    READY_POLL_S = 0.02
+
+    def __init__(
+        self,
+        node: Any,
+        stop: threading.Event,
+        notifier: Notifier,
+        endpoints: Callable[[], Mapping[str, Any]] | None = None,
+    ) -> None:
         self.node = node
         self.stop_event = stop
         self.notifier = notifier
+        self.endpoints = endpoints
         self._done = threading.Event()
         interval = notifier.watchdog_interval_s
         self.poll_s = min(0.5, interval / 4) if interval else 0.5
@@ -137,7 +166,8 @@ class NodeWatch:
             sent = self._sent()
             if sent is not None and sent > last:
                 if not self.ready_sent:
-                    self.ready_sent = self.notifier.ready(self._status_line(sent))
+                    bound = None if self.endpoints is None else self.endpoints()
+                    self.ready_sent = self.notifier.ready(self._status_line(sent), bound)
                 elif self.notifier.watchdog_interval_s:
                     self.notifier.watchdog()
                     self.pings += 1
@@ -145,7 +175,7 @@ class NodeWatch:
                 ticks += 1
                 if ticks % 20 == 0:
                     self.notifier.status(self._status_line(sent))
-            self._done.wait(self.poll_s)
+            self._done.wait(self.poll_s if self.ready_sent else self.READY_POLL_S)
         self.notifier.stopping()
 
     def _status_line(self, sent: int) -> str:
@@ -161,6 +191,12 @@ class NodeWatch:
         self.notifier.close()
 
 
-def watch_node(node: Any, stop: threading.Event, notifier: Notifier | None = None) -> NodeWatch:
-    """Start watching ``node`` for systemd (does nothing outside a ``Type=notify`` unit)."""
-    return NodeWatch(node, stop, notifier or Notifier()).start()
+def watch_node(
+    node: Any,
+    stop: threading.Event,
+    notifier: Notifier | None = None,
+    endpoints: Callable[[], Mapping[str, Any]] | None = None,
+) -> NodeWatch:
+    """Start watching ``node`` for systemd (does nothing outside a ``Type=notify`` unit);
+    ``endpoints()`` is what its READY=1 says it bound."""
+    return NodeWatch(node, stop, notifier or Notifier(), endpoints).start()

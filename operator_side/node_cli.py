@@ -171,12 +171,19 @@ def _attachments(
         from operator_side.palm.guard import PalmGuard
 
         parts.append(PalmGuard.start(args.config, args.overrides))
-    return _Both(*parts) if parts else None
+    served = {} if dashboard is None else {"dashboard": dashboard.server.base_url}
+    return _Both(*parts, served=served) if parts else None
 
 
 class _Both:
-    def __init__(self, *parts: Any) -> None:
+    def __init__(self, *parts: Any, served: dict[str, str] | None = None) -> None:
         self.parts = parts
+        self.served = served or {}
+
+    def endpoints(self) -> dict[str, str]:
+        """What the node serves beside its link, for its READY=1: the dashboard's address
+        (its token left out: whoever may open the page has it already)."""
+        return dict(self.served)
 
     def stop(self) -> None:
         for part in self.parts:

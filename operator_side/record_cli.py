@@ -43,6 +43,7 @@ from common.fabric.session import FabricConfig
 from common.foxglove import FoxgloveLiveConfig
 from common.link_stats import SEQ_RESTART_GAP
 from common.logs import BurstLog
+from common.sd_notify import Notifier
 from common.security import SecurityConfig, check_endpoint, client_options
 
 log = logging.getLogger(__name__)
@@ -219,6 +220,9 @@ def run(args: argparse.Namespace) -> int:
 
         live = LiveSource(config.foxglove)
     recorder = StreamRecorder(config)
+    # subscribed: systemd, or whoever started it, may count on every message from now on
+    where = config.fabric.router_endpoint if config.mode == "fabric" else config.telemetry_endpoint
+    Notifier().ready(f"recording from {where}", {"source": where})
     thread = None
     if live is not None:
         thread = threading.Thread(

@@ -14,7 +14,8 @@ class RouterConfig:
     listen_endpoint: str = param(
         "quic/127.0.0.1:7447",
         "where robots and operators connect: quic/ADDRESS:PORT (UDP); 0.0.0.0 for every "
-        "interface. The address they dial must be in the router's certificate (--host)",
+        "interface; port 0: a free one, said in its READY=1. The address they dial must be "
+        "in the router's certificate (--host)",
     )
     roster_file: Path | None = param(
         None,

@@ -54,9 +54,27 @@ class Router:
         return router_config(self.config, self.roster, self.files)
 
     def start(self) -> Router:
-        self.session = open_session(self.zenoh_config(), "router")
+        if _port_of(self.config.listen_endpoint) == 0:
+            self.session = self._open_on_own_port()
+        else:
+            self.session = open_session(self.zenoh_config(), "router")
         log.info("router up on %s: %s", self.config.listen_endpoint, self.roster.summary())
         return self
+
+    def _open_on_own_port(self) -> Any:
+        """``quic/HOST:0``: a UDP port free on HOST, chosen here (Zenoh cannot say which one
+        it bound), kept for every later session (a reload); said in READY=1."""
+        from common.errors import LinkError
+
+        wildcard = self.config.listen_endpoint
+        for attempt in range(OWN_PORT_ATTEMPTS):
+            self.config.listen_endpoint = _with_free_port(wildcard)
+            try:
+                return open_session(self.zenoh_config(), "router")
+            except LinkError as e:  # taken between the look and the bind
+                if "Address already in use" not in str(e) or attempt + 1 == OWN_PORT_ATTEMPTS:
+                    raise
+        raise AssertionError("unreachable")
 
     @property
     def endpoint(self) -> str:
@@ -122,7 +140,8 @@ class Router:
 
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
         notifier = Notifier()
-        notifier.ready(f"routing for {self.roster.summary()}")
+        # where it listens (a port-0 config's port too), for whoever started it
+        notifier.ready(f"routing for {self.roster.summary()}", {"listen": self.endpoint})
         t_end = None if duration_s is None else time.monotonic() + duration_s
         interval = notifier.watchdog_interval_s
         every = min(STATUS_EVERY_S, interval / 2) if interval else STATUS_EVERY_S
@@ -149,6 +168,29 @@ class Router:
         if self.session is not None:
             self.session.close()
             self.session = None
+
+
+#: how often a router told to listen on port 0 tries another free port
+OWN_PORT_ATTEMPTS = 5
+
+
+def _port_of(endpoint: str) -> int | None:
+    """The port of ``quic/HOST:PORT`` (None when it names none)."""
+    port = endpoint.split("?", 1)[0].rpartition(":")[2]
+    return int(port) if port.isdigit() else None
+
+
+def _with_free_port(endpoint: str) -> str:
+    """``quic/HOST:0`` with a UDP port free on HOST right now."""
+    import socket
+
+    address, _, _ = endpoint.split("?", 1)[0].removeprefix("quic/").rpartition(":")
+    host = address.strip("[]")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_DGRAM) as probe:
+        probe.bind((host, 0))
+        port = probe.getsockname()[1]
+    return f"quic/{address}:{port}"
 
 
 def _sha256(path: Path) -> str:

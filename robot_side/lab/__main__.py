@@ -14,6 +14,7 @@ from pathlib import Path
 
 from common.config import from_dict, load_toml
 from common.logs import configure as configure_logging
+from common.sd_notify import Notifier
 from common.signals import stop_on_signals
 from robot_side.lab.config import LabWorldConfig
 
@@ -67,6 +68,8 @@ def main(argv: list[str] | None = None) -> None:
         ),
         flush=True,
     )
+    # systemd, or whoever started it, learns where each simulator listens
+    Notifier().ready("the lab world", server.addresses())
     done.wait()
     server.stop()
 

@@ -167,6 +167,15 @@ class RobotNode:
         self.video.pub = self.telemetry.pub = pub
 
     # ---------------------------------------------------------- what others read
+    def endpoints(self) -> dict[str, str]:
+        """Where the link's ends are (its bound ports, on a direct link): the node's READY=1
+        says them, so a node configured with port 0 tells its peer where it listens."""
+        return {
+            name: end.endpoint
+            for name, end in (("telemetry", self.pub), ("commands", self.sub))
+            if getattr(end, "endpoint", "")
+        }
+
     @property
     def link_state(self) -> str:
         return self.deadman.link_state

@@ -26,6 +26,7 @@ from common.cli_support import (
     stop_on_signals,
     write_stats,
 )
+from common.sd_notify import Notifier
 from robot_side.video.server import VideoConfig
 
 log = logging.getLogger(__name__)
@@ -72,6 +73,10 @@ def run(args: argparse.Namespace) -> int:
         else:
             shown = f"{server.base_url} (token in {config.token_file}, source {config.source})"
             print(f"video: {shown}", flush=True)
+        # systemd (or whoever started it) learns where it serves: a port-0 config's port too
+        Notifier().ready(
+            f"serving {config.source} at {server.base_url}", {"signalling": server.base_url}
+        )
         wait_for_stop(stop, args.duration)
     finally:
         # whatever holds the stop up past its bound, the process ends, its threads' stacks in
