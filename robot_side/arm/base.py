@@ -16,6 +16,7 @@ from __future__ import annotations
 import abc
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -389,6 +390,18 @@ class Arm(Device):
             out.update(zip(TELEMETRY_POSE_KEYS, (float(v) for v in pose), strict=True))
         return out
 
+    def keep_alive_summary(self) -> dict[str, float]:
+        """The keep-alive's period (p50, p99, p999, max in ms, count) and whether it runs
+        real-time (``realtime`` 1/0, ``level``: its priority or niceness); {} before it ran."""
+        summary = self.keep_alive_periods.summary()
+        if not summary:
+            return {}
+        got = self.keep_alive_scheduling
+        summary.pop("nominal_ms", None)
+        if got is not None:
+            summary.update(realtime=float(got.realtime), level=float(got.level))
+        return summary
+
     def keep_alive_telemetry(self) -> dict[str, float]:
         """How on time the keep-alive runs: its period's p99 and max (ms), and whether it runs
         real-time (1) or at a niceness (0); nothing for a driver without a keep-alive."""
@@ -429,7 +442,16 @@ class Arm(Device):
         safety threads' niceness; ``note``: the keep-alive records what it got."""
         priority = self.realtime_priority
         if priority is None:
-            return at_niceness(SAFETY_THREAD_NICE, loop)
+
+            def noted() -> None:
+                if note:  # in the node (own_process = false): the niceness it got
+                    tid = threading.get_native_id()
+                    self.keep_alive_scheduling = Scheduling(
+                        "nice", os.getpriority(os.PRIO_PROCESS, tid)
+                    )
+                loop()
+
+            return at_niceness(SAFETY_THREAD_NICE, noted)
 
         def run() -> None:
             got = raise_this_thread(priority, SAFETY_THREAD_NICE)

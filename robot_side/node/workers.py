@@ -108,6 +108,9 @@ class DeviceWorkers:
             out["commands_superseded"] = out.get("commands_superseded", 0.0) + c["superseded"]
             if c["poll_errors"]:
                 out[f"{name}_poll_errors"] = float(c["poll_errors"])
+        summary = getattr(self.arm, "keep_alive_summary", None)  # a stand-in may have none
+        if summary is not None:  # the arm's keep-alive: its period, and whether real-time
+            out.update({f"arm_keepalive_{k}": float(v) for k, v in summary().items()})
         return out
 
     def availability(self) -> dict[str, float]:
