@@ -7,6 +7,7 @@ compare what each says to the same driver, byte for byte.
     deepxpalm sim servos         # a fake Feetech STS bus on a pty
     deepxpalm sim gripper        # the Robotiq URCap socket protocol on TCP
     deepxpalm sim ur             # RTDE 30004, dashboard 29999, script 30003
+    deepxpalm sim world          # the simulated lab: an arm, a gripper, the pads, a camera
 
 A simulator with a cable (tactile, servos, gripper) is unplugged by SIGUSR1
 and plugged back by SIGUSR2, as a hand pulls and pushes a connector.
@@ -27,6 +28,7 @@ from typing import Any
 
 from common.cli_support import write_stats
 from common.config import from_dict, load_toml
+from common.sd_notify import Notifier
 from common.signals import on_signal, stop_on_signals
 
 SIMULATORS = {
@@ -34,6 +36,8 @@ SIMULATORS = {
     "servos": ("operator_side.servos.sts_sim", "FakeStsBus", "FakeStsBusConfig"),
     "gripper": ("robot_side.gripper.sim", "GripperSimServer", "GripperSimConfig"),
     "ur": ("robot_side.arm.sim.server", "URSimulator", "URSimConfig"),
+    # its addresses (with the board's calibration) are what a scene's running_world reads
+    "world": ("robot_side.lab.server", "LabServer", "LabWorldConfig"),
 }
 
 
@@ -90,6 +94,10 @@ def _publish_status(sim: Any, path: Path, stop: threading.Event) -> None:
 
 
 def _where(sim: Any) -> dict[str, Any]:
+    """Where the simulator serves: its port, host or address (a world's every device)."""
+    addresses = getattr(sim, "addresses", None)
+    if callable(addresses):
+        return dict(addresses())
     out = {}
     for name in ("port", "host", "address"):
         value = getattr(sim, name, None)
@@ -102,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     import importlib
 
     from common.devices import SIMULATED_HARDWARE_NICE
-    from deploy.unit_policy import set_niceness
+    from deploy.units.policy import set_niceness
 
     # a device never waits for the PC's CPU: where it may, the simulator outranks ordinary work
     set_niceness(SIMULATED_HARDWARE_NICE)
@@ -120,7 +128,10 @@ def run(args: argparse.Namespace) -> int:
             target=_publish_status, args=(sim, args.status_file, stop), daemon=True
         ).start()
     try:
-        print(json.dumps({"simulator": args.device, **_where(sim)}), flush=True)
+        where = _where(sim)
+        print(json.dumps({"simulator": args.device, **where}), flush=True)
+        # systemd, or whoever started it, learns where it serves (a port-0 config's port too)
+        Notifier().ready(f"{args.device} simulator", where)
         stop.wait(args.duration)
     finally:
         stop.set()

@@ -3,9 +3,12 @@
 The fabric across sites: a Zenoh router made from the roster (``deepxpalm
 router``), every hop QUIC with the members' certificates; every operator
 signs, every robot signs its stream, and one roster says who is who:
-the same layout as three machines (docs/deploy.md), on 127.0.0.1 with free
-ports. ``Fleet`` writes the keys, the roster and each process's config into
-one work folder, starts the processes and stops them all.
+the same layout as three machines (docs/deploy.md), on 127.0.0.1. ``Fleet``
+writes the keys, the roster and each process's config into one work folder,
+starts the processes as the catalogue's units (``deploy.units``) and stops
+them all. The router and the video server bind free ports and say which in
+their ``READY=1``: ``start_router`` and ``start_video`` return once they
+did, and the processes started after them are pointed there.
 """
 
 from __future__ import annotations
@@ -27,9 +30,9 @@ import zmq.auth
 from common import web_token
 from common.roster import operator_entry, robot_entry
 from common.signing import generate_key_files, load_public_key, write_secret_file
-from common.transport import free_loopback_ports
 from deploy.keys_cli import generate
-from harness.processes import spawn_cli, stop
+from deploy.units.readiness import Ready
+from deploy.units.service import Service
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +88,7 @@ name = "{name}"
 
 _ROUTER_TOML = """
 [router]
-listen_endpoint = "quic/127.0.0.1:{port}"
+listen_endpoint = "{listen}"
 roster_file = "{roster}"
 cert_dir = "{cert_dir}"
 status_file = "{status}"
@@ -106,11 +109,34 @@ class Member:
 
 @dataclass
 class Proc:
+    """One process of the fleet: its unit's service, its statistics file and its stdin."""
+
     name: str
-    popen: subprocess.Popen
-    log_path: Path
+    service: Service
     stats_path: Path
-    stdin: IO[str] | None = None
+    takes_stdin: bool = False
+
+    @property
+    def popen(self) -> subprocess.Popen:
+        assert self.service.popen is not None, f"{self.name} was never started"
+        return self.service.popen
+
+    @property
+    def log_path(self) -> Path:
+        return self.service.log
+
+    @property
+    def stdin(self) -> IO[str] | None:
+        popen = self.service.popen
+        return popen.stdin if self.takes_stdin and popen is not None else None
+
+    def start(self) -> Proc:
+        self.service.start()
+        return self
+
+    def wait_ready(self, timeout_s: float = 60.0) -> Ready:
+        """What it said with READY=1 (its endpoints), once it did; ``NotReady`` otherwise."""
+        return self.service.wait_ready(timeout_s)
 
     def send(self, command: dict[str, Any]) -> None:
         """One JSON command line to an operator started with ``--commands-from-stdin``."""
@@ -121,7 +147,7 @@ class Proc:
         return json.loads(self.stats_path.read_text()) if self.stats_path.exists() else {}
 
     def log_text(self) -> str:
-        return self.log_path.read_text() if self.log_path.exists() else ""
+        return self.service.log_text()
 
 
 @dataclass
@@ -162,8 +188,9 @@ class Fleet:
         fabric_certificates(self.router_roster, self.cert_dir, "router", ("127.0.0.1",), False)
         for name in set(self.operators) - set(self.router_roles or self.operators):
             self._certificate(name)  # in the robots' roster only: a certificate all the same
-        self.router_port = free_loopback_ports(1, udp=True)[0]
-        self.router_endpoint = f"quic/127.0.0.1:{self.router_port}"
+        #: where the router listens: said by its READY=1 (``start_router``), or by whoever
+        #: runs one (a router in the test's own process)
+        self.router_endpoint = ""
 
     def _keys(self, name: str, role: str) -> Member:
         keys = self.workdir / "keys"
@@ -210,36 +237,70 @@ class Fleet:
         return self.members[name].signing_public
 
     # ------------------------------------------------------------ processes
-    def _start(self, name: str, args: list[str], stdin: bool = False) -> Proc:
-        """``deepxpalm ARGS`` at the priority its systemd unit gives it (``args[1]``: the unit)."""
+    def process(
+        self,
+        name: str,
+        unit: str,
+        args: list[str],
+        stdin: bool = False,
+        *,
+        stats: bool = True,
+        watchdog: bool = False,
+    ) -> Proc:
+        """``deepxpalm ARGS`` as catalogue ``unit`` (its niceness), not started yet: its log
+        and (``stats``) statistics in the workdir (a new one's log replaces an old one's).
+        ``watchdog``: under its unit's WatchdogSec= (for whoever checks it: the fault
+        matrix's supervisor)."""
         log_path = self.workdir / f"{name}.log"
+        log_path.unlink(missing_ok=True)
         stats_path = self.workdir / f"{name}-stats.json"
-        with log_path.open("w") as out:
-            popen = spawn_cli(
-                [*args, "--stats-file", str(stats_path)],
-                out,
-                unit=args[1],
-                stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
-                env=self.env,
-                text=True,
-            )
-        proc = Proc(name, popen, log_path, stats_path, popen.stdin if stdin else None)
+        service = Service(
+            unit,
+            [*args, *(["--stats-file", str(stats_path)] if stats else [])],
+            log_path,
+            name=name,
+            env=self.env,
+            stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
+            watchdog=watchdog,
+            text=True,
+        )
+        proc = Proc(name, service, stats_path, stdin)
+        old = self.procs.get(name)
+        if old is not None:  # the same name started again: its socket is the new one's
+            old.service.close()
         self.procs[name] = proc
         return proc
 
-    def start_router(self, name: str = "router") -> Proc:
-        """The fabric's Zenoh router, its access control made from the (router's) roster."""
+    def router(self, name: str = "router") -> Proc:
+        """The fabric's Zenoh router, its access control made from the (router's) roster, on
+        the port it had (a restart) or a free one; not started."""
+        config = self._router_config(name)
+        return self.process(name, "router", ["-v", "router", "--config", str(config)])
+
+    def _router_config(self, name: str) -> Path:
         config = self.workdir / f"{name}.toml"
         write_secret_file(
             config,
             _ROUTER_TOML.format(
-                port=self.router_port,
+                listen=self.router_endpoint or "quic/127.0.0.1:0",
                 roster=self.router_roster,
                 cert_dir=self.cert_dir,
                 status=self.workdir / f"{name}-status.json",
             ),
         )
-        return self._start(name, ["-v", "router", "--config", str(config)])
+        return config
+
+    def start_router(self, name: str = "router", timeout_s: float = 30.0) -> Proc:
+        """The router, once it said READY=1: robots and operators started after it go there."""
+        proc = self.router(name).start()
+        self.router_ready(proc.wait_ready(timeout_s), name)
+        return proc
+
+    def router_ready(self, ready: Ready, name: str = "router") -> None:
+        """Where the router listens (its READY=1): the members go there, and a restarted
+        router binds it again (its config says it from now on)."""
+        self.router_endpoint = ready.endpoints["listen"]
+        self._router_config(name)
 
     def robot_config(
         self,
@@ -279,33 +340,48 @@ class Fleet:
         video_url: str = "",
         devices: str = SCRIPTED_TACTILE,
     ) -> Proc:
+        return self.robot(name, arm_host, rate_hz, video_url, devices).start()
+
+    def robot(
+        self,
+        name: str,
+        arm_host: str | None,
+        rate_hz: float = 60.0,
+        video_url: str = "",
+        devices: str = SCRIPTED_TACTILE,
+    ) -> Proc:
+        """Robot ``name`` (:meth:`robot_config`), not started."""
         config = self.robot_config(name, arm_host, rate_hz, video_url, devices)
-        return self._start(name, ["-v", "robot", "--config", str(config)])
+        return self.process(name, "robot", ["-v", "robot", "--config", str(config)])
 
     def start_video(
         self,
         name: str = "video",
         fps: float = 15.0,
-        port: int | None = None,
+        port: int = 0,
         settings: tuple[str, ...] = (),
+        timeout_s: float = 60.0,
     ) -> tuple[Proc, str]:
-        """A video server (the stamped test pattern, 320x240) on loopback; (process, its URL,
-        token included: a robot's link.video_url).
+        """A video server (the stamped test pattern, 320x240) on loopback, once it said where
+        it serves; (process, its URL, token included: a robot's link.video_url)."""
+        proc = self.video(name, fps, port, settings).start()
+        return proc, self.video_url(name, proc.wait_ready(timeout_s))
 
-        ``port``: the one it had before a restart (default: a free one). Its token file
-        stays in the workdir, so a restarted server keeps its token. ``settings``: more
-        ``--set`` overrides (``ice_timeout_s=3``)."""
-        port = port or free_loopback_ports(1)[0]
-        url = self.video_url(name, port)
+    def video(
+        self, name: str = "video", fps: float = 15.0, port: int = 0, settings: tuple[str, ...] = ()
+    ) -> Proc:
+        """A video server, not started: on ``port`` (the one it had before a restart; 0: a
+        free one, said in its READY=1). Its token file stays in the workdir, so a restarted
+        server keeps its token. ``settings``: more ``--set`` overrides (``ice_timeout_s=3``)."""
         settings = (*settings, f"port={port}", "test_pattern.width=320", "test_pattern.height=240")
         settings += (f"test_pattern.fps={fps}", f'token_file="{self.workdir / name}.token"')
         args = ["-v", "video", *(a for s in settings for a in ("--set", s))]
-        return self._start(name, args), url
+        return self.process(name, "video", args)
 
-    def video_url(self, name: str, port: int) -> str:
-        """Video server ``name``'s URL on ``port``, with the token of its file in the workdir."""
+    def video_url(self, name: str, ready: Ready) -> str:
+        """Video server ``name``'s URL (its READY=1's), with the token of its file."""
         token = web_token.token_file(self.workdir / f"{name}.token", "video token_file")
-        return web_token.with_token(f"ws://127.0.0.1:{port}/", token)
+        return web_token.with_token(ready.endpoints["signalling"], token)
 
     def start_operator(
         self,
@@ -320,6 +396,29 @@ class Fleet:
     ) -> Proc:
         """An operator process; ``servos`` is its ``[operator.servos]`` TOML body, and
         ``router_endpoint`` another path to the router (a link simulator's datagram port)."""
+        return self.operator(
+            name,
+            robot,
+            request_control=request_control,
+            want_frames=want_frames,
+            extra=extra,
+            servos=servos,
+            router_endpoint=router_endpoint,
+        ).start()
+
+    def operator(
+        self,
+        name: str,
+        robot: str,
+        *,
+        request_control: bool = False,
+        want_frames: bool = True,
+        extra: list[str] | None = None,
+        servos: str = 'kind = "recording"',
+        router_endpoint: str | None = None,
+        watchdog: bool = False,
+    ) -> Proc:
+        """An operator process (:meth:`start_operator`), not started; its config written."""
         m = self.members[name]
         proc_name = f"{name}@{robot}"  # one key may follow several robots, a process each
         config = self.workdir / f"{proc_name}.toml"
@@ -338,9 +437,14 @@ class Fleet:
             ),
         )
         args = ["-v", "operator", "--config", str(config), "--commands-from-stdin"]
-        return self._start(proc_name, [*args, *(extra or [])], stdin=True)
+        argv = [*args, *(extra or [])]
+        return self.process(proc_name, "operator", argv, stdin=True, watchdog=watchdog)
 
     def start_recorder(self, name: str, output: Path | None = None) -> Proc:
+        return self.recorder(name, output).start()
+
+    def recorder(self, name: str, output: Path | None = None) -> Proc:
+        """A recorder of every robot of the fleet, not started."""
         config = self.workdir / f"{name}.toml"
         lines = [
             "[recorder]",
@@ -353,7 +457,7 @@ class Fleet:
             f'name = "{name}"',
         ]
         write_secret_file(config, "\n".join(lines) + "\n")
-        return self._start(name, ["-v", "record", "--config", str(config)])
+        return self.process(name, "recorder", ["-v", "record", "--config", str(config)])
 
     def wait_for(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
         """Poll ``cond`` until true; else fail naming ``what``, with every process's log tail."""
@@ -366,20 +470,23 @@ class Fleet:
 
     def stop(self, name: str, sig: int | None = None, timeout_s: float = 15.0) -> int:
         """``sig`` (default: what ``systemctl stop`` sends), then a kill; the exit code."""
-        popen = self.procs[name].popen
+        service = self.procs[name].service
         if sig is None:
-            stop(popen, timeout_s)
+            service.stop(timeout_s)
         else:
-            stop(popen, timeout_s, sig)
-        return popen.returncode
+            service.stop(timeout_s, sig)
+        return service.popen.returncode
 
     def close(self) -> None:
         for name in reversed(list(self.procs)):  # operators first, the router last
-            self.stop(name)
-            stdin = self.procs[name].stdin
+            proc = self.procs[name]
+            if proc.service.popen is not None:
+                self.stop(name)
+            stdin = proc.stdin
             if stdin is not None and not stdin.closed:
                 with contextlib.suppress(BrokenPipeError):
                     stdin.close()
+            proc.service.close()
 
     def __enter__(self) -> Fleet:
         return self

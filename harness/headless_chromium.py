@@ -28,7 +28,8 @@ from typing import Any
 
 from websockets.sync.client import connect
 
-from harness.processes import in_session, raise_threads, stop
+from deploy.units.process import stop
+from harness.processes import in_session, raise_threads
 
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = (

@@ -1,9 +1,10 @@
 """The operator node with its dashboard as its own process, as deployed, for browser tests.
 
-``OperatorWithDashboard`` starts ``deepxpalm -v operator`` at its unit's
-priority on a robot's plain loopback link (``RobotUnderCommands``), its servos
-recorded and its dashboard on a port of its own choosing, and reads the page's
-address (token included) and the node's snapshot from its ``--status-file``.
+``OperatorWithDashboard`` starts ``deepxpalm -v operator`` as its unit (its
+priority, its notify socket) on a robot's plain loopback link
+(``RobotUnderCommands``), its servos recorded and its dashboard on a port of
+its own choosing, which its ``READY=1`` names; the page's token is the one
+its config was given, and the node's snapshot is read from its ``--status-file``.
 The node's threads then share an interpreter with nothing of the test's (the
 browser's driver, the simulators' probes), as on an operator PC: a test that
 times a stop through the page times the product, not the test's own process.
@@ -12,15 +13,14 @@ times a stop through the page times the product, not the test's own process.
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 from typing import Any
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import urlsplit
 
 from common.signing import write_secret_file
-from common.web_token import TOKEN_PARAM
+from common.web_token import new_token, with_token
+from deploy.units.service import Service
 from harness.bench.command_path import LogLine, read_log_lines
-from harness.processes import spawn_cli, stop
 from operator_side.node.snapshot import Snapshot
 
 _OPERATOR_TOML = """
@@ -32,6 +32,7 @@ command_endpoint = "{cmd}"
 [operator.dashboard]
 enabled = true
 port = 0
+token = "{token}"
 """
 
 
@@ -52,33 +53,36 @@ class OperatorWithDashboard:
         self.config = workdir / "operator.toml"
         self.status = workdir / "operator-status.json"
         self.log = workdir / "operator.log"
+        #: the page's token: given to the node, as whoever opens its page has it
+        self.token = new_token()
         write_secret_file(
-            self.config, _OPERATOR_TOML.format(tel=telemetry_endpoint, cmd=command_endpoint)
+            self.config,
+            _OPERATOR_TOML.format(tel=telemetry_endpoint, cmd=command_endpoint, token=self.token),
         )
-        self.settings = settings
+        sets = [a for kv in settings for a in ("--set", kv)]
+        argv = ["-v", "operator", "--config", str(self.config)]
+        argv += ["--status-file", str(self.status), *sets]
+        self.service = Service("operator", argv, self.log, watchdog=False)
+
+    @property
+    def proc(self) -> Any:
+        return self.service.popen
 
     def __enter__(self) -> OperatorWithDashboard:
         self.status.unlink(missing_ok=True)
-        with self.log.open("a") as out:  # at its unit's niceness, as its unit runs it
-            sets = [a for kv in self.settings for a in ("--set", kv)]
-            argv = ["-v", "operator", "--config", str(self.config)]
-            argv += ["--status-file", str(self.status), *sets]
-            self.proc = spawn_cli(argv, out, unit="operator")
-        deadline = time.monotonic() + 60
-        while (url := self._status().get("dashboard_url")) is None:
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                self.__exit__()
-                raise RuntimeError(f"the operator's dashboard never came up:\n{self.log_tail()}")
-            time.sleep(0.05)
+        try:  # at its unit's niceness, as its unit runs it; up once it said where its page is
+            base = self.service.up().endpoints["dashboard"]
+        except BaseException:
+            self.service.close()
+            raise
         #: the page's address, its token included (what the operator opens)
-        self.url: str = url
-        parts = urlsplit(url)
-        self.port: int = parts.port or 80
-        self.token: str = parse_qs(parts.query)[TOKEN_PARAM][0]
+        self.url: str = with_token(base, self.token)
+        self.port: int = urlsplit(base).port or 80
         return self
 
     def __exit__(self, *exc: object) -> None:
-        stop(self.proc, 15)
+        self.service.stop(15)
+        self.service.close()
 
     def _status(self) -> dict[str, Any]:
         try:

@@ -1,106 +1,20 @@
-"""The harness's process toolkit: start ``deepxpalm`` as a child, stop a child, read /proc.
+"""The harness's /proc readers: a process's CPU time, threads, memory, command line, children.
 
-Every harness module that starts the product's command, stops a process or
-reads a process's CPU time does it here, once:
-
-- :func:`cli_argv` / :func:`spawn_cli`: ``python -m deploy.cli ARGS`` with this
-  interpreter (a checkout put first on PYTHONPATH runs its own code), at the
-  priority the systemd unit gives the role when one is named.
-- :func:`stop`: a signal (SIGTERM, as ``systemctl stop`` sends), a wait, then
-  SIGKILL, as systemd's ``TimeoutStopSec=`` does; says whether it had to kill.
 - :func:`cpu_s`, :func:`thread_cpu_s`, :func:`machine_cpu`, :func:`idle_share`,
   :func:`rss_mb`, :func:`cmdline`, :func:`children_of`: Linux /proc readers.
 
-The product keeps its own (the demo's children, ``deploy.supervisor``); the
-harness imports the product, never the reverse.
+Starting and stopping a process is the product's own (``deploy.units``: one
+spawn, one stop, one readiness), which the harness uses as the demo does.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import signal
-import subprocess
-import sys
-from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Any
-
-from deploy.unit_policy import set_niceness, unit_nice
 
 _TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
 _PAGE_MB = os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
-# ------------------------------------------------------------------ starting
-def cli_argv(args: list[str]) -> list[str]:
-    """The command line of ``deepxpalm ARGS`` run by this interpreter."""
-    return [sys.executable, "-m", "deploy.cli", *args]
-
-
-def spawn_cli(
-    args: list[str],
-    stdout: IO[Any] | int | None = None,
-    *,
-    unit: str | None = None,
-    in_child: Callable[[], None] | None = None,
-    **popen: Any,
-) -> subprocess.Popen:
-    """``deepxpalm ARGS`` as a child; at the niceness of its systemd ``unit`` when named.
-
-    ``stdout`` is where its output goes (stderr with it unless ``stderr=`` says
-    otherwise); ``in_child`` runs in the child before the command (after the
-    niceness); every other keyword goes to :class:`subprocess.Popen`.
-    """
-    nice = unit_nice(unit) if unit is not None else None
-
-    def before() -> None:
-        if nice is not None:
-            set_niceness(nice)
-        if in_child is not None:
-            in_child()
-
-    popen.setdefault("stderr", subprocess.STDOUT if stdout is not None else None)
-    needs_hook = nice is not None or in_child is not None
-    return subprocess.Popen(
-        cli_argv(args), stdout=stdout, preexec_fn=before if needs_hook else None, **popen
-    )
-
-
-# ------------------------------------------------------------------ stopping
-def stop(
-    proc: subprocess.Popen | None,
-    timeout_s: float = 15.0,
-    sig: int = signal.SIGTERM,
-    *,
-    group: bool = False,
-) -> bool:
-    """``sig`` (SIGTERM by default), wait ``timeout_s``, then SIGKILL; True if it was killed.
-
-    ``group``: signal the child's whole process group (a child started with
-    ``start_new_session=True`` and its own children, as a browser's). A child
-    that has already ended is reaped and left alone. ``timeout_s=0`` kills at once.
-    """
-    if proc is None or proc.poll() is not None:
-        return False
-
-    def send(s: int) -> None:
-        with contextlib.suppress(ProcessLookupError):
-            if group:
-                os.killpg(proc.pid, s)
-            else:
-                proc.send_signal(s)
-
-    if timeout_s > 0:
-        send(sig)
-        try:
-            proc.wait(timeout=timeout_s)
-            return False
-        except subprocess.TimeoutExpired:
-            pass
-    send(signal.SIGKILL)
-    proc.wait()
-    return True
 
 
 # ------------------------------------------------------------------ /proc

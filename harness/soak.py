@@ -18,7 +18,6 @@ import contextlib
 import json
 import logging
 import math
-import os
 import signal
 import subprocess
 import tempfile
@@ -30,7 +29,9 @@ from typing import Any
 import numpy as np
 
 from common.cli_support import add_overrides_argument
-from harness.processes import children_of, cli_argv, cmdline, cpu_s, rss_mb
+from deploy.units.readiness import NotReady
+from deploy.units.service import Service
+from harness.processes import children_of, cmdline, cpu_s, rss_mb
 
 log = logging.getLogger(__name__)
 
@@ -184,35 +185,37 @@ def run(args: argparse.Namespace) -> int:
     workdir = args.dir or Path(tempfile.mkdtemp(prefix="deepxpalm-soak-"))
     workdir.mkdir(parents=True, exist_ok=True)
     rec_dir = workdir / "recording"
-    cmd = cli_argv(
-        [
-            "-v",
-            "demo",
-            "--json",
-            "--duration",
-            str(duration_s),
-            "--scene",
-            args.scene,
-            "--scenario",
-            args.scenario,
-            "--record",
-            str(rec_dir),
-            # per-message faults, corruption included, so the decoders are exercised
-            "--set",
-            "network.mode=message",
-        ]
-    )
+    cmd = [
+        "-v",
+        "demo",
+        "--json",
+        "--duration",
+        str(duration_s),
+        "--scene",
+        args.scene,
+        "--scenario",
+        args.scenario,
+        "--record",
+        str(rec_dir),
+        # per-message faults, corruption included, so the decoders are exercised
+        "--set",
+        "network.mode=message",
+    ]
     for override in args.overrides:
         cmd += ["--set", override]
     out_path, err_path = workdir / "demo.json", workdir / "demo.log"
     print(f"soak: {args.minutes:g} min of the demo on {args.scenario!r}; files in {workdir}")
-    with out_path.open("wb") as out, err_path.open("wb") as err:
-        demo = subprocess.Popen(cmd, stdout=out, stderr=err, start_new_session=True)
+    out_path.unlink(missing_ok=True)
+    err_path.unlink(missing_ok=True)
+    demo = Service("demo", cmd, err_path, stdout=out_path)
+    demo.start()
     series: dict[str, Series] = {"operator (demo)": Series(demo.pid)}
     t0 = time.monotonic()
     deadline = t0 + duration_s + 120  # the demo stops itself; this is the backstop
     try:
-        while demo.poll() is None:
+        with contextlib.suppress(NotReady):  # a demo that fails says why in its summary
+            demo.wait_ready()  # every process of it up: its children are the ones to watch
+        while demo.alive():
             elapsed = time.monotonic() - t0
             for pid in children_of(demo.pid):
                 role = _role(pid)
@@ -224,13 +227,14 @@ def run(args: argparse.Namespace) -> int:
                     s.samples.append((elapsed, rss, cpu))
             if time.monotonic() > deadline:
                 log.error("the demo overran its duration by 2 minutes; stopping it")
-                os.killpg(demo.pid, signal.SIGINT)
                 break
-            _sleep_until_exit(demo, args.sample_s)
-        returncode = demo.wait(timeout=60)
+            _sleep_until_exit(demo.popen, args.sample_s)
     except KeyboardInterrupt:
-        os.killpg(demo.pid, signal.SIGINT)
-        returncode = demo.wait(timeout=60)
+        pass
+    finally:
+        demo.stop(60, signal.SIGINT, group=True)  # Ctrl-C to it and its children, as a user
+        demo.close()
+    returncode = demo.popen.returncode
     elapsed = time.monotonic() - t0
     summary: dict[str, Any] = {}
     with contextlib.suppress(OSError, ValueError):

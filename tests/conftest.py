@@ -179,7 +179,7 @@ def robot_node_priority_module():
     That is this process standing below the node it stands for, not the node. Where the
     process may not raise a priority, nothing changes. Each thread gets its own back after.
     """
-    from deploy.unit_policy import unit_nice
+    from deploy.units.policy import unit_nice
     from harness.processes import raise_threads
 
     nice = unit_nice("robot")

@@ -275,8 +275,8 @@ class VideoServerProcess:
 def child_processes(parent_pid: int) -> dict[str, int]:
     """The pids of a ``deepxpalm demo``'s children by role, read from /proc, as ``ps`` would.
 
-    Roles: the ``deepxpalm`` subcommand (robot, netsim, video, operator), ``servos`` for the
-    servo bus simulator, or ``world`` for the lab.
+    Roles: the ``deepxpalm`` subcommand (robot, netsim, video, operator, router), ``servos``
+    for the servo bus simulator, or ``world`` for the lab (``deepxpalm sim world``).
     """
     import os
 
@@ -293,9 +293,7 @@ def child_processes(parent_pid: int) -> dict[str, int]:
             continue  # gone meanwhile
         if ppid != parent_pid:
             continue
-        if "robot_side.lab" in words:
-            found["world"] = int(entry)
-        for role in ("robot", "netsim", "video", "operator", "servos"):
+        for role in ("robot", "netsim", "video", "operator", "servos", "world", "router"):
             if role in words:
                 found[role] = int(entry)
     return found

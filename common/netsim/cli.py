@@ -15,11 +15,9 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import signal
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from common.cli_support import add_config_arguments, load_node_config, print_config, write_stats
@@ -29,6 +27,7 @@ from common.netsim.impairments import DIRECTIONS, Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
 from common.netsim.scenario import builtin_scenarios, load_scenario
 from common.netsim.stream import StreamForwarder
+from common.sd_notify import Notifier
 from common.signals import stop_on_signals
 
 log = logging.getLogger(__name__)
@@ -75,12 +74,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for key in _ENDPOINT_KEYS:
         parser.add_argument(f"--{key.replace('_', '-')}", dest=key, metavar="ENDPOINT")
     parser.add_argument("--duration-s", type=float, help="stop after this many seconds")
-    parser.add_argument(
-        "--ready-file",
-        type=Path,
-        help="once forwarding, write JSON here: pid, mode, endpoints and schedule_start_ns "
-        "(the monotonic ns the scenario's outages count from); for supervisors and tests",
-    )
 
 
 MODES = ("stream", "message", "datagram")
@@ -137,16 +130,15 @@ def run(args: argparse.Namespace) -> int:
             sim.operator_commands_endpoint,
             sim.start_ns,
         )
-        write_stats(
-            getattr(args, "ready_file", None),
+        # READY=1 once forwarding (systemd, or whoever started it): where the operator
+        # connects (a port-0 config's ports too) and when the scenario's clock started
+        Notifier().ready(
+            f"{scenario.name} ({mode_of(config, scenario)} mode)",
             {
-                "pid": os.getpid(),
-                "mode": mode_of(config, scenario),
-                "scenario": scenario.name,
                 "operator_telemetry": sim.operator_telemetry_endpoint,
                 "operator_commands": sim.operator_commands_endpoint,
-                "schedule_start_ns": sim.start_ns,
             },
+            schedule_start_ns=sim.start_ns,
         )
         t_end = time.monotonic() + config.duration_s if config.duration_s > 0 else None
         t_report = time.monotonic()

@@ -15,12 +15,12 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from deploy.units.service import Service
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
 
@@ -80,21 +80,15 @@ def _cpu_s(pid: int) -> float | None:
 
 def run_cell(scenario: str, transport: str, duration_s: float) -> dict[str, Any]:
     """One demo: its summary's figures, and each node's CPU over the middle of the run."""
-    argv = [sys.executable, "-m", "deploy.cli", "demo", "--json", "--no-video"]
-    argv += ["--scenario", scenario, "--duration", str(duration_s)]
+    argv = ["demo", "--json", "--no-video", "--scenario", scenario, "--duration", str(duration_s)]
     if transport == "fabric":
         argv.append("--fabric")
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    demo = Service("demo", argv, None, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     cpu: dict[str, float] = {}
     try:
-        # the nodes' CPU from once all are up (a few seconds in) to near the end
-        deadline = time.monotonic() + START_S
-        pids: dict[str, int] = {}
-        while time.monotonic() < deadline and proc.poll() is None:
-            pids = _children(proc.pid)
-            if {"robot", "operator"} <= set(pids):
-                break
-            time.sleep(0.2)
+        # the nodes' CPU from once all are up (its READY=1) to near the end
+        demo.up()  # within the demo unit's start timeout
+        pids = _children(demo.pid)
         time.sleep(min(5.0, duration_s / 3))
         t0 = time.monotonic()
         start = {role: _cpu_s(pid) for role, pid in pids.items()}
@@ -104,11 +98,10 @@ def run_cell(scenario: str, transport: str, duration_s: float) -> dict[str, Any]
             end = _cpu_s(pid)
             if end is not None and start.get(role) is not None:
                 cpu[role] = (end - start[role]) / span
-        out, _ = proc.communicate(timeout=START_S + 4 * duration_s)
+        out, _ = demo.popen.communicate(timeout=START_S + 4 * duration_s)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        demo.stop(0)  # only if it still runs: it stops by itself after its duration
+        demo.close()
     summary = json.loads(out)
     lat = summary.get("latency_ms") or {}
     ran = summary.get("duration_s") or duration_s

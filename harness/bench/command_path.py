@@ -38,10 +38,10 @@ import zmq
 from common.clock import now_ns
 from common.errors import DeviceError
 from common.messages import Heartbeat, Stimulus
-from common.transport import Subscriber, free_loopback_ports
+from common.transport import Subscriber
+from deploy.units.service import Service
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
-from harness.processes import spawn_cli, stop
 
 PUBLISH_HZ = 60.0
 FLOOD_VELOCITY = [0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
@@ -155,9 +155,6 @@ class ArmWatch:
         self._thread.join(2)
 
 
-_BIND_ATTEMPTS = 3
-
-
 @dataclass(frozen=True)
 class LogLine:
     """One line of the node's log: wall time (``time.time()``, ms resolution), level, logger."""
@@ -203,29 +200,22 @@ class RobotUnderCommands:
         self.log = self.workdir / "robot.log"
         self.arm = ArmWatch(self.arm_sim)
         self.telemetry: Telemetry | None = None
-        for attempt in range(_BIND_ATTEMPTS):
-            # The node's ports are picked only now, after the simulators hold theirs; a port
-            # "free" a moment ago can still be taken by any other process before the node
-            # binds it, so a node that finds its address in use gets fresh ones.
-            self._use_fresh_endpoints()
-            try:
-                self.start_node()
-                break
-            except RuntimeError as e:
-                if attempt + 1 < _BIND_ATTEMPTS and "Address already in use" in str(e):
-                    self.log.write_text("")
-                    continue
-                self.__exit__()
-                raise
+        # ports of its own choosing, said in its READY=1 and bound again after a restart
+        self.telemetry_endpoint = self.command_endpoint = "tcp://127.0.0.1:0"
+        self._write_config()
+        sets = [a for kv in self.settings for a in ("--set", kv)]
+        argv = ["-v", "robot", "--config", str(self.config), *sets]
+        # at its unit's niceness, as its unit runs it
+        self.service = Service("robot", argv, self.log, watchdog=False)
+        try:
+            self.start_node()
+        except BaseException:
+            self.__exit__()
+            raise
         time.sleep(0.3)
         return self
 
-    def _use_fresh_endpoints(self) -> None:
-        if self.telemetry is not None:
-            self.telemetry.close()
-        self.telemetry_endpoint, self.command_endpoint = (
-            f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2)
-        )
+    def _write_config(self) -> None:
         self.config.write_text(
             _ROBOT_TOML.format(
                 rate=PUBLISH_HZ,
@@ -235,16 +225,22 @@ class RobotUnderCommands:
                 cmd=self.command_endpoint,
             )
         )
-        self.telemetry = Telemetry(self.telemetry_endpoint)
+
+    @property
+    def proc(self) -> Any:
+        return self.service.popen
 
     def start_node(self, timeout_s: float = 60.0) -> None:
-        """Start the robot node process; returns once it publishes (again, after a restart)."""
+        """Start the robot node process; returns once it said READY=1 and the rig's listener
+        has its stimuli (again, after a restart: on the same ports)."""
         t0 = now_ns()
-        with self.log.open("a") as out:  # at its unit's niceness, as its unit runs it
-            sets = [a for kv in self.settings for a in ("--set", kv)]
-            argv = ["-v", "robot", "--config", str(self.config), *sets]
-            self.proc = spawn_cli(argv, out, unit="robot")
-        deadline = time.monotonic() + timeout_s
+        ready = self.service.up(timeout_s)
+        if self.telemetry is None:  # the first: where it bound, from now on its config's
+            self.telemetry_endpoint = ready.endpoints["telemetry"]
+            self.command_endpoint = ready.endpoints["commands"]
+            self._write_config()
+            self.telemetry = Telemetry(self.telemetry_endpoint)
+        deadline = time.monotonic() + timeout_s  # the listener joined (ZeroMQ's slow joiner)
         while not self.telemetry.times(Stimulus, t0):
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"the robot node never published:\n{self.log.read_text()}")
@@ -263,8 +259,10 @@ class RobotUnderCommands:
 
     def __exit__(self, *exc: object) -> None:
         self.arm.close()
-        self.telemetry.close()
-        stop(self.proc, 15)
+        if self.telemetry is not None:
+            self.telemetry.close()
+        self.service.stop(15)
+        self.service.close()
         self.gripper_sim.stop()
         self.arm_sim.stop()
 

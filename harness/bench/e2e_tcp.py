@@ -22,8 +22,6 @@ import argparse
 import json
 import logging
 import os
-import select
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -33,10 +31,12 @@ from typing import Any
 import numpy as np
 
 from common.clock import Rate, now_ns
+from common.sd_notify import Notifier
+from deploy.units.catalogue import UnitSpec
+from deploy.units.service import Service
 from harness.bench.fmt import num, results_of
 from harness.bench.section import Context, Results, Section, Verdict
 from harness.bench.timing import THREAD_ENV, summarize_ns
-from harness.processes import stop
 
 log = logging.getLogger(__name__)
 
@@ -44,23 +44,40 @@ log = logging.getLogger(__name__)
 TIMED_SEQ_START = 1_000_000
 
 
-def _wait_line(proc: subprocess.Popen, want: str, timeout_s: float, tick: Any = None) -> None:
-    """Read the child's stdout until ``want``, calling ``tick()`` between polls."""
-    assert proc.stdout is not None
+#: the bench's peer: an operator-side program of the harness (``python -m harness.bench.e2e_tcp``)
+PEER = UnitSpec(
+    "bench-peer",
+    (),
+    "the bench's operator side over TCP",
+    "nothing bound: READY=1 once its subscription hears the robot (ZeroMQ's slow joiner)",
+)
+
+
+def _start_peer(argv: list[str], out_path: Path) -> Service:
+    peer = Service(
+        PEER,
+        argv,
+        out_path.with_suffix(".log"),
+        env={**os.environ, **THREAD_ENV},
+        module="harness.bench.e2e_tcp",
+    )
+    peer.start()
+    return peer
+
+
+def _wait_joined(peer: Service, timeout_s: float, tick: Any) -> None:
+    """Until the peer says READY=1 (it hears us), calling ``tick()`` (a warm-up message)."""
     deadline = time.monotonic() + timeout_s
-    fd = proc.stdout.fileno()
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"bench peer exited with {proc.returncode} before {want!r}")
-        ready, _, _ = select.select([fd], [], [], 0.02)
-        if ready:
-            line = proc.stdout.readline().decode().strip()
-            if line == want:
-                return
-            log.debug("peer: %s", line)
-        elif tick is not None:
-            tick()
-    raise RuntimeError(f"bench peer did not say {want!r} within {timeout_s} s")
+    while peer.ready is None:
+        if time.monotonic() > deadline or not peer.alive():
+            peer.wait_ready(0)  # NotReady, with the peer's log
+        tick()
+
+
+def _end_peer(peer: Service, out_path: Path) -> None:
+    peer.stop(0)
+    peer.close()
+    out_path.with_suffix(".log").unlink(missing_ok=True)
 
 
 def end_to_end_tcp(
@@ -91,21 +108,10 @@ def end_to_end_tcp(
     pub = Publisher(ctx, "tcp://127.0.0.1:*", bind=True)
     robot = RobotNode(RobotConfig(), sensor, classifier=classifier, ctx=ctx, link=Link(pub=pub))
     out_path = Path(f"/tmp/deepxpalm-bench-tcp-{os.getpid()}.json")
-    cmd = [
-        sys.executable,
-        "-m",
-        "harness.bench.e2e_tcp",
-        "--endpoint",
-        pub.endpoint,
-        "--count",
-        str(n_frames),
-        "--out",
-        str(out_path),
-    ]
+    cmd = ["--endpoint", pub.endpoint, "--count", str(n_frames), "--out", str(out_path)]
     if peer_cpu is not None:
         cmd += ["--cpu", str(peer_cpu)]
-    env = {**os.environ, **THREAD_ENV}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, env=env)
+    peer = _start_peer(cmd, out_path)
     seq = [0]
 
     def feed(wire_seq: int, frame: np.ndarray) -> None:
@@ -119,8 +125,7 @@ def end_to_end_tcp(
         time.sleep(0.01)
 
     try:
-        _wait_line(proc, "ready", 60.0)
-        _wait_line(proc, "joined", 20.0, tick=warm)
+        _wait_joined(peer, 80.0, tick=warm)  # its imports, then our first messages
         # Encoding the scan is the board's work, not the robot's: do it before the clock starts.
         scans = [scan_bytes(frames[i % len(frames)], TIMED_SEQ_START + i) for i in range(n_frames)]
         rate = Rate(rate_hz)
@@ -129,10 +134,10 @@ def end_to_end_tcp(
             sensor.feed(scan, now_ns())
             robot.process(sensor.latest())
             rate.sleep()
-        proc.wait(timeout=30)
+        peer.popen.wait(timeout=30)  # it writes what it measured and ends
         result = json.loads(out_path.read_text())
     finally:
-        stop(proc, 0)
+        _end_peer(peer, out_path)
         out_path.unlink(missing_ok=True)
         pub.close()
         ctx.term()
@@ -172,28 +177,16 @@ def loopback_floor(
     pub.bind("tcp://127.0.0.1:*")
     endpoint = pub.getsockopt(zmq.LAST_ENDPOINT).decode()
     out_path = Path(f"/tmp/deepxpalm-bench-floor-{os.getpid()}.json")
-    cmd = [
-        sys.executable,
-        "-m",
-        "harness.bench.e2e_tcp",
-        "--floor",
-        "--endpoint",
-        endpoint,
-        "--count",
-        str(n_frames),
-        "--out",
-        str(out_path),
-    ]
+    cmd = ["--floor", "--endpoint", endpoint, "--count", str(n_frames), "--out", str(out_path)]
     if peer_cpu is not None:
         cmd += ["--cpu", str(peer_cpu)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, env={**os.environ, **THREAD_ENV})
+    peer = _start_peer(cmd, out_path)
     pad = bytes(192)
 
     def send(seq: int) -> None:
         pub.send(b"STIM" + struct.pack("<qq", seq, now_ns()) + pad)
 
     try:
-        _wait_line(proc, "ready", 60.0)
         warm = [0]
 
         def tick() -> None:
@@ -201,15 +194,15 @@ def loopback_floor(
             send(-warm[0])
             time.sleep(0.01)
 
-        _wait_line(proc, "joined", 20.0, tick=tick)
+        _wait_joined(peer, 80.0, tick=tick)  # its imports, then our first messages
         rate = Rate(rate_hz)
         for i in range(n_frames):
             send(i)
             rate.sleep()
-        proc.wait(timeout=30)
+        peer.popen.wait(timeout=30)  # it writes what it measured and ends
         result = json.loads(out_path.read_text())
     finally:
-        stop(proc, 0)
+        _end_peer(peer, out_path)
         out_path.unlink(missing_ok=True)
         pub.close(0)
         ctx.term()
@@ -231,7 +224,6 @@ def _floor_peer(args: argparse.Namespace) -> int:
     sub.setsockopt(zmq.LINGER, 0)
     sub.setsockopt(zmq.SUBSCRIBE, b"")
     sub.connect(args.endpoint)
-    print("ready", flush=True)
     latencies: list[int] = []
     joined = False
     last = time.monotonic()
@@ -244,7 +236,7 @@ def _floor_peer(args: argparse.Namespace) -> int:
         seq, t0 = struct.unpack_from("<qq", data, 4)
         if not joined:
             joined = True
-            print("joined", flush=True)
+            Notifier().ready("joined")  # it hears the bench: the timed messages may start
         if seq >= 0:
             latencies.append(t - t0)
     Path(args.out).write_text(json.dumps({"latencies_ns": latencies}))
@@ -281,7 +273,6 @@ def _peer(args: argparse.Namespace) -> int:
     sub = StampedSubscriber(ctx, args.endpoint, bind=False, name="bench peer")
     node = OperatorNode(OperatorConfig(), bus, ctx=ctx, link=Link(sub=sub))
     period_ns = round(1e9 / node.config.renderer.control_rate_hz)
-    print("ready", flush=True)
     latencies: list[int] = []
     splits: list[tuple[int, int, int]] = []
     joined = False
@@ -298,7 +289,7 @@ def _peer(args: argparse.Namespace) -> int:
         stim = node.last_stimulus
         if not joined:
             joined = True
-            print("joined", flush=True)
+            Notifier().ready("joined")  # it hears the bench: the timed messages may start
         if stim is not None and stim.frame_seq > TIMED_SEQ_START and bus.writes > writes:
             latencies.append(bus.last_write_ns - stim.t_capture_ns)
             splits.append(

@@ -36,12 +36,13 @@ import numpy as np
 from common.clock import Rate
 from common.config import config_toml
 from common.devices import as_hardware
-from common.transport import free_loopback_ports
+from deploy.units.readiness import Ready
+from deploy.units.service import Service
 from harness.bench.fixtures import scan_bytes
 from harness.bench.fmt import num, results_of, table
 from harness.bench.section import Context, Results, Section, Verdict
 from harness.bench.timing import deployed_env, original_affinity, summarize_ns
-from harness.processes import process_cpu_s, spawn_cli, stop, thread_cpu_s
+from harness.processes import process_cpu_s, thread_cpu_s
 
 log = logging.getLogger(__name__)
 
@@ -118,22 +119,19 @@ class PtyFeeder:
                 os.close(fd)
 
 
-#: a port free a moment ago can be taken by any other process before the node binds it: a
-#: robot node that finds its address in use is started again on fresh ports, this often
-BIND_ATTEMPTS = 3
+def _start(services: dict[str, Service], name: str, argv: list[str], workdir: Path) -> Ready:
+    """A node as deployed (its unit's niceness, every core this bench could use, no thread
+    limits it added), once it said READY=1: what it bound."""
+    service = Service(name, argv, workdir / f"{name}.log", env=deployed_env(), watchdog=False)
+    services[name] = service
+    service.start()
+    with contextlib.suppress(OSError):  # it may already have exited: reported next
+        os.sched_setaffinity(service.pid, original_affinity())
+    return service.wait_ready(START_S)
 
 
-def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
-    """A node as deployed: every core this bench could use, no thread limits it added."""
-    out = log_path.open("wb")
-    proc = spawn_cli(args, out, start_new_session=True, env=deployed_env())
-    with contextlib.suppress(OSError):  # it may already have exited: reported later
-        os.sched_setaffinity(proc.pid, original_affinity())
-    return proc
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    stop(proc, 10, signal.SIGINT)  # the nodes stop cleanly and write their stats
+#: how long a node may take to say READY=1 on a loaded machine
+START_S = 120.0
 
 
 class RobotWatch:
@@ -256,7 +254,8 @@ class FabricSite:
         )
         self.cert_dir = d / "certs"
         fabric_certificates(self.roster, self.cert_dir, "router", ("127.0.0.1",), False)
-        self.endpoint = f"quic/127.0.0.1:{free_loopback_ports(1, udp=True)[0]}"
+        #: where the router listens: a free port of its own, said in its READY=1
+        self.endpoint = "quic/127.0.0.1:0"
         self.router_config = d / "router.toml"
         self.router_config.write_text(
             f'[router]\nlisten_endpoint = "{self.endpoint}"\nroster_file = "{self.roster}"\n'
@@ -303,7 +302,7 @@ def run_nodes(
         robot_cfg.classifier.backend = backend
     op_cfg = OperatorConfig()
     op_cfg.servos = {"kind": "recording"}
-    procs: dict[str, subprocess.Popen] = {}
+    services: dict[str, Service] = {}
     watch: RobotWatch | None = None
     site = FabricSite(workdir) if fabric else None
     result: dict[str, Any] = {
@@ -314,52 +313,39 @@ def run_nodes(
         "measure_s": measure_s,
     }
     try:
-        for attempt in range(BIND_ATTEMPTS):
-            tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(2))
-            for cfg in (robot_cfg, op_cfg):
-                cfg.link.telemetry_endpoint, cfg.link.command_endpoint = tel, cmd
-            if site is not None:
-                site.configure(robot_cfg, op_cfg)
-                procs["router"] = _spawn(
-                    ["router", "--config", str(site.router_config)], workdir / "router.log"
-                )
-            (workdir / "robot.toml").write_text(config_toml(robot_cfg, "robot"))
-            (workdir / "operator.toml").write_text(config_toml(op_cfg, "operator"))
-            procs["robot"] = _spawn(
-                [
-                    "robot",
-                    "--config",
-                    str(workdir / "robot.toml"),
-                    "--stats-file",
-                    str(workdir / "robot.json"),
-                ],
-                workdir / "robot.log",
+        if site is not None:
+            ready = _start(
+                services, "router", ["router", "--config", str(site.router_config)], workdir
             )
-            if with_operator:
-                procs["operator"] = _spawn(
-                    [
-                        "operator",
-                        "--config",
-                        str(workdir / "operator.toml"),
-                        "--stats-file",
-                        str(workdir / "operator.json"),
-                    ],
-                    workdir / "operator.log",
-                )
-            watch = RobotWatch(tel) if site is None else FabricRobotWatch(site)
-            try:
-                watch.wait_ready(procs["robot"], timeout_s=120.0)
-                break
-            except RuntimeError as e:
-                tail = (workdir / "robot.log").read_text(errors="replace")[-800:]
-                if attempt + 1 < BIND_ATTEMPTS and "Address already in use" in tail:
-                    watch.close()
-                    watch = None
-                    for proc in procs.values():
-                        _stop(proc)
-                    procs.clear()
-                    continue
-                raise RuntimeError(f"{e}: {tail}") from None
+            site.endpoint = ready.endpoints["listen"]
+            site.configure(robot_cfg, op_cfg)
+        else:  # ports of the robot's own choosing, said in its READY=1
+            robot_cfg.link.telemetry_endpoint = robot_cfg.link.command_endpoint = (
+                "tcp://127.0.0.1:0"
+            )
+        (workdir / "robot.toml").write_text(config_toml(robot_cfg, "robot"))
+        robot_args = ["robot", "--config", str(workdir / "robot.toml")]
+        ready = _start(
+            services, "robot", [*robot_args, "--stats-file", str(workdir / "robot.json")], workdir
+        )
+        tel = ready.endpoints.get("telemetry", "")
+        if site is None:
+            op_cfg.link.telemetry_endpoint, op_cfg.link.command_endpoint = (
+                tel,
+                ready.endpoints["commands"],
+            )
+        (workdir / "operator.toml").write_text(config_toml(op_cfg, "operator"))
+        if with_operator:
+            op_args = ["operator", "--config", str(workdir / "operator.toml")]
+            _start(
+                services,
+                "operator",
+                [*op_args, "--stats-file", str(workdir / "operator.json")],
+                workdir,
+            )
+        watch = RobotWatch(tel) if site is None else FabricRobotWatch(site)
+        watch.wait_ready(services["robot"].popen, timeout_s=START_S)  # the watch has joined
+        procs = {name: service.popen for name, service in services.items()}
         time.sleep(warmup_s)
         for name, proc in procs.items():
             if proc.poll() is not None:
@@ -395,13 +381,11 @@ def run_nodes(
     finally:
         if watch is not None:
             watch.close()
-        for name, proc in procs.items():
-            if name != "router":
-                _stop(proc)
-        if "router" in procs:  # last: a node stopping beside a gone router waits for it
-            _stop(procs["router"])
+        for service in reversed(services.values()):  # the router last: a node stopping
+            service.stop(10, signal.SIGINT)  # beside a gone router waits for it; they write
+            service.close()  # their stats as they stop
         feeder.stop()
-    for name in procs:
+    for name in services:
         path = workdir / f"{name}.json"
         if path.exists():
             stats = json.loads(path.read_text())

@@ -39,15 +39,11 @@ import numpy as np
 
 from common.config import config_toml, from_dict
 from common.tactile import pattern_name
-from common.transport import free_loopback_ports
-from deploy.demo import (
-    fit_command_timing,
-    netsim_args,
-    spawn_cli,
-    stop_child,
-    wait_for_robot,
-)
+from deploy.demo import fit_command_timing
 from deploy.scene import Scene, load_scene_dict
+from deploy.units.process import CLEAN_ENDS
+from deploy.units.readiness import NotReady
+from deploy.units.service import Service
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
 
@@ -105,7 +101,7 @@ def run_cell(
     workdir.mkdir(parents=True, exist_ok=True)
     scene = _scene(scenario, feedback)
     world = LabWorldProcess(LabWorldConfig(seed=world_seed, pipettes=[PipetteConfig()])).start()
-    procs: list[tuple[str, Any, Path]] = []
+    services: list[Service] = []
     errors: list[str] = []
     stop = threading.Event()
     node = None
@@ -117,43 +113,34 @@ def run_cell(
         addresses.write_text(json.dumps(world.addresses))
         for device in ("tactile", "gripper", "arm"):
             getattr(scene.robot, device)["running_world"] = str(addresses)
-        robot_tel, robot_cmd, op_tel, op_cmd = (
-            f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(4)
-        )
-        scene.robot.link.telemetry_endpoint = robot_tel
-        scene.robot.link.command_endpoint = robot_cmd
-        scene.operator.link.telemetry_endpoint = op_tel
-        scene.operator.link.command_endpoint = op_cmd
         fit_command_timing(scene)
+        # ports of the robot's own choosing, said in its READY=1
+        robot_link = scene.robot.link
+        robot_link.telemetry_endpoint = robot_link.command_endpoint = "tcp://127.0.0.1:0"
         # the trial's own scripted operator, on loopback, with plain commands by design
-        scene.robot.link.allow_plain_commands = True
+        robot_link.allow_plain_commands = True
         robot_cfg = workdir / "robot.toml"
         robot_cfg.write_text(config_toml(scene.robot, "robot"))
-        procs.append(
-            (
-                "robot",
-                # at its unit's priority, as deployed: its arm worker kicks the
-                # controller's 150 ms watchdog
-                spawn_cli(
-                    ["robot", "--config", str(robot_cfg)], workdir / "robot.log", unit="robot"
-                ),
-                workdir / "robot.log",
-            )
-        )
-        endpoints = (robot_tel, robot_cmd, op_tel, op_cmd)
-        procs.append(
-            (
-                "netsim",
-                spawn_cli(netsim_args(scene, endpoints), workdir / "netsim.log"),
-                workdir / "netsim.log",
-            )
-        )
+        # at its unit's priority, as deployed: its arm worker kicks the controller's 150 ms
+        # watchdog
+        robot = Service("robot", ["robot", "--config", str(robot_cfg)], workdir / "robot.log")
+        services.append(robot)
+        bound = robot.up().endpoints
+        net = scene.network
+        netsim_argv = ["netsim", "--scenario", net.scenario, "--seed", str(net.seed)]
+        netsim_argv += ["--mode", net.mode] if net.mode else []
+        netsim_argv += ["--robot-telemetry", bound["telemetry"]]
+        netsim_argv += ["--robot-commands", bound["commands"]]
+        netsim_argv += ["--operator-telemetry", "tcp://127.0.0.1:0"]
+        netsim_argv += ["--operator-commands", "tcp://127.0.0.1:0"]
+        netsim = Service("netsim", netsim_argv, workdir / "netsim.log")
+        services.append(netsim)
+        near = netsim.up().endpoints  # where the operator connects
+        scene.operator.link.telemetry_endpoint = near["operator_telemetry"]
+        scene.operator.link.command_endpoint = near["operator_commands"]
         node = build_operator_node(scene.operator)
         thread = threading.Thread(target=node.run, args=(stop,), name="operator", daemon=True)
         thread.start()
-        wait_for_robot(node, procs, stop, errors)
-        if errors:
-            raise RuntimeError("; ".join(errors))
         hands = ScriptedOperator(
             node, feedback=feedback != "none", assist=feedback == "mask_assist", stop=stop
         )
@@ -162,15 +149,25 @@ def run_cell(
             trials.append(_trial(world, hands, setup))
             if on_trial is not None:
                 on_trial()
-            for name, proc, path in procs:
-                if proc.poll() is not None:
-                    raise RuntimeError(f"{name} stopped during the trials; see {path}")
+            for service in services:
+                if not service.alive():
+                    raise RuntimeError(
+                        f"{service.name} stopped during the trials; see {service.log}"
+                    )
+    except NotReady as e:
+        raise RuntimeError(str(e)) from None
     finally:
         stop.set()
         if thread is not None:
             thread.join(timeout=10)
-        for name, proc, path in reversed(procs):
-            stop_child(proc, name, errors, path)
+        for service in reversed(services):
+            if service.stop():
+                errors.append(f"{service.name} did not stop within 10 s and was killed")
+            elif service.popen is not None and service.popen.returncode not in CLEAN_ENDS:
+                errors.append(
+                    f"{service.name} exited with {service.popen.returncode}: {service.log_tail(5)}"
+                )
+            service.close()
         world_stats = world.stats() if world.running else {}
         world.stop()
     return {

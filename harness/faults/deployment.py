@@ -6,12 +6,15 @@ certificates, a roster, signed commands); the robot and the recorder connect
 to the router directly, the operator through ``deepxpalm netsim`` in datagram
 mode (its QUIC connection's UDP crosses the link, as over a real network);
 every device is a simulator in a process of its own (``deepxpalm sim
-ur|gripper|tactile|servos``) so that killing a node never kills its device. The demo's supervisor
-(``deploy.supervisor``) plays systemd on a thread of its own:
-a process of a shipped unit that ends is started again after the unit's
-RestartSec= when its Restart= says so, runs its ExecStopPost= after any end
-(the operator's lifts the palm), and ends a process whose WatchdogSec= passed
-without a ping (``deploy.watchdog.UnitWatchdog``).
+ur|gripper|tactile|servos``) so that killing a node never kills its device. Each
+is a unit of the product's catalogue (``deploy.units``): it binds port 0 and
+says where in its ``READY=1``, and the processes that need that address are
+started after it. The demo's supervisor (``deploy.units.supervisor``) plays
+systemd on a thread of its own: a process of a shipped unit that ends is
+started again after the unit's RestartSec= when its Restart= says so (on the
+address it had), runs its ExecStopPost= after any end (the operator's lifts
+the palm), and ends a process whose WatchdogSec= passed without a ping
+(``deploy.units.watchdog.UnitWatchdog``).
 """
 
 from __future__ import annotations
@@ -19,22 +22,18 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import signal
-import subprocess
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.transport import free_loopback_ports
-from deploy.demo import spawn_cli
-from deploy.supervisor import Child, StopPost, Supervisor, stop_post_args
-from deploy.unit_policy import RestartPolicy, policy
-from deploy.watchdog import UnitWatchdog
+from deploy.units.catalogue import unit as catalogue_unit
+from deploy.units.policy import RestartPolicy
+from deploy.units.readiness import NotReady, Ready
+from deploy.units.service import Service
+from deploy.units.supervisor import Child, StopPost, Supervisor
 from harness.fleet import Fleet, Proc
-from harness.processes import stop
 from operator_side.servos.sts_sim import simulated_driver_settings
 
 log = logging.getLogger(__name__)
@@ -158,13 +157,12 @@ def _never(returncode: int) -> bool:
 
 @dataclass
 class Unit(Child):
-    """One process of the deployment, as the supervisor keeps it (``deploy.supervisor.Child``)
-    under its shipped unit's rules (``policy``), started by ``launcher``."""
+    """One process of the deployment, as the supervisor keeps it (``deploy.units.supervisor``)
+    under its shipped unit's rules (``policy``)."""
 
-    #: the shipped systemd unit's policy; None: no unit ships (a device, the network, a tool)
+    #: the shipped systemd unit's policy; None: no unit ships (a tool: nothing restarts it)
     policy: RestartPolicy | None = None
-    launcher: Callable[[], Proc] | None = None
-    #: the running process as the fleet started it (its log, stdin, stats)
+    #: the process as the fleet made it (its log, stdin, stats)
     handle: Proc | None = None
     #: each clean restart: seconds from the stop signal to the end, and whether it was killed
     stops: list[tuple[float, bool]] = field(default_factory=list)
@@ -188,47 +186,26 @@ class Unit(Child):
         return self.proc is not None and self.proc.poll() is None
 
 
-def make_unit(
-    name: str,
-    launcher: Callable[[], Proc],
-    rule: RestartPolicy | None,
-    log_path: Path,
-    **kw: Any,
-) -> Unit:
-    """A process under ``rule`` (its unit's RestartSec= and Restart=, never given up on),
-    started by ``launcher`` (which may be replaced: a device's second start names its port)."""
-
-    def start(_incarnation: int) -> subprocess.Popen:
-        assert made.launcher is not None
-        made.handle = made.launcher()
-        made.log_path = made.handle.log_path
-        return made.handle.popen
-
-    made = Unit(
-        name,
-        start,
-        log_path=log_path,
+def make_unit(name: str, proc: Proc, rule: RestartPolicy | None, **kw: Any) -> Unit:
+    """The fleet's process ``proc`` under ``rule`` (its unit's RestartSec= and Restart=, never
+    given up on); None: nothing restarts it. Called ``name`` by the supervisor (``hold``)."""
+    proc.service.name = name
+    return Unit(
+        proc.service,
         restart_delay_s=0.0 if rule is None else rule.restart_sec,
         restart_on=_never if rule is None else rule.restarts_after,
         start_limit_burst=None,
         policy=rule,
-        launcher=launcher,
+        handle=proc,
         **kw,
     )
-    return made
 
 
-def _announcement(proc: Proc, timeout_s: float = 60.0) -> dict:
-    """The JSON line a ``deepxpalm sim`` prints once it serves (its address)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for line in proc.log_text().splitlines():
-            if line.startswith('{"simulator"'):
-                return json.loads(line)
-        if proc.popen.poll() is not None:
-            break
-        time.sleep(0.05)
-    raise DeploymentError(f"{proc.name} did not start: {proc.log_text()[-2000:]}")
+def _pin(service: Service, wildcard: str, bound: str) -> None:
+    """A restart of ``service`` binds ``bound`` where its first start asked for ``wildcard``
+    (port 0), so its peers find it again."""
+    argv = service.argv(0)
+    service.argv = lambda _n: [bound if a == wildcard else a for a in argv]
 
 
 class Deployment:
@@ -256,143 +233,146 @@ class Deployment:
         self.video_url = ""
         #: netsim's UDP port the operator's QUIC connection goes to (it forwards to the router's)
         self.netsim_port = 0
-        self._netsim_starts = 0  # each start writes its own ready file
         self.supervisor = Supervisor("deployment")
         self.late_wakes = LateWakes(self.dir / "operator-status.json")
-        self._env_lock = threading.Lock()
 
     # ------------------------------------------------------------ starting
     def _sim(self, device: str, config: str, extra: list[str] | None = None) -> Proc:
+        """``deepxpalm sim DEVICE`` with ``config``; its READY=1 says where it serves."""
         path = self.dir / f"sim-{device}.toml"
         path.write_text(config)
-        log_path = self.dir / f"sim-{device}.log"
         args = ["sim", device, "--config", str(path), *(extra or [])]
-        stats = self.dir / f"sim-{device}-stats.json"  # unused: a simulator writes none
-        return Proc(f"sim-{device}", spawn_cli(args, log_path), log_path, stats)
+        return self.fleet.process(f"sim-{device}", f"sim-{device}", args, stats=False)
 
-    def _add(self, name: str, start: Callable[[], Proc], unit: str | None = None) -> Unit:
-        rule = policy(unit) if unit else (DEVICE_BACK if name in DEVICES else None)
-        made = make_unit(name, start, rule, self.dir / f"{name}.log")
+    def _add(
+        self,
+        name: str,
+        proc: Proc,
+        ready: bool = True,
+        after_ready: Callable[[Ready], None] | None = None,
+        **kw: Any,
+    ) -> Unit:
+        """``proc`` under its unit's rules (a device's and the link's: back after
+        ``DEVICE_BACK``; anything else no unit ships for: never restarted); with ``ready``,
+        once it said READY=1."""
+        spec = proc.service.spec
+        rule = spec.policy if spec.unit else (DEVICE_BACK if name in DEVICES else None)
+        made = make_unit(name, proc, rule, after_ready=after_ready, **kw)
         self.units[name] = made
-        self.supervisor.add(made)
+        try:
+            self.supervisor.add(made, ready=ready)
+        except NotReady as e:
+            raise DeploymentError(str(e)) from None
         return made
 
-    def _start_netsim(self) -> Proc:
+    def start(self) -> Deployment:
+        fleet = self.fleet
+        router = fleet.router()
+        self._add("router", router, after_ready=fleet.router_ready)
+
+        def ur_up(ready: Ready) -> None:  # a restarted controller keeps its address
+            self.ur_host = ready.endpoints["host"]
+            (self.dir / "sim-ur.toml").write_text(f'host = "{self.ur_host}"\n')
+
+        self._add("ur", self._sim("ur", 'host = "auto"\n'), after_ready=ur_up)
+
+        def gripper_up(ready: Ready) -> None:
+            self.gripper = (ready.endpoints["host"], ready.endpoints["port"])
+            at = f'host = "{self.gripper[0]}"\nport = {self.gripper[1]}\n'
+            (self.dir / "sim-gripper.toml").write_text(at + _PIPETTE)
+
+        self._add("gripper", self._sim("gripper", "port = 0\n" + _PIPETTE), after_ready=gripper_up)
+        board = _BOARD_TOML.format(link_dir=self.dir / "tactile-link")
+        tactile = self._add("tactile", self._sim("tactile", board))
+        self.tactile_port = tactile.service.ready.endpoints["port"]
+        bus = f'link_dir = "{self.dir / "servo-link"}"\n'
+        status = ["--status-file", str(self.servo_status)]
+        servos = self._add("servos", self._sim("servos", bus, status))
+        self.servo_port = servos.service.ready.endpoints["port"]
+        video = fleet.video()
+
+        def video_up(ready: Ready) -> None:
+            self.video_url = fleet.video_url("video", ready)
+            port = ready.endpoints["signalling"].rstrip("/").rpartition(":")[2]
+            _pin(video.service, "port=0", f"port={port}")
+
+        self._add("video", video, after_ready=video_up)
+        devices = _ROBOT_DEVICES.format(
+            tactile_port=self.tactile_port,
+            gripper_host=self.gripper[0],
+            gripper_port=self.gripper[1],
+        )
+        robot = fleet.robot(ROBOT, self.ur_host, video_url=self.video_url, devices=devices)
+        self._add("robot", robot, ready=False)  # it connects to the router: nobody waits
+        self._add("netsim", self._netsim(), after_ready=self._netsim_up)
+        self._add_operator()
+        self._add("recorder", fleet.recorder(RECORDER, self.recording), ready=False)
+        for name in ("robot", "operator", "recorder"):  # up: every process said READY=1
+            try:
+                self.units[name].wait_ready()
+            except NotReady as e:
+                raise DeploymentError(str(e)) from None
+        self.supervisor.start_thread()
+        return self
+
+    def _netsim(self) -> Proc:
         scenario = self.dir / "scenario.toml"
         t1 = self.outage_at_s
         scenario.write_text(_SCENARIO_TOML.format(t1=t1, t2=t1 + self.outage_s))
-        log_path = self.dir / "netsim.log"
-        self._netsim_starts += 1
-        ready = self.dir / f"netsim-ready-{self._netsim_starts}.json"
+        router_udp = "udp://" + self.fleet.router_endpoint.removeprefix("quic/")
         args = [
             "-v",
             "netsim",
             *("--scenario", str(scenario), "--mode", "datagram"),
             # the router's side, and the operator's: one UDP address each (deploy/demo_fabric.py)
-            *("--robot-telemetry", f"udp://127.0.0.1:{self.fleet.router_port}"),
-            *("--operator-telemetry", f"udp://127.0.0.1:{self.netsim_port}"),
-            *("--ready-file", str(ready)),
+            *("--robot-telemetry", router_udp, "--operator-telemetry", "udp://127.0.0.1:0"),
         ]
-        return Proc("netsim", spawn_cli(args, log_path), log_path, self.dir / "netsim-stats.json")
+        return self.fleet.process("netsim", "netsim", args)
 
-    def start(self) -> Deployment:
-        fleet = self.fleet
-        self._add("router", fleet.start_router, "router")
-        ur = self._add("ur", lambda: self._sim("ur", 'host = "auto"\n'))
-        self.ur_host = _announcement(ur.handle)["host"]
-        ur.launcher = lambda: self._sim("ur", f'host = "{self.ur_host}"\n')
-        gripper = self._add("gripper", lambda: self._sim("gripper", "port = 0\n" + _PIPETTE))
-        g = _announcement(gripper.handle)
-        self.gripper = (g["host"], g["port"])
-        at = f'host = "{g["host"]}"\nport = {g["port"]}\n'
-        gripper.launcher = lambda: self._sim("gripper", at + _PIPETTE)
-        board = _BOARD_TOML.format(link_dir=self.dir / "tactile-link")
-        tactile = self._add("tactile", lambda: self._sim("tactile", board))
-        self.tactile_port = _announcement(tactile.handle)["port"]
-        bus = f'link_dir = "{self.dir / "servo-link"}"\n'
-        status = ["--status-file", str(self.servo_status)]
-        servos = self._add("servos", lambda: self._sim("servos", bus, status))
-        self.servo_port = _announcement(servos.handle)["port"]
-        video_port = free_loopback_ports(1)[0]
-        self.video_url = fleet.video_url("video", video_port)
-        self._add("video", lambda: fleet.start_video(port=video_port)[0], "video")
-        devices = _ROBOT_DEVICES.format(
-            tactile_port=self.tactile_port, gripper_host=g["host"], gripper_port=g["port"]
-        )
-        self._add(
-            "robot",
-            lambda: fleet.start_robot(
-                ROBOT, self.ur_host, video_url=self.video_url, devices=devices
-            ),
-            "robot",
-        )
-        self.netsim_port = free_loopback_ports(1, udp=True)[0]
-        self._add("netsim", self._start_netsim)
-        self._add_operator()
-        self._add("recorder", lambda: fleet.start_recorder(RECORDER, self.recording))
-        self.supervisor.start_thread()
-        return self
+    def _netsim_up(self, ready: Ready) -> None:
+        """The operator's side of the link (a restarted netsim binds it again)."""
+        bound = ready.endpoints["operator_telemetry"]
+        self.netsim_port = int(bound.rpartition(":")[2])
+        _pin(self.units["netsim"].service, "udp://127.0.0.1:0", bound)
 
     def _add_operator(self) -> None:
-        """The operator node under its unit's rules: its watchdog on the notify socket, and
+        """The operator node under its unit's rules: its watchdog on its notify socket, and
         its ExecStopPost= (the palm lifted) with this deployment's config for /etc's."""
-        rule = policy("operator")
-        assert rule is not None
-        watchdog = UnitWatchdog(
-            self.dir / "operator.notify", rule.watchdog_sec, rule.timeout_abort_sec
+        proc = self.fleet.operator(
+            OPERATOR,
+            ROBOT,
+            request_control=True,
+            want_frames=False,
+            servos=_SERVOS.format(port=self.servo_port, **simulated_driver_settings()),
+            router_endpoint=f"quic/127.0.0.1:{self.netsim_port}",
+            extra=["--status-file", str(self.late_wakes.path)],
+            watchdog=True,
         )
-        config = self.fleet.workdir / f"{OPERATOR}@{ROBOT}.toml"  # what start_operator writes
-        stop_post = stop_post_args(rule.stop_post, config)
-        log_path = self.stop_post_log
-
-        def start() -> Proc:
-            with self._env_lock:  # the fleet starts every process with its env: this one's
-                env = self.fleet.env
-                self.fleet.env = {**env, **watchdog.environ()}
-                try:
-                    return self.fleet.start_operator(
-                        OPERATOR,
-                        ROBOT,
-                        request_control=True,
-                        want_frames=False,
-                        servos=_SERVOS.format(port=self.servo_port, **simulated_driver_settings()),
-                        router_endpoint=f"quic/127.0.0.1:{self.netsim_port}",
-                        extra=["--status-file", str(self.late_wakes.path)],
-                    )
-                finally:
-                    self.fleet.env = env
-
-        self.units["operator"] = make_unit(
+        config = self.fleet.workdir / f"{OPERATOR}@{ROBOT}.toml"  # what operator() writes
+        self._add(
             "operator",
-            start,
-            rule,
-            self.dir / "operator.log",
-            # at the unit's Nice=, as systemd runs every command of the unit
-            stop_post=StopPost(
-                "operator", lambda: spawn_cli(["-v", *stop_post], log_path, "operator")
-            ),
-            watchdog=watchdog,
+            proc,
+            ready=False,
+            stop_post=StopPost.of(catalogue_unit("operator"), config, self.stop_post_log),
             watch=self.late_wakes.read,
         )
-        self.supervisor.add(self.units["operator"])
 
     # ------------------------------------------------------------ faults
     def signal(self, name: str, sig: int) -> None:
         self.units[name].proc.send_signal(sig)
 
     def clean_restart(self, name: str, timeout_s: float = 20.0) -> float:
-        """``systemctl restart``: stop (``processes.stop``), start again; the restart's time."""
+        """``systemctl restart``: stop (``Service.stop``), start again; the restart's time."""
         unit = self.units[name]
         self.supervisor.hold(name)
         try:
             t_term = time.monotonic()
-            killed = stop(unit.proc, timeout_s)  # systemd's TimeoutStopSec=, then SIGKILL
+            killed = unit.service.stop(timeout_s)  # systemd's TimeoutStopSec=, then SIGKILL
             if killed:
                 log.warning("%s still running %.0f s after its stop: killed", name, timeout_s)
             unit.stops.append((time.monotonic() - t_term, killed))
             unit.run_stop_post()
             unit.restart_times.append(time.monotonic())
-            unit.incarnation += 1
             unit.spawn()
             started = time.monotonic()
         finally:
@@ -400,15 +380,13 @@ class Deployment:
         return started
 
     def netsim_started(self) -> list[float]:
-        """When each netsim process began forwarding (monotonic s, its ready file), in order."""
-        starts = []
-        for n in range(1, self._netsim_starts + 1):
-            try:
-                ready = json.loads((self.dir / f"netsim-ready-{n}.json").read_text())
-            except FileNotFoundError:
-                continue  # that start has not forwarded yet, or never did
-            starts.append(ready["schedule_start_ns"] / 1e9)
-        return starts
+        """When each netsim process began forwarding (monotonic s, its READY=1), in order."""
+        unit = self.units.get("netsim")
+        if unit is None:
+            return []
+        return [
+            int(ready.field("schedule_start_ns")) / 1e9 for ready in unit.service.notify.readies()
+        ]
 
     def operator_late_wakes(self) -> list[tuple[float, float]]:
         """Each time the operator's loop woke over 100 ms late: (due, woke), see ``LateWakes``."""
@@ -444,20 +422,18 @@ class Deployment:
 
     # ------------------------------------------------------------ stopping
     def close(self) -> None:
+        """Every process stopped, the last started first (a cell may end with one stopped:
+        the stop continues it), as systemd stops the units."""
         self.supervisor.close()
-        order = ["recorder", "operator", "netsim", "robot", "video", "router"]
-        order += ["servos", "tactile", "gripper", "ur"]
-        for name in order:
-            unit = self.units.get(name)
-            if unit is None or unit.handle is None:
-                continue
-            popen = unit.proc
-            if popen.poll() is None:
-                popen.send_signal(signal.SIGCONT)  # a cell may end with it stopped
-                stop(popen, 15)
-            if unit.handle.stdin is not None:
+        errors: list[str] = []
+        self.supervisor.stop_all(errors, timeout_s=15.0)
+        for error in errors:
+            log.info("deployment: %s", error)
+        for unit in self.units.values():
+            stdin = unit.handle.stdin if unit.handle is not None else None
+            if stdin is not None:
                 with contextlib.suppress(BrokenPipeError, OSError):
-                    unit.handle.stdin.close()
+                    stdin.close()
 
     def __enter__(self) -> Deployment:
         try:

@@ -3,29 +3,47 @@ delay, one that keeps dying is given up on, and that ends the demo only if it is
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
 import time
 
-from deploy.demo import stop_child
-from deploy.supervisor import START_LIMIT_BURST, Child, Supervisor, unit_restart_s
+import pytest
+
+from deploy.units import process
+from deploy.units.catalogue import UnitSpec
+from deploy.units.policy import RestartPolicy
+from deploy.units.readiness import NotReady
+from deploy.units.service import Service
+from deploy.units.supervisor import START_LIMIT_BURST, Child, StopPost, Supervisor, _restart_s
 
 
-def _python(code: str):
-    return lambda n: subprocess.Popen([sys.executable, "-c", code])
+@pytest.fixture(autouse=True)
+def plain_commands(monkeypatch):
+    """The children here are small programs, not ``deepxpalm``: spawned as they are, with
+    everything else of a unit's (a session, its notify socket, dying with the test)."""
+    monkeypatch.setattr(process, "cli_argv", lambda argv, _module: list(argv))
+
+
+def _child(tmp_path, name: str, argv: list[str], delay: float, *args, **kw) -> Child:
+    rules = kw.pop("rules", None)
+    spec = UnitSpec(name, (), "a test's child", "nothing", rules=rules)
+    return Child(Service(spec, argv, _log(tmp_path, name)), delay, *args, **kw)
+
+
+def _python(code: str) -> list[str]:
+    return [sys.executable, "-c", code]
 
 
 # not a Python child: a stop that lands while an interpreter starts up exits 1, which
-# stop_child rightly reports (seen on a loaded machine); sleep(1) dies by SIGTERM whenever
-SLEEPER = lambda n: subprocess.Popen(["sleep", "60"])  # noqa: E731
+# the supervisor rightly reports (seen on a loaded machine); sleep(1) dies by SIGTERM whenever
+SLEEPER = ["sleep", "60"]
 FAILER = _python("raise SystemExit(3)")
 
 
 def _log(tmp_path, name: str):
     path = tmp_path / f"{name}.log"
-    path.touch()  # stop_child quotes a child's log when it exits badly
+    path.touch()  # the supervisor quotes a child's log when it exits badly
     return path
 
 
@@ -40,14 +58,14 @@ def _poll_until(sup: Supervisor, errors: list, cond, timeout_s: float = 20.0) ->
 
 
 def test_the_delays_are_the_shipped_units():
-    assert unit_restart_s("robot") == 3.0  # deploy/systemd/deepxpalm-robot.service
-    assert unit_restart_s("video") == 0.2
-    assert unit_restart_s("netsim") == 1.0  # no unit: the default
+    assert _restart_s("robot") == 3.0  # deploy/systemd/deepxpalm-robot.service
+    assert _restart_s("video") == 0.2
+    assert _restart_s("netsim") == 1.0  # no unit: the default
 
 
 def test_a_killed_child_is_restarted_after_its_delay(tmp_path):
     sup, errors = Supervisor(), []
-    child = sup.add(Child("robot", SLEEPER, _log(tmp_path, "r"), 0.3))
+    child = sup.add(_child(tmp_path, "robot", SLEEPER, 0.3), ready=False)
     sup.armed = True
     first = child.proc.pid
     child.proc.kill()
@@ -58,14 +76,14 @@ def test_a_killed_child_is_restarted_after_its_delay(tmp_path):
     assert child.describe()["exit_codes"] == [-9] and child.describe()["restarts"] == 1
     assert "restarting in 0.3 s" in sup.events[0] and "restarted" in sup.events[1]
     assert "robot running (1 restart)" in sup.status_line()
-    sup.stop_all(stop_child, errors)
+    sup.stop_all(errors)
     assert errors == []
 
 
 def test_a_child_that_keeps_dying_is_given_up_on(tmp_path):
     sup, errors = Supervisor(), []
-    video = sup.add(Child("video", FAILER, _log(tmp_path, "v"), 0.01, False))
-    robot = sup.add(Child("robot", SLEEPER, _log(tmp_path, "r"), 0.01))
+    video = sup.add(_child(tmp_path, "video", FAILER, 0.01, False), ready=False)
+    robot = sup.add(_child(tmp_path, "robot", SLEEPER, 0.01), ready=False)
     sup.armed = True
     _poll_until(sup, errors, lambda: video.gave_up)
     assert len(video.restart_times) == START_LIMIT_BURST and video.exits == [3] * 6
@@ -76,24 +94,34 @@ def test_a_child_that_keeps_dying_is_given_up_on(tmp_path):
     robot.proc.wait()
     assert not _poll_until(sup, errors, lambda: False)  # essential: the demo must end
     assert robot.gave_up and "given up on" in sup.events[-1]
-    sup.stop_all(stop_child, errors)
+    sup.stop_all(errors)
     assert any("video was given up on" in e for e in errors), errors
 
 
 def test_a_child_failing_while_the_demo_starts_ends_it(tmp_path):
     sup, errors = Supervisor(), []
-    sup.add(Child("robot", _python("raise SystemExit(2)"), _log(tmp_path, "r"), 0.01)).proc.wait()
+    child = _child(tmp_path, "robot", _python("raise SystemExit(2)"), 0.01)
+    sup.add(child, ready=False).proc.wait()
     assert not sup.poll(errors)  # not armed: a wrong setting would otherwise loop
     assert "robot stopped early with 2" in errors[0]
 
 
+def test_a_child_that_ends_before_it_is_ready_fails_its_start_with_its_log(tmp_path):
+    sup = Supervisor()
+    code = "import sys; print('no such device', file=sys.stderr); raise SystemExit(2)"
+    with pytest.raises(NotReady, match=r"robot .* ended with 2 before it was ready: no such"):
+        sup.add(_child(tmp_path, "robot", _python(code), 0.01))
+    sup.stop_all([])
+
+
 #: a unit's process as common.sd_notify makes it: READY=1, then WATCHDOG=1 every 50 ms
 PINGER = """
-import os, socket, time
-s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-s.sendto(b"READY=1", os.environ["NOTIFY_SOCKET"])
+import time
+from common.sd_notify import Notifier
+n = Notifier()
+n.ready()
 while True:
-    s.sendto(b"WATCHDOG=1", os.environ["NOTIFY_SOCKET"])
+    n.watchdog()
     time.sleep(0.05)
 """
 
@@ -101,21 +129,16 @@ while True:
 def test_a_frozen_child_is_ended_by_its_watchdog_then_its_stop_post_runs(tmp_path):
     """SIGSTOP: silent for the watchdog's window, it is sent SIGABRT and SIGCONT (as systemd
     does), its ExecStopPost runs before the restart, and the new process is watched again."""
-    from deploy.supervisor import StopPost
-    from deploy.watchdog import UnitWatchdog
-
-    watchdog = UnitWatchdog(tmp_path / "w.notify", watchdog_sec=0.3, timeout_abort_sec=1.0)
-    env = {**os.environ, **watchdog.environ()}
     marks = tmp_path / "stop-post"
     post = StopPost(
         "op",
         lambda: subprocess.Popen(["sh", "-c", f"echo ran >> {marks}"]),
     )
-    start = lambda n: subprocess.Popen([sys.executable, "-c", PINGER], env=env)  # noqa: E731
+    rules = RestartPolicy("op", "on-failure", 0.1, watchdog_sec=0.3, timeout_abort_sec=1.0)
     sup, errors = Supervisor(), []
-    child = sup.add(
-        Child("op", start, _log(tmp_path, "op"), 0.1, stop_post=post, watchdog=watchdog)
-    )
+    child = sup.add(_child(tmp_path, "op", _python(PINGER), 0.1, stop_post=post, rules=rules))
+    watchdog = child.watchdog
+    assert watchdog is not None
     sup.armed = True
     first = child.proc.pid
     _poll_until(sup, errors, lambda: watchdog.pings >= 3)
@@ -130,17 +153,17 @@ def test_a_frozen_child_is_ended_by_its_watchdog_then_its_stop_post_runs(tmp_pat
     pings = watchdog.pings
     _poll_until(sup, errors, lambda: watchdog.pings >= pings + 3)  # the new one, watched
     assert len(watchdog.fired) == 1
-    sup.stop_all(stop_child, errors)
+    sup.stop_all(errors)
     assert errors == []
 
 
 def test_a_stopped_child_is_stopped_at_the_end_without_waiting(tmp_path):
     """SIGTERM with SIGCONT, as systemd stops a unit: a stopped process ends at once."""
     sup, errors = Supervisor(), []
-    child = sup.add(Child("robot", SLEEPER, _log(tmp_path, "r"), 0.3))
+    child = sup.add(_child(tmp_path, "robot", SLEEPER, 0.3), ready=False)
     child.proc.send_signal(signal.SIGSTOP)
     t0 = time.monotonic()
-    sup.stop_all(stop_child, errors)
+    sup.stop_all(errors)
     assert time.monotonic() - t0 < 5.0 and errors == [], errors
 
 
@@ -148,18 +171,16 @@ def test_a_child_that_ended_while_its_stop_post_runs_is_no_error_when_the_demo_s
     """Ctrl-C just after a child ended (a watchdog's kill), its ExecStopPost (the palm's lift)
     still running: the lift runs to its end, the exit is counted and said, and it is not
     reported as an error (it was reported as "exited with -6" before)."""
-    from deploy.supervisor import StopPost
-
     marks = tmp_path / "stop-post"
     post = StopPost("op", lambda: subprocess.Popen(["sh", "-c", f"sleep 0.5; echo ran >> {marks}"]))
     sup, errors = Supervisor(), []
-    child = sup.add(Child("op", SLEEPER, _log(tmp_path, "op"), 0.1, stop_post=post))
+    child = sup.add(_child(tmp_path, "op", SLEEPER, 0.1, stop_post=post), ready=False)
     sup.armed = True
     child.proc.send_signal(signal.SIGABRT)
     child.proc.wait()
     assert sup.poll(errors)  # the lift starts; the end waits for it
     assert post.runs == [] and child.exits == []
-    sup.stop_all(stop_child, errors)
+    sup.stop_all(errors)
     assert errors == [], errors
     assert marks.read_text() == "ran\n" and [r[2] for r in post.runs] == [0]
     assert child.exits == [-signal.SIGABRT] and "as the demo stopped" in sup.events[-1]

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from common.devices import SIMULATED_HARDWARE_NICE, as_hardware, at_niceness
-from deploy.unit_policy import set_niceness, unit_nice
+from deploy.units.policy import set_niceness, unit_nice
 
 GROUP = Path("/proc/self/autogroup")  # absent on a kernel without sched_autogroup
 REPORT = (

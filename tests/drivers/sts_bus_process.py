@@ -17,7 +17,7 @@ from multiprocessing.managers import BaseManager
 from typing import Any
 
 from common.devices import SIMULATED_HARDWARE_NICE
-from deploy.unit_policy import set_niceness
+from deploy.units.policy import set_niceness
 from operator_side.servos.sts_sim import FakeStsBus, FakeStsBusConfig
 
 

@@ -44,9 +44,10 @@ def site(tmp_path_factory):
         workdir=tmp_path_factory.mktemp("fabric"),
     )
     config = RouterConfig(
-        listen_endpoint=fleet.router_endpoint, roster_file=fleet.roster, cert_dir=fleet.cert_dir
+        listen_endpoint="quic/127.0.0.1:0", roster_file=fleet.roster, cert_dir=fleet.cert_dir
     )
-    router = Router(config).start()
+    router = Router(config).start()  # on a free port of its own choosing
+    fleet.router_endpoint = router.endpoint
     site = Site(fleet, router)
     try:
         yield site

@@ -38,13 +38,12 @@ def test_a_key_added_to_the_routers_roster_may_take_control_and_loses_it_when_re
     late_key = fleet.signing_key("late")
     with fleet:
         router = fleet.start_router()
-        fleet.wait_for(lambda: "router up" in router.log_text(), 30, "the router")
         fleet.start_robot("cell1", None)
         monitor = Monitor(fleet, "rec", ["cell1"])
         try:
             fleet.wait_for(lambda: monitor.heartbeats, 60, "the robot's heartbeats")
             late = fleet.start_operator("late", "cell1", request_control=True, want_frames=False)
-            fleet.wait_for(lambda: "operator node up" in late.log_text(), 30, "late's node")
+            late.wait_ready(30)
             t0 = now_ns()
             fleet.wait_for(lambda: now_ns() - t0 > 2e9, 5, "two seconds")
             assert monitor.holder_since(late_key, 0) is None, "a key not in the roster got in"

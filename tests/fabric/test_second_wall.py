@@ -107,8 +107,7 @@ def wall(tmp_path_factory, quiet_gc_module) -> Iterator[Wall]:
     sim = URSimProcess().start()
     try:
         with fleet:
-            router = fleet.start_router()
-            fleet.wait_for(lambda: "router up" in router.log_text(), 30, "the router")
+            fleet.start_router()
             fleet.start_robot(ROBOT, sim.host, devices=HELD_GRASP)
             monitor = Monitor(fleet, "rec", [ROBOT])
             forger = _session(fleet, "forger")
@@ -166,7 +165,7 @@ def test_a_router_that_lets_an_observer_command_still_cannot_move_the_arm(wall):
     mallory = fleet.start_operator("mallory", ROBOT, want_frames=False, request_control=True)
     eve = fleet.start_operator("eve", ROBOT, want_frames=False, request_control=True)
     for op in (mallory, eve):
-        fleet.wait_for(lambda o=op: "operator node up" in o.log_text(), 60, f"{op.name} up")
+        op.wait_ready(60)
     # the robot drives the arm (its control program runs on the controller): a jog it
     # accepted would move it
     fleet.wait_for(lambda: wall.sim.stats()["program_running"], 30, "the robot driving the arm")

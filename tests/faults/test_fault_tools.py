@@ -16,7 +16,7 @@ import pytest
 
 from common.codec import encode
 from common.messages import Heartbeat
-from deploy.unit_policy import policy
+from deploy.units.policy import policy
 from harness.faults.matrix import ARM_UNREADABLE_S, first_unreadable
 from harness.faults.probes import Sample
 from operator_side.record_cli import _RECORD, read_records

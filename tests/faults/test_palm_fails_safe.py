@@ -16,7 +16,7 @@ import time
 
 import pytest
 
-from deploy.unit_policy import policy
+from deploy.units.policy import policy
 from harness.faults.deployment import Deployment
 from harness.faults.matrix import GRASP_LEVEL, PALM_PRESSED
 from harness.faults.probes import PalmProbe

@@ -11,6 +11,7 @@ import pytest
 
 from common.errors import ConfigError
 from common.netsim import cli
+from deploy.units.readiness import NotifySocket
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -59,7 +60,7 @@ def test_unknown_scenario_is_a_config_error() -> None:
         cli.scenario_from_args(cli.config_from_args(args), args)
 
 
-def test_run_for_a_short_duration_returns_zero(tmp_path) -> None:
+def test_run_for_a_short_duration_returns_zero(tmp_path, monkeypatch) -> None:
     args = _parser().parse_args(
         [
             "--scenario",
@@ -77,17 +78,25 @@ def test_run_for_a_short_duration_returns_zero(tmp_path) -> None:
         ]
     )
     args.stats_file = tmp_path / "netsim.json"
-    args.ready_file = tmp_path / "ready.json"
+    notify = NotifySocket("netsim")  # as systemd, or the demo, gives it
+    monkeypatch.setenv("NOTIFY_SOCKET", notify.address)
+    notify.started(os.getpid())
     before = time.monotonic_ns()
-    assert cli.run(args) == 0
+    try:
+        assert cli.run(args) == 0
+        deadline = time.monotonic() + 5
+        while notify.ready is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        notify.close()
     stats = json.loads(args.stats_file.read_text())
     assert stats["scenario"] == "none"
     assert stats["directions"]["to_operator"]["received"] == 0
     # what a supervisor reads to know it forwards, and when its scenario's clock started
-    ready = json.loads(args.ready_file.read_text())
-    assert ready["pid"] == os.getpid() and ready["scenario"] == "none"
-    assert before <= ready["schedule_start_ns"] <= time.monotonic_ns()
-    assert ready["operator_telemetry"].startswith("tcp://127.0.0.1:")
+    ready = notify.ready
+    assert ready is not None and ready.status.startswith("none")
+    assert before <= int(ready.field("schedule_start_ns")) <= time.monotonic_ns()
+    assert ready.endpoints["operator_telemetry"].startswith("tcp://127.0.0.1:")
 
 
 def test_config_file_then_set_then_options(tmp_path) -> None:

@@ -1,10 +1,10 @@
 """``deepxpalm demo`` as a user runs it, attacked by another process of the same machine.
 
 The demo's default links (the robot's command port and the link simulator's
-operator-side ports, found in its children's command lines as ``ps`` shows
-them) are plain loopback TCP to anyone unless they are CURVE. A client that
-knows only the ports, as ``docs/protocol.md`` describes the protocol, tries
-what a plain link let it do: echo heartbeats, jog the arm at 50 mm/s, resume
+operator-side ports, found in the configs its children run with) are plain
+loopback TCP to anyone unless they are CURVE. A client that knows only the
+ports, as ``docs/protocol.md`` describes the protocol, tries what a plain link
+let it do: echo heartbeats, jog the arm at 50 mm/s, resume
 a stop, open the gripper, offer to watch the camera. The arm is read from
 the UR simulator's own RTDE interface; the client's sockets say what it got.
 
@@ -23,12 +23,13 @@ import stat
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zmq
-from tests_support import child_processes, free_ports
+from tests_support import child_processes
 
 from common.clock import now_ns
 from common.messages import Command, Heartbeat, VideoSignal
@@ -63,10 +64,9 @@ class Demo:
         self.arm_host = _free_loopback_host()
         self.stdout = (tmp / "stdout").open("w+b")
         self.stderr = (tmp / "stderr").open("w+b")
-        port = free_ports(1)[0]
         argv = [sys.executable, "-m", "deploy.cli", "demo", "--dashboard", *extra]
         argv += ["--duration", str(DURATION_S), "--record", str(self.record), "--no-video"]
-        argv += ["--set", f"operator.dashboard.port={port}"]
+        argv += ["--set", "operator.dashboard.port=0"]  # a free one, said when ready
         argv += ["--set", f'operator.dashboard.token="{TOKEN}"']
         argv += ["--set", f'robot.arm={{kind="simulated", sim={{host="{self.arm_host}"}}}}']
         self.proc = subprocess.Popen(
@@ -88,14 +88,23 @@ class Demo:
         return Path(self.stderr.name).read_text(errors="replace")
 
     def endpoints(self) -> dict[str, str]:
-        """The robot's and the link simulator's endpoints, from the netsim child's command line."""
-        pid = child_processes(self.proc.pid)["netsim"]
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            words = f.read().decode().split("\0")
+        """The robot's and the link simulator's endpoints: each bound a port of its own and
+        said it; the demo wrote them into the robot's and the operator's configs, found in
+        their command lines as ``ps`` shows them."""
+        children = child_processes(self.proc.pid)
+
+        def link(role: str) -> dict[str, str]:
+            with open(f"/proc/{children[role]}/cmdline", "rb") as f:
+                words = f.read().decode().split("\0")
+            config = tomllib.loads(Path(words[words.index("--config") + 1]).read_text())
+            return config[role]["link"]
+
+        robot, operator = link("robot"), link("operator")
         return {
-            w[2:]: words[i + 1]
-            for i, w in enumerate(words)
-            if w.startswith("--") and w.endswith(("-telemetry", "-commands"))
+            "robot-telemetry": robot["telemetry_endpoint"],
+            "robot-commands": robot["command_endpoint"],
+            "operator-telemetry": operator["telemetry_endpoint"],
+            "operator-commands": operator["command_endpoint"],
         }
 
     def finish(self) -> tuple[int, str, str]:

@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 from tests_support import child_processes
 
-from deploy.unit_policy import policy
+from deploy.units.policy import policy
 from harness.faults.probes import PalmProbe
 
 # the palm is judged through the servo simulator's pseudo-terminal, within 500 ms of a death

@@ -27,7 +27,7 @@ from tests_support import ProtocolOperator
 
 from common.clock import now_ns
 from common.transport import Publisher, Subscriber
-from deploy.unit_policy import set_niceness, unit_nice
+from deploy.units.policy import set_niceness, unit_nice
 from harness.bench.command_path import RobotUnderCommands
 
 # serial: one robot node on the machine, as on a robot PC. Beside the paired lane's fault

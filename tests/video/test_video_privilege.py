@@ -47,7 +47,6 @@ from common.fabric.link import FabricPublisher, FabricSubscriber
 from common.fabric.session import FabricConfig, cert_files, client_config, open_session
 from common.messages import Heartbeat, VideoSignal, new_run
 from common.signing import load_signer
-from common.transport import free_loopback_ports
 from common.web_token import from_query, with_token
 from harness.fleet import Fleet
 
@@ -171,21 +170,18 @@ def deployment(tmp_path_factory):
     silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     silent.bind(("127.0.0.1", 0))  # held open and never read: checks go unanswered
     viewers: dict[str, SignedViewer] = {}
-    page_port = free_loopback_ports(1)[0]
     try:
         with fleet:
             fleet.start_router()
-            video, video_url = fleet.start_video(settings=(f"ice_timeout_s={ICE_S}",))
-            serving = lambda: "video signalling at" in video.log_text()  # noqa: E731
-            fleet.wait_for(serving, 30, "the video server")
+            _, video_url = fleet.start_video(settings=(f"ice_timeout_s={ICE_S}",))  # serving
             fleet.start_robot("cell1", None, video_url=video_url)
             dashboard = ["--set", "operator.dashboard.enabled=true"]
-            dashboard += ["--set", f"operator.dashboard.port={page_port}"]
+            dashboard += ["--set", "operator.dashboard.port=0"]  # a free one, said when ready
             dashboard += ["--set", 'operator.dashboard.video_url="link"']
-            fleet.start_operator("ctl", "cell1", want_frames=False, extra=dashboard)
-            operator_log = fleet.procs["ctl@cell1"].log_text
-            fleet.wait_for(lambda: "operator node up" in operator_log(), 30, "the operator node")
-            token = from_query(re.search(r"dashboard: (\S+)", operator_log())[1])
+            ctl = fleet.start_operator("ctl", "cell1", want_frames=False, extra=dashboard)
+            page = ctl.wait_ready(30).endpoints["dashboard"]
+            page_port = int(page.rstrip("/").rpartition(":")[2])
+            token = from_query(re.search(r"dashboard: (\S+)", ctl.log_text())[1])
             page_ws = with_token(f"ws://127.0.0.1:{page_port}/ws", token)
             for name in ("obs1", "obs2", "peek", "rec"):
                 viewers[name] = SignedViewer(fleet, name)

@@ -1,6 +1,8 @@
 """The demo's child processes, kept running as systemd keeps the units running.
 
-A child that exits while the demo runs (a crash, ``kill -9``) is started
+Each child is a :class:`~deploy.units.service.Service` (a catalogue entry with
+the run's arguments: its notify socket, its readiness, its watchdog). A child
+that exits while the demo runs (a crash, ``kill -9``) is started
 again after its unit's ``RestartSec=`` (``deploy/systemd/deepxpalm-<name>.service``;
 ``DEFAULT_RESTART_S`` for the link simulator and the lab world, which have no
 unit), as ``Restart=on-failure`` would: the demo never asks a child to stop
@@ -15,10 +17,14 @@ without it otherwise (the video).
 A child can bring others down with it (``restarts_too``): a restarted lab
 world listens on new ports, so the robot node and the video server, which
 found it through its addresses file, are restarted after it (systemd's
-``PartOf=``).
+``PartOf=``), once it is ready again (``after_ready`` has written its new
+addresses).
 
-Restarts are armed only once the demo is up: a child that fails while the
-demo starts (a wrong setting) ends it at once with its log, as before.
+``add`` starts a child and, by default, waits for its ``READY=1``, as
+systemd starts a unit ordered ``After=`` another only once that one is
+ready: a child that fails while the demo starts (a wrong setting) ends it at
+once with its log (:class:`~deploy.units.readiness.NotReady`). Restarts are
+armed only once the demo is up.
 
 A child may have an ``ExecStopPost=`` (``StopPost``): a command run after
 every end of its process, before the restart, as systemd runs the unit's.
@@ -33,7 +39,7 @@ of no unit is never restarted), no start limit (``start_limit_burst=None``,
 as the shipped units), and ``hold`` while it restarts a child itself
 (``systemctl restart``).
 
-A child may have a watchdog (``deploy.watchdog.UnitWatchdog``, the unit's
+A child may have a watchdog (``deploy.units.watchdog.UnitWatchdog``, the unit's
 ``WatchdogSec=``): a child that said ``READY=1`` on its notify socket and then
 stopped saying ``WATCHDOG=1`` (frozen, SIGSTOP, a stuck loop) is sent SIGABRT
 and SIGCONT, as systemd's watchdog does; its end then runs the
@@ -43,7 +49,6 @@ and SIGCONT, as systemd's watchdog does; its end then runs the
 from __future__ import annotations
 
 import logging
-import signal
 import subprocess
 import threading
 import time
@@ -52,20 +57,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from deploy.unit_policy import policy
-from deploy.watchdog import UnitWatchdog
+from deploy.units.catalogue import DEFAULT_RESTART_S, UNITS, UnitSpec
+from deploy.units.process import CLEAN_ENDS, STOP_TIMEOUT_S, spawn, stop
+from deploy.units.readiness import NotReady, Ready
+from deploy.units.service import Service
+from deploy.units.watchdog import UnitWatchdog
 
 log = logging.getLogger(__name__)
 
-DEFAULT_RESTART_S = 1.0
 START_LIMIT_BURST = 5
 START_LIMIT_INTERVAL_S = 60.0
-
-
-def unit_restart_s(unit: str, default: float = DEFAULT_RESTART_S) -> float:
-    """``RestartSec=`` of the shipped ``deepxpalm-<unit>.service``; ``default`` without one."""
-    found = policy(unit)
-    return default if found is None else found.restart_sec
 
 
 def stop_post_args(stop_post: tuple[str, ...], config: Path) -> list[str]:
@@ -85,6 +86,15 @@ class StopPost:
         self.runs: list[tuple[float, float, int]] = []
         self._running: tuple[float, subprocess.Popen] | None = None
         self._ran_for: float | None = None  # the process start (monotonic) its last run followed
+
+    @classmethod
+    def of(cls, spec: UnitSpec, config: Path, log_path: Path) -> StopPost | None:
+        """``spec``'s unit's ``ExecStopPost=`` on this run's ``config``, at the unit's
+        ``Nice=`` as systemd runs every command of the unit; None when it has none."""
+        if not spec.stop_post:
+            return None
+        argv = ["-v", *stop_post_args(spec.stop_post, config)]
+        return cls(spec.name, lambda: spawn(spec.unit, argv, log_path))
 
     def done(self, started_at: float) -> bool:
         """Whether the run after the end of the process started at ``started_at`` is over
@@ -106,7 +116,7 @@ class StopPost:
         """To its end (a clean restart: systemd runs it between stop and start)."""
         while not self.done(started_at):
             if self._running is not None and time.monotonic() - self._running[0] > timeout_s:
-                stop_process(self._running[1])
+                stop(self._running[1])
             time.sleep(0.01)
         return self.runs[-1][2]
 
@@ -125,18 +135,17 @@ class StopPost:
 
 @dataclass
 class Child:
-    """One process of the demo; ``start(incarnation)`` spawns it (0 first, then 1, 2 ...)."""
+    """One process of the demo: its service, and how the supervisor keeps it running."""
 
-    name: str
-    start: Callable[[int], subprocess.Popen]
-    log_path: Path
-    restart_delay_s: float
+    service: Service
+    #: ``RestartSec=``; None: its unit's
+    restart_delay_s: float | None = None
     essential: bool = True  # given up on: the demo ends
     restarts_too: tuple[str, ...] = ()  # restarted after this one (they depend on it)
     stop_post: StopPost | None = None  # run after every end, before the restart
-    watchdog: UnitWatchdog | None = None  # ends a process that stopped pinging (WatchdogSec=)
-    proc: subprocess.Popen | None = None
-    incarnation: int = 0
+    #: what the demo does with each process's READY=1 (a restarted world's new addresses
+    #: written for the processes restarted with it)
+    after_ready: Callable[[Ready], None] | None = None
     pids: list[int] = field(default_factory=list)
     exits: list[int] = field(default_factory=list)  # return codes of the unexpected exits
     restart_times: list[float] = field(default_factory=list)  # monotonic
@@ -153,12 +162,41 @@ class Child:
     #: operator's status file)
     watch: Callable[[Child], None] | None = None
 
+    def __post_init__(self) -> None:
+        if self.restart_delay_s is None:
+            self.restart_delay_s = self.service.spec.policy.restart_sec
+
+    @property
+    def name(self) -> str:
+        return self.service.name
+
+    @property
+    def proc(self) -> subprocess.Popen | None:
+        return self.service.popen
+
+    @property
+    def log_path(self) -> Path:
+        return self.service.log
+
+    @property
+    def watchdog(self) -> UnitWatchdog | None:
+        return self.service.watchdog
+
+    @property
+    def incarnation(self) -> int:
+        """Which process of the child runs: 0 the first, 1 after one restart ..."""
+        return self.service.starts - 1
+
     def spawn(self) -> None:
-        if self.watchdog is not None:
-            self.watchdog.started()  # unarmed until the new process says READY=1
         self.started_at = time.monotonic()
-        self.proc = self.start(self.incarnation)
-        self.pids.append(self.proc.pid)
+        self.pids.append(self.service.start().pid)
+
+    def wait_ready(self, stop_event: threading.Event | None = None) -> Ready:
+        """Its READY=1 (NotReady when it ends first or takes too long), then ``after_ready``."""
+        ready = self.service.wait_ready(stop_event=stop_event)
+        if self.after_ready is not None:
+            self.after_ready(ready)
+        return ready
 
     @property
     def state(self) -> str:
@@ -202,9 +240,15 @@ class Supervisor:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def add(self, child: Child) -> Child:
-        child.spawn()
+    def add(
+        self, child: Child, ready: bool = True, stop_event: threading.Event | None = None
+    ) -> Child:
+        """Start ``child``; with ``ready``, once it said READY=1 (``NotReady`` otherwise: the
+        caller stops every child, this one included)."""
         self.children[child.name] = child
+        child.spawn()
+        if ready:
+            child.wait_ready(stop_event)
         return child
 
     def procs(self) -> list[tuple[str, subprocess.Popen, Path]]:
@@ -269,11 +313,13 @@ class Supervisor:
     def _restart(self, child: Child, now: float) -> None:
         child.restart_at = None
         child.restart_times.append(now)
-        child.incarnation += 1
         try:
             child.spawn()
-        except Exception as e:  # it did not come up (the lab world's start timed out): a failure
+            if child.restarts_too or child.after_ready is not None:
+                child.wait_ready()  # its new addresses, before those who use them start
+        except (OSError, NotReady) as e:  # it did not come up (the lab world): a failure
             self._say(logging.WARNING, f"{child.name} did not start again: {e}")
+            stop(child.proc, 0)
             self._died(child, child.proc.returncode if child.proc else -1, time.monotonic())
             return
         self._say(logging.WARNING, f"{child.name} restarted (pid {child.proc.pid})")
@@ -281,8 +327,7 @@ class Supervisor:
             dependent = self.children.get(name)
             if dependent is None or dependent.gave_up or dependent.restart_at is not None:
                 continue
-            stop_process(dependent.proc)
-            dependent.incarnation += 1
+            stop(dependent.proc)
             dependent.restart_times.append(now)
             dependent.spawn()
             self._say(
@@ -323,13 +368,10 @@ class Supervisor:
         self._thread.start()
 
     def close(self) -> None:
-        """The thread ended and every watchdog closed; the children are the caller's to stop."""
+        """The thread ended; the children are the caller's to stop (``stop_all``)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(5)
-        for child in self.children.values():
-            if child.watchdog is not None:
-                child.watchdog.close()
 
     def status_line(self) -> str:
         """One line for the live view: each child's state and restarts."""
@@ -345,15 +387,17 @@ class Supervisor:
             "events": self.events,
             "policy": (
                 f"a child that exits is restarted after its unit's RestartSec "
-                f"(robot {unit_restart_s('robot'):g} s, operator {unit_restart_s('operator'):g} s, "
-                f"video {unit_restart_s('video'):g} s, "
+                f"(robot {_restart_s('robot'):g} s, operator {_restart_s('operator'):g} s, "
+                f"video {_restart_s('video'):g} s, "
                 f"others {DEFAULT_RESTART_S:g} s), given up on after {START_LIMIT_BURST} "
                 f"restarts in {START_LIMIT_INTERVAL_S:.0f} s"
             ),
         }
 
-    def stop_all(self, stop_child: Callable[..., None], errors: list[str]) -> None:
-        """Every running child stopped, last started first; a given-up one is an error."""
+    def stop_all(self, errors: list[str], timeout_s: float = STOP_TIMEOUT_S) -> None:
+        """Every running child stopped, last started first, as systemd stops units in the
+        reverse of their start order; a given-up one, one that had to be killed, and one
+        that ended badly are errors. Their notify sockets are closed."""
         for child in reversed(list(self.children.values())):
             if child.gave_up:
                 errors.append(
@@ -374,9 +418,22 @@ class Supervisor:
                         f"{_ended_by(child)} as the demo stopped; see {child.log_path}",
                     )
                 else:
-                    stop_child(child.proc, child.name, errors, child.log_path)
-            if child.watchdog is not None:
-                child.watchdog.close()
+                    _stop_and_report(child, errors, timeout_s)
+            child.service.close()
+
+
+def _stop_and_report(child: Child, errors: list[str], timeout_s: float) -> None:
+    """``systemctl stop``; a kill, or an end that was no clean stop, is reported."""
+    if child.service.stop(timeout_s):
+        errors.append(f"{child.name} did not stop within {timeout_s:g} s and was killed")
+    code = child.proc.returncode
+    if code not in CLEAN_ENDS:
+        errors.append(f"{child.name} exited with {code}: {child.service.log_tail(5)}")
+
+
+def _restart_s(name: str) -> float:
+    """``RestartSec=`` of a catalogue unit."""
+    return UNITS[name].policy.restart_sec
 
 
 def _ended_by(child: Child) -> str:
@@ -385,26 +442,3 @@ def _ended_by(child: Child) -> str:
     if watchdog is None or proc is None:
         return ""
     return " (ended by its watchdog)" if any(p == proc.pid for _, p in watchdog.fired) else ""
-
-
-def terminate(proc: subprocess.Popen) -> None:
-    """SIGTERM and SIGCONT, as systemd stops a unit's process (a stopped one would not run
-    its handler until continued)."""
-    proc.send_signal(signal.SIGTERM)
-    proc.send_signal(signal.SIGCONT)
-
-
-def stop_process(proc: subprocess.Popen | None, timeout_s: float = 10.0) -> None:
-    """SIGTERM, then SIGKILL after ``timeout_s``: a child restarted with another.
-
-    SIGTERM, not SIGINT, which a child of a shell without job control inherits ignored;
-    then SIGCONT, as systemd sends it, so a stopped process runs and ends.
-    """
-    if proc is None or proc.poll() is not None:
-        return
-    terminate(proc)
-    try:
-        proc.wait(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()

@@ -15,7 +15,7 @@ import signal
 from dataclasses import dataclass
 from pathlib import Path
 
-UNITS_DIR = Path(__file__).resolve().parent / "systemd"
+UNITS_DIR = Path(__file__).resolve().parents[1] / "systemd"
 
 #: signals systemd counts as a clean end (systemd.service, "Restart=")
 _CLEAN_SIGNALS = {signal.SIGHUP, signal.SIGINT, signal.SIGTERM, signal.SIGPIPE}
