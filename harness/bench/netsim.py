@@ -1,6 +1,6 @@
 """Bench section: the link simulator measured from outside, against its scenarios.
 
-Runs ``common.netsim.fidelity`` (a PUB at 100 Hz to a SUB directly and to
+Runs ``harness.bench.netsim_fidelity`` (a PUB at 100 Hz to a SUB directly and to
 another through ``deepxpalm netsim`` in byte-stream mode, on loopback) for
 the transparent case and the delayed scenarios (and metro in message mode),
 and renders the table that docs/benchmarks.md and docs/netsim.md both carry; then the datagram mode
@@ -53,7 +53,7 @@ def fidelity(
     datagram_scenarios: tuple[str, ...] = DATAGRAM_SCENARIOS,
 ) -> dict[str, Any]:
     """One rig run per scenario; the simulator gets every core the bench had before pinning."""
-    from common.netsim.fidelity import measure as run_rig
+    from harness.bench.netsim_fidelity import measure as run_rig
 
     try:
         from harness.bench.timing import original_affinity

@@ -55,10 +55,6 @@ OWN_CHILDREN: dict[str, str] = {
         "the robot node's device process (the lab world over stdio) is the node's own "
         "child, and robot_side may not import deploy"
     ),
-    "common/netsim/fidelity.py": (
-        "the link simulator's fidelity rig is the bench's alone and moves into the harness "
-        "(issue 55, 'bench-only code lives in the harness'); common may not import deploy"
-    ),
 }
 
 #: what a process says when it is up, as a line of its log or its stdout

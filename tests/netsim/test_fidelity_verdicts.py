@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from common.netsim.fidelity import FidelityRun
+from harness.bench.netsim_fidelity import FidelityRun
 
 N = 1000
 

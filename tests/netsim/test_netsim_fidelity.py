@@ -1,6 +1,6 @@
 """The fidelity rig runs, and what it sees holds on any machine.
 
-The rig of ``common.netsim.fidelity``: a PUB sends 100 small messages a
+The rig of ``harness.bench.netsim_fidelity``: a PUB sends 100 small messages a
 second carrying their send time, to a SUB directly and to another through
 ``deepxpalm netsim`` (its own process, byte-stream mode), on loopback. How
 close the simulator keeps to its scenario (p50 within 0.15 ms of a direct
@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import pytest
 
-from common.netsim.fidelity import measure
 from common.netsim.scenario import load_scenario
+from harness.bench.netsim_fidelity import measure
 from operator_side.config import OperatorLinkConfig
 
 pytestmark = pytest.mark.slow

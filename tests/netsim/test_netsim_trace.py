@@ -7,11 +7,11 @@ import random
 import pytest
 
 from common.errors import ConfigError
-from common.netsim.fidelity import measure
 from common.netsim.impairments import NS_PER_MS, DirectionImpairment
 from common.netsim.scenario import load_scenario, scenario_from_dict
 from common.netsim.trace import delay_percentiles_ms, load_delay_trace
 from common.netsim.virtual import VirtualLink
+from harness.bench.netsim_fidelity import measure
 from operator_side.config import OperatorLinkConfig
 
 pytestmark = pytest.mark.usefixtures("quiet_gc")

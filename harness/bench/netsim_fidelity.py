@@ -6,21 +6,23 @@ netsim`` running as its own process (the deployed arrangement, with no
 interpreter lock shared with the rig). The two paths alternate half a
 period apart, so both see the same machine in the same run. What the
 scenario configures is then compared with what the SUB behind the simulator saw minus
-what the direct one saw.
+what the direct one saw. The rig binds its ends on ports of their own; the
+simulator binds the operator's side on port 0 and says where in its ``READY=1``
+(``deploy.units``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import signal
-import subprocess
-import sys
 import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import zmq
@@ -28,7 +30,8 @@ import zmq
 from common.errors import LinkError
 from common.netsim.impairments import DirectionConfig
 from common.netsim.scenario import load_scenario
-from common.transport import free_loopback_ports
+from deploy.units.readiness import NotReady
+from deploy.units.service import Service
 
 log = logging.getLogger(__name__)
 
@@ -158,50 +161,39 @@ def measure(
     """Run the rig once: ``rate_hz`` messages a second on each path for ``seconds``."""
     config = load_scenario(scenario).to_operator
     run = FidelityRun(scenario, mode, seconds, rate_hz, configured=configured_quantiles(config))
-    ports = free_loopback_ports(6)
-    direct_at, via_robot_at, robot_cmd_at, op_tel_at, op_cmd_at, _ = (
-        f"tcp://127.0.0.1:{p}" for p in ports
-    )
-    stats_path = os.path.join(
-        tempfile.gettempdir(), f"deepxpalm-fidelity-{os.getpid()}-{ports[0]}.json"
-    )
-    cmd = [
-        sys.executable,
-        "-m",
-        "deploy.cli",
-        "netsim",
-        "--scenario",
-        scenario,
-        "--mode",
-        mode,
-        "--seed",
-        str(seed),
-        "--robot-telemetry",
-        via_robot_at,
-        "--robot-commands",
-        robot_cmd_at,
-        "--operator-telemetry",
-        op_tel_at,
-        "--operator-commands",
-        op_cmd_at,
-        "--stats-file",
-        stats_path,
-        "--set",
-        "netsim.report_interval_s=0",
-        *netsim_args,
-    ]
     ctx = zmq.Context()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    socks: list[zmq.Socket] = []
+
+    def bound(kind: int) -> tuple[zmq.Socket, str]:  # one end of the rig, on a port of its own
+        s = ctx.socket(kind)
+        s.setsockopt(zmq.LINGER, 0)
+        s.bind("tcp://127.0.0.1:*")
+        socks.append(s)
+        return s, s.getsockopt(zmq.LAST_ENDPOINT).decode()
+
+    pub_direct, direct_at = bound(zmq.PUB)
+    pub_via, via_robot_at = bound(zmq.PUB)  # the robot's telemetry, as netsim sees it
+    _, robot_cmd_at = bound(zmq.SUB)  # the robot's command end: nothing is sent to it
+    workdir = Path(tempfile.mkdtemp(prefix="deepxpalm-fidelity-"))
+    stats_path = workdir / "netsim-stats.json"
+    argv = [
+        *("netsim", "--scenario", scenario, "--mode", mode, "--seed", str(seed)),
+        *("--robot-telemetry", via_robot_at, "--robot-commands", robot_cmd_at),
+        *("--operator-telemetry", "tcp://127.0.0.1:0", "--operator-commands", "tcp://127.0.0.1:0"),
+        *("--stats-file", str(stats_path), "--set", "netsim.report_interval_s=0", *netsim_args),
+    ]
+    netsim = Service("netsim", argv, workdir / "netsim.log")
+    netsim.start()
     if netsim_cpus:  # a caller pinned to one core: the simulator is a process of its own
-        os.sched_setaffinity(proc.pid, netsim_cpus)
+        os.sched_setaffinity(netsim.pid, netsim_cpus)
     try:
-        pub_direct = ctx.socket(zmq.PUB)
-        pub_via = ctx.socket(zmq.PUB)
-        for s, at in ((pub_direct, direct_at), (pub_via, via_robot_at)):
-            s.setsockopt(zmq.LINGER, 0)
-            s.bind(at)
+        try:
+            op_tel_at = netsim.wait_ready().endpoints["operator_telemetry"]
+        except NotReady as e:
+            raise LinkError(f"the simulated path never came up: {e}") from None
         sub_direct = _sub(ctx, direct_at)
         sub_via = _sub(ctx, op_tel_at)
+        socks += [sub_direct, sub_via]
         got: dict[str, list[tuple[int, int]]] = {"d": [], "v": []}
         stop = threading.Event()
 
@@ -218,12 +210,11 @@ def measure(
 
         thread = threading.Thread(target=receive, name="fidelity-rx", daemon=True)
         thread.start()
-        # Until the simulated path delivers (the netsim process starts in about a second).
+        # Until the simulated path delivers: the subscriptions joined (ZeroMQ's slow joiner)
         deadline = time.monotonic() + 15
         while not got["v"]:
-            if time.monotonic() > deadline or proc.poll() is not None:
-                err = proc.stderr.read().decode(errors="replace") if proc.poll() is not None else ""
-                raise LinkError(f"the simulated path never delivered: {err[-500:]}")
+            if time.monotonic() > deadline or not netsim.alive():
+                raise LinkError(f"the simulated path never delivered: {netsim.log_tail()}")
             pub_via.send(b"w" + time.monotonic_ns().to_bytes(8, "little"))
             pub_direct.send(b"w" + time.monotonic_ns().to_bytes(8, "little"))
             time.sleep(0.05)
@@ -243,23 +234,17 @@ def measure(
         thread.join(timeout=2)
         for key, out in (("d", run.direct_ms), ("v", run.via_ms)):
             out.extend((t - t0) / 1e6 for t0, t in got[key] if t0 >= t_measure)
-        for s in (pub_direct, pub_via, sub_direct, sub_via):
-            s.close(0)
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        for s in socks:
+            s.close(0)
+        netsim.stop(5, signal.SIGINT)  # it writes its statistics as it stops
+        netsim.close()
         ctx.destroy(linger=0)
-    try:
-        with open(stats_path) as f:
-            run.netsim_stats = json.load(f)
-        os.unlink(stats_path)
-    except (OSError, ValueError):
-        pass
+    with contextlib.suppress(OSError, ValueError):
+        run.netsim_stats = json.loads(stats_path.read_text())
+    for path in (stats_path, workdir / "netsim.log"):
+        path.unlink(missing_ok=True)
+    workdir.rmdir()
     return run
 
 
