@@ -187,7 +187,8 @@ def run(args: argparse.Namespace) -> int:
             units.start(children, stop)  # each process ready before the next
             children.armed = not stop.is_set()  # up: from now on, restart
         except NotReady as e:  # a wrong setting, a missing device: its log's tail
-            errors.append(str(e))
+            if not stop.is_set():  # Ctrl-C while it starts is no failure
+                errors.append(str(e))
         operator = units.operator
         if children.armed:  # whoever started the demo (the soak, the bench) may count on it
             served = (
