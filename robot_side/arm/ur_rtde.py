@@ -467,6 +467,8 @@ class URArm(Arm):
                 "without it a dead node would leave the arm moving, so the arm is not connected"
             ) from e
         self._watchdog_armed_ts = float(self._recv.getTimestamp())
+        # from here on a late kick can stop the arm: the keep-alive's timing counts from now
+        self.keep_alive_periods.clear()
 
     def disconnect(self) -> None:
         """Stop the arm, end the control script, close both interfaces, whatever fails."""

@@ -103,6 +103,7 @@ class ArmProcess(Arm):
         self._connected = False
         self._died: str | None = None
         self.ready_info: Any = None
+        self._last_summary: dict[str, float] = {}
 
     # -- the process ---------------------------------------------------------
 
@@ -191,6 +192,7 @@ class ArmProcess(Arm):
     def disconnect(self) -> None:
         """The arm stopped and its script ended by the arm process, which then exits."""
         child, state = self._child, self._state
+        self.keep_alive_summary()  # kept: the node's stats report it after we are gone
         self._connected = False
         if child is None:
             return
@@ -340,10 +342,16 @@ class ArmProcess(Arm):
         }
 
     def keep_alive_summary(self) -> dict[str, float]:
-        """The keep-alive's period (p50, p99, p99.9, max in ms, count) and its scheduling."""
-        state = self._fresh_state() or {}
-        return {k.removeprefix("keepalive_"): v for k, v in state.items()
-                if k.startswith("keepalive_")}  # fmt: skip
+        """The keep-alive's period (p50, p99, p99.9, max in ms, count) and its scheduling; once
+        the arm process has gone, what it last said."""
+        state = self._fresh_state()
+        if state is not None and state.get("keepalive_count"):
+            self._last_summary = {
+                k.removeprefix("keepalive_"): v
+                for k, v in state.items()
+                if k.startswith("keepalive_")
+            }
+        return dict(self._last_summary)
 
     def telemetry(self) -> dict[str, float]:
         self.require_connected()
