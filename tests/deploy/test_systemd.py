@@ -203,6 +203,8 @@ def test_udev_rules_cover_the_common_usb_serial_bridges():
 @pytest.mark.slow
 def test_the_video_unit_starts_a_video_server_the_cli_accepts(tmp_path):
     unit = _parse(_unit("video"))
+    assert _get(unit, "Service", "Type") == ["notify"]  # READY=1 once it serves
+    assert _get(unit, "Unit", "Before") == ["deepxpalm-robot.service"]
     assert _get(unit, "Service", "User") == ["deepxpalm"]
     assert _get(unit, "Service", "SupplementaryGroups") == ["video"]  # /dev/video*
     assert _get(unit, "Install", "WantedBy") == ["multi-user.target"]
