@@ -12,8 +12,13 @@ PYTHON ?= python3
 unexport PYTHONDONTWRITEBYTECODE
 VENV ?= .venv
 BIN := $(VENV)/bin
-# The CPU build this project is tested with; the range in pyproject.toml admits it.
+# The CPU build this project is tested with; the range in pyproject.toml admits it. PyTorch's
+# CPU-only wheels come from its own index: PyPI's Linux wheel is the CUDA build, gigabytes the
+# tests never use. A wheel pip finds without an index (find-links: PIP_FIND_LINKS, pip.conf, a
+# wheelhouse) is taken first. For the CUDA build (training on a GPU), name its index, e.g.
+# make setup TORCH_INDEX=https://download.pytorch.org/whl/cu128 (a setup already done: make clean).
 TORCH ?= torch==2.13.0
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 STAMP := $(VENV)/.installed
 
 # Four lanes (docs/testing.md). Most tests wait far more than they compute: the tests not
@@ -62,9 +67,12 @@ setup: $(STAMP)
 
 # --no-compile: Python compiles a module the first time it is imported and keeps it; compiling
 # every file of every package up front took 31 of the install's 58 s here.
+# torch first, so the range in pyproject.toml installs nothing more: a wheel at hand without an
+# index (its dependencies come with the project's, next), else TORCH_INDEX's.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -qq --no-compile "$(TORCH)"
+	$(BIN)/python -m pip install -qq --no-compile --no-index --no-deps "$(TORCH)" 2>/dev/null \
+		|| $(BIN)/python -m pip install -qq --no-compile "$(TORCH)" --index-url "$(TORCH_INDEX)"
 	$(BIN)/python -m pip install -qq --no-compile -e ".[all]"
 	touch $(STAMP)
 

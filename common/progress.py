@@ -7,7 +7,7 @@ and an ETA. Anywhere else (a log, a pipe, a CI job) it writes no control
 characters at all: a plain line each time the work passes another tenth, and
 the lines the caller adds (``note``), so a log still says how far it got.
 
-The bench, ``deepxpalm collect`` and ``deepxpalm export`` all use it; it
+The bench, ``deepxpalm collect``, ``export``, ``train`` and ``soak`` all use it; it
 needs nothing beyond the standard library, so the operator's install and the
 bench have it too.
 """

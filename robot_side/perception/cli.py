@@ -136,12 +136,7 @@ def run(args: argparse.Namespace) -> int:
             f"val position {row['val_position_accuracy']:.4f}  lr {row['lr']:.2g}  "
             f"{row['seconds']:.0f} s"
         )
-        if progress:
-            from tqdm import tqdm
-
-            tqdm.write(line)
-        else:
-            print(line, flush=True)
+        print(line, flush=True)  # training took the bar off the line first
 
     report = run_training(
         config,

@@ -192,9 +192,11 @@ def load_classifier(
     if backend not in BACKEND_TABLE:
         raise ModelLoadError(f"unknown backend {backend!r}; choose one of {list(BACKENDS)}")
     if not backend_installed(backend):
+        module = BACKEND_TABLE[backend].module
+        extra = "train" if module == "torch" else "robot"  # the robot PC never installs torch
         raise ModelLoadError(
-            f"backend {backend!r} needs the Python package {BACKEND_TABLE[backend].module!r}, "
-            "which is not installed: install the robot extra (pip install 'deepxpalm[robot]') "
+            f"backend {backend!r} needs the Python package {module!r}, which is not "
+            f"installed: install the {extra} extra (pip install 'deepxpalm[{extra}]') "
             "or choose backend='numpy'"
         )
     weights, meta = read_weights(path)

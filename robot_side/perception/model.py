@@ -154,7 +154,7 @@ def export_onnx(model: TiltNet, path: str | Path, opset: int = 17) -> Path:
     """ONNX graph with a dynamic batch axis, for the ONNX Runtime backend.
 
     The TorchScript-based exporter (``dynamo=False``) is used because the
-    dynamo exporter needs onnxscript, which the robot extra does not install.
+    dynamo exporter needs onnxscript, which the train extra does not install.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

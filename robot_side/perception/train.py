@@ -155,10 +155,10 @@ def train(
     gen = torch.Generator().manual_seed(config.seed)
     n_batches = max(1, -(-len(x) // config.batch_size))
     bar = None
-    if progress:
-        from tqdm import tqdm
+    if progress:  # the project's one progress bar (common/progress.py): on stderr, with an ETA
+        from common.progress import Progress
 
-        bar = tqdm(total=config.epochs * n_batches, unit="batch", dynamic_ncols=True, leave=False)
+        bar = Progress("train", config.epochs * n_batches, unit="batches")
     history: list[dict[str, float]] = []
     best_score, best_state, best_epoch = -1.0, copy.deepcopy(model.state_dict()), 0
     steps = 0
@@ -181,7 +181,7 @@ def train(
                 seen += len(idx)
                 steps += 1
                 if bar is not None:
-                    bar.update(1)
+                    bar.advance()
                 if max_steps is not None and steps >= max_steps:
                     break
             model.eval()
@@ -208,7 +208,9 @@ def train(
                 if checkpoint is not None:
                     torch.save({"state_dict": best_state, "epoch": epoch}, checkpoint)
             if bar is not None:
-                bar.set_postfix(epoch=epoch, val_angle=f"{acc_a:.4f}", val_pos=f"{acc_p:.4f}")
+                detail = f"epoch {epoch}: val angle {acc_a:.4f}, position {acc_p:.4f}"
+                bar.update(steps, detail=detail, draw=False)
+                bar.clear()  # the epoch's line (on_epoch, the log) above it; the next step redraws
             log.info(
                 "epoch %d: train loss %.4f, val loss %.4f, val angle %.4f, position %.4f",
                 epoch, row["train_loss"], val_loss, acc_a, acc_p,

@@ -106,3 +106,20 @@ def test_train_defaults_round_trip_through_toml() -> None:
     text = defaults_toml(TrainConfig, "train")
     assert "pipette_diameter_mm" in text and "[train.data.ranges]" in text
     assert from_dict(TrainConfig, tomllib.loads(text)["train"]) == TrainConfig()
+
+
+def test_training_shows_the_projects_progress_bar_on_a_terminal(tiny_run: Path) -> None:
+    """On a terminal, `deepxpalm train` draws common.progress's bar (with an ETA) on stderr."""
+    import os
+    import sys
+
+    from tests_support import stderr_on_pty
+
+    env = {k: v for k, v in os.environ.items() if k not in ("CI", "TERM")}
+    argv = [sys.executable, "-m", "deploy.cli", "train", "--data", str(tiny_run / "data.npz"),
+            "--out", str(tiny_run / "bar"), "--name", "bar", "--epochs", "2", "--width",
+            "0.125", "--threads", "1", "--no-robustness"]  # fmt: skip
+    seen, rc = stderr_on_pty(argv, env, cwd=Path(__file__).resolve().parents[2])
+    text = seen.decode(errors="replace")
+    assert rc == 0, text[-2000:]
+    assert "\rtrain [" in text and "batches" in text and "ETA" in text, text[-2000:]
