@@ -412,12 +412,17 @@ def log_message(rec: logging.LogRecord, message: str) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------- live
+#: the live view's port by default: not the dashboard's 8765 nor the study page's 8766, so
+#: one laptop can tunnel to all three
+VIEW_PORT = 8767
+
+
 @dataclasses.dataclass
 class FoxgloveLiveConfig:
     enabled: bool = param(False, "serve the recordings live to Foxglove (the 'foxglove' extra)")
     follow: Path | None = param(None, "the session folder being recorded (its *.mcap files)")
     host: str = param("127.0.0.1", "address of Foxglove's WebSocket server")
-    port: int = param(8765, "port of Foxglove's WebSocket server (0: any free one)")
+    port: int = param(VIEW_PORT, "port of Foxglove's WebSocket server (0: any free one)")
     delay_s: float = param(
         1.5, "send each message this long after its recorded time (> the recorders' 1 s flush)"
     )
@@ -434,7 +439,8 @@ class FoxgloveLiveConfig:
             raise ConfigError(
                 f"foxglove.host {self.host!r} is not a loopback address: the live view has no "
                 "authentication, so anyone who reaches it sees the camera and the session. Use "
-                "an SSH tunnel, or set foxglove.allow_remote=true on a network you trust"
+                "an SSH tunnel, or set foxglove.allow_remote=true (deepxpalm view: "
+                "--allow-remote) on a network you trust"
             )
         if not self.delay_s > 0:
             raise ConfigError(f"foxglove.delay_s must be positive, not {self.delay_s!r}")

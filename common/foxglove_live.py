@@ -6,9 +6,10 @@ only together do they hold the camera, the pads, the arm and the palm. So
 the live source is an observer of those files, not a part of any node:
 ``FileFollower`` reads each ``*.mcap`` of a session folder as it grows (a
 recorder writes a whole chunk every second), and ``LiveSource`` hands every
-message to Foxglove's WebSocket server (the ``foxglove-sdk`` package, the
-``foxglove`` extra) on the same channel, schema and bytes as in the file:
-the Foxglove types, the nodes' own channels and the log lines alike.
+message to the live view's server (``common/foxglove_server.py``: Foxglove's
+WebSocket server, the ``foxglove`` extra; ``deepxpalm view`` and ``deepxpalm
+record`` share it) on the same channel, schema and bytes as in the file: the
+Foxglove types, the nodes' own channels and the log lines alike.
 
 Pacing: a message is sent ``delay_s`` after its recorded time (the
 recording's monotonic clock, the same PC's), so the camera's 10 pictures a
@@ -23,7 +24,6 @@ robot nothing (the server drops the oldest messages for a slow client).
 
 from __future__ import annotations
 
-import contextlib
 import heapq
 import io
 import itertools
@@ -39,6 +39,7 @@ from mcap.stream_reader import StreamReader
 
 from common.errors import ConfigError
 from common.foxglove import FoxgloveLiveConfig
+from common.foxglove_server import LiveServer
 
 log = logging.getLogger(__name__)
 
@@ -107,57 +108,53 @@ class FileFollower:
 
 
 class LiveSource:
-    """Foxglove's WebSocket server, fed with the messages of a session's recordings."""
+    """A session's recordings, fed to the live view's Foxglove server (``LiveServer``).
 
-    def __init__(self, config: FoxgloveLiveConfig) -> None:
+    ``server``: a server another source shares (``deepxpalm view``, with the
+    robot's link beside the files), left open by ``close``; unset, the source
+    starts and stops its own. ``skip_topics``: topics another source serves (the
+    link's, which are newer than the files'), not served from the files.
+    """
+
+    def __init__(
+        self,
+        config: FoxgloveLiveConfig,
+        server: LiveServer | None = None,
+        skip_topics: frozenset[str] = frozenset(),
+    ) -> None:
         if config.follow is None:
             raise ConfigError("foxglove.follow: which session folder to serve (e.g. runs/today)")
-        try:
-            import foxglove
-        except ImportError:
-            raise ConfigError(
-                "the live Foxglove view needs the 'foxglove' extra: pip install '.[foxglove]'"
-            ) from None
         self.config = config
-        self._fx = foxglove
         self._follower = FileFollower(config.follow)
         self._schemas: dict[tuple[Path, int], Schema] = {}
         self._channels: dict[tuple[Path, int], Any] = {}  # (file, channel id) -> sdk channel
-        self._by_topic: dict[str, Any] = {}
+        self._skip = skip_topics
         self._due: list[tuple[int, int, Any, bytes, int]] = []
         self._order = itertools.count()
         self.counters: Counter[str] = Counter()
         self._t_start = time.monotonic_ns()
-        try:
-            self.server = foxglove.start_server(
-                name="deepxpalm", host=config.host, port=config.port
-            )
-        except Exception as e:  # the sdk raises its own error types
-            raise ConfigError(
-                f"cannot serve Foxglove on {config.host}:{config.port}: {e} (is the port in use? "
-                "set foxglove.port)"
-            ) from None
+        self._own_server = server is None
+        self.server = LiveServer(config) if server is None else server
         self.port = self.server.port
         log.info(
-            "Foxglove: open ws://%s:%d (Open connection, Foxglove WebSocket); following %s",
-            config.host,
-            self.port,
+            "Foxglove: open %s (Open connection, Foxglove WebSocket); following %s",
+            self.server.url,
             config.follow,
         )
 
     def _channel(self, path: Path, ch: Channel) -> Any:
-        known = self._by_topic.get(ch.topic)
-        if known is not None:  # a restarted node's file: the same topic, one channel
-            return known
+        if ch.topic in self._skip:
+            return None
         schema = self._schemas.get((path, ch.schema_id))
-        fx_schema = (
-            None
-            if schema is None
-            else self._fx.Schema(name=schema.name, encoding=schema.encoding, data=schema.data)
+        if schema is None:
+            return self.server.channel(ch.topic, message_encoding=ch.message_encoding)
+        return self.server.channel(
+            ch.topic,
+            schema_name=schema.name,
+            schema_encoding=schema.encoding,
+            schema_data=schema.data,
+            message_encoding=ch.message_encoding,
         )
-        channel = self._fx.Channel(ch.topic, schema=fx_schema, message_encoding=ch.message_encoding)
-        self._by_topic[ch.topic] = channel
-        return channel
 
     def step(self) -> None:
         """Read what the files gained and send what is due."""
@@ -184,18 +181,24 @@ class LiveSource:
             channel.log(data, log_time=log_time)
             self.counters["sent"] += 1
 
+    def wait_s(self) -> float:
+        """How long until ``step`` has something to do: the next message due, or the next look
+        at the files."""
+        wait = self.config.poll_interval_s
+        if self._due:
+            wait = min(wait, max(0.0, (self._due[0][0] - time.monotonic_ns()) / 1e9))
+        return wait
+
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
         t_end = None if duration_s is None else time.monotonic() + duration_s
         try:
             while not stop.is_set() and (t_end is None or time.monotonic() < t_end):
                 self.step()
-                wait = self.config.poll_interval_s
-                if self._due:
-                    wait = min(wait, max(0.0, (self._due[0][0] - time.monotonic_ns()) / 1e9))
-                stop.wait(wait)
+                stop.wait(self.wait_s())
         finally:
             self.close()
 
     def close(self) -> None:
-        with contextlib.suppress(Exception):
-            self.server.stop()
+        """Stops the server if this source started it (a shared one is its owner's to stop)."""
+        if self._own_server:
+            self.server.close()
