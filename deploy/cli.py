@@ -47,6 +47,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "run the fabric's Zenoh router: robots and operators of several sites meet there",
     ),
     "record": ("operator_side.record_cli", "keep every robot's stream from the fabric, to a file"),
+    "topic": (
+        "deploy.topic_cli",
+        "look at the wire: each topic's rate, sessions and messages (ros2 topic hz/echo)",
+    ),
     "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
     "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
     "collect": (
