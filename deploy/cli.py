@@ -51,6 +51,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "deploy.topic_cli",
         "look at the wire: each topic's rate, sessions and messages (ros2 topic hz/echo)",
     ),
+    "view": ("deploy.view_cli", "a robot's link and a session's recordings, live in Foxglove"),
     "netsim": ("common.netsim.cli", "run the latency simulator between the two nodes"),
     "train": ("robot_side.perception.cli", "generate data, train and report the tilt CNN"),
     "collect": (

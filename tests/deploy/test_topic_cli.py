@@ -253,7 +253,7 @@ def test_a_robot_node_is_read_as_it_sends(robot_in_thread):
 def test_import_leaves_torch_alone():
     """The command runs where the robot's extras are not installed (an operator PC)."""
     code = (
-        "import sys, deploy.topic_cli, deploy.wire_tap; "
+        "import sys, deploy.topic_cli, deploy.view_cli, deploy.wire_tap; "
         "print(sorted(m for m in ('torch', 'zenoh', 'foxglove', 'mcap') if m in sys.modules))"
     )
     proc = subprocess.run(
