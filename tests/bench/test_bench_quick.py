@@ -19,8 +19,9 @@ from harness.bench.sizes import PRESETS, SECTIONS
 
 pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing asserted (above)
 
-# Every section runs once, in the module's fixture (the processes' too), but five whose
-# measurements other tests run: the task's ``run_cell`` (tests/lab/test_task.py), the
+# Every section runs once, in the module's fixture (the processes' too), but six whose
+# measurements other tests run: the keep-alive's timing in its arm process
+# (tests/drivers/test_arm_process.py), the task's ``run_cell`` (tests/lab/test_task.py), the
 # fault matrix's ``run_cells`` (tests/faults), the command path's flood rig
 # (tests/system/test_command_path.py), the video's viewers (tests/video), and the video
 # through netsim's page
@@ -28,7 +29,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing asserted (abov
 # are rendered from the committed report by tests/bench/test_sections.py. Run here too
 # they cost two minutes of the suite's 15.
 PROCESS_SECTIONS = {"node_cpu", "e2e_tcp", "netsim"}
-COVERED_ELSEWHERE = {"task", "faults", "command_path", "video", "video_netsim"}
+COVERED_ELSEWHERE = {"task", "faults", "command_path", "video", "video_netsim", "keep_alive"}
 
 
 @pytest.fixture(scope="module")
