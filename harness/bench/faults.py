@@ -74,7 +74,7 @@ def _s(x: float | None) -> str:
 
 
 #: the processes whose failure cuts the operator's jogs off the arm: the stop budget applies
-CUTS_THE_JOG = ("robot", "operator", "router", "netsim", "link")
+CUTS_THE_JOG = ("robot", "arm", "operator", "router", "netsim", "link")
 
 
 def _cruising(row: dict[str, Any]) -> bool:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -39,6 +40,8 @@ from operator_side.servos.sts_sim import simulated_driver_settings
 log = logging.getLogger(__name__)
 
 ROBOT, OPERATOR, RECORDER = "cell", "op", "rec"
+#: the fault target that is the robot node's arm process (robot_side/arm/process)
+ARM_PROCESS = "arm"
 
 #: the grasp the tactile board feels for the whole run, and the renderer that needs no model
 _BOARD_TOML = """
@@ -359,7 +362,21 @@ class Deployment:
 
     # ------------------------------------------------------------ faults
     def signal(self, name: str, sig: int) -> None:
+        if name == ARM_PROCESS:
+            os.kill(self.arm_process_pid(), sig)
+            return
         self.units[name].proc.send_signal(sig)
+
+    def arm_process_pid(self) -> int:
+        """The robot node's arm process (the UR driver's real-time duties): its child running
+        ``robot_side.arm.process``; no unit of its own (the node's recovery starts another)."""
+        from harness.processes import children_of, cmdline
+
+        robot = self.units["robot"].proc.pid
+        for pid in children_of(robot):
+            if "robot_side.arm.process" in (cmdline(pid) or []):
+                return pid
+        raise DeploymentError(f"the robot node (pid {robot}) has no arm process")
 
     def clean_restart(self, name: str, timeout_s: float = 20.0) -> float:
         """``systemctl restart``: stop (``Service.stop``), start again; the restart's time."""

@@ -21,7 +21,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from harness.faults.deployment import Deployment, DeploymentError
+from harness.faults.deployment import ARM_PROCESS, Deployment, DeploymentError
 from harness.faults.probes import ArmProbe, GripperProbe, PalmProbe, Sample
 from operator_side.config import OperatorLinkConfig
 
@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 KILL, STOP, RESTART, OUTAGE, UNPLUG = "kill -9", "SIGSTOP 2 s", "restart", "outage 5 s", "unplug"
 PROCESSES = (
     "robot",
+    ARM_PROCESS,
     "operator",
     "router",
     "netsim",
@@ -90,19 +91,27 @@ class Cell:
 
 
 def full_matrix() -> list[Cell]:
-    cells = [Cell(p, f) for p in PROCESSES for f in (KILL, STOP, RESTART)]
+    # the arm process has no unit to restart it: the robot node's recovery starts another
+    cells = [
+        Cell(p, f)
+        for p in PROCESSES
+        for f in (KILL, STOP, RESTART)
+        if not (p == ARM_PROCESS and f == RESTART)
+    ]
     cells.append(Cell("link", OUTAGE))
     cells += [Cell(d, UNPLUG) for d in ("tactile", "gripper", "servos")]
     return cells
 
 
 def quick_matrix() -> list[Cell]:
-    """The cells the tests hold too: the robot node killed and frozen, the fabric's router
+    """The cells the tests hold too: the robot node killed and frozen, its arm process killed
+    (the controller's watchdog stops the arm, the node starts another), the fabric's router
     killed (the nodes reconnect by themselves), netsim's clean restart (it once ignored its stop
     signal and forwarded on), the link."""
     return [
         Cell("robot", KILL),
         Cell("robot", STOP),
+        Cell(ARM_PROCESS, KILL),
         Cell("router", KILL),
         Cell("netsim", RESTART),
         Cell("link", OUTAGE),
@@ -584,6 +593,8 @@ class CellRun:
 def restarted_by(cell: Cell, policy: Any) -> str:
     if cell.fault in (STOP, OUTAGE, UNPLUG):
         return "-"
+    if cell.target == ARM_PROCESS:
+        return "the robot node's recovery"
     systemd = policy is not None and policy.unit
     if cell.fault == RESTART:
         return "systemctl restart" if systemd else "a human (restart)"
