@@ -10,7 +10,6 @@ devices' workers (workers.py); the loop never waits on a device.
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import logging
 import math
@@ -181,11 +180,6 @@ class RobotNode:
         return self.deadman.link_state
 
     @property
-    def link_changes(self) -> collections.deque[tuple[int, str]]:
-        """(monotonic ns, new state) of the latest operator link state changes."""
-        return self.deadman.link_changes
-
-    @property
     def clock(self) -> ClockSync:
         """The clock offset to the operator of an unsigned link (each roster key has its own)."""
         return self.desk.clock
@@ -211,9 +205,6 @@ class RobotNode:
     def process(self, sample: TactileSample) -> Stimulus | None:
         """One frame through the frame rule without the rate cap (``pipeline.offer`` has it)."""
         return self.pipeline.process(sample)
-
-    def reload_roster(self, now: int) -> bool:
-        return self.desk.reload_roster(now)
 
     # ------------------------------------------------------------------- run
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:

@@ -111,7 +111,7 @@ def test_a_cut_link_lifts_the_palm_and_stops_the_arm_then_recovers(loop):
     last = np.array([during[-1].goals[i] for i in range(1, 7)])
     np.testing.assert_array_equal(last, retract)  # fully lifted during the outage
     # the robot stops the arm within its deadman time plus one cycle of the cut
-    down = _first_change(robot.link_changes, "down", cut)
+    down = _first_change(robot.deadman.link_changes, "down", cut)
     assert down is not None and arm.stop_times
     stop_t = next(t for t in arm.stop_times if t >= cut)
     deadman_limit = robot.config.link.deadman_ms + CYCLE_MS + SLACK_MS
@@ -123,7 +123,7 @@ def test_a_cut_link_lifts_the_palm_and_stops_the_arm_then_recovers(loop):
     # and everything recovers by itself once the link returns
     ok_again = _first_change(operator.link_changes, "ok", back)
     assert ok_again is not None and (ok_again - back) / 1e9 < 1.0
-    assert _first_change(robot.link_changes, "ok", back) is not None
+    assert _first_change(robot.deadman.link_changes, "ok", back) is not None
     assert any(t > back for t in arm.jog_times), "jogging did not resume after the outage"
     after = [r for r in bus.records if r.t_ns > ok_again]
     assert after and np.any(np.array([after[-1].goals[i] for i in range(1, 7)]) != retract)
