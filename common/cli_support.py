@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import json
 import signal
@@ -31,7 +32,21 @@ def add_overrides_argument(parser: argparse.ArgumentParser, example: str) -> Non
     )
 
 
-def add_config_arguments(parser: argparse.ArgumentParser, cls: type, section: str) -> None:
+def add_config_arguments(
+    parser: argparse.ArgumentParser,
+    cls: type,
+    section: str,
+    *,
+    example: str | None = None,
+    record: bool = False,
+) -> None:
+    """``--config``, ``--set``, ``--print-config``, ``--stats-file``, ``--duration``; ``--record``
+    only where the command records (``run_node``'s nodes): an option offered is one it uses.
+
+    ``example``: the ``--set`` help's example, a key of ``cls`` (``KEY=VALUE`` without the
+    section); unset: the first plain setting of ``cls`` at its default. Every such example
+    runs with ``--print-config`` in tests/deploy/test_help_examples.py.
+    """
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = (
         f"Configuration: a TOML file with these keys, either at the top level or under "
@@ -39,15 +54,28 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, section: st
         + _indent(defaults_toml(cls, section))
     )
     parser.add_argument("--config", type=Path, help="TOML config or scene file")
-    add_overrides_argument(parser, f"{section}.render.mode=direct")
+    add_overrides_argument(parser, f"{section}.{example or example_setting(cls)}")
     parser.add_argument(
         "--print-config", action="store_true", help="print the effective config and exit"
     )
     parser.add_argument("--stats-file", type=Path, help="write final counters here as JSON on exit")
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
-    parser.add_argument(
-        "--record", type=Path, metavar="FILE", help="record the session to this MCAP file"
-    )
+    if record:
+        parser.add_argument(
+            "--record", type=Path, metavar="FILE", help="record the session to this MCAP file"
+        )
+
+
+def example_setting(cls: type) -> str:
+    """``key=value``: the first setting of ``cls`` that is a plain value, at its default."""
+    defaults = cls()
+    for field in dataclasses.fields(cls):
+        value = getattr(defaults, field.name)
+        if isinstance(value, bool):
+            return f"{field.name}={str(value).lower()}"
+        if isinstance(value, int | float) or (isinstance(value, str) and value.isidentifier()):
+            return f"{field.name}={value}"
+    raise ValueError(f"{cls.__name__} has no plain setting to show as an example")
 
 
 def _indent(text: str) -> str:
@@ -149,7 +177,7 @@ def run_node(
         print_config(config, section)
         return 0
     recorder = None
-    if args.record:
+    if getattr(args, "record", None):
         from common.mcap_recorder import node_recorder  # mcap only when recording
 
         recorder = node_recorder(args.record, config, section)

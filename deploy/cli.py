@@ -139,12 +139,57 @@ def _build_parser(
     parser.add_argument(
         "-v", "--verbose", action="count", default=0, help="more logging (-vv debug)"
     )
+    parser.add_argument(
+        "--version", action=_Version, nargs=0, help="print the installed version and exit"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_text) in commands.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name == chosen:
             importlib.import_module(module).add_arguments(p)
+            _verbose_after(p)
     return parser
+
+
+def _verbose_after(parser: argparse.ArgumentParser) -> None:
+    """``-v`` after the subcommand too (``deepxpalm robot -v``), and after a nested one."""
+    if "-v" not in parser._option_string_actions:
+        parser.add_argument(
+            "-v",
+            "--verbose",
+            dest="verbose_after",
+            action="count",
+            default=argparse.SUPPRESS,  # a nested parser's default would hide its parent's -v
+            help="more logging (-vv debug), as before the command",
+        )
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for nested in set(action.choices.values()):
+                _verbose_after(nested)
+
+
+class _Version(argparse.Action):
+    """``--version``: the installed distribution's version, looked up only when asked (the
+    metadata's import is no cost of ``deepxpalm palm lift``)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        print(f"deepxpalm {package_version()}")
+        parser.exit()
+
+
+def package_version() -> str:
+    """The installed version; a checkout run without installing it: its pyproject.toml's."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("deepxpalm")
+    except PackageNotFoundError:
+        import tomllib
+
+        try:
+            return str(tomllib.loads(CHECKOUT_PYPROJECT.read_text())["project"]["version"])
+        except (OSError, KeyError, tomllib.TOMLDecodeError):
+            return "unknown"
 
 
 def _dump_stacks_on_request(on_usr1: bool) -> None:
@@ -173,6 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    args.verbose += getattr(args, "verbose_after", 0)  # -v before the command and after it
     configure_logging([logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)])
     _dump_stacks_on_request(args.command != "sim")  # simulators use SIGUSR1 as "unplug"
     module = importlib.import_module(commands[args.command][0])

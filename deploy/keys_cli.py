@@ -29,9 +29,11 @@ from __future__ import annotations
 import argparse
 import datetime
 import shutil
+import sys
 from pathlib import Path
 
 import zmq.auth
+from zmq.utils import z85
 
 from common.errors import ConfigError
 from common.messages import ROLES
@@ -92,7 +94,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="names and addresses nodes dial the router at (its certificate must name them)",
     )
     certs.add_argument("--force", action="store_true", help="renew every member's certificate")
-    show = sub.add_parser("show", help="print a key file's public key (Z85)")
+    show = sub.add_parser(
+        "show",
+        help="print a key file's public key: a CURVE pair's (Z85) or a signing key's (hex)",
+    )
     show.add_argument("key_file", type=Path)
 
 
@@ -238,6 +243,41 @@ def run(args: argparse.Namespace) -> int:
         target = allow(args.public_key, args.authorized)
         print(f"allowed: {target}; restart the robot node to take it in")
     else:
-        public, _ = zmq.auth.load_certificate(args.key_file)
-        print(public.decode())
+        try:
+            print(public_key_text(args.key_file))
+        except ConfigError as e:  # bad input: one line, as argparse says a bad option
+            print(f"deepxpalm keys show: error: {e}", file=sys.stderr)
+            return 2
     return 0
+
+
+def public_key_text(path: Path) -> str:
+    """A key file's public key: a CURVE pair's (``NAME.key`` or ``NAME.key_secret``, as Z85) or
+    a signing key's (``NAME.sign``, as hex); ``ConfigError`` naming what is wrong otherwise."""
+    from common.signing import Signer, parse_public_key
+
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise ConfigError(f"cannot read {path}: {e.strerror or e}") from None
+    try:
+        text = data.decode("ascii")
+    except UnicodeDecodeError:
+        text = ""
+    if text and not text.lstrip().startswith("#") and "=" not in text:
+        try:  # NAME.sign: 64 hex digits; NAME.sign_secret the same, a seed whose key is shown
+            key = parse_public_key(text.strip(), str(path))
+        except ConfigError:
+            pass
+        else:
+            return Signer(key).public.hex() if path.suffix == ".sign_secret" else key.hex()
+    try:
+        public, _ = zmq.auth.load_certificate(path)
+        if len(public) != 40 or len(z85.decode(public)) != 32:
+            raise ValueError("its public-key is not 40 Z85 characters")
+    except (OSError, ValueError) as e:
+        raise ConfigError(
+            f"{path} is not a key file (a CURVE NAME.key or NAME.key_secret, or a signing "
+            f"NAME.sign): {e}"
+        ) from None
+    return public.decode()

@@ -23,7 +23,13 @@ STATUS_PERIOD_S = 0.1
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_config_arguments(parser, OperatorConfig, "operator")
+    add_config_arguments(
+        parser,
+        OperatorConfig,
+        "operator",
+        example="link.telemetry_endpoint=tcp://192.168.1.20:5555",
+        record=True,
+    )
     parser.add_argument(
         "--commands-from-stdin",
         action="store_true",

@@ -205,7 +205,9 @@ def read_records(path: Path) -> Iterator[tuple[int, bytes, object]]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_config_arguments(parser, RecorderConfig, "recorder")
+    add_config_arguments(
+        parser, RecorderConfig, "recorder", example="telemetry_endpoint=tcp://192.168.1.20:5555"
+    )
 
 
 def run(args: argparse.Namespace) -> int:

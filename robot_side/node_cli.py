@@ -10,7 +10,7 @@ from robot_side.config import RobotConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_config_arguments(parser, RobotConfig, "robot")
+    add_config_arguments(parser, RobotConfig, "robot", example="render.mode=direct", record=True)
 
 
 def _build(config: RobotConfig, recorder: Any) -> Any:

@@ -54,7 +54,7 @@ class NetsimConfig:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_config_arguments(parser, NetsimConfig, "netsim")
+    add_config_arguments(parser, NetsimConfig, "netsim", example="scenario=intercontinental")
     parser.epilog = f"Built-in scenarios: {', '.join(builtin_scenarios())}\n\n" + (
         parser.epilog or ""
     )
@@ -87,6 +87,8 @@ def config_from_args(args: argparse.Namespace) -> NetsimConfig:
         value = getattr(args, key, None)
         if value is not None:
             setattr(config.endpoints, key, value)
+    if getattr(args, "duration", None) is not None:  # --duration, as every command takes it
+        config.duration_s = args.duration
     for key in ("scenario", "seed", "duration_s", "mode"):
         value = getattr(args, key, None)
         if value is not None:

@@ -55,7 +55,7 @@ def wait_for_stop(stop: threading.Event, duration_s: float | None) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_config_arguments(parser, VideoConfig, "video")
+    add_config_arguments(parser, VideoConfig, "video", example="source=v4l2")
 
 
 def run(args: argparse.Namespace) -> int:
