@@ -22,6 +22,7 @@ import signal
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from common.cli_support import add_overrides_argument
+from common.progress import Progress
 from deploy.units.readiness import NotReady
 from deploy.units.service import Service
 from harness.processes import children_of, cmdline, cpu_s, rss_mb
@@ -197,7 +199,9 @@ def run(args: argparse.Namespace) -> int:
         args.scenario,
         "--record",
         str(rec_dir),
-        # per-message faults, corruption included, so the decoders are exercised
+        # per-message faults, corruption included, so the decoders are exercised: message mode
+        # re-publishes messages, which a CURVE link refuses, so the soak's link is plain
+        "--plain",
         "--set",
         "network.mode=message",
     ]
@@ -212,6 +216,13 @@ def run(args: argparse.Namespace) -> int:
     series: dict[str, Series] = {"operator (demo)": Series(demo.pid)}
     t0 = time.monotonic()
     deadline = t0 + duration_s + 120  # the demo stops itself; this is the backstop
+    # the project's one bar (common/progress.py): redrawn on a terminal, a line a tenth in a log
+    bar = Progress("soak", duration_s, unit="s")
+    bar.update(0, detail="starting the demo", force=True)
+
+    def tick() -> None:
+        bar.update(min(time.monotonic() - t0, duration_s))
+
     try:
         with contextlib.suppress(NotReady):  # a demo that fails says why in its summary
             demo.wait_ready()  # every process of it up: its children are the ones to watch
@@ -225,13 +236,17 @@ def run(args: argparse.Namespace) -> int:
                 rss, cpu = rss_mb(s.pid), cpu_s(s.pid)
                 if rss is not None and cpu is not None:
                     s.samples.append((elapsed, rss, cpu))
+            rss = sum(s.samples[-1][1] for s in series.values() if s.samples)
+            bar.update(detail=f"{len(series)} processes, {rss:.0f} MB", draw=False)
+            tick()
             if time.monotonic() > deadline:
                 log.error("the demo overran its duration by 2 minutes; stopping it")
                 break
-            _sleep_until_exit(demo.popen, args.sample_s)
+            _sleep_until_exit(demo.popen, args.sample_s, tick)
     except KeyboardInterrupt:
         pass
     finally:
+        bar.close()
         demo.stop(60, signal.SIGINT, group=True)  # Ctrl-C to it and its children, as a user
         demo.close()
     returncode = demo.popen.returncode
@@ -248,9 +263,18 @@ def run(args: argparse.Namespace) -> int:
     return 0 if report["passed"] else 1
 
 
-def _sleep_until_exit(proc: subprocess.Popen, seconds: float) -> None:
-    with contextlib.suppress(subprocess.TimeoutExpired):
-        proc.wait(timeout=seconds)
+def _sleep_until_exit(
+    proc: subprocess.Popen, seconds: float, tick: Callable[[], None] | None = None
+) -> None:
+    """Until ``proc`` ends or ``seconds`` pass; ``tick`` (the progress bar) each second."""
+    end = time.monotonic() + seconds
+    while (left := end - time.monotonic()) > 0:
+        try:
+            proc.wait(timeout=min(left, 1.0) if tick is not None else left)
+            return
+        except subprocess.TimeoutExpired:
+            if tick is not None:
+                tick()
 
 
 def _report(
