@@ -1,0 +1,201 @@
+"""The product stays made of small parts: no module of 400 lines or more, no class of 300.
+
+Both node packages were split by concern once (the robot node was one
+1,044-line module whose class held the frame pipeline, two copies of command
+admission, the lease, video, deadman, heartbeats and workers); elsewhere
+classes kept growing (the UR driver 735 lines, its simulator 815). This holds
+every product package (``common``, ``robot_side``, ``operator_side``,
+``router_side``, ``deploy``; not the harness, not the tests) to the rule.
+
+What is still over it is in ``ALLOWED``, each entry with the size it had when
+it was listed as its cap and the reason it is still one piece. The list only
+shrinks: an entry that grows past its cap fails, so does a new module or
+class over the limit, and so does an entry no longer over the limit (take it
+out, so it cannot grow back). Split along concerns, not by one-line
+pass-through members that forward to a part: let callers talk to the part.
+
+Sizes count every line of a module, and a class from its first decorator to
+its last line (docstring included).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("common", "robot_side", "operator_side", "router_side", "deploy")
+MAX_MODULE_LINES = 400
+MAX_CLASS_LINES = 300
+#: the node packages were split first and stay without exceptions
+NO_EXCEPTIONS = ("robot_side/node/", "operator_side/node/")
+
+#: "path" (a module) or "path::Class" -> (its size when listed: the cap, why it is still one piece)
+ALLOWED: dict[str, tuple[int, str]] = {
+    "robot_side/arm/ur_rtde.py": (
+        998,
+        "the UR driver: connection, keep-alive, motion and receive side in one module",
+    ),
+    "robot_side/arm/ur_rtde.py::URArm": (
+        735,
+        "the UR driver: connection, keep-alive, motion and receive side in one class",
+    ),
+    "robot_side/arm/sim/server.py": (
+        993,
+        "the UR controller simulator: RTDE, dashboard, script server and the arm in one module",
+    ),
+    "robot_side/arm/sim/server.py::URSimulator": (
+        815,
+        "the UR controller simulator: its three servers and the arm in one class",
+    ),
+    "common/mcap_recorder.py": (
+        904,
+        "MCAP writing, reading and recovery of a damaged file in one module",
+    ),
+    "deploy/replay.py": (658, "robot replay, operator replay and publishing in one module"),
+    "operator_side/servos/feetech.py": (
+        645,
+        "the Feetech driver: port, SDK calls, health and motion in one module",
+    ),
+    "operator_side/servos/feetech.py::FeetechServoBus": (
+        430,
+        "the Feetech bus: connection, reads, writes and health in one class",
+    ),
+    "robot_side/video/server.py": (
+        627,
+        "the WebRTC video server: signalling, viewers and the source in one module",
+    ),
+    "robot_side/video/server.py::VideoServer": (
+        382,
+        "the video server: signalling, viewers and the source in one class",
+    ),
+    "operator_side/dashboard/server.py": (
+        588,
+        "the dashboard's web server: pages, sampling, commands and video in one module",
+    ),
+    "operator_side/dashboard/server.py::Dashboard": (
+        453,
+        "the dashboard: pages, sampling, commands and video in one class",
+    ),
+    "robot_side/tactile/serial_board.py": (
+        582,
+        "the tactile board driver: port, reader thread and calibration in one module",
+    ),
+    "robot_side/tactile/serial_board.py::SerialTactileSensor": (
+        417,
+        "the tactile board: port, reader thread and calibration in one class",
+    ),
+    "common/netsim/impairments.py": (
+        582,
+        "the link simulator's configuration and its loss, delay and corruption models",
+    ),
+    "common/codec.py": (557, "the message checks and the encoder/decoder in one module"),
+    "common/transport.py": (
+        550,
+        "ZeroMQ sockets, their reconnection, the capture link and port helpers",
+    ),
+    "robot_side/arm/base.py": (
+        547,
+        "the arm interface, its limits and the deadman and keep-alive threads",
+    ),
+    "robot_side/arm/base.py::Arm": (
+        361,
+        "the arm interface with its deadman and keep-alive threads",
+    ),
+    "operator_side/study/analysis.py": (
+        520,
+        "the study's statistics, figure and report in one module",
+    ),
+    "deploy/doctor/link.py": (507, "the doctor's endpoint, heartbeat and clock checks of the link"),
+    "operator_side/servos/sts_sim.py": (
+        502,
+        "the fake STS bus: the servos' model and the packet server",
+    ),
+    "robot_side/perception/inference.py": (
+        498,
+        "the classifier interface and its five backends' loaders and forward passes",
+    ),
+    "robot_side/gripper/sim.py": (487, "the Robotiq model and its socket server in one module"),
+    "common/netsim/stream.py": (472, "the stream mode's forwarding of both directions' bytes"),
+    "common/netsim/stream.py::StreamForwarder": (
+        316,
+        "one direction's byte stream: sockets, pacing and impairment",
+    ),
+    "deploy/topic_cli.py": (464, "deepxpalm topic: watching, tables and echo in one module"),
+    "common/synthetic_tactile.py": (462, "the synthetic grasp model and its held grasps"),
+    "common/foxglove.py": (448, "Foxglove's schemas and the views that fill them"),
+    "deploy/units/supervisor.py": (
+        458,
+        "the demo's children and the supervisor that restarts them",
+    ),
+    "robot_side/lab/world.py::LabWorld": (
+        300,
+        "the MuJoCo world: model, stepping and reads under one lock",
+    ),
+    "operator_side/servos/sts_sim.py::FakeStsBus": (
+        300,
+        "the fake bus: the pseudo-terminal and the packet protocol",
+    ),
+}
+
+
+def sizes(source: str) -> tuple[int, dict[str, int]]:
+    """(lines in the module, lines of each class, decorators and docstring included)."""
+    tree = ast.parse(source)
+    classes = {
+        node.name: node.end_lineno
+        - min([node.lineno, *(d.lineno for d in node.decorator_list)])
+        + 1
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ClassDef)
+    }
+    return len(source.splitlines()), classes
+
+
+def over_the_limit(root: Path = ROOT) -> dict[str, int]:
+    """Every product module and class at or over its limit, by its ``ALLOWED`` key."""
+    found = {}
+    for package in PACKAGES:
+        for path in sorted((root / package).rglob("*.py")):
+            where = path.relative_to(root).as_posix()
+            lines, classes = sizes(path.read_text())
+            if lines >= MAX_MODULE_LINES:
+                found[where] = lines
+            found |= {f"{where}::{c}": n for c, n in classes.items() if n >= MAX_CLASS_LINES}
+    return found
+
+
+def test_nothing_grows_past_the_limit_or_its_cap() -> None:
+    problems = []
+    for key, n in sorted(over_the_limit().items()):
+        limit = MAX_CLASS_LINES if "::" in key else MAX_MODULE_LINES
+        if key not in ALLOWED:
+            problems.append(f"{key}: {n} lines (limit {limit}): split it along its concerns")
+        elif n > ALLOWED[key][0]:
+            problems.append(
+                f"{key}: {n} lines, grew past its cap of {ALLOWED[key][0]}: split it, "
+                "or move what you added into a part of its own"
+            )
+    assert not problems, "\n".join(problems)
+
+
+def test_every_allowlist_entry_is_still_needed() -> None:
+    over = over_the_limit()
+    gone = [f"{key}: now under the limit or gone" for key in ALLOWED if key not in over]
+    assert not gone, "take these out of ALLOWED (it only shrinks):\n" + "\n".join(gone)
+
+
+def test_the_node_packages_have_no_exceptions() -> None:
+    assert not [key for key in ALLOWED if key.startswith(NO_EXCEPTIONS)]
+
+
+def test_the_size_check_sees_a_long_class_and_module(tmp_path: Path) -> None:
+    body = "\n".join(f"    x{i} = {i}" for i in range(MAX_CLASS_LINES))
+    lines, classes = sizes(f"@dataclass\nclass Big:\n{body}\n")
+    assert classes == {"Big": MAX_CLASS_LINES + 2} and lines == MAX_CLASS_LINES + 2
+    (tmp_path / "common").mkdir()
+    (tmp_path / "common" / "big.py").write_text(f"class Big:\n{body}\n" + "\n" * MAX_MODULE_LINES)
+    assert over_the_limit(tmp_path) == {
+        "common/big.py": MAX_CLASS_LINES + 1 + MAX_MODULE_LINES,
+        "common/big.py::Big": MAX_CLASS_LINES + 1,
+    }
