@@ -144,8 +144,9 @@ class Child:
     restarts_too: tuple[str, ...] = ()  # restarted after this one (they depend on it)
     stop_post: StopPost | None = None  # run after every end, before the restart
     #: what the demo does with each process's READY=1 (a restarted world's new addresses
-    #: written for the processes restarted with it)
+    #: written for the processes restarted with it), once per process
     after_ready: Callable[[Ready], None] | None = None
+    ready_pid: int | None = None  # the process whose READY=1 after_ready took
     pids: list[int] = field(default_factory=list)
     exits: list[int] = field(default_factory=list)  # return codes of the unexpected exits
     restart_times: list[float] = field(default_factory=list)  # monotonic
@@ -194,9 +195,21 @@ class Child:
     def wait_ready(self, stop_event: threading.Event | None = None) -> Ready:
         """Its READY=1 (NotReady when it ends first or takes too long), then ``after_ready``."""
         ready = self.service.wait_ready(stop_event=stop_event)
-        if self.after_ready is not None:
-            self.after_ready(ready)
+        self._took(ready)
         return ready
+
+    def took_ready(self) -> None:
+        """``after_ready`` once the running process said READY=1 (never waits)."""
+        ready = self.service.ready
+        if ready is not None:
+            self._took(ready)
+
+    def _took(self, ready: Ready) -> None:
+        pid = self.proc.pid if self.proc is not None else None
+        if self.ready_pid != pid:
+            self.ready_pid = pid
+            if self.after_ready is not None:
+                self.after_ready(ready)
 
     @property
     def state(self) -> str:
@@ -272,6 +285,7 @@ class Supervisor:
                 if code is None:
                     if child.watchdog is not None and child.proc is not None:
                         child.watchdog.check(child.proc.pid)
+                    child.took_ready()
                     continue
                 if child.stop_post is not None and not child.stop_post.done(child.started_at):
                     continue  # its ExecStopPost first (the palm lifted), then the rest
@@ -315,7 +329,7 @@ class Supervisor:
         child.restart_times.append(now)
         try:
             child.spawn()
-            if child.restarts_too or child.after_ready is not None:
+            if child.restarts_too:
                 child.wait_ready()  # its new addresses, before those who use them start
         except (OSError, NotReady) as e:  # it did not come up (the lab world): a failure
             self._say(logging.WARNING, f"{child.name} did not start again: {e}")
