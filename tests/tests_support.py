@@ -7,10 +7,10 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
@@ -155,121 +155,131 @@ class ProtocolOperator:
 
 
 class DashboardDemo:
-    """``deepxpalm demo --dashboard --json`` as a user runs it, its page on a known port.
+    """``deepxpalm demo --dashboard --json`` as a user runs it (a unit of the catalogue).
 
-    ``with`` starts it and returns once the demo names its dashboard (the robot
-    answered); ``finish()`` ends it with Ctrl-C, as a user does, and returns
-    (exit code, the JSON summary or None, stderr).
+    ``with`` starts it and returns once the demo said READY=1 (every process of it up) with
+    its page's address; the page's token is one given to it. ``finish()`` ends it with
+    Ctrl-C, as a user does, and returns (exit code, the JSON summary or None, stderr).
     """
 
     def __init__(self, *args: str, duration_s: float = 120.0, ready_timeout_s: float = 90.0):
-        self.port = free_loopback_ports(1)[0]
-        self.argv = [sys.executable, "-m", "deploy.cli", "demo", "--dashboard", "--json"]
-        self.argv += [*args, "--duration", str(duration_s)]
-        self.argv += ["--set", f"operator.dashboard.port={self.port}"]
+        from common.web_token import new_token
+        from deploy.units.service import Service
+
+        self.token = new_token()
+        argv = ["demo", "--dashboard", "--json", *args, "--duration", str(duration_s)]
+        argv += ["--set", "operator.dashboard.port=0"]  # a free one, said when ready
+        argv += ["--set", f'operator.dashboard.token="{self.token}"']
         self.ready_timeout_s = ready_timeout_s
-        self.proc: subprocess.Popen | None = None
-        #: the page's address with its token, as the demo printed it
-        self.url = f"http://127.0.0.1:{self.port}/"
+        self._stderr = tempfile.NamedTemporaryFile(prefix="deepxpalm-demo-", suffix=".log")  # noqa: SIM115
+        self.service = Service(
+            "demo", argv, Path(self._stderr.name), stdout=subprocess.PIPE, text=True
+        )
+        self.port = 0
+        #: the page's address with its token
+        self.url = ""
+
+    @property
+    def proc(self) -> subprocess.Popen | None:
+        return self.service.popen
 
     @property
     def ws_url(self) -> str:
-        """The page's WebSocket, with the token the demo's URL carries."""
-        from common.web_token import from_query, with_token
+        """The page's WebSocket, with its token."""
+        from common.web_token import with_token
 
-        return with_token(f"ws://127.0.0.1:{self.port}/ws", from_query(self.url) or "")
+        return with_token(f"ws://127.0.0.1:{self.port}/ws", self.token)
 
     def __enter__(self) -> DashboardDemo:
-        self.proc = subprocess.Popen(
-            self.argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-        )
-        deadline = time.monotonic() + self.ready_timeout_s
-        seen: list[str] = []
-        for line in self.proc.stderr:  # the demo names its dashboard once the robot answered
-            if line.startswith("dashboard http"):
-                self.url = line.split()[1]
-                return self
-            seen.append(line)
-            if time.monotonic() > deadline:
-                break
-        # never named its page: say why, with what it printed, instead of a refused socket later
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait()
-        rest = self.proc.stderr.read() if self.proc.stderr else ""
-        # with --json the demo's account of why (its errors, each child's log) is on stdout
-        summary = self.proc.stdout.read() if self.proc.stdout else ""
-        raise RuntimeError(
-            f"the demo never named its dashboard (exit {self.proc.returncode}, "
-            f"ready timeout {self.ready_timeout_s:.0f} s): "
-            + ("".join(seen) + rest)[-4000:]
-            + f"\nits summary: {summary[-4000:]}"
-        )
+        from common.web_token import with_token
+        from deploy.units.readiness import NotReady
+
+        self.service.start()
+        try:
+            base = self.service.wait_ready(self.ready_timeout_s).endpoints["dashboard"]
+        except NotReady as e:
+            self.service.stop(0)
+            # with --json the demo's account of why (its errors, each child's log) is on stdout
+            summary = self.proc.stdout.read() if self.proc.stdout else ""
+            self.service.close()
+            raise RuntimeError(
+                f"the demo never named its dashboard: {e}\nits summary: {summary[-4000:]}"
+            ) from None
+        self.port = int(base.rstrip("/").rpartition(":")[2])
+        self.url = with_token(base, self.token)
+        return self
+
+    def stderr(self) -> str:
+        return self.service.log_text()
 
     def finish(self, timeout_s: float = 60.0) -> tuple[int, dict | None, str]:
         self.proc.send_signal(signal.SIGINT)  # Ctrl-C, as a user ends it
-        stdout, stderr = self.proc.communicate(timeout=timeout_s)
+        stdout, _ = self.proc.communicate(timeout=timeout_s)
         summary = json.loads(stdout) if stdout.strip() else None
-        return self.proc.returncode, summary, stderr
+        return self.proc.returncode, summary, self.stderr()
 
     def __exit__(self, exc_type: object, exc: BaseException | None, tb: object) -> None:
         if self.proc is None:
             return
         alive = self.proc.poll() is None
-        if alive:
-            self.proc.kill()
+        self.service.stop(0)
         if exc is not None:
             # the test failed: what the demo said is the only account of why
             try:
-                stdout, stderr = self.proc.communicate(timeout=10)
+                stdout, _ = self.proc.communicate(timeout=10)
             except (subprocess.TimeoutExpired, ValueError):
-                stdout, stderr = "", ""
+                stdout = ""
             exc.add_note(
                 f"the demo {'was still running' if alive else 'had exited'} "
                 f"(exit {self.proc.returncode}); its stdout:\n{(stdout or '')[-3000:]}\n"
-                f"its stderr:\n{(stderr or '')[-3000:]}"
+                f"its stderr:\n{self.stderr()[-3000:]}"
             )
-        self.proc.wait()
+        self.service.close()
 
 
 class VideoServerProcess:
-    """``deepxpalm video`` on the test pattern as its own process, so its crash is seen from
-    outside; ``with`` starts it and waits until it serves (``url``). Its log goes to a file
-    (``log_text()``): a pipe nobody reads fills up and blocks the server's next log line."""
+    """``deepxpalm video`` on the test pattern as its own process (a unit of the catalogue),
+    so its crash is seen from outside; ``with`` starts it and returns once it said READY=1
+    with where it serves (``url``, its token from its token file; ``port``: its own choice
+    unless given, as a restart's). Its log goes to a file (``log_text()``)."""
 
     def __init__(self, port: int | None = None, *settings: str) -> None:
-        self.port = port or free_loopback_ports(1)[0]
-        self.argv = [sys.executable, "-m", "deploy.cli", "video", "--set", f"port={self.port}"]
-        for s in settings:
-            self.argv += ["--set", s]
-        self.proc: subprocess.Popen | None = None
-        # open past the process: tests read the log after the with block; gone with this object
-        self._log = tempfile.TemporaryFile("w+")  # noqa: SIM115
+        from deploy.units.service import Service
 
-        #: its signalling URL with the token, as it printed it
-        self.url = f"ws://127.0.0.1:{self.port}/"
+        self._dir = tempfile.TemporaryDirectory(prefix="deepxpalm-video-")
+        named = [s.split("=", 1)[1].strip('"') for s in settings if s.startswith("token_file=")]
+        self.token_file = Path(named[0]) if named else Path(self._dir.name) / "video.token"
+        if not named:
+            settings = (*settings, f'token_file="{self.token_file}"')
+        self.port = port or 0
+        argv = ["video", "--set", f"port={self.port}", *(a for s in settings for a in ("--set", s))]
+        self.service = Service("video", argv, Path(self._dir.name) / "video.log", watchdog=False)
+        #: its signalling URL with the token
+        self.url = ""
+
+    @property
+    def proc(self) -> subprocess.Popen | None:
+        return self.service.popen
 
     def log_text(self) -> str:
         """What the server logged so far."""
-        self._log.flush()
-        self._log.seek(0)
-        return self._log.read()
+        return self.service.log_text()
 
     def __enter__(self) -> VideoServerProcess:
-        # stdout: the one line that names the URL, then nothing (a pipe is safe)
-        self.proc = subprocess.Popen(self.argv, stdout=subprocess.PIPE, stderr=self._log, text=True)
-        line = self.proc.stdout.readline()  # "video: ws://...?token=... (source ...)"
-        if not line.startswith("video: ws://"):
-            self.proc.kill()
-            self.proc.wait()
-            raise RuntimeError(f"the video server did not start: {self.log_text()[-2000:]}")
-        self.url = line.split()[1]
+        from common.web_token import token_file, with_token
+        from deploy.units.readiness import NotReady
+
+        try:
+            base = self.service.up(60).endpoints["signalling"]
+        except NotReady as e:
+            raise RuntimeError(f"the video server did not start: {e}") from None
+        self.port = int(base.rstrip("/").rpartition(":")[2])
+        self.url = with_token(base, token_file(self.token_file, "video token_file"))
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
+        self.service.stop(0)  # SIGKILL: what it does on a stop is the tests' own business
+        self.service.close()
 
 
 def child_processes(parent_pid: int) -> dict[str, int]:

@@ -20,8 +20,6 @@ import os
 import signal
 import socket
 import stat
-import subprocess
-import sys
 import time
 import tomllib
 from pathlib import Path
@@ -34,6 +32,8 @@ from tests_support import child_processes
 from common.clock import now_ns
 from common.messages import Command, Heartbeat, VideoSignal
 from common.transport import Publisher, Subscriber
+from deploy.units.readiness import NotReady
+from deploy.units.service import Service
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -62,30 +62,25 @@ class Demo:
         self.tmp = tmp
         self.record = tmp / "rec"
         self.arm_host = _free_loopback_host()
-        self.stdout = (tmp / "stdout").open("w+b")
-        self.stderr = (tmp / "stderr").open("w+b")
-        argv = [sys.executable, "-m", "deploy.cli", "demo", "--dashboard", *extra]
+        self.stdout, self.stderr = tmp / "stdout", tmp / "stderr"
+        argv = ["demo", "--dashboard", *extra]
         argv += ["--duration", str(DURATION_S), "--record", str(self.record), "--no-video"]
         argv += ["--set", "operator.dashboard.port=0"]  # a free one, said when ready
         argv += ["--set", f'operator.dashboard.token="{TOKEN}"']
         argv += ["--set", f'robot.arm={{kind="simulated", sim={{host="{self.arm_host}"}}}}']
-        self.proc = subprocess.Popen(
-            argv,
-            stdin=subprocess.DEVNULL,
-            stdout=self.stdout,
-            stderr=self.stderr,
-        )
+        self.service = Service("demo", argv, self.stderr, stdout=self.stdout)
+        self.proc = self.service.start()
         self.result: tuple[int, str, str] | None = None
 
     def wait_for_dashboard(self, timeout_s: float = 120.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while b"dashboard http" not in Path(self.stderr.name).read_bytes():
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError("the demo never named its dashboard: " + self.err()[-3000:])
-            time.sleep(0.2)
+        """Until the demo said READY=1: every process of it up, its page served."""
+        try:
+            self.service.wait_ready(timeout_s)
+        except NotReady as e:
+            raise RuntimeError(f"the demo never came up: {e}: {self.err()[-3000:]}") from None
 
     def err(self) -> str:
-        return Path(self.stderr.name).read_text(errors="replace")
+        return self.stderr.read_text(errors="replace")
 
     def endpoints(self) -> dict[str, str]:
         """The robot's and the link simulator's endpoints: each bound a port of its own and
@@ -112,7 +107,7 @@ class Demo:
             if self.proc.poll() is None:
                 self.proc.send_signal(signal.SIGINT)
             self.proc.wait(timeout=90)
-            out = Path(self.stdout.name).read_text(errors="replace")
+            out = self.stdout.read_text(errors="replace")
             self.result = (self.proc.returncode, out, self.err())
         return self.result
 
@@ -124,9 +119,8 @@ def demo(tmp_path_factory):
         d.wait_for_dashboard()
         yield d
     finally:
-        if d.proc.poll() is None:
-            d.proc.kill()
-            d.proc.wait()
+        d.service.stop(0)
+        d.service.close()
 
 
 class ArmReader:

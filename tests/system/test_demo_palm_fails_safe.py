@@ -17,8 +17,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -26,6 +24,8 @@ import pytest
 from tests_support import child_processes
 
 from deploy.units.policy import policy
+from deploy.units.readiness import NotReady
+from deploy.units.service import Service
 from harness.faults.probes import PalmProbe
 
 # the palm is judged through the servo simulator's pseudo-terminal, within 500 ms of a death
@@ -47,22 +47,20 @@ class Demo:
     def __init__(self, tmp: Path) -> None:
         # --dashboard: the demo names its page once it is up (the robot heard): before that, an
         # operator's end is a failed start, which ends the demo
-        argv = [sys.executable, "-m", "deploy.cli", "demo", "--json", "--no-video", "--dashboard"]
+        argv = ["demo", "--json", "--no-video", "--dashboard"]
         argv += ["--set", "operator.dashboard.port=0"]  # a free one, kept across restarts
         argv += ["--duration", "600", "--set", "robot.render.mode=direct", "--set", _HELD_GRASP]
-        self.stdout = (tmp / "stdout").open("w+b")
-        self.stderr = (tmp / "stderr").open("w+b")
-        self.proc = subprocess.Popen(
-            argv, stdin=subprocess.DEVNULL, stdout=self.stdout, stderr=self.stderr
-        )
+        self.stdout, self.stderr = tmp / "stdout", tmp / "stderr"
+        self.service = Service("demo", argv, self.stderr, stdout=self.stdout)
+        self.proc = self.service.start()
         self.started = time.monotonic()
 
     def wait_until_up(self, timeout_s: float = 120.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while b"dashboard http" not in Path(self.stderr.name).read_bytes():
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise AssertionError(f"the demo never came up{self.tail()}")
-            time.sleep(0.1)
+        """Until the demo said READY=1: every process of it up."""
+        try:
+            self.service.wait_ready(timeout_s)
+        except NotReady as e:
+            raise AssertionError(f"the demo never came up: {e}{self.tail()}") from None
 
     def child(self, role: str, timeout_s: float = 90.0, not_pid: int | None = None) -> int:
         """The pid of the demo's ``role`` child (a new one: not ``not_pid``)."""
@@ -83,14 +81,14 @@ class Demo:
         return Path(words[words.index("--status-file") + 1])
 
     def tail(self) -> str:
-        err = Path(self.stderr.name).read_text(errors="replace")
+        err = self.stderr.read_text(errors="replace")
         return f"\nthe demo's stderr:\n{err[-3000:]}"
 
     def finish(self) -> tuple[int, dict]:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)  # Ctrl-C, as a user ends it
         self.proc.wait(timeout=90)
-        out = Path(self.stdout.name).read_text(errors="replace")
+        out = self.stdout.read_text(errors="replace")
         return self.proc.returncode, json.loads(out[out.index("{") :])
 
 
@@ -110,9 +108,8 @@ def demo(tmp_path_factory):
     finally:
         if palm is not None:
             palm.close()
-        if d.proc.poll() is None:
-            d.proc.kill()
-            d.proc.wait()
+        d.service.stop(0)
+        d.service.close()
 
 
 def _pressed_by(d: Demo, palm: PalmProbe, pid: int, since: float, timeout_s: float = 90.0) -> None:
@@ -183,7 +180,7 @@ def _watchdog_fired(d: Demo, pid: int) -> float | None:
     import datetime
 
     needle = f"watchdog: pid {pid} silent for"
-    for line in Path(d.stderr.name).read_text(errors="replace").splitlines():
+    for line in d.stderr.read_text(errors="replace").splitlines():
         if needle in line:
             stamp = datetime.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f")
             return stamp.timestamp()  # logging's asctime is local time, as is a naive datetime

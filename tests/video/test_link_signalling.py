@@ -119,7 +119,8 @@ def test_no_video_server_is_a_closed_session_with_the_address():
         assert "waited 0.3 s" in closed.reason and time.monotonic() - t0 >= 0.3
         assert bridge.counters["video_offers_waited"] == 1
     finally:
-        bridge.close()
+        if bridge is not None:
+            bridge.close()
 
 
 def test_a_robot_without_video_answers_an_offer_with_the_reason():
@@ -146,14 +147,15 @@ def test_a_video_server_that_died_and_came_back_serves_the_next_offer(tmp_path):
     token_file = tmp_path / "video.token"
     settings = ("test_pattern.width=320", "test_pattern.height=240", "test_pattern.fps=15")
     settings += (f'token_file="{token_file}"',)
-    first = VideoServerProcess(None, *settings)
-    # waits as long as the restarted server may take on a busy machine (the product's
-    # SERVER_WAIT_S bounds it within the dashboard's wait for the answer)
-    bridge = LinkSignalling(
-        f"ws://127.0.0.1:{first.port}/", token_file=token_file, server_wait_s=60.0
-    )
+    first = VideoServerProcess(None, *settings)  # on a port of its own: said when ready
+    bridge = None
     try:
         with first:
+            # waits as long as the restarted server may take on a busy machine (the product's
+            # SERVER_WAIT_S bounds it within the dashboard's wait for the answer)
+            bridge = LinkSignalling(
+                f"ws://127.0.0.1:{first.port}/", token_file=token_file, server_wait_s=60.0
+            )
             bridge.on_signal(_signal("offer", 1, _offer_sdp()), ALICE)
             assert _next(bridge).kind == "answer"
             first.proc.kill()  # SIGKILL: no close frame, no goodbye
@@ -168,4 +170,5 @@ def test_a_video_server_that_died_and_came_back_serves_the_next_offer(tmp_path):
             assert again.kind == "answer" and again.viewer == 2, again
         assert bridge.counters["video_offers_waited"] == 1
     finally:
-        bridge.close()
+        if bridge is not None:
+            bridge.close()
