@@ -20,6 +20,9 @@ from pathlib import Path
 
 import pytest
 
+# reading every module of the product, the tests and the scripts takes seconds; no timing checked
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]
+
 ROOT = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 #: the product's packages (setuptools' include list, without its globs)
@@ -187,8 +190,6 @@ def test_each_product_package_imports_only_what_its_machines_install() -> None:
     assert not wrong, f"imported outside the groups of the machines that run them: {wrong}"
 
 
-@pytest.mark.slow
-@pytest.mark.untimed  # no timing checked
 def test_the_robot_node_runs_without_torch_or_onnx(tmp_path: Path) -> None:
     """``deepxpalm robot`` (the scripted sensor, mask mode: the CNN classifies every frame) with
     every package the robot group does not install made unimportable."""

@@ -14,6 +14,10 @@ from pathlib import Path
 
 import pytest
 
+# each test starts the command once or more (a second or more each on a loaded 2-core machine);
+# no timing checked
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]
+
 ROOT = Path(__file__).resolve().parents[2]
 DEEPXPALM = str(Path(sys.executable).with_name("deepxpalm"))
 
@@ -51,8 +55,6 @@ def test_netsim_stops_after_duration_as_every_command_does() -> None:
     assert "duration_s = 7.0" in out.stdout
 
 
-@pytest.mark.slow
-@pytest.mark.untimed  # no timing checked
 def test_verbose_before_and_after_the_subcommand() -> None:
     """``-v`` before the command, after it, or both (``-vv``, debug): the node logs INFO."""
     ports = ['robot.link.telemetry_endpoint="tcp://127.0.0.1:0"',

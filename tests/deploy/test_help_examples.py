@@ -1,4 +1,4 @@
-"""Every example a ``--help`` prints runs, and every option it offers is one the command uses.
+"""Every example a ``--help`` prints is a command line that runs.
 
 The examples are collected from the parsers themselves: each subcommand's (and each nested
 one's, ``keys show``, ``study run``) description and epilog lines that start with
@@ -14,6 +14,7 @@ devices) runs for minutes or needs the hardware, so only its parsing is checked 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import re
 import shlex
@@ -59,27 +60,29 @@ def _command_parser(name: str) -> argparse.ArgumentParser:
     return sub.choices[name]
 
 
-def _collect() -> tuple[list[Example], list[Example]]:
-    """(example lines, --set examples as ``command --set KEY=VALUE``) of every help."""
+@functools.cache
+def examples(name: str) -> tuple[list[Example], list[Example]]:
+    """(example lines, --set examples as ``command --set KEY=VALUE``) of ``name``'s helps."""
     lines: list[Example] = []
     sets: list[Example] = []
-    for name in commands_for("bench"):  # the product's commands and the plugged-in ones
-        for path, parser in _subparsers(_command_parser(name), (name,)):
-            for text in (parser.description or "", parser.epilog or ""):
-                for line in text.splitlines():
-                    m = re.match(r"\s*deepxpalm\s+([^#]+)", line)
-                    if m and not line.lstrip().startswith("``"):
-                        argv = tuple(shlex.split(m.group(1)))
-                        if argv and argv[0] == name:
-                            lines.append(Example(path, argv))
-            for action in parser._actions:
-                if action.dest == "overrides" and action.help:
-                    for value in re.findall(r"e\.g\. --set (\S+)", action.help):
-                        sets.append(Example(path, (*path, "--set", value)))
+    for path, parser in _subparsers(_command_parser(name), (name,)):
+        for text in (parser.description or "", parser.epilog or ""):
+            for line in text.splitlines():
+                m = re.match(r"\s*deepxpalm\s+([^#]+)", line)
+                if m and not line.lstrip().startswith("``"):
+                    argv = tuple(shlex.split(m.group(1)))
+                    if argv and argv[0] == name:
+                        lines.append(Example(path, argv))
+        for action in parser._actions:
+            if action.dest == "overrides" and action.help:
+                for value in re.findall(r"e\.g\. --set (\S+)", action.help):
+                    sets.append(Example(path, (*path, "--set", value)))
     return lines, sets
 
 
-LINES, SETS = _collect()
+#: the product's commands and the plugged-in ones; each one's parser is built in its test, not
+#: at collection (that imports every command's module, in every test worker)
+COMMANDS = sorted(commands_for("bench"))
 
 
 def _run(argv: list[str], cwd: Path | None = None, **kw) -> subprocess.CompletedProcess:
@@ -91,40 +94,50 @@ def _run(argv: list[str], cwd: Path | None = None, **kw) -> subprocess.Completed
 
 def test_the_helps_show_examples() -> None:
     """The collection finds what the helps show (a changed help format would hide them)."""
-    shown = {e.argv[:2] for e in LINES}
+    shown = {e.argv[:2] for e in examples("keys")[0] + examples("doctor")[0]}
     assert ("keys", "generate") in shown and ("doctor", "--role") in shown, shown
-    assert {e.command for e in SETS} >= {("robot",), ("operator",), ("video",), ("netsim",)}
+    for name in ("robot", "operator", "video", "netsim"):
+        assert [e.command for e in examples(name)[1]] == [(name,)]
 
 
-@pytest.mark.parametrize("example", LINES, ids=str)
-def test_every_example_line_parses(example: Example) -> None:
+@pytest.mark.parametrize("name", COMMANDS)
+def test_every_example_line_parses(name: str) -> None:
     """Each example is a command line the command's parser takes (argparse exits 2 if not)."""
-    parser = _build_parser(example.argv[0], commands_for(example.argv[0]))
-    args = parser.parse_args(list(example.argv))
-    assert args.command == example.argv[0]
+    parser = _build_parser(name, commands_for(name))
+    for example in examples(name)[0]:
+        try:
+            args = parser.parse_args(list(example.argv))
+        except SystemExit:
+            pytest.fail(f"{example}: not a command line `deepxpalm {name}` takes")
+        assert args.command == name
 
 
-@pytest.mark.parametrize("example", SETS, ids=str)
-def test_every_set_example_is_a_known_setting(example: Example) -> None:
+@pytest.mark.slow  # starts the command (a second or more each); no timing checked
+@pytest.mark.untimed
+@pytest.mark.parametrize("name", COMMANDS)
+def test_every_set_example_is_a_known_setting(name: str) -> None:
     """``--set KEY=VALUE`` as the help shows it: the effective config printed, with the value."""
-    parser = _command_parser(example.command[0])
-    for name in example.command[1:]:
-        parser = dict(_subparsers(parser, ()))[(name,)]
-    argv = [DEEPXPALM, *example.argv]
-    if "--print-config" not in parser._option_string_actions:
-        # the command reads a scene's node sections: the node that owns the key prints it
-        section = example.argv[-1].partition(".")[0]
-        assert section in SECTION_COMMANDS, f"{example}: no command prints [{section}]"
-        argv = [DEEPXPALM, SECTION_COMMANDS[section], "--config", str(SCENE)]
-        argv += ["--set", example.argv[-1]]
-    out = _run([*argv, "--print-config"])
-    assert out.returncode == 0, f"{example}: {out.stderr.strip()}"
-    key, _, value = example.argv[-1].partition("=")
-    leaf = key.rpartition(".")[2]
-    shown = [line for line in out.stdout.splitlines() if re.search(rf"\b{leaf} = ", line)]
-    assert any(value.strip('"') in line for line in shown), (example, shown)
+    for example in examples(name)[1]:
+        parser = _command_parser(example.command[0])
+        for nested in example.command[1:]:
+            parser = dict(_subparsers(parser, ()))[(nested,)]
+        argv = [DEEPXPALM, *example.argv]
+        if "--print-config" not in parser._option_string_actions:
+            # the command reads a scene's node sections: the node that owns the key prints it
+            section = example.argv[-1].partition(".")[0]
+            assert section in SECTION_COMMANDS, f"{example}: no command prints [{section}]"
+            argv = [DEEPXPALM, SECTION_COMMANDS[section], "--config", str(SCENE)]
+            argv += ["--set", example.argv[-1]]
+        out = _run([*argv, "--print-config"])
+        assert out.returncode == 0, f"{example}: {out.stderr.strip()}"
+        key, _, value = example.argv[-1].partition("=")
+        leaf = key.rpartition(".")[2]
+        shown = [line for line in out.stdout.splitlines() if re.search(rf"\b{leaf} = ", line)]
+        assert any(value.strip('"') in line for line in shown), (example, shown)
 
 
+@pytest.mark.slow  # starts the command (a second or more each); no timing checked
+@pytest.mark.untimed
 def test_the_keys_walk_through_runs_as_shown(tmp_path: Path) -> None:
     """Every ``deepxpalm keys`` example in its help's order, in a scratch folder: the pairs, the
     allow, the signing key, a robot and an operator of a fleet, then the fabric's
@@ -132,7 +145,7 @@ def test_the_keys_walk_through_runs_as_shown(tmp_path: Path) -> None:
     etc = tmp_path / "etc" / "deepxpalm"
     etc.mkdir(parents=True)
     roster: list[str] = []
-    keys = [e for e in LINES if e.command == ("keys",)]
+    keys = [e for e in examples("keys")[0] if e.command == ("keys",)]
     assert [e.argv[1] for e in keys] == [
         "generate", "generate", "allow", "generate-signing", "robot", "operator", "certs"
     ]  # fmt: skip
