@@ -29,9 +29,10 @@ from common.web_token import new_token, with_token
 from deploy.demo_fabric import DemoFabric
 from deploy.scene import Scene
 from deploy.units.catalogue import unit
+from deploy.units.child import Child, StopPost
 from deploy.units.readiness import Ready
 from deploy.units.service import Service
-from deploy.units.supervisor import Child, StopPost, Supervisor
+from deploy.units.supervisor import Supervisor
 from operator_side.dashboard.config import TOKEN_ENV, VIDEO_OVER_LINK
 
 #: a TCP endpoint on loopback whose port the process chooses (and reports)

@@ -10,6 +10,7 @@
 - ``policy``: a shipped unit's rules, read from ``deploy/systemd/*.service``.
 - ``catalogue``: every kind of process the product runs, as data.
 - ``service``: one catalogue entry run as a unit: start, wait ready, stop.
+- ``child``: a service under supervision (its restarts, its ``ExecStopPost=``).
 - ``supervisor``: the children kept running as systemd keeps units running.
 
 The demo, the fault matrix, the fleet, the soak and the bench start every

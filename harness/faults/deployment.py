@@ -30,10 +30,11 @@ from pathlib import Path
 from typing import Any
 
 from deploy.units.catalogue import unit as catalogue_unit
+from deploy.units.child import Child, StopPost
 from deploy.units.policy import RestartPolicy
 from deploy.units.readiness import NotReady, Ready
 from deploy.units.service import Service
-from deploy.units.supervisor import Child, StopPost, Supervisor
+from deploy.units.supervisor import Supervisor
 from harness.fleet import Fleet, Proc
 from operator_side.servos.sts_sim import simulated_driver_settings
 

@@ -12,10 +12,11 @@ import pytest
 
 from deploy.units import process
 from deploy.units.catalogue import UnitSpec
+from deploy.units.child import START_LIMIT_BURST, Child, StopPost
 from deploy.units.policy import RestartPolicy
 from deploy.units.readiness import NotReady
 from deploy.units.service import Service
-from deploy.units.supervisor import START_LIMIT_BURST, Child, StopPost, Supervisor, _restart_s
+from deploy.units.supervisor import Supervisor, _restart_s
 
 
 @pytest.fixture(autouse=True)
