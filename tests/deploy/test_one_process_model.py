@@ -8,7 +8,8 @@ start is spawned with :func:`deploy.units.process.spawn`, stopped with
 
 - a second copy of spawn or stop, by name (a function called ``spawn_cli``,
   ``stop_process``, ``stop_child`` ... outside ``deploy/units``) or by shape
-  (a ``wait(timeout=...)`` followed by SIGKILL or ``.kill()`` in one function);
+  (a ``proc.wait(timeout=...)`` followed by SIGKILL or ``proc.kill()`` of the
+  process it waited for, in one function);
 - readiness read from log text or files in ``deploy/`` and ``harness/``: a
   ready file (``--ready-file``, ``ready_file``), an "up" line searched for in
   a log (``"node up" in proc.log_text()``, ``line.startswith('{"simulator"')``),
@@ -96,19 +97,34 @@ def second_copies(path: Path, tree: ast.AST) -> list[str]:
         named = fn.name.lstrip("_") in MODEL_NAMES
         if named and (id(fn) in top or _touches_processes(fn)):  # not a thread's "spawn"
             found.append(f"{path}:{fn.lineno}: a function named {fn.name}")
-        waits = [
-            n.lineno
-            for n in ast.walk(fn)
-            if _called(n) == "wait" and any(k.arg == "timeout" for k in n.keywords)
-        ]
-        kills = [
+        waited: dict[str, int] = {}  # what was waited for -> the first such wait's line
+        for n in ast.walk(fn):
+            if (
+                _called(n) == "wait"
+                and isinstance(n.func, ast.Attribute)
+                and any(k.arg == "timeout" for k in n.keywords)
+            ):
+                who = ast.unparse(n.func.value)
+                waited[who] = min(waited.get(who, n.lineno), n.lineno)
+        if not waited:
+            continue
+        first = min(waited.values())
+        # the process waited for, then killed (a load generator beside it is no stop)
+        killed = [
             n.lineno
             for n in ast.walk(fn)
             if _called(n) == "kill"
-            or (isinstance(n, ast.Attribute) and n.attr == "SIGKILL")
+            and isinstance(n.func, ast.Attribute)
+            and ast.unparse(n.func.value) in waited
+        ]
+        # or SIGKILL sent, however
+        killed += [
+            n.lineno
+            for n in ast.walk(fn)
+            if (isinstance(n, ast.Attribute) and n.attr == "SIGKILL")
             or (isinstance(n, ast.Name) and n.id == "SIGKILL")
         ]
-        if waits and any(k > min(waits) for k in kills):
+        if any(k > first for k in killed):
             found.append(f"{path}:{fn.lineno}: {fn.name} waits, then kills (a stop of its own)")
     return found
 
