@@ -16,7 +16,8 @@ BIN := $(VENV)/bin
 # CPU-only wheels come from its own index: PyPI's Linux wheel is the CUDA build, gigabytes the
 # tests never use. A wheel pip finds without an index (find-links: PIP_FIND_LINKS, pip.conf, a
 # wheelhouse) is taken first. For the CUDA build (training on a GPU), name its index, e.g.
-# make setup TORCH_INDEX=https://download.pytorch.org/whl/cu128 (a setup already done: make clean).
+# make setup TORCH_INDEX=https://download.pytorch.org/whl/cuXXX, XXX the CUDA version the driver
+# supports (pytorch.org names them; a setup already done: make clean first).
 TORCH ?= torch==2.13.0
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 STAMP := $(VENV)/.installed
