@@ -73,7 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         )
     for key in _ENDPOINT_KEYS:
         parser.add_argument(f"--{key.replace('_', '-')}", dest=key, metavar="ENDPOINT")
-    parser.add_argument("--duration-s", type=float, help="stop after this many seconds")
+    # the older spelling of --duration (add_config_arguments'), kept working and not shown
+    parser.add_argument("--duration-s", dest="duration", type=float, help=argparse.SUPPRESS)
 
 
 MODES = ("stream", "message", "datagram")
