@@ -32,14 +32,6 @@ NO_EXCEPTIONS = ("robot_side/node/", "operator_side/node/")
 
 #: "path" (a module) or "path::Class" -> (its size when listed: the cap, why it is still one piece)
 ALLOWED: dict[str, tuple[int, str]] = {
-    "robot_side/arm/ur_rtde.py": (
-        998,
-        "the UR driver: connection, keep-alive, motion and receive side in one module",
-    ),
-    "robot_side/arm/ur_rtde.py::URArm": (
-        735,
-        "the UR driver: connection, keep-alive, motion and receive side in one class",
-    ),
     "robot_side/arm/sim/server.py": (
         993,
         "the UR controller simulator: RTDE, dashboard, script server and the arm in one module",

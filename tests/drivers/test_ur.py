@@ -81,11 +81,11 @@ def test_reads_pose_and_joints_the_controller_reports(still_arm, sim):
 
 
 def test_receive_streams_at_the_configured_rate(still_arm):
-    t0 = still_arm.controller_timestamp()
+    t0 = still_arm.receive.controller_timestamp()
     changes, last = 0, t0
     start = time.monotonic()
     while time.monotonic() - start < 0.3:
-        ts = still_arm.controller_timestamp()
+        ts = still_arm.receive.controller_timestamp()
         if ts != last:
             changes, last = changes + 1, ts
         time.sleep(0.0005)
@@ -128,7 +128,7 @@ def test_move_speed_above_the_limit_is_clipped(still_arm, sim):
     still_arm.move_to(target, speed=2.0, wait=False)
     peak = 0.0
     while sim.mode_name() != "idle":
-        peak = max(peak, float(np.linalg.norm(still_arm.tcp_speed()[:3])))
+        peak = max(peak, float(np.linalg.norm(still_arm.receive.tcp_speed()[:3])))
         time.sleep(0.005)
     assert 0.05 < peak <= LIMITS.max_linear_speed_m_s + 1e-6
     still_arm.move_to(start)
@@ -549,14 +549,14 @@ class LaggingReceive:
 def test_move_to_returns_once_the_receive_stream_shows_the_arm_at_the_target(still_arm):
     """The control connection reports a move's end before a lagging receive stream shows it;
     the pose read right after move_to must be the target's, not one from the deceleration."""
-    lagging = LaggingReceive(still_arm._recv, lag_s=0.02)
-    real, still_arm._recv = still_arm._recv, lagging
+    lagging = LaggingReceive(still_arm.receive.recv, lag_s=0.02)
+    real, still_arm.receive.recv = still_arm.receive.recv, lagging
     try:
         target = still_arm.tcp_pose()
         target[:3] += [0.02, 0.0, 0.01]
         still_arm.move_to(target, speed=0.1)
         np.testing.assert_allclose(still_arm.tcp_pose()[:3], target[:3], atol=1e-5)
     finally:
-        if still_arm._recv is lagging:  # else move_to reconnected: a new interface, keep it
-            still_arm._recv = real
+        if still_arm.receive.recv is lagging:  # else move_to reconnected: a new interface, keep it
+            still_arm.receive.recv = real
         lagging.close()

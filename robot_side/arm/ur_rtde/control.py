@@ -1,0 +1,202 @@
+"""The control connection (RTDEControlInterface) and the control script at its other end.
+
+Control calls that wait for the script's "done" (speedStop, stopL, moveL,
+stopScript) retry a vanished controller forever, and realtime ones (speedL)
+report success into the void. So each call first checks ``isConnected()``
+and then runs on a worker thread with a deadline (ur-rtde releases the GIL
+in those calls): a stuck call becomes a ``DeviceTimeoutError`` and the line
+is marked unusable, never a hang.
+
+One call is on the wire at a time (``wire``): the controller's watchdog is
+kicked through the same command register, and a kick between a command and
+the script's answer would overwrite the command (``keep_alive``). Every
+write is noted, so a silence the watchdog could trip on is logged and a
+trip's warning can say what the controller heard last.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import logging
+import queue
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from common.clock import now_s
+from common.devices import at_niceness
+from common.errors import DeviceError, DeviceNotConnectedError, DeviceTimeoutError
+from robot_side.arm.base import SAFETY_THREAD_NICE
+from robot_side.arm.ur_rtde.config import URArmConfig
+from robot_side.arm.ur_rtde.receive import ReceiveSide
+
+log = logging.getLogger(__name__)
+
+
+class ArmCommandRefusedError(DeviceError):
+    """The controller refused a command (script not running, protective stop, ...)."""
+
+
+class ControlWorker:
+    """One daemon thread running control calls in order.
+
+    Not a ThreadPoolExecutor: its threads are joined at interpreter exit, so a
+    call stuck in ur-rtde's reconnect loop would hang the process at exit.
+    """
+
+    def __init__(self, name: str) -> None:
+        self._jobs: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._thread = threading.Thread(
+            target=at_niceness(SAFETY_THREAD_NICE, self._run), name=name, daemon=True
+        )
+        self._thread.start()
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> concurrent.futures.Future[Any]:
+        future: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        self._jobs.put((future, fn, args))
+        return future
+
+    def shutdown(self) -> None:
+        self._jobs.put(None)
+
+    def _run(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            future, fn, args = job
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(fn(*args))
+            except BaseException as e:  # handed to the caller through the future
+                future.set_exception(e)
+
+
+class ControlLine:
+    """The control interface while connected (``ctrl``), its calls and what went on the wire."""
+
+    def __init__(self, config: URArmConfig, receive: ReceiveSide) -> None:
+        self.config = config
+        self.receive = receive
+        self.ctrl: Any = None
+        #: why the interface is unusable (a call stuck inside it); None: usable
+        self.broken: str | None = None
+        #: why the control script no longer runs (keep_alive noticed it); None: it runs
+        self.program_lost: str | None = None
+        #: held by the one call on the wire: a kick must not interrupt a command's handshake
+        self.wire = threading.Lock()
+        #: controller time the watchdog was armed at; None: nobody counts our silences
+        self.watched_since: float | None = None
+        self.last_sent = 0.0  # monotonic s: the last write to the command register
+        self.last_sent_what = "nothing yet"  # what that write was (a trip's warning names it)
+        self.silence_max_s = 0.0  # longest the controller heard nothing from us (watched)
+        self._worker: ControlWorker | None = None
+
+    def open(self, ctrl: Any) -> None:
+        self.ctrl = ctrl
+        self.broken = self.program_lost = None
+        self._worker = ControlWorker(f"urarm-ctrl-{self.config.host}")
+
+    def close(self) -> Any:
+        """No interface from here on; the one that was, for the caller to close."""
+        ctrl, self.ctrl = self.ctrl, None
+        self.watched_since = None
+        if self._worker is not None:
+            self._worker.shutdown()
+            self._worker = None
+        return ctrl
+
+    def call(
+        self,
+        what: str,
+        fn: Callable[..., Any],
+        *args: Any,
+        extra_s: float = 0.0,
+        realtime: bool = False,
+    ) -> Any:
+        """Run one ur-rtde control call with a deadline (see the module docstring).
+
+        ``realtime`` calls (speedL) only write registers and never wait, even
+        for a vanished controller (measured), so they skip the worker thread
+        and its hand-off, which costs milliseconds on a busy machine.
+        """
+        ctrl, worker = self.ctrl, self._worker
+        if ctrl is None or worker is None:
+            raise DeviceNotConnectedError("arm URArm is not connected: call connect() first")
+        if self.broken is not None:
+            raise DeviceError(
+                f"URArm: control interface unusable ({self.broken}); disconnect() and "
+                "connect() again"
+            )
+        if self.program_lost is not None:
+            raise DeviceError(f"URArm: {what} refused: {self.program_lost}")
+        # the receive side notices a vanished controller first (its stream of packages stops):
+        # a call into a control interface whose controller is gone may crash inside ur-rtde
+        # (a segfault once, a realtime speedL at a controller killed mid-jog)
+        if not ctrl.isConnected() or not self.receive.recv.isConnected():
+            raise DeviceNotConnectedError(
+                f"URArm: lost the control connection to {self.config.host} before {what}; "
+                "the controller's own stop applies. disconnect() and connect() again"
+            )
+        timeout = self.config.command_timeout_s + extra_s
+        with self.wire:
+            self.note_sent(what)
+            try:
+                if realtime:
+                    return fn(*args)
+                return worker.submit(fn, *args).result(timeout=timeout)
+            except concurrent.futures.TimeoutError:
+                self.broken = f"{what} did not return in {timeout:.1f} s"
+                raise DeviceTimeoutError(
+                    f"URArm: {what} did not return in {timeout:.1f} s (ur-rtde keeps retrying a "
+                    f"controller that went away); check {self.config.host}, then reconnect"
+                ) from None
+            except RuntimeError as e:
+                raise DeviceError(f"URArm: {what} failed: {e}") from e
+            finally:
+                self.note_sent(f"the end of {what}")  # ur-rtde's clear ends a waiting call
+
+    def kick(self, ctrl: Any) -> bool:
+        """Kick the controller's watchdog through ``ctrl`` unless a call is on the wire (it
+        writes the register itself) or ``ctrl`` is no longer the usable interface; never waits."""
+        if not ctrl.isConnected():
+            # kickWatchdog would start ur-rtde's own reconnect; the node's recovery reconnects
+            return False
+        if not self.wire.acquire(blocking=False):
+            return False
+        try:
+            if ctrl is not self.ctrl or self.broken is not None:
+                return False
+            self.note_sent("a kick")
+            try:
+                ctrl.kickWatchdog()
+            except RuntimeError as e:  # the next command finds out and says so
+                log.debug("URArm: kickWatchdog failed: %s", e)
+            return True
+        finally:
+            self.wire.release()
+
+    def note_sent(self, what: str) -> None:
+        """A write to the command register left: the controller's watchdog heard from us.
+
+        A silence over half the watchdog window is logged: the next one may trip it.
+        """
+        now = now_s()
+        silence = now - self.last_sent
+        if self.watched_since is not None:
+            self.silence_max_s = max(self.silence_max_s, silence)
+            if silence > 0.5 * self.config.watchdog_window_s:
+                log.warning(
+                    "URArm: the controller heard nothing from this process for %.0f ms before "
+                    "%s (its watchdog stops the arm at %.0f ms): this process or the machine "
+                    "is overloaded",
+                    silence * 1000,
+                    what,
+                    self.config.watchdog_window_s * 1000,
+                )
+        self.last_sent, self.last_sent_what = now, what
+
+    def program_running(self) -> bool | str:
+        """What the control interface says of its script, for an error message."""
+        try:
+            return bool(self.ctrl.isProgramRunning())
+        except Exception:  # only used to word an error message
+            return "unknown"
