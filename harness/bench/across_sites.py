@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,7 +84,8 @@ def run_cell(scenario: str, transport: str, duration_s: float) -> dict[str, Any]
     argv = ["demo", "--json", "--no-video", "--scenario", scenario, "--duration", str(duration_s)]
     if transport == "fabric":
         argv.append("--fabric")
-    demo = Service("demo", argv, None, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    log = Path(tempfile.mkdtemp(prefix="deepxpalm-across-sites-")) / "demo.log"  # its stderr
+    demo = Service("demo", argv, log, stdout=subprocess.PIPE, text=True)
     cpu: dict[str, float] = {}
     try:
         # the nodes' CPU from once all are up (its READY=1) to near the end
