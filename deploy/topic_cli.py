@@ -13,10 +13,12 @@ sends nothing, and prints per robot and topic (``stimulus``, ``frame``,
   smallest and largest gap between two messages;
 - ``echo``: every message, decoded by the codec (arrays summarized).
 
-Rates: ``rate`` is what arrived here (messages over their receive times),
-``sent`` what the robot sent (its sequence numbers over its own send times):
-a ``sent`` above ``rate`` is loss on the way; a ``sent`` below what the
-robot should send is the robot's own doing. Exit code 0 when something
+Rates: ``rate`` is what arrived here, ``sent`` what the robot sent (its
+sequence numbers), both per second of the robot's own clock (the messages'
+send times), so neither bends when this process reads late: a ``sent``
+above ``rate`` is loss on the way, a ``sent`` below what the robot should
+send is the robot's own doing; the gaps between receive times show the
+path's jitter and this process's stalls. Exit code 0 when something
 arrived, 1 when nothing did (with what the connection says, on stderr).
 """
 
@@ -48,9 +50,10 @@ Reads a robot's telemetry with your own keys and sends nothing. Per robot and to
         largest gap between two messages
   echo  every message, decoded and checked as a node checks it (arrays summarized)
 
-"rate" is what arrived here, "sent" what the robot sent (its sequence numbers over
-its own clock): a "sent" above "rate" is loss on the way. Exit code 1 when nothing
-arrived, with what the connection says. docs/deploy.md, "Look at the wire".
+"rate" is what arrived here, "sent" what the robot sent (its sequence numbers), both
+per second of the robot's own clock: a "sent" above "rate" is loss on the way; "gap"
+is between two receive times here. Exit code 1 when nothing arrived, with what the
+connection says. docs/deploy.md, "Look at the wire".
 """
 #: a heartbeat counter with one of these in its name is a refusal the robot reports
 REFUSAL_WORDS = ("refused", "rejected")
@@ -60,6 +63,10 @@ WHOLE_ARRAY = 9
 LONG_TEXT = 120
 #: fields holding a run's random session number, printed in hex
 SESSION_FIELDS = ("session", "echo_session")
+#: the rates and gaps leave out what arrived in this long after the first message: a process
+#: that has just started reads its first messages late (its first decodes load code; a loaded
+#: machine schedules it late), and their receive times come bunched
+WARM_UP_S = 0.5
 #: how long ``list`` listens by default, s: a heartbeat's counters come once a second on the
 #: fabric, so three give rates over two intervals at least
 LIST_SECONDS = 3.0
@@ -125,7 +132,8 @@ class TopicWatch:
         self.signers: Counter[bytes | None] = Counter()
         self._last_seq: dict[int | None, int] = {}
 
-    def add(self, got: Received) -> None:
+    def add(self, got: Received, timed: bool = True) -> None:
+        """``timed``: the arrival counts toward the rates (not during the tap's warm-up)."""
         msg = got.msg
         self.count += 1
         self.bytes += got.size
@@ -135,7 +143,8 @@ class TopicWatch:
         self._last_seq[msg.session] = msg.seq
         if last is not None and 1 < msg.seq - last <= SEQ_RESTART_GAP:
             self.lost += msg.seq - last - 1
-        self.recent.append(_Arrival(got.t_recv_ns, msg.seq, msg.t_send_ns, msg.session))
+        if timed:
+            self.recent.append(_Arrival(got.t_recv_ns, msg.seq, msg.t_send_ns, msg.session))
 
     def trim(self, now: int) -> None:
         if self.window_ns is None:
@@ -144,7 +153,15 @@ class TopicWatch:
             self.recent.popleft()
 
     def rates(self) -> dict[str, float | None]:
-        """Over the window: received rate, sent rate (the sender's seq and clock), gaps."""
+        """Over the window: the rates (the newest run's messages) and the receive gaps.
+
+        ``rate_hz``: the messages that arrived, over the span of their send times (the
+        sender's clock); ``sent_hz``: the messages sent, their seq span over the same. Timed
+        by the sender's clock, neither bends when this process is late to read (a loaded
+        machine ran it late, and the receive times of what waited came bunched: a rate over
+        receive times read 15 % high, or twice the rate after a stall). What this process
+        and the path did to the timing shows in the receive gaps.
+        """
         out: dict[str, float | None] = {
             "rate_hz": None,
             "sent_hz": None,
@@ -154,18 +171,16 @@ class TopicWatch:
         recent = self.recent
         if len(recent) < 2:
             return out
-        span = recent[-1].t_recv_ns - recent[0].t_recv_ns
-        if span > 0:
-            out["rate_hz"] = (len(recent) - 1) * 1e9 / span
         gaps = [b.t_recv_ns - a.t_recv_ns for a, b in zip(recent, list(recent)[1:], strict=False)]
         out["gap_min_ms"] = min(gaps) / 1e6
         out["gap_max_ms"] = max(gaps) / 1e6
         # the newest run's messages only: a restarted robot counts from 1 again
         run = [a for a in recent if a.session == recent[-1].session]
-        if len(run) >= 2 and run[-1].t_send_ns > run[0].t_send_ns and run[-1].seq > run[0].seq:
-            out["sent_hz"] = (
-                (run[-1].seq - run[0].seq) * 1e9 / (run[-1].t_send_ns - run[0].t_send_ns)
-            )
+        span = max(a.t_send_ns for a in run) - min(a.t_send_ns for a in run)
+        seqs = max(a.seq for a in run) - min(a.seq for a in run)
+        if len(run) >= 2 and span > 0:
+            out["rate_hz"] = (len(run) - 1) * 1e9 / span
+            out["sent_hz"] = seqs * 1e9 / span
         return out
 
 
@@ -178,11 +193,11 @@ class RobotWatch:
         self.refusals_first: dict[str, float] = {}
         self.refusals: dict[str, float] = {}
 
-    def add(self, got: Received) -> None:
+    def add(self, got: Received, timed: bool = True) -> None:
         watch = self.topics.get(got.topic)
         if watch is None:
             watch = self.topics[got.topic] = TopicWatch(self.window_ns)
-        watch.add(got)
+        watch.add(got, timed)
         stats = getattr(got.msg, "stats", None)
         if got.topic == "heartbeat" and stats:
             for key, value in stats.items():
@@ -200,12 +215,16 @@ class Watch:
         self.robots: dict[bytes, RobotWatch] = {}
         self.t_start_ns = now_ns()
         self.messages = 0
+        #: arrivals before this count, but are not timed (``WARM_UP_S``)
+        self.timed_from_ns: int | None = None
 
     def add(self, got: Received) -> None:
         robot = self.robots.get(got.robot)
         if robot is None:
             robot = self.robots[got.robot] = RobotWatch(self.window_ns)
-        robot.add(got)
+        if self.timed_from_ns is None:
+            self.timed_from_ns = got.t_recv_ns + round(WARM_UP_S * 1e9)
+        robot.add(got, got.t_recv_ns >= self.timed_from_ns)
         self.messages += 1
 
     def signer_name(self, signer: bytes | None) -> str:
