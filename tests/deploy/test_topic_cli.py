@@ -25,7 +25,7 @@ from tests_support import free_ports
 from common.clock import now_ns
 from common.security import Authenticator, SecurityConfig, server_options
 from common.signing import Signer
-from common.transport import Publisher
+from common.transport import Publisher, Subscriber
 from deploy import topic_cli
 
 pytestmark = pytest.mark.slow
@@ -260,3 +260,31 @@ def test_import_leaves_torch_alone():
         [sys.executable, "-c", code], capture_output=True, text=True, env=ENV, cwd=REPO
     )
     assert proc.stdout.strip() == "[]", proc.stderr
+
+
+def test_a_stop_the_operator_sends_shows_latched_in_the_robots_heartbeats(robot_in_thread, zmq_ctx):
+    """What the robot did with a command is read on the wire: its heartbeat says the STOP
+    latched (commands travel to the robot, never on its telemetry)."""
+    from tests_support import ProtocolOperator
+
+    tel, cmd = free_ports(2)
+    robot_in_thread(tel, cmd)
+    operator = ProtocolOperator(
+        Subscriber(zmq_ctx, loopback(tel), bind=False),
+        Publisher(zmq_ctx, loopback(cmd), bind=False),
+    )
+    operator.sync()
+    out, err, stop = io.StringIO(), io.StringIO(), threading.Event()
+    args = _args("echo", "--endpoint", loopback(tel), "--topic", "heartbeat", "--json")
+    reader = threading.Thread(target=topic_cli.watch, args=(args, stop, out, err), daemon=True)
+    reader.start()
+    operator.pump(0.5)
+    operator.command("arm_stop")
+    operator.pump(1.0)
+    stop.set()
+    reader.join(10)
+    latched = [
+        json.loads(line)["fields"]["stats"].get("arm_stop_latched")
+        for line in out.getvalue().splitlines()
+    ]
+    assert latched[0] == 0.0 and latched[-1] == 1.0, latched
