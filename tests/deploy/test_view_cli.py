@@ -19,13 +19,15 @@ import base64
 import json
 import re
 import struct
+import subprocess
 import threading
 import time
 
 import numpy as np
 import pytest
+from deploy_support import ENV, REPO, cli
 from telemetry_publisher import TelemetryPublisher
-from tests_support import needs
+from tests_support import free_ports, needs
 
 from common.errors import ConfigError
 from common.foxglove import VIEW_PORT
@@ -210,3 +212,30 @@ def test_the_arm_pose_is_read_under_the_robots_own_names():
     from robot_side.arm.base import TELEMETRY_POSE_KEYS
 
     assert POSE_KEYS == TELEMETRY_POSE_KEYS
+
+
+def test_the_command_serves_until_its_duration_and_says_what_it_served(robot, tmp_path):
+    """``deepxpalm view`` as a user runs it: a process that prints where to connect, serves
+    a client there, and ends after ``--duration`` with its counters in ``--stats-file``."""
+    (port,) = free_ports(1)
+    stats = tmp_path / "view.json"
+    proc = subprocess.Popen(
+        cli(
+            *("view", "--endpoint", robot.endpoint, "--port", str(port)),
+            *("--duration", "8", "--stats-file", str(stats)),
+        ),
+        stdout=subprocess.PIPE,
+        text=True,
+        env=ENV,
+        cwd=REPO,
+    )
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith(f"Foxglove: open ws://127.0.0.1:{port} "), line
+        seen = asyncio.run(_watch(f"ws://127.0.0.1:{port}", {"robot/link"}, WITHIN_S))
+        assert seen["got"]["robot/link"], seen["ops"]
+        assert proc.wait(timeout=30) == 0
+    finally:
+        proc.kill()
+        proc.wait()
+    assert json.loads(stats.read_text())["link_sent"] > 0
