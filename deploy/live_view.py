@@ -22,9 +22,10 @@ _RESET = "\x1b[0m"
 
 
 class OperatorStatus:
-    """An operator node's status file, as another process reads it: its snapshot, counters,
-    latency sample count and dashboard address (the file is replaced whole, never half
-    written; a restarted node's first write replaces its predecessor's last)."""
+    """An operator node's status file, as another process reads it: its snapshot, counters
+    and latency sample count (the file is replaced whole, never half written; a restarted
+    node's first write replaces its predecessor's last). When the node is up, and where
+    its dashboard is, its READY=1 says (``deploy.units``)."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -48,13 +49,6 @@ class OperatorStatus:
         status = self.read()
         return 0 if status is None else int(status["latency_samples"])
 
-    def heard_robot(self) -> bool:
-        """Whether the node has heard the robot (a heartbeat: devices connected, up)."""
-        return self.stats().get("heartbeats_received", 0) > 0
-
-    def dashboard_url(self) -> str | None:
-        status = self.read()
-        return None if status is None else status.get("dashboard_url")
 
 
 def _heat(v: float, vmax: float = SATURATION_N) -> str:
