@@ -98,21 +98,32 @@ def test_a_target_run_in_place_gives_the_caller_its_priority_back():
     assert os.getpriority(os.PRIO_PROCESS, tid) == mine
 
 
+def _tasks(pid: int) -> list[int]:
+    return [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+
+
 @pytest.mark.slow
 @pytest.mark.untimed
-def test_a_robot_nodes_safety_threads_run_above_it_and_ur_rtdes_own_at_its_units(tmp_path):
-    """Read from a running node's ``/proc``: the frame loop at the unit's Nice=-10, the safety
-    threads (deadman, keep-alive, control worker) at -15, ur-rtde's polling threads at -10."""
+def test_a_robot_nodes_arm_process_runs_real_time_and_the_node_at_its_units_nice(tmp_path):
+    """Read from the running processes' ``/proc``: the robot node's threads at the unit's
+    Nice=-10 (the UR driver is not in it), its arm process's at SCHED_FIFO: the keep-alive
+    and the deadman at ``realtime_priority``, every other thread one step below."""
     from harness.bench.command_path import RobotUnderCommands
-    from robot_side.arm.base import NATIVE_DRIVER_THREAD_NICE, SAFETY_THREAD_NICE
+    from harness.processes import children_of, cmdline
+    from robot_side.arm.ur_rtde import URArmConfig
 
     with RobotUnderCommands(tmp_path) as rig:
         pid = rig.proc.pid
-        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-        nice = {tid: os.getpriority(os.PRIO_PROCESS, tid) for tid in tids}
-    if os.geteuid() != 0:  # no right to raise: the node keeps what it was started with
-        assert set(nice.values()) == {os.getpriority(os.PRIO_PROCESS, 0)}, nice
+        nice = {tid: os.getpriority(os.PRIO_PROCESS, tid) for tid in _tasks(pid)}
+        (arm,) = [c for c in children_of(pid) if "robot_side.arm.process" in (cmdline(c) or [])]
+        policy = {
+            tid: (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority)
+            for tid in _tasks(arm)
+        }
+    if os.geteuid() != 0:  # no right to raise: every thread keeps what it was started with
+        assert all(p == os.SCHED_OTHER for p, _ in policy.values()), policy
         return
-    assert nice[pid] == unit_nice("robot") == NATIVE_DRIVER_THREAD_NICE, nice
-    assert set(nice.values()) == {SAFETY_THREAD_NICE, NATIVE_DRIVER_THREAD_NICE}, nice
-    assert list(nice.values()).count(SAFETY_THREAD_NICE) >= 3, f"deadman, keep-alive: {nice}"
+    assert set(nice.values()) == {unit_nice("robot")}, nice
+    top = URArmConfig().realtime_priority
+    assert set(policy.values()) <= {(os.SCHED_FIFO, top), (os.SCHED_FIFO, top - 1)}, policy
+    assert list(policy.values()).count((os.SCHED_FIFO, top)) >= 2, f"deadman, keep-alive: {policy}"

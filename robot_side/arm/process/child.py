@@ -23,6 +23,7 @@ arm within its window, as for any other silence.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -203,6 +204,10 @@ def main(argv: list[str] | None = None) -> None:
         # thread beside it). New threads inherit this (ur-rtde's, the state writer, the
         # driver's worker); each sleeps between short turns.
         got = raise_this_thread(max(1, spec.realtime_priority - 1), SAFETY_THREAD_NICE)
+        if got.realtime:  # and the threads made before this (numpy's BLAS pool at import)
+            for tid in map(int, os.listdir("/proc/self/task")):
+                with contextlib.suppress(OSError):
+                    os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(got.level))
         log.info("arm process %d at %s", os.getpid(), got.describe())
     _warm_up()
     view = StateView(spec.state_file)
