@@ -32,14 +32,6 @@ NO_EXCEPTIONS = ("robot_side/node/", "operator_side/node/")
 
 #: "path" (a module) or "path::Class" -> (its size when listed: the cap, why it is still one piece)
 ALLOWED: dict[str, tuple[int, str]] = {
-    "robot_side/arm/sim/server.py": (
-        993,
-        "the UR controller simulator: RTDE, dashboard, script server and the arm in one module",
-    ),
-    "robot_side/arm/sim/server.py::URSimulator": (
-        815,
-        "the UR controller simulator: its three servers and the arm in one class",
-    ),
     "common/mcap_recorder.py": (
         904,
         "MCAP writing, reading and recovery of a damaged file in one module",

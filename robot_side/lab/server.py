@@ -230,7 +230,7 @@ class LabServer:
             "sim_wall_windows_behind": self.sim_wall.windows_behind,
             "protective_stops": list(self.protective_stops),
             # the control script stopped by its RTDE watchdog: no kick read within its window
-            "watchdog_trips": self.ursim.watchdog_trips,
+            "watchdog_trips": self.ursim.script.watchdog_trips,
             "camera_frames_rendered": w.frames_rendered,
             "safety_mode": self.ursim.safety_mode,
             "board": self.board.stats(),

@@ -420,7 +420,7 @@ def test_an_external_motion_clock_moves_the_arm_only_by_the_time_its_owner_steps
             _rtde(s, w.SETUP_OUTPUTS, struct.pack(">d", 125.0) + b"actual_TCP_pose")
             assert _rtde(s, w.START) == (ord("S"), b"\x01")
             start = _streamed_tcp_pose(s)
-            with sim._lock:  # what a speedL makes the control script do
+            with sim.lock:  # what a speedL makes the control script do
                 sim.arm.speed_l(np.array([0.0, 0.0, 0.05, 0.0, 0.0, 0.0]), 10.0)
             time.sleep(0.3)
             waited = _streamed_tcp_pose(s)
@@ -431,13 +431,14 @@ def test_an_external_motion_clock_moves_the_arm_only_by_the_time_its_owner_steps
         # 0.05 m/s for 0.2 s (its 5 ms ramp inside the first step), not for the 0.5 s that passed
         assert moved == pytest.approx(0.05 * 0.2, abs=2e-4)
         # the RTDE watchdog counts the same clock: 0.3 s of wall is no silence, 0.2 s of it is
-        with sim._lock:  # what setWatchdog(10 Hz) makes the running script do
-            sim.program_running, sim.watchdog_hz, sim._watchdog_silent_s = True, 10.0, 0.0
+        with sim.lock:  # what setWatchdog(10 Hz) makes the running script do
+            sim.script.program_running, sim.script.watchdog_hz = True, 10.0
+            sim.script.watchdog_silent_s = 0.0
         time.sleep(0.3)
-        assert sim.watchdog_trips == 0 and sim.program_running
+        assert sim.script.watchdog_trips == 0 and sim.script.program_running
         for _ in range(20):
             sim.advance(0.01)
-        assert sim.watchdog_trips == 1 and not sim.program_running
+        assert sim.script.watchdog_trips == 1 and not sim.script.program_running
     finally:
         sim.stop()
 
@@ -449,19 +450,23 @@ def test_an_external_clocks_catch_up_is_no_silence_after_an_update():
     sim = URSimulator(URSimConfig(host="auto", motion_clock="external")).start()
     window_s = 0.5  # wide: the real-time steps below may run late on a busy machine
     try:
-        with sim._lock:  # a running script with its watchdog, and an update just applied
-            sim.program_running, sim.watchdog_hz = True, 1 / window_s
-            sim._watchdog_silent_s, sim._watchdog_update_s = 0.0, now_s()
+        with sim.lock:  # a running script with its watchdog, and an update just applied
+            sim.script.program_running, sim.script.watchdog_hz = True, 1 / window_s
+            sim.script.watchdog_silent_s, sim.script.watchdog_update_s = 0.0, now_s()
         updated = now_s()
         sim.advance(0.35)  # owed from before the update
         while now_s() - updated < 0.2:  # then in real time: 0.55 s of the world's clock
             time.sleep(0.01)
             sim.advance(0.01)
-        assert sim.watchdog_trips == 0 and sim.program_running, "a catch-up counted as silence"
-        while sim.program_running and now_s() - updated < 5.0:  # silent on both clocks: a stop
+        assert sim.script.watchdog_trips == 0 and sim.script.program_running, (
+            "a catch-up counted as silence"
+        )
+        while (
+            sim.script.program_running and now_s() - updated < 5.0
+        ):  # silent on both clocks: a stop
             time.sleep(0.01)
             sim.advance(0.01)
-        assert sim.watchdog_trips == 1 and now_s() - updated > window_s
+        assert sim.script.watchdog_trips == 1 and now_s() - updated > window_s
     finally:
         sim.stop()
 

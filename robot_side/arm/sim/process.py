@@ -33,7 +33,6 @@ REMOTE_METHODS = frozenset(
         "commands_seen",
         "at_rest_since",
         "stats",
-        "client_count",
     }
 )
 
