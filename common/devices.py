@@ -198,6 +198,14 @@ class OnItsSimulator(abc.ABC):
     def _stop_simulator(self) -> None:
         """Stop the simulator; safe when it is not running or only half started."""
 
+    def find_device(self) -> None:
+        """Where the driver connects: the simulator started (a driver run elsewhere, as an
+        arm process, is pointed at it by whoever holds this object)."""
+        self._start_simulator()
+
+    def release_device(self) -> None:
+        self._stop_simulator()
+
     def connect(self) -> None:
         try:
             self._start_simulator()

@@ -19,6 +19,7 @@ import faulthandler
 import importlib
 import io
 import logging
+import re
 import signal
 import sys
 from pathlib import Path
@@ -147,25 +148,22 @@ def _build_parser(
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name == chosen:
             importlib.import_module(module).add_arguments(p)
-            _verbose_after(p)
     return parser
 
 
-def _verbose_after(parser: argparse.ArgumentParser) -> None:
-    """``-v`` after the subcommand too (``deepxpalm robot -v``), and after a nested one."""
-    if "-v" not in parser._option_string_actions:
-        parser.add_argument(
-            "-v",
-            "--verbose",
-            dest="verbose_after",
-            action="count",
-            default=argparse.SUPPRESS,  # a nested parser's default would hide its parent's -v
-            help="more logging (-vv debug), as before the command",
-        )
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for nested in set(action.choices.values()):
-                _verbose_after(nested)
+_VERBOSE = re.compile(r"-v+|--verbose")
+
+
+def _verbosity_after(extra: list[str]) -> tuple[int, list[str]]:
+    """``-v`` after the subcommand (``deepxpalm robot -v``, ``keys show K -v``): what no
+    command's own parser took; its count, and what else is left (an error, as before)."""
+    count, rest = 0, []
+    for token in extra:
+        if _VERBOSE.fullmatch(token):
+            count += 1 if token == "--verbose" else len(token) - 1
+        else:
+            rest.append(token)
+    return count, rest
 
 
 class _Version(argparse.Action):
@@ -214,11 +212,16 @@ def main(argv: list[str] | None = None) -> int:
     if chosen not in commands:
         chosen = None
     parser = _build_parser(chosen, commands)
-    args = parser.parse_args(argv)
+    # a command with a -v of its own (`sim ur -v`) takes it; any other -v after the command
+    # is the same as one before it
+    args, extra = parser.parse_known_args(argv)
+    after, rest = _verbosity_after(extra)
+    if rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
     if args.command is None:
         parser.print_help()
         return 2
-    args.verbose += getattr(args, "verbose_after", 0)  # -v before the command and after it
+    args.verbose += after  # -v before the command and after it
     configure_logging([logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)])
     _dump_stacks_on_request(args.command != "sim")  # simulators use SIGUSR1 as "unplug"
     module = importlib.import_module(commands[args.command][0])

@@ -318,6 +318,12 @@ class Arm(Device):
             timeout = 2 * (distance / speed + speed / accel) + 5.0
             self._wait_move(timeout)
 
+    def move_finished(self) -> bool:
+        """True once the last move has ended (reached, stopped or aborted)."""
+        self.require_connected()
+        with self._lock:
+            return bool(self._move_finished())
+
     def _wait_move(self, timeout_s: float) -> None:
         """Poll for the end of a move without holding the lock, so ``stop()`` can cut in."""
         deadline = now_s() + timeout_s

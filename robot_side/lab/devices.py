@@ -125,27 +125,27 @@ class OnTheWorld(ABC):
     def point_at(self, addresses: dict) -> None:
         """Set the driver's port or host from where the world's simulators listen."""
 
-    def find_controller(self) -> None:
+    def find_device(self) -> None:
         """Attach to the world and point the driver at its simulator (an arm process's
         driver, in a process of its own, is pointed by its ``ArmProcess``)."""
         self.world = attach_world(self.world_config_path(), self.running_world_path())
         try:
             self.point_at(self.world.addresses)
         except BaseException:
-            self.release_controller()
+            self.release_device()
             raise
 
-    def release_controller(self) -> None:
+    def release_device(self) -> None:
         if self.world is not None:
             detach_world(self.world)
             self.world = None
 
     def connect(self) -> None:
-        self.find_controller()
+        self.find_device()
         try:
             super().connect()  # type: ignore[misc]
         except BaseException:
-            self.release_controller()
+            self.release_device()
             raise
 
     def disconnect(self) -> None:

@@ -136,19 +136,15 @@ class ArmProcess(Arm):
 
     def _find_controller(self) -> None:
         """Where the kind's controller is: a simulator started (``OnItsSimulator``), the lab
-        world attached (``OnTheWorld.find_controller``)."""
-        local: Any = self.local
-        if hasattr(local, "_start_simulator"):
-            local._start_simulator()
-        elif hasattr(local, "find_controller"):
-            local.find_controller()
+        world attached (``OnTheWorld``): their ``find_device``."""
+        find = getattr(self.local, "find_device", None)
+        if find is not None:
+            find()
 
     def _release_controller(self) -> None:
-        local: Any = self.local
-        if hasattr(local, "_stop_simulator"):
-            local._stop_simulator()
-        elif hasattr(local, "release_controller"):
-            local.release_controller()
+        release = getattr(self.local, "release_device", None)
+        if release is not None:
+            release()
 
     def _child_config(self) -> dict[str, Any]:
         """The UR driver's settings from the kind's config (its host now found)."""

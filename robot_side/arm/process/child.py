@@ -97,9 +97,7 @@ class ServedArm:
         self.arm.move_to(pose, speed, wait=False)
 
     def move_finished(self) -> bool:
-        self.arm.require_connected()
-        with self.arm._lock:
-            return bool(self.arm._move_finished())
+        return self.arm.move_finished()
 
     def tcp_pose(self) -> Any:
         return self.arm.tcp_pose()
