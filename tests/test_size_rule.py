@@ -32,10 +32,6 @@ NO_EXCEPTIONS = ("robot_side/node/", "operator_side/node/")
 
 #: "path" (a module) or "path::Class" -> (its size when listed: the cap, why it is still one piece)
 ALLOWED: dict[str, tuple[int, str]] = {
-    "common/mcap_recorder.py": (
-        904,
-        "MCAP writing, reading and recovery of a damaged file in one module",
-    ),
     "deploy/replay.py": (658, "robot replay, operator replay and publishing in one module"),
     "operator_side/servos/feetech.py": (
         645,
