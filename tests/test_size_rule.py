@@ -74,14 +74,6 @@ ALLOWED: dict[str, tuple[int, str]] = {
         550,
         "ZeroMQ sockets, their reconnection, the capture link and port helpers",
     ),
-    "robot_side/arm/base.py": (
-        547,
-        "the arm interface, its limits and the deadman and keep-alive threads",
-    ),
-    "robot_side/arm/base.py::Arm": (
-        361,
-        "the arm interface with its deadman and keep-alive threads",
-    ),
     "operator_side/study/analysis.py": (
         520,
         "the study's statistics, figure and report in one module",

@@ -52,7 +52,7 @@ KEY_W = {"key": "w", "code": "KeyW", "windowsVirtualKeyCode": 87}  # +x in the d
 RESUME_ACKS = "dxp.acks.filter((a) => a.action === 'arm_resume').length"
 KEYUP_CLOCK = "window.addEventListener('keyup', () => (window.__keyupAt = Date.now()))"
 #: the robot's own stops (logger: what it logs), which a release must not be timed by
-OWN_STOPS = {"robot_side.arm.base": "(deadman)", "robot_side.node.workers": "arm stopped"}
+OWN_STOPS = {"robot_side.arm.safety_threads": "(deadman)", "robot_side.node.workers": "arm stopped"}
 OWN_STOP_LEAD_S = 0.1  # such a stop this long before the keyup still ends the motion after it
 
 
