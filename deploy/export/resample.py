@@ -107,6 +107,7 @@ class SessionResampler:
         self.contact_threshold_n = float(render.get("contact_threshold_n", CONTACT_FLOOR_N))
         self.t0: int | None = None
         self.k = 0
+        self._held: list[Row] = []  # rows not yet followed by a tactile frame
         # held observations
         self.frame: np.ndarray | None = None
         self.frame_seq = -1
@@ -125,12 +126,21 @@ class SessionResampler:
         self.grip_target: float | None = None
 
     def feed(self, channel: str, t_ns: int, record: dict[str, Any]) -> Iterator[Row]:
-        """Rows due before ``t_ns``, then the record is applied."""
+        """Rows due before ``t_ns``, then the record is applied.
+
+        Rows wait until a later tactile frame shows the pads' stream went on past them:
+        the session's rows end at its last frame, not at the last record of any channel
+        (a gripper or arm still recorded while the node shut its devices down would
+        otherwise add rows whose frame nobody knows still held).
+        """
         if self.t0 is not None:
-            yield from self._rows_before(t_ns)
+            self._held.extend(self._rows_before(t_ns))
         self._apply(channel, t_ns, record)
         if self.t0 is None and self._ready():
             self.t0 = t_ns
+        if channel == "robot/frame" and self._held:
+            held, self._held = self._held, []
+            yield from held
 
     def _ready(self) -> bool:
         if self.frame is None or len(self.images) < len(self.cameras):
