@@ -12,6 +12,9 @@ from harness import processes
 def test_the_command_line_and_children_of_a_process_until_it_is_reaped():
     child = subprocess.Popen(["sleep", "60"])
     try:
+        deadline = time.monotonic() + 5.0  # between fork and exec its command line is empty
+        while processes.cmdline(child.pid) == [""] and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert processes.cmdline(child.pid) == ["sleep", "60"]
         assert child.pid in processes.children_of(os.getpid())
         assert processes.cpu_s(child.pid) is not None and processes.rss_mb(child.pid) is not None
