@@ -124,6 +124,8 @@ class Dashboard:
         stale_after_ms: float | None = None,
     ) -> None:
         self.node = node
+        if hasattr(node, "frames_consumed"):  # the page's heatmap: the node subscribes frames
+            node.frames_consumed = True
         self.config = config or DashboardConfig()
         node_config = getattr(node, "config", None)
         self.renderer = renderer or getattr(node_config, "renderer", None) or RendererConfig()

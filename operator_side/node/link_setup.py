@@ -82,8 +82,11 @@ def telemetry_gate_for(
 
 
 def topics(robot_name: bytes, frames: bool, video: bool) -> tuple[bytes, ...]:
-    """What we subscribe to: one robot's (or the unnamed robot's) stimuli and heartbeats, and
-    frames and video signals if wanted; a PUB sends nothing else our way."""
+    """What we subscribe to: one robot's stimuli and heartbeats, and frames and video signals
+    if wanted; an unnamed robot (a direct link): everything it sends, so that whatever
+    arrives is read and judged (the fuzz tests send it anything)."""
+    if not robot_name:
+        return (b"",)
     wanted = [name_prefix(Stimulus.TOPIC, robot_name), name_prefix(Heartbeat.TOPIC, robot_name)]
     if frames:
         wanted.append(name_prefix(TactileFrame.TOPIC, robot_name))
