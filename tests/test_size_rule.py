@@ -33,14 +33,6 @@ NO_EXCEPTIONS = ("robot_side/node/", "operator_side/node/")
 #: "path" (a module) or "path::Class" -> (its size when listed: the cap, why it is still one piece)
 ALLOWED: dict[str, tuple[int, str]] = {
     "deploy/replay.py": (658, "robot replay, operator replay and publishing in one module"),
-    "robot_side/video/server.py": (
-        627,
-        "the WebRTC video server: signalling, viewers and the source in one module",
-    ),
-    "robot_side/video/server.py::VideoServer": (
-        382,
-        "the video server: signalling, viewers and the source in one class",
-    ),
     "operator_side/dashboard/server.py": (
         588,
         "the dashboard's web server: pages, sampling, commands and video in one module",

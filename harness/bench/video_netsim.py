@@ -116,7 +116,7 @@ def play(scenario: Any, width: int, height: int, fps: float, seconds: float = RU
                 browser.navigate(dashboard.url)
                 start = server.link_start_ns / 1e9
                 while (t := time.monotonic() - start) < seconds:
-                    for path in list(server.media_paths):
+                    for path in list(server.viewing.media_paths):
                         by_path[path] = sum(
                             c["to_operator"]["bytes_in"] for c in path.counters().values()
                         )
@@ -305,7 +305,7 @@ def against_direct(scenario: str, sessions: int) -> dict[str, Any]:
                 badge = browser.evaluate("document.getElementById('video-fresh-label').textContent")
                 sent = sum(  # frames the last session's media handed the simulator
                     c["to_operator"]["sent"]
-                    for p in server.media_paths
+                    for p in server.viewing.media_paths
                     for c in p.counters().values()
                 )
         errors = browser.page_errors()

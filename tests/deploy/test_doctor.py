@@ -401,4 +401,4 @@ def test_the_robots_video_server_is_checked_where_viewers_will_reach_it():
         robot["link"]["video_url"] = server.url
         check = diagnose("robot", robot, "t", NO_PEER).find("video server")
         assert check.status == PASS and server.token not in check.detail
-        assert server.frames_encoded == 0  # a knock on the door, no viewer: nothing encoded
+        assert server.viewing.frames_encoded == 0  # a knock on the door, no viewer: nothing encoded

@@ -82,10 +82,10 @@ def test_offer_is_answered_and_a_bye_from_someone_else_changes_nothing(server, b
     assert (answer.width, answer.height, answer.source) == (320, 240, "test_pattern")
     bridge.on_signal(_signal("bye", 7), BOB)  # not Bob's session to end
     time.sleep(0.3)
-    assert bridge.sessions == 1 and server.viewers == 1
+    assert bridge.sessions == 1 and server.viewing.viewers == 1
     bridge.on_signal(_signal("bye", 7), ALICE)
-    _until(lambda: server.viewers == 0)
-    assert server.viewers == 0 and bridge.sessions == 0
+    _until(lambda: server.viewing.viewers == 0)
+    assert server.viewing.viewers == 0 and bridge.sessions == 0
 
 
 def test_a_viewer_beyond_the_servers_limit_is_told_why(server, bridge):
@@ -103,8 +103,8 @@ def test_a_quiet_viewer_loses_its_session(server, bridge):
     bridge.expire(lambda signer: signer != ALICE)
     closed = _next(bridge)
     assert closed.kind == "closed" and closed.reason == "the viewer went quiet"
-    _until(lambda: server.viewers == 0)
-    assert server.viewers == 0
+    _until(lambda: server.viewing.viewers == 0)
+    assert server.viewing.viewers == 0
     assert bridge.counters["video_sessions_expired"] == 1
 
 

@@ -128,7 +128,8 @@ def test_server_streams_only_while_a_viewer_is_connected():
     source = build_source(config)
     with VideoServer(source, config) as server:
         time.sleep(0.3)
-        assert source.opened == 0 and server.frames_encoded == 0  # nobody watches: nothing runs
+        # nobody watches: nothing runs
+        assert source.opened == 0 and server.viewing.frames_encoded == 0
         counters = asyncio.run(_watch(server.url, 1.5))
         # it streams, in order; its rate (30 fps quiet, fewer on a starved machine, where the
         # source drops what the encoder cannot take) is measured by `deepxpalm bench --only video`
@@ -136,7 +137,7 @@ def test_server_streams_only_while_a_viewer_is_connected():
         steps = np.diff(counters) % 256
         assert np.all(steps >= 1), counters  # never a frame twice, never backwards
         deadline = time.monotonic() + 5
-        while server.viewers or server.frames_encoded:
+        while server.viewing.viewers or server.viewing.frames_encoded:
             assert time.monotonic() < deadline, "the source kept running without a viewer"
             time.sleep(0.05)
         assert source.opened == 1

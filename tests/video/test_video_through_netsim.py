@@ -42,7 +42,7 @@ def _watch(scenario: str, seconds: float) -> tuple[ViewerRun, dict, list[str]]:
             task = asyncio.ensure_future(view(server.url, seconds, run))
             while not task.done():
                 await asyncio.sleep(0.2)
-                for path in list(server.media_paths):  # while the viewer is connected
+                for path in list(server.viewing.media_paths):  # while the viewer is connected
                     counters.update(path.counters())
                     answers[:] = [f"{r.address[1]}" for r in path.relays.values()]
             await task
