@@ -17,7 +17,7 @@ from common.config import from_dict
 from common.errors import ConfigError
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.dashboard.jog_config import JogConfig, parse_mapping
-from operator_side.dashboard.server import cap_twist
+from operator_side.dashboard.page_commands import cap_twist
 from operator_side.dashboard.view import arm_view
 
 pytestmark = [pytest.mark.timeout(30), pytest.mark.parallel]
@@ -144,7 +144,7 @@ def test_jog_rate_is_limited_but_stop_never_is(dashboard):
 def _sampled(d: Dashboard, control: dict) -> None:
     """Wait until the dashboard's sampler has taken the node's new control view."""
     deadline = time.monotonic() + 5
-    while (d._latest or {}).get("control") != control:
+    while (d.push.latest or {}).get("control") != control:
         assert time.monotonic() < deadline, "the dashboard never sampled the node"
         time.sleep(0.01)
 
@@ -254,7 +254,7 @@ def test_the_assist_is_held_like_a_jog_forwarded_and_ended_by_the_watchdog(dashb
             assert time.monotonic() < deadline, node.actions()
             time.sleep(0.01)
     assert node.actions()[:4] == ["arm_assist"] * 3 + ["arm_jog_end"]
-    assert d.assists_forwarded == 3
+    assert d.commands.assists_forwarded == 3
 
 
 def test_the_assist_key_and_button_must_move_nothing_else():
@@ -321,7 +321,7 @@ def test_the_page_clock_sees_a_stall_whatever_the_pages_offset_and_drift(
 ):
     """Fresh messages never look late, over an hour's silence and any offset or drift under
     500 ppm; a message that waited ``stall_ms`` shows (almost) all of it."""
-    from operator_side.dashboard.server import PageClock
+    from operator_side.dashboard.page_commands import PageClock
 
     clock = PageClock()
     rate = 1 + drift_ppm * 1e-6

@@ -108,7 +108,7 @@ def test_pushes_only_when_something_changed_and_refreshes_slowly_otherwise(dashb
             _next(ws, "state")
             n += 1
         assert 2 <= n <= 7, f"{n} pushes in a second with nothing changing"
-        assert d.samples > 80
+        assert d.push.samples > 80
         # A change goes out at once.
         with node.lock:
             node.stimulus = (MASKS[9] * 4.0).astype(np.float32)
@@ -139,19 +139,19 @@ def test_a_stimulus_changing_at_every_sample_reaches_a_page_at_the_push_rate(das
     changer = threading.Thread(target=change, daemon=True)
     changer.start()
     try:
-        samples0, pushes0 = d.samples, d.pushes
+        samples0, pushes0 = d.push.samples, d.push.pushes
         time.sleep(0.5)
-        assert d.samples - samples0 > 40, "the history is sampled with no page open"
-        assert d.pushes == pushes0, "states were pushed with no page open"
+        assert d.push.samples - samples0 > 40, "the history is sampled with no page open"
+        assert d.push.pushes == pushes0, "states were pushed with no page open"
         with connect(d.ws_url) as ws:
             _next(ws, "hello")
             _next(ws, "state")
             t0, n = time.monotonic(), 0
-            samples0 = d.samples
+            samples0 = d.push.samples
             while time.monotonic() - t0 < 1.0:
                 _next(ws, "state")
                 n += 1
-            sampled = d.samples - samples0
+            sampled = d.push.samples - samples0
     finally:
         stop.set()
         changer.join()

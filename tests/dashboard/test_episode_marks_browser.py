@@ -69,7 +69,7 @@ def test_marks_made_on_the_page_are_recorded_and_never_reach_the_robot(recording
         (True, "failed", "pipette slipped"),
         (True, "discard", None),
     ]
-    assert dashboard.episode_marks == 2
+    assert dashboard.commands.episode_marks == 2
     recorder.close()
     marks = [(t, r) for ch, t, r in read_recording(recorder.path) if ch == CHANNEL]
     assert [(r["kind"], r.get("task"), r["source"]) for _, r in marks] == [
@@ -102,4 +102,4 @@ def test_a_node_that_does_not_record_refuses_marks_and_says_why(zmq_ctx):
         assert "kind must be one of" in ask(kind="lost")["error"]
         assert "printable" in ask(kind="failed", task="two\nlines")["error"]
         assert "at most 200" in ask(kind="failed", task="x" * 201)["error"]
-        assert dashboard.episode_marks == 0
+        assert dashboard.commands.episode_marks == 0
