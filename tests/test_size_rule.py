@@ -33,14 +33,6 @@ NO_EXCEPTIONS = ("robot_side/node/", "operator_side/node/")
 #: "path" (a module) or "path::Class" -> (its size when listed: the cap, why it is still one piece)
 ALLOWED: dict[str, tuple[int, str]] = {
     "deploy/replay.py": (658, "robot replay, operator replay and publishing in one module"),
-    "robot_side/tactile/serial_board.py": (
-        582,
-        "the tactile board driver: port, reader thread and calibration in one module",
-    ),
-    "robot_side/tactile/serial_board.py::SerialTactileSensor": (
-        417,
-        "the tactile board: port, reader thread and calibration in one class",
-    ),
     "common/netsim/impairments.py": (
         582,
         "the link simulator's configuration and its loss, delay and corruption models",

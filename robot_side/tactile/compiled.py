@@ -1,6 +1,6 @@
 """The serial board's counts-to-newtons conversion as one compiled call (numba).
 
-The reference is ``serial_board.ScanConverter``'s NumPy path: seven array calls
+The reference is ``scan_converter.ScanConverter``'s NumPy path: seven array calls
 per scan, which on a core gone cold since the last frame cost about 120 us;
 this loop costs about half that, most of it the call itself. The arithmetic
 is the same float32 operations in the same order (no fast math), so the two
