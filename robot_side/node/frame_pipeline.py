@@ -1,6 +1,6 @@
 """The whole frame rule, from a tactile sample to the stimulus sent (or nothing).
 
-The robot node, replay (deploy/replay.py) and the skipping bench
+The robot node, replay (deploy/replay/robot_check.py) and the skipping bench
 (harness/bench/skipping.py) all drive frames through ``FramePipeline.offer``,
 so the rate cap, the stale-frame test, the contact test, the no-contact and
 identical-frame skips, the dead band and the keyframes are one piece of
