@@ -46,10 +46,6 @@ ALLOWED: dict[str, tuple[int, str]] = {
         "the study's statistics, figure and report in one module",
     ),
     "deploy/doctor/link.py": (507, "the doctor's endpoint, heartbeat and clock checks of the link"),
-    "operator_side/servos/sts_sim.py": (
-        502,
-        "the fake STS bus: the servos' model and the packet server",
-    ),
     "robot_side/perception/inference.py": (
         498,
         "the classifier interface and its five backends' loaders and forward passes",
@@ -66,10 +62,6 @@ ALLOWED: dict[str, tuple[int, str]] = {
     "robot_side/lab/world.py::LabWorld": (
         300,
         "the MuJoCo world: model, stepping and reads under one lock",
-    ),
-    "operator_side/servos/sts_sim.py::FakeStsBus": (
-        300,
-        "the fake bus: the pseudo-terminal and the packet protocol",
     ),
 }
 

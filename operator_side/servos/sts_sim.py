@@ -11,6 +11,7 @@ servo fall silent, raises error bits, lets a hand move a limp linkage, and
 unplugs. It also logs every goal position that reached a servo, so a test
 can prove that an out-of-limit count never got onto the wire.
 
+The servos' model is ``sts_servo``'s, the packets ``sts_packets``'.
 Byte order is STS (protocol_end 0, little-endian) only.
 """
 
@@ -23,128 +24,26 @@ import select
 import threading
 from collections import deque
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Self
 
 from common.clock import now_ns
 from common.config import param
 from common.devices import OnItsSimulator, as_hardware
-from common.errors import ConfigError
 from common.pty_link import PtyLink
 from operator_side.servos.feetech import FeetechConfig, FeetechServoBus
-from operator_side.servos.sts_registers import (
-    BAUD_RATES,
-    BROADCAST_ID,
-    GOAL_POSITION,
-    INST_ACTION,
-    INST_READ,
-    INST_REG_WRITE,
-    INST_SYNC_READ,
-    INST_SYNC_WRITE,
-    INST_WRITE,
-    INSTRUCTIONS,
-    MODEL_NUMBER,
-    MOVING,
-    PRESENT_POSITION,
-    PRESENT_SPEED,
-    REG,
-    TABLE_SIZE,
-    TORQUE_ENABLE,
-    checksum,
-    packet,
-)
+from operator_side.servos.sts_packets import StsResponder
+from operator_side.servos.sts_registers import INSTRUCTIONS, PRESENT_POSITION, REG
+from operator_side.servos.sts_servo import FakeServo, FakeStsBusConfig
+
+__all__ = [
+    "FakeStsBus",
+    "FakeStsBusConfig",
+    "SimulatedFeetechConfig",
+    "SimulatedFeetechServoBus",
+    "simulated_driver_settings",
+]
 
 log = logging.getLogger(__name__)
-
-_READ_ONLY_FROM = PRESENT_POSITION.address  # the servo's own measurements
-
-
-@dataclass
-class FakeStsBusConfig:
-    ids: tuple[int, ...] = param((1, 2, 3, 4, 5, 6), "servos on the bus")
-    model_number: int = param(777, "answered at address 3 (777 = STS3215)")
-    baudrate: int = param(1_000_000, "the servos' rate: a driver at another rate gets silence")
-    speed_counts_per_s: float = param(
-        4000.0, "how fast a present position follows its goal (STS3215: ~4500 at 7.4 V)"
-    )
-    start_counts: int = param(2048, "present position of every servo at power-up")
-    voltage_decivolts: int = param(74, "present voltage, 0.1 V units")
-    temperature_c: int = param(30, "present temperature")
-    goal_log_size: int = param(100000, "goal writes remembered for inspection")
-    link_dir: Path | None = param(None, "where the stable port symlink lives; unset = temp dir")
-
-    def __post_init__(self) -> None:
-        if not self.ids or any(not 0 <= i < BROADCAST_ID for i in self.ids):
-            raise ConfigError(f"fake bus ids must be in 0..253, got {self.ids}")
-        if len(set(self.ids)) != len(self.ids):
-            raise ConfigError(f"fake bus ids must be unique, got {self.ids}")
-        if not self.speed_counts_per_s > 0:
-            raise ConfigError("speed_counts_per_s must be positive")
-        if self.baudrate not in BAUD_RATES.values():
-            raise ConfigError(f"baudrate {self.baudrate} is not an STS rate {BAUD_RATES}")
-
-
-class _Servo:
-    def __init__(self, sid: int, cfg: FakeStsBusConfig) -> None:
-        self.id = sid
-        self.table = bytearray(TABLE_SIZE)
-        self.silent = False
-        self.error_bits = 0
-        self.pending: tuple[int, bytes] | None = None  # REG_WRITE waiting for ACTION
-        self.position = float(cfg.start_counts)
-        self._put(MODEL_NUMBER.address, 2, cfg.model_number)
-        self._put(REG["id"].address, 1, sid)
-        baud_code = next(k for k, v in BAUD_RATES.items() if v == cfg.baudrate)
-        self._put(REG["baud_rate"].address, 1, baud_code)
-        self._put(REG["max_angle_limit"].address, 2, 4095)
-        self._put(REG["max_torque"].address, 2, 1000)
-        self._put(REG["torque_limit"].address, 2, 1000)
-        self._put(GOAL_POSITION.address, 2, cfg.start_counts)
-        self._put(PRESENT_POSITION.address, 2, cfg.start_counts)
-        self._put(REG["present_voltage"].address, 1, cfg.voltage_decivolts)
-        self._put(REG["present_temperature"].address, 1, cfg.temperature_c)
-
-    def _put(self, address: int, size: int, value: int) -> None:
-        self.table[address : address + size] = int(value).to_bytes(size, "little")
-
-    def get(self, address: int, size: int) -> int:
-        return int.from_bytes(self.table[address : address + size], "little")
-
-    @property
-    def torque(self) -> bool:
-        return bool(self.table[TORQUE_ENABLE.address])
-
-    @property
-    def goal(self) -> int:
-        return self.get(GOAL_POSITION.address, 2)
-
-    def write(self, address: int, data: bytes) -> None:
-        """Apply a write as the servo would: its own measurements stay its own."""
-        was_on = self.torque
-        for k, b in enumerate(data):
-            a = address + k
-            if a < min(_READ_ONLY_FROM, TABLE_SIZE):
-                self.table[a] = b
-        if was_on and not self.torque:
-            self._put(MOVING.address, 1, 0)
-            self._put(PRESENT_SPEED.address, 2, 0)
-
-    def advance(self, dt_s: float, speed: float) -> None:
-        if not self.torque:
-            return
-        goal = float(self.goal)
-        step = speed * dt_s
-        delta = goal - self.position
-        if abs(delta) <= step:
-            self.position = goal
-            moving, velocity = 0, 0
-        else:
-            self.position += step if delta > 0 else -step
-            moving, velocity = 1, int(speed)
-        self._put(PRESENT_POSITION.address, 2, round(self.position) & 0xFFFF)
-        # STS speed: magnitude with bit 15 as the sign.
-        self._put(PRESENT_SPEED.address, 2, velocity | (0x8000 if delta < 0 and velocity else 0))
-        self._put(MOVING.address, 1, moving)
 
 
 class FakeStsBus:
@@ -152,15 +51,12 @@ class FakeStsBus:
 
     def __init__(self, config: FakeStsBusConfig | None = None) -> None:
         self.config = cfg = config or FakeStsBusConfig()
-        self._servos = {sid: _Servo(sid, cfg) for sid in cfg.ids}
+        self._servos = {sid: FakeServo(sid, cfg) for sid in cfg.ids}
         self._link = PtyLink("sts-bus", cfg.link_dir)
         self._lock = threading.RLock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._buf = bytearray()
         self._last_ns = now_ns()
-        self._drop: list[int | None] = []  # per pending fault: the servo id it targets, or any
-        self._corrupt: list[int | None] = []
         self._stalled_until_ns = 0
         self.goal_log: deque[tuple[int, int, int]] = deque(maxlen=cfg.goal_log_size)
         #: (t_ns, id, present position) of each torque off: where a servo was let go (a
@@ -179,6 +75,15 @@ class FakeStsBus:
         }
         for name in INSTRUCTIONS.values():
             self.counters[name.lower()] = 0
+        #: the instruction packets off the line, answered as the servos would
+        self._packets = StsResponder(
+            self._servos,
+            self.counters,
+            self.goal_log,
+            self.release_log,
+            self._link.write,
+            self._advance,
+        )
 
     # -- lifecycle ----------------------------------------------------------------
 
@@ -222,7 +127,7 @@ class FakeStsBus:
     def drop_replies(self, n: int = 1, sid: int | None = None) -> None:
         """The next ``n`` replies (from ``sid``, or any servo) never arrive."""
         with self._lock:
-            self._drop.extend([sid] * n)
+            self._packets.drop.extend([sid] * n)
 
     def stall(self, seconds: float) -> None:
         """Hear nothing for ``seconds``, then answer everything sent meanwhile at once: the
@@ -234,7 +139,7 @@ class FakeStsBus:
     def corrupt_replies(self, n: int = 1, sid: int | None = None) -> None:
         """The next ``n`` replies arrive with a wrong checksum (line noise)."""
         with self._lock:
-            self._corrupt.extend([sid] * n)
+            self._packets.corrupt.extend([sid] * n)
 
     def set_silent(self, sid: int, silent: bool = True) -> None:
         """A servo that hears and says nothing: unpowered, or its cable is off."""
@@ -252,13 +157,13 @@ class FakeStsBus:
             servo = self._servos[sid]
             if not servo.torque:
                 servo.position = float(counts)
-                servo._put(PRESENT_POSITION.address, 2, counts & 0xFFFF)
+                servo.put(PRESENT_POSITION.address, 2, counts & 0xFFFF)
 
     def unplug(self) -> None:
         """Unplug the adapter: the pty and its name disappear."""
         with self._lock:
             self._link.unplug()
-            self._buf.clear()
+            self._packets.clear()
 
     def replug(self) -> None:
         """Plug it back: a new pty behind the same name; servos keep their state."""
@@ -328,118 +233,7 @@ class FakeStsBus:
                         )
                     self.counters["wrong_baud_bytes"] += len(data)
                     continue
-                self._buf += data
-                self._parse()
-
-    def _parse(self) -> None:
-        buf = self._buf
-        while True:
-            i = buf.find(b"\xff\xff")
-            if i < 0:
-                del buf[: max(0, len(buf) - 1)]  # a lone trailing 0xFF may start a header
-                return
-            # Skip extra 0xFF before the id (FF FF FF id ... is still a header).
-            while i + 2 < len(buf) and buf[i + 2] == 0xFF:
-                i += 1
-            del buf[:i]
-            if len(buf) < 4:
-                return
-            length = buf[3]
-            if length < 2:
-                self.counters["bad_length"] += 1
-                del buf[:2]
-                continue
-            total = length + 4
-            if len(buf) < total:
-                return
-            pkt = bytes(buf[:total])
-            if checksum(pkt[2:-1]) != pkt[-1]:
-                self.counters["bad_checksum"] += 1
-                del buf[:2]  # a servo ignores it; look for the next header
-                continue
-            del buf[:total]
-            self.counters["packets"] += 1
-            self._handle(pkt[2], pkt[4], pkt[5:-1])
-
-    def _handle(self, sid: int, inst: int, params: bytes) -> None:
-        self._advance()
-        name = INSTRUCTIONS.get(inst)
-        if name is None:
-            self.counters["unknown_instruction"] += 1
-            return
-        self.counters[name.lower()] += 1
-        if inst == INST_SYNC_WRITE:
-            if len(params) < 2:
-                return
-            address, size = params[0], params[1]
-            body = params[2:]
-            for k in range(0, len(body) - size, size + 1):
-                target = self._servos.get(body[k])
-                if target is not None and not target.silent:
-                    self._write(target, address, body[k + 1 : k + 1 + size])
-            return
-        if inst == INST_SYNC_READ:
-            if len(params) < 2:
-                return
-            address, size = params[0], params[1]
-            for target_id in params[2:]:
-                target = self._servos.get(target_id)
-                if target is not None and not target.silent:
-                    self._reply(target, bytes(target.table[address : address + size]))
-            return
-        targets = (
-            list(self._servos.values())
-            if sid == BROADCAST_ID
-            else [self._servos[sid]]
-            if sid in self._servos
-            else []
-        )
-        for servo in targets:
-            if servo.silent:
-                continue
-            data = b""
-            if inst == INST_READ:
-                if len(params) != 2:
-                    continue
-                address, size = params
-                data = bytes(servo.table[address : address + size])
-            elif inst == INST_WRITE and params:
-                self._write(servo, params[0], params[1:])
-            elif inst == INST_REG_WRITE and params:
-                servo.pending = (params[0], bytes(params[1:]))
-            elif inst == INST_ACTION and servo.pending is not None:
-                self._write(servo, *servo.pending)
-                servo.pending = None
-            if sid != BROADCAST_ID:
-                self._reply(servo, data)
-
-    def _write(self, servo: _Servo, address: int, data: bytes) -> None:
-        was_on = servo.torque
-        servo.write(address, data)
-        goal = GOAL_POSITION.address
-        if address <= goal < address + len(data) and address <= goal + 1 < address + len(data):
-            self.goal_log.append((now_ns(), servo.id, servo.goal))
-        if was_on and not servo.torque:
-            self.release_log.append((now_ns(), servo.id, round(servo.position)))
-
-    def _reply(self, servo: _Servo, data: bytes) -> None:
-        if self._take(self._drop, servo.id):
-            self.counters["dropped_replies"] += 1
-            return
-        reply = bytearray(packet(servo.id, servo.error_bits, data))
-        if self._take(self._corrupt, servo.id):
-            reply[-1] ^= 0x5A
-            self.counters["corrupted_replies"] += 1
-        self.counters["replies"] += 1
-        self._link.write(bytes(reply))
-
-    @staticmethod
-    def _take(faults: list[int | None], sid: int) -> bool:
-        for k, target in enumerate(faults):
-            if target is None or target == sid:
-                del faults[k]
-                return True
-        return False
+                self._packets.feed(data)
 
     def _advance(self) -> None:
         now = now_ns()
