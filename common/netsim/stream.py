@@ -28,25 +28,24 @@ import math
 import select
 import socket
 import time
-from collections import deque
 from typing import Any
 from urllib.parse import urlsplit
 
 from common.errors import ConfigError, LinkError
 from common.netsim.impairments import DIRECTIONS, DirectionConfig, DirectionImpairment, Scenario
-from common.netsim.kernel_stamps import ANC_BYTES, SO_TIMESTAMPNS, arrival_ns
+from common.netsim.kernel_stamps import SO_TIMESTAMPNS
 from common.netsim.proxy import (
     DirectionCounters,
     Endpoints,
     ForwardingThread,
     set_timer_slack_ns,
 )
+from common.netsim.stream_pipes import Pipe, StreamPipes
 
 log = logging.getLogger(__name__)
 
 #: Longest the thread sleeps before checking for ``stop()``.
 _MAX_WAIT_S = 0.02
-_RECV_BYTES = 1 << 16
 #: Bytes waiting for a slow receiver before the forwarder stops reading its source.
 _BACKPRESSURE_BYTES = 1 << 22
 #: A connection to the robot must be up within this (connects block the forwarder's thread).
@@ -96,39 +95,6 @@ def _is_passthrough(config: DirectionConfig) -> bool:
     )
 
 
-class _Pipe:
-    """One direction of one forwarded connection."""
-
-    __slots__ = (
-        "closed",
-        "counters",
-        "direction",
-        "dst",
-        "engine",
-        "pending",
-        "queue",
-        "src",
-    )
-
-    def __init__(
-        self,
-        src: socket.socket,
-        dst: socket.socket,
-        direction: str,
-        engine: DirectionImpairment | None,
-        counters: DirectionCounters,
-    ) -> None:
-        self.src = src
-        self.dst = dst
-        self.direction = direction
-        self.engine = engine  # None: passthrough
-        self.counters = counters
-        #: (due ns, arrival ns, bytes), in due order.
-        self.queue: deque[tuple[int, int, bytes]] = deque()
-        self.pending = bytearray()  # released but not yet accepted by the kernel
-        self.closed = False
-
-
 class StreamForwarder(ForwardingThread):
     """Forwards the robot's two TCP links, each direction impaired by ``scenario``.
 
@@ -159,18 +125,14 @@ class StreamForwarder(ForwardingThread):
         self._configs = {name: stream_config(self.scenario.direction(name)) for name in DIRECTIONS}
         self._passthrough = {name: _is_passthrough(c) for name, c in self._configs.items()}
         self._counters = {name: DirectionCounters() for name in DIRECTIONS}
-        self._engines: list[DirectionImpairment] = []
-        #: Counts of the engines of connections already closed, per direction.
-        self._retired: dict[str, dict[str, int]] = {name: {} for name in DIRECTIONS}
         self._connections = 0
         self._unreachable: set[str] = set()
-        self._dirty = True  # the select lists need rebuilding
         self._spun = 0  # reads found while spinning (ahead of a release or a chunk)
         self._listeners: list[tuple[str, socket.socket, tuple[str, int]]] = []
-        self._pipes: list[_Pipe] = []
+        #: each direction of each forwarded connection
+        self.pipes = StreamPipes()
         self._init_thread()
         self.start_ns: int | None = None
-        self._own_ns: deque[int] = deque(maxlen=100_000)
         self.operator_telemetry_endpoint: str | None = None
         self.operator_commands_endpoint: str | None = None
 
@@ -214,9 +176,9 @@ class StreamForwarder(ForwardingThread):
         out: dict[str, dict[str, Any]] = {}
         for name in DIRECTIONS:
             row: dict[str, Any] = self._counters[name].as_dict()
-            for key, value in dict(self._retired[name]).items():
+            for key, value in dict(self.pipes.retired[name]).items():
                 row[key] = row.get(key, 0) + value
-            for engine in list(self._engines):
+            for engine in list(self.pipes.engines):
                 if engine.name.startswith(name):
                     for key, value in engine.counts.as_dict().items():
                         row[key] = row.get(key, 0) + value
@@ -229,7 +191,7 @@ class StreamForwarder(ForwardingThread):
 
     def own_latency_ns(self) -> list[int]:
         """Recent per-chunk costs of the forwarder: sent minus the later of arrival and due time."""
-        return list(self._own_ns)
+        return list(self.pipes.own_ns)
 
     # ------------------------------------------------------------ connections
     def _accept(self, link: str, listener: socket.socket, target: tuple[str, int]) -> None:
@@ -267,26 +229,8 @@ class StreamForwarder(ForwardingThread):
                     name=f"{direction}:{link}:{n}",
                     start_ns=self.start_ns,
                 )
-                self._engines.append(engine)
-            self._pipes.append(_Pipe(src, dst, direction, engine, self._counters[direction]))
-        self._dirty = True
+            self.pipes.add(Pipe(src, dst, direction, engine, self._counters[direction]))
         log.debug("netsim: %s connection %d forwarded to %s:%d", link, n, *target)
-
-    def _close_pair(self, pipe: _Pipe) -> None:
-        """Close both directions of the connection ``pipe`` belongs to (as a reset would)."""
-        socks = {pipe.src, pipe.dst}
-        for p in self._pipes:
-            if p.src in socks:
-                p.closed = True
-                if p.engine is not None:  # keep its counts, not the engine
-                    retired = self._retired[p.direction]
-                    for key, value in p.engine.counts.as_dict().items():
-                        retired[key] = retired.get(key, 0) + value
-                    self._engines.remove(p.engine)
-        for s in socks:
-            s.close()
-        self._pipes = [p for p in self._pipes if not p.closed]
-        self._dirty = True
 
     def _close_listeners(self) -> None:
         for _, listener, _ in self._listeners:
@@ -294,94 +238,6 @@ class StreamForwarder(ForwardingThread):
         self._listeners = []
 
     # ------------------------------------------------------------ the loop
-    def _read(self, pipe: _Pipe, real_minus_mono: int) -> None:
-        try:
-            data, anc, _, _ = pipe.src.recvmsg(_RECV_BYTES, ANC_BYTES)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:
-            data, anc = b"", []
-        if pipe.engine is None and data and not pipe.pending:
-            # Nothing to simulate: out first, accounting after.
-            try:
-                sent = pipe.dst.send(data)
-            except (BlockingIOError, InterruptedError):
-                sent = 0
-            except OSError:
-                self._close_pair(pipe)
-                return
-            t_sent = time.monotonic_ns()
-            if sent < len(data):
-                pipe.pending += data[sent:]
-                self._dirty = True
-            arrival = arrival_ns(anc, t_sent, real_minus_mono)
-            c = pipe.counters
-            c.received += 1
-            c.sent += 1
-            c.bytes_in += len(data)
-            c.bytes_out += len(data)
-            self._own_ns.append(t_sent - arrival)
-            return
-        t_read = time.monotonic_ns()
-        if not data:  # the peer closed (or reset): pass the close on
-            self._close_pair(pipe)
-            return
-        arrival = arrival_ns(anc, t_read, real_minus_mono)
-        c = pipe.counters
-        c.received += 1
-        c.bytes_in += len(data)
-        if pipe.engine is None:
-            self._release(pipe, data, arrival, arrival)
-            return
-        out = pipe.engine.process(arrival, data)
-        if not out:  # gave up after the retransmissions: TCP resets the connection
-            c.dropped += 1
-            log.warning("netsim: %s connection reset after repeated losses", pipe.direction)
-            self._close_pair(pipe)
-            return
-        due, payload = out[0]
-        if not pipe.queue and due <= t_read:
-            self._release(pipe, payload, arrival, due)
-        else:
-            pipe.queue.append((due, arrival, payload))
-
-    def _release(self, pipe: _Pipe, data: bytes, arrival: int, due: int) -> None:
-        """Send ``data`` (or queue it behind what the receiver has not taken yet)."""
-        if pipe.pending:
-            pipe.pending += data
-        else:
-            try:
-                sent = pipe.dst.send(data)
-            except (BlockingIOError, InterruptedError):
-                sent = 0
-            except OSError:
-                self._close_pair(pipe)
-                return
-            if sent < len(data):
-                pipe.pending += data[sent:]
-                self._dirty = True
-        t1 = time.monotonic_ns()
-        c = pipe.counters
-        c.sent += 1
-        c.bytes_out += len(data)
-        start = due if due > arrival else arrival
-        self._own_ns.append(t1 - start)
-        late = t1 - due
-        if late > c.late_ns_max:
-            c.late_ns_max = late
-
-    def _flush(self, pipe: _Pipe) -> None:
-        try:
-            sent = pipe.dst.send(pipe.pending)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:
-            self._close_pair(pipe)
-            return
-        del pipe.pending[:sent]
-        if not pipe.pending:
-            self._dirty = True
-
     def _run(self) -> None:
         set_timer_slack_ns(1_000)
         now_ns = time.monotonic_ns
@@ -389,30 +245,31 @@ class StreamForwarder(ForwardingThread):
         stop = self._stop
         readers: list[Any] = []
         writers: list[Any] = []
-        by_sock: dict[Any, _Pipe] = {}
+        by_sock: dict[Any, Pipe] = {}
+        pipes = self.pipes
         try:
             while not stop.is_set():
-                if self._dirty:  # connections or blocked receivers changed
-                    self._dirty = False
+                if pipes.dirty:  # connections or blocked receivers changed
+                    pipes.dirty = False
                     readers = [lst for _, lst, _ in self._listeners]
-                    writers = [p.dst for p in self._pipes if p.pending]
+                    writers = [p.dst for p in pipes.pipes if p.pending]
                     by_sock = {}
-                    for pipe in self._pipes:
+                    for pipe in pipes.pipes:
                         if len(pipe.pending) < _BACKPRESSURE_BYTES:
                             readers.append(pipe.src)
                             by_sock[pipe.src] = pipe
                 # Release what is due, in due order per pipe.
                 next_ns = None
                 t = now_ns()
-                for pipe in self._pipes:
+                for pipe in pipes.pipes:
                     q = pipe.queue
                     while q and q[0][0] <= t and not pipe.closed:
                         due, arrival, data = q.popleft()
-                        self._release(pipe, data, arrival, due)
+                        pipes.release(pipe, data, arrival, due)
                         t = now_ns()
                     if q and (next_ns is None or q[0][0] - spin_ns < next_ns):
                         next_ns = q[0][0] - spin_ns
-                if self._dirty:
+                if pipes.dirty:
                     continue
                 # Wait for bytes, a writable receiver, or the next release.
                 wait_s = _MAX_WAIT_S
@@ -427,23 +284,20 @@ class StreamForwarder(ForwardingThread):
                         pipe = by_sock.get(sock)
                         if pipe is not None:
                             if not pipe.closed:
-                                self._read(pipe, real_minus_mono)
+                                pipes.read(pipe, real_minus_mono)
                             continue
                         for link, listener, target in self._listeners:
                             if listener is sock:
                                 self._accept(link, listener, target)
                 for sock in writable:
-                    for pipe in self._pipes:
+                    for pipe in pipes.pipes:
                         if pipe.dst is sock and pipe.pending and not pipe.closed:
-                            self._flush(pipe)
+                            pipes.flush(pipe)
         except BaseException as e:  # report, never die silently
             self._error = e
             log.exception("netsim stream forwarder stopped")
         finally:
-            for pipe in self._pipes:
-                for s in (pipe.src, pipe.dst):
-                    s.close()
-            self._pipes = []
+            pipes.close_all()
             self._close_listeners()
 
 
