@@ -54,10 +54,6 @@ ALLOWED: dict[str, tuple[int, str]] = {
     "deploy/topic_cli.py": (464, "deepxpalm topic: watching, tables and echo in one module"),
     "common/synthetic_tactile.py": (462, "the synthetic grasp model and its held grasps"),
     "common/foxglove.py": (448, "Foxglove's schemas and the views that fill them"),
-    "robot_side/lab/world.py::LabWorld": (
-        300,
-        "the MuJoCo world: model, stepping and reads under one lock",
-    ),
 }
 
 

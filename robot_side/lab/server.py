@@ -32,6 +32,7 @@ from robot_side.gripper.sim import GripperModelConfig, GripperSimConfig, Gripper
 from robot_side.lab.camera_server import CameraServer
 from robot_side.lab.clock import BEHIND_SIM_WALL, SimWallMeter
 from robot_side.lab.config import LabWorldConfig, PipetteConfig
+from robot_side.lab.grasp_truth import grasp_geometry, grasp_pattern
 from robot_side.lab.model import TCP_OFFSET
 from robot_side.lab.world import LabWorld
 from robot_side.tactile.base import GraspTruth
@@ -84,7 +85,7 @@ class WorldContact:
 
     def contact_at(self, t_s: float) -> tuple[np.ndarray, GraspTruth]:
         force = self.world.taxel_forces()
-        pattern = self.world.grasp_pattern() if force.max() >= 1.0 else None
+        pattern = grasp_pattern(self.world) if force.max() >= 1.0 else None
         if pattern is None:
             return force, GraspTruth(pattern=None, grip_level=None)
         requested = self.gripper.model.read()["PRE"]
@@ -243,10 +244,10 @@ class LabServer:
         i = self.world.touching_pipette()
         if i is None:
             return {"pipette": None, "pattern": None}
-        theta, offset = self.world.grasp_geometry(i)
+        theta, offset = grasp_geometry(self.world, i)
         return {
             "pipette": i,
-            "pattern": self.world.grasp_pattern(),
+            "pattern": grasp_pattern(self.world),
             "tilt_deg": theta,
             "offset_mm": offset,
             "lift_mm": self.world.pipette_lift_m(i) * 1000.0,

@@ -2,28 +2,25 @@
 
 ``LabWorld`` is the engine side only: it places the arm from joint angles,
 drives the fingers, steps, and reports what the engine saw: per-taxel
-normal forces, whether anything hit the table, the grasped pipette's tilt
-and offset on the pads (the ground truth), and camera images on demand (a
-renderer is only created when somebody asks for an image).
+normal forces, whether anything hit the table, where the gripper and the
+pipettes are (``grasp_truth`` reads the ground truth off them), and camera
+images on demand (a renderer is only created when somebody asks for an
+image).
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import os
 import threading
 import time
 
 import numpy as np
 
-from common.synthetic_tactile import offset_direction
-from common.tactile import N_ANGLES, pattern_of
 from robot_side.lab.config import LabWorldConfig, PipetteConfig
 from robot_side.lab.model import (
     N_COLS,
     N_ROWS,
-    PAD_CENTRE_Z_M,
     PALM_HALF_M,
     axis_quat,
     build_mjcf,
@@ -33,9 +30,6 @@ from robot_side.lab.model import (
 )
 
 log = logging.getLogger(__name__)
-
-#: a band this far (mm) from the pad centre, across its axis, is "left"/"right" (or up/down)
-SIDE_THRESHOLD_MM = 3.0
 
 
 def import_mujoco():
@@ -292,37 +286,6 @@ class LabWorld:
             t[:3, :3] = self.data.xmat[self._gripper_body].reshape(3, 3)
             t[:3, 3] = self.data.xpos[self._gripper_body]
             return t
-
-    def grasp_geometry(self, pipette: int) -> tuple[float, float]:
-        """(tilt deg in 0..180, offset mm along class 1's direction) of a pipette on the pads."""
-        t = self.flange()
-        p = self.pipettes[pipette]
-        rot = t[:3, :3]
-        axis = rot.T @ p.axis
-        top = rot.T @ (self.pipette_top(pipette) - t[:3, 3])
-        u = np.array([axis[0], axis[2]])
-        u /= max(float(np.linalg.norm(u)), 1e-9)
-        theta = math.degrees(math.atan2(u[1], u[0])) % 180.0
-        rel = np.array([top[0], top[2] - PAD_CENTRE_Z_M])
-        w = rel - float(rel @ u) * u  # pad centre -> the axis line, across it
-        angle_class = round(theta / 45.0) % N_ANGLES
-        dx, dy = offset_direction(angle_class)
-        return theta, float(w[0] * dx + w[1] * dy) * 1000.0
-
-    def grasp_pattern(self) -> int | None:
-        """The tactile contract's pattern being felt, or None."""
-        i = self.touching_pipette()
-        if i is None:
-            return None
-        theta, offset_mm = self.grasp_geometry(i)
-        angle_class = round(theta / 45.0) % N_ANGLES
-        if offset_mm > SIDE_THRESHOLD_MM:
-            position = 1
-        elif offset_mm < -SIDE_THRESHOLD_MM:
-            position = 2
-        else:
-            position = 0
-        return pattern_of(angle_class, position)
 
     # -- cameras, on demand ---------------------------------------------------------------------
 

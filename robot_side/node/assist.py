@@ -25,7 +25,7 @@ Safety is the operator's jog's, not a copy of it:
   admits those, owns the assist and tells it (``hold``, ``end``,
   ``gripper_taken``); the assist never calls the desk.
 
-Sign conventions (docs/tactile.md, ``LabWorld.grasp_geometry``): the pads lie
+Sign conventions (docs/tactile.md, ``grasp_truth.grasp_geometry``): the pads lie
 in the tool's x-z plane, columns along +x ("right"), rows up along +z (the
 fingertips, "up"), the fingers close along y. A turn of the tool by +phi
 about its own y axis turns the pipette, as the pads see it, by +phi: the
