@@ -1,7 +1,8 @@
 """The ``deepxpalm`` command's options do what their help says, run as a user runs them.
 
 ``--record`` only where a command records; ``-v`` before or after the subcommand;
-``--version``; ``keys show`` on a file that is no key: one line, exit code 2, no traceback.
+``--version``; ``keys show`` on a file that is no key, and a node's missing config file or
+malformed value: one line, exit code 2, no traceback.
 """
 
 from __future__ import annotations
@@ -125,3 +126,27 @@ def test_keys_show_prints_each_kind_of_key(tmp_path: Path) -> None:
     assert _run("keys", "show", str(tmp_path / "s.sign")).stdout.strip() == signing
     # a secret signing key shows its public key, never the secret
     assert _run("keys", "show", str(tmp_path / "s.sign_secret")).stdout.strip() == signing
+
+
+@pytest.mark.parametrize(
+    ("command", "bad_value"),
+    [
+        ("robot", "robot.link.heartbeat_rate_hz=fast"),
+        ("operator", "operator.link.stale_after_ms=banana"),
+        ("router", "router.max_sessions=many"),
+        ("record", "recorder.robots=7"),
+        ("netsim", "netsim.seed=lucky"),
+        ("video", "video.port=eighty"),
+    ],
+)
+def test_a_missing_config_file_or_a_malformed_value_is_one_line_and_exit_code_2(
+    tmp_path, command: str, bad_value: str
+) -> None:
+    missing = _run(command, "--config", str(tmp_path / "nowhere.toml"), "--print-config")
+    assert missing.returncode == 2, (missing.returncode, missing.stderr)
+    assert missing.stderr.strip().count("\n") == 0 and "nowhere.toml" in missing.stderr
+    malformed = _run(command, "--set", bad_value, "--print-config")
+    assert malformed.returncode == 2, (malformed.returncode, malformed.stderr)
+    lines = malformed.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in malformed.stderr, malformed.stderr
+    assert bad_value.split("=")[0].split(".")[-1] in lines[0], lines
