@@ -34,7 +34,7 @@ from robot_side.gripper.modbus_rtu import (
     crc_ok,
     with_crc,
 )
-from robot_side.gripper.sim import GripperModel, GripperModelConfig
+from robot_side.gripper.model import GripperModel, GripperModelConfig
 
 log = logging.getLogger(__name__)
 
