@@ -36,7 +36,6 @@ ALLOWED: dict[str, tuple[int, str]] = {
         582,
         "the link simulator's configuration and its loss, delay and corruption models",
     ),
-    "common/codec.py": (557, "the message checks and the encoder/decoder in one module"),
     "common/transport.py": (
         550,
         "ZeroMQ sockets, their reconnection, the capture link and port helpers",

@@ -216,14 +216,14 @@ def test_no_module_spells_the_contract_out(scanned):
 
 
 def test_importers_share_the_contracts_objects():
-    from common import codec
-    from operator_side.dashboard import server
+    from common import codec_schema
+    from operator_side.dashboard import page_commands
     from robot_side.gripper import base
     from robot_side.perception import inference, numba_forward
     from robot_side.tactile import script
 
-    assert codec.N_PATTERNS is tactile.N_PATTERNS
-    assert server.GRIP_LEVELS is tactile.GRIP_LEVELS
+    assert codec_schema.N_PATTERNS is tactile.N_PATTERNS
+    assert page_commands.GRIP_LEVELS is tactile.GRIP_LEVELS
     assert base.N_GRIP_LEVELS == script.N_GRIP_LEVELS == 31
     assert inference.SATURATION_N is tactile.SATURATION_N
     assert float(numba_forward._NINTH) == float(np.float32(1.0 / 9.0))
