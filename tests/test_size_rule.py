@@ -49,7 +49,6 @@ ALLOWED: dict[str, tuple[int, str]] = {
         498,
         "the classifier interface and its five backends' loaders and forward passes",
     ),
-    "deploy/topic_cli.py": (464, "deepxpalm topic: watching, tables and echo in one module"),
     "common/synthetic_tactile.py": (462, "the synthetic grasp model and its held grasps"),
     "common/foxglove.py": (448, "Foxglove's schemas and the views that fill them"),
 }
