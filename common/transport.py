@@ -6,25 +6,31 @@ lag. Every socket has LINGER 0 (closing never blocks), a maximum message size
 (oversized frames are dropped by ZeroMQ before they are read) and bounded
 queues. Decoding errors are counted by class and logged once per burst.
 
-A connecting socket may watch its connection (``reconnect=True``): libzmq
-never reconnects after a protocol error (an oversized or malformed frame from
-the peer, a handshake in a language it does not speak), so such a socket is
-closed and opened again by the next call that touches it, within a fraction
-of a second, and says so in ``link_health``.
+A connecting socket may watch its connection (``reconnect=True``, with
+``common.connection_watch``): libzmq never reconnects after a protocol
+error (an oversized or malformed frame from the peer, a handshake in a
+language it does not speak), so such a socket is closed and opened again
+by the next call that touches it, within a fraction of a second, and says
+so in ``link_health``.
 """
 
 from __future__ import annotations
 
-import collections
-import contextlib
 import logging
 import math
 from collections import Counter
-from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import zmq
 
+from common.capture_link import (
+    CaptureInbox,
+    CaptureLink,
+    CapturePublisher,
+    Link,
+    Receiver,
+    Sender,
+)
 from common.clock import now_ns
 from common.codec import (
     MAX_MESSAGE_BYTES,
@@ -34,9 +40,29 @@ from common.codec import (
     decode_named,
     encode,
 )
+from common.connection_watch import RECONNECT_GRACE_S, RECONNECT_MAX_S, ConnectionWatch
 from common.errors import LinkError
 from common.logs import BurstLog
+from common.loopback_ports import KNOWN_PORTS_FROM, free_loopback_ports
 from common.messages import Message
+
+#: ``Link``, the capture link and the loopback ports are re-exported where their users find them
+__all__ = [
+    "KNOWN_PORTS_FROM",
+    "CaptureInbox",
+    "CaptureLink",
+    "CapturePublisher",
+    "ConnectionWatch",
+    "Link",
+    "Publisher",
+    "Receiver",
+    "Sender",
+    "Subscriber",
+    "free_loopback_ports",
+    "last_endpoint",
+    "link_health",
+    "make_context",
+]
 
 log = logging.getLogger(__name__)
 
@@ -70,70 +96,6 @@ def last_endpoint(sock: zmq.Socket) -> str:
     return sock.getsockopt(zmq.LAST_ENDPOINT).decode()
 
 
-_WATCHED_EVENTS = (
-    zmq.EVENT_CONNECTED
-    | zmq.EVENT_CONNECT_DELAYED
-    | zmq.EVENT_CONNECT_RETRIED
-    | zmq.EVENT_DISCONNECTED
-    | zmq.EVENT_HANDSHAKE_SUCCEEDED
-    | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
-    | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
-    | zmq.EVENT_HANDSHAKE_FAILED_AUTH
-)
-#: libzmq retries at once after an ordinary disconnect (CONNECT_RETRIED); without that word
-#: for this long after a disconnect or a failed handshake, it has given up on the connection
-RECONNECT_GRACE_S = 0.25
-#: the wait before opening again doubles while the new socket fails too, up to this
-RECONNECT_MAX_S = 0.5
-
-
-class ConnectionWatch:
-    """A connecting socket's connection as its monitor tells it, and whether libzmq gave up.
-
-    ``poll`` reads the queued events without waiting; it answers True when the
-    connection ended (disconnect or failed handshake) and libzmq has not
-    announced a retry within the grace time: the caller then opens the socket
-    again. A live or retrying connection is left alone.
-    """
-
-    def __init__(self, sock: zmq.Socket, what: str, reopens: int = 0, wait_s: float = 0.0):
-        self.what = what
-        self.monitor = sock.get_monitor_socket(_WATCHED_EVENTS)
-        self.up = False
-        self.reopens = reopens
-        #: when libzmq stopped trying (a disconnect or failed handshake not followed by a retry)
-        self._ended_ns: int | None = None
-        self._ended_how = ""
-        self.wait_s = wait_s  # before reopening: grows while reopened sockets fail too
-        self.closed = False  # the socket's owner closed it: nothing to watch any more
-
-    def poll(self, now: int) -> bool:
-        from zmq.utils.monitor import recv_monitor_message
-
-        mon = self.monitor
-        while mon.get(_EVENTS) & _POLLIN:
-            try:
-                event = recv_monitor_message(mon, _NOBLOCK)["event"]
-            except zmq.Again:
-                break
-            if event == zmq.EVENT_HANDSHAKE_SUCCEEDED:
-                self.up, self._ended_ns, self.wait_s = True, None, 0.0
-            elif event in (zmq.EVENT_CONNECT_RETRIED, zmq.EVENT_CONNECT_DELAYED):
-                self._ended_ns = None  # libzmq carries on by itself
-            elif event != zmq.EVENT_CONNECTED:  # a disconnect, or a handshake that failed
-                self.up = False
-                self._ended_ns = now
-                self._ended_how = "closed" if event == zmq.EVENT_DISCONNECTED else "refused"
-        if self._ended_ns is None:
-            return False
-        return now - self._ended_ns >= (RECONNECT_GRACE_S + self.wait_s) * 1e9
-
-    def close(self, sock: zmq.Socket) -> None:
-        with contextlib.suppress(zmq.ZMQError):  # already closed
-            sock.disable_monitor()
-        self.monitor.close(0)
-
-
 class _Reconnecting:
     """What ``Publisher`` and ``Subscriber`` share: a socket that can be opened again."""
 
@@ -164,7 +126,7 @@ class _Reconnecting:
             "or malformed frame, or a handshake that failed); opening the socket again",
             self.link_name,
             self._args[2],
-            watch._ended_how,
+            watch.ended_how,
         )
         old = self.sock
         watch.close(old)
@@ -378,171 +340,6 @@ class Subscriber(_Reconnecting):
     @property
     def rejected_total(self) -> int:
         return sum(self.rejected.values())
-
-
-class Sender(Protocol):
-    """The sending half of a node's link (``Publisher``, ``CapturePublisher``)."""
-
-    sent: int
-
-    def send(self, msg: Message) -> bytes: ...
-
-    def close(self) -> None: ...
-
-
-class Receiver(Protocol):
-    """The receiving half of a node's link (``Subscriber``, ``CaptureInbox``)."""
-
-    def poll(self, timeout_s: float) -> bool: ...
-
-    def drain(
-        self, max_messages: int = 1024, wires: list[bytes] | None = None
-    ) -> list[tuple[Message, int]]: ...
-
-    @property
-    def rejected_total(self) -> int: ...
-
-    def close(self) -> None: ...
-
-
-@dataclass
-class Link:
-    """What a node sends on (``pub``) and reads from (``sub``).
-
-    A node opens its ZeroMQ link in ``run()``; one handed a link instead is
-    driven by its caller (``process``, ``receive``, ``palm_step``): the
-    bench, replay and tests, with real sockets or a ``CaptureLink``. A half
-    the caller does not need may be None.
-    """
-
-    pub: Sender | None = None
-    sub: Receiver | None = None
-
-
-class CapturePublisher:
-    """A ``Publisher`` with no socket: keeps every message, and encodes it as the socket would."""
-
-    endpoint = "capture://"
-
-    def __init__(self) -> None:
-        self.messages: list[Message] = []
-        self.sent = 0
-        self.bytes_sent = 0
-
-    def send(self, msg: Message) -> bytes:
-        data = encode(msg)
-        self.messages.append(msg)
-        self.sent += 1
-        self.bytes_sent += len(data)
-        return data
-
-    def close(self) -> None:
-        pass
-
-
-class CaptureInbox:
-    """A ``Subscriber`` with no socket: hands out what ``deliver`` queued, oldest first."""
-
-    endpoint = "capture://"
-
-    def __init__(self) -> None:
-        self._queue: collections.deque[tuple[Message, int]] = collections.deque()
-        self.received = 0
-        self.rejected: Counter[str] = Counter()
-
-    def deliver(self, msg: Message, t_recv_ns: int) -> None:
-        self._queue.append((msg, t_recv_ns))
-
-    def poll(self, timeout_s: float) -> bool:
-        return bool(self._queue)
-
-    def drain(
-        self, max_messages: int = 1024, wires: list[bytes] | None = None
-    ) -> list[tuple[Message, int]]:
-        """``wires``: each message encoded as a socket would carry it (unsigned, unnamed)."""
-        out = []
-        while self._queue and len(out) < max_messages:
-            out.append(self._queue.popleft())
-            if wires is not None:
-                wires.append(encode(out[-1][0]))
-        self.received += len(out)
-        return out
-
-    @property
-    def rejected_total(self) -> int:
-        return sum(self.rejected.values())
-
-    def close(self) -> None:
-        self._queue.clear()
-
-
-class CaptureLink(Link):
-    """A link in memory: what the node sends is kept in ``messages``; ``deliver`` feeds it."""
-
-    pub: CapturePublisher
-    sub: CaptureInbox
-
-    def __init__(self) -> None:
-        super().__init__(pub=CapturePublisher(), sub=CaptureInbox())
-
-    @property
-    def messages(self) -> list[Message]:
-        return self.pub.messages
-
-    def deliver(self, msg: Message, t_recv_ns: int) -> None:
-        self.sub.deliver(msg, t_recv_ns)
-
-
-#: Where ports known in advance are drawn: from here up to the kernel's ephemeral range.
-KNOWN_PORTS_FROM = 10000
-
-
-def _ephemeral_low(path: str = "/proc/sys/net/ipv4/ip_local_port_range") -> int | None:
-    """The lowest port the kernel hands out on its own (a bind to port 0, a connect)."""
-    try:
-        with open(path) as f:
-            return int(f.read().split()[0])
-    except (OSError, ValueError, IndexError):
-        return None
-
-
-def free_loopback_ports(n: int, host: str = "127.0.0.1", *, udp: bool = False) -> list[int]:
-    """``n`` TCP ports free on ``host`` right now (for endpoints that must be known in advance).
-
-    Drawn at random below the kernel's ephemeral range: a port there can only be taken by a
-    process that names it. A port the kernel picked itself (a bind to port 0) was free only
-    until the probe closed it: any process's next bind to port 0, or an outgoing
-    connection's source port, could take it before the caller bound it (a robot node's
-    bind failed that way beside two other deployments). Each port is bound once here to
-    check that nothing listens on it. Where the range leaves no room below it, the kernel
-    picks. ``udp``: UDP ports (a QUIC listener's), checked by a UDP bind.
-    """
-    import random
-    import socket
-
-    low = _ephemeral_low()
-    room = low is not None and low - KNOWN_PORTS_FROM >= 1000
-    draws = random.SystemRandom()
-    socks: list[socket.socket] = []
-    try:
-        for _ in range(100 * n):
-            if len(socks) == n:
-                break
-            s = socket.socket(type=socket.SOCK_DGRAM if udp else socket.SOCK_STREAM)
-            try:
-                s.bind((host, draws.randrange(KNOWN_PORTS_FROM, low) if room else 0))
-            except OSError:  # in use (or in TIME_WAIT): draw again
-                s.close()
-                if not room:
-                    raise
-                continue
-            socks.append(s)
-        if len(socks) < n:
-            raise OSError(f"no {n} free ports on {host} in {KNOWN_PORTS_FROM}..{low - 1}")
-        return [s.getsockname()[1] for s in socks]
-    finally:
-        for s in socks:
-            s.close()
 
 
 def make_context() -> zmq.Context:

@@ -36,10 +36,6 @@ ALLOWED: dict[str, tuple[int, str]] = {
         582,
         "the link simulator's configuration and its loss, delay and corruption models",
     ),
-    "common/transport.py": (
-        550,
-        "ZeroMQ sockets, their reconnection, the capture link and port helpers",
-    ),
     "operator_side/study/analysis.py": (
         520,
         "the study's statistics, figure and report in one module",

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import socket
 
-from common import transport
-from common.transport import KNOWN_PORTS_FROM, free_loopback_ports
+from common import loopback_ports
+from common.loopback_ports import KNOWN_PORTS_FROM, free_loopback_ports
 
 
 def test_ports_come_from_below_the_kernels_own_range_distinct_and_free():
-    low = transport._ephemeral_low()
+    low = loopback_ports._ephemeral_low()
     assert low is not None and low - KNOWN_PORTS_FROM >= 1000, "a Linux range, as in CI"
     ports = free_loopback_ports(8)
     assert len(set(ports)) == 8
@@ -48,7 +48,7 @@ def test_a_port_someone_listens_on_is_never_handed_out(monkeypatch):
 
 
 def test_without_room_below_the_range_the_kernel_picks(monkeypatch):
-    monkeypatch.setattr(transport, "_ephemeral_low", lambda: KNOWN_PORTS_FROM + 10)
+    monkeypatch.setattr(loopback_ports, "_ephemeral_low", lambda: KNOWN_PORTS_FROM + 10)
     (port,) = free_loopback_ports(1)
     assert port > 0
     with socket.socket() as s:
