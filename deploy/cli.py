@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING
 
 from common.errors import ConfigError, DeepXPalmError
 from common.logs import configure as configure_logging
-from common.logs import stderr_is_journal
 
 if TYPE_CHECKING:
     from importlib.metadata import EntryPoint
@@ -229,11 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(module.run(args) or 0)
     except DeepXPalmError as e:
-        # one line: the journal's (with its priority) under systemd, else the terminal's
-        if stderr_is_journal():
-            logging.getLogger("deepxpalm").error("%s", e)
-        else:
-            print(f"deepxpalm {args.command}: error: {e}", file=sys.stderr)
+        # one line, the log's: its priority in the journal, its time and level on a terminal
+        logging.getLogger("deepxpalm").error("%s: %s", args.command, e)
         return 2 if isinstance(e, ConfigError) else 1  # 2: what was given is wrong
     except KeyboardInterrupt:
         return 130

@@ -71,7 +71,7 @@ def test_a_file_that_is_not_a_recording_is_named_so(tmp_path):
     empty = tmp_path / "empty.mcap"
     empty.write_bytes(b"")
     proc = _export(empty, "--out", tmp_path / "ds")
-    assert proc.returncode == 1 and "empty (0 bytes)" in proc.stderr, proc.stderr[-2000:]
+    assert proc.returncode == 2 and "empty (0 bytes)" in proc.stderr, proc.stderr[-2000:]
     assert not (tmp_path / "ds").exists()
 
 
@@ -82,10 +82,10 @@ def test_out_refuses_a_folder_that_holds_something_else(tmp_path):
     out.mkdir()
     (out / "holiday.jpg").write_bytes(b"\xff\xd8")
     proc = _export(rec, "--out", out, "--episodes", "session")
-    assert proc.returncode == 1 and "not empty" in proc.stderr, proc.stderr[-2000:]
+    assert proc.returncode == 2 and "not empty" in proc.stderr, proc.stderr[-2000:]
     assert sorted(p.name for p in out.iterdir()) == ["holiday.jpg"]
     empty = tmp_path / "empty"
     empty.mkdir()
     assert _export(rec, "--out", empty, "--episodes", "session").returncode == 0
     again = _export(rec, "--out", empty, "--episodes", "session")
-    assert again.returncode == 1 and "already holds a dataset" in again.stderr
+    assert again.returncode == 2 and "already holds a dataset" in again.stderr
