@@ -32,10 +32,6 @@ NO_EXCEPTIONS = ("robot_side/node/", "operator_side/node/")
 
 #: "path" (a module) or "path::Class" -> (its size when listed: the cap, why it is still one piece)
 ALLOWED: dict[str, tuple[int, str]] = {
-    "common/netsim/impairments.py": (
-        582,
-        "the link simulator's configuration and its loss, delay and corruption models",
-    ),
     "operator_side/study/analysis.py": (
         520,
         "the study's statistics, figure and report in one module",
