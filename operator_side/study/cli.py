@@ -177,10 +177,9 @@ def _analyse(args: argparse.Namespace) -> int:
         analyse_confusion,
         analyse_trials,
         load_test_trials,
-        p_text,
         read_confusion_csv,
-        write_report,
     )
+    from operator_side.study.report import p_text, write_report
 
     if args.confusion:
         counts = read_confusion_csv(args.confusion, args.presentations)

@@ -14,8 +14,8 @@ from operator_side.study.analysis import (
     analyse_confusion,
     analyse_trials,
     read_confusion_csv,
-    write_report,
 )
+from operator_side.study.report import write_report
 
 # the timeout: pingouin's first import is slow on a cold disk
 pytestmark = [pytest.mark.slow, pytest.mark.untimed, pytest.mark.timeout(120)]

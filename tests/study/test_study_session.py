@@ -22,7 +22,7 @@ from common.tactile import MASKS, N_PATTERNS
 from deploy.cli import main
 from operator_side.palm.linkglide import forward_kinematics
 from operator_side.servos.recording import RecordingServoBus
-from operator_side.study.analysis import analyse_trials, load_test_trials, write_report
+from operator_side.study.analysis import analyse_trials, load_test_trials
 from operator_side.study.display import PalmDisplay
 from operator_side.study.protocol import (
     ResultsFile,
@@ -31,6 +31,7 @@ from operator_side.study.protocol import (
     results_path,
     trial_order,
 )
+from operator_side.study.report import write_report
 from operator_side.study.responders import (
     Answer,
     KeyboardResponder,
