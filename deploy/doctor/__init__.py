@@ -7,7 +7,7 @@ service user) and ``cli`` (the command, and ``diagnose`` that runs them all).
 """
 
 from deploy.doctor.cli import add_arguments, diagnose, run
-from deploy.doctor.link import heartbeat_exchange
+from deploy.doctor.exchange import heartbeat_exchange
 from deploy.doctor.node_config import infer_role, node_section
 from deploy.doctor.report import FAIL, PASS, SKIP, WARN, Check, DoctorOptions, Report
 
