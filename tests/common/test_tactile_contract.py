@@ -219,12 +219,12 @@ def test_importers_share_the_contracts_objects():
     from common import codec_schema
     from operator_side.dashboard import page_commands
     from robot_side.gripper import base
-    from robot_side.perception import inference, numba_forward
+    from robot_side.perception import numba_forward, numpy_forward
     from robot_side.tactile import script
 
     assert codec_schema.N_PATTERNS is tactile.N_PATTERNS
     assert page_commands.GRIP_LEVELS is tactile.GRIP_LEVELS
     assert base.N_GRIP_LEVELS == script.N_GRIP_LEVELS == 31
-    assert inference.SATURATION_N is tactile.SATURATION_N
+    assert numpy_forward.SATURATION_N is tactile.SATURATION_N
     assert float(numba_forward._NINTH) == float(np.float32(1.0 / 9.0))
     assert float(numba_forward._PEAK_FLOOR) == 1.0
