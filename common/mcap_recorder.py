@@ -2,8 +2,8 @@
 
 Format (docs/recording.md; ``common.mcap_json`` and ``common.mcap_channels``
 write it, ``common.mcap_reader`` reads it): one MCAP channel per
-``common.recording.CHANNELS`` name, messages JSON with an inferred JSON Schema, because Foxglove plots
-JSON channels without any plugin. NumPy arrays become nested lists and bytes
+``common.recording.CHANNELS`` name, messages JSON with an inferred JSON Schema,
+because Foxglove plots JSON channels without any plugin. NumPy arrays become nested lists and bytes
 become base64 strings; the schema marks them (``x-numpy-dtype``,
 ``contentEncoding: base64``) so ``read_recording`` gives back the same
 arrays and bytes. A record holding the wire bytes of a message (``wire``)
