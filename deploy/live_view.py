@@ -50,7 +50,6 @@ class OperatorStatus:
         return 0 if status is None else int(status["latency_samples"])
 
 
-
 def _heat(v: float, vmax: float = SATURATION_N) -> str:
     """Two characters on a 256-colour background ramp, from dark blue to yellow."""
     t = min(max(v / vmax, 0.0), 1.0)
