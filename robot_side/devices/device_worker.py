@@ -8,6 +8,12 @@ that has not started when a newer one arrives is replaced, not queued: the
 newer one is what the operator wants now, and a queue would turn a burst of
 commands into seconds of lag.
 
+Some requests are paced: a jog renews the same motion, and a flood of them
+(one per incoming command, as fast as the device answers) only costs the
+robot PC its CPU. A paced request waits until its gap since the last of its
+kind has passed; a newer request replaces it meanwhile, and any other kind
+(a stop) runs at once.
+
 Between requests a worker may poll the device (the gripper's grip level for
 the stimuli), so the loop reads a cached value instead of the device.
 """
@@ -17,7 +23,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,8 +54,12 @@ class DeviceWorker:
         *,
         idle_poll: Callable[[], None] | None = None,
         idle_poll_s: float = 0.05,
+        paced: Mapping[str, float] | None = None,
     ) -> None:
         self.name = name
+        #: action -> the least time between the starts of two calls of it (s)
+        self._paced = dict(paced or {})
+        self._last_start: dict[str, float] = {}
         self.recovery = recovery
         self._idle_poll = idle_poll
         self._idle_poll_s = idle_poll_s
@@ -99,6 +109,10 @@ class DeviceWorker:
                 if self._pending is None and not self._closing:
                     wait = None if self._idle_poll is None else max(0.0, next_poll - now_s())
                     self._cond.wait(wait)
+                early = self._too_early(self._pending)
+                if early > 0 and not self._closing:
+                    self._cond.wait(early)  # a newer request may replace it meanwhile
+                    continue
                 request, self._pending = self._pending, None
                 if request is None and self._closing:
                     return
@@ -114,7 +128,16 @@ class DeviceWorker:
                 with self._cond:
                     self._busy = False
 
+    def _too_early(self, request: DeviceRequest | None) -> float:
+        """How long ``request`` must still wait for its pace (0: it may run now)."""
+        if request is None or request.action not in self._paced:
+            return 0.0
+        last = self._last_start.get(request.action)
+        return 0.0 if last is None else last + self._paced[request.action] - now_s()
+
     def _execute(self, request: DeviceRequest) -> None:
+        if request.action in self._paced:
+            self._last_start[request.action] = now_s()
         result: Any = None
         error: BaseException | None = None
         try:

@@ -20,6 +20,12 @@ from robot_side.gripper.base import Gripper
 
 log = logging.getLogger(__name__)
 
+#: the least time between two jogs handed to the arm. The controller reads speedL's registers
+#: every 2 ms (500 Hz) and an operator jogs at 20 to 60 Hz; in a flood of valid jogs each one
+#: was a round trip to the arm process, as fast as it answered, which took the frame loop's
+#: CPU. The newest jog waits at most this long and still goes; a stop never waits.
+JOG_MIN_GAP_S = 0.004
+
 #: The arm's reconnects back off to at most this: a try while the controller is still away
 #: costs one refused TCP connect (URArm checks its ports before ur-rtde's constructors), so
 #: a controller that reboots or gets its cable back is used again within about this long.
@@ -61,7 +67,11 @@ class DeviceWorkers:
         stack.callback(halt.set)
         if self.arm is not None:
             arm = self.workers["arm"] = DeviceWorker(
-                "arm", self.arm_recovery, idle_poll=self._read_arm_state, idle_poll_s=self.poll_s
+                "arm",
+                self.arm_recovery,
+                idle_poll=self._read_arm_state,
+                idle_poll_s=self.poll_s,
+                paced={"arm_jog": JOG_MIN_GAP_S},
             )
             stack.callback(arm.close, DeviceRequest("arm_stop", self.arm.stop))
         if self.gripper is not None:

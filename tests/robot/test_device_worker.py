@@ -100,3 +100,41 @@ def test_an_idle_worker_polls_the_device_at_its_interval():
     # the next poll is due an interval after the last one began (its own call's time apart)
     gaps = [b - a for a, b in itertools.pairwise(polls)]
     assert min(gaps) >= 0.01, f"polled {min(gaps) * 1e3:.1f} ms apart at a 20 ms interval"
+
+
+def test_a_paced_request_waits_its_gap_the_newest_goes_and_a_stop_never_waits():
+    device = SlowDevice()
+    stamps: list[tuple[str, float]] = []
+
+    def act(name: str) -> str:
+        stamps.append((name, time.monotonic()))
+        return device.act(name)
+
+    gap = 0.05
+    worker = _worker(device, paced={"jog": gap})
+    try:
+        t0 = time.monotonic()
+        for i in range(200):  # a flood of jogs over about 0.2 s
+            worker.post(DeviceRequest("jog", act, (f"jog{i}",)))
+            time.sleep(0.001)
+        assert _wait(lambda: worker.idle)
+        jogs = [t for name, t in stamps if name.startswith("jog")]
+        span = jogs[-1] - t0
+        assert len(jogs) <= span / gap + 2, (len(jogs), span)  # not one call per post
+        assert min(b - a for a, b in itertools.pairwise(jogs)) >= gap * 0.95
+        assert device.calls[-1] == "jog199"  # the newest still went
+    finally:
+        worker.close()
+    # a stop posted while a jog waits for its pace (1 s here) runs at once, and that jog never
+    worker = _worker(device, paced={"jog": 1.0})
+    try:
+        worker.post(DeviceRequest("jog", act, ("first-jog",)))
+        assert _wait(lambda: worker.idle)
+        worker.post(DeviceRequest("jog", act, ("paced-jog",)))
+        t_stop = time.monotonic()
+        worker.post(DeviceRequest("stop", act, ("stop",)))
+        assert _wait(lambda: worker.idle)
+        assert stamps[-1][0] == "stop" and stamps[-1][1] - t_stop < 0.5
+        assert "paced-jog" not in device.calls
+    finally:
+        worker.close()
