@@ -30,10 +30,11 @@ from common.messages import Heartbeat
 from harness.fabric_attacks import ROBOTS, Attacker
 from harness.fleet import Fleet
 
-#: not ``parallel``: a fleet is several deployments at once (two robot PCs, the operators' PCs,
-#: the router's host) on one machine; beside the deployment lane's three it stood for machines
-#: a third the size (an operator's loop starved 816 ms, a lease lost to it)
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
+#: serial: a fleet is several deployments at once (two robot PCs, the operators' PCs, the
+#: router's host) and an attacker on one machine, judged per second; beside other lanes'
+#: deployments the operators' loops starved (780 ms) and their STOPs came late in a burst, of
+#: which the robot rightly acts on the newest: that judged the machine, not the attack
+pytestmark = [pytest.mark.slow, pytest.mark.serial, pytest.mark.timeout(240)]
 
 #: the controller's STOPs a second to each robot (the issue's rate)
 COMMAND_HZ = 20.0
@@ -44,8 +45,10 @@ SHORTFALL = 0.10
 #: a heartbeat carries the robot's counters once a second across the fabric: a bin's count
 #: is read from the first counters after its end, which may come that much later
 STATS_PERIOD_S = 1.0
-#: a STOP counted in a bin left this long before the bin's reading (the path, the robot's turn)
-LAG_NS = 100_000_000
+#: a STOP counts in a bin if it left this long before the bin's reading: the fleet's stop
+#: budget across sites (test_fleet_fabric), within which a STOP is on time; a tighter lag
+#: judged a loaded machine's 200 ms path as STOPs lost
+LAG_NS = 400_000_000
 #: the router's memory may grow this much over idle through every attack (the issue's bound)
 ROUTER_GROWTH_KB = 50 * 1024
 
