@@ -97,14 +97,16 @@ ATTACKS: dict[str, Callable[..., list[str]]] = {
 ATTACKER_NICE = 19
 
 
-def _run(name: str, router_endpoint: str, cert_dir: str, member: str, done: Event, out) -> None:
+def _run(
+    name: str, router_endpoint: str, cert_dir: str, member: str, opened: Event, done: Event, out
+) -> None:
     os.nice(ATTACKER_NICE - os.nice(0))
 
     def reopen() -> Any:
         return open_member_session(router_endpoint, cert_dir, member)
 
     session = reopen()
-    out.send("ready")
+    opened.set()
     attack = ATTACKS[name]
     extra = (reopen,) if name == "churn_connections" else ()
     try:
@@ -122,18 +124,19 @@ class Attacker:
         if name not in ATTACKS:
             raise ValueError(f"no attack {name!r}: one of {', '.join(ATTACKS)}")
         ctx = multiprocessing.get_context("spawn")
+        self._opened = ctx.Event()
         self._done = ctx.Event()
         self._recv, send = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(
             target=_run,
-            args=(name, router_endpoint, str(cert_dir), member, self._done, send),
+            args=(name, router_endpoint, str(cert_dir), member, self._opened, self._done, send),
             daemon=True,
             name=f"attack-{name}",
         )
 
     def start(self, timeout_s: float = 60.0) -> Attacker:
         self._proc.start()
-        if not self._recv.poll(timeout_s) or self._recv.recv() != "ready":
+        if not self._opened.wait(timeout_s):
             self._proc.kill()
             raise RuntimeError("the attacker's session never opened")
         return self

@@ -75,12 +75,16 @@ class ArmProcessSpec:
     realtime_priority: int = 0
 
 
+#: the niceness the process was started at (its unit's), before any thread raised itself
+_FAIR_NICE = os.nice(0)
+
+
 def lower_driver_threads() -> None:
     """ur-rtde's own threads (made by a connect from a real-time thread, so real-time too) to
     the process's niceness: they never take the interpreter lock, so they cannot hold up the
     keep-alive, and at SCHED_FIFO their socket polls (about 2,500 a second each) preempt the
     machine's other work as often."""
-    lowered = lower_foreign_threads(os.getpriority(os.PRIO_PROCESS, os.getpid()))
+    lowered = lower_foreign_threads(_FAIR_NICE)
     if lowered:
         log.debug("driver threads %s back to the fair scheduler", lowered)
 
