@@ -35,6 +35,7 @@ from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.frame_rule import Classifier
 from robot_side.node.handover import Handover
 from robot_side.node.link_setup import open_link, stream_signer, wire_name
+from robot_side.node.loop_watch import LoopWatch
 from robot_side.node.telemetry import (
     HeartbeatSchedule,
     Telemetry,
@@ -243,27 +244,23 @@ class RobotNode:
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
         link = self.config.link
         heartbeat = HeartbeatSchedule(heartbeat_rate_hz(link), link.heartbeat_early_ms / 1e3)
-        # raw frames on a fixed grid, so the average rate is the configured one even though
-        # the loop only wakes for the frames it renders (at 60 Hz, 15 Hz is every 4th)
-        frame_msgs = (
-            Periodic(link.frame_display_rate_hz, 0.5 / self.config.publish_rate_hz)
-            if link.frame_display_rate_hz > 0
-            else None
-        )
-        pipeline = self.pipeline
+        frame_msgs = display_frame_grid(self.config)
+        pipeline, watch = self.pipeline, LoopWatch(self.counters)
         t_end = None if duration_s is None else self.now() + round(duration_s * 1e9)
         while not stop.is_set() and (t_end is None or self.now() < t_end):
-            # Sleep through the frames the rate cap would drop (120 Hz in, 60 out): wait
-            # for the first one due, instead of waking for each. A command or heartbeat
-            # from the operator wakes the loop at once (and is stamped on arrival); the
-            # heartbeat and the deadman wake it at their deadlines.
+            # Sleep through the frames the rate cap would drop (120 Hz in, 60 out). An operator's
+            # message wakes the loop at once (stamped on arrival); the heartbeat and the deadman
+            # at their deadlines, which a wake much later than (``watch``) says was starved.
             wanted_after = pipeline.last_seq + pipeline.frames_until_due(self.now())
             sample = self.tactile.take_newer(wanted_after)
+            due = self.now()
             if sample is None:
-                self._wait(min(heartbeat.deadline_ns, self._deadman_deadline(), t_end or NEVER_NS))
+                due = min(heartbeat.deadline_ns, self._deadman_deadline(), t_end or NEVER_NS)
+                self._wait(due)
                 sample = self.tactile.take_newer(wanted_after)
             self.counters["wakeups"] += 1
             now = self.now()
+            watch.woke(due, now)
             # receive
             if self.roster_reload.is_set():
                 self.roster_reload.clear()
@@ -272,12 +269,14 @@ class RobotNode:
                 self.receive(now)
             self.check_deadman(now)
             self.pub.read_subscriptions()
+            watch.mark("receive")
             # step: the frame, through the frame rule (the rate cap included)
             if sample is not None:
                 pipeline.offer(sample, self.now())
                 if frame_msgs is not None and frame_msgs.due(now):
                     self.telemetry.send_frame(sample)
                     frame_msgs.done(now)
+            watch.mark("frame")
             # the assist acts on the pattern just recognised, locally, with no round trip
             self.assist.step(self.now())
             # write: heartbeats and video answers
@@ -286,7 +285,9 @@ class RobotNode:
                 self._send_heartbeat()
                 if on_grid:
                     heartbeat.done(now)
+            watch.mark("assist and heartbeat")
             self.video.serve(now)
+            watch.turn_done("video")
 
     def _wait(self, deadline: int) -> None:
         """Until a frame, an operator message or ``deadline``; frames only during a backlog."""
@@ -348,3 +349,11 @@ class RobotNode:
                          self.pipeline, self.desk)  # fmt: skip
         out.update(link_health(self.pub, self.sub))  # each end up, and reopens
         return out
+
+
+def display_frame_grid(config: RobotConfig) -> Periodic | None:
+    """When raw frames go out for the operator's heatmaps: on a fixed grid, so the average
+    rate is the configured one even though the loop only wakes for the frames it renders (at
+    60 Hz, 15 Hz is every 4th); None when they never do."""
+    rate = config.link.frame_display_rate_hz
+    return Periodic(rate, 0.5 / config.publish_rate_hz) if rate > 0 else None

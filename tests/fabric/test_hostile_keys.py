@@ -169,7 +169,9 @@ def _during(fleet: Fleet, attack: str, member: str, seconds: float = ATTACK_S) -
     time.sleep(STATS_PERIOD_S + 0.5)  # the last bin's counters
     for robot in ROBOTS:
         sent = fleet.stops[robot].sent
-        readings = [(t, c.get("arm_stops_latched", 0.0)) for t, c in list(fleet.wire.stats[robot])]
+        counters = list(fleet.wire.stats[robot])
+        readings = [(t, c.get("arm_stops_latched", 0.0)) for t, c in counters]
+        whole = dict(counters)
         # each pair of consecutive readings (a heartbeat's counters, once a second) is a bin:
         # the STOPs sent between them, less the path's delay, against those latched between
         bins = [
@@ -184,8 +186,14 @@ def _during(fleet: Fleet, attack: str, member: str, seconds: float = ATTACK_S) -
             assert n_sent >= (1 - SHORTFALL) * COMMAND_HZ * span_s - 1, (
                 f"the test sent only {n_sent} in {span_s:.2f} s"
             )
+            moved = {
+                k: v - whole[ta].get(k, 0.0)
+                for k, v in whole[tb].items()
+                if k.startswith(("commands_", "link_fabric_", "decode")) and v != whole[ta].get(k)
+            }
             assert cb - ca >= (1 - SHORTFALL) * n_sent - 1, (
-                f"{robot} latched {cb - ca:.0f} of {n_sent} STOPs in {span_s:.2f} s of the attack"
+                f"{robot} latched {cb - ca:.0f} of {n_sent} STOPs in {span_s:.2f} s of the attack;"
+                f" its counters meanwhile: {moved}"
             )
     assert fleet.peak_kb - fleet.idle_kb < ROUTER_GROWTH_KB, (fleet.idle_kb, fleet.peak_kb)
     return heard
