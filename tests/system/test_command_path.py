@@ -72,12 +72,13 @@ def test_a_flood_of_jogs_neither_starves_the_palm_nor_outlives_the_sender(rig):
     sent = sorted(rig.telemetry.sent_within(Stimulus, t_first, t_end))
     gaps_ms = np.diff([t_first, *sent, t_end]) / 1e6
     during = len(sent) / ((t_end - t_first) / 1e9)
+    stats = rig.telemetry.robot_stats()
+    loop = {k: v for k, v in stats.items() if k.startswith(("late_wake", "slow_turn"))}
     assert gaps_ms.max() < STALE_AFTER_MS, (
         f"the robot sent no stimulus for {gaps_ms.max():.0f} ms during the flood, past the "
         f"operator's {STALE_AFTER_MS:.0f} ms staleness: the palm would have lifted"
-        f" (stimuli {during:.1f}/s against {normal:.1f}/s before)"
+        f" (stimuli {during:.1f}/s against {normal:.1f}/s before); its loop: {loop}"
     )
-    stats = rig.telemetry.robot_stats()
     assert stats.get("commands_stale", 0) + stats.get("commands_superseded", 0) > 0
     print(
         f"\nflood: {N_FLOOD} jogs in {(t_last - t_first) / 1e9:.2f} s; stimuli {during:.1f}/s "
