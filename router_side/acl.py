@@ -79,9 +79,9 @@ def _robot_names(roster: Roster) -> list[str]:
 def _operator_puts(op: OperatorEntry) -> tuple[str, ...]:
     kinds: list[str] = []
     if op.role == "controller":
-        kinds += ["command", keyexprs.STOP, "heartbeat"]
+        kinds += ["command", keyexprs.STOP, keyexprs.STOP_COPY, "heartbeat"]
     elif op.role == "observer":
-        kinds += [keyexprs.STOP, "heartbeat"]
+        kinds += [keyexprs.STOP, keyexprs.STOP_COPY, "heartbeat"]
     if op.may_watch:
         kinds.append("video")
     return tuple(kinds)
@@ -171,6 +171,7 @@ def rate_gates(limits: RateLimits, roster: Roster) -> list[dict[str, Any]]:
     }
     per_operator_kind = {
         keyexprs.STOP: limits.stop_hz,
+        keyexprs.STOP_COPY: limits.stop_hz,
         "heartbeat": limits.operator_heartbeat_hz,
     }
     rules = []

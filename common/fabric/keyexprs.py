@@ -40,6 +40,12 @@ ROBOT_KINDS: dict[type, str] = {
 #: what an operator sends, by message type (an ``arm_stop`` goes under "stop")
 OPERATOR_KINDS: dict[type, str] = {Command: "command", Heartbeat: "heartbeat", VideoSignal: "video"}
 STOP = "stop"
+#: a stop's best-effort copy, under a key of its own: the router's rate gate keeps one time
+#: per sender and key, so on the stop's own key whichever of the two reached it first passed
+#: and the other was dropped, the reliable stop too when its copy's datagram overtook it
+STOP_COPY = "stop_copy"
+#: the kinds that carry an ``arm_stop``
+STOP_KINDS = frozenset({STOP, STOP_COPY})
 #: best-effort, dropped under congestion, never retransmitted: only the newest counts. A
 #: heartbeat is one too: the next one (50 ms later) says all it said, and held back behind a
 #: lost packet it would make a fresh stimulus look stale and a live operator look silent

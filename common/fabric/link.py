@@ -13,8 +13,10 @@ Each kind of message gets the quality of service it needs:
   rather than queued when the session cannot send (the router is away): the
   node's own freshness rules see the silence;
 - an operator's ``arm_stop``: reliable at the highest priority, and
-  ``STOP_COPIES`` best-effort copies beside it, so a lost packet cannot delay
-  it by a retransmission. The receiver keeps the first copy and drops the rest
+  ``STOP_COPIES`` best-effort copies beside it under a key of their own
+  (``stop_copy``: the router's rate gate passes the first of each key, so a
+  copy never takes the reliable stop's turn), so a lost packet cannot delay
+  it by a retransmission. The receiver keeps the first to arrive and drops the rest
   (``stop_copies_dropped``); the operator node also resends a stop until the
   robot's heartbeat shows it latched.
 
@@ -52,7 +54,8 @@ from common.messages import Message, TactileFrame
 
 log = logging.getLogger(__name__)
 
-#: best-effort copies of an arm_stop sent beside its reliable one
+#: best-effort copies of an arm_stop sent beside its reliable one (the router passes the first
+#: that reaches it; the second stands in for a first lost on the way)
 STOP_COPIES = 2
 #: the largest message that travels best-effort: one QUIC datagram holds it whole. Measured
 #: through a lossy path: up to 1,100 bytes every message arrived; at 1,300 one in six was lost,
@@ -127,8 +130,9 @@ class FabricPublisher:
             self._pubs[kind] = session.declare_publisher(key, **_qos(kind, best_effort))
             if best_effort:
                 self._reliable[kind] = session.declare_publisher(key, **_qos(kind, False))
-            if kind == keyexprs.STOP:
-                self._copies = session.declare_publisher(key, **_qos(kind, True))
+            if kind == keyexprs.STOP:  # the copy under its own key (keyexprs.STOP_COPY)
+                copy_key = keyexprs.operator_key(robot, operator, keyexprs.STOP_COPY)
+                self._copies = session.declare_publisher(copy_key, **_qos(kind, True))
 
     def send(self, msg: Message) -> bytes:
         data = encode(msg, self.name, self.signer)
@@ -246,7 +250,7 @@ class FabricSubscriber:
                     self.counters["superseded"] += 1
                 self._latest[key] = (t_recv, data)
             else:
-                if kind == keyexprs.STOP:
+                if kind in keyexprs.STOP_KINDS:
                     digest = hashlib.blake2b(data, digest_size=16).digest()
                     if digest in self._stops:
                         self.counters["stop_copies_dropped"] += 1

@@ -173,7 +173,7 @@ def open_fabric(
     endpoint = link.fabric.router_endpoint
     pub = FabricPublisher(session, robot=name, operator=None, signer=signer, endpoint=endpoint)
     stack.callback(pub.close)
-    kinds = ["command", keyexprs.STOP, "heartbeat"]
+    kinds = ["command", keyexprs.STOP, keyexprs.STOP_COPY, "heartbeat"]
     if serves_video:  # viewers' offers, only where a camera is served
         kinds.append("video")
     sub = FabricSubscriber(

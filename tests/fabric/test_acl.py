@@ -71,12 +71,12 @@ def test_a_robot_puts_under_its_own_names_and_reads_only_its_inbox():
 def test_each_operator_role_puts_only_what_it_may_under_its_own_name():
     acl = _acl()
     alice = _grants(acl, "alice")[("put", "ingress")]
-    assert {k.rsplit("/", 1)[1] for k in alice} == {"command", "stop", "heartbeat", "video"}
+    assert {k.rsplit("/", 1)[1] for k in alice} == {"command", "stop", "stop_copy", "heartbeat", "video"}
     assert all("/op/alice/" in k for k in alice)
     olga = _grants(acl, "olga")[("put", "ingress")]
-    assert {k.rsplit("/", 1)[1] for k in olga} == {"stop", "heartbeat"}
+    assert {k.rsplit("/", 1)[1] for k in olga} == {"stop", "stop_copy", "heartbeat"}
     vera = _grants(acl, "vera")[("put", "ingress")]
-    assert {k.rsplit("/", 1)[1] for k in vera} == {"stop", "heartbeat", "video"}
+    assert {k.rsplit("/", 1)[1] for k in vera} == {"stop", "stop_copy", "heartbeat", "video"}
     assert ("put", "ingress") not in _grants(acl, "rec")
 
 
@@ -101,6 +101,7 @@ def test_limits_match_the_codec_and_gate_each_robot_apart():
     (gates,) = rate_gates(RateLimits(), roster)
     keys = [r["key_expr"] for r in gates["rules"]]
     assert "dxp/cell1/op/*/stop" in keys and "dxp/cell2/op/*/stop" in keys
+    assert "dxp/cell1/op/*/stop_copy" in keys and "dxp/cell2/op/*/stop_copy" in keys
     # what must each arrive is never dropped by a spacing gate
     assert not any(k.endswith(("/command", "/video")) for k in keys)
     assert len(keys) == len(set(keys))
