@@ -57,10 +57,13 @@ LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest
 # Whole files to each worker (a module's deployment starts once), the longest first
 # (tests/file_durations.json, in tests/conftest.py's order; scripts/file-durations.py)
 BY_FILE := --dist loadfile --no-loadscope-reorder
-PARALLEL_LANE := (not slow or untimed) and not serial and not pty and not soak
-DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not pty and not soak
-PAIRED_LANE := slow and not untimed and not parallel and not serial and not pty and not soak
-SERIAL_LANE := (serial or pty) and not soak
+PARALLEL_LANE := (not slow or untimed) and not serial and not pty and not soak and not alone
+DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not pty and not soak and not alone
+PAIRED_LANE := slow and not untimed and not parallel and not serial and not pty and not soak and not alone
+SERIAL_LANE := (serial or pty) and not soak and not alone
+# Several machines' deployments on one (a fleet: robots, operators, a router, an attacker) or a
+# flood whose sender takes a core: beside any other lane's work they judged the machine
+ALONE_LANE := alone and not soak
 
 .PHONY: demo test test-fast lint bench setup clean
 
@@ -99,6 +102,7 @@ test: $(STAMP)
 	$(LANE) -m "$(DEPLOYMENT_LANE)" -n $(DEPLOYMENT_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(PAIRED_LANE)" -n $(PAIRED_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(SERIAL_LANE)" -n $(SERIAL_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
+	$(LANE) -m "$(ALONE_LANE)" -n 0 $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	exit $$status
 
 # The fast lane: the parallel lane's tests not marked slow (nor serial: a test that needs the

@@ -30,11 +30,11 @@ from common.messages import Heartbeat
 from harness.fabric_attacks import ROBOTS, Attacker
 from harness.fleet import Fleet
 
-#: serial: a fleet is several deployments at once (two robot PCs, the operators' PCs, the
+#: alone: a fleet is several deployments at once (two robot PCs, the operators' PCs, the
 #: router's host) and an attacker on one machine, judged per second; beside other lanes'
 #: deployments the operators' loops starved (780 ms) and their STOPs came late in a burst, of
 #: which the robot rightly acts on the newest: that judged the machine, not the attack
-pytestmark = [pytest.mark.slow, pytest.mark.serial, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.slow, pytest.mark.alone, pytest.mark.timeout(240)]
 
 #: the controller's STOPs a second to each robot (the issue's rate)
 COMMAND_HZ = 20.0

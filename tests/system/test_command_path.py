@@ -41,10 +41,10 @@ def rig(tmp_path: Path):
 STALE_AFTER_MS = OperatorLinkConfig().stale_after_ms
 
 
-#: serial: the flood's sender takes a core of its own for its 100,000 sends, beside the robot
+#: alone: the flood's sender takes a core of its own for its 100,000 sends, beside the robot
 #: it floods; beside the deployment lane's three deployments on a two-core machine the robot
-#: was then starved at the flood's start (one gap of 245 ms), which judged the machine
-@pytest.mark.serial
+#: was then starved (one gap of 245 ms), and once beside the serial lane's other test (309 ms)
+@pytest.mark.alone
 def test_a_flood_of_jogs_neither_starves_the_palm_nor_outlives_the_sender(rig):
     """While a flood and its backlog are read, the palm keeps fresh stimuli and the arm stops.
 
