@@ -71,7 +71,13 @@ def test_a_robot_puts_under_its_own_names_and_reads_only_its_inbox():
 def test_each_operator_role_puts_only_what_it_may_under_its_own_name():
     acl = _acl()
     alice = _grants(acl, "alice")[("put", "ingress")]
-    assert {k.rsplit("/", 1)[1] for k in alice} == {"command", "stop", "stop_copy", "heartbeat", "video"}
+    assert {k.rsplit("/", 1)[1] for k in alice} == {
+        "command",
+        "stop",
+        "stop_copy",
+        "heartbeat",
+        "video",
+    }
     assert all("/op/alice/" in k for k in alice)
     olga = _grants(acl, "olga")[("put", "ingress")]
     assert {k.rsplit("/", 1)[1] for k in olga} == {"stop", "stop_copy", "heartbeat"}
