@@ -75,8 +75,10 @@ def lower_foreign_threads(nice: int) -> list[int]:
             continue
         with contextlib.suppress(OSError):
             if os.sched_getscheduler(tid) != os.SCHED_OTHER:
-                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+                # the niceness first (a real-time thread keeps it unused), then the policy: a
+                # reader never sees the thread in the fair scheduler at its creator's niceness
                 os.setpriority(os.PRIO_PROCESS, tid, nice)
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
                 lowered.append(tid)
     return lowered
 
