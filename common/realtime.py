@@ -59,30 +59,6 @@ def raise_this_thread(fifo_priority: int, fallback_nice: int) -> Scheduling:
     return Scheduling("nice", os.getpriority(os.PRIO_PROCESS, tid), why)
 
 
-def lower_foreign_threads(nice: int) -> list[int]:
-    """Every thread of this process that Python did not start (a C++ library's own) to the
-    fair scheduler at ``nice``; the native ids it lowered.
-
-    Threads inherit their creator's policy: a library connected from a SCHED_FIFO thread
-    starts its threads at SCHED_FIFO too. ur-rtde's receive threads never take the
-    interpreter lock and poll their socket about 2,500 times a second, each about 7 % of a
-    core: at SCHED_FIFO, as many preemptions a second of whatever else runs on the core.
-    """
-    python = {t.native_id for t in threading.enumerate()}
-    lowered = []
-    for tid in map(int, os.listdir("/proc/self/task")):
-        if tid in python:
-            continue
-        with contextlib.suppress(OSError):
-            if os.sched_getscheduler(tid) != os.SCHED_OTHER:
-                # the niceness first (a real-time thread keeps it unused), then the policy: a
-                # reader never sees the thread in the fair scheduler at its creator's niceness
-                os.setpriority(os.PRIO_PROCESS, tid, nice)
-                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-                lowered.append(tid)
-    return lowered
-
-
 #: the period histogram's resolution and range: a period longer than the range counts in the
 #: last bin (its exact length is kept as the max)
 BIN_S = 50e-6

@@ -38,7 +38,7 @@ from common.clock import now_s
 from common.config import from_dict
 from common.devices import load_object
 from common.logs import configure as configure_logging
-from common.realtime import PeriodStats, lower_foreign_threads, raise_this_thread
+from common.realtime import PeriodStats, raise_this_thread
 from robot_side.arm.base import SAFETY_THREAD_NICE, Arm
 from robot_side.arm.process.state import StateView
 from robot_side.devices.stdio_child import serve_stdio
@@ -75,20 +75,6 @@ class ArmProcessSpec:
     realtime_priority: int = 0
 
 
-#: the niceness the process was started at (its unit's), before any thread raised itself
-_FAIR_NICE = os.nice(0)
-
-
-def lower_driver_threads() -> None:
-    """ur-rtde's own threads (made by a connect from a real-time thread, so real-time too) to
-    the process's niceness: they never take the interpreter lock, so they cannot hold up the
-    keep-alive, and at SCHED_FIFO their socket polls (about 2,500 a second each) preempt the
-    machine's other work as often."""
-    lowered = lower_foreign_threads(_FAIR_NICE)
-    if lowered:
-        log.debug("driver threads %s back to the fair scheduler", lowered)
-
-
 class ServedArm:
     """The driver's calls as the pipe carries them (plain values in, plain values out)."""
 
@@ -97,7 +83,6 @@ class ServedArm:
 
     def connect(self) -> None:
         self.arm.connect()
-        lower_driver_threads()
 
     def disconnect(self) -> None:
         self.arm.disconnect()
@@ -163,7 +148,6 @@ class StateWriter:
             out["live"] = 1.0
             out.update(live)
         if now >= self._summary_due:
-            lower_driver_threads()  # those of a reconnect the driver made by itself
             self._summary = arm.keep_alive_periods.summary()
             self._summary_due = now + SUMMARY_EVERY_S
         out.update({f"keepalive_{key}": value for key, value in self._summary.items()})
@@ -215,9 +199,8 @@ def main(argv: list[str] | None = None) -> None:
         # Every thread of this process real-time, one step under the keep-alive: a thread
         # holding the interpreter lock must never be preempted by the machine's other work,
         # or the keep-alive waits for the lock as long (measured: 62 ms, with one ordinary
-        # thread beside it). New threads inherit this (the state writer, the driver's
-        # worker); each sleeps between short turns. ur-rtde's own threads go back to the
-        # fair scheduler once made (lower_driver_threads).
+        # thread beside it). New threads inherit this (ur-rtde's, the state writer, the
+        # driver's worker); each sleeps between short turns.
         got = raise_this_thread(max(1, spec.realtime_priority - 1), SAFETY_THREAD_NICE)
         if got.realtime:  # and the threads made before this (numpy's BLAS pool at import)
             for tid in map(int, os.listdir("/proc/self/task")):
