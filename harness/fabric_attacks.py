@@ -57,12 +57,24 @@ def read_with_wildcards(session: Any, done: Event) -> list[str]:
     return heard
 
 
+#: the junk flood's puts a second: a hundred times what the router's gates pass an operator's
+#: stop and heartbeat keys, and what a remote attacker's uplink carries of small messages. Unpaced
+#: it took a whole core of the two the test's deployments share (the router among them), which a
+#: remote attacker cannot: that measured the test machine, not the router's isolation
+FLOOD_PUTS_PER_S = 10_000
+
+
 def flood_junk(session: Any, done: Event) -> list[str]:
-    """An observer puts, as fast as it can, junk, oversized payloads and a replayed STOP."""
+    """An observer puts junk, oversized payloads and a replayed STOP, ``FLOOD_PUTS_PER_S``."""
     big = b"\x00" * (MAX_MESSAGE_BYTES + 1)
     stop = encode(Command(seq=1, t_send_ns=now_ns(), action="arm_stop", session=1), b"cell2")
     n = 0
+    round_s = len(ROBOTS) * 5 / FLOOD_PUTS_PER_S  # five puts per robot a round
+    next_t = time.monotonic()
     while not done.is_set():
+        next_t += round_s
+        if (ahead := next_t - time.monotonic()) > 0:
+            time.sleep(ahead)
         for robot in ROBOTS:
             for kind in (keyexprs.STOP, "heartbeat", "command", "video"):
                 key = keyexprs.operator_key(robot, "mallory", kind)
