@@ -27,13 +27,13 @@ import dataclasses
 import json
 import logging
 import math
-import time
 from collections import Counter
 from typing import Any
 
 import numpy as np
 
 from common import foxglove
+from common.clock import wall_offset_ns
 from common.errors import ConfigError
 from common.foxglove import FoxgloveLiveConfig
 from common.messages import Heartbeat, Message, Stimulus, TactileFrame
@@ -179,7 +179,7 @@ class WireView:
         self.server = server
         self.prefix_robots = prefix_robots
         self.counters: Counter[str] = Counter()
-        self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
+        self._wall_offset_ns = wall_offset_ns()
 
     def _topic(self, robot: bytes, topic: str) -> str:
         if self.prefix_robots and robot:

@@ -44,6 +44,7 @@ import numpy as np
 from mcap.writer import Writer
 
 from common import foxglove
+from common.clock import wall_offset_ns
 from common.logs import BurstLog
 from common.mcap_channels import McapChannels
 from common.mcap_json import (
@@ -117,7 +118,7 @@ class McapRecorder:
             self._file, chunk_size=chunk_size, compression=COMPRESSION[compression]
         )
         self._writer.start(profile="", library=LIBRARY)
-        self.wall_offset_ns = time.time_ns() - time.monotonic_ns()
+        self.wall_offset_ns = wall_offset_ns()
         self._writer.add_metadata(
             "deepxpalm.clock",
             {

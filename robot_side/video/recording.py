@@ -20,11 +20,11 @@ import contextlib
 import logging
 import queue
 import threading
-import time
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
+from common.clock import wall_offset_ns
 from common.mcap_recorder import McapRecorder
 from robot_side.camera.base import CapturedFrame
 from robot_side.video.feed import CameraFeed
@@ -115,7 +115,7 @@ class CameraRecording:
         next one: taking only frames at or after the tick would drift to the
         camera's next multiple (7.5 fps from a 15 fps camera at 10).
         """
-        t_ns = frame.capture_ns - (time.time_ns() - time.monotonic_ns())
+        t_ns = frame.capture_ns - wall_offset_ns()
         early_ns = 5e8 / self.feed.camera.fps
         if self._next_due is not None and t_ns + early_ns < self._next_due:
             return
