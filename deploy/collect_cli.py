@@ -22,11 +22,11 @@ import logging
 import sys
 from pathlib import Path
 
-from common.cli_support import add_overrides_argument
-from common.config import from_dict
-from common.devices import build_device
+from common.config.typed import from_dict
+from common.devices.lifecycle import build_device
+from common.process.command_line import add_overrides_argument
 from common.progress import Progress
-from common.tactile import ANGLES_DEG, classes_of
+from common.tactile.contract import ANGLES_DEG, classes_of
 from robot_side.perception.collect import POSITION_NAMES, CollectConfig, collect
 
 log = logging.getLogger(__name__)

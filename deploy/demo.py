@@ -32,11 +32,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import add_overrides_argument, stop_on_signals
-from common.config import check_secret_file, from_dict
+from common.config.typed import check_secret_file, from_dict
 from common.errors import ConfigError
-from common.sd_notify import Notifier
-from common.signing import write_secret_file
+from common.process.command_line import add_overrides_argument, stop_on_signals
+from common.process.sd_notify import Notifier
+from common.wire.signing import write_secret_file
 from deploy import live_view
 from deploy.demo_units import DemoUnits
 from deploy.scene import Scene, load_scene_dict, scene_path
@@ -295,7 +295,7 @@ def _use_fresh_curve_keys(scene: Scene, directory: Path) -> None:
     """Keys for this run only, in a directory only we can open: the robot allows just this
     operator's key, so a local process without it completes no handshake and commands nothing.
     """
-    from common.security import SecurityConfig
+    from common.keys.curve import SecurityConfig
     from deploy.keys_cli import allow, generate
 
     directory.mkdir(mode=0o700)

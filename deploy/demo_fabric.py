@@ -56,7 +56,7 @@ def use_fresh_fabric(scene: Scene, directory: Path) -> DemoFabric:
     simulator) said where they listen.
     """
     from common.fabric.session import FabricConfig
-    from common.signing import generate_key_files
+    from common.wire.signing import generate_key_files
     from deploy.keys_cli import fabric_certificates
 
     directory.mkdir(mode=0o700)

@@ -22,10 +22,10 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from common.config import config_toml, from_dict
+from common.config.typed import config_toml, from_dict
 from common.errors import ConfigError
-from common.signing import write_secret_file
-from common.web_token import new_token, with_token
+from common.web.web_token import new_token, with_token
+from common.wire.signing import write_secret_file
 from deploy.demo_fabric import DemoFabric
 from deploy.scene import Scene
 from deploy.units.catalogue import unit

@@ -13,9 +13,9 @@ import json
 import sys
 from typing import Any
 
-from common.cli_support import add_overrides_argument
-from common.devices import build_device
+from common.devices.lifecycle import build_device
 from common.errors import DeepXPalmError
+from common.process.command_line import add_overrides_argument
 from deploy.scene import load_scene_dict
 
 

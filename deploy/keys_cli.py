@@ -36,7 +36,7 @@ import zmq.auth
 from zmq.utils import z85
 
 from common.errors import ConfigError
-from common.messages import ROLES
+from common.wire.messages import ROLES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -108,7 +108,7 @@ def generate(directory: Path, name: str, force: bool = False) -> tuple[Path, Pat
     process umask (often 0644) and leaves a chmod to the caller, a window in
     which another user can open it. Here it is never on disk in another mode.
     """
-    from common.signing import write_secret_file
+    from common.wire.signing import write_secret_file
 
     directory.mkdir(parents=True, exist_ok=True)
     public, secret = directory / f"{name}.key", directory / f"{name}.key_secret"
@@ -163,7 +163,7 @@ def machine_keys(directory: Path, name: str) -> dict[str, Path]:
     Never replaces an existing pair (other machines hold its public half);
     half a pair on disk is an error to resolve by hand.
     """
-    from common.signing import generate_key_files
+    from common.wire.signing import generate_key_files
 
     files = {
         "curve_public": directory / f"{name}.key",
@@ -188,7 +188,7 @@ def fabric_certificates(
     """The CA (made once) and a certificate for the router and each roster member."""
     from common.fabric.certificates import issue, make_ca
     from common.fabric.keyexprs import check_operator_name
-    from common.roster import load_roster
+    from common.keys.roster import load_roster
 
     roster = load_roster(roster_file)
     for op in roster.operators:
@@ -209,14 +209,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"public key: {public}  (copy this one to the other machine)")
         print(f"secret key: {secret}  (keep it here; mode 0600)")
     elif args.keys_command == "generate-signing":
-        from common.signing import generate_key_files
+        from common.wire.signing import generate_key_files
 
         public, secret = generate_key_files(args.dir, args.name, args.force)
         print(f"public key: {public}  (its hex goes into the rosters as signing_key)")
         print(f"secret key: {secret}  (keep it here; mode 0600)")
     elif args.keys_command in ("robot", "operator"):
-        from common.roster import operator_entry, robot_entry
-        from common.signing import load_public_key
+        from common.keys.roster import operator_entry, robot_entry
+        from common.wire.signing import load_public_key
 
         files = machine_keys(args.dir.resolve(), args.name)
         curve, _ = zmq.auth.load_certificate(files["curve_public"])
@@ -254,7 +254,7 @@ def run(args: argparse.Namespace) -> int:
 def public_key_text(path: Path) -> str:
     """A key file's public key: a CURVE pair's (``NAME.key`` or ``NAME.key_secret``, as Z85) or
     a signing key's (``NAME.sign``, as hex); ``ConfigError`` naming what is wrong otherwise."""
-    from common.signing import Signer, parse_public_key
+    from common.wire.signing import Signer, parse_public_key
 
     try:
         data = path.read_bytes()

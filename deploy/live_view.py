@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from common.tactile import SATURATION_N, pattern_name
+from common.tactile.contract import SATURATION_N, pattern_name
 from operator_side.node import Snapshot
 
 _SHADES = " .:-=+*#%@"
@@ -209,6 +209,6 @@ def dashboard_line(url: str, url_file: object) -> str:
     """The dashboard's line under every frame: its address without the token (the frames
     go wherever the terminal's output goes: a screen share, a log of the session), and the
     0600 file holding the address with it."""
-    from common.web_token import without_token
+    from common.web.web_token import without_token
 
     return f"dashboard {without_token(url)}  (with its token: {url_file})\n"

@@ -12,9 +12,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from common.config import from_dict, load_toml, param
+from common.config.overrides import apply_overrides
+from common.config.typed import from_dict, load_toml, param
 from common.errors import ConfigError
-from common.overrides import apply_overrides
 from operator_side.config import OperatorConfig
 from robot_side.config import RobotConfig
 

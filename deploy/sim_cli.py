@@ -26,10 +26,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import write_stats
-from common.config import from_dict, load_toml
-from common.sd_notify import Notifier
-from common.signals import on_signal, stop_on_signals
+from common.config.typed import from_dict, load_toml
+from common.process.command_line import write_stats
+from common.process.sd_notify import Notifier
+from common.process.signals import on_signal, stop_on_signals
 
 SIMULATORS = {
     "tactile": ("robot_side.tactile.board_sim", "TactileBoardSimulator", "TactileBoardSimConfig"),
@@ -109,7 +109,7 @@ def _where(sim: Any) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     import importlib
 
-    from common.devices import SIMULATED_HARDWARE_NICE
+    from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
     from deploy.units.policy import set_niceness
 
     # a device never waits for the PC's CPU: where it may, the simulator outranks ordinary work

@@ -292,6 +292,6 @@ def _print_report(report: dict[str, Any], as_json: bool, out: TextIO) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from common.signals import stop_on_signals
+    from common.process.signals import stop_on_signals
 
     return watch(args, stop_on_signals())

@@ -13,8 +13,8 @@ import dataclasses
 from collections import Counter
 from typing import Any
 
-from common.clock import now_ns
-from common.link_stats import SEQ_RESTART_GAP
+from common.clocks.clock import now_ns
+from common.wire.link_stats import SEQ_RESTART_GAP
 from deploy.wire_tap import Received
 
 #: a heartbeat counter with one of these in its name is a refusal the robot reports

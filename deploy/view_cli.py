@@ -1,6 +1,6 @@
 """``deepxpalm view``: a robot's link and a session's recordings, live in Foxglove.
 
-One Foxglove WebSocket server (``common/foxglove_server.py``, the
+One Foxglove WebSocket server (``common/live_view/server.py``, the
 ``foxglove`` extra), on loopback and port 8767 unless told otherwise (the
 dashboard has 8765, the study's answer page 8766), fed by either or both of:
 
@@ -31,8 +31,8 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
-from common.cli_support import write_stats
-from common.foxglove import VIEW_PORT, FoxgloveLiveConfig
+from common.process.command_line import write_stats
+from common.recording.foxglove import VIEW_PORT, FoxgloveLiveConfig
 from deploy.wire_tap import add_link_arguments, tap_config
 
 EPILOG = f"""\
@@ -95,8 +95,8 @@ class View:
     """The server and its sources; ``step`` moves what arrived to Foxglove."""
 
     def __init__(self, args: argparse.Namespace, *, ctx: Any = None) -> None:
-        from common.foxglove_server import WIRE_TOPICS as SERVED_BY_LINK
-        from common.foxglove_server import LiveServer, WireView
+        from common.live_view.server import WIRE_TOPICS as SERVED_BY_LINK
+        from common.live_view.server import LiveServer, WireView
 
         self.config = FoxgloveLiveConfig(
             follow=args.follow,
@@ -115,7 +115,7 @@ class View:
                 self.tap = WireTap(cfg, WIRE_TOPICS, ctx=ctx)
                 self.wire = WireView(self.server, prefix_robots=len(cfg.robots) > 1)
             if args.follow is not None:
-                from common.foxglove_live import LiveSource
+                from common.live_view.recordings import LiveSource
 
                 skip = SERVED_BY_LINK if self.tap is not None else frozenset()
                 self.files = LiveSource(self.config, server=self.server, skip_topics=skip)
@@ -173,7 +173,7 @@ class View:
 
 
 def run(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
-    from common.signals import stop_on_signals
+    from common.process.signals import stop_on_signals
 
     stop = stop_on_signals()
     view = View(args)

@@ -4,7 +4,7 @@ A tap reads what a robot sends (stimuli, raw frames, heartbeats, video
 answers) with the user's own credentials, and sends nothing:
 
 - **direct**: a ZeroMQ SUB to the robot's telemetry endpoint (``Subscriber``,
-  common/transport.py), a CURVE client with our key pair and the robot's
+  common/wire/transport.py), a CURVE client with our key pair and the robot's
   public key, as an operator node connects; the robot must allow our key;
 - **fabric**: a Zenoh session to the router with our certificate
   (``FabricSubscriber``, every message queued, none dropped for a newer one,
@@ -26,13 +26,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from common.codec import name_prefix, split_name
-from common.config import from_dict, load_toml
+from common.config.typed import from_dict, load_toml
 from common.errors import ConfigError
 from common.fabric import keyexprs
 from common.fabric.session import FabricConfig
-from common.messages import Message
-from common.security import SecurityConfig
+from common.keys.curve import SecurityConfig
+from common.wire.codec import name_prefix, split_name
+from common.wire.messages import Message
 
 #: topic name (the fabric's key chunk) -> message type, as a robot sends them
 TOPICS: dict[str, type] = {kind: cls for cls, kind in keyexprs.ROBOT_KINDS.items()}
@@ -110,7 +110,7 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _operator_tap(section: dict[str, Any], where: str) -> TapConfig:
-    from common.signing import load_public_key
+    from common.wire.signing import load_public_key
     from operator_side.config import OperatorLinkConfig
 
     link = from_dict(OperatorLinkConfig, section.get("link", {}), where=f"{where}.link")
@@ -161,7 +161,7 @@ def tap_from_file(path: Path) -> TapConfig:
 
 def tap_config(args: argparse.Namespace) -> TapConfig:
     """The config file's link settings (if any) with the flags over them."""
-    from common.signing import load_public_key
+    from common.wire.signing import load_public_key
 
     cfg = tap_from_file(args.config) if args.config else TapConfig()
     if args.endpoint:
@@ -190,7 +190,7 @@ def tap_config(args: argparse.Namespace) -> TapConfig:
 def _warm_up() -> None:
     """Load what checking a signature needs before the first message: loaded on the first
     signed one, it held the reading of the messages behind it (their receive times late)."""
-    from common.signing import verify
+    from common.wire.signing import verify
 
     verify(bytes(32), bytes(64), b"")
 
@@ -216,7 +216,7 @@ class WireTap:
         *,
         ctx: Any = None,
     ) -> None:
-        from common.codec import check_robot_name
+        from common.wire.codec import check_robot_name
 
         unknown = set(topics) - set(TOPICS)
         if unknown:
@@ -235,8 +235,8 @@ class WireTap:
     def _open_direct(self, config: TapConfig, names: list[bytes], ctx: Any) -> Any:
         import zmq
 
-        from common.security import check_endpoint, client_options
-        from common.transport import Subscriber
+        from common.keys.curve import check_endpoint, client_options
+        from common.wire.transport import Subscriber
 
         check_endpoint(config.telemetry_endpoint, config.security)
         options = client_options(config.security)

@@ -17,11 +17,11 @@ from collections.abc import Callable
 from multiprocessing.synchronize import Event
 from typing import Any
 
-from common.clock import now_ns
-from common.codec import MAX_MESSAGE_BYTES, encode
+from common.clocks.clock import now_ns
 from common.fabric import keyexprs
 from common.fabric.session import FabricConfig, cert_files, client_config, open_session
-from common.messages import Command, Heartbeat
+from common.wire.codec import MAX_MESSAGE_BYTES, encode
+from common.wire.messages import Command, Heartbeat
 
 ROBOTS = ("cell1", "cell2")
 

@@ -27,9 +27,9 @@ from typing import IO, Any
 
 import zmq.auth
 
-from common import web_token
-from common.roster import operator_entry, robot_entry
-from common.signing import generate_key_files, load_public_key, write_secret_file
+from common.keys.roster import operator_entry, robot_entry
+from common.web import web_token
+from common.wire.signing import generate_key_files, load_public_key, write_secret_file
 from deploy.keys_cli import generate
 from deploy.units.readiness import Ready
 from deploy.units.service import Service

@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from common.signing import write_secret_file
-from common.web_token import new_token, with_token
+from common.web.web_token import new_token, with_token
+from common.wire.signing import write_secret_file
 from deploy.units.service import Service
 from harness.bench.command_path import LogLine, read_log_lines
 from operator_side.node.snapshot import Snapshot

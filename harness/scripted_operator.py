@@ -31,10 +31,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from common.config import param
-from common.messages import ASSIST_PHASES
+from common.config.typed import param
 from common.rotation import matrix_to_rotvec, rotvec_to_matrix
-from common.tactile import MASKS, N_PATTERNS, classes_of, pattern_of
+from common.tactile.contract import MASKS, N_PATTERNS, classes_of, pattern_of
+from common.wire.messages import ASSIST_PHASES
 
 log = logging.getLogger(__name__)
 

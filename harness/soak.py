@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from common.cli_support import add_overrides_argument
+from common.process.command_line import add_overrides_argument
 from common.progress import Progress
 from deploy.units.readiness import NotReady
 from deploy.units.service import Service
@@ -118,8 +118,8 @@ class Series:
 # ------------------------------------------------------------------ checks
 def scan_recording(path: Path) -> dict[str, Any]:
     """Every number in a recording finite, every servo count inside its limits."""
-    from common.codec import DecodeError, decode
-    from common.mcap_recorder import RecordingReader
+    from common.recording.mcap_recorder import RecordingReader
+    from common.wire.codec import DecodeError, decode
 
     out: dict[str, Any] = {"records": 0, "nonfinite_values": 0, "servo_goals_out_of_limits": 0}
     states: dict[str, int] = {}
@@ -128,7 +128,7 @@ def scan_recording(path: Path) -> dict[str, Any]:
         return out
     limits = None
     if "operator" in path.name:
-        from common.mcap_recorder import read_metadata
+        from common.recording.mcap_recorder import read_metadata
         from deploy.replay import calibration_for, recorded_config
 
         cal = calibration_for(recorded_config(read_metadata(path), "operator"), None)

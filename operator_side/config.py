@@ -7,9 +7,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from common.config import param
+from common.config.typed import param
 from common.fabric.session import FabricConfig
-from common.security import SecurityConfig
+from common.keys.curve import SecurityConfig
 from operator_side.dashboard.config import DashboardConfig
 from operator_side.palm.renderer import RendererConfig
 

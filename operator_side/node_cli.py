@@ -13,8 +13,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import add_config_arguments, run_node
 from common.errors import ConfigError
+from common.process.command_line import add_config_arguments, run_node
 from operator_side.config import OperatorConfig
 
 log = logging.getLogger(__name__)

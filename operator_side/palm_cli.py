@@ -36,7 +36,7 @@ from operator_side.palm.lift import PalmConfig, lift
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from common.cli_support import add_overrides_argument
+    from common.process.command_line import add_overrides_argument
 
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = __doc__
@@ -74,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from common.cli_support import load_node_config
+    from common.process.command_line import load_node_config
 
     config = load_node_config(args, PalmConfig, "operator", only=("renderer", "servos"))
     if args.action == "guard":

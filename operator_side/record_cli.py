@@ -10,7 +10,7 @@ certificate, every message of the robots it names (none dropped for a newer
 one, as a node would).
 
 With ``foxglove.enabled`` it also serves a session's recordings live to
-Foxglove (``common/foxglove_live.py``: the camera, the pads, the arm and the
+Foxglove (``common/live_view/recordings.py``: the camera, the pads, the arm and the
 palm as they are written, on the robot PC); that needs the ``foxglove`` extra.
 """
 
@@ -28,23 +28,23 @@ from typing import Literal
 
 import zmq
 
-from common.cli_support import (
+from common.clocks.clock import now_ns
+from common.config.typed import param
+from common.errors import ConfigError
+from common.fabric.session import FabricConfig
+from common.keys.curve import SecurityConfig, check_endpoint, client_options
+from common.logs import BurstLog
+from common.process.command_line import (
     add_config_arguments,
     load_node_config,
     print_config,
     stop_on_signals,
     write_stats,
 )
-from common.clock import now_ns
-from common.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, DecodeError, decode_named
-from common.config import param
-from common.errors import ConfigError
-from common.fabric.session import FabricConfig
-from common.foxglove import FoxgloveLiveConfig
-from common.link_stats import SEQ_RESTART_GAP
-from common.logs import BurstLog
-from common.sd_notify import Notifier
-from common.security import SecurityConfig, check_endpoint, client_options
+from common.process.sd_notify import Notifier
+from common.recording.foxglove import FoxgloveLiveConfig
+from common.wire.codec import MAX_MESSAGE_BYTES, MAX_NAME_LEN, DecodeError, decode_named
+from common.wire.link_stats import SEQ_RESTART_GAP
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ class StreamRecorder:
     """Subscribes, validates, counts per robot and topic, and writes what passed."""
 
     def __init__(self, config: RecorderConfig, ctx: zmq.Context | None = None) -> None:
-        from common.codec import check_robot_name, name_prefix
+        from common.wire.codec import check_robot_name, name_prefix
 
         self.config = config
         self._own_ctx = ctx is None
@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
     stop = stop_on_signals()
     live = None
     if config.foxglove.enabled:
-        from common.foxglove_live import LiveSource  # the foxglove extra, only when asked
+        from common.live_view.recordings import LiveSource  # the foxglove extra, only when asked
 
         live = LiveSource(config.foxglove)
     recorder = StreamRecorder(config)

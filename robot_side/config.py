@@ -6,9 +6,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from common.config import param
+from common.config.typed import param
 from common.fabric.session import FabricConfig
-from common.security import SecurityConfig
+from common.keys.curve import SecurityConfig
 
 
 @dataclass
@@ -102,7 +102,7 @@ class RobotLinkConfig:
     )
     roster_file: Path | None = param(
         None,
-        "operators and their roles (common/roster.py): commands must then be signed, and "
+        "operators and their roles (common/keys/roster.py): commands must then be signed, and "
         "only the holder of the control lease is obeyed; needed on the fabric. SIGHUP "
         "(systemctl reload) reads it again",
     )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from common.cli_support import add_config_arguments, run_node
+from common.process.command_line import add_config_arguments, run_node
 from robot_side.config import RobotConfig
 
 

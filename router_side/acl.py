@@ -33,10 +33,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from common.codec import MAX_MESSAGE_BYTES
-from common.config import param
+from common.config.typed import param
 from common.fabric import keyexprs
-from common.roster import OperatorEntry, Roster
+from common.keys.roster import OperatorEntry, Roster
+from common.wire.codec import MAX_MESSAGE_BYTES
 
 ROBOT_PUTS = ("stimulus", "frame", "heartbeat", "video")
 READS = ("stimulus", "frame", "heartbeat")

@@ -6,7 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
-from common.cli_support import (
+from common.config.typed import defaults_toml
+from common.process.command_line import (
     add_overrides_argument,
     load_node_config,
     print_config,
@@ -14,7 +15,6 @@ from common.cli_support import (
     stop_on_signals,
     write_stats,
 )
-from common.config import defaults_toml
 from router_side.config import RouterConfig
 
 log = logging.getLogger(__name__)

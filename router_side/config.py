@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from common.config import param
+from common.config.typed import param
 from router_side.acl import RateLimits
 
 
@@ -19,7 +19,7 @@ class RouterConfig:
     )
     roster_file: Path | None = param(
         None,
-        "who may connect and what each may put and read (common/roster.py); required. "
+        "who may connect and what each may put and read (common/keys/roster.py); required. "
         "SIGHUP (systemctl reload) reads it again and restarts the router's session: "
         "nodes reconnect by themselves",
     )

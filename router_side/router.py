@@ -19,8 +19,8 @@ from typing import Any
 
 from common.errors import ConfigError
 from common.fabric.session import cert_files, open_session
-from common.roster import Roster, check_replacement, load_roster
-from common.sd_notify import Notifier
+from common.keys.roster import Roster, check_replacement, load_roster
+from common.process.sd_notify import Notifier
 from router_side.config import RouterConfig
 from router_side.zenoh_config import router_config
 

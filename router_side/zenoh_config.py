@@ -12,7 +12,7 @@ from common.fabric.session import (
     quiet_discovery,
     tls_section,
 )
-from common.roster import Roster
+from common.keys.roster import Roster
 from router_side.acl import access_control, rate_gates, size_filter
 from router_side.config import RouterConfig
 

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from common.messages import Heartbeat, Stimulus
+from common.wire.messages import Heartbeat, Stimulus
 from harness.fleet import Fleet
 
 
@@ -94,7 +94,7 @@ def kill_mid_jog_and_time_the_stop(fleet: Fleet, controller, sim, jog: list[floa
     process's poll may have been starved past the moment). Fails if the arm never moved
     under the jog, never stopped within 2 s, or moved again after it stopped.
     """
-    from common.clock import now_ns
+    from common.clocks.clock import now_ns
 
     jogging = threading.Thread(target=jog_for, args=(controller, jog, 4.0))
     jogging.start()

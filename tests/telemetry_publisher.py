@@ -17,9 +17,9 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from common.clock import now_ns
-from common.messages import Heartbeat, Stimulus, TactileFrame, new_run
-from common.tactile import FRAME_SHAPE
+from common.clocks.clock import now_ns
+from common.tactile.contract import FRAME_SHAPE
+from common.wire.messages import Heartbeat, Stimulus, TactileFrame, new_run
 
 #: the stimulus every message carries: one cell in each of two rows (the codec's rule)
 CELLS = np.array([[0.0, 2.5, 0.0], [1.25, 0.0, 0.0], [0.0, 0.0, 0.0]], np.float32)

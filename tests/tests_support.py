@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from common.messages import Stimulus
-from common.transport import free_loopback_ports
+from common.wire.messages import Stimulus
+from common.wire.transport import free_loopback_ports
 from robot_side.arm.base import ArmLimits
 
 
@@ -76,7 +76,7 @@ class ProtocolOperator:
     """
 
     def __init__(self, sub, pub, session: int = 7) -> None:
-        self.sub, self.pub = sub, pub  # common.transport Subscriber / Publisher
+        self.sub, self.pub = sub, pub  # common.wire.transport Subscriber / Publisher
         self.session = session
         self.seq = 0
         self.hb_seq = 0
@@ -89,8 +89,8 @@ class ProtocolOperator:
 
     def pump(self, duration_s: float = 0.0) -> None:
         """Read telemetry and keep heartbeats going (20 Hz) for ``duration_s``."""
-        from common.clock import now_ns
-        from common.messages import Heartbeat
+        from common.clocks.clock import now_ns
+        from common.wire.messages import Heartbeat
 
         end = now_ns() + round(duration_s * 1e9)
         while True:
@@ -138,8 +138,8 @@ class ProtocolOperator:
         self.pump(0.1)  # a few more samples for its offset filter
 
     def command(self, action: str, **fields):
-        from common.clock import now_ns
-        from common.messages import Command
+        from common.clocks.clock import now_ns
+        from common.wire.messages import Command
 
         self.seq += 1
         cmd = Command(
@@ -163,7 +163,7 @@ class DashboardDemo:
     """
 
     def __init__(self, *args: str, duration_s: float = 120.0, ready_timeout_s: float = 90.0):
-        from common.web_token import new_token
+        from common.web.web_token import new_token
         from deploy.units.service import Service
 
         self.token = new_token()
@@ -186,12 +186,12 @@ class DashboardDemo:
     @property
     def ws_url(self) -> str:
         """The page's WebSocket, with its token."""
-        from common.web_token import with_token
+        from common.web.web_token import with_token
 
         return with_token(f"ws://127.0.0.1:{self.port}/ws", self.token)
 
     def __enter__(self) -> DashboardDemo:
-        from common.web_token import with_token
+        from common.web.web_token import with_token
         from deploy.units.readiness import NotReady
 
         self.service.start()
@@ -266,7 +266,7 @@ class VideoServerProcess:
         return self.service.log_text()
 
     def __enter__(self) -> VideoServerProcess:
-        from common.web_token import token_file, with_token
+        from common.web.web_token import token_file, with_token
         from deploy.units.readiness import NotReady
 
         try:

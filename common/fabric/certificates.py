@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from common.errors import ConfigError
-from common.signing import write_secret_file
+from common.wire.signing import write_secret_file
 
 #: how long a certificate is valid; renew with ``deepxpalm keys certs --force``
 VALID_DAYS = 825

@@ -25,9 +25,9 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from common.codec import DecodeError, check_robot_name
 from common.errors import ConfigError
-from common.messages import Command, Heartbeat, Message, Stimulus, TactileFrame, VideoSignal
+from common.wire.codec import DecodeError, check_robot_name
+from common.wire.messages import Command, Heartbeat, Message, Stimulus, TactileFrame, VideoSignal
 
 ROOT = "dxp"
 #: what the robot sends, by message type

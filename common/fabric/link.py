@@ -23,7 +23,7 @@ Each kind of message gets the quality of service it needs:
 Receiving never blocks Zenoh: the callback only appends to a bounded queue (a
 slot of one per latest-value key) and wakes the node's poll through a pipe.
 Decoding, signature checks and everything else happen on the node's thread in
-``drain``, exactly as for ``common.transport.Subscriber``.
+``drain``, exactly as for ``common.wire.transport.Subscriber``.
 """
 
 from __future__ import annotations
@@ -40,17 +40,17 @@ from typing import Any
 
 import zmq
 
-from common.clock import now_ns
-from common.codec import (
+from common.clocks.clock import now_ns
+from common.fabric import keyexprs
+from common.logs import BurstLog
+from common.wire.codec import (
     DecodeError,
     WrongRobotError,
     decode_named,
     encode,
     name_prefix,
 )
-from common.fabric import keyexprs
-from common.logs import BurstLog
-from common.messages import Message, TactileFrame
+from common.wire.messages import Message, TactileFrame
 
 log = logging.getLogger(__name__)
 

@@ -21,10 +21,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.codec import MAX_MESSAGE_BYTES
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError, LinkError
 from common.fabric.certificates import CertFiles, common_name
+from common.wire.codec import MAX_MESSAGE_BYTES
 
 log = logging.getLogger(__name__)
 

@@ -20,15 +20,20 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from common.cli_support import add_config_arguments, load_node_config, print_config, write_stats
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError
 from common.netsim.impairments import DIRECTIONS, Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
 from common.netsim.scenario import builtin_scenarios, load_scenario
 from common.netsim.stream import StreamForwarder
-from common.sd_notify import Notifier
-from common.signals import stop_on_signals
+from common.process.command_line import (
+    add_config_arguments,
+    load_node_config,
+    print_config,
+    write_stats,
+)
+from common.process.sd_notify import Notifier
+from common.process.signals import stop_on_signals
 
 log = logging.getLogger(__name__)
 

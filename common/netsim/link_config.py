@@ -14,7 +14,7 @@ from pathlib import Path
 from statistics import NormalDist
 from typing import Literal
 
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError
 from common.netsim.trace import TraceFormat, load_delay_trace
 

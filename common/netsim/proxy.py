@@ -27,7 +27,7 @@ from typing import Any, Self
 
 import zmq
 
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError, LinkError
 from common.netsim.impairments import DIRECTIONS, DirectionImpairment, Scenario
 

@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     child = None
     if args.loopback:
-        from common.transport import free_loopback_ports
+        from common.wire.transport import free_loopback_ports
 
         (port,) = free_loopback_ports(1)
         child = subprocess.Popen(

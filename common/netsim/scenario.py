@@ -14,7 +14,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from common.config import from_dict, load_toml
+from common.config.typed import from_dict, load_toml
 from common.errors import ConfigError
 from common.netsim.impairments import DIRECTIONS, Scenario
 

@@ -29,11 +29,11 @@ import json
 import sys
 from typing import Any
 
-from common.cli_support import add_overrides_argument
-from common.config import load_toml
+from common.config.overrides import apply_overrides
+from common.config.typed import load_toml
+from common.devices.preflight import FAIL, SKIP
 from common.errors import ConfigError
-from common.overrides import apply_overrides
-from common.preflight import FAIL, SKIP
+from common.process.command_line import add_overrides_argument
 from deploy.doctor.devices import check_devices
 from deploy.doctor.keys import check_keys
 from deploy.doctor.link import check_endpoints, check_operator_link, check_robot_link

@@ -6,9 +6,9 @@ import importlib
 import threading
 from typing import Any
 
-from common.devices import Device, build_device
+from common.devices.lifecycle import Device, build_device
+from common.devices.preflight import FAIL, PASS, SKIP, PreflightContext
 from common.errors import DeepXPalmError
-from common.preflight import FAIL, PASS, SKIP, PreflightContext
 from deploy.doctor.report import SERVICE_GROUPS, DoctorOptions, Report
 
 #: (family in the node config, registry module), per role.

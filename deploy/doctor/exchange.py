@@ -13,8 +13,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from common.clock import now_ns
-from common.clock_sync import ClockSync
+from common.clocks.clock import now_ns
+from common.clocks.clock_sync import ClockSync
 
 HEARTBEAT_PERIOD_S = 0.05
 #: Round trips enough for a clock estimate; the exchange stops early once it has them.
@@ -80,11 +80,11 @@ def heartbeat_exchange(
     exactly as in the nodes. Raises ``zmq.ZMQError`` when a bind fails.
     """
     import zmq
-    import zmq.auth  # common.security needs it loaded
+    import zmq.auth  # common.keys.curve needs it loaded
 
-    from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
-    from common.messages import Heartbeat, Stimulus, new_run
-    from common.security import Authenticator, client_options, server_options
+    from common.keys.curve import Authenticator, client_options, server_options
+    from common.wire.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
+    from common.wire.messages import Heartbeat, Stimulus, new_run
 
     out = Exchange()
     server = role == "robot"

@@ -14,8 +14,8 @@ import stat
 import time
 from typing import Any
 
+from common.devices.preflight import FAIL, PASS, SKIP, WARN
 from common.errors import ConfigError
-from common.preflight import FAIL, PASS, SKIP, WARN
 from deploy.doctor.report import DoctorOptions, Report
 
 #: a certificate that expires sooner than this is a warning

@@ -6,7 +6,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from common.preflight import (
+from common.devices.preflight import (
     FAIL,
     PASS,
     current_user_name,

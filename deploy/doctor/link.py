@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+from common.devices.preflight import FAIL, PASS, SKIP, WARN, processes_holding, tcp_probe
 from common.errors import DeepXPalmError
-from common.preflight import FAIL, PASS, SKIP, WARN, processes_holding, tcp_probe
 from deploy.doctor.exchange import Exchange, heartbeat_exchange
 from deploy.doctor.report import DoctorOptions, Report
 
@@ -52,7 +52,7 @@ def _host_port(endpoint: str) -> tuple[str, int] | None:
 
 def check_endpoints(report: Report, role: str, link: Any) -> None:
     """Refuse plain TCP off this machine, as the node itself would."""
-    from common.security import check_endpoint
+    from common.keys.curve import check_endpoint
 
     for endpoint in (link.telemetry_endpoint, link.command_endpoint):
         try:

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from common.config import from_dict
+from common.config.typed import from_dict
+from common.devices.preflight import FAIL, PASS
 from common.errors import ConfigError, DeepXPalmError
-from common.preflight import FAIL, PASS
 from deploy.doctor.report import ROLES, Report
 
 

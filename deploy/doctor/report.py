@@ -7,7 +7,7 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
-from common.preflight import FAIL, PASS, SKIP, WARN
+from common.devices.preflight import FAIL, PASS, SKIP, WARN
 
 log = logging.getLogger(__name__)
 

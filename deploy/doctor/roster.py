@@ -11,14 +11,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from common.devices.preflight import FAIL, PASS, WARN
 from common.errors import ConfigError, DeepXPalmError
-from common.preflight import FAIL, PASS, WARN
 from deploy.doctor.report import Report
 
 
 def check_roster(report: Report, path: Any, *, need_signing: bool) -> Any | None:
     """The roster loads; a warning when it names no controller (nobody could command)."""
-    from common.roster import load_roster
+    from common.keys.roster import load_roster
 
     if path is None:
         report.add(
@@ -31,7 +31,9 @@ def check_roster(report: Report, path: Any, *, need_signing: bool) -> Any | None
     try:
         roster = load_roster(Path(path))
     except ConfigError as e:
-        report.add("roster", FAIL, str(e), "correct that entry (common/roster.py shows the format)")
+        report.add(
+            "roster", FAIL, str(e), "correct that entry (common/keys/roster.py shows the format)"
+        )
         return None
     roles = [op.role for op in roster.operators]
     detail = f"{path}: {roster.summary()}"
@@ -70,7 +72,7 @@ def check_stream_signing(report: Report, role: str, link: Any) -> None:
             "(docs/deploy.md: A signed stream)",
         )
         return
-    from common.signing import load_public_key, load_signer
+    from common.wire.signing import load_public_key, load_signer
 
     try:
         key = load_signer(path).public if role == "robot" else load_public_key(path)

@@ -14,9 +14,9 @@ import socket
 from pathlib import Path
 from typing import Any
 
-from common.config import from_dict
+from common.config.typed import from_dict
+from common.devices.preflight import FAIL, PASS, SKIP, WARN
 from common.errors import ConfigError
-from common.preflight import FAIL, PASS, SKIP, WARN
 from deploy.doctor.fabric import check_certificate_files
 from deploy.doctor.report import DoctorOptions, Report
 from deploy.doctor.roster import check_roster

@@ -8,7 +8,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from common.preflight import PASS, SKIP, WARN, user_named
+from common.devices.preflight import PASS, SKIP, WARN, user_named
 from deploy.doctor.report import DoctorOptions, Report
 
 
@@ -52,9 +52,9 @@ WATCHDOG_WINDOW_S = 0.15
 def probe_keep_alive(priority: int, seconds: float = PROBE_S) -> tuple[Any, dict[str, float]]:
     """A thread scheduled as the arm process's keep-alive is (SCHED_FIFO ``priority`` where
     granted, else the safety niceness), waking every 20 ms for ``seconds``: what it got and
-    how its period came out (common.realtime.PeriodStats)."""
-    from common.clock import now_s
-    from common.realtime import PeriodStats, raise_this_thread
+    how its period came out (common.process.realtime.PeriodStats)."""
+    from common.clocks.clock import now_s
+    from common.process.realtime import PeriodStats, raise_this_thread
     from robot_side.arm.base import SAFETY_THREAD_NICE
 
     out: dict[str, Any] = {}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.util
 from typing import Any
 
-from common.preflight import FAIL, PASS
+from common.devices.preflight import FAIL, PASS
 from deploy.doctor.report import DoctorOptions, Report
 
 
@@ -26,7 +26,7 @@ def check_video(report: Report, config: Any, options: DoctorOptions) -> None:
     from websockets.exceptions import InvalidStatus
     from websockets.sync.client import connect
 
-    from common import web_token
+    from common.web import web_token
     from robot_side.video.link_signalling import LinkSignalling
 
     shown = web_token.without_token(url)

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common.config import from_dict, load_toml
+from common.config.typed import from_dict, load_toml
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ def export(
     paths: list[Path], out: Path, config: Any = None, *, progress: bool = False
 ) -> dict[str, Any]:
     """Export the sessions under ``paths`` into a new dataset at ``out``; a summary."""
-    from common.episode_marks import read_marks
+    from common.recording.episode_marks import read_marks
     from deploy.export.curation import Curator, load_task_file, verdicts
     from deploy.export.lerobot_v3 import LeRobotV3Writer
     from deploy.export.resample import ExportConfig

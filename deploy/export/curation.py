@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.episode_marks import DISCARD, FAILED, MAX_TASK_CHARS, Mark
 from common.errors import ConfigError
+from common.recording.episode_marks import DISCARD, FAILED, MAX_TASK_CHARS, Mark
 
 Row = dict[str, Any]
 #: the per-row column of LeRobot's convention: true on the last row of an episode that

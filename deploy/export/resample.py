@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from common.config import from_dict, param
-from common.tactile import CONTACT_FLOOR_N
+from common.config.typed import from_dict, param
+from common.tactile.contract import CONTACT_FLOOR_N
 from robot_side.arm.base import ArmLimits, clip_jog_velocity
 from robot_side.gripper.base import POSITION_OPEN, GripLevels
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.tactile import FRAME_SHAPE
+from common.tactile.contract import FRAME_SHAPE
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from common.errors import ConfigError
-from common.mcap_recorder import Damage, RecordingReader
+from common.recording.mcap_recorder import Damage, RecordingReader
 
 log = logging.getLogger(__name__)
 

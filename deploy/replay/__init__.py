@@ -95,7 +95,7 @@ def check(
     calibration_file: Path | None = None,
 ) -> dict[str, Any]:
     """Replay ``path`` through the pipeline; the summary that ``run`` prints."""
-    from common.mcap_recorder import RecordingReader, read_metadata
+    from common.recording.mcap_recorder import RecordingReader, read_metadata
 
     metadata = read_metadata(path)
     node = node_of(path, metadata)
@@ -143,10 +143,10 @@ def check(
 
 
 def run(args: argparse.Namespace) -> int:
-    from common.cli_support import stop_on_signals
+    from common.process.command_line import stop_on_signals
 
     if args.recover:
-        from common.mcap_recorder import recover_recording
+        from common.recording.mcap_recorder import recover_recording
 
         n = recover_recording(args.file, args.recover)
         print(f"{args.recover}: {n} messages recovered from {args.file}, with an index")

@@ -8,9 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from common.codec import DecodeError, decode
-from common.config import from_dict
-from common.messages import Stimulus
+from common.config.typed import from_dict
+from common.wire.codec import DecodeError, decode
+from common.wire.messages import Stimulus
 from deploy.replay.recorded import Report
 
 log = logging.getLogger(__name__)

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from common.codec import DecodeError, decode, encode
 from common.errors import ConfigError
-from common.messages import Heartbeat, Stimulus, TactileFrame
-from common.tactile import SATURATION_N
+from common.tactile.contract import SATURATION_N
+from common.wire.codec import DecodeError, decode, encode
+from common.wire.messages import Heartbeat, Stimulus, TactileFrame
 
 log = logging.getLogger(__name__)
 
@@ -35,9 +35,9 @@ def publish(
     """Send the recorded stimuli (and frames) again at their recorded pace."""
     import zmq
 
-    from common.clock import now_ns
-    from common.mcap_recorder import read_recording
-    from common.security import SecurityConfig, check_endpoint
+    from common.clocks.clock import now_ns
+    from common.keys.curve import SecurityConfig, check_endpoint
+    from common.recording.mcap_recorder import read_recording
 
     if not speed > 0:
         raise ConfigError(f"--speed must be positive, not {speed}")

@@ -8,7 +8,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from common.config import from_dict
+from common.config.typed import from_dict
 from common.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,7 @@ def node_of(path: Path, metadata: dict[str, dict[str, str]]) -> str:
     node = metadata.get("deepxpalm.node", {}).get("node")
     if node in ("robot", "operator"):
         return node
-    from common.mcap_recorder import read_recording
+    from common.recording.mcap_recorder import read_recording
 
     for channel, _, _ in read_recording(path):
         prefix = channel.split("/", 1)[0]

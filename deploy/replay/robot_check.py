@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from common.codec import DecodeError, decode
-from common.messages import Stimulus
+from common.wire.codec import DecodeError, decode
+from common.wire.messages import Stimulus
 from deploy.replay.recorded import Report
 
 log = logging.getLogger(__name__)
@@ -50,8 +50,8 @@ class RobotReplay:
     """
 
     def __init__(self, config: Any, atol: float, use_classifier: bool, report: Report) -> None:
-        from common.clock import VirtualClock
-        from common.transport import CaptureLink
+        from common.clocks.clock import VirtualClock
+        from common.wire.transport import CaptureLink
         from robot_side.node import RobotNode
 
         self.config = config

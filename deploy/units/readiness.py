@@ -10,7 +10,7 @@ that takes a datagram only from the process it was told about
 grandchild that inherited the variable cannot speak for its parent).
 
 Every process of the product says ``READY=1`` through
-``common.sd_notify.Notifier`` once it serves, with what it bound:
+``common.process.sd_notify.Notifier`` once it serves, with what it bound:
 ``STATUS=`` for people and ``X_DEEPXPALM_ENDPOINTS=`` (JSON) for its
 parent, so a process binds port 0 and reports the port instead of being
 handed one. :meth:`NotifySocket.wait_ready` returns those fields
@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.sd_notify import ENDPOINTS_FIELD, FIELD_PREFIX
+from common.process.sd_notify import ENDPOINTS_FIELD, FIELD_PREFIX
 
 _CREDS = struct.Struct("3i")  # struct ucred: pid, uid, gid
 

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from common.stimulus import render_stimulus
-from common.tactile import matches_pattern, patterns_of
+from common.tactile.contract import matches_pattern, patterns_of
+from common.tactile.stimulus import render_stimulus
 from harness.bench.fixtures import FrameSet
 from harness.bench.fmt import (
     IMG_DIR,

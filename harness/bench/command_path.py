@@ -35,10 +35,10 @@ import msgpack
 import numpy as np
 import zmq
 
-from common.clock import now_ns
+from common.clocks.clock import now_ns
 from common.errors import DeviceError
-from common.messages import Heartbeat, Stimulus
-from common.transport import Subscriber
+from common.wire.messages import Heartbeat, Stimulus
+from common.wire.transport import Subscriber
 from deploy.units.service import Service
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
@@ -309,9 +309,9 @@ class RobotUnderCommands:
 
 def command_cost(n: int) -> dict[str, Any]:
     """Microseconds per command through the robot's intake: read, decode and admission."""
-    from common.clock_sync import ClockSync
-    from common.messages import Command
-    from common.transport import Publisher
+    from common.clocks.clock_sync import ClockSync
+    from common.wire.messages import Command
+    from common.wire.transport import Publisher
     from robot_side.node.commands.command_gate import CommandGate, RobotRun
 
     ctx = zmq.Context()

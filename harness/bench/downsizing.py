@@ -1,7 +1,7 @@
 """Downsizing and rendering order: run time against the share of stimuli that match.
 
 A stimulus matches when it presses exactly the true pattern's cells
-(``common.tactile.matches_pattern``): that is what the operator feels.
+(``common.tactile.contract.matches_pattern``): that is what the operator feels.
 Each downsizing method is crossed with both rendering orders and three
 sources of the mask: the true pattern (the renderer alone), the
 classifier's prediction (what the robot node does) and none (direct
@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from common.stimulus import (
+from common.tactile.contract import MASKS, MASKS_F32, SATURATION_N, matches_pattern
+from common.tactile.stimulus import (
     METHODS,
     ORDERS,
     Method,
@@ -43,7 +44,6 @@ from common.stimulus import (
     render_stimulus,
     sanitize_frame,
 )
-from common.tactile import MASKS, MASKS_F32, SATURATION_N, matches_pattern
 from harness.bench.fixtures import FrameSet
 from harness.bench.fmt import (
     IMG_DIR,
@@ -306,7 +306,7 @@ SIZES = {
 
 
 def measure(ctx: Context, sizes: DownsizingSizes) -> dict[str, Any]:
-    from common.tactile import patterns_of
+    from common.tactile.contract import patterns_of
     from harness.bench.fixtures import frame_set
 
     fs = frame_set(sizes.ds_repeats, seed=0)
@@ -388,7 +388,7 @@ def markdown(results: Results) -> list[str]:
         "back to back, the variants taking turns call by call); antialiased, plain and area "
         "through the node's `render_contact`. "
         "Match: the share of stimuli pressing exactly the true pattern's cells "
-        "(`common.tactile.matches_pattern`) with the true pattern's mask, with the "
+        "(`common.tactile.contract.matches_pattern`) with the true pattern's mask, with the "
         "classifier's predicted pattern (the node's path), and with no mask (direct).",
         "",
     ]
@@ -432,7 +432,7 @@ def markdown(results: Results) -> list[str]:
         "Where the paper's order loses (true mask, antialiased), per pattern:",
         "",
     ]
-    from common.tactile import pattern_name
+    from common.tactile.contract import pattern_name
 
     pp = s["per_pattern_antialiased_true"]
     out += table(

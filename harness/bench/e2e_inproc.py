@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 import zmq
 
-from common.clock import Rate, now_ns
-from common.transport import Link, Publisher, Subscriber
+from common.clocks.clock import Rate, now_ns
+from common.wire.transport import Link, Publisher, Subscriber
 from harness.bench.fixtures import PacketServoBus, frame_set_of_at_least, scan_bytes, serial_sensor
 from harness.bench.fmt import num, results_of, table
 from harness.bench.section import Context, Results, Section, Verdict

@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import Rate, now_ns
-from common.sd_notify import Notifier
+from common.clocks.clock import Rate, now_ns
+from common.process.sd_notify import Notifier
 from deploy.units.catalogue import UnitSpec
 from deploy.units.service import Service
 from harness.bench.fmt import num, results_of
@@ -95,7 +95,7 @@ def end_to_end_tcp(
     peer_cpu = cpu if peer_cpu is None else peer_cpu
     import zmq
 
-    from common.transport import Link, Publisher
+    from common.wire.transport import Link, Publisher
     from harness.bench.fixtures import frame_set_of_at_least, scan_bytes, serial_sensor
     from robot_side.config import RobotConfig
     from robot_side.node import RobotNode
@@ -251,7 +251,7 @@ def _peer(args: argparse.Namespace) -> int:
         os.sched_setaffinity(0, {args.cpu})
     import zmq
 
-    from common.transport import Link, Subscriber
+    from common.wire.transport import Link, Subscriber
     from harness.bench.fixtures import PacketServoBus
     from operator_side.config import OperatorConfig
     from operator_side.node import OperatorNode

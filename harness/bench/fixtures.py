@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import now_ns
-from common.devices import Device
-from common.synthetic_tactile import GeneratorParams, SyntheticTactileModel, mirror_finger2
-from common.tactile import N_GRIP_LEVELS, N_PATTERNS
+from common.clocks.clock import now_ns
+from common.devices.lifecycle import Device
+from common.tactile.contract import N_GRIP_LEVELS, N_PATTERNS
+from common.tactile.synthetic import GeneratorParams, SyntheticTactileModel, mirror_finger2
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
 from operator_side.servos.limits import check_goals

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.config import config_toml
+from common.config.typed import config_toml
 from deploy.units.service import Service
 from harness.bench.fmt import num, results_of, table
 from harness.bench.node_cpu import SENSOR_RATE_HZ, START_S, PtyFeeder

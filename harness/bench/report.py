@@ -111,7 +111,7 @@ def _gc_line(results: dict[str, Any]) -> str:
         f"- A full garbage collection walks {g['objects']:,.0f} objects in this bench process "
         f"(the robot stack, and torch for the comparisons) and takes {num(g['as_is_ms'])} ms; "
         "a robot node, which never loads torch, holds fewer. After `gc.freeze()`, which "
-        f"both nodes call once built (`common.cli_support.freeze_startup_heap`), "
+        f"both nodes call once built (`common.process.command_line.freeze_startup_heap`), "
         f"{num(g['frozen_ms'] * 1e3)} us. Unfrozen, such a pass would stall a 60 Hz loop "
         "whenever the collector chose to run one."
     )

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from common.devices import build_device
-from common.tactile import FRAME_SHAPE
+from common.devices.lifecycle import build_device
+from common.tactile.contract import FRAME_SHAPE
 from deploy.scene import load_scene
 from harness.bench.fixtures import serial_sensor
 from robot_side.tactile import KINDS as TACTILE_KINDS
@@ -47,7 +47,7 @@ def _board_frames(device: Any, cycles: float) -> tuple[list[np.ndarray], list[An
     board's own calibration. Only the simulator's ADC noise (1 count, about
     0.003 N) is left out.
     """
-    from common.synthetic_tactile import mirror_finger2
+    from common.tactile.synthetic import mirror_finger2
     from robot_side.tactile.wire import SEQ_MODULO, encode
 
     sim = device.simulator

@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import VirtualClock
-from common.transport import CaptureLink
+from common.clocks.clock import VirtualClock
+from common.wire.transport import CaptureLink
 from deploy.scene import load_scene
 from harness.bench.fmt import IMG_DIR, num, pyplot, results_of, save_figure, table
 from harness.bench.scene_frames import demo_frames

@@ -23,11 +23,11 @@ from typing import Any
 import numpy as np
 import zmq
 
-from common.clock import Rate, now_ns
-from common.codec import decode, encode
-from common.messages import Stimulus
-from common.stimulus import is_contact, render_cells, sanitize_frame
-from common.tactile import N_ANGLES, pattern_of
+from common.clocks.clock import Rate, now_ns
+from common.tactile.contract import N_ANGLES, pattern_of
+from common.tactile.stimulus import is_contact, render_cells, sanitize_frame
+from common.wire.codec import decode, encode
+from common.wire.messages import Stimulus
 from harness.bench.fixtures import (
     PacketBuilder,
     frame_set_of_at_least,
@@ -58,9 +58,9 @@ STAGES: dict[str, str] = {
     "frame_step": "the node's path in mask mode on the numba classifier: the three stages "
     "above (sanitize, contact, identical-frame test, classify, downsize, mask) as one "
     "compiled call (robot_side/node/compiled_step.py); timed on alternate frames",
-    "encode": "Stimulus -> topic + msgpack (common.codec.encode)",
+    "encode": "Stimulus -> topic + msgpack (common.wire.codec.encode)",
     "zmq_transit_tcp": "PUB.send -> SUB.recv over loopback TCP, one process",
-    "decode": "bytes -> validated Stimulus (common.codec.decode)",
+    "decode": "bytes -> validated Stimulus (common.wire.codec.decode)",
     "ik_3_linkages": "stimulus -> 3 contact points -> closed-form IK "
     "(LinkGlideRenderer.pose_for, the node's call)",
     "counts_rate_limit": "angles -> servo counts (counts_for: calibration, clip) + rate limit "
@@ -139,7 +139,7 @@ def stage_budget(
     from robot_side.node import compiled_step_for
 
     step = compiled_step_for(classifier, cfg.render)
-    from common.signing import Signer
+    from common.wire.signing import Signer
 
     signer = Signer.generate()
     gate = _believing_gate()
@@ -280,8 +280,8 @@ def stage_budget(
 
 def _believing_gate() -> Any:
     """An operator's telemetry gate that believes one robot run, its clock offset known."""
-    from common.clock_sync import ClockSync
-    from common.messages import Heartbeat
+    from common.clocks.clock_sync import ClockSync
+    from common.wire.messages import Heartbeat
     from operator_side.node.telemetry_gate import TelemetryGate
 
     clock = ClockSync()

@@ -26,10 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from common.codec import DecodeError, decode, encode
-from common.messages import Stimulus
-from common.stimulus import METHODS, ORDERS, render_stimulus
-from common.tactile import FRAME_SHAPE, N_PATTERNS, SATURATION_N
+from common.tactile.contract import FRAME_SHAPE, N_PATTERNS, SATURATION_N
+from common.tactile.stimulus import METHODS, ORDERS, render_stimulus
+from common.wire.codec import DecodeError, decode, encode
+from common.wire.messages import Stimulus
 from harness.bench.fmt import num, results_of, sci, table
 from harness.bench.ik import edge_shell, reachable_mask, round_trip_mm, workspace_grid
 from harness.bench.section import Context, Results, Section, Verdict
@@ -221,7 +221,7 @@ def rendering_stress(classifier: Any, n_random: int, seed: int = 8) -> dict[str,
                     except DecodeError:
                         codec_refused += 1
         if classifier is not None:
-            from common.stimulus import sanitize_frame
+            from common.tactile.stimulus import sanitize_frame
 
             try:
                 one = classifier.predict_one(sanitize_frame(f32))  # the node's call

@@ -37,8 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from common.config import config_toml, from_dict
-from common.tactile import pattern_name
+from common.config.typed import config_toml, from_dict
+from common.tactile.contract import pattern_name
 from deploy.demo import fit_command_timing
 from deploy.scene import Scene, load_scene_dict
 from deploy.units.process import CLEAN_ENDS

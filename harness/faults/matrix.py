@@ -571,7 +571,7 @@ class CellRun:
 
     def _recording(self, tl: _Timeline) -> tuple[bool | None, float | None, int]:
         """Whether the recorder's file reads back up to the fault: its last record before it."""
-        from common.codec import DecodeError
+        from common.wire.codec import DecodeError
         from operator_side.record_cli import read_records
 
         path = self.d.recording

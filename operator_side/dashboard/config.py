@@ -6,9 +6,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from common.config import param
-from common.ice import IceConfig
-from common.web_token import check_token
+from common.config.typed import param
+from common.web.web_token import check_token
+from common.wire.ice import IceConfig
 from operator_side.dashboard.jog_config import JogConfig
 
 #: ``video_url`` value: signalling rides the operator node's link to the robot

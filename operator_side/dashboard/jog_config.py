@@ -16,7 +16,7 @@ import math
 import re
 from dataclasses import dataclass
 
-from common.config import param
+from common.config.typed import param
 
 TWIST = ("vx", "vy", "vz", "wx", "wy", "wz")
 _TERM = re.compile(r"([+-]?)(axis|button|tx|ty|tz|rx|ry|rz)(\d*)")

@@ -39,7 +39,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from urllib.parse import urlsplit
 
-from common import web_token
+from common.web import web_token
 
 log = logging.getLogger(__name__)
 

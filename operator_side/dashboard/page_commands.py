@@ -18,8 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from common import bounded_json
-from common.tactile import GRIP_LEVELS
+from common.tactile.contract import GRIP_LEVELS
+from common.web import bounded_json
 from operator_side.dashboard.config import DashboardConfig
 
 log = logging.getLogger(__name__)
@@ -212,7 +212,7 @@ class PageCommands:
         It shares the page's command budget, so a stuck key cannot flood the
         recording; refused with a reason when the node does not record.
         """
-        from common.episode_marks import check_mark
+        from common.recording.episode_marks import check_mark
 
         kind, task = msg.get("kind"), msg.get("task")
         if task == "":

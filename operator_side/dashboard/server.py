@@ -18,8 +18,8 @@ from typing import Protocol
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
-from common import bounded_json, web_token
 from common.errors import ConfigError
+from common.web import bounded_json, web_token
 from operator_side.dashboard.config import TOKEN_ENV, VIDEO_OVER_LINK, DashboardConfig
 from operator_side.dashboard.page_auth import PageAuth
 from operator_side.dashboard.page_commands import Page, PageCommands

@@ -18,8 +18,8 @@ from typing import Any
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from common import bounded_json, web_token
-from common.messages import MAX_SDP_CHARS, VideoSignal
+from common.web import bounded_json, web_token
+from common.wire.messages import MAX_SDP_CHARS, VideoSignal
 from operator_side.dashboard.config import VIDEO_OVER_LINK, DashboardConfig
 from operator_side.dashboard.web import WebServer
 

@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from common.config import to_dict
-from common.messages import ARM_SAFETY_MODES, ASSIST_PHASES
-from common.tactile import MASKS, N_PATTERNS, pattern_name
+from common.config.typed import to_dict
+from common.tactile.contract import MASKS, N_PATTERNS, pattern_name
+from common.wire.messages import ARM_SAFETY_MODES, ASSIST_PHASES
 from operator_side.dashboard.jog_config import JogConfig
 from operator_side.node import Snapshot
 from operator_side.palm.renderer import RendererConfig

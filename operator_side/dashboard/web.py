@@ -32,8 +32,8 @@ from websockets.asyncio.server import ServerConnection, broadcast, serve
 from websockets.datastructures import Headers
 from websockets.http11 import Request, Response
 
-from common import web_token
 from common.errors import ConfigError
+from common.web import web_token
 from operator_side.dashboard.page_auth import CHALLENGE_PROTOCOL, PageAuth, Refusal
 
 log = logging.getLogger(__name__)

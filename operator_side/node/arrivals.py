@@ -23,12 +23,12 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
-from common.clock_sync import ClockSync
-from common.link_stats import LinkStats
+from common.clocks.clock_sync import ClockSync
 from common.logs import BurstLog
-from common.messages import Heartbeat, Stimulus, TactileFrame, VideoSignal
-from common.tactile import matches_pattern
-from common.transport import Receiver
+from common.tactile.contract import matches_pattern
+from common.wire.link_stats import LinkStats
+from common.wire.messages import Heartbeat, Stimulus, TactileFrame, VideoSignal
+from common.wire.transport import Receiver
 from operator_side.node.lease_view import LeaseView
 from operator_side.node.recording import NodeRecording
 from operator_side.node.telemetry_gate import REFUSALS as TELEMETRY_REFUSALS

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import zmq
 
-from common.devices import build_device
-from common.recording import Recorder
+from common.devices.lifecycle import build_device
+from common.recording.channels import Recorder
 from operator_side.config import OperatorConfig
 from operator_side.node.operator_node import OperatorNode
 

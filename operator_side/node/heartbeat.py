@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from common.clock_sync import ClockSync
-from common.messages import Heartbeat
-from common.transport import Sender
+from common.clocks.clock_sync import ClockSync
+from common.wire.messages import Heartbeat
+from common.wire.transport import Sender
 from operator_side.node.arrivals import RobotHeard
 from operator_side.node.recording import NodeRecording
 from operator_side.node.telemetry_gate import TelemetryGate

@@ -14,7 +14,7 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
-from common.messages import Heartbeat
+from common.wire.messages import Heartbeat
 from operator_side.config import OperatorLinkConfig
 
 log = logging.getLogger(__name__)

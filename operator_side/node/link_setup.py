@@ -21,12 +21,12 @@ from typing import Any
 
 import zmq
 
-from common.clock_sync import ClockSync
-from common.codec import DecodeError, check_robot_name, name_prefix
+from common.clocks.clock_sync import ClockSync
 from common.errors import ConfigError
-from common.messages import Heartbeat, Stimulus, TactileFrame, VideoSignal
-from common.security import client_options
-from common.transport import Link, Publisher, Receiver, Sender, Subscriber
+from common.keys.curve import client_options
+from common.wire.codec import DecodeError, check_robot_name, name_prefix
+from common.wire.messages import Heartbeat, Stimulus, TactileFrame, VideoSignal
+from common.wire.transport import Link, Publisher, Receiver, Sender, Subscriber
 from operator_side.config import OperatorLinkConfig
 from operator_side.node.telemetry_gate import TelemetryGate
 
@@ -50,7 +50,7 @@ class LinkKeys:
             raise ConfigError(f"operator link.robot_name: {e}") from None
         signer = None
         if link.signing_key_file is not None:
-            from common.signing import load_signer  # cryptography only when signing
+            from common.wire.signing import load_signer  # cryptography only when signing
 
             signer = load_signer(link.signing_key_file)
         if link.mode == "fabric" and link.robot_key_file is None and not link.unsigned_stream:
@@ -62,7 +62,7 @@ class LinkKeys:
             )
         robot_key = None
         if link.robot_key_file is not None:
-            from common.signing import load_public_key
+            from common.wire.signing import load_public_key
 
             robot_key = load_public_key(link.robot_key_file)
         return cls(robot_name, signer, robot_key)

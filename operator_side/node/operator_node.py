@@ -19,13 +19,13 @@ from typing import Any
 
 import zmq
 
-from common.clock import Clock, Periodic, now_ns
-from common.clock_sync import ClockSync
-from common.link_stats import LinkStats
-from common.messages import Command, Stimulus, VideoSignal, new_run
-from common.recording import Recorder
-from common.security import check_endpoint
-from common.transport import Link, Receiver, Sender, link_health, make_context
+from common.clocks.clock import Clock, Periodic, now_ns
+from common.clocks.clock_sync import ClockSync
+from common.keys.curve import check_endpoint
+from common.recording.channels import Recorder
+from common.wire.link_stats import LinkStats
+from common.wire.messages import Command, Stimulus, VideoSignal, new_run
+from common.wire.transport import Link, Receiver, Sender, link_health, make_context
 from operator_side.config import OperatorConfig
 from operator_side.node.arrivals import Arrivals, RobotHeard
 from operator_side.node.heartbeat import HeartbeatOut
@@ -188,9 +188,9 @@ class OperatorNode:
 
     @property
     def loop_turns(self) -> int:
-        """Turns of the loop so far (at least one per heartbeat period, robot or not): systemd's
-        watchdog is pinged only while this grows (``common.sd_notify``), so a frozen or stuck
-        loop is ended and the palm lifted by the unit's ExecStopPost."""
+        """Turns of the loop so far (at least one per heartbeat period, robot or not):
+        systemd's watchdog is pinged only while this grows (``common.process.sd_notify``), so
+        a frozen or stuck loop is ended and the palm lifted by the unit's ExecStopPost."""
         return self.counters["wakeups"]
 
     # ---------------------------------------------- any thread: commands

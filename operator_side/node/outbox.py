@@ -35,10 +35,10 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from common.clock_sync import ClockSync
+from common.clocks.clock_sync import ClockSync
 from common.logs import BurstLog
-from common.messages import SESSION_LOW_MASK, Command, VideoSignal
-from common.transport import Sender
+from common.wire.messages import SESSION_LOW_MASK, Command, VideoSignal
+from common.wire.transport import Sender
 from operator_side.config import OperatorLinkConfig
 from operator_side.node.arrivals import RobotHeard
 from operator_side.node.recording import NodeRecording

@@ -1,4 +1,4 @@
-"""Everything the operator node records, in one place (channels: common/recording.py).
+"""Everything the operator node records, in one place (channels: common/recording/channels.py).
 
 A received stimulus and a sent command are recorded as the bytes on the
 wire (a replay decodes exactly what crossed the link, signature included);
@@ -13,10 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from common.clock_sync import ClockSync
-from common.episode_marks import CHANNEL as MARKS
-from common.episode_marks import check_mark
-from common.recording import NullRecorder, Recorder
+from common.clocks.clock_sync import ClockSync
+from common.recording.channels import NullRecorder, Recorder
+from common.recording.episode_marks import CHANNEL as MARKS
+from common.recording.episode_marks import check_mark
 from operator_side.servos.calibration import LinkGlideCalibration
 
 
@@ -67,7 +67,7 @@ class NodeRecording:
         )
 
     def mark(self, kind: str, task: str | None, source: str) -> bool:
-        """The operator's mark on the episode in progress (common/episode_marks.py).
+        """The operator's mark on the episode in progress (common/recording/episode_marks.py).
 
         ValueError for a mark that means nothing; False when not recording:
         the mark would be lost.

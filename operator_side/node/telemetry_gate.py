@@ -19,7 +19,7 @@ its send time, and the operator refuses, counting each under its name:
   (the heartbeat offset), is more than ``max_age_ns`` after its arrival or
   before it.
 - ``telemetry_replayed``: a ``seq`` of its stream already accepted, or too far
-  behind the newest (``common.replay_window``, the commands' window, here with
+  behind the newest (``common.wire.replay_window``, the commands' window, here with
   room for ``WIDTH`` messages of reordering per stream).
 
 A new run retires the one before (a restarted node: its old messages are
@@ -32,9 +32,9 @@ from __future__ import annotations
 
 import collections
 
-from common.clock_sync import ClockSync
-from common.messages import Heartbeat, Message
-from common.replay_window import ReplayWindow
+from common.clocks.clock_sync import ClockSync
+from common.wire.messages import Heartbeat, Message
+from common.wire.replay_window import ReplayWindow
 
 #: Refusal reasons, each the name of the counter it increments.
 WITHOUT_SESSION = "telemetry_without_session"

@@ -15,8 +15,8 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from common.config import param
-from common.tactile_scale import SATURATION_N
+from common.config.typed import param
+from common.tactile.scale import SATURATION_N
 
 if TYPE_CHECKING:
     import numpy as np

@@ -80,7 +80,7 @@ def guard(config: Any, watch_fd: int, within_s: float) -> dict[str, Any]:
     Everything the lift needs is imported and its config read before the wait, so the
     node's end costs only the bus's work.
     """
-    from common import devices  # noqa: F401  (each imported now, not after the end)
+    from common.devices import lifecycle as devices  # noqa: F401  (each imported now, not after the end)
     from operator_side.palm import lift as palm_lift
     from operator_side.palm import renderer_config  # noqa: F401
     from operator_side.servos import feetech  # noqa: F401

@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError, DeviceError
 from operator_side.palm.renderer_config import RendererConfig
 
@@ -46,7 +46,7 @@ def lift(config: PalmConfig, within_s: float = 2.0, bus_wait_s: float = 0.0) -> 
     Returns what happened (ports, goals, how long); raises ``DeviceError`` with
     what to check when the palm could not be lifted.
     """
-    from common.devices import build_device
+    from common.devices.lifecycle import build_device
     from operator_side.palm.renderer_config import retract_goals
     from operator_side.servos import KINDS
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from common.config import param
+from common.config.typed import param
 
 #: A point this close outside the reach of a side is taken as on its edge, so a
 #: target computed onto the edge is not refused for a rounding error.

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.config import param
+from common.config.typed import param
 from operator_side.palm.contact import ContactMapping
 from operator_side.palm.linkage import LinkageGeometry, inverse_kinematics_one
 from operator_side.servos.calibration import LinkGlideCalibration

@@ -13,7 +13,7 @@ import abc
 import time
 from collections.abc import Mapping
 
-from common.devices import Device
+from common.devices.lifecycle import Device
 from common.errors import DeviceError
 from operator_side.servos.calibration import LinkGlideCalibration
 from operator_side.servos.limits import GoalOutOfLimitsError, check_goals

@@ -18,7 +18,7 @@ from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from common.config import from_dict, load_toml, param, to_dict
+from common.config.typed import from_dict, load_toml, param, to_dict
 from common.errors import ConfigError
 
 if TYPE_CHECKING:

@@ -41,7 +41,8 @@ from typing import Any, NoReturn
 
 import scservo_sdk as sdk
 
-from common.devices import Device
+from common.devices.lifecycle import Device
+from common.devices.preflight import Finding, PreflightContext, serial_findings
 from common.errors import (
     ConfigError,
     DeviceAlreadyConnectedError,
@@ -49,7 +50,6 @@ from common.errors import (
     DeviceTimeoutError,
     ProtocolError,
 )
-from common.preflight import Finding, PreflightContext, serial_findings
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration, load_calibration
 from operator_side.servos.feetech_config import SDK_BAUD_RATES, FeetechConfig

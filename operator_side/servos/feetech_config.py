@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from common.config import param
+from common.config.typed import param
 from operator_side.servos.calibration import LinkGlideCalibration
 
 #: the rates PortHandler.setBaudRate accepts; any other returns False

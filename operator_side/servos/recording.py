@@ -16,9 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.clock import now_ns
-from common.config import param
-from common.devices import Device
+from common.clocks.clock import now_ns
+from common.config.typed import param
+from common.devices.lifecycle import Device
 from common.errors import DeviceAlreadyConnectedError
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration, load_calibration

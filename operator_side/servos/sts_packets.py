@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable
 
-from common.clock import now_ns
+from common.clocks.clock import now_ns
 from operator_side.servos.sts_registers import (
     BROADCAST_ID,
     GOAL_POSITION,

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError
 from operator_side.servos.sts_registers import (
     BAUD_RATES,

@@ -26,10 +26,10 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any, Self
 
-from common.clock import now_ns
-from common.config import param
-from common.devices import OnItsSimulator, as_hardware
-from common.pty_link import PtyLink
+from common.clocks.clock import now_ns
+from common.config.typed import param
+from common.devices.lifecycle import OnItsSimulator, as_hardware
+from common.devices.pty_link import PtyLink
 from operator_side.servos.feetech import FeetechConfig, FeetechServoBus
 from operator_side.servos.sts_packets import StsResponder
 from operator_side.servos.sts_registers import INSTRUCTIONS, PRESENT_POSITION, REG

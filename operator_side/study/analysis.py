@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from common.errors import ConfigError
-from common.tactile import N_ANGLES, N_PATTERNS, classes_of
+from common.tactile.contract import N_ANGLES, N_PATTERNS, classes_of
 from operator_side.study.protocol import read_records
 
 log = logging.getLogger(__name__)

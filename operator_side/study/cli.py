@@ -17,9 +17,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from common.cli_support import add_overrides_argument, load_node_config, print_config
-from common.config import defaults_toml
+from common.config.typed import defaults_toml
 from common.errors import ConfigError
+from common.process.command_line import add_overrides_argument, load_node_config, print_config
 from operator_side.study.protocol import MODES, StudyConfig
 
 log = logging.getLogger(__name__)
@@ -106,7 +106,7 @@ def _raise_on_sigterm() -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from common.devices import build_device
+    from common.devices.lifecycle import build_device
     from operator_side.servos import KINDS
     from operator_side.study.display import PalmDisplay
     from operator_side.study.protocol import (

@@ -15,7 +15,7 @@ A stimulus source per trial:
 
 ``direct`` and ``masked`` draw fresh sensor noise at ``frame_rate_hz``, as a
 live grasp would. The pad model and the rendering are the robot's own
-(``common.synthetic_tactile``, ``common.stimulus``): NumPy only, shared
+(``common.tactile.synthetic``, ``common.tactile.stimulus``): NumPy only, shared
 through ``common`` so the study never imports the robot side.
 """
 
@@ -28,11 +28,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from common.clock import Rate, now_ns
+from common.clocks.clock import Rate, now_ns
 from common.errors import DeviceError
-from common.stimulus import render_stimulus
-from common.synthetic_tactile import SyntheticTactileModel
-from common.tactile import MASKS
+from common.tactile.contract import MASKS
+from common.tactile.stimulus import render_stimulus
+from common.tactile.synthetic import SyntheticTactileModel
 from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration

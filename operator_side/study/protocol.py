@@ -26,9 +26,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from common.config import param, to_dict
+from common.config.typed import param, to_dict
 from common.errors import ConfigError
-from common.tactile import N_GRIP_LEVELS, N_PATTERNS, SATURATION_N
+from common.tactile.contract import N_GRIP_LEVELS, N_PATTERNS, SATURATION_N
 from operator_side.palm.renderer import RendererConfig
 
 log = logging.getLogger(__name__)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.tactile import N_PATTERNS, pattern_name
+from common.tactile.contract import N_PATTERNS, pattern_name
 from operator_side.study.analysis import Analysis
 
 

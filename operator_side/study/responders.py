@@ -23,8 +23,15 @@ import numpy as np
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
-from common.clock import now_ns
-from common.tactile import MASKS, N_ANGLES, N_PATTERNS, N_POSITIONS, pattern_name, pattern_of
+from common.clocks.clock import now_ns
+from common.tactile.contract import (
+    MASKS,
+    N_ANGLES,
+    N_PATTERNS,
+    N_POSITIONS,
+    pattern_name,
+    pattern_of,
+)
 
 log = logging.getLogger(__name__)
 

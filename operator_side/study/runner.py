@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.tactile import N_PATTERNS, classes_of, pattern_name
+from common.tactile.contract import N_PATTERNS, classes_of, pattern_name
 from operator_side.study.display import PalmDisplay, StimulusMaker, wait_s
 from operator_side.study.protocol import (
     ResultsFile,

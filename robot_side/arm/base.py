@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import now_s
-from common.devices import Device
+from common.clocks.clock import now_s
+from common.devices.lifecycle import Device
 from common.errors import DeviceError, DeviceTimeoutError
 from robot_side.arm.limits import (
     STOP_TRANSIT_S,

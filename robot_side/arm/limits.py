@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError, DeviceError
 from common.rotation import rotation_angle, rotvec_to_matrix
 

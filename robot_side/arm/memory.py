@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import now_ns
-from common.config import param
+from common.clocks.clock import now_ns
+from common.config.typed import param
 from common.errors import DeviceAlreadyConnectedError
 from robot_side.arm.base import Arm, ArmLimits, as_vector6
 

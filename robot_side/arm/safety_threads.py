@@ -15,9 +15,9 @@ import os
 import threading
 from collections.abc import Callable
 
-from common.clock import now_s
-from common.devices import at_niceness
-from common.realtime import PeriodStats, Scheduling, raise_this_thread
+from common.clocks.clock import now_s
+from common.devices.lifecycle import at_niceness
+from common.process.realtime import PeriodStats, Scheduling, raise_this_thread
 from robot_side.arm.limits import deadman_period_s
 
 log = logging.getLogger(__name__)

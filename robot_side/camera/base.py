@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from common.devices import Device, load_object
+from common.devices.lifecycle import Device, load_object
 from common.errors import ConfigError
 
 

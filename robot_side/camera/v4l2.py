@@ -22,8 +22,7 @@ import stat
 import time
 from typing import Any
 
-from common.errors import DeviceError, DeviceNotConnectedError
-from common.preflight import (
+from common.devices.preflight import (
     FAIL,
     WARN,
     Finding,
@@ -33,6 +32,7 @@ from common.preflight import (
     processes_holding,
     service_user_can,
 )
+from common.errors import DeviceError, DeviceNotConnectedError
 from robot_side.camera.base import Camera, CapturedFrame
 from robot_side.camera.config import V4L2Config
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from common.errors import DeviceError
-from common.recording import Recorder
+from common.recording.channels import Recorder
 
 log = logging.getLogger(__name__)
 

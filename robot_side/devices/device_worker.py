@@ -27,7 +27,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from common.clock import now_s
+from common.clocks.clock import now_s
 from robot_side.devices.recovery import DeviceRecovery
 
 log = logging.getLogger(__name__)

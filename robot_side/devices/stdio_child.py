@@ -28,7 +28,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from common.config import to_dict
+from common.config.typed import to_dict
 from common.errors import DeviceError, DeviceTimeoutError
 
 log = logging.getLogger(__name__)

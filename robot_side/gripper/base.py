@@ -23,11 +23,11 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
-from common.clock import now_s
-from common.config import param
-from common.devices import Device
+from common.clocks.clock import now_s
+from common.config.typed import param
+from common.devices.lifecycle import Device
 from common.errors import ConfigError, DeviceError, DeviceTimeoutError
-from common.tactile import N_GRIP_LEVELS
+from common.tactile.contract import N_GRIP_LEVELS
 
 log = logging.getLogger(__name__)
 

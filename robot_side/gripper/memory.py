@@ -12,7 +12,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
-from common.config import param
+from common.config.typed import param
 from common.errors import DeviceAlreadyConnectedError
 from robot_side.gripper.base import (
     ActivationStatus,

@@ -27,8 +27,8 @@ import threading
 from dataclasses import dataclass
 from typing import Protocol
 
-from common.clock import Rate, now_s
-from common.config import param
+from common.clocks.clock import Rate, now_s
+from common.config.typed import param
 from common.errors import ConfigError
 from robot_side.gripper.base import ActivationStatus, ObjectStatus
 

@@ -23,7 +23,7 @@ import struct
 import threading
 import tty
 
-from common.devices import as_hardware
+from common.devices.lifecycle import as_hardware
 from robot_side.gripper.modbus_rtu import (
     FC_READ_HOLDING_REGISTERS,
     FC_READ_INPUT_REGISTERS,

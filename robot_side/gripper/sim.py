@@ -17,8 +17,8 @@ import threading
 from dataclasses import dataclass
 from typing import Any
 
-from common.config import param
-from common.devices import OnItsSimulator, as_hardware
+from common.config.typed import param
+from common.devices.lifecycle import OnItsSimulator, as_hardware
 from common.errors import DeviceError
 from robot_side.gripper.model import GripperModel, GripperModelConfig
 from robot_side.gripper.urcap_socket import RobotiqSocketConfig, RobotiqSocketGripper

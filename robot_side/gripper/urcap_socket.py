@@ -22,14 +22,14 @@ import socket
 import threading
 from dataclasses import dataclass
 
-from common.config import param
+from common.config.typed import param
+from common.devices.preflight import Finding, PreflightContext, tcp_findings
 from common.errors import (
     DeviceAlreadyConnectedError,
     DeviceNotConnectedError,
     DeviceTimeoutError,
     ProtocolError,
 )
-from common.preflight import Finding, PreflightContext, tcp_findings
 from robot_side.gripper.base import GripLevels, Gripper, GripperState
 
 log = logging.getLogger(__name__)

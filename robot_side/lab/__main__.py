@@ -12,10 +12,10 @@ import logging
 import sys
 from pathlib import Path
 
-from common.config import from_dict, load_toml
+from common.config.typed import from_dict, load_toml
 from common.logs import configure as configure_logging
-from common.sd_notify import Notifier
-from common.signals import stop_on_signals
+from common.process.sd_notify import Notifier
+from common.process.signals import stop_on_signals
 from robot_side.lab.config import LabWorldConfig
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.config import from_dict, load_toml, param
+from common.config.typed import from_dict, load_toml, param
 from common.errors import ConfigError
 from robot_side.arm.process import InOwnProcess
 from robot_side.arm.ur_rtde import URArm, URArmConfig

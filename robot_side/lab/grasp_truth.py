@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 
-from common.synthetic_tactile import offset_direction
-from common.tactile import N_ANGLES, pattern_of
+from common.tactile.contract import N_ANGLES, pattern_of
+from common.tactile.synthetic import offset_direction
 from robot_side.lab.model import PAD_CENTRE_Z_M
 from robot_side.lab.world import LabWorld
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.tactile import TAXEL_PITCH_MM
+from common.tactile.contract import TAXEL_PITCH_MM
 from robot_side.arm.sim.kinematics import DH_A, DH_D, HOME_Q, forward, pose_to_matrix
 from robot_side.lab.config import LabWorldConfig, PipetteConfig
 

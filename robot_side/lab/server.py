@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import Rate, now_s
-from common.devices import as_hardware
-from common.tactile import N_GRIP_LEVELS
+from common.clocks.clock import Rate, now_s
+from common.devices.lifecycle import as_hardware
+from common.tactile.contract import N_GRIP_LEVELS
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.gripper.base import GripLevels
 from robot_side.gripper.sim import GripperModelConfig, GripperSimConfig, GripperSimServer

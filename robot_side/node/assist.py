@@ -43,11 +43,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from common.messages import ASSIST_PHASES, Command
-from common.recording import Recorder
+from common.recording.channels import Recorder
 from common.rotation import matrix_to_rotvec, rotvec_to_matrix
-from common.synthetic_tactile import offset_direction
-from common.tactile import ANGLES_DEG, classes_of, pattern_of
+from common.tactile.contract import ANGLES_DEG, classes_of, pattern_of
+from common.tactile.synthetic import offset_direction
+from common.wire.messages import ASSIST_PHASES, Command
 from robot_side.arm.base import TELEMETRY_POSE_KEYS, ArmLimits
 from robot_side.config import AssistConfig
 from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL

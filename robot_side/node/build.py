@@ -6,8 +6,8 @@ from typing import Any
 
 import zmq
 
-from common.devices import Device, build_device
-from common.recording import Recorder
+from common.devices.lifecycle import Device, build_device
+from common.recording.channels import Recorder
 from robot_side.config import RobotConfig
 from robot_side.node.robot_node import RobotNode
 

@@ -35,11 +35,11 @@ import logging
 from collections import Counter
 from collections.abc import Callable
 
-from common.clock_sync import ClockSync
+from common.clocks.clock_sync import ClockSync
 from common.errors import ConfigError
+from common.keys.roster import Roster, check_replacement, load_roster
 from common.logs import BurstLog
-from common.messages import LEASE_ACTIONS, Command, Heartbeat, Message, VideoSignal
-from common.roster import Roster, check_replacement, load_roster
+from common.wire.messages import LEASE_ACTIONS, Command, Heartbeat, Message, VideoSignal
 from robot_side.config import RobotLinkConfig
 from robot_side.node.assist import Assist
 from robot_side.node.commands.command_gate import PENDING, CommandGate, RobotRun

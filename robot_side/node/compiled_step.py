@@ -23,8 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from common.stimulus import downsizing_matrix, mask_columns
-from common.tactile import (
+from common.tactile.contract import (
     FRAME_SHAPE,
     N_ANGLES,
     N_POSITIONS,
@@ -32,6 +31,7 @@ from common.tactile import (
     STIMULUS_SHAPE,
     pattern_of,
 )
+from common.tactile.stimulus import downsizing_matrix, mask_columns
 from robot_side.jit.cache import njit
 from robot_side.perception.numba_forward import classify_frame
 

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from common.messages import Command
+from common.wire.messages import Command
 from robot_side.arm.base import Arm
 from robot_side.gripper.base import Gripper
 

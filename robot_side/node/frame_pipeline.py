@@ -25,8 +25,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from common.messages import Stimulus
-from common.recording import Recorder
+from common.recording.channels import Recorder
+from common.wire.messages import Stimulus
 from robot_side.config import RobotConfig
 from robot_side.node.frame_rule import Classifier, FrameRenderer
 from robot_side.tactile.base import TactileSample

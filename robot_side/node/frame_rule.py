@@ -15,9 +15,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from common.recording import Recorder
-from common.stimulus import NO_CELLS, Method, Order, render_cells, sanitize_with_peak
-from common.tactile import pattern_of
+from common.recording.channels import Recorder
+from common.tactile.contract import pattern_of
+from common.tactile.stimulus import NO_CELLS, Method, Order, render_cells, sanitize_with_peak
 from robot_side.config import RenderConfig
 from robot_side.tactile.base import TactileSample
 

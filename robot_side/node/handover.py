@@ -17,10 +17,10 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
-from common.codec import DecodeError
 from common.errors import DeviceError
-from common.messages import SESSION_LOW_MASK, Command
-from common.recording import Recorder
+from common.recording.channels import Recorder
+from common.wire.codec import DecodeError
+from common.wire.messages import SESSION_LOW_MASK, Command
 from robot_side.devices.device_worker import DeviceRequest
 from robot_side.node.commands.stop_latch import REFUSALS, StopLatch
 from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL, DEVICE_CALLS

@@ -26,7 +26,7 @@ def warm() -> list[str]:
     """What was compiled or loaded from the cache; raises if numba is missing."""
     import numba  # noqa: F401  (the robot extra)
 
-    from common.tactile import FRAME_SHAPE
+    from common.tactile.contract import FRAME_SHAPE
     from robot_side.config import RenderConfig
     from robot_side.node.compiled_step import CompiledFrameStep
     from robot_side.perception import load_classifier

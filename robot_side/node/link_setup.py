@@ -12,15 +12,15 @@ from typing import TYPE_CHECKING
 
 import zmq
 
-from common.codec import DecodeError, check_robot_name, name_prefix
 from common.errors import ConfigError
-from common.messages import Command, Heartbeat, VideoSignal
-from common.security import Authenticator, check_endpoint, server_options
-from common.transport import Publisher, Receiver, Sender, Subscriber
+from common.keys.curve import Authenticator, check_endpoint, server_options
+from common.wire.codec import DecodeError, check_robot_name, name_prefix
+from common.wire.messages import Command, Heartbeat, VideoSignal
+from common.wire.transport import Publisher, Receiver, Sender, Subscriber
 from robot_side.config import RobotConfig, RobotLinkConfig
 
 if TYPE_CHECKING:  # cryptography only when signing
-    from common.signing import Signer
+    from common.wire.signing import Signer
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,7 @@ def stream_signer(link: RobotLinkConfig) -> Signer | None:
         log.warning("link.unsigned_stream: this robot's stream is not signed")
     if link.signing_key_file is None:
         return None
-    from common.signing import load_signer  # cryptography only when signing
+    from common.wire.signing import load_signer  # cryptography only when signing
 
     return load_signer(link.signing_key_file)
 

@@ -13,7 +13,7 @@ import itertools
 import logging
 from collections import Counter
 
-from common.clock import now_ns
+from common.clocks.clock import now_ns
 from common.logs import BurstLog
 
 log = logging.getLogger(__name__)

@@ -9,9 +9,9 @@ one operator, who always holds control: the same admission then serves both.
 
 from __future__ import annotations
 
-from common.clock_sync import ClockSync
-from common.messages import Command, Message
-from common.roster import OperatorEntry
+from common.clocks.clock_sync import ClockSync
+from common.keys.roster import OperatorEntry
+from common.wire.messages import Command, Message
 from robot_side.node.commands.command_gate import CommandGate
 from robot_side.node.commands.lease import ControlLease, Peer
 

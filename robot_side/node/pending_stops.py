@@ -16,7 +16,7 @@ import logging
 from collections import Counter
 from collections.abc import Callable
 
-from common.messages import Command
+from common.wire.messages import Command
 from robot_side.node.commands.command_gate import (
     PENDING,
     STOP_BEFORE_RUN,

@@ -18,12 +18,12 @@ from collections import Counter
 
 import zmq
 
-from common.clock import Clock, Periodic, now_ns
-from common.clock_sync import ClockSync
-from common.messages import Stimulus, VideoSignal, new_run
-from common.recording import NullRecorder, Recorder
-from common.security import Authenticator
-from common.transport import Link, Receiver, Sender, link_health, make_context
+from common.clocks.clock import Clock, Periodic, now_ns
+from common.clocks.clock_sync import ClockSync
+from common.keys.curve import Authenticator
+from common.recording.channels import NullRecorder, Recorder
+from common.wire.messages import Stimulus, VideoSignal, new_run
+from common.wire.transport import Link, Receiver, Sender, link_health, make_context
 from robot_side.arm.base import Arm
 from robot_side.config import RobotConfig
 from robot_side.gripper.base import Gripper

@@ -12,13 +12,13 @@ import logging
 from collections import Counter
 from collections.abc import Callable
 
-from common.clock import Periodic
-from common.codec import MAX_STATS, name_prefix
+from common.clocks.clock import Periodic
+from common.keys.curve import Authenticator
 from common.logs import BurstLog
-from common.messages import Heartbeat, Stimulus, TactileFrame
-from common.security import Authenticator
-from common.stimulus import sanitize_frame
-from common.transport import Sender
+from common.tactile.stimulus import sanitize_frame
+from common.wire.codec import MAX_STATS, name_prefix
+from common.wire.messages import Heartbeat, Stimulus, TactileFrame
+from common.wire.transport import Sender
 from robot_side.config import RobotLinkConfig
 from robot_side.node.command_desk import CommandDesk
 from robot_side.node.frame_pipeline import FramePipeline

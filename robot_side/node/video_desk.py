@@ -24,9 +24,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from common.errors import ConfigError
-from common.messages import VideoSignal
-from common.roster import OperatorEntry
-from common.transport import Sender
+from common.keys.roster import OperatorEntry
+from common.wire.messages import VideoSignal
+from common.wire.transport import Sender
 from robot_side.config import RobotLinkConfig
 from robot_side.video.link_signalling import LinkSignalling
 

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.stimulus import sanitize_frame
-from common.tactile import PAD_COLS, PAD_ROWS, TAXEL_PITCH_MM
+from common.tactile.contract import PAD_COLS, PAD_ROWS, TAXEL_PITCH_MM
+from common.tactile.stimulus import sanitize_frame
 
 #: a taxel below this share of the frame's peak does not weigh in (noise, stuck floors)
 FLOOR_SHARE = 0.15

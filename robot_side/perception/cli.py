@@ -17,9 +17,9 @@ import sys
 import time
 from pathlib import Path
 
-from common.config import from_dict, load_toml
+from common.config.typed import from_dict, load_toml
 from common.errors import ConfigError
-from common.tactile import N_GRIP_LEVELS, N_PATTERNS
+from common.tactile.contract import N_GRIP_LEVELS, N_PATTERNS
 from robot_side.perception.weights import DEFAULT_MODEL, MODELS_DIR
 
 
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     from robot_side.perception import dataset as ds
 
     if args.defaults:
-        from common.config import defaults_toml
+        from common.config.typed import defaults_toml
         from robot_side.perception.train import TrainConfig
 
         print(defaults_toml(TrainConfig, "train"), end="")

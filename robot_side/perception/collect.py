@@ -20,10 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError, DeviceError
-from common.synthetic_tactile import offset_direction
-from common.tactile import ANGLES_DEG, N_GRIP_LEVELS, N_PATTERNS, classes_of
+from common.tactile.contract import ANGLES_DEG, N_GRIP_LEVELS, N_PATTERNS, classes_of
+from common.tactile.synthetic import offset_direction
 from robot_side.arm.base import Arm, WorkspaceLimitError
 from robot_side.arm.sim.kinematics import matrix_to_rotvec, rotvec_to_matrix
 from robot_side.gripper.base import Gripper

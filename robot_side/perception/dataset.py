@@ -37,9 +37,9 @@ from typing import Any
 
 import numpy as np
 
-from common.config import param, to_dict
-from common.synthetic_tactile import GeneratorParams, SyntheticTactileModel
-from common.tactile import FRAME_SHAPE, N_GRIP_LEVELS, N_PATTERNS, patterns_of
+from common.config.typed import param, to_dict
+from common.tactile.contract import FRAME_SHAPE, N_GRIP_LEVELS, N_PATTERNS, patterns_of
+from common.tactile.synthetic import GeneratorParams, SyntheticTactileModel
 from robot_side.perception.errors import DatasetError
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.tactile import N_GRIP_LEVELS, N_PATTERNS, patterns_of
+from common.tactile.contract import N_GRIP_LEVELS, N_PATTERNS, patterns_of
 from robot_side.perception import dataset
 from robot_side.perception.inference import load_classifier
 

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from common.tactile import (
+from common.tactile.contract import (
     FRAME_SHAPE,
     N_ANGLES,
     N_POSITIONS,

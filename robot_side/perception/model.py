@@ -31,8 +31,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from common.config import param
-from common.tactile import CONTACT_FLOOR_N, N_ANGLES, N_POSITIONS, SATURATION_N
+from common.config.typed import param
+from common.tactile.contract import CONTACT_FLOOR_N, N_ANGLES, N_POSITIONS, SATURATION_N
 from robot_side.perception.errors import ModelLoadError
 
 log = logging.getLogger(__name__)

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from common.tactile import CONTACT_FLOOR_N, FRAME_SHAPE, SATURATION_N
+from common.tactile.contract import CONTACT_FLOOR_N, FRAME_SHAPE, SATURATION_N
 from robot_side.jit.cache import njit
 from robot_side.perception.errors import ModelLoadError
 from robot_side.perception.folding import block_diag, fold_batch_norm

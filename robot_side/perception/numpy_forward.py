@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from common.tactile import CONTACT_FLOOR_N, SATURATION_N
+from common.tactile.contract import CONTACT_FLOOR_N, SATURATION_N
 from robot_side.perception.errors import ModelLoadError
 from robot_side.perception.folding import block_diag, fold_batch_norm
 

@@ -27,9 +27,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from common.config import param, to_dict
-from common.synthetic_tactile import GeneratorParams
-from common.tactile import N_GRIP_LEVELS, N_PATTERNS
+from common.config.typed import param, to_dict
+from common.tactile.contract import N_GRIP_LEVELS, N_PATTERNS
+from common.tactile.synthetic import GeneratorParams
 from robot_side.perception import dataset as ds
 from robot_side.perception.model import (
     ModelConfig,

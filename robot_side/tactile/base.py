@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import now_ns
-from common.devices import Device
+from common.clocks.clock import now_ns
+from common.devices.lifecycle import Device
 from common.errors import StaleDataError
 
 _NEVER = 2**63 - 1  # a sequence number no frame reaches

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.config import load_toml
+from common.config.typed import load_toml
 from common.errors import ConfigError
 from robot_side.tactile.wire import COLS, N_PADS, ROWS
 

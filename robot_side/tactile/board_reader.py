@@ -16,7 +16,7 @@ import threading
 
 import serial
 
-from common.clock import now_ns
+from common.clocks.clock import now_ns
 from common.errors import ConfigError, DeviceError, DeviceTimeoutError, ProtocolError
 from robot_side.tactile.scans import ScanPairing
 from robot_side.tactile.serial_config import SerialTactileConfig

@@ -35,11 +35,11 @@ from typing import Any, Protocol, Self
 
 import numpy as np
 
-from common.clock import Rate, now_ns
-from common.config import param
-from common.devices import OnItsSimulator, as_hardware
-from common.pty_link import PtyLink
-from common.synthetic_tactile import GeneratorParams, HeldGrasp, SyntheticTactileModel
+from common.clocks.clock import Rate, now_ns
+from common.config.typed import param
+from common.devices.lifecycle import OnItsSimulator, as_hardware
+from common.devices.pty_link import PtyLink
+from common.tactile.synthetic import GeneratorParams, HeldGrasp, SyntheticTactileModel
 from robot_side.tactile.base import GraspTruth
 from robot_side.tactile.board_calibration import WIRE_SHAPE, BoardCalibration
 from robot_side.tactile.script import GraspScript

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.tactile import FRAME_SHAPE
+from common.tactile.contract import FRAME_SHAPE
 from robot_side.jit.cache import njit
 
 _ZERO = np.float32(0.0)

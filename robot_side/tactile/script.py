@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError
-from common.tactile import N_GRIP_LEVELS, N_PATTERNS
+from common.tactile.contract import N_GRIP_LEVELS, N_PATTERNS
 from robot_side.tactile.base import GraspTruth
 
 

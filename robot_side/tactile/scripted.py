@@ -14,11 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.clock import Rate, now_ns
-from common.config import param
+from common.clocks.clock import Rate, now_ns
+from common.config.typed import param
 from common.errors import DeviceAlreadyConnectedError
-from common.synthetic_tactile import GeneratorParams, HeldGrasp, SyntheticTactileModel
-from common.tactile import FRAME_SHAPE
+from common.tactile.contract import FRAME_SHAPE
+from common.tactile.synthetic import GeneratorParams, HeldGrasp, SyntheticTactileModel
 from robot_side.tactile.base import TactileSample, TactileSensor
 from robot_side.tactile.script import GraspScript
 

@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from common.devices import Device
+from common.devices.lifecycle import Device
+from common.devices.preflight import Finding, PreflightContext, serial_findings
 from common.errors import DeviceAlreadyConnectedError, DeviceTimeoutError, StaleDataError
-from common.preflight import Finding, PreflightContext, serial_findings
 from robot_side.tactile.base import GraspTruth, TactileSample, TactileSensor
 from robot_side.tactile.board_calibration import (
     WIRE_SHAPE,

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from common.config import param
-from common.tactile import SATURATION_N
+from common.config.typed import param
+from common.tactile.contract import SATURATION_N
 from robot_side.tactile.wire import DEFAULT_BAUD
 
 

@@ -19,14 +19,14 @@ import sys
 import threading
 import time
 
-from common.cli_support import (
+from common.process.command_line import (
     add_config_arguments,
     load_node_config,
     print_config,
     stop_on_signals,
     write_stats,
 )
-from common.sd_notify import Notifier
+from common.process.sd_notify import Notifier
 from robot_side.video.server import VideoConfig
 
 log = logging.getLogger(__name__)

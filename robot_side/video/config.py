@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from common.config import param
-from common.ice import IceConfig
+from common.config.typed import param
+from common.wire.ice import IceConfig
 from robot_side.camera import KINDS as CAMERA_KINDS
 from robot_side.camera.base import Camera, build_camera
 from robot_side.camera.config import LabCameraConfig, TestPatternConfig, V4L2Config

@@ -51,8 +51,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from common import bounded_json, web_token
-from common.messages import VideoSignal
+from common.web import bounded_json, web_token
+from common.wire.messages import VideoSignal
 
 if TYPE_CHECKING:
     from websockets.asyncio.client import ClientConnection

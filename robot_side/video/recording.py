@@ -24,8 +24,8 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
-from common.clock import wall_offset_ns
-from common.mcap_recorder import McapRecorder
+from common.clocks.clock import wall_offset_ns
+from common.recording.mcap_recorder import McapRecorder
 from robot_side.camera.base import CapturedFrame
 from robot_side.video.feed import CameraFeed
 

@@ -35,8 +35,8 @@ import threading
 import time
 from typing import Any
 
-from common import web_token
 from common.errors import ConfigError
+from common.web import web_token
 from robot_side.camera.base import Camera
 from robot_side.video import media_binding
 from robot_side.video.config import VideoConfig, build_source, camera_key
@@ -134,7 +134,7 @@ class VideoServer:
                 "(is another program using the port?)"
             )
         if self.config.record is not None:  # for as long as the server runs
-            from common.config import config_toml
+            from common.config.typed import config_toml
 
             node = {"node": "video", "config_toml": config_toml(self.config, "video")}
             self.recording = CameraRecording(

@@ -14,7 +14,7 @@ import concurrent.futures
 from fractions import Fraction
 from typing import Any
 
-from common.ice import IceConfig
+from common.wire.ice import IceConfig
 from robot_side.camera.base import CapturedFrame
 from robot_side.video.feed import CameraFeed
 

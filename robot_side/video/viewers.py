@@ -20,7 +20,7 @@ import logging
 import time
 from typing import Any
 
-from common import bounded_json
+from common.web import bounded_json
 from robot_side.camera.base import Camera
 from robot_side.video import media_binding
 from robot_side.video.config import VideoConfig

@@ -6,7 +6,7 @@ import itertools
 
 import pytest
 
-from common.clock import Periodic
+from common.clocks.clock import Periodic
 
 MS = 1_000_000
 

@@ -11,8 +11,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from tests_support import stimulus
 
-from common import codec
-from common.codec import (
+from common.wire import codec
+from common.wire.codec import (
     SIG_ENTRY_BYTES,
     SIG_TAG,
     DecodeError,
@@ -28,8 +28,8 @@ from common.codec import (
     decode,
     encode,
 )
-from common.messages import Command, Heartbeat, Stimulus, TactileFrame
-from common.signing import Signer
+from common.wire.messages import Command, Heartbeat, Stimulus, TactileFrame
+from common.wire.signing import Signer
 
 
 def body_of(data: bytes) -> dict:
@@ -241,7 +241,7 @@ def test_a_multipart_message_is_refused_and_counted_by_the_subscriber():
 
     import zmq
 
-    from common.transport import Subscriber
+    from common.wire.transport import Subscriber
 
     ctx = zmq.Context()
     sub = Subscriber(ctx, "tcp://127.0.0.1:*", bind=True)

@@ -6,13 +6,13 @@ import logging
 
 import pytest
 
-from common.config import from_dict
+from common.config.typed import from_dict
 from common.errors import ConfigError
 from robot_side.tactile.serial_board import SerialTactileConfig
 
 
 def test_old_baud_key_is_read_as_baudrate_with_a_warning(caplog) -> None:
-    with caplog.at_level(logging.WARNING, logger="common.config"):
+    with caplog.at_level(logging.WARNING, logger="common.config.typed"):
         config = from_dict(SerialTactileConfig, {"baud": 115200}, where="robot.tactile")
     assert config.baudrate == 115200
     assert "[robot.tactile] baud is deprecated: call it baudrate" in caplog.text

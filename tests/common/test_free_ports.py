@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import socket
 
-from common import loopback_ports
-from common.loopback_ports import KNOWN_PORTS_FROM, free_loopback_ports
+from common.wire import loopback_ports
+from common.wire.loopback_ports import KNOWN_PORTS_FROM, free_loopback_ports
 
 
 def test_ports_come_from_below_the_kernels_own_range_distinct_and_free():

@@ -9,7 +9,7 @@ import pytest
 from websockets.sync.client import connect
 
 from common.errors import ConfigError
-from common.ice import IceConfig
+from common.wire.ice import IceConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
 
 

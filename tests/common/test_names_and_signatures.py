@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import zmq
 
-from common.codec import (
+from common.wire.codec import (
     DecodeError,
     RobotNameError,
     SignatureError,
@@ -17,9 +17,9 @@ from common.codec import (
     encode,
     name_prefix,
 )
-from common.messages import Command, Heartbeat, Stimulus
-from common.signing import Signer
-from common.transport import Publisher, Subscriber
+from common.wire.messages import Command, Heartbeat, Stimulus
+from common.wire.signing import Signer
+from common.wire.transport import Publisher, Subscriber
 
 
 def _stim() -> Stimulus:

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.replay_window import ReplayWindow
+from common.wire.replay_window import ReplayWindow
 
 pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # no timing checked
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from common.errors import ConfigError
-from common.roster import (
+from common.keys.roster import (
     RosterLockoutError,
     check_replacement,
     operator_entry,

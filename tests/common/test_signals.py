@@ -40,7 +40,7 @@ _CHILD = textwrap.dedent(
 )
 
 
-@pytest.mark.parametrize("module", ["common.signals", "common.cli_support"])
+@pytest.mark.parametrize("module", ["common.process.signals", "common.process.command_line"])
 def test_sigterm_inside_the_stop_events_own_lock_still_stops_the_process(module: str) -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     child = subprocess.Popen(
@@ -63,7 +63,7 @@ def test_sigterm_inside_the_stop_events_own_lock_still_stops_the_process(module:
 
 def test_the_link_simulator_ends_on_sigterm_while_it_relays(tmp_path: Path) -> None:
     """``deepxpalm netsim`` in stream mode, a connection through it, SIGTERM: it ends."""
-    from common.transport import free_loopback_ports
+    from common.wire.transport import free_loopback_ports
 
     robot_tel, robot_cmd, op_tel, op_cmd = (f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(4))
     log = (tmp_path / "netsim.log").open("w")

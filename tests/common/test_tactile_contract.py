@@ -1,4 +1,4 @@
-"""The tactile contract's values are pinned, and declared in ``common.tactile`` only."""
+"""The tactile contract's values are pinned, and declared in ``common.tactile.contract`` only."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common import tactile
+from common.tactile import contract as tactile
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("common", "robot_side", "operator_side", "router_side", "deploy", "harness")
@@ -114,7 +114,7 @@ def scanned() -> dict[str, list[str]]:
     spelled: list[str] = []
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):
-            if path in (ROOT / "common" / "tactile.py", ROOT / "common" / "tactile_scale.py"):
+            if path in (ROOT / "common/tactile/contract.py", ROOT / "common/tactile/scale.py"):
                 continue  # the contract, and its force scale apart from NumPy
             tree = ast.parse(path.read_text(), str(path))
             where = path.relative_to(ROOT)
@@ -125,7 +125,7 @@ def scanned() -> dict[str, list[str]]:
 
 def test_no_module_declares_its_own_copy(scanned):
     copies = scanned["copies"]
-    assert not copies, f"declare these in common/tactile.py and import them: {copies}"
+    assert not copies, f"declare these in common/tactile/contract.py and import them: {copies}"
 
 
 def _spelled_out(tree: ast.AST) -> list[tuple[int, str]]:
@@ -210,13 +210,15 @@ shape = (3, 10, 10)
 
 
 def test_no_module_spells_the_contract_out(scanned):
-    """``grep`` for the encoding finds it in common/tactile.py only (and in the tests)."""
+    """``grep`` for the encoding finds it in common/tactile/contract.py only (and in the tests)."""
     spelled = scanned["spelled"]
-    assert not spelled, "name the contract (common/tactile.py) instead:\n" + "\n".join(spelled)
+    assert not spelled, "name the contract (common/tactile/contract.py) instead:\n" + "\n".join(
+        spelled
+    )
 
 
 def test_importers_share_the_contracts_objects():
-    from common import codec_schema
+    from common.wire import codec_schema
     from operator_side.dashboard import page_commands
     from robot_side.gripper import base
     from robot_side.perception import numba_forward, numpy_forward

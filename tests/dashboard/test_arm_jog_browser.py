@@ -437,7 +437,7 @@ def test_neither_a_client_without_the_token_nor_a_rebinding_page_can_jog(station
     from websockets.exceptions import InvalidStatus
     from websockets.sync.client import connect
 
-    from common.web_token import with_token
+    from common.web.web_token import with_token
 
     rig, dashboard = station
     sim = rig.arm_sim

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 from headless_chromium import Chromium, needs_chromium
 
-from common.clock import now_ns
-from common.messages import Command, Heartbeat, Stimulus, TactileFrame
-from common.tactile import MASKS
-from common.transport import Publisher, Subscriber
+from common.clocks.clock import now_ns
+from common.tactile.contract import MASKS
+from common.wire.messages import Command, Heartbeat, Stimulus, TactileFrame
+from common.wire.transport import Publisher, Subscriber
 from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.node import OperatorNode

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from test_dashboard_server import FakeNode, _next
 from websockets.sync.client import connect
 
-from common.config import from_dict
+from common.config.typed import from_dict
 from common.errors import ConfigError
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.dashboard.jog_config import JogConfig, parse_mapping

@@ -14,7 +14,7 @@ import pytest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from common.tactile import MASKS
+from common.tactile.contract import MASKS
 from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.dashboard.view import LinkHistory, snapshot_view

@@ -15,8 +15,8 @@ from headless_chromium import Chromium, needs_chromium
 from test_dashboard_browser import operator_station
 from websockets.sync.client import connect
 
-from common.episode_marks import CHANNEL
-from common.mcap_recorder import McapRecorder, read_recording
+from common.recording.episode_marks import CHANNEL
+from common.recording.mcap_recorder import McapRecorder, read_recording
 from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.node import OperatorNode

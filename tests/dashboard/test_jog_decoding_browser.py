@@ -17,7 +17,7 @@ import pytest
 from headless_chromium import Chromium, needs_chromium
 from test_dashboard_server import FakeNode
 
-from common.config import to_dict
+from common.config.typed import to_dict
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.dashboard.jog_config import JogConfig
 

@@ -19,7 +19,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from common.errors import ConfigError
-from common.web_token import from_query, with_token
+from common.web.web_token import from_query, with_token
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.dashboard.config import TOKEN_ENV
 from operator_side.dashboard.page_auth import CHALLENGE_PROTOCOL, PageAuth, challenge_mac

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from headless_chromium import Chromium, needs_chromium
 
-from common.tactile import MASKS
+from common.tactile.contract import MASKS
 from operator_side.servos.recording import RecordingServoBus
 from operator_side.study.display import PalmDisplay
 from operator_side.study.protocol import ResultsFile, StudyConfig, read_records, results_path

@@ -21,8 +21,8 @@ from headless_chromium import MISSED_STAMPS_ALLOWED, Chromium, needs_chromium, p
 
 pytest.importorskip("aiortc")
 
-from common.ice import IceConfig
-from common.transport import free_loopback_ports
+from common.wire.ice import IceConfig
+from common.wire.transport import free_loopback_ports
 
 TURNSERVER = shutil.which("turnserver")
 

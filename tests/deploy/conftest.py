@@ -40,7 +40,7 @@ def robot_in_thread():
     started: list[tuple[threading.Event, threading.Thread]] = []
 
     def start(tel: int, cmd: int, security: dict | None = None):
-        from common.config import from_dict
+        from common.config.typed import from_dict
         from robot_side.config import RobotConfig
         from robot_side.node import build_robot_node
 
@@ -77,7 +77,7 @@ def operator_in_thread():
     started: list[tuple[threading.Event, threading.Thread]] = []
 
     def start(tel: int, cmd: int, security: dict | None = None):
-        from common.config import from_dict
+        from common.config.typed import from_dict
         from operator_side.config import OperatorConfig
         from operator_side.node import build_operator_node
 

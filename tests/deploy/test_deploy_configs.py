@@ -12,8 +12,8 @@ from typing import Any
 import pytest
 from deploy_support import ENV, EXAMPLES, cli
 
-from common.config import load_toml
-from common.devices import build_device, load_object
+from common.config.typed import load_toml
+from common.devices.lifecycle import build_device, load_object
 from deploy.scene import load_scene
 from operator_side.config import OperatorConfig
 from robot_side.config import RobotConfig

@@ -11,7 +11,7 @@ import pytest
 from deploy_support import ENV, cli, loopback
 from tests_support import free_ports
 
-from common.preflight import Finding, PreflightContext
+from common.devices.preflight import Finding, PreflightContext
 from deploy.doctor import FAIL, PASS, SKIP, WARN, DoctorOptions, diagnose, node_section
 from deploy.keys_cli import generate
 from deploy.scene import load_scene_dict

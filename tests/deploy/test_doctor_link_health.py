@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from common.preflight import PASS, WARN
+from common.devices.preflight import PASS, WARN
 from deploy.doctor.link import link_health_verdict
 from deploy.doctor.report import Report
 

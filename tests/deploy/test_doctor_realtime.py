@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from common.preflight import WARN
+from common.devices.preflight import WARN
 from deploy.doctor.report import Report
 from deploy.doctor.system import check_realtime
 
@@ -12,7 +12,7 @@ from deploy.doctor.system import check_realtime
 def _granted() -> bool:
     import threading
 
-    from common.realtime import raise_this_thread
+    from common.process.realtime import raise_this_thread
 
     got: list = []
     t = threading.Thread(target=lambda: got.append(raise_this_thread(1, 0)))

@@ -84,7 +84,7 @@ class OpenWatch:
 
 @pytest.mark.slow
 def test_secret_key_files_are_0600_from_their_creation(tmp_path, monkeypatch):
-    from common.signing import generate_key_files
+    from common.wire.signing import generate_key_files
     from deploy.keys_cli import generate, machine_keys
 
     directory = tmp_path / "keys"
@@ -127,7 +127,7 @@ def test_secret_key_files_are_0600_from_their_creation(tmp_path, monkeypatch):
 @pytest.mark.slow
 @pytest.mark.untimed
 def test_the_robot_refuses_an_arm_behind_a_plain_unsigned_command_port(tmp_path):
-    from common.config import from_dict
+    from common.config.typed import from_dict
     from robot_side.config import RobotConfig
     from robot_side.node.link_setup import check_command_access
 

@@ -15,7 +15,7 @@ import pytest
 from deploy_support import ENV, EXAMPLES, cli, loopback
 from tests_support import free_ports
 
-from common.sd_notify import Notifier, watch_node
+from common.process.sd_notify import Notifier, watch_node
 
 pytestmark = pytest.mark.parallel
 

@@ -115,10 +115,10 @@ def test_a_child_that_ends_before_it_is_ready_fails_its_start_with_its_log(tmp_p
     sup.stop_all([])
 
 
-#: a unit's process as common.sd_notify makes it: READY=1, then WATCHDOG=1 every 50 ms
+#: a unit's process as common.process.sd_notify makes it: READY=1, then WATCHDOG=1 every 50 ms
 PINGER = """
 import time
-from common.sd_notify import Notifier
+from common.process.sd_notify import Notifier
 n = Notifier()
 n.ready()
 while True:

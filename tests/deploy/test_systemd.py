@@ -183,7 +183,7 @@ def test_udev_rules_parse_and_give_each_device_its_name_and_group():
             assert keys["ENV{ID_MM_DEVICE_IGNORE}"] == ("=", "1")
     assert names == {"deepxpalm-tactile", "deepxpalm-gripper", "deepxpalm-servos"}
     # The names the example configs and the full-hardware scene open.
-    from common.config import load_toml
+    from common.config.typed import load_toml
 
     assert (
         load_toml(EXAMPLES / "robot.toml")["robot"]["tactile"]["port"] == "/dev/deepxpalm-tactile"

@@ -22,10 +22,10 @@ from deploy_support import ENV, REPO, cli, loopback
 from telemetry_publisher import CELLS, TelemetryPublisher, check_rates
 from tests_support import free_ports
 
-from common.clock import now_ns
-from common.security import Authenticator, SecurityConfig, server_options
-from common.signing import Signer
-from common.transport import Publisher, Subscriber
+from common.clocks.clock import now_ns
+from common.keys.curve import Authenticator, SecurityConfig, server_options
+from common.wire.signing import Signer
+from common.wire.transport import Publisher, Subscriber
 from deploy import topic_cli
 
 pytestmark = pytest.mark.slow

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from common.devices import SIMULATED_HARDWARE_NICE, as_hardware, at_niceness
+from common.devices.lifecycle import SIMULATED_HARDWARE_NICE, as_hardware, at_niceness
 from deploy.units.policy import set_niceness, unit_nice
 
 GROUP = Path("/proc/self/autogroup")  # absent on a kernel without sched_autogroup
@@ -107,10 +107,13 @@ def _tasks(pid: int) -> list[int]:
 def test_a_robot_nodes_arm_process_runs_real_time_and_the_node_at_its_units_nice(tmp_path):
     """Read from the running processes' ``/proc``: the robot node's threads at the unit's
     Nice=-10 (the UR driver is not in it), its arm process's at SCHED_FIFO: the keep-alive
-    and the deadman at ``realtime_priority``, every other thread one step below."""
+    and the deadman at ``realtime_priority``, every other thread one step below but one:
+    ur-rtde's receive interface's polling loop, in the fair scheduler at the unit's niceness
+    with its timer slack (the pose read back; the control interface's loop stays real-time)."""
     from harness.bench.command_path import RobotUnderCommands
     from harness.processes import children_of, cmdline
     from robot_side.arm.ur_rtde import URArmConfig
+    from robot_side.arm.ur_rtde.connection import RECEIVE_THREAD_SLACK_NS
 
     with RobotUnderCommands(tmp_path) as rig:
         pid = rig.proc.pid
@@ -120,10 +123,21 @@ def test_a_robot_nodes_arm_process_runs_real_time_and_the_node_at_its_units_nice
             tid: (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority)
             for tid in _tasks(arm)
         }
+        fair = {
+            tid: (os.getpriority(os.PRIO_PROCESS, tid), _timer_slack_ns(tid))
+            for tid, (p, _) in policy.items()
+            if p == os.SCHED_OTHER
+        }
     if os.geteuid() != 0:  # no right to raise: every thread keeps what it was started with
         assert all(p == os.SCHED_OTHER for p, _ in policy.values()), policy
         return
     assert set(nice.values()) == {unit_nice("robot")}, nice
     top = URArmConfig().realtime_priority
-    assert set(policy.values()) <= {(os.SCHED_FIFO, top), (os.SCHED_FIFO, top - 1)}, policy
+    real_time = {t: p for t, p in policy.items() if t not in fair}
+    assert set(real_time.values()) <= {(os.SCHED_FIFO, top), (os.SCHED_FIFO, top - 1)}, policy
     assert list(policy.values()).count((os.SCHED_FIFO, top)) >= 2, f"deadman, keep-alive: {policy}"
+    assert list(fair.values()) == [(unit_nice("robot"), RECEIVE_THREAD_SLACK_NS)], (fair, policy)
+
+
+def _timer_slack_ns(tid: int) -> int:
+    return int(Path(f"/proc/{tid}/timerslack_ns").read_text())

@@ -21,7 +21,7 @@ pytestmark = pytest.mark.parallel
 #: a child that ignores SIGTERM, as a wedged node would, and says READY=1
 STUBBORN = (
     "import signal, time\n"
-    "from common.sd_notify import Notifier\n"
+    "from common.process.sd_notify import Notifier\n"
     "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
     "Notifier().ready('stubborn', {'where': 'nowhere'})\n"
     "time.sleep(60)\n"
@@ -95,9 +95,9 @@ def test_a_silent_child_is_not_ready_after_its_timeout_and_is_stopped(tmp_path, 
 
 GRANDPARENT = """
 import os, subprocess, sys, time
-from common.sd_notify import Notifier
+from common.process.sd_notify import Notifier
 subprocess.run([sys.executable, "-c",
-    "from common.sd_notify import Notifier; Notifier().ready('not mine', {'x': 1})"])
+    "from common.process.sd_notify import Notifier; Notifier().ready('not mine', {'x': 1})"])
 time.sleep(0.5)
 Notifier().ready('mine', {'x': 2})
 time.sleep(60)

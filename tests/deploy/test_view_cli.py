@@ -30,9 +30,9 @@ from telemetry_publisher import TelemetryPublisher
 from tests_support import free_ports, needs
 
 from common.errors import ConfigError
-from common.foxglove import VIEW_PORT
-from common.tactile import SATURATION_N
-from common.transport import Publisher
+from common.recording.foxglove import VIEW_PORT
+from common.tactile.contract import SATURATION_N
+from common.wire.transport import Publisher
 from deploy import view_cli
 
 pytestmark = [pytest.mark.slow, needs("foxglove"), needs("websockets")]
@@ -175,7 +175,7 @@ def test_a_session_being_recorded_is_served_beside_the_link(robot, serve, tmp_pa
     """The files give what the link has not (the arm's recorded state); a topic the link
     serves (the pads) comes from the link only, once."""
     pytest.importorskip("mcap", reason="the 'record' extra")
-    from common.mcap_recorder import McapRecorder
+    from common.recording.mcap_recorder import McapRecorder
 
     # the recorder below flushes every 0.1 s: its messages are sent 0.3 s after their time
     view = serve(
@@ -208,7 +208,7 @@ def test_a_session_being_recorded_is_served_beside_the_link(robot, serve, tmp_pa
 
 
 def test_the_arm_pose_is_read_under_the_robots_own_names():
-    from common.foxglove_server import POSE_KEYS
+    from common.live_view.server import POSE_KEYS
     from robot_side.arm.base import TELEMETRY_POSE_KEYS
 
     assert POSE_KEYS == TELEMETRY_POSE_KEYS

@@ -8,7 +8,7 @@ import threading
 
 import pytest
 
-from common.devices import SIMULATED_HARDWARE_NICE
+from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ import multiprocessing
 from multiprocessing.managers import BaseManager
 from typing import Any
 
-from common.devices import SIMULATED_HARDWARE_NICE
+from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
 from deploy.units.policy import set_niceness
 from operator_side.servos.sts_sim import FakeStsBus, FakeStsBusConfig
 

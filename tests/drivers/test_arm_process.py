@@ -18,8 +18,8 @@ import time
 import numpy as np
 import pytest
 
-from common.devices import build_device
-from common.realtime import PeriodStats, raise_this_thread
+from common.devices.lifecycle import build_device
+from common.process.realtime import PeriodStats, raise_this_thread
 from robot_side.arm import KINDS
 from robot_side.arm.process import ArmProcess
 from robot_side.arm.sim import URSimConfig, URSimProcess
@@ -91,7 +91,7 @@ def test_the_keep_alive_runs_in_the_arm_process_on_time_and_says_how():
 NODE = textwrap.dedent(
     """
     import sys, time
-    from common.devices import build_device
+    from common.devices.lifecycle import build_device
     from robot_side.arm import KINDS
     arm = build_device(KINDS, {"kind": "ur_rtde", "host": sys.argv[1]}, "arm")
     arm.connect()

@@ -6,8 +6,8 @@ import importlib
 
 import pytest
 
-from common.devices import Device, load_object
-from common.preflight import FAIL, PreflightContext
+from common.devices.lifecycle import Device, load_object
+from common.devices.preflight import FAIL, PreflightContext
 
 FAMILIES = (
     "robot_side.tactile",

@@ -17,7 +17,7 @@ import scservo_sdk as sdk
 import scservo_sdk.port_handler
 from sts_bus_process import FakeStsBusProcess
 
-from common.devices import build_device
+from common.devices.lifecycle import build_device
 from common.errors import ConfigError, DeviceError, DeviceTimeoutError
 from operator_side.servos import KINDS, calibrate_cli
 from operator_side.servos.calibration import (

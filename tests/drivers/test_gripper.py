@@ -13,8 +13,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from common.config import from_dict
-from common.devices import build_device
+from common.config.typed import from_dict
+from common.devices.lifecycle import build_device
 from common.errors import (
     ConfigError,
     DeviceNotConnectedError,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from common.devices import build_device
+from common.devices.lifecycle import build_device
 from common.errors import ConfigError, DeviceNotConnectedError
 from operator_side.servos import KINDS
 from operator_side.servos.calibration import (

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from common.devices import build_device
+from common.devices.lifecycle import build_device
 from common.errors import (
     DeviceError,
     DeviceNotConnectedError,
@@ -21,7 +21,7 @@ from common.errors import (
     ProtocolError,
     StaleDataError,
 )
-from common.synthetic_tactile import GeneratorParams
+from common.tactile.synthetic import GeneratorParams
 from robot_side.tactile import KINDS
 from robot_side.tactile.board_calibration import (
     BoardCalibration,

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from tests_support import wait_until
 
-from common.clock import now_s
-from common.config import from_dict
-from common.devices import build_device
+from common.clocks.clock import now_s
+from common.config.typed import from_dict
+from common.devices.lifecycle import build_device
 from common.errors import (
     ConfigError,
     DeviceError,

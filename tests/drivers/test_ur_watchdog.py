@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from tests_support import wait_until
 
-from common.devices import at_niceness
+from common.devices.lifecycle import at_niceness
 from common.errors import ConfigError, DeviceError
 from robot_side.arm.base import NATIVE_DRIVER_THREAD_NICE, SAFETY_THREAD_NICE, ArmLimits
 from robot_side.arm.ur_rtde import URArm, URArmConfig

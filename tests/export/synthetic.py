@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from common.mcap_recorder import McapRecorder
+from common.recording.mcap_recorder import McapRecorder
 
 MS = 1_000_000
 ROBOT_CONFIG = "[robot.arm.limits]\njog_timeout_s = 0.25\n"

@@ -22,8 +22,8 @@ import pytest
 from tests_support import DashboardDemo
 from websockets.sync.client import connect
 
-from common.episode_marks import CHANNEL, read_marks
-from common.mcap_recorder import read_recording
+from common.recording.episode_marks import CHANNEL, read_marks
+from common.recording.mcap_recorder import read_recording
 
 pytestmark = [pytest.mark.slow, pytest.mark.untimed]
 

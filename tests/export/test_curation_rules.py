@@ -15,7 +15,7 @@ import pytest
 from synthetic import POSE, ROBOT_CONFIG, _gripper
 
 from common.errors import ConfigError
-from common.mcap_recorder import McapRecorder
+from common.recording.mcap_recorder import McapRecorder
 from deploy.export.cli import export
 from deploy.export.resample import ExportConfig
 

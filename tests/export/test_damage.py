@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 from synthetic import flip, robot_recording
 
-from common.mcap_recorder import read_recording
+from common.recording.mcap_recorder import read_recording
 from deploy.export.cli import EXIT_DAMAGED
 
 #: every test runs `deepxpalm export` as a user does, in a process of its own (its imports

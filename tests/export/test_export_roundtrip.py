@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from tests_support import why_the_demo_failed
 
-from common.mcap_recorder import read_recording
+from common.recording.mcap_recorder import read_recording
 from deploy.export.cli import export
 from deploy.export.resample import ExportConfig
 
@@ -190,7 +190,7 @@ def test_the_camera_lerobot_decodes_is_the_rows_picture(session, records, one_ep
 
 
 def camera_fps(session) -> str:
-    from common.mcap_recorder import read_metadata
+    from common.recording.mcap_recorder import read_metadata
 
     return read_metadata(session / "camera.mcap")["deepxpalm.camera"]["record_fps"]
 

@@ -20,10 +20,10 @@ import pyarrow.parquet as pq
 from synthetic import MS, POSE, robot_recording
 from tests_support import free_ports
 
-from common.clock import now_ns
-from common.mcap_recorder import node_recorder, read_recording
+from common.clocks.clock import now_ns
 from common.netsim.proxy import Endpoints, LinkSimulator
 from common.netsim.scenario import scenario_from_dict
+from common.recording.mcap_recorder import node_recorder, read_recording
 from deploy.export.cli import export
 from deploy.export.resample import ExportConfig
 from operator_side.config import OperatorConfig

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from common.codec import MAX_MESSAGE_BYTES
-from common.roster import parse_roster
+from common.keys.roster import parse_roster
+from common.wire.codec import MAX_MESSAGE_BYTES
 from router_side.acl import RateLimits, access_control, rate_gates, size_filter
 
 KEY = "a" * 40

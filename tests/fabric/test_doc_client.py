@@ -1,7 +1,7 @@
 """A client written from docs/fabric.md alone reads one named robot through a real router.
 
 Plain ``zenoh`` with the settings docs/fabric.md ("A client of your own")
-lists, the recorder's certificate, and ``common.codec`` to read each payload
+lists, the recorder's certificate, and ``common.wire.codec`` to read each payload
 as docs/protocol.md frames it. Two robots, ``cell1`` and ``cell10``, as real
 processes: the client reads cell1's stimuli and heartbeats and nothing of
 cell10's.
@@ -15,9 +15,9 @@ import time
 import pytest
 from fleet_monitor import Monitor
 
-from common.clock import now_ns
-from common.codec import decode_named
-from common.messages import Heartbeat, Stimulus
+from common.clocks.clock import now_ns
+from common.wire.codec import decode_named
+from common.wire.messages import Heartbeat, Stimulus
 from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel, pytest.mark.timeout(120)]

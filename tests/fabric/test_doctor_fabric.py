@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from common.preflight import FAIL, PASS, SKIP, WARN
+from common.devices.preflight import FAIL, PASS, SKIP, WARN
 from deploy.doctor.cli import diagnose
 from deploy.doctor.report import DoctorOptions
 
@@ -51,7 +51,7 @@ def test_a_certificate_of_another_name_fails_and_says_what_to_run(site):
 
 
 def test_no_router_at_the_address_fails(site):
-    from common.transport import free_loopback_ports
+    from common.wire.transport import free_loopback_ports
 
     elsewhere = f"quic/127.0.0.1:{free_loopback_ports(1, udp=True)[0]}"
     report = diagnose("operator", _operator(site, router_endpoint=elsewhere), "test", OPTIONS)

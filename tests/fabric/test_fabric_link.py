@@ -13,10 +13,10 @@ import time
 import pytest
 from tests_support import stimulus, wait_until
 
-from common.codec import MAX_MESSAGE_BYTES, encode
 from common.fabric import keyexprs
 from common.fabric.link import STOP_COPIES, FabricPublisher, FabricSubscriber
-from common.messages import Command, Heartbeat, Stimulus
+from common.wire.codec import MAX_MESSAGE_BYTES, encode
+from common.wire.messages import Command, Heartbeat, Stimulus
 
 pytestmark = [pytest.mark.slow, pytest.mark.untimed, pytest.mark.timeout(120)]
 

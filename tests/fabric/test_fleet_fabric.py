@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from fleet_monitor import Monitor, jog_for, kill_mid_jog_and_time_the_stop
 
-from common.clock import now_ns
+from common.clocks.clock import now_ns
 from harness.fleet import Fleet
 
 #: alone: a fleet is several deployments at once (two robot PCs, the operators' PCs, the

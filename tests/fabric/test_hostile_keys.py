@@ -22,11 +22,11 @@ from pathlib import Path
 
 import pytest
 
-from common.clock import now_ns
-from common.codec import decode_named
+from common.clocks.clock import now_ns
 from common.fabric import keyexprs
 from common.fabric.session import FabricConfig, cert_files, client_config, open_session
-from common.messages import Heartbeat
+from common.wire.codec import decode_named
+from common.wire.messages import Heartbeat
 from harness.fabric_attacks import ROBOTS, Attacker
 from harness.fleet import Fleet
 

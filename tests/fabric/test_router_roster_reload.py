@@ -13,7 +13,7 @@ import signal
 import pytest
 from fleet_monitor import Monitor
 
-from common.clock import now_ns
+from common.clocks.clock import now_ns
 from harness.fleet import Fleet
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180), pytest.mark.parallel]

@@ -26,14 +26,14 @@ import pytest
 import zmq.auth
 from fleet_monitor import Monitor, jog_for
 
-from common.clock import now_ns
-from common.codec import decode_named
+from common.clocks.clock import now_ns
 from common.fabric import keyexprs
 from common.fabric.link import FabricPublisher
 from common.fabric.session import FabricConfig, cert_files, client_config, open_session
-from common.messages import Stimulus
-from common.roster import robot_entry
-from common.signing import Signer
+from common.keys.roster import robot_entry
+from common.wire.codec import decode_named
+from common.wire.messages import Stimulus
+from common.wire.signing import Signer
 from harness.fleet import SCRIPTED_TACTILE, Fleet, Proc
 from operator_side.node.telemetry_gate import OLD_SESSION, REPLAYED, STALE
 from operator_side.servos.sts_sim import FakeStsBus

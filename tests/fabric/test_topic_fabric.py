@@ -17,9 +17,9 @@ import threading
 import pytest
 from telemetry_publisher import CELLS, TelemetryPublisher, check_rates
 
-from common.clock import now_ns
+from common.clocks.clock import now_ns
 from common.fabric.link import FabricPublisher
-from common.signing import Signer
+from common.wire.signing import Signer
 from deploy import topic_cli
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]

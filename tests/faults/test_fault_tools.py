@@ -14,8 +14,8 @@ import time
 
 import pytest
 
-from common.codec import encode
-from common.messages import Heartbeat
+from common.wire.codec import encode
+from common.wire.messages import Heartbeat
 from deploy.units.policy import policy
 from harness.faults.matrix import ARM_UNREADABLE_S, first_unreadable
 from harness.faults.probes import Sample

@@ -19,8 +19,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
-from common.messages import (
+from common.wire.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
+from common.wire.messages import (
     COMMAND_ACTIONS,
     LINK_STATES,
     RENDER_MODES,
@@ -481,7 +481,7 @@ def spec_violations(msg: Message) -> list[str]:
 # ------------------------------------------------------- producer process
 def produce(conn: Any, seed: int, kinds: list[str] | None, total: int, batch: int) -> None:
     """Child process: mutants with the codec's verdict, in batches, until ``total``."""
-    from common.messages import MESSAGE_TYPES
+    from common.wire.messages import MESSAGE_TYPES
 
     by_name = {cls.TYPE: cls for cls in MESSAGE_TYPES}
     mut = Mutator(seed, tuple(by_name[k] for k in kinds) if kinds else None)

@@ -23,10 +23,10 @@ import numpy as np
 import zmq
 from fuzz_mutate import produce
 
-from common.clock import now_ns
-from common.codec import decode, encode
-from common.messages import Command, Heartbeat, Stimulus
-from common.transport import last_endpoint
+from common.clocks.clock import now_ns
+from common.wire.codec import decode, encode
+from common.wire.messages import Command, Heartbeat, Stimulus
+from common.wire.transport import last_endpoint
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus, RecordingServoBusConfig
@@ -130,7 +130,7 @@ def gripper_violations(gripper: MemoryGripper) -> list[str]:
 
 # ---------------------------------------------------------------- operator
 def stimulus_for(pattern: int, value: float = 4.0) -> np.ndarray:
-    from common.tactile import MASKS_F32
+    from common.tactile.contract import MASKS_F32
 
     return (MASKS_F32[pattern] * np.float32(value)).astype(np.float32)
 

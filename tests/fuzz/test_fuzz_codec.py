@@ -14,8 +14,8 @@ from fuzz_mutate import Mutator, spec_violations, valid_message
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
-from common.messages import MESSAGE_TYPES
+from common.wire.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
+from common.wire.messages import MESSAGE_TYPES
 
 TOPICS = [b"STIM", b"FRAM", b"HBRT", b"CMND"]
 TYPES = ["stimulus", "frame", "heartbeat", "command"]

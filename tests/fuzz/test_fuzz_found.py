@@ -16,10 +16,10 @@ import msgpack
 import pytest
 from fuzz_rigs import OperatorRig, RobotRig, wait_for
 
-from common.clock import now_ns
-from common.clock_sync import ClockSync
-from common.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
-from common.messages import Heartbeat
+from common.clocks.clock import now_ns
+from common.clocks.clock_sync import ClockSync
+from common.wire.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
+from common.wire.messages import Heartbeat
 
 pytestmark = pytest.mark.parallel
 

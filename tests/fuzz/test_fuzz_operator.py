@@ -18,7 +18,7 @@ from fuzz_rigs import N_MALFORMED, MutantStream, OperatorRig, fuzz_seed
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from common.codec import DecodeError, decode
+from common.wire.codec import DecodeError, decode
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 

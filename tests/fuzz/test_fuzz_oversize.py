@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from fuzz_rigs import OperatorRig, RobotRig, arm_violations, wait_for
 
-from common.codec import MAX_MESSAGE_BYTES, encode
-from common.messages import Command, Heartbeat
+from common.wire.codec import MAX_MESSAGE_BYTES, encode
+from common.wire.messages import Command, Heartbeat
 
 SIZES = [MAX_MESSAGE_BYTES + 1, MAX_MESSAGE_BYTES + 100, 100_000, 4_000_000]
 

@@ -28,8 +28,8 @@ from fuzz_rigs import (
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from common.codec import DecodeError, decode
-from common.messages import Command
+from common.wire.codec import DecodeError, decode
+from common.wire.messages import Command
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 

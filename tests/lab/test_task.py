@@ -18,7 +18,7 @@ import pytest
 pytest.importorskip("mujoco", reason="the simulated lab needs the 'lab' extra (MuJoCo)")
 pytest.importorskip("rtde_control", reason="the lab's arm is driven through ur-rtde")
 
-from common.tactile import classes_of, pattern_of
+from common.tactile.contract import classes_of, pattern_of
 from harness.bench.task import LIFTED_MM, TrialSetup, run_cell
 
 pytestmark = [

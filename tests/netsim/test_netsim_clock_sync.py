@@ -6,12 +6,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.clock_sync import ClockSync
-from common.codec import DecodeError, decode, encode
+from common.clocks.clock_sync import ClockSync
 from common.errors import LinkError
-from common.messages import Heartbeat
 from common.netsim.scenario import load_scenario
 from common.netsim.virtual import VirtualLink
+from common.wire.codec import DecodeError, decode, encode
+from common.wire.messages import Heartbeat
 
 MS = 1_000_000
 

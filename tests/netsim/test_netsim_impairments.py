@@ -8,14 +8,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.codec import DecodeError, decode, encode
 from common.errors import ConfigError
-from common.messages import Heartbeat, Stimulus
 from common.netsim.impairments import (
     DirectionConfig,
     DirectionImpairment,
     unit_quantile,
 )
+from common.wire.codec import DecodeError, decode, encode
+from common.wire.messages import Heartbeat, Stimulus
 
 MS = 1_000_000
 PERIOD_NS = 8_333_333  # 120 Hz

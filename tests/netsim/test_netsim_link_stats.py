@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.clock_sync import ClockSync
-from common.link_stats import LinkStats
+from common.clocks.clock_sync import ClockSync
 from common.netsim.impairments import DirectionConfig, Scenario
 from common.netsim.virtual import VirtualLink
+from common.wire.link_stats import LinkStats
 
 MS = 1_000_000
 PERIOD = 16_666_667  # 60 Hz

@@ -102,10 +102,10 @@ def test_corrupted_messages_are_rejected_by_the_operator_decoder(make_link) -> N
     import numpy as np
     import zmq
 
-    from common.codec import encode
-    from common.messages import Stimulus
     from common.netsim.scenario import scenario_from_dict
-    from common.transport import Subscriber
+    from common.wire.codec import encode
+    from common.wire.messages import Stimulus
+    from common.wire.transport import Subscriber
 
     scenario = scenario_from_dict(
         {"name": "dirty", "both": {"delivery": "datagram", "corrupt_percent": 50}}

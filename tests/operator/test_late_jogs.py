@@ -13,10 +13,10 @@ import time
 import pytest
 import zmq
 
-from common.clock import now_ns
-from common.codec import decode, encode
-from common.messages import Command, Heartbeat
-from common.transport import last_endpoint
+from common.clocks.clock import now_ns
+from common.wire.codec import decode, encode
+from common.wire.messages import Command, Heartbeat
+from common.wire.transport import last_endpoint
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus

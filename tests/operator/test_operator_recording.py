@@ -12,10 +12,10 @@ import time
 import numpy as np
 import zmq
 
-from common.codec import decode, encode
-from common.messages import Stimulus
-from common.signing import Signer
-from common.transport import Link, Publisher, Subscriber
+from common.wire.codec import decode, encode
+from common.wire.messages import Stimulus
+from common.wire.signing import Signer
+from common.wire.transport import Link, Publisher, Subscriber
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus

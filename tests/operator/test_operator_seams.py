@@ -7,9 +7,9 @@ import threading
 import numpy as np
 import pytest
 
-from common.clock import VirtualClock
-from common.messages import SESSION_LOW_MASK, Command, Heartbeat, Stimulus
-from common.transport import CaptureLink
+from common.clocks.clock import VirtualClock
+from common.wire.messages import SESSION_LOW_MASK, Command, Heartbeat, Stimulus
+from common.wire.transport import CaptureLink
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus
@@ -111,8 +111,8 @@ def test_a_gripper_command_never_confirmed_is_counted_after_its_resends() -> Non
 
 
 def test_with_the_robots_key_only_its_signed_telemetry_reaches_the_palm(tmp_path) -> None:
-    from common.codec import SignatureError, decode, encode
-    from common.signing import Signer, generate_key_files, load_signer
+    from common.wire.codec import SignatureError, decode, encode
+    from common.wire.signing import Signer, generate_key_files, load_signer
 
     public, secret = generate_key_files(tmp_path, "cell1")
     robot, relay = load_signer(secret), Signer.generate()  # the relay holds no robot key

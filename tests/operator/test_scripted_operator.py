@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from common.rotation import matrix_to_rotvec, rotvec_to_matrix
-from common.tactile import MASKS, N_PATTERNS, pattern_of
+from common.tactile.contract import MASKS, N_PATTERNS, pattern_of
 from harness.scripted_operator import (
     POSE_KEYS,
     TARGET_PATTERN,

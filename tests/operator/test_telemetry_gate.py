@@ -9,11 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.clock import VirtualClock
-from common.codec import decode, encode
-from common.messages import Heartbeat, Stimulus, TactileFrame
-from common.signing import Signer, generate_key_files, load_signer
-from common.transport import CaptureLink
+from common.clocks.clock import VirtualClock
+from common.wire.codec import decode, encode
+from common.wire.messages import Heartbeat, Stimulus, TactileFrame
+from common.wire.signing import Signer, generate_key_files, load_signer
+from common.wire.transport import CaptureLink
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.node.telemetry_gate import (
@@ -224,7 +224,7 @@ def test_a_forged_answer_cannot_make_a_run_believed(tmp_path):
 
 @pytest.mark.parametrize("max_age_ns", [0, -1])
 def test_the_age_limit_must_be_positive(max_age_ns):
-    from common.clock_sync import ClockSync
+    from common.clocks.clock_sync import ClockSync
 
     with pytest.raises(ValueError):
         TelemetryGate(ClockSync(), max_age_ns)

@@ -1,6 +1,6 @@
 """A second, deliberately simple frame generator written from the tactile contract alone.
 
-It shares no code with common.synthetic_tactile: bands are sampled at
+It shares no code with common.tactile.synthetic: bands are sampled at
 taxel centres (no area integration), profiles are Gaussian or flat-topped,
 the side offset may be taken perpendicular to the band or straight along
 the rows/columns, and pad 2 is pad 1 with its own gain and noise. A model

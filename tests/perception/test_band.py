@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from common.synthetic_tactile import SyntheticTactileModel
-from common.tactile import FRAME_SHAPE, pattern_of
+from common.tactile.contract import FRAME_SHAPE, pattern_of
+from common.tactile.synthetic import SyntheticTactileModel
 from robot_side.perception.band import measure_band
 
 

@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.synthetic_tactile import offset_direction
+from common.tactile.synthetic import offset_direction
 from robot_side.arm.sim.kinematics import rotvec_to_matrix
 from robot_side.perception.collect import CollectConfig, grasp_pose
 

@@ -100,7 +100,7 @@ def test_architecture_is_the_papers_at_width_1() -> None:
 def test_train_defaults_round_trip_through_toml() -> None:
     import tomllib
 
-    from common.config import defaults_toml, from_dict
+    from common.config.typed import defaults_toml, from_dict
     from robot_side.perception.train import TrainConfig
 
     text = defaults_toml(TrainConfig, "train")

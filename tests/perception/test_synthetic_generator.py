@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from common.config import from_dict
+from common.config.typed import from_dict
 from common.errors import ConfigError
-from common.synthetic_tactile import (
+from common.tactile.synthetic import (
     GeneratorParams,
     SyntheticTactileModel,
     mirror_finger2,

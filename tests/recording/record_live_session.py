@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.mcap_recorder import McapRecorder, read_recording
+from common.recording.mcap_recorder import McapRecorder, read_recording
 
 FIXTURE = Path(__file__).parent / "fixtures" / "session-v1" / "camera.mcap"
 

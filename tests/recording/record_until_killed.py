@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from common.mcap_recorder import McapRecorder
+from common.recording.mcap_recorder import McapRecorder
 
 
 def main() -> None:

@@ -32,8 +32,8 @@ from google.protobuf.descriptor import FieldDescriptor  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from tests_support import why_the_demo_failed  # noqa: E402
 
-from common import foxglove  # noqa: E402
-from common.mcap_recorder import McapRecorder, read_recording  # noqa: E402
+from common.recording import foxglove  # noqa: E402
+from common.recording.mcap_recorder import McapRecorder, read_recording  # noqa: E402
 from common.rotation import quaternion_to_matrix, rotvec_to_matrix  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -235,7 +235,7 @@ def test_the_lab_sessions_overview_camera_is_exported_and_lerobot_decodes_it(
     and the picture's time against its row's tactile frame)."""
     import bisect
 
-    from common.mcap_recorder import read_metadata
+    from common.recording.mcap_recorder import read_metadata
     from deploy.export.cli import export
     from deploy.export.resample import ExportConfig
     from robot_side.video.recording import decode_jpeg

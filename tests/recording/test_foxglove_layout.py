@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from common import foxglove
-from common.recording import CHANNELS
+from common.recording import foxglove
+from common.recording.channels import CHANNELS
 
 REPO = Path(__file__).resolve().parents[2]
 LAYOUT = REPO / "docs" / "foxglove-layout.json"
@@ -54,7 +54,7 @@ def test_the_layout_shows_topics_a_recording_has():
     assert len(kinds["Image"]) == 3 and len(kinds["ThreeDee"]) == 2, kinds
     assert "Plot" in kinds and "Log" in kinds
     # every plotted field is in the recorded records (an old session's: the fields are the same)
-    from common.mcap_recorder import read_recording
+    from common.recording.mcap_recorder import read_recording
 
     first: dict[str, dict] = {}
     for name in ("robot", "operator"):

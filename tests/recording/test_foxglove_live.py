@@ -32,7 +32,7 @@ import pytest
 from tests_support import free_ports
 
 from common.errors import ConfigError
-from common.foxglove import FoxgloveLiveConfig
+from common.recording.foxglove import FoxgloveLiveConfig
 
 make_reader = pytest.importorskip("mcap.reader", reason="the 'record' extra").make_reader
 websockets = pytest.importorskip("websockets", reason="the test's client uses websockets")
@@ -134,7 +134,7 @@ def test_the_live_view_stays_on_loopback_unless_allowed(host):
 
 def test_the_live_view_without_its_extra_says_how_to_install_it(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "foxglove", None)  # as if not installed
-    from common.foxglove_live import LiveSource
+    from common.live_view.recordings import LiveSource
 
     with pytest.raises(ConfigError, match=r"pip install '\.\[foxglove\]'"):
         LiveSource(FoxgloveLiveConfig(enabled=True, follow=tmp_path))

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.clock import VirtualClock
-from common.mcap_recorder import node_recorder
-from common.transport import CaptureLink
+from common.clocks.clock import VirtualClock
+from common.recording.mcap_recorder import node_recorder
+from common.wire.transport import CaptureLink
 from deploy import replay
 from harness.bench.fixtures import frame_set
 from harness.bench.skipping import Shadow
@@ -117,7 +117,7 @@ def test_replay_reports_a_stimulus_the_dead_band_would_have_held_back(tmp_path) 
 
 
 def _with_config(src, dst, old: str, new: str) -> None:
-    from common.mcap_recorder import McapRecorder, read_metadata, read_recording
+    from common.recording.mcap_recorder import McapRecorder, read_metadata, read_recording
 
     meta = read_metadata(src)
     text = meta["deepxpalm.node"]["config_toml"]

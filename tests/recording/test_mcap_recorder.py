@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.codec import encode
-from common.mcap_recorder import (
+from common.recording.mcap_recorder import (
     McapRecorder,
     RecordingError,
     RecordingReader,
@@ -22,7 +21,8 @@ from common.mcap_recorder import (
     read_recording,
     recover_recording,
 )
-from common.messages import Stimulus
+from common.wire.codec import encode
+from common.wire.messages import Stimulus
 
 pytestmark = pytest.mark.parallel
 

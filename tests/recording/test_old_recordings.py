@@ -19,7 +19,7 @@ pytest.importorskip("mcap", reason="recording needs the 'record' extra")
 
 from mcap.reader import make_reader
 
-from common.mcap_recorder import RecordingReader, read_recording
+from common.recording.mcap_recorder import RecordingReader, read_recording
 
 REPO = Path(__file__).resolve().parents[2]
 OLD = Path(__file__).parent / "fixtures" / "session-v1"

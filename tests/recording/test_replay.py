@@ -10,8 +10,13 @@ import numpy as np
 import pytest
 from tests_support import free_ports
 
-from common.codec import encode
-from common.mcap_recorder import McapRecorder, node_recorder, read_metadata, read_recording
+from common.recording.mcap_recorder import (
+    McapRecorder,
+    node_recorder,
+    read_metadata,
+    read_recording,
+)
+from common.wire.codec import encode
 from deploy import replay
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
@@ -95,7 +100,7 @@ def test_a_tampered_stimulus_is_reported_and_fails_check(session, tmp_path, caps
 
     def change(channel, record):
         if channel == "robot/stimulus" and not done:
-            from common.codec import decode
+            from common.wire.codec import decode
 
             msg = decode(record["wire"])
             if msg.contact and not msg.keyframe:

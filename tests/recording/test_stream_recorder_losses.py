@@ -5,7 +5,7 @@ from __future__ import annotations
 import zmq
 from tests_support import stimulus
 
-from common.codec import encode
+from common.wire.codec import encode
 from operator_side.record_cli import RecorderConfig, StreamRecorder
 
 

@@ -19,9 +19,9 @@ import pytest
 from tests_support import free_ports, wait_until
 
 from common.rotation import rotvec_to_matrix
-from common.signing import generate_key_files
-from common.synthetic_tactile import GeneratorParams, offset_direction
-from common.tactile import classes_of
+from common.tactile.contract import classes_of
+from common.tactile.synthetic import GeneratorParams, offset_direction
+from common.wire.signing import generate_key_files
 from harness.faults.matrix import ARM_STILL_BUDGET_S, STILL_M_S
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode

@@ -14,8 +14,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from common.synthetic_tactile import SyntheticTactileModel
-from common.tactile import pattern_of
+from common.tactile.contract import pattern_of
+from common.tactile.synthetic import SyntheticTactileModel
 from robot_side.arm.base import TELEMETRY_POSE_KEYS, ArmLimits
 from robot_side.config import AssistConfig
 from robot_side.node.assist import Assist

@@ -14,9 +14,9 @@ import time
 
 import pytest
 
-from common.clock import now_ns
-from common.messages import COMMAND_ACTIONS, LEASE_ACTIONS, Command, Heartbeat
-from common.transport import CaptureLink
+from common.clocks.clock import now_ns
+from common.wire.messages import COMMAND_ACTIONS, LEASE_ACTIONS, Command, Heartbeat
+from common.wire.transport import CaptureLink
 from robot_side.arm.memory import MemoryArm
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common.clock_sync import ClockSync
-from common.messages import Command, Heartbeat
+from common.clocks.clock_sync import ClockSync
+from common.wire.messages import Command, Heartbeat
 from robot_side.node.commands.command_gate import (
     FROM_FUTURE,
     PENDING,

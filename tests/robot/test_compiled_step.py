@@ -10,9 +10,9 @@ from hypothesis.extra.numpy import arrays
 
 pytest.importorskip("numba")
 
-from common.clock import VirtualClock
-from common.stimulus import render_cells, sanitize_with_peak
-from common.transport import CaptureLink
+from common.clocks.clock import VirtualClock
+from common.tactile.stimulus import render_cells, sanitize_with_peak
+from common.wire.transport import CaptureLink
 from harness.bench.fixtures import frame_set
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode

@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.clock import VirtualClock
-from common.mcap_recorder import node_recorder
-from common.transport import CaptureLink
+from common.clocks.clock import VirtualClock
+from common.recording.mcap_recorder import node_recorder
+from common.wire.transport import CaptureLink
 from deploy import replay
 from harness.bench.fixtures import frame_set
 from harness.bench.skipping import through_node

@@ -3,8 +3,8 @@ timeout, expiry."""
 
 from __future__ import annotations
 
-from common.messages import Command
-from common.roster import OperatorEntry
+from common.keys.roster import OperatorEntry
+from common.wire.messages import Command
 from robot_side.node.commands import lease as L
 from robot_side.node.commands.lease import ControlLease
 

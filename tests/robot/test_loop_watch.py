@@ -6,7 +6,7 @@ import logging
 import time
 from collections import Counter
 
-from common.clock import now_ns
+from common.clocks.clock import now_ns
 from robot_side.node.loop_watch import LATE_WAKE_NS, SLOW_TURN_NS, LoopWatch
 
 

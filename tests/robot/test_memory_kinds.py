@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from common.devices import build_device
+from common.devices.lifecycle import build_device
 from robot_side.arm import KINDS as ARM_KINDS
 from robot_side.arm.base import WorkspaceLimitError
 from robot_side.gripper import KINDS as GRIPPER_KINDS

@@ -8,13 +8,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from common.stimulus import (
+from common.tactile.contract import MASKS, matches_pattern
+from common.tactile.stimulus import (
     antialiased_bicubic_weights,
     area_weights,
     plain_bicubic_weights,
     render_stimulus,
 )
-from common.tactile import MASKS, matches_pattern
 from harness.bench.downsizing import downsize, peak_per_row
 
 pytestmark = pytest.mark.parallel
@@ -133,7 +133,7 @@ def test_cubic_overshoot_never_goes_negative(x):
 @pytest.mark.parametrize("order", ["mask_then_peak", "peak_then_mask"])
 def test_the_fused_path_renders_what_the_separable_oracle_renders(method, order):
     """One (9, 200) product per frame against contact map, ``Wy @ X @ Wx.T``, peak, mask."""
-    from common.stimulus import render_cells, sanitize_frame
+    from common.tactile.stimulus import render_cells, sanitize_frame
     from harness.bench.downsizing import separable_stimulus
 
     rng = np.random.default_rng(7)

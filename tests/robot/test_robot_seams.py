@@ -7,8 +7,8 @@ import threading
 import numpy as np
 import pytest
 
-from common.clock import VirtualClock
-from common.transport import CaptureLink
+from common.clocks.clock import VirtualClock
+from common.wire.transport import CaptureLink
 from harness.bench.fixtures import frame_set, scan_bytes, serial_sensor
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode

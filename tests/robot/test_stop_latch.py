@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from tests_support import free_ports
 
-from common.signing import generate_key_files
+from common.wire.signing import generate_key_files
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus

@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from common.mcap_recorder import McapRecorder
+from common.recording.mcap_recorder import McapRecorder
 from harness import processes, soak
 
 

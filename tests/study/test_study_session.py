@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from common.tactile import MASKS, N_PATTERNS
+from common.tactile.contract import MASKS, N_PATTERNS
 from deploy.cli import main
 from operator_side.palm.linkglide import forward_kinematics
 from operator_side.servos.recording import RecordingServoBus

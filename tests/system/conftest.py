@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from common.security import SecurityConfig
+from common.keys.curve import SecurityConfig
 from deploy.keys_cli import allow, generate
 
 

@@ -18,9 +18,9 @@ import pytest
 import zmq
 from tests_support import ProtocolOperator
 
-from common.clock import now_ns
-from common.messages import Heartbeat, Stimulus
-from common.transport import Publisher, Subscriber
+from common.clocks.clock import now_ns
+from common.wire.messages import Heartbeat, Stimulus
+from common.wire.transport import Publisher, Subscriber
 from harness.bench.command_path import RobotUnderCommands
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]

@@ -17,10 +17,10 @@ import pytest
 import zmq
 from tests_support import ProtocolOperator
 
-from common.clock import now_ns
-from common.codec import encode
-from common.messages import Command, Heartbeat, Stimulus
-from common.transport import Publisher, Subscriber
+from common.clocks.clock import now_ns
+from common.wire.codec import encode
+from common.wire.messages import Command, Heartbeat, Stimulus
+from common.wire.transport import Publisher, Subscriber
 from harness.bench.command_path import PUBLISH_HZ, RobotUnderCommands
 from operator_side.config import OperatorLinkConfig
 from robot_side.gripper.base import GripLevels

@@ -29,9 +29,9 @@ import pytest
 import zmq
 from tests_support import child_processes
 
-from common.clock import now_ns
-from common.messages import Command, Heartbeat, VideoSignal
-from common.transport import Publisher, Subscriber
+from common.clocks.clock import now_ns
+from common.wire.messages import Command, Heartbeat, VideoSignal
+from common.wire.transport import Publisher, Subscriber
 from deploy.units.readiness import NotReady
 from deploy.units.service import Service
 

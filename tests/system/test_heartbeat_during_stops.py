@@ -25,8 +25,8 @@ import pytest
 import zmq
 from tests_support import ProtocolOperator
 
-from common.clock import now_ns
-from common.transport import Publisher, Subscriber
+from common.clocks.clock import now_ns
+from common.wire.transport import Publisher, Subscriber
 from deploy.units.policy import set_niceness, unit_nice
 from harness.bench.command_path import RobotUnderCommands
 

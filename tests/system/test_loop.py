@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from common.tactile import MASKS
-from common.transport import free_loopback_ports
+from common.tactile.contract import MASKS
+from common.wire.transport import free_loopback_ports
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.palm.linkglide import forward_kinematics

@@ -21,11 +21,11 @@ import pytest
 import zmq
 from tests_support import RecordingArm, free_ports
 
+from common.keys.curve import SecurityConfig, client_options
 from common.netsim.proxy import Endpoints
 from common.netsim.scenario import load_scenario
 from common.netsim.stream import StreamForwarder
-from common.security import SecurityConfig, client_options
-from common.transport import Subscriber
+from common.wire.transport import Subscriber
 from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
 from operator_side.servos.recording import RecordingServoBus

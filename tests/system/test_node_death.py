@@ -24,7 +24,7 @@ import pytest
 import zmq
 from tests_support import ProtocolOperator
 
-from common.transport import Publisher, Subscriber
+from common.wire.transport import Publisher, Subscriber
 from harness.bench.command_path import RobotUnderCommands
 
 JOG_SPEED_M_S = 0.03

@@ -10,11 +10,11 @@ import pytest
 import zmq
 from tests_support import ProtocolOperator, RecordingArm, free_ports
 
-from common.codec import encode
 from common.errors import LinkError
-from common.messages import Command, Stimulus
-from common.security import SecurityConfig, check_endpoint, client_options
-from common.transport import Publisher, Subscriber
+from common.keys.curve import SecurityConfig, check_endpoint, client_options
+from common.wire.codec import encode
+from common.wire.messages import Command, Stimulus
+from common.wire.transport import Publisher, Subscriber
 from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.tactile.scripted import ScriptedTactileSensor

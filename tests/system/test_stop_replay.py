@@ -22,11 +22,11 @@ import zmq
 from tests_support import ProtocolOperator
 from websockets.sync.client import connect
 
-from common.clock import now_ns
-from common.codec import SIG_ENTRY_BYTES, SIG_TAG, encode
-from common.messages import Command, Heartbeat, VideoSignal
-from common.signing import generate_key_files, load_signer
-from common.transport import Publisher, Subscriber
+from common.clocks.clock import now_ns
+from common.wire.codec import SIG_ENTRY_BYTES, SIG_TAG, encode
+from common.wire.messages import Command, Heartbeat, VideoSignal
+from common.wire.signing import generate_key_files, load_signer
+from common.wire.transport import Publisher, Subscriber
 from harness.bench.command_path import RobotUnderCommands
 
 pytestmark = [
@@ -160,7 +160,7 @@ def cell(tmp_path_factory):
 
 
 def _signed(signer, body: dict) -> bytes:
-    """``body`` signed as ``common.codec.encode`` signs (its sig last, over all before it)."""
+    """``body`` signed as ``common.wire.codec.encode`` signs (its sig last, over all before it)."""
     packed = b"CMND" + msgpack.packb(dict(body, sig=bytes(64)), use_bin_type=True)
     signed = packed[:-SIG_ENTRY_BYTES]
     return signed + SIG_TAG + signer.sign(signed)

@@ -15,7 +15,7 @@ import pytest
 
 pytest.importorskip("aiortc", reason="the video server needs the 'video' extra")
 
-from common.mcap_recorder import read_metadata, read_recording
+from common.recording.mcap_recorder import read_metadata, read_recording
 from robot_side.camera.config import TestPatternConfig
 from robot_side.video.recording import CHANNEL, decode_jpeg
 from robot_side.video.server import VideoConfig, VideoServer, build_source

@@ -14,8 +14,8 @@ import pytest
 
 pytest.importorskip("aiortc")
 
-from common.messages import VideoSignal
-from common.transport import CaptureLink
+from common.wire.messages import VideoSignal
+from common.wire.transport import CaptureLink
 from robot_side.camera.config import TestPatternConfig
 from robot_side.camera.test_pattern import TestPatternCamera
 from robot_side.config import RenderConfig, RobotConfig, RobotLinkConfig

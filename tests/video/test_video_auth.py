@@ -14,7 +14,7 @@ from tests_support import VideoServerProcess
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from common.web_token import with_token, without_token
+from common.web.web_token import with_token, without_token
 from robot_side.video.link_signalling import LinkSignalling
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]

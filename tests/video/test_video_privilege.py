@@ -41,13 +41,13 @@ from video_page import watch_video
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from common.clock import now_ns
+from common.clocks.clock import now_ns
 from common.fabric import keyexprs
 from common.fabric.link import FabricPublisher, FabricSubscriber
 from common.fabric.session import FabricConfig, cert_files, client_config, open_session
-from common.messages import Heartbeat, VideoSignal, new_run
-from common.signing import load_signer
-from common.web_token import from_query, with_token
+from common.web.web_token import from_query, with_token
+from common.wire.messages import Heartbeat, VideoSignal, new_run
+from common.wire.signing import load_signer
 from harness.fleet import Fleet
 
 #: serial: the video server runs at its unit's priority (Nice=0, below the nodes' -10, as video

@@ -183,8 +183,8 @@ def test_cameras_are_devices_whose_kinds_load_only_when_named(tmp_path):
     import subprocess
     import sys
 
-    from common.devices import Device
-    from common.preflight import FAIL, PreflightContext
+    from common.devices.lifecycle import Device
+    from common.devices.preflight import FAIL, PreflightContext
     from robot_side.camera import KINDS
 
     probe = (

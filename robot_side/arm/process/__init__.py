@@ -33,9 +33,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from common.clock import now_s
-from common.config import to_dict
-from common.devices import Device
+from common.clocks.clock import now_s
+from common.config.typed import to_dict
+from common.devices.lifecycle import Device
+from common.devices.preflight import Finding, PreflightContext
 from common.errors import (
     ConfigError,
     DeviceAlreadyConnectedError,
@@ -44,7 +45,6 @@ from common.errors import (
     DeviceTimeoutError,
     StaleDataError,
 )
-from common.preflight import Finding, PreflightContext
 from robot_side.arm.base import Arm, WorkspaceLimitError, as_vector6, turn_angle
 from robot_side.arm.process.child import ArmProcessSpec
 from robot_side.arm.process.state import StateView, new_state_file

@@ -34,11 +34,11 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from common.clock import now_s
-from common.config import from_dict
-from common.devices import load_object
+from common.clocks.clock import now_s
+from common.config.typed import from_dict
+from common.devices.lifecycle import load_object
 from common.logs import configure as configure_logging
-from common.realtime import PeriodStats, raise_this_thread
+from common.process.realtime import PeriodStats, raise_this_thread
 from robot_side.arm.base import SAFETY_THREAD_NICE, Arm
 from robot_side.arm.process.state import StateView
 from robot_side.devices.stdio_child import serve_stdio

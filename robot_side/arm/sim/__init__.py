@@ -13,8 +13,8 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from common.config import param
-from common.devices import OnItsSimulator
+from common.config.typed import param
+from common.devices.lifecycle import OnItsSimulator
 from robot_side.arm.process import InOwnProcess
 from robot_side.arm.sim.process import URSimProcess
 from robot_side.arm.sim.server import URSimConfig, URSimulator

@@ -13,9 +13,9 @@ import json
 import logging
 import sys
 
-from common.config import from_dict
+from common.config.typed import from_dict
 from common.logs import configure as configure_logging
-from common.signals import stop_on_signals
+from common.process.signals import stop_on_signals
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 
 

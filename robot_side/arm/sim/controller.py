@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.clock import now_s
-from common.config import param
+from common.clocks.clock import now_s
+from common.config.typed import param
 from common.errors import ConfigError
 from robot_side.arm.sim.kinematics import HOME_Q, KinematicArm, Mode
 

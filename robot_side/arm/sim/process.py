@@ -14,7 +14,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from common.devices import SIMULATED_HARDWARE_NICE
+from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.devices.stdio_child import StdioChild
 from robot_side.devices.stdio_child import serve_stdio as serve_child

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import now_s
+from common.clocks.clock import now_s
 from robot_side.arm.sim import rtde_wire as w
 from robot_side.arm.sim.controller import SAFETY_MODE_NORMAL, Controller
 

@@ -32,8 +32,8 @@ import socket
 import threading
 from typing import Any
 
-from common.clock import Rate, now_s
-from common.devices import as_hardware
+from common.clocks.clock import Rate, now_s
+from common.devices.lifecycle import as_hardware
 from common.errors import ConfigError, DeviceError
 from robot_side.arm.sim.controller import (
     DASHBOARD_PORT,

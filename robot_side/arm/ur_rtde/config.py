@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from common.config import param
+from common.config.typed import param
 from common.errors import ConfigError
 from robot_side.arm.base import ArmLimits
 

@@ -23,8 +23,8 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from common.clock import now_s
-from common.devices import at_niceness
+from common.clocks.clock import now_s
+from common.devices.lifecycle import at_niceness
 from common.errors import DeviceError, DeviceNotConnectedError, DeviceTimeoutError
 from robot_side.arm.base import SAFETY_THREAD_NICE
 from robot_side.arm.ur_rtde.config import URArmConfig

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from common.devices.preflight import Finding, PreflightContext, tcp_findings
 from common.errors import DeviceAlreadyConnectedError, DeviceError
-from common.preflight import Finding, PreflightContext, tcp_findings
 from robot_side.arm.base import Arm
 from robot_side.arm.ur_rtde.config import URArmConfig, check_watchdog_config
 from robot_side.arm.ur_rtde.connection import CONTROLLER_PORTS, close_interfaces, open_interfaces

@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from common.clock import now_s
+from common.clocks.clock import now_s
 from common.errors import DeviceError, DeviceNotConnectedError
 from common.logs import BurstLog
 from robot_side.arm.base import ArmLimits

@@ -22,9 +22,9 @@ import time
 
 import numpy as np
 
-from common.clock import now_s
+from common.clocks.clock import now_s
 from common.errors import DeviceError, DeviceNotConnectedError
-from common.messages import ARM_SAFETY_MODES
+from common.wire.messages import ARM_SAFETY_MODES
 from robot_side.arm.base import ArmLimits
 from robot_side.arm.ur_rtde.config import URArmConfig
 from robot_side.arm.ur_rtde.control import ArmCommandRefusedError, ControlLine

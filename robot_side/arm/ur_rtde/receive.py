@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import now_s
+from common.clocks.clock import now_s
 from common.errors import DeviceError, DeviceNotConnectedError, StaleDataError
-from common.messages import ARM_SAFETY_MODES
+from common.wire.messages import ARM_SAFETY_MODES
 from robot_side.arm.base import TELEMETRY_POSE_KEYS
 from robot_side.arm.ur_rtde.config import URArmConfig
 

@@ -3,7 +3,7 @@
 A command is a wish the operator had when it was sent. Acting on it later
 than that is acting on a wish the operator may no longer have, so every
 timing decision here is taken from the operator's send time mapped onto the
-robot's clock (the heartbeat offset, ``common.clock_sync``), not from when
+robot's clock (the heartbeat offset, ``common.clocks.clock_sync``), not from when
 the robot got round to reading it:
 
 - **fresh**: a command older than ``max_age_ns`` is refused. A backlog (a
@@ -14,7 +14,7 @@ the robot got round to reading it:
   messages cannot extend it; a timestamp from the future cannot either.
 - **once, in order**: within one operator boot (the ``session`` field,
   random per operator run), each stream's ``seq`` must increase: commands,
-  heartbeats and video signals alike (``common.replay_window``, the window
+  heartbeats and video signals alike (``common.wire.replay_window``, the window
   signed telemetry uses too, here with no room for reordering). CURVE
   already stops a stranger on the network from replaying anything; this
   stops a replay by anyone who can reach the socket (a key holder, or anyone
@@ -48,9 +48,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.clock_sync import ClockSync
-from common.messages import Command, Heartbeat, Message
-from common.replay_window import ReplayWindow
+from common.clocks.clock_sync import ClockSync
+from common.wire.messages import Command, Heartbeat, Message
+from common.wire.replay_window import ReplayWindow
 
 #: Commands that can only end motion: safe to act on when late or before the clock is known.
 SAFE_WHEN_LATE = frozenset({"arm_stop", "arm_jog_end", "gripper_hold"})

@@ -1,8 +1,8 @@
 """The control lease: which one operator key a robot acts on, and how it changes hands.
 
 Several operators see one robot through the router; exactly one of them may
-command it at a time. Every operator message is signed (common/signing.py)
-and its signer looked up in the robot's own roster (common/roster.py):
+command it at a time. Every operator message is signed (common/wire/signing.py)
+and its signer looked up in the robot's own roster (common/keys/roster.py):
 
 - a key not in the roster is ignored, whatever the router let through;
 - only ``controller`` keys may ask for the lease (``lease_request``); the
@@ -24,9 +24,9 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from common.clock_sync import ClockSync
-from common.messages import Command
-from common.roster import OperatorEntry
+from common.clocks.clock_sync import ClockSync
+from common.keys.roster import OperatorEntry
+from common.wire.messages import Command
 from robot_side.node.commands.command_gate import CommandGate
 
 log = logging.getLogger(__name__)

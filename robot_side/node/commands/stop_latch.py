@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from common.messages import STOP_ROLES
+from common.wire.messages import STOP_ROLES
 
 log = logging.getLogger(__name__)
 

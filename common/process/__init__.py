@@ -1,0 +1,1 @@
+"""A node's process: its command line, systemd's notify protocol, signals, real-time threads."""
