@@ -7,10 +7,10 @@ from typing import Any
 from common.errors import ConfigError
 from common.fabric.certificates import CertFiles
 from common.fabric.session import (
-    LEASE_MS,
     MAX_WIRE_MESSAGE_BYTES,
     quiet_discovery,
     tls_section,
+    tx_section,
 )
 from common.keys.roster import Roster
 from router_side.acl import access_control, rate_gates, size_filter
@@ -48,7 +48,7 @@ def router_config(config: RouterConfig, roster: Roster, files: CertFiles) -> dic
             "link": {
                 "tls": tls_section(files, listen=True),
                 "rx": {"max_message_size": MAX_WIRE_MESSAGE_BYTES},
-                "tx": {"lease": LEASE_MS, "keep_alive": 4},
+                "tx": tx_section(),
             },
         },
     }

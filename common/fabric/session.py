@@ -33,6 +33,16 @@ log = logging.getLogger(__name__)
 #: systemd started again. Longer than the outages a lossy path has (2 s), shorter than
 #: Zenoh's 10 s default, which kept nodes away from a restarted router for 8 s
 LEASE_MS = 3000
+#: batches each priority's transmit queue holds (Zenoh's default: 2 for every priority). An
+#: express message takes a batch of its own, and a message under congestion control DROP waits
+#: 1 ms for a free one before it is dropped, reliable or not: with two, a burst of express
+#: messages (a viewer's offers, a jog beside a gripper command, a page's answers) lost some
+#: whenever a busy machine kept the transmit thread off a core for a millisecond. The kinds
+#: that must arrive (commands, video signals: their priorities in ``link._qos``) get Zenoh's
+#: largest queue; the latest-value ones (stimuli, frames, heartbeats) keep two, so a congested
+#: link drops an old stimulus rather than queueing it behind newer ones. A stop shares the
+#: stimuli's priority and has its copies and resends instead. Batches are allocated as used
+TX_QUEUE_BATCHES = {"interactive_high": 16, "data": 16}
 #: how long closing a session may take before the node goes on without waiting for it
 CLOSE_WAIT_S = 1.0
 #: Zenoh's own framing around a message: the key, the QoS and the sequence number
@@ -162,10 +172,15 @@ def client_config(fabric: FabricConfig, files: CertFiles, where: str) -> dict[st
             "link": {
                 "tls": tls_section(files),
                 "rx": {"max_message_size": MAX_WIRE_MESSAGE_BYTES},
-                "tx": {"lease": LEASE_MS, "keep_alive": 4},
+                "tx": tx_section(),
             },
         },
     }
+
+
+def tx_section() -> dict[str, Any]:
+    """How a node's or the router's links send: the lease, keep-alives, the queues."""
+    return {"lease": LEASE_MS, "keep_alive": 4, "queue": {"size": dict(TX_QUEUE_BATCHES)}}
 
 
 def open_session(config: dict[str, Any], what: str) -> Any:
