@@ -242,8 +242,7 @@ class ArmProcess(Arm):
 
     def jog(self, velocity: Any, issued_at_s: float | None = None) -> np.ndarray:
         self.require_connected()
-        v = self._call("jog", as_vector6(velocity, "jog velocity"), issued_at_s,
-                       timeout_s=self._command_timeout_s())  # fmt: skip
+        v = self._jog_there(as_vector6(velocity, "jog velocity"), issued_at_s)
         self._last_jog = np.asarray(v, dtype=float)
         self._jog_until = None if not np.any(self._last_jog) else now_s()
         return self._last_jog
@@ -259,7 +258,7 @@ class ArmProcess(Arm):
         self.require_connected()
         target = as_vector6(pose, "target pose")
         start = self.tcp_pose()
-        self._call("move_to", target, speed, timeout_s=self._command_timeout_s())
+        self._send_move(target, speed)
         if not wait:
             return
         speed = speed or self.limits.default_move_speed_m_s
@@ -299,10 +298,15 @@ class ArmProcess(Arm):
         return self.joint_positions()
 
     def _send_jog(self, velocity: np.ndarray) -> None:
-        raise NotImplementedError("ArmProcess.jog sends the jog through the arm process")
+        self._jog_there(velocity, None)
 
-    def _send_move(self, pose: np.ndarray, speed: float) -> None:
-        raise NotImplementedError("ArmProcess.move_to sends the move through the arm process")
+    def _jog_there(self, velocity: np.ndarray, issued_at_s: float | None) -> Any:
+        """The jog, clipped and timed by the arm process's own deadman; what it sent."""
+        return self._call("jog", velocity, issued_at_s, timeout_s=self._command_timeout_s())
+
+    def _send_move(self, pose: np.ndarray, speed: float | None) -> None:
+        """The move to the arm process (its driver checks and starts it; nothing waits)."""
+        self._call("move_to", pose, speed, timeout_s=self._command_timeout_s())
 
     def _send_stop(self) -> None:
         self.stop()
