@@ -332,15 +332,9 @@ class Fleet:
         write_secret_file(config, text)
         return config
 
-    def start_robot(
-        self,
-        name: str,
-        arm_host: str | None,
-        rate_hz: float = 60.0,
-        video_url: str = "",
-        devices: str = SCRIPTED_TACTILE,
-    ) -> Proc:
-        return self.robot(name, arm_host, rate_hz, video_url, devices).start()
+    def start_robot(self, name: str, arm_host: str | None, *args: Any, **options: Any) -> Proc:
+        """:meth:`robot` ``name``, started (the arguments as there)."""
+        return self.robot(name, arm_host, *args, **options).start()
 
     def robot(
         self,
@@ -383,28 +377,9 @@ class Fleet:
         token = web_token.token_file(self.workdir / f"{name}.token", "video token_file")
         return web_token.with_token(ready.endpoints["signalling"], token)
 
-    def start_operator(
-        self,
-        name: str,
-        robot: str,
-        *,
-        request_control: bool = False,
-        want_frames: bool = True,
-        extra: list[str] | None = None,
-        servos: str = 'kind = "recording"',
-        router_endpoint: str | None = None,
-    ) -> Proc:
-        """An operator process; ``servos`` is its ``[operator.servos]`` TOML body, and
-        ``router_endpoint`` another path to the router (a link simulator's datagram port)."""
-        return self.operator(
-            name,
-            robot,
-            request_control=request_control,
-            want_frames=want_frames,
-            extra=extra,
-            servos=servos,
-            router_endpoint=router_endpoint,
-        ).start()
+    def start_operator(self, name: str, robot: str, **options: Any) -> Proc:
+        """:meth:`operator` ``name`` following ``robot``, started (``options`` as there)."""
+        return self.operator(name, robot, **options).start()
 
     def operator(
         self,
@@ -418,7 +393,9 @@ class Fleet:
         router_endpoint: str | None = None,
         watchdog: bool = False,
     ) -> Proc:
-        """An operator process (:meth:`start_operator`), not started; its config written."""
+        """An operator process, not started; its config written. ``servos`` is its
+        ``[operator.servos]`` TOML body, ``router_endpoint`` another path to the router (a
+        link simulator's datagram port)."""
         m = self.members[name]
         proc_name = f"{name}@{robot}"  # one key may follow several robots, a process each
         config = self.workdir / f"{proc_name}.toml"
