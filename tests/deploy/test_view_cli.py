@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 from deploy_support import ENV, REPO, cli
 from telemetry_publisher import TelemetryPublisher
-from tests_support import free_ports, needs
+from tests_support import needs
 
 from common.errors import ConfigError
 from common.recording.foxglove import VIEW_PORT
@@ -161,6 +161,23 @@ def test_the_view_serves_the_link_to_a_foxglove_client(robot, serve):
     assert {e["id"] for e in got["robot/palm"][-1]["entities"]} == {"stimulus", "contacts"}
 
 
+def test_two_clients_of_one_view_and_a_second_view_each_get_the_link(robot, serve):
+    """Two of everything: two Foxglove clients of one view and a client of another view of
+    the same robot, all at once, each get the link's topics."""
+    views = [serve("--endpoint", robot.endpoint, "--port", "0") for _ in range(2)]
+    wanted = {"robot/palm", "robot/tf/tcp", "robot/link"}
+
+    async def three() -> list[dict]:
+        urls = (views[0].url, views[0].url, views[1].url)
+        return await asyncio.gather(*(_watch(url, wanted, WITHIN_S) for url in urls))
+
+    seen = asyncio.run(three())
+    assert views[0].url != views[1].url
+    for client, watched in zip(("first", "second", "other view's"), seen, strict=True):
+        empty = [t for t, m in watched["got"].items() if not m]
+        assert not empty, f"the {client} client got nothing on {empty} in {WITHIN_S} s"
+
+
 def test_the_view_has_its_own_port_and_stays_on_loopback():
     from operator_side.dashboard.config import DashboardConfig
 
@@ -217,11 +234,10 @@ def test_the_arm_pose_is_read_under_the_robots_own_names():
 def test_the_command_serves_until_its_duration_and_says_what_it_served(robot, tmp_path):
     """``deepxpalm view`` as a user runs it: a process that prints where to connect, serves
     a client there, and ends after ``--duration`` with its counters in ``--stats-file``."""
-    (port,) = free_ports(1)
     stats = tmp_path / "view.json"
     proc = subprocess.Popen(
         cli(
-            *("view", "--endpoint", robot.endpoint, "--port", str(port)),
+            *("view", "--endpoint", robot.endpoint, "--port", "0"),
             *("--duration", "8", "--stats-file", str(stats)),
         ),
         stdout=subprocess.PIPE,
@@ -230,9 +246,10 @@ def test_the_command_serves_until_its_duration_and_says_what_it_served(robot, tm
         cwd=REPO,
     )
     try:
-        line = proc.stdout.readline()
-        assert line.startswith(f"Foxglove: open ws://127.0.0.1:{port} "), line
-        seen = asyncio.run(_watch(f"ws://127.0.0.1:{port}", {"robot/link"}, WITHIN_S))
+        line = proc.stdout.readline()  # the port it bound, said
+        where = re.match(r"Foxglove: open (ws://127\.0\.0\.1:[1-9]\d*) ", line)
+        assert where, line
+        seen = asyncio.run(_watch(where[1], {"robot/link"}, WITHIN_S))
         assert seen["got"]["robot/link"], seen["ops"]
         assert proc.wait(timeout=30) == 0
     finally:
