@@ -62,7 +62,8 @@ STOP_COPIES = 2
 #: at 1,800 nearly half (a message split over datagrams is lost with any of them). A larger
 #: latest-value message goes reliably instead (``link_fabric_too_big_for_a_datagram``)
 DATAGRAM_BYTES = 1100
-#: how many stop payloads the receiver remembers to drop the copies of
+#: how many stop payloads the receiver remembers per sender to drop the copies of: one
+#: sender's flood of stops (at its key's gated rate) turns over its own memory, nobody else's
 _STOP_MEMORY = 32
 #: key expressions a subscriber keeps a queue for at most (one per sender and kind)
 _MAX_QUEUES = 1024
@@ -229,7 +230,8 @@ class FabricSubscriber:
         self._queue_max = queue
         self._queued = 0
         self._latest: dict[str, tuple[int, bytes]] = {}
-        self._stops: collections.deque[bytes] = collections.deque(maxlen=_STOP_MEMORY)
+        #: per sender (the key without its kind): the digests of its latest stops
+        self._stops: dict[str, collections.deque[bytes]] = {}
         self._lock = threading.Lock()
         self._rfd, self._wfd = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
         self._woken = False
@@ -250,12 +252,9 @@ class FabricSubscriber:
                     self.counters["superseded"] += 1
                 self._latest[key] = (t_recv, data)
             else:
-                if kind in keyexprs.STOP_KINDS:
-                    digest = hashlib.blake2b(data, digest_size=16).digest()
-                    if digest in self._stops:
-                        self.counters["stop_copies_dropped"] += 1
-                        return
-                    self._stops.append(digest)
+                if kind in keyexprs.STOP_KINDS and self._seen_stop(key, data):
+                    self.counters["stop_copies_dropped"] += 1
+                    return
                 queue = self._queues.get(key)
                 if queue is None:
                     if len(self._queues) >= _MAX_QUEUES:  # keys seen: bounded by the roster
@@ -272,6 +271,20 @@ class FabricSubscriber:
                 self._woken = True
                 with contextlib.suppress(BlockingIOError, OSError):
                     os.write(self._wfd, b"!")
+
+    def _seen_stop(self, key: str, data: bytes) -> bool:
+        """Is ``data`` a stop its sender already sent (a copy)? Remembered if not."""
+        sender = key.rsplit("/", 1)[0]
+        seen = self._stops.get(sender)
+        if seen is None:
+            if len(self._stops) >= _MAX_QUEUES:  # senders: bounded by the roster
+                del self._stops[next(iter(self._stops))]
+            seen = self._stops[sender] = collections.deque(maxlen=_STOP_MEMORY)
+        digest = hashlib.blake2b(data, digest_size=16).digest()
+        if digest in seen:
+            return True
+        seen.append(digest)
+        return False
 
     # -------------------------------------------------------------- node's thread
     def poll(self, timeout_s: float) -> bool:

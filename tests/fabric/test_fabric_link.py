@@ -84,6 +84,28 @@ def test_a_stop_arrives_once_though_it_travels_with_copies(site):
     assert alice.sent == 1
 
 
+def test_another_keys_stops_never_make_a_late_copy_count_again(site):
+    """Each sender's stops are remembered apart: an observer's flood of stops (each its own
+    payload) leaves alice's late copy of her stop known as a copy, not a second stop."""
+    inbox = _robot_inbox(site, "cell1")
+    alice = FabricPublisher(site.session("alice"), robot=b"cell1", operator="alice")
+    olga = FabricPublisher(site.session("olga"), robot=b"cell1", operator="olga")
+    _settle(alice, keyexprs.STOP)
+    _settle(olga, keyexprs.STOP)
+    stop = alice.send(Command(seq=3, t_send_ns=time.time_ns(), action="arm_stop", session=5))
+    first = _collect(inbox, ARRIVES_S, until=lambda g: g)
+    flood = 3 * 32  # three times what one sender's memory holds
+    for seq in range(1, flood + 1):  # within the router's gate for stops
+        olga.send(Command(seq=seq, t_send_ns=time.time_ns(), action="arm_stop", session=9))
+        time.sleep(0.015)
+    got = _collect(inbox, ARRIVES_S, until=lambda g: len(g) >= flood)
+    assert len(got) == flood, f"{len(got)} of the observer's {flood} stops arrived"
+    alice.send_raw(stop, keyexprs.STOP)  # the same stop again: copies held up on the way
+    late = _collect(inbox, REFUSED_S)
+    assert [(m.action, m.seq) for m in first] == [("arm_stop", 3)]
+    assert late == [], [(m.action, m.seq) for m in late]
+
+
 def test_a_robot_key_cannot_put_under_another_robots_name(site):
     inbox = _operator_inbox(site, "alice", robot="cell2")
     forger = site.session("cell1")
