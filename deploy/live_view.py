@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from common.tactile.contract import SATURATION_N, pattern_name
-from operator_side.node import Snapshot
+from operator_side.dashboard.snapshot import Snapshot
 
 _SHADES = " .:-=+*#%@"
 _RESET = "\x1b[0m"

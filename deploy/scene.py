@@ -15,8 +15,8 @@ from typing import Any
 from common.config.overrides import apply_overrides
 from common.config.typed import from_dict, load_toml, param
 from common.errors import ConfigError
-from operator_side.config import OperatorConfig
-from robot_side.config import RobotConfig
+from operator_side.node.config import OperatorConfig
+from robot_side.node.config import RobotConfig
 
 
 @dataclass

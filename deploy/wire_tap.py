@@ -111,7 +111,7 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _operator_tap(section: dict[str, Any], where: str) -> TapConfig:
     from common.wire.signing import load_public_key
-    from operator_side.config import OperatorLinkConfig
+    from operator_side.node.config import OperatorLinkConfig
 
     link = from_dict(OperatorLinkConfig, section.get("link", {}), where=f"{where}.link")
     return TapConfig(

@@ -20,8 +20,8 @@ from urllib.parse import urlsplit
 from common.web.web_token import new_token, with_token
 from common.wire.signing import write_secret_file
 from deploy.units.service import Service
-from harness.bench.command_path import LogLine, read_log_lines
-from operator_side.node.snapshot import Snapshot
+from harness.node_logs import LogLine, read_log_lines
+from operator_side.dashboard.snapshot import Snapshot
 
 _OPERATOR_TOML = """
 [operator.servos]

@@ -15,7 +15,7 @@ from typing import Any
 
 from common.errors import ConfigError
 from common.process.command_line import add_config_arguments, run_node
-from operator_side.config import OperatorConfig
+from operator_side.node.config import OperatorConfig
 
 log = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ import argparse
 from typing import Any
 
 from common.process.command_line import add_config_arguments, run_node
-from robot_side.config import RobotConfig
+from robot_side.node.config import RobotConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

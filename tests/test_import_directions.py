@@ -10,7 +10,11 @@ together), and so does ``importlib.import_module("...")`` with a literal name.
 
 Within and across packages, no two modules import each other, directly or
 round a longer circle: a circle means neither can be read, tested or moved
-without the other.
+without the other. Nor do two folders (packages), round any loop: a folder is
+a room, and one room importing another that imports it back (through any of
+their modules) is two rooms that are one. A package's own top-level modules
+count as its folder, so they are either below its folders (imported by them)
+or above them (commands that import them), never both.
 """
 
 from __future__ import annotations
@@ -212,6 +216,77 @@ def test_no_import_circle_in_the_house():
         "or make one of them stop calling the other:\n" + "\n".join(new.values())
     )
     assert not gone, f"no longer circles, delete them from KNOWN_CIRCLES: {gone}"
+
+
+def _folder(name: str, modules: dict[str, tuple[Path, bool]]) -> str:
+    """The folder (package) a module sits in; a package's ``__init__`` is its own folder's."""
+    return name if modules[name][1] else name.rpartition(".")[0]
+
+
+def folder_loops(root: Path) -> dict[frozenset[str], str]:
+    """Each set of folders that import each other, round a loop -> the loop, with one import
+    (module and line) for each step."""
+    modules = _modules(root)
+    graph = import_graph(root)
+    #: folder -> {folder it imports: (module, line) of its first import there}
+    folders: dict[str, dict[str, tuple[str, int]]] = {_folder(m, modules): {} for m in modules}
+    for name, targets in graph.items():
+        here = _folder(name, modules)
+        for target, line in targets.items():
+            there = _folder(target, modules)
+            if there != here:
+                folders[here].setdefault(there, (name, line))
+    plain = {folder: dict.fromkeys(targets, 0) for folder, targets in folders.items()}
+    loops = {}
+    for members in _strongly_connected(plain):
+        way = _one_circle(plain, members)
+        steps = [
+            f"{a} -> {b} ({folders[a][b][0]}, line {folders[a][b][1]})"
+            for a, b in itertools.pairwise(way)
+        ]
+        extra = sorted(set(members) - set(way))
+        loops[frozenset(members)] = "; ".join(steps) + (f"; and through {extra}" if extra else "")
+    return loops
+
+
+def test_no_loop_between_folders():
+    loops = folder_loops(ROOT)
+    assert not loops, (
+        "folders that import each other round a loop; move what both need into the folder "
+        "below (or a room of its own), or the importer up:\n" + "\n".join(loops.values())
+    )
+
+
+def test_a_loop_between_folders_fails_the_check(tmp_path):
+    """Two rooms that import each other through different modules loop; a command at a
+    package's top importing its rooms, while a room imports a module at that top, loops
+    too; a room importing the one below it does not."""
+    root = _tree(
+        tmp_path,
+        {
+            "robot_side/camera/__init__.py": "",
+            "robot_side/camera/pattern.py": "from robot_side.video.stamp import draw\n",
+            "robot_side/video/__init__.py": "",
+            "robot_side/video/stamp.py": "",
+            "robot_side/video/config.py": "from robot_side.camera import pattern\n",
+            "operator_side/node_cli.py": "from operator_side.node.loop import run\n",
+            "operator_side/config.py": "",
+            "operator_side/node/__init__.py": "",
+            "operator_side/node/loop.py": "def run():\n    from operator_side.config import C\n",
+            "common/wire/__init__.py": "",
+            "common/wire/codec.py": "from common.clocks.clock import now\n",
+            "common/clocks/__init__.py": "",
+            "common/clocks/clock.py": "",
+        },
+    )
+    assert folder_loops(root) == {
+        frozenset({"robot_side.camera", "robot_side.video"}): "robot_side.camera -> "
+        "robot_side.video (robot_side.camera.pattern, line 1); robot_side.video -> "
+        "robot_side.camera (robot_side.video.config, line 1)",
+        frozenset({"operator_side", "operator_side.node"}): "operator_side -> "
+        "operator_side.node (operator_side.node_cli, line 1); operator_side.node -> "
+        "operator_side (operator_side.node.loop, line 2)",
+    }
 
 
 def test_an_import_circle_fails_the_check(tmp_path):

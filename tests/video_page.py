@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 
-from robot_side.video.stamp import read_stamp
+from robot_side.camera.stamp import read_stamp
 
 
 async def watch_video(page_ws: str, frames: int) -> dict:

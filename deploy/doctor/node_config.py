@@ -27,10 +27,10 @@ def infer_role(data: dict[str, Any]) -> str | None:
 
 def _config_class(role: str) -> type:
     if role == "robot":
-        from robot_side.config import RobotConfig
+        from robot_side.node.config import RobotConfig
 
         return RobotConfig
-    from operator_side.config import OperatorConfig
+    from operator_side.node.config import OperatorConfig
 
     return OperatorConfig
 

@@ -19,9 +19,9 @@ MAX_EXAMPLES = 10  # mismatches described in the report; all are counted
 def recorded_config(metadata: dict[str, dict[str, str]], node: str) -> Any:
     """The node's effective config as the recording stored it (defaults if absent)."""
     if node == "robot":
-        from robot_side.config import RobotConfig as cls
+        from robot_side.node.config import RobotConfig as cls
     else:
-        from operator_side.config import OperatorConfig as cls
+        from operator_side.node.config import OperatorConfig as cls
     text = metadata.get("deepxpalm.node", {}).get("config_toml")
     if text is None:
         log.warning("the recording holds no config; checking against today's defaults")

@@ -37,7 +37,7 @@ from harness.bench.fmt import (
 )
 from harness.bench.section import Context, DefaultCheck, Results, Section
 from harness.bench.timing import summarize_ns, time_interleaved
-from robot_side.config import RobotConfig
+from robot_side.node.config import RobotConfig
 from robot_side.perception import BACKENDS, DEFAULT_MODEL, load_classifier
 from robot_side.perception.weights import read_weights
 

@@ -21,7 +21,6 @@ as its own process.
 from __future__ import annotations
 
 import multiprocessing
-import re
 import secrets
 import signal
 import tempfile
@@ -42,6 +41,7 @@ from common.wire.transport import Subscriber
 from deploy.units.service import Service
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
+from harness.node_logs import LogLine, read_log_lines
 
 PUBLISH_HZ = 60.0
 FLOOD_VELOCITY = [0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
@@ -153,31 +153,6 @@ class ArmWatch:
     def close(self) -> None:
         self._stop.set()
         self._thread.join(2)
-
-
-@dataclass(frozen=True)
-class LogLine:
-    """One line of the node's log: wall time (``time.time()``, ms resolution), level, logger."""
-
-    created: float
-    level: str
-    name: str
-    message: str
-
-
-_LOG_LINE = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) (\w+) ([\w.]+): (.*)$")
-
-
-def read_log_lines(path: Path, name: str = "") -> list[LogLine]:
-    """A node's log lines (``deepxpalm -v``) from loggers under ``name``, times on this clock."""
-    out = []
-    for line in path.read_text(errors="replace").splitlines():
-        m = _LOG_LINE.match(line)
-        if m is None or not m[4].startswith(name):
-            continue  # a traceback's continuation, a stack dump
-        stamp = time.mktime(time.strptime(m[1], "%Y-%m-%d %H:%M:%S"))
-        out.append(LogLine(stamp + int(m[2]) / 1000, m[3], m[4], m[5]))
-    return out
 
 
 class RobotUnderCommands:

@@ -21,10 +21,10 @@ from harness.bench.fixtures import PacketServoBus, frame_set_of_at_least, scan_b
 from harness.bench.fmt import num, results_of, table
 from harness.bench.section import Context, Results, Section, Verdict
 from harness.bench.timing import summarize_ns
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
-from robot_side.config import RobotConfig
+from operator_side.node.config import OperatorConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 
 
 class InprocLoop:

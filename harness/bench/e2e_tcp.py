@@ -97,8 +97,8 @@ def end_to_end_tcp(
 
     from common.wire.transport import Link, Publisher
     from harness.bench.fixtures import frame_set_of_at_least, scan_bytes, serial_sensor
-    from robot_side.config import RobotConfig
     from robot_side.node import RobotNode
+    from robot_side.node.config import RobotConfig
 
     fs = frame_set_of_at_least(n_frames, seed=seed)
     order = np.random.default_rng(seed).permutation(len(fs))
@@ -253,8 +253,8 @@ def _peer(args: argparse.Namespace) -> int:
 
     from common.wire.transport import Link, Subscriber
     from harness.bench.fixtures import PacketServoBus
-    from operator_side.config import OperatorConfig
     from operator_side.node import OperatorNode
+    from operator_side.node.config import OperatorConfig
 
     class StampedSubscriber(Subscriber):
         """Keeps the newest message's receive time, to split the latency at the socket."""

@@ -60,7 +60,7 @@ def _busy(n: int) -> list[subprocess.Popen]:
 def run_layout(frames: list[Any], own_process: bool, sizes: KeepAliveSizes) -> dict[str, Any]:
     """One robot node with its arm on the simulated controller, beside the load; what its
     stats say of the keep-alive when it ends."""
-    from robot_side.config import RobotConfig
+    from robot_side.node.config import RobotConfig
 
     workdir = Path(tempfile.mkdtemp(prefix="deepxpalm-bench-keepalive-"))
     feeder = PtyFeeder(frames, SENSOR_RATE_HZ).start()

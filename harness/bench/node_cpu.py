@@ -347,8 +347,8 @@ def run_nodes(
     config table, e.g. the simulated UR controller); its driver's own process (the arm
     process, a child of the node) is measured as ``arm_process`` and the controller's
     simulator, which stands for the controller, as ``arm_sim``."""
-    from operator_side.config import OperatorConfig
-    from robot_side.config import RobotConfig
+    from operator_side.node.config import OperatorConfig
+    from robot_side.node.config import RobotConfig
 
     workdir = Path(tempfile.mkdtemp(prefix="deepxpalm-bench-nodes-"))
     feeder = PtyFeeder(frames, rate_hz).start()

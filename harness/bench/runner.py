@@ -162,7 +162,7 @@ def _run_section(
 
 
 def _defaults(backend: str) -> dict[str, Any]:
-    from robot_side.config import RobotConfig
+    from robot_side.node.config import RobotConfig
     from robot_side.perception.weights import DEFAULT_MODEL, read_weights
 
     cfg = RobotConfig()

@@ -158,7 +158,7 @@ SIZES = {
 
 
 def measure(ctx: Context, sizes: ScaleSizes) -> dict[str, Any]:
-    from robot_side.config import RobotConfig
+    from robot_side.node.config import RobotConfig
 
     cap = RobotConfig().publish_rate_hz
     # the sender's share of a one-process round trip: half, a rough split

@@ -37,10 +37,10 @@ from harness.bench.fixtures import (
 from harness.bench.fmt import IMG_DIR, num, pyplot, results_of, save_figure, table
 from harness.bench.section import Context, Results, Section
 from harness.bench.timing import summarize_ns
-from operator_side.config import OperatorConfig
+from operator_side.node.config import OperatorConfig
 from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
-from robot_side.config import RobotConfig
+from robot_side.node.config import RobotConfig
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ Several viewers at once (``many_viewers``, ``watch``): aiortc peers in this
 process, speaking the video server's own signalling (``{"type": "offer"}`` on
 its WebSocket), so the server can run in another process and its crash is
 seen from outside, as a browser would see it. Each decoded frame's capture
-time is read back from the test pattern's stamp (``robot_side/video/stamp.py``)
+time is read back from the test pattern's stamp (``robot_side/camera/stamp.py``)
 on the luma plane, without converting the frame: glass-to-glass here is
 capture to decoded frame (a browser adds its paint, a few ms). A stall there is
 a gap of over ``STALL_MS`` between two decoded frames of one viewer.
@@ -39,7 +39,7 @@ import numpy as np
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
 from harness.processes import idle_share, machine_cpu
-from robot_side.video.stamp import MS_MODULO, cell_size, read_stamp
+from robot_side.camera.stamp import MS_MODULO, cell_size, read_stamp
 
 WARMUP_FRAMES = 30  # the first second: ICE, keyframe, the receiver's buffer settling
 STALL_MS = 500.0
@@ -64,9 +64,9 @@ def glass_to_glass(
     """p50/p90/p99/max latency (ms), stalls and skipped frames over ``frames`` stamped frames."""
     from harness.bench.timing import machine_load
     from harness.headless_chromium import Chromium
-    from operator_side.config import OperatorConfig
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
+    from operator_side.node.config import OperatorConfig
     from operator_side.servos.recording import RecordingServoBus
     from robot_side.camera.config import TestPatternConfig
     from robot_side.camera.test_pattern import TestPatternCamera

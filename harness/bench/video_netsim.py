@@ -93,9 +93,9 @@ def play(scenario: Any, width: int, height: int, fps: float, seconds: float = RU
     from harness.bench.timing import machine_load
     from harness.bench.video import all_cores
     from harness.headless_chromium import Chromium
-    from operator_side.config import OperatorConfig
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
+    from operator_side.node.config import OperatorConfig
     from operator_side.servos.recording import RecordingServoBus
     from robot_side.camera.config import TestPatternConfig
     from robot_side.camera.test_pattern import TestPatternCamera
@@ -243,9 +243,9 @@ AGAINST_WITHIN_MS = 10.0
 def page_server(link: Any, fps: float = AGAINST_FPS) -> Iterator[tuple[Any, Any]]:
     """A 320x240 video server whose media crosses ``link`` (a scenario's name or file, or
     "" for the direct path) and an idle operator's dashboard showing it."""
-    from operator_side.config import OperatorConfig
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
+    from operator_side.node.config import OperatorConfig
     from operator_side.servos.recording import RecordingServoBus
     from robot_side.camera.config import TestPatternConfig
     from robot_side.camera.test_pattern import TestPatternCamera

@@ -23,7 +23,7 @@ from typing import Any
 
 from harness.faults.deployment import ARM_PROCESS, Deployment, DeploymentError
 from harness.faults.probes import ArmProbe, GripperProbe, PalmProbe, Sample
-from operator_side.config import OperatorLinkConfig
+from operator_side.node.config import OperatorLinkConfig
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """The operator's live dashboard: a local web page fed over a WebSocket.
 
-Only the config is imported eagerly: ``operator_side.config`` holds a
+Only the config is imported eagerly: ``operator_side.node.config`` holds a
 ``DashboardConfig`` and must stay importable where ``websockets`` is not
 installed. ``Dashboard`` loads the server on first use.
 """

@@ -24,10 +24,10 @@ from operator_side.dashboard.config import TOKEN_ENV, VIDEO_OVER_LINK, Dashboard
 from operator_side.dashboard.page_auth import PageAuth
 from operator_side.dashboard.page_commands import Page, PageCommands
 from operator_side.dashboard.push import StatePush
+from operator_side.dashboard.snapshot import Snapshot
 from operator_side.dashboard.video_relay import VIDEO_CLOSE_WAIT_S, VideoRelay, is_video_offer
 from operator_side.dashboard.view import hello_view
 from operator_side.dashboard.web import WebServer, package_files
-from operator_side.node import Snapshot
 from operator_side.palm.renderer import RendererConfig
 
 log = logging.getLogger(__name__)

@@ -17,7 +17,7 @@ from common.config.typed import to_dict
 from common.tactile.contract import MASKS, N_PATTERNS, pattern_name
 from common.wire.messages import ARM_SAFETY_MODES, ASSIST_PHASES
 from operator_side.dashboard.jog_config import JogConfig
-from operator_side.node import Snapshot
+from operator_side.dashboard.snapshot import Snapshot
 from operator_side.palm.renderer import RendererConfig
 
 # Fields whose change is worth a push; age and counters ride along with them

@@ -10,8 +10,9 @@
 - ``outbox``: commands and video signals to the robot (late and blind jogs
   dropped, gripper commands resent until confirmed, video signals held);
 - ``heartbeat``: the heartbeat out; ``recording``: every channel the node
-  records; ``snapshot``: what the live views show; ``build``:
-  ``build_operator_node`` from a config.
+  records; ``snapshot``: what the live views show (a ``Snapshot``, declared
+  by the views in ``operator_side.dashboard.snapshot``); ``config``: the
+  node's typed config; ``build``: ``build_operator_node`` from a config.
 """
 
 from operator_side.node.arrivals import RESTART_SEQ_GAP
@@ -19,7 +20,6 @@ from operator_side.node.build import build_operator_node
 from operator_side.node.operator_node import LATE_WAKE_NS, OperatorNode
 from operator_side.node.outbox import VIDEO_HOLD_NS
 from operator_side.node.palm import LIFT_ARRIVAL_S
-from operator_side.node.snapshot import Snapshot
 
 __all__ = [
     "LATE_WAKE_NS",
@@ -27,6 +27,5 @@ __all__ = [
     "RESTART_SEQ_GAP",
     "VIDEO_HOLD_NS",
     "OperatorNode",
-    "Snapshot",
     "build_operator_node",
 ]

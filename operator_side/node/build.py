@@ -6,7 +6,7 @@ import zmq
 
 from common.devices.lifecycle import build_device
 from common.recording.channels import Recorder
-from operator_side.config import OperatorConfig
+from operator_side.node.config import OperatorConfig
 from operator_side.node.operator_node import OperatorNode
 
 

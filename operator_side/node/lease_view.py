@@ -15,7 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from common.wire.messages import Heartbeat
-from operator_side.config import OperatorLinkConfig
+from operator_side.node.config import OperatorLinkConfig
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ from common.keys.curve import client_options
 from common.wire.codec import DecodeError, check_robot_name, name_prefix
 from common.wire.messages import Heartbeat, Stimulus, TactileFrame, VideoSignal
 from common.wire.transport import Link, Publisher, Receiver, Sender, Subscriber
-from operator_side.config import OperatorLinkConfig
+from operator_side.node.config import OperatorLinkConfig
 from operator_side.node.telemetry_gate import TelemetryGate
 
 log = logging.getLogger(__name__)

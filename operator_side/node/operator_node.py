@@ -26,15 +26,16 @@ from common.recording.channels import Recorder
 from common.wire.link_stats import LinkStats
 from common.wire.messages import Command, Stimulus, VideoSignal, new_run
 from common.wire.transport import Link, Receiver, Sender, link_health, make_context
-from operator_side.config import OperatorConfig
+from operator_side.dashboard.snapshot import Snapshot
 from operator_side.node.arrivals import Arrivals, RobotHeard
+from operator_side.node.config import OperatorConfig
 from operator_side.node.heartbeat import HeartbeatOut
 from operator_side.node.lease_view import LeaseView
 from operator_side.node.link_setup import LinkKeys, Sockets, telemetry_gate_for, topics
 from operator_side.node.outbox import Outbox
 from operator_side.node.palm import Palm
 from operator_side.node.recording import NodeRecording
-from operator_side.node.snapshot import Snapshot, take_snapshot
+from operator_side.node.snapshot import take_snapshot
 from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration

@@ -39,8 +39,8 @@ from common.clocks.clock_sync import ClockSync
 from common.logs import BurstLog
 from common.wire.messages import SESSION_LOW_MASK, Command, VideoSignal
 from common.wire.transport import Sender
-from operator_side.config import OperatorLinkConfig
 from operator_side.node.arrivals import RobotHeard
+from operator_side.node.config import OperatorLinkConfig
 from operator_side.node.recording import NodeRecording
 
 log = logging.getLogger(__name__)

@@ -18,8 +18,8 @@ from collections.abc import Callable
 import numpy as np
 
 from common.errors import DeviceError
-from operator_side.config import OperatorConfig
 from operator_side.node.arrivals import Arrivals
+from operator_side.node.config import OperatorConfig
 from operator_side.node.recording import NodeRecording
 from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus

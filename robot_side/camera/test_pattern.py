@@ -13,7 +13,7 @@ import numpy as np
 
 from robot_side.camera.base import Camera, CapturedFrame
 from robot_side.camera.config import TestPatternConfig
-from robot_side.video.stamp import draw_stamp
+from robot_side.camera.stamp import draw_stamp
 
 BARS = np.array(
     [

@@ -49,7 +49,7 @@ from common.tactile.contract import ANGLES_DEG, classes_of, pattern_of
 from common.tactile.synthetic import offset_direction
 from common.wire.messages import ASSIST_PHASES, Command
 from robot_side.arm.base import TELEMETRY_POSE_KEYS, ArmLimits
-from robot_side.config import AssistConfig
+from robot_side.node.config import AssistConfig
 from robot_side.node.device_calls import DEFAULT_CLOSE_LEVEL
 from robot_side.perception.band import Band, measure_band
 

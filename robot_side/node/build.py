@@ -8,7 +8,7 @@ import zmq
 
 from common.devices.lifecycle import Device, build_device
 from common.recording.channels import Recorder
-from robot_side.config import RobotConfig
+from robot_side.node.config import RobotConfig
 from robot_side.node.robot_node import RobotNode
 
 

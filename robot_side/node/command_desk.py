@@ -40,11 +40,11 @@ from common.errors import ConfigError
 from common.keys.roster import Roster, check_replacement, load_roster
 from common.logs import BurstLog
 from common.wire.messages import LEASE_ACTIONS, Command, Heartbeat, Message, VideoSignal
-from robot_side.config import RobotLinkConfig
 from robot_side.node.assist import Assist
 from robot_side.node.commands.command_gate import PENDING, CommandGate, RobotRun
 from robot_side.node.commands.lease import ControlLease, Peer
 from robot_side.node.commands.stop_latch import REFUSALS, StopLatch
+from robot_side.node.config import RobotLinkConfig
 from robot_side.node.device_calls import DEVICE_CALLS
 from robot_side.node.handover import Handover
 from robot_side.node.peers import OnePeer, RosterPeers

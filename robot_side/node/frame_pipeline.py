@@ -27,7 +27,7 @@ import numpy as np
 
 from common.recording.channels import Recorder
 from common.wire.messages import Stimulus
-from robot_side.config import RobotConfig
+from robot_side.node.config import RobotConfig
 from robot_side.node.frame_rule import Classifier, FrameRenderer
 from robot_side.tactile.base import TactileSample
 

@@ -18,7 +18,7 @@ import numpy as np
 from common.recording.channels import Recorder
 from common.tactile.contract import pattern_of
 from common.tactile.stimulus import NO_CELLS, Method, Order, render_cells, sanitize_with_peak
-from robot_side.config import RenderConfig
+from robot_side.node.config import RenderConfig
 from robot_side.tactile.base import TactileSample
 
 log = logging.getLogger(__name__)
@@ -28,7 +28,7 @@ Rendered = tuple[bool, list[float], int | None, float | None]
 
 
 class RenderSettings(Protocol):
-    """What ``render_frame`` reads of ``robot_side.config.RenderConfig``."""
+    """What ``render_frame`` reads of ``robot_side.node.config.RenderConfig``."""
 
     mode: str
     method: Method

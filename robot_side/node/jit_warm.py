@@ -27,8 +27,8 @@ def warm() -> list[str]:
     import numba  # noqa: F401  (the robot extra)
 
     from common.tactile.contract import FRAME_SHAPE
-    from robot_side.config import RenderConfig
     from robot_side.node.compiled_step import CompiledFrameStep
+    from robot_side.node.config import RenderConfig
     from robot_side.perception import load_classifier
     from robot_side.tactile.board_calibration import BoardCalibration
     from robot_side.tactile.serial_board import ScanConverter, SerialTactileConfig

@@ -17,7 +17,7 @@ from common.keys.curve import Authenticator, check_endpoint, server_options
 from common.wire.codec import DecodeError, check_robot_name, name_prefix
 from common.wire.messages import Command, Heartbeat, VideoSignal
 from common.wire.transport import Publisher, Receiver, Sender, Subscriber
-from robot_side.config import RobotConfig, RobotLinkConfig
+from robot_side.node.config import RobotConfig, RobotLinkConfig
 
 if TYPE_CHECKING:  # cryptography only when signing
     from common.wire.signing import Signer

@@ -25,11 +25,11 @@ from common.recording.channels import NullRecorder, Recorder
 from common.wire.messages import Stimulus, VideoSignal, new_run
 from common.wire.transport import Link, Receiver, Sender, link_health, make_context
 from robot_side.arm.base import Arm
-from robot_side.config import RobotConfig
 from robot_side.gripper.base import Gripper
 from robot_side.node.assist import Assist
 from robot_side.node.command_desk import CommandDesk
 from robot_side.node.commands.stop_latch import StopLatch
+from robot_side.node.config import RobotConfig
 from robot_side.node.deadman import NEVER_NS, Deadman
 from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.frame_rule import Classifier

@@ -19,8 +19,8 @@ from common.tactile.stimulus import sanitize_frame
 from common.wire.codec import MAX_STATS, name_prefix
 from common.wire.messages import Heartbeat, Stimulus, TactileFrame
 from common.wire.transport import Sender
-from robot_side.config import RobotLinkConfig
 from robot_side.node.command_desk import CommandDesk
+from robot_side.node.config import RobotLinkConfig
 from robot_side.node.frame_pipeline import FramePipeline
 from robot_side.node.workers import DeviceWorkers
 from robot_side.tactile.base import TactileSample

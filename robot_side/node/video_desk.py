@@ -27,7 +27,7 @@ from common.errors import ConfigError
 from common.keys.roster import OperatorEntry
 from common.wire.messages import VideoSignal
 from common.wire.transport import Sender
-from robot_side.config import RobotLinkConfig
+from robot_side.node.config import RobotLinkConfig
 from robot_side.video.link_signalling import LinkSignalling
 
 

@@ -22,9 +22,9 @@ from common.clocks.clock import now_ns
 from common.tactile.contract import MASKS
 from common.wire.messages import Command, Heartbeat, Stimulus, TactileFrame
 from common.wire.transport import Publisher, Subscriber
-from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.palm.linkglide import forward_kinematics
 from operator_side.servos.recording import RecordingServoBus
 

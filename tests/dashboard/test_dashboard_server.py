@@ -15,10 +15,10 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from common.tactile.contract import MASKS
-from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
+from operator_side.dashboard.snapshot import Snapshot
 from operator_side.dashboard.view import LinkHistory, snapshot_view
-from operator_side.node import Snapshot
+from operator_side.node.config import OperatorConfig
 from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.calibration import LinkGlideCalibration
 

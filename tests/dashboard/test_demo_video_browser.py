@@ -22,7 +22,7 @@ from headless_chromium import MISSED_STAMPS_ALLOWED, Chromium, needs_chromium, p
 from tests_support import DashboardDemo, child_processes, listening_sockets
 
 from harness.processes import idle_share, machine_cpu
-from robot_side.video.stamp import MS_MODULO
+from robot_side.camera.stamp import MS_MODULO
 
 pytest.importorskip("aiortc", reason="the demo's video needs the 'video' extra")
 

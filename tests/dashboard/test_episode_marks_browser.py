@@ -17,9 +17,9 @@ from websockets.sync.client import connect
 
 from common.recording.episode_marks import CHANNEL
 from common.recording.mcap_recorder import McapRecorder, read_recording
-from operator_side.config import OperatorConfig
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.parallel]

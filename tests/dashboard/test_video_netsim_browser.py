@@ -37,7 +37,7 @@ from harness.bench.video_netsim import (
     against_direct,
     page_server,
 )
-from robot_side.video.stamp import MS_MODULO
+from robot_side.camera.stamp import MS_MODULO
 
 #: serial: the video server here runs at the priority of its unit's (Nice=0, below the nodes'
 #: -10, as video yields to control on a robot PC), and beside the paired lane's deployments,

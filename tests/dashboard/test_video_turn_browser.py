@@ -67,9 +67,9 @@ def turn_server(tmp_path):
 
 
 def test_the_page_gets_the_robots_video_through_turn_only(turn_server):
-    from operator_side.config import OperatorConfig
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
+    from operator_side.node.config import OperatorConfig
     from operator_side.servos.recording import RecordingServoBus
     from robot_side.camera.config import TestPatternConfig
     from robot_side.camera.test_pattern import TestPatternCamera

@@ -41,8 +41,8 @@ def robot_in_thread():
 
     def start(tel: int, cmd: int, security: dict | None = None):
         from common.config.typed import from_dict
-        from robot_side.config import RobotConfig
         from robot_side.node import build_robot_node
+        from robot_side.node.config import RobotConfig
 
         config = from_dict(
             RobotConfig,
@@ -78,8 +78,8 @@ def operator_in_thread():
 
     def start(tel: int, cmd: int, security: dict | None = None):
         from common.config.typed import from_dict
-        from operator_side.config import OperatorConfig
         from operator_side.node import build_operator_node
+        from operator_side.node.config import OperatorConfig
 
         config = from_dict(
             OperatorConfig,

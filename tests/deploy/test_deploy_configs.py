@@ -15,8 +15,8 @@ from deploy_support import ENV, EXAMPLES, cli
 from common.config.typed import load_toml
 from common.devices.lifecycle import build_device, load_object
 from deploy.scene import load_scene
-from operator_side.config import OperatorConfig
-from robot_side.config import RobotConfig
+from operator_side.node.config import OperatorConfig
+from robot_side.node.config import RobotConfig
 
 pytestmark = pytest.mark.parallel
 

@@ -128,7 +128,7 @@ def test_secret_key_files_are_0600_from_their_creation(tmp_path, monkeypatch):
 @pytest.mark.untimed
 def test_the_robot_refuses_an_arm_behind_a_plain_unsigned_command_port(tmp_path):
     from common.config.typed import from_dict
-    from robot_side.config import RobotConfig
+    from robot_side.node.config import RobotConfig
     from robot_side.node.link_setup import check_command_access
 
     def config(**link) -> RobotConfig:

@@ -229,7 +229,7 @@ def test_the_command_line_prints_the_rates(robot):
 def test_a_robot_node_is_read_as_it_sends(robot_in_thread):
     """A real robot node: its heartbeats, stimuli and raw frames at the rates it sent them
     (its sequence numbers over its own clock), its session; nothing signed (no key)."""
-    from robot_side.config import RobotLinkConfig
+    from robot_side.node.config import RobotLinkConfig
     from robot_side.node.telemetry import DIRECT_HEARTBEAT_HZ
 
     tel, cmd = free_ports(2)

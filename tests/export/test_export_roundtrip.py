@@ -146,7 +146,7 @@ def test_the_camera_lerobot_decodes_is_the_rows_picture(session, records, one_ep
     """The demo records its camera (the stamped test pattern) beside the robot; each row's
     picture, as LeRobot's loader decodes it from the video, is the newest camera frame at or
     before the row's time, and so within one camera period of the row's tactile frame."""
-    from robot_side.video.stamp import MS_MODULO, read_stamp
+    from robot_side.camera.stamp import MS_MODULO, read_stamp
 
     summary, a, meta, _ = one_episode
     key = "observation.images.test_pattern"

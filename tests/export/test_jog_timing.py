@@ -26,12 +26,12 @@ from common.netsim.scenario import scenario_from_dict
 from common.recording.mcap_recorder import node_recorder, read_recording
 from deploy.export.cli import export
 from deploy.export.resample import ExportConfig
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 from robot_side.arm.memory import MemoryArm, MemoryArmConfig
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 

@@ -41,7 +41,7 @@ def test_a_fault_that_never_cut_the_jog_is_not_called_a_link_that_came_back():
 
 def test_a_link_simulator_back_before_a_lift_could_complete_needs_no_palm_off():
     from harness.faults.matrix import STALE_AFTER_S, back_before_a_lift_could_show
-    from operator_side.config import OperatorLinkConfig
+    from operator_side.node.config import OperatorLinkConfig
 
     assert OperatorLinkConfig().stale_after_ms / 1000 == STALE_AFTER_S  # one limit, not two
     assert back_before_a_lift_could_show(0.18)  # the loaded CI run: stale for 30 ms

@@ -27,13 +27,13 @@ from common.clocks.clock import now_ns
 from common.wire.codec import decode, encode
 from common.wire.messages import Command, Heartbeat, Stimulus
 from common.wire.transport import last_endpoint
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus, RecordingServoBusConfig
 from robot_side.arm.memory import MemoryArm
-from robot_side.config import RobotConfig
 from robot_side.gripper.memory import MemoryGripper
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 

@@ -23,7 +23,7 @@ import pytest
 from common.netsim.datagram import DatagramForwarder
 from common.netsim.kernel_stamps import ANC_BYTES, SO_TIMESTAMPNS, arrival_ns, real_minus_mono_ns
 from common.netsim.scenario import load_scenario, scenario_from_dict
-from operator_side.config import OperatorLinkConfig
+from operator_side.node.config import OperatorLinkConfig
 
 STAMP = struct.Struct("!Iq")  # sequence number, monotonic send time (ns)
 #: The most a datagram may arrive after its configured delay, on any machine: a path that

@@ -17,7 +17,7 @@ import pytest
 
 from common.netsim.scenario import load_scenario
 from harness.bench.netsim_fidelity import measure
-from operator_side.config import OperatorLinkConfig
+from operator_side.node.config import OperatorLinkConfig
 
 pytestmark = pytest.mark.slow
 

@@ -8,7 +8,7 @@ import time
 import pytest
 
 from common.netsim.impairments import DirectionConfig, Scenario
-from operator_side.config import OperatorLinkConfig
+from operator_side.node.config import OperatorLinkConfig
 
 
 def _fixed(to_operator_ms: float, to_robot_ms: float) -> Scenario:

@@ -12,7 +12,7 @@ from common.netsim.scenario import load_scenario, scenario_from_dict
 from common.netsim.trace import delay_percentiles_ms, load_delay_trace
 from common.netsim.virtual import VirtualLink
 from harness.bench.netsim_fidelity import measure
-from operator_side.config import OperatorLinkConfig
+from operator_side.node.config import OperatorLinkConfig
 
 pytestmark = pytest.mark.usefixtures("quiet_gc")
 

@@ -17,8 +17,8 @@ from common.clocks.clock import now_ns
 from common.wire.codec import decode, encode
 from common.wire.messages import Command, Heartbeat
 from common.wire.transport import last_endpoint
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 
 pytestmark = pytest.mark.timeout(30)

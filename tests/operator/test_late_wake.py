@@ -8,8 +8,8 @@ import threading
 import time
 
 from common.wire.transport import free_loopback_ports
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 
 

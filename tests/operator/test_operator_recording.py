@@ -16,8 +16,8 @@ from common.wire.codec import decode, encode
 from common.wire.messages import Stimulus
 from common.wire.signing import Signer
 from common.wire.transport import Link, Publisher, Subscriber
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 from tests.tests_support import free_ports
 

@@ -10,8 +10,8 @@ import pytest
 from common.clocks.clock import VirtualClock
 from common.wire.messages import SESSION_LOW_MASK, Command, Heartbeat, Stimulus
 from common.wire.transport import CaptureLink
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 
 

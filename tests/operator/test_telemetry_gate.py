@@ -14,8 +14,8 @@ from common.wire.codec import decode, encode
 from common.wire.messages import Heartbeat, Stimulus, TactileFrame
 from common.wire.signing import Signer, generate_key_files, load_signer
 from common.wire.transport import CaptureLink
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.node.telemetry_gate import (
     FROM_FUTURE,
     OLD_SESSION,

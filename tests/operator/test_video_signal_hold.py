@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from operator_side.config import OperatorConfig
 from operator_side.node import VIDEO_HOLD_NS, OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 
 

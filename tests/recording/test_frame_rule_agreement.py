@@ -16,8 +16,8 @@ from common.wire.transport import CaptureLink
 from deploy import replay
 from harness.bench.fixtures import frame_set
 from harness.bench.skipping import Shadow
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 from robot_side.perception import load_classifier
 from robot_side.tactile.base import GraspTruth, TactileSample
 

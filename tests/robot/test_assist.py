@@ -23,13 +23,13 @@ from common.tactile.contract import classes_of
 from common.tactile.synthetic import GeneratorParams, offset_direction
 from common.wire.signing import generate_key_files
 from harness.faults.matrix import ARM_STILL_BUDGET_S, STILL_M_S
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 from robot_side.arm.sim import SimulatedArm
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.node.assist import PHASE_CODES
+from robot_side.node.config import RobotConfig
 from robot_side.perception.band import measure_band
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor

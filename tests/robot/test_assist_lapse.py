@@ -17,8 +17,8 @@ import numpy as np
 from common.tactile.contract import pattern_of
 from common.tactile.synthetic import SyntheticTactileModel
 from robot_side.arm.base import TELEMETRY_POSE_KEYS, ArmLimits
-from robot_side.config import AssistConfig
 from robot_side.node.assist import Assist
+from robot_side.node.config import AssistConfig
 
 MS = 1_000_000
 LEFT = pattern_of(2, 1)  # 90 deg, left: a shift

@@ -18,8 +18,8 @@ from common.clocks.clock import now_ns
 from common.wire.messages import COMMAND_ACTIONS, LEASE_ACTIONS, Command, Heartbeat
 from common.wire.transport import CaptureLink
 from robot_side.arm.memory import MemoryArm
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 from robot_side.node.device_calls import DEVICE_CALLS
 
 JOG = (0.02, 0.0, 0.0, 0.0, 0.0, 0.0)

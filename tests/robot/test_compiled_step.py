@@ -14,9 +14,9 @@ from common.clocks.clock import VirtualClock
 from common.tactile.stimulus import render_cells, sanitize_with_peak
 from common.wire.transport import CaptureLink
 from harness.bench.fixtures import frame_set
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.node.compiled_step import CompiledFrameStep
+from robot_side.node.config import RobotConfig
 from robot_side.perception import load_classifier
 from robot_side.tactile.base import TactileSample
 from robot_side.tactile.scripted import ScriptedTactileSensor

@@ -10,8 +10,8 @@ import pytest
 from common.clocks.clock import VirtualClock
 from common.wire.transport import CaptureLink
 from harness.bench.fixtures import frame_set, scan_bytes, serial_sensor
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 

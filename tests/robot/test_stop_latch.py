@@ -16,13 +16,13 @@ import pytest
 from tests_support import free_ports
 
 from common.wire.signing import generate_key_files
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 from robot_side.arm.sim import SimulatedArm
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
 from robot_side.node.commands.stop_latch import StopLatch
+from robot_side.node.config import RobotConfig
 from robot_side.tactile.scripted import ScriptedTactileSensor
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]

@@ -22,7 +22,7 @@ from common.wire.codec import encode
 from common.wire.messages import Command, Heartbeat, Stimulus
 from common.wire.transport import Publisher, Subscriber
 from harness.bench.command_path import PUBLISH_HZ, RobotUnderCommands
-from operator_side.config import OperatorLinkConfig
+from operator_side.node.config import OperatorLinkConfig
 from robot_side.gripper.base import GripLevels
 
 N_FLOOD = 100_000

@@ -12,12 +12,12 @@ from tests_support import RecordingArm, free_ports
 
 from common.netsim.proxy import Endpoints, LinkSimulator
 from common.netsim.scenario import scenario_from_dict
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
 from robot_side.arm.memory import MemoryArm
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 

@@ -10,12 +10,12 @@ import pytest
 
 from common.tactile.contract import MASKS
 from common.wire.transport import free_loopback_ports
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.palm.linkglide import forward_kinematics
 from operator_side.servos.recording import RecordingServoBus
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 

@@ -26,11 +26,11 @@ from common.netsim.proxy import Endpoints
 from common.netsim.scenario import load_scenario
 from common.netsim.stream import StreamForwarder
 from common.wire.transport import Subscriber
-from operator_side.config import OperatorConfig
 from operator_side.node import OperatorNode
+from operator_side.node.config import OperatorConfig
 from operator_side.servos.recording import RecordingServoBus
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 

@@ -15,7 +15,7 @@ import pytest
 import zmq
 from tests_support import free_ports
 
-from operator_side.config import OperatorConfig
+from operator_side.node.config import OperatorConfig
 from operator_side.palm.renderer_config import RendererConfig
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]
@@ -38,7 +38,7 @@ def test_operator_process_never_imports_torch(tmp_path):
     tel, cmd = free_ports(2)
     probe.write_text(
         "import sys, threading\n"
-        "from operator_side.config import OperatorConfig\n"
+        "from operator_side.node.config import OperatorConfig\n"
         "from operator_side.node import build_operator_node\n"
         "import deploy.demo, deploy.live_view  # the demo's operator side too\n"
         "cfg = OperatorConfig()\n"
@@ -140,7 +140,7 @@ def test_operator_status_file_shows_the_node_from_outside(tmp_path):
     """``deepxpalm operator --status-file``: the live view and the counters of a node in another
     process, rewritten while it runs and once more, final, when it ends."""
     from deploy import live_view
-    from operator_side.node import Snapshot
+    from operator_side.dashboard.snapshot import Snapshot
 
     status = tmp_path / "operator-status.json"
     tel, cmd = free_ports(2)

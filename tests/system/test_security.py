@@ -15,8 +15,8 @@ from common.keys.curve import SecurityConfig, check_endpoint, client_options
 from common.wire.codec import encode
 from common.wire.messages import Command, Stimulus
 from common.wire.transport import Publisher, Subscriber
-from robot_side.config import RobotConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RobotConfig
 from robot_side.tactile.scripted import ScriptedTactileSensor
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]

@@ -202,9 +202,9 @@ def test_a_stop_with_a_malformed_stamp_on_the_wire_stops_and_latches_the_arm(cel
 @pytest.fixture(scope="module")
 def page(cell):
     """A real signed operator node (an observer's key) and the dashboard serving its page."""
-    from operator_side.config import OperatorConfig
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
+    from operator_side.node.config import OperatorConfig
     from operator_side.servos.recording import RecordingServoBus
 
     oc = OperatorConfig()

@@ -17,9 +17,9 @@ pytest.importorskip("aiortc", reason="the video server needs the 'video' extra")
 
 from common.recording.mcap_recorder import read_metadata, read_recording
 from robot_side.camera.config import TestPatternConfig
+from robot_side.camera.stamp import MS_MODULO, read_stamp
 from robot_side.video.recording import CHANNEL, decode_jpeg
 from robot_side.video.server import VideoConfig, VideoServer, build_source
-from robot_side.video.stamp import MS_MODULO, read_stamp
 
 
 def test_recording_holds_the_frames_taken_at_their_recorded_times(tmp_path):

@@ -18,8 +18,8 @@ from common.wire.messages import VideoSignal
 from common.wire.transport import CaptureLink
 from robot_side.camera.config import TestPatternConfig
 from robot_side.camera.test_pattern import TestPatternCamera
-from robot_side.config import RenderConfig, RobotConfig, RobotLinkConfig
 from robot_side.node import RobotNode
+from robot_side.node.config import RenderConfig, RobotConfig, RobotLinkConfig
 from robot_side.video.link_signalling import LinkSignalling
 from robot_side.video.server import VideoConfig, VideoServer
 

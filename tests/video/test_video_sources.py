@@ -18,10 +18,10 @@ pytest.importorskip("aiortc")
 import av
 
 from robot_side.camera.config import TestPatternConfig, V4L2Config
+from robot_side.camera.stamp import MS_MODULO, draw_stamp, read_stamp
 from robot_side.camera.test_pattern import TestPatternCamera
 from robot_side.camera.v4l2 import V4L2Camera
 from robot_side.video.server import VideoConfig, VideoServer, build_source
-from robot_side.video.stamp import MS_MODULO, draw_stamp, read_stamp
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
 
