@@ -208,6 +208,32 @@ def test_jitter_reorders_datagrams_unless_the_scenario_keeps_them_in_order():
     assert spread[-1] - spread[0] > 3.0, f"in order, the delays still vary: {spread}"
 
 
+@pytest.mark.parametrize("name", ["4g", "intercontinental", "bad_day"])
+def test_the_queueing_scenarios_keep_their_datagrams_in_order(name):
+    """Their jitter is a queue's, which never reorders: QUIC would take a packet overtaken by
+    three for lost and shrink its window (docs/netsim.md). Without the file's
+    ``jitter_reorders = false`` the same draws reorder."""
+    import tomllib
+    from importlib import resources
+
+    ref = resources.files("common.netsim.scenarios").joinpath(f"{name}.toml")
+    data = tomllib.loads(ref.read_text())
+    assert data["both"]["jitter_reorders"] is False
+    # the file's path as it is, but nothing corrupted (the stamps must stay readable)
+    data["both"].update(corrupt_percent=0.0, outages=[])
+    rx = _receiver()
+    lates = []
+    for reorders in (False, True):
+        data["both"]["jitter_reorders"] = reorders
+        with DatagramForwarder(scenario_from_dict(data), target=rx.getsockname(), seed=1) as relay:
+            got = _run(relay.address, rx, 400, 0.001)
+        assert len(got) > 300, f"{name}: {len(got)} of 400 arrived"
+        lates.append(_late([seq for seq, _ in got]))
+    rx.close()
+    assert lates[0] == 0, f"{name}: {lates[0]} datagrams overtaken though the scenario keeps order"
+    assert lates[1] > 0, f"{name}: its jitter reordered nothing 1 ms apart even when allowed to"
+
+
 def test_duplication_and_netem_reordering_reach_the_receiver():
     rx = _receiver()
     with _relay(
