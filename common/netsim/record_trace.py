@@ -70,16 +70,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     child = None
     if args.loopback:
-        from common.wire.transport import free_loopback_ports
-
-        (port,) = free_loopback_ports(1)
         child = subprocess.Popen(
-            [sys.executable, "-m", "common.netsim.record_trace", "--serve", f"127.0.0.1:{port}"],
+            [sys.executable, "-m", "common.netsim.record_trace", "--serve", "127.0.0.1:0"],
             stdout=subprocess.PIPE,
+            text=True,
         )
         assert child.stdout is not None
-        child.stdout.readline()  # the echo is listening
-        host = "127.0.0.1"
+        said = child.stdout.readline()  # "echo on HOST:PORT": listening, on the port it bound
+        host, _, port_text = said.split()[-1].rpartition(":")
+        port = int(port_text)
     elif args.target:
         host, port_text = args.target.rsplit(":", 1)
         port = int(port_text)
