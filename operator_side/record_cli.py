@@ -10,7 +10,7 @@ certificate, every message of the robots it names (none dropped for a newer
 one, as a node would).
 
 With ``foxglove.enabled`` it also serves a session's recordings live to
-Foxglove (``common/live_view/recordings.py``: the camera, the pads, the arm and the
+Foxglove (``common/live_view/session_files.py``: the camera, the pads, the arm and the
 palm as they are written, on the robot PC); that needs the ``foxglove`` extra.
 """
 
@@ -218,13 +218,14 @@ def run(args: argparse.Namespace) -> int:
     stop = stop_on_signals()
     live = None
     if config.foxglove.enabled:
-        from common.live_view.recordings import LiveSource  # the foxglove extra, only when asked
+        from common.live_view.session_files import LiveSource  # the foxglove extra, only when asked
 
         live = LiveSource(config.foxglove)
     recorder = StreamRecorder(config)
     # subscribed: systemd, or whoever started it, may count on every message from now on
     where = config.fabric.router_endpoint if config.mode == "fabric" else config.telemetry_endpoint
-    Notifier().ready(f"recording from {where}", {"source": where})
+    said = {"source": where} | ({"foxglove": live.server.url} if live is not None else {})
+    Notifier().ready(f"recording from {where}", said)
     thread = None
     if live is not None:
         thread = threading.Thread(

@@ -102,7 +102,8 @@ UNITS: dict[str, UnitSpec] = {
             "recorder",
             ("record",),
             "the recorder: every robot's stream, to a file",
-            "source: the endpoint or router it reads",
+            "source: the endpoint or router it reads; foxglove: its live view's ws:// address "
+            "(when it serves one; port 0 binds a free one)",
         ),
         UnitSpec(
             "netsim",

@@ -29,10 +29,10 @@ import warnings
 from pathlib import Path
 
 import pytest
-from tests_support import free_ports
 
 from common.errors import ConfigError
 from common.recording.foxglove import FoxgloveLiveConfig
+from deploy.units.service import Service
 
 make_reader = pytest.importorskip("mcap.reader", reason="the 'record' extra").make_reader
 websockets = pytest.importorskip("websockets", reason="the test's client uses websockets")
@@ -134,7 +134,7 @@ def test_the_live_view_stays_on_loopback_unless_allowed(host):
 
 def test_the_live_view_without_its_extra_says_how_to_install_it(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "foxglove", None)  # as if not installed
-    from common.live_view.recordings import LiveSource
+    from common.live_view.session_files import LiveSource
 
     with pytest.raises(ConfigError, match=r"pip install '\.\[foxglove\]'"):
         LiveSource(FoxgloveLiveConfig(enabled=True, follow=tmp_path))
@@ -144,17 +144,20 @@ def test_the_live_view_without_its_extra_says_how_to_install_it(tmp_path, monkey
 def live(tmp_path_factory):
     pytest.importorskip("foxglove", reason="the live view needs the 'foxglove' extra")
     session = tmp_path_factory.mktemp("live")
-    (port,) = free_ports(1)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(REPO / "tests")])}
-    server = subprocess.Popen(
+    server = Service(
+        "recorder",
         [
-            *(sys.executable, "-m", "deploy.cli", "record", "--duration", "90"),
-            *("--set", "foxglove.enabled=true", "--set", f"foxglove.port={port}"),
+            *("record", "--duration", "90"),
+            *("--set", "foxglove.enabled=true", "--set", "foxglove.port=0"),
             *("--set", f'foxglove.follow="{session}"', "--set", f"foxglove.delay_s={DELAY_S}"),
         ],
+        session.parent / "recorder.log",
         env=env,
+        watchdog=False,
     )
-    procs = [server]
+    url = server.up(60).endpoints["foxglove"]  # the port it bound, said in its READY=1
+    procs = [server.popen]
 
     def start_writer() -> None:
         writer = subprocess.Popen(
@@ -167,7 +170,6 @@ def live(tmp_path_factory):
         assert writer.stdout.readline().strip() == "recording"
 
     try:
-        url = f"ws://127.0.0.1:{port}/"
         seen = asyncio.run(_watch(url, set(TOPICS), WATCH_S, start_writer))
         if seen["resubscribed"]:
             warnings.warn(
@@ -192,6 +194,7 @@ def live(tmp_path_factory):
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+        server.close()
 
 
 @pytest.mark.slow
