@@ -34,8 +34,12 @@ class RenderConfig:
     deadband_n: float = param(
         0.05, "a stimulus cell must change by more than this to be resent (0.04 mm of depth)"
     )
-    keyframe_interval_ms: float = param(
-        500.0, "resend an unchanged stimulus this often, so a lost change cannot persist"
+    keyframe_interval_ms: float | None = param(
+        None,
+        "resend an unchanged stimulus this often, so a lost change cannot persist; unset = "
+        "500 on a direct link (TCP loses nothing), 25 on the fabric, where a stimulus is a "
+        "datagram and a lost change must be made good within the operator's staleness "
+        "(150 ms) less the path's delay",
     )
 
 

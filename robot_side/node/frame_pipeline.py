@@ -15,7 +15,10 @@ code that the three cannot apply differently.
 - **dead band**: nothing resent while no cell changes between pressed and
   lifted and no force moves by more than ``deadband_n``.
 - **keyframes**: the last stimulus again every ``keyframe_interval_ms``,
-  which bounds the damage of a lost change.
+  which bounds the damage of a lost change. On the fabric a stimulus is a
+  datagram, lost in bursts: the heartbeats that follow a lost change confirm
+  a stimulus the operator never got, so its palm lifts 150 ms after the one
+  before, unless a keyframe brings the change first.
 """
 
 from __future__ import annotations
@@ -30,6 +33,21 @@ from common.wire.messages import Stimulus
 from robot_side.node.config import RobotConfig
 from robot_side.node.frame_rule import Classifier, FrameRenderer
 from robot_side.tactile.base import TactileSample
+
+#: how often an unchanged stimulus is sent again, by link mode. On the fabric: the operator
+#: lifts the palm when what it renders was captured 150 ms ago and nothing since confirmed it;
+#: after a lost change the heartbeats confirm the change, not what the operator has. The
+#: keyframe that makes it good is captured up to a frame period (60 Hz) after this interval
+#: and crosses the path (bad_day's p99 64.5 ms): 25 ms, one heartbeat period, leaves room
+#: for the heartbeat before the change (25 ms) and a keyframe lost too
+DIRECT_KEYFRAME_MS, FABRIC_KEYFRAME_MS = 500.0, 25.0
+
+
+def keyframe_interval_ms(config: RobotConfig) -> float:
+    """The config's keyframe interval, or the link mode's default."""
+    if config.render.keyframe_interval_ms is not None:
+        return config.render.keyframe_interval_ms
+    return FABRIC_KEYFRAME_MS if config.link.mode == "fabric" else DIRECT_KEYFRAME_MS
 
 
 class FramePipeline:
@@ -50,6 +68,7 @@ class FramePipeline:
         """``config``: its ``render``, ``publish_rate_hz`` and ``max_frame_age_ms``;
         ``recorder`` None records nothing."""
         self.render = config.render
+        self.keyframe_ns = keyframe_interval_ms(config) * 1e6
         self.max_frame_age_ns = config.max_frame_age_ms * 1e6
         #: the rate cap: a frame is rendered at least this long after the last one
         self.min_interval_ns = round(0.9e9 / config.publish_rate_hz)
@@ -165,9 +184,8 @@ class FramePipeline:
         )
 
     def _maybe_keyframe(self, sample: TactileSample) -> Stimulus | None:
-        interval = self.render.keyframe_interval_ms * 1e6
         msg = self.last_stimulus
-        if msg is None or self.now() - self._last_publish_ns < interval:
+        if msg is None or self.now() - self._last_publish_ns < self.keyframe_ns:
             return None
         truth = sample.truth.pattern if sample.truth is not None else None
         return self._publish(

@@ -17,6 +17,7 @@ The fleet is shared by the module. The last test restarts the robot.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import threading
 import time
 from collections.abc import Iterator
@@ -243,6 +244,28 @@ def test_forged_stimuli_through_the_router_never_move_the_palm_and_the_robots_ow
     assert "telemetry dropped: not signed by the robot's key" in op.log_text()
 
 
+def test_a_held_grasp_is_sent_again_as_keyframes_within_the_palms_staleness(wall):
+    """On the fabric a stimulus is a datagram: a lost change is made good by the next keyframe,
+    which must come well inside the operator's 150 ms staleness (every 25 ms by default; 500 on
+    a direct link, where TCP loses nothing)."""
+    got: list[tuple[int, Stimulus]] = []
+    session = _session(wall.fleet, "rec")
+    sub = session.declare_subscriber(
+        keyexprs.robot_key(ROBOT, "stimulus"),
+        lambda s: got.append((now_ns(), decode_named(s.payload.to_bytes())[1])),
+    )
+    try:
+        time.sleep(2.0)
+    finally:
+        sub.undeclare()
+        session.close()
+    keyframes = [t for t, msg in got if msg.keyframe]
+    assert len(keyframes) > 10, f"{len(keyframes)} keyframes of {len(got)} stimuli in 2 s"
+    gaps_ms = sorted((b - a) / 1e6 for a, b in itertools.pairwise(keyframes))
+    # each one frame (60 Hz) after 25 ms: a starved robot stretches a few, not the median
+    assert gaps_ms[len(gaps_ms) // 2] < 60.0, gaps_ms
+
+
 def _newest_stimulus(wall: Wall, timeout_s: float = 5.0) -> bytes:
     """The newest stimulus on the router, as the robot's key signed it (read as the recorder)."""
     got: list[bytes] = []
@@ -252,7 +275,7 @@ def _newest_stimulus(wall: Wall, timeout_s: float = 5.0) -> bytes:
     )
     try:
         end = time.monotonic() + timeout_s
-        # a keyframe every 500 ms: past the first, wait for one more after it
+        # a keyframe every 25 ms: past the first, wait for one more after it
         while time.monotonic() < end and len(got) < 2:
             time.sleep(0.05)
     finally:
