@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
 import signal
+import socket
 import subprocess
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -31,7 +33,38 @@ def needs(module: str, reason: str | None = None) -> pytest.MarkDecorator:
 
 
 def free_ports(n: int) -> list[int]:
+    """Ports free now, for this process's own sockets (a node in a thread here): a process
+    of its own binds port 0 and says what it got (``ROBOT_BINDS_ITS_PORTS``)."""
     return free_loopback_ports(n)
+
+
+#: a robot's ``--set`` arguments for a direct link on ports it binds itself (port 0); its
+#: READY=1 says them (``Ready.endpoints``: telemetry, commands), ``link_to`` passes them on
+ROBOT_BINDS_ITS_PORTS = [
+    *("--set", 'link.telemetry_endpoint="tcp://127.0.0.1:0"'),
+    *("--set", 'link.command_endpoint="tcp://127.0.0.1:0"'),
+]
+
+
+def link_to(endpoints: dict[str, str], section: str = "link") -> list[str]:
+    """``--set`` arguments pointing a node's ``section`` at the ends a robot said it bound."""
+    return [
+        *("--set", f'{section}.telemetry_endpoint="{endpoints["telemetry"]}"'),
+        *("--set", f'{section}.command_endpoint="{endpoints["commands"]}"'),
+    ]
+
+
+@contextlib.contextmanager
+def unanswered_ports(n: int) -> Iterator[list[int]]:
+    """``n`` loopback TCP ports this process holds bound and listening, never answered:
+    where a node in another process connects to a robot that is not there. Held, they
+    cannot be taken by anyone else (a port merely free when picked could)."""
+    socks = [socket.create_server(("127.0.0.1", 0)) for _ in range(n)]
+    try:
+        yield [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 class RecordingArm:

@@ -13,8 +13,9 @@ import time
 import msgpack
 import pytest
 import zmq
-from tests_support import free_ports
+from tests_support import ROBOT_BINDS_ITS_PORTS, unanswered_ports
 
+from deploy.units.service import Service
 from operator_side.node.config import OperatorConfig
 from operator_side.palm.renderer_config import RendererConfig
 
@@ -22,9 +23,9 @@ pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
 #: the operator renders no stimulus older than its staleness rule, and writes it within the
-#: control step that rendered it
+#: palm step that rendered it
 RENDERED_WITHIN_MS = (
-    OperatorConfig().link.stale_after_ms + 1000.0 / RendererConfig().control_rate_hz
+    OperatorConfig().link.stale_after_ms + 1000.0 / RendererConfig().palm_step_rate_hz
 )
 
 
@@ -35,7 +36,16 @@ def _cli(*args: str) -> list[str]:
 def test_operator_process_never_imports_torch(tmp_path):
     """Run the operator node for a second, then look at what its process imported."""
     probe = tmp_path / "probe.py"
-    tel, cmd = free_ports(2)
+    with unanswered_ports(2) as (tel, cmd):
+        _write_probe(probe, tel, cmd)
+        out = subprocess.run(
+            [sys.executable, str(probe)], capture_output=True, text=True, timeout=60
+        )
+    assert out.returncode == 0, out.stderr
+    assert "HEAVY []" in out.stdout
+
+
+def _write_probe(probe, tel: int, cmd: int) -> None:
     probe.write_text(
         "import sys, threading\n"
         "from operator_side.node.config import OperatorConfig\n"
@@ -49,33 +59,18 @@ def test_operator_process_never_imports_torch(tmp_path):
         "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'onnxruntime'))\n"
         "print('HEAVY', heavy)\n"
     )
-    out = subprocess.run([sys.executable, str(probe)], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0, out.stderr
-    assert "HEAVY []" in out.stdout
 
 
 def test_live_stream_decodes_with_an_independent_decoder_from_the_protocol_doc(tmp_path):
     """Only msgpack and struct, exactly as docs/protocol.md describes the stream."""
-    tel, cmd = free_ports(2)
-    robot = subprocess.Popen(
-        _cli(
-            "robot",
-            "--set",
-            "render.mode=mask_ground_truth",
-            "--set",
-            f'link.telemetry_endpoint="tcp://127.0.0.1:{tel}"',
-            "--set",
-            f'link.command_endpoint="tcp://127.0.0.1:{cmd}"',
-        ),
-        env=ENV,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
+    argv = ["robot", "--set", "render.mode=mask_ground_truth", *ROBOT_BINDS_ITS_PORTS]
+    robot = Service("robot", argv, tmp_path / "robot.log", env=ENV, watchdog=False)
+    ends = robot.up(60).endpoints
     ctx = zmq.Context()
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.LINGER, 0)
     sub.setsockopt(zmq.RCVTIMEO, 200)
-    sub.connect(f"tcp://127.0.0.1:{tel}")
+    sub.connect(ends["telemetry"])
     sub.setsockopt(zmq.SUBSCRIBE, b"")
     seen: dict[bytes, int] = {}
     try:
@@ -107,9 +102,9 @@ def test_live_stream_decodes_with_an_independent_decoder_from_the_protocol_doc(t
     finally:
         sub.close()
         ctx.term()
-        robot.send_signal(signal.SIGINT)
-        robot.wait(timeout=10)
-    assert robot.returncode == 0, robot.stdout.read().decode()
+        robot.stop(10, signal.SIGINT)
+        robot.close()
+    assert robot.popen.returncode == 0, robot.log_text()[-3000:]
     assert set(seen) == {b"STIM", b"FRAM", b"HBRT"}
 
 
@@ -143,23 +138,23 @@ def test_operator_status_file_shows_the_node_from_outside(tmp_path):
     from operator_side.dashboard.snapshot import Snapshot
 
     status = tmp_path / "operator-status.json"
-    tel, cmd = free_ports(2)
-    proc = subprocess.Popen(
-        _cli(
-            "operator",
-            *("--duration", "3", "--status-file", str(status)),
-            *("--set", f'link.telemetry_endpoint="tcp://127.0.0.1:{tel}"'),
-            *("--set", f'link.command_endpoint="tcp://127.0.0.1:{cmd}"'),
-        ),
-        env=ENV,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    seen = []
-    while proc.poll() is None:
-        if status.exists():
-            seen.append(json.loads(status.read_text())["t_ns"])
-        time.sleep(0.05)
+    with unanswered_ports(2) as (tel, cmd):  # nobody at the robot's end
+        proc = subprocess.Popen(
+            _cli(
+                "operator",
+                *("--duration", "3", "--status-file", str(status)),
+                *("--set", f'link.telemetry_endpoint="tcp://127.0.0.1:{tel}"'),
+                *("--set", f'link.command_endpoint="tcp://127.0.0.1:{cmd}"'),
+            ),
+            env=ENV,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        seen = []
+        while proc.poll() is None:
+            if status.exists():
+                seen.append(json.loads(status.read_text())["t_ns"])
+            time.sleep(0.05)
     assert proc.returncode == 0, proc.stderr.read()
     assert len(set(seen)) >= 3, f"rewritten {len(set(seen))} times while the node ran"
     final = json.loads(status.read_text())
