@@ -20,8 +20,10 @@ from pathlib import Path
 
 import pytest
 import zmq
-from deploy_support import ENV, EXAMPLES, cli, loopback
-from tests_support import free_ports
+from deploy_support import ENV, EXAMPLES, cli
+from tests_support import ROBOT_BINDS_ITS_PORTS, link_to
+
+from deploy.units.service import Service
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
@@ -66,16 +68,9 @@ def _plain_subscriber_hears_nothing(endpoint: str, wait_s: float) -> bool:
 
 
 def test_example_configs_run_as_two_processes_over_curve(tmp_path, keys):
-    tel, cmd = free_ports(2)
-    link = [
-        "--set",
-        f'link.telemetry_endpoint="{loopback(tel)}"',
-        "--set",
-        f'link.command_endpoint="{loopback(cmd)}"',
-    ]
     robot_log, operator_log = tmp_path / "robot.log", tmp_path / "operator.log"
     robot_stats, operator_stats = tmp_path / "robot-stats.json", tmp_path / "operator-stats.json"
-    robot_argv = cli(
+    robot_argv = [
         "-v",
         "robot",
         "--config",
@@ -92,8 +87,8 @@ def test_example_configs_run_as_two_processes_over_curve(tmp_path, keys):
         f'link.security.secret_key_file="{keys.robot_secret}"',
         "--set",
         f'link.security.authorized_keys_dir="{keys.authorized}"',
-        *link,
-    )
+        *ROBOT_BINDS_ITS_PORTS,  # said in its READY=1, and passed on to the operator
+    ]
     operator_argv = cli(
         "-v",
         "operator",
@@ -102,24 +97,27 @@ def test_example_configs_run_as_two_processes_over_curve(tmp_path, keys):
         "--stats-file",
         str(operator_stats),
         "--set",
-        'servos={kind="recording"}',
+        'servos={kind="in_memory"}',
         "--set",
         f'link.security.secret_key_file="{keys.operator_secret}"',
         "--set",
         f'link.security.server_public_key_file="{keys.robot_public}"',
-        *link,
     )
-    with robot_log.open("wb") as rlog, operator_log.open("wb") as olog:
-        robot = subprocess.Popen(robot_argv, stdout=rlog, stderr=subprocess.STDOUT, env=ENV)
+    service = Service("robot", robot_argv, robot_log, env=ENV, watchdog=False)
+    ends = service.up(60).endpoints
+    robot = service.popen
+    with operator_log.open("wb") as olog:
+        operator_argv += link_to(ends)
         operator = subprocess.Popen(operator_argv, stdout=olog, stderr=subprocess.STDOUT, env=ENV)
         try:
             _wait_for_line(robot_log, LINK_UP, [robot, operator], timeout_s=20)
-            assert _plain_subscriber_hears_nothing(loopback(tel), wait_s=1.5)
+            assert _plain_subscriber_hears_nothing(ends["telemetry"], wait_s=1.5)
             time.sleep(1.0)  # stimuli flow meanwhile
         finally:
             _stop(operator, operator_log)
             time.sleep(0.6)  # the robot's 250 ms deadman sees the operator go
             _stop(robot, robot_log)
+            service.close()
 
     op = json.loads(operator_stats.read_text())
     rb = json.loads(robot_stats.read_text())
