@@ -12,8 +12,8 @@ import uuid
 from pathlib import Path
 
 import pytest
-from deploy_support import ENV, EXAMPLES, cli, loopback
-from tests_support import free_ports
+from deploy_support import ENV, EXAMPLES, cli
+from tests_support import ROBOT_BINDS_ITS_PORTS, unanswered_ports
 
 from common.process.sd_notify import Notifier, watch_node
 
@@ -135,17 +135,17 @@ def test_watch_pings_only_while_the_node_publishes(systemd):
 
 
 def test_watch_follows_a_real_operator_node(systemd, operator_in_thread):
-    tel, cmd = free_ports(2)
-    node = operator_in_thread(tel, cmd)
-    stop = threading.Event()
-    notifier = Notifier({"NOTIFY_SOCKET": systemd.env_value, "WATCHDOG_USEC": "1000000"})
-    watch = watch_node(node, stop, notifier)
-    try:
-        seen = systemd.wait_for("WATCHDOG=1", 5.0)
-        assert any(m.startswith("READY=1") for m in seen)
-    finally:
-        stop.set()
-        watch.stop()
+    with unanswered_ports(2) as (tel, cmd):  # nobody at the robot's end
+        node = operator_in_thread(tel, cmd)
+        stop = threading.Event()
+        notifier = Notifier({"NOTIFY_SOCKET": systemd.env_value, "WATCHDOG_USEC": "1000000"})
+        watch = watch_node(node, stop, notifier)
+        try:
+            seen = systemd.wait_for("WATCHDOG=1", 5.0)
+            assert any(m.startswith("READY=1") for m in seen)
+        finally:
+            stop.set()
+            watch.stop()
 
 
 @pytest.mark.slow
@@ -154,7 +154,6 @@ def test_robot_process_tells_systemd_it_is_ready_and_alive(systemd, tmp_path):
 
     ``kill -USR1`` then writes every thread's stack to the journal and the node runs on.
     """
-    tel, cmd = free_ports(2)
     proc = subprocess.Popen(
         cli(
             "robot",
@@ -168,10 +167,7 @@ def test_robot_process_tells_systemd_it_is_ready_and_alive(systemd, tmp_path):
             'arm={kind="none"}',
             "--set",
             'link.security={mode="plain"}',
-            "--set",
-            f'link.telemetry_endpoint="{loopback(tel)}"',
-            "--set",
-            f'link.command_endpoint="{loopback(cmd)}"',
+            *ROBOT_BINDS_ITS_PORTS,
         ),
         env={**ENV, "NOTIFY_SOCKET": systemd.env_value, "WATCHDOG_USEC": "2000000"},
         stdout=subprocess.DEVNULL,
@@ -179,7 +175,8 @@ def test_robot_process_tells_systemd_it_is_ready_and_alive(systemd, tmp_path):
     )
     try:
         seen = systemd.wait_for("WATCHDOG=1", 20.0)
-        assert any(m.startswith("READY=1") for m in seen)
+        (ready,) = [m for m in seen if m.startswith("READY=1")]
+        assert "tcp://127.0.0.1:" in ready and "tcp://127.0.0.1:0" not in ready, ready
         proc.send_signal(signal.SIGUSR1)
         systemd.wait_for("WATCHDOG=1", 5.0)  # still alive and publishing after the dump
         assert proc.poll() is None
