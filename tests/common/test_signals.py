@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
+from tests_support import unanswered_ports
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -62,31 +63,23 @@ def test_sigterm_inside_the_stop_events_own_lock_still_stops_the_process(module:
 
 
 def test_the_link_simulator_ends_on_sigterm_while_it_relays(tmp_path: Path) -> None:
-    """``deepxpalm netsim`` in stream mode, a connection through it, SIGTERM: it ends."""
-    from common.wire.transport import free_loopback_ports
+    """``deepxpalm netsim`` in stream mode as its unit runs it, up (its READY=1), SIGTERM: it
+    ends. The robot's ends are ports this test holds listening; the operator's, its own."""
+    from deploy.units.service import Service
 
-    robot_tel, robot_cmd, op_tel, op_cmd = (f"tcp://127.0.0.1:{p}" for p in free_loopback_ports(4))
-    log = (tmp_path / "netsim.log").open("w")
-    args = [*("-m", "deploy.cli", "-v", "netsim", "--mode", "stream")]
-    args += [*("--robot-telemetry", robot_tel, "--robot-commands", robot_cmd)]
-    args += [*("--operator-telemetry", op_tel, "--operator-commands", op_cmd)]
-    proc = subprocess.Popen(
-        [sys.executable, *args],
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
-    try:
-        deadline = time.monotonic() + 30
-        while "schedule_start_ns" not in (tmp_path / "netsim.log").read_text():
-            assert proc.poll() is None and time.monotonic() < deadline, "netsim did not start"
-            time.sleep(0.05)
-        t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(10)
-        assert proc.returncode == 0
-        assert time.monotonic() - t0 < 10
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    with unanswered_ports(2) as (tel, cmd):
+        args = ["-v", "netsim", "--mode", "stream"]
+        args += ["--robot-telemetry", f"tcp://127.0.0.1:{tel}"]
+        args += ["--robot-commands", f"tcp://127.0.0.1:{cmd}"]
+        args += ["--operator-telemetry", "tcp://127.0.0.1:0"]
+        args += ["--operator-commands", "tcp://127.0.0.1:0"]
+        netsim = Service("netsim", args, tmp_path / "netsim.log", watchdog=False)
+        try:
+            assert "operator_telemetry" in netsim.up(30).endpoints
+            t0 = time.monotonic()
+            killed = netsim.stop(10, signal.SIGTERM)
+            assert not killed and netsim.popen.returncode == 0, netsim.log_tail()
+            assert time.monotonic() - t0 < 10
+        finally:
+            netsim.stop(0)
+            netsim.close()
