@@ -48,7 +48,7 @@ def check_devices(data: dict[str, Any], role: str) -> list[dict[str, Any]]:
         section = dict((data.get(node) or {}).get(family) or {})
         kind = section.get("kind", "scripted" if family == "tactile" else "none")
         if family == "servos":
-            kind = section.get("kind", "recording")
+            kind = section.get("kind", "in_memory")
         section["kind"] = kind
         entry: dict[str, Any] = {"device": f"{node}.{family}", "kind": kind}
         if kind == "none":

@@ -115,7 +115,7 @@ class View:
                 self.tap = WireTap(cfg, WIRE_TOPICS, ctx=ctx)
                 self.wire = WireView(self.server, prefix_robots=len(cfg.robots) > 1)
             if args.follow is not None:
-                from common.live_view.recordings import LiveSource
+                from common.live_view.session_files import LiveSource
 
                 skip = SERVED_BY_LINK if self.tap is not None else frozenset()
                 self.files = LiveSource(self.config, server=self.server, skip_topics=skip)

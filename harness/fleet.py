@@ -389,7 +389,7 @@ class Fleet:
         request_control: bool = False,
         want_frames: bool = True,
         extra: list[str] | None = None,
-        servos: str = 'kind = "recording"',
+        servos: str = 'kind = "in_memory"',
         router_endpoint: str | None = None,
         watchdog: bool = False,
     ) -> Proc:

@@ -25,7 +25,7 @@ from operator_side.dashboard.snapshot import Snapshot
 
 _OPERATOR_TOML = """
 [operator.servos]
-kind = "recording"
+kind = "in_memory"
 [operator.link]
 telemetry_endpoint = "{tel}"
 command_endpoint = "{cmd}"

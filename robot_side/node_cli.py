@@ -20,7 +20,7 @@ def _build(config: RobotConfig, recorder: Any) -> Any:
     check_command_access(config)  # before any device is opened
     node = build_robot_node(config, recorder=recorder)
     if recorder is not None:  # arm and gripper state at each heartbeat, for datasets
-        from robot_side.devices.device_recording import DeviceStateRecorder
+        from robot_side.devices.device_state_recorder import DeviceStateRecorder
 
         node.recorder = DeviceStateRecorder(recorder, node.arm, node.gripper)
     return node

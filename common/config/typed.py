@@ -24,8 +24,9 @@ T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
-#: Keys renamed since configs were written: the old name is still read, with a warning.
-RENAMED_KEYS = {"baud": "baudrate"}
+#: Keys renamed since configs were written: the old name is still read, with a warning
+#: (a session recorded before carries its config under the old names, and replays).
+RENAMED_KEYS = {"baud": "baudrate", "control_rate_hz": "palm_step_rate_hz"}
 
 
 def param(default: Any, doc: str = "", *, secret: bool = False, **kwargs: Any) -> Any:

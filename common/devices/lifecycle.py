@@ -96,6 +96,11 @@ def load_object(target: str) -> Any:
     return getattr(importlib.import_module(module_name), attr)
 
 
+#: Device kinds renamed: the old name is refused with the new one, so that a config names
+#: what it builds ("recording" servos recorded nothing; they keep the goals in memory).
+RENAMED_KINDS = {"recording": "in_memory"}
+
+
 def build_device(registry: Mapping[str, str], section: Mapping[str, Any], where: str) -> Device:
     """Build the device a config section names by its ``kind`` key.
 
@@ -103,6 +108,10 @@ def build_device(registry: Mapping[str, str], section: Mapping[str, Any], where:
     dataclass parses the rest of the section.
     """
     kind = section.get("kind")
+    if kind not in registry and RENAMED_KINDS.get(kind) in registry:
+        raise ConfigError(
+            f"{where}.kind = {kind!r} has been renamed: write kind = {RENAMED_KINDS[kind]!r}"
+        )
     if kind not in registry:
         raise ConfigError(
             f"{where}.kind = {kind!r} is not a known kind; choose one of {sorted(registry)}"

@@ -1,7 +1,7 @@
 """The live view's Foxglove WebSocket server, and a robot's telemetry as its channels.
 
 ``LiveServer`` is the one server behind every live view: ``deepxpalm view``
-and ``deepxpalm record``'s ``foxglove`` table (``common/live_view/recordings.py``
+and ``deepxpalm record``'s ``foxglove`` table (``common/live_view/session_files.py``
 feeds it a session's recordings). It runs Foxglove's own server (the
 ``foxglove-sdk`` package, the ``foxglove`` extra) in a context of its own,
 offers its clients no capability (no publishing, services or parameters: a

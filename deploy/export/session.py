@@ -125,7 +125,7 @@ def camera_records(session: Session, key: str) -> Iterator[tuple[str, int, dict[
     A restarted video server's file (``camera.restart1.mcap``) follows the
     first: each file is in time order, and the files are merged.
     """
-    from robot_side.video.recording import CHANNEL
+    from robot_side.video.camera_recording import CHANNEL
 
     def one(path: Path) -> Iterator[tuple[str, int, dict[str, Any]]]:
         reader = RecordingReader(path)
@@ -145,7 +145,7 @@ def camera_records(session: Session, key: str) -> Iterator[tuple[str, int, dict[
 
 def _scan_cameras(session: Session) -> None:
     """Which cameras the session's camera files hold, and each one's picture size."""
-    from robot_side.video.recording import CHANNEL
+    from robot_side.video.camera_recording import CHANNEL
 
     for path in session.camera_files:
         reader = RecordingReader(path)

@@ -173,6 +173,6 @@ class VideoFeatureWriter:
 
 
 def _decode_jpeg(data: bytes) -> np.ndarray:
-    from robot_side.video.recording import decode_jpeg
+    from robot_side.video.camera_recording import decode_jpeg
 
     return decode_jpeg(data)

@@ -54,7 +54,7 @@ class InprocLoop:
             ctx=self.ctx,
             link=Link(sub=Subscriber(self.ctx, endpoint, bind=False, name="bench operator")),
         )
-        self.period_ns = round(1e9 / OperatorConfig().renderer.control_rate_hz)
+        self.period_ns = round(1e9 / OperatorConfig().renderer.palm_step_rate_hz)
         self._join()
 
     def _join(self) -> None:
@@ -319,7 +319,7 @@ def _deployed_md(results: dict[str, Any]) -> list[str]:
         "",
         "The same path through the nodes as deployed (the Node CPU run below: two "
         "processes, every core, the robot reading a pty in its serial reader thread and "
-        "handing the frame to its loop, the operator writing to the recording bus). These "
+        "handing the frame to its loop, the operator writing to the in-memory bus). These "
         "include what the rows above leave out: the reader thread's wake-up and the handoff "
         "to the loop's thread, ZeroMQ's I/O threads, and each node's other duties. The "
         "second row is the operator's own measure, from the frame's capture time mapped "

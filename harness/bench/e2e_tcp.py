@@ -272,7 +272,7 @@ def _peer(args: argparse.Namespace) -> int:
     ctx = zmq.Context()
     sub = StampedSubscriber(ctx, args.endpoint, bind=False, name="bench peer")
     node = OperatorNode(OperatorConfig(), bus, ctx=ctx, link=Link(sub=sub))
-    period_ns = round(1e9 / node.config.renderer.control_rate_hz)
+    period_ns = round(1e9 / node.config.renderer.palm_step_rate_hz)
     latencies: list[int] = []
     splits: list[tuple[int, int, int]] = []
     joined = False

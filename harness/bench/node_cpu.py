@@ -5,7 +5,7 @@ operator`` with a config file, default backend, no pinning, no thread
 limits), connected directly over loopback TCP. The robot's tactile board is
 a pseudo-terminal written by this process with the demo scene's scans,
 pre-encoded, so the simulator's cost stays out of the robot's account and
-the robot runs its real serial driver. The servo bus is the recording bus:
+the robot runs its real serial driver. The servo bus is the in-memory bus:
 the operator's account is the node's own work, not a simulator's.
 
 CPU time is utime + stime from /proc/<pid>/stat (every thread), read after
@@ -361,7 +361,7 @@ def run_nodes(
         robot_cfg.arm = dict(arm)
         robot_cfg.link.allow_plain_commands = True  # loopback, and nobody commands the arm
     op_cfg = OperatorConfig()
-    op_cfg.servos = {"kind": "recording"}
+    op_cfg.servos = {"kind": "in_memory"}
     services: dict[str, Service] = {}
     watch: RobotWatch | None = None
     site = FabricSite(workdir) if fabric else None
@@ -543,11 +543,11 @@ def measure(ctx: Context, sizes: NodeCpuSizes) -> dict[str, Any]:
     return result
 
 
-def _control_rate_hz() -> float:
+def _palm_step_rate_hz() -> float:
     """The operator's servo goal rate, as its renderer is configured by default."""
     from operator_side.palm.renderer import RendererConfig
 
-    return RendererConfig().control_rate_hz
+    return RendererConfig().palm_step_rate_hz
 
 
 def verdicts(results: Results) -> list[Verdict]:
@@ -561,7 +561,7 @@ def verdicts(results: Results) -> list[Verdict]:
             rendered is not None and rendered < RENDERED_SHARE_TO_COUNT * cpu["publish_rate_hz"]
         )
     rows = []
-    operator = f"operator node at {_control_rate_hz():g} Hz"
+    operator = f"operator node at {_palm_step_rate_hz():g} Hz"
     for node, key, target in (
         (f"robot node at {SENSOR_RATE_HZ:g} Hz", "robot_cpu_percent", ROBOT_CPU_TARGET),
         (operator, "operator_cpu_percent", OPERATOR_CPU_TARGET),
@@ -622,7 +622,7 @@ def markdown(results: Results) -> list[str]:
         f"file, as deployed: every core, no thread limits), linked over loopback TCP. The "
         f"robot's board is a pty this bench writes the demo scene's scans to at "
         f"{s['rate_hz']:g} Hz (delivered: {s['scans_per_s']:.1f}/s); the operator drives the "
-        f"recording servo bus at its {_control_rate_hz():g} Hz control rate. utime + stime "
+        f"in-memory servo bus at its {_palm_step_rate_hz():g} Hz palm step rate. utime + stime "
         f"from /proc over {s['measure_s']:g} s after a warm-up.",
         "",
     ]
@@ -657,7 +657,7 @@ def markdown(results: Results) -> list[str]:
                 ", ".join(f"{k} {v:g}" for k, v in s.get("robot_stats", {}).items()),
             ],
             [
-                f"operator, {_control_rate_hz():g} Hz control",
+                f"operator, {_palm_step_rate_hz():g} Hz palm steps",
                 num(s.get("operator_cpu_percent")),
                 f"< {OPERATOR_CPU_TARGET:g} %",
                 ", ".join(f"{k} {v:g}" for k, v in s.get("operator_stats", {}).items()),
@@ -688,7 +688,7 @@ def markdown(results: Results) -> list[str]:
                 for name, key, target in (
                     (f"robot, {SENSOR_RATE_HZ:g} Hz frames", "robot", f"< {ROBOT_CPU_TARGET:g} %"),
                     (
-                        f"operator, {_control_rate_hz():g} Hz control",
+                        f"operator, {_palm_step_rate_hz():g} Hz palm steps",
                         "operator",
                         f"< {OPERATOR_CPU_TARGET:g} %",
                     ),

@@ -176,7 +176,7 @@ def skipping(
                 "max_servo_counts_diff": d["max_counts"],
             }
         )
-    control_cycles = duration_s * scene.operator.renderer.control_rate_hz
+    palm_steps = duration_s * scene.operator.renderer.palm_step_rate_hz
     return {
         "scene": scene_name,
         "frames": len(frames),
@@ -189,8 +189,8 @@ def skipping(
         "keyframes_sent": keyframes,
         "inferences": node.counters["inferences"],
         "rows": rows,
-        "operator_ik_skipped_per_s": max(0.0, control_cycles - len(sent)) / duration_s,
-        "operator_ik_saved_us_per_s": max(0.0, control_cycles - len(sent))
+        "operator_ik_skipped_per_s": max(0.0, palm_steps - len(sent)) / duration_s,
+        "operator_ik_saved_us_per_s": max(0.0, palm_steps - len(sent))
         / duration_s
         * m.get("ik_3_linkages", 0.0),
         "counters": {k: int(v) for k, v in node.counters.items()},
@@ -266,7 +266,7 @@ def markdown(results: Results) -> list[str]:
         "",
         f"Stimuli sent: {s['stimuli_sent']:,} plus {s['keyframes_sent']} keyframes; "
         f"inferences: {s['inferences']:,}. On the operator side, IK runs only when a new "
-        f"stimulus arrives: {s['operator_ik_skipped_per_s']:.1f} control cycles per second "
+        f"stimulus arrives: {s['operator_ik_skipped_per_s']:.1f} palm steps per second "
         f"skip it ({s['operator_ik_saved_us_per_s']:.0f} us/s), with no error by construction "
         "(same input, same goals). "
         f"The unchanged-stimulus skip is the dead band ({s['deadband_n']} N): its cost is at "

@@ -115,7 +115,7 @@ def _random_stimuli(n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def renderer_stress(n: int, seed: int = 7) -> dict[str, Any]:
-    """Random stimuli, one per control cycle, through target_counts and the rate limiter."""
+    """Random stimuli, one per palm step, through target_counts and the rate limiter."""
     cal = LinkGlideCalibration()
     renderer = LinkGlideRenderer(RendererConfig(), cal)
     rng = np.random.default_rng(seed)

@@ -4,7 +4,7 @@ One *cell* is a link scenario and a feedback condition: the lab world
 (started here, so the experimenter can re-place the pipette between trials
 and read the truth), the robot node as its own process on that world
 (`running_world`), the link simulator between it and the operator node
-(which runs here; its servos are the recording bus, since the scripted
+(which runs here; its servos are the in-memory bus, since the scripted
 operator reads the stimulus and has no palm), and
 :class:`harness.scripted_operator.ScriptedOperator` acting through the operator
 node. Each trial puts the rack's one pipette at a seeded tilt and offset the
@@ -190,7 +190,7 @@ def _scene(scenario: str, feedback: str) -> Scene:
     scene.network.scenario = scenario
     # No palm to feel it: a simulated STS bus would answer from a thread of this process,
     # which three cells side by side starve past its reply window at connect.
-    scene.operator.servos = {"kind": "recording"}
+    scene.operator.servos = {"kind": "in_memory"}
     return scene
 
 

@@ -67,14 +67,14 @@ def glass_to_glass(
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
     from operator_side.node.config import OperatorConfig
-    from operator_side.servos.recording import RecordingServoBus
+    from operator_side.servos.in_memory import InMemoryServoBus
     from robot_side.camera.config import TestPatternConfig
     from robot_side.camera.test_pattern import TestPatternCamera
     from robot_side.video.server import VideoConfig, VideoServer
 
     load_before = machine_load()
     source = TestPatternCamera(TestPatternConfig(width=width, height=height, fps=fps))
-    node = OperatorNode(OperatorConfig(), RecordingServoBus())  # the page needs a node; idle
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus())  # the page needs a node; idle
     want = frames + WARMUP_FRAMES
     timeout_s = 30 + 3 * want / fps
     with all_cores(), VideoServer(source, VideoConfig(port=0)) as server:

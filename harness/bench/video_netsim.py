@@ -96,14 +96,14 @@ def play(scenario: Any, width: int, height: int, fps: float, seconds: float = RU
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
     from operator_side.node.config import OperatorConfig
-    from operator_side.servos.recording import RecordingServoBus
+    from operator_side.servos.in_memory import InMemoryServoBus
     from robot_side.camera.config import TestPatternConfig
     from robot_side.camera.test_pattern import TestPatternCamera
     from robot_side.video.server import VideoConfig, VideoServer
 
     load_before = machine_load()
     source = TestPatternCamera(TestPatternConfig(width=width, height=height, fps=fps))
-    node = OperatorNode(OperatorConfig(), RecordingServoBus())  # the page needs a node; idle
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus())  # the page needs a node; idle
     server = VideoServer(source, VideoConfig(port=0))
     server.link_scenario = scenario
     sent: list[tuple[float, int]] = []  # (s after start, bytes the encoder handed the link)
@@ -246,13 +246,13 @@ def page_server(link: Any, fps: float = AGAINST_FPS) -> Iterator[tuple[Any, Any]
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
     from operator_side.node.config import OperatorConfig
-    from operator_side.servos.recording import RecordingServoBus
+    from operator_side.servos.in_memory import InMemoryServoBus
     from robot_side.camera.config import TestPatternConfig
     from robot_side.camera.test_pattern import TestPatternCamera
     from robot_side.video.server import VideoConfig, VideoServer
 
     source = TestPatternCamera(TestPatternConfig(width=320, height=240, fps=fps))
-    node = OperatorNode(OperatorConfig(), RecordingServoBus())  # the page needs a node; idle
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus())  # the page needs a node; idle
     with VideoServer(source, VideoConfig(port=0, link_scenario=link)) as server:
         dashboard = Dashboard(node, DashboardConfig(port=0, video_url=server.url))
         dashboard.start()

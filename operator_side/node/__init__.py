@@ -9,7 +9,7 @@
 - ``palm``: the stimulus to render, the servo goals, the latency;
 - ``outbox``: commands and video signals to the robot (late and blind jogs
   dropped, gripper commands resent until confirmed, video signals held);
-- ``heartbeat``: the heartbeat out; ``recording``: every channel the node
+- ``heartbeat``: the heartbeat out; ``operator_channels``: every channel the node
   records; ``snapshot``: what the live views show (a ``Snapshot``, declared
   by the views in ``operator_side.dashboard.snapshot``); ``config``: the
   node's typed config; ``build``: ``build_operator_node`` from a config.

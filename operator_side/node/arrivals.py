@@ -30,7 +30,7 @@ from common.wire.link_stats import LinkStats
 from common.wire.messages import Heartbeat, Stimulus, TactileFrame, VideoSignal
 from common.wire.transport import Receiver
 from operator_side.node.lease_view import LeaseView
-from operator_side.node.recording import NodeRecording
+from operator_side.node.operator_channels import OperatorChannels
 from operator_side.node.telemetry_gate import REFUSALS as TELEMETRY_REFUSALS
 from operator_side.node.telemetry_gate import UNPROVEN, TelemetryGate
 
@@ -81,7 +81,7 @@ class Arrivals:
         robot_key: bytes | None,
         gate: TelemetryGate | None,
         counters: Counter[str],
-        recording: NodeRecording,
+        recording: OperatorChannels,
         on_robot_stats: Callable[[dict[str, float]], None],
     ) -> None:
         """``on_robot_stats``: each robot heartbeat's stats (the outbox confirms a gripper
@@ -95,7 +95,7 @@ class Arrivals:
         self.recording = recording
         self.on_robot_stats = on_robot_stats
         #: loss, latency, jitter and staleness of the stimulus stream
-        self.link = LinkStats(clock=clock)
+        self.link_stats = LinkStats(clock=clock)
         #: called on the node's thread with each video signal the robot sends (the dashboard)
         self.video_signal_handler: Callable[[VideoSignal], None] | None = None
         #: guards what the live views read from another thread
@@ -188,7 +188,7 @@ class Arrivals:
         return False
 
     def _on_stimulus(self, msg: Stimulus, t_recv: int, wire: bytes | None) -> bool:
-        self.link.on_message(msg.seq, msg.t_send_ns, t_recv)
+        self.link_stats.on_message(msg.seq, msg.t_send_ns, t_recv)
         self.heard.heard(msg.t_send_ns, t_recv)
         last = self.stimulus
         if (

@@ -130,7 +130,7 @@ class OperatorLinkConfig:
 class OperatorConfig:
     link: OperatorLinkConfig = param(OperatorLinkConfig(), "sockets and link health")
     renderer: RendererConfig = param(RendererConfig(), "stimulus to servo goals")
-    servos: dict[str, Any] = param({"kind": "recording"}, "LinkGlide servo bus: kind + settings")
+    servos: dict[str, Any] = param({"kind": "in_memory"}, "LinkGlide servo bus: kind + settings")
     palm_guard: bool = param(
         True,
         "with a feetech bus, `deepxpalm operator` starts `deepxpalm palm guard` beside the node: "

@@ -15,7 +15,7 @@ from common.clocks.clock_sync import ClockSync
 from common.wire.messages import Heartbeat
 from common.wire.transport import Sender
 from operator_side.node.arrivals import RobotHeard
-from operator_side.node.recording import NodeRecording
+from operator_side.node.operator_channels import OperatorChannels
 from operator_side.node.telemetry_gate import TelemetryGate
 
 
@@ -31,7 +31,7 @@ class HeartbeatOut:
         *,
         session: int,
         now: Callable[[], int],
-        recording: NodeRecording,
+        recording: OperatorChannels,
     ) -> None:
         self.clock = clock
         self.heard = heard

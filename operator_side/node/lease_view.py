@@ -26,9 +26,9 @@ LEASE_REQUEST_EVERY_NS = 250_000_000
 class LeaseView:
     """Who holds the robot's lease, and what we do about it."""
 
-    def __init__(self, link: OperatorLinkConfig, own_key: bytes | None, counters: Counter[str]):
+    def __init__(self, link_cfg: OperatorLinkConfig, own_key: bytes | None, counters: Counter[str]):
         """``own_key``: our signing key's public half (None: unsigned, no lease)."""
-        self.link = link
+        self.link_cfg = link_cfg
         self.own_key = own_key
         self.counters = counters
         #: the key holding the robot's control lease, as its newest heartbeat says
@@ -52,18 +52,20 @@ class LeaseView:
 
     def heartbeat_wanted(self) -> bool:
         """Every due heartbeat, unless we are a signed observer (``observer_heartbeat_rate_hz``)."""
-        link = self.link
+        link_cfg = self.link_cfg
         self._turn += 1
-        if self.own_key is None or self.ours or link.request_control:
+        if self.own_key is None or self.ours or link_cfg.request_control:
             return True
         if self.pending == self.own_key:
             return True  # asked: the robot's deadman will count from us as soon as it grants
-        every = max(1, round(link.heartbeat_rate_hz / max(link.observer_heartbeat_rate_hz, 1e-3)))
+        every = max(
+            1, round(link_cfg.heartbeat_rate_hz / max(link_cfg.observer_heartbeat_rate_hz, 1e-3))
+        )
         return self._turn % every == 0
 
     def request_if_free(self, now: int, ask: Callable[[str], None]) -> None:
         """``request_control``: ask while nobody holds the lease (refused until clocks sync)."""
-        if not self.link.request_control or self.own_key is None:
+        if not self.link_cfg.request_control or self.own_key is None:
             return
         if self.holder is not None or now < self._next_request_ns:
             return

@@ -6,7 +6,7 @@ the rate limiter keeps stepping toward the target on every cycle in between.
 The node assembles its parts and runs the loop; each part is one concern:
 ``link_setup`` (keys, sockets), ``arrivals`` (what the robot sends, believed
 or dropped), ``lease_view``, ``palm`` (renderer, servos, latency), ``outbox``
-(commands), ``heartbeat`` and ``recording``.
+(commands), ``heartbeat`` and ``operator_channels`` (what it records).
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from operator_side.node.config import OperatorConfig
 from operator_side.node.heartbeat import HeartbeatOut
 from operator_side.node.lease_view import LeaseView
 from operator_side.node.link_setup import LinkKeys, Sockets, telemetry_gate_for, topics
+from operator_side.node.operator_channels import OperatorChannels
 from operator_side.node.outbox import Outbox
 from operator_side.node.palm import Palm
-from operator_side.node.recording import NodeRecording
 from operator_side.node.snapshot import take_snapshot
 from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
@@ -62,12 +62,12 @@ class OperatorNode:
     ) -> None:
         """``now`` and ``link``: the clock and the link, handed in to replay or bench the node.
 
-        ``link`` is the transport (``pub``, ``sub``); ``self.link`` keeps its statistics.
+        ``link`` is the transport (``pub``, ``sub``); ``self.link_stats``, its statistics.
         """
         self.config = config
         self.servos = servos
         self.now = now
-        self.recording = NodeRecording(recorder, now)
+        self.recording = OperatorChannels(recorder, now)
         self.recorder = self.recording.recorder
         #: something shows raw frames (a dashboard's heatmap, a status file): only then are
         #: they subscribed to (``link.want_frames``), so a robot with no viewer skips them
@@ -125,9 +125,9 @@ class OperatorNode:
         return self.sockets.sub
 
     @property
-    def link(self) -> LinkStats:
+    def link_stats(self) -> LinkStats:
         """Loss, latency, jitter and staleness of the stimulus stream."""
-        return self.arrivals.link
+        return self.arrivals.link_stats
 
     @property
     def video_signal_handler(self) -> Callable[[VideoSignal], None] | None:
@@ -240,16 +240,16 @@ class OperatorNode:
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
         if self._handed_link:
             raise RuntimeError("a node handed a link is driven by its caller; run() opens its own")
-        link = self.config.link
+        link_cfg = self.config.link
         if not self.servos.is_connected:
             self.servos.connect()
         bus_calibration = self.servos.calibration
         if bus_calibration is not None and bus_calibration is not self.palm.calibration:
             self.palm.use_calibration(bus_calibration)  # the bus's limits are the ones enforced
         try:
-            if link.mode == "direct":
-                for endpoint in (link.telemetry_endpoint, link.command_endpoint):
-                    check_endpoint(endpoint, link.security)
+            if link_cfg.mode == "direct":
+                for endpoint in (link_cfg.telemetry_endpoint, link_cfg.command_endpoint):
+                    check_endpoint(endpoint, link_cfg.security)
             self.sockets.open(self.ctx, self._topics(), self.outbox.wake_r)
             self.servos.set_torque(True)
             self.palm.write(self.palm.renderer.retract_goals)
@@ -271,23 +271,23 @@ class OperatorNode:
         return topics(self.robot_name, frames, video)
 
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
-        link, palm, outbox = self.config.link, self.palm, self.outbox
-        period = round(1e9 / self.config.renderer.control_rate_hz)
-        heartbeat = Periodic(link.heartbeat_rate_hz, link.heartbeat_early_ms / 1e3)
-        next_control = self.now()
+        link_cfg, palm, outbox = self.config.link, self.palm, self.outbox
+        period = round(1e9 / self.config.renderer.palm_step_rate_hz)
+        heartbeat = Periodic(link_cfg.heartbeat_rate_hz, link_cfg.heartbeat_early_ms / 1e3)
+        next_step = self.now()
         t_end = None if duration_s is None else self.now() + round(duration_s * 1e9)
         while not stop.is_set() and (t_end is None or self.now() < t_end):
-            due = min(next_control, heartbeat.deadline_ns)
+            due = min(next_step, heartbeat.deadline_ns)
             ready = self.sub.ready((due - self.now()) / 1e9)
             self.counters["wakeups"] += 1
-            _note_late_wake(self.counters, due, woke := self.now(), link.stale_after_ms)
+            _note_late_wake(self.counters, due, woke := self.now(), link_cfg.stale_after_ms)
             changed = self.receive() if self.sub.sock in ready else False
             now = self.now()
-            if changed or now >= next_control:
+            if changed or now >= next_step:
                 # Rendered as soon as something changed; otherwise the loop sleeps
                 # until the goal moves, the data would go stale, or a heartbeat.
                 self.palm_step(now, period)
-                next_control = palm.next_control_ns(now, period)
+                next_step = palm.next_step_ns(now, period)
             if heartbeat.due(now):
                 if self.lease.heartbeat_wanted():
                     self._send_heartbeat()
@@ -298,7 +298,7 @@ class OperatorNode:
             self.flush_commands(now)
             self.sockets.reopen_if_silent(now, self.ctx, self._topics(), outbox.wake_r)
             # held up mid-turn (frozen or starved outside its wait): the palm was as stuck
-            _note_late_wake(self.counters, woke, self.now(), link.stale_after_ms)
+            _note_late_wake(self.counters, woke, self.now(), link_cfg.stale_after_ms)
 
     # ------------------------------------------- the loop's steps, driven
     def receive(self) -> bool:
@@ -321,7 +321,7 @@ class OperatorNode:
         self.outbox.flush(now)
 
     def rewrite_next(self) -> None:
-        """Write the next control step's goals even if unchanged (benchmarks force each one)."""
+        """Write the next palm step's goals even if unchanged (benchmarks force each one)."""
         self.palm.written = None
 
     def _send_heartbeat(self) -> None:
@@ -331,7 +331,7 @@ class OperatorNode:
     def stats(self) -> dict[str, float]:
         out: dict[str, float] = {k: float(v) for k, v in self.counters.items()}
         out.update(self.palm.latency_summary())
-        for key, value in self.link.snapshot(self.now()).as_dict().items():
+        for key, value in self.link_stats.snapshot(self.now()).as_dict().items():
             if isinstance(value, (int, float)) and key != "window_s":
                 out[f"link_{key}"] = float(value)
         out.update(link_health(self.sub, self.pub))  # each link up, and reopened after a give-up

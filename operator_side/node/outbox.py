@@ -41,7 +41,7 @@ from common.wire.messages import SESSION_LOW_MASK, Command, VideoSignal
 from common.wire.transport import Sender
 from operator_side.node.arrivals import RobotHeard
 from operator_side.node.config import OperatorLinkConfig
-from operator_side.node.recording import NodeRecording
+from operator_side.node.operator_channels import OperatorChannels
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ class Outbox:
 
     def __init__(
         self,
-        link: OperatorLinkConfig,
+        link_cfg: OperatorLinkConfig,
         heard: RobotHeard,
         clock: ClockSync,
         pub: Callable[[], Sender],
@@ -81,11 +81,11 @@ class Outbox:
         session: int,
         counters: Counter[str],
         now: Callable[[], int],
-        recording: NodeRecording,
+        recording: OperatorChannels,
     ) -> None:
         """``pub``: the publisher in use (the node opens it again after a silence);
         ``session``: this run's boot id."""
-        self.link = link
+        self.link_cfg = link_cfg
         self.heard = heard
         self.clock = clock
         self.pub = pub
@@ -138,7 +138,7 @@ class Outbox:
                 self.held_signals.append((now, cmd))
                 continue
             if cmd.action in ("arm_jog", "arm_assist"):  # the assist is held like a jog
-                if (now - issued) / 1e6 > self.link.jog_max_age_ms:
+                if (now - issued) / 1e6 > self.link_cfg.jog_max_age_ms:
                     # the hand may have let go since: the robot's deadman stops the arm
                     self.counters["jogs_dropped_late"] += 1
                     self._late_log(f"{cmd.action}, {(now - issued) / 1e6:.0f} ms old")
@@ -156,24 +156,24 @@ class Outbox:
         pending = self.stop_pending
         if pending is None or now < pending.next_ns:
             return
-        if (now - pending.since_ns) / 1e6 > self.link.stop_resend_for_ms:
+        if (now - pending.since_ns) / 1e6 > self.link_cfg.stop_resend_for_ms:
             self.stop_pending = None
             self.counters["stops_unconfirmed"] += 1
             log.warning(
                 "the robot never showed our STOP latched in %.0f ms: a recorder's key, or the "
                 "link is down (the robot's deadman stops the arm then)",
-                self.link.stop_resend_for_ms,
+                self.link_cfg.stop_resend_for_ms,
             )
             return
         self.counters["stops_resent"] += 1
         self._send_command(Command(seq=0, t_send_ns=0, action="arm_stop"), now, resends=1)
-        pending.next_ns = now + round(self.link.stop_resend_ms * 1e6)
+        pending.next_ns = now + round(self.link_cfg.stop_resend_ms * 1e6)
 
     def _resend_gripper(self, now: int) -> None:
         pending = self.gripper_pending
         if pending is None or now < pending.deadline_ns:
             return
-        if pending.resends >= self.link.gripper_resends:
+        if pending.resends >= self.link_cfg.gripper_resends:
             self.gripper_pending = None
             self.counters["gripper_unconfirmed"] += 1
             log.warning(
@@ -221,13 +221,13 @@ class Outbox:
         self.counters["commands_sent"] += 1
         self.recording.command(cmd.seq, cmd.t_send_ns, data)
         if cmd.action == "arm_stop":
-            if resends == 0 and self.link.stop_resend_ms > 0:
-                next_ns = now + round(self.link.stop_resend_ms * 1e6)
+            if resends == 0 and self.link_cfg.stop_resend_ms > 0:
+                next_ns = now + round(self.link_cfg.stop_resend_ms * 1e6)
                 self.stop_pending = PendingStop(now, next_ns)
         elif cmd.action.startswith("arm_"):
             self.stop_pending = None  # a resume (or a jog) after the stop: never re-stop after it
         if cmd.action.startswith("gripper"):
-            deadline = now + round(self.link.gripper_confirm_ms * 1e6)
+            deadline = now + round(self.link_cfg.gripper_confirm_ms * 1e6)
             self.gripper_pending = PendingGripper(
                 cmd.action, cmd.grip_level, cmd.seq, deadline, resends
             )

@@ -20,7 +20,7 @@ import numpy as np
 from common.errors import DeviceError
 from operator_side.node.arrivals import Arrivals
 from operator_side.node.config import OperatorConfig
-from operator_side.node.recording import NodeRecording
+from operator_side.node.operator_channels import OperatorChannels
 from operator_side.palm.renderer import LinkGlideRenderer
 from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
@@ -44,7 +44,7 @@ class Palm:
         *,
         counters: Counter[str],
         now: Callable[[], int],
-        recording: NodeRecording,
+        recording: OperatorChannels,
     ) -> None:
         self.config = config
         self.servos = servos
@@ -114,8 +114,8 @@ class Palm:
                 self.latencies_ms.append((self.now() - captured) / 1e6)
                 self.counters["latency_samples"] += 1
 
-    def next_control_ns(self, now: int, period: int) -> int:
-        """When the next control step is needed if no message arrives first."""
+    def next_step_ns(self, now: int, period: int) -> int:
+        """When the next palm step is needed if no message arrives first."""
         if self.written is not None and self.written != self.goal:
             return now + period  # still stepping toward the goal
         captured = self.arrivals.local_capture_ns

@@ -34,7 +34,7 @@ class PalmConfig:
     process's start-up is the time a dead node's linkages stay on the palm."""
 
     renderer: RendererConfig = param(RendererConfig(), "the retract point and the linkages")
-    servos: dict[str, Any] = param({"kind": "recording"}, "LinkGlide servo bus: kind + settings")
+    servos: dict[str, Any] = param({"kind": "in_memory"}, "LinkGlide servo bus: kind + settings")
 
 
 def lift(config: PalmConfig, within_s: float = 2.0, bus_wait_s: float = 0.0) -> dict[str, Any]:

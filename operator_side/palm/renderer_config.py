@@ -21,9 +21,9 @@ class RendererConfig:
     contact: ContactMapping = param(ContactMapping(), "stimulus to contact point mapping")
     geometry: LinkageGeometry = param(LinkageGeometry(), "link lengths of all three linkages")
     max_step_deg_per_cycle: float = param(
-        4.0, "largest goal change per servo per control cycle: a jump becomes a short motion"
+        4.0, "largest goal change per servo per palm step: a jump becomes a short motion"
     )
-    control_rate_hz: float = param(60.0, "servo goal updates per second")
+    palm_step_rate_hz: float = param(60.0, "servo goal updates per second")
 
 
 def retract_pose(config: RendererConfig) -> list[float]:

@@ -70,7 +70,7 @@ class StimulusMaker:
 
 
 class PalmDisplay:
-    """Renders the current stimulus source on the servos at the control rate, in a thread.
+    """Renders the current stimulus source on the servos at the palm step rate, in a thread.
 
     ``show`` swaps the source and returns the onset: the monotonic time (ns)
     of the first servo write toward it, which is when response times start.
@@ -165,7 +165,7 @@ class PalmDisplay:
 
     def _run(self) -> None:
         assert self.renderer is not None
-        rate = Rate(self.renderer_config.control_rate_hz)
+        rate = Rate(self.renderer_config.palm_step_rate_hz)
         seen_gen, next_frame, stimulus = -1, 0, None
         try:
             while not self._stop.is_set():

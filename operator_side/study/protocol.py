@@ -62,7 +62,7 @@ class StudyConfig:
     pause_s: float = param(1.5, "palm lifted between trials, so each pattern starts from off")
     feedback_s: float = param(1.5, "how long practice feedback stays on the page")
     servos: dict[str, Any] = param(
-        {"kind": "recording"}, "LinkGlide servo bus: kind + settings, as [operator.servos]"
+        {"kind": "in_memory"}, "LinkGlide servo bus: kind + settings, as [operator.servos]"
     )
     renderer: RendererConfig = param(RendererConfig(), "stimulus to servo goals, as the node's")
 

@@ -61,7 +61,7 @@ class CommandDesk:
 
     def __init__(
         self,
-        link: RobotLinkConfig,
+        link_cfg: RobotLinkConfig,
         handover: Handover,
         assist: Assist | None,
         *,
@@ -75,11 +75,11 @@ class CommandDesk:
         ``assist``: the reflex an ``arm_assist`` holds (None: refused);
         ``announce`` asks for a heartbeat at once (a lease or latch change);
         ``session``: this robot run's boot id, which operators echo to prove a message is of it."""
-        self.link = link
+        self.link_cfg = link_cfg
         self.counters = counters
         self.on_video = on_video
         self.announce = announce
-        max_age_ns = round(link.max_command_age_ms * 1e6)
+        max_age_ns = round(link_cfg.max_command_age_ms * 1e6)
         #: this run: what an operator's message must echo, and when it started
         self.run = RobotRun(session, now())
         #: the stop latch, the device workers' queue and the robot/command recording
@@ -98,15 +98,15 @@ class CommandDesk:
         #: with a roster: signed commands, obeyed only from the lease holder (lease.py)
         self.lease: ControlLease | None = None
         self.peers: OnePeer | RosterPeers = OnePeer(self.clock, max_age_ns)
-        if link.roster_file is not None:
-            roster = self.roster = load_roster(link.roster_file)
+        if link_cfg.roster_file is not None:
+            roster = self.roster = load_roster(link_cfg.roster_file)
             self.lease = ControlLease(
-                roster.by_signing_key(), max_age_ns, round(link.lease_request_timeout_ms * 1e6)
+                roster.by_signing_key(), max_age_ns, round(link_cfg.lease_request_timeout_ms * 1e6)
             )
             self.peers = RosterPeers(self.lease)
-        elif link.mode == "fabric":
+        elif link_cfg.mode == "fabric":
             raise ConfigError(
-                f"robot link.mode = {link.mode!r} needs link.roster_file: across sites only "
+                f"robot link.mode = {link_cfg.mode!r} needs link.roster_file: across sites only "
                 "signed commands from the lease holder may move the arm (docs/security.md)"
             )
         self._lease_changes_seen = 0
@@ -265,7 +265,7 @@ class CommandDesk:
         from now on, and if it held the lease the arm stops (as at any change
         of holder).
         """
-        path = self.link.roster_file
+        path = self.link_cfg.roster_file
         if self.lease is None or path is None:
             log.warning("roster reload asked, but this robot has no link.roster_file")
             return False

@@ -39,9 +39,9 @@ from common.errors import ConfigError
 from common.web import web_token
 from robot_side.camera.base import Camera
 from robot_side.video import media_binding
+from robot_side.video.camera_recording import CameraRecording
 from robot_side.video.config import VideoConfig, build_source, camera_key
 from robot_side.video.feed import CameraFeed
-from robot_side.video.recording import CameraRecording
 from robot_side.video.simulated_link import scenario_for
 from robot_side.video.track import rtc_configuration
 from robot_side.video.viewers import ViewerSessions

@@ -28,3 +28,14 @@ def test_an_old_name_the_table_does_not_have_stays_unknown() -> None:
 
     with pytest.raises(ConfigError, match=r"unknown key\(s\) \['baud'\]"):
         from_dict(URArmConfig, {"baud": 1}, where="robot.arm")
+
+
+def test_the_palm_step_rate_under_its_old_control_name_is_read_with_a_warning(caplog) -> None:
+    """``control`` is the lease; the renderer's rate is of palm steps. A config (or a session
+    recorded before) naming ``control_rate_hz`` still loads, and is told the new name."""
+    from operator_side.palm.renderer_config import RendererConfig
+
+    with caplog.at_level(logging.WARNING):
+        config = from_dict(RendererConfig, {"control_rate_hz": 50.0}, where="operator.renderer")
+    assert config.palm_step_rate_hz == 50.0
+    assert "control_rate_hz is deprecated: call it palm_step_rate_hz" in caplog.text

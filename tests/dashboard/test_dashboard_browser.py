@@ -2,7 +2,7 @@
 
 A stand-in robot publishes stimuli, frames and heartbeats on a bound PUB and
 listens for commands on a bound SUB, exactly as the robot node does; the
-operator node connects to both and renders to a recording servo bus; the
+operator node connects to both and renders to a in-memory servo bus; the
 dashboard serves the page; chromium loads it. The checks are on what the
 page drew (canvas pixels, the joints it computed) and on the commands that
 reached the stand-in robot's socket.
@@ -26,7 +26,7 @@ from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
 from operator_side.palm.linkglide import forward_kinematics
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 
 pytestmark = [
     pytest.mark.slow,
@@ -131,7 +131,7 @@ def operator_station(zmq_ctx, recorder=None):
     cfg = OperatorConfig()
     cfg.link.telemetry_endpoint = robot.pub.endpoint
     cfg.link.command_endpoint = robot.sub.endpoint
-    node = OperatorNode(cfg, RecordingServoBus(), ctx=zmq_ctx, recorder=recorder)
+    node = OperatorNode(cfg, InMemoryServoBus(), ctx=zmq_ctx, recorder=recorder)
     stop = threading.Event()
     node_thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
     dashboard = Dashboard(node, DashboardConfig(enabled=True, port=0))

@@ -20,7 +20,7 @@ from common.recording.mcap_recorder import McapRecorder, read_recording
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 
 pytestmark = [pytest.mark.timeout(60), pytest.mark.parallel]
 
@@ -83,7 +83,7 @@ def test_marks_made_on_the_page_are_recorded_and_never_reach_the_robot(recording
 
 def test_a_node_that_does_not_record_refuses_marks_and_says_why(zmq_ctx):
     """Through the page's WebSocket with its token, as a script would: nothing is lost quietly."""
-    node = OperatorNode(OperatorConfig(), RecordingServoBus(), ctx=zmq_ctx)
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus(), ctx=zmq_ctx)
     with (
         Dashboard(node, DashboardConfig(enabled=True, port=0)) as dashboard,
         connect(dashboard.ws_url) as ws,

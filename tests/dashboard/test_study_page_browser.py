@@ -12,7 +12,7 @@ import pytest
 from headless_chromium import Chromium, needs_chromium
 
 from common.tactile.contract import MASKS
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from operator_side.study.display import PalmDisplay
 from operator_side.study.protocol import ResultsFile, StudyConfig, read_records, results_path
 from operator_side.study.responders import WebResponder
@@ -30,7 +30,7 @@ def test_a_participant_clicks_through_training_practice_and_test(tmp_path):
     config = StudyConfig(
         mode="ideal", repetitions=1, practice_rounds=1, seed=2, pause_s=0.0, feedback_s=0.3
     )
-    display = PalmDisplay(RecordingServoBus(), config.renderer)
+    display = PalmDisplay(InMemoryServoBus(), config.renderer)
     responder = WebResponder(port=0)
     path = results_path(tmp_path, "B1", "ideal")
     results = ResultsFile(path, "B1", "ideal", 2)

@@ -70,14 +70,14 @@ def test_the_page_gets_the_robots_video_through_turn_only(turn_server):
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
     from operator_side.node.config import OperatorConfig
-    from operator_side.servos.recording import RecordingServoBus
+    from operator_side.servos.in_memory import InMemoryServoBus
     from robot_side.camera.config import TestPatternConfig
     from robot_side.camera.test_pattern import TestPatternCamera
     from robot_side.video.server import VideoConfig, VideoServer
 
     ice, turn_log = turn_server
     source = TestPatternCamera(TestPatternConfig(width=320, height=240, fps=15))
-    node = OperatorNode(OperatorConfig(), RecordingServoBus())  # the page needs a node; idle
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus())  # the page needs a node; idle
     with VideoServer(source, VideoConfig(port=0, ice=IceConfig(**ice))) as server:
         page_ice = IceConfig(**ice, transport_policy="relay")
         dashboard = Dashboard(node, DashboardConfig(port=0, video_url=server.url, ice=page_ice))

@@ -73,7 +73,7 @@ def robot_in_thread():
 
 @pytest.fixture
 def operator_in_thread():
-    """Start an operator node (recording servos) in a thread; stopped after."""
+    """Start an operator node (in-memory servos) in a thread; stopped after."""
     started: list[tuple[threading.Event, threading.Thread]] = []
 
     def start(tel: int, cmd: int, security: dict | None = None):

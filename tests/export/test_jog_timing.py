@@ -28,7 +28,7 @@ from deploy.export.cli import export
 from deploy.export.resample import ExportConfig
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from robot_side.arm.memory import MemoryArm, MemoryArmConfig
 from robot_side.node import RobotNode
 from robot_side.node.config import RobotConfig
@@ -87,7 +87,7 @@ def test_through_the_link_simulator_no_jog_row_outlives_the_arm(tmp_path):
     oc = OperatorConfig()
     oc.link.telemetry_endpoint = sim.operator_telemetry_endpoint
     oc.link.command_endpoint = sim.operator_commands_endpoint
-    operator = OperatorNode(oc, RecordingServoBus())
+    operator = OperatorNode(oc, InMemoryServoBus())
     threads.append(threading.Thread(target=operator.run, args=(stop,), daemon=True))
     threads[1].start()
     try:

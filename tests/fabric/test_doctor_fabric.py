@@ -16,7 +16,7 @@ OPTIONS = DoctorOptions(peer_timeout_s=1.0, check_peer=True)
 def _operator(site, **fabric) -> dict:
     keys = site.fleet.workdir / "keys"
     return {
-        "servos": {"kind": "recording"},
+        "servos": {"kind": "in_memory"},
         "link": {
             "mode": "fabric",
             "robot_name": "cell1",

@@ -29,7 +29,7 @@ from common.wire.messages import Command, Heartbeat, Stimulus
 from common.wire.transport import last_endpoint
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus, RecordingServoBusConfig
+from operator_side.servos.in_memory import InMemoryServoBus, InMemoryServoBusConfig
 from robot_side.arm.memory import MemoryArm
 from robot_side.gripper.memory import MemoryGripper
 from robot_side.node import RobotNode
@@ -145,7 +145,7 @@ class OperatorRig:
         oc = OperatorConfig()
         oc.link.telemetry_endpoint = last_endpoint(self.pub)
         oc.link.command_endpoint = last_endpoint(self.cmd_sub)
-        self.bus = RecordingServoBus(RecordingServoBusConfig(max_records=1_000_000))
+        self.bus = InMemoryServoBus(InMemoryServoBusConfig(max_records=1_000_000))
         self.node = OperatorNode(oc, self.bus)
         self.stop = threading.Event()
         self.error: list[BaseException] = []

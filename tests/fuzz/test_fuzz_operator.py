@@ -2,7 +2,7 @@
 
 The node keeps running, keeps rendering a good stimulus stream sent in
 between, counts every rejected message, and the servo bus never receives a
-count outside the calibration (RecordingServoBus refuses those, so its
+count outside the calibration (InMemoryServoBus refuses those, so its
 refused counter must stay 0). Messages that the codec accepts even though
 they were mutated are sent last: they may legitimately change what is
 rendered, but never make anything unsafe.

@@ -19,7 +19,7 @@ from common.wire.messages import Command, Heartbeat
 from common.wire.transport import last_endpoint
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -68,7 +68,7 @@ def linked():
     config = OperatorConfig()
     config.link.telemetry_endpoint = last_endpoint(robot.tel)
     config.link.command_endpoint = last_endpoint(robot.cmd)
-    node = OperatorNode(config, RecordingServoBus())
+    node = OperatorNode(config, InMemoryServoBus())
     stop = threading.Event()
     thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
     thread.start()

@@ -10,7 +10,7 @@ import time
 from common.wire.transport import free_loopback_ports
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 
 
 def test_a_loop_that_wakes_300_ms_late_is_counted_with_how_late(caplog):
@@ -26,7 +26,7 @@ def test_a_loop_that_wakes_300_ms_late_is_counted_with_how_late(caplog):
             skew["ns"] = 300_000_000
         return time.monotonic_ns() + skew["ns"]
 
-    bus = RecordingServoBus()
+    bus = InMemoryServoBus()
     node = OperatorNode(config, bus, now=clock)
     stop = threading.Event()
     with caplog.at_level(logging.WARNING, logger="operator_side.node"):

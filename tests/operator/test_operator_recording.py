@@ -18,7 +18,7 @@ from common.wire.signing import Signer
 from common.wire.transport import Link, Publisher, Subscriber
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from tests.tests_support import free_ports
 
 
@@ -38,9 +38,7 @@ def test_a_named_signed_stimulus_is_recorded_as_it_arrived() -> None:
     robot = Publisher(ctx, endpoint, bind=True, name=b"cell1", signer=Signer.generate())
     sub = Subscriber(ctx, endpoint, bind=False, name="operator telemetry")
     recorder = Kept()
-    node = OperatorNode(
-        OperatorConfig(), RecordingServoBus(), recorder=recorder, link=Link(sub=sub)
-    )
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus(), recorder=recorder, link=Link(sub=sub))
     try:
         sent: list[bytes] = []
         deadline = time.monotonic() + 10

@@ -12,7 +12,7 @@ from common.wire.messages import SESSION_LOW_MASK, Command, Heartbeat, Stimulus
 from common.wire.transport import CaptureLink
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 
 
 def _stimulus(seq: int, t_ns: int) -> Stimulus:
@@ -30,10 +30,10 @@ def _stimulus(seq: int, t_ns: int) -> Stimulus:
 def test_a_delivered_stimulus_moves_the_servos_in_virtual_time() -> None:
     clock = VirtualClock()
     link = CaptureLink()
-    bus = RecordingServoBus()
+    bus = InMemoryServoBus()
     bus.connect()
     node = OperatorNode(OperatorConfig(), bus, now=clock, link=link)
-    period = round(1e9 / node.config.renderer.control_rate_hz)
+    period = round(1e9 / node.config.renderer.palm_step_rate_hz)
     link.deliver(_stimulus(1, clock()), clock())
     assert node.receive()
     assert node.last_stimulus is not None and node.last_stimulus.seq == 1
@@ -54,7 +54,7 @@ def test_a_delivered_stimulus_moves_the_servos_in_virtual_time() -> None:
 
 
 def test_a_node_handed_a_link_refuses_to_run() -> None:
-    node = OperatorNode(OperatorConfig(), RecordingServoBus(), link=CaptureLink())
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus(), link=CaptureLink())
     with pytest.raises(RuntimeError, match="handed a link"):
         node.run(threading.Event())
 
@@ -66,7 +66,7 @@ def _robot_heartbeat(t_ns: int, stats: dict[str, float]) -> Heartbeat:
 def test_an_unconfirmed_gripper_command_is_sent_again_fresh_until_the_robot_names_it() -> None:
     clock = VirtualClock(t_ns=1_000_000_000)
     link = CaptureLink()
-    node = OperatorNode(OperatorConfig(), RecordingServoBus(), now=clock, link=link)
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus(), now=clock, link=link)
     confirm = round(node.config.link.gripper_confirm_ms * 1e6)
     node.send_command("gripper_close", grip_level=9)
     node.flush_commands(clock())
@@ -99,7 +99,7 @@ def test_an_unconfirmed_gripper_command_is_sent_again_fresh_until_the_robot_name
 def test_a_gripper_command_never_confirmed_is_counted_after_its_resends() -> None:
     clock = VirtualClock(t_ns=1_000_000_000)
     link = CaptureLink()
-    node = OperatorNode(OperatorConfig(), RecordingServoBus(), now=clock, link=link)
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus(), now=clock, link=link)
     confirm = round(node.config.link.gripper_confirm_ms * 1e6)
     node.send_command("gripper_open")
     for _ in range(10):
@@ -118,12 +118,12 @@ def test_with_the_robots_key_only_its_signed_telemetry_reaches_the_palm(tmp_path
     robot, relay = load_signer(secret), Signer.generate()  # the relay holds no robot key
     clock = VirtualClock()
     link = CaptureLink()
-    bus = RecordingServoBus()
+    bus = InMemoryServoBus()
     bus.connect()
     config = OperatorConfig()
     config.link.robot_key_file = public
     node = OperatorNode(config, bus, now=clock, link=link)
-    period = round(1e9 / node.config.renderer.control_rate_hz)
+    period = round(1e9 / node.config.renderer.palm_step_rate_hz)
     # forged on the path: validly signed, by the wrong key; and unsigned
     link.deliver(decode(encode(_stimulus(1, clock()), b"cell1", relay)), clock())
     link.deliver(_stimulus(2, clock()), clock())
@@ -161,7 +161,7 @@ def _stops(link: CaptureLink) -> list[Command]:
 def test_a_stop_is_sent_again_until_the_robot_shows_it_latched() -> None:
     clock = VirtualClock(t_ns=1_000_000_000)
     link = CaptureLink()
-    node = OperatorNode(OperatorConfig(), RecordingServoBus(), now=clock, link=link)
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus(), now=clock, link=link)
     every = round(node.config.link.stop_resend_ms * 1e6)
     node.send_command("arm_stop")
     node.flush_commands(clock())
@@ -191,7 +191,7 @@ def test_a_stop_is_sent_again_until_the_robot_shows_it_latched() -> None:
 def test_a_resume_ends_the_stops_resending_and_an_unlatched_stop_gives_up() -> None:
     clock = VirtualClock(t_ns=1_000_000_000)
     link = CaptureLink()
-    node = OperatorNode(OperatorConfig(), RecordingServoBus(), now=clock, link=link)
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus(), now=clock, link=link)
     every = round(node.config.link.stop_resend_ms * 1e6)
     node.send_command("arm_stop")
     node.flush_commands(clock())

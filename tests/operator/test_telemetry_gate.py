@@ -25,7 +25,7 @@ from operator_side.node.telemetry_gate import (
     WITHOUT_SESSION,
     TelemetryGate,
 )
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 
 MS = 1_000_000
 RUN_A, RUN_B = 0xA11CE, 0xB0B
@@ -39,12 +39,12 @@ class Rig:
         self.robot = load_signer(secret)
         self.clock = VirtualClock(t_ns=5_000 * MS)
         self.link = CaptureLink()
-        self.bus = RecordingServoBus()
+        self.bus = InMemoryServoBus()
         self.bus.connect()
         config = OperatorConfig()
         config.link.robot_key_file = public
         self.node = OperatorNode(config, self.bus, now=self.clock, link=self.link)
-        self.period = round(1e9 / self.node.config.renderer.control_rate_hz)
+        self.period = round(1e9 / self.node.config.renderer.palm_step_rate_hz)
         self.seq = {RUN_A: 0, RUN_B: 0}
 
     def signed(self, msg, signer: Signer | None = None):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from operator_side.node import VIDEO_HOLD_NS, OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 
 
 class _Wire:
@@ -17,7 +17,7 @@ class _Wire:
 
 
 def _node() -> tuple[OperatorNode, _Wire]:
-    node = OperatorNode(OperatorConfig(), RecordingServoBus())
+    node = OperatorNode(OperatorConfig(), InMemoryServoBus())
     wire = _Wire()
     node.pub = wire
     return node, wire

@@ -238,7 +238,7 @@ def test_the_lab_sessions_overview_camera_is_exported_and_lerobot_decodes_it(
     from common.recording.mcap_recorder import read_metadata
     from deploy.export.cli import export
     from deploy.export.resample import ExportConfig
-    from robot_side.video.recording import decode_jpeg
+    from robot_side.video.camera_recording import decode_jpeg
 
     fps = 30  # the export's rate
     meta_camera = read_metadata(lab_session / "camera.mcap")["deepxpalm.camera"]

@@ -20,7 +20,7 @@ from common.wire.codec import encode
 from deploy import replay
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from robot_side.node import RobotNode
 from robot_side.node.config import RobotConfig
 from robot_side.tactile.script import GraspScript, GraspStep
@@ -54,7 +54,7 @@ def session(tmp_path_factory):
     op_rec = node_recorder(out / "operator.mcap", oc, "operator")
     sensor = ScriptedTactileSensor(ScriptedTactileConfig(script=_script(), seed=5))
     robot = RobotNode(rc, sensor, recorder=robot_rec)
-    operator = OperatorNode(oc, RecordingServoBus(), recorder=op_rec)
+    operator = OperatorNode(oc, InMemoryServoBus(), recorder=op_rec)
     stop = threading.Event()
     threads = [
         threading.Thread(target=robot.run, args=(stop,), daemon=True),
@@ -164,7 +164,7 @@ def test_publish_drives_a_live_operator_node(session):
     oc.link.telemetry_endpoint = endpoint
     (cmd_port,) = free_ports(1)
     oc.link.command_endpoint = f"tcp://127.0.0.1:{cmd_port}"
-    bus = RecordingServoBus()
+    bus = InMemoryServoBus()
     operator = OperatorNode(oc, bus)
     stop = threading.Event()
     t = threading.Thread(target=operator.run, args=(stop,), daemon=True)

@@ -25,7 +25,7 @@ from common.wire.signing import generate_key_files
 from harness.faults.matrix import ARM_STILL_BUDGET_S, STILL_M_S
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from robot_side.arm.sim import SimulatedArm
 from robot_side.node import RobotNode
 from robot_side.node.assist import PHASE_CODES
@@ -148,7 +148,7 @@ def _cell(tmp_path, pattern: int, box_face_mm: float | None, side_offset_mm: flo
         oc.link.telemetry_endpoint, oc.link.command_endpoint = tel, cmd
         oc.link.signing_key_file = secrets[name]
         oc.link.request_control = name == "a"
-        operators[name] = OperatorNode(oc, RecordingServoBus())
+        operators[name] = OperatorNode(oc, InMemoryServoBus())
     stop = threading.Event()
     threads = [threading.Thread(target=robot.run, args=(stop,), daemon=True)]
     threads += [

@@ -18,7 +18,7 @@ from tests_support import free_ports
 from common.wire.signing import generate_key_files
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from robot_side.arm.sim import SimulatedArm
 from robot_side.node import RobotNode
 from robot_side.node.commands.stop_latch import StopLatch
@@ -75,7 +75,7 @@ def cell(tmp_path, quiet_gc):
         oc.link.signing_key_file = secrets[name]
         oc.link.request_control = name == "a"
         oc.link.observer_heartbeat_rate_hz = oc.link.heartbeat_rate_hz  # every clock synced fast
-        operators[name] = OperatorNode(oc, RecordingServoBus())
+        operators[name] = OperatorNode(oc, InMemoryServoBus())
     stop = threading.Event()
     threads = [threading.Thread(target=robot.run, args=(stop,), daemon=True)]
     threads += [

@@ -1,4 +1,4 @@
-"""Whole study sessions on the recording servo bus, answered by scripted participants.
+"""Whole study sessions on the in-memory servo bus, answered by scripted participants.
 
 The scripted participant of the main test answers through the answer page's
 own WebSocket, and decides what it felt from the servos alone: it reads the
@@ -21,7 +21,7 @@ from websockets.sync.client import connect
 from common.tactile.contract import MASKS, N_PATTERNS
 from deploy.cli import main
 from operator_side.palm.linkglide import forward_kinematics
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from operator_side.study.analysis import analyse_trials, load_test_trials
 from operator_side.study.display import PalmDisplay
 from operator_side.study.protocol import (
@@ -46,7 +46,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
 FAST = {"pause_s": 0.0, "feedback_s": 0.0}
 
 
-def contact_points(bus: RecordingServoBus, display: PalmDisplay) -> np.ndarray:
+def contact_points(bus: InMemoryServoBus, display: PalmDisplay) -> np.ndarray:
     counts = np.array([bus.read_positions()[i] for i in range(1, 7)])
     angles = display.calibration.counts_to_angles(counts)
     return forward_kinematics(angles, display.renderer_config.geometry)
@@ -71,7 +71,7 @@ def felt_pattern(points: np.ndarray, display: PalmDisplay) -> int | None:
 class ScriptedPage(threading.Thread):
     """Answers on the study page's WebSocket: what the servos press, except 4 is taken for 5."""
 
-    def __init__(self, url: str, bus: RecordingServoBus, display: PalmDisplay) -> None:
+    def __init__(self, url: str, bus: InMemoryServoBus, display: PalmDisplay) -> None:
         super().__init__(daemon=True)
         self.url, self.bus, self.display = url, bus, display
         self.screens: list[dict] = []
@@ -125,7 +125,7 @@ class ScriptedPage(threading.Thread):
 def test_a_whole_masked_session_on_the_page_then_its_analysis(tmp_path):
     config = StudyConfig(mode="masked", seed=11, **FAST)
     config.renderer.max_step_deg_per_cycle = 30.0  # quick moves: the rate limit is not on trial
-    bus = RecordingServoBus()
+    bus = InMemoryServoBus()
     display = PalmDisplay(bus, config.renderer, frame_rate_hz=config.frame_rate_hz)
     responder = WebResponder(port=0)
     path = results_path(tmp_path, "S01", "masked")
@@ -199,7 +199,7 @@ def test_keyboard_answers_are_checked_and_timed(tmp_path):
     # Training (12 x Enter), then: a typo, an out-of-range number, '?', then the answers.
     lines = [""] * 12 + ["x", "12", "?"] + [str(p) for p in order]
     typist = Typist(lines)
-    bus = RecordingServoBus()
+    bus = InMemoryServoBus()
     path = results_path(tmp_path, "K1", "ideal")
     with PalmDisplay(bus, config.renderer) as display:
         results = ResultsFile(path, "K1", "ideal", 3)
@@ -241,7 +241,7 @@ def test_a_crashed_session_keeps_its_answers_and_resumes_where_it_stopped(tmp_pa
     path = results_path(tmp_path, "R1", "ideal")
 
     def session(answers_before_crash: int | None) -> None:
-        with PalmDisplay(RecordingServoBus(), config.renderer) as display:
+        with PalmDisplay(InMemoryServoBus(), config.renderer) as display:
             results = ResultsFile(path, "R1", "ideal", 5)
             try:
                 Session(config, "R1", 5, display, CrashAfter(display, answers_before_crash),

@@ -14,7 +14,7 @@ from common.netsim.proxy import Endpoints, LinkSimulator
 from common.netsim.scenario import scenario_from_dict
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from robot_side.arm.memory import MemoryArm
 from robot_side.node import RobotNode
 from robot_side.node.config import RobotConfig
@@ -64,7 +64,7 @@ def _running(scenario: dict, arm):
     oc = OperatorConfig()
     oc.link.telemetry_endpoint = sim.operator_telemetry_endpoint
     oc.link.command_endpoint = sim.operator_commands_endpoint
-    bus = RecordingServoBus()
+    bus = InMemoryServoBus()
     operator = OperatorNode(oc, bus)
     threads.append(threading.Thread(target=operator.run, args=(stop,), daemon=True))
     threads[1].start()

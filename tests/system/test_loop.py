@@ -13,7 +13,7 @@ from common.wire.transport import free_loopback_ports
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
 from operator_side.palm.linkglide import forward_kinematics
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from robot_side.node import RobotNode
 from robot_side.node.config import RobotConfig
 from robot_side.tactile.script import GraspScript, GraspStep
@@ -70,7 +70,7 @@ class Loop:
         rc.link.command_endpoint = "tcp://127.0.0.1:*"
         self.sensor = ScriptedTactileSensor(ScriptedTactileConfig(script=script, seed=3))
         self.robot = RobotNode(rc, self.sensor, classifier=classifier)
-        self.bus = RecordingServoBus()
+        self.bus = InMemoryServoBus()
         self.stop = threading.Event()
         self.threads = [threading.Thread(target=self.robot.run, args=(self.stop,), daemon=True)]
         self.operator: OperatorNode | None = None
@@ -95,7 +95,7 @@ class Loop:
             assert not t.is_alive(), "a node did not stop within 5 s"
 
 
-def contact_points(bus: RecordingServoBus, operator: OperatorNode) -> np.ndarray:
+def contact_points(bus: InMemoryServoBus, operator: OperatorNode) -> np.ndarray:
     counts = np.array([bus.read_positions()[i] for i in range(1, 7)])
     return forward_kinematics(operator.calibration.counts_to_angles(counts))
 
@@ -190,7 +190,7 @@ def test_an_operator_with_no_robot_sleeps_between_its_deadlines():
     oc = OperatorConfig()
     oc.link.telemetry_endpoint = f"tcp://127.0.0.1:{tel}"
     oc.link.command_endpoint = f"tcp://127.0.0.1:{cmd}"
-    node = OperatorNode(oc, RecordingServoBus())
+    node = OperatorNode(oc, InMemoryServoBus())
     stop = threading.Event()
     t = threading.Thread(target=node.run, args=(stop,), daemon=True)
     t.start()

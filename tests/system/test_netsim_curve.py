@@ -28,7 +28,7 @@ from common.netsim.stream import StreamForwarder
 from common.wire.transport import Subscriber
 from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
-from operator_side.servos.recording import RecordingServoBus
+from operator_side.servos.in_memory import InMemoryServoBus
 from robot_side.node import RobotNode
 from robot_side.node.config import RobotConfig
 from robot_side.tactile.script import GraspScript, GraspStep
@@ -81,7 +81,7 @@ def _run_secured(keys, scenario_name: str, seconds: float):
     oc.link.telemetry_endpoint = relay.operator_telemetry_endpoint
     oc.link.command_endpoint = relay.operator_commands_endpoint
     oc.link.security = keys["operator"]
-    bus = RecordingServoBus()
+    bus = InMemoryServoBus()
     operator = OperatorNode(oc, bus)
     threads.append(threading.Thread(target=operator.run, args=(stop,), daemon=True))
     threads[1].start()
@@ -126,7 +126,7 @@ def test_curve_through_the_relay_on_intercontinental_has_its_latency(keys):
     assert operator.counters["stimuli_received"] > 50
     assert _pressing(bus, operator.renderer.retract_counts, relay.start_ns, time.monotonic_ns())
     # both nodes share one clock here: the estimated offset must be about zero
-    snap = operator.link.snapshot(time.monotonic_ns())
+    snap = operator.link_stats.snapshot(time.monotonic_ns())
     assert snap.clock_offset_ms is not None and abs(snap.clock_offset_ms) < 2.0
     # intercontinental to the operator: 37.5 ms median path delay (36.5 ms floor)
     assert snap.latency_p50_ms is not None and 36.5 <= snap.latency_p50_ms <= 45.0

@@ -205,13 +205,13 @@ def page(cell):
     from operator_side.dashboard import Dashboard, DashboardConfig
     from operator_side.node import OperatorNode
     from operator_side.node.config import OperatorConfig
-    from operator_side.servos.recording import RecordingServoBus
+    from operator_side.servos.in_memory import InMemoryServoBus
 
     oc = OperatorConfig()
     oc.link.telemetry_endpoint = cell.rig.telemetry_endpoint
     oc.link.command_endpoint = cell.rig.command_endpoint
     oc.link.signing_key_file = cell.secrets["page"]
-    node = OperatorNode(oc, RecordingServoBus())
+    node = OperatorNode(oc, InMemoryServoBus())
     stop = threading.Event()
     thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
     thread.start()

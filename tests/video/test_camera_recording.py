@@ -18,7 +18,7 @@ pytest.importorskip("aiortc", reason="the video server needs the 'video' extra")
 from common.recording.mcap_recorder import read_metadata, read_recording
 from robot_side.camera.config import TestPatternConfig
 from robot_side.camera.stamp import MS_MODULO, read_stamp
-from robot_side.video.recording import CHANNEL, decode_jpeg
+from robot_side.video.camera_recording import CHANNEL, decode_jpeg
 from robot_side.video.server import VideoConfig, VideoServer, build_source
 
 

@@ -10,9 +10,9 @@ import pytest
 pytest.importorskip("av", reason="the camera recording encodes with PyAV ('video' extra)")
 
 from robot_side.camera.test_pattern import TestPatternCamera
-from robot_side.video import recording
+from robot_side.video import camera_recording
+from robot_side.video.camera_recording import CameraRecording
 from robot_side.video.feed import CameraFeed
-from robot_side.video.recording import CameraRecording
 
 
 def test_a_stuck_encoder_with_a_full_queue_does_not_hold_the_stop(tmp_path, monkeypatch):
@@ -24,7 +24,7 @@ def test_a_stuck_encoder_with_a_full_queue_does_not_hold_the_stop(tmp_path, monk
         release.wait(30)
         return b""
 
-    monkeypatch.setattr(recording, "_jpeg", stuck_jpeg)
+    monkeypatch.setattr(camera_recording, "_jpeg", stuck_jpeg)
     feed = CameraFeed(TestPatternCamera())
     rec = CameraRecording(feed, tmp_path / "camera.mcap", fps=30, camera="test").start()
     try:

@@ -1,4 +1,4 @@
-"""RecordingServoBus: the in-process bus the operator node is tested on."""
+"""InMemoryServoBus: the in-process bus the operator node is tested on."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from operator_side.servos.calibration import (
     ServoCalibration,
     save_calibration,
 )
+from operator_side.servos.in_memory import InMemoryServoBus, InMemoryServoBusConfig
 from operator_side.servos.limits import GoalOutOfLimitsError
-from operator_side.servos.recording import RecordingServoBus, RecordingServoBusConfig
 
 
 def _goals(value: int) -> dict[int, int]:
@@ -21,7 +21,7 @@ def _goals(value: int) -> dict[int, int]:
 
 
 def test_records_each_write_with_time_and_positions_follow() -> None:
-    with RecordingServoBus() as bus:
+    with InMemoryServoBus() as bus:
         bus.write_goals(_goals(2000))
         bus.write_goals({1: 2100, 2: 2200})
         recs = bus.records
@@ -33,7 +33,7 @@ def test_records_each_write_with_time_and_positions_follow() -> None:
 
 @pytest.mark.parametrize("bad", [1023, 3801, -1, 5000])
 def test_out_of_limit_counts_are_refused_and_not_recorded(bad: int) -> None:
-    with RecordingServoBus() as bus:
+    with InMemoryServoBus() as bus:
         bus.write_goals(_goals(2048))
         goals = _goals(2048)
         goals[4] = bad
@@ -45,7 +45,7 @@ def test_out_of_limit_counts_are_refused_and_not_recorded(bad: int) -> None:
 
 
 def test_unknown_id_and_non_integer_refused() -> None:
-    with RecordingServoBus() as bus:
+    with InMemoryServoBus() as bus:
         with pytest.raises(GoalOutOfLimitsError, match="id 7"):
             bus.write_goals({7: 2048})
         with pytest.raises(GoalOutOfLimitsError, match="not an integer"):
@@ -54,14 +54,14 @@ def test_unknown_id_and_non_integer_refused() -> None:
 
 
 def test_bounded_records() -> None:
-    with RecordingServoBus(RecordingServoBusConfig(max_records=3)) as bus:
+    with InMemoryServoBus(InMemoryServoBusConfig(max_records=3)) as bus:
         for v in range(2000, 2010):
             bus.write_goals(_goals(v))
         assert [r.goals[1] for r in bus.records] == [2007, 2008, 2009]
 
 
 def test_not_connected() -> None:
-    bus = RecordingServoBus()
+    bus = InMemoryServoBus()
     with pytest.raises(DeviceNotConnectedError, match="connect"):
         bus.write_goals(_goals(2048))
 
@@ -70,7 +70,7 @@ def test_built_from_scene_section_with_calibration_file(tmp_path) -> None:
     servos = [ServoCalibration(id=i, min_counts=1500, max_counts=2500) for i in range(1, 7)]
     path = tmp_path / "cal.toml"
     save_calibration(LinkGlideCalibration(servos=servos), path)
-    bus = build_device(KINDS, {"kind": "recording", "calibration_file": str(path)}, "servos")
+    bus = build_device(KINDS, {"kind": "in_memory", "calibration_file": str(path)}, "servos")
     with bus:
         bus.write_goals(_goals(2400))
         with pytest.raises(GoalOutOfLimitsError):
@@ -79,7 +79,7 @@ def test_built_from_scene_section_with_calibration_file(tmp_path) -> None:
 
 def test_inline_calibration_from_scene_section() -> None:
     section = {
-        "kind": "recording",
+        "kind": "in_memory",
         "max_records": 5,
         "calibration": {
             "servos": [{"id": i, "min_counts": 100, "max_counts": 200} for i in range(1, 7)]
@@ -91,7 +91,7 @@ def test_inline_calibration_from_scene_section() -> None:
         with pytest.raises(GoalOutOfLimitsError):
             bus.write_goals(_goals(201))
     with pytest.raises(ConfigError, match="max_records"):
-        build_device(KINDS, {"kind": "recording", "max_records": 0}, "servos")
+        build_device(KINDS, {"kind": "in_memory", "max_records": 0}, "servos")
 
 
 def test_every_bus_checks_limits_itself_and_returns_what_it_sent() -> None:
@@ -123,3 +123,11 @@ def test_every_bus_checks_limits_itself_and_returns_what_it_sent() -> None:
     with pytest.raises(GoalOutOfLimitsError, match="servo 2"):
         bus.write_goals({1: 2048, 2: 5000})
     assert bus.sent == [{1: 2048}] and bus.refused_writes == 1
+
+
+def test_the_old_kind_name_is_refused_with_the_new_one() -> None:
+    """``recording`` servos recorded nothing; a config still naming them is told the new name."""
+    with pytest.raises(ConfigError, match=r"servos\.kind = 'recording' has been renamed: "):
+        build_device(KINDS, {"kind": "recording"}, "operator.servos")
+    with pytest.raises(ConfigError, match="write kind = 'in_memory'"):
+        build_device(KINDS, {"kind": "recording"}, "operator.servos")

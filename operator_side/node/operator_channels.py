@@ -20,7 +20,7 @@ from common.recording.episode_marks import check_mark
 from operator_side.servos.calibration import LinkGlideCalibration
 
 
-class NodeRecording:
+class OperatorChannels:
     """The operator node's channels; each call writes nothing when not recording."""
 
     def __init__(self, recorder: Recorder | None, now: Callable[[], int]) -> None:

@@ -1,4 +1,4 @@
-"""A servo bus that only remembers what it was told: for tests and the demo.
+"""A servo bus that keeps in memory what it was told: for tests and the demo.
 
 The operator node runs unchanged on it: every ``write_goals`` is kept with its
 timestamp, present positions are the last goals (an ideal, instantaneous
@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
-class RecordingServoBusConfig:
+class InMemoryServoBusConfig:
     calibration: LinkGlideCalibration = param(
         LinkGlideCalibration(), "limits to enforce, used when calibration_file is unset"
     )
@@ -47,14 +47,14 @@ class GoalRecord:
     goals: dict[int, int]  # servo id -> counts, exactly what was "sent"
 
 
-class RecordingServoBus(ServoBus):
+class InMemoryServoBus(ServoBus):
     """Records each sync write; refuses out-of-limit counts like the real bus."""
 
-    Config = RecordingServoBusConfig
+    Config = InMemoryServoBusConfig
     simulated = True
 
-    def __init__(self, config: RecordingServoBusConfig | None = None) -> None:
-        self.config = config or RecordingServoBusConfig()
+    def __init__(self, config: InMemoryServoBusConfig | None = None) -> None:
+        self.config = config or InMemoryServoBusConfig()
         self._lock = threading.Lock()
         self._connected = False
         self._calibration: LinkGlideCalibration | None = None
@@ -67,7 +67,7 @@ class RecordingServoBus(ServoBus):
 
     def connect(self) -> None:
         if self._connected:
-            raise DeviceAlreadyConnectedError("RecordingServoBus is already connected")
+            raise DeviceAlreadyConnectedError("InMemoryServoBus is already connected")
         cfg = self.config
         self._calibration = (
             load_calibration(cfg.calibration_file) if cfg.calibration_file else cfg.calibration
