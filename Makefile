@@ -53,7 +53,12 @@ SERIAL_WORKERS ?= 2
 TEST_NICE ?= -5
 TEST_GROUP_NICE ?= -20
 AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --group $(TEST_GROUP_NICE) --
-LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest
+# The setup's collection writes which markers each test file's tests carry (tests/conftest.py);
+# each lane's workers then import only the files that hold a test of the lane's -m, not all of
+# them: every worker of every lane collected all 180 files for the 4 of the alone lane, the 20 of
+# the paired lane. Without the index (a collection that failed writes none), every file.
+TEST_INDEX := $(VENV)/test-index.json
+LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest --test-index=$(TEST_INDEX)
 # Whole files to each worker (a module's deployment starts once), the longest first
 # (tests/file_durations.json, in tests/conftest.py's order; scripts/file-durations.py)
 BY_FILE := --dist loadfile --no-loadscope-reorder
@@ -91,11 +96,13 @@ test: $(STAMP)
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
 	@# the robot node's numba code, the bytecode of the heavy packages and pytest's rewrite
 	@# of every test module, compiled once (about 14, 13 and 5 s cold), not by every worker
-	@# and every process it starts at once (each worker collects every test module)
+	@# and every process it starts at once; the collection writes the lanes' test index
+	rm -f $(TEST_INDEX)
 	$(AT_TEST_PRIORITY) $(BIN)/python -m robot_side.node.jit_warm & warm=$$!; \
 	$(AT_TEST_PRIORITY) $(BIN)/python scripts/warm-bytecode.py && \
 	{ $(AT_TEST_PRIORITY) $(BIN)/python -m pytest -q --collect-only -p no:cacheprovider \
-		>/dev/null || echo "collection failed: the lanes below report why"; } && wait $$warm
+		--write-test-index=$(TEST_INDEX) >/dev/null \
+		|| echo "collection failed: the lanes below report why"; } && wait $$warm
 	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty
 	status=0; \
 	$(LANE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \

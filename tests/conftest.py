@@ -109,6 +109,99 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=lambda item: -took(item))
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("deepxpalm lanes")
+    group.addoption(
+        "--write-test-index",
+        metavar="PATH",
+        help="after a complete collection, write each test file's tests' markers to PATH",
+    )
+    group.addoption(
+        "--test-index",
+        metavar="PATH",
+        help="import only the test files whose tests (by PATH, --write-test-index's) -m selects;"
+        " give it as --test-index=PATH (pytest would take a lone PATH for a test path)",
+    )
+
+
+#: each collected test's file and marker names, for --write-test-index
+_COLLECTED = pytest.StashKey[list[tuple[str, list[str]]]]()
+
+
+def pytest_itemcollected(item: pytest.Item) -> None:
+    if item.config.getoption("write_test_index", None):
+        names = sorted({mark.name for mark in item.iter_markers()})
+        item.config.stash.setdefault(_COLLECTED, []).append((item.nodeid.split("::", 1)[0], names))
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """The test index: for each test file, the sets of marker names its tests carry (the soak's
+    too: recorded as collected, before any -m). Written only when nothing failed to collect; an
+    index not written leaves the lanes collecting every file."""
+    path = session.config.getoption("write_test_index", None)
+    if not path or session.testsfailed:
+        return
+    index: dict[str, list[list[str]]] = {}
+    for file, names in session.config.stash.get(_COLLECTED, []):
+        if names not in index.setdefault(file, []):
+            index[file].append(names)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(index, indent=0, sort_keys=True))
+
+
+def _files_to_skip(config: pytest.Config) -> frozenset[str]:
+    """The files the test index names none of whose tests the -m expression selects.
+
+    Every worker of a lane collected every test file, importing what each imports (the
+    nodes, aiortc, mujoco, numba's entry points), for the few files its lane runs: the
+    alone lane runs 4 files of about 180, the paired and serial lanes about 20 each. With
+    ``--test-index`` (the Makefile's lanes; the index is the setup's collection of the same
+    tree) a file with no selected test is not imported. A file the index does not name is
+    collected as before; without an index, or with a -m this cannot read, every file is.
+    """
+    path = config.getoption("test_index", None)
+    expr_text = config.getoption("markexpr", None) or ""
+    if not path or not Path(path).exists() or not expr_text:
+        return frozenset()
+    try:
+        from _pytest.mark.expression import Expression
+
+        expr = Expression.compile(expr_text)
+        index = json.loads(Path(path).read_text())
+
+        def selected(names: list[str]) -> bool:
+            def matcher(name: str, /, **kwargs: object) -> bool:
+                if kwargs:  # a marker's arguments: not in the index, so never skip on them
+                    raise LookupError(name)
+                return name in names
+
+            return expr.evaluate(matcher)
+
+        return frozenset(
+            file for file, sets in index.items() if not any(selected(names) for names in sets)
+        )
+    except Exception:  # an index or an expression this cannot read: collect every file
+        return frozenset()
+
+
+_SKIPPED_FILES = pytest.StashKey[frozenset[str]]()
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    if not collection_path.name.startswith("test_") or collection_path.suffix != ".py":
+        return None
+    if _SKIPPED_FILES not in config.stash:
+        config.stash[_SKIPPED_FILES] = _files_to_skip(config)
+    skipped = config.stash[_SKIPPED_FILES]
+    if not skipped:
+        return None
+    try:
+        relative = collection_path.relative_to(config.rootpath).as_posix()
+    except ValueError:
+        return None
+    return True if relative in skipped else None
+
+
 @pytest.fixture
 def zmq_ctx():
     import zmq
