@@ -1,1 +1,1 @@
-"""A live view in Foxglove: server.py serves it, recordings.py feeds it a session's files."""
+"""A live view in Foxglove: server.py serves it, session_files.py feeds it a session's files."""

@@ -6,7 +6,7 @@ What the driver adds to the SDK, and why:
   byte is built (``ServoBus.write_goals``); torque goes off on ``disconnect``
   and on every fatal error, so a failing bus leaves the palm free.
 - One lock per port: the SDK's ``is_using`` flag is not thread-safe, and the
-  node's control loop and a monitor may share the bus.
+  node's loop (its palm steps) and a monitor may share the bus.
 - Results are always checked: a ``GroupSyncRead`` whose servo did not answer
   returns 0 for it with no error unless ``txRxPacket``'s result is read.
 - A corrupt or missing status packet is retried (``retries``) after the line
@@ -193,7 +193,7 @@ class FeetechServoBus(ServoBus):
         """One sync write of every goal (``write_goals`` has checked them against the limits)."""
         self._require_healthy()
         t = time.perf_counter()
-        if checked.keys() == self._goal_id_set:  # every servo: the control loop's write
+        if checked.keys() == self._goal_id_set:  # every servo: a palm step's write
             self._line.write_packet(self._goal_packet.build([checked[i] for i in self._goal_ids]))
         else:
             unknown = set(checked) - self._goal_id_set

@@ -2,7 +2,7 @@
 
 scservo_sdk's ``GroupSyncWrite`` rebuilds its parameter lists, a dict and a
 Python list of ints on every write, then sums the packet byte by byte in
-Python: on a core gone cold since the last control tick that is most of the
+Python: on a core gone cold since the last palm step that is most of the
 operator's per-stimulus cost after the inverse kinematics. The packet of a
 goal write never changes shape (same servos, same register), so it is laid
 out once and each write patches the value bytes and the checksum.
