@@ -3,7 +3,7 @@
 A stimulus is rendered only while fresh: one older than ``stale_after_ms``
 (capture time mapped through the estimated clock offset) lifts every linkage
 off the palm, and rendering resumes by itself when fresh data does. The
-goals step toward their target at the renderer's rate limit on every control
+goals step toward their target at the renderer's rate limit on every palm
 step; IK runs only when the stimulus rendered changes. On the way out the
 palm goes straight to the retract pose, torque on until it is there.
 """
