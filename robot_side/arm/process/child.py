@@ -75,6 +75,17 @@ class ArmProcessSpec:
     realtime_priority: int = 0
 
 
+def name_os_threads() -> None:
+    """Each Python thread of this process under its own name in ``/proc`` and ``top -H``
+    (the bench's CPU per thread, a user's ``top``): Python leaves them all "python"."""
+    for t in threading.enumerate():
+        if t is threading.main_thread() or t.native_id is None:
+            continue
+        name = "urarm-ctrl" if t.name.startswith("urarm-ctrl") else t.name[:15]
+        with contextlib.suppress(OSError), open(f"/proc/self/task/{t.native_id}/comm", "w") as f:
+            f.write(name)  # OSError: it ended meanwhile
+
+
 class ServedArm:
     """The driver's calls as the pipe carries them (plain values in, plain values out)."""
 
@@ -83,6 +94,7 @@ class ServedArm:
 
     def connect(self) -> None:
         self.arm.connect()
+        name_os_threads()
 
     def disconnect(self) -> None:
         self.arm.disconnect()
