@@ -154,8 +154,8 @@ def check_robot_link(report: Report, config: Any, options: DoctorOptions) -> boo
     """Ports bindable, and an operator heard if one runs. False if the robot node is running."""
     import zmq
 
-    link = config.link
-    endpoints = [link.telemetry_endpoint, link.command_endpoint]
+    link_cfg = config.link
+    endpoints = [link_cfg.telemetry_endpoint, link_cfg.command_endpoint]
     # Who holds the ports already? The node itself (fine, but then skip), or a stranger.
     for endpoint in endpoints:
         hp = _host_port(endpoint)
@@ -179,7 +179,7 @@ def check_robot_link(report: Report, config: Any, options: DoctorOptions) -> boo
     ctx = zmq.Context()
     try:
         try:
-            ex = heartbeat_exchange(ctx, "robot", link, options.peer_timeout_s)
+            ex = heartbeat_exchange(ctx, "robot", link_cfg, options.peer_timeout_s)
         except zmq.ZMQError as e:
             _bind_failure(report, endpoints, e)
             return True
@@ -196,7 +196,7 @@ def check_robot_link(report: Report, config: Any, options: DoctorOptions) -> boo
             "an operator tried to connect with a key this robot does not allow: "
             + ", ".join(ex.denied_keys),
             "if that operator is legitimate: copy its NAME.key here and `deepxpalm keys allow "
-            f"NAME.key --authorized {link.security.authorized_keys_dir}`; restart the node",
+            f"NAME.key --authorized {link_cfg.security.authorized_keys_dir}`; restart the node",
         )
     elif ex.heartbeats == 0:
         failed = [e for e in ex.sub_events + ex.pub_events if e.startswith("HANDSHAKE_FAILED")]
@@ -264,11 +264,11 @@ def check_operator_link(report: Report, config: Any, options: DoctorOptions) -> 
     """Reach the robot's ports, then talk to it with this operator's own keys and options."""
     import zmq
 
-    link = config.link
+    link_cfg = config.link
     if not options.check_peer:
         report.add("peer robot", SKIP, "not checked (--no-peer)")
         return
-    for endpoint in (link.telemetry_endpoint, link.command_endpoint):
+    for endpoint in (link_cfg.telemetry_endpoint, link_cfg.command_endpoint):
         hp = _host_port(endpoint)
         if hp is None:
             continue
@@ -292,7 +292,7 @@ def check_operator_link(report: Report, config: Any, options: DoctorOptions) -> 
     ctx = zmq.Context()
     try:
         try:
-            ex = heartbeat_exchange(ctx, "operator", link, options.peer_timeout_s)
+            ex = heartbeat_exchange(ctx, "operator", link_cfg, options.peer_timeout_s)
         except DeepXPalmError as e:
             report.add("peer robot", FAIL, str(e), "fix the keys above first")
             return
@@ -300,7 +300,7 @@ def check_operator_link(report: Report, config: Any, options: DoctorOptions) -> 
         ctx.destroy(linger=0)
     events = ex.sub_events + ex.pub_events
     if "HANDSHAKE_FAILED_AUTH" in events:
-        public = link.security.secret_key_file
+        public = link_cfg.security.secret_key_file
         report.add(
             "peer robot",
             FAIL,
@@ -316,8 +316,8 @@ def check_operator_link(report: Report, config: Any, options: DoctorOptions) -> 
             "peer robot",
             FAIL,
             f"the CURVE handshake with the robot failed ({failed}): "
-            f"{link.security.server_public_key_file} is not the key the robot holds"
-            + ("" if link.security.mode == "curve" else ", or one side runs plain"),
+            f"{link_cfg.security.server_public_key_file} is not the key the robot holds"
+            + ("" if link_cfg.security.mode == "curve" else ", or one side runs plain"),
             "compare `deepxpalm keys show` of the robot's robot.key on both machines and "
             "copy it again; both nodes must use the same security.mode",
         )
@@ -337,7 +337,7 @@ def check_operator_link(report: Report, config: Any, options: DoctorOptions) -> 
     report.add(
         "peer robot",
         PASS,
-        f"robot node answers over {'CURVE' if link.security.mode == 'curve' else 'plain TCP'}: "
+        f"robot node answers over {'CURVE' if link_cfg.security.mode == 'curve' else 'plain TCP'}: "
         f"{ex.heartbeats} heartbeats, {ex.stimuli} stimuli in {ex.duration_s:.1f} s; it sees "
         f"the link as {ex.peer_state!r}",
     )

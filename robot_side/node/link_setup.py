@@ -66,27 +66,31 @@ def check_command_access(config: RobotConfig) -> None:
     this before any device is opened; ``link.allow_plain_commands`` says the
     risk is taken.
     """
-    link = config.link
-    if link.mode != "bind" or link.security.mode == "curve" or link.roster_file is not None:
+    link_cfg = config.link
+    if (
+        link_cfg.mode != "bind"
+        or link_cfg.security.mode == "curve"
+        or link_cfg.roster_file is not None
+    ):
         return
     actuators = [
         name
         for name, section in (("arm", config.arm), ("gripper", config.gripper))
         if section.get("kind", "none") != "none"
     ]
-    if link.video_url:
+    if link_cfg.video_url:
         actuators.append("camera (link.video_url)")
     if not actuators:
         return
-    if link.allow_plain_commands:
+    if link_cfg.allow_plain_commands:
         log.warning(
             "link.allow_plain_commands: any process that reaches %s commands the %s",
-            link.command_endpoint,
+            link_cfg.command_endpoint,
             " and ".join(actuators),
         )
         return
     raise ConfigError(
-        f"robot link.command_endpoint {link.command_endpoint} is plain TCP with no roster: "
+        f"robot link.command_endpoint {link_cfg.command_endpoint} is plain TCP with no roster: "
         f"any process that reaches it (on loopback, every user of this PC) could command the "
         f"{' and '.join(actuators)}. Set link.security.mode = 'curve' with keys from "
         "`deepxpalm keys` (or link.roster_file, for signed commands), or "

@@ -212,7 +212,7 @@ class RobotNode:
         """Connect, loop until ``stop`` is set (or ``duration_s``), and always stop the arm."""
         if self._handed_link:
             raise RuntimeError("a node handed a link is driven by its caller; run() opens its own")
-        link = self.config.link
+        link_cfg = self.config.link
         with contextlib.ExitStack() as stack:
             for device in (self.tactile, self.gripper, self.arm):
                 if device is not None and not device.is_connected:
@@ -223,7 +223,7 @@ class RobotNode:
             pub, sub, self._auth = open_link(
                 stack,
                 self.ctx,
-                link,
+                link_cfg,
                 name=self.name,
                 signer=self.signer,
                 serves_video=signalling is not None,
@@ -242,8 +242,10 @@ class RobotNode:
             self.ctx.term()
 
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
-        link = self.config.link
-        heartbeat = HeartbeatSchedule(heartbeat_rate_hz(link), link.heartbeat_early_ms / 1e3)
+        link_cfg = self.config.link
+        heartbeat = HeartbeatSchedule(
+            heartbeat_rate_hz(link_cfg), link_cfg.heartbeat_early_ms / 1e3
+        )
         frame_msgs = display_frame_grid(self.config)
         pipeline, watch = self.pipeline, LoopWatch(self.counters)
         t_end = None if duration_s is None else self.now() + round(duration_s * 1e9)
@@ -307,10 +309,10 @@ class RobotNode:
         get the loop. What waits meanwhile only ages, and stale commands are
         refused (command_gate.py), so the pause can never move the arm late.
         """
-        link = self.config.link
-        batch = self.sub.drain(link.max_messages_per_wake)
-        if len(batch) >= link.max_messages_per_wake:
-            self._commands_paused_until = now + round(link.command_backlog_pause_ms * 1e6)
+        link_cfg = self.config.link
+        batch = self.sub.drain(link_cfg.max_messages_per_wake)
+        if len(batch) >= link_cfg.max_messages_per_wake:
+            self._commands_paused_until = now + round(link_cfg.command_backlog_pause_ms * 1e6)
             self.counters["command_backlog_pauses"] += 1
         self.desk.take(batch, now)
         self.counters["decode_errors"] = self.sub.rejected_total
