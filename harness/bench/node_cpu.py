@@ -12,6 +12,13 @@ CPU time is utime + stime from /proc/<pid>/stat (every thread), read after
 a warm-up (imports, model load, connection) and again at the end of the
 measured window.
 
+The robot node is measured once more with the simulated UR arm: the real
+ur-rtde driver in the node's arm process (a child of the node, real-time
+where granted) against the UR simulator (another child, standing for the
+controller). The budget is the node's and its arm process's together; each
+thread's wakes (voluntary context switches) are reported beside its CPU,
+since on a VM a wake costs more than the work it wakes for.
+
 As a bench section: the CPU both nodes take as deployed, processes linked over loopback TCP.
 """
 
@@ -441,9 +448,10 @@ def run_nodes(
                 sum(v - wakes0[name].get(k, 0) for k, v in wakes1[name].items()) / wall
             )
         if arm is not None and "arm_process" in procs:
-            result["robot_with_arm_cpu_percent"] = (
-                result["robot_cpu_percent"] + result["arm_process_cpu_percent"]
-            )
+            for what in ("cpu_percent", "wakes_per_s"):
+                result[f"robot_with_arm_{what}"] = (
+                    result[f"robot_{what}"] + result[f"arm_process_{what}"]
+                )
             result["arm_process_threads"] = {
                 k: {"wakes_per_s": round((v - wakes0["arm_process"].get(k, 0)) / wall)}
                 | _scheduling(k, procs["arm_process"].pid)
@@ -580,18 +588,27 @@ def verdicts(results: Results) -> list[Verdict]:
     with_arm = None if cpu is None else cpu.get("with_arm")
     if with_arm is not None:
         val = with_arm.get("robot_with_arm_cpu_percent")
-        text = None
+        text, verdict = None, None
         if val is not None:
             text = (
                 f"{val:.1f} % (node {with_arm['robot_cpu_percent']:.1f} + arm process "
                 f"{with_arm['arm_process_cpu_percent']:.1f})"
             )
+            verdict = val < ROBOT_CPU_TARGET
+            shown = with_arm.get("robot_window_per_s", {}).get("frames_processed")
+            cap = with_arm["publish_rate_hz"]
+            if shown is not None and shown < RENDERED_SHARE_TO_COUNT * cap:
+                text += (
+                    f" (the robot rendered only {shown:.0f} of {cap:g} frames/s: the machine "
+                    "was too loaded for a pass to count)"
+                )
+                verdict = False if not verdict else None
         rows.append(
             Verdict(
                 f"robot node at {SENSOR_RATE_HZ:g} Hz with the simulated UR arm, the node and "
                 f"its arm process together: < {ROBOT_CPU_TARGET:g} % of one core",
                 text,
-                None if val is None else val < ROBOT_CPU_TARGET,
+                verdict,
             )
         )
     fabric = None if cpu is None else cpu.get("fabric")
