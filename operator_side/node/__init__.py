@@ -15,9 +15,10 @@
   node's typed config; ``build``: ``build_operator_node`` from a config.
 """
 
+from common.clocks.late_wake import LATE_WAKE_NS
 from operator_side.node.arrivals import RESTART_SEQ_GAP
 from operator_side.node.build import build_operator_node
-from operator_side.node.operator_node import LATE_WAKE_NS, OperatorNode
+from operator_side.node.operator_node import OperatorNode
 from operator_side.node.outbox import VIDEO_HOLD_NS
 from operator_side.node.palm import LIFT_ARRIVAL_S
 

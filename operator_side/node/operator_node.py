@@ -21,6 +21,7 @@ import zmq
 
 from common.clocks.clock import Clock, Periodic, now_ns
 from common.clocks.clock_sync import ClockSync
+from common.clocks.late_wake import LateWakes
 from common.keys.curve import check_endpoint
 from common.recording.channels import Recorder
 from common.wire.link_stats import LinkStats
@@ -41,11 +42,6 @@ from operator_side.servos.base import ServoBus
 from operator_side.servos.calibration import LinkGlideCalibration
 
 log = logging.getLogger(__name__)
-
-#: the loop woke this much later than it was due: the machine starved it, and the palm's
-#: staleness could not act meanwhile (logged with when it was due and woke, on the monotonic
-#: clock, and counted in ``late_wakes``, its lateness summed in ``late_wake_ms``)
-LATE_WAKE_NS = 100_000_000
 
 
 class OperatorNode:
@@ -275,12 +271,17 @@ class OperatorNode:
         period = round(1e9 / self.config.renderer.palm_step_rate_hz)
         heartbeat = Periodic(link_cfg.heartbeat_rate_hz, link_cfg.heartbeat_early_ms / 1e3)
         next_step = self.now()
+        late = LateWakes(
+            self.counters, log, "the operator's loop",
+            f"the palm could not lift meanwhile; its staleness limit is "
+            f"{link_cfg.stale_after_ms:.0f} ms",
+        )  # fmt: skip
         t_end = None if duration_s is None else self.now() + round(duration_s * 1e9)
         while not stop.is_set() and (t_end is None or self.now() < t_end):
             due = min(next_step, heartbeat.deadline_ns)
             ready = self.sub.ready((due - self.now()) / 1e9)
             self.counters["wakeups"] += 1
-            _note_late_wake(self.counters, due, woke := self.now(), link_cfg.stale_after_ms)
+            late.note(due, woke := self.now())
             changed = self.receive() if self.sub.sock in ready else False
             now = self.now()
             if changed or now >= next_step:
@@ -298,7 +299,7 @@ class OperatorNode:
             self.flush_commands(now)
             self.sockets.reopen_if_silent(now, self.ctx, self._topics(), outbox.wake_r)
             # held up mid-turn (frozen or starved outside its wait): the palm was as stuck
-            _note_late_wake(self.counters, woke, self.now(), link_cfg.stale_after_ms)
+            late.note(woke, self.now())
 
     # ------------------------------------------- the loop's steps, driven
     def receive(self) -> bool:
@@ -347,19 +348,3 @@ class OperatorNode:
     def control_view(self) -> dict[str, Any] | None:
         """The control lease as the robot's newest heartbeat states it (None when unsigned)."""
         return self.lease.view()
-
-
-def _note_late_wake(counters: Counter[str], due: int, woke: int, stale_after_ms: float) -> None:
-    """Count and log a loop turn that woke ``LATE_WAKE_NS`` or more after it was due."""
-    if woke - due <= LATE_WAKE_NS:  # at most ten a second, by its definition
-        return
-    counters["late_wakes"] += 1
-    counters["late_wake_ms"] += round((woke - due) / 1e6)
-    log.warning(
-        "the loop woke %.0f ms late (a starved process: the palm cannot lift "
-        "meanwhile, its staleness limit is %.0f ms); due_ns=%d woke_ns=%d",
-        (woke - due) / 1e6,
-        stale_after_ms,
-        due,
-        woke,
-    )

@@ -14,13 +14,11 @@ import logging
 from collections import Counter
 
 from common.clocks.clock import now_ns
+from common.clocks.late_wake import LateWakes
 from common.logs import BurstLog
 
 log = logging.getLogger(__name__)
 
-#: a wake this long after its deadline is a starved process (the loop's deadlines are at
-#: most a heartbeat period apart, and every frame wakes it sooner)
-LATE_WAKE_NS = 100_000_000
 #: a turn this long delays the next stimulus past half the operator's staleness limit
 SLOW_TURN_NS = 75_000_000
 
@@ -31,20 +29,16 @@ class LoopWatch:
     def __init__(self, counters: Counter[str]) -> None:
         self.counters = counters
         self._marks: list[tuple[str, int]] = []
-        self._late = BurstLog(log, "the frame loop")
+        self._late = LateWakes(
+            counters, log, "the frame loop",
+            "no stimulus meanwhile; the operator's palm lifts past its staleness limit",
+        )  # fmt: skip
         self._slow = BurstLog(log, "the frame loop")
 
     def woke(self, due_ns: int, woke_ns: int) -> None:
         """The loop's wait for ``due_ns`` returned at ``woke_ns``; a turn starts."""
         self._marks = [("wake", woke_ns)]
-        late = woke_ns - due_ns
-        if late > LATE_WAKE_NS:
-            self.counters["late_wakes"] += 1
-            self.counters["late_wake_ms"] += round(late / 1e6)
-            self._late(
-                f"woke {late / 1e6:.0f} ms after its deadline: the process was starved (no "
-                "stimulus meanwhile; the operator's palm lifts past its staleness limit)"
-            )
+        self._late.note(due_ns, woke_ns)
 
     def mark(self, phase: str) -> None:
         """The phase ``phase`` of this turn ended now."""

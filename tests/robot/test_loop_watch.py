@@ -7,7 +7,8 @@ import time
 from collections import Counter
 
 from common.clocks.clock import now_ns
-from robot_side.node.loop_watch import LATE_WAKE_NS, SLOW_TURN_NS, LoopWatch
+from common.clocks.late_wake import LATE_WAKE_NS
+from robot_side.node.loop_watch import SLOW_TURN_NS, LoopWatch
 
 
 def test_a_late_wake_and_a_slow_phase_are_counted_and_named(caplog):
