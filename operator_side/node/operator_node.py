@@ -24,7 +24,6 @@ from common.clocks.clock_sync import ClockSync
 from common.clocks.late_wake import LateWakes
 from common.keys.curve import check_endpoint
 from common.recording.channels import Recorder
-from common.wire.link_stats import LinkStats
 from common.wire.messages import Command, Stimulus, VideoSignal, new_run
 from common.wire.transport import Link, Receiver, Sender, link_health, make_context
 from operator_side.dashboard.snapshot import Snapshot
@@ -58,7 +57,7 @@ class OperatorNode:
     ) -> None:
         """``now`` and ``link``: the clock and the link, handed in to replay or bench the node.
 
-        ``link`` is the transport (``pub``, ``sub``); ``self.link_stats``, its statistics.
+        ``link`` is the transport (``pub``, ``sub``); ``arrivals.link_stats``, its statistics.
         """
         self.config = config
         self.servos = servos
@@ -121,11 +120,6 @@ class OperatorNode:
         return self.sockets.sub
 
     @property
-    def link_stats(self) -> LinkStats:
-        """Loss, latency, jitter and staleness of the stimulus stream."""
-        return self.arrivals.link_stats
-
-    @property
     def video_signal_handler(self) -> Callable[[VideoSignal], None] | None:
         """Called on the node's thread with each video signal the robot sends (set before run)."""
         return self.arrivals.video_signal_handler
@@ -177,11 +171,6 @@ class OperatorNode:
     def holds_lease(self) -> bool:
         """Whether the robot's newest heartbeat names our key as the lease holder."""
         return self.lease.ours
-
-    @property
-    def arm_stop_latched(self) -> bool:
-        """Whether the robot's newest heartbeat says a STOP holds the arm (anyone's stop)."""
-        return bool(self.arrivals.robot_stats.get("arm_stop_latched"))
 
     @property
     def loop_turns(self) -> int:
@@ -271,11 +260,7 @@ class OperatorNode:
         period = round(1e9 / self.config.renderer.palm_step_rate_hz)
         heartbeat = Periodic(link_cfg.heartbeat_rate_hz, link_cfg.heartbeat_early_ms / 1e3)
         next_step = self.now()
-        late = LateWakes(
-            self.counters, log, "the operator's loop",
-            f"the palm could not lift meanwhile; its staleness limit is "
-            f"{link_cfg.stale_after_ms:.0f} ms",
-        )  # fmt: skip
+        late = _late_wakes(self.counters, link_cfg.stale_after_ms)
         t_end = None if duration_s is None else self.now() + round(duration_s * 1e9)
         while not stop.is_set() and (t_end is None or self.now() < t_end):
             due = min(next_step, heartbeat.deadline_ns)
@@ -332,7 +317,7 @@ class OperatorNode:
     def stats(self) -> dict[str, float]:
         out: dict[str, float] = {k: float(v) for k, v in self.counters.items()}
         out.update(self.palm.latency_summary())
-        for key, value in self.link_stats.snapshot(self.now()).as_dict().items():
+        for key, value in self.arrivals.link_stats.snapshot(self.now()).as_dict().items():
             if isinstance(value, (int, float)) and key != "window_s":
                 out[f"link_{key}"] = float(value)
         out.update(link_health(self.sub, self.pub))  # each link up, and reopened after a give-up
@@ -348,3 +333,9 @@ class OperatorNode:
     def control_view(self) -> dict[str, Any] | None:
         """The control lease as the robot's newest heartbeat states it (None when unsigned)."""
         return self.lease.view()
+
+
+def _late_wakes(counters: Counter[str], stale_after_ms: float) -> LateWakes:
+    """The loop's late wakes: while it was starved, the palm could not lift."""
+    meanwhile = f"the palm could not lift meanwhile; its staleness limit is {stale_after_ms:.0f} ms"
+    return LateWakes(counters, log, "the operator's loop", meanwhile)
