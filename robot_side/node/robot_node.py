@@ -242,10 +242,7 @@ class RobotNode:
             self.ctx.term()
 
     def _loop(self, stop: threading.Event, duration_s: float | None) -> None:
-        link_cfg = self.config.link
-        heartbeat = HeartbeatSchedule(
-            heartbeat_rate_hz(link_cfg), link_cfg.heartbeat_early_ms / 1e3
-        )
+        heartbeat = HeartbeatSchedule.of_link(self.config.link)
         frame_msgs = display_frame_grid(self.config)
         pipeline, watch = self.pipeline, LoopWatch(self.counters)
         t_end = None if duration_s is None else self.now() + round(duration_s * 1e9)

@@ -45,6 +45,11 @@ class HeartbeatSchedule:
         self._grid = Periodic(hz, early_s)
         self._last_ns: int | None = None  # the last heartbeat on the grid
 
+    @classmethod
+    def of_link(cls, link_cfg: RobotLinkConfig) -> HeartbeatSchedule:
+        """The schedule the link's config sets: its rate (or its mode's), its early window."""
+        return cls(heartbeat_rate_hz(link_cfg), link_cfg.heartbeat_early_ms / 1e3)
+
     @property
     def deadline_ns(self) -> int:
         """The latest time the next heartbeat may go out: the loop wakes for it then."""

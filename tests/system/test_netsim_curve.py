@@ -126,7 +126,7 @@ def test_curve_through_the_relay_on_intercontinental_has_its_latency(keys):
     assert operator.counters["stimuli_received"] > 50
     assert _pressing(bus, operator.renderer.retract_counts, relay.start_ns, time.monotonic_ns())
     # both nodes share one clock here: the estimated offset must be about zero
-    snap = operator.link_stats.snapshot(time.monotonic_ns())
+    snap = operator.arrivals.link_stats.snapshot(time.monotonic_ns())
     assert snap.clock_offset_ms is not None and abs(snap.clock_offset_ms) < 2.0
     # intercontinental to the operator: 37.5 ms median path delay (36.5 ms floor)
     assert snap.latency_p50_ms is not None and 36.5 <= snap.latency_p50_ms <= 45.0
