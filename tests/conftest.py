@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import json
 import os
@@ -164,24 +165,27 @@ def _files_to_skip(config: pytest.Config) -> frozenset[str]:
     if not path or not Path(path).exists() or not expr_text:
         return frozenset()
     try:
-        from _pytest.mark.expression import Expression
-
-        expr = Expression.compile(expr_text)
+        expr = ast.parse(expr_text, mode="eval").body
         index = json.loads(Path(path).read_text())
-
-        def selected(names: list[str]) -> bool:
-            def matcher(name: str, /, **kwargs: object) -> bool:
-                if kwargs:  # a marker's arguments: not in the index, so never skip on them
-                    raise LookupError(name)
-                return name in names
-
-            return expr.evaluate(matcher)
-
         return frozenset(
-            file for file, sets in index.items() if not any(selected(names) for names in sets)
+            file for file, sets in index.items() if not any(_selects(expr, n) for n in sets)
         )
     except Exception:  # an index or an expression this cannot read: collect every file
         return frozenset()
+
+
+def _selects(node: ast.AST, names: list[str]) -> bool:
+    """Whether a -m expression of marker names, ``and``, ``or``, ``not`` and parentheses (the
+    lanes' kind) selects a test with these markers; anything else in it (a marker's
+    arguments) raises, and the lanes collect every file."""
+    if isinstance(node, ast.BoolOp):
+        parts = (_selects(value, names) for value in node.values)
+        return all(parts) if isinstance(node.op, ast.And) else any(parts)
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.Not):
+        return not _selects(node.operand, names)
+    if isinstance(node, ast.Name):
+        return node.id in names
+    raise ValueError(f"not a plain marker expression: {ast.dump(node)}")
 
 
 _SKIPPED_FILES = pytest.StashKey[frozenset[str]]()
