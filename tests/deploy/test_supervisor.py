@@ -127,6 +127,10 @@ while True:
 """
 
 
+#: the frozen child's WatchdogSec=
+WINDOW_S = 1.0
+
+
 def test_a_frozen_child_is_ended_by_its_watchdog_then_its_stop_post_runs(tmp_path):
     """SIGSTOP: silent for the watchdog's window, it is sent SIGABRT and SIGCONT (as systemd
     does), its ExecStopPost runs before the restart, and the new process is watched again."""
@@ -135,7 +139,9 @@ def test_a_frozen_child_is_ended_by_its_watchdog_then_its_stop_post_runs(tmp_pat
         "op",
         lambda: subprocess.Popen(["sh", "-c", f"echo ran >> {marks}"]),
     )
-    rules = RestartPolicy("op", "on-failure", 0.1, watchdog_sec=0.3, timeout_abort_sec=1.0)
+    # a window a busy machine's 50 ms pinger keeps (0.3 s: its restarted process, starved for
+    # longer beside the suite's deployments and two busy loops, was rightly ended as well)
+    rules = RestartPolicy("op", "on-failure", 0.1, watchdog_sec=WINDOW_S, timeout_abort_sec=1.0)
     sup, errors = Supervisor(), []
     child = sup.add(_child(tmp_path, "op", _python(PINGER), 0.1, stop_post=post, rules=rules))
     watchdog = child.watchdog
@@ -147,7 +153,7 @@ def test_a_frozen_child_is_ended_by_its_watchdog_then_its_stop_post_runs(tmp_pat
     t0 = time.monotonic()
     _poll_until(sup, errors, lambda: child.proc.pid != first)
     fired = [t - t0 for t, pid in watchdog.fired if pid == first]
-    assert fired and fired[0] <= 0.3 + 0.2, f"the watchdog fired at {fired} s"
+    assert fired and WINDOW_S - 0.1 <= fired[0] <= WINDOW_S + 0.5, f"fired at {fired} s"
     assert child.exits == [-6], child.exits  # SIGABRT
     assert marks.read_text() == "ran\n" and post.runs[0][1] <= child.started_at
     assert "ended by its watchdog" in sup.events[0], sup.events
