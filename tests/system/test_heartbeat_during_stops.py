@@ -35,8 +35,10 @@ from harness.bench.command_path import RobotUnderCommands
 # loop once sent a heartbeat 37 ms past its period (88 ms without one)
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc_module"), pytest.mark.serial]
 
-#: the longest a client may go without a robot heartbeat (20 Hz) during jogs and stops
-MAX_HEARTBEAT_GAP_MS = 70.0
+#: the longest a client may go without a robot heartbeat (20 Hz) during jogs and stops: one
+#: 30 ms late (a busy machine's wake: 71 ms seen by the robot's own send stamps beside two busy
+#: loops), never a period late (a stop holding the wire: 87-95 ms)
+MAX_HEARTBEAT_GAP_MS = 80.0
 #: how long the jog-and-stop cycles run
 CYCLES_S = 4.0
 
