@@ -37,12 +37,14 @@ LEASE_MS = 3000
 #: express message takes a batch of its own, and a message under congestion control DROP waits
 #: 1 ms for a free one before it is dropped, reliable or not: with two, a burst of express
 #: messages (a viewer's offers, a jog beside a gripper command, a page's answers) lost some
-#: whenever a busy machine kept the transmit thread off a core for a millisecond. The kinds
-#: that must arrive (commands, video signals: their priorities in ``link._qos``) get Zenoh's
-#: largest queue; the latest-value ones (stimuli, frames, heartbeats) keep two, so a congested
-#: link drops an old stimulus rather than queueing it behind newer ones. A stop shares the
-#: stimuli's priority and has its copies and resends instead. Batches are allocated as used
-TX_QUEUE_BATCHES = {"interactive_high": 16, "data": 16}
+#: whenever a busy machine kept the transmit thread off a core for a millisecond. Commands and
+#: video signals (their priorities in ``link._qos``) get Zenoh's largest queue, and so do the
+#: heartbeats: latest-value, but they feed the robot's deadman and the lease, and with two a
+#: recorder beside two busy loops missed 9 of a robot's 161. A best-effort message waits in
+#: this queue only while the transmit thread is off the core (QUIC takes a datagram at once),
+#: and the receiver keeps the newest. The stimuli keep two (a stop shares their priority and
+#: has its copies and resends instead), the frames too. Batches are allocated as used
+TX_QUEUE_BATCHES = {"interactive_high": 16, "interactive_low": 16, "data": 16}
 #: how long closing a session may take before the node goes on without waiting for it
 CLOSE_WAIT_S = 1.0
 #: Zenoh's own framing around a message: the key, the QoS and the sequence number

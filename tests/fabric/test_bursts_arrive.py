@@ -28,7 +28,7 @@ from common.clocks.clock import now_ns
 from common.fabric import keyexprs
 from common.fabric.link import FabricPublisher, FabricSubscriber
 from common.fabric.session import close_session, quiet_discovery, tx_section
-from common.wire.messages import Command, VideoSignal
+from common.wire.messages import Command, Heartbeat, VideoSignal
 
 #: alone: its busy loops take the cores the tests beside it would need
 pytestmark = [pytest.mark.slow, pytest.mark.alone, pytest.mark.timeout(120)]
@@ -50,13 +50,15 @@ def _session(mode: str, path: str) -> object:
     return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
 
 
-def _message(kind: str, seq: int) -> Command | VideoSignal:
+def _message(kind: str, seq: int) -> Command | Heartbeat | VideoSignal:
     if kind == "command":
         return Command(seq=seq, t_send_ns=now_ns(), action="gripper_close", grip_level=5)
+    if kind == "heartbeat":  # best-effort, but the robot's deadman and the lease count on it
+        return Heartbeat(seq=seq, t_send_ns=now_ns(), node="operator", state="ok")
     return VideoSignal(seq=seq, t_send_ns=now_ns(), kind="offer", viewer=seq + 1, sdp=SDP)
 
 
-@pytest.mark.parametrize("kind", ["command", "video"])
+@pytest.mark.parametrize("kind", ["command", "video", "heartbeat"])
 def test_a_burst_of_what_must_arrive_arrives_beside_two_busy_loops(kind, tmp_path):
     path = str(tmp_path / "router.sock")
     router = _session("router", path)
