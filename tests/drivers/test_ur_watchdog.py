@@ -207,12 +207,14 @@ def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecti
         # the thread logs what it noticed right after it marks the program lost
         assert wait_until(lambda: "last two turns" in caplog.text, 1.0), caplog.text
     assert "program_lost" in arm.status()
-    # the warning says which silence it was: no call held the wire, the kicks did not run
+    # a warning says which silence it was: no call held the wire, the kicks did not run (on a
+    # busy machine the thread may turn twice before it notices: the kick's own warning says it)
     said = re.search(
         r"a call does not hold the wire; the keep-alive thread's last two turns were (\d+) and",
         caplog.text,
     )
-    assert said and int(said[1]) > 150, caplog.text
+    heard = re.search(r"the controller heard nothing from this process for (\d+) ms", caplog.text)
+    assert any(m and int(m[1]) > 150 for m in (said, heard)), caplog.text
     with pytest.raises(DeviceError, match="stopped with the safety mode normal"):
         arm.jog(JOG)
     arm.stop()  # the controller stopped the arm: nothing to tell it, no error
