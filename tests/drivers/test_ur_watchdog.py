@@ -11,7 +11,10 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 
@@ -326,3 +329,75 @@ def test_a_watchdog_that_trips_while_it_is_armed_is_armed_again(sim, receive, mo
         assert wait_until(lambda: _speed(receive) == 0.0, 1.0)
     finally:
         arm.disconnect()
+
+
+#: a client that arms the watchdog at 150 ms, jogs and kicks until it is killed (armed
+#: again if it tripped before the first kick, as the driver does on a busy machine)
+JOGGING_CLIENT = """
+import sys, time, rtde_control
+c = rtde_control.RTDEControlInterface(sys.argv[1])
+for _ in range(3):
+    assert c.setWatchdog(1 / 0.15) and c.speedL([0.03, 0, 0, 0, 0, 0], 0.5, 0.0)
+    for _ in range(10):
+        c.kickWatchdog()
+        time.sleep(0.02)
+    if c.isProgramRunning():
+        break
+    c.reuploadScript()
+print("jogging", flush=True)
+while True:
+    c.kickWatchdog()
+    time.sleep(0.02)
+"""
+
+
+def test_a_killed_client_is_stopped_in_its_window_while_the_simulator_is_starved():
+    """A starved simulator does not count its own stalls against a connected client, but a
+    client whose process died waits on nothing: the watchdog counts the wall time, as the
+    controller does (a killed arm process's arm ran on for a second when a simulator starved
+    by a loaded machine counted 20 ms a tick, 150 ms in eight of them)."""
+    from robot_side.arm.sim import URSimProcess
+
+    sim = URSimProcess().start()
+    client = subprocess.Popen(
+        [sys.executable, "-c", JOGGING_CLIENT, sim.host], stdout=subprocess.PIPE, text=True
+    )
+    starving = threading.Event()
+
+    def starve() -> None:  # 10 ms of the CPU in every 160 ms
+        while not starving.is_set():
+            os.kill(sim.pid, signal.SIGSTOP)
+            time.sleep(0.15)
+            os.kill(sim.pid, signal.SIGCONT)
+            time.sleep(0.01)
+
+    starver = threading.Thread(target=starve, daemon=True)
+    try:
+        assert client.stdout.readline().strip() == "jogging"
+        assert wait_until(lambda: sim.tcp_speed()[0] == pytest.approx(0.03), 2.0)
+        trips = sim.stats()["watchdog_trips"]
+        t_killed = time.monotonic()
+        client.kill()
+        starver.start()
+        time.sleep(2.0)
+        starving.set()
+        starver.join()
+        os.kill(sim.pid, signal.SIGCONT)
+        stats = sim.stats()
+        assert stats["watchdog_trips"] == trips + 1, stats
+        tripped = stats["watchdog_tripped_at_s"] - t_killed
+        # at the first tick after 150 ms, the next stretch of CPU at worst; 0.86 s counting
+        # 20 ms a tick
+        assert 0.15 <= tripped <= 0.55, (
+            f"the watchdog tripped {tripped * 1e3:.0f} ms after its client was killed, window "
+            "150 ms, the simulator stalled 150 ms at a time"
+        )
+        assert wait_until(lambda: not sim.tcp_speed().any(), 1.0), "the arm moves on"
+    finally:
+        starving.set()
+        if starver.is_alive():
+            starver.join()
+        os.kill(sim.pid, signal.SIGCONT)
+        client.kill()
+        client.wait()
+        sim.stop()

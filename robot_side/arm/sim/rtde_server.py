@@ -223,6 +223,10 @@ class RTDEServer:
                     due.append(c)
         return due
 
+    def writer_connected(self) -> bool:
+        """A client that writes inputs is still connected (its socket not closed by its end)."""
+        return any(not _closed_by_peer(c.sock) for c in self.conns if c.alive and c.inputs)
+
     def input_unread(self) -> bool:
         """A client that writes inputs has bytes this process has not applied yet.
 
@@ -240,7 +244,7 @@ class RTDEServer:
             readable, _, _ = select.select(socks, [], [], 0)
         except (OSError, ValueError):  # a socket closed meanwhile: judge on what was read
             return False
-        return bool(readable)
+        return any(not _closed_by_peer(s) for s in readable)  # an end of file is no update
 
     def send(self, conn: RTDEConnection, state: dict[str, Any]) -> None:
         """One data package of ``state`` (and the registers) in ``conn``'s output recipe."""
@@ -298,3 +302,13 @@ class RTDEServer:
             "tool_temperature": 30.0,
             "tool_output_voltage": 24,
         }
+
+
+def _closed_by_peer(sock: socket.socket) -> bool:
+    """The other end closed ``sock`` (or it failed): what is left to read is its end of file."""
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except (BlockingIOError, InterruptedError):
+        return False  # open, nothing to read
+    except OSError:
+        return True

@@ -89,6 +89,8 @@ class ControlScript:
         #: counts the silence since then, not since the tick before it
         self.watchdog_update_s = 0.0
         self.watchdog_trips = 0
+        #: when it last tripped (monotonic s, the machine's clock), None before the first
+        self.watchdog_tripped_at_s: float | None = None
 
     def reset_registers(self) -> None:
         """The output registers as a controller that starts serving has them."""
@@ -133,6 +135,8 @@ class ControlScript:
         wire_log.debug("script <- %d bytes, %s", len(program), first)
         with self.controller.lock:
             self.scripts_received += 1
+            if self.program_running:  # a new program aborts the running one: the arm stops
+                self.controller.arm.stop(self.config.program_stop_deceleration_m_s2)
             self.program_running = False
             self.watchdog_hz = None  # a new program replaces the old one and its watchdogs
             self._start_at = now_s() + self.config.script_start_delay_s
@@ -198,6 +202,7 @@ class ControlScript:
         if silent <= 1.0 / self.watchdog_hz or input_unread():
             return
         self.watchdog_trips += 1
+        self.watchdog_tripped_at_s = now_s()
         log.warning(
             "RTDE watchdog: no update of %s for %.0f ms (minimum %.3g Hz)",
             WATCHDOG_VARIABLE,

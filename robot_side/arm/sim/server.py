@@ -55,10 +55,13 @@ log = logging.getLogger(__name__)
 #: Longest step the kinematics take when the machine stalls the tick thread.
 MAX_TICK_S = 0.05
 
-#: The longest a single tick adds to the watchdog's silence. A tick later than this means
-#: the simulator itself stalled (a loaded machine, a physics step holding the GIL): a real
-#: controller is hard real time and never does, so the stall is not counted against the
-#: client, whose answer to a command may be waiting on this very tick.
+#: The longest a single tick adds to the watchdog's silence while its client is connected.
+#: A tick later than this means the simulator itself stalled (a loaded machine, a physics
+#: step holding the GIL): a real controller is hard real time and never does, so the stall
+#: is not counted against the client, whose answer to a command may be waiting on this very
+#: tick. A client that closed its connection (its process died) waits on nothing: its
+#: silence counts in full, as on the controller (the arm of a killed arm process ran on for
+#: a second when a starved simulator counted 20 ms a tick).
 MAX_SILENCE_TICK_S = 0.02
 
 
@@ -232,6 +235,7 @@ class URSimulator(Controller):
                 "mode": self.arm.mode.value,
                 "watchdog_hz": script.watchdog_hz,
                 "watchdog_trips": script.watchdog_trips,
+                "watchdog_tripped_at_s": script.watchdog_tripped_at_s,
             }
 
     # -- the controller cycle --------------------------------------------------
@@ -253,9 +257,9 @@ class URSimulator(Controller):
                         # the silence since the last update when one came after the last tick: a
                         # late tick counted the time before the update too, and tripped early
                         silent = max(0.0, min(elapsed, t - script.watchdog_update_s))
-                        script.judge_watchdog(
-                            min(silent, MAX_SILENCE_TICK_S), self.rtde.input_unread
-                        )
+                        if silent > MAX_SILENCE_TICK_S and self.rtde.writer_connected():
+                            silent = MAX_SILENCE_TICK_S  # our stall, not the client's silence
+                        script.judge_watchdog(silent, self.rtde.input_unread)
                     script.cycle()
                 except Exception:
                     self._runtime_error()
