@@ -59,9 +59,9 @@ class RobotLinkConfig:
     )
     heartbeat_rate_hz: float | None = param(
         None,
-        "heartbeats confirm an unchanged stimulus is still current; unset = 20 on a direct "
-        "link, 40 on the fabric, where each is a datagram and a loss burst can take "
-        "several in a row (docs/fabric.md)",
+        "heartbeats confirm an unchanged stimulus is still current and carry the clock and "
+        "the lease; unset = 20 (on the fabric the 25 ms keyframes confirm it too, and what "
+        "goes beside them must fit QUIC's smallest window: docs/fabric.md)",
     )
     heartbeat_stats_period_ms: float | None = param(
         None,
@@ -72,7 +72,12 @@ class RobotLinkConfig:
     heartbeat_early_ms: float = param(
         20.0, "a heartbeat due within this long goes out with a frame's work, not on its own"
     )
-    frame_display_rate_hz: float = param(15.0, "raw frames for the operator's heatmaps; 0 = never")
+    frame_display_rate_hz: float | None = param(
+        None,
+        "raw frames for the operator's heatmaps (about 1 kB each); 0 = never; unset = 15 on "
+        "a direct link, 5 on the fabric, where the robot's whole stream must fit QUIC's "
+        "smallest congestion window (docs/fabric.md)",
+    )
     deadman_ms: float = param(
         250.0,
         "this long after the operator sent its newest fresh message (its clock, mapped to "

@@ -39,6 +39,7 @@ from robot_side.node.loop_watch import LoopWatch
 from robot_side.node.telemetry import (
     HeartbeatSchedule,
     Telemetry,
+    frame_display_rate_hz,
     heartbeat_rate_hz,
     node_stats,
     stats_period_ms,
@@ -354,5 +355,5 @@ def display_frame_grid(config: RobotConfig) -> Periodic | None:
     """When raw frames go out for the operator's heatmaps: on a fixed grid, so the average
     rate is the configured one even though the loop only wakes for the frames it renders (at
     60 Hz, 15 Hz is every 4th); None when they never do."""
-    rate = config.link.frame_display_rate_hz
+    rate = frame_display_rate_hz(config.link)
     return Periodic(rate, 0.5 / config.publish_rate_hz) if rate > 0 else None

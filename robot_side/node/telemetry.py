@@ -195,15 +195,26 @@ def state_stats(desk: CommandDesk) -> dict[str, float]:
     return out
 
 
-#: heartbeats a second on a direct link, and on the fabric (datagrams, lost in bursts)
-DIRECT_HEARTBEAT_HZ, FABRIC_HEARTBEAT_HZ = 20.0, 40.0
+#: heartbeats a second, on either link. On the fabric they were 40 while they alone confirmed
+#: an unchanged stimulus; the 25 ms keyframes confirm it there now, and at 40 the robot's
+#: stream to an operator (54 kB/s on bad_day) was twice what QUIC's smallest window lets
+#: through on an 80 ms round trip: after losses it queued, and the stimuli's path delay p99
+#: was 254-285 ms against 67 at 20 Hz (with 5 Hz frames: 26-31 kB/s)
+HEARTBEAT_HZ = 20.0
+#: raw frames a second for the operator's heatmaps: on a direct link, and on the fabric
+DIRECT_FRAME_DISPLAY_HZ, FABRIC_FRAME_DISPLAY_HZ = 15.0, 5.0
 
 
 def heartbeat_rate_hz(link: RobotLinkConfig) -> float:
-    """The config's heartbeat rate, or the link mode's default."""
-    if link.heartbeat_rate_hz is not None:
-        return link.heartbeat_rate_hz
-    return FABRIC_HEARTBEAT_HZ if link.mode == "fabric" else DIRECT_HEARTBEAT_HZ
+    """The config's heartbeat rate, or the default."""
+    return HEARTBEAT_HZ if link.heartbeat_rate_hz is None else link.heartbeat_rate_hz
+
+
+def frame_display_rate_hz(link: RobotLinkConfig) -> float:
+    """The config's display frame rate, or the link mode's default."""
+    if link.frame_display_rate_hz is not None:
+        return link.frame_display_rate_hz
+    return FABRIC_FRAME_DISPLAY_HZ if link.mode == "fabric" else DIRECT_FRAME_DISPLAY_HZ
 
 
 def stats_period_ms(link: RobotLinkConfig) -> float:
