@@ -770,8 +770,7 @@ def _with_arm_markdown(arm: dict[str, Any] | None) -> list[str]:
             )
             + ". Each polls its socket every 100 us while no package has come (ur-rtde's "
             "receive loop; 20 empty polls, then a blocking read): the control interface's, "
-            "real-time, for every package of its stream (`script_reply_rate_hz`, 62.5 Hz: the "
-            "control script's replies); the receive interface's (the arm's state at 125 Hz), in "
+            "real-time, for every package of the 125 Hz stream; the receive interface's, in "
             "the fair scheduler with a 4 ms timer slack, about every 4 ms. What a wake costs is "
             "the machine's (the first section's note).",
         ]

@@ -21,15 +21,8 @@ class URArmConfig:
     host: str = param("192.168.1.10", "the UR controller's IP (pendant: Settings > Network)")
     frequency_hz: float = param(
         125.0,
-        "RTDE rate of the receive interface (the arm's state); the e-Series streams up to "
-        "500 Hz, and nothing here reads faster than the 120 Hz frame loop",
-    )
-    script_reply_rate_hz: float = param(
-        62.5,
-        "RTDE rate of the control interface, whose stream carries only the control script's "
-        "replies: a stop or a move waits up to one period for its handshake; jogs and the "
-        "watchdog's kicks wait for none. Its ur-rtde thread polls its socket every 100 us "
-        "until a package comes, at the real-time priority: the rate is most of its cost",
+        "RTDE rate of both interfaces (the state stream, the control script's replies); the "
+        "e-Series streams up to 500 Hz, and nothing here reads faster than the 120 Hz frame loop",
     )
     stale_after_s: float = param(
         0.1, "a controller timestamp frozen this long means it stopped streaming: reads raise"

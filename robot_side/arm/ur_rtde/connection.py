@@ -94,7 +94,7 @@ def open_interfaces(config: URArmConfig) -> tuple[Any, Any]:
                 "rtde-control",
                 lambda: native_threads_at(
                     NATIVE_DRIVER_THREAD_NICE,
-                    lambda: rtde_control.RTDEControlInterface(host, config.script_reply_rate_hz),
+                    lambda: rtde_control.RTDEControlInterface(host, config.frequency_hz),
                 ),
             )
             break
