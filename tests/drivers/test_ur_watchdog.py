@@ -153,6 +153,28 @@ def test_the_driver_arms_the_watchdog_and_its_deadman_thread_keeps_it_quiet(arm,
     assert status["longest_silence_ms"] < window_ms, status
 
 
+def test_the_keep_alive_kicks_until_a_disconnects_stop_is_on_the_wire(
+    arm, sim, receive, monkeypatch
+):
+    """A disconnect (the arm process ending when its node died) stops the arm before it ends
+    the kicks: a stop that reaches the wire late, here 0.3 s, twice the watchdog window, as
+    on a busy PC, leaves the controller nothing to trip on; the arm process stopped it."""
+    arm.jog(JOG)
+    assert wait_until(lambda: _speed(receive) > 0.0, 1.0)
+    trips = sim.stats()["watchdog_trips"]
+    stop = arm._stop_locked
+
+    def late_stop() -> None:
+        time.sleep(2 * arm.config.watchdog_window_s)
+        stop()
+
+    monkeypatch.setattr(arm, "_stop_locked", late_stop)
+    arm.disconnect()
+    assert wait_until(lambda: _speed(receive) == 0.0, 1.0), "the disconnect left the arm moving"
+    assert sim.stats()["watchdog_trips"] == trips, "the kicks ended before the stop"
+    assert not _program_running(receive), "stopScript did not end the program"
+
+
 def test_the_threads_that_stop_and_kick_run_at_the_robot_nodes_priority(arm):
     """A driver in a process at ordinary priority (a test, a tool) still kicks on a busy machine."""
     names = ("URArm-deadman", "URArm-keepalive", f"urarm-ctrl-{arm.config.host}")

@@ -124,16 +124,23 @@ class URArm(Arm):
         """Stop the arm, end the control script, close both interfaces, whatever fails."""
         if not self.is_connected:
             return
-        self._stop_deadman()
         line = self.line
         try:
+            try:
+                with self._lock:
+                    # once the script is known to have stopped there is nothing left to tell it
+                    if line.program_lost is None:
+                        try:
+                            self._stop_locked()
+                        except DeviceError as e:
+                            log.warning("URArm: stop on disconnect failed: %s", e)
+            finally:
+                # Only now: the keep-alive kicks on until the stop is on the wire (a kick waits
+                # for no call). Ended first, a busy PC's gap between its last kick and the stop
+                # could pass the watchdog window (a trip while the arm process stopped the arm
+                # of a killed node, beside two busy loops).
+                self._stop_deadman()
             with self._lock:
-                # once the script is known to have stopped there is nothing left to tell it
-                if line.program_lost is None:
-                    try:
-                        self._stop_locked()
-                    except DeviceError as e:
-                        log.warning("URArm: stop on disconnect failed: %s", e)
                 if line.program_lost is None:
                     try:
                         line.call("stopScript", line.ctrl.stopScript)
