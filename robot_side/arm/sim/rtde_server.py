@@ -305,10 +305,15 @@ class RTDEServer:
 
 
 def _closed_by_peer(sock: socket.socket) -> bool:
-    """The other end closed ``sock`` (or it failed): what is left to read is its end of file."""
+    """The other end closed ``sock`` (or it failed): what is left to read is its end of file.
+
+    Never waits: a socket with nothing to read is open, and one that is readable answers a
+    peek at once (a socket timeout would otherwise make the peek wait for data).
+    """
     try:
-        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+        readable, _, _ = select.select([sock], [], [], 0)
+        return bool(readable) and sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
     except (BlockingIOError, InterruptedError):
         return False  # open, nothing to read
-    except OSError:
+    except (OSError, ValueError):  # failed, or closed here meanwhile
         return True
