@@ -132,7 +132,6 @@ def run_cell(scenario: str, transport: str, duration_s: float) -> dict[str, Any]
         # what crossed the simulated path to the operator (datagrams on the fabric, TCP
         # segments on ZeroMQ), and what QUIC's smallest window lets through at its round trip
         "to_operator_bytes_s": down["bytes_in"] / ran if "bytes_in" in down else None,
-        "to_operator_packets_s": down["received"] / ran if "received" in down else None,
         "min_window_bytes_s": QUIC_MIN_WINDOW_BYTES / (rtt_ms / 1e3) if rtt_ms else None,
         "cpu_core_share": cpu,
         "errors": summary.get("errors", []),

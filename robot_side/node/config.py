@@ -57,11 +57,11 @@ class RobotLinkConfig:
     command_endpoint: str = param(
         "tcp://127.0.0.1:5556", "SUB bound here: operator commands and heartbeats"
     )
-    heartbeat_rate_hz: float | None = param(
-        None,
+    heartbeat_rate_hz: float = param(
+        20.0,
         "heartbeats confirm an unchanged stimulus is still current and carry the clock and "
-        "the lease; unset = 20 (on the fabric the 25 ms keyframes confirm it too, and what "
-        "goes beside them must fit QUIC's smallest window: docs/fabric.md)",
+        "the lease, on either link (on the fabric the 25 ms keyframes confirm it too, and "
+        "what goes beside them must fit QUIC's smallest window: docs/fabric.md)",
     )
     heartbeat_stats_period_ms: float | None = param(
         None,

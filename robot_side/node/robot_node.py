@@ -40,7 +40,6 @@ from robot_side.node.telemetry import (
     HeartbeatSchedule,
     Telemetry,
     frame_display_rate_hz,
-    heartbeat_rate_hz,
     node_stats,
     stats_period_ms,
 )
@@ -91,7 +90,7 @@ class RobotNode:
         link_cfg = config.link
         #: our name on the wire (b"" = unnamed); ConfigError for a name the protocol forbids
         self.name = wire_name(link_cfg.robot_name)
-        self.workers = DeviceWorkers(arm, gripper, heartbeat_rate_hz(link_cfg))
+        self.workers = DeviceWorkers(arm, gripper, link_cfg.heartbeat_rate_hz)
         self.pipeline = FramePipeline(
             config,
             classifier,

@@ -48,7 +48,7 @@ class HeartbeatSchedule:
     @classmethod
     def of_link(cls, link_cfg: RobotLinkConfig) -> HeartbeatSchedule:
         """The schedule the link's config sets: its rate (or its mode's), its early window."""
-        return cls(heartbeat_rate_hz(link_cfg), link_cfg.heartbeat_early_ms / 1e3)
+        return cls(link_cfg.heartbeat_rate_hz, link_cfg.heartbeat_early_ms / 1e3)
 
     @property
     def deadline_ns(self) -> int:
@@ -195,19 +195,8 @@ def state_stats(desk: CommandDesk) -> dict[str, float]:
     return out
 
 
-#: heartbeats a second, on either link. On the fabric they were 40 while they alone confirmed
-#: an unchanged stimulus; the 25 ms keyframes confirm it there now, and at 40 the robot's
-#: stream to an operator (54 kB/s on bad_day) was twice what QUIC's smallest window lets
-#: through on an 80 ms round trip: after losses it queued, and the stimuli's path delay p99
-#: was 254-285 ms against 67 at 20 Hz (with 5 Hz frames: 26-31 kB/s)
-HEARTBEAT_HZ = 20.0
 #: raw frames a second for the operator's heatmaps: on a direct link, and on the fabric
 DIRECT_FRAME_DISPLAY_HZ, FABRIC_FRAME_DISPLAY_HZ = 15.0, 5.0
-
-
-def heartbeat_rate_hz(link: RobotLinkConfig) -> float:
-    """The config's heartbeat rate, or the default."""
-    return HEARTBEAT_HZ if link.heartbeat_rate_hz is None else link.heartbeat_rate_hz
 
 
 def frame_display_rate_hz(link: RobotLinkConfig) -> float:
