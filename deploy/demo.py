@@ -189,6 +189,7 @@ def run(args: argparse.Namespace) -> int:
         except NotReady as e:  # a wrong setting, a missing device: its log's tail
             if not stop.is_set():  # Ctrl-C while it starts is no failure
                 errors.append(str(e))
+                log.error("%s", e)  # on stderr too: --json's reader may only keep the log
         operator = units.operator
         if children.armed:  # whoever started the demo (the soak, the bench) may count on it
             served = (

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from deploy.units.readiness import NotReady
 from deploy.units.service import Service
 from harness.bench.fmt import results_of
 from harness.bench.section import Context, Results, Section, Verdict
@@ -95,7 +96,12 @@ def run_cell(scenario: str, transport: str, duration_s: float) -> dict[str, Any]
     cpu: dict[str, float] = {}
     try:
         # the nodes' CPU from once all are up (its READY=1) to near the end
-        demo.up()  # within the demo unit's start timeout
+        try:
+            demo.up()  # within the demo unit's start timeout
+        except NotReady as e:  # which process was not: in the summary it printed
+            out = demo.popen.communicate(timeout=10)[0] if demo.popen.poll() is not None else ""
+            errors = json.loads(out).get("errors", []) if out.strip().startswith("{") else []
+            raise NotReady("; ".join([str(e), *errors])) from None
         pids = _children(demo.pid)
         time.sleep(min(5.0, duration_s / 3))
         t0 = time.monotonic()
