@@ -11,7 +11,9 @@ that failed (``probes``), on the monotonic clock all processes share.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+import json
 import logging
 import math
 import signal
@@ -477,7 +479,25 @@ class CellRun:
                 jogger.close()
                 for probe in (self.arm, self.gripper, self.palm):
                     probe.close()
-        return self._result(tl, released_still, t_release)
+        result = self._result(tl, released_still, t_release)
+        notes = [self._controller_account(tl.t_fault)]
+        if result.arm_still_s is not None:  # a probe that read nothing for a while sees late
+            until = tl.t_fault + result.arm_still_s
+            gap = longest_silence([s for s in self.arm.samples if s.t_s <= until], tl.t_fault)
+            notes.append(f"the arm's probe read nothing for at most {gap} s before it saw it still")
+        return dataclasses.replace(result, notes="; ".join(notes))
+
+    def _controller_account(self, t_fault: float) -> str:
+        """What the UR simulator says ended its program after the fault, and when (ms after
+        it, on the machine's clock): from its final stats, printed to its log as it stopped."""
+        unit = self.d.units.get("ur")
+        text = unit.handle.log_text() if unit is not None and unit.handle is not None else ""
+        finals = [ln for ln in text.splitlines() if ln.startswith('{"final"')]
+        if not finals:
+            return "the UR simulator printed no final stats"
+        ends = json.loads(finals[-1])["final"].get("program_ends", [])
+        after = [f"{(t - t_fault) * 1e3:+.0f} ms: {why}" for t, why in ends if t >= t_fault]
+        return "the controller ended its program " + ("; ".join(after) if after else "never")
 
     def _still_after(self, t_release: float) -> float | None:
         """When the arm came to rest after the operator let go (None: not in RELEASE_WAIT_S)."""

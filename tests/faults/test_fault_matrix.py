@@ -77,7 +77,7 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
             f"{cell.label}: the arm was still {row.arm_still_s * 1e3:.0f} ms after the fault, "
             f"budget {ARM_STILL_BUDGET_S * 1e3:.0f} ms; the node's own deadman stop in the same "
             f"cell took {baseline * 1e3:.0f} ms (if that is late too, the machine is loaded; if "
-            "not, the product is slow to stop)"
+            f"not, the product is slow to stop); {row.notes}"
         )
     assert row.gripper_held, (
         f"{cell.label}: the gripper opened to {row.gripper_min_pos} during the fault (product: "

@@ -12,6 +12,7 @@ the arm decelerates.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import math
@@ -91,6 +92,9 @@ class ControlScript:
         self.watchdog_trips = 0
         #: when it last tripped (monotonic s, the machine's clock), None before the first
         self.watchdog_tripped_at_s: float | None = None
+        #: (monotonic s, why) of the latest ends of a running program: the controller's own
+        #: account of when and why the arm was stopped, for whoever judges a stop from outside
+        self.program_ends: collections.deque[tuple[float, str]] = collections.deque(maxlen=16)
 
     def reset_registers(self) -> None:
         """The output registers as a controller that starts serving has them."""
@@ -137,6 +141,7 @@ class ControlScript:
             self.scripts_received += 1
             if self.program_running:  # a new program aborts the running one: the arm stops
                 self.controller.arm.stop(self.config.program_stop_deceleration_m_s2)
+                self.program_ends.append((now_s(), "a new program"))
             self.program_running = False
             self.watchdog_hz = None  # a new program replaces the old one and its watchdogs
             self._start_at = now_s() + self.config.script_start_delay_s
@@ -183,6 +188,8 @@ class ControlScript:
 
     def stop_program(self, why: str) -> None:
         """The program ends: the arm decelerates and, as URScript says, its watchdogs go."""
+        if self.program_running:
+            self.program_ends.append((now_s(), why))
         self.halt()
         self.controller.arm.stop(self.config.program_stop_deceleration_m_s2)
         log.info("control script stopped: %s", why)

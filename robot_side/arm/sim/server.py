@@ -236,6 +236,7 @@ class URSimulator(Controller):
                 "watchdog_hz": script.watchdog_hz,
                 "watchdog_trips": script.watchdog_trips,
                 "watchdog_tripped_at_s": script.watchdog_tripped_at_s,
+                "program_ends": [list(e) for e in script.program_ends],
             }
 
     # -- the controller cycle --------------------------------------------------
