@@ -19,9 +19,10 @@ import numpy as np
 import pytest
 
 from common.devices.lifecycle import build_device
+from common.errors import DeviceError
 from common.process.realtime import PeriodStats, raise_this_thread
 from robot_side.arm import KINDS
-from robot_side.arm.process import ArmProcess
+from robot_side.arm.process import ArmProcess, dashboard_stop
 from robot_side.arm.sim import URSimConfig, URSimProcess
 from robot_side.arm.ur_rtde import URArmConfig
 
@@ -124,6 +125,49 @@ def test_a_killed_robot_node_has_its_arm_stopped_by_the_arm_process_at_once():
         assert sim.stats()["watchdog_trips"] == trips
         gone = _wait(lambda: subprocess.run(["kill", "-0", str(arm_pid)]).returncode != 0, 5.0)
         assert gone is not None, "the arm process outlived its node"
+
+
+def test_the_node_presses_stop_on_the_dashboard_once_when_it_notices_its_arm_process_died(
+    monkeypatch,
+):
+    import robot_side.arm.process as arm_process
+
+    pressed: list[tuple[str, str]] = []
+
+    def press_stop(host: str, why: str):
+        pressed.append((host, why))
+        return dashboard_stop.press_stop(host, why)
+
+    monkeypatch.setattr(arm_process, "press_stop", press_stop)
+    arm = build_device(KINDS, {"kind": "simulated"}, "arm")
+    arm.connect()
+    try:
+        sim = arm.local.sim
+        arm.jog(JOG)
+        assert _wait(lambda: not _at_rest(sim), 2.0) is not None
+        arm.kill()
+        for _ in range(3):  # the jogs that keep coming, and the recovery's check
+            with pytest.raises(DeviceError):
+                arm.jog(JOG)
+        assert arm.needs_reconnect
+        assert pressed == [(sim.host, "the arm process ended")]
+        assert _wait(lambda: _at_rest(sim), 2.0) is not None
+    finally:
+        arm.disconnect()
+
+
+def test_stop_on_the_dashboard_ends_the_program_and_stops_the_arm():
+    arm = build_device(KINDS, {"kind": "simulated"}, "arm")
+    arm.connect()
+    try:
+        sim = arm.local.sim
+        arm.jog(JOG)
+        assert _wait(lambda: not _at_rest(sim), 2.0) is not None
+        dashboard_stop.press_stop(sim.host, "a test").join(5.0)
+        assert _wait(lambda: _at_rest(sim), 1.0) is not None
+        assert sim.stats()["program_ends"][-1][1] == "stop on the dashboard"
+    finally:
+        arm.disconnect()
 
 
 def test_a_killed_arm_process_is_stopped_by_the_controller_and_the_node_reconnects():

@@ -47,6 +47,7 @@ from common.errors import (
 )
 from robot_side.arm.base import Arm, WorkspaceLimitError, as_vector6, turn_angle
 from robot_side.arm.process.child import ArmProcessSpec
+from robot_side.arm.process.dashboard_stop import press_stop
 from robot_side.arm.process.state import StateView, new_state_file
 from robot_side.devices.stdio_child import StdioChild
 
@@ -127,7 +128,7 @@ class ArmProcess(Arm):
         if not self._connected:
             return False
         if self._child is None or not self._child.running:
-            self._died = self._died or "the arm process ended"
+            self._noticed_death()
             return True
         state = self._fresh_state()
         if state is None:
@@ -223,7 +224,7 @@ class ArmProcess(Arm):
     def _call(self, method: str, *args: Any, timeout_s: float) -> Any:
         child = self._child
         if child is None or not child.running:
-            self._died = self._died or "the arm process ended"
+            self._noticed_death()
             raise DeviceNotConnectedError(
                 f"{self._what()}: {self._died}; the controller's watchdog stops the arm. The "
                 "node's recovery starts a new one"
@@ -233,6 +234,7 @@ class ArmProcess(Arm):
         except DeviceTimeoutError as e:
             self._died = f"the arm process did not answer {method} in {timeout_s:g} s"
             child.kill()  # a stuck driver: its watchdog kicks stop, and the controller stops
+            press_stop(str(self.config.host), self._died)
             raise DeviceTimeoutError(f"{self._what()}: {self._died}") from e
         except DeviceError as e:
             raise _as_driver_error(str(e), method) from None
@@ -312,6 +314,13 @@ class ArmProcess(Arm):
         self.stop()
 
     # -- what the node reads -------------------------------------------------
+
+    def _noticed_death(self) -> None:
+        """The arm process is gone: the controller's watchdog stops the arm; once per death,
+        stop is pressed on its dashboard server too (``dashboard_stop``)."""
+        if self._died is None and self._connected:
+            press_stop(str(self.config.host), "the arm process ended")
+        self._died = self._died or "the arm process ended"
 
     def _fresh_state(self) -> dict[str, float] | None:
         """The arm process's newest state; None when it stopped writing it."""
