@@ -38,16 +38,15 @@ from common.config.typed import to_dict
 from common.devices.lifecycle import Device
 from common.devices.preflight import Finding, PreflightContext
 from common.errors import (
-    ConfigError,
     DeviceAlreadyConnectedError,
     DeviceError,
     DeviceNotConnectedError,
     DeviceTimeoutError,
-    StaleDataError,
 )
-from robot_side.arm.base import Arm, WorkspaceLimitError, as_vector6, turn_angle
+from robot_side.arm.base import Arm, as_vector6, turn_angle
 from robot_side.arm.process.child import ArmProcessSpec
 from robot_side.arm.process.dashboard_stop import press_stop
+from robot_side.arm.process.errors import as_driver_error
 from robot_side.arm.process.state import StateView, new_state_file
 from robot_side.devices.stdio_child import StdioChild
 
@@ -63,22 +62,6 @@ CONNECT_TIMEOUT_S = 60.0
 READ_TIMEOUT_S = 2.0
 #: the state in shared memory older than this: the arm process is not running its turns
 STATE_STALE_S = 0.5
-
-#: exceptions the arm process reports by name, raised here as the same type
-_ERRORS: dict[str, type[Exception]] = {
-    cls.__name__: cls
-    for cls in (
-        DeviceError,
-        DeviceNotConnectedError,
-        DeviceTimeoutError,
-        DeviceAlreadyConnectedError,
-        StaleDataError,
-        WorkspaceLimitError,
-        ConfigError,
-        ValueError,
-    )
-}
-
 
 #: what runs in the arm process, whatever the kind: the UR driver at the address the kind found
 CHILD_DRIVER = "robot_side.arm.ur_rtde:URArm"
@@ -237,7 +220,7 @@ class ArmProcess(Arm):
             press_stop(str(self.config.host), self._died)
             raise DeviceTimeoutError(f"{self._what()}: {self._died}") from e
         except DeviceError as e:
-            raise _as_driver_error(str(e), method) from None
+            raise as_driver_error(str(e), method) from None
 
     def _command_timeout_s(self) -> float:
         return float(getattr(self.config, "command_timeout_s", 2.0)) + 1.0
@@ -378,16 +361,6 @@ class ArmProcess(Arm):
         if self._died:
             out["process_ended"] = self._died
         return out
-
-
-def _as_driver_error(message: str, method: str) -> Exception:
-    """The arm process's "Type: text" as the driver's own exception type."""
-    _, _, rest = message.partition(f"arm process {method}: ")
-    name, sep, text = rest.partition(": ")
-    cls = _ERRORS.get(name) if sep else None
-    if cls is None:
-        return DeviceError(message)
-    return cls(text)
 
 
 class InOwnProcess(Device):
