@@ -94,6 +94,9 @@ class RobotReplay:
                 self.prediction = record
         elif channel == "robot/stimulus":
             self._stimulus(record)
+        elif channel == "robot/link":  # a heartbeat: it confirms the stimulus, as keyframes do
+            self.finish()  # the frame before it was rendered and sent before it
+            self.node.pipeline.heartbeat_sent(t_ns)
 
     def _stimulus(self, record: dict[str, Any]) -> None:
         try:

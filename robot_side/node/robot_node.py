@@ -334,13 +334,15 @@ class RobotNode:
         return self.pub.send(msg)
 
     def _send_heartbeat(self) -> None:
+        now = self.now()  # the keyframes' clock hears of it at its record's time (replay's too)
         if self._recording:
             stats = {"state": self.link_state, **self.stats()}
-            self.recorder.write("robot/link", self.now(), stats)
+            self.recorder.write("robot/link", now, stats)
         pipeline = self.pipeline
         self.telemetry.send_heartbeat(
             self.link_state, pipeline.last_stimulus, pipeline.last_capture_ns
         )
+        pipeline.heartbeat_sent(now)
 
     def stats(self) -> dict[str, float]:
         """The counters, the workers', video's and CURVE's, and the devices' state."""

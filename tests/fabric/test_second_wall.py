@@ -33,7 +33,7 @@ from common.fabric.link import FabricPublisher
 from common.fabric.session import FabricConfig, cert_files, client_config, open_session
 from common.keys.roster import robot_entry
 from common.wire.codec import decode_named
-from common.wire.messages import Stimulus
+from common.wire.messages import Heartbeat, Stimulus
 from common.wire.signing import Signer
 from harness.fleet import SCRIPTED_TACTILE, Fleet, Proc
 from operator_side.node.telemetry_gate import OLD_SESSION, REPLAYED, STALE
@@ -246,24 +246,43 @@ def test_forged_stimuli_through_the_router_never_move_the_palm_and_the_robots_ow
 
 def test_a_held_grasp_is_sent_again_as_keyframes_within_the_palms_staleness(wall):
     """On the fabric a stimulus is a datagram: a lost change is made good by the next keyframe,
-    which must come well inside the operator's 150 ms staleness (every 25 ms by default; 500 on
-    a direct link, where TCP loses nothing)."""
-    got: list[tuple[int, Stimulus]] = []
+    which must come well inside the operator's 150 ms staleness. Keyframes fill the gaps
+    between heartbeats (each confirms the stimulus too): one 25 ms after the last stimulus or
+    heartbeat, so the held grasp is confirmed every 25 ms and sent whole every 50 (500 ms on a
+    direct link, where TCP loses nothing)."""
+    got: list[tuple[int, Stimulus | Heartbeat]] = []
     session = _session(wall.fleet, "rec")
-    sub = session.declare_subscriber(
-        keyexprs.robot_key(ROBOT, "stimulus"),
-        lambda s: got.append((now_ns(), decode_named(s.payload.to_bytes())[1])),
-    )
+    subs = [
+        session.declare_subscriber(
+            keyexprs.robot_key(ROBOT, kind),
+            lambda s: got.append((now_ns(), decode_named(s.payload.to_bytes())[1])),
+        )
+        for kind in ("stimulus", "heartbeat")
+    ]
     try:
         time.sleep(2.0)
     finally:
-        sub.undeclare()
+        for sub in subs:
+            sub.undeclare()
         session.close()
-    keyframes = [t for t, msg in got if msg.keyframe]
-    assert len(keyframes) > 10, f"{len(keyframes)} keyframes of {len(got)} stimuli in 2 s"
-    gaps_ms = sorted((b - a) / 1e6 for a, b in itertools.pairwise(keyframes))
+    got.sort(key=lambda x: x[0])
+    keyframes = [t for t, msg in got if isinstance(msg, Stimulus) and msg.keyframe]
+    confirmations = [t for t, msg in got if isinstance(msg, Heartbeat) or msg.keyframe]
+    assert len(keyframes) > 10, f"{len(keyframes)} keyframes of {len(got)} messages in 2 s"
     # each one frame (60 Hz) after 25 ms: a starved robot stretches a few, not the median
-    assert gaps_ms[len(gaps_ms) // 2] < 60.0, gaps_ms
+    assert _median_gap_ms(confirmations) < 45.0, _gaps_ms(confirmations)
+    # and about every other one is the stimulus itself
+    assert _median_gap_ms(keyframes) < 85.0, _gaps_ms(keyframes)
+    assert len(keyframes) > len(confirmations) / 3, (len(keyframes), len(confirmations))
+
+
+def _gaps_ms(times_ns: list[int]) -> list[float]:
+    return [round((b - a) / 1e6, 1) for a, b in itertools.pairwise(times_ns)]
+
+
+def _median_gap_ms(times_ns: list[int]) -> float:
+    gaps = sorted(_gaps_ms(times_ns))
+    return gaps[len(gaps) // 2]
 
 
 def _newest_stimulus(wall: Wall, timeout_s: float = 5.0) -> bytes:
