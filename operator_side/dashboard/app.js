@@ -158,7 +158,9 @@ function drawPads(frame) {
       ctx.fillStyle = "#777";
       ctx.font = "14px sans-serif";
       ctx.textAlign = "center";
-      ctx.fillText("no frame yet", cv.width / 2, cv.height / 2);
+      ctx.fillText("no raw frames", cv.width / 2, cv.height / 2 - 8);
+      ctx.font = "11px sans-serif"; // the fabric sends none unless the robot's config asks
+      ctx.fillText("(fabric: off by default)", cv.width / 2, cv.height / 2 + 10);
       continue;
     }
     for (let r = 0; r < n; r++) {

@@ -75,8 +75,8 @@ class RobotLinkConfig:
     frame_display_rate_hz: float | None = param(
         None,
         "raw frames for the operator's heatmaps (about 1 kB each); 0 = never; unset = 15 on "
-        "a direct link, 5 on the fabric, where the robot's whole stream must fit QUIC's "
-        "smallest congestion window (docs/fabric.md)",
+        "a direct link, none on the fabric, where a frame takes half of QUIC's smallest "
+        "congestion window and the stimuli wait behind it (docs/fabric.md)",
     )
     deadman_ms: float = param(
         250.0,

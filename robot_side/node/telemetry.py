@@ -195,8 +195,11 @@ def state_stats(desk: CommandDesk) -> dict[str, float]:
     return out
 
 
-#: raw frames a second for the operator's heatmaps: on a direct link, and on the fabric
-DIRECT_FRAME_DISPLAY_HZ, FABRIC_FRAME_DISPLAY_HZ = 15.0, 5.0
+#: raw frames a second for the operator's heatmaps: on a direct link, and on the fabric. None
+#: there by default: a frame is a datagram of about 1.1 kB, nearly half of what QUIC's smallest
+#: congestion window lets through a round trip, and the stimuli behind it waited a round trip
+#: (bad_day over the fabric: 3-11 palm lift-offs in 30 s with frames at 2 or 5 Hz, 1-3 without)
+DIRECT_FRAME_DISPLAY_HZ, FABRIC_FRAME_DISPLAY_HZ = 15.0, 0.0
 
 
 def frame_display_rate_hz(link: RobotLinkConfig) -> float:
