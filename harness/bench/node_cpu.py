@@ -687,8 +687,8 @@ def markdown(results: Results) -> list[str]:
         out += [
             "",
             'The same nodes through a router on the fabric (`link.mode = "fabric"`: QUIC '
-            "with certificates to `deepxpalm router` on loopback, heartbeats at 20 Hz, raw "
-            "frames at 5 Hz):",
+            "with certificates to `deepxpalm router` on loopback, the robot's link at its "
+            "fabric defaults, docs/fabric.md):",
             "",
         ]
         out += table(
