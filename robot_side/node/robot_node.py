@@ -334,11 +334,9 @@ class RobotNode:
         return self.pub.send(msg)
 
     def _send_heartbeat(self) -> None:
-        now = self.now()  # the keyframes' clock hears of it at its record's time (replay's too)
+        now, pipeline = self.now(), self.pipeline  # one time: the record's is replay's
         if self._recording:
-            stats = {"state": self.link_state, **self.stats()}
-            self.recorder.write("robot/link", now, stats)
-        pipeline = self.pipeline
+            self.recorder.write("robot/link", now, {"state": self.link_state, **self.stats()})
         self.telemetry.send_heartbeat(
             self.link_state, pipeline.last_stimulus, pipeline.last_capture_ns
         )
