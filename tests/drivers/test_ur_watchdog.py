@@ -359,13 +359,17 @@ KILLED_CLIENT_WINDOW_S = 0.5
 
 #: a client that arms the watchdog, jogs and kicks until it is killed (armed again if it
 #: tripped before the first kick, as the driver does on a busy machine)
+#: a client that jogs as the driver does: the jog renewed every 20 ms (each renewal an update
+#: of the watchdog's register), so a jog the script never read (the register written again
+#: before the controller's next cycle, on a loaded machine) is made good by the next
 JOGGING_CLIENT = """
 import sys, time, rtde_control
 c = rtde_control.RTDEControlInterface(sys.argv[1])
+jog = lambda: c.speedL([0.03, 0, 0, 0, 0, 0], 0.5, 0.0)
 for _ in range(3):
-    assert c.setWatchdog(1 / float(sys.argv[2])) and c.speedL([0.03, 0, 0, 0, 0, 0], 0.5, 0.0)
+    assert c.setWatchdog(1 / float(sys.argv[2])) and jog()
     for _ in range(10):
-        c.kickWatchdog()
+        jog()
         time.sleep(0.02)
     if c.isProgramRunning():
         break
@@ -374,7 +378,7 @@ else:
     sys.exit("the program never kept running")
 print("jogging", flush=True)
 while True:
-    c.kickWatchdog()
+    jog()
     time.sleep(0.02)
 """
 
