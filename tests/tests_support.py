@@ -119,6 +119,7 @@ class ProtocolOperator:
         self._echoing_sent: set[int] = set()  # our heartbeats that carried an echo
         self.robot_session: int | None = None  # the robot run we heard, echoed as the node does
         self.robot_has_clock = False  # the robot answered one of those: it knows our offset
+        self.sent_ns: list[int] = []  # when each heartbeat and command went out (our clock)
 
     def pump(self, duration_s: float = 0.0) -> None:
         """Read telemetry and keep heartbeats going (20 Hz) for ``duration_s``."""
@@ -149,6 +150,7 @@ class ProtocolOperator:
                         echo_session=self.robot_session,
                     )
                 )
+                self.sent_ns.append(now)
                 if self._echo[0] is not None:
                     self._echoing_sent.add(now)
                 self._next_hb_ns = now + 50_000_000
@@ -184,6 +186,7 @@ class ProtocolOperator:
             **fields,
         )
         self.pub.send(cmd)
+        self.sent_ns.append(cmd.t_send_ns)
         return cmd
 
 
