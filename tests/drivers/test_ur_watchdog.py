@@ -423,8 +423,10 @@ def test_a_killed_client_is_stopped_in_its_window_while_the_simulator_is_starved
         # counted 20 ms a tick, the window would take about 2.9 s of this starving
         assert stats["watchdog_trips"] == trips + 1, stats
         tripped = stats["watchdog_tripped_at_s"] - t_killed
-        # at the first tick after the window, the next stretch of CPU at worst
-        assert window <= tripped <= window + 0.4, (
+        # counted from the client's last update, a renewal (20 ms, later on a busy machine)
+        # before its kill at most; at the first tick after the window, the next stretch of
+        # CPU at worst
+        assert window - 0.1 <= tripped <= window + 0.4, (
             f"the watchdog tripped {tripped * 1e3:.0f} ms after its client was killed, window "
             f"{window * 1e3:.0f} ms, the simulator stalled 150 ms at a time"
         )
