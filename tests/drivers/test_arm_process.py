@@ -9,6 +9,7 @@ What moved is read from the UR simulator, not from the driver.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import subprocess
 import sys
@@ -127,6 +128,20 @@ def test_a_killed_robot_node_has_its_arm_stopped_by_the_arm_process_at_once():
         assert gone is not None, "the arm process outlived its node"
 
 
+@contextlib.contextmanager
+def _jogging_simulated_arm():
+    """(the node's arm, its simulated controller), the arm jogging; disconnected after."""
+    arm = build_device(KINDS, {"kind": "simulated"}, "arm")
+    arm.connect()
+    try:
+        sim = arm.local.sim
+        arm.jog(JOG)
+        assert _wait(lambda: not _at_rest(sim), 2.0) is not None
+        yield arm, sim
+    finally:
+        arm.disconnect()
+
+
 def test_the_node_presses_stop_on_the_dashboard_once_when_it_notices_its_arm_process_died(
     monkeypatch,
 ):
@@ -139,12 +154,7 @@ def test_the_node_presses_stop_on_the_dashboard_once_when_it_notices_its_arm_pro
         return dashboard_stop.press_stop(host, why)
 
     monkeypatch.setattr(arm_process, "press_stop", press_stop)
-    arm = build_device(KINDS, {"kind": "simulated"}, "arm")
-    arm.connect()
-    try:
-        sim = arm.local.sim
-        arm.jog(JOG)
-        assert _wait(lambda: not _at_rest(sim), 2.0) is not None
+    with _jogging_simulated_arm() as (arm, sim):
         arm.kill()
         for _ in range(3):  # the jogs that keep coming, and the recovery's check
             with pytest.raises(DeviceError):
@@ -152,31 +162,17 @@ def test_the_node_presses_stop_on_the_dashboard_once_when_it_notices_its_arm_pro
         assert arm.needs_reconnect
         assert pressed == [(sim.host, "the arm process ended")]
         assert _wait(lambda: _at_rest(sim), 2.0) is not None
-    finally:
-        arm.disconnect()
 
 
 def test_stop_on_the_dashboard_ends_the_program_and_stops_the_arm():
-    arm = build_device(KINDS, {"kind": "simulated"}, "arm")
-    arm.connect()
-    try:
-        sim = arm.local.sim
-        arm.jog(JOG)
-        assert _wait(lambda: not _at_rest(sim), 2.0) is not None
+    with _jogging_simulated_arm() as (_, sim):
         dashboard_stop.press_stop(sim.host, "a test").join(5.0)
         assert _wait(lambda: _at_rest(sim), 1.0) is not None
         assert sim.stats()["program_ends"][-1][1] == "stop on the dashboard"
-    finally:
-        arm.disconnect()
 
 
 def test_a_killed_arm_process_is_stopped_by_the_controller_and_the_node_reconnects():
-    arm = build_device(KINDS, {"kind": "simulated"}, "arm")
-    arm.connect()
-    try:
-        sim = arm.local.sim
-        arm.jog(JOG)
-        assert _wait(lambda: not _at_rest(sim), 2.0) is not None
+    with _jogging_simulated_arm() as (arm, sim):
         trips = sim.stats()["watchdog_trips"]
         arm.kill()
         stopped = _wait(lambda: _at_rest(sim), 2.0)
@@ -190,5 +186,3 @@ def test_a_killed_arm_process_is_stopped_by_the_controller_and_the_node_reconnec
         assert _wait(lambda: not _at_rest(sim), 2.0) is not None
         arm.stop()
         assert _wait(lambda: _at_rest(sim), 1.0) is not None
-    finally:
-        arm.disconnect()

@@ -16,10 +16,9 @@ import logging
 import socket
 import threading
 
-log = logging.getLogger(__name__)
+from robot_side.arm.ur_rtde.connection import DASHBOARD_PORT
 
-#: the UR dashboard server's fixed port
-DASHBOARD_PORT = 29999
+log = logging.getLogger(__name__)
 #: connect, the greeting and the answer each get this long
 TIMEOUT_S = 0.5
 

@@ -47,7 +47,8 @@ RECEIVE_THREAD_SLACK_NS = 4_000_000
 PR_SET_TIMERSLACK, PR_GET_TIMERSLACK = 29, 30
 
 #: ur-rtde's fixed ports on the controller: RTDE, dashboard, the script port.
-CONTROLLER_PORTS = {30004: "RTDE", 29999: "dashboard", 30003: "script"}
+DASHBOARD_PORT = 29999
+CONTROLLER_PORTS = {30004: "RTDE", DASHBOARD_PORT: "dashboard", 30003: "script"}
 
 #: Control interfaces with a call stuck inside (see ``ControlLine.call``), kept so no
 #: destructor runs.
