@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from common.wire.codec import field_names
+from common.wire.codec_schema import WIRE_KEYS
 from common.wire.messages import Stimulus
 from common.wire.transport import free_loopback_ports
 from robot_side.arm.base import ArmLimits
@@ -30,6 +32,23 @@ def needs(module: str, reason: str | None = None) -> pytest.MarkDecorator:
     """
     missing = importlib.util.find_spec(module.split(".")[0]) is None
     return pytest.mark.skipif(missing, reason=reason or f"needs {module}")
+
+
+def readable(data: bytes, start: int = 4) -> dict:
+    """A frame's msgpack map with its fields' names as keys (as docs/protocol.md names them)."""
+    import msgpack
+
+    return field_names(msgpack.unpackb(data[start:], raw=False))
+
+
+def on_the_wire(topic: bytes, body: dict) -> bytes:
+    """``body`` (fields by name) framed as its ``v`` spells it: version 1 by name, any other
+    version with the one-character keys of version 2 (``WIRE_KEYS``)."""
+    import msgpack
+
+    if body.get("v") != 1:
+        body = {WIRE_KEYS.get(k, k): v for k, v in body.items()}
+    return topic + msgpack.packb(body, use_bin_type=True)
 
 
 def free_ports(n: int) -> list[int]:

@@ -19,11 +19,13 @@ import numpy as np
 from common.wire.codec_schema import (
     BY_TOPIC,
     DECODE_PLAN,
+    FIELD_NAMES,
     KNOWN_KEYS,
     MAX_STATS,
     MAX_UNKNOWN_DEPTH,
     RENAMED_FIELDS,
     SCHEMAS,
+    WIRE_KEYS,
     DecodeError,
     FieldTypeError,
     MalformedMessageError,
@@ -38,7 +40,13 @@ from common.wire.codec_schema import (
     UnsupportedVersionError,
     WrongRobotError,
 )
-from common.wire.messages import PROTOCOL_VERSION, Command, Heartbeat, Message
+from common.wire.messages import (
+    PROTOCOL_VERSION,
+    READABLE_VERSIONS,
+    Command,
+    Heartbeat,
+    Message,
+)
 
 __all__ = [
     "MAX_MESSAGE_BYTES",
@@ -65,6 +73,7 @@ __all__ = [
     "decode",
     "decode_named",
     "encode",
+    "field_names",
     "name_prefix",
     "split_name",
     "topic_of",
@@ -93,26 +102,36 @@ def _wire_value(v: Any) -> Any:
     return v
 
 
+#: per type, (field, its key on the wire, required), in the schema's order
+_ENCODE_PLAN = {
+    cls: [(name, WIRE_KEYS[name], required) for name, _, required in fields]
+    for cls, fields in SCHEMAS.items()
+}
+_STATS_KEY, _SIGNER_KEY = WIRE_KEYS["stats"], WIRE_KEYS["signer"]
+
+
 def encode(msg: Message, name: bytes = b"", signer: Any = None) -> bytes:
     """Topic (+ robot name) + msgpack map. Optional fields that are None are left out.
+
+    The map's keys are version 2's: one character per field (``WIRE_KEYS``).
 
     ``signer`` (a ``common.wire.signing.Signer``): the message carries its public
     key as ``signer`` and, as the map's last entry, ``sig``: the signature
     over every byte before that entry (docs/protocol.md, Signed messages).
     """
     cls = type(msg)
-    body: dict[str, Any] = {"v": PROTOCOL_VERSION, "type": cls.TYPE}
-    for field_name, _, required in SCHEMAS[cls]:
+    body: dict[str, Any] = {"v": PROTOCOL_VERSION}
+    for field_name, key, required in _ENCODE_PLAN[cls]:
         value = getattr(msg, field_name)
         if value is None and not required:
             continue
-        body[field_name] = _wire_value(value)
+        body[key] = _wire_value(value)
     if cls is Heartbeat and not msg.stats:
-        body.pop("stats", None)
+        body.pop(_STATS_KEY, None)
     prefix = name_prefix(cls.TOPIC, name) if name else cls.TOPIC
     if signer is None:
         return prefix + msgpack.packb(body, use_bin_type=True)
-    body["signer"] = signer.public
+    body[_SIGNER_KEY] = signer.public
     body["sig"] = _NO_SIG  # a placeholder of the right size: the map header counts it
     signed = (prefix + msgpack.packb(body, use_bin_type=True))[:-SIG_ENTRY_BYTES]
     return signed + SIG_TAG + signer.sign(signed)
@@ -196,16 +215,15 @@ def decode_named(data: bytes) -> tuple[bytes, Message]:
     if not isinstance(body, dict):
         raise MalformedMessageError(f"{topic.decode()} payload is not a map")
     version = body.get("v")
-    if type(version) is not int or version != PROTOCOL_VERSION:  # not True, not 1.0
+    if type(version) is not int or version not in READABLE_VERSIONS:  # not True, not 1.0
         raise UnsupportedVersionError(
             f"protocol version {version!r}; this build speaks {PROTOCOL_VERSION}"
+            f" and reads {' and '.join(map(str, READABLE_VERSIONS))}"
         )
-    if body.get("type") != cls.TYPE:
-        raise UnknownMessageTypeError(
-            f"type {body.get('type')!r} does not match topic {topic!r} ({cls.TYPE!r})"
-        )
-    if cls in RENAMED_FIELDS:
-        _rename_old_fields(body, RENAMED_FIELDS[cls])
+    if version == PROTOCOL_VERSION:
+        body = field_names(body)
+    else:
+        _check_version_1(cls, topic, body)
     if cls is Command and body.get("action") == "arm_stop":
         kwargs = _lenient_stop(body)
     else:
@@ -226,8 +244,23 @@ def decode_named(data: bytes) -> tuple[bytes, Message]:
     return name, cls(**kwargs)
 
 
-def _rename_old_fields(body: dict[str, Any], renamed: dict[str, str]) -> None:
-    for old, new in renamed.items():
+def field_names(body: dict[Any, Any]) -> dict[Any, Any]:
+    """A version-2 map with its fields' names as keys (``WIRE_KEYS`` read backwards).
+
+    A key that is no field's stays unknown (it is prefixed with ``?``, so a
+    name spelled out cannot stand in for its one-character key).
+    """
+    names = FIELD_NAMES
+    return {names.get(k) or (f"?{k}" if type(k) is str else k): v for k, v in body.items()}
+
+
+def _check_version_1(cls: type, topic: bytes, body: dict[str, Any]) -> None:
+    """Version 1's map: its ``type`` must match the topic; old names read as the new."""
+    if body.get("type") != cls.TYPE:
+        raise UnknownMessageTypeError(
+            f"type {body.get('type')!r} does not match topic {topic!r} ({cls.TYPE!r})"
+        )
+    for old, new in RENAMED_FIELDS.get(cls, {}).items():
         if old in body:
             value = body.pop(old)
             body.setdefault(new, value)

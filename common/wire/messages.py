@@ -15,7 +15,10 @@ from typing import Literal, get_args
 
 import numpy as np
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+#: what a receiver still reads: version 1 (the same fields under their full names, and a
+#: ``type``), from recordings and from nodes of an older build
+READABLE_VERSIONS = (1, 2)
 
 RenderMode = Literal["direct", "mask", "mask_ground_truth"]
 LinkState = Literal["ok", "stale", "down"]

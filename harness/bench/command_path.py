@@ -36,6 +36,7 @@ import zmq
 
 from common.clocks.clock import now_ns
 from common.errors import DeviceError
+from common.wire.codec import field_names
 from common.wire.messages import Heartbeat, Stimulus
 from common.wire.transport import Subscriber
 from deploy.units.service import Service
@@ -436,7 +437,7 @@ def run(telemetry: str, commands: str, n: int, velocity: list[float], session: i
         """Read the robot's heartbeats (non-blocking) and send ours every 50 ms."""
         while sub.poll(0):
             data = sub.recv()
-            body = msgpack.unpackb(data[4:])
+            body = field_names(msgpack.unpackb(data[4:]))
             state["echo"] = (body["t_send_ns"], time.monotonic_ns())
             state["run"] = body.get("session")
             first, echoed = state["first_echoing"], body.get("echo_t_send_ns")

@@ -19,7 +19,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from common.wire.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
+from common.wire.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode, field_names
+from common.wire.codec_schema import BY_TOPIC, WIRE_KEYS
 from common.wire.messages import (
     COMMAND_ACTIONS,
     LINK_STATES,
@@ -179,10 +180,12 @@ class Mutator:
         self.rng = random.Random(seed)
         self.kinds = kinds
         # Valid messages are made once: mutating is the work, not building the originals.
+        # Their maps are kept by field name (the mutations name fields) and framed again in
+        # either version the receivers read (``_framed``)
         self.pool: list[tuple[bytes, dict]] = []
         for _ in range(pool):
             data = encode(valid_message(self.rng, self.rng.choice(kinds) if kinds else None))
-            self.pool.append((data, msgpack.unpackb(data[4:], raw=False)))
+            self.pool.append((data, field_names(msgpack.unpackb(data[4:], raw=False))))
         self.byte_ops = [
             self._flip_bits,
             self._set_bytes,
@@ -269,6 +272,8 @@ class Mutator:
         if not isinstance(body, dict):
             return self._flip_bits(data)
         out = self.rng.choice(self.body_ops)(body)
+        if isinstance(out, dict):
+            out = self._framed(data[:4], out)
         if isinstance(out, bytes):
             return data[:4] + out
         single = self.rng.random() < 0.2  # float 32 on the wire must be accepted too
@@ -277,6 +282,13 @@ class Mutator:
         except (ValueError, OverflowError, TypeError):
             packed = msgpack.packb(str(out)[:200], use_bin_type=True)
         return data[:4] + packed
+
+    def _framed(self, topic: bytes, body: dict) -> dict:
+        """A map by field name as version 2 keys it (most) or as version 1 spelled it."""
+        cls = BY_TOPIC.get(topic)
+        if self.rng.random() < 0.25 and cls is not None:
+            return {"v": 1, "type": cls.TYPE, **body} if body.get("v") == 2 else body
+        return {WIRE_KEYS.get(k, k) if isinstance(k, str) else k: v for k, v in body.items()}
 
     def _key(self, body: dict) -> Any:
         return self.rng.choice(list(body)) if body else "v"

@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from common.wire.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
+from common.wire.codec_schema import WIRE_KEYS
 from common.wire.messages import MESSAGE_TYPES
 
 TOPICS = [b"STIM", b"FRAM", b"HBRT", b"CMND"]
@@ -94,9 +95,12 @@ def test_random_bytes_behind_a_real_topic(topic, data):
 def maps(draw) -> bytes:
     topic_i = draw(st.integers(0, 3))
     type_i = draw(st.sampled_from([topic_i, topic_i, topic_i, (topic_i + 1) % 4]))
-    body = {"v": draw(st.sampled_from([1, 1, 1, 0, 2])), "type": TYPES[type_i]}
+    body = {"v": draw(st.sampled_from([1, 2, 2, 0, 3])), "type": TYPES[type_i]}
     for name in draw(st.lists(st.sampled_from(FIELDS), max_size=12, unique=True)):
         body[name] = draw(values)
+    if body["v"] != 1:  # version 2's keys (a spelled-out name now and then: unknown there)
+        spell = draw(st.integers(0, 9)) == 0
+        body = {k if spell else WIRE_KEYS.get(k, k): v for k, v in body.items()}
     single = draw(st.booleans())
     try:
         return TOPICS[topic_i] + msgpack.packb(body, use_bin_type=True, use_single_float=single)
@@ -162,7 +166,7 @@ def test_non_finite_floats_anywhere_are_rejected():
     rnd = random.Random(4)
     for cls in MESSAGE_TYPES:
         body = msgpack.unpackb(encode(valid_message(rnd, cls))[4:])
-        for key, value in body.items():
+        for key, value in body.items():  # version 2's keys: "v" is the version
             if isinstance(value, float) or (isinstance(value, int) and key != "v"):
                 for bad in (math.nan, math.inf, -math.inf):
                     b = dict(body, **{key: bad})

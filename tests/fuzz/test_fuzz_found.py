@@ -67,7 +67,7 @@ def test_robot_keeps_echoing_its_operator_after_a_heartbeat_from_the_future():
 
 
 @pytest.mark.parametrize("version", [True, 1.0])
-def test_protocol_version_must_be_the_integer_one(version):
+def test_protocol_version_must_be_an_integer(version):
     data = encode(Heartbeat(seq=1, t_send_ns=5, node="robot", state="ok"))
     body = msgpack.unpackb(data[4:])
     body["v"] = version

@@ -19,6 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from common.wire.codec import DecodeError, decode
+from common.wire.codec_schema import WIRE_KEYS
 
 pytestmark = [pytest.mark.slow, pytest.mark.parallel]
 
@@ -150,6 +151,8 @@ def telemetry_message(draw) -> bytes:
     body = {"v": 1, "type": {b"STIM": "stimulus", b"FRAM": "frame"}.get(topic, "heartbeat")}
     for name in draw(st.lists(st.sampled_from(_FIELDS), max_size=10, unique=True)):
         body[name] = draw(_value)
+    if draw(st.booleans()):  # as this version keys it; else as version 1 did
+        body = {WIRE_KEYS.get(k, k): v for k, v in body.items() if k != "type"} | {"v": 2}
     try:
         return topic + msgpack.packb(body, use_bin_type=True)
     except (OverflowError, ValueError):

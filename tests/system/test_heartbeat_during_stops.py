@@ -58,7 +58,8 @@ while True:
     ready = dict(poller.poll())
     if sub in ready:
         data = sub.recv()
-        arrivals.append((time.monotonic_ns(), msgpack.unpackb(data[4:])["t_send_ns"]))
+        # "t": the robot's t_send_ns, under its key on the wire (docs/protocol.md)
+        arrivals.append((time.monotonic_ns(), msgpack.unpackb(data[4:])["t"]))
         if len(arrivals) == 1:
             print("ready", flush=True)
     if sys.stdin.fileno() in ready:

@@ -16,10 +16,9 @@ import threading
 import time
 from pathlib import Path
 
-import msgpack
 import pytest
 import zmq
-from tests_support import ProtocolOperator
+from tests_support import ProtocolOperator, on_the_wire, readable
 from websockets.sync.client import connect
 
 from common.clocks.clock import now_ns
@@ -161,7 +160,7 @@ def cell(tmp_path_factory):
 
 def _signed(signer, body: dict) -> bytes:
     """``body`` signed as ``common.wire.codec.encode`` signs (its sig last, over all before it)."""
-    packed = b"CMND" + msgpack.packb(dict(body, sig=bytes(64)), use_bin_type=True)
+    packed = on_the_wire(b"CMND", dict(body, sig=bytes(64)))
     signed = packed[:-SIG_ENTRY_BYTES]
     return signed + SIG_TAG + signer.sign(signed)
 
@@ -175,12 +174,12 @@ def test_a_stop_with_a_malformed_stamp_on_the_wire_stops_and_latches_the_arm(cel
     cell.jog_until_moving()
     op = cell.op
     op.seq += 1
-    body = msgpack.unpackb(
+    body = readable(
         encode(
             Command(seq=op.seq, t_send_ns=now_ns(), action="arm_stop", session=op.session,
                     echo_session=op.robot_session),
             signer=cell.signer,
-        )[4:]
+        )
     )  # fmt: skip
     body.pop("sig")
     if BAD_STAMPS[stamp] is None:
