@@ -148,7 +148,7 @@ def test_with_the_robots_key_only_its_signed_telemetry_reaches_the_palm(tmp_path
     assert node.written_goals != node.renderer.retract_goals
     # and its bytes cannot be altered on the way: the stimulus cells are signed too
     tampered = bytearray(wire)
-    cells = wire.rindex(b"\xa8stimulus") + 9 + 2  # the key, then bin8's header: the cells
+    cells = wire.rindex(b"\xa1x\xc4\x24") + 4  # x (the stimulus), then bin8's header: the cells
     tampered[cells + 4] ^= 0x01
     with pytest.raises(SignatureError):
         decode(bytes(tampered))
