@@ -51,6 +51,12 @@ STATS_PERIOD_S = 1.0
 LAG_NS = 400_000_000
 #: the router's memory may grow this much over idle through every attack (the issue's bound)
 ROUTER_GROWTH_KB = 50 * 1024
+#: every this many STOPs the controller resumes instead, and the next STOP is a press timed
+#: from the test's hand to the robot's heartbeat that shows it latched, through the router
+PRESS_EVERY = 20
+#: a pressed STOP is latched within this, plus the path's delay (loopback: none), during
+#: every attack: to the robot and its heartbeat back, both through the router
+PRESS_BUDGET_NS = 100_000_000
 
 
 def _rss_kb(pid: int) -> int:
@@ -67,6 +73,8 @@ class Wire:
         self.session = _session(fleet, "rec")
         self.stats: dict[str, list[tuple[int, dict[str, float]]]] = {r: [] for r in ROBOTS}
         self.heard: dict[str, list[int]] = {r: [] for r in ROBOTS}  # every heartbeat's arrival
+        #: every heartbeat's arrival and whether it said the robot's stop was latched
+        self.latched: dict[str, list[tuple[int, bool]]] = {r: [] for r in ROBOTS}
         self.subs = [
             self.session.declare_subscriber(keyexprs.robot_key(r, "heartbeat"), self._on)
             for r in ROBOTS
@@ -76,6 +84,9 @@ class Wire:
         robot, msg = decode_named(sample.payload.to_bytes())
         if isinstance(msg, Heartbeat):
             self.heard[robot.decode()].append(now_ns())
+            latched = msg.stats.get("arm_stop_latched")
+            if latched is not None:
+                self.latched[robot.decode()].append((now_ns(), latched == 1.0))
             # the whole counters (once a second), not the latch-and-ack of every heartbeat
             if "arm_stops_latched" in msg.stats or "frames_captured" in msg.stats:
                 self.stats[robot.decode()].append((now_ns(), msg.stats))
@@ -91,11 +102,13 @@ class Wire:
 
 
 class Stops:
-    """An operator process sending ``arm_stop`` at ``COMMAND_HZ``, each send time kept."""
+    """An operator process sending ``arm_stop`` at ``COMMAND_HZ``, each send time kept; every
+    ``PRESS_EVERY``-th an ``arm_resume`` instead, so that the STOP after it is a press."""
 
     def __init__(self, proc) -> None:
         self.proc = proc
         self.sent: list[int] = []
+        self.presses: list[tuple[int, int]] = []  # (a resume, the STOP after it) sent
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -103,9 +116,17 @@ class Stops:
     def _run(self) -> None:
         period = 1.0 / COMMAND_HZ
         next_t = time.monotonic()
-        while not self._stop.is_set():
-            self.proc.send({"action": "arm_stop"})
-            self.sent.append(now_ns())
+        for n in itertools.count(1):
+            if self._stop.is_set():
+                return
+            if n % PRESS_EVERY == 0:
+                self.proc.send({"action": "arm_resume"})
+                resumed = now_ns()
+            else:
+                self.proc.send({"action": "arm_stop"})
+                self.sent.append(now_ns())
+                if n % PRESS_EVERY == 1 and n > 1:
+                    self.presses.append((resumed, self.sent[-1]))
             next_t += period
             self._stop.wait(max(0.0, next_t - time.monotonic()))
 
@@ -195,8 +216,28 @@ def _during(fleet: Fleet, attack: str, member: str, seconds: float = ATTACK_S) -
                 f"{robot} latched {cb - ca:.0f} of {n_sent} STOPs in {span_s:.2f} s of the attack;"
                 f" its counters meanwhile: {moved}"
             )
+        _presses_latched_in_budget(fleet, robot, t0, t1)
     assert fleet.peak_kb - fleet.idle_kb < ROUTER_GROWTH_KB, (fleet.idle_kb, fleet.peak_kb)
     return heard
+
+
+def _presses_latched_in_budget(fleet: Fleet, robot: str, t0: int, t1: int) -> None:
+    """Every STOP pressed during the attack on a robot the resume before it had unlatched
+    (its heartbeat said so) was latched, as its heartbeat says, within ``PRESS_BUDGET_NS``."""
+    beats = list(fleet.wire.latched[robot])
+    took: list[float] = []
+    for resumed, press in [p for p in list(fleet.stops[robot].presses) if t0 <= p[1] <= t1]:
+        before = [latched for t, latched in beats if resumed <= t < press]
+        after = [t for t, latched in beats if t >= press and latched]
+        if not before or before[-1] or not after:
+            continue  # the resume had not reached the robot yet: no press to time
+        took.append((after[0] - press) / 1e6)
+    print(f"{robot}: STOPs pressed during the attack latched in {[round(x) for x in took]} ms")
+    assert took, f"{robot}: no STOP pressed on an unlatched robot during the attack"
+    assert max(took) <= PRESS_BUDGET_NS / 1e6, (
+        f"{robot}: a STOP pressed during the attack latched {max(took):.0f} ms later"
+        f" (budget {PRESS_BUDGET_NS / 1e6:.0f} ms): {took}"
+    )
 
 
 def test_a_robot_key_forging_another_robot_silences_nobody(fleet):
