@@ -186,3 +186,22 @@ def test_a_killed_arm_process_is_stopped_by_the_controller_and_the_node_reconnec
         assert _wait(lambda: not _at_rest(sim), 2.0) is not None
         arm.stop()
         assert _wait(lambda: _at_rest(sim), 1.0) is not None
+
+
+@pytest.mark.untimed  # no clock: a closed mapping read
+def test_the_state_read_while_the_recovery_closes_it_is_empty_not_an_error():
+    """The node's loop reads the arm process's state (its heartbeat's stats) while the
+    recovery's thread closes the view: in CI a ``ValueError: mmap closed`` from that read
+    ended the robot node's loop, and no jog moved the arm again."""
+    from robot_side.arm.process.state import StateView, new_state_file
+
+    path = new_state_file()
+    try:
+        writer, reader = StateView(path), StateView(path)
+        writer.write({"t_write_s": 1.0})
+        assert reader.read()["t_write_s"] == 1.0
+        reader.close()
+        assert reader.read() == {}
+        writer.close()
+    finally:
+        path.unlink(missing_ok=True)

@@ -187,9 +187,9 @@ class ArmProcess(Arm):
             self._release_controller()
 
     def _forget(self, path: Path | None) -> None:
-        if self._state is not None:
-            self._state.close()
-        self._child, self._state = None, None
+        state, self._child, self._state = self._state, None, None  # readers see None first
+        if state is not None:
+            state.close()
         if path is not None:
             path.unlink(missing_ok=True)
 
@@ -307,9 +307,10 @@ class ArmProcess(Arm):
 
     def _fresh_state(self) -> dict[str, float] | None:
         """The arm process's newest state; None when it stopped writing it."""
-        if self._state is None:
+        view = self._state  # the recovery's thread may close it and set None meanwhile
+        if view is None:
             return None
-        state = self._state.read()
+        state = view.read()
         if not state or now_s() - state["t_write_s"] > STATE_STALE_S:
             return None
         return state

@@ -74,18 +74,22 @@ class StateView:
 
     # ------------------------------------------------------------ the robot node
     def read(self) -> dict[str, float]:
-        """The newest complete state ({} before the first write)."""
-        for _ in range(_READ_TRIES):
-            (before,) = _SEQ.unpack_from(self._map, 0)
-            if before == 0:
-                return {}
-            if before % 2:
-                continue
-            values = _VALUES.unpack_from(self._map, _SEQ.size)
-            (after,) = _SEQ.unpack_from(self._map, 0)
-            if after == before:
-                self._last = dict(zip(FIELDS, values, strict=True))
-                break
+        """The newest complete state ({} before the first write, and once closed: the node's
+        recovery closes the view on its own thread while the loop may be reading it)."""
+        try:
+            for _ in range(_READ_TRIES):
+                (before,) = _SEQ.unpack_from(self._map, 0)
+                if before == 0:
+                    return {}
+                if before % 2:
+                    continue
+                values = _VALUES.unpack_from(self._map, _SEQ.size)
+                (after,) = _SEQ.unpack_from(self._map, 0)
+                if after == before:
+                    self._last = dict(zip(FIELDS, values, strict=True))
+                    break
+        except ValueError:  # "mmap closed or invalid"
+            return {}
         return self._last
 
     def close(self) -> None:
