@@ -221,7 +221,12 @@ def _during(fleet: Fleet, attack: str, member: str, seconds: float = ATTACK_S) -
             for a, b in itertools.pairwise(readings)
             if a[0] >= t0 and b[0] <= t1 + STATS_PERIOD_S * 1e9
         ]
-        assert len(bins) >= seconds - 1, f"{robot}: {len(bins)} readings of its counters"
+        beats = sum(1 for t in list(fleet.wire.heard[robot]) if t0 <= t <= t1)
+        assert len(bins) >= seconds - 1, (
+            f"{robot}: {len(bins)} pairs of its counters' readings in the attack; readings at"
+            f" {[round((t - t0) / 1e9, 2) for t, _ in readings if t >= t0]} s after its start"
+            f" (it lasted {(t1 - t0) / 1e9:.2f} s); {beats} heartbeats heard from it meanwhile"
+        )
         for (ta, ca), (tb, cb) in bins:
             n_sent = sum(1 for t in list(sent) if ta - LAG_NS <= t < tb - LAG_NS)
             span_s = (tb - ta) / 1e9
