@@ -76,9 +76,8 @@ class Wire:
     def __init__(self, fleet: Fleet) -> None:
         self.session = _session(fleet, "rec")
         self.stats: dict[str, list[tuple[int, dict[str, float]]]] = {r: [] for r in ROBOTS}
-        self.heard: dict[str, list[int]] = {r: [] for r in ROBOTS}  # every heartbeat's arrival
-        #: every heartbeat's arrival and whether it said the robot's stop was latched
-        self.latched: dict[str, list[tuple[int, bool]]] = {r: [] for r in ROBOTS}
+        #: every heartbeat's arrival and its ``arm_stop_latched`` (1.0, 0.0, None if absent)
+        self.heard: dict[str, list[tuple[int, float | None]]] = {r: [] for r in ROBOTS}
         self.subs = [
             self.session.declare_subscriber(keyexprs.robot_key(r, "heartbeat"), self._on)
             for r in ROBOTS
@@ -87,13 +86,11 @@ class Wire:
     def _on(self, sample) -> None:
         robot, msg = decode_named(sample.payload.to_bytes())
         if isinstance(msg, Heartbeat):
-            self.heard[robot.decode()].append(now_ns())
-            latched = msg.stats.get("arm_stop_latched")
-            if latched is not None:
-                self.latched[robot.decode()].append((now_ns(), latched == 1.0))
+            t, name = now_ns(), robot.decode()
+            self.heard[name].append((t, msg.stats.get("arm_stop_latched")))
             # the whole counters (once a second), not the latch-and-ack of every heartbeat
             if "arm_stops_latched" in msg.stats or "frames_captured" in msg.stats:
-                self.stats[robot.decode()].append((now_ns(), msg.stats))
+                self.stats[name].append((t, msg.stats))
 
     def latest(self, robot: str, name: str) -> float:
         """``name`` in the newest counters of ``robot`` (0 before any)."""
@@ -144,9 +141,9 @@ class Stops:
     def _unlatched_since(self, t_ns: int) -> bool:
         """Wait up to ``RESUME_SHOWN_S`` for a heartbeat after ``t_ns`` saying unlatched."""
         deadline = time.monotonic() + RESUME_SHOWN_S
-        beats = self.wire.latched[self.robot]
+        beats = self.wire.heard[self.robot]
         while time.monotonic() < deadline:
-            if any(t >= t_ns and not latched for t, latched in beats[-8:]):
+            if any(t >= t_ns and latched == 0.0 for t, latched in beats[-8:]):
                 return True
             time.sleep(0.002)
         return False
@@ -221,7 +218,7 @@ def _during(fleet: Fleet, attack: str, member: str, seconds: float = ATTACK_S) -
             for a, b in itertools.pairwise(readings)
             if a[0] >= t0 and b[0] <= t1 + STATS_PERIOD_S * 1e9
         ]
-        beats = sum(1 for t in list(fleet.wire.heard[robot]) if t0 <= t <= t1)
+        beats = sum(1 for t, _ in list(fleet.wire.heard[robot]) if t0 <= t <= t1)
         assert len(bins) >= seconds - 1, (
             f"{robot}: {len(bins)} pairs of its counters' readings in the attack; readings at"
             f" {[round((t - t0) / 1e9, 2) for t, _ in readings if t >= t0]} s after its start"
@@ -250,12 +247,12 @@ def _during(fleet: Fleet, attack: str, member: str, seconds: float = ATTACK_S) -
 def _presses_latched_in_budget(fleet: Fleet, robot: str, t0: int, t1: int) -> None:
     """Every STOP pressed during the attack on a robot the resume before it had unlatched
     (its heartbeat said so) was latched, as its heartbeat says, within ``PRESS_BUDGET_NS``."""
-    beats = list(fleet.wire.latched[robot])
+    beats = list(fleet.wire.heard[robot])
     took: list[float] = []
     for resumed, press in [p for p in list(fleet.stops[robot].presses) if t0 <= p[1] <= t1]:
-        before = [latched for t, latched in beats if resumed <= t < press]
-        after = [t for t, latched in beats if t >= press and latched]
-        if not before or before[-1] or not after:
+        before = [latched for t, latched in beats if resumed <= t < press and latched is not None]
+        after = [t for t, latched in beats if t >= press and latched == 1.0]
+        if not before or before[-1] != 0.0 or not after:
             continue  # the resume had not reached the robot yet: no press to time
         took.append((after[0] - press) / 1e6)
     print(f"{robot}: STOPs pressed during the attack latched in {[round(x) for x in took]} ms")
@@ -313,6 +310,6 @@ def test_a_restarted_router_has_every_node_back_within_2_s(fleet):
             10,
             f"{robot} latching STOPs again",
         )
-        back_s = (min(t for t in list(fleet.wire.heard[robot]) if t > t_up) - t_up) / 1e9
+        back_s = (min(t for t, _ in list(fleet.wire.heard[robot]) if t > t_up) - t_up) / 1e9
         print(f"{robot} heard again {back_s:.2f} s after the router listened")
         assert back_s <= 2.0, back_s
