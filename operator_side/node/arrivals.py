@@ -23,6 +23,8 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from common.clocks.clock_sync import ClockSync
 from common.logs import BurstLog
 from common.tactile.contract import matches_pattern
@@ -101,6 +103,8 @@ class Arrivals:
         #: guards what the live views read from another thread
         self.lock = threading.Lock()
         self.stimulus: Stimulus | None = None
+        #: (session, seq) of the change the stimulus's cells came with (``_content_of``)
+        self.content: tuple[int | None, int] | None = None
         self.local_capture_ns: int | None = None  # newest confirmation, local clock
         self.latency_capture_ns: int | None = None  # a stimulus's capture, until rendered
         self.frame: TactileFrame | None = None
@@ -202,6 +206,7 @@ class Arrivals:
         if wire is not None:
             self.recording.stimulus(msg.seq, t_recv, wire)
         local_capture = self.heard.to_local(msg.t_capture_ns, t_recv)
+        self.content = _content_of(msg, last, self.content)
         with self.lock:
             self.stimulus = msg
             self.local_capture_ns = local_capture
@@ -228,8 +233,13 @@ class Arrivals:
         # stop latch, the gripper's ack) and the whole counters once a second
         self.robot_stats = {**self.robot_stats, **msg.stats}
         self.on_robot_stats(msg.stats)
-        stim = self.stimulus
-        if stim is not None and msg.stimulus_seq == stim.seq and msg.t_capture_ns is not None:
+        stim, named = self.stimulus, msg.stimulus_seq
+        if (
+            stim is not None
+            and named is not None
+            and msg.t_capture_ns is not None
+            and (named == stim.seq or (msg.session, named) == self.content)
+        ):
             local = self.heard.to_local(msg.t_capture_ns, t_recv)
             with self.lock:
                 if self.local_capture_ns is None or local > self.local_capture_ns:
@@ -244,3 +254,26 @@ class Arrivals:
         """(stimulus, frame, robot stats) for a live view, from any thread."""
         with self.lock:
             return self.stimulus, self.frame, dict(self.robot_stats)
+
+
+def _content_of(
+    msg: Stimulus, last: Stimulus | None, content: tuple[int | None, int] | None
+) -> tuple[int | None, int] | None:
+    """The change whose cells ``msg`` renders, as the robot's heartbeats name it.
+
+    A robot's heartbeat names its last change (``stimulus_seq``), not the
+    keyframes that repeat it, so that one of them lost does not leave the
+    palm unconfirmed while the heartbeats say nothing changed. A keyframe
+    keeps the change we have when it repeats its cells; with other cells it
+    repeats a change we lost, which we cannot name: until the next change,
+    only the keyframes confirm (as before).
+    """
+    if not msg.keyframe:
+        return msg.session, msg.seq
+    same = (
+        last is not None
+        and last.session == msg.session
+        and last.pattern == msg.pattern
+        and np.array_equal(last.stimulus, msg.stimulus)
+    )
+    return content if same else None

@@ -101,6 +101,9 @@ class FramePipeline:
         self.last_frame: np.ndarray | None = None  # the last frame processed
         #: the stimulus the operator renders now: the last one sent, keyframes included
         self.last_stimulus: Stimulus | None = None
+        #: the last change sent (not a keyframe): what a heartbeat names as current, so that an
+        #: operator that lost the keyframes since still has it confirmed (their cells are its)
+        self.last_change: Stimulus | None = None
 
     # ------------------------------------------------------------ the rate cap
     def frames_until_due(self, now: int) -> int:
@@ -240,6 +243,8 @@ class FramePipeline:
         self._last_cells = cells
         self._last_pattern = pattern
         self.last_stimulus = msg
+        if not keyframe:
+            self.last_change = msg
         self._last_publish_ns = now
         self.counters["keyframes" if keyframe else "stimuli_published"] += 1
         return msg

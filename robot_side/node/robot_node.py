@@ -338,7 +338,7 @@ class RobotNode:
         if self._recording:
             self.recorder.write("robot/link", now, {"state": self.link_state, **self.stats()})
         self.telemetry.send_heartbeat(
-            self.link_state, pipeline.last_stimulus, pipeline.last_capture_ns
+            self.link_state, pipeline.last_change, pipeline.last_capture_ns
         )
         pipeline.heartbeat_sent(now)
 

@@ -102,6 +102,7 @@ class Telemetry:
     def send_heartbeat(
         self, state: str, last: Stimulus | None, last_capture_ns: int | None
     ) -> None:
+        """``last``: the last change sent, which the keyframes since repeat (``stimulus_seq``)."""
         self.now_wanted = False
         self._hb_seq += 1
         desk, lease = self.desk, self.desk.lease
