@@ -19,7 +19,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.untimed]  # a short demo; no timing 
 def test_a_short_soak_shows_its_progress_and_eta(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k not in ("CI", "TERM")}
     env["PYTHONPATH"] = str(ROOT)
-    argv = [sys.executable, "-m", "deploy.cli", "soak", "--minutes", "0.25", "--sample-s", "2",
+    argv = [sys.executable, "-m", "deploy.cli", "soak", "--minutes", "0.1", "--sample-s", "2",
             "--no-replay", "--dir", str(tmp_path / "run")]  # fmt: skip
     seen, _ = stderr_on_pty(argv, env, cwd=ROOT, timeout_s=240.0)
     text = seen.decode(errors="replace")
