@@ -42,6 +42,12 @@ class Rig:
         self.node.receive()
         self.node.palm_step(self.clock(), self.period)
 
+    def change_then_keyframe(self, keyframe_seq: int = 2, cells: np.ndarray = CELLS) -> None:
+        """Change 1 (``CELLS``), then 25 ms later a keyframe with ``cells``."""
+        self.deliver(_stimulus(1, self.clock(), CELLS, keyframe=False))
+        self.clock.advance(25_000_000)
+        self.deliver(_stimulus(keyframe_seq, self.clock(), cells, keyframe=True))
+
     def heartbeats_for(self, duration_ns: int, names: int, **kw) -> None:
         """A robot heartbeat every 50 ms naming ``names``, the palm stepped between them."""
         end = self.clock() + duration_ns
@@ -53,9 +59,7 @@ class Rig:
 
 def test_heartbeats_naming_the_change_keep_the_palm_on_while_its_keyframes_are_lost():
     rig = Rig()
-    rig.deliver(_stimulus(1, rig.clock(), CELLS, keyframe=False))
-    rig.clock.advance(25_000_000)
-    rig.deliver(_stimulus(2, rig.clock(), CELLS, keyframe=True))
+    rig.change_then_keyframe()
     assert rig.node.link_state == "ok"
     # keyframes 3, 4, ... lost; the heartbeats name change 1, whose cells the palm shows
     rig.heartbeats_for(4 * rig.stale_ns, names=1)
@@ -64,20 +68,16 @@ def test_heartbeats_naming_the_change_keep_the_palm_on_while_its_keyframes_are_l
 
 def test_a_heartbeat_naming_a_change_the_palm_never_got_confirms_nothing():
     rig = Rig()
-    rig.deliver(_stimulus(1, rig.clock(), CELLS, keyframe=False))
     # change 2 (other cells) lost; its keyframe 3 arrives: the palm shows change 2's cells
     # without knowing the change's number, so only keyframes confirm it
-    rig.clock.advance(25_000_000)
-    rig.deliver(_stimulus(3, rig.clock(), OTHER, keyframe=True))
+    rig.change_then_keyframe(keyframe_seq=3, cells=OTHER)
     rig.heartbeats_for(2 * rig.stale_ns, names=2)
     assert rig.node.link_state == "stale"
 
 
 def test_a_heartbeat_of_another_run_naming_the_same_number_confirms_nothing():
     rig = Rig()
-    rig.deliver(_stimulus(1, rig.clock(), CELLS, keyframe=False))
-    rig.clock.advance(25_000_000)
-    rig.deliver(_stimulus(2, rig.clock(), CELLS, keyframe=True))
+    rig.change_then_keyframe()
     rig.heartbeats_for(2 * rig.stale_ns, names=1, session=SESSION + 1)
     assert rig.node.link_state == "stale"
 
