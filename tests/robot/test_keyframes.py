@@ -60,3 +60,27 @@ def test_on_the_fabric_keyframes_fill_between_heartbeats():
 def test_on_a_direct_link_heartbeats_leave_the_keyframes_alone(heartbeats: bool):
     sent = _keyframes_in_a_second(None, heartbeats=heartbeats)
     assert len(sent) == 1, sent  # one 500 ms after the grasp's first stimulus
+
+
+def test_a_heartbeat_names_the_change_the_keyframes_repeat():
+    """An operator that lost keyframes still has the change they repeat: the heartbeat names
+    that change (its ``stimulus_seq``), so it confirms the palm's stimulus all the same."""
+    from common.wire.messages import Heartbeat, Stimulus
+
+    config = RobotConfig()
+    config.render.keyframe_interval_ms = FABRIC_KEYFRAME_MS
+    config.render.mode = "direct"
+    clock, link = VirtualClock(), CaptureLink()
+    node = RobotNode(config, None, now=clock, link=link)
+    frame = np.zeros((2, 10, 10), np.float32)
+    frame[:, 4:6, 4:6] = 1.0  # pressed, the same every frame
+    truth = GraspTruth(pattern=None, grip_level=None)
+    for seq in range(1, 13):  # 100 ms of a held grasp: its change, then keyframes
+        clock.advance(FRAME_NS)
+        node.pipeline.offer(TactileSample(frame, seq, clock(), truth), clock())
+    node._send_heartbeat()
+    stimuli = [m for m in link.messages if isinstance(m, Stimulus)]
+    heartbeat = [m for m in link.messages if isinstance(m, Heartbeat)][-1]
+    changes = [m.seq for m in stimuli if not m.keyframe]
+    assert len(changes) == 1 and stimuli[-1].keyframe, [(m.seq, m.keyframe) for m in stimuli]
+    assert heartbeat.stimulus_seq == changes[0] != stimuli[-1].seq
