@@ -161,6 +161,12 @@ def canvases(browser: Chromium) -> dict[str, str]:
     )
 
 
+#: how long the page may take to show a stimulus and draw it: no product budget (the page draws
+#: on the browser's animation frames), only how long a renderer starved by the deployment lane
+#: took (a first draw did not answer within 2 s in a clean clone's CI)
+SETTLE_S = 15.0
+
+
 def settled_on(browser: Chromium, node: OperatorNode, pattern: int) -> None:
     """Wait until the page shows ``pattern`` and the servo goals have stopped moving."""
     want = stimulus_of(pattern).tolist()
@@ -174,9 +180,9 @@ def settled_on(browser: Chromium, node: OperatorNode, pattern: int) -> None:
             and s.get("frame") is not None
             and s.get("counts") == target
         ),
-        timeout_s=5,
+        timeout_s=SETTLE_S,
     )
-    browser.wait_until("dxp.draws.linkage > 0 && dxp.joints != null", bool, timeout_s=2)
+    browser.wait_until("dxp.draws.linkage > 0 && dxp.joints != null", bool, timeout_s=SETTLE_S)
     time.sleep(0.1)  # one more animation frame for the canvases
 
 

@@ -226,6 +226,10 @@ def test_the_command_line_prints_the_rates(robot):
         assert sent > RATES[topic] / 2, (topic, proc.stdout)
 
 
+#: how long the command watches a robot node
+WATCH_S = 3.0
+
+
 def test_a_robot_node_is_read_as_it_sends(robot_in_thread):
     """A real robot node: its heartbeats, stimuli and raw frames at the rates it sent them
     (its sequence numbers over its own clock), its session; nothing signed (no key)."""
@@ -234,8 +238,10 @@ def test_a_robot_node_is_read_as_it_sends(robot_in_thread):
 
     tel, cmd = free_ports(2)
     node = robot_in_thread(tel, cmd)
-    code, out, _ = _topic("--endpoint", loopback(tel), "--duration", "3", "--json")
+    starved_ms = node.counters["late_wake_ms"]
+    code, out, _ = _topic("--endpoint", loopback(tel), "--duration", str(WATCH_S), "--json")
     assert code == 0
+    starved_s = (node.counters["late_wake_ms"] - starved_ms) / 1e3
     (robot,) = json.loads(out)["robots"].values()
     topics = robot["topics"]
     for topic in ("heartbeat", "stimulus", "frame"):
@@ -244,10 +250,12 @@ def test_a_robot_node_is_read_as_it_sends(robot_in_thread):
         assert t["rate_hz"] == pytest.approx(t["sent_hz"] * arrived, rel=0.10), (topic, t)
         assert t["sessions"] == {f"{node.session:016x}": t["count"]}
         assert t["signers"] == {"unsigned": t["count"]}
-    # its own pace, however loaded the machine: about its 20 heartbeats a second, raw
-    # frames never above their display rate
+    # its own pace: about its 20 heartbeats a second, less the time its loop counted itself
+    # starved (it runs in a thread of this test's process, which a busy lane starved 0.9 s of a
+    # 3 s watch in CI: no heartbeat went out meanwhile); raw frames never above their rate
     heartbeat_hz = RobotLinkConfig().heartbeat_rate_hz
-    assert heartbeat_hz / 2 < topics["heartbeat"]["sent_hz"] < heartbeat_hz * 1.1
+    least = heartbeat_hz / 2 * max(0.0, 1 - starved_s / WATCH_S)
+    assert least < topics["heartbeat"]["sent_hz"] < heartbeat_hz * 1.1, (starved_s, topics)
     assert topics["frame"]["sent_hz"] < DIRECT_FRAME_DISPLAY_HZ * 1.1
 
 
