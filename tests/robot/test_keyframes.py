@@ -23,16 +23,24 @@ FRAME_NS = round(1e9 / 120)
 HEARTBEAT_NS = 50_000_000
 
 
-def _keyframes_in_a_second(keyframe_ms: float | None, heartbeats: bool) -> list[int]:
-    """Send times (ns) of the keyframes of one held grasp over a second, heartbeats or not;
-    ``keyframe_ms`` None: a direct link's default interval."""
+def _held_grasp(
+    keyframe_ms: float | None,
+) -> tuple[VirtualClock, CaptureLink, RobotNode, np.ndarray]:
+    """A robot node on a capture link, and a frame pressed the same every time."""
     config = RobotConfig()
     config.render.keyframe_interval_ms = keyframe_ms
     config.render.mode = "direct"
     clock, link = VirtualClock(), CaptureLink()
     node = RobotNode(config, None, now=clock, link=link)
     frame = np.zeros((2, 10, 10), np.float32)
-    frame[:, 4:6, 4:6] = 1.0  # pressed, the same every frame
+    frame[:, 4:6, 4:6] = 1.0
+    return clock, link, node, frame
+
+
+def _keyframes_in_a_second(keyframe_ms: float | None, heartbeats: bool) -> list[int]:
+    """Send times (ns) of the keyframes of one held grasp over a second, heartbeats or not;
+    ``keyframe_ms`` None: a direct link's default interval."""
+    clock, link, node, frame = _held_grasp(keyframe_ms)
     next_heartbeat = HEARTBEAT_NS
     for seq in range(1, 121):
         clock.advance(FRAME_NS)
@@ -67,13 +75,7 @@ def test_a_heartbeat_names_the_change_the_keyframes_repeat():
     that change (its ``stimulus_seq``), so it confirms the palm's stimulus all the same."""
     from common.wire.messages import Heartbeat, Stimulus
 
-    config = RobotConfig()
-    config.render.keyframe_interval_ms = FABRIC_KEYFRAME_MS
-    config.render.mode = "direct"
-    clock, link = VirtualClock(), CaptureLink()
-    node = RobotNode(config, None, now=clock, link=link)
-    frame = np.zeros((2, 10, 10), np.float32)
-    frame[:, 4:6, 4:6] = 1.0  # pressed, the same every frame
+    clock, link, node, frame = _held_grasp(FABRIC_KEYFRAME_MS)
     truth = GraspTruth(pattern=None, grip_level=None)
     for seq in range(1, 13):  # 100 ms of a held grasp: its change, then keyframes
         clock.advance(FRAME_NS)
