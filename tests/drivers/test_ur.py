@@ -65,19 +65,7 @@ def arm(sim):
 
 @pytest.fixture
 def still_arm(arm, sim):
-    """The shared arm, guaranteed connected with its script running, at rest before and after.
-
-    This module runs the driver inside a pytest worker beside three others on two cores, the
-    layout the node left for its arm process (docs/arm.md): its kicks wait for this worker's
-    interpreter lock, and a starved worker between two tests can trip the controller's
-    watchdog. That is reconnected here, as the node's recovery would, and said; the watchdog's
-    own behaviour is tested in ``test_ur_watchdog.py`` and, in the deployed layout, by the node
-    death tests.
-    """
-    if arm.needs_reconnect:
-        print(f"the shared arm reconnected: {arm.line.program_lost or arm.line.broken}")
-        arm.disconnect()
-        arm.connect()
+    """The shared arm, guaranteed at rest before and after the test."""
     arm.stop()
     yield arm
     arm.stop()
