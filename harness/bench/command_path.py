@@ -114,8 +114,11 @@ class Telemetry:
         sent = (m.t_send_ns for _, m in self.messages if isinstance(m, kind))
         return [t for t in sent if t0 <= t <= t1]
 
-    def robot_stats(self) -> dict[str, float]:
-        beats = [m for _, m in self.messages if isinstance(m, Heartbeat)]
+    def robot_stats(self, sent_by_ns: int = 2**63) -> dict[str, float]:
+        """The robot's counters in its newest heartbeat sent by ``sent_by_ns`` (its own stamp)."""
+        beats = [
+            m for _, m in self.messages if isinstance(m, Heartbeat) and m.t_send_ns <= sent_by_ns
+        ]
         return beats[-1].stats if beats else {}
 
     def close(self) -> None:

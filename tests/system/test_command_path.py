@@ -108,6 +108,7 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
     )
     try:
         op.sync()
+        trips_before = telemetry.robot_stats().get("deadman_trips", 0)
         # the machine's own stalls, with no command in flight: what the command path must not add to
         i0 = now_ns()
         op.pump(3.0)
@@ -134,6 +135,7 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
             cycles += 1
         t1 = now_ns()
         op.pump(0.2)
+        last_send_ns = op.sent_ns[-1]
     finally:
         op.sub.close()
         op.pub.close()
@@ -153,6 +155,13 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
         "idle_heartbeat": gap(Heartbeat, i0, i1),
         # this process's own longest silence toward the robot while it jogged (its clock)
         "operator_silence_ms": float(max(np.diff([t for t in op.sent_ns if t0 <= t <= t1]))) / 1e6,
+        # deadman trips while this operator spoke: its own silence after its last send trips the
+        # deadman a quarter second later (the session ended), so counters sent after that are not
+        # the run's; a heartbeat sent within that quarter second is, whenever it arrives here
+        "deadman_trips": telemetry.robot_stats(
+            sent_by_ns=last_send_ns + round(0.8 * RobotConfig().link.deadman_ms * 1e6)
+        ).get("deadman_trips", 0)
+        - trips_before,
     }
 
 
@@ -191,7 +200,7 @@ def test_jog_and_stop_repeated_never_stall_the_telemetry(rig):
     # no false deadman trip: the deadman stops the arm a quarter second after the operator's
     # newest fresh message, so a trip needs that much silence, this process's own (starved on
     # a loaded machine) or the robot loop's, where its heartbeats show it (one every 50 ms)
-    trips = rig.telemetry.robot_stats().get("deadman_trips", 0)
+    trips = run["deadman_trips"]
     silent_ms = run["operator_silence_ms"]
     robot_stall_ms = max(np.diff(sorted(run["heartbeat"]))) / 1e6 - 50.0
     deadman_ms = RobotConfig().link.deadman_ms
