@@ -93,8 +93,8 @@ class Palm:
                 state,
                 "n/a" if age_ms is None else f"{age_ms:.0f}",
             )
-            if state != "ok":
-                self.counters["lift_offs"] += 1
+            if self.link_state == "ok":  # the palm left a fresh stimulus (a first one read
+                self.counters["lift_offs"] += 1  # stale never put it on: no lift-off)
             self.link_state = state
             self.link_changes.append((now, state))
         key = stim.seq if stimulus is not None else None
