@@ -62,6 +62,12 @@ STOP_COPIES = 2
 #: at 1,800 nearly half (a message split over datagrams is lost with any of them). A larger
 #: latest-value message goes reliably instead (``link_fabric_too_big_for_a_datagram``)
 DATAGRAM_BYTES = 1100
+#: the least time between two of a robot's heartbeats on the fabric. The router lets one of
+#: each key through per 1/hz (``router_side.acl.RateLimits.robot_heartbeat_hz``, 200/s: 5 ms)
+#: and drops the newer; a heartbeat that announces a lease or latch change sent 2 ms after the
+#: periodic one was dropped, and the change showed 50 ms later. Twice the gate's interval, so
+#: that jitter that halves two heartbeats' spacing on the way still lets both through
+HEARTBEAT_SPACING_MS = 10.0
 #: how many stop payloads the receiver remembers per sender to drop the copies of: one
 #: sender's flood of stops (at its key's gated rate) turns over its own memory, nobody else's
 _STOP_MEMORY = 32

@@ -254,7 +254,8 @@ class RobotNode:
             sample = self.tactile.take_newer(wanted_after)
             due = self.now()
             if sample is None:
-                due = min(heartbeat.deadline_ns, self._deadman_deadline(), t_end or NEVER_NS)
+                beat = heartbeat.wake_ns(self.telemetry.now_wanted)
+                due = min(beat, self._deadman_deadline(), t_end or NEVER_NS)
                 self._wait(due)
                 sample = self.tactile.take_newer(wanted_after)
             self.counters["wakeups"] += 1
@@ -279,11 +280,10 @@ class RobotNode:
             # the assist acts on the pattern just recognised, locally, with no round trip
             self.assist.step(self.now())
             # write: heartbeats and video answers
-            if heartbeat.due(now) or self.telemetry.now_wanted:
-                on_grid = heartbeat.due(now)  # else an announcement: one more, off the grid
+            on_grid = heartbeat.due(now)  # else an announcement: one more, off the grid
+            if on_grid or (self.telemetry.now_wanted and heartbeat.may_announce(now)):
                 self._send_heartbeat()
-                if on_grid:
-                    heartbeat.done(now)
+                heartbeat.sent(now, on_grid)
             watch.mark("assist and heartbeat")
             self.video.serve(now)
             watch.turn_done("video")

@@ -13,6 +13,7 @@ from collections import Counter
 from collections.abc import Callable
 
 from common.clocks.clock import Periodic
+from common.fabric.link import HEARTBEAT_SPACING_MS
 from common.keys.curve import Authenticator
 from common.logs import BurstLog
 from common.tactile.stimulus import sanitize_frame
@@ -39,30 +40,51 @@ class HeartbeatSchedule:
     that one's early window, so the rate stays exactly ``hz``. A heartbeat sent
     off the grid (``Telemetry.announce``: a lease or latch change) is one
     more and moves no deadline, or the next would come up to two periods later.
+
+    No two heartbeats go out closer than ``spacing_s`` (on the fabric: the
+    router's rate gate drops the newer of two closer ones, and the newer is
+    the one that announces a change); one due sooner waits for it.
     """
 
-    def __init__(self, hz: float, early_s: float) -> None:
+    def __init__(self, hz: float, early_s: float, spacing_s: float = 0.0) -> None:
         self._grid = Periodic(hz, early_s)
         self._last_ns: int | None = None  # the last heartbeat on the grid
+        self._spacing_ns = round(spacing_s * 1e9)
+        self._earliest_ns = 0  # the next heartbeat, on the grid or not, not before this
 
     @classmethod
     def of_link(cls, link_cfg: RobotLinkConfig) -> HeartbeatSchedule:
-        """The schedule the link's config sets: its rate (or its mode's), its early window."""
-        return cls(link_cfg.heartbeat_rate_hz, link_cfg.heartbeat_early_ms / 1e3)
+        """The schedule the link's config sets: its rate (or its mode's), its early window,
+        and on the fabric the spacing its router's rate gate needs."""
+        spacing_ms = HEARTBEAT_SPACING_MS if link_cfg.mode == "fabric" else 0.0
+        return cls(link_cfg.heartbeat_rate_hz, link_cfg.heartbeat_early_ms / 1e3, spacing_ms / 1e3)
 
     @property
     def deadline_ns(self) -> int:
         """The latest time the next heartbeat may go out: the loop wakes for it then."""
         grid = self._grid.deadline_ns
-        return grid if self._last_ns is None else min(grid, self._last_ns + self._grid.period_ns)
+        if self._last_ns is not None:
+            grid = min(grid, self._last_ns + self._grid.period_ns)
+        return max(grid, self._earliest_ns)
+
+    def wake_ns(self, announce: bool) -> int:
+        """When the loop wakes for the next heartbeat; ``announce``: one is wanted at once."""
+        return self._earliest_ns if announce else self.deadline_ns
 
     def due(self, now: int) -> bool:
-        return self._grid.due(now)
+        """The heartbeat on the grid may go out now."""
+        return now >= self._earliest_ns and self._grid.due(now)
 
-    def done(self, now: int) -> None:
-        """The heartbeat due on the grid went out at ``now``."""
-        self._grid.done(now)
-        self._last_ns = now
+    def may_announce(self, now: int) -> bool:
+        """A heartbeat off the grid may go out now (far enough from the last one)."""
+        return now >= self._earliest_ns
+
+    def sent(self, now: int, on_grid: bool) -> None:
+        """A heartbeat went out at ``now``: the one due on the grid, or one more."""
+        if on_grid:
+            self._grid.done(now)
+            self._last_ns = now
+        self._earliest_ns = now + self._spacing_ns
 
 
 class Telemetry:
