@@ -42,7 +42,12 @@ RECEIVE_VARIABLES = [
 #: is read before the next arrives, at most 4 ms after the controller sent it (the node reads the
 #: pose every 20 ms, the stops their "at rest" within 4 ms more), for about 250 wakes a second.
 #: The control interface's thread stays as its creator made it (real-time in the arm process):
-#: a command's handshake and the script's state come through it.
+#: a command's handshake and the script's state come through it. Every kick and jog
+#: (``sendCommand``) reads the state this thread writes, under the state's lock, and spins
+#: until the script says ready. Made like the receive interface's (fair, a 2 ms slack), the arm
+#: process fell from 8.8 to 4.2 % of a core, and the keep-alive's period beside two busy loops
+#: went from p99.9 20.5 ms (max 21.2) to 23.8 (max 27.9): a real-time kick waited for a fair
+#: thread. Kept real-time: the keep-alive's period is the watchdog's margin, the CPU is not.
 RECEIVE_THREAD_SLACK_NS = 4_000_000
 PR_SET_TIMERSLACK, PR_GET_TIMERSLACK = 29, 30
 
