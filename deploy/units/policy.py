@@ -23,14 +23,16 @@ _CLEAN_SIGNALS = {signal.SIGHUP, signal.SIGINT, signal.SIGTERM, signal.SIGPIPE}
 
 @dataclass(frozen=True)
 class RestartPolicy:
-    """A unit's Restart=, RestartSec=, WatchdogSec= (0: none), Nice= (None: none),
-    TimeoutAbortSec= and ExecStopPost= (the ``deepxpalm`` arguments it runs after any exit)."""
+    """A unit's Restart=, RestartSec=, WatchdogSec= (0: none), Nice= and CPUWeight= (None:
+    none), TimeoutAbortSec= and ExecStopPost= (the ``deepxpalm`` arguments it runs after any
+    exit)."""
 
     unit: str
     restart: str
     restart_sec: float
     watchdog_sec: float
     nice: int | None = None
+    cpu_weight: int | None = None
     timeout_abort_sec: float = 10.0
     stop_post: tuple[str, ...] = ()
 
@@ -69,6 +71,7 @@ def policy(unit: str, units_dir: Path = UNITS_DIR) -> RestartPolicy | None:
         restart_sec=_seconds(keys.get("RestartSec", "100ms")),
         watchdog_sec=_seconds(keys.get("WatchdogSec", "0")),
         nice=int(keys["Nice"]) if "Nice" in keys else None,
+        cpu_weight=int(keys["CPUWeight"]) if "CPUWeight" in keys else None,
         timeout_abort_sec=_seconds(keys.get("TimeoutAbortSec", keys.get("TimeoutStopSec", "10"))),
         stop_post=_deepxpalm_args(keys.get("ExecStopPost", "")),
     )

@@ -12,7 +12,7 @@ import pytest
 
 from deploy.units import process
 from deploy.units.catalogue import UNITS, UnitSpec, unit
-from deploy.units.policy import UNITS_DIR
+from deploy.units.policy import UNITS_DIR, policy
 from deploy.units.readiness import NotifySocket, NotReady
 from deploy.units.service import Service
 
@@ -147,3 +147,16 @@ def test_every_shipped_unit_is_in_the_catalogue_with_its_rules():
 def test_a_name_not_in_the_catalogue_says_which_are():
     with pytest.raises(KeyError, match="robot"):
         unit("robott")
+
+
+def test_a_unit_above_other_work_weighs_its_group_as_its_niceness_weighs_a_thread():
+    """Nice= ranks threads only inside the unit's own group (systemd gives each service a
+    control group and a session of its own); CPUWeight= is what ranks the unit against other
+    work. The kernel weighs a thread about 1.25 times more per step of niceness."""
+    ranked = [p for p in map(policy, ("robot", "operator", "router")) if p is not None]
+    assert len(ranked) == 3
+    for unit_policy in ranked:
+        assert unit_policy.nice is not None and unit_policy.nice < 0, unit_policy
+        assert unit_policy.cpu_weight is not None, f"{unit_policy.unit}: Nice= without CPUWeight="
+        thread_ratio = 1.25**-unit_policy.nice
+        assert 0.8 <= (unit_policy.cpu_weight / 100) / thread_ratio <= 1.25, unit_policy
