@@ -172,26 +172,30 @@ def deployment(tmp_path_factory):
     viewers: dict[str, SignedViewer] = {}
     try:
         with fleet:
-            fleet.start_router()
-            _, video_url = fleet.start_video(settings=(f"ice_timeout_s={ICE_S}",))  # serving
-            fleet.start_robot("cell1", None, video_url=video_url)
-            dashboard = ["--set", "operator.dashboard.enabled=true"]
-            dashboard += ["--set", "operator.dashboard.port=0"]  # a free one, said when ready
-            dashboard += ["--set", 'operator.dashboard.video_url="link"']
-            ctl = fleet.start_operator("ctl", "cell1", want_frames=False, extra=dashboard)
-            page = ctl.wait_ready(30).endpoints["dashboard"]
-            page_port = int(page.rstrip("/").rpartition(":")[2])
-            token = from_query(re.search(r"dashboard: (\S+)", ctl.log_text())[1])
-            page_ws = with_token(f"ws://127.0.0.1:{page_port}/ws", token)
-            for name in ("obs1", "obs2", "peek", "rec"):
-                viewers[name] = SignedViewer(fleet, name)
-            time.sleep(1.0)  # the subscriptions reach the router
-            yield Deployment(
-                fleet, video_url, page_ws, viewers, _silent_offer(silent.getsockname()[1])
-            )
+            try:
+                fleet.start_router()
+                _, video_url = fleet.start_video(settings=(f"ice_timeout_s={ICE_S}",))  # serving
+                fleet.start_robot("cell1", None, video_url=video_url)
+                dashboard = ["--set", "operator.dashboard.enabled=true"]
+                dashboard += ["--set", "operator.dashboard.port=0"]  # a free one, said when ready
+                dashboard += ["--set", 'operator.dashboard.video_url="link"']
+                ctl = fleet.start_operator("ctl", "cell1", want_frames=False, extra=dashboard)
+                page = ctl.wait_ready(30).endpoints["dashboard"]
+                page_port = int(page.rstrip("/").rpartition(":")[2])
+                token = from_query(re.search(r"dashboard: (\S+)", ctl.log_text())[1])
+                page_ws = with_token(f"ws://127.0.0.1:{page_port}/ws", token)
+                for name in ("obs1", "obs2", "peek", "rec"):
+                    viewers[name] = SignedViewer(fleet, name)
+                time.sleep(1.0)  # the subscriptions reach the router
+                yield Deployment(
+                    fleet, video_url, page_ws, viewers, _silent_offer(silent.getsockname()[1])
+                )
+            finally:
+                # while the router still answers: a Zenoh session whose router is gone waits
+                # out its links' goodbye (10 s) before it closes
+                for v in viewers.values():
+                    v.close()
     finally:
-        for v in viewers.values():
-            v.close()
         silent.close()
 
 
