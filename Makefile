@@ -96,13 +96,15 @@ test: $(STAMP)
 	$(BIN)/python tests/export/lerobot_env.py || [ -z "$$CI" ]
 	@# the robot node's numba code, the bytecode of the heavy packages and pytest's rewrite
 	@# of every test module, compiled once (about 14, 13 and 5 s cold), not by every worker
-	@# and every process it starts at once; the collection writes the lanes' test index
+	@# and every process it starts at once; the collection writes the lanes' test index. The
+	@# numba warm-up is the shorter: the collection takes its core when it ends.
 	rm -f $(TEST_INDEX)
-	$(AT_TEST_PRIORITY) $(BIN)/python -m robot_side.node.jit_warm & warm=$$!; \
-	$(AT_TEST_PRIORITY) $(BIN)/python scripts/warm-bytecode.py && \
+	$(AT_TEST_PRIORITY) $(BIN)/python scripts/warm-bytecode.py & bytecode=$$!; \
+	$(AT_TEST_PRIORITY) $(BIN)/python -m robot_side.node.jit_warm; jit=$$?; \
 	{ $(AT_TEST_PRIORITY) $(BIN)/python -m pytest -q --collect-only -p no:cacheprovider \
 		--write-test-index=$(TEST_INDEX) >/dev/null \
-		|| echo "collection failed: the lanes below report why"; } && wait $$warm
+		|| echo "collection failed: the lanes below report why"; }; \
+	wait $$bytecode && [ $$jit -eq 0 ]
 	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty
 	status=0; \
 	$(LANE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
