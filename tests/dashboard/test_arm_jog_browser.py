@@ -201,6 +201,26 @@ def move_for(sim: URSimProcess, seconds: float) -> tuple[np.ndarray, float]:
     return sim.tcp_pose() - start, top
 
 
+#: the robot's counters that say why a held jog moved the arm less than it should have
+JOG_COUNTERS = (
+    "commands_received",
+    "commands_stale",
+    "commands_unsynced",
+    "commands_from_future",
+    "arm_deadman_stops",
+    "deadman_trips",
+    "arm_stop_latched",
+)
+
+
+def robot_said(rig: RobotUnderCommands, before: dict[str, float]) -> dict[str, float]:
+    """The change in the robot's jog counters since ``before`` (its heartbeats' stats): a
+    failed distance check says whether the jogs arrived, aged out or were cut by the
+    deadman, instead of only how far the arm went."""
+    now = rig.telemetry.robot_stats()
+    return {k: now.get(k, 0.0) - before.get(k, 0.0) for k in JOG_COUNTERS if k in now}
+
+
 def page_follows_the_arm(browser: Chromium, sim: URSimProcess, for_s: float = 3.0) -> None:
     """The page's x is one the simulator had at most ``SHOWN_WITHIN_S`` before the page was read.
 
@@ -242,12 +262,12 @@ def page_follows_the_arm(browser: Chromium, sim: URSimProcess, for_s: float = 3.
 
 def test_gamepad_moves_the_arm_only_while_enable_is_held_and_stops_on_release(page):
     browser, rig = page
-    sim = rig.arm_sim
     with watchdog_trips_named(rig):
-        _gamepad_moves_the_arm_only_while_enable_is_held(browser, sim)
+        _gamepad_moves_the_arm_only_while_enable_is_held(browser, rig)
 
 
-def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, sim: URSimProcess):
+def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, rig: RobotUnderCommands):
+    sim = rig.arm_sim
     wait_still(sim)
     browser.evaluate(PAD)
     # stick pushed forward, enable not held: nothing may move
@@ -257,8 +277,9 @@ def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, sim: URS
     # enable held: +x at the speed scale, nothing else
     browser.evaluate("window.__pad.buttons[5] = { pressed: true, touched: true, value: 1 }")
     browser.wait_until("dxp.jog.moving", bool)
+    before = rig.telemetry.robot_stats()
     delta, top = move_until(sim, lambda d: d[0] > 0.03)
-    assert delta[0] > 0.015, delta
+    assert delta[0] > 0.015, (delta, robot_said(rig, before))
     assert abs(delta[1]) < 0.1 * delta[0] and abs(delta[2]) < 0.1 * delta[0], delta
     assert top <= SPEED_SCALE * 0.10 * 1.02, top  # within the scaled cap
     assert top > SPEED_SCALE * 0.10 * 0.8, top  # and really at it
@@ -295,12 +316,12 @@ def _gamepad_moves_the_arm_only_while_enable_is_held(browser: Chromium, sim: URS
 
 def test_spacemouse_reports_move_the_arm_and_its_button_release_stops_it(page):
     browser, rig = page
-    sim = rig.arm_sim
     with watchdog_trips_named(rig):
-        _spacemouse_moves_the_arm(browser, sim)
+        _spacemouse_moves_the_arm(browser, rig)
 
 
-def _spacemouse_moves_the_arm(browser: Chromium, sim: URSimProcess):
+def _spacemouse_moves_the_arm(browser: Chromium, rig: RobotUnderCommands):
+    sim = rig.arm_sim
     wait_still(sim)
     # a newer SpaceMouse: one 12-byte report, cap pushed away (ty -350) and lifted (tz -350)
     browser.evaluate(hid(1, [0, -350, -350, 0, 0, 0]))
@@ -308,8 +329,9 @@ def _spacemouse_moves_the_arm(browser: Chromium, sim: URSimProcess):
     assert top < STILL_M_S, "moved without the enable button"
     browser.evaluate(hid(3, [1], "<B"))  # left button down
     browser.wait_until("dxp.jog.moving", bool)
+    before = rig.telemetry.robot_stats()
     delta, top = move_until(sim, lambda d: d[0] > 0.02 and d[2] > 0.02)
-    assert delta[0] > 0.01 and delta[2] > 0.01, delta  # +x and +z
+    assert delta[0] > 0.01 and delta[2] > 0.01, (delta, robot_said(rig, before))  # +x and +z
     assert abs(delta[1]) < 0.1 * delta[0], delta
     assert top <= SPEED_SCALE * 0.10 * 1.02, top  # the scale caps the combined speed
     browser.evaluate(hid(3, [0], "<B"))
