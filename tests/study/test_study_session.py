@@ -52,6 +52,13 @@ def contact_points(bus: InMemoryServoBus, display: PalmDisplay) -> np.ndarray:
     return forward_kinematics(angles, display.renderer_config.geometry)
 
 
+def goal_points(display: PalmDisplay) -> np.ndarray:
+    """The contact points the display is heading for: its renderer's goal for its stimulus."""
+    goal = display.renderer.target_counts(display.current_stimulus)
+    angles = display.calibration.counts_to_angles(goal)
+    return forward_kinematics(angles, display.renderer_config.geometry)
+
+
 def felt_pattern(points: np.ndarray, display: PalmDisplay) -> int | None:
     """The pattern three resting contact points press, or None if they press none."""
     contact = display.renderer_config.contact
@@ -81,12 +88,15 @@ class ScriptedPage(threading.Thread):
         self.done = threading.Event()
 
     def feel(self, timeout_s: float = 10.0) -> int:
-        """What the palm presses once the linkages have come to rest.
+        """What the palm presses once the linkages have come to rest where the display aims.
 
         On their way from the retract point the contact points can cross the
         palm's columns, so a pattern counts only when two readings 50 ms
-        apart agree and no point moved across the palm in between (noise
-        in the force moves them only in depth).
+        apart agree, no point moved across the palm in between (noise in the
+        force moves them only in depth), and the points press what the
+        display's goal for its current stimulus presses: a display thread
+        starved mid-way holds the linkages still on a pattern they were only
+        crossing (a loaded run read 1 on the way to 0).
         """
         deadline = time.monotonic() + timeout_s
         before = contact_points(self.bus, self.display)
@@ -95,7 +105,8 @@ class ScriptedPage(threading.Thread):
             now = contact_points(self.bus, self.display)
             p = felt_pattern(now, self.display)
             still = np.abs(now[:, 0] - before[:, 0]).max() < 0.05
-            if p is not None and still and felt_pattern(before, self.display) == p:
+            arrived = p == felt_pattern(goal_points(self.display), self.display)
+            if p is not None and still and arrived and felt_pattern(before, self.display) == p:
                 return p
             before = now
         raise AssertionError("the palm never showed a whole pattern")
