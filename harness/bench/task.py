@@ -200,6 +200,7 @@ def _trial(world: Any, hands: Any, setup: TrialSetup) -> dict[str, Any]:
     hands.release()
     world.reset_trial(0, setup.offset_m, setup.tilt_deg)
     clock_at_start = world.stats()
+    held_at_start = _held(hands.node)
     time.sleep(0.3)  # the next heartbeats carry the home pose
     truth_at_lift: dict[str, Any] = {}
     pose_at_lift: list[np.ndarray] = []
@@ -219,6 +220,7 @@ def _trial(world: Any, hands: Any, setup: TrialSetup) -> dict[str, Any]:
         row.update(
             _trial_clock(clock_at_start, stats), watchdog_trips=_trips(clock_at_start, stats)
         )
+        row.update(operator_held=_held(hands.node, held_at_start))
         log.warning("task trial %s failed: %s (protective stops: %s)", setup, e, stops)
         return row
     time.sleep(0.2)
@@ -251,8 +253,20 @@ def _trial(world: Any, hands: Any, setup: TrialSetup) -> dict[str, Any]:
     )
     end = world.stats()
     row.update(_trial_clock(clock_at_start, end), watchdog_trips=_trips(clock_at_start, end))
+    row.update(operator_held=_held(hands.node, held_at_start))
     log.info("task trial %s", row)
     return row
+
+
+#: the operator's reasons for not sending a held jog or assist (operator_side/node/outbox.py)
+HELD_COUNTERS = ("jogs_held_blind", "jogs_dropped_late", "late_wakes")
+
+
+def _held(node: Any, since: dict[str, int] | None = None) -> dict[str, int]:
+    """The operator node's held-jog counters, or their change ``since`` a trial's start: a
+    trial that needed more attempts says whether its jogs and assist were held back."""
+    now = {k: int(node.counters.get(k, 0)) for k in HELD_COUNTERS}
+    return now if since is None else {k: now[k] - since.get(k, 0) for k in HELD_COUNTERS}
 
 
 def _trips(start: dict[str, Any], end: dict[str, Any]) -> int:
