@@ -128,6 +128,23 @@ def test_a_killed_robot_node_has_its_arm_stopped_by_the_arm_process_at_once():
         assert gone is not None, "the arm process outlived its node"
 
 
+def _jog_until_moving(arm, sim, timeout_s: float) -> float | None:
+    """Seconds until the controller's TCP moves, jogging as a held key does meanwhile (renewed
+    every 50 ms, inside the 0.25 s deadman). A single jog that reached a busy arm process
+    late was ended by the deadman before this poll saw the arm move (a quiet CI run's
+    paired lane)."""
+    t0 = time.monotonic()
+    next_jog = t0
+    while time.monotonic() - t0 < timeout_s:
+        if time.monotonic() >= next_jog:
+            arm.jog(JOG)
+            next_jog += 0.05
+        if not _at_rest(sim):
+            return time.monotonic() - t0
+        time.sleep(0.002)
+    return None
+
+
 @contextlib.contextmanager
 def _jogging_simulated_arm():
     """(the node's arm, its simulated controller), the arm jogging; disconnected after."""
@@ -135,8 +152,7 @@ def _jogging_simulated_arm():
     arm.connect()
     try:
         sim = arm.local.sim
-        arm.jog(JOG)
-        assert _wait(lambda: not _at_rest(sim), 2.0) is not None
+        assert _jog_until_moving(arm, sim, 2.0) is not None
         yield arm, sim
     finally:
         arm.disconnect()
