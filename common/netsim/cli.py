@@ -14,17 +14,14 @@ from the defaults, then ``--config FILE`` (keys at the top level or under
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
-import os
 import signal
-import threading
 import time
 from dataclasses import dataclass
 from typing import Any
 
 from common.config.typed import param
-from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
+from common.devices.lifecycle import as_hardware
 from common.errors import ConfigError
 from common.netsim.impairments import DIRECTIONS, Scenario
 from common.netsim.proxy import Endpoints, LinkSimulator
@@ -120,22 +117,15 @@ def scenario_from_args(config: NetsimConfig, args: argparse.Namespace) -> Scenar
     return scenario
 
 
-def run_as_the_network() -> None:
-    """This thread, and the forwarding threads it starts, at the simulated hardware's priority.
-
-    A network path does not wait for the PC's CPU: a link simulator starved by
-    the nodes it links (or by their neighbours) delays what it forwards, and a
-    LAN scenario turns into a congested one that nothing configured. So it runs
-    at :data:`SIMULATED_HARDWARE_NICE`, as the device simulators do, where it
-    may (root, CAP_SYS_NICE); a thread starts at its creator's niceness.
-    """
-    tid = threading.get_native_id()
-    with contextlib.suppress(OSError):
-        own = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, min(SIMULATED_HARDWARE_NICE, own))
-
-
 def run(args: argparse.Namespace) -> int:
+    """The link simulator, at the simulated hardware's priority where it may (``as_hardware``):
+    a network path does not wait for the PC's CPU, and a simulator starved by the nodes it
+    links delays what it forwards, turning a LAN scenario into a congested one that nothing
+    configured. Its forwarding threads start at this thread's niceness."""
+    return as_hardware(_run)(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     if getattr(args, "print_config", False):
         print_config(config, "netsim")
@@ -143,7 +133,6 @@ def run(args: argparse.Namespace) -> int:
     scenario = scenario_from_args(config, args)
     old = signal.getsignal(signal.SIGTERM)
     done = stop_on_signals((signal.SIGTERM,))  # Ctrl-C stays a KeyboardInterrupt
-    run_as_the_network()
     sim = build_simulator(config, scenario)
     try:
         sim.start()
