@@ -120,6 +120,14 @@ def keep_parents_group_weight() -> None:
     The demo's children lead sessions only so that Ctrl-C reaches the demo
     alone; they keep the weight of the one they were started from.
     """
+    share_group_weight(os.getppid(), os.getpid())
+
+
+def share_group_weight(source_pid: int, target_pid: int) -> None:
+    """The scheduling group of ``target_pid``'s session at the weight of ``source_pid``'s.
+
+    Nothing where the kernel has no such groups or this process may not raise the weight.
+    """
     with contextlib.suppress(OSError, ValueError, IndexError):
-        parent = Path(f"/proc/{os.getppid()}/autogroup").read_text().split()[-1]
-        Path("/proc/self/autogroup").write_text(str(int(parent)))
+        weight = Path(f"/proc/{source_pid}/autogroup").read_text().split()[-1]
+        Path(f"/proc/{target_pid}/autogroup").write_text(str(int(weight)))
