@@ -146,7 +146,8 @@ def test_jog_is_clipped_to_the_speed_limit_and_stops_when_told(still_arm, sim):
     assert sim.at_rest_since(1e-4, 1e-3) is None  # the controller's record: moving
     t_stop = time.monotonic()
     still_arm.stop()
-    assert np.allclose(sim.tcp_speed(), 0.0)
+    speed = sim.tcp_speed()
+    assert np.allclose(speed, 0.0), _why_still_moving(still_arm, sim, speed)
     # ... and at rest since a moment between the stop's call and its return, on this clock
     rest = sim.at_rest_since(1e-4, 1e-3)
     assert rest is not None and t_stop < rest <= time.monotonic(), (t_stop, rest)
@@ -154,6 +155,17 @@ def test_jog_is_clipped_to_the_speed_limit_and_stops_when_told(still_arm, sim):
     time.sleep(0.1)
     np.testing.assert_allclose(sim.tcp_pose(), at_rest, atol=1e-9)
     assert {10, 15} <= set(sim.commands_seen())  # speedL, speedStop
+
+
+def _why_still_moving(arm, sim, speed) -> str:
+    """What the controller and the driver each say when a returned stop left the arm moving."""
+    stats = sim.stats()
+    keys = ("mode", "program_running", "watchdog_trips", "program_ends", "scripts_received")
+    return (
+        f"TCP speed {np.round(speed, 4).tolist()} after stop() returned; controller: "
+        f"{ {k: stats[k] for k in keys} }, commands {sim.commands_seen()[-12:]}; driver: "
+        f"{arm.status()}"
+    )
 
 
 def test_deadman_stops_a_jog_that_is_not_renewed(still_arm, sim):

@@ -81,6 +81,7 @@ class ControlScript:
         self._async_wr_count = 0
         self._async_running = False
         self._last_cmd = 0
+        self._realtime_unrun = False  # a realtime command arrived that no cycle has run yet
         self.commands_seen: list[int] = []  # every new command value, for tests
         #: the RTDE watchdog: the minimum update frequency, None when off
         self.watchdog_hz: float | None = None
@@ -150,18 +151,35 @@ class ControlScript:
 
     def write_inputs(self, names: list[str], values: list[Any]) -> None:
         """An RTDE data package's inputs arrived: an update of the watchdog's variable (whatever
-        its value), and a new command when ``input_int_register_0`` changed."""
+        its value), and a new command when ``input_int_register_0`` changed.
+
+        A realtime command the script's loop has not run yet runs before a package overwrites
+        it: a controller's loop reads its registers every cycle without fail, and the driver
+        sends nothing within 10 ms of a command (``KICK_AFTER_COMMAND_S``), but this loop is a
+        thread that a busy machine starves for longer (a speedL to rest overwritten by the
+        next kick left a stopped jog moving).
+        """
+        new_cmd = dict(zip(names, values, strict=True)).get(WATCHDOG_VARIABLE, self._last_cmd)
+        if self._realtime_unrun and new_cmd != self._last_cmd:
+            self._run_pending_realtime()
         for n, v in zip(names, values, strict=True):
             self.inputs[n] = v
         if WATCHDOG_VARIABLE in names:  # an update, whether or not the value changed
             self.watchdog_silent_s = 0.0
             self.watchdog_update_s = now_s()
+            self._realtime_unrun = self.program_running and new_cmd in REALTIME_CMDS
         cmd = self.inputs.get("input_int_register_0", 0)
         if cmd != self._last_cmd:
             args = dict(zip(names, values, strict=True))
             wire_log.debug("RTDE <- command %d %s", cmd, args)
             self._last_cmd = cmd
             self.commands_seen.append(cmd)
+
+    def _run_pending_realtime(self) -> None:
+        """The realtime command in the registers, run once before the next package replaces it."""
+        self._realtime_unrun = False
+        if self.program_running:
+            self._run_command(int(self.inputs.get("input_int_register_0", 0)))
 
     def register(self, name: str, rtde_type: str) -> Any:
         """A register's value as a data package carries it (zeros for what is not set)."""
@@ -234,6 +252,7 @@ class ControlScript:
             self._pending_done = False
             self.out_int[0] = STATUS_READY
         elif cmd in REALTIME_CMDS:
+            self._realtime_unrun = False
             self._run_command(cmd)
             self.out_int[0] = STATUS_READY
         elif not self._executing:
