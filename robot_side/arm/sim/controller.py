@@ -81,6 +81,9 @@ class Controller:
                 f"not {self.config.motion_clock!r}"
             )
         self.lock = threading.RLock()
+        #: set when something arrived that the controller's next cycle must act on (a data
+        #: package, an uploaded program): an idle cycle waits for it or for its next package
+        self.cycle_wanted = threading.Event()
         self.arm = self._home_arm()
         self.safety_mode = SAFETY_MODE_NORMAL
         self.powered = True
@@ -109,10 +112,8 @@ class Controller:
 
     def note_motion(self) -> None:
         """Record the TCP's speed after a step (``at_rest_since``); call with ``lock`` held."""
-        v = self.arm.velocity
-        self._motion_log.append(
-            (now_s(), float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:])))
-        )
+        v = self.arm.velocity.tolist()
+        self._motion_log.append((now_s(), math.hypot(*v[:3]), math.hypot(*v[3:])))
 
     def teleport_home(self) -> None:
         """The arm back at its home joints, at rest: a fresh trial (simulation only)."""

@@ -136,6 +136,7 @@ class KinematicArm:
         self.servo_time = 0.008
         self._joint_move: tuple[np.ndarray, np.ndarray, float, float] | None = None
         self._joints_settled = False
+        self._rotvec_of: tuple[bytes, np.ndarray] = (b"", np.zeros(3))  # (rot's bytes, rotvec)
 
     # -- commands ------------------------------------------------------------
 
@@ -177,7 +178,11 @@ class KinematicArm:
         return self.mode != Mode.IDLE
 
     def current_pose(self) -> np.ndarray:
-        return np.concatenate([self.pos, matrix_to_rotvec(self.rot)])
+        """The TCP pose; a still arm's rotation vector is converted once, not every package."""
+        key = self.rot.tobytes()
+        if key != self._rotvec_of[0]:
+            self._rotvec_of = (key, matrix_to_rotvec(self.rot))
+        return np.concatenate([self.pos, self._rotvec_of[1]])
 
     # -- integration ---------------------------------------------------------
 

@@ -146,18 +146,18 @@ class ControlScript:
             self.program_running = False
             self.watchdog_hz = None  # a new program replaces the old one and its watchdogs
             self._start_at = now_s() + self.config.script_start_delay_s
+        self.controller.cycle_wanted.set()
 
     # -- its registers ---------------------------------------------------------------
 
-    def write_inputs(self, names: list[str], values: list[Any]) -> None:
+    def write_inputs(self, names: list[str], values: list[Any]) -> bool:
         """An RTDE data package's inputs arrived: an update of the watchdog's variable (whatever
-        its value), and a new command when ``input_int_register_0`` changed.
+        its value), and a new command when ``input_int_register_0`` changed. True when the
+        script's next cycle has something to do (a new or a realtime command).
 
-        A realtime command the script's loop has not run yet runs before a package overwrites
-        it: a controller's loop reads its registers every cycle without fail, and the driver
-        sends nothing within 10 ms of a command (``KICK_AFTER_COMMAND_S``), but this loop is a
-        thread that a busy machine starves for longer (a speedL to rest overwritten by the
-        next kick left a stopped jog moving).
+        A realtime command no cycle has run yet runs before a package overwrites it: a
+        controller's 500 Hz loop would have read it (the driver sends nothing within 10 ms of a
+        command), but a busy machine starves this one for longer.
         """
         new_cmd = dict(zip(names, values, strict=True)).get(WATCHDOG_VARIABLE, self._last_cmd)
         if self._realtime_unrun and new_cmd != self._last_cmd:
@@ -174,6 +174,8 @@ class ControlScript:
             wire_log.debug("RTDE <- command %d %s", cmd, args)
             self._last_cmd = cmd
             self.commands_seen.append(cmd)
+            return True
+        return self._realtime_unrun
 
     def _run_pending_realtime(self) -> None:
         """The realtime command in the registers, run once before the next package replaces it."""
@@ -262,6 +264,16 @@ class ControlScript:
                 self.out_int[0] = STATUS_DONE
             else:
                 self._pending_done = True
+
+    def busy(self) -> bool:
+        """The program is starting, or waits on a command or a motion: every cycle counts."""
+        return (
+            self._start_at is not None
+            or self._executing
+            or self._pending_done
+            or self._async_running
+            or self._realtime_unrun
+        )
 
     def after_step(self) -> None:
         """A motion the script waits on has ended: "done", or the async progress cleared."""
