@@ -160,8 +160,8 @@ class ControlScript:
         command), but a busy machine starves this one for longer.
         """
         new_cmd = dict(zip(names, values, strict=True)).get(WATCHDOG_VARIABLE, self._last_cmd)
-        if self._realtime_unrun and new_cmd != self._last_cmd:
-            self._run_pending_realtime()
+        if self._realtime_unrun and new_cmd != self._last_cmd and self.program_running:
+            self._run_command(int(self._last_cmd))  # the realtime command still in the register
         for n, v in zip(names, values, strict=True):
             self.inputs[n] = v
         if WATCHDOG_VARIABLE in names:  # an update, whether or not the value changed
@@ -176,12 +176,6 @@ class ControlScript:
             self.commands_seen.append(cmd)
             return True
         return self._realtime_unrun
-
-    def _run_pending_realtime(self) -> None:
-        """The realtime command in the registers, run once before the next package replaces it."""
-        self._realtime_unrun = False
-        if self.program_running:
-            self._run_command(int(self.inputs.get("input_int_register_0", 0)))
 
     def register(self, name: str, rtde_type: str) -> Any:
         """A register's value as a data package carries it (zeros for what is not set)."""
