@@ -81,9 +81,6 @@ class Controller:
                 f"not {self.config.motion_clock!r}"
             )
         self.lock = threading.RLock()
-        #: set when something arrived that the controller's next cycle must act on (a data
-        #: package, an uploaded program): an idle cycle waits for it or for its next package
-        self.cycle_wanted = threading.Event()
         self.arm = self._home_arm()
         self.safety_mode = SAFETY_MODE_NORMAL
         self.powered = True

@@ -12,14 +12,12 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import select
 import socket
 import struct
 import threading
 from typing import Any
 
-from common.clocks.clock import now_s
 from common.errors import DeviceError
 from robot_side.arm.sim import rtde_wire as w
 from robot_side.arm.sim.controller import (
@@ -49,13 +47,11 @@ class RTDEConnection:
         self.output_id = 0
         self.input_id = 0
         self.output: tuple[int, list[str], list[str], struct.Struct] | None = None
-        #: this connection's package period (a whole number of controller cycles) and when
-        #: its next package is due (monotonic s)
-        self.period_s = 0.0
-        self.next_due_s = 0.0
+        self.output_divider = 1
         self.inputs: dict[int, tuple[list[str], list[str], struct.Struct]] = {}
         self.started = False
         self.alive = True
+        self.ticks = 0
         #: bytes this connection's reader took off the socket and has not applied yet
         self.in_hand = False
 
@@ -83,7 +79,6 @@ class RTDEServer:
         self._quit = quit
         self.conns: list[RTDEConnection] = []
         self.data_packages_sent = 0
-        self._epoch_s = now_s()  # the origin of the package grid
 
     def serve(self, sock: socket.socket, peer: Any) -> None:
         """One RTDE client, until it goes or the controller does."""
@@ -150,9 +145,6 @@ class RTDEServer:
             self._setup_inputs(conn, payload)
         elif mtype == w.START:
             conn.started = conn.output is not None or bool(conn.inputs)
-            if conn.output is not None:
-                conn.next_due_s = self._slot_after(now_s(), conn.period_s)
-            self.controller.cycle_wanted.set()
             self._reply(conn, mtype, bytes([1 if conn.started else 0]))
         elif mtype == w.PAUSE:
             conn.started = False
@@ -166,9 +158,7 @@ class RTDEServer:
             names, types, st = recipe
             values = w.unflatten(types, st.unpack(payload[1 : 1 + st.size]))
             with self.controller.lock:
-                act = self.script.write_inputs(names, values)
-            if act:
-                self.controller.cycle_wanted.set()
+                self.script.write_inputs(names, values)
         elif mtype == w.TEXT_MESSAGE:
             log.info("RTDE client message: %r", payload)
         else:
@@ -188,7 +178,7 @@ class RTDEServer:
         conn.output_id += 1
         conn.output = (conn.output_id, names, types, w.recipe_struct(types))
         freq = freq if freq > 0 else self.config.tick_hz
-        conn.period_s = max(1, round(self.config.tick_hz / freq)) / self.config.tick_hz
+        conn.output_divider = max(1, round(self.config.tick_hz / freq))
         self._reply(conn, mtype, bytes([conn.output_id]) + ",".join(types).encode())
 
     def _setup_inputs(self, conn: RTDEConnection, payload: bytes) -> None:
@@ -222,31 +212,16 @@ class RTDEServer:
 
     # -- data packages -------------------------------------------------------------
 
-    def due(self, now: float) -> list[RTDEConnection]:
-        """The connections a package is due to at ``now``, each at its own rate (a whole number
-        of controller cycles); call with the controller's lock held. A cycle up to half a
-        cycle early counts as on time (the cycle's own timer); a late one sends one package,
-        not the missed ones."""
-        early = 0.5 / self.config.tick_hz
+    def due(self) -> list[RTDEConnection]:
+        """The connections a package is due to on this tick (each at its own rate: every
+        ``output_divider`` ticks); call once per tick with the controller's lock held."""
         due = []
         for c in self.conns:
-            if c.alive and c.started and c.output and now >= c.next_due_s - early:
-                c.next_due_s += c.period_s
-                if c.next_due_s <= now:  # late: the next slot of its grid, not a burst
-                    c.next_due_s = self._slot_after(now + early, c.period_s)
-                due.append(c)
+            if c.alive and c.started and c.output:
+                c.ticks += 1
+                if c.ticks % c.output_divider == 0:
+                    due.append(c)
         return due
-
-    def _slot_after(self, t: float, period_s: float) -> float:
-        """The first multiple of ``period_s`` after ``t`` on the server's grid: connections at
-        the same rate are sent on the same cycle, as a controller's packages all leave on
-        cycle boundaries."""
-        return self._epoch_s + math.ceil((t - self._epoch_s) / period_s) * period_s
-
-    def next_due_s(self) -> float | None:
-        """When the next package is due to any connection (monotonic s); None: to none."""
-        times = [c.next_due_s for c in self.conns if c.alive and c.started and c.output]
-        return min(times) if times else None
 
     def writer_connected(self) -> bool:
         """A client that writes inputs is still connected (its socket not closed by its end)."""

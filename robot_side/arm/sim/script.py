@@ -146,14 +146,12 @@ class ControlScript:
             self.program_running = False
             self.watchdog_hz = None  # a new program replaces the old one and its watchdogs
             self._start_at = now_s() + self.config.script_start_delay_s
-        self.controller.cycle_wanted.set()
 
     # -- its registers ---------------------------------------------------------------
 
-    def write_inputs(self, names: list[str], values: list[Any]) -> bool:
+    def write_inputs(self, names: list[str], values: list[Any]) -> None:
         """An RTDE data package's inputs arrived: an update of the watchdog's variable (whatever
-        its value), and a new command when ``input_int_register_0`` changed. True when the
-        script's next cycle has something to do (a new or a realtime command).
+        its value), and a new command when ``input_int_register_0`` changed.
 
         A realtime command no cycle has run yet runs before a package overwrites it: a
         controller's 500 Hz loop would have read it (the driver sends nothing within 10 ms of a
@@ -174,8 +172,6 @@ class ControlScript:
             wire_log.debug("RTDE <- command %d %s", cmd, args)
             self._last_cmd = cmd
             self.commands_seen.append(cmd)
-            return True
-        return self._realtime_unrun
 
     def register(self, name: str, rtde_type: str) -> Any:
         """A register's value as a data package carries it (zeros for what is not set)."""
@@ -258,16 +254,6 @@ class ControlScript:
                 self.out_int[0] = STATUS_DONE
             else:
                 self._pending_done = True
-
-    def busy(self) -> bool:
-        """The program is starting, or waits on a command or a motion: every cycle counts."""
-        return (
-            self._start_at is not None
-            or self._executing
-            or self._pending_done
-            or self._async_running
-            or self._realtime_unrun
-        )
 
     def after_step(self) -> None:
         """A motion the script waits on has ended: "done", or the async progress cleared."""

@@ -64,9 +64,6 @@ MAX_TICK_S = 0.05
 #: a second when a starved simulator counted 20 ms a tick).
 MAX_SILENCE_TICK_S = 0.02
 
-#: The longest an idle controller goes without a cycle (its watchdog's resolution then).
-IDLE_CYCLE_S = 0.01
-
 
 class URSimulator(Controller):
     """The simulated controller; ``start()`` binds and serves, ``stop()`` vanishes.
@@ -245,15 +242,6 @@ class URSimulator(Controller):
     # -- the controller cycle --------------------------------------------------
 
     def _tick_loop(self) -> None:
-        """The controller's cycle: every ``tick_hz`` while anything moves or waits on it.
-
-        An idle controller (the arm still, no command in progress) is cycled
-        only when a package is due to a client, when one arrives
-        (``cycle_wanted``), or at the latest every ``IDLE_CYCLE_S``: its
-        packages, replies and watchdog come as from a 500 Hz cycle, for a
-        fraction of the simulator's CPU (an idle simulator beside every
-        deployment of the suite took 18 % of a core).
-        """
         rate = Rate(self.config.tick_hz)
         last = now_s()
         script = self.script
@@ -280,22 +268,15 @@ class URSimulator(Controller):
                     self._step_arm(dt)
                     self.clock_s += dt
                 script.after_step()
-                # the state is built only on a cycle that sends a package (it was the
-                # cycle's largest cost)
-                due = self.rtde.due(t)
+                # a package goes out at each connection's own rate: the state is built only
+                # on a tick that sends one, a quarter of them at ur-rtde's 125 Hz (it was
+                # the cycle's largest cost)
+                due = self.rtde.due()
                 state = self.rtde.state() if due and not self._frozen.is_set() else None
-                idle = not (self.arm.moving or script.busy())
-                next_due = self.rtde.next_due_s()
             if state is not None:
                 for c in due:
                     self.rtde.send(c, state)
-            if not idle:
-                rate.sleep()
-                continue
-            wake = t + IDLE_CYCLE_S if next_due is None else min(next_due, t + IDLE_CYCLE_S)
-            self.cycle_wanted.wait(max(0.0, wake - now_s()))
-            self.cycle_wanted.clear()
-            rate.restart()
+            rate.sleep()
 
     def advance(self, dt_s: float) -> None:
         """Move the arm by ``dt_s`` of its owner's time (``motion_clock = "external"``).
