@@ -57,6 +57,24 @@ STATUS_READY = 1
 STATUS_DONE = 2
 
 
+def split_programs(buf: bytes) -> tuple[list[str], bytes]:
+    """The whole programs in ``buf`` (each from its ``def``/``sec`` line to its top-level
+    ``end``), and what is left of it: a program starts once its ``end`` has arrived."""
+    programs: list[str] = []
+    while True:
+        lines = buf.decode(errors="replace").split("\n")
+        started = None
+        for i, line in enumerate(lines[:-1]):
+            if started is None and (line.startswith("def ") or line.startswith("sec ")):
+                started = i
+            elif started is not None and line.rstrip() == "end":
+                programs.append("\n".join(lines[started : i + 1]))
+                buf = "\n".join(lines[i + 1 :]).encode()
+                break
+        else:
+            return programs, buf
+
+
 class ControlScript:
     """The program the controller runs: its registers, its handshake and its watchdog.
 
@@ -82,6 +100,9 @@ class ControlScript:
         self._async_running = False
         self._last_cmd = 0
         self._realtime_unrun = False  # a realtime command arrived that no cycle has run yet
+        #: a new command no cycle has read yet: a client that waits for its reply is silent
+        #: because this controller is late (a real one reads it within 2 ms), not counted
+        self._unseen_command = False
         self.commands_seen: list[int] = []  # every new command value, for tests
         #: the RTDE watchdog: the minimum update frequency, None when off
         self.watchdog_hz: float | None = None
@@ -112,28 +133,14 @@ class ControlScript:
                 chunk = sock.recv(65536)
                 if not chunk:
                     break
-                buf += chunk
-                buf = self._consume(buf)
+                programs, buf = split_programs(buf + chunk)
+                for program in programs:
+                    self._received(program)
         except OSError:
             pass
         finally:
             with contextlib.suppress(OSError):
                 sock.close()
-
-    def _consume(self, buf: bytes) -> bytes:
-        """Start a program once its closing top-level ``end`` has arrived."""
-        text = buf.decode(errors="replace")
-        lines = text.split("\n")
-        started = None
-        for i, line in enumerate(lines[:-1]):
-            if started is None and (line.startswith("def ") or line.startswith("sec ")):
-                started = i
-            elif started is not None and line.rstrip() == "end":
-                program = "\n".join(lines[started : i + 1])
-                self._received(program)
-                rest = "\n".join(lines[i + 1 :])
-                return self._consume(rest.encode())
-        return buf
 
     def _received(self, program: str) -> None:
         first = program.split("\n", 1)[0]
@@ -172,6 +179,7 @@ class ControlScript:
             wire_log.debug("RTDE <- command %d %s", cmd, args)
             self._last_cmd = cmd
             self.commands_seen.append(cmd)
+            self._unseen_command = True
 
     def register(self, name: str, rtde_type: str) -> Any:
         """A register's value as a data package carries it (zeros for what is not set)."""
@@ -212,8 +220,8 @@ class ControlScript:
         ``tick_s`` more of silence, the whole counted no longer than ``at_most_s``;
         ``input_unread`` says whether an update has arrived that is not applied yet.
         """
-        if self.watchdog_hz is None or not self.program_running:
-            return
+        if self.watchdog_hz is None or not self.program_running or self._unseen_command:
+            return  # off, or the client waits for this controller to read its command
         self.watchdog_silent_s = min(self.watchdog_silent_s + tick_s, max(0.0, at_most_s))
         silent = self.watchdog_silent_s
         if silent <= 1.0 / self.watchdog_hz or input_unread():
@@ -230,6 +238,7 @@ class ControlScript:
 
     def cycle(self) -> None:
         """One turn of the script's loop: start an uploaded program, run the command."""
+        self._unseen_command = False
         if self._start_at is not None and now_s() >= self._start_at:
             self._start_at = None
             self.program_running = True
