@@ -165,10 +165,10 @@ def test_a_grasp_marked_failed_on_the_dashboard_is_exported_as_failed(
     assert [e["reason"] for e in first["left_out"]] == ["discard"]
     numbered = _episodes(tmp_path / "first")
     assert len(numbered) >= 3, "the demo made too few grasps to curate"
-    starts = [(e["deepxpalm/number"], e.get("deepxpalm/marks")) for e in numbered]
+    marked = [(e["deepxpalm/number"], e.get("deepxpalm/marks")) for e in numbered]
     assert len(first["failed_episodes"]) == 1, (
         f"the failed grasp is not one episode of its own: marks (robot ns) "
-        f"{[(m.kind, m.t_robot_ns) for m in (failed_mark, discard_mark)]}, episodes {starts}, "
+        f"{[(m.kind, m.t_robot_ns) for m in (failed_mark, discard_mark)]}, episodes {marked}, "
         f"export {first}"
     )
     [failed] = first["failed_episodes"]

@@ -164,8 +164,9 @@ class ControlScript:
         controller's 500 Hz loop would have read it (the driver sends nothing within 10 ms of a
         command), but a busy machine starves this one for longer.
         """
-        new_cmd = dict(zip(names, values, strict=True)).get(WATCHDOG_VARIABLE, self._last_cmd)
-        if self._realtime_unrun and new_cmd != self._last_cmd and self.program_running:
+        # every kick and jog comes through here: the command's value found, not a dict built
+        new_cmd = values[names.index(WATCHDOG_VARIABLE)] if WATCHDOG_VARIABLE in names else None
+        if self._realtime_unrun and new_cmd not in (None, self._last_cmd) and self.program_running:
             self._run_command(int(self._last_cmd))  # the realtime command still in the register
         for n, v in zip(names, values, strict=True):
             self.inputs[n] = v
