@@ -45,6 +45,11 @@ LEASE_MS = 3000
 #: and the receiver keeps the newest. The stimuli keep two (a stop shares their priority and
 #: has its copies and resends instead), the frames too. Batches are allocated as used
 TX_QUEUE_BATCHES = {"interactive_high": 16, "interactive_low": 16, "data": 16}
+#: how long a node's first connect keeps trying its router before the open fails. One try
+#: (Zenoh's default for a client) failed now and then beside busy loops, the router answering
+#: every other node: a handshake lost once is tried again in ``retry_ms``. A router that is
+#: not there is reported after this long, and the node exits for systemd to start again
+FIRST_CONNECT_MS = 3000
 #: how long closing a session may take before the node goes on without waiting for it
 CLOSE_WAIT_S = 1.0
 #: Zenoh's own framing around a message: the key, the QoS and the sequence number
@@ -159,8 +164,8 @@ def client_config(fabric: FabricConfig, files: CertFiles, where: str) -> dict[st
         "mode": "client",
         "connect": {
             "endpoints": [_endpoint(fabric.router_endpoint, where)],
-            # start whether or not the router is up, and keep trying it
-            "timeout_ms": 0,
+            # the first connect keeps trying for a while; a lost router is tried again forever
+            "timeout_ms": FIRST_CONNECT_MS,
             "exit_on_failure": False,
             "retry": {
                 "period_init_ms": round(retry),
