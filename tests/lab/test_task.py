@@ -26,7 +26,10 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(240),
     pytest.mark.usefixtures("quiet_gc"),
-    pytest.mark.parallel,
+    # the world (MuJoCo and the UR controller in one interpreter) keeps real time only on a
+    # core no deployment lane keeps busy: beside three deployments and two busy loops its
+    # controller stopped answering for 0.5-1 s, and the trials judged the machine
+    pytest.mark.serial,
 ]
 
 OFF_CENTRE = TrialSetup(index=0, tilt_deg=0.0, offset_m=-0.006)
