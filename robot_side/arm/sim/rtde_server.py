@@ -25,13 +25,15 @@ from robot_side.arm.sim.controller import (
     SAFETY_MODE_PROTECTIVE_STOP,
     Controller,
 )
-from robot_side.arm.sim.script import ControlScript
+from robot_side.arm.sim.script import STATUS_READY, ControlScript
 
 log = logging.getLogger(__name__)
 wire_log = logging.getLogger("robot_side.arm.sim.wire")
 
 RUNTIME_STOPPED = 1
 RUNTIME_PLAYING = 2
+#: the control script's state register: ur-rtde sends a command only once it reads "ready" here
+SCRIPT_STATE = "output_int_register_0"
 
 
 def _names(payload: bytes) -> list[str]:
@@ -54,6 +56,8 @@ class RTDEConnection:
         self.ticks = 0
         #: bytes this connection's reader took off the socket and has not applied yet
         self.in_hand = False
+        #: the script's state (output_int_register_0) in the last package sent, if it carries it
+        self.status_sent: int | None = None
 
     def send(self, data: bytes) -> None:
         with self.send_lock:
@@ -262,6 +266,13 @@ class RTDEServer:
         except (OSError, struct.error) as e:
             log.debug("RTDE data to %s failed: %s", conn.peer, e)
             conn.close()
+            return
+        if SCRIPT_STATE in names:
+            status = values[names.index(SCRIPT_STATE)]
+            if status == STATUS_READY and conn.status_sent != STATUS_READY:
+                with self.controller.lock:
+                    self.script.client_may_send()
+            conn.status_sent = status
 
     def state(self) -> dict[str, Any]:
         """What a data package reports, by output name; call with the controller's lock held."""

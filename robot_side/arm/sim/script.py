@@ -182,6 +182,20 @@ class ControlScript:
             self.commands_seen.append(cmd)
             self._unseen_command = True
 
+    def client_may_send(self) -> None:
+        """A package told the client the script is ready: its watchdog window starts now.
+
+        ur-rtde sends no command, kick included, before it reads "ready" (its
+        ``sendCommand`` spins on this register); a controller publishes that
+        within a cycle of clearing the last command, and the client's silence
+        before it is the controller's own. Here a starved cycle or sender can
+        publish it 100 ms late, and counting that wait tripped the watchdog of a
+        driver that kicked as soon as it could (the driver saw no silence).
+        """
+        if self.watchdog_hz is not None:
+            self.watchdog_silent_s = 0.0
+            self.watchdog_update_s = now_s()
+
     def register(self, name: str, rtde_type: str) -> Any:
         """A register's value as a data package carries it (zeros for what is not set)."""
         if name.startswith("output_int_register_"):
