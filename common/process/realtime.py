@@ -16,11 +16,14 @@ deployment can show how close to its nominal period the keep-alive runs.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import threading
 from dataclasses import dataclass
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,34 @@ def raise_this_thread(fifo_priority: int, fallback_nice: int) -> Scheduling:
     with contextlib.suppress(OSError):
         os.setpriority(os.PRIO_PROCESS, tid, min(fallback_nice, own))
     return Scheduling("nice", os.getpriority(os.PRIO_PROCESS, tid), why)
+
+
+@contextlib.contextmanager
+def fair_while(what: str):
+    """This thread in the fair scheduler for the block, then at its real-time priority again.
+
+    For a call that may busy-wait on another process (ur-rtde's ``sendCommand`` spins
+    until the controller says it is ready): spun at ``SCHED_FIFO`` it holds a core from
+    every fair thread, the other process's included. A thread that is not real-time, or
+    may not be again (logged), is left as it was.
+    """
+    tid = threading.get_native_id()
+    try:
+        policy = os.sched_getscheduler(tid)
+        param = os.sched_getparam(tid)
+    except (OSError, AttributeError):
+        policy = None
+    if policy not in (getattr(os, "SCHED_FIFO", None), getattr(os, "SCHED_RR", None)):
+        yield
+        return
+    os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+    try:
+        yield
+    finally:
+        try:
+            os.sched_setscheduler(tid, policy, param)
+        except OSError as e:  # the grant was withdrawn meanwhile: fair from here on, and said
+            log.warning("%s: SCHED_FIFO not restored (%s): it runs at its niceness", what, e)
 
 
 #: the period histogram's resolution and range: a period longer than the range counts in the

@@ -26,6 +26,7 @@ from typing import Any
 from common.clocks.clock import now_s
 from common.devices.lifecycle import at_niceness
 from common.errors import DeviceError, DeviceNotConnectedError, DeviceTimeoutError
+from common.process.realtime import fair_while
 from robot_side.arm.base import SAFETY_THREAD_NICE
 from robot_side.arm.ur_rtde.config import URArmConfig
 from robot_side.arm.ur_rtde.receive import ReceiveSide
@@ -70,6 +71,11 @@ class ControlWorker:
                 future.set_exception(e)
 
 
+#: packages after a command's end before the script is surely ready again: the controller
+#: reads the clear in its next cycle and says "ready" in the package after that cycle
+READY_AFTER_PACKAGES = 2
+
+
 class ControlLine:
     """The control interface while connected (``ctrl``), its calls and what went on the wire."""
 
@@ -88,6 +94,8 @@ class ControlLine:
         self.last_sent = 0.0  # monotonic s: the last write to the command register
         self.last_sent_what = "nothing yet"  # what that write was (a trip's warning names it)
         self.silence_max_s = 0.0  # longest the controller heard nothing from us (watched)
+        #: controller time a kick waits for after a command (``script_ready_again``)
+        self.ready_at_ts: float | None = None
         self._worker: ControlWorker | None = None
 
     def open(self, ctrl: Any) -> None:
@@ -141,8 +149,8 @@ class ControlLine:
             self.note_sent(what)
             try:
                 if realtime:
-                    return fn(*args)
-                return worker.submit(fn, *args).result(timeout=timeout)
+                    return self._unspun(what, fn, *args)
+                return worker.submit(self._unspun, what, fn, *args).result(timeout=timeout)
             except concurrent.futures.TimeoutError:
                 self.broken = f"{what} did not return in {timeout:.1f} s"
                 raise DeviceTimeoutError(
@@ -153,13 +161,32 @@ class ControlLine:
                 raise DeviceError(f"URArm: {what} failed: {e}") from e
             finally:
                 self.note_sent(f"the end of {what}")  # ur-rtde's clear ends a waiting call
+                if not realtime:
+                    ts = self.receive.last_timestamp()
+                    period = 1.0 / self.config.frequency_hz
+                    self.ready_at_ts = (
+                        None if ts is None else ts + (READY_AFTER_PACKAGES - 0.5) * period
+                    )
+
+    def _unspun(self, what: str, fn: Callable[..., Any], *args: Any) -> Any:
+        """``fn(*args)`` on this thread, in the fair scheduler while the script may not be
+        ready (``script_ready_again``): every thread of the arm process is real-time."""
+        if self.script_ready_again():
+            return fn(*args)
+        with fair_while(f"URArm {what}"):
+            return fn(*args)
 
     def kick(self, ctrl: Any) -> bool:
         """Kick the controller's watchdog through ``ctrl`` unless a call is on the wire (it
-        writes the register itself) or ``ctrl`` is no longer the usable interface; never waits."""
+        writes the register itself) or ``ctrl`` is no longer the usable interface; never
+        waits, unless for a script not yet ready (``script_ready_again``), and then in the
+        fair scheduler."""
         if not ctrl.isConnected():
             # kickWatchdog would start ur-rtde's own reconnect; the node's recovery reconnects
             return False
+        return self._unspun("the keep-alive's kick", self._kick, ctrl)
+
+    def _kick(self, ctrl: Any) -> bool:
         if not self.wire.acquire(blocking=False):
             return False
         try:
@@ -173,6 +200,29 @@ class ControlLine:
             return True
         finally:
             self.wire.release()
+
+    def script_ready_again(self) -> bool:
+        """The controller has streamed packages made after the last command's clear.
+
+        ur-rtde's ``sendCommand`` spins, without sleeping, until the script says it is
+        ready, which it says in a package made after it read the clear that ends a
+        command. From the keep-alive's real-time thread that spin holds a core until then;
+        beside a controller that answered late (a starved simulator), two arm processes
+        spinning at SCHED_FIFO took both cores until the kernel's real-time throttling,
+        and everything else on the machine stalled for about a second. Until the receive
+        stream shows ``READY_AFTER_PACKAGES`` packages past the one that was newest when
+        the command ended (16 ms at 125 Hz on a controller that keeps its pace), a kick
+        goes from the fair scheduler; withheld instead, kicks waited for a receive stream
+        starved beside busy loops, and the watchdog tripped.
+        """
+        due = self.ready_at_ts
+        if due is None:
+            return True
+        ts = self.receive.last_timestamp()
+        if ts is None or ts < due:
+            return False
+        self.ready_at_ts = None
+        return True
 
     def note_sent(self, what: str) -> None:
         """A write to the command register left: the controller's watchdog heard from us.

@@ -123,6 +123,16 @@ class ReceiveSide:
         """Seconds since the controller booted, as the last data package said."""
         return float(self.fresh().getTimestamp())
 
+    def last_timestamp(self) -> float | None:
+        """The newest package's controller time, however old (None: none can be read)."""
+        recv = self.recv
+        if recv is None:
+            return None
+        try:
+            return float(recv.getTimestamp())
+        except RuntimeError:  # the interface closed under us
+            return None
+
     def seen_at_rest(self) -> bool:
         """The stream shows the TCP still (False when it cannot be read)."""
         try:
