@@ -33,7 +33,7 @@ from harness.bench.command_path import RobotUnderCommands
 # serial: one robot node on the machine, as on a robot PC. Beside the paired lane's fault
 # cells (three deployments' nodes at the same priority on two cores) and two busy loops, its
 # loop once sent a heartbeat 37 ms past its period (88 ms without one)
-pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc_module"), pytest.mark.serial]
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc_module"), pytest.mark.alone]
 
 #: the longest the robot may go without sending a heartbeat (20 Hz) during jogs and stops: one
 #: 30 ms late (a busy machine's wake: 71 ms seen by the robot's own send stamps beside two busy
