@@ -213,6 +213,7 @@ def test_the_video_unit_starts_a_video_server_the_cli_accepts(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.pty  # the servo bus's simulator answers through a pseudo-terminal
 def test_the_operator_unit_lifts_the_palm_after_any_exit(tmp_path):
     """ExecStopPost= is ``deepxpalm palm lift`` on the example config; run as the unit runs it
     (the servo port pointed at a simulated bus holding a pressed pose), it lifts every linkage."""
