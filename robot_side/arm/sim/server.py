@@ -167,10 +167,13 @@ class URSimulator(Controller):
         self._listeners = socks
 
     def _bind_free_loopback(self) -> str:
-        candidates = list(range(2, 255))
+        """A free 127.0.0.x, one no controller left lately first: a simulator stopped cleanly
+        leaves its connections waiting out TIME_WAIT, and one started again at its address
+        (a controller rebooted) found it taken by a simulator another process had picked."""
+        candidates = [f"127.0.0.{x}" for x in range(2, 255)]
         random.shuffle(candidates)
-        for x in candidates:
-            host = f"127.0.0.{x}"
+        unused = [h for h in candidates if _never_left_lately(h)]
+        for host in unused + [h for h in candidates if h not in unused]:
             try:
                 self._bind_all(host)
             except DeviceError:
@@ -323,3 +326,16 @@ class URSimulator(Controller):
         self.script.stop_program("runtime error")
         self.arm.velocity[:] = 0.0
         self.arm.mode = Mode.IDLE
+
+
+def _never_left_lately(host: str) -> bool:
+    """Nothing holds ``host``'s RTDE port, not even a closed connection in TIME_WAIT (a bind
+    without SO_REUSEADDR is refused for either)."""
+    probe = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        probe.bind((host, RTDE_PORT))
+        return True
+    except OSError:
+        return False
+    finally:
+        probe.close()
