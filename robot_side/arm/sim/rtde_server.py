@@ -56,7 +56,9 @@ class RTDEConnection:
         self.ticks = 0
         #: bytes this connection's reader took off the socket and has not applied yet
         self.in_hand = False
-        #: the script's state (output_int_register_0) in the last package sent, if it carries it
+        #: where the output recipe carries the script's state (None: it does not), and its value
+        #: in the last package sent
+        self.status_at: int | None = None
         self.status_sent: int | None = None
 
     def send(self, data: bytes) -> None:
@@ -181,6 +183,7 @@ class RTDEServer:
             return
         conn.output_id += 1
         conn.output = (conn.output_id, names, types, w.recipe_struct(types))
+        conn.status_at = names.index(SCRIPT_STATE) if SCRIPT_STATE in names else None
         freq = freq if freq > 0 else self.config.tick_hz
         conn.output_divider = max(1, round(self.config.tick_hz / freq))
         self._reply(conn, mtype, bytes([conn.output_id]) + ",".join(types).encode())
@@ -267,8 +270,8 @@ class RTDEServer:
             log.debug("RTDE data to %s failed: %s", conn.peer, e)
             conn.close()
             return
-        if SCRIPT_STATE in names:
-            status = values[names.index(SCRIPT_STATE)]
+        if conn.status_at is not None:
+            status = values[conn.status_at]
             if status == STATUS_READY and conn.status_sent != STATUS_READY:
                 with self.controller.lock:
                     self.script.client_may_send()

@@ -172,14 +172,23 @@ class URSimulator(Controller):
         (a controller rebooted) found it taken by a simulator another process had picked."""
         candidates = [f"127.0.0.{x}" for x in range(2, 255)]
         random.shuffle(candidates)
-        unused = [h for h in candidates if _never_left_lately(h)]
-        for host in unused + [h for h in candidates if h not in unused]:
-            try:
-                self._bind_all(host)
-            except DeviceError:
-                continue
-            return host
+        left_lately = []
+        for host in candidates:
+            if not _never_left_lately(host):
+                left_lately.append(host)  # tried last
+            elif self._bound_all(host):
+                return host
+        for host in left_lately:
+            if self._bound_all(host):
+                return host
         raise DeviceError("UR simulator: no free 127.0.0.x address with ports 29999/30003/30004")
+
+    def _bound_all(self, host: str) -> bool:
+        try:
+            self._bind_all(host)
+        except DeviceError:
+            return False
+        return True
 
     def _spawn(self, name: str, target: Any) -> None:
         t = threading.Thread(target=as_hardware(target), name=name, daemon=True)
