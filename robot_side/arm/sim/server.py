@@ -167,28 +167,16 @@ class URSimulator(Controller):
         self._listeners = socks
 
     def _bind_free_loopback(self) -> str:
-        """A free 127.0.0.x, one no controller left lately first: a simulator stopped cleanly
-        leaves its connections waiting out TIME_WAIT, and one started again at its address
-        (a controller rebooted) found it taken by a simulator another process had picked."""
-        candidates = [f"127.0.0.{x}" for x in range(2, 255)]
+        candidates = list(range(2, 255))
         random.shuffle(candidates)
-        left_lately = []
-        for host in candidates:
-            if not _never_left_lately(host):
-                left_lately.append(host)  # tried last
-            elif self._bound_all(host):
-                return host
-        for host in left_lately:
-            if self._bound_all(host):
-                return host
+        for x in candidates:
+            host = f"127.0.0.{x}"
+            try:
+                self._bind_all(host)
+            except DeviceError:
+                continue
+            return host
         raise DeviceError("UR simulator: no free 127.0.0.x address with ports 29999/30003/30004")
-
-    def _bound_all(self, host: str) -> bool:
-        try:
-            self._bind_all(host)
-        except DeviceError:
-            return False
-        return True
 
     def _spawn(self, name: str, target: Any) -> None:
         t = threading.Thread(target=as_hardware(target), name=name, daemon=True)
@@ -335,16 +323,3 @@ class URSimulator(Controller):
         self.script.stop_program("runtime error")
         self.arm.velocity[:] = 0.0
         self.arm.mode = Mode.IDLE
-
-
-def _never_left_lately(host: str) -> bool:
-    """Nothing holds ``host``'s RTDE port, not even a closed connection in TIME_WAIT (a bind
-    without SO_REUSEADDR is refused for either)."""
-    probe = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    try:
-        probe.bind((host, RTDE_PORT))
-        return True
-    except OSError:
-        return False
-    finally:
-        probe.close()
