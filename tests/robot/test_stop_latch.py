@@ -182,27 +182,37 @@ def test_a_stop_latches_for_everyone_and_only_the_holders_resume_releases_it(cel
 
 #: the robot's refusals of a command that came too late (a starved PC), not for who sent it
 LATE = ("commands_stale", "commands_unsynced")
+#: the holder went silent past the robot's deadman (a starved PC): the lease lapsed with it
+EXPIRED = "lease_expired"
 
 
 def resume_as_a_user_does(robot: RobotNode, node: OperatorNode, presses: int = 3) -> None:
     """``node`` presses resume until the robot releases the latch.
 
     A resume that waited on a starved PC past the commands' staleness limit is
-    refused as late, and the page says so; its user presses again. A press is
-    repeated only after the robot counted such a refusal: a resume lost or
-    refused for any other reason fails here, with the robot's counters.
+    refused as late, and the page says so; its user presses again. A holder
+    whose PC went silent past the robot's deadman lost the lease with it (the
+    lease expires; the page says "no control"): its user asks for the lease
+    again, then presses. A press is repeated only after the robot counted one
+    of these: a resume lost or refused for any other reason fails here, with
+    the robot's counters.
     """
-    keys = ("arm_stop_latched", "arm_resumes", "arm_resumes_refused_not_holder", *LATE)
+    keys = ("arm_stop_latched", "arm_resumes", "arm_resumes_refused_not_holder", *LATE, EXPIRED)
     for _ in range(presses):
         before = robot.stats()
+        if before.get(EXPIRED, 0) and robot.desk.lease.holder != node.signer.public:
+            node.send_command("lease_request")  # nobody else asks: it is granted at once
+            wait(lambda: node.holds_lease, 3, "the lease again after it expired")
         node.send_command("arm_resume")
         deadline = time.monotonic() + 3.0
         while time.monotonic() < deadline:
             now = robot.stats()
             if now["arm_stop_latched"] == 0.0:
                 return
-            if any(now.get(k, 0) > before.get(k, 0) for k in LATE):
-                time.sleep(0.2)  # refused as late, perhaps: the user sees it and presses again
+            if any(now.get(k, 0) > before.get(k, 0) for k in LATE) or (
+                now.get(EXPIRED, 0) and robot.desk.lease.holder != node.signer.public
+            ):
+                time.sleep(0.2)  # refused as late, or the lease lapsed: the user sees it
                 break
             time.sleep(0.02)
         else:
