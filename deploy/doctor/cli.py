@@ -81,7 +81,7 @@ def diagnose(
         else:
             check_operator_link(report, config, options)
     check_governor(report)
-    check_realtime(report, config, role)
+    check_realtime(report, config, role, options.keep_alive_probe_s)
     check_service_user(report, options)
     return report
 
@@ -95,7 +95,7 @@ def _diagnose_fabric(report: Report, role: str, config: Any, options: DoctorOpti
     if role == "robot":
         check_video(report, config, options)
     check_governor(report)
-    check_realtime(report, config, role)
+    check_realtime(report, config, role, options.keep_alive_probe_s)
     check_service_user(report, options)
     return report
 
@@ -132,6 +132,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-peer", action="store_true", help="skip the ports and the other node's heartbeats"
     )
+    parser.add_argument(
+        "--keep-alive-probe",
+        type=float,
+        default=DoctorOptions.keep_alive_probe_s,
+        metavar="SECONDS",
+        help="how long the robot's real-time probe wakes as the arm's keep-alive does "
+        "(default %(default)s; 0 skips it)",
+    )
 
 
 def _resolve(args: argparse.Namespace) -> tuple[str, dict[str, Any], str]:
@@ -162,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
         peer_timeout_s=args.peer_timeout,
         connect_devices=not args.no_connect,
         check_peer=not args.no_peer,
+        keep_alive_probe_s=args.keep_alive_probe,
     )
     try:
         role, data, source = _resolve(args)

@@ -37,6 +37,7 @@ class DoctorOptions:
     connect_devices: bool = True  # False: presence checks only, drivers not opened
     check_peer: bool = True
     service_user: str = SERVICE_USER
+    keep_alive_probe_s: float = 2.0  # the real-time probe's length on the robot; 0: skipped
 
 
 @dataclass

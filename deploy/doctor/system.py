@@ -42,8 +42,9 @@ def check_governor(report: Report) -> None:
     )
 
 
-#: how long the doctor's keep-alive probe runs, and its period (the arm's keep-alive's)
-PROBE_S = 2.0
+#: how long the doctor's keep-alive probe runs (``--keep-alive-probe``), and its period (the
+#: arm's keep-alive's)
+PROBE_S = DoctorOptions.keep_alive_probe_s
 PROBE_PERIOD_S = 0.02
 #: the UR controller's watchdog window (URArmConfig's default): a wake this late stops the arm
 WATCHDOG_WINDOW_S = 0.15
@@ -76,7 +77,9 @@ def probe_keep_alive(priority: int, seconds: float = PROBE_S) -> tuple[Any, dict
     return out.get("got"), out.get("summary", {})
 
 
-def check_realtime(report: Report, config: Any = None, role: str = "robot") -> None:
+def check_realtime(
+    report: Report, config: Any = None, role: str = "robot", probe_s: float = PROBE_S
+) -> None:
     """Whether the arm's keep-alive gets real-time scheduling here, and how on time it runs.
 
     A probe thread is scheduled as the arm process schedules its keep-alive and
@@ -92,18 +95,21 @@ def check_realtime(report: Report, config: Any = None, role: str = "robot") -> N
     if not hasattr(os, "SCHED_FIFO"):
         report.add("real-time scheduling", SKIP, "this platform has no SCHED_FIFO")
         return
+    if probe_s <= 0:
+        report.add("real-time scheduling", SKIP, "not probed (--keep-alive-probe 0)")
+        return
     arm = getattr(config, "arm", None) if config is not None else None
     priority = int(arm.get("realtime_priority", 20)) if isinstance(arm, dict) else 20
     soft, _hard = resource.getrlimit(resource.RLIMIT_RTPRIO)
     rlimit = "unlimited" if soft == resource.RLIM_INFINITY else str(soft)
     kernel = "PREEMPT_RT" if Path("/sys/kernel/realtime").exists() else "standard kernel"
-    got, summary = probe_keep_alive(priority)
+    got, summary = probe_keep_alive(priority, probe_s)
     if got is None or not summary:
         report.add("real-time scheduling", WARN, "the keep-alive probe did not run")
         return
     timing = (
         f"a 20 ms keep-alive here woke with period p99 {summary['p99_ms']:.1f} ms, max "
-        f"{summary['max_ms']:.1f} ms over {PROBE_S:g} s (the controller stops the arm at "
+        f"{summary['max_ms']:.1f} ms over {probe_s:g} s (the controller stops the arm at "
         f"{WATCHDOG_WINDOW_S * 1000:.0f} ms)"
     )
     detail = f"{got.describe()} (RLIMIT_RTPRIO {rlimit}, {kernel}): {timing}"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import socket
@@ -20,8 +21,14 @@ from robot_side.gripper.memory import MemoryGripper
 pytestmark = pytest.mark.parallel
 
 #: No test may depend on whether this machine has the units' user.
-OPTS = DoctorOptions(peer_timeout_s=1.5, device_timeout_s=15.0, service_user="nobody-deepxpalm")
-NO_PEER = DoctorOptions(check_peer=False, device_timeout_s=15.0, service_user="nobody-deepxpalm")
+#: the real-time probe is tests/deploy/test_doctor_realtime.py's: a short one here (it still runs)
+OPTS = DoctorOptions(
+    peer_timeout_s=1.5,
+    device_timeout_s=15.0,
+    service_user="nobody-deepxpalm",
+    keep_alive_probe_s=0.1,
+)
+NO_PEER = dataclasses.replace(OPTS, check_peer=False)
 
 
 def _link(tel: int, cmd: int, security: dict | None = None) -> dict:
@@ -305,7 +312,7 @@ def test_cli_exits_1_with_a_json_list_of_failures(tmp_path):
         '[operator.servos]\nkind = "feetech"\nport = "/dev/deepxpalm-servos-missing"\n'
     )
     out = subprocess.run(
-        cli("doctor", "--config", str(config), "--json", "--no-peer"),
+        cli("doctor", "--config", str(config), "--json", "--no-peer", "--keep-alive-probe", "0.1"),
         capture_output=True,
         text=True,
         timeout=60,
@@ -324,7 +331,11 @@ def test_cli_text_report_shows_the_fix_under_each_failure(tmp_path):
     config = tmp_path / "robot.toml"
     config.write_text('[robot.render]\nmode = "sideways"\n')
     out = subprocess.run(
-        cli("doctor", "--config", str(config)), capture_output=True, text=True, timeout=60, env=ENV
+        cli("doctor", "--config", str(config), "--keep-alive-probe", "0"),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=ENV,
     )
     assert out.returncode == 1
     lines = out.stdout.splitlines()
@@ -337,7 +348,16 @@ def test_cli_text_report_shows_the_fix_under_each_failure(tmp_path):
 @pytest.mark.parametrize("role", ["robot", "operator"])
 def test_a_scene_for_both_machines_needs_a_role(role):
     out = subprocess.run(
-        cli("doctor", "--scene", "covid_lab", "--no-peer", "--no-connect", "--json"),
+        cli(
+            "doctor",
+            "--scene",
+            "covid_lab",
+            "--no-peer",
+            "--no-connect",
+            "--json",
+            "--keep-alive-probe",
+            "0",
+        ),
         capture_output=True,
         text=True,
         timeout=60,

@@ -10,7 +10,7 @@ from deploy.doctor.report import DoctorOptions
 
 pytestmark = [pytest.mark.slow, pytest.mark.untimed]
 
-OPTIONS = DoctorOptions(peer_timeout_s=1.0, check_peer=True)
+OPTIONS = DoctorOptions(peer_timeout_s=1.0, check_peer=True, keep_alive_probe_s=0.1)
 
 
 def _operator(site, **fabric) -> dict:
