@@ -205,7 +205,12 @@ def _during(fleet: Fleet, attack: str, member: str, seconds: float = ATTACK_S) -
     finally:
         heard = attacker.end()
     t1 = now_ns()
-    time.sleep(STATS_PERIOD_S + 0.5)  # the last bin's counters
+    # the last bin's counters: every robot's first reading after the attack (one a second)
+    deadline = time.monotonic() + STATS_PERIOD_S + 0.5
+    while time.monotonic() < deadline and not all(
+        any(t > t1 for t, _ in list(fleet.wire.stats[robot])) for robot in ROBOTS
+    ):
+        time.sleep(0.02)
     for robot in ROBOTS:
         sent = fleet.stops[robot].sent
         counters = list(fleet.wire.stats[robot])
