@@ -197,6 +197,10 @@ class ControlLine:
                 ctrl.kickWatchdog()
             except RuntimeError as e:  # the next command finds out and says so
                 log.debug("URArm: kickWatchdog failed: %s", e)
+            finally:
+                # a kick waits for the script's "ready" before it writes: a silence that
+                # began before it and ended only with its write is said, as a call's is
+                self.note_sent("the end of a kick")
             return True
         finally:
             self.wire.release()
