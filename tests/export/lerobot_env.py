@@ -5,8 +5,9 @@ imports torch and torchvision without declaring them, so it cannot share the
 project's environment (docs/datasets.md). The venv is built once per
 version set and cached outside the clone (``DEEPXPALM_LEROBOT_ENV``, or
 ``~/.cache/deepxpalm/``), so only the first run on a machine pays for the
-install (about 5 minutes here, most of it unpacking torch). torch is the
-project's CPU build, installed first so nothing pulls CUDA libraries.
+install: torch with pip, installed first so nothing pulls CUDA libraries, the
+rest with uv as ``make setup`` installs the project's (about a minute in all;
+about 5 with pip alone, which it falls back to where uv is not there).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ LEROBOT_DATASET = "lerobot-dataset==0.4.4"
 TORCH = os.environ.get("TORCH", "torch==2.13.0")
 TORCHVISION = "torchvision==0.28.0"  # the release built against torch 2.13
 KEY = f"{LEROBOT_DATASET}-{TORCH}-{TORCHVISION}-py{sys.version_info[0]}{sys.version_info[1]}"
+#: the uv options for the sources pip is configured with (``make setup`` uses it too)
+UV_SOURCES = Path(__file__).resolve().parents[2] / "scripts" / "pip-config-as-uv-args.py"
 #: answers the loads and the policies' questions (``load_with_lerobot.py``, ``policy_features.py``)
 SERVER = Path(__file__).with_name("lerobot_server.py")
 #: ``lerobot`` itself, for its policies' configs, on top of the same environment: without
@@ -61,6 +64,20 @@ def _pip(python: Path) -> list[str]:
     return [str(python), "-m", "pip", "install", *quiet, "--no-compile"]
 
 
+def _install(python: Path, *requirements: str) -> None:
+    """``requirements`` into the environment: with uv where the project's setup installed it,
+    from the sources pip is configured with (as ``make setup`` does), else with pip."""
+    uv = Path(sys.executable).with_name("uv")
+    if uv.exists():
+        sources = subprocess.run(
+            [sys.executable, str(UV_SOURCES)], capture_output=True, text=True, check=True
+        ).stdout.split()
+        cmd = [str(uv), "pip", "install", "-q", "--python", str(python), *sources, *requirements]
+        if subprocess.run(cmd, timeout=1800).returncode == 0:
+            return
+    subprocess.run([*_pip(python), *requirements], check=True, timeout=1800)
+
+
 def ensure_env() -> Path:
     """The environment's python, building the environment if it is not there yet."""
     path = env_dir()
@@ -69,7 +86,9 @@ def ensure_env() -> Path:
     if stamp.exists():
         return python
     venv.EnvBuilder(with_pip=True, clear=True).create(path)
-    subprocess.run([*_pip(python), TORCH, TORCHVISION, LEROBOT_DATASET], check=True, timeout=1800)
+    # torch with pip (the project's rule for torch: README.md), the rest as the project's are
+    subprocess.run([*_pip(python), TORCH], check=True, timeout=1800)
+    _install(python, TORCHVISION, LEROBOT_DATASET)
     stamp.write_text(KEY + "\n")
     return python
 
@@ -81,7 +100,7 @@ def ensure_policy_env() -> Path:
     key = " ".join(LEROBOT_POLICIES) + "\n"
     if stamp.exists() and stamp.read_text() == key:
         return python
-    subprocess.run([*_pip(python), "--no-deps", *LEROBOT_POLICIES], check=True, timeout=1800)
+    _install(python, "--no-deps", *LEROBOT_POLICIES)
     stamp.write_text(key)
     return python
 
@@ -94,7 +113,7 @@ def ensure_video_decoder(python: Path) -> dict[str, str]:
     """
     stamp = env_dir() / ".installed-video"
     if not stamp.exists() or stamp.read_text() != TORCHCODEC + "\n":
-        subprocess.run([*_pip(python), "--no-deps", TORCHCODEC], check=True, timeout=1800)
+        _install(python, "--no-deps", TORCHCODEC)
         stamp.write_text(TORCHCODEC + "\n")
     bundled = next((env_dir() / "lib").glob("python3*/site-packages/av.libs"))
     links = env_dir() / "ffmpeg-links"
