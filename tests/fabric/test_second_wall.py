@@ -140,6 +140,26 @@ def _settled(palm: FakeStsBus, quiet_s: float = 0.6, timeout_s: float = 20.0) ->
     raise AssertionError(f"the palm never came to rest in {timeout_s} s")
 
 
+def _off_the_lift_path(
+    palm: FakeStsBus, since_ns: int, pressed: dict[int, int]
+) -> list[tuple[int, int]]:
+    """(servo, goal) written since ``since_ns`` off the way between the held grasp and the
+    retract pose: a staleness lift and the press after it travel that way, a forged
+    pattern's goals do not (another contact point on some linkage)."""
+    from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.servos.feetech import FeetechConfig
+
+    retract = LinkGlideRenderer(RendererConfig(), FeetechConfig().calibration).retract_goals
+    lift = dict(zip(palm.config.ids, retract, strict=True))
+    slack = 2  # counts: a goal's rounding
+    return [
+        (sid, goal)
+        for t, sid, goal in list(palm.goal_log)
+        if t >= since_ns
+        and not min(pressed[sid], lift[sid]) - slack <= goal <= max(pressed[sid], lift[sid]) + slack
+    ]
+
+
 def _palm_operator(wall: Wall, name: str, palm: FakeStsBus) -> Proc:
     """An observer's operator node holding cell1's key, its palm pressed by the held grasp."""
     fleet = wall.fleet
@@ -211,7 +231,7 @@ def test_forged_stimuli_through_the_router_never_move_the_palm_and_the_robots_ow
             wall.forger, robot=b"cell1", operator=None, signer=Signer.generate()
         )
         unsigned = FabricPublisher(wall.forger, robot=b"cell1", operator=None)
-        sent = 0
+        sent, t_forging_ns = 0, now_ns()
         try:
             end, seq = time.monotonic() + 2.0, 10**6
             while time.monotonic() < end:
@@ -233,9 +253,18 @@ def test_forged_stimuli_through_the_router_never_move_the_palm_and_the_robots_ow
         finally:
             signed.close()
             unsigned.close()
-        assert _settled(palm) == writes and _goals(palm) == pressed, "the palm moved"
+        moved = _settled(palm) != writes
+        at_rest = _goals(palm)
         wall.fleet.stop(op.name)
     stats = op.stats()
+    if moved:  # a forged stimulus, or the robot's own stream stale on a starved machine
+        off_path = _off_the_lift_path(palm, t_forging_ns, pressed)
+        assert stats.get("lift_offs", 0) >= 1 and not off_path, (
+            f"the palm moved while stimuli were forged: {len(off_path)} goals that neither "
+            f"hold the robot's grasp nor lift off it, e.g. {off_path[:6]}; the operator's "
+            f"lift-offs (its own stream stale): {stats.get('lift_offs', 0)}"
+        )
+    assert at_rest == pressed, f"the palm rests at {at_rest}, not the robot's grasp {pressed}"
     # best-effort datagrams on a busy machine lose a few, and a slot of one per key keeps
     # only the newest of two arriving together: most of each kind, not every one
     assert stats.get("telemetry_forged", 0) > sent / 4, (sent, stats)
