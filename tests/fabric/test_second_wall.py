@@ -146,10 +146,10 @@ def _off_the_lift_path(
     """(servo, goal) written since ``since_ns`` off the way between the held grasp and the
     retract pose: a staleness lift and the press after it travel that way, a forged
     pattern's goals do not (another contact point on some linkage)."""
-    from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
+    from operator_side.palm.renderer_config import RendererConfig, retract_goals
     from operator_side.servos.feetech import FeetechConfig
 
-    retract = LinkGlideRenderer(RendererConfig(), FeetechConfig().calibration).retract_goals
+    retract = retract_goals(RendererConfig(), FeetechConfig().calibration)
     lift = dict(zip(palm.config.ids, retract, strict=True))
     slack = 2  # counts: a goal's rounding
     return [
