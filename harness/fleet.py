@@ -436,13 +436,21 @@ class Fleet:
         write_secret_file(config, "\n".join(lines) + "\n")
         return self.process(name, "recorder", ["-v", "record", "--config", str(config)])
 
-    def wait_for(self, cond: Callable[[], bool], timeout_s: float, what: str) -> None:
-        """Poll ``cond`` until true; else fail naming ``what``, with every process's log tail."""
+    def wait_for(
+        self,
+        cond: Callable[[], bool],
+        timeout_s: float,
+        what: str,
+        detail: Callable[[], object] | None = None,
+    ) -> None:
+        """Poll ``cond`` until true; else fail naming ``what`` (and what ``detail`` shows then),
+        with every process's log tail."""
         deadline = time.monotonic() + timeout_s
         while not cond():
             if time.monotonic() > deadline:
                 logs = "\n".join(f"--- {n}\n{p.log_text()[-3000:]}" for n, p in self.procs.items())
-                raise AssertionError(f"timed out waiting for {what}\n{logs}")
+                seen = f" ({detail()})" if detail is not None else ""
+                raise AssertionError(f"timed out waiting for {what}{seen}\n{logs}")
             time.sleep(0.05)
 
     def stop(self, name: str, sig: int | None = None, timeout_s: float = 15.0) -> int:

@@ -87,6 +87,16 @@ def jog_for(proc, velocity: list[float], seconds: float) -> None:
         time.sleep(0.05)
 
 
+def jog_while(proc, velocity: list[float], until: threading.Event) -> None:
+    """Jog at 20/s until ``until`` is set (or the process ended)."""
+    while not until.is_set() and proc.popen.poll() is None:
+        try:
+            proc.send({"action": "arm_jog", "velocity": velocity})
+        except BrokenPipeError:  # the process was killed on purpose
+            return
+        until.wait(0.05)
+
+
 def kill_mid_jog_and_time_the_stop(fleet: Fleet, controller, sim, jog: list[float]) -> float:
     """Kill ``controller``'s process while it jogs ``sim``'s arm; ms until the arm was at rest.
 

@@ -25,7 +25,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 import zmq.auth
-from fleet_monitor import Monitor, jog_for
+from fleet_monitor import Monitor, jog_while
 
 from common.clocks.clock import now_ns
 from common.fabric import keyexprs
@@ -192,24 +192,35 @@ def test_a_router_that_lets_an_observer_command_still_cannot_move_the_arm(wall):
     fleet.wait_for(lambda: wall.sim.stats()["program_running"], 30, "the robot driving the arm")
     t0 = now_ns()
     start = wall.sim.tcp_pose()[:3].copy()
-    jog_eve = threading.Thread(target=jog_for, args=(eve, JOG_Y, 1.5))
-    jog_eve.start()
-    jog_for(mallory, JOG_X, 1.5)
-    jog_eve.join()
+    # both jog until the robot has counted what it refused: a starved machine delays a jog or
+    # holds it (no fresh telemetry), and a fixed 1.5 s of them once fell short of ten
+    refused = lambda: wall.robot_counters(t0)  # noqa: E731
+    counted = ("commands_not_controller", "messages_unknown_signer", "lease_refused_role")
+    done = threading.Event()
+    jogs = [
+        threading.Thread(target=jog_while, args=(op, jog, done))
+        for op, jog in ((eve, JOG_Y), (mallory, JOG_X))
+    ]
+    for jog in jogs:
+        jog.start()
+    try:
+        fleet.wait_for(
+            lambda: (
+                refused().get("commands_not_controller", 0) > 10
+                and refused().get("messages_unknown_signer", 0) > 10
+                and refused().get("lease_refused_role", 0) >= 1
+            ),
+            20,
+            "the robot's count of mallory's refused commands and eve's unknown messages",
+            detail=lambda: {k: refused().get(k) for k in counted},
+        )
+    finally:
+        done.set()
+        for jog in jogs:
+            jog.join()
     time.sleep(0.3)
     moved = wall.sim.tcp_pose()[:3] - start
     assert np.abs(moved).max() < 1e-4, f"the arm moved: {moved}"
-    # both were let through the router, and the robot refused each by its own roster
-    refused = lambda: wall.robot_counters(t0)  # noqa: E731
-    fleet.wait_for(
-        lambda: (
-            refused().get("commands_not_controller", 0) > 10
-            and refused().get("messages_unknown_signer", 0) > 10
-            and refused().get("lease_refused_role", 0) >= 1
-        ),
-        10,
-        "the robot's count of mallory's refused commands and eve's unknown messages",
-    )
     fleet.stop(mallory.name)
     fleet.stop(eve.name)
     assert all(hb.lease_holder is None for _, hb in wall.monitor.heartbeats)
