@@ -76,6 +76,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: between two rounds of pings to the servos that did not answer at connect
+PING_AGAIN_S = 0.1
+
 
 class FeetechServoBus(ServoBus):
     """Goal positions in one sync write per call; present positions by sync read."""
@@ -287,18 +290,39 @@ class FeetechServoBus(ServoBus):
         raise kind(f"{full}; torque is off. Fix the cause, then call reconnect()")
 
     def _ping_all(self) -> None:
+        """Every servo answers a ping with the expected model; a servo still booting (or a
+        reply a loaded machine lost) is pinged again until ``connect_timeout_s``."""
         cfg = self.config
-        missing: list[int] = []
-        wrong: list[str] = []
-        for sid in cfg.ids:
-            model, result, error = self._line.ping(sid)
-            if result != sdk.COMM_SUCCESS:
-                missing.append(sid)
-                continue
-            if error:
-                log.warning("servo %d reports: %s", sid, describe_error(error) or error)
-            if cfg.expected_model is not None and model != cfg.expected_model:
-                wrong.append(f"{sid} is model {model} ({MODEL_NUMBERS.get(model, 'unknown')})")
+        deadline = time.monotonic() + cfg.connect_timeout_s
+        models: dict[int, int] = {}
+        rounds = 0
+        while True:
+            for sid in cfg.ids:
+                if sid in models:
+                    continue
+                model, result, error = self._line.ping(sid)
+                if result != sdk.COMM_SUCCESS:
+                    continue
+                models[sid] = model
+                if error:
+                    log.warning("servo %d reports: %s", sid, describe_error(error) or error)
+            missing = [sid for sid in cfg.ids if sid not in models]
+            if not missing or time.monotonic() >= deadline:
+                break
+            if rounds == 0:
+                log.info(
+                    "servos %s did not answer on %s; pinging them again for %.1f s at most",
+                    missing,
+                    cfg.port,
+                    cfg.connect_timeout_s,
+                )
+            rounds += 1
+            time.sleep(PING_AGAIN_S)
+        wrong = [
+            f"{sid} is model {model} ({MODEL_NUMBERS.get(model, 'unknown')})"
+            for sid, model in models.items()
+            if cfg.expected_model is not None and model != cfg.expected_model
+        ]
         if missing:
             answered = [i for i in cfg.ids if i not in missing]
             if not answered:
@@ -309,7 +333,8 @@ class FeetechServoBus(ServoBus):
                     "TX/RX wired to the adapter? The baud rate right (STS ship at 1000000)?"
                 )
             raise DeviceTimeoutError(
-                f"servos {missing} did not answer on {cfg.port} (ids {answered} did): check "
+                f"servos {missing} did not answer on {cfg.port} in {cfg.connect_timeout_s:g} s "
+                f"(ids {answered} did): check "
                 "their cables and that their ids are set (one servo at a time on the bus)"
             )
         if wrong:

@@ -30,6 +30,11 @@ class FeetechConfig:
         "how long to wait for a status packet; unset = the SDK's 34 ms. Raise it for an "
         "adapter whose USB latency timer is above 16 ms",
     )
+    connect_timeout_s: float = param(
+        2.0,
+        "at connect, servos that did not answer are pinged again until this long has passed "
+        "(an STS servo answers about half a second after its supply comes on); 0 = once",
+    )
     protocol_end: int = param(0, "0 = STS (little-endian), 1 = SCS; one per process (SDK global)")
     expected_model: int | None = param(
         None, "refuse servos with another model number (777 = STS3215); unset = any"
@@ -55,6 +60,8 @@ class FeetechConfig:
             raise ValueError(f"servo ids must be in 0..252, not {self.ids}")
         if self.retries < 0:
             raise ValueError("retries must not be negative")
+        if not 0.0 <= self.connect_timeout_s <= 60.0:
+            raise ValueError(f"connect_timeout_s = {self.connect_timeout_s} is not in 0..60")
         if self.reply_timeout_ms is not None and not 1.0 <= self.reply_timeout_ms <= 1000.0:
             raise ValueError(f"reply_timeout_ms = {self.reply_timeout_ms} is not in 1..1000")
         if self.protocol_end not in (0, 1):

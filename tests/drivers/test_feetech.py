@@ -162,7 +162,7 @@ def test_first_goals_reach_the_bus_before_any_reply_is_awaited(fake) -> None:
     """The palm's lift: its pose and torque on go out as the port opens, so even a bus whose
     every reply is lost has them; then the checks fail, and torque goes off as always."""
     fake.drop_replies(1000)
-    bus = _bus(fake.port, retries=0, reply_timeout_ms=20.0)
+    bus = _bus(fake.port, retries=0, reply_timeout_ms=20.0, connect_timeout_s=0.0)
     with pytest.raises(DeviceTimeoutError, match="no servo answered"):
         bus.connect(first_goals=_goals(2300))
 
@@ -299,18 +299,33 @@ def test_replies_that_come_after_their_window_do_not_answer_the_next_request(fak
 
 def test_servo_that_does_not_answer_at_connect_is_named(fake) -> None:
     fake.set_silent(4)
-    bus = _bus(fake.port, retries=1)  # each try of servo 4 waits out a whole window
+    # each try of servo 4 waits out a whole window; it is pinged again for 0.5 s
+    bus = _bus(fake.port, retries=1, connect_timeout_s=0.5)
+    t0 = time.monotonic()
     with pytest.raises(
-        DeviceTimeoutError, match=r"servos \[4\] did not answer.*\[1, 2, 3, 5, 6\] did"
+        DeviceTimeoutError, match=r"servos \[4\] did not answer.* in 0.5 s.*\[1, 2, 3, 5, 6\] did"
     ):
         bus.connect()
+    assert time.monotonic() - t0 >= 0.5
     assert not bus.is_connected
     time.sleep(0.02)
     assert not any(fake.torque(i) for i in IDS)
 
 
+def test_a_servo_that_boots_late_is_waited_for_at_connect(fake) -> None:
+    """A servo answers about half a second after its supply comes on: a node started with the
+    supply is not refused for it (connect_timeout_s), and the pose is read from all six."""
+    fake.set_silent(4)
+    threading.Timer(0.4, fake.set_silent, args=(4, False)).start()
+    t0 = time.monotonic()
+    with _bus(fake.port, retries=0, connect_timeout_s=5.0) as bus:
+        assert time.monotonic() - t0 >= 0.35
+        assert set(bus.read_positions()) == set(IDS)
+
+
 def test_no_servo_at_all_suggests_power_and_baud(fake) -> None:
-    bus = _bus(fake.port, baudrate=500_000, retries=0, ids=(1, 2))  # fake runs at 1 Mbaud
+    # fake runs at 1 Mbaud
+    bus = _bus(fake.port, baudrate=500_000, retries=0, ids=(1, 2), connect_timeout_s=0.0)
     with pytest.raises(DeviceTimeoutError, match=r"no servo answered.*powered.*baud"):
         bus.connect()
 
