@@ -6,6 +6,7 @@ import itertools
 import signal
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -78,23 +79,19 @@ class Monitor:
 
 
 def jog_for(proc, velocity: list[float], seconds: float) -> None:
+    """Jog at 20/s for ``seconds`` (or until the process ended)."""
     end = time.monotonic() + seconds
-    while time.monotonic() < end and proc.popen.poll() is None:
+    jog_while(proc, velocity, lambda: time.monotonic() >= end)
+
+
+def jog_while(proc, velocity: list[float], done: Callable[[], bool]) -> None:
+    """Jog at 20/s until ``done()`` (or the process ended)."""
+    while not done() and proc.popen.poll() is None:
         try:
             proc.send({"action": "arm_jog", "velocity": velocity})
         except BrokenPipeError:  # the process was killed on purpose
             return
         time.sleep(0.05)
-
-
-def jog_while(proc, velocity: list[float], until: threading.Event) -> None:
-    """Jog at 20/s until ``until`` is set (or the process ended)."""
-    while not until.is_set() and proc.popen.poll() is None:
-        try:
-            proc.send({"action": "arm_jog", "velocity": velocity})
-        except BrokenPipeError:  # the process was killed on purpose
-            return
-        until.wait(0.05)
 
 
 def kill_mid_jog_and_time_the_stop(fleet: Fleet, controller, sim, jog: list[float]) -> float:

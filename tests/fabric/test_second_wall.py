@@ -192,27 +192,28 @@ def test_a_router_that_lets_an_observer_command_still_cannot_move_the_arm(wall):
     fleet.wait_for(lambda: wall.sim.stats()["program_running"], 30, "the robot driving the arm")
     t0 = now_ns()
     start = wall.sim.tcp_pose()[:3].copy()
-    # both jog until the robot has counted what it refused: a starved machine delays a jog or
-    # holds it (no fresh telemetry), and a fixed 1.5 s of them once fell short of ten
-    refused = lambda: wall.robot_counters(t0)  # noqa: E731
-    counted = ("commands_not_controller", "messages_unknown_signer", "lease_refused_role")
+    # both were let through the router, and the robot refuses each by its own roster: both
+    # jog until it has counted more than this many of each (a starved machine delays or holds
+    # a jog, and a fixed 1.5 s of them once fell short of ten)
+    over = {"commands_not_controller": 10, "messages_unknown_signer": 10, "lease_refused_role": 0}
+
+    def counts() -> dict[str, float]:
+        newest = wall.robot_counters(t0)
+        return {k: newest.get(k, 0) for k in over}
+
     done = threading.Event()
     jogs = [
-        threading.Thread(target=jog_while, args=(op, jog, done))
+        threading.Thread(target=jog_while, args=(op, jog, done.is_set))
         for op, jog in ((eve, JOG_Y), (mallory, JOG_X))
     ]
     for jog in jogs:
         jog.start()
     try:
         fleet.wait_for(
-            lambda: (
-                refused().get("commands_not_controller", 0) > 10
-                and refused().get("messages_unknown_signer", 0) > 10
-                and refused().get("lease_refused_role", 0) >= 1
-            ),
+            lambda: all(n > over[k] for k, n in counts().items()),
             20,
             "the robot's count of mallory's refused commands and eve's unknown messages",
-            detail=lambda: {k: refused().get(k) for k in counted},
+            detail=counts,
         )
     finally:
         done.set()
