@@ -321,7 +321,7 @@ def test_the_heartbeat_names_the_gripper_command_acted_on_and_never_a_stale_one(
         close = op.command("gripper_close", grip_level=12)
         op.pump(0.4)
         want = (float(close.seq), 5.0)
-        assert named_once(want) == want, _command_counters(rig)
+        assert named_once(want) == want, f"the robot's counters: {_command_counters(rig)}"
         assert requested(GripLevels().position(12)) == GripLevels().position(12)
         stale = Command(
             seq=op.seq + 1,
@@ -337,7 +337,7 @@ def test_the_heartbeat_names_the_gripper_command_acted_on_and_never_a_stale_one(
         again = op.command("gripper_open")  # what the operator node resends, fresh
         op.pump(0.4)
         want = (float(again.seq), 5.0)
-        assert named_once(want) == want, _command_counters(rig)
+        assert named_once(want) == want, f"the robot's counters: {_command_counters(rig)}"
         assert requested(0) == 0
     finally:
         op.sub.close()
