@@ -198,19 +198,21 @@ class PalmProbe(_Probe):
         """Every goal write since the last panel, as a sample at the bus's own time: a lift
         shorter than the panel's period, or one a stalled probe slept through, still shows.
 
-        The writes are replayed onto the previous panel's goals; a first panel only seeds them.
+        The writes are replayed onto the previous panel's goals. A first panel (a probe that
+        started late, after a node's first writes) replays its log from nothing known: a
+        sample from the first write that leaves every servo's goal known (one sync write).
         """
         if not entries:
             return
         new = [e for e in entries if self._logged_ns is None or e[0] > self._logged_ns]
         self._logged_ns = max(e[0] for e in entries)
-        if self._log_goals is None:
-            self._log_goals = list(now_goals)
-            return
-        goals = self._log_goals
+        goals: list[int | None] = (
+            list(self._log_goals) if self._log_goals is not None else [None] * len(now_goals)
+        )
         for t_ns, sid, goal in sorted(new):
             self.goal_writes.append((t_ns / 1e9, sid, goal))
             if 1 <= sid <= len(goals):
                 goals[sid - 1] = goal
-                bisect.insort(self.samples, Sample(t_ns / 1e9, self._distance(goals)))
+                if all(g is not None for g in goals):
+                    bisect.insort(self.samples, Sample(t_ns / 1e9, self._distance(goals)))
         self._log_goals = list(now_goals)  # the panel is the truth between logs

@@ -125,7 +125,15 @@ def _pressed_by(d: Demo, palm: PalmProbe, pid: int, since: float, timeout_s: flo
             return
         assert d.proc.poll() is None, f"the demo ended{d.tail()}"
         time.sleep(0.1)
-    pytest.fail(f"operator {pid} never pressed the palm within {timeout_s:.0f} s{d.tail()}")
+    seen = palm.between(since)
+    up = next((s.t_s - since for s in seen if s.value == 0), None)
+    recent = [round(s.value) for s in palm.between(time.monotonic() - 0.3)]
+    pytest.fail(
+        f"operator {pid} never pressed the palm within {timeout_s:.0f} s: the probe read "
+        f"{len(seen)} samples since, the first {seen[0].t_s - since if seen else None} s after "
+        f"it, retract pose at {up} s, {len(palm.goal_writes)} goal writes in all, the last "
+        f"0.3 s {recent}{d.tail()}"
+    )
 
 
 def _alive(pid: int) -> bool:
