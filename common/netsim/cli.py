@@ -9,6 +9,7 @@ datagrams lost one by one, never retransmitted) from
 ``--operator-telemetry udp://HOST:PORT`` to ``--robot-telemetry udp://HOST:PORT``. Settings come
 from the defaults, then ``--config FILE`` (keys at the top level or under
 ``[netsim]``), then ``--set netsim.key=value``, then the explicit options.
+``kill -USR1`` pulls the cable: the link is cut both ways for ``cut_s``.
 """
 
 from __future__ import annotations
@@ -33,8 +34,8 @@ from common.process.command_line import (
     print_config,
     write_stats,
 )
-from common.process.sd_notify import Notifier
-from common.process.signals import stop_on_signals
+from common.process.sd_notify import FIELD_PREFIX, Notifier
+from common.process.signals import on_signal, stop_on_signals
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +57,9 @@ class NetsimConfig:
     )
     report_interval_s: float = param(5.0, "how often counters are logged; 0 = never")
     duration_s: float = param(0.0, "stop after this long; 0 = run until Ctrl-C")
+    cut_s: float = param(
+        5.0, "SIGUSR1 cuts the link both ways for this long from its arrival (a pulled cable)"
+    )
     endpoints: Endpoints = param(Endpoints(), "")
 
 
@@ -100,6 +104,8 @@ def config_from_args(args: argparse.Namespace) -> NetsimConfig:
         value = getattr(args, key, None)
         if value is not None:
             setattr(config, key, value)
+    if not config.cut_s > 0:
+        raise ConfigError(f"netsim.cut_s must be > 0 s (a cut's length), not {config.cut_s}")
     return config
 
 
@@ -149,7 +155,8 @@ def _run(args: argparse.Namespace) -> int:
         )
         # READY=1 once forwarding (systemd, or whoever started it): where the operator
         # connects (a port-0 config's ports too) and when the scenario's clock started
-        Notifier().ready(
+        notifier = Notifier()
+        notifier.ready(
             f"{scenario.name} ({mode_of(config, scenario)} mode)",
             {
                 "operator_telemetry": sim.operator_telemetry_endpoint,
@@ -157,6 +164,7 @@ def _run(args: argparse.Namespace) -> int:
             },
             schedule_start_ns=sim.start_ns,
         )
+        on_signal(signal.SIGUSR1, lambda: _cut(sim, config.cut_s, notifier))
         t_end = time.monotonic() + config.duration_s if config.duration_s > 0 else None
         t_report = time.monotonic()
         while not done.is_set():
@@ -235,8 +243,19 @@ class DatagramLink:
     def own_latency_ns(self) -> list[int]:
         return self.forwarder.own_latency_ns()
 
+    def cut(self, seconds: float) -> tuple[int, int]:
+        return self.forwarder.cut(seconds)
+
     def stop(self) -> None:
         self.forwarder.stop()
+
+
+def _cut(sim: LinkSimulator | StreamForwarder | DatagramLink, seconds: float, notifier: Notifier):
+    """SIGUSR1: the link cut both ways from now, said to the log and to whoever supervises
+    (``X_DEEPXPALM_CUT_NS=t1,t2``, monotonic ns: a test judges the fault from its real start)."""
+    t1, t2 = sim.cut(seconds)
+    log.warning("netsim: link cut both ways for %.1f s (SIGUSR1)", seconds)
+    notifier.send(f"{FIELD_PREFIX}CUT_NS={t1},{t2}")
 
 
 def build_simulator(

@@ -131,7 +131,11 @@ class DatagramForwarder(ForwardingThread):
             self.start_ns = time.monotonic_ns()
         self._engines = {
             name: DirectionImpairment(
-                self._configs[name], seed=self.seed, name=f"udp:{name}", start_ns=self.start_ns
+                self._configs[name],
+                seed=self.seed,
+                name=f"udp:{name}",
+                start_ns=self.start_ns,
+                cuts=self.cuts,
             )
             for name in DIRECTIONS
         }

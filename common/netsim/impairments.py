@@ -99,18 +99,43 @@ class ImpairmentCounts:
         return dict(self.__dict__)
 
 
+class LinkCuts:
+    """Outages added while a simulator runs (``deepxpalm netsim``'s SIGUSR1: a pulled cable),
+    shared by every direction and connection of one simulator. Written by one thread, read by
+    the forwarding threads: the windows are one tuple, replaced whole."""
+
+    def __init__(self) -> None:
+        self._windows: tuple[tuple[int, int], ...] = ()
+
+    def add(self, t1_ns: int, t2_ns: int) -> None:
+        self._windows = (*self._windows, (t1_ns, t2_ns))
+
+    def down(self, t_ns: int) -> bool:
+        return any(t1 <= t_ns < t2 for t1, t2 in self._windows)
+
+    def __bool__(self) -> bool:
+        return bool(self._windows)
+
+
 class DirectionImpairment:
     """The impairment state machine of one direction.
 
     ``start_ns`` anchors the outage schedule; times are any monotonic
     nanosecond clock (real or virtual) as long as ``process`` is called with
-    non-decreasing ``now_ns``.
+    non-decreasing ``now_ns``. ``cuts``: outages added while it runs.
     """
 
     def __init__(
-        self, config: DirectionConfig, *, seed: int = 0, name: str = "link", start_ns: int = 0
+        self,
+        config: DirectionConfig,
+        *,
+        seed: int = 0,
+        name: str = "link",
+        start_ns: int = 0,
+        cuts: LinkCuts | None = None,
     ) -> None:
         self.config = config
+        self._cuts = cuts if cuts is not None else LinkCuts()
         self.name = name
         self.seed = seed
         self.start_ns = start_ns
@@ -154,9 +179,9 @@ class DirectionImpairment:
                 self._delay_trace = load_delay_trace(Path(c.trace_file))
 
     def in_outage(self, t_ns: int) -> bool:
-        """Whether the link is down at ``t_ns``."""
+        """Whether the link is down at ``t_ns``: a scheduled outage, or a cut."""
         i = bisect.bisect_right(self._outage_starts, t_ns) - 1
-        return i >= 0 and t_ns < self._outages[i][1]
+        return (i >= 0 and t_ns < self._outages[i][1]) or self._cuts.down(t_ns)
 
     def process(self, now_ns: int, payload: bytes) -> list[tuple[int, bytes]]:
         """Deliveries ``(due_ns, bytes)`` for a message entering the link at ``now_ns``.
@@ -178,7 +203,7 @@ class DirectionImpairment:
 
         if self._delay_trace is not None:
             delay_ms = c.delay_ms + self._delay_trace.delay_ms(now_ns - self.start_ns)
-        down = self.in_outage(now_ns) if self._outages else False
+        down = self.in_outage(now_ns) if self._outages or self._cuts else False
         if not self._stream and (lost or down):
             if down:
                 counts.outage_dropped += 1
@@ -239,7 +264,7 @@ class DirectionImpairment:
         rto = self._retransmit_ns
         for _ in range(MAX_RETRANSMISSIONS):
             t += rto
-            if self._outages and self.in_outage(t):
+            if (self._outages or self._cuts) and self.in_outage(t):
                 rto *= 2  # no ACK comes back: TCP's timer backs off
                 continue
             if self._retx.random() < self._retx_loss:

@@ -29,7 +29,7 @@ import zmq
 
 from common.config.typed import param
 from common.errors import ConfigError, LinkError
-from common.netsim.impairments import DIRECTIONS, DirectionImpairment, Scenario
+from common.netsim.impairments import DIRECTIONS, DirectionImpairment, LinkCuts, Scenario
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +113,17 @@ class ForwardingThread(ABC):
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._error: BaseException | None = None
+        #: outages added while it runs, shared by every direction (and connection)
+        self.cuts = LinkCuts()
+
+    def cut(self, seconds: float) -> tuple[int, int]:
+        """Cut the link both ways for ``seconds`` from now (a pulled cable): what enters it
+        meanwhile is lost (datagrams, messages) or waits for TCP's retransmissions (stream).
+        Returns the cut's window on the monotonic clock, in ns."""
+        t1 = time.monotonic_ns()
+        t2 = t1 + round(seconds * 1e9)
+        self.cuts.add(t1, t2)
+        return t1, t2
 
     @property
     def is_running(self) -> bool:
@@ -233,6 +244,7 @@ class LinkSimulator(ForwardingThread):
                 seed=self.seed,
                 name=name,
                 start_ns=self.start_ns,
+                cuts=self.cuts,
             )
             rx, tx = rx_tx[name]
             self._dirs.append(_Direction(name, rx, tx, engine))

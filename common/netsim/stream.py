@@ -228,6 +228,7 @@ class StreamForwarder(ForwardingThread):
                     seed=self.seed,
                     name=f"{direction}:{link}:{n}",
                     start_ns=self.start_ns,
+                    cuts=self.cuts,
                 )
             self.pipes.add(Pipe(src, dst, direction, engine, self._counters[direction]))
         log.debug("netsim: %s connection %d forwarded to %s:%d", link, n, *target)

@@ -74,6 +74,8 @@ class _Process:
     pings: int = 0
     status: str = ""
     readies: list[Ready] = field(default_factory=list)
+    #: the newest value of every field it said, READY=1 or not
+    said: dict[str, str] = field(default_factory=dict)
 
 
 def log_tail(log: Path | None, lines: int = 8) -> str:
@@ -134,6 +136,7 @@ class NotifySocket:
                     fields[key] = value
             with self._changed:
                 said = self._by_pid.setdefault(pid, _Process())
+                said.said.update(fields)
                 if fields.get("READY") == "1":
                     said.ready = Ready(now, fields)
                     said.readies.append(said.ready)
@@ -161,6 +164,12 @@ class NotifySocket:
         with self._changed:
             said = self._current()
             return "" if said is None else said.status
+
+    def field(self, name: str) -> str | None:
+        """The newest ``X_DEEPXPALM_<NAME>`` the current process said (None: never)."""
+        with self._changed:
+            said = self._current()
+            return None if said is None else said.said.get(FIELD_PREFIX + name.upper())
 
     def last_ping(self, pid: int) -> float | None:
         """When ``pid`` last said ``READY=1`` or ``WATCHDOG=1`` (monotonic s)."""

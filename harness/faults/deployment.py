@@ -23,6 +23,7 @@ import contextlib
 import json
 import logging
 import os
+import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -85,18 +86,18 @@ retries = {retries}
 reply_timeout_ms = {reply_timeout_ms}
 """
 
-#: the link: a wired LAN carrying the operator's QUIC datagrams (the fabric), and an outage of
-#: ``outage_s`` from ``outage_at_s`` after netsim starts: every datagram of it lost, both ways
+#: the link: a wired LAN carrying the operator's QUIC datagrams (the fabric); ``cut_link``
+#: pulls its cable (every datagram lost, both ways) for ``OUTAGE_S``
 _SCENARIO_TOML = """
-name = "lan-with-outage"
-description = "wired LAN with one scheduled outage (the fault matrix)"
+name = "lan-fabric"
+description = "wired LAN carrying the fabric's QUIC datagrams (the fault matrix)"
 [both]
 delivery = "datagram"
 delay_ms = 0.1
 jitter_ms = 0.02
 distribution = "normal"
-outages = [[{t1}, {t2}]]
 """
+OUTAGE_S = 5.0
 
 #: hardware and the network come back by themselves: a device's power, the link. The
 #: supervisor (a thread that lives as long as the deployment) starts them again, because a
@@ -104,9 +105,6 @@ outages = [[{t1}, {t2}]]
 #: thread would be sent its death signal the moment that thread ends
 DEVICE_BACK = RestartPolicy(unit="", restart="on-failure", restart_sec=2.0, watchdog_sec=0.0)
 DEVICES = ("ur", "gripper", "tactile", "servos", "netsim")
-
-#: never, for a deployment whose link does not fail
-NO_OUTAGE_AT_S = 1e6
 
 
 class LateWakes:
@@ -216,16 +214,13 @@ class Deployment:
     """The processes, their supervisor, and where each device can be read from outside.
 
     ``with Deployment(...) as d`` starts everything; leaving stops everything.
-    ``outage_at_s``: the link's outage (5 s) starts this long after netsim does.
     """
 
-    def __init__(self, workdir: Path | None = None, outage_at_s: float = NO_OUTAGE_AT_S) -> None:
+    def __init__(self, workdir: Path | None = None) -> None:
         self.fleet = Fleet(robots=[ROBOT], operators={OPERATOR: "controller", RECORDER: "recorder"})
         if workdir is not None:
             self.fleet.workdir = workdir
         self.dir = self.fleet.workdir
-        self.outage_at_s = outage_at_s
-        self.outage_s = 5.0
         self.units: dict[str, Unit] = {}
         self.recording = self.dir / "recording.bin"
         self.stop_post_log = self.dir / "operator-stop-post.log"  # the palm lift's; in log_tails
@@ -321,13 +316,13 @@ class Deployment:
 
     def _netsim(self) -> Proc:
         scenario = self.dir / "scenario.toml"
-        t1 = self.outage_at_s
-        scenario.write_text(_SCENARIO_TOML.format(t1=t1, t2=t1 + self.outage_s))
+        scenario.write_text(_SCENARIO_TOML)
         router_udp = "udp://" + self.fleet.router_endpoint.removeprefix("quic/")
         args = [
             "-v",
             "netsim",
             *("--scenario", str(scenario), "--mode", "datagram"),
+            *("--set", f"netsim.cut_s={OUTAGE_S}"),
             # the router's side, and the operator's: one UDP address each (deploy/demo_fabric.py)
             *("--robot-telemetry", router_udp, "--operator-telemetry", "udp://127.0.0.1:0"),
         ]
@@ -410,12 +405,20 @@ class Deployment:
         """Each time the operator's loop woke over 100 ms late: (due, woke), see ``LateWakes``."""
         return list(self.late_wakes.wakes)
 
-    def outage_window(self) -> tuple[float, float] | None:
-        """The scheduled outage on the monotonic clock, from netsim's own start time."""
-        starts = self.netsim_started()
-        if not starts:
-            return None
-        return starts[0] + self.outage_at_s, starts[0] + self.outage_at_s + self.outage_s
+    def cut_link(self, timeout_s: float = 5.0) -> tuple[float, float]:
+        """Pull the link's cable for ``OUTAGE_S`` (netsim's SIGUSR1): the cut's window on the
+        monotonic clock, as netsim applied it (its ``X_DEEPXPALM_CUT_NS``)."""
+        notify = self.units["netsim"].service.notify
+        before = notify.field("cut_ns")
+        self.units["netsim"].proc.send_signal(signal.SIGUSR1)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            said = notify.field("cut_ns")
+            if said is not None and said != before:
+                t1, t2 = (int(t) / 1e9 for t in said.split(","))
+                return t1, t2
+            time.sleep(0.005)
+        raise DeploymentError(f"netsim never said it cut the link within {timeout_s:g} s")
 
     def operator_send(self, command: dict) -> bool:
         """A JSON command to the operator node's stdin; False while it is down."""

@@ -69,11 +69,6 @@ GRASP_LEVEL = 20
 CLOSE_AGAIN_S = 3.0  # the operator presses close again if the fingers do not hold by then
 GRIP_SLACK = 5  # finger counts (of 255) the grip may relax and still hold
 READY_TIMEOUT_S = 90.0
-#: the outage starts this long after netsim does: after a start (ready took 5 s on a quiet
-#: machine, under 10 s beside other jobs), before a bored wait; a deployment that was ready
-#: too late for it is started again with the outage at ``OUTAGE_LATE_AT_S``
-OUTAGE_AT_S = 12.0
-OUTAGE_LATE_AT_S = 30.0
 RECOVER_TIMEOUT_S = 30.0
 #: how long the arm may take to show still after the operator let go at the end before the
 #: cell calls it moving on; the node's deadman takes about 0.25 s, a loaded machine's probe
@@ -297,30 +292,17 @@ class _Timeline:
     t_release: float = math.inf  # the operator let go: what follows is not the fault's doing
 
 
-class ReadyTooLate(DeploymentError):
-    """The deployment came up after the outage it was scheduled for (a loaded machine)."""
-
-
 def run_cell(cell: Cell, retract_goals: list[int]) -> CellResult:
-    """One cell; an outage cell whose deployment was ready too late is run again, later."""
-    try:
-        return CellRun(cell, retract_goals).run()
-    except ReadyTooLate as e:
-        log.warning(
-            "%s: %s; running it again with the outage at %.0f s", cell.label, e, OUTAGE_LATE_AT_S
-        )
-        return CellRun(cell, retract_goals, outage_at_s=OUTAGE_LATE_AT_S).run()
+    """One cell: its deployment, its fault, what the probes saw."""
+    return CellRun(cell, retract_goals).run()
 
 
 class CellRun:
     """The probes and the deployment of one cell, and the reading of what they saw."""
 
-    def __init__(
-        self, cell: Cell, retract_goals: list[int], outage_at_s: float = OUTAGE_AT_S
-    ) -> None:
+    def __init__(self, cell: Cell, retract_goals: list[int]) -> None:
         self.cell = cell
-        outage_at = outage_at_s if cell.fault == OUTAGE else None
-        self.d = Deployment(**({} if outage_at is None else {"outage_at_s": outage_at}))
+        self.d = Deployment()
         self.retract = retract_goals
         self.arm: ArmProbe | None = None
         self.gripper: GripperProbe | None = None
@@ -386,19 +368,11 @@ class CellRun:
 
     def _inject(self) -> _Timeline:
         d, target, fault = self.d, self.cell.target, self.cell.fault
-        if fault == OUTAGE:
-            window = d.outage_window()
-            if window is None:
-                raise DeploymentError("netsim did not log its schedule start")
-            slack = window[0] - time.monotonic()
-            if slack < 0:
-                raise ReadyTooLate(
-                    f"the deployment was ready {-slack:.1f} s after the scheduled outage began"
-                )
-            log.info("ready %.1f s before the scheduled outage", slack)
-            time.sleep(slack)
-            return _Timeline(*window)
         self._wait(self._cruising, 10.0, "the arm never cruised at the jog's speed (load?)")
+        if fault == OUTAGE:
+            t_cut, t_back = d.cut_link()
+            time.sleep(max(0.0, t_back - time.monotonic()))
+            return _Timeline(t_cut, t_back)
         t_fault = time.monotonic()
         if fault == KILL:
             d.signal(target, signal.SIGKILL)  # the supervisor starts it again, as its rule says

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import time
@@ -141,3 +142,60 @@ def test_scenarios_run_as_a_byte_stream_unless_the_message_mode_is_asked_for() -
     datagram.to_operator.delivery = "datagram"
     with pytest.raises(ConfigError, match="message"):
         cli.build_simulator(cli.NetsimConfig(), datagram)
+
+
+def test_sigusr1_cuts_the_link_both_ways_for_cut_s_and_says_when(tmp_path) -> None:
+    """``kill -USR1``: a real ``deepxpalm netsim`` in datagram mode loses what is sent inside
+    the window it reports to its supervisor, and forwards again after it."""
+    import signal
+    import socket
+
+    from deploy.units.service import Service
+
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(0.05)
+    argv = ["netsim", "--scenario", "none", "--mode", "datagram", "--set", "netsim.cut_s=0.5"]
+    argv += ["--robot-telemetry", f"udp://127.0.0.1:{rx.getsockname()[1]}"]
+    argv += ["--operator-telemetry", "udp://127.0.0.1:0"]
+    service = Service("netsim", argv, tmp_path / "netsim.log")
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        service.start()
+        ready = service.up(30.0)
+        host, _, port = ready.endpoints["operator_telemetry"].removeprefix("udp://").rpartition(":")
+        sent: list[tuple[int, int]] = []  # (seq, monotonic ns just before the send)
+
+        def send_for(seconds: float) -> None:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                sent.append((len(sent), time.monotonic_ns()))
+                tx.sendto(b"s" + sent[-1][0].to_bytes(4, "big"), (host, int(port)))
+                time.sleep(0.01)
+
+        send_for(0.3)
+        service.popen.send_signal(signal.SIGUSR1)
+        deadline = time.monotonic() + 5.0
+        while service.notify.field("cut_ns") is None and time.monotonic() < deadline:
+            send_for(0.01)
+        said = service.notify.field("cut_ns")
+        assert said is not None, f"netsim never said it cut the link{service.log_tail()}"
+        t1, t2 = (int(t) for t in said.split(","))
+        assert t2 - t1 == 500_000_000
+        send_for(max(0.0, (t2 - time.monotonic_ns()) / 1e9) + 0.4)
+        got = set()
+        with contextlib.suppress(TimeoutError):
+            while True:
+                got.add(int.from_bytes(rx.recv(64)[1:5], "big"))
+    finally:
+        service.stop()
+        service.close()
+        tx.close()
+        rx.close()
+    # a datagram is judged when netsim takes it: sent after t1, taken after it; 200 ms for
+    # netsim's lag in taking it on a busy machine
+    inside = {seq for seq, t in sent if t1 <= t <= t2 - 200_000_000}
+    outside = {seq for seq, t in sent if t < t1 - 200_000_000 or t >= t2}
+    assert inside and not inside & got, "datagrams sent during the cut were forwarded"
+    assert outside and outside <= got, f"lost outside the cut: {sorted(outside - got)}"
+    assert "link cut both ways for 0.5 s" in (tmp_path / "netsim.log").read_text()

@@ -12,6 +12,7 @@ from common.errors import ConfigError
 from common.netsim.impairments import (
     DirectionConfig,
     DirectionImpairment,
+    LinkCuts,
     unit_quantile,
 )
 from common.wire.codec import DecodeError, decode, encode
@@ -279,6 +280,26 @@ def test_outage_stream_delivers_everything_late_and_in_order() -> None:
     # Resent at +200, +600 ms: 1.6 s is the first attempt after the link is back.
     assert first_in_outage[2] == first_in_outage[1] + 600 * MS + 10 * MS
     assert engine.counts.retransmitted == 60
+
+
+def test_a_cut_while_running_is_an_outage_in_either_delivery_model() -> None:
+    """A pulled cable (``LinkCuts``, netsim's SIGUSR1) drops what a datagram link carries
+    through it and makes a stream's bytes wait for the retransmission after it, as a
+    scheduled outage does; both directions share it."""
+    for delivery in ("datagram", "stream"):
+        cuts = LinkCuts()
+        config = DirectionConfig(delivery=delivery, delay_ms=10, retransmit_ms=200)
+        engines = [DirectionImpairment(config, name=n, cuts=cuts) for n in ("a", "b")]
+        cuts.add(round(1e9), round(1.5e9))
+        for engine in engines:
+            out = [(t, engine.process(t, PAYLOAD)) for t in range(0, round(2e9), PERIOD_NS)]
+            if delivery == "datagram":
+                assert all((not d) == (1e9 <= t < 1.5e9) for t, d in out)
+                assert engine.counts.outage_dropped == 60
+            else:
+                first_in_cut = next(d[0][0] - t for t, d in out if t >= 1e9)
+                assert first_in_cut == 600 * MS + 10 * MS  # resent at +200, +600 ms
+                assert all(d for _, d in out)  # nothing lost
 
 
 def test_stream_never_loses_and_blocks_the_head_of_line() -> None:
