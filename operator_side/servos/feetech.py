@@ -36,8 +36,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
-from typing import Any, NoReturn
+from collections.abc import Callable, Mapping
+from typing import Any, NoReturn, TypeVar
 
 import scservo_sdk as sdk
 
@@ -78,6 +78,7 @@ log = logging.getLogger(__name__)
 
 #: between two rounds of pings to the servos that did not answer at connect
 PING_AGAIN_S = 0.1
+_T = TypeVar("_T")
 
 
 class FeetechServoBus(ServoBus):
@@ -89,6 +90,7 @@ class FeetechServoBus(ServoBus):
         self.config = config or FeetechConfig()
         self._calibration: LinkGlideCalibration | None = None
         self._fault: str | None = None
+        self._connect_deadline: float | None = None  # set while connect() runs
         self._torque = False
         self._counters = {
             "sync_writes": 0,
@@ -151,15 +153,16 @@ class FeetechServoBus(ServoBus):
             raise ConfigError(f"first goals for ids {sorted(first)}, the bus has {list(cfg.ids)}")
         self._fault = None
         self._line.open(cfg)
+        self._connect_deadline = time.monotonic() + cfg.connect_timeout_s
         try:
             if first is not None:  # sync writes are not answered: nothing is waited for
                 self._write_speed_and_acceleration()
                 self._line.sync_write(GOAL_POSITION.address, 2, first)
                 self._line.sync_write(TORQUE_ENABLE.address, 1, dict.fromkeys(cfg.ids, 1))
-            self._ping_all()
-            present = self.read_positions()
-            if first is not None:
-                self.set_torque(True)  # read back: a limp palm is not 'on'
+            self._ping_all(self._connect_deadline)
+            present = self._until_connected(self.read_positions)
+            if first is not None:  # read back: a limp palm is not 'on'
+                self._until_connected(lambda: self.set_torque(True))
             else:
                 self._write_speed_and_acceleration()
                 if cfg.torque_on_connect:
@@ -167,6 +170,8 @@ class FeetechServoBus(ServoBus):
         except BaseException:
             self._shutdown()
             raise
+        finally:
+            self._connect_deadline = None
         log.info("servo bus on %s: ids %s answered", cfg.port, list(cfg.ids))
 
     def configured_calibration(self) -> LinkGlideCalibration:
@@ -282,6 +287,9 @@ class FeetechServoBus(ServoBus):
     def _raise_fault(self, kind: type[DeviceError], message: str) -> NoReturn:
         """Torque off, remember why, and raise: the bus refuses work until reconnect()."""
         full = f"servo bus on {self.config.port}: {message}"
+        until = self._connect_deadline  # connecting: asked again until then (_until_connected)
+        if kind is DeviceTimeoutError and until is not None and time.monotonic() < until:
+            raise kind(f"{full} (while connecting)")
         self._counters["faults"] += 1
         if self._fault is None:
             self._fault = message
@@ -289,11 +297,22 @@ class FeetechServoBus(ServoBus):
             self._torque_off_best_effort()
         raise kind(f"{full}; torque is off. Fix the cause, then call reconnect()")
 
-    def _ping_all(self) -> None:
+    def _until_connected(self, step: Callable[[], _T]) -> _T:
+        """``step()`` again while a reply is missing and ``connect_timeout_s`` has not passed
+        since the port opened (a bus just powered, a reply lost); past it, the fault stands."""
+        while True:
+            try:
+                return step()
+            except DeviceTimeoutError as e:
+                if self._fault is not None:
+                    raise
+                log.info("%s; asking again", e)
+                time.sleep(PING_AGAIN_S)
+
+    def _ping_all(self, deadline: float) -> None:
         """Every servo answers a ping with the expected model; a servo still booting (or a
-        reply a loaded machine lost) is pinged again until ``connect_timeout_s``."""
+        reply a loaded machine lost) is pinged again until ``deadline``."""
         cfg = self.config
-        deadline = time.monotonic() + cfg.connect_timeout_s
         models: dict[int, int] = {}
         rounds = 0
         while True:
@@ -310,12 +329,7 @@ class FeetechServoBus(ServoBus):
             if not missing or time.monotonic() >= deadline:
                 break
             if rounds == 0:
-                log.info(
-                    "servos %s did not answer on %s; pinging them again for %.1f s at most",
-                    missing,
-                    cfg.port,
-                    cfg.connect_timeout_s,
-                )
+                log.info("servos %s did not answer on %s; pinging them again", missing, cfg.port)
             rounds += 1
             time.sleep(PING_AGAIN_S)
         wrong = [

@@ -32,8 +32,9 @@ class FeetechConfig:
     )
     connect_timeout_s: float = param(
         2.0,
-        "at connect, servos that did not answer are pinged again until this long has passed "
-        "(an STS servo answers about half a second after its supply comes on); 0 = once",
+        "at connect, servos that did not answer (a ping, the first reads) are asked again "
+        "until this long has passed (an STS servo answers about half a second after its "
+        "supply comes on); 0 = once",
     )
     protocol_end: int = param(0, "0 = STS (little-endian), 1 = SCS; one per process (SDK global)")
     expected_model: int | None = param(

@@ -323,6 +323,41 @@ def test_a_servo_that_boots_late_is_waited_for_at_connect(fake) -> None:
         assert set(bus.read_positions()) == set(IDS)
 
 
+def _after_the_pings(bus: FeetechServoBus, then) -> None:
+    """``then()`` on the wire just before the bus's first sync read (its pings answered)."""
+    read, done = bus._line.sync_read, []
+
+    def first_read(address: int, size: int) -> dict[int, int]:
+        if not done:
+            done.append(then())
+        return read(address, size)
+
+    bus._line.sync_read = first_read  # type: ignore[method-assign]
+
+
+def test_a_read_lost_while_connecting_is_asked_again_not_a_fault(fake) -> None:
+    """A reply lost on a bus that answered its pings (a loaded machine, a USB adapter's
+    latency) is asked again while the bus connects: connected, torque on, no fault."""
+    bus = _bus(fake.port, retries=0, reply_timeout_ms=50.0, connect_timeout_s=2.0)
+    _after_the_pings(bus, lambda: fake.drop_replies(1, sid=2))
+    bus.connect()
+    try:
+        assert bus.stats()["faults"] == 0 and set(bus.read_positions()) == set(IDS)
+        assert all(fake.torque(i) for i in IDS)
+    finally:
+        bus.disconnect()
+
+
+def test_a_servo_silent_past_the_connect_timeout_is_a_fault_and_torque_goes_off(fake) -> None:
+    bus = _bus(fake.port, retries=0, reply_timeout_ms=50.0, connect_timeout_s=0.4)
+    _after_the_pings(bus, lambda: fake.set_silent(2))
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeoutError, match=r"servo 2 did not answer a read.*torque is off"):
+        bus.connect()
+    assert time.monotonic() - t0 >= 0.4 and not bus.is_connected
+    _wait(lambda: not any(fake.torque(i) for i in IDS if i != 2))
+
+
 def test_no_servo_at_all_suggests_power_and_baud(fake) -> None:
     # fake runs at 1 Mbaud
     bus = _bus(fake.port, baudrate=500_000, retries=0, ids=(1, 2), connect_timeout_s=0.0)

@@ -82,19 +82,27 @@ def test_reads_pose_and_joints_the_controller_reports(still_arm, sim):
     assert status["program_running"] is True
 
 
-def test_receive_streams_at_the_configured_rate(still_arm):
-    t0 = still_arm.receive.controller_timestamp()
-    changes, last = 0, t0
-    start = time.monotonic()
-    while time.monotonic() - start < 0.3:
+def test_receive_streams_at_the_configured_rate(still_arm, sim):
+    """The controller streams at the rate the driver asked for, counted where it sends (the
+    simulator's packages over its RTDE clients: the receive and the control interface), and
+    the driver's reads follow the stream. How many distinct packages this test's own sampling
+    sees is the machine's, not the stream's: starved among busy workers, it samples every
+    20 ms or so, so it only shows the stream moving."""
+    asked = still_arm.config.frequency_hz
+    before, t0 = sim.stats(), time.monotonic()
+    first = last = still_arm.receive.controller_timestamp()
+    seen = 1
+    while time.monotonic() - t0 < 1.0:
         ts = still_arm.receive.controller_timestamp()
-        if ts != last:
-            changes, last = changes + 1, ts
+        seen, last = seen + (ts != last), ts
         time.sleep(0.0005)
-    rate = (last - t0) and changes / (last - t0)
-    # 500 Hz asked and about that delivered on an idle machine; a loaded shared
-    # 2-core machine delivers less, but never a trickle
-    assert rate > 50, f"only {rate:.0f} distinct data packages per second"
+    after, t1 = sim.stats(), time.monotonic()
+    clients = after["rtde_clients"]
+    rate = (after["data_packages_sent"] - before["data_packages_sent"]) / (t1 - t0) / clients
+    # about the rate asked on an idle machine; a simulator starved on a loaded one sends less,
+    # but never a trickle
+    assert clients == 2 and rate > 0.4 * asked, f"{rate:.0f} packages/s to each client"
+    assert seen >= 10 and last - first > 0.5, f"{seen} packages over {last - first:.2f} s"
 
 
 def test_move_to_reaches_the_target_along_a_line(still_arm, sim):

@@ -346,7 +346,11 @@ def test_the_heartbeat_names_the_gripper_command_acted_on_and_never_a_stale_one(
         op.pub.send(stale)
         op.pump(0.4)
         assert named() == (float(close.seq), 5.0), "a refused command is never named"
-        assert rig.gripper_sim.model.read()["PRE"] == GripLevels().position(12)
+        # the stale open never reached the gripper: still closing, or held where the fingers
+        # were if this process, starved, fell silent past the robot's deadman (a hold, which
+        # stops the fingers where they are: the loaded run's 140 of the close's 211)
+        held = rig.gripper_sim.model.read()["PRE"]
+        assert 0 < held <= GripLevels().position(12), f"the gripper asked for {held}"
         acted_on("gripper_open")  # what the operator node resends, fresh
         assert requested(0) == 0
     finally:
