@@ -140,6 +140,8 @@ def _run(args: argparse.Namespace) -> int:
     old = signal.getsignal(signal.SIGTERM)
     done = stop_on_signals((signal.SIGTERM,))  # Ctrl-C stays a KeyboardInterrupt
     sim = build_simulator(config, scenario)
+    notifier = Notifier()
+    on_signal(signal.SIGUSR1, lambda: _cut(sim, config.cut_s, notifier))
     try:
         sim.start()
         log.warning(
@@ -155,7 +157,6 @@ def _run(args: argparse.Namespace) -> int:
         )
         # READY=1 once forwarding (systemd, or whoever started it): where the operator
         # connects (a port-0 config's ports too) and when the scenario's clock started
-        notifier = Notifier()
         notifier.ready(
             f"{scenario.name} ({mode_of(config, scenario)} mode)",
             {
@@ -164,7 +165,6 @@ def _run(args: argparse.Namespace) -> int:
             },
             schedule_start_ns=sim.start_ns,
         )
-        on_signal(signal.SIGUSR1, lambda: _cut(sim, config.cut_s, notifier))
         t_end = time.monotonic() + config.duration_s if config.duration_s > 0 else None
         t_report = time.monotonic()
         while not done.is_set():
