@@ -22,7 +22,7 @@ TORCH ?= torch==2.13.0
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 STAMP := $(VENV)/.installed
 
-# Four lanes (docs/testing.md). Most tests wait far more than they compute: the tests not
+# Five lanes (docs/testing.md). Most tests wait far more than they compute: the tests not
 # marked slow, and the slow ones marked `untimed` (they check no timing), run four at a time
 # (pytest-xdist), each file on one worker so a module's fixture runs once. The slow ones marked
 # `parallel` start deployments (nodes, simulators, browsers) and bound their timing by the
@@ -30,16 +30,16 @@ STAMP := $(VENV)/.installed
 # deployments as on a busy robot PC: three at a time, which left a 2-core machine 40 % idle (four
 # left it a quarter idle, gained little on a clean clone and failed browser jogs once). The other
 # slow tests compare timings with tighter margins (a link simulator's floor, a palm's lift after a
-# death, a page's video): three at a time. Those marked `serial` need a machine no deployment
-# lane keeps busy (a page's video, the robot's heartbeats): three at a time, which mostly wait
-# (two left a third of two cores idle and took 127 s; three 90 to 97 s, beside two busy loops
-# too; four no less and failed two).
-# So do those marked `pty` (a driver against its simulator through a pseudo-terminal, within
-# reply windows): the kernel's workers that carry a pty's bytes starve while the other lanes
-# keep both cores busy (below).
+# death, a page's video): four at a time (76-80 s quiet or beside two busy loops; three, 83-90).
+# Those marked `serial` need a machine no deployment lane keeps busy (a page's video, the robot's
+# heartbeats): three at a time, which mostly wait (two left a third of two cores idle and took
+# 127 s; three, 90 to 97 s, beside two busy loops too; four were no faster and failed two). So do
+# those marked `pty` (a driver against its simulator through a pseudo-terminal, within reply
+# windows): the kernel's workers that carry a pty's bytes starve while the other lanes keep both
+# cores busy (below). The alone lane runs one test at a time.
 FAST_WORKERS ?= 4
 DEPLOYMENT_WORKERS ?= 3
-PAIRED_WORKERS ?= 3
+PAIRED_WORKERS ?= 4
 SERIAL_WORKERS ?= 3
 # The lanes run above the machine's ordinary work (a CI machine's other jobs), in a session of
 # their own: the deployments they start stand for robot PCs, controllers and boards of their own,
