@@ -171,6 +171,18 @@ class NotifySocket:
             said = self._current()
             return None if said is None else said.said.get(FIELD_PREFIX + name.upper())
 
+    def wait_field(self, name: str, other_than: str | None, timeout_s: float) -> str | None:
+        """Until the current process says ``X_DEEPXPALM_<NAME>`` with a value other than
+        ``other_than``: that value (None after ``timeout_s``)."""
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while (value := self.field(name)) in (None, other_than):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._changed.wait(left)
+            return value
+
     def last_ping(self, pid: int) -> float | None:
         """When ``pid`` last said ``READY=1`` or ``WATCHDOG=1`` (monotonic s)."""
         with self._changed:

@@ -411,14 +411,11 @@ class Deployment:
         notify = self.units["netsim"].service.notify
         before = notify.field("cut_ns")
         self.units["netsim"].proc.send_signal(signal.SIGUSR1)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            said = notify.field("cut_ns")
-            if said is not None and said != before:
-                t1, t2 = (int(t) / 1e9 for t in said.split(","))
-                return t1, t2
-            time.sleep(0.005)
-        raise DeploymentError(f"netsim never said it cut the link within {timeout_s:g} s")
+        said = notify.wait_field("cut_ns", before, timeout_s)
+        if said is None:
+            raise DeploymentError(f"netsim never said it cut the link within {timeout_s:g} s")
+        t1, t2 = (int(t) / 1e9 for t in said.split(","))
+        return t1, t2
 
     def operator_send(self, command: dict) -> bool:
         """A JSON command to the operator node's stdin; False while it is down."""
