@@ -300,12 +300,14 @@ def test_the_heartbeat_names_the_gripper_command_acted_on_and_never_a_stale_one(
     def requested(position: int, within_s: float = 2.0) -> int:
         """The gripper simulator's requested position once it is ``position`` (or the deadline
         passed): the robot names a command it handed its gripper worker, whose write reaches
-        the simulator's registers a moment later on a busy machine (157 still, 0.4 s after)."""
+        the simulator's registers a moment later on a busy machine (157 still, 0.4 s after).
+        Heartbeats go on meanwhile, as an operator node's do: silent past the robot's deadman,
+        the gripper is held where it is (150 of 211, beside a loaded lane)."""
         deadline = time.monotonic() + within_s
         while (pre := rig.gripper_sim.model.read()["PRE"]) != position:
             if time.monotonic() > deadline:
                 break
-            time.sleep(0.02)
+            op.pump(0.02)
         return pre
 
     def named_once(want: tuple[float, float], within_s: float = 2.0) -> tuple:
