@@ -250,18 +250,25 @@ class Arm(SafetyThreads, Device):
         operator draws the box the robot actually enforces. Drivers add what
         their controller reports (speed, safety mode, program state).
         """
-        lim = self.limits
         out = {
             "arm_jogging": float(self._jog_until is not None),
             "arm_deadman_stops": float(self._deadman_stops),
             **self.keep_alive_telemetry(),
+            **self.envelope(),
+        }
+        if self.is_connected:
+            pose = self._read_tcp_pose()
+            out.update(zip(TELEMETRY_POSE_KEYS, (float(v) for v in pose), strict=True))
+        return out
+
+    def envelope(self) -> dict[str, float]:
+        """The safety envelope the arm enforces (speed caps, workspace box), as flat numbers."""
+        lim = self.limits
+        out = {
             "arm_max_linear_m_s": lim.max_linear_speed_m_s,
             "arm_max_angular_rad_s": lim.max_angular_speed_rad_s,
         }
         for axis, lo, hi in zip("xyz", lim.workspace_min, lim.workspace_max, strict=True):
             out[f"arm_ws_min_{axis}"] = float(lo)
             out[f"arm_ws_max_{axis}"] = float(hi)
-        if self.is_connected:
-            pose = self._read_tcp_pose()
-            out.update(zip(TELEMETRY_POSE_KEYS, (float(v) for v in pose), strict=True))
         return out

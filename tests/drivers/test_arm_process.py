@@ -181,10 +181,53 @@ def test_the_node_presses_stop_on_the_dashboard_once_when_it_notices_its_arm_pro
 
 
 def test_stop_on_the_dashboard_ends_the_program_and_stops_the_arm():
-    with _jogging_simulated_arm() as (_, sim):
+    with _jogging_simulated_arm() as (arm, sim):
         dashboard_stop.press_stop(sim.host, "a test").join(5.0)
         assert _wait(lambda: _at_rest(sim), 1.0) is not None
         assert sim.stats()["program_ends"][-1][1] == "stop on the dashboard"
+        # the node's telemetry poll, from the shared state, says the arm cannot be read now
+        assert _wait(lambda: _telemetry_error(arm) is not None, 1.0) is not None
+        assert "its driver could not read the arm" in _telemetry_error(arm)
+        assert _wait(lambda: arm.needs_reconnect, 0.5) is not None  # in the same write or the next
+
+
+def _telemetry_error(arm: ArmProcess) -> str | None:
+    try:
+        arm.telemetry()
+    except DeviceError as e:
+        return str(e)
+    return None
+
+
+def test_the_nodes_telemetry_comes_from_the_arm_process_state_not_a_call():
+    """The node's telemetry poll reads what the driver in the arm process took (the pose, the
+    jog, the program and safety state, the envelope), through shared memory: the pipe carries
+    no call for it."""
+    with _jogging_simulated_arm() as (arm, sim):
+        calls = []
+        call = arm._call
+        arm._call = lambda *a, **k: calls.append(a[0]) or call(*a, **k)
+
+        def jogging() -> bool:  # taken at the heartbeat's rate: seen within 50 ms of the jog
+            arm.jog(JOG)
+            return arm.telemetry()["arm_jogging"] == 1.0
+
+        assert _wait(jogging, 1.0) is not None
+        tel = arm.telemetry()
+        assert tel["arm_program_running"] == 1.0
+        assert tel["arm_safety_mode"] == 1.0  # normal
+        assert tel["arm_max_linear_m_s"] == arm.limits.max_linear_speed_m_s
+        arm.stop()
+        assert _wait(lambda: _at_rest(sim), 1.0) is not None
+        time.sleep(0.15)  # the next telemetry the arm process takes
+        tel = arm.telemetry()
+        assert tel["arm_jogging"] == 0.0 and tel["arm_speed_m_s"] < 1e-3
+        pose = sim.tcp_pose()
+        got = [tel[k] for k in ("arm_x", "arm_y", "arm_z")]
+        assert np.allclose(got, pose[:3], atol=1e-4), (got, pose)
+        # the keep-alive's timing, summed up once a second
+        assert _wait(lambda: "arm_keepalive_p99_ms" in arm.telemetry(), 2.0) is not None
+        assert set(calls) == {"jog", "stop_arm"}  # the test's own, and none for telemetry
 
 
 def test_a_killed_arm_process_is_stopped_by_the_controller_and_the_node_reconnects():

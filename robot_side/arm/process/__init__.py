@@ -47,7 +47,7 @@ from robot_side.arm.base import Arm, as_vector6, turn_angle
 from robot_side.arm.process.child import ArmProcessSpec
 from robot_side.arm.process.dashboard_stop import press_stop
 from robot_side.arm.process.errors import as_driver_error
-from robot_side.arm.process.state import StateView, new_state_file
+from robot_side.arm.process.state import StateView, new_state_file, telemetry_of
 from robot_side.devices.stdio_child import StdioChild
 
 log = logging.getLogger(__name__)
@@ -347,9 +347,10 @@ class ArmProcess(Arm):
         return dict(self._last_summary)
 
     def telemetry(self) -> dict[str, float]:
+        """What the driver in the arm process last read, from the shared state: never a call
+        through the pipe (none waits behind a stop, no round trip at the heartbeat's rate)."""
         self.require_connected()
-        out = self._call("telemetry", timeout_s=READ_TIMEOUT_S)
-        return {k: float(v) for k, v in out.items()}
+        return {**self.envelope(), **telemetry_of(self._fresh_state(), STATE_STALE_S)}
 
     def status(self) -> dict[str, Any]:
         out: dict[str, Any] = {"connected": self.is_connected, "process": self.pid}

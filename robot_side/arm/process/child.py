@@ -9,9 +9,10 @@ then does three things:
   (connect, jog, stop, moves, reads): not time-critical, and never in the
   way of the keep-alive, which runs on its own thread with the interpreter
   lock nearly always free (nothing else in this process computes);
-- writes the newest pose, the connection's state and the keep-alive's
-  timing into the shared state file every keep-alive period
-  (``state.py``), which the node reads without waiting;
+- writes the newest pose, the connection's state, the keep-alive's
+  timing and the driver's telemetry into the shared state file every
+  keep-alive period (``state.py``), which the node reads without waiting
+  (its heartbeats, its telemetry poll, its reconnect decisions);
 - when the node goes (its end of stdin closes: killed, crashed or done),
   stops the arm, ends the control script and exits at once.
 
@@ -31,16 +32,18 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from common.clocks.clock import now_s
 from common.config.typed import from_dict
 from common.devices.lifecycle import load_object
+from common.logs import BurstLog
 from common.logs import configure as configure_logging
 from common.process.realtime import PeriodStats, raise_this_thread
 from robot_side.arm.base import SAFETY_THREAD_NICE, Arm
-from robot_side.arm.process.state import StateView
+from robot_side.arm.process.state import TELEMETRY_EVERY_S, TELEMETRY_STATE_KEYS, StateView
 from robot_side.devices.stdio_child import serve_stdio
 
 log = logging.getLogger(__name__)
@@ -57,7 +60,6 @@ REMOTE_METHODS = frozenset(
         "tcp_pose",
         "joint_positions",
         "status",
-        "telemetry",
     }
 )
 #: the keep-alive's timing percentiles are computed this often (the rest of a state write is
@@ -89,12 +91,14 @@ def name_os_threads() -> None:
 class ServedArm:
     """The driver's calls as the pipe carries them (plain values in, plain values out)."""
 
-    def __init__(self, arm: Arm) -> None:
+    def __init__(self, arm: Arm, written: Callable[[], None] = lambda: None) -> None:
         self.arm = arm
+        self.written = written  # the shared state written now
 
     def connect(self) -> None:
         self.arm.connect()
         name_os_threads()
+        self.written()  # the node reads a connected arm from the moment the reply reaches it
 
     def disconnect(self) -> None:
         self.arm.disconnect()
@@ -120,9 +124,6 @@ class ServedArm:
     def status(self) -> dict[str, Any]:
         return json.loads(json.dumps(self.arm.status(), default=float))
 
-    def telemetry(self) -> dict[str, float]:
-        return {k: float(v) for k, v in self.arm.telemetry().items()}
-
 
 class StateWriter:
     """Writes the arm's newest state every keep-alive period, on a thread of its own."""
@@ -133,6 +134,10 @@ class StateWriter:
         self._quit = threading.Event()
         self._summary: dict[str, float] = {}
         self._summary_due = 0.0
+        self._telemetry: dict[str, float] = {}
+        self._telemetry_due = 0.0
+        self._writing = threading.Lock()  # one writer at a time (the seqlock has one side)
+        self._telemetry_failed = BurstLog(log, "arm process", level=logging.DEBUG)
         self._thread = threading.Thread(target=self._run, name="arm-state", daemon=True)
 
     def start(self) -> StateWriter:
@@ -142,6 +147,11 @@ class StateWriter:
     def _run(self) -> None:
         period = self.arm.deadman_period_s
         while not self._quit.wait(period):
+            self.write_now()
+
+    def write_now(self) -> None:
+        """The newest state to the shared file (this thread's turn, or a connect's reply)."""
+        with self._writing:
             try:
                 self.view.write(self._state())
             except Exception:  # an interface closing under us: the next turn writes again
@@ -162,12 +172,26 @@ class StateWriter:
         if now >= self._summary_due:
             self._summary = arm.keep_alive_periods.summary()
             self._summary_due = now + SUMMARY_EVERY_S
+        if now >= self._telemetry_due or not self._telemetry.get("telemetry_ok"):
+            self._telemetry = self._take_telemetry() if connected else {}
+            self._telemetry_due = now + TELEMETRY_EVERY_S
+        out.update(self._telemetry)
         out.update({f"keepalive_{key}": value for key, value in self._summary.items()})
         got = arm.keep_alive_scheduling
         if got is not None:
             out["keepalive_realtime"] = float(got.realtime)
             out["keepalive_level"] = float(got.level)
         return out
+
+    def _take_telemetry(self) -> dict[str, float]:
+        """The driver's telemetry for the node's poll (which reads it here instead of asking
+        through the pipe: no round trip, nothing waiting behind a stop)."""
+        try:
+            got = self.arm.telemetry()
+        except Exception as e:  # stale, lost or stopped: the node's poll says so
+            self._telemetry_failed(f"arm telemetry not read: {e}")
+            return {"telemetry_ok": 0.0}
+        return {"telemetry_ok": 1.0, **{k: got.get(k, 0.0) for k in TELEMETRY_STATE_KEYS}}
 
     def stop(self) -> None:
         self._quit.set()
@@ -234,4 +258,5 @@ def main(argv: list[str] | None = None) -> None:
                  (time.monotonic() - t0) * 1000)  # fmt: skip
         view.close()
 
-    serve_stdio(ServedArm(arm), REMOTE_METHODS, os.getpid(), sys.stdin, replies, on_exit)
+    served = ServedArm(arm, writer.write_now)
+    serve_stdio(served, REMOTE_METHODS, os.getpid(), sys.stdin, replies, on_exit)

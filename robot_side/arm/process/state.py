@@ -17,7 +17,20 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from common.errors import DeviceError, DeviceNotConnectedError
 from robot_side.arm.base import TELEMETRY_POSE_KEYS
+
+SPEED_KEYS = ("arm_speed_m_s", "arm_angular_speed_rad_s")
+#: what of the driver's telemetry the state carries beside the pose and speed (the envelope is
+#: the node's own: its limits are the arm process's)
+TELEMETRY_STATE_KEYS = (
+    "arm_jogging",
+    "arm_deadman_stops",
+    "arm_safety_mode",
+    "arm_program_running",
+)
+#: the driver's telemetry is taken this often (the heartbeat's rate), the pose every write
+TELEMETRY_EVERY_S = 0.05
 
 #: the values after the sequence counter, in order
 FIELDS = (
@@ -26,8 +39,7 @@ FIELDS = (
     "needs_reconnect",
     "live",
     *TELEMETRY_POSE_KEYS,
-    "arm_speed_m_s",
-    "arm_angular_speed_rad_s",
+    *SPEED_KEYS,
     "keepalive_count",
     "keepalive_p50_ms",
     "keepalive_p99_ms",
@@ -35,11 +47,33 @@ FIELDS = (
     "keepalive_max_ms",
     "keepalive_realtime",
     "keepalive_level",
+    # the driver's telemetry (``Arm.telemetry``), taken every ``TELEMETRY_EVERY_S``
+    "telemetry_ok",
+    *TELEMETRY_STATE_KEYS,
 )
 _SEQ = struct.Struct("<Q")
 _VALUES = struct.Struct(f"<{len(FIELDS)}d")
 SIZE = _SEQ.size + _VALUES.size
 _READ_TRIES = 4
+
+
+def telemetry_of(state: dict[str, float] | None, stale_s: float) -> dict[str, float]:
+    """The arm's telemetry as the driver in the arm process took it (no envelope), from its
+    newest state; DeviceError when there is none to give, and why."""
+    if state is None:
+        raise DeviceNotConnectedError(
+            f"arm process: its state is older than {stale_s * 1000:.0f} ms (it stopped its turns)"
+        )
+    if not state.get("telemetry_ok"):
+        raise DeviceError("arm process: its driver could not read the arm (its log says why)")
+    out = {k: state[k] for k in TELEMETRY_STATE_KEYS}
+    if state.get("keepalive_count"):
+        out["arm_keepalive_p99_ms"] = state["keepalive_p99_ms"]
+        out["arm_keepalive_max_ms"] = state["keepalive_max_ms"]
+        out["arm_keepalive_realtime"] = state["keepalive_realtime"]
+    if state.get("live"):
+        out.update({k: state[k] for k in (*TELEMETRY_POSE_KEYS, *SPEED_KEYS)})
+    return out
 
 
 def new_state_file() -> Path:
