@@ -769,10 +769,12 @@ def _with_arm_markdown(arm: dict[str, Any] | None) -> list[str]:
                 for k, t in sorted(rtde)
             )
             + ". Each polls its socket every 100 us while no package has come (ur-rtde's "
-            "receive loop; 20 empty polls, then a blocking read): the control interface's, "
-            "real-time, for every package of the 125 Hz stream; the receive interface's, in "
-            "the fair scheduler with a 4 ms timer slack, about every 4 ms. What a wake costs is "
-            "the machine's (the first section's note).",
+            "receive loop; 20 empty polls, then a blocking read), in the fair scheduler with a "
+            "timer slack: the receive interface's about every 4 ms, the control interface's "
+            "about every 2 ms between calls and every 100 us at SCHED_FIFO while a call (a "
+            "kick, a stop) waits on the answer it reads; the policy above is the one read at "
+            "the end of the window. What a wake costs is the machine's (the first section's "
+            "note).",
         ]
     return out
 

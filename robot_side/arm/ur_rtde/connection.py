@@ -17,6 +17,7 @@ from common.devices.preflight import tcp_probe
 from common.errors import DeviceNotConnectedError
 from robot_side.arm.base import NATIVE_DRIVER_THREAD_NICE
 from robot_side.arm.ur_rtde.config import URArmConfig
+from robot_side.arm.ur_rtde.control_receiver import CONTROL_THREAD_SLACK_NS
 
 log = logging.getLogger(__name__)
 
@@ -41,13 +42,10 @@ RECEIVE_VARIABLES = [
 #: this timer slack a poll comes every 4 ms or so, half the stream's 8 ms period: every package
 #: is read before the next arrives, at most 4 ms after the controller sent it (the node reads the
 #: pose every 20 ms, the stops their "at rest" within 4 ms more), for about 250 wakes a second.
-#: The control interface's thread stays as its creator made it (real-time in the arm process):
-#: a command's handshake and the script's state come through it. Every kick and jog
-#: (``sendCommand``) reads the state this thread writes, under the state's lock, and spins
-#: until the script says ready. Made like the receive interface's (fair, a 2 ms slack), the arm
-#: process fell from 8.8 to 4.2 % of a core, and the keep-alive's period beside two busy loops
-#: went from p99.9 20.5 ms (max 21.2) to 23.8 (max 27.9): a real-time kick waited for a fair
-#: thread. Kept real-time: the keep-alive's period is the watchdog's margin, the CPU is not.
+#: The control interface's thread is made the same way (a 2 ms slack), and raised to
+#: SCHED_FIFO for the length of every call that waits on it (``control_receiver.py``): kept
+#: fair throughout, the keep-alive's period beside two busy loops went from p99.9 20.5 ms
+#: (max 21.2) to 23.8 (max 27.9), a real-time kick waiting for a fair thread.
 RECEIVE_THREAD_SLACK_NS = 4_000_000
 PR_SET_TIMERSLACK, PR_GET_TIMERSLACK = 29, 30
 
@@ -68,8 +66,9 @@ CONTROL_CONNECT_TRIES = 5
 CONTROL_CONNECT_RETRY_S = 0.2
 
 
-def open_interfaces(config: URArmConfig) -> tuple[Any, Any]:
-    """(receive, control) interfaces connected to ``config.host``, or DeviceNotConnectedError."""
+def open_interfaces(config: URArmConfig) -> tuple[Any, Any, frozenset[int]]:
+    """(receive, control) interfaces connected to ``config.host`` and the native threads the
+    control interface started, or DeviceNotConnectedError."""
     import rtde_control
     import rtde_receive
 
@@ -93,14 +92,16 @@ def open_interfaces(config: URArmConfig) -> tuple[Any, Any]:
     except RuntimeError as e:
         msg = f"URArm: RTDE receive to {host} failed ({e}); {hint}"
         raise DeviceNotConnectedError(msg) from e
-    ctrl = None
+    ctrl, ctrl_tids = None, frozenset()
     for attempt in range(CONTROL_CONNECT_TRIES):
         try:
-            ctrl = threads_named(
+            # fair with a timer slack, real-time while a call waits on it (control_receiver.py)
+            ctrl, ctrl_tids = threads_started(
                 "rtde-control",
-                lambda: native_threads_at(
-                    NATIVE_DRIVER_THREAD_NICE,
+                lambda: made_on_fair_thread(
                     lambda: rtde_control.RTDEControlInterface(host, config.frequency_hz),
+                    NATIVE_DRIVER_THREAD_NICE,
+                    CONTROL_THREAD_SLACK_NS,
                 ),
             )
             break
@@ -118,7 +119,7 @@ def open_interfaces(config: URArmConfig) -> tuple[Any, Any]:
             retire(recv)
             msg = f"URArm: RTDE control to {host} failed ({e}); {hint}"
             raise DeviceNotConnectedError(msg) from e
-    return recv, ctrl
+    return recv, ctrl, ctrl_tids
 
 
 def made_on_fair_thread(make: Callable[[], _T], nice: int, slack_ns: int) -> _T:
@@ -158,13 +159,19 @@ def made_on_fair_thread(make: Callable[[], _T], nice: int, slack_ns: int) -> _T:
 def threads_named(name: str, make: Callable[[], _T]) -> _T:
     """``make()``; the threads it started that are not Python's own get ``name`` as their
     name in ``/proc`` and ``top -H`` (a thread may rename any thread of its process)."""
+    return threads_started(name, make)[0]
+
+
+def threads_started(name: str, make: Callable[[], _T]) -> tuple[_T, frozenset[int]]:
+    """``make()`` and the native threads it started (named as ``threads_named`` says)."""
     before = _thread_ids()
     made = make()
     python = {t.native_id for t in threading.enumerate()}
-    for tid in _thread_ids() - before - python:
+    started = frozenset(_thread_ids() - before - python)
+    for tid in started:
         with contextlib.suppress(OSError), open(f"/proc/self/task/{tid}/comm", "w") as f:
             f.write(name[:15])  # OSError: it ended meanwhile
-    return made
+    return made, started
 
 
 def _thread_ids() -> set[int]:

@@ -29,6 +29,7 @@ from common.errors import DeviceError, DeviceNotConnectedError, DeviceTimeoutErr
 from common.process.realtime import fair_while
 from robot_side.arm.base import SAFETY_THREAD_NICE
 from robot_side.arm.ur_rtde.config import URArmConfig
+from robot_side.arm.ur_rtde.control_receiver import ControlReceiver
 from robot_side.arm.ur_rtde.receive import ReceiveSide
 
 log = logging.getLogger(__name__)
@@ -97,9 +98,12 @@ class ControlLine:
         #: controller time a kick waits for after a command (``script_ready_again``)
         self.ready_at_ts: float | None = None
         self._worker: ControlWorker | None = None
+        #: ur-rtde's control thread, real-time while a call waits on it
+        self.receiver = ControlReceiver()
 
-    def open(self, ctrl: Any) -> None:
+    def open(self, ctrl: Any, receiver: ControlReceiver | None = None) -> None:
         self.ctrl = ctrl
+        self.receiver = receiver or ControlReceiver()
         self.broken = self.program_lost = None
         self._worker = ControlWorker(f"urarm-ctrl-{self.config.host}")
 
@@ -148,8 +152,8 @@ class ControlLine:
         with self.wire:
             self.note_sent(what)
             try:
-                if realtime:
-                    return self._unspun(what, fn, *args)
+                if realtime:  # nothing waits on the control thread
+                    return self._unspun_now(what, fn, *args)
                 return worker.submit(self._unspun, what, fn, *args).result(timeout=timeout)
             except concurrent.futures.TimeoutError:
                 self.broken = f"{what} did not return in {timeout:.1f} s"
@@ -169,6 +173,12 @@ class ControlLine:
                     )
 
     def _unspun(self, what: str, fn: Callable[..., Any], *args: Any) -> Any:
+        """``_unspun_now``, with ur-rtde's control thread real-time while the call waits on the
+        script's answer it reads (``control_receiver.py``)."""
+        with self.receiver.realtime():
+            return self._unspun_now(what, fn, *args)
+
+    def _unspun_now(self, what: str, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(*args)`` on this thread, in the fair scheduler while the script may not be
         ready (``script_ready_again``): every thread of the arm process is real-time."""
         if self.script_ready_again():

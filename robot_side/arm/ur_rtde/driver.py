@@ -20,6 +20,7 @@ from robot_side.arm.base import Arm
 from robot_side.arm.ur_rtde.config import URArmConfig, check_watchdog_config
 from robot_side.arm.ur_rtde.connection import CONTROLLER_PORTS, close_interfaces, open_interfaces
 from robot_side.arm.ur_rtde.control import ControlLine
+from robot_side.arm.ur_rtde.control_receiver import ControlReceiver
 from robot_side.arm.ur_rtde.keep_alive import (
     WATCHDOG_ARM_TRIES,
     ControllerWatchdog,
@@ -100,9 +101,12 @@ class URArm(Arm):
                 log.warning("%s; connecting again (%d of %d)", e, attempt + 1, WATCHDOG_ARM_TRIES)
 
     def _connect_once(self) -> None:
-        recv, ctrl = open_interfaces(self.config)
+        recv, ctrl, ctrl_tids = open_interfaces(self.config)
         self.receive.open(recv)
-        self.line.open(ctrl)
+        # ur-rtde's control thread real-time while a call waits on it, one step under the
+        # keep-alive, where this process runs real-time (the arm process)
+        level = max(1, self.realtime_priority - 1) if self.realtime_priority else 0
+        self.line.open(ctrl, ControlReceiver(ctrl_tids, level))
         self.motion.reset()
         # the kicking thread first: started after the watchdog, its start-up in a busy
         # process was once longer than the window ("0 kicks", a trip at every connect)

@@ -1,0 +1,70 @@
+"""ur-rtde's control receive thread: fair between calls, real-time while a call waits on it.
+
+The control interface's thread (``receiveCallback``) reads the controller's
+stream for the script's answers: it sleeps 100 us whenever its socket has
+nothing yet and waits in a blocking read after 20 empty polls, so at 125 Hz
+it wakes about 2,700 times a second. At SCHED_FIFO that was the arm process's
+largest cost (3.5 to 6 % of a core on a VM), although only a call in flight (a
+kick, a stop, a move's handshake) waits for what it reads.
+
+So it is made in the fair scheduler with a timer slack (a poll every 2 ms or
+so, about 500 wakes a second) and raised to SCHED_FIFO for the length of each
+call that waits on it, one step under the keep-alive as before; a call's
+answer then comes at most one slack later than at SCHED_FIFO throughout,
+and no busy loop of the machine's delays it. Linux gives a thread back its
+creator's timer slack when it leaves SCHED_FIFO, so the slack holds between
+calls. Where SCHED_FIFO is refused (no ``LimitRTPRIO=``), the thread stays
+fair and the calls wait on it as on any other thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Iterator
+
+log = logging.getLogger(__name__)
+
+#: the control receive thread's timer slack between calls: its polls come about this often
+CONTROL_THREAD_SLACK_NS = 2_000_000
+
+
+class ControlReceiver:
+    """The native threads ur-rtde's control interface started (``tids``), raised to
+    SCHED_FIFO ``priority`` while a call waits on them (0: never)."""
+
+    def __init__(self, tids: frozenset[int] = frozenset(), priority: int = 0) -> None:
+        self.tids = tids
+        self.priority = priority
+        self.refused: str | None = None  # why SCHED_FIFO was refused, once (then never asked)
+
+    @contextlib.contextmanager
+    def realtime(self) -> Iterator[None]:
+        """The threads at SCHED_FIFO for the block, fair again after it."""
+        if self.priority <= 0 or self.refused is not None or not self.tids:
+            yield
+            return
+        raised = []
+        for tid in self.tids:
+            if not os.path.exists(f"/proc/self/task/{tid}"):
+                continue  # it ended (a closing interface): the id may be another process's now
+            try:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(self.priority))
+                raised.append(tid)
+            except ProcessLookupError:  # it ended (a closing interface)
+                continue
+            except OSError as e:
+                self.refused = e.strerror or str(e)
+                log.warning(
+                    "URArm: ur-rtde's control thread may not run real-time (%s): the "
+                    "controller's answers wait for a fair thread",
+                    self.refused,
+                )
+                break
+        try:
+            yield
+        finally:
+            for tid in raised:
+                with contextlib.suppress(OSError):
+                    os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
