@@ -219,9 +219,13 @@ def test_the_nodes_telemetry_comes_from_the_arm_process_state_not_a_call():
         assert tel["arm_max_linear_m_s"] == arm.limits.max_linear_speed_m_s
         arm.stop()
         assert _wait(lambda: _at_rest(sim), 1.0) is not None
-        time.sleep(0.15)  # the next telemetry the arm process takes
+
+        def at_rest() -> bool:  # in the next telemetry the arm process takes
+            tel = arm.telemetry()
+            return tel["arm_jogging"] == 0.0 and tel.get("arm_speed_m_s", 1.0) < 1e-3
+
+        assert _wait(at_rest, 1.0) is not None, arm.telemetry()
         tel = arm.telemetry()
-        assert tel["arm_jogging"] == 0.0 and tel["arm_speed_m_s"] < 1e-3
         pose = sim.tcp_pose()
         got = [tel[k] for k in ("arm_x", "arm_y", "arm_z")]
         assert np.allclose(got, pose[:3], atol=1e-4), (got, pose)
