@@ -82,3 +82,18 @@ def test_a_thread_that_ended_is_skipped(polling_thread):
         pass
     assert receiver.refused is None
     assert os.sched_getscheduler(polling_thread) == os.SCHED_OTHER
+
+
+def test_a_block_inside_another_leaves_the_thread_real_time_until_the_outer_one_ends(
+    polling_thread,
+):
+    """A kick that finds a command on the wire ends its block first: the command still waits
+    on a real-time thread."""
+    receiver = ControlReceiver(frozenset({polling_thread}), 3)
+    with receiver.realtime():
+        with receiver.realtime():
+            pass
+        still = os.sched_getscheduler(polling_thread)
+    assert os.sched_getscheduler(polling_thread) == os.SCHED_OTHER
+    if receiver.refused is None:
+        assert still == os.SCHED_FIFO

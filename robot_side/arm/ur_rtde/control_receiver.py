@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import threading
 from collections.abc import Iterator
 
 log = logging.getLogger(__name__)
@@ -38,13 +39,33 @@ class ControlReceiver:
         self.tids = tids
         self.priority = priority
         self.refused: str | None = None  # why SCHED_FIFO was refused, once (then never asked)
+        self._lock = threading.Lock()
+        self._holders = 0  # blocks inside ``realtime`` now (a kick beside a command's call)
+        self._raised: list[int] = []
 
     @contextlib.contextmanager
     def realtime(self) -> Iterator[None]:
-        """The threads at SCHED_FIFO for the block, fair again after it."""
+        """The threads at SCHED_FIFO for the block, fair again once no block holds them: a
+        kick that finds a command on the wire does not lower them under that command."""
         if self.priority <= 0 or self.refused is not None or not self.tids:
             yield
             return
+        with self._lock:
+            self._holders += 1
+            if self._holders == 1:
+                self._raised = self._raise()
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._holders -= 1
+                if self._holders == 0:
+                    for tid in self._raised:
+                        with contextlib.suppress(OSError):
+                            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+                    self._raised = []
+
+    def _raise(self) -> list[int]:
         raised = []
         for tid in self.tids:
             if not os.path.exists(f"/proc/self/task/{tid}"):
@@ -52,7 +73,7 @@ class ControlReceiver:
             try:
                 os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(self.priority))
                 raised.append(tid)
-            except ProcessLookupError:  # it ended (a closing interface)
+            except ProcessLookupError:  # it ended meanwhile
                 continue
             except OSError as e:
                 self.refused = e.strerror or str(e)
@@ -62,9 +83,4 @@ class ControlReceiver:
                     self.refused,
                 )
                 break
-        try:
-            yield
-        finally:
-            for tid in raised:
-                with contextlib.suppress(OSError):
-                    os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        return raised
