@@ -185,7 +185,11 @@ def settled_on(browser: Chromium, node: OperatorNode, pattern: int) -> None:
     browser.wait_until("dxp.draws.linkage > 0 && dxp.joints != null", bool, timeout_s=SETTLE_S)
     # the counts are the target; the goals reach it over palm steps, and the page shows the
     # goals of its newest state (a loaded run's page drew 55.2 mm of a press the node had
-    # taken to 58.0): until the page's goals are the node's own
+    # taken to 58.0): until the node's goals are at the target, then the page's are the node's
+    deadline = time.monotonic() + SETTLE_S
+    while not np.array_equal(node.snapshot().goal_counts, target):
+        assert time.monotonic() < deadline, (node.snapshot().goal_counts, target)
+        time.sleep(0.02)
     browser.wait_until(
         "dxp.state.angles",
         lambda a: a is not None and np.allclose(a, node.snapshot().goal_angles, atol=1e-5),
