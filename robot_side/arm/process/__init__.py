@@ -43,11 +43,11 @@ from common.errors import (
     DeviceNotConnectedError,
     DeviceTimeoutError,
 )
-from robot_side.arm.base import Arm, as_vector6, turn_angle
+from robot_side.arm.base import TELEMETRY_POSE_KEYS, Arm, as_vector6, turn_angle
 from robot_side.arm.process.child import ArmProcessSpec
 from robot_side.arm.process.dashboard_stop import press_stop
 from robot_side.arm.process.errors import as_driver_error
-from robot_side.arm.process.state import StateView, new_state_file, telemetry_of
+from robot_side.arm.process.state import SPEED_KEYS, StateView, new_state_file, telemetry_of
 from robot_side.devices.stdio_child import StdioChild
 
 log = logging.getLogger(__name__)
@@ -320,8 +320,7 @@ class ArmProcess(Arm):
         state = self._fresh_state()
         if state is None or not state.get("live"):
             return {}
-        keys = ("arm_x", "arm_y", "arm_z", "arm_rx", "arm_ry", "arm_rz")
-        out = {k: state[k] for k in (*keys, "arm_speed_m_s", "arm_angular_speed_rad_s")}
+        out = {k: state[k] for k in (*TELEMETRY_POSE_KEYS, *SPEED_KEYS)}
         return out | self.keep_alive_telemetry()
 
     def keep_alive_telemetry(self) -> dict[str, float]:
@@ -350,7 +349,8 @@ class ArmProcess(Arm):
         """What the driver in the arm process last read, from the shared state: never a call
         through the pipe (none waits behind a stop, no round trip at the heartbeat's rate)."""
         self.require_connected()
-        return {**self.envelope(), **telemetry_of(self._fresh_state(), STATE_STALE_S)}
+        taken = telemetry_of(self._fresh_state(), STATE_STALE_S)
+        return {**self.envelope(), **taken, **self.live_readings()}
 
     def status(self) -> dict[str, Any]:
         out: dict[str, Any] = {"connected": self.is_connected, "process": self.pid}

@@ -58,22 +58,16 @@ _READ_TRIES = 4
 
 
 def telemetry_of(state: dict[str, float] | None, stale_s: float) -> dict[str, float]:
-    """The arm's telemetry as the driver in the arm process took it (no envelope), from its
-    newest state; DeviceError when there is none to give, and why."""
+    """What of the arm's telemetry only the driver in the arm process took (no envelope, no
+    pose: ``ArmProcess.live_readings``), from its newest state; DeviceError when there is
+    none to give, and why."""
     if state is None:
         raise DeviceNotConnectedError(
             f"arm process: its state is older than {stale_s * 1000:.0f} ms (it stopped its turns)"
         )
     if not state.get("telemetry_ok"):
         raise DeviceError("arm process: its driver could not read the arm (its log says why)")
-    out = {k: state[k] for k in TELEMETRY_STATE_KEYS}
-    if state.get("keepalive_count"):
-        out["arm_keepalive_p99_ms"] = state["keepalive_p99_ms"]
-        out["arm_keepalive_max_ms"] = state["keepalive_max_ms"]
-        out["arm_keepalive_realtime"] = state["keepalive_realtime"]
-    if state.get("live"):
-        out.update({k: state[k] for k in (*TELEMETRY_POSE_KEYS, *SPEED_KEYS)})
-    return out
+    return {k: state[k] for k in TELEMETRY_STATE_KEYS}
 
 
 def new_state_file() -> Path:
