@@ -139,6 +139,7 @@ class ProtocolOperator:
         self.robot_session: int | None = None  # the robot run we heard, echoed as the node does
         self.robot_has_clock = False  # the robot answered one of those: it knows our offset
         self.sent_ns: list[int] = []  # when each heartbeat and command went out (our clock)
+        self.woke_ns: list[int] = []  # each turn of ``pump`` (at most 10 ms apart unless starved)
 
     def pump(self, duration_s: float = 0.0) -> None:
         """Read telemetry and keep heartbeats going (20 Hz) for ``duration_s``."""
@@ -155,6 +156,7 @@ class ProtocolOperator:
                     if msg.echo_t_send_ns in self._echoing_sent:
                         self.robot_has_clock = True
             now = now_ns()
+            self.woke_ns.append(now)
             if now >= self._next_hb_ns:
                 self.hb_seq += 1
                 self.pub.send(

@@ -121,8 +121,10 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
         while now_ns() - t0 < seconds * 1e9:
             velocity = jogs[cycles % 2]
             for i in range(4):  # a held key: renewed every 50 ms
-                if i == 2:
-                    mid_jogs.append(now_ns())  # the control: a window as long, mid-jog
+                if i == 1:
+                    # the control: a window as long, mid-jog, that ends 50 ms before the stop
+                    # (it ended at the stop, and a stop's stall fell in both)
+                    mid_jogs.append(now_ns())
                 op.command("arm_jog", velocity=velocity)
                 op.pump(0.05)
             stops.append(now_ns())
@@ -154,6 +156,7 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
         "idle_stimulus": gap(Stimulus, i0, i1),
         "idle_heartbeat": gap(Heartbeat, i0, i1),
         # this process's own longest silence toward the robot while it jogged (its clock)
+        "operator_wakes": list(op.woke_ns),
         "operator_silence_ms": float(max(np.diff([t for t in op.sent_ns if t0 <= t <= t1]))) / 1e6,
         # deadman trips while this operator spoke: its own silence after its last send trips the
         # deadman a quarter second later (the session ended), so counters sent after that are not
@@ -180,12 +183,27 @@ def test_jog_and_stop_repeated_never_stall_the_telemetry(rig):
     each stop is compared with a window of the same length in the middle of
     each jog, in the same run: the test fails when gaps follow the stops
     clearly more often than they fall mid-jog, and the message gives both.
+    A window in which this process itself was starved as long is left out of
+    both: the machine stalled, and a stall of the machine says nothing of the
+    stop. (An 80 ms sleep put into the node's stop path fails it: 100 % of
+    the stops against 0 % mid-jog.)
     """
     period_ms = 1000 / PUBLISH_HZ
     limits_ms = {"stimulus": 3 * period_ms, "heartbeat": 3 * 1000 / 20.0}
     run = _jog_and_stop_for(rig, 10.0, session=11)
-    stops, mid_jogs = run["stops"], run["mid_jogs"]
-    assert len(stops) >= 20, f"only {len(stops)} jog+stop cycles in 10 s"
+    assert len(run["stops"]) >= 20, f"only {len(run['stops'])} jog+stop cycles in 10 s"
+    # a window in which this process was starved as long too (its own turns, at most 10 ms
+    # apart, stopped) was a stall of the machine, which says nothing of the stop: such windows
+    # are dropped from both tallies alike
+    starved_ms = limits_ms["stimulus"]
+    stops = _not_starved(run["stops"], run["operator_wakes"], starved_ms)
+    mid_jogs = _not_starved(run["mid_jogs"], run["operator_wakes"], starved_ms)
+    assert len(stops) >= 10 and len(mid_jogs) >= 10, (
+        f"this test's own process was starved past {starved_ms:.0f} ms in "
+        f"{len(run['stops']) - len(stops)} of {len(run['stops'])} windows after a stop and "
+        f"{len(run['mid_jogs']) - len(mid_jogs)} mid-jog: the machine, not the robot, could not "
+        "be judged (a test defect if it recurs: its lane is too busy)"
+    )
     for kind, limit in limits_ms.items():
         after = _gap_after_each(run[kind], stops)
         control = _gap_after_each(run[kind], mid_jogs)
@@ -209,11 +227,23 @@ def test_jog_and_stop_repeated_never_stall_the_telemetry(rig):
         f"{silent_ms:.0f} ms nor the robot's loop stalled past {robot_stall_ms:.0f} ms, against "
         f"its {deadman_ms:.0f} ms deadman: a false trip (product)"
     )
-    print(
-        f"\njog+stop: {len(stops)} cycles; largest gap after a stop "
-        f"{max(_gap_after_each(run['stimulus'], stops)):.0f} ms, mid-jog "
-        f"{max(_gap_after_each(run['stimulus'], mid_jogs)):.0f} ms"
+    after, control = (
+        _gap_after_each(run["stimulus"], stops),
+        _gap_after_each(run["stimulus"], mid_jogs),
     )
+    limit = limits_ms["stimulus"]
+    print(
+        f"\njog+stop: {len(run['stops'])} cycles, {len(stops)} stops and {len(mid_jogs)} mid-jogs "
+        f"judged; stimulus gaps over {limit:.0f} ms after "
+        f"{sum(g > limit for g in after)} stops, {sum(g > limit for g in control)} mid-jogs; "
+        f"largest after a stop {max(after):.0f} ms, mid-jog {max(control):.0f} ms"
+    )
+
+
+def _not_starved(marks: list[int], own_turns: list[int], limit_ms: float) -> list[int]:
+    """The marks whose window after them saw no gap in this process's own turns past the limit."""
+    gaps = _gap_after_each(own_turns, marks)
+    return [t for t, g in zip(marks, gaps, strict=True) if g <= limit_ms]
 
 
 def _gap_after_each(sent: list[int], marks: list[int]) -> list[float]:
