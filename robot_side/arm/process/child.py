@@ -10,8 +10,8 @@ then does three things:
   way of the keep-alive, which runs on its own thread with the interpreter
   lock nearly always free (nothing else in this process computes);
 - writes the newest pose, the connection's state, the keep-alive's
-  timing and the driver's telemetry into the shared state file every
-  keep-alive period (``state.py``), which the node reads without waiting
+  timing and the driver's telemetry into the shared state file at the
+  heartbeat's rate (``state.py``), which the node reads without waiting
   (its heartbeats, its telemetry poll, its reconnect decisions);
 - when the node goes (its end of stdin closes: killed, crashed or done),
   stops the arm, ends the control script and exits at once.
@@ -43,7 +43,7 @@ from common.logs import BurstLog
 from common.logs import configure as configure_logging
 from common.process.realtime import PeriodStats, raise_this_thread
 from robot_side.arm.base import SAFETY_THREAD_NICE, Arm
-from robot_side.arm.process.state import TELEMETRY_EVERY_S, TELEMETRY_STATE_KEYS, StateView
+from robot_side.arm.process.state import TELEMETRY_STATE_KEYS, WRITE_EVERY_S, StateView
 from robot_side.devices.stdio_child import serve_stdio
 
 log = logging.getLogger(__name__)
@@ -126,7 +126,7 @@ class ServedArm:
 
 
 class StateWriter:
-    """Writes the arm's newest state every keep-alive period, on a thread of its own."""
+    """Writes the arm's newest state every ``WRITE_EVERY_S``, on a thread of its own."""
 
     def __init__(self, arm: Arm, view: StateView) -> None:
         self.arm = arm
@@ -134,8 +134,6 @@ class StateWriter:
         self._quit = threading.Event()
         self._summary: dict[str, float] = {}
         self._summary_due = 0.0
-        self._telemetry: dict[str, float] = {}
-        self._telemetry_due = 0.0
         self._writing = threading.Lock()  # one writer at a time (the seqlock has one side)
         self._telemetry_failed = BurstLog(log, "arm process", level=logging.DEBUG)
         self._thread = threading.Thread(target=self._run, name="arm-state", daemon=True)
@@ -145,8 +143,7 @@ class StateWriter:
         return self
 
     def _run(self) -> None:
-        period = self.arm.deadman_period_s
-        while not self._quit.wait(period):
+        while not self._quit.wait(WRITE_EVERY_S):
             self.write_now()
 
     def write_now(self) -> None:
@@ -172,10 +169,8 @@ class StateWriter:
         if now >= self._summary_due:
             self._summary = arm.keep_alive_periods.summary()
             self._summary_due = now + SUMMARY_EVERY_S
-        if now >= self._telemetry_due or not self._telemetry.get("telemetry_ok"):
-            self._telemetry = self._take_telemetry() if connected else {}
-            self._telemetry_due = now + TELEMETRY_EVERY_S
-        out.update(self._telemetry)
+        if connected:
+            out.update(self._take_telemetry())
         out.update({f"keepalive_{key}": value for key, value in self._summary.items()})
         got = arm.keep_alive_scheduling
         if got is not None:
