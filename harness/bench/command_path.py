@@ -115,11 +115,14 @@ class Telemetry:
         return [t for t in sent if t0 <= t <= t1]
 
     def robot_stats(self, sent_by_ns: int = 2**63) -> dict[str, float]:
-        """The robot's counters in its newest heartbeat sent by ``sent_by_ns`` (its own stamp)."""
-        beats = [
-            m for _, m in self.messages if isinstance(m, Heartbeat) and m.t_send_ns <= sent_by_ns
-        ]
-        return beats[-1].stats if beats else {}
+        """The robot's counters as of its newest heartbeat sent by ``sent_by_ns`` (its own
+        stamp): each counter's newest value, as an operator keeps them (a heartbeat carries at
+        most the protocol's limit of them, the rest in turns)."""
+        out: dict[str, float] = {}
+        for _, m in self.messages:
+            if isinstance(m, Heartbeat) and m.t_send_ns <= sent_by_ns:
+                out.update(m.stats)
+        return out
 
     def close(self) -> None:
         self._stop.set()

@@ -115,7 +115,10 @@ class Telemetry:
         self._hb_seq = 0
         self._frame_seq = 0
         self._echo_turn = 0  # round robin over the operators whose heartbeats we echo
-        self._stats_cut = BurstLog(log, "heartbeat stats over the protocol's limit")
+        self._stats_cut = BurstLog(
+            log, "heartbeat stats over the protocol's limit", level=logging.DEBUG
+        )
+        self._stats_turn = 0  # where the counters past the limit resume (``_heartbeat_stats``)
 
     def announce(self) -> None:
         """Send a heartbeat at the next loop turn."""
@@ -179,12 +182,21 @@ class Telemetry:
                 return state_stats(self.desk)  # not the whole counters: not computed either
             self._stats_due_ns = now + self._stats_period_ns
         stats = self.stats()
-        if len(stats) > MAX_STATS:
-            # the links' health first: `deepxpalm doctor` reads it from here
-            ranked = sorted(stats, key=lambda k: (not k.startswith("link_"), k))
-            self._stats_cut(f"{len(stats)} counters, {MAX_STATS} sent: {ranked[MAX_STATS:]}")
-            stats = {k: stats[k] for k in ranked[:MAX_STATS]}
-        return stats
+        if len(stats) <= MAX_STATS:
+            return stats
+        # the links' health in every one (`deepxpalm doctor` reads it from one heartbeat); the
+        # other counters take turns in the room left, so each is carried every few heartbeats
+        # and an operator, which keeps the newest value of each, sees them all (cut in name
+        # order instead, the last few, `video_signals_replayed` and `wakeups` among them, were
+        # never sent)
+        links = sorted(k for k in stats if k.startswith("link_"))[:MAX_STATS]
+        rest = sorted(k for k in stats if not k.startswith("link_"))
+        room = MAX_STATS - len(links)
+        start = self._stats_turn % len(rest) if rest else 0
+        turn = (rest[start:] + rest[:start])[:room]
+        self._stats_turn = start + room
+        self._stats_cut(f"{len(stats)} counters: {MAX_STATS} a heartbeat, the rest in turns")
+        return {k: stats[k] for k in (*links, *turn)}
 
     def send_frame(self, sample: TactileSample) -> None:
         """The raw frame, for the dashboard's display; not even encoded when nobody wants it."""
