@@ -552,9 +552,16 @@ class LaggingReceive:
             )
 
     def _then(self) -> tuple:
+        """The newest sample from ``lag_s`` ago or before; where this process's sampling
+        thread was starved across that moment (a busy machine), the first sample after it:
+        the lag stays about ``lag_s``, not ``lag_s`` plus the starvation."""
         cutoff = time.monotonic() - self._lag_s
-        older = [h for h in self._history if h[0] <= cutoff]
-        return older[-1] if older else self._history[0]
+        history = list(self._history)
+        older = [h for h in history if h[0] <= cutoff]
+        if older and older[-1][0] >= cutoff - self._lag_s:
+            return older[-1]
+        newer = [h for h in history if h[0] > cutoff]
+        return newer[0] if newer else history[-1]
 
     def getActualTCPPose(self):
         return self._then()[1]
