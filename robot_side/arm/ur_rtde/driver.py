@@ -81,9 +81,13 @@ class URArm(Arm):
         ``connect()`` (the node's ``DeviceRecovery`` does that off the frame loop).
         """
         line = self.line
+        recv, ctrl = self.receive.recv, line.ctrl
+        if line.broken is None and line.program_lost is None and recv is not None:
+            # not the keep-alive's turns alone: a kick sent as the script stopped waits inside
+            # ur-rtde for a "ready" that never comes (4 s), and the stop went unnoticed as long
+            self.watchdog.notice_program_stop(recv)
         if line.broken is not None or line.program_lost is not None:
             return True
-        recv, ctrl = self.receive.recv, line.ctrl
         if recv is None or ctrl is None:
             return False
         return not (recv.isConnected() and ctrl.isConnected())
