@@ -25,10 +25,7 @@ from websockets.sync.client import connect
 from common.recording.episode_marks import CHANNEL, read_marks
 from common.recording.mcap_recorder import read_recording
 
-#: parallel (the deployment lane): a demo with its dashboard, marked while the page shows
-#: contact for 0.4 s; beside the deployments, at the parallel lane's share, it took 50 to 117 s
-#: and was that lane's last test by a minute
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.untimed]
 
 FPS = 30
 FAILED_TASK = "grasp the pipette: it slipped"
