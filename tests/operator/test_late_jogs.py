@@ -21,9 +21,7 @@ from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
 from operator_side.servos.in_memory import InMemoryServoBus
 
-#: parallel: a jog sent "now" must reach the robot within the node's jog age limit, which needs
-#: a deployment's share of the machine (the deployment lane), not the parallel lane's beside it
-pytestmark = [pytest.mark.timeout(30), pytest.mark.parallel]
+pytestmark = pytest.mark.timeout(30)
 
 JOG = (0.02, 0.0, 0.0, 0.0, 0.0, 0.0)
 
