@@ -17,7 +17,6 @@ import time
 
 import numpy as np
 import pyarrow.parquet as pq
-import pytest
 from synthetic import MS, POSE, robot_recording
 from tests_support import free_ports
 
@@ -59,11 +58,6 @@ def _late_jog_rows(path, out, arm) -> tuple[list[float], int]:
     return late, int(jogging.sum())
 
 
-#: the whole chain in this process, its jogs refused once older than the robot's limit: it needs
-#: the share of the machine a deployment gets (the deployment lane), not what the parallel lane
-#: beside it gets (16 of the 20 jogs it needs applied there)
-@pytest.mark.slow
-@pytest.mark.parallel
 def test_through_the_link_simulator_no_jog_row_outlives_the_arm(tmp_path):
     tel, cmd = (f"tcp://127.0.0.1:{p}" for p in free_ports(2))
     rc = RobotConfig()
