@@ -24,8 +24,7 @@ STAMP := $(VENV)/.installed
 
 # Five lanes (docs/testing.md). Most tests wait far more than they compute: the tests not
 # marked slow, and the slow ones marked `untimed` (they check no timing), run four at a time
-# (pytest-xdist), each file on one worker so a module's fixture runs once, beside the next lane
-# (BESIDE, below). The slow ones marked
+# (pytest-xdist), each file on one worker so a module's fixture runs once. The slow ones marked
 # `parallel` start deployments (nodes, simulators, browsers) and bound their timing by the
 # product's own limits (the 400 ms stop, the 150 ms staleness), which must hold beside other
 # deployments as on a busy robot PC: three at a time, which left a 2-core machine 40 % idle (four
@@ -64,8 +63,7 @@ AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --gro
 TEST_INDEX := $(VENV)/test-index.json
 LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest --test-index=$(TEST_INDEX)
 # The parallel lane's tests check no timing and the deployment lane leaves the machine about 40 %
-# idle, so the two run side by side (a test marked `parallel` bounds a time, quick or not: the
-# deployment lane's): the parallel lane in a group of its own at an ordinary
+# idle, so the two run side by side: the parallel lane in a group of its own at an ordinary
 # session's weight (UNTIMED_GROUP_NICE: it takes what the deployments leave idle, about 1/87 of
 # the machine when they want all of it), moved up to the lanes' weight once the deployment lane
 # has ended (beside two busy loops it would get a third of the machine). Not in the lanes' own
@@ -77,8 +75,8 @@ PARALLEL_REPORT := $(VENV)/parallel-lane.log
 # Whole files to each worker (a module's deployment starts once), the longest first
 # (tests/file_durations.json, in tests/conftest.py's order; scripts/file-durations.py)
 BY_FILE := --dist loadfile --no-loadscope-reorder
-PARALLEL_LANE := (untimed or not (slow or parallel)) and not serial and not pty and not soak and not alone
-DEPLOYMENT_LANE := parallel and not untimed and not serial and not pty and not soak and not alone
+PARALLEL_LANE := (not slow or untimed) and not serial and not pty and not soak and not alone
+DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not pty and not soak and not alone
 PAIRED_LANE := slow and not untimed and not parallel and not serial and not pty and not soak and not alone
 SERIAL_LANE := (serial or pty) and not soak and not alone
 # Several machines' deployments on one (a fleet: robots, operators, a router, an attacker) or a
