@@ -62,16 +62,6 @@ AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --gro
 # the paired lane. Without the index (a collection that failed writes none), every file.
 TEST_INDEX := $(VENV)/test-index.json
 LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest --test-index=$(TEST_INDEX)
-# The parallel lane's tests check no timing and the deployment lane leaves the machine about 40 %
-# idle, so the two run side by side: the parallel lane in a group of its own at an ordinary
-# session's weight (UNTIMED_GROUP_NICE: it takes what the deployments leave idle, about 1/87 of
-# the machine when they want all of it), moved up to the lanes' weight once the deployment lane
-# has ended (beside two busy loops it would get a third of the machine). Not in the lanes' own
-# group: a group kept saturated starves the kernel's pty workers (below).
-UNTIMED_GROUP_NICE ?= 0
-BESIDE := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --group $(UNTIMED_GROUP_NICE) \
-	--later-group $(TEST_GROUP_NICE) -- $(BIN)/python -m pytest --test-index=$(TEST_INDEX)
-PARALLEL_REPORT := $(VENV)/parallel-lane.log
 # Whole files to each worker (a module's deployment starts once), the longest first
 # (tests/file_durations.json, in tests/conftest.py's order; scripts/file-durations.py)
 BY_FILE := --dist loadfile --no-loadscope-reorder
@@ -126,14 +116,9 @@ test: $(STAMP)
 		|| echo "collection failed: the lanes below report why"; }; \
 	wait $$bytecode && [ $$jit -eq 0 ]
 	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty
-	@# the parallel lane runs beside the deployment lane (BESIDE); its report follows
 	status=0; \
-	$(BESIDE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) $(BY_FILE) $(ARGS) \
-		>$(PARALLEL_REPORT) 2>&1 & parallel=$$!; \
+	$(LANE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(DEPLOYMENT_LANE)" -n $(DEPLOYMENT_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
-	kill -USR1 $$parallel 2>/dev/null; \
-	wait $$parallel || [ $$? -eq 5 ] || status=1; \
-	echo "the parallel lane, beside the deployment lane:"; cat $(PARALLEL_REPORT); \
 	$(LANE) -m "$(PAIRED_LANE)" -n $(PAIRED_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(SERIAL_LANE)" -n $(SERIAL_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(ALONE_LANE)" -n 0 $(ARGS) || [ $$? -eq 5 ] || status=1; \

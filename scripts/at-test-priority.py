@@ -1,6 +1,6 @@
 """Run a command in a session of its own, above the machine's ordinary work.
 
-    python scripts/at-test-priority.py NICE [--group NICE1] [--later-group NICE2] -- COMMAND ...
+    python scripts/at-test-priority.py NICE [--group GROUP_NICE] -- COMMAND [ARGS ...]
 
 The test lanes run through this (the Makefile's ``TEST_NICE``). Their
 deployments stand for robot PCs, controllers and boards of their own, which
@@ -13,7 +13,7 @@ A priority alone is not enough where the kernel groups processes by session
 before it weighs their priorities (``sched_autogroup``, on by default on
 most distributions): a busy loop started from the same shell would share
 the lanes' group and take its share of it. So the command gets a session
-(and so a group) of its own, at ``NICE1`` (``NICE`` if not given)
+(and so a group) of its own, at ``GROUP_NICE`` (``NICE`` if not given)
 against the other sessions, while its processes run at ``NICE`` inside it:
 the Makefile's group at -20 outweighs a session at nice 0 about 87 to 1,
 and its processes at -5 leave the nodes and simulated hardware (at -10)
@@ -25,13 +25,6 @@ took up to 290 ms, on an otherwise quiet machine 10 to 12 ms
 it as before: this process forwards them to its process group.
 Where the user may not raise a priority (not root, no CAP_SYS_NICE), the
 command runs at the one it has, and one line says so.
-
-``--later-group NICE2``: on SIGUSR1 the session's group moves to NICE2.
-The Makefile starts the untimed lane beside the deployment lane in a group
-at an ordinary session's weight, so that it takes what the deployments
-leave idle and little they need, and moves it up to the lanes' weight once
-the deployment lane has ended (beside two busy loops it would otherwise get
-a third of the machine).
 """
 
 from __future__ import annotations
@@ -60,29 +53,15 @@ def _raise_priority(nice: int, group: int) -> str | None:
     return None
 
 
-def _set_group(pid: int, group: int) -> None:
-    """``pid``'s session's scheduling group at ``group``; nothing where there are no such
-    groups, the session has ended, or this process may not."""
-    with contextlib.suppress(OSError), open(f"/proc/{pid}/autogroup", "w") as f:
-        f.write(str(group))
-
-
 def main(argv: list[str]) -> int:
-    group = later = None
-    while len(argv) >= 3 and argv[1] in ("--group", "--later-group"):
-        if argv[1] == "--group":
-            group = argv[2]
-        else:
-            later = int(argv[2])
-        argv = [argv[0], *argv[3:]]
+    group = None
+    if len(argv) >= 3 and argv[1] == "--group":
+        group, argv = argv[2], [argv[0], *argv[3:]]
     if len(argv) < 3 or argv[1] != "--":
         print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
         return 2
     nice, command = int(argv[0]), argv[2:]
     group_nice = nice if group is None else int(group)
-    child: list[int] = []
-    if later is not None:  # before the fork: an early signal must not end this process
-        signal.signal(signal.SIGUSR1, lambda _signum, _frame: [_set_group(p, later) for p in child])
     pid = os.fork()
     if pid == 0:
         os.setsid()
@@ -105,7 +84,6 @@ def main(argv: list[str]) -> int:
 
     for signum in FORWARDED:
         signal.signal(signum, forward)
-    child.append(pid)
     _, status = os.waitpid(pid, 0)
     code = os.waitstatus_to_exitcode(status)
     return code if code >= 0 else 128 - code

@@ -66,38 +66,3 @@ def test_a_stop_reaches_the_command():
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=10) == 128 + signal.SIGTERM
     assert time.monotonic() - t0 < 5
-
-
-#: prints its session's group weight ("none" without sched_autogroup) each time it changes,
-#: until it has seen two, or for 5 s
-WATCH_GROUP = (
-    "import pathlib, time; g = pathlib.Path('/proc/self/autogroup'); seen = []\n"
-    "end = time.monotonic() + 5\n"
-    "while len(seen) < 2 and time.monotonic() < end:\n"
-    "    w = g.read_text().split()[-1] if g.exists() else 'none'\n"
-    "    if not seen or w != seen[-1]:\n"
-    "        seen.append(w); print(w, flush=True)\n"
-    "    time.sleep(0.01)\n"
-)
-
-
-def test_a_signal_moves_the_sessions_group_to_its_later_weight():
-    """The untimed lane's launcher: its group at an ordinary session's weight until the
-    deployment lane ends, then at the lanes' (``--later-group``, on SIGUSR1); the signal
-    never ends the launcher, grouped sessions or not."""
-    proc = subprocess.Popen(
-        [sys.executable, str(SCRIPT), "-5", "--group", "0", "--later-group", "-10", "--",
-         sys.executable, "-c", WATCH_GROUP],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        first = proc.stdout.readline().strip()
-        proc.send_signal(signal.SIGUSR1)
-        out, err = proc.communicate(timeout=10)
-    finally:
-        proc.kill()
-    assert proc.returncode == 0, err
-    if "running at the priority it has" in err or not GROUP.exists():  # nothing may move
-        assert out.strip() == ""
-    else:
-        assert (first, out.strip()) == ("0", "-10"), err
