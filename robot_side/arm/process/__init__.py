@@ -43,11 +43,17 @@ from common.errors import (
     DeviceNotConnectedError,
     DeviceTimeoutError,
 )
-from robot_side.arm.base import TELEMETRY_POSE_KEYS, Arm, as_vector6, turn_angle
+from robot_side.arm.base import Arm, as_vector6, turn_angle
 from robot_side.arm.process.child import ArmProcessSpec
 from robot_side.arm.process.dashboard_stop import press_stop
 from robot_side.arm.process.errors import as_driver_error
-from robot_side.arm.process.state import SPEED_KEYS, StateView, new_state_file, telemetry_of
+from robot_side.arm.process.state import (
+    StateView,
+    keep_alive_of,
+    live_of,
+    new_state_file,
+    telemetry_of,
+)
 from robot_side.devices.stdio_child import StdioChild
 
 log = logging.getLogger(__name__)
@@ -317,21 +323,10 @@ class ArmProcess(Arm):
 
     def live_readings(self) -> dict[str, float]:
         """The newest pose and speed the arm process wrote; never waits on it."""
-        state = self._fresh_state()
-        if state is None or not state.get("live"):
-            return {}
-        out = {k: state[k] for k in (*TELEMETRY_POSE_KEYS, *SPEED_KEYS)}
-        return out | self.keep_alive_telemetry()
+        return live_of(self._fresh_state())
 
     def keep_alive_telemetry(self) -> dict[str, float]:
-        state = self._fresh_state()
-        if state is None or not state.get("keepalive_count"):
-            return {}
-        return {
-            "arm_keepalive_p99_ms": state["keepalive_p99_ms"],
-            "arm_keepalive_max_ms": state["keepalive_max_ms"],
-            "arm_keepalive_realtime": state["keepalive_realtime"],
-        }
+        return keep_alive_of(self._fresh_state())
 
     def keep_alive_summary(self) -> dict[str, float]:
         """The keep-alive's period (p50, p99, p99.9, max in ms, count) and its scheduling; once
@@ -349,8 +344,8 @@ class ArmProcess(Arm):
         """What the driver in the arm process last read, from the shared state: never a call
         through the pipe (none waits behind a stop, no round trip at the heartbeat's rate)."""
         self.require_connected()
-        taken = telemetry_of(self._fresh_state(), STATE_STALE_S)
-        return {**self.envelope(), **taken, **self.live_readings()}
+        state = self._fresh_state()  # one copy: the driver's readings and the pose alike
+        return {**self.envelope(), **telemetry_of(state, STATE_STALE_S), **live_of(state)}
 
     def status(self) -> dict[str, Any]:
         out: dict[str, Any] = {"connected": self.is_connected, "process": self.pid}

@@ -61,8 +61,8 @@ _READ_TRIES = 4
 
 def telemetry_of(state: dict[str, float] | None, stale_s: float) -> dict[str, float]:
     """What of the arm's telemetry only the driver in the arm process took (no envelope, no
-    pose: ``ArmProcess.live_readings``), from its newest state; DeviceError when there is
-    none to give, and why."""
+    pose: ``live_of``), from its newest state; DeviceError when there is none to give, and
+    why."""
     if state is None:
         raise DeviceNotConnectedError(
             f"arm process: its state is older than {stale_s * 1000:.0f} ms (it stopped its turns)"
@@ -70,6 +70,25 @@ def telemetry_of(state: dict[str, float] | None, stale_s: float) -> dict[str, fl
     if not state.get("telemetry_ok"):
         raise DeviceError("arm process: its driver could not read the arm (its log says why)")
     return {k: state[k] for k in TELEMETRY_STATE_KEYS}
+
+
+def live_of(state: dict[str, float] | None) -> dict[str, float]:
+    """The pose and speed the driver streamed, with the keep-alive's timing; nothing while the
+    stream is not live (or there is no state)."""
+    if state is None or not state.get("live"):
+        return {}
+    return {k: state[k] for k in (*TELEMETRY_POSE_KEYS, *SPEED_KEYS)} | keep_alive_of(state)
+
+
+def keep_alive_of(state: dict[str, float] | None) -> dict[str, float]:
+    """The keep-alive's timing as the heartbeat names it; nothing before its first period."""
+    if state is None or not state.get("keepalive_count"):
+        return {}
+    return {
+        "arm_keepalive_p99_ms": state["keepalive_p99_ms"],
+        "arm_keepalive_max_ms": state["keepalive_max_ms"],
+        "arm_keepalive_realtime": state["keepalive_realtime"],
+    }
 
 
 def new_state_file() -> Path:
