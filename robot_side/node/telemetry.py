@@ -184,19 +184,21 @@ class Telemetry:
         stats = self.stats()
         if len(stats) <= MAX_STATS:
             return stats
-        # the links' health in every one (`deepxpalm doctor` reads it from one heartbeat); the
-        # other counters take turns in the room left, so each is carried every few heartbeats
-        # and an operator, which keeps the newest value of each, sees them all (cut in name
-        # order instead, the last few, `video_signals_replayed` and `wakeups` among them, were
-        # never sent)
-        links = sorted(k for k in stats if k.startswith("link_"))[:MAX_STATS]
-        rest = sorted(k for k in stats if not k.startswith("link_"))
-        room = MAX_STATS - len(links)
+        # in every one: what an operator acts on (the stop latch, the gripper's acknowledgement)
+        # and the links' health (`deepxpalm doctor` reads it from one heartbeat); the other
+        # counters take turns in the room left, so each is carried every few heartbeats and an
+        # operator, which keeps the newest value of each, sees them all (cut in name order
+        # instead, the last few, `video_signals_replayed` and `wakeups` among them, were never
+        # sent)
+        fixed = [k for k in STATE_KEYS if k in stats]
+        fixed += sorted(k for k in stats if k.startswith("link_"))[: MAX_STATS - len(fixed)]
+        rest = sorted(k for k in stats if k not in fixed)
+        room = MAX_STATS - len(fixed)
         start = self._stats_turn % len(rest) if rest else 0
         turn = (rest[start:] + rest[:start])[:room]
         self._stats_turn = start + room
         self._stats_cut(f"{len(stats)} counters: {MAX_STATS} a heartbeat, the rest in turns")
-        return {k: stats[k] for k in (*links, *turn)}
+        return {k: stats[k] for k in (*fixed, *turn)}
 
     def send_frame(self, sample: TactileSample) -> None:
         """The raw frame, for the dashboard's display; not even encoded when nobody wants it."""
@@ -220,13 +222,18 @@ class Telemetry:
 FABRIC_STATS_PERIOD_MS = 1000.0
 
 
+#: the state an operator acts on, in every heartbeat (``state_stats``)
+STATE_KEYS = ("arm_stop_latched", "gripper_command_seq", "gripper_command_session")
+
+
 def state_stats(desk: CommandDesk) -> dict[str, float]:
     """What every heartbeat carries whatever the counters' period: the state an operator acts
     on (the stop latch; the newest gripper command acted on, which confirms the operator's)."""
-    out = {"arm_stop_latched": float(desk.stop_latch.latched)}
+    latched, seq, session = STATE_KEYS
+    out = {latched: float(desk.stop_latch.latched)}
     ack = desk.handover.gripper_ack
     if ack is not None:
-        out["gripper_command_seq"], out["gripper_command_session"] = ack
+        out[seq], out[session] = ack
     return out
 
 

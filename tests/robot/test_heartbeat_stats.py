@@ -5,22 +5,23 @@ from __future__ import annotations
 import math
 
 from common.wire.codec import MAX_STATS
-from robot_side.node.telemetry import Telemetry
+from robot_side.node.telemetry import STATE_KEYS, Telemetry
 
 
-def test_past_the_limit_every_counter_comes_within_a_few_heartbeats_and_the_links_in_each():
-    counters = {f"link_{i}": float(i) for i in range(3)}
+def test_past_the_limit_every_counter_comes_within_a_few_heartbeats_the_state_in_each():
+    counters = {f"link_{i}": float(i) for i in range(3)} | dict.fromkeys(STATE_KEYS, 1.0)
     counters |= {f"count_{i:03d}": float(i) for i in range(MAX_STATS + 20)}
+    always = {"link_0", "link_1", "link_2", *STATE_KEYS}
     telemetry = Telemetry(
         None, name=b"cell1", session=1, now=lambda: 0, stats=lambda: dict(counters), counters={}
     )
-    others = len(counters) - 3
-    turns = math.ceil(others / (MAX_STATS - 3))
+    others = len(counters) - len(always)
+    turns = math.ceil(others / (MAX_STATS - len(always)))
     kept: dict[str, float] = {}
     for _ in range(turns):
         beat = telemetry._heartbeat_stats()
         assert len(beat) == MAX_STATS
-        assert {"link_0", "link_1", "link_2"} <= beat.keys()
+        assert always <= beat.keys()  # the state an operator acts on, and the links' health
         kept |= beat  # as an operator keeps them: each counter's newest value
     assert kept == counters
 
