@@ -196,10 +196,15 @@ class SafetyThreads:
             except Exception:  # the next period tries again
                 log.exception("%s: keep-alive failed", type(self).__name__)
 
+    def _watch_spins(self) -> None:
+        """Called on every deadman turn: a driver whose real-time calls may busy-wait
+        bounds them here (``URArm``: ``SpinGuard``). Nothing by default."""
+
     def _deadman_loop(self) -> None:
         period = self.deadman_period_s
         while not self._deadman_quit.wait(period):
             self._deadman_woke = now_s()
+            self._watch_spins()
             until = self._jog_until
             if until is None or now_s() < until:
                 continue

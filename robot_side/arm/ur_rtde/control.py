@@ -27,6 +27,7 @@ from common.clocks.clock import now_s
 from common.devices.lifecycle import at_niceness
 from common.errors import DeviceError, DeviceNotConnectedError, DeviceTimeoutError
 from common.process.realtime import fair_while
+from common.process.spin_guard import SpinGuard
 from robot_side.arm.base import SAFETY_THREAD_NICE
 from robot_side.arm.ur_rtde.config import URArmConfig
 from robot_side.arm.ur_rtde.control_receiver import ControlReceiver
@@ -75,6 +76,9 @@ class ControlWorker:
 #: packages after a command's end before the script is surely ready again: the controller
 #: reads the clear in its next cycle and says "ready" in the package after that cycle
 READY_AFTER_PACKAGES = 2
+#: a kick or a jog (no wait for the script's "done") that has not returned after this spins
+#: in ur-rtde for a "ready" that is not coming: its thread goes fair (``SpinGuard``)
+SPIN_LIMIT_S = 0.01
 
 
 class ControlLine:
@@ -100,6 +104,8 @@ class ControlLine:
         self._worker: ControlWorker | None = None
         #: ur-rtde's control thread, real-time while a call waits on it
         self.receiver = ControlReceiver()
+        #: kicks and jogs spinning at SCHED_FIFO go fair; the deadman thread checks
+        self.spin_guard = SpinGuard(SPIN_LIMIT_S)
 
     def open(self, ctrl: Any, receiver: ControlReceiver | None = None) -> None:
         self.ctrl = ctrl
@@ -153,7 +159,8 @@ class ControlLine:
             self.note_sent(what)
             try:
                 if realtime:  # nothing waits on the control thread
-                    return self._unspun_now(what, fn, *args)
+                    with self.spin_guard.watched(f"URArm {what}"):
+                        return self._unspun_now(what, fn, *args)
                 return worker.submit(self._unspun, what, fn, *args).result(timeout=timeout)
             except concurrent.futures.TimeoutError:
                 self.broken = f"{what} did not return in {timeout:.1f} s"
@@ -194,7 +201,8 @@ class ControlLine:
         if not ctrl.isConnected():
             # kickWatchdog would start ur-rtde's own reconnect; the node's recovery reconnects
             return False
-        return self._unspun("the keep-alive's kick", self._kick, ctrl)
+        with self.spin_guard.watched("URArm's keep-alive kick"):
+            return self._unspun("the keep-alive's kick", self._kick, ctrl)
 
     def _kick(self, ctrl: Any) -> bool:
         if not self.wire.acquire(blocking=False):

@@ -181,6 +181,9 @@ class URArm(Arm):
     def _keep_alive(self) -> None:
         self.watchdog.keep_alive()
 
+    def _watch_spins(self) -> None:
+        self.line.spin_guard.check()
+
     def _deadman_stop_limit_s(self) -> float:
         return self.motion.stop_limit_s()
 
@@ -230,6 +233,7 @@ class URArm(Arm):
             watchdog_window_ms=self.config.watchdog_window_s * 1000,
             watchdog_kicks=self.watchdog.kicks,
             longest_silence_ms=round(line.silence_max_s * 1000, 1),
+            spins_made_fair=line.spin_guard.demotions,
         )
         if line.program_lost is not None:
             out["program_lost"] = line.program_lost

@@ -1,0 +1,108 @@
+"""A real-time thread's call that may busy-wait, put back in the fair scheduler if it does.
+
+ur-rtde sends a command (a watchdog kick too) only once its control script
+says "ready", and waits for that in a loop with no sleep, up to its 3 s
+timeout. A kick or a jog normally returns within a millisecond; one that
+meets a script which will never say ready (stopped on the pendant in the few
+milliseconds before the stream shows it, a starved controller) spins. At
+``SCHED_FIFO`` that spin holds a whole core from every fair thread of the
+machine, the controller's simulator and the robot node included, for as long
+as it lasts.
+
+``SpinGuard`` bounds it: the calling thread marks the call (``watched``),
+another thread that wakes regularly (the arm's deadman) calls ``check``, and
+a call still running after ``limit_s`` has its thread moved to the fair
+scheduler (its niceness unchanged) until it returns, then raised again. The
+spin still ends only at ur-rtde's timeout, but it shares the CPU like any
+other work. The checker must be able to run while the call spins: ur-rtde
+releases the interpreter lock in its calls, and on one core the checker
+needs a priority above the spinning thread (Linux's real-time throttling
+otherwise lets it run only in the last 5 % of each second).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+from common.clocks.clock import now_s
+
+log = logging.getLogger(__name__)
+
+REALTIME_POLICIES = tuple(
+    p for p in (getattr(os, "SCHED_FIFO", None), getattr(os, "SCHED_RR", None)) if p is not None
+)
+
+
+@dataclass
+class _Call:
+    tid: int
+    what: str
+    started: float
+    policy: int
+    param: Any
+    demoted: bool = False
+
+
+class SpinGuard:
+    """Calls on real-time threads that must return within ``limit_s`` or lose their priority."""
+
+    def __init__(self, limit_s: float) -> None:
+        self.limit_s = limit_s
+        self.demotions = 0  # calls moved to the fair scheduler, since construction
+        self._lock = threading.Lock()
+        self._call: _Call | None = None  # the watched call
+
+    @contextlib.contextmanager
+    def watched(self, what: str) -> Iterator[None]:
+        """The block is one call on this thread; a no-op unless the thread is real-time."""
+        tid = threading.get_native_id()
+        try:
+            policy = os.sched_getscheduler(tid)
+            param = os.sched_getparam(tid)
+        except (OSError, AttributeError):
+            policy = None
+        if policy not in REALTIME_POLICIES:
+            yield
+            return
+        with self._lock:
+            self._call = _Call(tid, what, now_s(), policy, param)
+        try:
+            yield
+        finally:
+            with self._lock:
+                call, self._call = self._call, None
+            if call is not None and call.demoted:
+                try:
+                    os.sched_setscheduler(tid, policy, param)
+                except OSError as e:  # the grant was withdrawn meanwhile
+                    log.warning("%s: real-time priority not restored (%s)", what, e)
+
+    def check(self) -> bool:
+        """From another thread: a watched call running past ``limit_s`` goes fair (once);
+        True when this check moved one."""
+        with self._lock:
+            call = self._call
+            if call is None or call.demoted:
+                return False
+            late = now_s() - call.started
+            if late <= self.limit_s:
+                return False
+            try:
+                os.sched_setscheduler(call.tid, os.SCHED_OTHER, os.sched_param(0))
+            except OSError:  # the thread ended, or the right to change it is gone
+                return False
+            call.demoted = True
+            self.demotions += 1
+        log.warning(
+            "%s has not returned after %.0f ms (it waits in a loop without sleeping for a "
+            "controller that does not answer): moved to the fair scheduler until it returns",
+            call.what,
+            late * 1000,
+        )
+        return True
