@@ -99,6 +99,20 @@ def _late_wakes(caplog) -> list[tuple[int, int]]:
     return [(int(m[1]), int(m[2])) for m in found if m]
 
 
+def _operator_loop_starved_ms(caplog, start_ns: int, end_ns: int) -> float:
+    """How late the operator's loop woke at worst, in ms, on a turn due between the two
+    times (0 if none was logged late: ``LATE_WAKE_NS``)."""
+    late = [
+        (woke - due) / 1e6
+        for r in caplog.records
+        if r.name == "operator_side.node.operator_node"
+        and (m := LATE_WAKE.search(r.getMessage()))
+        and start_ns <= (due := int(m[1])) <= end_ns
+        and (woke := int(m[2]))
+    ]
+    return max(late, default=0.0)
+
+
 def _taken_stimuli(operator) -> list[tuple[int, int]]:
     """(when the operator's loop took it, when its frame was captured) of every stimulus from
     now on: both on this process's clock, since both nodes run in it."""
@@ -147,8 +161,13 @@ def test_a_cut_link_lifts_the_palm_and_stops_the_arm_then_recovers(loop, caplog)
     # the operator lifts every linkage within stale_after_ms plus one cycle of the cut
     stale = _first_change(operator.link_changes, "stale", cut)
     assert stale is not None
+    # (later only by as long as the machine did not run the operator's loop: a turn due then
+    # woke late, logged; a quiet fresh clone's test process once stood still 424 ms)
     limit_ms = operator.config.link.stale_after_ms + CYCLE_MS + SLACK_MS
-    assert (stale - cut) / 1e6 <= limit_ms, f"lift-off {(stale - cut) / 1e6:.1f} ms after the cut"
+    starved_ms = _operator_loop_starved_ms(caplog, cut, stale)
+    assert (stale - cut) / 1e6 <= limit_ms + starved_ms, (
+        f"lift-off {(stale - cut) / 1e6:.1f} ms after the cut (its loop starved {starved_ms} ms)"
+    )
     retract = operator.renderer.retract_counts
     during = [r for r in bus.records if stale <= r.t_ns < back]
     assert during, "no servo motion after the link went stale"
