@@ -250,16 +250,22 @@ class Arm(SafetyThreads, Device):
         operator draws the box the robot actually enforces. Drivers add what
         their controller reports (speed, safety mode, program state).
         """
-        out = {
-            "arm_jogging": float(self._jog_until is not None),
-            "arm_deadman_stops": float(self._deadman_stops),
-            **self.keep_alive_telemetry(),
-            **self.envelope(),
-        }
+        out = {**self.driver_state(), **self.keep_alive_telemetry(), **self.envelope()}
         if self.is_connected:
             pose = self._read_tcp_pose()
             out.update(zip(TELEMETRY_POSE_KEYS, (float(v) for v in pose), strict=True))
         return out
+
+    def driver_state(self) -> dict[str, float]:
+        """Of the telemetry, what only the driver knows: whether a jog is live and how often
+        the deadman stopped one; drivers add their controller's state (safety mode, program).
+        Raises where ``telemetry`` does: the arm process writes this for the node's poll at
+        the heartbeat's rate, without the rest (the pose it writes anyway; the envelope and
+        the keep-alive's timing the node has)."""
+        return {
+            "arm_jogging": float(self._jog_until is not None),
+            "arm_deadman_stops": float(self._deadman_stops),
+        }
 
     def envelope(self) -> dict[str, float]:
         """The safety envelope the arm enforces (speed caps, workspace box), as flat numbers."""

@@ -179,10 +179,11 @@ class StateWriter:
         return out
 
     def _take_telemetry(self) -> dict[str, float]:
-        """The driver's telemetry for the node's poll (which reads it here instead of asking
-        through the pipe: no round trip, nothing waiting behind a stop)."""
+        """What only the driver knows of the telemetry, for the node's poll (which reads it
+        here instead of asking through the pipe: no round trip, nothing waiting behind a
+        stop); the pose and speed are the live readings, the rest is the node's own."""
         try:
-            got = self.arm.telemetry()
+            got = self.arm.driver_state()
         except Exception as e:  # stale, lost or stopped: the node's poll says so
             self._telemetry_failed(f"arm telemetry not read: {e}")
             return {"telemetry_ok": 0.0}

@@ -209,19 +209,26 @@ class URArm(Arm):
             return {}
         return self.receive.live_readings()
 
-    def telemetry(self) -> dict[str, float]:
-        """Adds the controller's TCP speed, safety mode and program state (RTDE cache reads)."""
+    def driver_state(self) -> dict[str, float]:
+        """Adds the controller's safety mode and program state (RTDE cache reads); raises
+        once the program stopped under us, or the stream is lost or stale."""
         if self.line.program_lost is not None:  # the node's poll then reconnects at once
             raise DeviceError(f"URArm: {self.line.program_lost}")
-        out = super().telemetry()
+        out = super().driver_state()
         if self.is_connected:
             recv = self.receive.fresh()
-            speed = np.asarray(recv.getActualTCPSpeed(), dtype=float)
-            out["arm_speed_m_s"] = float(np.linalg.norm(speed[:3]))
-            out["arm_angular_speed_rad_s"] = float(np.linalg.norm(speed[3:]))
             out["arm_safety_mode"] = float(int(recv.getSafetyMode()))
             # robot_status_bits: bit 1 is "program running" (the control script)
             out["arm_program_running"] = float(bool(int(recv.getRobotStatus()) & 2))
+        return out
+
+    def telemetry(self) -> dict[str, float]:
+        """Adds the controller's TCP speed to ``driver_state`` and the rest."""
+        out = super().telemetry()
+        if self.is_connected:
+            speed = np.asarray(self.receive.fresh().getActualTCPSpeed(), dtype=float)
+            out["arm_speed_m_s"] = float(np.linalg.norm(speed[:3]))
+            out["arm_angular_speed_rad_s"] = float(np.linalg.norm(speed[3:]))
         return out
 
     def status(self) -> dict[str, Any]:
