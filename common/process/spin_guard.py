@@ -56,11 +56,12 @@ class SpinGuard:
         self.limit_s = limit_s
         self.demotions = 0  # calls moved to the fair scheduler, since construction
         self._lock = threading.Lock()
-        self._call: _Call | None = None  # the watched call
+        self._calls: dict[int, _Call] = {}  # the watched calls, by thread (a kick, a jog)
 
     @contextlib.contextmanager
     def watched(self, what: str) -> Iterator[None]:
-        """The block is one call on this thread; a no-op unless the thread is real-time."""
+        """The block is one call on this thread (one at a time per thread: a kick and a jog on
+        two threads are watched each on its own); a no-op unless the thread is real-time."""
         tid = threading.get_native_id()
         try:
             policy = os.sched_getscheduler(tid)
@@ -71,12 +72,12 @@ class SpinGuard:
             yield
             return
         with self._lock:
-            self._call = _Call(tid, what, now_s(), policy, param)
+            self._calls[tid] = _Call(tid, what, now_s(), policy, param)
         try:
             yield
         finally:
             with self._lock:
-                call, self._call = self._call, None
+                call = self._calls.pop(tid, None)
             if call is not None and call.demoted:
                 try:
                     os.sched_setscheduler(tid, policy, param)
@@ -84,25 +85,25 @@ class SpinGuard:
                     log.warning("%s: real-time priority not restored (%s)", what, e)
 
     def check(self) -> bool:
-        """From another thread: a watched call running past ``limit_s`` goes fair (once);
+        """From another thread: watched calls running past ``limit_s`` go fair (each once);
         True when this check moved one."""
+        now, moved = now_s(), []
         with self._lock:
-            call = self._call
-            if call is None or call.demoted:
-                return False
-            late = now_s() - call.started
-            if late <= self.limit_s:
-                return False
-            try:
-                os.sched_setscheduler(call.tid, os.SCHED_OTHER, os.sched_param(0))
-            except OSError:  # the thread ended, or the right to change it is gone
-                return False
-            call.demoted = True
-            self.demotions += 1
-        log.warning(
-            "%s has not returned after %.0f ms (it waits in a loop without sleeping for a "
-            "controller that does not answer): moved to the fair scheduler until it returns",
-            call.what,
-            late * 1000,
-        )
-        return True
+            for call in self._calls.values():
+                if call.demoted or now - call.started <= self.limit_s:
+                    continue
+                try:
+                    os.sched_setscheduler(call.tid, os.SCHED_OTHER, os.sched_param(0))
+                except OSError:  # the thread ended, or the right to change it is gone
+                    continue
+                call.demoted = True
+                self.demotions += 1
+                moved.append(call)
+        for call in moved:
+            log.warning(
+                "%s has not returned after %.0f ms (it waits in a loop without sleeping for a "
+                "controller that does not answer): moved to the fair scheduler until it returns",
+                call.what,
+                (now - call.started) * 1000,
+            )
+        return bool(moved)
