@@ -439,3 +439,36 @@ def test_a_killed_client_is_stopped_in_its_window_while_the_simulator_is_starved
         client.kill()
         client.wait()
         sim.stop()
+
+
+def test_a_kick_spinning_on_a_hung_script_leaves_real_time_until_it_returns():
+    """ur-rtde's kick waits for the script's "ready" in a loop without sleeping (up to its own
+    timeout, seconds); at the keep-alive's SCHED_FIFO it would hold a core from the machine.
+
+    The simulated script stops reading commands and saying "ready" (and its watchdog then
+    stops the program); the keep-alive thread is read back from the kernel: fair while the
+    kick spins, real-time again once ur-rtde gave up. Where this process may not run
+    real-time, nothing spins at SCHED_FIFO and nothing is moved.
+    """
+    from robot_side.arm.sim import URSimProcess
+
+    with URSimProcess() as sim:
+        arm = URArm(URArmConfig(host=sim.host, stale_after_s=0.5))
+        arm.realtime_priority = 5
+        arm.connect()
+        try:
+            assert wait_until(lambda: arm.keep_alive_scheduling is not None, 2.0)
+            tid = arm._keep_alive_thread.native_id
+            sim.hang_script()
+            if not arm.keep_alive_scheduling.realtime:
+                time.sleep(0.5)
+                assert arm.line.spin_guard.demotions == 0
+                return
+            assert wait_until(lambda: arm.line.spin_guard.demotions >= 1, 2.0), arm.status()
+            # ur-rtde still waits (its timeout is seconds): fair meanwhile
+            assert os.sched_getscheduler(tid) == os.SCHED_OTHER
+            assert wait_until(lambda: os.sched_getscheduler(tid) == os.SCHED_FIFO, 10.0)
+            assert arm.status()["spins_made_fair"] >= 1
+        finally:
+            sim.hang_script(False)
+            arm.disconnect()

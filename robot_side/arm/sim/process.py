@@ -25,6 +25,7 @@ log = logging.getLogger(__name__)
 REMOTE_METHODS = frozenset(
     {
         "freeze",
+        "hang_script",
         "protective_stop",
         "unlock_protective_stop",
         "tcp_pose",
@@ -64,6 +65,9 @@ class URSimProcess(StdioChild):
     # convenience wrappers for tests and the demo
     def freeze(self, frozen: bool = True) -> None:
         self.call("freeze", frozen)
+
+    def hang_script(self, hung: bool = True) -> None:
+        self.call("hang_script", hung)
 
     def protective_stop(self) -> None:
         self.call("protective_stop")

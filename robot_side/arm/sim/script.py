@@ -93,6 +93,9 @@ class ControlScript:
         self.program_running = False
         self.scripts_received = 0
         self._executing = False
+        #: a fault: the script stopped reading commands and never says "ready" again (a
+        #: program stuck in a blocking call), while it still runs until its watchdog trips
+        self.hung = False
         self._pending_done = False  # a synchronous motion must finish before "done"
         self._start_at: float | None = None
         self._async_op_id = 0
@@ -257,10 +260,14 @@ class ControlScript:
         if self._start_at is not None and now_s() >= self._start_at:
             self._start_at = None
             self.program_running = True
+            self.hung = False  # a fresh program reads its commands again
             self._executing = False
             self.out_int[0] = STATUS_READY
             log.info("control script running")
         if not self.program_running:
+            return
+        if self.hung:
+            self.out_int[0] = STATUS_RECEIVED
             return
         cmd = int(self.inputs.get("input_int_register_0", 0))
         if cmd == CMD_NONE:

@@ -208,6 +208,13 @@ class URSimulator(Controller):
         else:
             self._frozen.clear()
 
+    def hang_script(self, hung: bool = True) -> None:
+        """The control script stops reading commands and saying "ready" (or goes on again):
+        ur-rtde's next command, a watchdog kick included, waits for a "ready" that does not
+        come until its own timeout, while the watchdog stops the program."""
+        with self.lock:
+            self.script.hung = hung
+
     def protective_stop(self) -> None:
         """Stop hard and halt the program, as a UR does; a client must restart its script."""
         with self.lock:
