@@ -20,7 +20,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from harness.faults.deployment import ARM_PROCESS, Deployment, DeploymentError
@@ -152,6 +152,9 @@ class CellResult:
     operator_late_ms: float | None = None
     #: ... and it slept through the link's gap: woke when the link was back, too late to lift
     operator_starved_through_gap: bool = False
+    #: the processes' last log lines, taken only when the cell did not settle in time (what
+    #: a failure's message shows: the deployment's folder is gone by then)
+    log_tails: str = field(default="", repr=False)
 
     @property
     def whole_again_s(self) -> float | None:
@@ -442,8 +445,9 @@ class CellRun:
                 self._ready(jogger)
                 tl = self._inject()
                 deadline = tl.t_end + RECOVER_TIMEOUT_S
-                while not self._settled(tl) and time.monotonic() < deadline:
+                while not (settled := self._settled(tl)) and time.monotonic() < deadline:
                     time.sleep(0.1)
+                tails = "" if settled else d.log_tails(4000)
                 jogger.active.clear()
                 self._link_back = self._netsim_back(tl)
                 self._late_wakes = [w for w in self.d.operator_late_wakes() if w[1] >= tl.t_fault]
@@ -459,7 +463,7 @@ class CellRun:
             until = tl.t_fault + result.arm_still_s
             gap = longest_silence([s for s in self.arm.samples if s.t_s <= until], tl.t_fault)
             notes.append(f"the arm's probe read nothing for at most {gap} s before it saw it still")
-        return dataclasses.replace(result, notes="; ".join(notes))
+        return dataclasses.replace(result, notes="; ".join(notes), log_tails=tails)
 
     def _controller_account(self, t_fault: float) -> str:
         """What the UR simulator says ended its program after the fault, and when (ms after

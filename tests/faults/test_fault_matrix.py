@@ -85,7 +85,7 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
     )
     assert row.recovered_s is not None, (
         f"{cell.label}: 30 s after the fault the palm or the arm still did not work again with no "
-        f"human (product: a restart or reconnect that never happens); {row}"
+        f"human (product: a restart or reconnect that never happens); {row}\n{row.log_tails}"
     )
     assert row.recording_ok, f"{cell.label}: the recording up to the fault did not read back"
     if cell.target == ARM_PROCESS:
