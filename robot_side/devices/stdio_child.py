@@ -20,6 +20,7 @@ import json
 import logging
 import os
 import select
+import signal
 import subprocess
 import sys
 import threading
@@ -100,6 +101,18 @@ class StdioChild:
     @property
     def running(self) -> bool:
         return self._proc is not None and self._proc.poll() is None
+
+    def how_it_ended(self) -> str:
+        """ "exit code N" or "killed by SIGNAME" once the child is gone; "" while it runs (or
+        was never started, or was closed by this side)."""
+        code = None if self._proc is None else self._proc.poll()
+        if code is None:
+            return ""
+        if code < 0:
+            with contextlib.suppress(ValueError):
+                return f"killed by {signal.Signals(-code).name}"
+            return f"killed by signal {-code}"
+        return f"exit code {code}"
 
     @property
     def pid(self) -> int | None:

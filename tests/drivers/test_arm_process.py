@@ -10,6 +10,7 @@ What moved is read from the UR simulator, not from the driver.
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import subprocess
 import sys
@@ -268,3 +269,13 @@ def test_the_state_read_while_the_recovery_closes_it_is_empty_not_an_error():
         writer.close()
     finally:
         path.unlink(missing_ok=True)
+
+
+def test_an_arm_process_killed_from_outside_is_said_with_its_signal():
+    """The node's error (and its log) says how its arm process ended: a crash in the driver
+    (SIGSEGV, SIGABRT) reads differently from a kill or an exit."""
+    with _jogging_simulated_arm() as (arm, _sim):
+        os.kill(arm.pid, signal.SIGKILL)
+        assert _wait(lambda: arm.needs_reconnect, 5.0) is not None
+        with pytest.raises(DeviceError, match=r"the arm process ended \(killed by SIGKILL\)"):
+            arm.jog(JOG)

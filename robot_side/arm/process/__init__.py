@@ -307,9 +307,14 @@ class ArmProcess(Arm):
     def _noticed_death(self) -> None:
         """The arm process is gone: the controller's watchdog stops the arm; once per death,
         stop is pressed on its dashboard server too (``dashboard_stop``)."""
-        if self._died is None and self._connected:
-            press_stop(str(self.config.host), "the arm process ended")
-        self._died = self._died or "the arm process ended"
+        if self._died is not None:
+            return
+        child = self._child
+        how = child.how_it_ended() if child is not None else ""
+        died = f"the arm process ended ({how})" if how else "the arm process ended"
+        if self._connected:
+            press_stop(str(self.config.host), died)
+        self._died = died
 
     def _fresh_state(self) -> dict[str, float] | None:
         """The arm process's newest state; None when it stopped writing it."""
