@@ -46,7 +46,7 @@ STAY_STILL_S = 1.0  # how long A holds its key against the latch
 STALE_RESUMES = 2  # resumes the robot may refuse as stale (a starved machine) before it fails
 #: the page reads a gamepad at its jog send rate (operator.dashboard.jog.send_rate_hz, 30 Hz)
 PAD_PERIOD_MS = 1000 / 30
-ROUNDS = 3  # stops of each kind: their median is held to the budget, so one stall is not a verdict
+ROUNDS = 5  # stops of each kind: their median is held to the budget: two stalls are no verdict
 JOG_M_S = SPEED_SCALE * 0.10  # the page's default speed scale times the operator's cap
 KEY_W = {"key": "w", "code": "KeyW", "windowsVirtualKeyCode": 87}  # +x in the default keymap
 RESUME_ACKS = "dxp.acks.filter((a) => a.action === 'arm_resume').length"
