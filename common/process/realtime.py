@@ -62,6 +62,27 @@ def raise_this_thread(fifo_priority: int, fallback_nice: int) -> Scheduling:
     return Scheduling("nice", os.getpriority(os.PRIO_PROCESS, tid), why)
 
 
+def realtime_scheduling(tid: int) -> tuple[int, os.sched_param] | None:
+    """Thread ``tid``'s real-time policy and its parameters, to set back later; None when it
+    runs in the fair scheduler (or its scheduling cannot be read)."""
+    try:
+        policy = os.sched_getscheduler(tid)
+        if policy not in (getattr(os, "SCHED_FIFO", None), getattr(os, "SCHED_RR", None)):
+            return None
+        return policy, os.sched_getparam(tid)
+    except (OSError, AttributeError):
+        return None
+
+
+def restore_scheduling(tid: int, scheduling: tuple[int, os.sched_param], what: str) -> None:
+    """Thread ``tid`` back at the real-time ``scheduling`` it had (``realtime_scheduling``);
+    a grant withdrawn meanwhile leaves it fair, and is said."""
+    try:
+        os.sched_setscheduler(tid, *scheduling)
+    except OSError as e:
+        log.warning("%s: SCHED_FIFO not restored (%s): it runs at its niceness", what, e)
+
+
 @contextlib.contextmanager
 def fair_while(what: str):
     """This thread in the fair scheduler for the block, then at its real-time priority again.
@@ -72,22 +93,15 @@ def fair_while(what: str):
     may not be again (logged), is left as it was.
     """
     tid = threading.get_native_id()
-    try:
-        policy = os.sched_getscheduler(tid)
-        param = os.sched_getparam(tid)
-    except (OSError, AttributeError):
-        policy = None
-    if policy not in (getattr(os, "SCHED_FIFO", None), getattr(os, "SCHED_RR", None)):
+    scheduling = realtime_scheduling(tid)
+    if scheduling is None:
         yield
         return
     os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
     try:
         yield
     finally:
-        try:
-            os.sched_setscheduler(tid, policy, param)
-        except OSError as e:  # the grant was withdrawn meanwhile: fair from here on, and said
-            log.warning("%s: SCHED_FIFO not restored (%s): it runs at its niceness", what, e)
+        restore_scheduling(tid, scheduling, what)
 
 
 #: the period histogram's resolution and range: a period longer than the range counts in the

@@ -28,15 +28,11 @@ import os
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
 
 from common.clocks.clock import now_s
+from common.process.realtime import realtime_scheduling, restore_scheduling
 
 log = logging.getLogger(__name__)
-
-REALTIME_POLICIES = tuple(
-    p for p in (getattr(os, "SCHED_FIFO", None), getattr(os, "SCHED_RR", None)) if p is not None
-)
 
 
 @dataclass
@@ -44,8 +40,6 @@ class _Call:
     tid: int
     what: str
     started: float
-    policy: int
-    param: Any
     demoted: bool = False
 
 
@@ -63,26 +57,18 @@ class SpinGuard:
         """The block is one call on this thread (one at a time per thread: a kick and a jog on
         two threads are watched each on its own); a no-op unless the thread is real-time."""
         tid = threading.get_native_id()
-        try:
-            policy = os.sched_getscheduler(tid)
-            param = os.sched_getparam(tid)
-        except (OSError, AttributeError):
-            policy = None
-        if policy not in REALTIME_POLICIES:
-            yield
-            return
-        with self._lock:
-            self._calls[tid] = _Call(tid, what, now_s(), policy, param)
+        scheduling = realtime_scheduling(tid)  # None: fair already, nothing to watch
+        if scheduling is not None:
+            with self._lock:
+                self._calls[tid] = _Call(tid, what, now_s())
         try:
             yield
         finally:
-            with self._lock:
-                call = self._calls.pop(tid, None)
-            if call is not None and call.demoted:
-                try:
-                    os.sched_setscheduler(tid, policy, param)
-                except OSError as e:  # the grant was withdrawn meanwhile
-                    log.warning("%s: real-time priority not restored (%s)", what, e)
+            if scheduling is not None:
+                with self._lock:
+                    call = self._calls.pop(tid, None)
+                if call is not None and call.demoted:
+                    restore_scheduling(tid, scheduling, what)
 
     def check(self) -> bool:
         """From another thread: watched calls running past ``limit_s`` go fair (each once);
