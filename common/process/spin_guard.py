@@ -40,7 +40,8 @@ class _Call:
     tid: int
     what: str
     started: float
-    demoted: bool = False
+    #: the real-time scheduling its thread had when a check moved it (None: not moved)
+    moved_from: tuple[int, os.sched_param] | None = None
 
 
 class SpinGuard:
@@ -55,34 +56,35 @@ class SpinGuard:
     @contextlib.contextmanager
     def watched(self, what: str) -> Iterator[None]:
         """The block is one call on this thread (one at a time per thread: a kick and a jog on
-        two threads are watched each on its own); a no-op unless the thread is real-time."""
+        two threads are watched each on its own). No system call here: the scheduling is read
+        only by a check that finds the call late, and a fair thread is left as it is."""
         tid = threading.get_native_id()
-        scheduling = realtime_scheduling(tid)  # None: fair already, nothing to watch
-        if scheduling is not None:
-            with self._lock:
-                self._calls[tid] = _Call(tid, what, now_s())
+        with self._lock:
+            self._calls[tid] = _Call(tid, what, now_s())
         try:
             yield
         finally:
-            if scheduling is not None:
-                with self._lock:
-                    call = self._calls.pop(tid, None)
-                if call is not None and call.demoted:
-                    restore_scheduling(tid, scheduling, what)
+            with self._lock:
+                call = self._calls.pop(tid, None)
+            if call is not None and call.moved_from is not None:
+                restore_scheduling(tid, call.moved_from, what)
 
     def check(self) -> bool:
-        """From another thread: watched calls running past ``limit_s`` go fair (each once);
-        True when this check moved one."""
+        """From another thread: watched calls running past ``limit_s`` on a real-time thread
+        go fair (each once); True when this check moved one."""
         now, moved = now_s(), []
         with self._lock:
             for call in self._calls.values():
-                if call.demoted or now - call.started <= self.limit_s:
+                if call.moved_from is not None or now - call.started <= self.limit_s:
+                    continue
+                scheduling = realtime_scheduling(call.tid)
+                if scheduling is None:  # fair already (or gone): nothing to move
                     continue
                 try:
                     os.sched_setscheduler(call.tid, os.SCHED_OTHER, os.sched_param(0))
                 except OSError:  # the thread ended, or the right to change it is gone
                     continue
-                call.demoted = True
+                call.moved_from = scheduling
                 self.demotions += 1
                 moved.append(call)
         for call in moved:

@@ -192,7 +192,7 @@ class Telemetry:
         # sent)
         fixed = [k for k in STATE_KEYS if k in stats]
         fixed += sorted(k for k in stats if k.startswith("link_"))[: MAX_STATS - len(fixed)]
-        rest = sorted(k for k in stats if k not in fixed)
+        rest = sorted(stats.keys() - set(fixed))
         room = MAX_STATS - len(fixed)
         start = self._stats_turn % len(rest) if rest else 0
         turn = (rest[start:] + rest[:start])[:room]
