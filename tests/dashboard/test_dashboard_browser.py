@@ -195,7 +195,17 @@ def settled_on(browser: Chromium, node: OperatorNode, pattern: int) -> None:
         lambda a: a is not None and np.allclose(a, node.snapshot().goal_angles, atol=1e-5),
         timeout_s=SETTLE_S,
     )
-    time.sleep(0.1)  # one more animation frame for the canvases
+    # the page draws on its next animation frame, which a starved renderer takes late (a
+    # loaded clone's page still showed the last pattern's joints 0.1 s after its state
+    # moved): wait for the drawing of these angles, not for a fixed time
+    browser.wait_until(
+        "[dxp.joints && dxp.joints.map(j => j.C), dxp.state.angles]",
+        lambda drawn: (
+            drawn[0] is not None
+            and np.allclose(drawn[0], forward_kinematics(np.array(drawn[1])), atol=1e-9)
+        ),
+        timeout_s=SETTLE_S,
+    )
 
 
 def test_the_page_follows_the_stimulus_and_its_buttons_command_the_gripper(station):
