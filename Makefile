@@ -33,16 +33,17 @@ STAMP := $(VENV)/.installed
 # death, a page's video): three at a time (four saved 8 s, and a trace's message was late past
 # its bound beside two busy loops).
 # Those marked `serial` need a machine no deployment lane keeps busy (a page's video, the robot's
-# heartbeats): two at a time, which mostly wait (three took the lane from 127 s to 90-97 s, but
-# a fresh clone's lab trial then fell to half real time and the controller's watchdog tripped:
-# the simulated lab wants a core of its own). So do
+# heartbeats): three at a time, which mostly wait (two left the machine half idle: 125 s against
+# 90-94 s, quiet or beside two busy loops). Three once starved the simulated lab's trial past the
+# controller's watchdog, before the arm's keep-alive had a real-time process of its own; with it,
+# the trials passed three at a time, quiet and loaded. So do
 # those marked `pty` (a driver against its simulator through a pseudo-terminal, within reply
 # windows): the kernel's workers that carry a pty's bytes starve while the other lanes keep both
 # cores busy (below). The alone lane runs one test at a time.
 FAST_WORKERS ?= 4
 DEPLOYMENT_WORKERS ?= 3
 PAIRED_WORKERS ?= 3
-SERIAL_WORKERS ?= 2
+SERIAL_WORKERS ?= 3
 # The lanes run above the machine's ordinary work (a CI machine's other jobs), in a session of
 # their own: the deployments they start stand for robot PCs, controllers and boards of their own,
 # and their budgets (the 400 ms stop, the 150 ms staleness) are the product's. The session's group
