@@ -22,16 +22,16 @@ TORCH ?= torch==2.13.0
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 STAMP := $(VENV)/.installed
 
-# Five lanes (docs/testing.md). Most tests wait far more than they compute: the tests not
+# Four lanes (docs/testing.md). Most tests wait far more than they compute: the tests not
 # marked slow, and the slow ones marked `untimed` (they check no timing), run four at a time
-# (pytest-xdist), each file on one worker so a module's fixture runs once. The slow ones marked
-# `parallel` start deployments (nodes, simulators, browsers) and bound their timing by the
-# product's own limits (the 400 ms stop, the 150 ms staleness), which must hold beside other
-# deployments as on a busy robot PC: three at a time, which left a 2-core machine 40 % idle (four
-# left it a quarter idle, gained little on a clean clone and failed browser jogs once). The other
-# slow tests compare timings with tighter margins (a link simulator's floor, a palm's lift after a
-# death, a page's video): three at a time (four saved 8 s, and a trace's message was late past
-# its bound beside two busy loops).
+# (pytest-xdist), each file on one worker so a module's fixture runs once. The other slow ones
+# start deployments (nodes, simulators, browsers, fault cells) and bound their timing by the
+# product's own limits (the 400 ms stop, the 150 ms staleness, a link simulator's floor), which
+# must hold beside other deployments as on a busy robot PC: three at a time (four left the
+# machine a quarter idle, gained little on a clean clone and failed browser jogs once). They were
+# two lanes, those with the tighter margins three at a time among themselves; one lane of both,
+# three at a time, took 196-215 s against 218 for the two, quiet and beside two busy loops, and
+# every margin held.
 # Those marked `serial` need a machine no deployment lane keeps busy (a page's video, the robot's
 # heartbeats): three at a time, which mostly wait (two left the machine half idle: 125 s against
 # 90-94 s, quiet or beside two busy loops). Three once starved the simulated lab's trial past the
@@ -42,7 +42,6 @@ STAMP := $(VENV)/.installed
 # cores busy (below). The alone lane runs one test at a time.
 FAST_WORKERS ?= 4
 DEPLOYMENT_WORKERS ?= 3
-PAIRED_WORKERS ?= 3
 SERIAL_WORKERS ?= 3
 # The lanes run above the machine's ordinary work (a CI machine's other jobs), in a session of
 # their own: the deployments they start stand for robot PCs, controllers and boards of their own,
@@ -60,15 +59,14 @@ AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --gro
 # The setup's collection writes which markers each test file's tests carry (tests/conftest.py);
 # each lane's workers then import only the files that hold a test of the lane's -m, not all of
 # them: every worker of every lane collected all 180 files for the 4 of the alone lane, the 20 of
-# the paired lane. Without the index (a collection that failed writes none), every file.
+# the serial lane. Without the index (a collection that failed writes none), every file.
 TEST_INDEX := $(VENV)/test-index.json
 LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest --test-index=$(TEST_INDEX)
 # Whole files to each worker (a module's deployment starts once), the longest first
 # (tests/file_durations.json, in tests/conftest.py's order; scripts/file-durations.py)
 BY_FILE := --dist loadfile --no-loadscope-reorder
 PARALLEL_LANE := (not slow or untimed) and not serial and not pty and not soak and not alone
-DEPLOYMENT_LANE := slow and parallel and not untimed and not serial and not pty and not soak and not alone
-PAIRED_LANE := slow and not untimed and not parallel and not serial and not pty and not soak and not alone
+DEPLOYMENT_LANE := slow and not untimed and not serial and not pty and not soak and not alone
 SERIAL_LANE := (serial or pty) and not soak and not alone
 # Several machines' deployments on one (a fleet: robots, operators, a router, an attacker) or a
 # flood whose sender takes a core: beside any other lane's work they judged the machine
@@ -120,7 +118,6 @@ test: $(STAMP)
 	status=0; \
 	$(LANE) -m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(DEPLOYMENT_LANE)" -n $(DEPLOYMENT_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
-	$(LANE) -m "$(PAIRED_LANE)" -n $(PAIRED_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(SERIAL_LANE)" -n $(SERIAL_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(ALONE_LANE)" -n 0 $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	exit $$status

@@ -207,7 +207,7 @@ class Chromium:
 
     def navigate(self, url: str, timeout_s: float = 20.0) -> None:
         """Open ``url`` and wait until it has loaded (20 s: beside two busy loops and the
-        paired lane, a second browser started at the same time took over 10)."""
+        deployment lane, a second browser started at the same time took over 10)."""
         self.call("Page.navigate", url=url)
         self.wait_for("document.readyState === 'complete'", timeout_s)
         self.at_our_priority()

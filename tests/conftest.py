@@ -155,7 +155,7 @@ def _files_to_skip(config: pytest.Config) -> frozenset[str]:
 
     Every worker of a lane collected every test file, importing what each imports (the
     nodes, aiortc, mujoco, numba's entry points), for the few files its lane runs: the
-    alone lane runs 4 files of about 180, the paired and serial lanes about 20 each. With
+    alone lane runs 4 files of about 180, the serial lane about 20. With
     ``--test-index`` (the Makefile's lanes; the index is the setup's collection of the same
     tree) a file with no selected test is not imported. A file the index does not name is
     collected as before; without an index, or with a -m this cannot read, every file is.

@@ -17,8 +17,6 @@ from hypothesis import strategies as st
 
 from common.rotation import matrix_to_rotvec, rotation_angle, rotvec_to_matrix
 
-pytestmark = pytest.mark.parallel
-
 TOLERANCE_RAD = 1e-12
 TOOL_DOWN = np.array([math.pi / math.sqrt(2), math.pi / math.sqrt(2), 0.0])
 

@@ -35,7 +35,6 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(120),
     needs_chromium,
-    pytest.mark.parallel,
 ]
 
 STOP_WITHIN_S = 0.4

@@ -32,7 +32,6 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(60),
     needs_chromium,
-    pytest.mark.parallel,
 ]
 
 FORCE_N = 5.0

@@ -20,7 +20,7 @@ from operator_side.dashboard.jog_config import JogConfig, parse_mapping
 from operator_side.dashboard.page_commands import cap_twist
 from operator_side.dashboard.view import arm_view
 
-pytestmark = [pytest.mark.timeout(30), pytest.mark.parallel]
+pytestmark = [pytest.mark.timeout(30)]
 
 
 class JogNode(FakeNode):

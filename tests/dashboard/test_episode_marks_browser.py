@@ -22,7 +22,7 @@ from operator_side.node import OperatorNode
 from operator_side.node.config import OperatorConfig
 from operator_side.servos.in_memory import InMemoryServoBus
 
-pytestmark = [pytest.mark.timeout(60), pytest.mark.parallel]
+pytestmark = [pytest.mark.timeout(60)]
 
 KEY_DELETE = {"key": "Delete", "code": "Delete", "windowsVirtualKeyCode": 46}
 MARK_ACKS = "dxp.marks.length"

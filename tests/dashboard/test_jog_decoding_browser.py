@@ -25,7 +25,6 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(60),
     needs_chromium,
-    pytest.mark.parallel,
 ]
 
 CFG = to_dict(JogConfig())

@@ -23,7 +23,7 @@ from websockets.asyncio.server import serve
 from operator_side.dashboard import Dashboard, DashboardConfig
 from operator_side.dashboard.page_auth import CHALLENGE_PROTOCOL, challenge_mac
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(90), needs_chromium, pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(90), needs_chromium]
 
 
 class RecordingServer(http.server.ThreadingHTTPServer):

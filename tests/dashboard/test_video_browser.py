@@ -19,7 +19,6 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(90),
     needs_chromium,
-    pytest.mark.parallel,
 ]
 
 

@@ -40,7 +40,7 @@ from harness.bench.video_netsim import (
 from robot_side.camera.stamp import MS_MODULO
 
 #: serial: the video server here runs at the priority of its unit's (Nice=0, below the nodes'
-#: -10, as video yields to control on a robot PC), and beside the paired lane's deployments,
+#: -10, as video yields to control on a robot PC), and beside the deployment lane's deployments,
 #: whose nodes outrank it, a 2-core machine left it too little to encode: in clean-clone runs
 #: the page went STALE mid-session, came back 2.4 s after bad_day's outage, and under the
 #: 1 Mbit/s bottleneck showed no frame in 17 s, while each passes on a machine of its own

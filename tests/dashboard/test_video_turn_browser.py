@@ -35,7 +35,6 @@ pytestmark = [
         reason="coturn is not installed: run scripts/install-test-system-packages.sh "
         "(required in CI)",
     ),
-    pytest.mark.parallel,
 ]
 
 

@@ -18,8 +18,6 @@ from deploy.scene import load_scene
 from operator_side.node.config import OperatorConfig
 from robot_side.node.config import RobotConfig
 
-pytestmark = pytest.mark.parallel
-
 SCENES = sorted(
     p.name[:-5] for p in resources.files("deploy.scenes").iterdir() if p.name.endswith(".toml")
 )

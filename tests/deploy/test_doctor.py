@@ -18,8 +18,6 @@ from deploy.keys_cli import generate
 from deploy.scene import load_scene_dict
 from robot_side.gripper.memory import MemoryGripper
 
-pytestmark = pytest.mark.parallel
-
 #: No test may depend on whether this machine has the units' user.
 #: the real-time probe is tests/deploy/test_doctor_realtime.py's: a short one here (it still runs)
 OPTS = DoctorOptions(

@@ -17,8 +17,6 @@ from tests_support import ROBOT_BINDS_ITS_PORTS, unanswered_ports
 
 from common.process.sd_notify import Notifier, watch_node
 
-pytestmark = pytest.mark.parallel
-
 
 class FakeSystemd:
     """The receiving end of $NOTIFY_SOCKET: an AF_UNIX datagram socket."""

@@ -13,8 +13,6 @@ import pytest
 from deploy_support import ENV, EXAMPLES, REPO
 from tests_support import wait_until
 
-pytestmark = pytest.mark.parallel
-
 UNITS = REPO / "deploy" / "systemd"
 RULES = REPO / "deploy" / "udev" / "99-deepxpalm.rules"
 ROLES = ("robot", "operator")

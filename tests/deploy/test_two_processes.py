@@ -25,7 +25,7 @@ from tests_support import ROBOT_BINDS_ITS_PORTS, link_to
 
 from deploy.units.service import Service
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = pytest.mark.slow
 
 LINK_UP = "operator link down -> ok"
 

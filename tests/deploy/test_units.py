@@ -16,8 +16,6 @@ from deploy.units.policy import UNITS_DIR, policy
 from deploy.units.readiness import NotifySocket, NotReady
 from deploy.units.service import Service
 
-pytestmark = pytest.mark.parallel
-
 #: a child that ignores SIGTERM, as a wedged node would, and says READY=1
 STUBBORN = (
     "import signal, time\n"

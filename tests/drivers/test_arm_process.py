@@ -133,7 +133,7 @@ def _jog_until_moving(arm, sim, timeout_s: float) -> float | None:
     """Seconds until the controller's TCP moves, jogging as a held key does meanwhile (renewed
     every 50 ms, inside the 0.25 s deadman). A single jog that reached a busy arm process
     late was ended by the deadman before this poll saw the arm move (a quiet CI run's
-    paired lane)."""
+    deployment lane)."""
     t0 = time.monotonic()
     next_jog = t0
     while time.monotonic() - t0 < timeout_s:

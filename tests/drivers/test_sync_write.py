@@ -14,7 +14,7 @@ from operator_side.servos.limits import GoalOutOfLimitsError, check_goals
 from operator_side.servos.sts_registers import GOAL_POSITION
 from operator_side.servos.sync_write import SyncWritePacket
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = pytest.mark.slow
 
 
 def _sdk_packet(ids: list[int], values: list[int], protocol_end: int) -> bytes:

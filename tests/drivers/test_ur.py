@@ -35,7 +35,6 @@ from robot_side.arm.ur_rtde import ArmCommandRefusedError, URArm, URArmConfig
 
 pytestmark = [
     pytest.mark.timeout(30),
-    pytest.mark.parallel,
     # the heap frozen before the module's arm connects: a full collection holds the GIL the
     # keep-alive's kicks need (quiet_gc_module)
     pytest.mark.usefixtures("quiet_gc_module", "robot_node_priority_module"),

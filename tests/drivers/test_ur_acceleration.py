@@ -21,7 +21,6 @@ from robot_side.arm.ur_rtde import URArm, URArmConfig
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(60),
-    pytest.mark.parallel,
     # the heap frozen before the module's arm connects: a full collection holds the GIL the
     # keep-alive's kicks need (quiet_gc_module)
     pytest.mark.usefixtures("quiet_gc_module", "robot_node_priority_module"),

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from robot_side.arm.sim.kinematics import HOME_Q, KinematicArm, forward
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = pytest.mark.slow
 
 TICK = 0.002
 

@@ -30,7 +30,6 @@ from robot_side.arm.ur_rtde import URArm, URArmConfig
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(60),
-    pytest.mark.parallel,
     pytest.mark.usefixtures("robot_node_priority_module"),
 ]
 

@@ -20,7 +20,7 @@ from common.wire.codec import decode_named
 from common.wire.messages import Heartbeat, Stimulus
 from harness.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 #: how many of each kind the client reads (stimuli 60 a second, heartbeats 40)
 WANTED = 30

@@ -19,9 +19,9 @@ from common.clocks.clock import now_ns
 from harness.fleet import Fleet
 
 #: alone: a fleet is several deployments at once (two robot PCs, the operators' PCs, the
-#: router's host) on one machine; beside the deployment lane's three it stood for machines a
-#: third the size (an operator's loop starved 816 ms, a lease lost to it), and beside the
-#: paired lane's fault-matrix deployments an operator missed stimuli past its staleness limit
+#: router's host) on one machine; beside the deployment lane's three, fault-matrix cells among
+#: them, it stood for machines a third the size (an operator's loop starved 816 ms, a lease lost
+#: to it; an operator missed stimuli past its staleness limit)
 pytestmark = [pytest.mark.slow, pytest.mark.alone, pytest.mark.timeout(240)]
 
 JOG_X = [0.03, 0.0, 0.0, 0.0, 0.0, 0.0]  # the controllers jog along x

@@ -16,7 +16,7 @@ from fleet_monitor import Monitor
 from common.clocks.clock import now_ns
 from harness.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(180), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 
 def _hang_up(fleet: Fleet, *names: str) -> None:

@@ -39,7 +39,7 @@ from harness.fleet import SCRIPTED_TACTILE, Fleet, Proc
 from operator_side.node.telemetry_gate import OLD_SESSION, REPLAYED, STALE
 from operator_side.servos.sts_sim import FakeStsBus
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
 ROBOT = "cell1"
 #: the robot's roster (and the operators'): what really holds

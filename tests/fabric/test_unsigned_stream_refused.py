@@ -18,7 +18,7 @@ import pytest
 
 from harness.fleet import Fleet
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 FABRIC_MODE = 'mode = "fabric"\n'
 

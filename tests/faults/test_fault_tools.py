@@ -22,8 +22,6 @@ from harness.faults.probes import Sample
 from operator_side.record_cli import _RECORD, read_records
 from robot_side.gripper.sim import GripperSimServer
 
-pytestmark = pytest.mark.parallel
-
 
 def test_restart_policy_is_the_shipped_units():
     robot, router = policy("robot"), policy("router")

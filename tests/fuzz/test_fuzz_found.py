@@ -21,8 +21,6 @@ from common.clocks.clock_sync import ClockSync
 from common.wire.codec import MAX_MESSAGE_BYTES, DecodeError, decode, encode
 from common.wire.messages import Heartbeat
 
-pytestmark = pytest.mark.parallel
-
 
 @pytest.mark.slow
 def test_operator_reconnects_after_an_oversized_telemetry_frame():

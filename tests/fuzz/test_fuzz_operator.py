@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from common.wire.codec import DecodeError, decode
 from common.wire.codec_schema import WIRE_KEYS
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = pytest.mark.slow
 
 PATTERNS = [6, 3, 9, None, 0, 7, 11, 4]
 CHECKPOINT_TIMEOUT_S = 10.0  # generous: a shared CI machine can starve any thread

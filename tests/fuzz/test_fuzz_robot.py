@@ -32,7 +32,7 @@ from common.wire.codec import DecodeError, decode
 from common.wire.codec_schema import WIRE_KEYS
 from common.wire.messages import Command
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = pytest.mark.slow
 
 KINDS = ["command", "command", "command", "heartbeat", "heartbeat", "stimulus"]
 CHECK_EVERY_BATCHES = 10

@@ -20,7 +20,7 @@ pytest.importorskip("aiortc", reason="the demo's video needs the 'video' extra")
 from tests_support import DashboardDemo
 from video_page import watch_video
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(150), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(150)]
 
 
 def test_the_lab_demo_shows_the_lab_camera_through_the_link():

@@ -16,8 +16,6 @@ from operator_side.palm.linkglide import forward_kinematics
 from operator_side.palm.renderer import LinkGlideRenderer, RendererConfig
 from operator_side.servos.calibration import LinkGlideCalibration, ServoCalibration
 
-pytestmark = pytest.mark.parallel
-
 
 def renderer(**kw) -> LinkGlideRenderer:
     return LinkGlideRenderer(RendererConfig(**kw), LinkGlideCalibration())

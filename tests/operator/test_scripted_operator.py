@@ -29,8 +29,6 @@ from harness.scripted_operator import (
     says_lift,
 )
 
-pytestmark = pytest.mark.parallel
-
 #: the UR simulator's home TCP pose: tool z down, fingers closing along base x
 HOME = np.array([-0.2985, -0.131, 0.1532, 0.0, math.pi, 0.0])
 #: the pads' centre sits this far down the pipette (m): a lean moves the band sideways

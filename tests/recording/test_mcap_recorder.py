@@ -24,8 +24,6 @@ from common.recording.mcap_recorder import (
 from common.wire.codec import encode
 from common.wire.messages import Stimulus
 
-pytestmark = pytest.mark.parallel
-
 HERE = Path(__file__).parent
 
 

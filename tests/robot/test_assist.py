@@ -34,7 +34,7 @@ from robot_side.perception.band import measure_band
 from robot_side.tactile.script import GraspScript, GraspStep
 from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSensor
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(180), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 #: below this the wrist counts as still (rad/s)
 STILL_RAD_S = 0.005

@@ -24,8 +24,6 @@ from robot_side.node.commands.command_gate import (
     RobotRun,
 )
 
-pytestmark = pytest.mark.parallel
-
 MS = 1_000_000
 AGE = 250 * MS
 OFFSET = 7_000 * MS  # the operator's clock minus ours

@@ -21,7 +21,7 @@ from robot_side.perception import load_classifier
 from robot_side.tactile.base import TactileSample
 from robot_side.tactile.scripted import ScriptedTactileSensor
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,6 @@ import pytest
 from common.errors import DeviceError
 from robot_side.devices.recovery import DeviceRecovery
 
-pytestmark = pytest.mark.parallel
-
 
 class FlakyArm:
     def __init__(self, connect_failures: int = 0) -> None:

@@ -17,8 +17,6 @@ from common.tactile.stimulus import (
 )
 from harness.bench.downsizing import downsize, peak_per_row
 
-pytestmark = pytest.mark.parallel
-
 
 def band_frame(cells: list[tuple[int, int]], force: float = 6.0) -> np.ndarray:
     frame = np.zeros((2, 10, 10), np.float32)

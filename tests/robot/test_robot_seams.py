@@ -13,7 +13,7 @@ from harness.bench.fixtures import frame_set, scan_bytes, serial_sensor
 from robot_side.node import RobotNode
 from robot_side.node.config import RobotConfig
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = pytest.mark.slow
 
 
 def test_bytes_fed_to_the_serial_driver_become_a_frame_the_node_renders() -> None:

@@ -25,7 +25,7 @@ from robot_side.node.commands.stop_latch import StopLatch
 from robot_side.node.config import RobotConfig
 from robot_side.tactile.scripted import ScriptedTactileSensor
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 ROLES = {"a": "controller", "b": "controller", "obs": "observer", "rec": "recorder"}
 JOG = (0.03, 0.0, 0.0, 0.0, 0.0, 0.0)

@@ -41,7 +41,7 @@ from operator_side.study.responders import (
 )
 from operator_side.study.runner import Session
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 FAST = {"pause_s": 0.0, "feedback_s": 0.0}
 

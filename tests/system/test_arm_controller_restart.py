@@ -23,7 +23,7 @@ from common.wire.messages import Heartbeat, Stimulus
 from common.wire.transport import Publisher, Subscriber
 from harness.bench.command_path import RobotUnderCommands
 
-pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc")]
 
 JOG = (0.02, 0.0, 0.0, 0.0, 0.0, 0.0)
 DOWN_S = 1.0  # the controller away this long, then a new one starts on the same address

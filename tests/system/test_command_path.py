@@ -28,7 +28,7 @@ from robot_side.node.config import RobotConfig
 
 N_FLOOD = 100_000
 
-pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc")]
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,7 @@ from common.wire.transport import Publisher, Subscriber
 from deploy.units.policy import set_niceness, unit_nice
 from harness.bench.command_path import RobotUnderCommands
 
-# serial: one robot node on the machine, as on a robot PC. Beside the paired lane's fault
+# serial: one robot node on the machine, as on a robot PC. Beside the deployment lane's fault
 # cells (three deployments' nodes at the same priority on two cores) and two busy loops, its
 # loop once sent a heartbeat 37 ms past its period (88 ms without one)
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc_module"), pytest.mark.alone]

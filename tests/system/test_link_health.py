@@ -26,7 +26,6 @@ from robot_side.tactile.scripted import ScriptedTactileConfig, ScriptedTactileSe
 #: clean-clone run read a lift-off 202 ms after the cut with the operator's loop at the tests' -5)
 pytestmark = [
     pytest.mark.slow,
-    pytest.mark.parallel,
     pytest.mark.usefixtures("robot_node_priority_module"),
 ]
 

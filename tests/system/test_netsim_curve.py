@@ -185,7 +185,7 @@ def test_the_secured_demo_through_the_simulator_shows_the_scenario():
     assert summary["errors"] == [] and summary["security"] == "curve"
     assert summary["netsim"]["mode"] == "stream"
     # enough stimuli for the median below: 57 to 94 alone on a quiet machine, 37 once beside
-    # the paired lane's other deployments (the robot processed fewer frames in the 4 s)
+    # the deployment lane's other deployments (the robot processed fewer frames in the 4 s)
     assert summary["stimuli_received"] >= 20, summary
     configured = summary["network_configured"]["to_operator_p50_ms"]
     link = summary["link"]

@@ -33,7 +33,7 @@ STOP_BUDGET_S = 0.4
 TRIALS = 3  # each about 2.5 s; the worst of three is held to the budget (docs/arm.md: runs of 10)
 GRIP_LEVEL = 25
 
-pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc"), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("quiet_gc")]
 
 
 class ControllerReader:

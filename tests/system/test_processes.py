@@ -19,7 +19,7 @@ from deploy.units.service import Service
 from operator_side.node.config import OperatorConfig
 from operator_side.palm.renderer_config import RendererConfig
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = pytest.mark.slow
 
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
 #: the operator renders no stimulus older than its staleness rule, and writes it within the

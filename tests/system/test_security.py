@@ -19,7 +19,7 @@ from robot_side.node import RobotNode
 from robot_side.node.config import RobotConfig
 from robot_side.tactile.scripted import ScriptedTactileSensor
 
-pytestmark = [pytest.mark.slow, pytest.mark.parallel]
+pytestmark = pytest.mark.slow
 
 
 class Relay:

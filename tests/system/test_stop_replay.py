@@ -35,7 +35,6 @@ pytestmark = [
     # unit's niceness, as deployed (a test process at the lanes' -5 beside busy loops took a
     # page's STOP 24 ms past the budget)
     pytest.mark.usefixtures("quiet_gc", "robot_node_priority_module"),
-    pytest.mark.parallel,
 ]
 
 JOG = (0.03, 0.0, 0.0, 0.0, 0.0, 0.0)

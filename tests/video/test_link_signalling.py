@@ -23,7 +23,7 @@ from robot_side.node.config import RenderConfig, RobotConfig, RobotLinkConfig
 from robot_side.video.link_signalling import LinkSignalling
 from robot_side.video.server import VideoConfig, VideoServer
 
-pytestmark = [pytest.mark.timeout(60), pytest.mark.parallel]
+pytestmark = [pytest.mark.timeout(60)]
 
 ALICE, BOB = b"a" * 32, b"b" * 32
 

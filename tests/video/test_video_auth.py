@@ -17,7 +17,7 @@ from websockets.sync.client import connect
 from common.web.web_token import with_token, without_token
 from robot_side.video.link_signalling import LinkSignalling
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(60), pytest.mark.parallel]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
 
 
 def test_without_the_token_no_answer_and_the_camera_stays_closed(tmp_path):

@@ -143,7 +143,7 @@ def test_server_streams_only_while_a_viewer_is_connected():
         assert source.opened == 1
 
 
-# serial: beside the paired lane's deployments (their nodes at nice -10, above it) the server
+# serial: beside the deployment lane's deployments (their nodes at nice -10, above it) the server
 # once had not exited 10 s after the SIGTERM
 @pytest.mark.serial
 def test_sigterm_ends_a_server_with_two_viewers_promptly():
