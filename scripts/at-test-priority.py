@@ -1,6 +1,7 @@
 """Run a command in a session of its own, above the machine's ordinary work.
 
-    python scripts/at-test-priority.py NICE [--group GROUP_NICE] -- COMMAND [ARGS ...]
+    python scripts/at-test-priority.py NICE [--group GROUP_NICE] [--then-group GROUP_NICE]
+                                       -- COMMAND [ARGS ...]
 
 The test lanes run through this (the Makefile's ``TEST_NICE``). Their
 deployments stand for robot PCs, controllers and boards of their own, which
@@ -25,6 +26,11 @@ took up to 290 ms, on an otherwise quiet machine 10 to 12 ms
 it as before: this process forwards them to its process group.
 Where the user may not raise a priority (not root, no CAP_SYS_NICE), the
 command runs at the one it has, and one line says so.
+
+``--then-group``: the weight the session's group takes when this process gets
+SIGUSR1. The Makefile runs the lane of untimed tests beside the timed lanes
+in a group that gets only what they leave, and gives it their weight once they
+are done.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ import contextlib
 import os
 import signal
 import sys
+from pathlib import Path
 
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
@@ -53,13 +60,21 @@ def _raise_priority(nice: int, group: int) -> str | None:
     return None
 
 
+def _set_group(pid: int, group: int) -> None:
+    """The session's group (the one ``pid`` leads) at ``group``; nothing where there is none."""
+    with contextlib.suppress(FileNotFoundError, ProcessLookupError, PermissionError):
+        Path(f"/proc/{pid}/autogroup").write_text(str(group))
+
+
 def main(argv: list[str]) -> int:
-    group = None
-    if len(argv) >= 3 and argv[1] == "--group":
-        group, argv = argv[2], [argv[0], *argv[3:]]
+    options: dict[str, str] = {}
+    while len(argv) >= 3 and argv[1] in ("--group", "--then-group"):
+        options[argv[1]], argv = argv[2], [argv[0], *argv[3:]]
     if len(argv) < 3 or argv[1] != "--":
         print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
         return 2
+    group = options.get("--group")
+    then_group = options.get("--then-group")
     nice, command = int(argv[0]), argv[2:]
     group_nice = nice if group is None else int(group)
     pid = os.fork()
@@ -84,6 +99,8 @@ def main(argv: list[str]) -> int:
 
     for signum in FORWARDED:
         signal.signal(signum, forward)
+    if then_group is not None:
+        signal.signal(signal.SIGUSR1, lambda _s, _f: _set_group(pid, int(then_group)))
     _, status = os.waitpid(pid, 0)
     code = os.waitstatus_to_exitcode(status)
     return code if code >= 0 else 128 - code

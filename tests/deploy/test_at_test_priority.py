@@ -66,3 +66,26 @@ def test_a_stop_reaches_the_command():
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=10) == 128 + signal.SIGTERM
     assert time.monotonic() - t0 < 5
+
+
+def test_sigusr1_gives_the_session_the_group_weight_it_is_to_take_then():
+    report = f"{sys.executable} -c \"import pathlib; print(pathlib.Path('{GROUP}').read_text())\""
+    options = ["--group", "-10", "--then-group", "-20", "--"]
+    proc = subprocess.Popen(
+        [sys.executable, str(SCRIPT), "-5", *options, "sh", "-c", f"{report}; read _; {report}"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        before = proc.stdout.readline().split()[-1:]
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(0.2)  # the launcher's handler runs between its waits
+        after, errors = proc.communicate("\n", timeout=10)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, errors
+    if not GROUP.exists() or "running at the priority it has" in errors:
+        return  # no autogroup here, or not permitted: nothing to weigh
+    assert (before, after.split()[-1:]) == (["-10"], ["-20"])
