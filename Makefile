@@ -22,16 +22,15 @@ TORCH ?= torch==2.13.0
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 STAMP := $(VENV)/.installed
 
-# Four lanes (docs/testing.md). Most tests wait far more than they compute: the tests not
-# marked slow, and the slow ones marked `untimed` (they check no timing), run four at a time
-# (pytest-xdist), each file on one worker so a module's fixture runs once. The other slow ones
-# start deployments (nodes, simulators, browsers, fault cells) and bound their timing by the
-# product's own limits (the 400 ms stop, the 150 ms staleness, a link simulator's floor), which
-# must hold beside other deployments as on a busy robot PC: three at a time (four left the
-# machine a quarter idle, gained little on a clean clone and failed browser jogs once). They were
-# two lanes, those with the tighter margins three at a time among themselves; one lane of both,
-# three at a time, took 196-215 s against 218 for the two, quiet and beside two busy loops, and
-# every margin held.
+# Five lanes (docs/testing.md). The tests not marked slow run four at a time (pytest-xdist),
+# each file on one worker so a module's fixture runs once; some of them bound a watchdog or a
+# deadman by the product's limits, so they run in the lanes' group like every timed test. The slow
+# ones marked `untimed` (they check no timing) run two at a time beside the timed lanes that
+# follow (below). The other slow ones start deployments (nodes, simulators, browsers, fault
+# cells) and bound their timing by the product's own limits (the 400 ms stop, the 150 ms
+# staleness, a link simulator's floor), which must hold beside other deployments as on a busy
+# robot PC: three at a time (four left the machine a quarter idle, gained little on a clean clone
+# and failed browser jogs once, and a fault cell's controller starved past its watchdog).
 # Those marked `serial` need a machine no deployment lane keeps busy (a page's video, the robot's
 # heartbeats): three at a time, which mostly wait (two left the machine half idle: 125 s against
 # 90-94 s, quiet or beside two busy loops). Three once starved the simulated lab's trial past the
@@ -56,15 +55,17 @@ SERIAL_WORKERS ?= 3
 TEST_NICE ?= -5
 TEST_GROUP_NICE ?= -20
 AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --group $(TEST_GROUP_NICE) --
-# The parallel lane asserts no timing: it runs beside the timed lanes, in a group that takes about
-# a tenth of the CPU while they want it all (group nice -10 against their -20) and, on a machine
-# whose other jobs keep it busy, most of what the timed lanes leave (against a session at nice 0);
-# once they are done, it gets their weight. Alone, the lanes one after another left 380 of the
-# suite's 1070 core-seconds idle.
+# The untimed lane runs beside the timed lanes, in a group that takes about a tenth of the CPU
+# while they want it all (group nice -10 against their -20) and, on a machine whose other jobs
+# keep it busy, most of what the timed lanes leave (against a session at nice 0); once they are
+# done, it gets their weight. One after another, the lanes left 380 of the suite's 1070
+# core-seconds idle. The tests not marked slow did not belong beside them: four of them bound a
+# deadman or a watchdog, and failed there.
 BESIDE_GROUP_NICE ?= -10
+UNTIMED_WORKERS ?= 2
 AT_BESIDE_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) \
 	--group $(BESIDE_GROUP_NICE) --then-group $(TEST_GROUP_NICE) --
-PARALLEL_LANE_LOG := $(VENV)/parallel-lane.log
+UNTIMED_LANE_LOG := $(VENV)/untimed-lane.log
 # The setup's collection writes which markers each test file's tests carry (tests/conftest.py);
 # each lane's workers then import only the files that hold a test of the lane's -m, not all of
 # them: every worker of every lane collected all 180 files for the 4 of the alone lane, the 20 of
@@ -74,7 +75,8 @@ LANE := $(AT_TEST_PRIORITY) $(BIN)/python -m pytest --test-index=$(TEST_INDEX)
 # Whole files to each worker (a module's deployment starts once), the longest first
 # (tests/file_durations.json, in tests/conftest.py's order; scripts/file-durations.py)
 BY_FILE := --dist loadfile --no-loadscope-reorder
-PARALLEL_LANE := (not slow or untimed) and not serial and not pty and not soak and not alone
+QUICK_LANE := not slow and not serial and not pty and not soak and not alone
+UNTIMED_LANE := slow and untimed and not serial and not pty and not soak and not alone
 DEPLOYMENT_LANE := slow and not untimed and not serial and not pty and not soak and not alone
 SERIAL_LANE := (serial or pty) and not soak and not alone
 # Several machines' deployments on one (a fleet: robots, operators, a router, an attacker) or a
@@ -124,23 +126,24 @@ test: $(STAMP)
 		|| echo "collection failed: the lanes below report why"; }; \
 	wait $$bytecode && [ $$jit -eq 0 ]
 	@# every lane runs whatever the one before gave; exit 5 is a lane that ARGS left empty. The
-	@# parallel lane runs beside the others (its report follows theirs), then takes their weight
+	@# untimed lane runs beside the timed ones (its report follows theirs), then takes their weight
 	status=0; \
+	$(LANE) -m "$(QUICK_LANE)" -n $(FAST_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(AT_BESIDE_PRIORITY) $(BIN)/python -m pytest --test-index=$(TEST_INDEX) \
-		-m "$(PARALLEL_LANE)" -n $(FAST_WORKERS) $(BY_FILE) $(ARGS) >$(PARALLEL_LANE_LOG) 2>&1 & \
+		-m "$(UNTIMED_LANE)" -n $(UNTIMED_WORKERS) $(BY_FILE) $(ARGS) >$(UNTIMED_LANE_LOG) 2>&1 & \
 	beside=$$!; \
 	$(LANE) -m "$(DEPLOYMENT_LANE)" -n $(DEPLOYMENT_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(SERIAL_LANE)" -n $(SERIAL_WORKERS) $(BY_FILE) $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	$(LANE) -m "$(ALONE_LANE)" -n 0 $(ARGS) || [ $$? -eq 5 ] || status=1; \
 	kill -USR1 $$beside 2>/dev/null; \
 	wait $$beside || [ $$? -eq 5 ] || status=1; \
-	echo "the parallel lane (beside the others):"; cat $(PARALLEL_LANE_LOG); \
+	echo "the untimed lane (beside the others):"; cat $(UNTIMED_LANE_LOG); \
 	exit $$status
 
-# The fast lane: the parallel lane's tests not marked slow (nor serial: a test that needs the
-# machine to itself is not one for the edit-and-test loop), without the system packages the
-# browser and TURN tests need (those tests are slow ones); under a minute. The whole suite
-# stays `make test`.
+# The fast lane: the quick lane's tests with the quick pty ones, none marked serial (a test that
+# needs the machine to itself is not one for the edit-and-test loop), without the system
+# packages the browser and TURN tests need (those tests are slow ones); under a minute. The whole
+# suite stays `make test`.
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -m "not slow and not serial and not soak" -n $(FAST_WORKERS) $(ARGS)
 
