@@ -44,15 +44,28 @@ from pathlib import Path
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
-def _raise_priority(nice: int, group: int) -> str | None:
-    """In the child, after setsid: the group's and the process's niceness; why not, if not."""
+def _raise_priority(nice: int, group: int, then_group: int | None = None) -> str | None:
+    """In the child, after setsid: the group's and the process's niceness; why not, if not.
+
+    A group meant to weigh less than the lanes' (``then_group``, theirs) that may not be
+    raised goes as far below a session at nice 0, where the lanes then run, as it was to be
+    below theirs: the untimed lane still gives way to the timed ones.
+    """
     try:
         with open("/proc/self/autogroup", "w") as f:
             f.write(str(group))
     except FileNotFoundError:
         pass  # no autogroup: the process's niceness is all there is
     except OSError as e:
-        return f"the session's group: {e.strerror}"
+        if then_group is None or group <= then_group:
+            return f"the session's group: {e.strerror}"
+        below = min(19, group - then_group)
+        try:
+            with open("/proc/self/autogroup", "w") as f:
+                f.write(str(below))
+        except OSError:
+            return f"the session's group: {e.strerror}"
+        return f"the session's group: {e.strerror}; at nice {below}, below the lanes' instead"
     try:
         os.nice(nice - os.nice(0))
     except OSError as e:
@@ -80,7 +93,7 @@ def main(argv: list[str]) -> int:
     pid = os.fork()
     if pid == 0:
         os.setsid()
-        refused = _raise_priority(nice, group_nice)
+        refused = _raise_priority(nice, group_nice, None if then_group is None else int(then_group))
         if refused is not None:
             print(
                 f"at-test-priority: running at the priority it has, not nice {nice} "

@@ -89,3 +89,21 @@ def test_sigusr1_gives_the_session_the_group_weight_it_is_to_take_then():
     if not GROUP.exists() or "running at the priority it has" in errors:
         return  # no autogroup here, or not permitted: nothing to weigh
     assert (before, after.split()[-1:]) == (["-10"], ["-20"])
+
+
+def test_a_lighter_group_that_may_not_be_raised_stays_as_far_below_the_lanes():
+    """Without the privilege to raise a group (a developer's own account), the timed lanes run
+    in sessions at nice 0: a lighter group asked at -10 goes to +10, as far below them as -10
+    is below -20, rather than weighing as much as they do."""
+    unprivileged = ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups"]
+    launcher = [sys.executable, str(SCRIPT), "-5", "--group", "-10", "--then-group", "-20", "--"]
+    done = subprocess.run(
+        [*(unprivileged if os.geteuid() == 0 else []), *launcher, "cat", str(GROUP)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    if GROUP.exists():  # else nothing to weigh (and nothing to read)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.split()[-1:] == ["10"], done.stdout
+        assert "below the lanes' instead" in done.stderr, done.stderr

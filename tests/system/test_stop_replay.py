@@ -153,6 +153,15 @@ class Cell:
     def log(self) -> str:
         return self.rig.log.read_text()
 
+    def log_after(self, t_ns: int) -> str:
+        """The robot's log from about a second before ``t_ns`` (its lines carry wall-clock
+        time; this clock is monotonic): where a late stop waited, the node or its arm
+        process (a silence on the controller's wire is logged there)."""
+        since = time.time() - (now_ns() - t_ns) / 1e9 - 1.0
+        since_text = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(since))
+        lines = [line for line in self.log().splitlines() if line[:19] >= since_text]
+        return "\n".join(lines[-40:])
+
 
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
@@ -193,7 +202,10 @@ def test_a_stop_with_a_malformed_stamp_on_the_wire_stops_and_latches_the_arm(cel
     op.pub.sock.send(_signed(cell.signer, body))
     cell.keep_jogging(0.8)
     moving = cell.still_after(t_stop)
-    assert not moving, f"the arm moved {(moving[-1] - t_stop) / 1e6:.0f} ms after the stop"
+    assert not moving, (
+        f"the arm moved {(moving[-1] - t_stop) / 1e6:.0f} ms after the stop; the robot's log:\n"
+        f"{cell.log_after(t_stop)}"
+    )
     stats = cell.stats()
     assert stats.get("arm_stop_latched") == 1.0, stats
     assert stats.get("arm_stops_malformed", 0.0) == before + 1
@@ -247,7 +259,10 @@ def test_a_stop_with_a_malformed_page_stamp_stops_and_latches_the_arm(cell, page
     assert reply["ok"], reply
     cell.keep_jogging(0.8)
     moving = cell.still_after(t_stop)
-    assert not moving, f"the arm moved {(moving[-1] - t_stop) / 1e6:.0f} ms after the stop"
+    assert not moving, (
+        f"the arm moved {(moving[-1] - t_stop) / 1e6:.0f} ms after the page's stop; the robot's "
+        f"log:\n{cell.log_after(t_stop)}"
+    )
     assert cell.stats().get("arm_stop_latched") == 1.0
 
 
