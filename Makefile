@@ -58,9 +58,9 @@ AT_TEST_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) --gro
 # CPU while they want it all (group nice 0 against their -20) and, on a machine whose other jobs
 # keep it busy, a share of what the timed lanes leave like any other session; once they are done,
 # it gets their weight. One after another, the lanes left 380 of the suite's 1070 core-seconds
-# idle. At group nice -10 (a tenth) the deployment lane took 10-30 s longer and a quiet run's
-# stop came late; the tests not marked slow did not belong beside them at all: four of them bound
-# a deadman or a watchdog, and failed there.
+# idle. At group nice -10 (a tenth) the deployment lane took 10-30 s longer, and in one quiet run
+# a stop came late beside it; the tests not marked slow did not belong beside them at all: four
+# of them bound a deadman or a watchdog, and failed there.
 BESIDE_GROUP_NICE ?= 0
 UNTIMED_WORKERS ?= 2
 AT_BESIDE_PRIORITY := $(BIN)/python scripts/at-test-priority.py $(TEST_NICE) \
