@@ -52,8 +52,7 @@ def _raise_priority(nice: int, group: int, then_group: int | None = None) -> str
     below theirs: the untimed lane still gives way to the timed ones.
     """
     try:
-        with open("/proc/self/autogroup", "w") as f:
-            f.write(str(group))
+        _write_group(os.getpid(), group)
     except FileNotFoundError:
         pass  # no autogroup: the process's niceness is all there is
     except OSError as e:
@@ -61,8 +60,7 @@ def _raise_priority(nice: int, group: int, then_group: int | None = None) -> str
             return f"the session's group: {e.strerror}"
         below = min(19, group - then_group)
         try:
-            with open("/proc/self/autogroup", "w") as f:
-                f.write(str(below))
+            _write_group(os.getpid(), below)
         except OSError:
             return f"the session's group: {e.strerror}"
         return f"the session's group: {e.strerror}; at nice {below}, below the lanes' instead"
@@ -73,10 +71,15 @@ def _raise_priority(nice: int, group: int, then_group: int | None = None) -> str
     return None
 
 
+def _write_group(pid: int, group: int) -> None:
+    """The scheduling group of ``pid``'s session at niceness ``group`` (``sched_autogroup``)."""
+    Path(f"/proc/{pid}/autogroup").write_text(str(group))
+
+
 def _set_group(pid: int, group: int) -> None:
-    """The session's group (the one ``pid`` leads) at ``group``; nothing where there is none."""
+    """``_write_group``, and nothing where there is no such group or it may not be set."""
     with contextlib.suppress(FileNotFoundError, ProcessLookupError, PermissionError):
-        Path(f"/proc/{pid}/autogroup").write_text(str(group))
+        _write_group(pid, group)
 
 
 def main(argv: list[str]) -> int:
