@@ -35,6 +35,7 @@ from robot_side.arm.limits import (
     as_vector6,
     clip_jog_velocity,
     deadman_period_s,
+    jog_overdue_s,
     jog_reach_s,
     turn_angle,
 )
@@ -55,6 +56,7 @@ __all__ = [
     "as_vector6",
     "clip_jog_velocity",
     "deadman_period_s",
+    "jog_overdue_s",
     "jog_reach_s",
     "turn_angle",
 ]
@@ -123,7 +125,15 @@ class Arm(SafetyThreads, Device):
         self, velocity: Sequence[float], pose: Sequence[float] | None = None
     ) -> np.ndarray:
         """The velocity a jog actually sends (``clip_jog_velocity`` with these limits)."""
-        return clip_jog_velocity(self.limits, velocity, pose)
+        return clip_jog_velocity(self.limits, velocity, pose, self.jog_backstop_s)
+
+    @property
+    def jog_backstop_s(self) -> float:
+        """How long after a jog's deadline the controller itself stops the arm when the
+        deadman could not (it starved): 0 for an arm whose controller watches nothing, so
+        its jogs reach only as far as the deadman stops them. ``URArm``: the overdue grace
+        plus the watchdog's window (the keep-alive stops kicking for an overdue jog)."""
+        return 0.0
 
     def jog(self, velocity: Sequence[float], issued_at_s: float | None = None) -> np.ndarray:
         """Move the TCP at ``velocity`` until the next jog, ``stop()`` or the deadman.

@@ -104,28 +104,43 @@ def deadman_period_s(limits: ArmLimits) -> float:
     return min(0.02, limits.jog_timeout_s / 5)
 
 
-def jog_reach_s(limits: ArmLimits) -> float:
+def jog_overdue_s(limits: ArmLimits) -> float:
+    """How long past its deadline a jog may still run before it counts as overdue: the
+    deadman's wake period and the stop's transit. An overdue jog means a starved deadman,
+    and a keep-alive stops vouching for it (``SafetyThreads.deadman_responsive``)."""
+    return deadman_period_s(limits) + STOP_TRANSIT_S
+
+
+def jog_reach_s(limits: ArmLimits, backstop_s: float = 0.0) -> float:
     """How long one jog can move the TCP at its speed, at most, if no other command comes.
 
-    Its lifetime (``jog_timeout_s``), the deadman's wake period, the stop's
-    transit, and its deceleration from the speed cap (v / 2a per unit of v).
+    Its lifetime (``jog_timeout_s``); then whichever stop comes last: the
+    deadman's (its wake period and the stop's transit) or, where the deadman
+    itself was starved, the controller's (``backstop_s`` after the deadline:
+    ``Arm.jog_backstop_s``, 0 for an arm whose controller watches nothing);
+    and the deceleration from the speed cap (v / 2a per unit of v).
     """
     decel = limits.max_linear_speed_m_s / (2.0 * limits.stop_deceleration_m_s2)
-    return limits.jog_timeout_s + deadman_period_s(limits) + STOP_TRANSIT_S + decel
+    return limits.jog_timeout_s + max(jog_overdue_s(limits), backstop_s) + decel
 
 
 def clip_jog_velocity(
-    limits: ArmLimits, velocity: Sequence[float], pose: Sequence[float] | None = None
+    limits: ArmLimits,
+    velocity: Sequence[float],
+    pose: Sequence[float] | None = None,
+    backstop_s: float = 0.0,
 ) -> np.ndarray:
     """The velocity a jog actually sends: speed-capped, and kept inside the box.
 
     Linear and angular parts are scaled (direction kept) to their caps. A
     linear component that points toward a face is slowed so that the jog
-    cannot carry the TCP past it before the deadman has stopped it
-    (``jog_reach_s``): the box holds even if no fresher jog comes, from a
-    starved node or a wedged link. At or beyond the face it is zero, so the
-    operator can always jog back in. A function of the limits alone, so an
-    exporter can apply it to recorded commands.
+    cannot carry the TCP past it before the deadman, or the controller's
+    watchdog ``backstop_s`` after its deadline, has stopped it (``jog_reach_s``):
+    the box holds even if no fresher jog comes, from a starved node or a
+    wedged link, and for an arm with a watchdog even if the deadman starved.
+    At or beyond the face it is zero, so the operator can always jog back in.
+    A function of the limits (and the arm's backstop) alone, so an exporter
+    can apply it to recorded commands.
     """
     v = as_vector6(velocity, "jog velocity")
     lin, ang = v[:3], v[3:]
@@ -138,7 +153,7 @@ def clip_jog_velocity(
     lin = lin.copy()
     if pose is not None:
         xyz = as_vector6(pose, "pose")[:3]
-        life = jog_reach_s(limits)
+        life = jog_reach_s(limits, backstop_s)
         for i in range(3):
             if lin[i] > 0:
                 lin[i] = min(lin[i], max(0.0, limits.workspace_max[i] - xyz[i]) / life)

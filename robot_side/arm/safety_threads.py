@@ -18,7 +18,7 @@ from collections.abc import Callable
 from common.clocks.clock import now_s
 from common.devices.lifecycle import at_niceness
 from common.process.realtime import PeriodStats, Scheduling, raise_this_thread
-from robot_side.arm.limits import deadman_period_s
+from robot_side.arm.limits import deadman_period_s, jog_overdue_s
 
 log = logging.getLogger(__name__)
 
@@ -147,17 +147,24 @@ class SafetyThreads:
 
     @property
     def deadman_responsive(self) -> bool:
-        """The deadman thread woke within a jog's lifetime (``jog_timeout_s``), or is making
-        a stop that has not yet outlasted ``_deadman_stop_limit_s``.
+        """The deadman thread could still stop a jog: it is making a stop that has not yet
+        outlasted ``_deadman_stop_limit_s``; or no jog has outlived its deadline by more
+        than ``jog_overdue_s`` and the thread woke within a jog's lifetime.
 
-        Stuck longer, it could not stop a jog either, and a keep-alive must
-        then let the controller's own watchdog stop the arm.
+        Otherwise a keep-alive must let the controller's own watchdog stop the
+        arm: an overdue jog that nobody stopped is the deadman starved (the CPU
+        or the interpreter lock kept from it), and the box's reach
+        (``jog_reach_s``) counts on the controller stopping it a watchdog
+        window after the last kick.
         """
         now = now_s()
-        if now - self._deadman_woke <= self.limits.jog_timeout_s:
-            return True
         since = self._deadman_stopping_since
-        return since is not None and now - since <= self._deadman_stop_limit_s()
+        if since is not None:
+            return now - since <= self._deadman_stop_limit_s()
+        until = self._jog_until
+        if until is not None and now - until > jog_overdue_s(self.limits):
+            return False
+        return now - self._deadman_woke <= self.limits.jog_timeout_s
 
     def _deadman_stop_limit_s(self) -> float:
         """The longest a stop (the lock's wait included) may take before the deadman counts as

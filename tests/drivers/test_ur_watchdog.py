@@ -255,6 +255,35 @@ def test_a_silent_driver_is_stopped_by_the_controller_and_recovers_by_reconnecti
     arm.stop()
 
 
+def test_a_starved_deadman_leaves_its_jog_to_the_controller_and_the_box_holds(arm, sim, receive):
+    """One jog toward a face 5 mm away, then the deadman thread starves (held in its turn).
+
+    No kick vouches for a jog past its deadline: the controller's watchdog
+    stops the arm, and the jog was clipped for that later stop
+    (``jog_backstop_s``), so the TCP ends short of the face, seen on the
+    controller. Clipped for the deadman's stop alone, it went 0.7 mm past.
+    """
+    limits = arm.limits
+    y = float(sim.tcp_pose()[1])
+    limits.workspace_max = (limits.workspace_max[0], y + 0.005, limits.workspace_max[2])
+    trips = sim.stats()["watchdog_trips"]
+    go_on = threading.Event()
+    try:
+        sent = arm.jog([0.0, 1.0, 0.0, 0.0, 0.0, 0.0])  # once, toward +y
+        arm._watch_spins = lambda: go_on.wait(10.0)  # its next turn never ends
+        assert sent[1] > 0.005, sent
+        assert wait_until(lambda: not _program_running(receive), 2.0), "no watchdog trip"
+        assert wait_until(lambda: _speed(receive) == 0.0, 1.0)
+        assert sim.stats()["watchdog_trips"] == trips + 1
+        assert arm.status()["deadman_stops"] == 0, "the deadman stopped it: it was not starved"
+        reached = float(sim.tcp_pose()[1]) - y
+        assert reached <= 0.005 + 1e-5, f"{reached * 1000:.2f} mm: past the face at 5 mm"
+        assert reached > 0.002, f"the jog hardly moved toward the face ({reached * 1000:.2f} mm)"
+    finally:
+        go_on.set()
+        del arm._watch_spins
+
+
 def test_a_stop_on_the_dashboard_is_noticed_and_a_move_reconnects_first(arm, sim, receive):
     with socket.create_connection((sim.host, 29999), timeout=2) as dash:
         f = dash.makefile("rwb")

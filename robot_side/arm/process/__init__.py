@@ -95,6 +95,10 @@ class ArmProcess(Arm):
         self.ready_info: Any = None
         self._last_summary: dict[str, float] = {}
 
+    @property
+    def jog_backstop_s(self) -> float:
+        return self.local.jog_backstop_s
+
     # -- the process ---------------------------------------------------------
 
     def _preflight(self, context: PreflightContext) -> list[Finding]:

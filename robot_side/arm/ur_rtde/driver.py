@@ -16,7 +16,7 @@ import numpy as np
 
 from common.devices.preflight import Finding, PreflightContext, tcp_findings
 from common.errors import DeviceAlreadyConnectedError, DeviceError
-from robot_side.arm.base import Arm
+from robot_side.arm.base import Arm, jog_overdue_s
 from robot_side.arm.ur_rtde.config import URArmConfig, check_watchdog_config
 from robot_side.arm.ur_rtde.connection import CONTROLLER_PORTS, close_interfaces, open_interfaces
 from robot_side.arm.ur_rtde.control import ControlLine
@@ -53,6 +53,12 @@ class URArm(Arm):
             self.config, self.limits, self.receive, self.line, lambda: self.deadman_responsive
         )
         self.motion = Motion(self.config, self.limits, self.receive, self.line, self.watchdog)
+
+    @property
+    def jog_backstop_s(self) -> float:
+        """An overdue jog gets no more kicks, and the controller stops the arm a watchdog
+        window after the last one: the box holds even while this process starves."""
+        return jog_overdue_s(self.limits) + self.config.watchdog_window_s
 
     # -- lifecycle -----------------------------------------------------------
 

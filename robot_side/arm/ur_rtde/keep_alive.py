@@ -131,8 +131,9 @@ class ControllerWatchdog:
         if not self.deadman_responsive():
             # a deadman that cannot stop a jog must not be covered for: the controller stops it
             self._kicks_withheld(
-                f"the deadman thread has not woken for over {self.limits.jog_timeout_s:g} s "
-                "(it could not stop a jog): kicks withheld, the controller's watchdog stops the arm"
+                "the deadman thread is starved (a jog outlived its deadline, or the thread has "
+                f"not woken for {self.limits.jog_timeout_s:g} s): kicks withheld, the "
+                "controller's watchdog stops the arm"
             )
             return
         if line.kick(ctrl):
