@@ -771,7 +771,7 @@ def _with_arm_markdown(arm: dict[str, Any] | None) -> list[str]:
             + ". Each polls its socket every 100 us while no package has come (ur-rtde's "
             "receive loop; 20 empty polls, then a blocking read), in the fair scheduler with a "
             "timer slack: the receive interface's about every 4 ms, the control interface's "
-            "about every 2 ms between calls and every 100 us at SCHED_FIFO while a call (a "
+            "about every 4 ms between calls and every 100 us at SCHED_FIFO while a call (a "
             "kick, a stop) waits on the answer it reads; the policy above is the one read at "
             "the end of the window. What a wake costs is the machine's (the first section's "
             "note).",

@@ -42,7 +42,7 @@ RECEIVE_VARIABLES = [
 #: this timer slack a poll comes every 4 ms or so, half the stream's 8 ms period: every package
 #: is read before the next arrives, at most 4 ms after the controller sent it (the node reads the
 #: pose every 20 ms, the stops their "at rest" within 4 ms more), for about 250 wakes a second.
-#: The control interface's thread is made the same way (a 2 ms slack), and raised to
+#: The control interface's thread is made the same way (with the same 4 ms slack), and raised to
 #: SCHED_FIFO for the length of every call that waits on it (``control_receiver.py``): kept
 #: fair throughout, the keep-alive's period beside two busy loops went from p99.9 20.5 ms
 #: (max 21.2) to 23.8 (max 27.9), a real-time kick waiting for a fair thread.

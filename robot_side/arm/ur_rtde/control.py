@@ -116,6 +116,7 @@ class ControlLine:
     def close(self) -> Any:
         """No interface from here on; the one that was, for the caller to close."""
         ctrl, self.ctrl = self.ctrl, None
+        self.receiver.close()
         self.watched_since = None
         if self._worker is not None:
             self._worker.shutdown()

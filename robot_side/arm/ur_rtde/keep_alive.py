@@ -151,6 +151,8 @@ class ControllerWatchdog:
         if line.program_lost is not None:
             return
         try:
+            if not refused and int(recv.getRobotStatus()) & 2:
+                return  # the script runs: every turn but the one that matters, in one read
             if not recv.isConnected():
                 return
             armed = line.watched_since
