@@ -43,6 +43,10 @@ class UnitSpec:
     #: systemd's ``TimeoutStartSec=``: not ready by then, it is stopped (a loaded machine
     #: imports the robot's stack, warms its compiled step and connects its devices in it)
     start_timeout_s: float = 60.0
+    #: it stands for what a site's shutdown leaves running (the network, another machine's
+    #: router, the hardware): a deployment stops it after the nodes' processes, which stop
+    #: together, as systemd stops units with no ordering between them
+    outlives_the_nodes: bool = False
 
     @property
     def policy(self) -> RestartPolicy:
@@ -90,6 +94,7 @@ UNITS: dict[str, UnitSpec] = {
             "the fabric's Zenoh router, its access control from the roster",
             "listen: its QUIC endpoint (port 0: a free one it chose)",
             unit="router",
+            outlives_the_nodes=True,
         ),
         UnitSpec(
             "video",
@@ -111,6 +116,7 @@ UNITS: dict[str, UnitSpec] = {
             "the link simulator between the robot (or router) and the operator",
             "operator_telemetry, operator_commands: where the operator connects (port 0 "
             "binds free ones); X_DEEPXPALM_SCHEDULE_START_NS: when its scenario's clock started",
+            outlives_the_nodes=True,
         ),
         UnitSpec(
             "world",
@@ -118,6 +124,7 @@ UNITS: dict[str, UnitSpec] = {
             "the simulated lab: the UR controller, the gripper, the pads, the camera",
             "ur_host, gripper_host, gripper_port, tactile_port, camera_port and the pads' "
             "calibration: a scene's running_world file",
+            outlives_the_nodes=True,
         ),
         UnitSpec(
             "demo",
@@ -127,10 +134,15 @@ UNITS: dict[str, UnitSpec] = {
             "it serves one); READY=1 once every process of it said its own",
             start_timeout_s=240.0,
         ),
-        UnitSpec("sim-ur", ("sim", "ur"), "a UR controller's simulator", "host"),
-        UnitSpec("sim-gripper", ("sim", "gripper"), "a Robotiq URCap's simulator", "host, port"),
-        UnitSpec("sim-tactile", ("sim", "tactile"), "the tactile board's simulator", "port (pty)"),
-        UnitSpec("sim-servos", ("sim", "servos"), "the palm's servo bus simulator", "port (pty)"),
+        *(
+            UnitSpec(name, ("sim", kind), what, ready, outlives_the_nodes=True)
+            for name, kind, what, ready in (
+                ("sim-ur", "ur", "a UR controller's simulator", "host"),
+                ("sim-gripper", "gripper", "a Robotiq URCap's simulator", "host, port"),
+                ("sim-tactile", "tactile", "the tactile board's simulator", "port (pty)"),
+                ("sim-servos", "servos", "the palm's servo bus simulator", "port (pty)"),
+            )
+        ),
     )
 }
 

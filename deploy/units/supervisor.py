@@ -232,10 +232,27 @@ class Supervisor:
         }
 
     def stop_all(self, errors: list[str], timeout_s: float = STOP_TIMEOUT_S) -> None:
-        """Every running child stopped, last started first, as systemd stops units in the
-        reverse of their start order; a given-up one, one that had to be killed, and one
-        that ended badly are errors. Their notify sockets are closed."""
-        for child in reversed(list(self.children.values())):
+        """Every running child stopped, as systemd stops units with no ordering between
+        them: the nodes' processes together, then what outlives them (the network, the
+        router, the simulated hardware: ``UnitSpec.outlives_the_nodes``) together. One
+        after another, a cell's three fabric clients took 4 s. A given-up one, one that had
+        to be killed, and one that ended badly are errors. Their notify sockets are closed."""
+        children = list(reversed(self.children.values()))
+        for outlives in (False, True):
+            wave = [c for c in children if c.service.spec.outlives_the_nodes == outlives]
+            threads = [
+                threading.Thread(
+                    target=self._stop_child, args=(c, errors, timeout_s), name=f"stop-{c.name}"
+                )
+                for c in wave
+            ]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+
+    def _stop_child(self, child: Child, errors: list[str], timeout_s: float) -> None:
+        try:
             if child.gave_up:
                 errors.append(
                     f"{child.name} was given up on after {len(child.restart_times)} "
@@ -256,6 +273,9 @@ class Supervisor:
                     )
                 else:
                     _stop_and_report(child, errors, timeout_s)
+        except Exception as e:  # one child's stop must not leave the others running
+            errors.append(f"{child.name}: its stop failed: {e}")
+        finally:
             child.service.close()
 
 

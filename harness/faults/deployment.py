@@ -440,8 +440,9 @@ class Deployment:
 
     # ------------------------------------------------------------ stopping
     def close(self) -> None:
-        """Every process stopped, the last started first (a cell may end with one stopped:
-        the stop continues it), as systemd stops the units."""
+        """Every process stopped as systemd stops the units: the nodes' together, then the
+        router, the link and the device simulators (a cell may end with one stopped: the
+        stop continues it)."""
         self.supervisor.close()
         errors: list[str] = []
         self.supervisor.stop_all(errors, timeout_s=15.0)

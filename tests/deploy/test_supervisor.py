@@ -99,6 +99,46 @@ def test_a_child_that_keeps_dying_is_given_up_on(tmp_path):
     assert any("video was given up on" in e for e in errors), errors
 
 
+#: a process that says when it starts, when SIGTERM reaches it and when it ends (0.3 s later)
+SLOW_TO_STOP = """#!/bin/sh
+say() { echo "$1 $(date +%s.%N)" >> "$0.times"; }
+trap 'say term; sleep 0.3; say end; exit 0' TERM
+say up
+while :; do sleep 0.02; done
+"""
+
+
+def test_the_nodes_stop_together_and_what_outlives_them_after(tmp_path):
+    """As systemd stops units with no ordering between them: the nodes' processes at once
+    (one after another, a cell's three fabric clients took 4 s), then the router, the link
+    and the simulated hardware they were talking to. Read from the processes' own clocks."""
+    sup, errors = Supervisor(), []
+    names = {"robot": False, "operator": False, "router": True, "sim-ur": True}
+    for name, outlives in names.items():
+        script = tmp_path / name
+        script.write_text(SLOW_TO_STOP)
+        script.chmod(0o755)
+        spec = UnitSpec(name, (), "a test's child", "nothing", outlives_the_nodes=outlives)
+        sup.add(Child(Service(spec, [str(script)], _log(tmp_path, name)), 0.01), ready=False)
+    times = lambda n: dict(  # noqa: E731
+        line.split() for line in (tmp_path / f"{n}.times").read_text().splitlines()
+    )
+    deadline = time.monotonic() + 10
+    while not all((tmp_path / f"{n}.times").exists() for n in names):
+        assert time.monotonic() < deadline, "the children never started"
+        time.sleep(0.02)
+    sup.stop_all(errors)
+    assert errors == []
+    t = {n: {k: float(v) for k, v in times(n).items()} for n in names}
+    nodes = [n for n, outlives in names.items() if not outlives]
+    rest = [n for n, outlives in names.items() if outlives]
+    # together: each node was told to stop before any of them had ended
+    assert max(t[n]["term"] for n in nodes) < min(t[n]["end"] for n in nodes), t
+    assert max(t[n]["term"] for n in rest) < min(t[n]["end"] for n in rest), t
+    # and what outlives the nodes only once every node had ended
+    assert min(t[n]["term"] for n in rest) >= max(t[n]["end"] for n in nodes), t
+
+
 def test_a_child_failing_while_the_demo_starts_ends_it(tmp_path):
     sup, errors = Supervisor(), []
     child = _child(tmp_path, "robot", _python("raise SystemExit(2)"), 0.01)
