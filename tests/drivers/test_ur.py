@@ -227,6 +227,24 @@ def test_one_jog_toward_a_face_cannot_carry_the_tcp_past_it_before_its_deadman(s
         limits.workspace_max = saved
 
 
+def test_the_controller_accounts_for_when_it_read_ran_and_answered_each_stop(still_arm, sim):
+    """The simulator's own account of a jog's stop (what a late stop's test prints): the
+    speedL to rest arrives and runs, then speedStop arrives, runs and is answered "done"."""
+    t0 = time.monotonic()
+    still_arm.jog([0.0, 0.0, -0.02, 0.0, 0.0, 0.0])
+    assert wait_until(lambda: sim.tcp_speed()[2] < -0.01, 1.0)
+    still_arm.stop()
+    events = sim.command_events(t0)
+    assert all(t >= t0 for t, _, _ in events), events
+    assert [t for t, _, _ in events] == sorted(t for t, _, _ in events), events
+    said = [(cmd, what) for _, cmd, what in events]
+    assert (10, "arrived at 0.020 m/s") in said, said  # the jog's speedL
+    rest = said.index((10, "arrived at 0.000 m/s"))  # the speedL to rest ...
+    assert said[rest + 1] == (10, "ran"), said  # ... acted on before anything else came
+    stop = said.index((15, "arrived"), rest)  # then speedStop, acted on and answered
+    assert said[stop + 1 : stop + 3] == [(15, "ran"), (15, "done")], said
+
+
 def test_stop_is_idempotent(still_arm, sim):
     still_arm.stop()
     still_arm.stop()

@@ -27,6 +27,7 @@ from common.wire.messages import Command, Heartbeat, VideoSignal
 from common.wire.signing import generate_key_files, load_signer
 from common.wire.transport import Publisher, Subscriber
 from harness.bench.command_path import RobotUnderCommands
+from robot_side.arm.sim.commands import COMMAND_NAMES
 
 pytestmark = [
     pytest.mark.slow,
@@ -153,6 +154,16 @@ class Cell:
     def log(self) -> str:
         return self.rig.log.read_text()
 
+    def controller_after(self, t_ns: int) -> str:
+        """What the UR simulator read, acted on and answered from half a second before
+        ``t_ns`` on (ms from it; the speedL to rest, the speedStop and its "done"): whether
+        a late stop reached the controller late or was acted on late."""
+        events = self.rig.arm_sim.command_events(t_ns / 1e9 - 0.5)
+        return "\n".join(
+            f"{(t - t_ns / 1e9) * 1e3:+.0f} ms: {COMMAND_NAMES.get(cmd, cmd)} {what}"
+            for t, cmd, what in events
+        )
+
     def log_after(self, t_ns: int) -> str:
         """The robot's log from about a second before ``t_ns`` (its lines carry wall-clock
         time; this clock is monotonic): where a late stop waited, the node or its arm
@@ -204,7 +215,7 @@ def test_a_stop_with_a_malformed_stamp_on_the_wire_stops_and_latches_the_arm(cel
     moving = cell.still_after(t_stop)
     assert not moving, (
         f"the arm moved {(moving[-1] - t_stop) / 1e6:.0f} ms after the stop; the robot's log:\n"
-        f"{cell.log_after(t_stop)}"
+        f"{cell.log_after(t_stop)}\nthe controller's commands:\n{cell.controller_after(t_stop)}"
     )
     stats = cell.stats()
     assert stats.get("arm_stop_latched") == 1.0, stats
@@ -261,7 +272,8 @@ def test_a_stop_with_a_malformed_page_stamp_stops_and_latches_the_arm(cell, page
     moving = cell.still_after(t_stop)
     assert not moving, (
         f"the arm moved {(moving[-1] - t_stop) / 1e6:.0f} ms after the page's stop; the robot's "
-        f"log:\n{cell.log_after(t_stop)}"
+        f"log:\n{cell.log_after(t_stop)}\nthe controller's commands:\n"
+        f"{cell.controller_after(t_stop)}"
     )
     assert cell.stats().get("arm_stop_latched") == 1.0
 

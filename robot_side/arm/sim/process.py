@@ -32,6 +32,7 @@ REMOTE_METHODS = frozenset(
         "tcp_speed",
         "mode_name",
         "commands_seen",
+        "command_events",
         "at_rest_since",
         "stats",
     }
@@ -86,6 +87,10 @@ class URSimProcess(StdioChild):
 
     def commands_seen(self) -> list[int]:
         return self.call("commands_seen")
+
+    def command_events(self, since_s: float = 0.0) -> list[tuple[float, int, str]]:
+        """As ``URSimulator.command_events`` (monotonic seconds: every process shares them)."""
+        return [tuple(e) for e in self.call("command_events", since_s)]
 
     def at_rest_since(self, linear_m_s: float, angular_rad_s: float) -> float | None:
         """As ``URSimulator.at_rest_since``: when the arm came to rest, by the controller."""

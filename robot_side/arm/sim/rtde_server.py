@@ -20,12 +20,13 @@ from typing import Any
 
 from common.errors import DeviceError
 from robot_side.arm.sim import rtde_wire as w
+from robot_side.arm.sim.commands import STATUS_READY
 from robot_side.arm.sim.controller import (
     ROBOT_MODE_RUNNING,
     SAFETY_MODE_PROTECTIVE_STOP,
     Controller,
 )
-from robot_side.arm.sim.script import STATUS_READY, ControlScript
+from robot_side.arm.sim.script import ControlScript
 
 log = logging.getLogger(__name__)
 wire_log = logging.getLogger("robot_side.arm.sim.wire")

@@ -25,36 +25,31 @@ import numpy as np
 
 from common.clocks.clock import now_s
 from robot_side.arm.sim import rtde_wire as w
+from robot_side.arm.sim.commands import (
+    CMD_JOG_START,
+    CMD_JOG_STOP,
+    CMD_MOVEJ,
+    CMD_MOVEL,
+    CMD_NONE,
+    CMD_SERVO_STOP,
+    CMD_SERVOL,
+    CMD_SET_WATCHDOG,
+    CMD_SPEED_STOP,
+    CMD_SPEEDL,
+    CMD_STOP_SCRIPT,
+    CMD_STOPJ,
+    CMD_STOPL,
+    REALTIME_CMDS,
+    STATUS_DONE,
+    STATUS_READY,
+    STATUS_RECEIVED,
+    WATCHDOG_VARIABLE,
+    CommandLog,
+)
 from robot_side.arm.sim.controller import SAFETY_MODE_NORMAL, Controller
 
 log = logging.getLogger(__name__)
 wire_log = logging.getLogger("robot_side.arm.sim.wire")
-
-# Control script commands (ur-rtde's RobotCommand numbering, seen on the wire).
-CMD_NONE = 0
-CMD_MOVEJ = 1
-CMD_MOVEL = 3
-CMD_SPEEDJ = 9
-CMD_SPEEDL = 10
-CMD_SERVOJ = 11
-CMD_SPEED_STOP = 15
-CMD_SERVO_STOP = 16
-CMD_SERVOL = 24
-CMD_STOPL = 33
-CMD_STOPJ = 34
-CMD_SET_WATCHDOG = 35
-CMD_JOG_START = 41
-CMD_JOG_STOP = 42
-CMD_STOP_SCRIPT = 255
-#: Commands the script executes every loop and acknowledges with "ready" at once.
-REALTIME_CMDS = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
-
-#: The input ur-rtde's script watches (``reg_offset_int`` 0, the only offset simulated).
-WATCHDOG_VARIABLE = "input_int_register_0"
-
-STATUS_RECEIVED = 0
-STATUS_READY = 1
-STATUS_DONE = 2
 
 
 def split_programs(buf: bytes) -> tuple[list[str], bytes]:
@@ -107,6 +102,7 @@ class ControlScript:
         #: because this controller is late (a real one reads it within 2 ms), not counted
         self._unseen_command = False
         self.commands_seen: list[int] = []  # every new command value, for tests
+        self.command_log = CommandLog()  # when each command was read, run and answered
         #: the RTDE watchdog: the minimum update frequency, None when off
         self.watchdog_hz: float | None = None
         #: controller time since the last package carrying the variable (stalls not counted)
@@ -178,6 +174,8 @@ class ControlScript:
             self.watchdog_update_s = now_s()
             self._realtime_unrun = self.program_running and new_cmd in REALTIME_CMDS
         cmd = self.inputs.get("input_int_register_0", 0)
+        if cmd != self._last_cmd or (new_cmd in REALTIME_CMDS and self.program_running):
+            self.command_log.arrived(int(cmd), self._vec(0) if cmd == CMD_SPEEDL else None)
         if cmd != self._last_cmd:
             args = dict(zip(names, values, strict=True))
             wire_log.debug("RTDE <- command %d %s", cmd, args)
@@ -283,6 +281,7 @@ class ControlScript:
             self.out_int[0] = STATUS_RECEIVED
             if self._run_command(cmd):
                 self.out_int[0] = STATUS_DONE
+                self.command_log.done(cmd)
             else:
                 self._pending_done = True
 
@@ -292,6 +291,7 @@ class ControlScript:
         if self._pending_done and not arm.moving:
             self._pending_done = False
             self.out_int[0] = STATUS_DONE
+            self.command_log.done(int(self._last_cmd))
         if self._async_running and not arm.moving:
             self._async_running = False
             self.set_async_progress(-1)
@@ -304,6 +304,7 @@ class ControlScript:
 
     def _run_command(self, cmd: int) -> bool:
         """Apply ``cmd``; True when it is done, False when "done" waits for the motion."""
+        self.command_log.ran(cmd)
         if self.controller.safety_mode != SAFETY_MODE_NORMAL and cmd not in (CMD_STOP_SCRIPT,):
             return True
         arm = self.controller.arm

@@ -229,6 +229,12 @@ class URSimulator(Controller):
         with self.lock:
             return list(self.script.commands_seen)
 
+    def command_events(self, since_s: float = 0.0) -> list[tuple[float, int, str]]:
+        """(monotonic s, command, "arrived" | "ran" | "done") since ``since_s``: when this
+        controller read each command, first acted on it and answered a waiting one."""
+        with self.lock:
+            return self.script.command_log.since(since_s)
+
     def stats(self) -> dict[str, Any]:
         with self.lock:
             script = self.script
