@@ -144,7 +144,6 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
             cycles += 1
         t1 = now_ns()
         op.pump(0.2)
-        last_send_ns = op.sent_ns[-1]
     finally:
         op.sub.close()
         op.pub.close()
@@ -162,19 +161,16 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
         "heartbeat": telemetry.sent_times(Heartbeat, t0, t1 + STALL_WINDOW_NS),
         "idle_stimulus": gap(Stimulus, i0, i1),
         "idle_heartbeat": gap(Heartbeat, i0, i1),
-        # this process's own longest silence toward the robot while it jogged, and in the pump
-        # after, up to its last send: the span whose deadman trips are counted (its clock)
+        # this process's own longest silence toward the robot while it jogged (its clock)
         "operator_wakes": list(op.woke_ns),
-        "operator_silence_ms": float(
-            max(np.diff([t for t in op.sent_ns if t0 <= t <= last_send_ns]))
-        )
-        / 1e6,
-        # deadman trips while this operator spoke: its own silence after its last send trips the
-        # deadman a quarter second later (the session ended), so counters sent after that are not
-        # the run's; a heartbeat sent within that quarter second is, whenever it arrives here
-        "deadman_trips": telemetry.robot_stats(
-            sent_by_ns=last_send_ns + round(0.8 * RobotConfig().link.deadman_ms * 1e6)
-        ).get("deadman_trips", 0)
+        "operator_silence_ms": float(max(np.diff([t for t in op.sent_ns if t0 <= t <= t1]))) / 1e6,
+        # deadman trips while it jogged: the counters the robot sent by the loop's end (the pump
+        # after it lets them arrive). Its silence after its last send trips the deadman (the
+        # session ended) a quarter second after that send as the robot places it, which need not
+        # be where this process stamped it (the robot's estimate of the clock offset, a last
+        # message that arrives stale): counted up to 0.8 of the deadman after the last send as
+        # this process stamped it, that trip was counted in two loaded runs
+        "deadman_trips": telemetry.robot_stats(sent_by_ns=t1).get("deadman_trips", 0)
         - trips_before,
     }
 
