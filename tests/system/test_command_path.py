@@ -115,7 +115,6 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
     )
     try:
         op.sync()
-        trips_before = telemetry.robot_stats().get("deadman_trips", 0)
         # the machine's own stalls, with no command in flight: what the command path must not add to
         i0 = now_ns()
         op.pump(3.0)
@@ -164,14 +163,14 @@ def _jog_and_stop_for(rig, seconds: float, session: int) -> dict[str, Any]:
         # this process's own longest silence toward the robot while it jogged (its clock)
         "operator_wakes": list(op.woke_ns),
         "operator_silence_ms": float(max(np.diff([t for t in op.sent_ns if t0 <= t <= t1]))) / 1e6,
-        # deadman trips while it jogged: the counters the robot sent by the loop's end (the pump
-        # after it lets them arrive). Its silence after its last send trips the deadman (the
-        # session ended) a quarter second after that send as the robot places it, which need not
-        # be where this process stamped it (the robot's estimate of the clock offset, a last
-        # message that arrives stale): counted up to 0.8 of the deadman after the last send as
-        # this process stamped it, that trip was counted in two loaded runs
+        # deadman trips while it jogged: the counter in the robot's heartbeats sent by the loop's
+        # end, less the one sent by its start (the pump after the loop lets the first arrive; the
+        # 3 s idle before it the second, with the trip that ended the module's previous session).
+        # A heartbeat carries some counters in turns, so one read when this session began could
+        # miss that trip and count it here; and the trip that ends this session comes after its
+        # last send as the robot places it, which need not be where this process stamped it
         "deadman_trips": telemetry.robot_stats(sent_by_ns=t1).get("deadman_trips", 0)
-        - trips_before,
+        - telemetry.robot_stats(sent_by_ns=t0).get("deadman_trips", 0),
     }
 
 
