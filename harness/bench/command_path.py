@@ -21,6 +21,7 @@ as its own process.
 from __future__ import annotations
 
 import multiprocessing
+import random
 import secrets
 import signal
 import tempfile
@@ -162,21 +163,45 @@ class ArmWatch:
         self._thread.join(2)
 
 
+def _on_an_address_of_its_own(config_cls: Any, process_cls: Any) -> Any:
+    """A UR simulator on a random free 127.0.1.x: outside what simulators choosing a free
+    address try, so it is still free when the controller comes back on it."""
+    last: Exception | None = None
+    for x in random.sample(range(2, 255), 8):
+        try:
+            return process_cls(config_cls(host=f"127.0.1.{x}")).start()
+        except DeviceError as e:  # taken (a previous run's controller on its way out)
+            last = e
+    raise DeviceError(f"no free 127.0.1.x address for a restartable UR simulator: {last}")
+
+
 class RobotUnderCommands:
     """The robot node process on its simulators, watched from outside (a context manager).
 
     ``settings`` are ``--set KEY=VALUE`` overrides on the node's command line.
     """
 
-    def __init__(self, workdir: Path | None = None, settings: tuple[str, ...] = ()) -> None:
+    def __init__(
+        self,
+        workdir: Path | None = None,
+        settings: tuple[str, ...] = (),
+        controller_restarts: bool = False,
+    ) -> None:
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix="deepxpalm-cmd-"))
         self.settings = settings
+        #: the controller goes and comes back on its address (``arm_controller_back``): it
+        #: takes one in 127.0.1.0/24, which no simulator choosing a free one ("auto", 127.0.0.x)
+        #: takes meanwhile (another test's simulator took 127.0.0.49 while it was down)
+        self.controller_restarts = controller_restarts
 
     def __enter__(self) -> RobotUnderCommands:
-        from robot_side.arm.sim import URSimProcess
+        from robot_side.arm.sim import URSimConfig, URSimProcess
         from robot_side.gripper.sim import GripperSimConfig, GripperSimServer
 
-        self.arm_sim = URSimProcess().start()
+        if self.controller_restarts:
+            self.arm_sim = _on_an_address_of_its_own(URSimConfig, URSimProcess)
+        else:
+            self.arm_sim = URSimProcess().start()
         self.gripper_sim = GripperSimServer(GripperSimConfig(port=0)).start()
         self.config = self.workdir / "robot.toml"
         self.log = self.workdir / "robot.log"

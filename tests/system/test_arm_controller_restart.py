@@ -52,7 +52,7 @@ def _largest_gap_s(times: list[int]) -> float:
 
 @pytest.mark.parametrize("kill", [True, False], ids=["kill-9", "clean-restart"])
 def test_the_arm_moves_again_after_its_controller_comes_back(tmp_path: Path, kill: bool):
-    with RobotUnderCommands(tmp_path) as rig:
+    with RobotUnderCommands(tmp_path, controller_restarts=True) as rig:
         ctx = zmq.Context()
         op = ProtocolOperator(
             Subscriber(ctx, rig.telemetry_endpoint, bind=False),
