@@ -163,13 +163,15 @@ class ArmWatch:
         self._thread.join(2)
 
 
-def _on_an_address_of_its_own(config_cls: Any, process_cls: Any) -> Any:
+def _on_an_address_of_its_own() -> Any:
     """A UR simulator on a random free 127.0.1.x: outside what simulators choosing a free
     address try, so it is still free when the controller comes back on it."""
+    from robot_side.arm.sim import URSimConfig, URSimProcess
+
     last: Exception | None = None
     for x in random.sample(range(2, 255), 8):
         try:
-            return process_cls(config_cls(host=f"127.0.1.{x}")).start()
+            return URSimProcess(URSimConfig(host=f"127.0.1.{x}")).start()
         except DeviceError as e:  # taken (a previous run's controller on its way out)
             last = e
     raise DeviceError(f"no free 127.0.1.x address for a restartable UR simulator: {last}")
@@ -195,11 +197,11 @@ class RobotUnderCommands:
         self.controller_restarts = controller_restarts
 
     def __enter__(self) -> RobotUnderCommands:
-        from robot_side.arm.sim import URSimConfig, URSimProcess
+        from robot_side.arm.sim import URSimProcess
         from robot_side.gripper.sim import GripperSimConfig, GripperSimServer
 
         if self.controller_restarts:
-            self.arm_sim = _on_an_address_of_its_own(URSimConfig, URSimProcess)
+            self.arm_sim = _on_an_address_of_its_own()
         else:
             self.arm_sim = URSimProcess().start()
         self.gripper_sim = GripperSimServer(GripperSimConfig(port=0)).start()
