@@ -70,7 +70,8 @@ class TopicWatch:
         """Over the window: the rates (the newest run's messages) and the receive gaps.
 
         ``rate_hz``: the messages that arrived, over the span of their send times (the
-        sender's clock); ``sent_hz``: the messages sent, their seq span over the same. Timed
+        sender's clock); ``sent_hz``: the messages sent, their seq span over the same;
+        ``seq_first``/``seq_last``: that span's ends, to find it in the sender's log. Timed
         by the sender's clock, neither bends when this process is late to read (a loaded
         machine ran it late, and the receive times of what waited came bunched: a rate over
         receive times read 15 % high, or twice the rate after a stall). What this process
@@ -79,6 +80,8 @@ class TopicWatch:
         out: dict[str, float | None] = {
             "rate_hz": None,
             "sent_hz": None,
+            "seq_first": None,
+            "seq_last": None,
             "gap_min_ms": None,
             "gap_max_ms": None,
         }
@@ -95,6 +98,8 @@ class TopicWatch:
         if len(run) >= 2 and span > 0:
             out["rate_hz"] = (len(run) - 1) * 1e9 / span
             out["sent_hz"] = seqs * 1e9 / span
+            out["seq_first"] = min(a.seq for a in run)
+            out["seq_last"] = max(a.seq for a in run)
         return out
 
 

@@ -104,16 +104,20 @@ class TelemetryPublisher:
             period = 1.0 / self.rates[topic]
             due[topic] = max(due[topic] + period, time.monotonic() + period / 2)
 
-    def sent_rate(self, topic: str, t0_ns: int = 0, t1_ns: int | None = None) -> float:
-        """What was sent of ``topic`` a second, by the send times kept (between two times)."""
-        sent = [t for _, t in self.sent[topic] if t0_ns <= t and (t1_ns is None or t <= t1_ns)]
+    def sent_rate(self, topic: str, seq_first: int, seq_last: int) -> float:
+        """What was sent of ``topic`` a second from ``seq_first`` to ``seq_last``, by the send
+        times kept here."""
+        sent = [t for seq, t in self.sent[topic] if seq_first <= seq <= seq_last]
         return (len(sent) - 1) * 1e9 / (sent[-1] - sent[0])
 
 
-def check_rates(report: dict, telemetry: TelemetryPublisher, t0_ns: int, t1_ns: int) -> None:
-    """A report's rates against what ``telemetry`` sent between ``t0_ns`` and ``t1_ns``.
+def check_rates(report: dict, telemetry: TelemetryPublisher) -> None:
+    """A report's rates against what ``telemetry`` sent over the report's window.
 
-    ``sent_hz`` (the messages' seq over their send times) is what the publisher sent;
+    ``sent_hz`` (the messages' seq over their send times) is what the publisher sent over
+    the span of seqs the report timed (the publisher catches up after a late turn, so its
+    rate over any other span, the command's start-up included, may differ by more than 10 %
+    on a loaded machine);
     ``rate_hz`` (over the receive times) is that less what was lost on the way (a loaded
     machine drops datagrams: the report counts them, so the arithmetic holds whatever
     the loss); and the publisher kept to at least half its rate.
@@ -124,5 +128,6 @@ def check_rates(report: dict, telemetry: TelemetryPublisher, t0_ns: int, t1_ns: 
         assert t["count"] > 1, said
         arrived = t["count"] / (t["count"] + t["lost"])
         assert t["rate_hz"] == pytest.approx(t["sent_hz"] * arrived, rel=0.10), said
-        assert t["sent_hz"] == pytest.approx(telemetry.sent_rate(topic, t0_ns, t1_ns), rel=0.10)
+        sent = telemetry.sent_rate(topic, t["seq_first"], t["seq_last"])
+        assert t["sent_hz"] == pytest.approx(sent, rel=0.01), said
         assert t["sent_hz"] > hz / 2, said
