@@ -152,8 +152,8 @@ class CellResult:
     operator_late_ms: float | None = None
     #: ... and it slept through the link's gap: woke when the link was back, too late to lift
     operator_starved_through_gap: bool = False
-    #: the processes' last log lines, taken only when the cell did not settle in time (what
-    #: a failure's message shows: the deployment's folder is gone by then)
+    #: the processes' last log lines as the cell ended, for a failed verdict's message (the
+    #: deployment's folder is gone by then); not part of the bench's row
     log_tails: str = field(default="", repr=False)
 
     @property
@@ -161,7 +161,9 @@ class CellResult:
         return whole_again_s(self.recovered_s, self.link_back_s)
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        row = asdict(self)
+        del row["log_tails"]
+        return row
 
 
 class Jogger:
@@ -445,9 +447,9 @@ class CellRun:
                 self._ready(jogger)
                 tl = self._inject()
                 deadline = tl.t_end + RECOVER_TIMEOUT_S
-                while not (settled := self._settled(tl)) and time.monotonic() < deadline:
+                while not self._settled(tl) and time.monotonic() < deadline:
                     time.sleep(0.1)
-                tails = "" if settled else d.log_tails(4000)
+                tails = d.log_tails(4000)
                 jogger.active.clear()
                 self._link_back = self._netsim_back(tl)
                 self._late_wakes = [w for w in self.d.operator_late_wakes() if w[1] >= tl.t_fault]

@@ -61,7 +61,7 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
         f"{cell.label}: the arm had not come to rest {RELEASE_WAIT_S:.0f} s after the operator "
         f"let go at the end; the longest stretch without a reading of it: "
         f"{row.released_silence_s} s (product: nothing stopped it, unless the arm's probe "
-        f"read nothing); {row}"
+        f"read nothing); {row}\n{row.log_tails}"
     )
     if back_before_a_stop_was_due(row.arm_still_s, row.whole_again_s, row.arm_rest_s, LOAD_SLACK_S):
         print(
@@ -71,13 +71,13 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
     else:
         assert row.arm_still_s is not None, (
             f"{cell.label}: the arm never stopped while the path of its commands was broken "
-            f"(product: nothing outside the failed process stops it); {row}"
+            f"(product: nothing outside the failed process stops it); {row}\n{row.log_tails}"
         )
         assert row.arm_still_s <= ARM_STILL_BUDGET_S + LOAD_SLACK_S, (
             f"{cell.label}: the arm was still {row.arm_still_s * 1e3:.0f} ms after the fault, "
             f"budget {ARM_STILL_BUDGET_S * 1e3:.0f} ms; the node's own deadman stop in the same "
             f"cell took {baseline * 1e3:.0f} ms (if that is late too, the machine is loaded; if "
-            f"not, the product is slow to stop); {row.notes}"
+            f"not, the product is slow to stop); {row.notes}\n{row.log_tails}"
         )
     assert row.gripper_held, (
         f"{cell.label}: the gripper opened to {row.gripper_min_pos} during the fault (product: "

@@ -46,6 +46,11 @@ def _hold_jog(op: ProtocolOperator, rig: RobotUnderCommands, seconds: float) -> 
     return None
 
 
+def _log_without_refusals(rig: RobotUnderCommands) -> str:
+    lines = rig.log.read_text().splitlines()
+    return "\n".join(line for line in lines if "command arm_jog rejected" not in line)
+
+
 def _largest_gap_s(times: list[int]) -> float:
     return float(max(np.diff(sorted(times)))) / 1e9 if len(times) > 1 else float("inf")
 
@@ -94,7 +99,8 @@ def test_the_arm_moves_again_after_its_controller_comes_back(tmp_path: Path, kil
         assert gap < limit, (
             f"the robot sent no stimulus for {gap * 1000:.0f} ms while its arm reconnected "
             f"(limit {limit * 1000:.0f} ms; idle, the machine's own largest gap was "
-            f"{idle_gap * 1000:.0f} ms): the frame loop waited on the arm, a product defect"
+            f"{idle_gap * 1000:.0f} ms): the frame loop waited on the arm, a product defect "
+            f"(robot log, its refused jogs left out):\n{_log_without_refusals(rig)[-6000:]}"
         )
         print(
             f"\narm controller {'killed' if kill else 'restarted'}: moved again "
