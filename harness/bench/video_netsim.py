@@ -41,9 +41,6 @@ RUN_S = 28.0  # the outage and 6 s after it
 WARMUP_S = 3.0  # ICE, the first keyframe, the receiver's buffer settling
 SETTLE_S = 10.0  # the bitrate is read over this many seconds before the outage (or the end)
 STALL_MS = 500.0
-#: metro's glass-to-glass p50 above the direct-through-none row's: more than 0 (its 4 ms one
-#: way shows), less than this (the simulator adds nothing of its own a viewer would see)
-METRO_EXTRA_MS = 25.0
 #: the page plays again within this of an outage's end (video.js offers again after 250 ms,
 #: doubling to at most 1 s while the outage is young: docs/dashboard.md)
 RECOVER_S = 2.0
@@ -356,7 +353,6 @@ def verdicts(results: Results) -> list[Verdict]:
         )
     else:  # a report from before this comparison was part of the section
         out.append(Verdict(what, None, None, table="target"))
-    out += metro_over_none(results)
     rows = s.get("rows") or []
     outages = [r for r in rows if r.get("outage_s")]
     if outages:
@@ -425,32 +421,10 @@ def table(section: dict[str, Any] | None) -> list[str]:
     return out
 
 
-def metro_over_none(results: Results) -> list[Verdict]:
-    """metro's picture is later than none's by its delay, and by not much more."""
-    s = results_of(results, "video_netsim")
-    rows = {r["scenario"]: r for r in (s or {}).get("rows", [])}
-    if "metro" not in rows or "none" not in rows:
-        return []
-    metro, none = rows["metro"]["p50_ms"], rows["none"]["p50_ms"]
-    extra = None if metro is None or none is None else metro - none
-    return [
-        Verdict(
-            f"video through netsim: metro's glass-to-glass p50 above none's by 0-"
-            f"{METRO_EXTRA_MS:g} ms (4 ms one way)",
-            None if extra is None else f"{extra:+.1f} ms ({metro} against {none})",
-            None if extra is None else 0.0 < extra < METRO_EXTRA_MS,
-        )
-    ]
-
-
 def markdown(results: Results) -> list[str]:
     lines = table(results_of(results, "video_netsim"))
     if not lines:
         return []
-    goal = metro_over_none(results)
-    if goal:
-        verdict = {True: "passes", False: "fails", None: "was not measured"}[goal[0].passed]
-        lines = [*lines, "", f"Goal: {goal[0].what}: it {verdict} ({goal[0].measured})."]
     return [
         "",
         f"## {TITLE}",

@@ -68,14 +68,23 @@ def test_four_viewers_pass_only_served_fresh_and_alike():
     assert not video.many_viewers_verdict(_viewers(stalls_over_500ms=1)).passed
 
 
-def test_metro_is_judged_against_the_none_row_only_when_both_ran():
-    def rows(metro: float, none: float | None) -> dict:
-        out = [{"scenario": "metro", "p50_ms": metro}]
-        if none is not None:
-            out.append({"scenario": "none", "p50_ms": none})
-        return {"sections": {"video_netsim": {"rows": out}}}
+def test_metro_is_judged_against_direct_sessions_of_the_same_run():
+    def results(off_ms: float | None, errors: tuple[str, ...] = ()) -> dict:
+        section: dict = {"rows": []}
+        if off_ms is not None:
+            section["against_direct"] = {
+                "through_p50_ms": 40.0 + 4.0 + off_ms,
+                "direct_p50_ms": 40.0,
+                "one_way_ms": 4.0,
+                "off_ms": off_ms,
+                "direct_spread_ms": 0.5,
+                "page_errors": list(errors),
+            }
+        return {"sections": {"video_netsim": section}}
 
-    assert video_netsim.metro_over_none(rows(52.0, 45.0))[0].passed
-    assert not video_netsim.metro_over_none(rows(45.0, 45.0))[0].passed  # the delay did not show
-    assert not video_netsim.metro_over_none(rows(90.0, 45.0))[0].passed
-    assert video_netsim.metro_over_none(rows(52.0, None)) == []
+    (ok,) = video_netsim.verdicts(results(3.0))
+    assert ok.passed and "+3.0 ms" in ok.measured
+    assert not video_netsim.verdicts(results(-12.0))[0].passed  # the delay did not show
+    assert not video_netsim.verdicts(results(15.0))[0].passed  # the simulator added its own
+    assert not video_netsim.verdicts(results(1.0, ("TypeError",)))[0].passed
+    assert video_netsim.verdicts(results(None))[0].passed is None  # not measured
