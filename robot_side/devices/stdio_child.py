@@ -88,13 +88,20 @@ class StdioChild:
     """
 
     def __init__(
-        self, module: str, config: Any, what: str, log_level: int, nice: int | None = None
+        self,
+        module: str,
+        config: Any,
+        what: str,
+        log_level: int,
+        nice: int | None = None,
+        env: dict[str, str] | None = None,
     ) -> None:
         self.module = module
         self.config = config
         self.what = what
         self.log_level = log_level
         self.nice = nice
+        self.env = dict(env or {})  # over this process's environment
         self._proc: subprocess.Popen[str] | None = None
         self._lock = threading.Lock()  # one request in flight: the pipe is a conversation
 
@@ -130,7 +137,7 @@ class StdioChild:
             "--log-level",
             str(self.log_level),
         ]
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **self.env)
         self._proc = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
         )

@@ -71,6 +71,15 @@ STATE_STALE_S = 0.5
 
 #: what runs in the arm process, whatever the kind: the UR driver at the address the kind found
 CHILD_DRIVER = "robot_side.arm.ur_rtde:URArm"
+#: numpy's BLAS pool at one thread (none of its own): the arm process's arithmetic is a few
+#: six-vectors. A pool thread waits for work by spinning, and raised with the process to
+#: SCHED_FIFO it spun 90-120 ms on a core nothing else could take, at every arm process's
+#: start (a reconnect's too), and the robot node's frame loop waited for a CPU meanwhile
+CHILD_ENV = {
+    "OPENBLAS_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+}
 
 
 class ArmProcess(Arm):
@@ -166,7 +175,11 @@ class ArmProcess(Arm):
             realtime_priority=int(getattr(self.config, "realtime_priority", 0)),
         )
         child = StdioChild(
-            "robot_side.arm.process", spec, "arm process", logging.getLogger().getEffectiveLevel()
+            "robot_side.arm.process",
+            spec,
+            "arm process",
+            logging.getLogger().getEffectiveLevel(),
+            env=CHILD_ENV,
         )
         try:
             self.ready_info = child.start_child(START_TIMEOUT_S)
