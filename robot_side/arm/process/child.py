@@ -232,12 +232,10 @@ def main(argv: list[str] | None = None) -> None:
         # holding the interpreter lock must never be preempted by the machine's other work,
         # or the keep-alive waits for the lock as long (measured: 62 ms, with one ordinary
         # thread beside it). New threads inherit this (ur-rtde's, the state writer, the
-        # driver's worker); each sleeps between short turns.
+        # driver's worker); each sleeps between short turns. Threads made before this stay
+        # fair: a BLAS pool's (the node starts this process with none, CHILD_ENV) spin while
+        # they wait for work, which at SCHED_FIFO holds a core.
         got = raise_this_thread(max(1, spec.realtime_priority - 1), SAFETY_THREAD_NICE)
-        if got.realtime:  # and the threads made before this (numpy's BLAS pool at import)
-            for tid in map(int, os.listdir("/proc/self/task")):
-                with contextlib.suppress(OSError):
-                    os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(got.level))
         log.info("arm process %d at %s", os.getpid(), got.describe())
     _warm_up()
     view = StateView(spec.state_file)
