@@ -16,6 +16,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -59,6 +60,20 @@ def _fifo_granted() -> bool:
     return got[0].realtime
 
 
+def _unnamed_realtime_threads(pid: int) -> list[int]:
+    """The arm process's threads at a real-time policy that are neither its main thread nor
+    one it named for its duties (a library's pool thread, which may spin while it waits)."""
+    out = []
+    for tid in map(int, os.listdir(f"/proc/{pid}/task")):
+        with contextlib.suppress(OSError):
+            stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+            comm = stat[stat.index("(") + 1 : stat.rindex(")")]
+            policy = int(stat[stat.rindex(")") + 2 :].split()[38])
+            if policy != os.SCHED_OTHER and tid != pid and comm == "python":
+                out.append(tid)
+    return out
+
+
 def test_a_period_histogram_gives_the_percentiles_of_its_wakes():
     stats = PeriodStats(0.02)
     t = 0.0
@@ -86,6 +101,9 @@ def test_the_keep_alive_runs_in_the_arm_process_on_time_and_says_how():
         assert summary["p50_ms"] == pytest.approx(20.0, abs=1.0)
         live = arm.live_readings()  # from shared memory: the pose, and the keep-alive's timing
         assert {"arm_x", "arm_speed_m_s", "arm_keepalive_p99_ms"} <= set(live)
+        # no thread it did not start for its duties runs real-time (numpy's BLAS pool thread
+        # did: it spins while it waits for work, and held a core at every start)
+        assert _unnamed_realtime_threads(arm.pid) == []
     finally:
         arm.disconnect()
     assert arm.pid is None
