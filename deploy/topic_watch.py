@@ -94,12 +94,11 @@ class TopicWatch:
         # the newest run's messages only: a restarted robot counts from 1 again
         run = [a for a in recent if a.session == recent[-1].session]
         span = max(a.t_send_ns for a in run) - min(a.t_send_ns for a in run)
-        seqs = max(a.seq for a in run) - min(a.seq for a in run)
+        first, last = min(a.seq for a in run), max(a.seq for a in run)
         if len(run) >= 2 and span > 0:
             out["rate_hz"] = (len(run) - 1) * 1e9 / span
-            out["sent_hz"] = seqs * 1e9 / span
-            out["seq_first"] = min(a.seq for a in run)
-            out["seq_last"] = max(a.seq for a in run)
+            out["sent_hz"] = (last - first) * 1e9 / span
+            out["seq_first"], out["seq_last"] = first, last
         return out
 
 

@@ -25,6 +25,17 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+#: numpy's BLAS and OpenMP pools at one thread (none of their own), for a child's environment
+#: (they read it once, at numpy's import). A pool thread waits for work by spinning: in a
+#: process raised to SCHED_FIFO that holds a core (the arm process), and beside a benchmark's
+#: timed work it is noise
+ONE_THREAD_POOLS = {
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+}
+
 
 @dataclass(frozen=True)
 class Scheduling:

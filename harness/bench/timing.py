@@ -19,16 +19,13 @@ from typing import Any
 
 import numpy as np
 
+from common.process.realtime import ONE_THREAD_POOLS
+
 log = logging.getLogger(__name__)
 
 #: environment that keeps BLAS and OpenMP pools at one thread; must be set
 #: before numpy (or torch) is first imported to take effect
-THREAD_ENV = {
-    "OMP_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "OPENBLAS_NUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-}
+THREAD_ENV = ONE_THREAD_POOLS
 
 
 #: thread variables this process set itself (not the user): child processes

@@ -43,6 +43,7 @@ from common.errors import (
     DeviceNotConnectedError,
     DeviceTimeoutError,
 )
+from common.process.realtime import ONE_THREAD_POOLS
 from robot_side.arm.base import Arm, as_vector6, turn_angle
 from robot_side.arm.process.child import ArmProcessSpec
 from robot_side.arm.process.dashboard_stop import press_stop
@@ -71,15 +72,6 @@ STATE_STALE_S = 0.5
 
 #: what runs in the arm process, whatever the kind: the UR driver at the address the kind found
 CHILD_DRIVER = "robot_side.arm.ur_rtde:URArm"
-#: numpy's BLAS pool at one thread (none of its own): the arm process's arithmetic is a few
-#: six-vectors. A pool thread waits for work by spinning, and raised with the process to
-#: SCHED_FIFO it spun 90-120 ms on a core nothing else could take, at every arm process's
-#: start (a reconnect's too), and the robot node's frame loop waited for a CPU meanwhile
-CHILD_ENV = {
-    "OPENBLAS_NUM_THREADS": "1",
-    "OMP_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-}
 
 
 class ArmProcess(Arm):
@@ -179,7 +171,7 @@ class ArmProcess(Arm):
             spec,
             "arm process",
             logging.getLogger().getEffectiveLevel(),
-            env=CHILD_ENV,
+            env=ONE_THREAD_POOLS,  # no BLAS pool thread: child.py says why
         )
         try:
             self.ready_info = child.start_child(START_TIMEOUT_S)

@@ -233,8 +233,10 @@ def main(argv: list[str] | None = None) -> None:
         # or the keep-alive waits for the lock as long (measured: 62 ms, with one ordinary
         # thread beside it). New threads inherit this (ur-rtde's, the state writer, the
         # driver's worker); each sleeps between short turns. Threads made before this stay
-        # fair: a BLAS pool's (the node starts this process with none, CHILD_ENV) spin while
-        # they wait for work, which at SCHED_FIFO holds a core.
+        # fair. A BLAS pool's spin while they wait for work: raised with this process, one
+        # spun 90-120 ms on a core nothing else could take at every start (a reconnect's too),
+        # and the robot node's frame loop waited for a CPU. The node starts this process with
+        # none (ONE_THREAD_POOLS): its arithmetic is a few six-vectors.
         got = raise_this_thread(max(1, spec.realtime_priority - 1), SAFETY_THREAD_NICE)
         log.info("arm process %d at %s", os.getpid(), got.describe())
     _warm_up()
