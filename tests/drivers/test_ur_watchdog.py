@@ -174,6 +174,42 @@ def test_the_keep_alive_kicks_until_a_disconnects_stop_is_on_the_wire(
     assert not _program_running(receive), "stopScript did not end the program"
 
 
+def test_a_disconnects_own_end_of_the_script_is_not_reported_as_a_trip(
+    arm, sim, receive, monkeypatch, caplog
+):
+    """The arm process's state writer asks ``needs_reconnect`` every 50 ms, also while a
+    disconnect ends the script: the stopped script it then sees is this process's own doing,
+    not a watchdog trip (a demo's shutdown logged one). A PC slow to close its receive
+    interface after stopScript, as a busy one is, leaves the stop in view for 0.2 s here."""
+    close = arm.receive.close
+
+    def slow_close():
+        time.sleep(0.2)
+        return close()
+
+    monkeypatch.setattr(arm.receive, "close", slow_close)
+    polled = threading.Event()
+    done = threading.Event()
+
+    def poll() -> None:
+        while not done.is_set():
+            if arm.is_connected:
+                arm.needs_reconnect  # noqa: B018 - the state writer's question
+                polled.set()
+            time.sleep(0.002)
+
+    poller = threading.Thread(target=poll, daemon=True)
+    poller.start()
+    assert polled.wait(2.0)
+    with caplog.at_level("WARNING"):
+        arm.disconnect()
+    done.set()
+    poller.join(1.0)
+    assert not _program_running(receive), "stopScript did not end the program"
+    trips = [r.getMessage() for r in caplog.records if "stopped with the safety mode" in r.message]
+    assert not trips, f"the disconnect's own stopScript was reported as a trip: {trips}"
+
+
 def test_the_threads_that_stop_and_kick_run_at_the_robot_nodes_priority(arm):
     """A driver in a process at ordinary priority (a test, a tool) still kicks on a busy machine."""
     names = ("URArm-deadman", "URArm-keepalive", f"urarm-ctrl-{arm.config.host}")

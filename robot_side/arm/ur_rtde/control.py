@@ -92,6 +92,8 @@ class ControlLine:
         self.broken: str | None = None
         #: why the control script no longer runs (keep_alive noticed it); None: it runs
         self.program_lost: str | None = None
+        #: this process is ending the control script itself (disconnect): its stop is no trip
+        self.ending_script = False
         #: held by the one call on the wire: a kick must not interrupt a command's handshake
         self.wire = threading.Lock()
         #: controller time the watchdog was armed at; None: nobody counts our silences
@@ -111,6 +113,7 @@ class ControlLine:
         self.ctrl = ctrl
         self.receiver = receiver or ControlReceiver()
         self.broken = self.program_lost = None
+        self.ending_script = False
         self._worker = ControlWorker(f"urarm-ctrl-{self.config.host}")
 
     def close(self) -> Any:

@@ -156,6 +156,7 @@ class URArm(Arm):
                 self._stop_deadman()
             with self._lock:
                 if line.program_lost is None:
+                    line.ending_script = True  # the script's end that follows is ours
                     try:
                         line.call("stopScript", line.ctrl.stopScript)
                     except DeviceError as e:

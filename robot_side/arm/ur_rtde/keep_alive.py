@@ -148,8 +148,8 @@ class ControllerWatchdog:
         check, which names it.
         """
         line = self.line
-        if line.program_lost is not None:
-            return
+        if line.program_lost is not None or line.ending_script:
+            return  # known already, or this process is ending the script (disconnect)
         try:
             if not refused and int(recv.getRobotStatus()) & 2:
                 return  # the script runs: every turn but the one that matters, in one read
