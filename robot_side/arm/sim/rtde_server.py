@@ -18,6 +18,7 @@ import struct
 import threading
 from typing import Any
 
+from common.clocks.clock import now_s
 from common.errors import DeviceError
 from robot_side.arm.sim import rtde_wire as w
 from robot_side.arm.sim.commands import STATUS_READY
@@ -50,11 +51,12 @@ class RTDEConnection:
         self.output_id = 0
         self.input_id = 0
         self.output: tuple[int, list[str], list[str], struct.Struct] | None = None
-        self.output_divider = 1
+        self.output_period_s = 0.0  # one package per this many seconds (its frequency)
+        self.next_package_s = 0.0  # monotonic s: when its next package is due
+        self.last_package_s: float | None = None  # when its last package went out
         self.inputs: dict[int, tuple[list[str], list[str], struct.Struct]] = {}
         self.started = False
         self.alive = True
-        self.ticks = 0
         #: bytes this connection's reader took off the socket and has not applied yet
         self.in_hand = False
         #: where the output recipe carries the script's state (None: it does not), and its value
@@ -186,7 +188,7 @@ class RTDEServer:
         conn.output = (conn.output_id, names, types, w.recipe_struct(types))
         conn.status_at = names.index(SCRIPT_STATE) if SCRIPT_STATE in names else None
         freq = freq if freq > 0 else self.config.tick_hz
-        conn.output_divider = max(1, round(self.config.tick_hz / freq))
+        conn.output_period_s = 1.0 / min(freq, self.config.tick_hz)
         self._reply(conn, mtype, bytes([conn.output_id]) + ",".join(types).encode())
 
     def _setup_inputs(self, conn: RTDEConnection, payload: bytes) -> None:
@@ -221,15 +223,55 @@ class RTDEServer:
     # -- data packages -------------------------------------------------------------
 
     def due(self) -> list[RTDEConnection]:
-        """The connections a package is due to on this tick (each at its own rate: every
-        ``output_divider`` ticks); call once per tick with the controller's lock held."""
+        """The connections a package is due to on this tick, each at its own frequency in
+        wall time; call once per tick with the controller's lock held.
+
+        By the clock, not by counting ticks: a controller sends at its rate whatever happens,
+        and a tick this process ran late (a loaded machine) sends what is due at once. Counted
+        in ticks, late ticks made every package of a stop's handshake late too, and the client
+        waiting on them looked silent to the watchdog.
+        """
+        now = now_s()
         due = []
         for c in self.conns:
-            if c.alive and c.started and c.output:
-                c.ticks += 1
-                if c.ticks % c.output_divider == 0:
-                    due.append(c)
+            if c.alive and c.started and c.output and now >= c.next_package_s:
+                due.append(c)
+                c.next_package_s += c.output_period_s
+                if c.next_package_s <= now:  # behind by a period or more: from now on
+                    c.next_package_s = now + c.output_period_s
         return due
+
+    def status_owed(self) -> bool:
+        """A client that writes inputs has not yet been sent the script's state as it is now.
+
+        ur-rtde sends nothing, kicks included, until it reads the state it waits
+        for ("ready", "done"); a controller publishes a change within a cycle. Here a
+        starved cycle can publish it late, and the client's silence meanwhile is
+        this controller's own. A hung script's state does not change, so a client
+        waiting on one is still silent.
+        """
+        state = self.script.out_int.get(0, 0)
+        return any(
+            c.status_sent is not None and c.status_sent != state
+            for c in self.conns
+            if c.alive and c.inputs and c.status_at is not None
+        )
+
+    def writer_summary(self) -> str:
+        """The command in the register, the script's state, and what the clients that write
+        inputs last got from this controller (a trip's log)."""
+        now, script = now_s(), self.script
+        head = (
+            f"command register {script.inputs.get('input_int_register_0', 0)}, script state "
+            f"{script.out_int.get(0, 0)}"
+        )
+        parts = [
+            f"{c.peer}: last package {(now - c.last_package_s) * 1000:.0f} ms ago, script "
+            f"state sent {c.status_sent}"
+            for c in self.conns
+            if c.alive and c.inputs and c.last_package_s is not None
+        ]
+        return "; ".join([head, *parts])
 
     def writer_connected(self) -> bool:
         """A client that writes inputs is still connected (its socket not closed by its end)."""
@@ -267,6 +309,7 @@ class RTDEServer:
         try:
             conn.send(w.pack_message(w.DATA_PACKAGE, bytes([rid]) + st.pack(*w.flatten(values))))
             self.data_packages_sent += 1
+            conn.last_package_s = now_s()
         except (OSError, struct.error) as e:
             log.debug("RTDE data to %s failed: %s", conn.peer, e)
             conn.close()

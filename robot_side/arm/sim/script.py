@@ -229,26 +229,25 @@ class ControlScript:
         log.info("control script stopped: %s", why)
 
     def judge_watchdog(
-        self, tick_s: float, input_unread: Callable[[], bool], at_most_s: float = math.inf
-    ) -> None:
-        """``rtde_set_watchdog(..., "stop")``: no update for 1/f s stops the program.
-
-        ``tick_s`` more of silence, the whole counted no longer than ``at_most_s``;
-        ``input_unread`` says whether an update has arrived that is not applied yet.
-        """
+        self, tick_s: float, excused: Callable[[], bool], at_most_s: float = math.inf,
+        describe: Callable[[], str] = str,
+    ) -> None:  # fmt: skip
+        """``rtde_set_watchdog(..., "stop")``: no update for 1/f s stops the program. ``tick_s``
+        more of silence, in all at most ``at_most_s``; none while ``excused`` (our own lag)."""
         if self.watchdog_hz is None or not self.program_running or self._unseen_command:
             return  # off, or the client waits for this controller to read its command
         self.watchdog_silent_s = min(self.watchdog_silent_s + tick_s, max(0.0, at_most_s))
         silent = self.watchdog_silent_s
-        if silent <= 1.0 / self.watchdog_hz or input_unread():
+        if silent <= 1.0 / self.watchdog_hz or excused():
             return
         self.watchdog_trips += 1
         self.watchdog_tripped_at_s = now_s()
         log.warning(
-            "RTDE watchdog: no update of %s for %.0f ms (minimum %.3g Hz)",
+            "RTDE watchdog: no update of %s for %.0f ms (minimum %.3g Hz; %s)",
             WATCHDOG_VARIABLE,
             silent * 1000,
             self.watchdog_hz,
+            describe(),
         )
         self.stop_program("the RTDE input watchdog tripped")
 

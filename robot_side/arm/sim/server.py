@@ -273,7 +273,9 @@ class URSimulator(Controller):
                         silent = max(0.0, min(elapsed, t - script.watchdog_update_s))
                         if silent > MAX_SILENCE_TICK_S and self.rtde.writer_connected():
                             silent = MAX_SILENCE_TICK_S  # our stall, not the client's silence
-                        script.judge_watchdog(silent, self.rtde.input_unread)
+                        script.judge_watchdog(
+                            silent, self._silence_is_ours, describe=self.rtde.writer_summary
+                        )
                     script.cycle()
                 except Exception:
                     self._runtime_error()
@@ -314,13 +316,23 @@ class URSimulator(Controller):
                 try:
                     self.script.judge_watchdog(
                         min(step, MAX_SILENCE_TICK_S),
-                        self.rtde.input_unread,
+                        self._silence_is_ours,
                         at_most_s=now_s() - self.script.watchdog_update_s,
+                        describe=self.rtde.writer_summary,
                     )
                 except Exception:
                     self._runtime_error()
                 self._step_arm(step)
                 dt_s -= step
+
+    def _silence_is_ours(self) -> bool:
+        """The client's silence is this simulator's doing, not the client's: an update arrived
+        that is not applied yet, or the client waits for a script state this simulator set and
+        has not sent (unless its stream is frozen on purpose: then the client hears nothing,
+        as behind a held-back network). Call with ``lock`` held."""
+        if self.rtde.input_unread():
+            return True
+        return not self._frozen.is_set() and self.rtde.status_owed()
 
     def _step_arm(self, dt: float) -> None:
         """One integration step of the arm; call with ``lock`` held."""
