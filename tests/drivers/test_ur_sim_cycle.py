@@ -10,12 +10,16 @@ purpose, a held-back network).
 
 from __future__ import annotations
 
+import os
 import socket
 import struct
+import threading
+from pathlib import Path
 
 import pytest
 
-from robot_side.arm.sim import rtde_server
+from common.process.realtime import raise_this_thread
+from robot_side.arm.sim import URSimProcess, rtde_server
 from robot_side.arm.sim.commands import STATUS_DONE, STATUS_READY
 from robot_side.arm.sim.rtde_server import RTDEConnection
 from robot_side.arm.sim.server import URSimConfig, URSimulator
@@ -74,3 +78,28 @@ def test_a_state_set_and_not_yet_sent_excuses_the_silence_unless_frozen(rig):
     sim.freeze(False)
     sim.script.out_int[0] = conn.status_sent  # a hung script: its state does not change
     assert not sim._silence_is_ours()
+
+
+def _fifo_granted() -> bool:
+    got: list = []
+    t = threading.Thread(target=lambda: got.append(raise_this_thread(1, 0)))
+    t.start()
+    t.join()
+    return got[0].realtime
+
+
+@pytest.mark.slow
+def test_the_simulator_process_runs_every_thread_real_time_where_granted():
+    """A controller never waits for the PC's CPU: where SCHED_FIFO is granted every thread of
+    the simulator's process has it from its start (the cycle, the servers, the pipe), and
+    numpy's pool, whose threads spin while they wait, is not there to hold a core."""
+    with URSimProcess() as sim:
+        policies = {}
+        for tid in os.listdir(f"/proc/{sim.pid}/task"):
+            stat = Path(f"/proc/{sim.pid}/task/{tid}/stat").read_text()
+            comm = stat[stat.index("(") + 1 : stat.rindex(")")]
+            policies[f"{comm}#{tid}"] = int(stat[stat.rindex(")") + 2 :].split()[38])
+        env = Path(f"/proc/{sim.pid}/environ").read_bytes().split(b"\0")
+    want = os.SCHED_FIFO if _fifo_granted() else os.SCHED_OTHER
+    assert set(policies.values()) == {want}, policies
+    assert b"OPENBLAS_NUM_THREADS=1" in env

@@ -15,6 +15,7 @@ from typing import IO, Any
 import numpy as np
 
 from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
+from common.process.realtime import ONE_THREAD_POOLS
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 from robot_side.devices.stdio_child import StdioChild
 from robot_side.devices.stdio_child import serve_stdio as serve_child
@@ -55,6 +56,7 @@ class URSimProcess(StdioChild):
             "UR simulator",
             log_level,
             nice=SIMULATED_HARDWARE_NICE,
+            env=ONE_THREAD_POOLS,  # real-time where granted (__main__): no pool may spin
         )
         self.host: str | None = None
 
