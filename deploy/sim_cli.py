@@ -114,6 +114,10 @@ def run(args: argparse.Namespace) -> int:
 
     # a device never waits for the PC's CPU: where it may, the simulator outranks ordinary work
     set_niceness(SIMULATED_HARDWARE_NICE)
+    if args.device == "ur":  # a controller is hard real time: SCHED_FIFO where granted
+        from robot_side.arm.sim.controller import raise_as_controller
+
+        raise_as_controller()
     module_name, cls_name, config_name = SIMULATORS[args.device]
     module = importlib.import_module(module_name)
     data = load_toml(args.config) if args.config else {}

@@ -14,18 +14,10 @@ import logging
 import sys
 
 from common.config.typed import from_dict
-from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
 from common.logs import configure as configure_logging
-from common.process.realtime import raise_this_thread
 from common.process.signals import stop_on_signals
+from robot_side.arm.sim.controller import raise_as_controller
 from robot_side.arm.sim.server import URSimConfig, URSimulator
-
-#: SCHED_FIFO priority of this process's threads where granted: a controller is hard real
-#: time and never waits for the PC's CPU. Below the arm process's (19, its keep-alive 20), as
-#: the real one is on a machine of its own. At the robot node's niceness the simulator, starved
-#: beside a loaded test lane, stopped streaming for 200 ms and held a client's stop handshake.
-#: Its numpy pool must not spin at this priority: URSimProcess starts it with ONE_THREAD_POOLS.
-CONTROLLER_FIFO_PRIORITY = 10
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -43,9 +35,7 @@ def main(argv: list[str] | None = None) -> None:
         else (logging.DEBUG if args.verbose else logging.INFO)
     )
     configure_logging(level, "%(asctime)s ursim %(name)s: %(message)s")
-    # before any thread starts: each inherits it
-    got = raise_this_thread(CONTROLLER_FIFO_PRIORITY, SIMULATED_HARDWARE_NICE)
-    logging.getLogger(__name__).debug("UR simulator at %s", got.describe())
+    raise_as_controller()  # before any thread starts: each inherits it
     if args.config_json:
         config = from_dict(URSimConfig, json.loads(args.config_json), where="sim")
     else:
