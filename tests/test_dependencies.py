@@ -35,6 +35,7 @@ BASE = "(base)"
 IMPORT_TO_DIST = {
     "cv2": "opencv-python",
     "google": "protobuf",  # google.protobuf
+    "nacl": "pynacl",
     "rtde_control": "ur-rtde",
     "rtde_receive": "ur-rtde",
     "scservo_sdk": "feetech-servo-sdk",

@@ -68,7 +68,7 @@ STAGES: dict[str, str] = {
     "servo_packet": "limits check + the goal sync-write packet of 6 servos (SyncWritePacket, "
     "the bytes of scservo_sdk's GroupSyncWrite)",
     "encode_signed": "instead of encode, with the robot's link.signing_key_file: the built "
-    "Stimulus packed and signed (Ed25519, cryptography); a pass of its own over the same "
+    "Stimulus packed and signed (Ed25519, libsodium); a pass of its own over the same "
     "stimuli",
     "decode_verified": "instead of decode, with the operator's link.robot_key_file: the "
     "signed bytes decoded and their signature verified; the same pass",
