@@ -43,7 +43,8 @@ PACKAGES = (
     "foxglove_schemas_protobuf",
     "mcap.reader",
     "jsonschema",
-    "cryptography.hazmat.primitives.asymmetric.ed25519",
+    "nacl.signing",
+    "cryptography.x509",  # the fabric's certificates
     "websockets.sync.client",
     "zmq",
     "msgpack",
