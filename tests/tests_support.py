@@ -400,6 +400,20 @@ def listening_sockets(pid: int) -> list[tuple[str, str, int]]:
     return found
 
 
+def fifo_granted() -> bool:
+    """Whether this process may run a thread at SCHED_FIFO (root, LimitRTPRIO=): tried on a
+    thread of its own, which then ends."""
+    import threading
+
+    from common.process.realtime import raise_this_thread
+
+    got: list = []
+    t = threading.Thread(target=lambda: got.append(raise_this_thread(1, 0)))
+    t.start()
+    t.join()
+    return got[0].realtime
+
+
 def wait_until(cond: Callable[[], bool], timeout_s: float, period_s: float = 0.002) -> bool:
     """Poll ``cond`` until it holds or ``timeout_s`` passes; its last answer."""
     deadline = time.monotonic() + timeout_s

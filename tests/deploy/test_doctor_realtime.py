@@ -4,21 +4,11 @@ from __future__ import annotations
 
 import os
 
+from tests_support import fifo_granted
+
 from common.devices.preflight import WARN
 from deploy.doctor.report import Report
 from deploy.doctor.system import check_realtime
-
-
-def _granted() -> bool:
-    import threading
-
-    from common.process.realtime import raise_this_thread
-
-    got: list = []
-    t = threading.Thread(target=lambda: got.append(raise_this_thread(1, 0)))
-    t.start()
-    t.join()
-    return got[0].realtime
 
 
 def test_the_robot_is_told_what_its_keep_alive_gets_and_its_measured_period():
@@ -26,7 +16,7 @@ def test_the_robot_is_told_what_its_keep_alive_gets_and_its_measured_period():
     check_realtime(report, None, "robot")
     check = report.find("real-time scheduling")
     assert "woke with period p99" in check.detail and "max" in check.detail
-    if _granted():
+    if fifo_granted():
         assert "SCHED_FIFO priority 20" in check.detail
     else:
         assert check.status == WARN and "LimitRTPRIO" in check.fix

@@ -20,10 +20,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tests_support import fifo_granted
 
 from common.devices.lifecycle import build_device
 from common.errors import DeviceError
-from common.process.realtime import PeriodStats, raise_this_thread
+from common.process.realtime import PeriodStats
 from robot_side.arm import KINDS
 from robot_side.arm.process import ArmProcess, dashboard_stop
 from robot_side.arm.sim import URSimConfig, URSimProcess
@@ -48,16 +49,6 @@ def _wait(cond, timeout_s: float) -> float | None:
             return time.monotonic() - t0
         time.sleep(0.002)
     return None
-
-
-def _fifo_granted() -> bool:
-    import threading
-
-    got: list = []
-    t = threading.Thread(target=lambda: got.append(raise_this_thread(1, 0)))
-    t.start()
-    t.join()
-    return got[0].realtime
 
 
 def _unnamed_realtime_threads(pid: int) -> list[int]:
@@ -96,7 +87,7 @@ def test_the_keep_alive_runs_in_the_arm_process_on_time_and_says_how():
         time.sleep(1.5)
         summary = arm.keep_alive_summary()
         # what the scheduler gave it, as the doctor would see it on this machine
-        assert summary["realtime"] == float(_fifo_granted())
+        assert summary["realtime"] == float(fifo_granted())
         assert summary["count"] >= 40
         assert summary["p50_ms"] == pytest.approx(20.0, abs=1.0)
         live = arm.live_readings()  # from shared memory: the pose, and the keep-alive's timing

@@ -13,12 +13,11 @@ from __future__ import annotations
 import os
 import socket
 import struct
-import threading
 from pathlib import Path
 
 import pytest
+from tests_support import fifo_granted
 
-from common.process.realtime import raise_this_thread
 from robot_side.arm.sim import URSimProcess, rtde_server
 from robot_side.arm.sim.commands import STATUS_DONE, STATUS_READY
 from robot_side.arm.sim.rtde_server import RTDEConnection
@@ -80,14 +79,6 @@ def test_a_state_set_and_not_yet_sent_excuses_the_silence_unless_frozen(rig):
     assert not sim._silence_is_ours()
 
 
-def _fifo_granted() -> bool:
-    got: list = []
-    t = threading.Thread(target=lambda: got.append(raise_this_thread(1, 0)))
-    t.start()
-    t.join()
-    return got[0].realtime
-
-
 @pytest.mark.slow
 def test_the_simulator_process_runs_every_thread_real_time_where_granted():
     """A controller never waits for the PC's CPU: where SCHED_FIFO is granted every thread of
@@ -100,6 +91,6 @@ def test_the_simulator_process_runs_every_thread_real_time_where_granted():
             comm = stat[stat.index("(") + 1 : stat.rindex(")")]
             policies[f"{comm}#{tid}"] = int(stat[stat.rindex(")") + 2 :].split()[38])
         env = Path(f"/proc/{sim.pid}/environ").read_bytes().split(b"\0")
-    want = os.SCHED_FIFO if _fifo_granted() else os.SCHED_OTHER
+    want = os.SCHED_FIFO if fifo_granted() else os.SCHED_OTHER
     assert set(policies.values()) == {want}, policies
     assert b"OPENBLAS_NUM_THREADS=1" in env
