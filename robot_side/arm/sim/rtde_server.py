@@ -43,6 +43,22 @@ def _names(payload: bytes) -> list[str]:
     return [n for n in payload.decode(errors="replace").split(",") if n]
 
 
+def register_value(script: ControlScript, name: str, rtde_type: str) -> Any:
+    """A register's value as a data package carries it (zeros for what is not set)."""
+    if name.startswith("output_int_register_"):
+        return script.out_int.get(int(name.rsplit("_", 1)[1]), 0)
+    if name.startswith("output_double_register_"):
+        return script.out_double.get(int(name.rsplit("_", 1)[1]), 0.0)
+    if name in script.inputs:
+        return script.inputs[name]
+    fmt = w.TYPE_FORMATS[rtde_type]
+    if fmt.startswith("6"):
+        return [0.0 if fmt.endswith("d") else 0] * 6
+    if fmt.startswith("3"):
+        return [0.0] * 3
+    return False if fmt == "?" else (0.0 if fmt == "d" else 0)
+
+
 class RTDEConnection:
     def __init__(self, sock: socket.socket, peer: Any) -> None:
         self.sock = sock
@@ -304,7 +320,7 @@ class RTDEServer:
         for n, t in zip(names, types, strict=True):
             v = state.get(n)
             if v is None:
-                v = self.script.register(n, t)
+                v = register_value(self.script, n, t)
             values.append(v)
         try:
             conn.send(w.pack_message(w.DATA_PACKAGE, bytes([rid]) + st.pack(*w.flatten(values))))

@@ -24,7 +24,6 @@ from typing import Any
 import numpy as np
 
 from common.clocks.clock import now_s
-from robot_side.arm.sim import rtde_wire as w
 from robot_side.arm.sim.commands import (
     CMD_JOG_START,
     CMD_JOG_STOP,
@@ -197,21 +196,6 @@ class ControlScript:
             self.watchdog_silent_s = 0.0
             self.watchdog_update_s = now_s()
 
-    def register(self, name: str, rtde_type: str) -> Any:
-        """A register's value as a data package carries it (zeros for what is not set)."""
-        if name.startswith("output_int_register_"):
-            return self.out_int.get(int(name.rsplit("_", 1)[1]), 0)
-        if name.startswith("output_double_register_"):
-            return self.out_double.get(int(name.rsplit("_", 1)[1]), 0.0)
-        if name in self.inputs:
-            return self.inputs[name]
-        fmt = w.TYPE_FORMATS[rtde_type]
-        if fmt.startswith("6"):
-            return [0.0 if fmt.endswith("d") else 0] * 6
-        if fmt.startswith("3"):
-            return [0.0] * 3
-        return False if fmt == "?" else (0.0 if fmt == "d" else 0)
-
     # -- the program ---------------------------------------------------------------
 
     def halt(self) -> None:
@@ -229,11 +213,18 @@ class ControlScript:
         log.info("control script stopped: %s", why)
 
     def judge_watchdog(
-        self, tick_s: float, excused: Callable[[], bool], at_most_s: float = math.inf,
+        self,
+        tick_s: float,
+        excused: Callable[[], bool],
+        at_most_s: float = math.inf,
         describe: Callable[[], str] = str,
-    ) -> None:  # fmt: skip
-        """``rtde_set_watchdog(..., "stop")``: no update for 1/f s stops the program. ``tick_s``
-        more of silence, in all at most ``at_most_s``; none while ``excused`` (our own lag)."""
+    ) -> None:
+        """``rtde_set_watchdog(..., "stop")``: no update for 1/f s stops the program.
+
+        ``tick_s`` more of silence, the whole counted no longer than ``at_most_s``;
+        none while ``excused`` says the silence is the simulator's own lag (an update
+        not yet applied, a state owed to the client); ``describe``: for the trip's log.
+        """
         if self.watchdog_hz is None or not self.program_running or self._unseen_command:
             return  # off, or the client waits for this controller to read its command
         self.watchdog_silent_s = min(self.watchdog_silent_s + tick_s, max(0.0, at_most_s))
