@@ -110,16 +110,18 @@ def run(args: argparse.Namespace) -> int:
     import importlib
 
     from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
+    from common.process.realtime import raise_this_thread
     from deploy.units.policy import set_niceness
 
     # a device never waits for the PC's CPU: where it may, the simulator outranks ordinary work
     set_niceness(SIMULATED_HARDWARE_NICE)
-    if args.device == "ur":  # a controller is hard real time: SCHED_FIFO where granted
-        from robot_side.arm.sim.controller import raise_as_controller
-
-        raise_as_controller()
     module_name, cls_name, config_name = SIMULATORS[args.device]
     module = importlib.import_module(module_name)
+    # one that stands for hard real-time hardware says so (the UR controller): SCHED_FIFO
+    # where granted, for every thread it starts from here on
+    priority = getattr(getattr(module, cls_name), "REALTIME_PRIORITY", 0)
+    if priority:
+        raise_this_thread(priority, SIMULATED_HARDWARE_NICE)
     data = load_toml(args.config) if args.config else {}
     config = from_dict(getattr(module, config_name), data, where=args.device)
     stop = stop_on_signals()

@@ -1,7 +1,8 @@
 """The harness's /proc readers: a process's CPU time, threads, memory, command line, children.
 
-- :func:`cpu_s`, :func:`thread_cpu_s`, :func:`machine_cpu`, :func:`idle_share`,
-  :func:`rss_mb`, :func:`cmdline`, :func:`children_of`: Linux /proc readers.
+- :func:`cpu_s`, :func:`thread_cpu_s`, :func:`thread_policies`, :func:`machine_cpu`,
+  :func:`idle_share`, :func:`rss_mb`, :func:`cmdline`, :func:`children_of`: Linux /proc
+  readers.
 
 Starting and stopping a process is the product's own (``deploy.units``: one
 spawn, one stop, one readiness), which the harness uses as the demo does.
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 _TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
@@ -50,26 +52,35 @@ def process_cpu_s(pid: int) -> float:
     return seconds
 
 
+def _thread_stats(pid: int) -> Iterator[tuple[str, str, list[str]]]:
+    """Each thread of a process that still runs: its key ("main", or its OS name + "#" + id),
+    its OS name, and its stat fields after the name."""
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return
+    for tid in tids:
+        text = _read(f"/proc/{pid}/task/{tid}/stat")
+        if text is None:
+            continue  # the thread ended
+        name = text[text.index("(") + 1 : text.rindex(")")]
+        key = "main" if tid == str(pid) else f"{name}#{tid}"
+        yield key, name, text[text.rindex(")") + 2 :].split()
+
+
 def thread_cpu_s(pid: int) -> dict[str, float]:
     """CPU seconds per thread of a process, keyed "main", or by the thread's OS name + id.
 
     ZeroMQ names its I/O threads (ZMQbg/...); Python threads all carry the
     interpreter's name, so they are told apart by id only.
     """
-    out: dict[str, float] = {}
-    try:
-        tids = os.listdir(f"/proc/{pid}/task")
-    except OSError:
-        return out
-    for tid in tids:
-        text = _read(f"/proc/{pid}/task/{tid}/stat")
-        if text is None:
-            continue  # the thread ended
-        name = text[text.index("(") + 1 : text.rindex(")")]
-        fields = text[text.rindex(")") + 2 :].split()
-        key = "main" if tid == str(pid) else f"{name}#{tid}"
-        out[key] = (int(fields[11]) + int(fields[12])) * _TICK_S
-    return out
+    return {key: (int(f[11]) + int(f[12])) * _TICK_S for key, _, f in _thread_stats(pid)}
+
+
+def thread_policies(pid: int) -> dict[str, int]:
+    """Each thread's scheduling policy (``os.SCHED_OTHER``, ``os.SCHED_FIFO`` ...), keyed as
+    :func:`thread_cpu_s` keys them."""
+    return {key: int(f[38]) for key, _, f in _thread_stats(pid)}  # stat field 41
 
 
 def raise_threads(pid: int, nice: int) -> dict[int, int]:

@@ -6,13 +6,13 @@ Each downsizing method is crossed with both rendering orders and three
 sources of the mask: the true pattern (the renderer alone), the
 classifier's prediction (what the robot node does) and none (direct
 rendering, the paper's baseline). The three methods are timed through
-``render_contact``, the node's own path (since d31f386: the pad mean and
+``render_contact``, the node's own path (the pad mean and
 both weight matrices as one (9, 200) product, then mask and peak over nine
 numbers in plain Python).
 
 Two more variants, exact rewrites of the antialiased default:
 
-- ``two_products``: the path before d31f386, contact map then ``Wy @ X @
+- ``two_products``: the node's earlier path, contact map then ``Wy @ X @
   Wx.T`` then mask and peak in NumPy; kept here (not in the node's code) to
   show what the fusion saved, and as the tests' independent oracle;
 - ``fused_masked``: only the rows of the (9, 200) matrix the mask keeps.
@@ -420,7 +420,7 @@ def markdown(results: Results) -> list[str]:
     aa = {r["order"]: r.get("match_true") for r in s["rows"] if r["variant"] == "antialiased"}
     out += [
         "",
-        "`two_products` is the path before commit d31f386 (contact map, then `Wy @ X @ "
+        "`two_products` is the node's earlier path (contact map, then `Wy @ X @ "
         "Wx.T`, then mask and peak in NumPy); the node now folds the pad mean and both "
         "weight matrices into one (9 x 200) product. `fused_masked` keeps only the mask's "
         "rows of that matrix (every mask has at most one cell per row, so masking first and "

@@ -31,12 +31,13 @@ from typing import Any
 import numpy as np
 
 from common.clocks.clock import Rate, now_ns
+from common.process.realtime import ONE_THREAD_POOLS
 from common.process.sd_notify import Notifier
 from deploy.units.catalogue import UnitSpec
 from deploy.units.service import Service
 from harness.bench.fmt import num, results_of
 from harness.bench.section import Context, Results, Section, Verdict
-from harness.bench.timing import THREAD_ENV, summarize_ns
+from harness.bench.timing import summarize_ns
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ def _start_peer(argv: list[str], out_path: Path) -> Service:
         PEER,
         argv,
         out_path.with_suffix(".log"),
-        env={**os.environ, **THREAD_ENV},
+        env={**os.environ, **ONE_THREAD_POOLS},
         module="harness.bench.e2e_tcp",
     )
     peer.start()

@@ -53,8 +53,8 @@ STAGES: dict[str, str] = {
     "sanitize_contact": "sanitize_frame + is_contact (the node's prelude)",
     "classification": "predict_one: pattern and confidence of one frame (shipped model, "
     "default backend)",
-    "render": "downsizing + masking: render_cells, the plain path since d31f386 (pad "
-    "mean and 10x10 -> 3x3 as one 9x200 product, then mask and peak over nine numbers)",
+    "render": "downsizing + masking: render_cells, the plain path (pad mean and 10x10 -> "
+    "3x3 as one 9x200 product, then mask and peak over nine numbers)",
     "frame_step": "the node's path in mask mode on the numba classifier: the three stages "
     "above (sanitize, contact, identical-frame test, classify, downsize, mask) as one "
     "compiled call (robot_side/node/compiled_step.py); timed on alternate frames",

@@ -23,11 +23,6 @@ from common.process.realtime import ONE_THREAD_POOLS
 
 log = logging.getLogger(__name__)
 
-#: environment that keeps BLAS and OpenMP pools at one thread; must be set
-#: before numpy (or torch) is first imported to take effect
-THREAD_ENV = ONE_THREAD_POOLS
-
-
 #: thread variables this process set itself (not the user): child processes
 #: that must run as deployed get them removed again
 SET_BY_BENCH: list[str] = []
@@ -35,8 +30,8 @@ _original_affinity: set[int] | None = None
 
 
 def limit_thread_pools() -> None:
-    """Set THREAD_ENV where the user has not; call before numpy is imported."""
-    for key, value in THREAD_ENV.items():
+    """Set ONE_THREAD_POOLS where the user has not; call before numpy (or torch) is imported."""
+    for key, value in ONE_THREAD_POOLS.items():
         if key not in os.environ:
             os.environ[key] = value
             SET_BY_BENCH.append(key)

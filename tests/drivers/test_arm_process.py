@@ -16,7 +16,6 @@ import subprocess
 import sys
 import textwrap
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,6 +24,7 @@ from tests_support import fifo_granted
 from common.devices.lifecycle import build_device
 from common.errors import DeviceError
 from common.process.realtime import PeriodStats
+from harness.processes import thread_policies
 from robot_side.arm import KINDS
 from robot_side.arm.process import ArmProcess, dashboard_stop
 from robot_side.arm.sim import URSimConfig, URSimProcess
@@ -51,18 +51,14 @@ def _wait(cond, timeout_s: float) -> float | None:
     return None
 
 
-def _unnamed_realtime_threads(pid: int) -> list[int]:
+def _unnamed_realtime_threads(pid: int) -> list[str]:
     """The arm process's threads at a real-time policy that are neither its main thread nor
     one it named for its duties (a library's pool thread, which may spin while it waits)."""
-    out = []
-    for tid in map(int, os.listdir(f"/proc/{pid}/task")):
-        with contextlib.suppress(OSError):
-            stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
-            comm = stat[stat.index("(") + 1 : stat.rindex(")")]
-            policy = int(stat[stat.rindex(")") + 2 :].split()[38])
-            if policy != os.SCHED_OTHER and tid != pid and comm == "python":
-                out.append(tid)
-    return out
+    return [
+        key
+        for key, policy in thread_policies(pid).items()
+        if policy != os.SCHED_OTHER and key.startswith("python#")
+    ]
 
 
 def test_a_period_histogram_gives_the_percentiles_of_its_wakes():

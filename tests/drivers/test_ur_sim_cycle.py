@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 from tests_support import fifo_granted
 
+from harness.processes import thread_policies
 from robot_side.arm.sim import URSimProcess, rtde_server
 from robot_side.arm.sim.commands import STATUS_DONE, STATUS_READY
 from robot_side.arm.sim.rtde_server import RTDEConnection
@@ -85,11 +86,7 @@ def test_the_simulator_process_runs_every_thread_real_time_where_granted():
     the simulator's process has it from its start (the cycle, the servers, the pipe), and
     numpy's pool, whose threads spin while they wait, is not there to hold a core."""
     with URSimProcess() as sim:
-        policies = {}
-        for tid in os.listdir(f"/proc/{sim.pid}/task"):
-            stat = Path(f"/proc/{sim.pid}/task/{tid}/stat").read_text()
-            comm = stat[stat.index("(") + 1 : stat.rindex(")")]
-            policies[f"{comm}#{tid}"] = int(stat[stat.rindex(")") + 2 :].split()[38])
+        policies = thread_policies(sim.pid)
         env = Path(f"/proc/{sim.pid}/environ").read_bytes().split(b"\0")
     want = os.SCHED_FIFO if fifo_granted() else os.SCHED_OTHER
     assert set(policies.values()) == {want}, policies

@@ -64,10 +64,6 @@ def _largest_gap(times: list[int]) -> tuple[float, int, int]:
     return float(ts[i + 1] - ts[i]) / 1e9, int(ts[i]), int(ts[i + 1])
 
 
-def _largest_gap_s(times: list[int]) -> float:
-    return _largest_gap(times)[0]
-
-
 class RunDelay:
     """How long the node's frame loop (its main thread) waited for a CPU, sampled from the
     kernel's schedstat every 5 ms: the machine's starvation, which no product can avoid,
@@ -121,7 +117,7 @@ def test_the_arm_moves_again_after_its_controller_comes_back(tmp_path: Path, kil
             assert _hold_jog(op, rig, 10.0) is not None, "the jog never moved the arm"
             t_fault = now_ns()
             # the machine's own: the same node at the same work, the arm connected
-            before_gap = _largest_gap_s(rig.telemetry.sent_times(Stimulus, i0, t_fault))
+            before_gap = _largest_gap(rig.telemetry.sent_times(Stimulus, i0, t_fault))[0]
             host = rig.arm_controller_gone(kill)
             _hold_jog(op, rig, DOWN_S)  # the operator keeps holding the key
             rig.arm_controller_back(host)

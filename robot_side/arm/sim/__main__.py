@@ -14,9 +14,10 @@ import logging
 import sys
 
 from common.config.typed import from_dict
+from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
 from common.logs import configure as configure_logging
+from common.process.realtime import raise_this_thread
 from common.process.signals import stop_on_signals
-from robot_side.arm.sim.controller import raise_as_controller
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 
 
@@ -35,7 +36,8 @@ def main(argv: list[str] | None = None) -> None:
         else (logging.DEBUG if args.verbose else logging.INFO)
     )
     configure_logging(level, "%(asctime)s ursim %(name)s: %(message)s")
-    raise_as_controller()  # before any thread starts: each inherits it
+    # before any thread starts: each inherits it
+    raise_this_thread(URSimulator.REALTIME_PRIORITY, SIMULATED_HARDWARE_NICE)
     if args.config_json:
         config = from_dict(URSimConfig, json.loads(args.config_json), where="sim")
     else:

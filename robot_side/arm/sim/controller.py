@@ -7,7 +7,6 @@ its safety mode and power, and the controller's clock, all under one lock.
 
 from __future__ import annotations
 
-import logging
 import math
 import threading
 from collections import deque
@@ -17,12 +16,8 @@ import numpy as np
 
 from common.clocks.clock import now_s
 from common.config.typed import param
-from common.devices.lifecycle import SIMULATED_HARDWARE_NICE
 from common.errors import ConfigError
-from common.process.realtime import raise_this_thread
 from robot_side.arm.sim.kinematics import HOME_Q, KinematicArm, Mode
-
-log = logging.getLogger(__name__)
 
 RTDE_PORT = 30004
 DASHBOARD_PORT = 29999
@@ -34,12 +29,6 @@ MOTION_CLOCKS = ("wall", "external")
 ROBOT_MODE_RUNNING = 7
 SAFETY_MODE_NORMAL = 1
 SAFETY_MODE_PROTECTIVE_STOP = 3
-
-#: SCHED_FIFO priority of a simulator process's threads where granted: a controller is hard
-#: real time and never waits for the PC's CPU. Below the arm process's (19, its keep-alive 20),
-#: as the real one is a machine of its own. At the robot node's niceness the simulator, starved
-#: beside a loaded test lane, stopped streaming for 200 ms and held a client's stop handshake.
-CONTROLLER_FIFO_PRIORITY = 10
 
 #: how long the simulator keeps the TCP's speed at each step (Controller.at_rest_since)
 MOTION_LOG_S = 10.0
@@ -81,6 +70,15 @@ class URSimConfig:
 
 class Controller:
     """The controller's state under ``lock``: the arm, safety mode, power and clock."""
+
+    #: SCHED_FIFO priority of the threads of a process that serves it, where granted (the
+    #: process raises its first thread before it starts the others: they inherit it): a
+    #: controller is hard real time and never waits for the PC's CPU. Below the arm process's
+    #: (19, its keep-alive 20), as the real one is a machine of its own. At the robot node's
+    #: niceness the simulator, starved beside a loaded test lane, stopped streaming for 200 ms
+    #: and held a client's stop handshake. A numpy pool thread made before the raise stays
+    #: fair (its spin while it waits would hold a core; ``URSimProcess`` starts none).
+    REALTIME_PRIORITY = 10
 
     def __init__(self, config: URSimConfig | None = None) -> None:
         self.config = config or URSimConfig()
@@ -170,13 +168,3 @@ class Controller:
                     break
                 since = t
             return since
-
-
-def raise_as_controller() -> None:
-    """This thread, and every thread it starts from now on, at ``CONTROLLER_FIFO_PRIORITY``
-    where granted, else at the simulated hardware's niceness: call it first in a process that
-    serves the simulator (``python -m robot_side.arm.sim``, ``deepxpalm sim ur``). A numpy pool
-    thread made before it stays fair: at that priority its spin while it waits would hold a
-    core (``URSimProcess`` starts none)."""
-    got = raise_this_thread(CONTROLLER_FIFO_PRIORITY, SIMULATED_HARDWARE_NICE)
-    log.debug("UR simulator at %s", got.describe())
