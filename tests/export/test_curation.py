@@ -37,23 +37,31 @@ CONTACT_S = 0.4
 #: (the script pauses 0.4 s). A pause is measured when contact comes back: the page pushes on
 #: a change and four times a second, so it may send nothing else while the palm is off.
 APART_S = 0.25
-#: the client marks grasp 0 (counted from the first it holds) failed and grasp 2 discarded,
+#: the client marks the first grasp it sees held failed and the one after next discarded,
 #: a whole grasp between them. The page and the recording see a release from different
 #: processes: beside a loaded machine a starved sensor simulator holds its last contact frame
 #: into the pause, and the export (grasp_gap_s 0.3 s) may join two grasps the page saw apart.
 #: With a grasp between them, the two marks never fall in one episode.
-MARKS = {0: ("failed", FAILED_TASK), 2: ("discard", None)}
+MARKS = {0: ("failed", FAILED_TASK), 2: ("discard", None)}  # grasps after the first held
 #: grasps after the discarded one: its end and two whole grasps (one to exclude, one to retask)
 AFTER_DISCARD = 3
 
 
 class PalmWatch:
-    """Contact on the page, in runs: the grasp it is in and how long it has been held."""
+    """Contact on the page, in grasps: the grasp it is in and how long it has been held.
+
+    A gap in contact shorter than ``APART_S`` (a stale push on a busy machine) neither ends
+    a grasp nor restarts its hold.
+    """
 
     def __init__(self) -> None:
         self.grasp = -1  # grasps begun since watching, -1 until the first contact
         self.touching: bool | None = None
         self.since = 0.0  # when the current run of contact (or of none) began
+        self.grasp_since = 0.0  # when the current grasp began
+        self.t0 = time.monotonic()
+        #: (seconds since watching, grasp, touching): what a failure reports
+        self.changes: list[tuple[float, int, bool]] = []
 
     def see(self, msg: dict) -> bool:
         """Take one page message; whether it was a state with the palm's stimulus."""
@@ -66,11 +74,13 @@ class PalmWatch:
             released = self.touching is False and now - self.since >= APART_S
             if contact and (self.grasp < 0 or released):
                 self.grasp += 1
+                self.grasp_since = now
             self.touching, self.since = contact, now
+            self.changes.append((round(now - self.t0, 3), self.grasp, contact))
         return True
 
     def held_s(self) -> float:
-        return time.monotonic() - self.since if self.touching else 0.0
+        return time.monotonic() - self.grasp_since if self.touching else 0.0
 
 
 class MarkingClient:
@@ -79,6 +89,7 @@ class MarkingClient:
     def __init__(self, ws_url: str) -> None:
         self.ws_url = ws_url
         self.acks: list[dict] = []
+        self.palm = PalmWatch()
         self.error: BaseException | None = None
         self.done = threading.Event()
         #: set once the discarded grasp ended and two more whole grasps followed it
@@ -89,21 +100,26 @@ class MarkingClient:
     def _run(self) -> None:
         try:
             with connect(self.ws_url) as ws:
-                palm, todo = PalmWatch(), dict(MARKS)
+                # the first grasp held on the page (the client may join one near its end)
+                palm, todo, first = self.palm, sorted(MARKS.items()), None
                 deadline = time.monotonic() + 60
                 while (todo or len(self.acks) < len(MARKS)) and time.monotonic() < deadline:
                     msg = json.loads(ws.recv(timeout=5))
                     if msg.get("type") == "ack":
                         self.acks.append(msg)
-                    elif palm.see(msg) and palm.grasp in todo and palm.held_s() >= CONTACT_S:
-                        kind, task = todo.pop(palm.grasp)
+                        continue
+                    if not palm.see(msg) or not todo or palm.held_s() < CONTACT_S:
+                        continue
+                    first = palm.grasp if first is None else first
+                    if palm.grasp - first >= todo[0][0]:
+                        kind, task = todo.pop(0)[1]
                         cmd = {"type": "command", "action": "episode_mark", "kind": kind}
                         if task:
                             cmd["task"] = task
                         ws.send(json.dumps(cmd))
                 self.done.set()
                 # counted on the palm, however long a busy machine makes them
-                last = max(MARKS) + AFTER_DISCARD
+                last = (first or 0) + max(MARKS) + AFTER_DISCARD
                 while palm.grasp < last and time.monotonic() < deadline + 60:
                     palm.see(json.loads(ws.recv(timeout=5)))
                 if palm.grasp >= last:
@@ -126,7 +142,9 @@ def marked_session(tmp_path_factory):
         code, _, stderr = demo.finish()
     assert client.error is None, repr(client.error)
     assert code == 0, stderr[-3000:]
-    assert [(a["ok"], a["kind"]) for a in client.acks] == [(True, "failed"), (True, "discard")]
+    assert [(a["ok"], a["kind"]) for a in client.acks] == [(True, "failed"), (True, "discard")], (
+        f"contact on the page (s, grasp, touching): {client.palm.changes}"
+    )
     return out
 
 
