@@ -60,8 +60,13 @@ STATUS_PERIOD_S = 0.02
 GOAL_LOG_SPAN_NS = 500_000_000
 
 
-def front_panel(sim: Any) -> dict[str, Any]:
-    """What an observer may read of a running simulator: its counters, the servos' goals."""
+def front_panel(sim: Any, previous_ns: int | None = None) -> dict[str, Any]:
+    """What an observer may read of a running simulator: its counters, the servos' goals.
+
+    The goal and torque-off logs reach back ``GOAL_LOG_SPAN_NS``, and at least to the
+    previous panel (``previous_ns``): a panel written late (this process starved) still
+    lists every write since the one before it.
+    """
     stats = getattr(sim, "stats", None)
     panel: dict[str, Any] = {"t_ns": time.monotonic_ns(), **(stats() if callable(stats) else {})}
     ids = getattr(getattr(sim, "config", None), "ids", None)
@@ -70,6 +75,8 @@ def front_panel(sim: Any) -> dict[str, Any]:
         panel["torque"] = {str(i): sim.torque(i) for i in ids}
     goal_log = getattr(sim, "goal_log", None)
     since = panel["t_ns"] - GOAL_LOG_SPAN_NS
+    if previous_ns is not None:
+        since = min(since, previous_ns - GOAL_LOG_SPAN_NS)
     if goal_log is not None:  # every goal that reached a servo lately, so a reader misses none
         panel["goal_log"] = [list(entry) for entry in list(goal_log) if entry[0] >= since]
     release_log = getattr(sim, "release_log", None)
@@ -88,9 +95,11 @@ def _cable_on_signals(sim: Any) -> None:
         on_signal(signal.SIGUSR2, sim.replug)
 
 
-def _publish_status(sim: Any, path: Path, stop: threading.Event) -> None:
+def _publish_status(sim: Any, path: Path, stop: threading.Event, previous_ns: int) -> None:
     while not stop.wait(STATUS_PERIOD_S):
-        write_stats(path, front_panel(sim))
+        panel = front_panel(sim, previous_ns)
+        write_stats(path, panel)
+        previous_ns = panel["t_ns"]
 
 
 def _where(sim: Any) -> dict[str, Any]:
@@ -129,9 +138,12 @@ def run(args: argparse.Namespace) -> int:
     sim.start()
     _cable_on_signals(sim)
     if args.status_file is not None:
-        write_stats(args.status_file, front_panel(sim))
+        first = front_panel(sim)
+        write_stats(args.status_file, first)
         threading.Thread(
-            target=_publish_status, args=(sim, args.status_file, stop), daemon=True
+            target=_publish_status,
+            args=(sim, args.status_file, stop, first["t_ns"]),
+            daemon=True,
         ).start()
     try:
         where = _where(sim)

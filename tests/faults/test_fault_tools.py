@@ -95,6 +95,24 @@ def test_a_simulator_shows_its_front_panel_and_unplugs_on_a_signal(tmp_path):
         proc.wait(10)
 
 
+def test_a_panel_written_late_still_lists_every_goal_since_the_one_before():
+    """A simulator starved past the log's span writes its next panel with every goal written
+    since its previous panel, not only the span's."""
+    from collections import deque
+
+    from deploy.sim_cli import GOAL_LOG_SPAN_NS, front_panel
+
+    class Bus:
+        def __init__(self, entries):
+            self.goal_log = deque(entries)
+
+    now = time.monotonic_ns()
+    previous = now - 3 * GOAL_LOG_SPAN_NS  # the last panel, long ago
+    old, recent = [previous + 1_000, 1, 100], [now - 1_000, 1, 200]
+    assert front_panel(Bus([old, recent]))["goal_log"] == [recent]
+    assert front_panel(Bus([old, recent]), previous)["goal_log"] == [old, recent]
+
+
 def test_a_controller_that_stops_answering_is_away_from_its_last_reading():
     """A killed UR simulator gives no readings: that is the controller away, from the last one.
 
