@@ -155,6 +155,8 @@ class CellResult:
     #: the processes' last log lines as the cell ended, for a failed verdict's message (the
     #: deployment's folder is gone by then); not part of the bench's row
     log_tails: str = field(default="", repr=False)
+    #: the palm as its probe saw it around the fault, for a failed verdict's message
+    palm_trace: str = field(default="", repr=False)
 
     @property
     def whole_again_s(self) -> float | None:
@@ -162,7 +164,7 @@ class CellResult:
 
     def as_dict(self) -> dict[str, Any]:
         row = asdict(self)
-        del row["log_tails"]
+        del row["log_tails"], row["palm_trace"]
         return row
 
 
@@ -465,7 +467,27 @@ class CellRun:
             until = tl.t_fault + result.arm_still_s
             gap = longest_silence([s for s in self.arm.samples if s.t_s <= until], tl.t_fault)
             notes.append(f"the arm's probe read nothing for at most {gap} s before it saw it still")
-        return dataclasses.replace(result, notes="; ".join(notes), log_tails=tails)
+        return dataclasses.replace(
+            result, notes="; ".join(notes), log_tails=tails, palm_trace=self._palm_trace(tl)
+        )
+
+    def _palm_trace(self, tl: _Timeline) -> str:
+        """The palm's probe around the fault (s after it): each change of its distance from the
+        retract pose, and the bus's goal writes, so a late lift says whether the bus took
+        the write late or the probe read it late."""
+        t0, t1 = tl.t_fault - 0.5, min(tl.t_release, tl.t_fault + 5.0)
+        changes, last = [], None
+        for s in self.palm.between(t0, t1):
+            if s.value != last:
+                changes.append(f"{s.t_s - tl.t_fault:+.3f}: {s.value:g}")
+                last = s.value
+        writes = sorted(
+            {round(t - tl.t_fault, 3) for t, _, _ in self.palm.goal_writes if t0 <= t < t1}
+        )
+        return (
+            f"palm distance from the retract pose (counts), each change: {changes[:40]}; "
+            f"the bus's goal writes (s after the fault): {writes[:40]}"
+        )
 
     def _controller_account(self, t_fault: float) -> str:
         """What the UR simulator says ended its program after the fault, and when (ms after

@@ -177,6 +177,7 @@ class PalmProbe(_Probe):
         return min((t for t, _, _ in self.goal_writes if t >= t_s), default=math.inf)
 
     def read(self) -> float | None:
+        """None: the panel's sample is placed at its own time (below), not at this read's."""
         panel = json.loads(self.status_file.read_text())
         if panel["t_ns"] == self._last_t_ns:
             return None  # the bus simulator is not running: no news
@@ -189,7 +190,11 @@ class PalmProbe(_Probe):
             (t / 1e9, i, p) for t, i, p in panel.get("release_log", []) if t / 1e9 > taken
         ]
         self._replay_goal_log(panel.get("goal_log", []), goals)
-        return self._distance(goals)
+        # at the panel's own time, as the log's writes are: read late (this thread starved), a
+        # panel stamped when read would stand after writes it does not hold yet, and show the
+        # palm pressed again just after a lift the log placed earlier
+        bisect.insort(self.samples, Sample(panel["t_ns"] / 1e9, self._distance(goals)))
+        return None
 
     def _distance(self, goals: list[int]) -> float:
         return float(max(abs(g - r) for g, r in zip(goals, self.retract, strict=True)))

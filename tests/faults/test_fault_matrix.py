@@ -102,5 +102,6 @@ def test_the_arm_stops_and_the_gripper_holds(cell: Cell, retract_goals: list[int
         f"the operator's loop woke at most {row.operator_late_ms} ms late"
         f"{', across the link gap' if row.operator_starved_through_gap else ''}: a palm that "
         "stays pressed on a dead link is the product failing, a busy machine or not); netsim "
-        f"forwarding again {row.link_back_s} s after the fault; {row}"
+        f"forwarding again {row.link_back_s} s after the fault; {row}\n{row.palm_trace}\n"
+        f"{row.log_tails}"
     )
