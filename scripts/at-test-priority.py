@@ -39,6 +39,7 @@ import contextlib
 import os
 import signal
 import sys
+import time
 from pathlib import Path
 
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -71,9 +72,23 @@ def _raise_priority(nice: int, group: int, then_group: int | None = None) -> str
     return None
 
 
+#: the kernel takes one group change every 100 ms from a user without CAP_SYS_ADMIN, counting
+#: everyone's (EAGAIN meanwhile): a busy test run starts sessions, each with its group set
+GROUP_RETRY_S = 0.11
+GROUP_TRIES = 20
+
+
 def _write_group(pid: int, group: int) -> None:
-    """The scheduling group of ``pid``'s session at niceness ``group`` (``sched_autogroup``)."""
-    Path(f"/proc/{pid}/autogroup").write_text(str(group))
+    """The scheduling group of ``pid``'s session at niceness ``group`` (``sched_autogroup``);
+    a change the kernel puts off (EAGAIN: another was made in the last 100 ms) is tried again."""
+    for attempt in range(GROUP_TRIES):
+        try:
+            Path(f"/proc/{pid}/autogroup").write_text(str(group))
+            return
+        except BlockingIOError:
+            if attempt == GROUP_TRIES - 1:
+                raise
+            time.sleep(GROUP_RETRY_S)
 
 
 def _set_group(pid: int, group: int) -> None:
