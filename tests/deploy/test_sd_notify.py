@@ -178,8 +178,14 @@ def test_robot_process_tells_systemd_it_is_ready_and_alive(systemd, tmp_path):
         proc.send_signal(signal.SIGUSR1)
         systemd.wait_for("WATCHDOG=1", 5.0)  # still alive and publishing after the dump
         assert proc.poll() is None
-    finally:
+    except AssertionError as e:  # the dump says where each thread was, the log why
         proc.terminate()
+        _, err = proc.communicate(timeout=15)
+        e.add_note(f"the node exited {proc.returncode}; its stderr:\n{err.decode()[-4000:]}")
+        raise
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
         _, err = proc.communicate(timeout=15)
     assert proc.returncode == 0, err.decode()
     dump = err.decode()
