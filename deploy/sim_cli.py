@@ -74,9 +74,7 @@ def front_panel(sim: Any, previous_ns: int | None = None) -> dict[str, Any]:
         panel["goals"] = {str(i): sim.goal(i) for i in ids}
         panel["torque"] = {str(i): sim.torque(i) for i in ids}
     goal_log = getattr(sim, "goal_log", None)
-    since = panel["t_ns"] - GOAL_LOG_SPAN_NS
-    if previous_ns is not None:
-        since = min(since, previous_ns - GOAL_LOG_SPAN_NS)
+    since = (panel["t_ns"] if previous_ns is None else previous_ns) - GOAL_LOG_SPAN_NS
     if goal_log is not None:  # every goal that reached a servo lately, so a reader misses none
         panel["goal_log"] = [list(entry) for entry in list(goal_log) if entry[0] >= since]
     release_log = getattr(sim, "release_log", None)

@@ -400,6 +400,16 @@ def listening_sockets(pid: int) -> list[tuple[str, str, int]]:
     return found
 
 
+class ManualClock:
+    """A clock a test moves by hand: call it for the time (s), set or add to ``t``."""
+
+    def __init__(self, t: float = 100.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
 def fifo_granted() -> bool:
     """Whether this process may run a thread at SCHED_FIFO (root, LimitRTPRIO=): tried on a
     thread of its own, which then ends."""

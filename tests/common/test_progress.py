@@ -7,6 +7,7 @@ import logging
 import re
 
 import pytest
+from tests_support import ManualClock
 
 from common.progress import PLAIN_STEP, Progress, clock, is_terminal
 
@@ -14,14 +15,6 @@ from common.progress import PLAIN_STEP, Progress, clock, is_terminal
 class FakeTerminal(io.StringIO):
     def isatty(self) -> bool:
         return True
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 @pytest.fixture
@@ -42,7 +35,7 @@ def test_a_terminal_gets_the_bar_and_ci_a_dumb_terminal_or_a_pipe_do_not(clean_e
 
 
 def test_the_bar_redraws_in_place_with_the_eta_of_its_rate(clean_env):
-    out, now = FakeTerminal(), FakeClock()
+    out, now = FakeTerminal(), ManualClock()
     bar = Progress("collect", 10, unit="levels", stream=out, clock_fn=now)
     for done in range(1, 5):
         now.t += 3.0
@@ -57,7 +50,7 @@ def test_the_bar_redraws_in_place_with_the_eta_of_its_rate(clean_env):
 
 
 def test_a_pipe_gets_a_plain_line_per_tenth_and_no_control_characters(clean_env):
-    out, now = io.StringIO(), FakeClock()
+    out, now = io.StringIO(), ManualClock()
     with Progress("export", 1000, unit="s recorded", stream=out, clock_fn=now) as bar:
         for _ in range(1000):
             now.t += 0.01
@@ -80,7 +73,7 @@ def test_ci_on_a_terminal_is_a_log(clean_env, monkeypatch):
 
 
 def test_a_log_line_takes_the_bar_off_its_line_first(clean_env):
-    out, now = FakeTerminal(), FakeClock()
+    out, now = FakeTerminal(), ManualClock()
     handler = logging.StreamHandler(out)
     root = logging.getLogger()
     root.addHandler(handler)

@@ -152,42 +152,42 @@ def test_robot_process_tells_systemd_it_is_ready_and_alive(systemd, tmp_path):
 
     ``kill -USR1`` then writes every thread's stack to the journal and the node runs on.
     """
-    proc = subprocess.Popen(
-        cli(
-            "robot",
-            "--config",
-            str(EXAMPLES / "robot.toml"),
-            "--set",
-            'tactile={kind="scripted"}',
-            "--set",
-            'gripper={kind="none"}',
-            "--set",
-            'arm={kind="none"}',
-            "--set",
-            'link.security={mode="plain"}',
-            *ROBOT_BINDS_ITS_PORTS,
-        ),
-        env={**ENV, "NOTIFY_SOCKET": systemd.env_value, "WATCHDOG_USEC": "2000000"},
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
+    stderr = tmp_path / "robot.stderr"  # read while it runs: the dump is there at once
+    with stderr.open("wb") as err_file:
+        proc = subprocess.Popen(
+            cli(
+                "robot",
+                "--config",
+                str(EXAMPLES / "robot.toml"),
+                "--set",
+                'tactile={kind="scripted"}',
+                "--set",
+                'gripper={kind="none"}',
+                "--set",
+                'arm={kind="none"}',
+                "--set",
+                'link.security={mode="plain"}',
+                *ROBOT_BINDS_ITS_PORTS,
+            ),
+            env={**ENV, "NOTIFY_SOCKET": systemd.env_value, "WATCHDOG_USEC": "2000000"},
+            stdout=subprocess.DEVNULL,
+            stderr=err_file,
+        )
     try:
         seen = systemd.wait_for("WATCHDOG=1", 20.0)
         (ready,) = [m for m in seen if m.startswith("READY=1")]
         assert "tcp://127.0.0.1:" in ready and "tcp://127.0.0.1:0" not in ready, ready
         proc.send_signal(signal.SIGUSR1)
-        systemd.wait_for("WATCHDOG=1", 5.0)  # still alive and publishing after the dump
+        try:
+            systemd.wait_for("WATCHDOG=1", 5.0)  # still alive and publishing after the dump
+        except AssertionError as e:  # the dump says where each thread was, the log why
+            e.add_note(f"the node's stderr:\n{stderr.read_text()[-4000:]}")
+            raise
         assert proc.poll() is None
-    except AssertionError as e:  # the dump says where each thread was, the log why
-        proc.terminate()
-        _, err = proc.communicate(timeout=15)
-        e.add_note(f"the node exited {proc.returncode}; its stderr:\n{err.decode()[-4000:]}")
-        raise
     finally:
-        if proc.poll() is None:
-            proc.terminate()
-        _, err = proc.communicate(timeout=15)
-    assert proc.returncode == 0, err.decode()
-    dump = err.decode()
+        proc.terminate()
+        proc.wait(timeout=15)
+    dump = stderr.read_text()
+    assert proc.returncode == 0, dump
     assert "most recent call first" in dump and "in run" in dump, dump[-2000:]
     assert Path(systemd.env_value).exists()

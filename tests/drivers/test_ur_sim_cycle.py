@@ -16,7 +16,7 @@ import struct
 from pathlib import Path
 
 import pytest
-from tests_support import fifo_granted
+from tests_support import ManualClock, fifo_granted
 
 from harness.processes import thread_policies
 from robot_side.arm.sim import URSimProcess, rtde_server
@@ -25,17 +25,9 @@ from robot_side.arm.sim.rtde_server import RTDEConnection
 from robot_side.arm.sim.server import URSimConfig, URSimulator
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
 @pytest.fixture
 def rig(monkeypatch):
-    clock = Clock()
+    clock = ManualClock()
     monkeypatch.setattr(rtde_server, "now_s", clock)
     sim = URSimulator(URSimConfig())  # never started: its parts only
     a, b = socket.socketpair()
