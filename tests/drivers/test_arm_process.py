@@ -86,8 +86,13 @@ def test_the_keep_alive_runs_in_the_arm_process_on_time_and_says_how():
         assert summary["realtime"] == float(fifo_granted())
         assert summary["count"] >= 40
         assert summary["p50_ms"] == pytest.approx(20.0, abs=1.0)
-        live = arm.live_readings()  # from shared memory: the pose, and the keep-alive's timing
-        assert {"arm_x", "arm_speed_m_s", "arm_keepalive_p99_ms"} <= set(live)
+        # from shared memory: the pose, and the keep-alive's timing. Not live for a moment when
+        # the receive thread (fair, by design) was starved past the stream's 100 ms staleness
+        # on a busy machine: the state says so rather than pass off an old pose
+        wanted = {"arm_x", "arm_speed_m_s", "arm_keepalive_p99_ms"}
+        reads: list[dict] = []
+        _wait(lambda: reads.append(arm.live_readings()) or wanted <= set(reads[-1]), 1.0)
+        assert wanted <= set(reads[-1]), f"not live within 1 s: {reads[-1]}"
         # no thread it did not start for its duties runs real-time (numpy's BLAS pool thread
         # did: it spins while it waits for work, and held a core at every start)
         assert _unnamed_realtime_threads(arm.pid) == []
